@@ -1,0 +1,224 @@
+"""Reading and writing dataset directories, atomically; file fingerprints.
+
+Layout (``docs/dataset-format.md``)::
+
+    DIR/data/part-00000.parquet ...   transitions, zstd, whole episodes per part
+    DIR/meta/info.json                DatasetInfo + counts
+    DIR/meta/episodes.parquet         one row per episode
+    DIR/meta/stats.json               per-column statistics, counts per source/action
+    DIR/quarantine/                   rejected episodes with a reason per row (optional)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+import warnings
+from collections.abc import Iterator
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from offline_adp.data import schema as S
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import DatasetInfo
+from offline_adp.errors import DatasetNotFoundError, FormatVersionWarning, OfflineADPError, SchemaError
+
+DEFAULT_ROWS_PER_PART = 1_000_000
+
+
+def sha256_file(path: str | PathLike[str], chunk: int = 1 << 20) -> str:
+    """sha256 of a file's bytes, hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+@contextlib.contextmanager
+def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a temporary directory next to ``target``; on success rename it to ``target``.
+
+    A crash or exception inside the block removes the temporary directory and leaves
+    ``target`` as it was (absent, or the previous version when overwriting).
+    """
+    target = Path(target)
+    if target.exists() and not overwrite:
+        raise OfflineADPError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        yield tmp
+        if target.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, trash / "old")
+            os.replace(tmp, target)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def write_json(path: Path, obj: Any) -> None:
+    from offline_adp.data.info import _json_default
+
+    path.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+
+def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
+    """Per-column statistics, counts per source and per action (``meta/stats.json``)."""
+    stats: dict[str, Any] = {"n_transitions": len(ds), "n_episodes": ds.n_episodes, "columns": {}}
+    for c in [*ds.obs_columns, S.COST, *ds.next_obs_columns]:
+        x = ds.table.column(c).to_numpy()
+        finite = x[np.isfinite(x)]
+        stats["columns"][c] = (
+            {
+                "mean": float(finite.mean()),
+                "std": float(finite.std()),
+                "min": float(finite.min()),
+                "max": float(finite.max()),
+                "non_finite": int(len(x) - len(finite)),
+            }
+            if len(finite)
+            else {"non_finite": int(len(x))}
+        )
+    a = ds.table.column(S.ACTION).to_numpy()
+    counts = np.bincount(a[(a >= 0) & (a < ds.n_actions)], minlength=ds.n_actions)
+    stats["action_counts"] = {name: int(n) for name, n in zip(ds.info.action_table.names, counts, strict=True)}
+    stats["source_counts"] = ds.source_counts()
+    stats["terminated_episodes"] = int(ds.table.column(S.TERMINATED).to_numpy().sum())
+    stats["truncated_episodes"] = int(ds.table.column(S.TRUNCATED).to_numpy().sum())
+    return stats
+
+
+def write_dataset(
+    ds: TransitionDataset,
+    path: str | PathLike[str],
+    *,
+    overwrite: bool = False,
+    rows_per_part: int = DEFAULT_ROWS_PER_PART,
+    quarantine: pa.Table | None = None,
+    extra_meta: dict[str, Any] | None = None,
+) -> Path:
+    """Write ``ds`` as a dataset directory at ``path``, atomically.
+
+    Parts hold whole episodes and at most about ``rows_per_part`` rows (an episode
+    longer than that gets a part of its own). ``quarantine`` (rows rejected by the
+    doctor, with a ``reason`` column) is written to ``quarantine/``. ``extra_meta`` is
+    merged into ``info.json`` (e.g. the doctor's summary).
+    """
+    path = Path(path)
+    ep = ds.episode_table()
+    with atomic_directory(path, overwrite=overwrite) as tmp:
+        (tmp / S.DATA_DIR).mkdir()
+        (tmp / S.META_DIR).mkdir()
+        for k, (lo, hi) in enumerate(_part_bounds(ep["first_row"].to_numpy(), len(ds), rows_per_part)):
+            pq.write_table(
+                ds.table.slice(lo, hi - lo),
+                tmp / S.DATA_DIR / S.PART_TEMPLATE.format(k),
+                compression=S.PARQUET_COMPRESSION,
+            )
+        info = ds.info.to_dict()
+        info["n_transitions"] = len(ds)
+        info["n_episodes"] = ds.n_episodes
+        info["fingerprint"] = ds.fingerprint()
+        info["columns"] = {f.name: str(f.type) for f in ds.table.schema}
+        if extra_meta:
+            info.update(extra_meta)
+        write_json(tmp / S.INFO_FILE, info)
+        pq.write_table(pa.Table.from_pandas(ep, preserve_index=False), tmp / S.EPISODES_FILE)
+        write_json(tmp / S.STATS_FILE, dataset_stats(ds))
+        if quarantine is not None and quarantine.num_rows:
+            (tmp / S.QUARANTINE_DIR).mkdir()
+            pq.write_table(quarantine, tmp / S.QUARANTINE_DIR / S.PART_TEMPLATE.format(0), compression=S.PARQUET_COMPRESSION)
+    return path
+
+
+def _part_bounds(starts: np.ndarray, n_rows: int, rows_per_part: int) -> list[tuple[int, int]]:
+    if n_rows == 0:
+        return [(0, 0)]
+    bounds: list[tuple[int, int]] = []
+    lo = 0
+    # cut at the first episode start at or beyond lo + rows_per_part, repeatedly
+    while lo < n_rows:
+        k = np.searchsorted(starts, lo + rows_per_part, side="left")
+        hi = int(starts[k]) if k < len(starts) else n_rows
+        if hi <= lo:  # single episode longer than rows_per_part
+            nxt = np.searchsorted(starts, lo, side="right")
+            hi = int(starts[nxt]) if nxt < len(starts) else n_rows
+        bounds.append((lo, hi))
+        lo = hi
+    return bounds
+
+
+def read_info(path: str | PathLike[str]) -> dict[str, Any]:
+    """The raw ``meta/info.json`` of a dataset directory."""
+    path = Path(path)
+    info_path = path / S.INFO_FILE
+    if not info_path.is_file():
+        raise DatasetNotFoundError(
+            f"{path} is not a dataset directory (no {S.INFO_FILE}); create one with "
+            "`offline-adp ingest parquet ...` or `offline-adp simulate ...`"
+        )
+    try:
+        return json.loads(info_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise SchemaError(f"{info_path}: not valid JSON ({exc})") from exc
+
+
+def part_files(path: str | PathLike[str]) -> list[Path]:
+    """The dataset's Parquet parts in order."""
+    return sorted((Path(path) / S.DATA_DIR).glob("part-*.parquet"))
+
+
+def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
+    """Read a dataset directory written by :func:`write_dataset`.
+
+    Raises
+    ------
+    DatasetNotFoundError
+        If ``path`` has no ``meta/info.json``.
+    SchemaError
+        If metadata or columns do not match the format.
+    """
+    path = Path(path)
+    raw = read_info(path)
+    info = DatasetInfo.from_dict(raw, where=str(path / S.INFO_FILE))
+    if info.format_version != S.FORMAT_VERSION:
+        warnings.warn(
+            f"{path}: written with dataset format {info.format_version!r}, this package reads "
+            f"{S.FORMAT_VERSION!r}; re-ingest if anything looks wrong",
+            FormatVersionWarning,
+            stacklevel=2,
+        )
+    parts = part_files(path)
+    if not parts:
+        raise SchemaError(f"{path}: no data/part-*.parquet files")
+    tables = []
+    for p in parts:
+        try:
+            tables.append(pq.read_table(p))
+        except (OSError, pa.ArrowInvalid) as exc:
+            raise SchemaError(f"{p}: unreadable Parquet part ({exc})") from exc
+    try:
+        table = pa.concat_tables(tables, promote_options="permissive")
+    except pa.ArrowInvalid as exc:
+        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from exc
+    return TransitionDataset(table, info)
+
+
+def read_quarantine(path: str | PathLike[str]) -> pa.Table | None:
+    """Rows quarantined at ingestion (with a ``reason`` column), or None."""
+    parts = sorted((Path(path) / S.QUARANTINE_DIR).glob("part-*.parquet"))
+    return pa.concat_tables([pq.read_table(p) for p in parts]) if parts else None

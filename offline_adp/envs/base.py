@@ -1,0 +1,98 @@
+"""What every reference problem offers: metadata, behaviour policies and a gymnasium.Env."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from offline_adp.access import ResetModel
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.policies import Policy, UniformPolicy
+
+
+class ReferenceProblem:
+    """Mix-in for a reference problem; combine with an access model class.
+
+    A reference problem is fully observed: its state is the observation vector whose
+    features are ``features``. Subclasses set ``name``, ``features``, ``action_table``,
+    ``gamma``, ``horizon`` and implement the access model's methods.
+    """
+
+    name: str = ""
+    features: tuple[Feature, ...] = ()
+    action_table: ActionTable
+    #: Dotted path of the module documenting the problem's source.
+    reference: str = ""
+
+    @property
+    def feature_names(self) -> list[str]:
+        return [f.name for f in self.features]
+
+    def demonstrator(self) -> Policy:
+        """A reasonable heuristic/expert behaviour policy (stochastic where noisy)."""
+        return UniformPolicy(self.action_table.__len__())
+
+    def exploration(self) -> Policy:
+        """The exploration behaviour policy (uniformly random actions by default)."""
+        return UniformPolicy(len(self.action_table))
+
+    def dataset_info(self, **provenance: Any) -> DatasetInfo:
+        """Metadata for data logged on this problem."""
+        assert isinstance(self, ResetModel)
+        return DatasetInfo(
+            features=self.features,
+            action_table=self.action_table,
+            gamma=self.gamma,
+            horizon=self.horizon,
+            propensity_source="logged",
+            provenance=provenance,
+            name=self.name,
+            problem=self.name,
+        )
+
+    def make_env(self, **kwargs: Any) -> ProblemEnv:
+        """This problem as a ``gymnasium.Env`` (reward = -cost)."""
+        return ProblemEnv(self, **kwargs)
+
+
+class ProblemEnv(gym.Env):
+    """A reference problem as a ``gymnasium.Env``.
+
+    Observations are the problem's feature vector, actions indices into its action
+    table, ``reward = -cost`` (gymnasium maximises; this library minimises cost and
+    reports ``info["cost"]``). ``truncated`` is set at the problem's horizon.
+    ``reset(options={"state": x})`` starts from a given state.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, problem: ReferenceProblem, max_episode_steps: int | None = None) -> None:
+        assert isinstance(problem, ResetModel)
+        self.problem = problem
+        self.max_episode_steps = max_episode_steps if max_episode_steps is not None else problem.horizon
+        self.action_space = gym.spaces.Discrete(len(problem.action_table))
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(problem.obs_dim,), dtype=np.float64)
+        self._state: np.ndarray | None = None
+        self._t = 0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        if options and "state" in options:
+            self._state = np.asarray(options["state"], dtype=np.float64).reshape(1, -1)
+        else:
+            self._state = self.problem.initial_states(1, self.np_random)
+        self._t = 0
+        return self._state[0].copy(), {}
+
+    def step(self, action: int):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        r = self.problem.step(self._state, np.array([int(action)]), self.np_random)
+        self._state = r.next_states
+        self._t += 1
+        terminated = bool(r.terminated[0])
+        truncated = (not terminated) and self.max_episode_steps is not None and self._t >= self.max_episode_steps
+        cost = float(r.costs[0])
+        return self._state[0].copy(), -cost, terminated, truncated, {"cost": cost}

@@ -1,0 +1,65 @@
+"""Exception and warning types raised by offline_adp.
+
+Every error raised on bad input is one of these, and its message names the file, row
+(episode_id, step) or key at fault, says what was expected and what was found, and where
+possible the command that fixes it.
+"""
+
+from __future__ import annotations
+
+
+class OfflineADPError(Exception):
+    """Base class of every error raised by offline_adp on bad input or bad use."""
+
+
+class SchemaError(OfflineADPError):
+    """A table or dataset does not have the columns, types or metadata the format requires."""
+
+
+class SpecError(OfflineADPError):
+    """An ingestion spec or pipeline file is malformed (unknown key, wrong type, bad value)."""
+
+
+class IngestError(OfflineADPError):
+    """An input file could not be turned into a dataset (unreadable, inconsistent rows)."""
+
+
+class ValidationError(OfflineADPError):
+    """The dataset doctor found defects and the caller asked to fail on them.
+
+    Attributes
+    ----------
+    report : offline_adp.data.validate.ValidationReport
+        The full report; ``str(error)`` shows its first findings.
+    """
+
+    def __init__(self, message: str, report: object | None = None) -> None:
+        super().__init__(message)
+        self.report = report
+
+
+class DatasetNotFoundError(OfflineADPError, FileNotFoundError):
+    """A path that should be a dataset directory is missing or is not one."""
+
+
+class NotFittedError(OfflineADPError, AttributeError):
+    """An estimator was used before ``fit``."""
+
+
+class AccessModelError(OfflineADPError, TypeError):
+    """An algorithm was given a weaker access model than it needs."""
+
+
+class UnknownNameError(OfflineADPError, KeyError):
+    """A registry lookup (problem, regressor, format) failed; the message lists valid names."""
+
+    def __str__(self) -> str:  # KeyError would repr() the message
+        return str(self.args[0]) if self.args else ""
+
+
+class FormatVersionWarning(UserWarning):
+    """A dataset or artifact was written by a different format or package version."""
+
+
+class DivergenceWarning(RuntimeWarning):
+    """An iterative algorithm's values grew beyond what the problem allows."""
