@@ -368,12 +368,14 @@ class TransitionDataset:
     def fingerprint(self) -> str:
         """sha256 of the content (columns and metadata that define the data), hex.
 
-        Independent of chunking and of provenance: two datasets with the same rows,
+        Independent of chunking and of provenance (extra columns such as ``src_file``
+        and the ``provenance`` metadata are left out): two datasets with the same rows,
         features and action table have the same fingerprint.
         """
         h = hashlib.sha256()
         h.update(repr((self.info.feature_names, self.info.action_table.to_dict())).encode())
-        for name in sorted(self.table.column_names):
+        known = set(_column_order(self.info))
+        for name in sorted(c for c in self.table.column_names if c in known):
             col = self.table.column(name)
             h.update(name.encode())
             if pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):

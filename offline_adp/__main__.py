@@ -1,0 +1,5 @@
+import sys
+
+from offline_adp.cli import main
+
+sys.exit(main())

@@ -1,0 +1,283 @@
+"""``offline-adp``: a thin command line over the library's functions.
+
+Every subcommand's ``--help`` ends with an example. Errors of our own types print one
+clear message (no traceback) and exit with status 2; ``--traceback`` shows the stack.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from offline_adp._version import __version__
+from offline_adp.errors import OfflineADPError, ValidationError
+
+FORMATS = ("dataset", "parquet", "csv", "mcap-json", "mcap-ros2")
+
+
+def _progress(quiet: bool):
+    """A step-progress callback: a tqdm bar on stderr unless quiet."""
+    if quiet:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(unit="step", desc="simulating", leave=False, file=sys.stderr)
+    last = {"t": -1}
+
+    def on_step(t: int) -> None:
+        if t != last["t"]:
+            last["t"] = t
+            bar.update(1)
+
+    return on_step, bar.close
+
+
+def _say(args: argparse.Namespace, msg: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(msg, file=sys.stderr)
+
+
+# ---------------------------------------------------------------------------- simulate
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from offline_adp.simulate import simulate
+
+    options = json.loads(args.problem_options) if args.problem_options else None
+    on_step, close = _progress(args.quiet)
+    try:
+        ds = simulate(args.problem, args.demonstrations, args.exploration, seed=args.seed, horizon=args.horizon,
+                      problem_options=options, on_step=on_step)
+    finally:
+        close()
+    out = Path(args.out)
+    if args.format == "dataset":
+        from offline_adp.data.validate import validate
+
+        report = validate(ds)
+        if not report.ok:  # a simulator bug, never user input
+            raise ValidationError("simulated data failed the doctor:\n" + report.to_text(), report)
+        ds.save(out, overwrite=args.overwrite)
+        written = [out]
+    elif args.format in ("parquet", "csv"):
+        from offline_adp.simulate.raw import write_raw
+
+        if out.suffix == "":
+            out = out / f"{ds.info.problem}.{args.format}"
+        if out.exists() and not args.overwrite:
+            raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+        written = list(write_raw(ds, out, fmt=args.format))
+    else:
+        from offline_adp.simulate.mcap_writer import write_mcap
+
+        if out.exists() and any(out.iterdir()) and not args.overwrite:
+            raise OfflineADPError(f"{out} is not empty; pass --overwrite to write into it")
+        written = write_mcap(ds, out, encoding=args.format.split("-")[1], seed=args.seed)
+    counts = ds.source_counts()
+    _say(args, f"simulated {ds.info.problem}: {ds.n_episodes} episodes, {len(ds)} transitions {counts}")
+    for p in written:
+        print(p)
+    return 0
+
+
+# ---------------------------------------------------------------------------- ingest
+def cmd_ingest_parquet(args: argparse.Namespace) -> int:
+    from offline_adp.ingest.parquet import ingest_parquet
+
+    res = ingest_parquet(
+        args.inputs,
+        args.spec,
+        args.out,
+        on_error=args.on_error,
+        overwrite=args.overwrite,
+        progress=None if args.quiet else (lambda m: print(f"  {m}", file=sys.stderr)),
+    )
+    print(res.report.to_text())
+    s = res.summary()
+    print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
+    if s["quarantined_rows"]:
+        print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to {args.out}/quarantine/ with a reason per row")
+    if s["dropped_last_rows"]:
+        print(f"dropped {s['dropped_last_rows']} last rows of step-table episodes without a next state (see docs/ingestion-spec.md)")
+    return 0
+
+
+# ---------------------------------------------------------------------------- validate / inspect
+def cmd_validate(args: argparse.Namespace) -> int:
+    from offline_adp.data.validate import validate_directory
+
+    report = validate_directory(args.dataset)
+    if args.json:
+        print(json.dumps({**report.summary(), "findings": report.findings.head(args.max_findings).to_dict("records")}, default=str, indent=2))
+    else:
+        print(report.to_text(max_findings=args.max_findings))
+    return 0 if report.ok else 1
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from offline_adp.data import schema as S
+    from offline_adp.data.io import read_dataset, read_quarantine
+
+    ds = read_dataset(args.dataset)
+    info = ds.info
+    ep = ds.episode_table()
+    a = ds.table.column(S.ACTION).to_numpy()
+    cost = ds.table.column(S.COST).to_numpy()
+    report = {
+        "path": str(args.dataset),
+        "name": info.name,
+        "problem": info.problem,
+        "format_version": info.format_version,
+        "transitions": len(ds),
+        "episodes": ds.n_episodes,
+        "features": [f"{f.name} [{f.unit}]" if f.unit else f.name for f in info.features],
+        "actions": {
+            "kind": info.action_table.kind,
+            "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(), strict=True)},
+            "coverage": {n: int(c) for n, c in zip(info.action_table.names, np.bincount(a, minlength=ds.n_actions), strict=True)},
+        },
+        "per_source": {
+            str(src): {
+                "episodes": int(len(g)),
+                "transitions": int(g["length"].sum()),
+                "mean_total_cost": float(g["total_cost"].mean()),
+                "terminated": int(g[S.TERMINATED].sum()),
+            }
+            for src, g in ep.groupby(S.SOURCE, observed=True)
+        },
+        "episode_length": {q: float(v) for q, v in zip(("min", "p25", "median", "p75", "max"), np.quantile(ep["length"], [0, 0.25, 0.5, 0.75, 1]), strict=True)} if len(ep) else {},
+        "cost": {"mean": float(cost.mean()), "std": float(cost.std()), "min": float(cost.min()), "max": float(cost.max())} if len(cost) else {},
+        "gamma": info.gamma,
+        "horizon": info.horizon,
+        "propensities": info.propensity_source if ds.has_propensities else "none",
+        "fingerprint": ds.fingerprint()[:16],
+    }
+    q = read_quarantine(args.dataset)
+    if q is not None:
+        report["quarantined_rows"] = q.num_rows
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    print(f"{report['path']}  ({report['transitions']} transitions, {report['episodes']} episodes, format {report['format_version']})")
+    print(f"  features    {', '.join(report['features'])}")
+    print(f"  actions     {info.action_table.kind}: " + ", ".join(f"{n}={v}" for n, v in report["actions"]["table"].items()))
+    print("  coverage    " + ", ".join(f"{n}: {c}" for n, c in report["actions"]["coverage"].items()))
+    for src, d in report["per_source"].items():
+        print(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost {d['mean_total_cost']:.4g}, terminated {d['terminated']}")
+    el = report["episode_length"]
+    if el:
+        print(f"  ep. length  min {el['min']:.0f}  p25 {el['p25']:.0f}  median {el['median']:.0f}  p75 {el['p75']:.0f}  max {el['max']:.0f}")
+    c = report["cost"]
+    if c:
+        print(f"  cost/step   mean {c['mean']:.4g}  std {c['std']:.4g}  min {c['min']:.4g}  max {c['max']:.4g}")
+    print(f"  hints       gamma={info.gamma} horizon={info.horizon}; propensities: {report['propensities']}")
+    if "quarantined_rows" in report:
+        print(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
+    return 0
+
+
+# ---------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = argparse.ArgumentParser(
+        prog="offline-adp",
+        formatter_class=fmt,
+        description="Offline approximate dynamic programming over logged robot and vehicle data.",
+        epilog="example:\n  offline-adp simulate path_tracking --out data/pt && offline-adp inspect data/pt",
+    )
+    p.add_argument("--version", action="version", version=f"offline-adp {__version__}")
+    p.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    from offline_adp.envs import PROBLEMS
+
+    s = sub.add_parser(
+        "simulate",
+        help="log demonstrations + exploration on a reference problem",
+        formatter_class=fmt,
+        description="Write a logged dataset from a reference problem: demonstrations (a noisy expert) plus "
+        "exploration (random actions), labelled by source, with logged propensities.",
+        epilog="examples:\n"
+        "  offline-adp simulate car_on_hill --exploration 1000 --demonstrations 0 --out data/coh\n"
+        "  offline-adp simulate path_tracking --format parquet --out logs/pt.parquet\n"
+        "  offline-adp simulate path_tracking --format mcap-ros2 --out logs/ros2/",
+    )
+    s.add_argument("problem", choices=sorted(PROBLEMS))
+    s.add_argument("--out", required=True, help="dataset directory, raw table file, or MCAP directory")
+    s.add_argument("--format", choices=FORMATS, default="dataset", help="output format (default: dataset)")
+    s.add_argument("--demonstrations", type=int, default=100, help="demonstration episodes (default 100)")
+    s.add_argument("--exploration", type=int, default=100, help="exploration episodes (default 100)")
+    s.add_argument("--horizon", type=int, default=None, help="episode time limit (default: the problem's)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--problem-options", default=None, help='JSON keyword arguments, e.g. \'{"n_states": 30}\'')
+    s.add_argument("--overwrite", action="store_true")
+    s.add_argument("--quiet", "-q", action="store_true")
+    s.set_defaults(func=cmd_simulate)
+
+    ing = sub.add_parser("ingest", help="turn logs into a validated dataset directory")
+    ingsub = ing.add_subparsers(dest="source_format", metavar="FORMAT", required=True)
+    ip = ingsub.add_parser(
+        "parquet",
+        help="Parquet/CSV transition or step tables",
+        formatter_class=fmt,
+        description="Ingest Parquet or CSV tables through a TOML spec (docs/ingestion-spec.md); the dataset "
+        "doctor runs at the end.",
+        epilog="example:\n  offline-adp ingest parquet logs/*.parquet --spec logs/pt.spec.toml --out data/pt --on-error quarantine",
+    )
+    ip.add_argument("inputs", nargs="+", help="Parquet or CSV files")
+    ip.add_argument("--spec", required=True, help="TOML ingestion spec")
+    ip.add_argument("--out", required=True, help="dataset directory to write")
+    ip.add_argument("--on-error", choices=("fail", "quarantine"), default=None, help="default: the spec's on_error (fail)")
+    ip.add_argument("--overwrite", action="store_true")
+    ip.add_argument("--quiet", "-q", action="store_true")
+    ip.set_defaults(func=cmd_ingest_parquet)
+
+    v = sub.add_parser(
+        "validate",
+        help="run the dataset doctor",
+        formatter_class=fmt,
+        description="Check every rule of the dataset format; each finding names file, row, episode, step and column. "
+        "Exit status 1 if anything is found.",
+        epilog="example:\n  offline-adp validate data/pt --max-findings 50",
+    )
+    v.add_argument("dataset")
+    v.add_argument("--max-findings", type=int, default=20)
+    v.add_argument("--json", action="store_true")
+    v.set_defaults(func=cmd_validate)
+
+    i = sub.add_parser(
+        "inspect",
+        help="summarise a dataset",
+        formatter_class=fmt,
+        description="Schema, counts per source, action coverage, episode lengths and cost statistics.",
+        epilog="example:\n  offline-adp inspect data/pt --json",
+    )
+    i.add_argument("dataset")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_inspect)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args))
+    except OfflineADPError as exc:
+        if args.traceback:
+            raise
+        print(f"offline-adp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,338 @@
+"""Parquet/CSV transition or step tables -> validated dataset directory.
+
+The user's files are read as they are (only the spec's columns), mapped through the
+spec, sorted by (episode, order), checked by the doctor, and written atomically. Every
+row keeps ``src_file``/``src_row`` so a finding or a quarantined row names its origin.
+
+Step tables (``kind = "steps"``) get ``next_obs`` by shifting within each episode. The
+last row of an episode has no following row:
+
+- if it is ``terminated``, ``next_obs`` is set to its own ``obs`` (a placeholder: no
+  algorithm bootstraps through termination);
+- otherwise, if the spec gives ``next_columns``, they supply its next state;
+- otherwise the row cannot form a transition: it is dropped, the previous row becomes
+  the episode's (truncated) end, and the count is reported in the summary and in
+  ``info.json`` (``ingest.dropped_last_rows``) - never silently.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.csv as pacsv
+import pyarrow.parquet as pq
+
+from offline_adp._version import __version__
+from offline_adp.data import schema as S
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import DatasetInfo, Feature
+from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.validate import ValidationReport, split_quarantine, validate
+from offline_adp.errors import IngestError, ValidationError
+from offline_adp.ingest.actions import bin_continuous, map_discrete
+from offline_adp.ingest.spec import TIME_UNITS, ParquetSpec, load_parquet_spec
+
+
+@dataclass
+class IngestResult:
+    """What an ingestion produced and found."""
+
+    dataset: TransitionDataset
+    report: ValidationReport
+    quarantined_rows: int = 0
+    quarantined_episodes: int = 0
+    dropped_last_rows: int = 0
+    inputs: list[dict[str, Any]] = field(default_factory=list)
+    path: Path | None = None
+    quarantine: pa.Table | None = None
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "episodes": self.dataset.n_episodes,
+            "transitions": len(self.dataset),
+            "per_source": self.dataset.source_counts(),
+            "quarantined_episodes": self.quarantined_episodes,
+            "quarantined_rows": self.quarantined_rows,
+            "dropped_last_rows": self.dropped_last_rows,
+            "inputs": len(self.inputs),
+        }
+
+
+def _read(path: Path, spec: ParquetSpec) -> pa.Table:
+    fmt = spec.format
+    if fmt == "auto":
+        suffix = "".join(path.suffixes[-2:]).lower()
+        fmt = "csv" if ".csv" in suffix or ".tsv" in suffix else "parquet"
+    cols = spec.needed_columns()
+    try:
+        if fmt == "csv":
+            opts = pacsv.ReadOptions()
+            table = pacsv.read_csv(path, read_options=opts, parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
+            available = table.column_names
+        else:
+            available = pq.read_schema(path).names
+            table = None
+    except FileNotFoundError:
+        raise IngestError(f"{path}: no such file") from None
+    except (OSError, pa.ArrowInvalid) as exc:
+        raise IngestError(f"{path}: cannot read as {fmt} ({exc})") from exc
+    missing = [c for c in cols if c not in available]
+    if missing:
+        raise IngestError(f"{path}: spec needs columns {missing} that the file does not have; it has {available}")
+    if table is None:
+        try:
+            table = pq.read_table(path, columns=cols)
+        except (OSError, pa.ArrowInvalid) as exc:
+            raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
+    return table.select(cols)
+
+
+def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
+    c = table.column(col)
+    if c.null_count and dtype is not object:
+        bad = np.flatnonzero(np.asarray(pc.is_null(c)))
+        if dtype is bool:
+            return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
+        if np.dtype(dtype).kind == "f":
+            return c.to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
+        raise IngestError(f"{file_of(bad[:1])}: column {col!r} has {len(bad)} missing values (first at row {bad[0]})")
+    try:
+        return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False) if dtype is not object else c.to_numpy(zero_copy_only=False)
+    except (ValueError, TypeError, pa.ArrowInvalid) as exc:
+        raise IngestError(f"column {col!r} cannot be read as {np.dtype(dtype).name}: {exc}") from exc
+
+
+def ingest_tables(
+    inputs: Sequence[str | PathLike[str]],
+    spec: ParquetSpec,
+    *,
+    on_error: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> IngestResult:
+    """Read, map, sort and check the inputs; returns the (clean) dataset and report."""
+    on_error = on_error or spec.on_error
+    if on_error not in ("fail", "quarantine"):
+        raise IngestError(f"on_error must be 'fail' or 'quarantine', got {on_error!r}")
+    paths = [Path(p) for p in inputs]
+    if not paths:
+        raise IngestError("no input files given")
+    tables, metas = [], []
+    for k, p in enumerate(paths):
+        if progress:
+            progress(f"reading {p}")
+        t = _read(p, spec)
+        t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
+            "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
+        )
+        # unify id column type across files
+        t = t.set_column(0, spec.episode.id, t.column(spec.episode.id).cast(pa.string()))
+        tables.append(t)
+        metas.append({"path": str(p), "sha256": sha256_file(p), "rows": t.num_rows})
+    try:
+        table = pa.concat_tables(tables, promote_options="permissive")
+    except pa.ArrowInvalid as exc:
+        raise IngestError(f"input files have incompatible column types: {exc}") from exc
+    names_of = np.array([m["path"] for m in metas], dtype=object)
+
+    # episodes may not span files (they would silently merge)
+    ep_file = pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")}).group_by("e").aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])
+    multi = ep_file.filter(pc.greater(ep_file.column("f_count_distinct"), 1))
+    if multi.num_rows:
+        r = multi.slice(0, 1).to_pylist()[0]
+        raise IngestError(
+            f"episode id {r['e']!r} occurs in {names_of[r['f_min']]} and {names_of[r['f_max']]} "
+            f"({multi.num_rows} ids in several files); give each file distinct episode ids"
+        )
+
+    # order within episodes
+    order_col = spec.episode.step or spec.episode.order or spec.episode.time
+    assert order_col is not None
+    idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"), ("__row", "ascending")])
+    if not _identity(idx):
+        table = table.take(idx)
+    n = table.num_rows
+    fidx = table.column("__file").to_numpy()
+    rows = table.column("__row").to_numpy()
+
+    def file_of(i: np.ndarray) -> str:
+        return str(names_of[fidx[i[0]]]) if len(i) else "?"
+
+    ep_ids = table.column(spec.episode.id)
+    enc = pc.dictionary_encode(ep_ids).combine_chunks()
+    codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+    first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
+    last = np.r_[codes[1:] != codes[:-1], True] if n else np.zeros(0, bool)
+    starts = np.flatnonzero(first)
+    lens = np.diff(np.r_[starts, n])
+    if spec.episode.step:
+        step = _np(table, spec.episode.step, np.int64, file_of) - spec.episode.step_base
+    else:
+        # dense rank of the order value within the episode: ties share a step (doctor flags them)
+        ov = table.column(order_col).to_numpy(zero_copy_only=False)
+        new_val = np.r_[True, ov[1:] != ov[:-1]] if n else np.zeros(0, bool)
+        new_val = new_val | first
+        cum = np.cumsum(new_val) - 1
+        step = cum - np.repeat(cum[starts], lens)
+
+    obs = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.observations.columns])
+    has_next = bool(spec.observations.next_columns)
+    nxt_given = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.observations.next_columns]) if has_next else None
+
+    term = _np(table, spec.terminated_column, bool, file_of) if spec.terminated_column else np.zeros(n, bool)
+    trunc_col = _np(table, spec.truncated_column, bool, file_of) if spec.truncated_column else np.zeros(n, bool)
+    # rule: an episode's end is truncated unless the terminal column says terminated
+    trunc = trunc_col | (last & ~term)
+
+    keep = np.ones(n, bool)
+    dropped = 0
+    if spec.kind == "transitions":
+        assert nxt_given is not None
+        nxt = nxt_given
+    else:
+        nxt = np.empty_like(obs)
+        nxt[:-1] = obs[1:]
+        if n:
+            nxt[-1] = obs[-1]
+        nxt[last & term] = obs[last & term]
+        if has_next:
+            sel = last & ~term
+            nxt[sel] = nxt_given[sel]  # type: ignore[index]
+        else:
+            drop = last & ~term
+            dropped = int(drop.sum())
+            keep = ~drop
+            d = np.flatnonzero(drop)
+            prev = d - 1
+            same = (prev >= 0) & (codes[np.maximum(prev, 0)] == codes[d])
+            trunc = trunc.copy()
+            trunc[prev[same]] = True  # the previous row becomes the episode's truncated end
+
+    if spec.action.type == "discrete":
+        action, atable = map_discrete(table.column(spec.action.column).to_numpy(zero_copy_only=False), spec.action)
+    else:
+        action, atable = bin_continuous(_np(table, spec.action.column, np.float64, file_of), spec.action)
+    cost = _np(table, spec.cost_column, np.float64, file_of) if spec.cost_column else -_np(table, spec.reward_column, np.float64, file_of)  # type: ignore[arg-type]
+
+    names = list(spec.observations.names or spec.observations.columns)
+    cols: dict[str, Any] = {S.EPISODE_ID: ep_ids, S.STEP: step.astype(np.int32)}
+    if spec.episode.time:
+        tv = table.column(spec.episode.time)
+        if pa.types.is_timestamp(tv.type):
+            cols[S.T_NS] = tv.cast(pa.timestamp("ns")).cast(pa.int64())
+        elif pa.types.is_integer(tv.type):
+            cols[S.T_NS] = pc.multiply(tv.cast(pa.int64()), TIME_UNITS[spec.episode.time_unit])
+        else:
+            cols[S.T_NS] = np.round(_np(table, spec.episode.time, np.float64, file_of) * TIME_UNITS[spec.episode.time_unit]).astype(np.int64)
+    for j, nm in enumerate(names):
+        cols[S.obs_column(nm)] = obs[:, j]
+    cols[S.ACTION] = action
+    cols[S.COST] = cost
+    for j, nm in enumerate(names):
+        cols[S.next_obs_column(nm)] = nxt[:, j]
+    cols[S.TERMINATED] = term
+    cols[S.TRUNCATED] = trunc
+    if spec.source_column:
+        cols[S.SOURCE] = pc.dictionary_encode(table.column(spec.source_column).cast(pa.string()))
+    else:
+        cols[S.SOURCE] = pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([spec.source_value]))
+    if spec.propensity_column:
+        cols[S.BEHAVIOR_PROB] = table.column(spec.propensity_column).cast(pa.float64())
+    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32)), pa.array(names_of.astype(str).tolist()))
+    cols["src_row"] = rows
+    out = pa.table({k: (v.combine_chunks() if isinstance(v, pa.ChunkedArray) else v) for k, v in cols.items()})
+    if not keep.all():
+        out = out.filter(pa.array(keep))
+
+    units = dict(spec.observations.units)
+    info = DatasetInfo(
+        features=tuple(Feature(nm, units.get(nm, "")) for nm in names),
+        action_table=atable,
+        gamma=spec.gamma,
+        horizon=spec.horizon,
+        propensity_source="logged" if spec.propensity_column else "unknown",
+        provenance={
+            "inputs": metas,
+            "spec": spec.raw,
+            "spec_sha256": spec.sha256,
+            "package_version": __version__,
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "generator": "offline-adp ingest parquet",
+        },
+        name=spec.name,
+    )
+    ds = TransitionDataset(out, info)
+    src_files = ds.column("src_file")
+    src_rows = ds.table.column("src_row").to_numpy()
+    if progress:
+        progress("validating")
+    report = validate(ds, files=src_files, rows=src_rows)
+    result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
+    if not report.ok:
+        if on_error == "fail":
+            raise ValidationError(
+                report.to_text() + "\nFix the input, or re-run with --on-error quarantine to set bad episodes aside.",
+                report,
+            )
+        clean, rejected = split_quarantine(ds, report)
+        result.dataset = clean
+        result.quarantine = rejected
+        result.quarantined_rows = rejected.num_rows
+        result.quarantined_episodes = int(len(report.bad_episodes))
+    return result
+
+
+def _identity(idx: pa.Array) -> bool:
+    a = idx.to_numpy()
+    return bool(len(a) == 0 or (a == np.arange(len(a))).all())
+
+
+def ingest_parquet(
+    inputs: Sequence[str | PathLike[str]],
+    spec: ParquetSpec | str | PathLike[str],
+    out: str | PathLike[str],
+    *,
+    on_error: str | None = None,
+    overwrite: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> IngestResult:
+    """Ingest Parquet/CSV tables into a dataset directory at ``out`` (atomic write).
+
+    Raises
+    ------
+    SpecError
+        The spec is malformed.
+    IngestError
+        An input is unreadable or lacks a column the spec names.
+    ValidationError
+        The doctor found defects and ``on_error`` is ``"fail"`` (the default).
+    """
+    if Path(out).exists() and not overwrite:
+        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    if not isinstance(spec, ParquetSpec):
+        spec = load_parquet_spec(spec)
+    res = ingest_tables(inputs, spec, on_error=on_error, progress=progress)
+    if progress:
+        progress(f"writing {out}")
+    res.path = write_dataset(
+        res.dataset,
+        out,
+        overwrite=overwrite,
+        quarantine=res.quarantine,
+        extra_meta={
+            "ingest": {
+                "doctor": res.report.summary(),
+                "quarantined_rows": res.quarantined_rows,
+                "quarantined_episodes": res.quarantined_episodes,
+                "dropped_last_rows": res.dropped_last_rows,
+            }
+        },
+    )
+    return res
