@@ -4,7 +4,14 @@ Public names only; see ``docs/architecture.md`` for the layout.
 """
 
 from offline_adp._version import __version__
-from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, StepResult, TraceData
+from offline_adp.access import (
+    FullModel,
+    GenerativeModel,
+    ResetModel,
+    Simulator,
+    StepResult,
+    TraceData,
+)
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import read_dataset, write_dataset

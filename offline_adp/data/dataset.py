@@ -35,6 +35,17 @@ _CASTS: dict[str, pa.DataType] = {
 }
 
 
+def encode_strings(col: pa.Array | pa.ChunkedArray) -> pa.DictionaryArray:
+    """Dictionary-encode a string column into one array whose codes follow first appearance.
+
+    Chunks are combined first: encoding chunk by chunk would give each chunk its own
+    dictionary and codes that disagree across chunks.
+    """
+    if isinstance(col, pa.ChunkedArray):
+        col = col.combine_chunks()
+    return pc.dictionary_encode(col)
+
+
 @dataclass(frozen=True)
 class TransitionArrays:
     """The dataset as numpy arrays, ready for vectorised algorithms.
@@ -223,7 +234,7 @@ class TransitionDataset:
 
     def _episode_codes(self) -> tuple[np.ndarray, np.ndarray]:
         if self._codes is None:
-            enc = pc.dictionary_encode(self.table.column(S.EPISODE_ID)).combine_chunks()
+            enc = encode_strings(self.table.column(S.EPISODE_ID))
             self._codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
             self._episode_ids = np.asarray(enc.dictionary.to_pylist(), dtype=object)
         assert self._episode_ids is not None
@@ -381,11 +392,13 @@ class TransitionDataset:
             if pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
                 if pa.types.is_dictionary(col.type):
                     col = col.cast(col.type.value_type)
-                enc = pc.dictionary_encode(col).combine_chunks()
+                enc = encode_strings(col)
                 h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
                 h.update("\x00".join(map(str, enc.dictionary.to_pylist())).encode())
             else:
                 arr = col.to_numpy()
+                if arr.dtype.kind == "f":
+                    arr = arr + 0.0  # -0.0 and 0.0 are the same value
                 if col.null_count:
                     h.update(np.asarray(pc.is_null(col)).tobytes())
                 h.update(np.ascontiguousarray(arr).tobytes())
@@ -442,7 +455,7 @@ def _column_order(info: DatasetInfo) -> list[str]:
 
 def _is_sorted(table: pa.Table) -> bool:
     """True if rows are already ordered by (episode_id, step) — checked without sorting."""
-    enc = pc.dictionary_encode(table.column(S.EPISODE_ID)).combine_chunks()
+    enc = encode_strings(table.column(S.EPISODE_ID))
     dictionary = enc.dictionary
     if len(dictionary) > 1 and not bool(pc.all(pc.less(dictionary[:-1], dictionary[1:])).as_py()):
         return False  # first-appearance order is not lexical order

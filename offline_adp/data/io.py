@@ -30,7 +30,12 @@ import pyarrow.parquet as pq
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import DatasetInfo
-from offline_adp.errors import DatasetNotFoundError, FormatVersionWarning, OfflineADPError, SchemaError
+from offline_adp.errors import (
+    DatasetNotFoundError,
+    FormatVersionWarning,
+    OfflineADPError,
+    SchemaError,
+)
 
 DEFAULT_ROWS_PER_PART = 1_000_000
 

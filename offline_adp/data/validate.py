@@ -181,7 +181,7 @@ def validate(
                     "next_obs_mismatch",
                     mis,
                     nc,
-                    _messages(mis, lambda i: f"next_obs {x[i]!r} != {oc} of the following step {nxt[i]!r}"),
+                    _messages(mis, lambda i, x=x, nxt=nxt, oc=oc: f"next_obs {x[i]!r} != {oc} of the following step {nxt[i]!r}"),
                 )
 
     for c in (*ds.obs_columns, S.COST, *ds.next_obs_columns):

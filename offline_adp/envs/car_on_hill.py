@@ -66,7 +66,7 @@ class CarOnHill(ReferenceProblem, Simulator):
         lose = (p < -1.0) | (np.abs(s) > 3.0)
         win = (p > 1.0) & (np.abs(s) <= 3.0)
         reward = np.where(lose, -1.0, np.where(win, 1.0, 0.0))
-        return StepResult(np.column_stack([p, s]), -reward, lose | win)
+        return StepResult(np.column_stack([p, s]), 0.0 - reward, lose | win)  # 0.0 - 0.0 is +0.0, not -0.0
 
     def demonstrator(self) -> Policy:
         """Energy pumping with limits, plus 10% random pushes.

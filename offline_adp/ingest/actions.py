@@ -51,13 +51,17 @@ def map_discrete(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") ->
         codes = np.array([lookup.get(u, -1) for u in uniq], dtype=np.int64)  # per distinct label
         idx = codes[inv]
         values = [(float(i),) for i in range(len(table_vals))]
+    dims: tuple[str, ...] = (spec.dim if numeric else f"{spec.dim}_label_index",)
+    if spec.vectors is not None:  # explicit value vectors for labels or multi-dimensional commands
+        values = [tuple(v) for v in spec.vectors]
+        dims = spec.dims or tuple(f"{spec.dim}{i}" for i in range(len(values[0])))
     names = spec.names or [str(v) if not numeric else f"{spec.dim}={float(v):g}" for v in table_vals]
     if len(names) != len(values):
         raise IngestError(f"{where}: action.names has {len(names)} entries for {len(values)} actions")
     table = ActionTable(
         actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)),
-        dims=(spec.dim if numeric else f"{spec.dim}_label_index",),
-        units=(spec.unit,) if spec.unit else (),
+        dims=dims,
+        units=(spec.unit,) * len(dims) if spec.unit else (),
     )
     return idx.astype(np.int32), table
 

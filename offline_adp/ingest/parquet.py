@@ -32,7 +32,7 @@ import pyarrow.parquet as pq
 
 from offline_adp._version import __version__
 from offline_adp.data import schema as S
-from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.dataset import TransitionDataset, encode_strings
 from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
@@ -166,7 +166,7 @@ def ingest_tables(
         return str(names_of[fidx[i[0]]]) if len(i) else "?"
 
     ep_ids = table.column(spec.episode.id)
-    enc = pc.dictionary_encode(ep_ids).combine_chunks()
+    enc = encode_strings(ep_ids)
     codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
     first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
     last = np.r_[codes[1:] != codes[:-1], True] if n else np.zeros(0, bool)
@@ -215,10 +215,12 @@ def ingest_tables(
             trunc = trunc.copy()
             trunc[prev[same]] = True  # the previous row becomes the episode's truncated end
 
+    # actions from the rows that stay (a dropped row must not shape the bins)
+    action = np.full(n, -1, np.int32)
     if spec.action.type == "discrete":
-        action, atable = map_discrete(table.column(spec.action.column).to_numpy(zero_copy_only=False), spec.action)
+        action[keep], atable = map_discrete(table.column(spec.action.column).to_numpy(zero_copy_only=False)[keep], spec.action)
     else:
-        action, atable = bin_continuous(_np(table, spec.action.column, np.float64, file_of), spec.action)
+        action[keep], atable = bin_continuous(_np(table, spec.action.column, np.float64, file_of)[keep], spec.action)
     cost = _np(table, spec.cost_column, np.float64, file_of) if spec.cost_column else -_np(table, spec.reward_column, np.float64, file_of)  # type: ignore[arg-type]
 
     names = list(spec.observations.names or spec.observations.columns)
@@ -240,7 +242,7 @@ def ingest_tables(
     cols[S.TERMINATED] = term
     cols[S.TRUNCATED] = trunc
     if spec.source_column:
-        cols[S.SOURCE] = pc.dictionary_encode(table.column(spec.source_column).cast(pa.string()))
+        cols[S.SOURCE] = encode_strings(table.column(spec.source_column).cast(pa.string()))
     else:
         cols[S.SOURCE] = pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([spec.source_value]))
     if spec.propensity_column:

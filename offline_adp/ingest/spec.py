@@ -75,6 +75,8 @@ class ActionSpec:
     bin_value: str = "mean"
     dim: str = "a"
     unit: str = ""
+    vectors: tuple[tuple[float, ...], ...] | None = None
+    dims: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -180,7 +182,9 @@ def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "sp
 
     a = _get(data, "action", dict, where, required=True)
     w = f"{where}.action"
-    _check_keys(a, {"column", "type", "values", "names", "edges", "n_bins", "bin_value", "dim", "unit"}, w)
+    _check_keys(a, {"column", "type", "values", "names", "edges", "n_bins", "bin_value", "dim", "unit", "vectors", "dims"}, w)
+    vectors = _get(a, "vectors", list, w)
+    dims = _get(a, "dims", list, w)
     values = _get(a, "values", list, w)
     names = _get(a, "names", list, w)
     edges = _get(a, "edges", list, w)
@@ -194,7 +198,14 @@ def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "sp
         bin_value=_get(a, "bin_value", str, w, "mean"),
         dim=_get(a, "dim", str, w, "a"),
         unit=_get(a, "unit", str, w, ""),
+        vectors=tuple(tuple(float(x) for x in (v if isinstance(v, list) else [v])) for v in vectors) if vectors is not None else None,
+        dims=tuple(str(d) for d in dims) if dims is not None else None,
     )
+    if act.vectors is not None:
+        if act.values is None or len(act.vectors) != len(act.values):
+            raise SpecError(f"{w}.vectors: give one value vector per entry of 'values'")
+        if len({len(v) for v in act.vectors}) != 1 or (act.dims is not None and len(act.dims) != len(act.vectors[0])):
+            raise SpecError(f"{w}.vectors: all vectors need the same length, matching 'dims'")
     if act.type not in ("discrete", "continuous"):
         raise SpecError(f"{w}.type: expected 'discrete' or 'continuous', got {act.type!r}")
     if act.type == "continuous":

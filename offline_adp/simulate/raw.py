@@ -53,7 +53,11 @@ def raw_table(ds: TransitionDataset) -> tuple[pa.Table, str]:
             f'dim = "{at.dims[0]}"\n' + (f'unit = "{at.units[0]}"\n' if at.units else "")
         )
     else:
-        action_spec = f'column = "action"\ntype = "discrete"\nvalues = {q(at.names)}\n'
+        vecs = ", ".join("[" + ", ".join(repr(float(x)) for x in v) + "]" for v in at.values)
+        action_spec = (
+            f'column = "action"\ntype = "discrete"\nvalues = {q(at.names)}\n'
+            f"vectors = [{vecs}]\ndims = {q(at.dims)}\n"
+        )
     hints = []
     if ds.info.gamma is not None:
         hints.append(f"gamma = {ds.info.gamma!r}")

@@ -1,0 +1,195 @@
+"""Parquet/CSV ingestion through a spec."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from offline_adp.data import schema as S
+from offline_adp.data.io import read_dataset, read_quarantine
+from offline_adp.errors import IngestError, SpecError, ValidationError
+from offline_adp.ingest.parquet import ingest_parquet
+from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
+from offline_adp.simulate import simulate
+from offline_adp.simulate.raw import write_raw
+
+FIELDS = ("obs", "action", "cost", "next_obs", "terminated", "truncated", "step", "episode", "behavior_prob")
+
+
+@pytest.mark.parametrize("problem,fmt", [("path_tracking", "parquet"), ("gridworld", "parquet"), ("car_on_hill", "csv"), ("tabular", "parquet")])
+def test_round_trip_simulate_raw_ingest_is_exact(tmp_path, problem, fmt):
+    ds = simulate(problem, 10, 10, seed=5, horizon=40)
+    raw, spec = write_raw(ds, tmp_path / f"raw.{fmt}", fmt=fmt)
+    res = ingest_parquet([raw], spec, tmp_path / "ds")
+    back = read_dataset(tmp_path / "ds")
+    a, b = ds.arrays(), back.arrays()
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f), err_msg=f)
+    assert back.fingerprint() == ds.fingerprint()
+    assert res.report.ok and res.quarantined_rows == 0
+    prov = back.info.provenance
+    assert prov["inputs"][0]["sha256"] and prov["spec_sha256"] and prov["package_version"]
+    # every row traces back to its file and row
+    np.testing.assert_array_equal(back.table.column("src_row").to_numpy(), np.arange(len(ds)))
+
+
+def _steps_table():
+    # two episodes in a step table: e0 ends terminated, e1 is cut (truncated) by the log
+    return pd.DataFrame(
+        {
+            "ep": ["e0"] * 3 + ["e1"] * 4,
+            "t": [0.0, 0.1, 0.2, 5.0, 5.1, 5.2, 5.3],
+            "pos": [0.0, 1.0, 2.0, 10.0, 11.0, 12.0, 13.0],
+            "steer": [0.05, -0.4, 0.31, 0.0, 0.2, -0.2, 0.1],
+            "reward": [-1.0, -2.0, 3.0, 0.5, 0.5, 0.5, 0.5],
+            "done": [False, False, True, False, False, False, False],
+        }
+    )
+
+
+STEP_SPEC = """
+kind = "steps"
+[episode]
+id = "ep"
+order = "t"
+time = "t"
+time_unit = "s"
+[observations]
+columns = ["pos"]
+units = { pos = "m" }
+[action]
+column = "steer"
+type = "continuous"
+edges = [-1.0, -0.1, 0.1, 1.0]
+dim = "steering"
+unit = "rad"
+[cost]
+reward = "reward"
+[end]
+terminated = "done"
+[source]
+value = "demonstration"
+"""
+
+
+def test_step_table_next_state_binning_reward_and_dropped_rows(tmp_path):
+    df = _steps_table()
+    df.to_parquet(tmp_path / "steps.parquet")
+    (tmp_path / "spec.toml").write_text(STEP_SPEC)
+    res = ingest_parquet([tmp_path / "steps.parquet"], tmp_path / "spec.toml", tmp_path / "ds")
+    ds = read_dataset(tmp_path / "ds")
+    a = ds.arrays()
+    # e0: 3 transitions, last terminated with placeholder next_obs = obs
+    # e1: last row has no next state -> dropped and counted; row 3 becomes truncated
+    assert res.dropped_last_rows == 1 and len(ds) == 6
+    np.testing.assert_array_equal(a.next_obs[:, 0], [1.0, 2.0, 2.0, 11.0, 12.0, 13.0])
+    np.testing.assert_array_equal(a.terminated, [0, 0, 1, 0, 0, 0])
+    np.testing.assert_array_equal(a.truncated, [0, 0, 0, 0, 0, 1])
+    np.testing.assert_array_equal(a.cost, [1.0, 2.0, -3.0, -0.5, -0.5, -0.5])  # cost = -reward
+    # binning: edges [-1, -0.1, 0.1, 1]; bin values = mean of the commands in each bin
+    np.testing.assert_array_equal(a.action, [1, 0, 2, 1, 2, 0])
+    at = ds.info.action_table
+    assert at.kind == "binned" and at.bin_edges == (-1.0, -0.1, 0.1, 1.0)
+    np.testing.assert_allclose(at.values[:, 0], [(-0.4 - 0.2) / 2, (0.05 + 0.0) / 2, (0.31 + 0.2) / 2])
+    np.testing.assert_array_equal(ds.table.column(S.T_NS).to_numpy()[:2], [0, 100_000_000])
+    assert ds.info.features[0].unit == "m"
+
+
+def test_quantile_bins_keep_values(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 400
+    df = pd.DataFrame({"ep": np.repeat(np.arange(20), 20).astype(str), "k": np.tile(np.arange(20), 20),
+                       "x": rng.normal(size=n), "u": rng.uniform(-1, 1, n), "c": rng.random(n)})
+    df.to_parquet(tmp_path / "t.parquet")
+    spec = parse_parquet_spec({"kind": "steps", "episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["x"]},
+                               "action": {"column": "u", "type": "continuous", "n_bins": 4}, "cost": {"column": "c"}})
+    ds = ingest_parquet([tmp_path / "t.parquet"], spec, tmp_path / "ds").dataset
+    counts = np.bincount(ds.arrays().action, minlength=4)
+    assert len(ds.info.action_table) == 4 and counts.min() >= 90  # quantile bins are balanced
+    vals = ds.info.action_table.values[:, 0]
+    assert (np.diff(vals) > 0).all() and vals.min() > -1 and vals.max() < 1
+
+
+def test_unknown_key_lists_valid_keys(tmp_path):
+    (tmp_path / "s.toml").write_text(STEP_SPEC.replace('order = "t"', 'order = "t"\nepisode_col = "x"'))
+    with pytest.raises(SpecError, match=r"unknown key\(s\) \['episode_col'\]; valid keys are \['id', 'order'"):
+        load_parquet_spec(tmp_path / "s.toml")
+    with pytest.raises(SpecError, match="valid keys"):
+        parse_parquet_spec({"kindd": "steps"})
+
+
+def test_missing_column_names_file_and_column(tmp_path):
+    _steps_table().drop(columns=["reward"]).to_parquet(tmp_path / "steps.parquet")
+    (tmp_path / "spec.toml").write_text(STEP_SPEC)
+    with pytest.raises(IngestError, match=r"steps.parquet: spec needs columns \['reward'\]"):
+        ingest_parquet([tmp_path / "steps.parquet"], tmp_path / "spec.toml", tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_bad_rows_fail_or_quarantine(tmp_path):
+    ds = simulate("gridworld", 6, 6, seed=1, horizon=20)
+    raw, spec = write_raw(ds, tmp_path / "raw.parquet")
+    t = pq.read_table(raw).to_pandas()
+    t.loc[7, "action"] = "NE"  # an action outside the declared table
+    t.loc[30, "cost"] = np.nan
+    t.to_parquet(raw)
+    with pytest.raises(ValidationError, match=r"raw.parquet: row 7 .* column 'action'"):
+        ingest_parquet([raw], spec, tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+    res = ingest_parquet([raw], spec, tmp_path / "ds", on_error="quarantine")
+    q = read_quarantine(tmp_path / "ds")
+    bad_eps = {t.loc[7, "episode"], t.loc[30, "episode"]}
+    assert set(q.column(S.EPISODE_ID).to_pylist()) == bad_eps
+    assert res.quarantined_rows == q.num_rows == int(t["episode"].isin(bad_eps).sum())
+    assert len(read_dataset(tmp_path / "ds")) + q.num_rows == len(t)
+    assert 7 in q.column("src_row").to_pylist()
+
+
+def test_episode_ids_across_files_are_an_error(tmp_path):
+    ds = simulate("car_on_hill", 2, 2, seed=1)
+    raw, spec = write_raw(ds, tmp_path / "a.parquet")
+    pq.write_table(pq.read_table(raw), tmp_path / "b.parquet")
+    with pytest.raises(IngestError, match="occurs in .*a.parquet and .*b.parquet"):
+        ingest_parquet([raw, tmp_path / "b.parquet"], spec, tmp_path / "ds")
+
+
+def test_several_files_and_unsorted_rows(tmp_path):
+    ds = simulate("path_tracking", 6, 6, seed=2, horizon=30)
+    table, _ = __import__("offline_adp.simulate.raw", fromlist=["raw_table"]).raw_table(ds)
+    raw, spec = write_raw(ds, tmp_path / "all.parquet")
+    df = table.to_pandas().sample(frac=1.0, random_state=0)  # shuffled rows
+    demo = df[df.source == "demonstration"]
+    expl = df[df.source == "exploration"]
+    demo.to_parquet(tmp_path / "demo.parquet")
+    expl.to_parquet(tmp_path / "expl.parquet")
+    back = ingest_parquet([tmp_path / "expl.parquet", tmp_path / "demo.parquet"], spec, tmp_path / "ds").dataset
+    assert back.fingerprint() == ds.fingerprint()
+
+
+def test_discrete_labels_default_to_sorted_distinct(tmp_path):
+    df = pd.DataFrame({"ep": ["a", "a", "b"], "k": [0, 1, 0], "x": [0.0, 1.0, 5.0], "nx": [1.0, 2.0, 6.0],
+                       "a": ["right", "left", "right"], "c": [1.0, 1.0, 1.0]})
+    df.to_csv(tmp_path / "t.csv", index=False)
+    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["nx"]},
+                               "action": {"column": "a"}, "cost": {"column": "c"}})
+    ds = ingest_parquet([tmp_path / "t.csv"], spec, tmp_path / "ds").dataset
+    assert ds.info.action_table.names == ["left", "right"]
+    np.testing.assert_array_equal(ds.arrays().action, [1, 0, 1])
+    np.testing.assert_array_equal(ds.arrays().truncated, [False, True, True])  # ends are truncated by rule
+
+
+def test_spec_rejects_inconsistent_choices():
+    base = {"episode": {"id": "e", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["nx"]},
+            "action": {"column": "a"}, "cost": {"column": "c"}}
+    with pytest.raises(SpecError, match="exactly one of 'column'"):
+        parse_parquet_spec({**base, "cost": {"column": "c", "reward": "r"}})
+    with pytest.raises(SpecError, match="set type = 'continuous'"):
+        parse_parquet_spec({**base, "action": {"column": "a", "n_bins": 3}})
+    with pytest.raises(SpecError, match="next_columns"):
+        parse_parquet_spec({**base, "observations": {"columns": ["x"]}})
+    with pytest.raises(SpecError, match=r"episode.step: expected str"):
+        parse_parquet_spec({**base, "episode": {"id": "e", "step": 3}})
+    assert isinstance(pa.__version__, str)

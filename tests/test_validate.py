@@ -1,0 +1,107 @@
+"""The dataset doctor on a crafted bad table, and quarantine."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from offline_adp.data import schema as S
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.data.validate import CHECKS, split_quarantine, validate, validate_directory
+
+INFO = DatasetInfo(features=(Feature("x"),), action_table=ActionTable.from_values([0.0, 1.0]))
+
+
+def _good(n_eps=3, T=4):
+    rows = []
+    for e in range(n_eps):
+        for t in range(T):
+            rows.append(
+                {
+                    S.EPISODE_ID: f"e{e}",
+                    S.STEP: t,
+                    S.T_NS: 1000 * t,
+                    "obs.x": float(10 * e + t),
+                    S.ACTION: t % 2,
+                    S.COST: 1.0,
+                    "next_obs.x": float(10 * e + t + 1),
+                    S.TERMINATED: False,
+                    S.TRUNCATED: t == T - 1,
+                    S.SOURCE: "exploration",
+                    S.BEHAVIOR_PROB: 0.5,
+                }
+            )
+    return rows
+
+
+def test_good_table_passes():
+    ds = TransitionDataset(pa.Table.from_pylist(_good()), INFO)
+    rep = validate(ds)
+    assert rep.ok, rep.to_text()
+
+
+# (check code, mutation on row index, expected column) -- one defect per episode-sized block
+DEFECTS = {
+    "step_not_contiguous": (lambda r: r[1].update({S.STEP: 5}), S.STEP),
+    "next_obs_mismatch": (lambda r: r[1].update({"next_obs.x": 99.0}), "next_obs.x"),
+    "flag_not_last": (lambda r: r[1].update({S.TERMINATED: True}), S.TERMINATED),
+    "both_flags": (lambda r: r[3].update({S.TERMINATED: True}), "terminated,truncated"),
+    "end_unflagged": (lambda r: r[3].update({S.TRUNCATED: False}), "terminated,truncated"),
+    "non_finite": (lambda r: r[2].update({S.COST: float("nan")}), S.COST),
+    "action_out_of_range": (lambda r: r[2].update({S.ACTION: 7}), S.ACTION),
+    "propensity_out_of_range": (lambda r: r[2].update({S.BEHAVIOR_PROB: 0.0}), S.BEHAVIOR_PROB),
+    "time_decreasing": (lambda r: r[2].update({S.T_NS: -5}), S.T_NS),
+    "null_value": (lambda r: r[2].update({"obs.x": None}), "obs.x"),
+}
+
+
+@pytest.mark.parametrize("check", sorted(DEFECTS))
+def test_each_defect_class_is_reported_with_file_row_column(check):
+    rows = _good()
+    block = rows[4:8]  # episode e1, rows 4..7
+    mutate, column = DEFECTS[check]
+    mutate(block)
+    ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
+    rep = validate(ds, files="logs/bad.parquet", rows=np.arange(len(ds)) + 100)
+    hits = rep.findings[rep.findings["check"] == check]
+    assert len(hits), f"{check} not reported:\n{rep.to_text()}"
+    h = hits.iloc[0]
+    assert h["file"] == "logs/bad.parquet"
+    assert h[S.EPISODE_ID] == "e1" and 104 <= h["row"] <= 107
+    assert h["column"] == column
+    assert set(rep.bad_episodes) == {"e1"}, rep.to_text()
+    assert check in rep.to_text() and "logs/bad.parquet: row" in rep.to_text()
+
+
+def test_every_check_is_covered_by_a_test():
+    assert set(DEFECTS) == set(CHECKS)
+
+
+def test_quarantine_keeps_every_rejected_row():
+    rows = _good(n_eps=5)
+    rows[5][S.COST] = float("inf")  # e1
+    rows[14]["next_obs.x"] = -1.0  # e3
+    ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
+    files = np.array(["a.parquet"] * 10 + ["b.parquet"] * 10, dtype=object)
+    rep = validate(ds, files=files, rows=np.r_[np.arange(10), np.arange(10)])
+    clean, q = split_quarantine(ds, rep, files=files, rows=np.r_[np.arange(10), np.arange(10)])
+    assert len(clean) + q.num_rows == len(ds)
+    assert set(q.column(S.EPISODE_ID).to_pylist()) == {"e1", "e3"}
+    reasons = q.column("reason").to_pylist()
+    assert all(reasons)
+    assert any("[non_finite] cost" in r for r in reasons)
+    assert any("[next_obs_mismatch]" in r for r in reasons)
+    assert any(r.startswith("episode rejected:") for r in reasons)
+    assert validate(clean).ok
+
+
+def test_validate_directory_names_part_files(tmp_path):
+    rows = _good()
+    rows[6][S.ACTION] = -1
+    ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
+    ds.save(tmp_path / "d", rows_per_part=4)
+    rep = validate_directory(tmp_path / "d")
+    h = rep.findings.iloc[0]
+    assert h["file"].endswith("part-00001.parquet") and h["row"] == 2 and h["check"] == "action_out_of_range"
