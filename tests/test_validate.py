@@ -9,7 +9,7 @@ import pytest
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
-from offline_adp.data.validate import CHECKS, split_quarantine, validate, validate_directory
+from offline_adp.data.validate import CHECKS, RowOrigin, split_quarantine, validate, validate_directory
 
 INFO = DatasetInfo(features=(Feature("x"),), action_table=ActionTable.from_values([0.0, 1.0]))
 
@@ -64,7 +64,8 @@ def test_each_defect_class_is_reported_with_file_row_column(check):
     mutate, column = DEFECTS[check]
     mutate(block)
     ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
-    rep = validate(ds, files="logs/bad.parquet", rows=np.arange(len(ds)) + 100)
+    origin = RowOrigin(["logs/bad.parquet"], np.zeros(len(ds), int), np.arange(len(ds)) + 100)
+    rep = validate(ds, origin=origin)
     hits = rep.findings[rep.findings["check"] == check]
     assert len(hits), f"{check} not reported:\n{rep.to_text()}"
     h = hits.iloc[0]
@@ -84,9 +85,10 @@ def test_quarantine_keeps_every_rejected_row():
     rows[5][S.COST] = float("inf")  # e1
     rows[14]["next_obs.x"] = -1.0  # e3
     ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
-    files = np.array(["a.parquet"] * 10 + ["b.parquet"] * 10, dtype=object)
-    rep = validate(ds, files=files, rows=np.r_[np.arange(10), np.arange(10)])
-    clean, q = split_quarantine(ds, rep, files=files, rows=np.r_[np.arange(10), np.arange(10)])
+    origin = RowOrigin(["a.parquet", "b.parquet"], np.repeat([0, 1], 10), np.r_[np.arange(10), np.arange(10)])
+    rep = validate(ds, origin=origin)
+    assert set(rep.findings["file"]) == {"a.parquet", "b.parquet"}
+    clean, q = split_quarantine(ds, rep)
     assert len(clean) + q.num_rows == len(ds)
     assert set(q.column(S.EPISODE_ID).to_pylist()) == {"e1", "e3"}
     reasons = q.column("reason").to_pylist()

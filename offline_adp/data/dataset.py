@@ -104,9 +104,11 @@ class TransitionDataset:
 
     def __init__(self, table: pa.Table, info: DatasetInfo) -> None:
         self.info = info
-        self.table = _canonical(table, info)
+        self.table, enc, self.was_sorted = _canonical(table, info)
         self._codes: np.ndarray | None = None
         self._episode_ids: np.ndarray | None = None
+        if enc is not None:  # the sortedness check already encoded the ids in order
+            self._set_codes(enc)
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -232,12 +234,14 @@ class TransitionDataset:
     def has_propensities(self) -> bool:
         return S.BEHAVIOR_PROB in self.table.column_names
 
+    def _set_codes(self, enc: pa.DictionaryArray) -> None:
+        self._codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+        self._episode_ids = np.asarray(enc.dictionary.to_pylist(), dtype=object)
+
     def _episode_codes(self) -> tuple[np.ndarray, np.ndarray]:
         if self._codes is None:
-            enc = encode_strings(self.table.column(S.EPISODE_ID))
-            self._codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
-            self._episode_ids = np.asarray(enc.dictionary.to_pylist(), dtype=object)
-        assert self._episode_ids is not None
+            self._set_codes(encode_strings(self.table.column(S.EPISODE_ID)))
+        assert self._codes is not None and self._episode_ids is not None
         return self._codes, self._episode_ids
 
     @property
@@ -360,12 +364,13 @@ class TransitionDataset:
         last = starts + lengths - 1
         cost = self.table.column(S.COST).to_numpy()
         total = np.bincount(a_codes, weights=cost, minlength=n_ep) if len(self) else np.zeros(0)
-        source = self.column(S.SOURCE)
+        src_col = self.table.column(S.SOURCE)
+        source = src_col.take(pa.array(starts)).cast(pa.string()).to_numpy(zero_copy_only=False) if len(self) else None
         df = pd.DataFrame(
             {
                 S.EPISODE_ID: ids.astype(str),
                 "length": lengths.astype(np.int64),
-                S.SOURCE: source[starts] if len(self) else np.array([], dtype=object),
+                S.SOURCE: source if len(self) else np.array([], dtype=object),
                 "total_cost": total,
                 S.TERMINATED: self.table.column(S.TERMINATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
                 S.TRUNCATED: self.table.column(S.TRUNCATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
@@ -389,7 +394,11 @@ class TransitionDataset:
         for name in sorted(c for c in self.table.column_names if c in known):
             col = self.table.column(name)
             h.update(name.encode())
-            if pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+            if name == S.EPISODE_ID:
+                codes, ids = self._episode_codes()
+                h.update(codes.tobytes())
+                h.update("\x00".join(map(str, ids)).encode())
+            elif pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
                 if pa.types.is_dictionary(col.type):
                     col = col.cast(col.type.value_type)
                 enc = encode_strings(col)
@@ -405,8 +414,12 @@ class TransitionDataset:
         return h.hexdigest()
 
 
-def _canonical(table: pa.Table, info: DatasetInfo) -> pa.Table:
-    """Check required columns, cast to canonical types and sort by (episode_id, step)."""
+def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.DictionaryArray | None, bool]:
+    """Check required columns, cast to canonical types and sort by (episode_id, step).
+
+    Returns the table, the episode-id encoding when it is already valid for the returned
+    table (rows were in order), and whether the rows were in order.
+    """
     names = table.column_names
     feature_cols = [S.obs_column(f) for f in info.feature_names] + [S.next_obs_column(f) for f in info.feature_names]
     missing = [c for c in (*S.REQUIRED_COLUMNS, *feature_cols) if c not in names]
@@ -431,10 +444,13 @@ def _canonical(table: pa.Table, info: DatasetInfo) -> pa.Table:
         cols.append(col)
     order = [n for n in _column_order(info) if n in names] + [n for n in names if n not in _column_order(info)]
     table = pa.table(dict(zip(names, cols, strict=True))).select(order)
-    if table.num_rows and not _is_sorted(table):
+    if not table.num_rows:
+        return table, None, True
+    enc = _sorted_encoding(table)
+    if enc is None:
         idx = pc.sort_indices(table, sort_keys=[(S.EPISODE_ID, "ascending"), (S.STEP, "ascending")])
-        table = table.take(idx)
-    return table
+        return table.take(idx), None, False
+    return table, enc, True
 
 
 def _column_order(info: DatasetInfo) -> list[str]:
@@ -453,15 +469,19 @@ def _column_order(info: DatasetInfo) -> list[str]:
     ]
 
 
-def _is_sorted(table: pa.Table) -> bool:
-    """True if rows are already ordered by (episode_id, step) — checked without sorting."""
+def _sorted_encoding(table: pa.Table) -> pa.DictionaryArray | None:
+    """The episode-id encoding if rows are already ordered by (episode_id, step), else None.
+
+    Checked without sorting: ids in order means first-appearance order is lexical order
+    and codes never decrease; then steps must not decrease within an episode.
+    """
     enc = encode_strings(table.column(S.EPISODE_ID))
     dictionary = enc.dictionary
     if len(dictionary) > 1 and not bool(pc.all(pc.less(dictionary[:-1], dictionary[1:])).as_py()):
-        return False  # first-appearance order is not lexical order
+        return None
     codes = enc.indices.to_numpy(zero_copy_only=False)
-    if (np.diff(codes) < 0).any():
-        return False
+    if (codes[1:] < codes[:-1]).any():
+        return None
     step = table.column(S.STEP).to_numpy()
     same = codes[1:] == codes[:-1]
-    return not (same & (step[1:] < step[:-1])).any()
+    return None if (same & (step[1:] < step[:-1])).any() else enc

@@ -129,10 +129,13 @@ def write_dataset(
         (tmp / S.DATA_DIR).mkdir()
         (tmp / S.META_DIR).mkdir()
         for k, (lo, hi) in enumerate(_part_bounds(ep["first_row"].to_numpy(), len(ds), rows_per_part)):
+            part = ds.table.slice(lo, hi - lo)
             pq.write_table(
-                ds.table.slice(lo, hi - lo),
+                part,
                 tmp / S.DATA_DIR / S.PART_TEMPLATE.format(k),
                 compression=S.PARQUET_COMPRESSION,
+                # dictionary pages only where values repeat (ids, labels); floats rarely do
+                use_dictionary=[f.name for f in part.schema if not pa.types.is_floating(f.type)],
             )
         info = ds.info.to_dict()
         info["n_transitions"] = len(ds)

@@ -46,6 +46,30 @@ CHECKS: tuple[str, ...] = (
 FINDING_COLUMNS = ["check", "file", "row", S.EPISODE_ID, S.STEP, "column", "message"]
 
 
+@dataclass(frozen=True)
+class RowOrigin:
+    """Where each row came from: ``files[file_index[i]]``, row ``row[i]`` of that file."""
+
+    files: Sequence[str]
+    file_index: np.ndarray
+    row: np.ndarray
+
+    @classmethod
+    def of(cls, ds: TransitionDataset) -> RowOrigin:
+        """From the dataset's ``src_file``/``src_row`` columns if present, else its own rows."""
+        t = ds.table
+        if "src_file" in t.column_names and "src_row" in t.column_names:
+            col = t.column("src_file").combine_chunks()
+            if not pa.types.is_dictionary(col.type):
+                col = pc.dictionary_encode(col)
+            return cls(
+                [str(x) for x in col.dictionary.to_pylist()],
+                col.indices.to_numpy(zero_copy_only=False),
+                t.column("src_row").to_numpy(zero_copy_only=False),
+            )
+        return cls(["<memory>"], np.zeros(len(ds), np.int64), np.arange(len(ds)))
+
+
 @dataclass
 class ValidationReport:
     """Findings of the doctor over one table.
@@ -109,8 +133,7 @@ class ValidationReport:
 def validate(
     ds: TransitionDataset,
     *,
-    files: Sequence[str] | np.ndarray | str | None = None,
-    rows: np.ndarray | None = None,
+    origin: RowOrigin | None = None,
     atol: float = 1e-9,
     rtol: float = 1e-7,
 ) -> ValidationReport:
@@ -119,11 +142,9 @@ def validate(
     Parameters
     ----------
     ds : TransitionDataset
-    files : str or array of str, optional
-        The file each row came from (one name for all rows, or one per row). Defaults
-        to ``"<memory>"``.
-    rows : ndarray of int, optional
-        Each row's 0-based index within its file. Defaults to the dataset row index.
+    origin : RowOrigin, optional
+        The file and row each dataset row came from. Defaults to the dataset's
+        ``src_file``/``src_row`` columns, or ``"<memory>"`` and the dataset row index.
     atol, rtol : float
         Tolerance of the ``next_obs`` / ``obs`` continuity check.
     """
@@ -213,14 +234,9 @@ def validate(
         return ValidationReport(n_rows=n, n_episodes=len(ep_ids))
     f = pd.concat(parts, ignore_index=True)
     idx = f.pop("_idx").to_numpy()
-    if files is None:
-        file_col: object = "<memory>"
-    elif isinstance(files, str):
-        file_col = files
-    else:
-        file_col = np.asarray(files, dtype=object)[idx]
-    f.insert(1, "file", file_col)
-    f.insert(2, "row", (np.asarray(rows) if rows is not None else np.arange(n))[idx])
+    origin = origin if origin is not None else RowOrigin.of(ds)
+    f.insert(1, "file", np.asarray(origin.files, dtype=object)[origin.file_index[idx]])
+    f.insert(2, "row", origin.row[idx])
     f.insert(3, S.EPISODE_ID, ep_ids[ep_codes[idx]].astype(str))
     f.insert(4, S.STEP, step[idx])
     f["check"] = pd.Categorical(f["check"], categories=list(CHECKS))
@@ -251,20 +267,23 @@ def validate_directory(path: str | PathLike[str]) -> ValidationReport:
     import pyarrow.parquet as pq
 
     sizes = [pq.ParquetFile(p).metadata.num_rows for p in parts]
-    files = np.repeat(np.array([str(p) for p in parts], dtype=object), sizes)
-    rows = np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int)
-    if len(files) != len(ds):  # defensive: canonicalisation never changes the row count
-        files, rows = None, None
-    return validate(ds, files=files, rows=rows)
+    origin = RowOrigin(
+        [str(p) for p in parts],
+        np.repeat(np.arange(len(parts)), sizes),
+        np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int),
+    )
+    # rows are read in part order; the constructor re-sorts only a dataset whose parts were
+    # edited out of order, and then the part/row names would no longer line up
+    return validate(ds, origin=origin if ds.table.num_rows == len(origin.row) and ds.was_sorted else None)
 
 
-def split_quarantine(ds: TransitionDataset, report: ValidationReport, *, files=None, rows=None) -> tuple[TransitionDataset, pa.Table]:
+def split_quarantine(ds: TransitionDataset, report: ValidationReport) -> tuple[TransitionDataset, pa.Table]:
     """Move every episode with a finding out of ``ds``.
 
-    Returns the clean dataset and a table of every rejected row, with ``reason`` (the
-    findings on that row, or a pointer to the episode's findings) and, when known, the
-    ``src_file``/``src_row`` it came from. Nothing is dropped: ``len(clean) +
-    len(quarantine) == len(ds)``.
+    Returns the clean dataset and a table of every rejected row (all of the dataset's
+    columns, so ``src_file``/``src_row`` when ingested) with ``reason``: the findings on
+    that row, or a pointer to the episode's findings. Nothing is dropped:
+    ``len(clean) + len(quarantine) == len(ds)``.
     """
     bad_ids = report.bad_episodes
     bad_mask = np.isin(ds.episode_ids.astype(str), bad_ids)
@@ -291,10 +310,5 @@ def split_quarantine(ds: TransitionDataset, report: ValidationReport, *, files=N
         empty = reasons == ""
         reasons[empty] = np.char.add("episode rejected: ", ep_reason[empty].astype(str)).astype(object)
     rejected = rejected.append_column("reason", pa.array(reasons[row_bad], pa.string()))
-    if files is not None:
-        f = np.asarray([files] * n if isinstance(files, str) else files, dtype=object)
-        rejected = rejected.append_column("src_file", pa.array(f[row_bad].astype(str), pa.string()))
-    if rows is not None:
-        rejected = rejected.append_column("src_row", pa.array(np.asarray(rows)[row_bad], pa.int64()))
     clean = TransitionDataset(ds.table.filter(pa.array(~row_bad)), ds.info)
     return clean, rejected

@@ -143,9 +143,9 @@ def ingest_tables(
     names_of = np.array([m["path"] for m in metas], dtype=object)
 
     # episodes may not span files (they would silently merge)
-    ep_file = pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")}).group_by("e").aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])
-    multi = ep_file.filter(pc.greater(ep_file.column("f_count_distinct"), 1))
-    if multi.num_rows:
+    ep_file = None if len(paths) == 1 else pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")}).group_by("e").aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])
+    multi = ep_file.filter(pc.greater(ep_file.column("f_count_distinct"), 1)) if ep_file is not None else None
+    if multi is not None and multi.num_rows:
         r = multi.slice(0, 1).to_pylist()[0]
         raise IngestError(
             f"episode id {r['e']!r} occurs in {names_of[r['f_min']]} and {names_of[r['f_max']]} "
@@ -182,9 +182,9 @@ def ingest_tables(
         cum = np.cumsum(new_val) - 1
         step = cum - np.repeat(cum[starts], lens)
 
-    obs = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.observations.columns])
+    obs = [_np(table, c, np.float64, file_of) for c in spec.observations.columns]
     has_next = bool(spec.observations.next_columns)
-    nxt_given = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.observations.next_columns]) if has_next else None
+    nxt_given = [_np(table, c, np.float64, file_of) for c in spec.observations.next_columns] if has_next else None
 
     term = _np(table, spec.terminated_column, bool, file_of) if spec.terminated_column else np.zeros(n, bool)
     trunc_col = _np(table, spec.truncated_column, bool, file_of) if spec.truncated_column else np.zeros(n, bool)
@@ -197,15 +197,19 @@ def ingest_tables(
         assert nxt_given is not None
         nxt = nxt_given
     else:
-        nxt = np.empty_like(obs)
-        nxt[:-1] = obs[1:]
-        if n:
-            nxt[-1] = obs[-1]
-        nxt[last & term] = obs[last & term]
-        if has_next:
-            sel = last & ~term
-            nxt[sel] = nxt_given[sel]  # type: ignore[index]
-        else:
+        end_term = last & term
+        nxt = []
+        for j, o in enumerate(obs):
+            x = np.empty_like(o)
+            x[:-1] = o[1:]
+            x[end_term] = o[end_term]  # placeholder: never bootstrapped through termination
+            if n:
+                x[-1] = o[-1]
+            if has_next:
+                sel = last & ~term
+                x[sel] = nxt_given[j][sel]  # type: ignore[index]
+            nxt.append(x)
+        if not has_next:
             drop = last & ~term
             dropped = int(drop.sum())
             keep = ~drop
@@ -234,11 +238,11 @@ def ingest_tables(
         else:
             cols[S.T_NS] = np.round(_np(table, spec.episode.time, np.float64, file_of) * TIME_UNITS[spec.episode.time_unit]).astype(np.int64)
     for j, nm in enumerate(names):
-        cols[S.obs_column(nm)] = obs[:, j]
+        cols[S.obs_column(nm)] = obs[j]
     cols[S.ACTION] = action
     cols[S.COST] = cost
     for j, nm in enumerate(names):
-        cols[S.next_obs_column(nm)] = nxt[:, j]
+        cols[S.next_obs_column(nm)] = nxt[j]
     cols[S.TERMINATED] = term
     cols[S.TRUNCATED] = trunc
     if spec.source_column:
@@ -271,11 +275,9 @@ def ingest_tables(
         name=spec.name,
     )
     ds = TransitionDataset(out, info)
-    src_files = ds.column("src_file")
-    src_rows = ds.table.column("src_row").to_numpy()
     if progress:
         progress("validating")
-    report = validate(ds, files=src_files, rows=src_rows)
+    report = validate(ds)  # names src_file/src_row of each finding
     result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
     if not report.ok:
         if on_error == "fail":
