@@ -163,7 +163,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         return 0
     print(f"{report['path']}  ({report['transitions']} transitions, {report['episodes']} episodes, format {report['format_version']})")
     print(f"  features    {', '.join(report['features'])}")
-    print(f"  actions     {info.action_table.kind}: " + ", ".join(f"{n}={v}" for n, v in report["actions"]["table"].items()))
+    print(f"  actions     {info.action_table.kind} over {list(info.action_table.dims)}: " + ", ".join(f"{i}:{n} {v}" for i, (n, v) in enumerate(report["actions"]["table"].items())))
     print("  coverage    " + ", ".join(f"{n}: {c}" for n, c in report["actions"]["coverage"].items()))
     for src, d in report["per_source"].items():
         print(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost {d['mean_total_cost']:.4g}, terminated {d['terminated']}")

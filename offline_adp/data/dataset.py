@@ -469,19 +469,22 @@ def _column_order(info: DatasetInfo) -> list[str]:
     ]
 
 
-def _sorted_encoding(table: pa.Table) -> pa.DictionaryArray | None:
-    """The episode-id encoding if rows are already ordered by (episode_id, step), else None.
+def sorted_encoding(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.DictionaryArray | None:
+    """The encoding of ``ids`` if rows are already ordered by (id, order), else None.
 
     Checked without sorting: ids in order means first-appearance order is lexical order
-    and codes never decrease; then steps must not decrease within an episode.
+    and codes never decrease; then ``order`` must not decrease within an id.
     """
-    enc = encode_strings(table.column(S.EPISODE_ID))
+    enc = encode_strings(ids)
     dictionary = enc.dictionary
     if len(dictionary) > 1 and not bool(pc.all(pc.less(dictionary[:-1], dictionary[1:])).as_py()):
         return None
     codes = enc.indices.to_numpy(zero_copy_only=False)
     if (codes[1:] < codes[:-1]).any():
         return None
-    step = table.column(S.STEP).to_numpy()
     same = codes[1:] == codes[:-1]
-    return None if (same & (step[1:] < step[:-1])).any() else enc
+    return None if (same & (order[1:] < order[:-1])).any() else enc
+
+
+def _sorted_encoding(table: pa.Table) -> pa.DictionaryArray | None:
+    return sorted_encoding(table.column(S.EPISODE_ID), table.column(S.STEP).to_numpy())

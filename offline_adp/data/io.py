@@ -19,6 +19,7 @@ import shutil
 import tempfile
 import warnings
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -37,7 +38,7 @@ from offline_adp.errors import (
     SchemaError,
 )
 
-DEFAULT_ROWS_PER_PART = 1_000_000
+DEFAULT_ROWS_PER_PART = 500_000
 
 
 def sha256_file(path: str | PathLike[str], chunk: int = 1 << 20) -> str:
@@ -118,7 +119,7 @@ def write_dataset(
 ) -> Path:
     """Write ``ds`` as a dataset directory at ``path``, atomically.
 
-    Parts hold whole episodes and at most about ``rows_per_part`` rows (an episode
+    Parts hold whole episodes and at most about ``rows_per_part`` rows (written in parallel) (an episode
     longer than that gets a part of its own). ``quarantine`` (rows rejected by the
     doctor, with a ``reason`` column) is written to ``quarantine/``. ``extra_meta`` is
     merged into ``info.json`` (e.g. the doctor's summary).
@@ -128,7 +129,7 @@ def write_dataset(
     with atomic_directory(path, overwrite=overwrite) as tmp:
         (tmp / S.DATA_DIR).mkdir()
         (tmp / S.META_DIR).mkdir()
-        for k, (lo, hi) in enumerate(_part_bounds(ep["first_row"].to_numpy(), len(ds), rows_per_part)):
+        def write_part(k: int, lo: int, hi: int) -> None:
             part = ds.table.slice(lo, hi - lo)
             pq.write_table(
                 part,
@@ -137,16 +138,25 @@ def write_dataset(
                 # dictionary pages only where values repeat (ids, labels); floats rarely do
                 use_dictionary=[f.name for f in part.schema if not pa.types.is_floating(f.type)],
             )
+
+        bounds = _part_bounds(ep["first_row"].to_numpy(), len(ds), rows_per_part)
+        # Arrow releases the GIL while encoding: parts are written in parallel threads
+        # the fingerprint and statistics are computed while the parts are written
+        with ThreadPoolExecutor(max_workers=(os.cpu_count() or 1) + 1) as pool:
+            fingerprint = pool.submit(ds.fingerprint)
+            stats = pool.submit(dataset_stats, ds)
+            for fut in [pool.submit(write_part, k, lo, hi) for k, (lo, hi) in enumerate(bounds)]:
+                fut.result()
         info = ds.info.to_dict()
         info["n_transitions"] = len(ds)
         info["n_episodes"] = ds.n_episodes
-        info["fingerprint"] = ds.fingerprint()
+        info["fingerprint"] = fingerprint.result()
         info["columns"] = {f.name: str(f.type) for f in ds.table.schema}
         if extra_meta:
             info.update(extra_meta)
         write_json(tmp / S.INFO_FILE, info)
         pq.write_table(pa.Table.from_pandas(ep, preserve_index=False), tmp / S.EPISODES_FILE)
-        write_json(tmp / S.STATS_FILE, dataset_stats(ds))
+        write_json(tmp / S.STATS_FILE, stats.result())
         if quarantine is not None and quarantine.num_rows:
             (tmp / S.QUARANTINE_DIR).mkdir()
             pq.write_table(quarantine, tmp / S.QUARANTINE_DIR / S.PART_TEMPLATE.format(0), compression=S.PARQUET_COMPRESSION)

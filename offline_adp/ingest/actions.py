@@ -36,14 +36,19 @@ def map_discrete(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") ->
         table_vals = np.unique(raw[~_isnan(raw)] if numeric else raw)
     if numeric:
         tv = table_vals.astype(np.float64)
-        x = raw.astype(np.float64)
-        order = np.argsort(tv)
-        pos = np.clip(np.searchsorted(tv[order], x), 0, len(tv) - 1)
-        cand = np.stack([order[pos], order[np.maximum(pos - 1, 0)]])
-        diff = np.abs(tv[cand] - x[None, :])
-        best = cand[np.argmin(diff, axis=0), np.arange(len(x))]
-        ok = np.abs(tv[best] - x) <= 1e-9 * np.maximum(1.0, np.abs(x))
-        idx = np.where(ok, best, -1)
+        x = raw.astype(np.float64, copy=False)
+        tol = 1e-9 * np.maximum(1.0, np.abs(tv))
+        idx = np.full(len(x), -1, np.int64)
+        if len(tv) <= 32:  # one vectorised comparison per action
+            for k in range(len(tv)):
+                idx[np.abs(x - tv[k]) <= tol[k]] = k
+        else:  # nearest table value by binary search, then the tolerance check
+            order = np.argsort(tv)
+            pos = np.searchsorted(tv[order], x)
+            lo = order[np.clip(pos - 1, 0, len(tv) - 1)]
+            hi = order[np.clip(pos, 0, len(tv) - 1)]
+            best = np.where(np.abs(tv[hi] - x) <= np.abs(tv[lo] - x), hi, lo)
+            idx = np.where(np.abs(tv[best] - x) <= tol[best], best, -1)
         values = [(float(v),) for v in tv]
     else:
         lookup = {str(v): i for i, v in enumerate(table_vals)}

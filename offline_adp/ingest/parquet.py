@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import datetime as _dt
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
@@ -32,7 +33,7 @@ import pyarrow.parquet as pq
 
 from offline_adp._version import __version__
 from offline_adp.data import schema as S
-from offline_adp.data.dataset import TransitionDataset, encode_strings
+from offline_adp.data.dataset import TransitionDataset, encode_strings, sorted_encoding
 from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
@@ -125,17 +126,22 @@ def ingest_tables(
     if not paths:
         raise IngestError("no input files given")
     tables, metas = [], []
-    for k, p in enumerate(paths):
-        if progress:
-            progress(f"reading {p}")
-        t = _read(p, spec)
-        t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
-            "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
-        )
-        # unify id column type across files
-        t = t.set_column(0, spec.episode.id, t.column(spec.episode.id).cast(pa.string()))
-        tables.append(t)
-        metas.append({"path": str(p), "sha256": sha256_file(p), "rows": t.num_rows})
+    # input hashes (provenance) are computed in a thread while the tables are read
+    with ThreadPoolExecutor(max_workers=1) as hasher:
+        hashes = [hasher.submit(sha256_file, p) if p.is_file() else None for p in paths]
+        for k, p in enumerate(paths):
+            if progress:
+                progress(f"reading {p}")
+            t = _read(p, spec)
+            t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
+                "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
+            )
+            # unify id column type across files
+            t = t.set_column(0, spec.episode.id, t.column(spec.episode.id).cast(pa.string()))
+            tables.append(t)
+            metas.append({"path": str(p), "sha256": None, "rows": t.num_rows})
+        for m, h in zip(metas, hashes, strict=True):
+            m["sha256"] = h.result() if h is not None else None
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
     except pa.ArrowInvalid as exc:
@@ -155,9 +161,11 @@ def ingest_tables(
     # order within episodes
     order_col = spec.episode.step or spec.episode.order or spec.episode.time
     assert order_col is not None
-    idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"), ("__row", "ascending")])
-    if not _identity(idx):
+    enc = sorted_encoding(table.column(spec.episode.id), table.column(order_col).to_numpy(zero_copy_only=False))
+    if enc is None:  # sort only when needed (ties keep file order)
+        idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"), ("__file", "ascending"), ("__row", "ascending")])
         table = table.take(idx)
+        enc = encode_strings(table.column(spec.episode.id))
     n = table.num_rows
     fidx = table.column("__file").to_numpy()
     rows = table.column("__row").to_numpy()
@@ -166,7 +174,6 @@ def ingest_tables(
         return str(names_of[fidx[i[0]]]) if len(i) else "?"
 
     ep_ids = table.column(spec.episode.id)
-    enc = encode_strings(ep_ids)
     codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
     first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
     last = np.r_[codes[1:] != codes[:-1], True] if n else np.zeros(0, bool)
@@ -291,11 +298,6 @@ def ingest_tables(
         result.quarantined_rows = rejected.num_rows
         result.quarantined_episodes = int(len(report.bad_episodes))
     return result
-
-
-def _identity(idx: pa.Array) -> bool:
-    a = idx.to_numpy()
-    return bool(len(a) == 0 or (a == np.arange(len(a))).all())
 
 
 def ingest_parquet(
