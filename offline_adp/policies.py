@@ -120,3 +120,17 @@ class TabularPolicy(Policy):
             return self.table[s]
         tt = np.minimum(np.broadcast_to(np.asarray(t), s.shape), self.table.shape[0] - 1)
         return self.table[tt, s]
+
+
+class GreedyPolicy(DeterministicPolicy):
+    """``pi(x, t) = argmin_a Q(x, a, t)``: greedy with respect to a cost Q-function.
+
+    Ties go to the lowest action index.
+    """
+
+    def __init__(self, q: object) -> None:
+        self.q = q
+        self.n_actions = q.n_actions  # type: ignore[attr-defined]
+
+    def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        return np.argmin(self.q.values(np.asarray(obs), t), axis=1).astype(np.int32)  # type: ignore[attr-defined]

@@ -1,0 +1,216 @@
+"""Q-functions over (x, a) for a finite action set, and the frozen-structure tree averager.
+
+A Q-function answers ``values(obs, t) -> (n, n_actions)`` for all actions in one
+batched call. Representations:
+
+- :class:`QEncoder` turns observations (and actions) into regressor inputs: an optional
+  feature map ``phi(x)`` (any fitted scikit-learn transformer), and either one *joint*
+  model on ``[phi(x), action features]`` (the action's value vector or a one-hot code)
+  or one model *per action* on ``phi(x)``.
+- :class:`RegressorQ` wraps fitted regressors (one joint or one per action).
+- :class:`TreeEnsemble` is a tree ensemble as plain arrays (our own export of
+  scikit-learn forests): vectorised prediction, leaf lookup, and safe ``.npz`` storage.
+  With its structure fixed, re-estimating leaf values from new targets is a
+  kernel averager (:func:`leaf_means`), which is the frozen-structure fast path of
+  Ernst et al. (2005).
+- :class:`TimeIndexedQ` holds one Q per step for finite horizons (Algorithm 10).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+TimeArg = int | np.ndarray
+
+
+class QFunction(ABC):
+    """Q(x, a[, t]) for all actions at once."""
+
+    n_actions: int
+
+    @abstractmethod
+    def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        """Q-values, shape (n, n_actions)."""
+
+
+@dataclass
+class QEncoder:
+    """Builds regressor inputs from observations and actions.
+
+    Parameters
+    ----------
+    n_actions : int
+    action_features : ndarray (n_actions, k)
+        What a joint model sees of each action (value vectors or one-hot rows).
+    per_action : bool
+        One model per action on ``phi(x)`` instead of a joint model.
+    feature_map : fitted transformer, optional
+        ``phi``; applied to observations before anything else.
+    """
+
+    n_actions: int
+    action_features: np.ndarray
+    per_action: bool = False
+    feature_map: Any = None
+
+    def phi(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float64)
+        return obs if self.feature_map is None else np.asarray(self.feature_map.transform(obs), dtype=np.float64)
+
+    def pairs(self, phi: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """Joint inputs ``[phi(x_i), f(a_i)]``, shape (n, d + k)."""
+        return np.hstack([phi, self.action_features[np.asarray(actions, dtype=np.int64)]])
+
+    def all_pairs(self, phi: np.ndarray) -> np.ndarray:
+        """Joint inputs for every action, action-major: row ``a * n + i`` is (x_i, a)."""
+        n = len(phi)
+        return np.hstack([np.tile(phi, (self.n_actions, 1)), np.repeat(self.action_features, n, axis=0)])
+
+
+class RegressorQ(QFunction):
+    """Q from fitted regressors: one joint model, or one model per action."""
+
+    def __init__(self, models: list[Any], encoder: QEncoder) -> None:
+        self.models, self.encoder, self.n_actions = models, encoder, encoder.n_actions
+
+    def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        phi = self.encoder.phi(obs)
+        return self.values_phi(phi)
+
+    def values_phi(self, phi: np.ndarray) -> np.ndarray:
+        n = len(phi)
+        if self.encoder.per_action:
+            return np.column_stack([np.asarray(m.predict(phi), dtype=np.float64) for m in self.models])
+        return np.asarray(self.models[0].predict(self.encoder.all_pairs(phi)), dtype=np.float64).reshape(self.n_actions, n).T
+
+
+class TimeIndexedQ(QFunction):
+    """One Q-function per step t = 0..T-1 (finite horizon); steps >= T use the last."""
+
+    def __init__(self, qs: list[QFunction]) -> None:
+        self.qs, self.n_actions = qs, qs[0].n_actions
+
+    def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        obs = np.asarray(obs)
+        tt = np.broadcast_to(np.minimum(np.asarray(t), len(self.qs) - 1), (len(obs),))
+        out = np.empty((len(obs), self.n_actions))
+        for step in np.unique(tt):
+            rows = tt == step
+            out[rows] = self.qs[int(step)].values(obs[rows], int(step))
+        return out
+
+
+# ----------------------------------------------------------------------------- tree ensembles
+@dataclass
+class TreeEnsemble:
+    """An averaging ensemble of binary regression trees as flat arrays.
+
+    Node ``j`` (global index over all trees) splits on ``feature[j]`` at
+    ``threshold[j]`` (go left when ``x <= threshold``); leaves have ``left[j] == -1``
+    and predict ``value[j]``. ``roots[m]`` is tree m's root. The prediction is the mean
+    over trees of the reached leaf values, as in scikit-learn's forests.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    feature: np.ndarray
+    threshold: np.ndarray
+    value: np.ndarray
+    roots: np.ndarray
+
+    @property
+    def n_trees(self) -> int:
+        return len(self.roots)
+
+    @classmethod
+    def from_sklearn(cls, forest: Any) -> TreeEnsemble:
+        """Export a fitted scikit-learn forest (or a single tree) to arrays."""
+        trees = [e.tree_ for e in getattr(forest, "estimators_", [forest])]
+        sizes = np.array([t.node_count for t in trees])
+        offs = np.r_[0, np.cumsum(sizes)[:-1]]
+        left = np.concatenate([np.where(t.children_left >= 0, t.children_left + o, -1) for t, o in zip(trees, offs, strict=True)])
+        right = np.concatenate([np.where(t.children_right >= 0, t.children_right + o, -1) for t, o in zip(trees, offs, strict=True)])
+        return cls(
+            left=left.astype(np.int64),
+            right=right.astype(np.int64),
+            feature=np.concatenate([t.feature for t in trees]).astype(np.int64),
+            threshold=np.concatenate([t.threshold for t in trees]).astype(np.float64),
+            value=np.concatenate([t.value[:, 0, 0] for t in trees]).astype(np.float64),
+            roots=offs.astype(np.int64),
+        )
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """Global leaf index reached in each tree, shape (n, n_trees), int64."""
+        # scikit-learn trees compare float32 inputs with their thresholds: do the same
+        X = np.asarray(X, dtype=np.float32).astype(np.float64)
+        n = len(X)
+        out = np.empty((n, self.n_trees), dtype=np.int64)
+        rows = np.arange(n)
+        for m, root in enumerate(self.roots):
+            node = np.full(n, root, dtype=np.int64)
+            active = self.left[node] >= 0
+            while active.any():
+                idx = np.flatnonzero(active)
+                nd = node[idx]
+                go_left = X[rows[idx], self.feature[nd]] <= self.threshold[nd]
+                node[idx] = np.where(go_left, self.left[nd], self.right[nd])
+                active[idx] = self.left[node[idx]] >= 0
+            out[:, m] = node
+        return out
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        return self.value[self.apply(X)].mean(axis=1)
+
+    def with_values(self, value: np.ndarray) -> TreeEnsemble:
+        return TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
+
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        return {prefix + k: getattr(self, k) for k in ("left", "right", "feature", "threshold", "value", "roots")}
+
+    @classmethod
+    def from_arrays(cls, arrays: Any, prefix: str = "") -> TreeEnsemble:
+        return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})
+
+
+def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:
+    """Global leaf ids (as in :meth:`TreeEnsemble.from_sklearn`) via scikit-learn's fast ``apply``."""
+    sizes = np.array([e.tree_.node_count for e in forest.estimators_])
+    offs = np.r_[0, np.cumsum(sizes)[:-1]]
+    leaves = forest.apply(np.asarray(X, dtype=np.float32))
+    dtype = np.int32 if sizes.sum() < 2**31 else np.int64
+    return (leaves + offs[None, :]).astype(dtype)
+
+
+def leaf_means(train_leaves: np.ndarray, y: np.ndarray, n_nodes: int, weights: np.ndarray | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
+    """Leaf values = (weighted) mean target of the training samples in each leaf.
+
+    ``train_leaves`` is (n, n_trees) global leaf ids; returns a value per node (nodes
+    holding no sample keep ``fallback``, or 0).
+    """
+    n, m = train_leaves.shape
+    flat = train_leaves.reshape(-1)
+    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
+    wsum = np.bincount(flat, weights=np.repeat(w, m), minlength=n_nodes)
+    ysum = np.bincount(flat, weights=np.repeat(w * y, m), minlength=n_nodes)
+    base = np.zeros(n_nodes) if fallback is None else fallback
+    return np.where(wsum > 0, ysum / np.where(wsum > 0, wsum, 1.0), base)
+
+
+def ensemble_predict(values: np.ndarray, leaves: np.ndarray) -> np.ndarray:
+    """Mean over trees of leaf values at precomputed leaves (n, n_trees) -> (n,)."""
+    return values[leaves].mean(axis=1)
+
+
+class TreeQ(QFunction):
+    """Q from :class:`TreeEnsemble` s (one joint, or one per action)."""
+
+    def __init__(self, ensembles: list[TreeEnsemble], encoder: QEncoder) -> None:
+        self.ensembles, self.encoder, self.n_actions = ensembles, encoder, encoder.n_actions
+        self.models = ensembles  # same interface as RegressorQ
+
+    def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        return RegressorQ.values_phi(self, self.encoder.phi(obs))  # type: ignore[arg-type]

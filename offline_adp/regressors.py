@@ -1,0 +1,144 @@
+"""LEARN plug-ins: a registry of scikit-learn / LightGBM regressors by name.
+
+Every entry is an *unfitted prototype*; algorithms ``sklearn.base.clone`` it for each
+fit. Names resolve from TOML (``regressor = "extra_trees"`` with ``[regressor_params]``).
+
+==================  ===========================================================
+name                prototype
+==================  ===========================================================
+``extra_trees``     Ernst et al. (2005) defaults: 50 trees, ``min_samples_split=2``,
+                    all features considered at each split (``max_features=1.0``)
+``random_forest``   50 bootstrapped trees, ``min_samples_split=2``, all features
+``lightgbm``        ``LGBMRegressor`` (100 trees, 31 leaves, learning rate 0.1)
+``knn``             5 nearest neighbours, distance-weighted
+``ridge``           polynomial features (degree 2) + ridge (alpha 1e-8): quadratic regression
+``linear``          ordinary least squares
+``mlp``             two hidden layers of 64 units
+``tabular``         :class:`TabularRegressor`: the mean target of each distinct input
+==================  ===========================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from sklearn.base import BaseEstimator, RegressorMixin, clone
+from sklearn.utils.validation import check_is_fitted
+
+from offline_adp.errors import UnknownNameError
+
+
+class TabularRegressor(RegressorMixin, BaseEstimator):
+    """A lookup table: the (weighted) mean target of each distinct input row.
+
+    With one-hot or index inputs this is the tabular learner of the chapter, for which
+    fitted Q-iteration is exact dynamic programming on the data's empirical model.
+
+    Parameters
+    ----------
+    fill_value : float
+        Prediction for input rows never seen in ``fit``.
+    """
+
+    def __init__(self, fill_value: float = 0.0) -> None:
+        self.fill_value = fill_value
+
+    def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularRegressor:
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+        keys, inv = np.unique(X, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        wsum = np.bincount(inv, weights=w, minlength=len(keys))
+        self.keys_ = keys
+        self.values_ = np.bincount(inv, weights=w * y, minlength=len(keys)) / np.where(wsum > 0, wsum, 1.0)
+        self.n_features_in_ = X.shape[1]
+        return self
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        check_is_fitted(self, "keys_")
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        both = np.vstack([self.keys_, X])
+        _, inv = np.unique(both, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        lookup = np.full(inv.max() + 1, -1, np.int64)
+        lookup[inv[: len(self.keys_)]] = np.arange(len(self.keys_))
+        pos = lookup[inv[len(self.keys_) :]]
+        return np.where(pos >= 0, self.values_[np.maximum(pos, 0)], self.fill_value)
+
+
+def _extra_trees(**kw: Any) -> BaseEstimator:
+    from sklearn.ensemble import ExtraTreesRegressor
+
+    params = {"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0}
+    return ExtraTreesRegressor(**{**params, **kw})
+
+
+def _random_forest(**kw: Any) -> BaseEstimator:
+    from sklearn.ensemble import RandomForestRegressor
+
+    params = {"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0}
+    return RandomForestRegressor(**{**params, **kw})
+
+
+def _lightgbm(**kw: Any) -> BaseEstimator:
+    from lightgbm import LGBMRegressor
+
+    params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, "random_state": 0, "n_jobs": -1}
+    return LGBMRegressor(**{**params, **kw})
+
+
+def _knn(**kw: Any) -> BaseEstimator:
+    from sklearn.neighbors import KNeighborsRegressor
+
+    return KNeighborsRegressor(**{"n_neighbors": 5, "weights": "distance", **kw})
+
+
+def _ridge(degree: int = 2, alpha: float = 1e-8, **kw: Any) -> BaseEstimator:
+    from sklearn.linear_model import Ridge
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import PolynomialFeatures
+
+    return make_pipeline(PolynomialFeatures(degree=degree), Ridge(alpha=alpha, **kw))
+
+
+def _linear(**kw: Any) -> BaseEstimator:
+    from sklearn.linear_model import LinearRegression
+
+    return LinearRegression(**kw)
+
+
+def _mlp(**kw: Any) -> BaseEstimator:
+    from sklearn.neural_network import MLPRegressor
+
+    return MLPRegressor(**{"hidden_layer_sizes": (64, 64), "max_iter": 500, "random_state": 0, **kw})
+
+
+REGRESSORS: dict[str, Callable[..., BaseEstimator]] = {
+    "extra_trees": _extra_trees,
+    "random_forest": _random_forest,
+    "lightgbm": _lightgbm,
+    "knn": _knn,
+    "ridge": _ridge,
+    "linear": _linear,
+    "mlp": _mlp,
+    "tabular": lambda **kw: TabularRegressor(**kw),
+}
+
+
+def make_regressor(spec: str | BaseEstimator, **params: Any) -> BaseEstimator:
+    """An unfitted regressor from a registry name (with parameters) or a clone of an estimator."""
+    if not isinstance(spec, str):
+        if params:
+            return clone(spec).set_params(**params)
+        return clone(spec)
+    try:
+        factory = REGRESSORS[spec]
+    except KeyError:
+        raise UnknownNameError(f"unknown regressor {spec!r}; known: {sorted(REGRESSORS)}") from None
+    try:
+        return factory(**params)
+    except TypeError as exc:
+        raise UnknownNameError(f"regressor {spec!r}: bad parameters {sorted(params)} ({exc})") from None
