@@ -1,0 +1,223 @@
+"""How one fitted-Q step ``Q_k = LEARN({(x_i, a_i), y_i})`` is carried out.
+
+Fitted Q-iteration and fitted Q evaluation share the same inner step; what differs is
+the targets. A *learner* owns the regression inputs of the training pairs and of every
+query set the algorithm needs (next states for the targets, start states, held-out
+pairs) and answers ``fit(y)`` then ``predict(name)``:
+
+- :class:`RefitLearner` (the naive loop): clone and fit the regressor on every
+  iteration; prediction is one batched call per query set.
+- :class:`FrozenTreesLearner` (Ernst et al. 2005, section 4.3): fit a tree ensemble's
+  *structure* once (and again on demand), precompute the leaf reached by every training
+  and query input, and thereafter only re-average leaf values: an O(n * trees) gather,
+  no tree fitting or traversal. With a fixed structure the update is a kernel averager,
+  hence a gamma-contraction: it converges.
+- :class:`LightGBMWarmStartLearner`: each iteration adds a few boosted trees fitted to
+  the change in targets, with the previous Q's predictions on the fixed training and
+  query inputs cached, so only the new trees are evaluated.
+
+Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks for all actions
+(result (m, n_actions)), otherwise for the given action per row (result (m,)).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sklearn.base import clone
+
+from offline_adp.qfunctions import (
+    QEncoder,
+    QFunction,
+    RegressorQ,
+    TreeEnsemble,
+    TreeQ,
+    ensemble_predict,
+    leaf_means,
+    sklearn_leaves,
+)
+
+Query = tuple[np.ndarray, np.ndarray | None]
+
+
+def _seeded(model: Any, seed: int) -> Any:
+    if "random_state" in model.get_params():
+        model.set_params(random_state=seed)
+    return model
+
+
+def _fit(model: Any, X: np.ndarray, y: np.ndarray, w: np.ndarray | None) -> Any:
+    if w is None:
+        return model.fit(X, y)
+    try:
+        return model.fit(X, y, sample_weight=w)
+    except TypeError:  # pipelines route weights by step name
+        last = model.steps[-1][0]
+        return model.fit(X, y, **{f"{last}__sample_weight": w})
+
+
+class Learner:
+    """Base: training pairs ``(phi, actions)``, weights, and named query sets."""
+
+    def __init__(self, regressor: Any, encoder: QEncoder, phi: np.ndarray, actions: np.ndarray,
+                 queries: dict[str, Query], weights: np.ndarray | None = None, seed: int = 0) -> None:
+        self.regressor, self.encoder = regressor, encoder
+        self.phi, self.actions, self.weights, self.seed = phi, np.asarray(actions, dtype=np.int64), weights, seed
+        self.queries = {"train": (phi, self.actions), **queries}
+        self.iteration = 0
+
+    def fit(self, y: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def predict(self, name: str) -> np.ndarray:
+        raise NotImplementedError
+
+    def snapshot(self) -> QFunction:
+        """The current Q as a standalone Q-function."""
+        raise NotImplementedError
+
+    @staticmethod
+    def _select(q_all: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
+        return q_all if actions is None else q_all[np.arange(len(actions)), actions]
+
+
+class RefitLearner(Learner):
+    """Clone and refit LEARN on every iteration (any scikit-learn regressor)."""
+
+    def fit(self, y: np.ndarray) -> None:
+        self.iteration += 1
+        seed = self.seed + self.iteration
+        if self.encoder.per_action:
+            models = []
+            for a in range(self.encoder.n_actions):
+                rows = self.actions == a
+                m = _seeded(clone(self.regressor), seed)
+                if not rows.any():
+                    raise ValueError(f"action {a} never occurs in the data: a per-action model cannot be fitted")
+                models.append(_fit(m, self.phi[rows], y[rows], None if self.weights is None else self.weights[rows]))
+        else:
+            m = _seeded(clone(self.regressor), seed)
+            models = [_fit(m, self.encoder.pairs(self.phi, self.actions), y, self.weights)]
+        self.q = RegressorQ(models, self.encoder)
+
+    def predict(self, name: str) -> np.ndarray:
+        phi, actions = self.queries[name]
+        if actions is not None and not self.encoder.per_action:
+            return np.asarray(self.q.models[0].predict(self.encoder.pairs(phi, actions)), dtype=np.float64)
+        return self._select(self.q.values_phi(phi), actions)
+
+    def snapshot(self) -> QFunction:
+        return self.q
+
+
+class FrozenTreesLearner(Learner):
+    """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
+
+    The structure is (re)built by the next ``fit`` after :meth:`restructure` (and on the
+    first ``fit``): the ensemble is fitted to that iteration's targets and the leaves
+    of every training and query input are computed once with scikit-learn's ``apply``.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if self.encoder.per_action:
+            raise ValueError("the frozen-structure mode needs action_encoding='joint'")
+        self._rebuild = True
+        self.structures = 0
+
+    def restructure(self) -> None:
+        self._rebuild = True
+
+    def fit(self, y: np.ndarray) -> None:
+        self.iteration += 1
+        if self._rebuild:
+            X = self.encoder.pairs(self.phi, self.actions)
+            forest = _fit(_seeded(clone(self.regressor), self.seed + self.iteration), X, y, self.weights)
+            if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
+                raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
+            self.ensemble = TreeEnsemble.from_sklearn(forest)
+            self.leaves = {name: sklearn_leaves(forest, self._joint(phi, a)) for name, (phi, a) in self.queries.items()}
+            self.n_nodes = len(self.ensemble.value)
+            self._rebuild = False
+            self.structures += 1
+            self.values = self.ensemble.value  # scikit-learn's own leaf means on y
+            return
+        # Q_k: each leaf's value is the mean target of the training samples in it
+        self.values = leaf_means(self.leaves["train"], y, self.n_nodes, self.weights, fallback=self.values)
+
+    def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
+        return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
+
+    def predict(self, name: str) -> np.ndarray:
+        phi, actions = self.queries[name]
+        v = ensemble_predict(self.values, self.leaves[name])
+        return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+
+    def snapshot(self) -> QFunction:
+        return TreeQ([self.ensemble.with_values(self.values)], self.encoder)
+
+
+class BoostedSumQ(QFunction):
+    """Q = sum of LightGBM boosters' raw scores on joint inputs."""
+
+    def __init__(self, boosters: list[Any], encoder: QEncoder) -> None:
+        self.boosters, self.encoder, self.n_actions = boosters, encoder, encoder.n_actions
+
+    def values(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
+        X = self.encoder.all_pairs(self.encoder.phi(obs))
+        s = sum(b.predict(X, raw_score=True) for b in self.boosters)
+        return np.asarray(s, dtype=np.float64).reshape(self.n_actions, len(obs)).T
+
+
+class LightGBMWarmStartLearner(Learner):
+    """Warm-started boosting: each iteration adds ``trees_per_iteration`` trees fitted to
+    ``y_k - Q_{k-1}`` on the training pairs; cached predictions make each step cost only
+    the new trees. Joint encoding only; the regressor's LightGBM parameters are reused.
+    """
+
+    def __init__(self, *args: Any, trees_per_iteration: int = 10, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if self.encoder.per_action:
+            raise ValueError("the LightGBM warm-start mode needs action_encoding='joint'")
+        import lightgbm as lgb
+
+        self.lgb = lgb
+        p = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
+        self.params = {
+            "objective": "regression",
+            "num_leaves": p.get("num_leaves", 31),
+            "learning_rate": p.get("learning_rate", 0.1) if p.get("learning_rate") is not None else 0.1,
+            "min_data_in_leaf": p.get("min_child_samples", 20),
+            "verbose": -1,
+            "num_threads": p.get("n_jobs", 0) if (p.get("n_jobs") or 0) > 0 else 0,
+            "seed": self.seed,
+            "deterministic": True,
+        }
+        self.trees_per_iteration = trees_per_iteration
+        self.X = {name: self._joint(phi, a) for name, (phi, a) in self.queries.items()}
+        self.cache = {name: np.zeros(len(X)) for name, X in self.X.items()}
+        self.boosters: list[Any] = []
+        self.data = self.lgb.Dataset(self.X["train"], label=np.zeros(len(self.X["train"])), weight=self.weights,
+                                     free_raw_data=False, params={"verbose": -1})
+
+    def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
+        return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
+
+    def fit(self, y: np.ndarray) -> None:
+        self.iteration += 1
+        self.data.set_label(y)
+        self.data.set_init_score(self.cache["train"])  # boost from the previous Q
+        booster = self.lgb.train({**self.params, "seed": self.seed + self.iteration}, self.data,
+                                 num_boost_round=self.trees_per_iteration)
+        self.boosters.append(booster)
+        for name, X in self.X.items():  # only the new trees are evaluated
+            self.cache[name] = self.cache[name] + booster.predict(X, raw_score=True)
+
+    def predict(self, name: str) -> np.ndarray:
+        phi, actions = self.queries[name]
+        v = self.cache[name]
+        return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+
+    def snapshot(self) -> QFunction:
+        return BoostedSumQ(list(self.boosters), self.encoder)
