@@ -35,6 +35,7 @@ from offline_adp.qfunctions import (
     TreeQ,
     ensemble_predict,
     leaf_means,
+    predict_model,
     sklearn_leaves,
 )
 
@@ -104,7 +105,7 @@ class RefitLearner(Learner):
     def predict(self, name: str) -> np.ndarray:
         phi, actions = self.queries[name]
         if actions is not None and not self.encoder.per_action:
-            return np.asarray(self.q.models[0].predict(self.encoder.pairs(phi, actions)), dtype=np.float64)
+            return predict_model(self.q.models[0], self.encoder.pairs(phi, actions))
         return self._select(self.q.values_phi(phi), actions)
 
     def snapshot(self) -> QFunction:

@@ -71,6 +71,19 @@ class QEncoder:
         return np.hstack([np.tile(phi, (self.n_actions, 1)), np.repeat(self.action_features, n, axis=0)])
 
 
+def predict_model(model: Any, X: np.ndarray) -> np.ndarray:
+    """``model.predict(X)`` as float64; scikit-learn forests go through their leaves
+    (``apply`` + a fixed-order mean), which is deterministic (the threaded
+    ``predict`` sums trees in a racy order) and equal to a saved :class:`TreeEnsemble`."""
+    if hasattr(model, "estimators_") and hasattr(model, "apply") and hasattr(model.estimators_[0], "tree_"):
+        values = getattr(model, "_oadp_values", None)
+        if values is None:
+            values = np.concatenate([e.tree_.value[:, 0, 0] for e in model.estimators_])
+            model._oadp_values = values
+        return ensemble_predict(values, sklearn_leaves(model, X))
+    return np.asarray(model.predict(X), dtype=np.float64)
+
+
 class RegressorQ(QFunction):
     """Q from fitted regressors: one joint model, or one model per action."""
 
@@ -84,8 +97,8 @@ class RegressorQ(QFunction):
     def values_phi(self, phi: np.ndarray) -> np.ndarray:
         n = len(phi)
         if self.encoder.per_action:
-            return np.column_stack([np.asarray(m.predict(phi), dtype=np.float64) for m in self.models])
-        return np.asarray(self.models[0].predict(self.encoder.all_pairs(phi)), dtype=np.float64).reshape(self.n_actions, n).T
+            return np.column_stack([predict_model(m, phi) for m in self.models])
+        return predict_model(self.models[0], self.encoder.all_pairs(phi)).reshape(self.n_actions, n).T
 
 
 class TimeIndexedQ(QFunction):

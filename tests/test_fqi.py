@@ -60,15 +60,17 @@ def test_infinite_horizon_tabular_equals_value_iteration(encoding):
     assert not f.diverged_
 
 
-def test_extra_trees_on_one_hot_features_reach_the_optimal_policy():
+@pytest.mark.parametrize("mode", ["refit", "frozen"])
+def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode):
     m = TabularMDP(n_states=15, n_actions=3, horizon=None, gamma=0.9, seed=3)
     ds, w = full_support_dataset(m)
-    f = FittedQIteration(gamma=0.9, regressor="extra_trees", regressor_params={"n_estimators": 10},
-                         feature_map=OneHotEncoder(sparse_output=False), action_input="onehot", n_iterations=150)
+    f = FittedQIteration(gamma=0.9, regressor="extra_trees", regressor_params={"n_estimators": 10, "n_jobs": 1},
+                         feature_map=OneHotEncoder(sparse_output=False), action_input="onehot", n_iterations=150,
+                         tol=1e-7, mode=mode)
     f.fit(ds, sample_weight=w)
     sol = dp.value_iteration_discounted(m.P, m.C, 0.9)
     np.testing.assert_array_equal(f.policy_.act(np.arange(15.0)[:, None]), sol.policy)
-    np.testing.assert_allclose(_q_table(f.q_function_, 15), sol.Q, atol=1e-4)
+    np.testing.assert_allclose(_q_table(f.q_function_, 15), sol.Q, atol=1e-5)
 
 
 def gridworld_dataset() -> TransitionDataset:
@@ -105,7 +107,8 @@ def test_boyan_moore_divergence_quadratic_vs_trees_and_table():
     for reg in ("extra_trees", "tabular"):
         with warnings.catch_warnings():
             warnings.simplefilter("error", DivergenceWarning)
-            g = FittedQIteration(gamma=1.0, regressor=reg, n_iterations=80, tol=1e-12).fit(ds)
+            params = {"n_estimators": 10, "n_jobs": 1} if reg == "extra_trees" else {}
+            g = FittedQIteration(gamma=1.0, regressor=reg, regressor_params=params, n_iterations=80, tol=1e-12).fit(ds)
         np.testing.assert_allclose(g.q_function_.values(lattice).min(axis=1)[:-1], J[:-1], atol=1e-9)
 
 

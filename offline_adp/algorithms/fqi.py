@@ -388,3 +388,43 @@ class FittedQIteration(BaseEstimator):
     def _check_fitted(self) -> None:
         if getattr(self, "q_function_", None) is None:
             raise NotFittedError("this FittedQIteration is not fitted yet; call fit(dataset) first")
+
+
+def save_fqi(est: FittedQIteration, directory: Any, dataset_fingerprint: str | None = None) -> None:
+    """Write a fitted FQI's Q-functions, greedy policy definition, params and history.
+
+    Layout: ``q.json`` + ``q.npz`` (see :mod:`offline_adp.artifacts`), ``params.json``
+    (``get_params()``, estimators by name or repr), ``history.csv``.
+    """
+    import json
+    from pathlib import Path
+
+    from offline_adp.artifacts import save_q
+
+    est._check_fitted()
+    d = Path(directory)
+    params = {k: (v if isinstance(v, str | int | float | bool | type(None) | dict | list) else repr(v)) for k, v in est.get_params().items()}
+    save_q(est.q_function_, d, extra={"algorithm": "fqi", "dataset_fingerprint": dataset_fingerprint, "policy": "greedy (argmin_a Q)"})
+    (d / "params.json").write_text(json.dumps(params, indent=1))
+    est.history_.to_csv(d / "history.csv", index=False)
+
+
+def load_fqi(directory: Any) -> FittedQIteration:
+    """Read what :func:`save_fqi` wrote; the result predicts and acts like the saved one."""
+    import json
+    from pathlib import Path
+
+    from offline_adp.artifacts import load_q
+
+    d = Path(directory)
+    q, meta = load_q(d)
+    raw = json.loads((d / "params.json").read_text())
+    known = FittedQIteration().get_params()
+    est = FittedQIteration(**{k: v for k, v in raw.items() if k in known and not (isinstance(v, str) and v.startswith(("<", "Pipeline(", "OneHot")))})
+    est.q_function_ = q
+    est.q_functions_ = list(q.qs) if isinstance(q, TimeIndexedQ) else None
+    est.policy_ = GreedyPolicy(q)
+    est.history_ = pd.read_csv(d / "history.csv")
+    est.diverged_ = False
+    est.dataset_fingerprint_ = meta.get("dataset_fingerprint")
+    return est
