@@ -22,7 +22,14 @@ import numpy as np
 from offline_adp._version import __version__
 from offline_adp.errors import FormatVersionWarning, OfflineADPError
 from offline_adp.learners import BoostedSumQ
-from offline_adp.qfunctions import QEncoder, QFunction, RegressorQ, TimeIndexedQ, TreeEnsemble, TreeQ
+from offline_adp.qfunctions import (
+    QEncoder,
+    QFunction,
+    RegressorQ,
+    TimeIndexedQ,
+    TreeEnsemble,
+    TreeQ,
+)
 
 ARTIFACT_VERSION = "1"
 

@@ -33,8 +33,6 @@ from offline_adp.qfunctions import (
     RegressorQ,
     TreeEnsemble,
     TreeQ,
-    ensemble_predict,
-    leaf_means,
     predict_model,
     sklearn_leaves,
 )
@@ -116,8 +114,17 @@ class FrozenTreesLearner(Learner):
     """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
 
     The structure is (re)built by the next ``fit`` after :meth:`restructure` (and on the
-    first ``fit``): the ensemble is fitted to that iteration's targets and the leaves
-    of every training and query input are computed once with scikit-learn's ``apply``.
+    first ``fit``): the ensemble is fitted to that iteration's targets plus a tiny jitter
+    (std ``1e-6 * (1 + std(y))``, so that trees grow fully even where the first targets
+    are constant), and the leaves of every training and query input are computed once.
+    With the structure fixed, each leaf's value is the weighted mean target of its
+    training samples and a prediction is the mean over trees: two fixed sparse operators
+    (a kernel averager whose rows sum to 1)::
+
+        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w in the leaf)
+        Q_k(query) = A_query @ v_k  A_query[q, leaf] = 1 / n_trees for the q's leaves
+
+    An iteration is a few sparse mat-vecs: no tree fitting, no traversal.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -130,33 +137,56 @@ class FrozenTreesLearner(Learner):
     def restructure(self) -> None:
         self._rebuild = True
 
+    def _build(self, y: np.ndarray) -> None:
+        from scipy import sparse
+
+        X = self.encoder.pairs(self.phi, self.actions)
+        rng = np.random.default_rng([self.seed, self.iteration, 7])
+        jitter = rng.normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+        forest = _fit(_seeded(clone(self.regressor), self.seed + self.iteration), X, y + jitter, self.weights)
+        if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
+            raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
+        self.ensemble = TreeEnsemble.from_sklearn(forest)
+        n, m = len(y), self.ensemble.n_trees
+        train = sklearn_leaves(forest, X)  # (n, m) global leaf ids
+        used = np.zeros(len(self.ensemble.value), bool)
+        used[train.reshape(-1)] = True
+        self.leaf_ids = np.flatnonzero(used)  # leaves holding training samples, compact index
+        lookup = np.full(len(used), -1, np.int64)
+        lookup[self.leaf_ids] = np.arange(len(self.leaf_ids))
+        compact = lookup[train.reshape(-1)]
+        w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
+        rows = np.repeat(np.arange(n), m)
+        wsum = np.bincount(compact, weights=w[rows], minlength=len(self.leaf_ids))
+        self.M = sparse.csr_matrix((w[rows] / wsum[compact], (compact, rows)), shape=(len(self.leaf_ids), n))
+        self.A: dict[str, Any] = {}
+        for name, (phi, a) in self.queries.items():
+            leaves = train if name == "train" else sklearn_leaves(forest, self._joint(phi, a))
+            pos = lookup[leaves.reshape(-1)]
+            hit = pos >= 0  # every leaf holds training samples unless their weights are 0
+            qrows = np.repeat(np.arange(len(leaves)), m)[hit]
+            self.A[name] = sparse.csr_matrix((np.full(hit.sum(), 1.0 / m), (qrows, pos[hit])), shape=(len(leaves), len(self.leaf_ids)))
+        self._rebuild = False
+        self.structures += 1
+
     def fit(self, y: np.ndarray) -> None:
         self.iteration += 1
         if self._rebuild:
-            X = self.encoder.pairs(self.phi, self.actions)
-            forest = _fit(_seeded(clone(self.regressor), self.seed + self.iteration), X, y, self.weights)
-            if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
-                raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
-            self.ensemble = TreeEnsemble.from_sklearn(forest)
-            self.leaves = {name: sklearn_leaves(forest, self._joint(phi, a)) for name, (phi, a) in self.queries.items()}
-            self.n_nodes = len(self.ensemble.value)
-            self._rebuild = False
-            self.structures += 1
-            self.values = self.ensemble.value  # scikit-learn's own leaf means on y
-            return
-        # Q_k: each leaf's value is the mean target of the training samples in it
-        self.values = leaf_means(self.leaves["train"], y, self.n_nodes, self.weights, fallback=self.values)
+            self._build(y)
+        self.leaf_values = self.M @ np.asarray(y, dtype=np.float64)  # leaf means of y_k
 
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
     def predict(self, name: str) -> np.ndarray:
         phi, actions = self.queries[name]
-        v = ensemble_predict(self.values, self.leaves[name])
+        v = self.A[name] @ self.leaf_values  # mean over trees of the reached leaves
         return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
 
     def snapshot(self) -> QFunction:
-        return TreeQ([self.ensemble.with_values(self.values)], self.encoder)
+        value = self.ensemble.value.copy()
+        value[self.leaf_ids] = self.leaf_values
+        return TreeQ([self.ensemble.with_values(value)], self.encoder)
 
 
 class BoostedSumQ(QFunction):
