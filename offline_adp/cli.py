@@ -179,6 +179,38 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- fit
+def cmd_fit(args: argparse.Namespace) -> int:
+    from offline_adp.runs import fit_run, load_config
+
+    params = load_config(args.config, args.algorithm)
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        total = params.get("horizon") or params.get("n_iterations", 50) * (2 if params.get("mode") == "frozen" else 1)
+        bar = tqdm(total=total, desc=f"fit {args.algorithm}", unit="it", file=sys.stderr)
+
+    def on_iteration(row: dict) -> None:
+        if bar is not None:
+            if bar.n == 0 and row["iteration"] > 1:
+                bar.update(row["iteration"] - 1)  # resumed
+            bar.set_postfix(residual=f"{row['bellman_residual']:.3g}", dq=f"{row['sup_dq']:.3g}", s=f"{row['wall_time']:.2f}")
+            bar.update(1)
+
+    try:
+        est = fit_run(args.dataset, args.out, algorithm=args.algorithm, params=params or None, resume=args.resume, on_iteration=on_iteration)
+    finally:
+        if bar is not None:
+            bar.close()
+    h = est.history_.iloc[-1]
+    print(f"fitted {args.algorithm}: {len(est.history_)} iterations, last sup|dQ| {h['sup_dq']:.4g}, "
+          f"Bellman residual {h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"
+          + ("; DIVERGED (see warnings)" if est.diverged_ else ""))
+    print(f"{args.out}/model")
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
@@ -247,6 +279,25 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--max-findings", type=int, default=20)
     v.add_argument("--json", action="store_true")
     v.set_defaults(func=cmd_validate)
+
+    f = sub.add_parser(
+        "fit",
+        help="fit an algorithm on a dataset into a run directory",
+        formatter_class=fmt,
+        description="Fit fitted Q-iteration (finite or infinite horizon) on a dataset directory. Parameters come "
+        "from --config (a TOML file whose [fqi] table holds FittedQIteration's parameters). Each iteration is "
+        "checkpointed; after Ctrl-C or a crash, --resume continues from the last completed iteration.",
+        epilog="example:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n\n"
+        "with fqi.toml:\n  [fqi]\n  gamma = 0.95\n  n_iterations = 50\n  regressor = \"extra_trees\"\n"
+        "  [fqi.regressor_params]\n  n_estimators = 50",
+    )
+    f.add_argument("dataset")
+    f.add_argument("--algorithm", default="fqi", choices=["fqi"])
+    f.add_argument("--config", default=None, help="TOML file with the algorithm's parameters")
+    f.add_argument("--out", required=True, help="run directory")
+    f.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    f.add_argument("--quiet", "-q", action="store_true")
+    f.set_defaults(func=cmd_fit)
 
     i = sub.add_parser(
         "inspect",

@@ -76,6 +76,10 @@ class Learner:
         """The current Q as a standalone Q-function."""
         raise NotImplementedError
 
+    def restore(self, q: QFunction, iteration: int) -> None:
+        """Continue from a saved ``Q_k`` (iteration ``k`` done)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot resume")
+
     @staticmethod
     def _select(q_all: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return q_all if actions is None else q_all[np.arange(len(actions)), actions]
@@ -108,6 +112,9 @@ class RefitLearner(Learner):
 
     def snapshot(self) -> QFunction:
         return self.q
+
+    def restore(self, q: QFunction, iteration: int) -> None:
+        self.q, self.iteration = q, iteration  # type: ignore[assignment]
 
 
 class FrozenTreesLearner(Learner):
@@ -252,3 +259,12 @@ class LightGBMWarmStartLearner(Learner):
 
     def snapshot(self) -> QFunction:
         return BoostedSumQ(list(self.boosters), self.encoder)
+
+    def restore(self, q: QFunction, iteration: int) -> None:
+        self.boosters = [getattr(b, "booster", b) for b in q.boosters]  # type: ignore[attr-defined]
+        self.iteration = iteration
+        for name, X in self.X.items():  # the same sums, in the same order, as when fitting
+            c = np.zeros(len(X))
+            for b in self.boosters:
+                c = c + b.predict(X, raw_score=True)
+            self.cache[name] = c

@@ -176,7 +176,7 @@ class TreeEnsemble:
         return out
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        return self.value[self.apply(X)].mean(axis=1)
+        return ensemble_predict(self.value, self.apply(X))
 
     def with_values(self, value: np.ndarray) -> TreeEnsemble:
         return TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
@@ -195,7 +195,8 @@ def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:
     offs = np.r_[0, np.cumsum(sizes)[:-1]]
     leaves = forest.apply(np.asarray(X, dtype=np.float32))
     dtype = np.int32 if sizes.sum() < 2**31 else np.int64
-    return (leaves + offs[None, :]).astype(dtype)
+    # C order: a mean over the trees axis then sums in the same order as TreeEnsemble.predict
+    return np.ascontiguousarray((leaves + offs[None, :]).astype(dtype))
 
 
 def leaf_means(train_leaves: np.ndarray, y: np.ndarray, n_nodes: int, weights: np.ndarray | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
@@ -214,8 +215,12 @@ def leaf_means(train_leaves: np.ndarray, y: np.ndarray, n_nodes: int, weights: n
 
 
 def ensemble_predict(values: np.ndarray, leaves: np.ndarray) -> np.ndarray:
-    """Mean over trees of leaf values at precomputed leaves (n, n_trees) -> (n,)."""
-    return values[leaves].mean(axis=1)
+    """Mean over trees of leaf values at precomputed leaves (n, n_trees) -> (n,).
+
+    Always summed in C order, so the result is bitwise reproducible whatever the
+    layout of ``leaves`` (resumed fits depend on that).
+    """
+    return np.ascontiguousarray(values[leaves]).mean(axis=1)
 
 
 class TreeQ(QFunction):

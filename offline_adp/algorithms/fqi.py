@@ -162,8 +162,19 @@ class FittedQIteration(BaseEstimator):
             pass
         return self
 
-    def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> Iterator[dict[str, Any]]:
-        """Fit, yielding each iteration's diagnostics (a dict, one ``history_`` row)."""
+    def fit_iter(
+        self,
+        dataset: TransitionDataset,
+        sample_weight: np.ndarray | None = None,
+        resume: dict[str, Any] | None = None,
+    ) -> Iterator[dict[str, Any]]:
+        """Fit, yielding each iteration's diagnostics (a dict, one ``history_`` row).
+
+        ``resume`` continues an interrupted fit from a checkpoint: ``{"q": Q_k (or the
+        list Q_{T-1}, ..., Q_{T-k} for a finite horizon), "history": rows 1..k}``. With
+        the same data and parameters the result equals an uninterrupted fit (iteration
+        k's randomness depends on ``random_state + k`` only). Not for ``mode="frozen"``.
+        """
         self._validate_params()
         d = self._prepare(dataset, sample_weight)
         learner = self._learner(d)
@@ -175,6 +186,16 @@ class FittedQIteration(BaseEstimator):
         q_prev_train = np.zeros(n)
         qs: list[QFunction] = []
         finite = self.horizon is not None
+        done = 0
+        if resume is not None:
+            if self.mode == "frozen":
+                raise ValueError("resuming is not supported for mode='frozen' (its iterations are cheap: refit instead)")
+            rows = [dict(r) for r in resume["history"]]
+            done = len(rows)
+            last = resume["q"][-1] if finite else resume["q"]
+            qs = list(resume["q"]) if finite else []
+            learner.restore(last, done)
+            q_next, q_prev_train = learner.predict("next"), learner.predict("train")
         # frozen structure: one phase on the first structure, one after restructuring
         phases = 2 if (self.mode == "frozen" and not finite) else 1
         per_phase = self.horizon if finite else self.n_iterations
@@ -184,6 +205,8 @@ class FittedQIteration(BaseEstimator):
                 learner.restructure()  # one restructuring pass on the converged targets
             for _ in range(per_phase):
                 k += 1
+                if k <= done:
+                    continue
                 t = self.horizon - k if finite else None  # Algorithm 10 runs t = T-1, ..., 0
                 t0 = time.perf_counter()
                 if self.next_state_noise and k > 1:

@@ -1,0 +1,85 @@
+"""`offline-adp fit`: run directories, checkpoints, kill and resume to the same result."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from offline_adp.algorithms.fqi import load_fqi
+from offline_adp.cli import main
+from offline_adp.runs import fit_run
+from offline_adp.simulate import simulate
+
+PARAMS = {"n_iterations": 25, "regressor_params": {"n_estimators": 30, "n_jobs": 1}, "random_state": 3}
+
+
+@pytest.fixture(scope="module")
+def pt_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pt") / "ds"
+    simulate("path_tracking", 25, 25, seed=2, horizon=80).save(d)
+    return d
+
+
+def _checkpoint_iteration(run) -> int:
+    try:
+        return json.loads((run / "checkpoint" / "q.json").read_text())["iteration"]
+    except (FileNotFoundError, json.JSONDecodeError, KeyError):
+        return 0
+
+
+def test_killed_fit_resumes_to_the_uninterrupted_result(tmp_path, pt_dir):
+    ref = fit_run(pt_dir, tmp_path / "ref", params=PARAMS)
+    cfg = tmp_path / "fqi.toml"
+    cfg.write_text('[fqi]\nn_iterations = 25\nrandom_state = 3\n[fqi.regressor_params]\nn_estimators = 30\nn_jobs = 1\n')
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "offline_adp", "fit", str(pt_dir), "--config", str(cfg), "--out", str(run), "-q"], env=env)
+    deadline = time.time() + 120
+    while _checkpoint_iteration(run) < 3 and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the fit finished before it could be killed"
+    k = _checkpoint_iteration(run)
+    assert 3 <= k < 25
+    assert json.loads((run / "run.json").read_text())["status"] == "running"
+    assert not (run / "model").exists()
+    assert main(["fit", str(pt_dir), "--out", str(run), "--resume", "-q"]) == 0
+    res = load_fqi(run / "model")
+    obs = simulate("path_tracking", 3, 3, seed=9, horizon=20).arrays().obs
+    np.testing.assert_array_equal(res.predict(obs), ref.predict(obs))
+    assert len(res.history_) == 25
+    np.testing.assert_allclose(res.history_["sup_dq"], ref.history_["sup_dq"], rtol=0, atol=0)
+
+
+def test_ctrl_c_on_finite_horizon_then_resume(tmp_path, pt_dir):
+    params = {"horizon": 6, "regressor_params": {"n_estimators": 10, "n_jobs": 1}}
+    ref = fit_run(pt_dir, tmp_path / "ref", params=params)
+
+    def interrupt(row):
+        if row["iteration"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(pt_dir, tmp_path / "run", params=params, on_iteration=interrupt)
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["status"] == "interrupted"
+    est = fit_run(pt_dir, tmp_path / "run", params=params, resume=True)
+    obs = simulate("path_tracking", 2, 2, seed=4, horizon=10).arrays().obs
+    for t in range(6):
+        np.testing.assert_array_equal(est.predict(obs, t), ref.predict(obs, t))
+
+
+def test_fit_cli_errors(tmp_path, pt_dir, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[fqi]\nn_iteration = 3\n")
+    assert main(["fit", str(pt_dir), "--config", str(cfg), "--out", str(tmp_path / "r"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown key(s) ['n_iteration']" in err and "n_iterations" in err
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "nothing"), "--resume", "-q"]) == 2
