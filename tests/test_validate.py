@@ -9,7 +9,13 @@ import pytest
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
-from offline_adp.data.validate import CHECKS, RowOrigin, split_quarantine, validate, validate_directory
+from offline_adp.data.validate import (
+    CHECKS,
+    RowOrigin,
+    split_quarantine,
+    validate,
+    validate_directory,
+)
 
 INFO = DatasetInfo(features=(Feature("x"),), action_table=ActionTable.from_values([0.0, 1.0]))
 
