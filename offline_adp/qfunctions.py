@@ -232,3 +232,13 @@ class TreeQ(QFunction):
 
     def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return RegressorQ.values_phi(self, self.encoder.phi(obs))  # type: ignore[arg-type]
+
+
+class FunctionQ(QFunction):
+    """Q from a vectorised function ``fn(obs, t) -> (n, n_actions)`` (e.g. a linear start)."""
+
+    def __init__(self, fn: Any, n_actions: int) -> None:
+        self.fn, self.n_actions = fn, n_actions
+
+    def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        return np.asarray(self.fn(np.asarray(obs, dtype=np.float64), t), dtype=np.float64).reshape(len(obs), self.n_actions)

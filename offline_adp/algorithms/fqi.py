@@ -97,6 +97,9 @@ class FittedQIteration(BaseEstimator):
         ``patience`` iterations in a row (by half or more).
     patience : int
     divergence_slack : float
+    initial_q : QFunction, optional
+        ``Q_0`` (infinite horizon) or the terminal ``Q_T`` (finite horizon); zero by
+        default. The value bound of the monitor grows by ``max |Q_0|``.
     random_state : int
         Seeds the split and, as ``random_state + k``, the regressor at iteration k.
 
@@ -133,6 +136,7 @@ class FittedQIteration(BaseEstimator):
         on_divergence: str = "stop",
         patience: int = 5,
         divergence_slack: float = 1.0,
+        initial_q: QFunction | None = None,
         random_state: int = 0,
     ) -> None:
         self.horizon = horizon
@@ -153,6 +157,7 @@ class FittedQIteration(BaseEstimator):
         self.on_divergence = on_divergence
         self.patience = patience
         self.divergence_slack = divergence_slack
+        self.initial_q = initial_q
         self.random_state = random_state
 
     # ------------------------------------------------------------------ public API
@@ -184,6 +189,11 @@ class FittedQIteration(BaseEstimator):
         n, A = len(d["cost"]), d["n_actions"]
         q_next = np.zeros((n, A))  # Q_0(x'_i, .) = 0  (or Q_T = 0)
         q_prev_train = np.zeros(n)
+        if self.initial_q is not None:  # start from a given Q_0 (or terminal Q_T)
+            q_next = self.initial_q.values(d["next_obs"], self.horizon or 0)
+            q_prev_train = self.initial_q.values(d["obs"], 0)[np.arange(n), d["actions"]]
+            d["bound"] = 2 * d["bound"] + float(np.abs(q_prev_train).max())
+            d["bound_text"] = "2 max|c| / (1 - gamma) + max|Q_0|"
         qs: list[QFunction] = []
         finite = self.horizon is not None
         done = 0
@@ -211,7 +221,7 @@ class FittedQIteration(BaseEstimator):
                 t0 = time.perf_counter()
                 if self.next_state_noise and k > 1:
                     q_next = self._noisy_next_values(learner, d)
-                y = self._targets(d, q_next)  # y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')
+                y = self._targets(d, q_next, t)  # y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')
                 learner.fit(y)  # Q_k = LEARN({(x_i, a_i), y_i})
                 q_train = learner.predict("train")
                 q_next_new = learner.predict("next")  # all (x'_i, a') in one batched call
@@ -297,6 +307,7 @@ class FittedQIteration(BaseEstimator):
             "actions": a.action[tr],
             "phi_next": phi_next[tr],
             "next_obs": a.next_obs[tr],
+            "obs": a.obs[tr],
             "obs_std": a.obs.std(axis=0) + 1e-12,
             "start_phi": phi_obs[start & tr] if (start & tr).any() else phi_obs[tr][:1],
             "valid": None,
@@ -306,7 +317,8 @@ class FittedQIteration(BaseEstimator):
             d["bound"] = max(min(d["bound"], abs(self.infeasible_cost)), np.abs(cost).max())
         if (~tr).any():
             v = ~tr
-            d["valid"] = {"phi": phi_obs[v], "actions": a.action[v], "phi_next": phi_next[v], "cost": cost[v], "no_boot": no_boot[v]}
+            d["valid"] = {"phi": phi_obs[v], "actions": a.action[v], "phi_next": phi_next[v], "cost": cost[v],
+                          "no_boot": no_boot[v], "next_obs": a.next_obs[v]}
         self._encoder = enc
         return d
 
@@ -323,9 +335,13 @@ class FittedQIteration(BaseEstimator):
             return LightGBMWarmStartLearner(*args, trees_per_iteration=self.trees_per_iteration)
         return RefitLearner(*args)
 
-    def _targets(self, d: dict[str, Any], q_next: np.ndarray) -> np.ndarray:
-        """y_i = c_i + gamma * (1 - terminated_i) * min_a' Q(x'_i, a'), clamped at c^-."""
-        y = d["cost"] + d["gamma"] * np.where(d["no_boot"], 0.0, q_next.min(axis=1))
+    def _next_value(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
+        """The backed-up value of the next states: ``min_a' Q(x', a')`` (FQI)."""
+        return q_next.min(axis=1)
+
+    def _targets(self, d: dict[str, Any], q_next: np.ndarray, t: int | None = None) -> np.ndarray:
+        """y_i = c_i + gamma * (1 - terminated_i) * V(x'_i), clamped at c^-."""
+        y = d["cost"] + d["gamma"] * np.where(d["no_boot"], 0.0, self._next_value(q_next, "next", t))
         if self.infeasible_cost is not None:
             y = np.minimum(y, self.infeasible_cost)
         if self.target_noise:
@@ -344,10 +360,10 @@ class FittedQIteration(BaseEstimator):
         changed = (q_next_new.argmin(axis=1) != q_next_old.argmin(axis=1))[boot]
         if d["valid"] is not None:
             v = d["valid"]
-            target = v["cost"] + d["gamma"] * np.where(v["no_boot"], 0.0, learner.predict("valid_next").min(axis=1))
+            target = v["cost"] + d["gamma"] * np.where(v["no_boot"], 0.0, self._next_value(learner.predict("valid_next"), "valid_next", t))
             resid = float(np.sqrt(np.mean((learner.predict("valid") - target) ** 2)))
         else:  # on the training data, against Q_k's own targets
-            target = d["cost"] + d["gamma"] * np.where(d["no_boot"], 0.0, q_next_new.min(axis=1))
+            target = d["cost"] + d["gamma"] * np.where(d["no_boot"], 0.0, self._next_value(q_next_new, "next", t))
             resid = float(np.sqrt(np.mean((q_train - target) ** 2)))
         return {
             "iteration": k,
@@ -378,7 +394,7 @@ class FittedQIteration(BaseEstimator):
         msg = None
         if last["max_abs_q"] > d["bound"] * (1 + 1e-6) + 1e-9:
             msg = (f"iteration {last['iteration']}: max |Q| = {last['max_abs_q']:.4g} exceeds the bound "
-                   f"max|c| / (1 - gamma) = {d['bound']:.4g}")
+                   f"{d.get('bound_text', 'max|c| / (1 - gamma)')} = {d['bound']:.4g}")
         elif last["sup_dq"] > (1 + self.divergence_slack) * first["sup_dq"] + 1e-12:
             msg = (f"iteration {last['iteration']}: sup |Q_k - Q_(k-1)| = {last['sup_dq']:.4g} is more than "
                    f"{1 + self.divergence_slack:g}x the first iteration's {first['sup_dq']:.4g}; an exact backup "
@@ -394,7 +410,7 @@ class FittedQIteration(BaseEstimator):
         self.diverged_ = True
         self.divergence_message_ = msg
         action = "stopping (on_divergence='stop')" if self.on_divergence == "stop" else "continuing (on_divergence='warn')"
-        warnings.warn(f"fitted Q-iteration is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
+        warnings.warn(f"{type(self).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
         return self.on_divergence == "stop"
 
     def _set_result(self, learner: Learner, qs: list[QFunction]) -> None:
@@ -406,7 +422,10 @@ class FittedQIteration(BaseEstimator):
         else:
             self.q_function_ = learner.snapshot()
         if self.q_function_ is not None:
-            self.policy_ = GreedyPolicy(self.q_function_)
+            self.policy_ = self._result_policy(self.q_function_)
+
+    def _result_policy(self, q: QFunction) -> Any:
+        return GreedyPolicy(q)
 
     def _check_fitted(self) -> None:
         if getattr(self, "q_function_", None) is None:

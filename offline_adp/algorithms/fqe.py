@@ -1,0 +1,104 @@
+"""Approximate policy evaluation: fitted Q evaluation (the chapter's Algorithms 12, 13).
+
+Access model: trace data only. Evaluates a given policy pi (deterministic or stochastic,
+stationary or time-varying) from logged transitions; costs are minimised.
+
+Finite horizon T (Algorithm 12)::
+
+    Q^pi_T = 0
+    for t = T-1, ..., 0:
+        y_i = c_i + gamma * (1 - terminated_i) * sum_a' pi(a' | x'_i, t+1) Q^pi_{t+1}(x'_i, a')
+        Q^pi_t = LEARN({((x_i, a_i), y_i)})
+
+Infinite horizon (Algorithm 13): the same backup with one Q^pi, iterated.
+
+Per-sample weights (``fit(..., sample_weight=w)``) make LEARN a weighted regression;
+*on-policy weighting* (``w_i`` = expected time pi spends in ``x_i``, see
+:func:`on_policy_weights`) is the chapter's remedy for the divergence of linear
+evaluation (the two-state example, :mod:`offline_adp.examples.two_state`).
+Everything else (learners, monitor, modes) is shared with
+:class:`~offline_adp.algorithms.fqi.FittedQIteration`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.policies import Policy
+from offline_adp.qfunctions import QFunction
+
+
+class FittedQEvaluation(FittedQIteration):
+    """Fitted Q evaluation of ``policy`` (all other parameters as FittedQIteration).
+
+    Attributes
+    ----------
+    q_function_ : QFunction
+        ``Q^pi`` (or a TimeIndexedQ for a finite horizon).
+    policy_ : Policy
+        The evaluated policy.
+    value_ : float
+        ``mean over start states of sum_a pi(a | x_0, 0) Q^pi(x_0, a)``: the estimated
+        expected cost of pi from the data's start distribution.
+    """
+
+    def __init__(self, policy: Policy | None = None, horizon: int | None = None, gamma: float | None = None,
+                 regressor: Any = "extra_trees", regressor_params: dict | None = None, action_encoding: str = "joint",
+                 action_input: str = "value", feature_map: Any = None, n_iterations: int = 50, tol: float | None = None,
+                 mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
+                 target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
+                 on_divergence: str = "stop", patience: int = 5, divergence_slack: float = 1.0,
+                 initial_q: QFunction | None = None, random_state: int = 0) -> None:
+        self.policy = policy
+        super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
+                         action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
+                         n_iterations=n_iterations, tol=tol, mode=mode, trees_per_iteration=trees_per_iteration,
+                         infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
+                         validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
+                         divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state)
+
+    def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None):
+        if self.policy is None:
+            raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
+        if self.policy.n_actions != dataset.n_actions:
+            raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
+        self._probs: dict[tuple[str, int | None], np.ndarray] = {}
+        a = dataset.arrays()
+        for row in super().fit_iter(dataset, sample_weight, resume):
+            yield row
+        start = a.step == 0
+        x0 = a.obs[start] if start.any() else a.obs[:1]
+        self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
+
+    def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> dict[str, Any]:
+        d = super()._prepare(ds, sample_weight)
+        self._next_obs_sets = {"next": d["next_obs"]}
+        if d["valid"] is not None:
+            self._next_obs_sets["valid_next"] = d["valid"]["next_obs"]
+        return d
+
+    def _next_value(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
+        """``sum_a' pi(a' | x', t+1) Q(x', a')`` (expected over pi's action probabilities)."""
+        t_next = 0 if t is None else t + 1
+        key = (which, None if self._stationary() else t_next)
+        if key not in self._probs:
+            x = self._next_obs_sets[which]
+            self._probs[key] = self.policy.probabilities(x, t_next)  # type: ignore[union-attr]
+        return (self._probs[key] * q_next).sum(axis=1)
+
+    def _stationary(self) -> bool:
+        return not getattr(self.policy, "time_varying", self.horizon is not None)
+
+    def _result_policy(self, q: QFunction) -> Any:
+        return self.policy
+
+
+def on_policy_weights(state_index: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
+    """Per-sample weights ``w_i = occupancy[s_i]``: the expected (discounted) time the
+    evaluated policy spends in each sample's state, e.g. ``(1 - gamma)^-1`` times
+    :func:`offline_adp.algorithms.dp.discounted_occupancy` for tabular problems."""
+    return np.asarray(occupancy, dtype=np.float64)[np.asarray(state_index, dtype=np.int64).reshape(-1)]

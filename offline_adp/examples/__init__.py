@@ -1,0 +1,1 @@
+"""Documented examples from the chapter, runnable and tested."""

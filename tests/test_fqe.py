@@ -1,0 +1,55 @@
+"""Fitted Q evaluation against exact policy evaluation; the two-state divergence example."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_adp.algorithms import dp
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.envs import TabularMDP
+from offline_adp.errors import DivergenceWarning
+from offline_adp.examples import two_state
+from offline_adp.policies import TabularPolicy
+from tests.test_fqi import full_support_dataset
+
+
+def test_finite_horizon_fqe_equals_exact_policy_evaluation():
+    m = TabularMDP(n_states=10, n_actions=3, horizon=5, seed=7)
+    ds, w = full_support_dataset(m)
+    pi = np.random.default_rng(0).dirichlet(np.ones(3), size=(5, 10))  # stochastic, time-varying
+    fqe = FittedQEvaluation(policy=TabularPolicy(pi), horizon=5, gamma=1.0, regressor="tabular", action_input="onehot")
+    fqe.fit(ds, sample_weight=w)
+    exact = dp.policy_evaluation_finite(m.P, m.C, pi, 5)
+    for t in range(5):
+        np.testing.assert_allclose(fqe.q_functions_[t].values(np.arange(10.0)[:, None]), exact.Q[t], atol=1e-8, rtol=0)
+
+
+def test_discounted_fqe_equals_exact_policy_evaluation():
+    m = TabularMDP(n_states=10, n_actions=3, horizon=None, gamma=0.8, seed=8)
+    ds, w = full_support_dataset(m)
+    pi = np.random.default_rng(1).dirichlet(np.ones(3), size=10)
+    fqe = FittedQEvaluation(policy=TabularPolicy(pi), gamma=0.8, regressor="tabular", action_input="onehot",
+                            n_iterations=300, tol=1e-14).fit(ds, sample_weight=w)
+    exact = dp.policy_evaluation_discounted(m.P, m.C, pi, 0.8)
+    np.testing.assert_allclose(fqe.q_function_.values(np.arange(10.0)[:, None]), exact.Q, atol=1e-8, rtol=0)
+    assert fqe.policy_.probabilities(np.zeros((1, 1)))[0] == pytest.approx(pi[0])
+
+
+def test_two_state_unweighted_backup_multiplies_w_by_six_gamma_over_five():
+    with pytest.warns(DivergenceWarning, match="iteration 1: max \\|Q\\|"):
+        ws, fqe = two_state.run(weighted=False, n_backups=12)
+    assert ws[0] == pytest.approx(1.08, abs=1e-12)  # not 1.2 as the chapter's text has it
+    np.testing.assert_allclose(ws, 1.08 ** np.arange(1, 13), rtol=1e-12)  # geometric divergence
+    assert fqe.diverged_
+
+
+def test_two_state_on_policy_weighting_converges():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DivergenceWarning)
+        ws, fqe = two_state.run(weighted=True, n_backups=60)
+    assert ws[0] == pytest.approx(34.2 / 37, abs=1e-12) and round(ws[0], 3) == 0.924
+    np.testing.assert_allclose(ws, (34.2 / 37) ** np.arange(1, 61), rtol=1e-10)
+    assert abs(ws[-1]) < 0.01 and not fqe.diverged_
