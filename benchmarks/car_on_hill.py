@@ -12,8 +12,10 @@ gamma = 0.95, 50 iterations. Score: mean discounted return over the 289-state gr
 (c') lightgbm_refit: LightGBM refitted every iteration (200 trees), the ceiling for (c).
 
 Each mode runs once per seed (data and learner seeded alike); scores are averaged.
+``--data uniform`` replaces the episodes by 50k one-step transitions from states drawn
+uniformly over [-1, 1] x [-3, 3] with random actions (the paper's second setting).
 
-    python benchmarks/car_on_hill.py [--episodes 1000] [--iterations 50] [--seeds 0 1] [--modes ...]
+    python benchmarks/car_on_hill.py [--data episodes|uniform] [--episodes 1000] [--iterations 50] [--seeds 0 1] [--modes ...]
 """
 
 from __future__ import annotations
@@ -21,9 +23,25 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
+
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.envs.car_on_hill import score
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.envs.car_on_hill import CarOnHill, score
 from offline_adp.simulate import simulate
+
+
+def uniform_data(n: int, seed: int) -> TransitionDataset:
+    """``n`` one-step transitions from (p, s) uniform on [-1, 1] x [-3, 3], random actions."""
+    model = CarOnHill()
+    rng = np.random.default_rng(seed)
+    x = np.column_stack([rng.uniform(-1, 1, n), rng.uniform(-3, 3, n)])
+    a = rng.integers(0, 2, n)
+    r = model.step_seeded(x, a)
+    return TransitionDataset.from_arrays(
+        model.dataset_info(), episode_id=np.char.zfill(np.arange(n).astype(str), 7), step=np.zeros(n), obs=x, action=a,
+        cost=r.costs, next_obs=r.next_states, terminated=r.terminated, truncated=~r.terminated,
+    )
 
 
 def main() -> None:
@@ -31,6 +49,8 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=1000)
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--data", choices=["episodes", "uniform"], default="episodes")
+    ap.add_argument("--uniform-size", type=int, default=50_000)
     ap.add_argument("--modes", nargs="+", default=["refit", "frozen", "warm_start", "lightgbm_refit"])
     args = ap.parse_args()
     configs = {
@@ -41,8 +61,12 @@ def main() -> None:
     }
     results: dict[str, list[tuple[float, float]]] = {m: [] for m in args.modes}
     for seed in args.seeds:
-        ds = simulate("car_on_hill", 0, args.episodes, seed=seed, horizon=100)
-        print(f"seed {seed}: {len(ds)} transitions in {ds.n_episodes} episodes (uniformly random actions from (-0.5, 0))")
+        if args.data == "episodes":
+            ds = simulate("car_on_hill", 0, args.episodes, seed=seed, horizon=100)
+            print(f"seed {seed}: {len(ds)} transitions in {ds.n_episodes} episodes (uniformly random actions from (-0.5, 0))")
+        else:
+            ds = uniform_data(args.uniform_size, seed)
+            print(f"seed {seed}: {len(ds)} one-step transitions from uniformly drawn states and actions")
         for name in args.modes:
             f = FittedQIteration(gamma=0.95, n_iterations=args.iterations, random_state=seed, **configs[name])
             c0, w0 = time.process_time(), time.perf_counter()
