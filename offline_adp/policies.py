@@ -134,3 +134,43 @@ class GreedyPolicy(DeterministicPolicy):
 
     def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return np.argmin(self.q.values(np.asarray(obs), t), axis=1).astype(np.int32)  # type: ignore[attr-defined]
+
+
+class MixturePolicy(Policy):
+    """``sum_k w_k pi_k``: at each time step a component is drawn with probability
+    ``w_k`` and acts (so the action probabilities are the weighted sum). Conservative
+    policy iteration builds these; the components and weights are kept.
+    """
+
+    def __init__(self, components: list[Policy], weights: list[float] | np.ndarray) -> None:
+        w = np.asarray(weights, dtype=np.float64)
+        if len(components) != len(w) or not len(w):
+            raise ValueError("a mixture needs one weight per component")
+        if (w < 0).any() or not np.isclose(w.sum(), 1.0):
+            raise ValueError(f"mixture weights must be >= 0 and sum to 1, got {w}")
+        self.components, self.weights = list(components), w
+        self.n_actions = components[0].n_actions
+
+    def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        return sum(w * c.probabilities(obs, t) for w, c in zip(self.weights, self.components, strict=True) if w > 0)
+
+    def mix(self, other: Policy, alpha: float) -> MixturePolicy:
+        """``alpha * other + (1 - alpha) * self`` (flattened)."""
+        return MixturePolicy([*self.components, other], [*((1 - alpha) * self.weights), alpha])
+
+
+class NonStationaryPolicy(Policy):
+    """One policy per time step (PSDP's ``pi_0, ..., pi_{T-1}``); steps >= T use the last."""
+
+    def __init__(self, steps: list[Policy]) -> None:
+        self.steps, self.n_actions = list(steps), steps[0].n_actions
+        self.time_varying = True
+
+    def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        obs = np.asarray(obs)
+        tt = np.broadcast_to(np.minimum(np.asarray(t), len(self.steps) - 1), (len(obs),))
+        out = np.empty((len(obs), self.n_actions))
+        for s in np.unique(tt):
+            rows = tt == s
+            out[rows] = self.steps[int(s)].probabilities(obs[rows], int(s))
+        return out

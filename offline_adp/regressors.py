@@ -46,27 +46,29 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
         self.fill_value = fill_value
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularRegressor:
-        X = np.ascontiguousarray(X, dtype=np.float64)
+        rows = _rows(X)
         y = np.asarray(y, dtype=np.float64)
         w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
-        keys, inv = np.unique(X, axis=0, return_inverse=True)
+        keys, inv = np.unique(rows, return_inverse=True)
         inv = inv.reshape(-1)
         wsum = np.bincount(inv, weights=w, minlength=len(keys))
         self.keys_ = keys
         self.values_ = np.bincount(inv, weights=w * y, minlength=len(keys)) / np.where(wsum > 0, wsum, 1.0)
-        self.n_features_in_ = X.shape[1]
+        self.n_features_in_ = np.asarray(X).shape[1]
         return self
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         check_is_fitted(self, "keys_")
-        X = np.ascontiguousarray(X, dtype=np.float64)
-        both = np.vstack([self.keys_, X])
-        _, inv = np.unique(both, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
-        lookup = np.full(inv.max() + 1, -1, np.int64)
-        lookup[inv[: len(self.keys_)]] = np.arange(len(self.keys_))
-        pos = lookup[inv[len(self.keys_) :]]
-        return np.where(pos >= 0, self.values_[np.maximum(pos, 0)], self.fill_value)
+        rows = _rows(X)
+        pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
+        hit = self.keys_[pos] == rows
+        return np.where(hit, self.values_[pos], self.fill_value)
+
+
+def _rows(X: np.ndarray) -> np.ndarray:
+    """Rows of a float matrix as one structured value each (sortable, searchable)."""
+    X = np.ascontiguousarray(np.asarray(X, dtype=np.float64) + 0.0)  # -0.0 -> 0.0
+    return X.view([(f"f{j}", np.float64) for j in range(X.shape[1])]).reshape(-1)
 
 
 def _extra_trees(**kw: Any) -> BaseEstimator:

@@ -1,0 +1,113 @@
+"""Conservative policy iteration (Kakade & Langford 2002; the chapter's section 8.2).
+
+Access model: a reset model for rollout estimates of candidate policies, or trace data
+only (estimates by fitted Q evaluation, i.e. off-policy). The policy is a stochastic
+mixture that keeps its components and weights::
+
+    pi_0 = initial policy;  J_0 = estimate(pi_0)
+    for k = 0, 1, ...:
+        Q^{pi_k} = FQE(pi_k, D)
+        pi'      = argmin_a Q^{pi_k}(x, a)                     (greedy)
+        alpha    = argmin_{alpha in grid, incl. 0} estimate((1 - alpha) pi_k + alpha pi')
+                   (line search; or Kakade & Langford's step
+                    alpha = (1 - gamma) * A / (4 R),  A = E_{x ~ D}[V^{pi_k}(x) - Q^{pi_k}(x, pi'(x))],
+                    R = max |c|)
+        pi_{k+1} = (1 - alpha) pi_k + alpha pi'
+        J_{k+1}  = estimate(pi_{k+1})
+
+Because ``alpha = 0`` is a candidate and the estimator is deterministic (common random
+numbers: every rollout estimate uses the same seed), the estimated cost never increases.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sklearn.base import BaseEstimator, clone
+
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.evaluation.rollout import rollout
+from offline_adp.policies import GreedyPolicy, MixturePolicy, Policy, UniformPolicy
+
+DEFAULT_STEPS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
+
+
+class ConservativePolicyIteration(BaseEstimator):
+    """Conservative policy iteration with a line search (or the Kakade-Langford step).
+
+    Parameters
+    ----------
+    fqe : FittedQEvaluation
+        Prototype for ``Q^{pi_k}`` (and for the off-policy estimates without a model).
+    n_iterations : int
+    step_rule : {"line_search", "kakade_langford"}
+    step_sizes : sequence of float
+        Line-search grid (0 is always added).
+    model : ResetModel, optional
+        Rollout estimates when given (``n_eval_episodes`` episodes, fixed seed), else
+        FQE estimates from the logs.
+    n_eval_episodes : int
+    initial_policy : Policy, optional
+    random_state : int
+
+    Attributes
+    ----------
+    policy_ : MixturePolicy
+    history_ : DataFrame ``iteration, alpha, value, n_components, seconds``
+    """
+
+    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, step_rule: str = "line_search",
+                 step_sizes: tuple[float, ...] = DEFAULT_STEPS, model: Any = None, n_eval_episodes: int = 500,
+                 initial_policy: Policy | None = None, random_state: int = 0) -> None:
+        self.fqe = fqe
+        self.n_iterations = n_iterations
+        self.step_rule = step_rule
+        self.step_sizes = step_sizes
+        self.model = model
+        self.n_eval_episodes = n_eval_episodes
+        self.initial_policy = initial_policy
+        self.random_state = random_state
+
+    def _estimate(self, policy: Policy, data: TransitionDataset, w: np.ndarray | None) -> float:
+        if self.model is not None:  # common random numbers: the same seed for every candidate
+            rng = np.random.default_rng(self.random_state)
+            return rollout(self.model, policy, self.n_eval_episodes, rng, horizon=self._proto().horizon or self.model.horizon).mean
+        return clone(self._proto()).set_params(policy=policy).fit(data, sample_weight=w).value_
+
+    def _proto(self) -> FittedQEvaluation:
+        return self.fqe if self.fqe is not None else FittedQEvaluation()
+
+    def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ConservativePolicyIteration:
+        if self.step_rule not in ("line_search", "kakade_langford"):
+            raise ValueError(f"step_rule must be 'line_search' or 'kakade_langford', got {self.step_rule!r}")
+        pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
+        pi = MixturePolicy([pi0], [1.0])
+        value = self._estimate(pi, dataset, sample_weight)
+        rows = [{"iteration": 0, "alpha": 0.0, "value": value, "n_components": 1, "seconds": 0.0}]
+        a = dataset.arrays()
+        r_max = float(np.abs(a.cost).max()) or 1.0
+        for k in range(1, self.n_iterations + 1):
+            t0 = time.perf_counter()
+            fqe = clone(self._proto()).set_params(policy=pi).fit(dataset, sample_weight=sample_weight)  # Q^{pi_k}
+            greedy = GreedyPolicy(fqe.q_function_)
+            if self.step_rule == "kakade_langford":
+                q = fqe.q_function_.values(a.obs)
+                v = (pi.probabilities(a.obs) * q).sum(axis=1)
+                adv = float(np.mean(v - q.min(axis=1)))  # expected improvement, >= 0
+                gamma = fqe.gamma if fqe.gamma is not None else (dataset.info.gamma if dataset.info.gamma is not None else 0.95)
+                alphas = [0.0, float(np.clip((1 - gamma) * adv / (4 * r_max), 0.0, 1.0))]
+            else:
+                alphas = sorted({0.0, *self.step_sizes})
+            cands = [(alpha, pi.mix(greedy, alpha) if alpha > 0 else pi) for alpha in alphas]
+            scored = [(self._estimate(c, dataset, sample_weight) if alpha > 0 else value, alpha, c) for alpha, c in cands]
+            best_value, best_alpha, best = min(scored, key=lambda s: (s[0], s[1]))
+            pi, value = best, best_value  # type: ignore[assignment]
+            rows.append({"iteration": k, "alpha": best_alpha, "value": value, "n_components": len(pi.components),
+                         "seconds": time.perf_counter() - t0})
+        self.policy_ = pi
+        self.history_ = pd.DataFrame(rows)
+        return self

@@ -1,0 +1,81 @@
+"""Approximate and conservative policy iteration on tabular MDPs with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_adp.algorithms import dp
+from offline_adp.algorithms.api import ApproximatePolicyIteration
+from offline_adp.algorithms.cpi import ConservativePolicyIteration
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.envs import TabularMDP
+from offline_adp.policies import MixturePolicy, TabularPolicy, UniformPolicy
+from tests.test_fqi import full_support_dataset
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iterations(seed):
+    S = 12
+    m = TabularMDP(n_states=S, n_actions=3, horizon=None, gamma=0.8, seed=seed)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=400, tol=1e-14)
+    api = ApproximatePolicyIteration(fqe, n_iterations=S + 1).fit(ds, sample_weight=w)
+    opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
+    np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None]), opt.policy)
+    assert len(api.history_) <= S + 1 and api.history_["changed"].iloc[-1] == 0.0  # stopped: no change
+    # values estimated by FQE decrease (policy improvement), ending at the optimal value
+    v = api.history_["value"].to_numpy()
+    assert (np.diff(v) <= 1e-9).all()
+
+
+def test_api_finite_horizon():
+    m = TabularMDP(n_states=8, n_actions=2, horizon=4, seed=5)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(horizon=4, gamma=1.0, regressor="tabular", action_input="onehot")
+    api = ApproximatePolicyIteration(fqe, n_iterations=10).fit(ds, sample_weight=w)
+    opt = dp.value_iteration_finite(m.P, m.C, 4)
+    for t in range(4):
+        np.testing.assert_array_equal(api.policy_.act(np.arange(8.0)[:, None], t), opt.policy[t])
+
+
+def _exact_cost(m, policy):
+    pi = policy.probabilities(np.arange(float(m.n_states))[:, None])
+    return float(m.initial_distribution @ dp.policy_evaluation_discounted(m.P, m.C, pi, m.gamma).V)
+
+
+@pytest.mark.parametrize("rule", ["line_search", "kakade_langford"])
+def test_cpi_estimated_value_never_increases_and_policy_improves(rule):
+    m = TabularMDP(n_states=10, n_actions=3, horizon=30, gamma=0.9, seed=4)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(gamma=0.9, regressor="tabular", action_input="onehot", n_iterations=200, tol=1e-12)
+    cpi = ConservativePolicyIteration(fqe, n_iterations=6, step_rule=rule, model=m, n_eval_episodes=400).fit(ds, sample_weight=w)
+    v = cpi.history_["value"].to_numpy()
+    assert (np.diff(v) <= 0).all()  # the estimated cost is monotone non-increasing
+    assert isinstance(cpi.policy_, MixturePolicy) and abs(cpi.policy_.weights.sum() - 1) < 1e-12
+    assert _exact_cost(m, cpi.policy_) < _exact_cost(m, UniformPolicy(3))
+
+
+def test_cpi_off_policy_estimates_from_logs():
+    m = TabularMDP(n_states=10, n_actions=3, horizon=None, gamma=0.9, seed=6)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(gamma=0.9, regressor="tabular", action_input="onehot", n_iterations=200, tol=1e-12)
+    cpi = ConservativePolicyIteration(fqe, n_iterations=4, step_sizes=(0.25, 0.5, 1.0)).fit(ds, sample_weight=w)
+    v = cpi.history_["value"].to_numpy()
+    assert (np.diff(v) <= 1e-12).all() and v[-1] < v[0]
+    # the FQE estimate of the final mixture is its exact value from the data's start states (all states here)
+    pi = cpi.policy_.probabilities(np.arange(10.0)[:, None])
+    exact = dp.policy_evaluation_discounted(m.P, m.C, pi, 0.9).V
+    starts = np.unique(ds.arrays().obs[ds.arrays().step == 0, 0].astype(int), return_counts=True)
+    assert v[-1] == pytest.approx(np.average(exact[starts[0]], weights=starts[1]), abs=1e-8)
+
+
+def test_mixture_policy():
+    a = TabularPolicy(np.array([0, 1]), n_actions=2)
+    b = TabularPolicy(np.array([1, 1]), n_actions=2)
+    mix = MixturePolicy([a], [1.0]).mix(b, 0.25)
+    np.testing.assert_allclose(mix.probabilities(np.array([[0.0], [1.0]])), [[0.75, 0.25], [0.0, 1.0]])
+    acts = mix.act(np.zeros((20000, 1)), 0, np.random.default_rng(0))
+    assert abs(acts.mean() - 0.25) < 0.02
+    with pytest.raises(ValueError):
+        MixturePolicy([a, b], [0.5, 0.6])
