@@ -68,8 +68,7 @@ class FittedQEvaluation(FittedQIteration):
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
         self._probs: dict[tuple[str, int | None], np.ndarray] = {}
         a = dataset.arrays()
-        for row in super().fit_iter(dataset, sample_weight, resume):
-            yield row
+        yield from super().fit_iter(dataset, sample_weight, resume)
         start = a.step == 0
         x0 = a.obs[start] if start.any() else a.obs[:1]
         self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
