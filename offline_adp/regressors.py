@@ -144,3 +144,58 @@ def make_regressor(spec: str | BaseEstimator, **params: Any) -> BaseEstimator:
         return factory(**params)
     except TypeError as exc:
         raise UnknownNameError(f"regressor {spec!r}: bad parameters {sorted(params)} ({exc})") from None
+
+
+class TabularClassifier(BaseEstimator):
+    """Weighted majority label of each distinct input row (a lookup-table classifier).
+
+    Unseen rows get the overall weighted majority label.
+    """
+
+    def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularClassifier:
+        rows = _rows(X)
+        y = np.asarray(y)
+        w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+        self.classes_, yi = np.unique(y, return_inverse=True)
+        keys, inv = np.unique(rows, return_inverse=True)
+        votes = np.zeros((len(keys), len(self.classes_)))
+        np.add.at(votes, (inv.reshape(-1), yi), w)
+        self.keys_, self.labels_ = keys, self.classes_[votes.argmax(axis=1)]
+        self.default_ = self.classes_[np.bincount(yi, weights=w, minlength=len(self.classes_)).argmax()]
+        return self
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        check_is_fitted(self, "keys_")
+        rows = _rows(X)
+        pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
+        return np.where(self.keys_[pos] == rows, self.labels_[pos], self.default_)
+
+
+def _lgbm_classifier(**kw: Any) -> BaseEstimator:
+    from lightgbm import LGBMClassifier
+
+    return LGBMClassifier(**{"n_estimators": 100, "num_leaves": 31, "verbose": -1, "random_state": 0, "n_jobs": -1, **kw})
+
+
+def _extra_trees_classifier(**kw: Any) -> BaseEstimator:
+    from sklearn.ensemble import ExtraTreesClassifier
+
+    return ExtraTreesClassifier(**{"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0, **kw})
+
+
+CLASSIFIERS: dict[str, Callable[..., BaseEstimator]] = {
+    "lightgbm": _lgbm_classifier,
+    "extra_trees": _extra_trees_classifier,
+    "tabular": lambda **kw: TabularClassifier(**kw),
+}
+
+
+def make_classifier(spec: str | BaseEstimator, **params: Any) -> BaseEstimator:
+    """An unfitted classifier from a registry name (``lightgbm``, ``extra_trees``,
+    ``tabular``) or a clone of a scikit-learn classifier."""
+    if not isinstance(spec, str):
+        return clone(spec).set_params(**params) if params else clone(spec)
+    try:
+        return CLASSIFIERS[spec](**params)
+    except KeyError:
+        raise UnknownNameError(f"unknown classifier {spec!r}; known: {sorted(CLASSIFIERS)}") from None

@@ -1,0 +1,278 @@
+"""Policy search by dynamic programming (Bagnell, Kakade, Ng & Schneider 2003; the
+chapter's Algorithm 14) and iterated PSDP (Algorithms 15 and 16).
+
+Access model: a generative model (states are drawn from a baseline distribution mu_t
+and simulated from there), or a reset model when mu_t comes from rollouts of a baseline
+policy (then every simulated state was reached from a reset). Costs are minimised.
+
+PSDP (Algorithm 14), horizon T::
+
+    for t = T-1, ..., 0:
+        s_1..s_n ~ mu_t
+        for every action a:  Q_t(s_i, a) = c(s_i, a) + sum_{k > t} gamma^(k-t) c_k
+                             (rollouts of the already-learned pi_{t+1}, ..., pi_{T-1},
+                              m per (s_i, a), common random numbers across actions)
+        pi_t = classification: a cost-sensitive classifier, label argmin_a Q_t(s_i, a),
+                               weight max_a Q_t(s_i, a) - min_a Q_t(s_i, a)
+               regression:     greedy in a regression fit of Q_t
+    return (pi_0, ..., pi_{T-1})
+
+Guarantee (the chapter's Theorem 2): with eps_t = E_{s ~ mu_t}[Q_t(s, pi_t(s)) -
+min_a Q_t(s, a)], for every reference policy, ``J(pi) <= J(pi_ref) + sum_t eps_t *
+||mu_ref_t / mu_t||_inf`` (:func:`psdp_bound`).
+
+Iterated PSDP (Algorithms 15, 16)::
+
+    pi = pi_start;  J = value(pi)
+    repeat:
+        mu_t = state distribution of pi at each t (Monte-Carlo)
+        pi' = PSDP(mu);  J' = value(pi')
+        if J' < J: pi, J = pi', J'   else: stop
+    return pi                         (never worse than pi_start, by construction)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sklearn.base import BaseEstimator, clone
+
+from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, require
+from offline_adp.algorithms import dp
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.policies import DeterministicPolicy, GreedyPolicy, NonStationaryPolicy, Policy
+from offline_adp.qfunctions import QEncoder, RegressorQ
+from offline_adp.regressors import make_classifier, make_regressor
+
+Baseline = TransitionDataset | Policy | list | Callable[[int, int, np.random.Generator], np.ndarray]
+
+
+class ClassifierPolicy(DeterministicPolicy):
+    """A deterministic policy that predicts the action with a fitted classifier."""
+
+    def __init__(self, classifier: Any, n_actions: int, constant: int | None = None) -> None:
+        self.classifier, self.n_actions, self.constant = classifier, n_actions, constant
+
+    def actions(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
+        if self.constant is not None:
+            return np.full(len(obs), self.constant, np.int32)
+        return np.asarray(self.classifier.predict(np.asarray(obs, dtype=np.float64)), dtype=np.int32)
+
+
+class PSDP(BaseEstimator):
+    """Policy search by dynamic programming (Algorithm 14).
+
+    Parameters
+    ----------
+    horizon : int or None
+        T (default: the model's horizon).
+    n_samples : int
+        States drawn from mu_t at each step.
+    n_rollouts : int
+        Rollouts per (state, action) for the Q estimates.
+    learner : {"classification", "regression"}
+    classifier : str or estimator
+        For classification (``lightgbm``, ``extra_trees``, ``tabular`` or any classifier).
+    regressor : str or estimator
+        For regression (any LEARN of :mod:`offline_adp.regressors`).
+    q_estimator : {"rollout", "exact"}
+        ``exact`` computes Q_t by dynamic programming on a full model (the test oracle).
+    gamma : float or None
+    random_state : int
+
+    Attributes
+    ----------
+    policy_ : NonStationaryPolicy
+    history_ : DataFrame ``step, eps_hat, mean_q_min, seconds``
+        ``eps_hat``: the mean estimated excess cost of pi_t's choice on the samples.
+    samples_ : list of (states, Q estimates) per step (for diagnostics and the bound)
+    simulator_steps_ : int
+        Simulator transitions used.
+    """
+
+    def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5, learner: str = "classification",
+                 classifier: Any = "lightgbm", regressor: Any = "extra_trees", q_estimator: str = "rollout",
+                 gamma: float | None = None, random_state: int = 0) -> None:
+        self.horizon = horizon
+        self.n_samples = n_samples
+        self.n_rollouts = n_rollouts
+        self.learner = learner
+        self.classifier = classifier
+        self.regressor = regressor
+        self.q_estimator = q_estimator
+        self.gamma = gamma
+        self.random_state = random_state
+
+    # ------------------------------------------------------------------ algorithm 14
+    def fit(self, model: ResetModel, baseline: Baseline) -> PSDP:
+        if self.learner not in ("classification", "regression"):
+            raise ValueError(f"learner must be 'classification' or 'regression', got {self.learner!r}")
+        require(model, ResetModel if isinstance(baseline, Policy) else GenerativeModel)
+        if self.q_estimator == "exact":
+            require(model, FullModel)
+        T = self.horizon if self.horizon is not None else model.horizon
+        if not T:
+            raise ValueError("PSDP needs a horizon")
+        gamma = self.gamma if self.gamma is not None else model.gamma
+        rng = np.random.default_rng(self.random_state)
+        mu = self._baseline_sampler(model, baseline, T, rng)
+        steps: list[Policy | None] = [None] * T
+        rows, self.samples_, self.simulator_steps_ = [], [None] * T, 0
+        for t in range(T - 1, -1, -1):
+            t0 = time.perf_counter()
+            S = mu(t, self.n_samples, rng)  # s_i ~ mu_t
+            future = steps[t + 1 :]
+            Q = self._exact_q(model, S, t, future, gamma, T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
+            steps[t] = self._learn(S, Q, model.n_actions)  # pi_t
+            chosen = steps[t].act(S, t, rng)  # type: ignore[union-attr]
+            eps = Q[np.arange(len(S)), chosen] - Q.min(axis=1)
+            self.samples_[t] = (S, Q)
+            rows.append({"step": t, "eps_hat": float(eps.mean()), "mean_q_min": float(Q.min(axis=1).mean()),
+                         "seconds": time.perf_counter() - t0})
+        self.policy_ = NonStationaryPolicy(steps)  # type: ignore[arg-type]
+        self.history_ = pd.DataFrame(rows)
+        return self
+
+    def _baseline_sampler(self, model: ResetModel, baseline: Baseline, T: int, rng: np.random.Generator):
+        if isinstance(baseline, TransitionDataset):  # mu_t = the data's states at step t
+            per_t = [baseline.states_at(t) for t in range(T)]
+            for t, x in enumerate(per_t):
+                if not len(x):
+                    raise ValueError(f"the baseline dataset has no state at step {t}; shorten the horizon to the episodes' length")
+            return lambda t, n, r: per_t[t][r.integers(0, len(per_t[t]), n)]
+        if isinstance(baseline, Policy):  # mu_t = states of the baseline policy's rollouts
+            per_t = state_samples(model, baseline, self.n_samples, T, rng)
+            return lambda t, n, r: per_t[t][r.integers(0, len(per_t[t]), n)]
+        if isinstance(baseline, list | tuple):
+            return lambda t, n, r: np.asarray(baseline[t])[r.integers(0, len(baseline[t]), n)]
+        return baseline
+
+    def _rollout_q(self, model: ResetModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
+        """Q_t(s_i, a): mean over m rollouts; the same random numbers for every action."""
+        n, m, A = len(S), self.n_rollouts, model.n_actions
+        X0 = np.repeat(S, m, axis=0)
+        seed = int(np.random.default_rng([self.random_state, t]).integers(2**62))
+        Q = np.zeros((n, A))
+        for a in range(A):
+            rng = np.random.default_rng(seed)  # common random numbers across actions
+            x, alive, total = X0.copy(), np.ones(len(X0), bool), np.zeros(len(X0))
+            for k in range(t, T):
+                idx = np.flatnonzero(alive)
+                if not len(idx):
+                    break
+                act = np.full(len(idx), a) if k == t else future[k - t - 1].act(x[idx], k, rng)
+                r = model.step_seeded(x[idx], act, int(rng.integers(2**62))) if isinstance(model, Simulator) else model.step(x[idx], act, rng)
+                self.simulator_steps_ += len(idx)
+                total[idx] += gamma ** (k - t) * r.costs
+                x[idx] = r.next_states
+                alive[idx[r.terminated]] = False
+            Q[:, a] = total.reshape(n, m).mean(axis=1)
+        return Q
+
+    def _exact_q(self, model: FullModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
+        all_states = np.arange(model.n_states, dtype=np.float64)[:, None]
+        V = np.zeros(model.n_states)  # V_T = 0; back up through the learned future policies
+        for k in range(T - 1, t, -1):
+            pk = future[k - t - 1].probabilities(all_states, k)
+            Qk = model.C + gamma * np.einsum("ast,t->sa", model.P, V)
+            V = (pk * Qk).sum(axis=1)
+        Qt = model.C + gamma * np.einsum("ast,t->sa", model.P, V)
+        return Qt[S[:, 0].astype(np.int64)]
+
+    def _learn(self, S: np.ndarray, Q: np.ndarray, n_actions: int) -> Policy:
+        if self.learner == "regression":
+            enc = QEncoder(n_actions, np.eye(n_actions))
+            reg = make_regressor(self.regressor)
+            X = enc.all_pairs(S)
+            reg.fit(X, Q.T.reshape(-1))
+            return GreedyPolicy(RegressorQ([reg], enc))
+        label = Q.argmin(axis=1)
+        weight = Q.max(axis=1) - Q.min(axis=1)  # what a wrong choice can cost
+        keep = weight > 0
+        if not keep.any() or len(np.unique(label[keep])) == 1:
+            return ClassifierPolicy(None, n_actions, constant=int(label[keep][0]) if keep.any() else 0)
+        clf = make_classifier(self.classifier)
+        clf.fit(S[keep], label[keep], sample_weight=weight[keep])
+        return ClassifierPolicy(clf, n_actions)
+
+
+def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """States of ``n`` rollouts of ``policy`` at each step t < T (Monte-Carlo mu_t).
+
+    Episodes that terminated early are restarted from a reset so every step has ``n``
+    samples (the distribution over the states occupied at step t of non-terminated
+    episodes, the PSDP baseline).
+    """
+    out = []
+    x = model.initial_states(n, rng)
+    for t in range(T):
+        out.append(x.copy())
+        r = model.step(x, policy.act(x, t, rng), rng)
+        x = r.next_states
+        if r.terminated.any():
+            x[r.terminated] = model.initial_states(int(r.terminated.sum()), rng)
+    return out
+
+
+def psdp_bound(eps: np.ndarray, mu_ref: np.ndarray, mu: np.ndarray) -> float:
+    """``sum_t eps_t * max_s mu_ref_t(s) / mu_t(s)`` (infinite where mu_t misses mass of mu_ref_t)."""
+    ratio = np.where(mu > 0, mu_ref / np.where(mu > 0, mu, 1.0), np.where(mu_ref > 0, np.inf, 0.0))
+    return float(np.sum(np.asarray(eps) * ratio.max(axis=1)))
+
+
+class IteratedPSDP(BaseEstimator):
+    """Iterated PSDP (Algorithms 15, 16): PSDP on the state distribution of the current
+    policy, kept only while the value improves; never worse than the start.
+
+    Parameters
+    ----------
+    psdp : PSDP
+    n_rounds : int
+    n_eval_episodes : int
+        Rollouts for the value estimates (fixed seed: common random numbers), unless
+        ``exact_values`` on a full model.
+    exact_values : bool
+    random_state : int
+    """
+
+    def __init__(self, psdp: PSDP | None = None, n_rounds: int = 5, n_eval_episodes: int = 500, exact_values: bool = False,
+                 random_state: int = 0) -> None:
+        self.psdp = psdp
+        self.n_rounds = n_rounds
+        self.n_eval_episodes = n_eval_episodes
+        self.exact_values = exact_values
+        self.random_state = random_state
+
+    def _value(self, model: Any, policy: Policy, T: int, gamma: float) -> float:
+        if self.exact_values:
+            require(model, FullModel)
+            states = np.arange(model.n_states, dtype=np.float64)[:, None]
+            pi = np.stack([policy.probabilities(states, t) for t in range(T)])
+            return float(model.initial_distribution @ dp.policy_evaluation_finite(model.P, model.C, pi, T, gamma).V[0])
+        from offline_adp.evaluation.rollout import rollout
+
+        return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T, gamma=gamma).mean
+
+    def fit(self, model: ResetModel, start_policy: Policy) -> IteratedPSDP:
+        proto = self.psdp if self.psdp is not None else PSDP()
+        T = proto.horizon if proto.horizon is not None else model.horizon
+        gamma = proto.gamma if proto.gamma is not None else model.gamma
+        rng = np.random.default_rng(self.random_state)
+        pi, J = start_policy, self._value(model, start_policy, T, gamma)
+        rows = [{"round": 0, "value": J, "accepted": True, "simulator_steps": 0}]
+        for r in range(1, self.n_rounds + 1):
+            mu = state_samples(model, pi, proto.n_samples, T, rng)  # Algorithm 15: mu_t of the current policy
+            cand = clone(proto).set_params(random_state=self.random_state + r).fit(model, list(mu))
+            Jc = self._value(model, cand.policy_, T, gamma)
+            accepted = Jc < J
+            rows.append({"round": r, "value": Jc, "accepted": accepted, "simulator_steps": cand.simulator_steps_})
+            if not accepted:  # Algorithm 16: keep the best, stop when the value does not improve
+                break
+            pi, J = cand.policy_, Jc
+        self.policy_, self.value_ = pi, J
+        self.history_ = pd.DataFrame(rows)
+        return self
