@@ -142,7 +142,13 @@ class TreeEnsemble:
     @classmethod
     def from_sklearn(cls, forest: Any) -> TreeEnsemble:
         """Export a fitted scikit-learn forest (or a single tree) to arrays."""
-        trees = [e.tree_ for e in getattr(forest, "estimators_", [forest])]
+        out = cls._from_trees([e.tree_ for e in getattr(forest, "estimators_", [forest])])
+        if hasattr(forest, "estimators_"):
+            out._forest = forest  # type: ignore[attr-defined]
+        return out
+
+    @classmethod
+    def _from_trees(cls, trees: list[Any]) -> TreeEnsemble:
         sizes = np.array([t.node_count for t in trees])
         offs = np.r_[0, np.cumsum(sizes)[:-1]]
         left = np.concatenate([np.where(t.children_left >= 0, t.children_left + o, -1) for t, o in zip(trees, offs, strict=True)])
@@ -157,7 +163,14 @@ class TreeEnsemble:
         )
 
     def apply(self, X: np.ndarray) -> np.ndarray:
-        """Global leaf index reached in each tree, shape (n, n_trees), int64."""
+        """Global leaf index reached in each tree, shape (n, n_trees).
+
+        Uses the originating scikit-learn forest's compiled ``apply`` when this ensemble
+        was exported in this process (same leaves), else a vectorised numpy traversal.
+        """
+        forest = getattr(self, "_forest", None)
+        if forest is not None:
+            return sklearn_leaves(forest, X)
         # scikit-learn trees compare float32 inputs with their thresholds: do the same
         X = np.asarray(X, dtype=np.float32).astype(np.float64)
         n = len(X)
@@ -179,7 +192,10 @@ class TreeEnsemble:
         return ensemble_predict(self.value, self.apply(X))
 
     def with_values(self, value: np.ndarray) -> TreeEnsemble:
-        return TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
+        out = TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
+        if getattr(self, "_forest", None) is not None:
+            out._forest = self._forest  # type: ignore[attr-defined]
+        return out
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
         return {prefix + k: getattr(self, k) for k in ("left", "right", "feature", "threshold", "value", "roots")}

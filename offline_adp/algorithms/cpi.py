@@ -58,6 +58,8 @@ class ConservativePolicyIteration(BaseEstimator):
     ----------
     policy_ : MixturePolicy
     history_ : DataFrame ``iteration, alpha, value, n_components, seconds``
+    simulator_steps_ : int
+        Transitions simulated by the rollout estimates (0 with FQE estimates).
     """
 
     def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, step_rule: str = "line_search",
@@ -75,7 +77,9 @@ class ConservativePolicyIteration(BaseEstimator):
     def _estimate(self, policy: Policy, data: TransitionDataset, w: np.ndarray | None) -> float:
         if self.model is not None:  # common random numbers: the same seed for every candidate
             rng = np.random.default_rng(self.random_state)
-            return rollout(self.model, policy, self.n_eval_episodes, rng, horizon=self._proto().horizon or self.model.horizon).mean
+            res = rollout(self.model, policy, self.n_eval_episodes, rng, horizon=self._proto().horizon or self.model.horizon)
+            self.simulator_steps_ += int(res.length.sum())
+            return res.mean
         return clone(self._proto()).set_params(policy=policy).fit(data, sample_weight=w).value_
 
     def _proto(self) -> FittedQEvaluation:
@@ -84,6 +88,7 @@ class ConservativePolicyIteration(BaseEstimator):
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ConservativePolicyIteration:
         if self.step_rule not in ("line_search", "kakade_langford"):
             raise ValueError(f"step_rule must be 'line_search' or 'kakade_langford', got {self.step_rule!r}")
+        self.simulator_steps_ = 0
         pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
         pi = MixturePolicy([pi0], [1.0])
         value = self._estimate(pi, dataset, sample_weight)

@@ -315,6 +315,8 @@ class FittedQIteration(BaseEstimator):
         }
         if self.infeasible_cost is not None:
             d["bound"] = max(min(d["bound"], abs(self.infeasible_cost)), np.abs(cost).max())
+        if self.target_noise and gamma < 1:  # noisy targets may overshoot by a few noise std
+            d["bound"] += 4 * self.target_noise / (1.0 - gamma)
         if (~tr).any():
             v = ~tr
             d["valid"] = {"phi": phi_obs[v], "actions": a.action[v], "phi_next": phi_next[v], "cost": cost[v],
