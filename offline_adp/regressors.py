@@ -174,13 +174,13 @@ class TabularClassifier(BaseEstimator):
 def _lgbm_classifier(**kw: Any) -> BaseEstimator:
     from lightgbm import LGBMClassifier
 
-    return LGBMClassifier(**{"n_estimators": 100, "num_leaves": 31, "verbose": -1, "random_state": 0, "n_jobs": -1, **kw})
+    return LGBMClassifier(**{"n_estimators": 50, "num_leaves": 15, "verbose": -1, "random_state": 0, "n_jobs": 1, **kw})
 
 
 def _extra_trees_classifier(**kw: Any) -> BaseEstimator:
     from sklearn.ensemble import ExtraTreesClassifier
 
-    return ExtraTreesClassifier(**{"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0, **kw})
+    return ExtraTreesClassifier(**{"n_estimators": 30, "min_samples_leaf": 2, "max_features": 1.0, "n_jobs": 1, "random_state": 0, **kw})
 
 
 CLASSIFIERS: dict[str, Callable[..., BaseEstimator]] = {

@@ -51,16 +51,24 @@ from offline_adp.regressors import make_classifier, make_regressor
 Baseline = TransitionDataset | Policy | list | Callable[[int, int, np.random.Generator], np.ndarray]
 
 
-class ClassifierPolicy(DeterministicPolicy):
-    """A deterministic policy that predicts the action with a fitted classifier."""
+def _features(feature_map: Any, obs: np.ndarray) -> np.ndarray:
+    obs = np.asarray(obs, dtype=np.float64)
+    if feature_map is None:
+        return obs
+    return np.asarray(feature_map.transform(obs) if hasattr(feature_map, "transform") else feature_map(obs), dtype=np.float64)
 
-    def __init__(self, classifier: Any, n_actions: int, constant: int | None = None) -> None:
-        self.classifier, self.n_actions, self.constant = classifier, n_actions, constant
+
+class ClassifierPolicy(DeterministicPolicy):
+    """A deterministic policy that predicts the action with a fitted classifier
+    (on ``feature_map(obs)`` when a feature map is given)."""
+
+    def __init__(self, classifier: Any, n_actions: int, constant: int | None = None, feature_map: Any = None) -> None:
+        self.classifier, self.n_actions, self.constant, self.feature_map = classifier, n_actions, constant, feature_map
 
     def actions(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
         if self.constant is not None:
             return np.full(len(obs), self.constant, np.int32)
-        return np.asarray(self.classifier.predict(np.asarray(obs, dtype=np.float64)), dtype=np.int32)
+        return np.asarray(self.classifier.predict(_features(self.feature_map, obs)), dtype=np.int32)
 
 
 class PSDP(BaseEstimator):
@@ -79,6 +87,11 @@ class PSDP(BaseEstimator):
         For classification (``lightgbm``, ``extra_trees``, ``tabular`` or any classifier).
     regressor : str or estimator
         For regression (any LEARN of :mod:`offline_adp.regressors`).
+    learner_params : dict, optional
+        Parameters for the registry classifier or regressor.
+    feature_map : transformer or callable, optional
+        What the classifier or regressor sees of a state (e.g. drop features that do
+        not matter for control); applied as ``transform(obs)`` or ``feature_map(obs)``.
     q_estimator : {"rollout", "exact"}
         ``exact`` computes Q_t by dynamic programming on a full model (the test oracle).
     gamma : float or None
@@ -95,14 +108,17 @@ class PSDP(BaseEstimator):
     """
 
     def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5, learner: str = "classification",
-                 classifier: Any = "lightgbm", regressor: Any = "extra_trees", q_estimator: str = "rollout",
-                 gamma: float | None = None, random_state: int = 0) -> None:
+                 classifier: Any = "extra_trees", regressor: Any = "extra_trees", learner_params: dict | None = None,
+                 feature_map: Any = None, q_estimator: str = "rollout", gamma: float | None = None,
+                 random_state: int = 0) -> None:
         self.horizon = horizon
         self.n_samples = n_samples
         self.n_rollouts = n_rollouts
         self.learner = learner
         self.classifier = classifier
         self.regressor = regressor
+        self.learner_params = learner_params
+        self.feature_map = feature_map
         self.q_estimator = q_estimator
         self.gamma = gamma
         self.random_state = random_state
@@ -152,26 +168,40 @@ class PSDP(BaseEstimator):
         return baseline
 
     def _rollout_q(self, model: ResetModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
-        """Q_t(s_i, a): mean over m rollouts; the same random numbers for every action."""
+        """Q_t(s_i, a): mean over m rollouts of the learned future policies.
+
+        All actions advance in one batch (one policy call per step); the simulator is
+        called per action block with the same seed, so the blocks see the same random
+        numbers (common random numbers across actions).
+        """
         n, m, A = len(S), self.n_rollouts, model.n_actions
         X0 = np.repeat(S, m, axis=0)
-        seed = int(np.random.default_rng([self.random_state, t]).integers(2**62))
-        Q = np.zeros((n, A))
-        for a in range(A):
-            rng = np.random.default_rng(seed)  # common random numbers across actions
-            x, alive, total = X0.copy(), np.ones(len(X0), bool), np.zeros(len(X0))
-            for k in range(t, T):
+        B = len(X0)
+        x = np.tile(X0, (A, 1))  # block a holds rows a * B .. (a + 1) * B
+        alive, total = np.ones(A * B, bool), np.zeros(A * B)
+        rng = np.random.default_rng([self.random_state, t])
+        for k in range(t, T):
+            if not alive.any():
+                break
+            act = np.repeat(np.arange(A), B) if k == t else np.zeros(A * B, np.int64)
+            if k > t:
                 idx = np.flatnonzero(alive)
-                if not len(idx):
-                    break
-                act = np.full(len(idx), a) if k == t else future[k - t - 1].act(x[idx], k, rng)
-                r = model.step_seeded(x[idx], act, int(rng.integers(2**62))) if isinstance(model, Simulator) else model.step(x[idx], act, rng)
-                self.simulator_steps_ += len(idx)
-                total[idx] += gamma ** (k - t) * r.costs
-                x[idx] = r.next_states
-                alive[idx[r.terminated]] = False
-            Q[:, a] = total.reshape(n, m).mean(axis=1)
-        return Q
+                act[idx] = future[k - t - 1].act(x[idx], k, rng)
+            seed = int(rng.integers(2**62))
+            for a in range(A):
+                blk = np.arange(a * B, (a + 1) * B)
+                live = blk[alive[blk]]
+                if not len(live):
+                    continue
+                if isinstance(model, Simulator):
+                    r = model.step_seeded(x[live], act[live], seed)
+                else:
+                    r = model.step(x[live], act[live], np.random.default_rng(seed))
+                self.simulator_steps_ += len(live)
+                total[live] += gamma ** (k - t) * r.costs
+                x[live] = r.next_states
+                alive[live[r.terminated]] = False
+        return total.reshape(A, n, m).mean(axis=2).T
 
     def _exact_q(self, model: FullModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
         all_states = np.arange(model.n_states, dtype=np.float64)[:, None]
@@ -185,19 +215,29 @@ class PSDP(BaseEstimator):
 
     def _learn(self, S: np.ndarray, Q: np.ndarray, n_actions: int) -> Policy:
         if self.learner == "regression":
-            enc = QEncoder(n_actions, np.eye(n_actions))
-            reg = make_regressor(self.regressor)
-            X = enc.all_pairs(S)
-            reg.fit(X, Q.T.reshape(-1))
+            fmap = None if self.feature_map is None else _Map(self.feature_map)
+            enc = QEncoder(n_actions, np.eye(n_actions), feature_map=fmap)
+            reg = make_regressor(self.regressor, **(self.learner_params or {}))
+            reg.fit(enc.all_pairs(enc.phi(S)), Q.T.reshape(-1))
             return GreedyPolicy(RegressorQ([reg], enc))
         label = Q.argmin(axis=1)
         weight = Q.max(axis=1) - Q.min(axis=1)  # what a wrong choice can cost
         keep = weight > 0
         if not keep.any() or len(np.unique(label[keep])) == 1:
             return ClassifierPolicy(None, n_actions, constant=int(label[keep][0]) if keep.any() else 0)
-        clf = make_classifier(self.classifier)
-        clf.fit(S[keep], label[keep], sample_weight=weight[keep])
-        return ClassifierPolicy(clf, n_actions)
+        clf = make_classifier(self.classifier, **(self.learner_params or {}))
+        clf.fit(_features(self.feature_map, S[keep]), label[keep], sample_weight=weight[keep])
+        return ClassifierPolicy(clf, n_actions, feature_map=self.feature_map)
+
+
+class _Map:
+    """A callable feature map as a transformer."""
+
+    def __init__(self, fn: Any) -> None:
+        self.fn = fn
+
+    def transform(self, obs: np.ndarray) -> np.ndarray:
+        return _features(self.fn, obs)
 
 
 def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.random.Generator) -> list[np.ndarray]:
