@@ -45,6 +45,8 @@ ALLOWED = {
     "KNeighborsRegressor": "sklearn.neighbors",
     "MLPRegressor": "sklearn.neural_network",
     "TabularRegressor": "offline_adp.regressors",
+    "TabularClassifier": "offline_adp.regressors",
+    "SelectColumns": "offline_adp.features",
 }
 
 
@@ -71,6 +73,13 @@ def _jsonable(v: Any) -> bool:
 
 def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
     name = type(est).__name__
+    if hasattr(est, "classes_") and hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
+        ens = TreeEnsemble.from_sklearn(est)
+        arrays.update(ens.to_arrays(f"{key}."))
+        probs = np.concatenate([e.tree_.value[:, 0, :] for e in est.estimators_])
+        arrays[f"{key}.class_values"] = probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300)
+        arrays[f"{key}.classes"] = np.asarray(est.classes_)
+        return {"kind": "tree_classifier", "key": key}
     if hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
         arrays.update(TreeEnsemble.from_sklearn(est).to_arrays(f"{key}."))
         return {"kind": "tree_ensemble", "key": key}
@@ -122,12 +131,29 @@ class _Booster:
         return self.booster.predict(X, raw_score=raw_score)
 
 
+class _TreeClassifier:
+    """A saved forest classifier: mean over trees of the leaves' class fractions."""
+
+    def __init__(self, ensemble: TreeEnsemble, class_values: np.ndarray, classes: np.ndarray) -> None:
+        self.ensemble, self.class_values, self.classes_ = ensemble, class_values, classes
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        leaves = self.ensemble.apply(X)
+        return np.ascontiguousarray(self.class_values[leaves]).mean(axis=1)
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        return self.classes_[self.predict_proba(X).argmax(axis=1)]
+
+
 def _import_estimator(spec: dict[str, Any], arrays: Any) -> Any:
     kind = spec["kind"]
     if kind == "tree_ensemble":
         return TreeEnsemble.from_arrays(arrays, f"{spec['key']}.")
     if kind == "lightgbm":
         return _Booster(spec["model"])
+    if kind == "tree_classifier":
+        return _TreeClassifier(TreeEnsemble.from_arrays(arrays, f"{spec['key']}."), np.asarray(arrays[f"{spec['key']}.class_values"]),
+                               np.asarray(arrays[f"{spec['key']}.classes"]))
     if kind == "pipeline":
         from sklearn.pipeline import Pipeline
 
@@ -216,3 +242,88 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
     with arrays:
         q = _import_q(spec["q"], arrays)
     return q, spec
+
+
+# ----------------------------------------------------------------------------- policies
+def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    from offline_adp.algorithms.psdp import ClassifierPolicy
+    from offline_adp.policies import (
+        GreedyPolicy,
+        MixturePolicy,
+        NonStationaryPolicy,
+        TabularPolicy,
+        UniformPolicy,
+    )
+
+    if isinstance(pi, GreedyPolicy):
+        return {"kind": "greedy", "q": _export_q(pi.q, arrays, f"{key}.q")}
+    if isinstance(pi, UniformPolicy):
+        return {"kind": "uniform", "n_actions": pi.n_actions}
+    if isinstance(pi, TabularPolicy):
+        arrays[f"{key}.table"] = pi.table
+        return {"kind": "tabular", "table": f"{key}.table"}
+    if isinstance(pi, MixturePolicy):
+        return {"kind": "mixture", "weights": pi.weights.tolist(),
+                "components": [_export_policy(c, arrays, f"{key}.c{i}") for i, c in enumerate(pi.components)]}
+    if isinstance(pi, NonStationaryPolicy):
+        return {"kind": "non_stationary", "steps": [_export_policy(c, arrays, f"{key}.t{i}") for i, c in enumerate(pi.steps)]}
+    if isinstance(pi, ClassifierPolicy):
+        fmap = None if pi.feature_map is None else _export_estimator(pi.feature_map, arrays, f"{key}.phi")
+        clf = None if pi.classifier is None else _export_estimator(pi.classifier, arrays, f"{key}.clf")
+        return {"kind": "classifier", "n_actions": pi.n_actions, "constant": pi.constant, "classifier": clf, "feature_map": fmap}
+    raise ArtifactError(f"cannot save a {type(pi).__name__} policy safely")
+
+
+def _import_policy(spec: dict[str, Any], arrays: Any) -> Any:
+    from offline_adp.algorithms.psdp import ClassifierPolicy
+    from offline_adp.policies import (
+        GreedyPolicy,
+        MixturePolicy,
+        NonStationaryPolicy,
+        TabularPolicy,
+        UniformPolicy,
+    )
+
+    kind = spec["kind"]
+    if kind == "greedy":
+        return GreedyPolicy(_import_q(spec["q"], arrays))
+    if kind == "uniform":
+        return UniformPolicy(spec["n_actions"])
+    if kind == "tabular":
+        return TabularPolicy(np.asarray(arrays[spec["table"]]))
+    if kind == "mixture":
+        return MixturePolicy([_import_policy(c, arrays) for c in spec["components"]], spec["weights"])
+    if kind == "non_stationary":
+        return NonStationaryPolicy([_import_policy(c, arrays) for c in spec["steps"]])
+    if kind == "classifier":
+        clf = None if spec["classifier"] is None else _import_estimator(spec["classifier"], arrays)
+        fmap = None if spec["feature_map"] is None else _import_estimator(spec["feature_map"], arrays)
+        return ClassifierPolicy(clf, spec["n_actions"], spec["constant"], fmap)
+    raise ArtifactError(f"unknown policy kind {kind!r}")
+
+
+def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
+    """Write a policy (greedy, uniform, tabular, mixture, non-stationary, classifier) as
+    ``policy.json`` + ``policy.npz``."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {}
+    spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), "policy": _export_policy(policy, arrays, "p"), **(extra or {})}
+    np.savez(d / "policy.npz", **arrays)
+    (d / "policy.json").write_text(json.dumps(spec, indent=1))
+
+
+def load_policy(directory: str | PathLike[str]) -> Any:
+    """Read a policy written by :func:`save_policy` (or the greedy policy of a saved Q)."""
+    d = Path(directory)
+    if not (d / "policy.json").exists() and (d / "q.json").exists():
+        from offline_adp.policies import GreedyPolicy
+
+        return GreedyPolicy(load_q(d)[0])
+    try:
+        spec = json.loads((d / "policy.json").read_text())
+        arrays = np.load(d / "policy.npz", allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise ArtifactError(f"{d}: no saved policy ({exc.filename} missing)") from exc
+    with arrays:
+        return _import_policy(spec["policy"], arrays)

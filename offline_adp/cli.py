@@ -184,6 +184,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
     from offline_adp.runs import fit_run, load_config
 
     params = load_config(args.config, args.algorithm)
+    if args.algorithm != "fqi":
+        from offline_adp.runs import fit_other
+
+        if args.resume:
+            raise OfflineADPError("--resume is for fqi runs (the other algorithms run as a whole)")
+        est = fit_other(args.dataset, args.out, args.algorithm, params)
+        print(f"fitted {args.algorithm}: {len(est.history_)} history rows")
+        print(est.history_.tail(5).to_string(index=False))
+        print(f"{args.out}/model")
+        return 0
     bar = None
     if not args.quiet:
         from tqdm import tqdm
@@ -284,15 +294,21 @@ def build_parser() -> argparse.ArgumentParser:
         "fit",
         help="fit an algorithm on a dataset into a run directory",
         formatter_class=fmt,
-        description="Fit fitted Q-iteration (finite or infinite horizon) on a dataset directory. Parameters come "
-        "from --config (a TOML file whose [fqi] table holds FittedQIteration's parameters). Each iteration is "
-        "checkpointed; after Ctrl-C or a crash, --resume continues from the last completed iteration.",
-        epilog="example:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n\n"
+        description="Fit an algorithm on a dataset directory: fqi (fitted Q-iteration), fqe (fitted Q evaluation of "
+        "a saved policy), api (approximate policy iteration), cpi (conservative policy iteration), psdp (policy "
+        "search by dynamic programming; needs a simulator). Parameters come from --config, a TOML file whose "
+        "[<algorithm>] table holds the estimator's parameters (api/cpi: an [<algorithm>.fqe] sub-table for the "
+        "evaluator; cpi/psdp: simulator = \"NAME\"; psdp: baseline_source, drop_features). fqi checkpoints every "
+        "iteration; after Ctrl-C or a crash, --resume continues from the last completed iteration.",
+        epilog="examples:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n"
+        "  offline-adp fit data/pt --algorithm psdp --config psdp.toml --out runs/pt-psdp\n\n"
         "with fqi.toml:\n  [fqi]\n  gamma = 0.95\n  n_iterations = 50\n  regressor = \"extra_trees\"\n"
-        "  [fqi.regressor_params]\n  n_estimators = 50",
+        "  [fqi.regressor_params]\n  n_estimators = 50\n\n"
+        "and psdp.toml:\n  [psdp]\n  simulator = \"path_tracking\"\n  horizon = 50\n  learner = \"regression\"\n"
+        "  baseline_source = \"demonstration\"\n  drop_features = [\"s\"]",
     )
     f.add_argument("dataset")
-    f.add_argument("--algorithm", default="fqi", choices=["fqi"])
+    f.add_argument("--algorithm", default="fqi", choices=["fqi", "fqe", "api", "cpi", "psdp"])
     f.add_argument("--config", default=None, help="TOML file with the algorithm's parameters")
     f.add_argument("--out", required=True, help="run directory")
     f.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")

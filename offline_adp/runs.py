@@ -32,12 +32,34 @@ from offline_adp.errors import OfflineADPError, SpecError
 from offline_adp.qfunctions import TimeIndexedQ
 
 ALGORITHMS = {"fqi": FittedQIteration}
+#: Keys of each algorithm's TOML table besides its estimator's parameters, and the
+#: access model it needs (trace data unless a simulator is named).
+EXTRA_KEYS = {
+    "fqi": set(),
+    "fqe": {"policy"},
+    "api": {"fqe"},
+    "cpi": {"fqe", "simulator", "problem_options"},
+    "psdp": {"simulator", "problem_options", "baseline_source", "drop_features"},
+}
+
+
+def _estimator_class(algorithm: str) -> type:
+    from offline_adp.algorithms.api import ApproximatePolicyIteration
+    from offline_adp.algorithms.cpi import ConservativePolicyIteration
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.algorithms.psdp import PSDP
+
+    return {"fqi": FittedQIteration, "fqe": FittedQEvaluation, "api": ApproximatePolicyIteration,
+            "cpi": ConservativePolicyIteration, "psdp": PSDP}[algorithm]
 
 
 def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, Any]:
-    """Algorithm parameters from a TOML file's ``[fqi]`` table (or its top level)."""
-    if algorithm not in ALGORITHMS:
-        raise SpecError(f"unknown algorithm {algorithm!r}; known: {sorted(ALGORITHMS)}")
+    """Algorithm parameters from a TOML file's ``[<algorithm>]`` table (or its top level).
+
+    Relative paths (``policy``) are resolved against the config file's folder.
+    """
+    if algorithm not in EXTRA_KEYS:
+        raise SpecError(f"unknown algorithm {algorithm!r}; known: {sorted(EXTRA_KEYS)}")
     if path is None:
         return {}
     try:
@@ -46,12 +68,69 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
         raise SpecError(f"{path}: no such config file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{path}: not valid TOML ({exc})") from exc
-    params = raw.get(algorithm, raw)
-    valid = set(ALGORITHMS[algorithm]().get_params())
+    params = dict(raw.get(algorithm, raw))
+    valid = set(_estimator_class(algorithm)().get_params()) - {"fqe", "policy", "model", "initial_policy", "initial_q", "psdp"}
+    valid |= EXTRA_KEYS[algorithm]
     unknown = sorted(set(params) - valid)
     if unknown:
         raise SpecError(f"{path}: unknown key(s) {unknown} for {algorithm}; valid keys are {sorted(valid)}")
-    return dict(params)
+    if "fqe" in params:
+        fqe_valid = set(_estimator_class("fqe")().get_params()) - {"policy", "initial_q"}
+        bad = sorted(set(params["fqe"]) - fqe_valid)
+        if bad:
+            raise SpecError(f"{path}: unknown key(s) {bad} in [{algorithm}.fqe]; valid keys are {sorted(fqe_valid)}")
+    if "policy" in params:
+        params["policy"] = str((Path(path).parent / params["policy"]).resolve())
+    return params
+
+
+def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm: str, params: dict[str, Any]) -> Any:
+    """FQE, API, CPI or PSDP into a run directory (``model/`` holds policy, params, history)."""
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.artifacts import load_policy, save_policy
+    from offline_adp.envs import make_problem
+
+    run = Path(out)
+    if run.exists():
+        raise OfflineADPError(f"{run} already exists; choose another --out (only fqi runs can be resumed)")
+    ds = read_dataset(dataset)
+    p = dict(params)
+    fqe = FittedQEvaluation(**p.pop("fqe")) if "fqe" in p else None
+    sim = make_problem(p.pop("simulator"), **p.pop("problem_options", {})) if "simulator" in p else None
+    t0 = time.perf_counter()
+    if algorithm == "fqe":
+        if "policy" not in p:
+            raise SpecError("fqe needs the policy to evaluate: policy = \"RUN_DIR/model\" in [fqe]")
+        est = FittedQEvaluation(policy=load_policy(p.pop("policy")), **p).fit(ds)
+        summary = {"value": est.value_}
+    elif algorithm == "api":
+        est = _estimator_class("api")(fqe=fqe, **p).fit(ds)
+        summary = {"value": float(est.history_["value"].iloc[-1])}
+    elif algorithm == "cpi":
+        est = _estimator_class("cpi")(fqe=fqe, model=sim, **p).fit(ds)
+        summary = {"value": float(est.history_["value"].iloc[-1])}
+    else:
+        if sim is None:
+            raise SpecError("psdp needs a simulator (a reference problem): simulator = \"path_tracking\" in [psdp]")
+        source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)
+        from offline_adp.features import drop_features
+
+        baseline = ds.filter_source(source) if source else ds
+        fmap = drop_features(ds.feature_names, drop) if drop else None
+        est = _estimator_class("psdp")(feature_map=fmap, **p).fit(sim, baseline)
+        summary = {"simulator_steps": est.simulator_steps_}
+    tmp = run.parent / f".{run.name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    save_policy(est.policy_, tmp / "model", extra={"algorithm": algorithm, "dataset_fingerprint": ds.fingerprint()})
+    if getattr(est, "q_function_", None) is not None:
+        save_q(est.q_function_, tmp / "model")
+    est.history_.to_csv(tmp / "model" / "history.csv", index=False)
+    (tmp / "config.json").write_text(json.dumps({"algorithm": algorithm, "params": params}, indent=1, default=str))
+    status = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm, "versions": versions(),
+              "status": "completed", "fit_seconds": time.perf_counter() - t0, **summary}
+    (tmp / "run.json").write_text(json.dumps(status, indent=1, default=float))
+    os.replace(tmp, run)
+    return est
 
 
 def _write_checkpoint(run: Path, est: FittedQIteration, rows: list[dict[str, Any]]) -> None:

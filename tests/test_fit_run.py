@@ -83,3 +83,30 @@ def test_fit_cli_errors(tmp_path, pt_dir, capsys):
     err = capsys.readouterr().err
     assert "unknown key(s) ['n_iteration']" in err and "n_iterations" in err
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "nothing"), "--resume", "-q"]) == 2
+
+
+def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
+    from offline_adp.artifacts import load_policy
+
+    fqi_run = tmp_path / "fqi"
+    assert main(["fit", str(pt_dir), "--out", str(fqi_run), "-q", "--config", str(_cfg(tmp_path, "fqi", "n_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n"))]) == 0
+    cfgs = {
+        "fqe": 'policy = "fqi/model"\nn_iterations = 3\nmode = "frozen"\n',
+        "api": 'n_iterations = 2\n[api.fqe]\nn_iterations = 3\nmode = "frozen"\n',
+        "cpi": 'n_iterations = 2\nstep_sizes = [0.5, 1.0]\n[cpi.fqe]\nn_iterations = 3\nmode = "frozen"\n',
+        "psdp": 'simulator = "path_tracking"\nhorizon = 4\nn_samples = 30\nlearner = "regression"\n'
+                'baseline_source = "demonstration"\ndrop_features = ["s"]\n[psdp.learner_params]\nn_estimators = 5\n',
+    }
+    obs = simulate("path_tracking", 2, 2, seed=4, horizon=10).arrays().obs
+    for alg, body in cfgs.items():
+        out = tmp_path / alg
+        assert main(["fit", str(pt_dir), "--algorithm", alg, "--config", str(_cfg(tmp_path, alg, body)), "--out", str(out), "-q"]) == 0, alg
+        pi = load_policy(out / "model")
+        assert pi.act(obs, 0, np.random.default_rng(0)).shape == (len(obs),)
+        assert json.loads((out / "run.json").read_text())["status"] == "completed"
+
+
+def _cfg(tmp_path, alg, body):
+    p = tmp_path / f"{alg}.toml"
+    p.write_text(f"[{alg}]\n{body}")
+    return p

@@ -215,7 +215,7 @@ class PSDP(BaseEstimator):
 
     def _learn(self, S: np.ndarray, Q: np.ndarray, n_actions: int) -> Policy:
         if self.learner == "regression":
-            fmap = None if self.feature_map is None else _Map(self.feature_map)
+            fmap = self.feature_map if (self.feature_map is None or hasattr(self.feature_map, "transform")) else _Map(self.feature_map)
             enc = QEncoder(n_actions, np.eye(n_actions), feature_map=fmap)
             reg = make_regressor(self.regressor, **(self.learner_params or {}))
             reg.fit(enc.all_pairs(enc.phi(S)), Q.T.reshape(-1))
