@@ -74,41 +74,29 @@ def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode):
 
 
 def gridworld_dataset() -> TransitionDataset:
-    gw = Gridworld()
-    xy = gw.lattice_states()[:-1]
-    X = np.repeat(xy, 4, axis=0)
-    a = np.tile(np.arange(4), len(xy))
-    r = gw.step_seeded(X, a)
-    n = len(X)
-    return TransitionDataset.from_arrays(
-        gw.dataset_info(), episode_id=np.char.zfill(np.arange(n).astype(str), 7), step=np.zeros(n), obs=X, action=a,
-        cost=r.costs, next_obs=r.next_states, terminated=r.terminated, truncated=~r.terminated,
-    )
+    from offline_adp.examples.gridworld_divergence import dataset
+
+    return dataset()
 
 
 def test_boyan_moore_divergence_quadratic_vs_trees_and_table():
-    ds = gridworld_dataset()
-    lattice = Gridworld.lattice_states()
-    J = optimal_cost_to_go(lattice)
-    corner = 0  # (0, 0), opposite the goal
+    from offline_adp.examples.gridworld_divergence import run
+
+    J = optimal_cost_to_go(Gridworld.lattice_states())
     # quadratic regression: the corner is underestimated and the error grows; the monitor flags it
-    f = FittedQIteration(gamma=1.0, regressor="ridge", n_iterations=90, on_divergence="warn")
-    errors, corner_values = [], []
     with pytest.warns(DivergenceWarning, match="diverging"):
-        for _ in f.fit_iter(ds):
-            V = f.q_function_.values(lattice).min(axis=1)
-            errors.append(np.abs(V - J)[:-1].max())
-            corner_values.append(V[corner])
+        errors, corner_values, f = run("ridge", n_iterations=90)
     assert f.diverged_
     k_flag = int(f.divergence_message_.split(":")[0].split()[-1])
-    assert corner_values[k_flag - 1] < J[corner] - 5.0  # underestimated at the corner when flagged
+    assert corner_values[k_flag - 1] < J[0] - 5.0  # underestimated at the corner (0, 0) when flagged
     assert errors[-1] > 2.0 * min(errors)  # the error grows across iterations
     # extra-trees and a table converge to the linear true cost-to-go
+    lattice = Gridworld.lattice_states()
     for reg in ("extra_trees", "tabular"):
         with warnings.catch_warnings():
             warnings.simplefilter("error", DivergenceWarning)
             params = {"n_estimators": 10, "n_jobs": 1} if reg == "extra_trees" else {}
-            g = FittedQIteration(gamma=1.0, regressor=reg, regressor_params=params, n_iterations=80, tol=1e-12).fit(ds)
+            g = FittedQIteration(gamma=1.0, regressor=reg, regressor_params=params, n_iterations=80, tol=1e-12).fit(gridworld_dataset())
         np.testing.assert_allclose(g.q_function_.values(lattice).min(axis=1)[:-1], J[:-1], atol=1e-9)
 
 
