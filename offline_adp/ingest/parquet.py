@@ -261,6 +261,7 @@ def ingest_tables(
     cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32)), pa.array(names_of.astype(str).tolist()))
     cols["src_row"] = rows
     out = pa.table({k: (v.combine_chunks() if isinstance(v, pa.ChunkedArray) else v) for k, v in cols.items()})
+    del cols, table, tables, obs, nxt  # the input's unshared columns can go before validation and writing
     if not keep.all():
         out = out.filter(pa.array(keep))
 
