@@ -167,10 +167,6 @@ class NonStationaryPolicy(Policy):
         self.time_varying = True
 
     def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
-        obs = np.asarray(obs)
-        tt = np.broadcast_to(np.minimum(np.asarray(t), len(self.steps) - 1), (len(obs),))
-        out = np.empty((len(obs), self.n_actions))
-        for s in np.unique(tt):
-            rows = tt == s
-            out[rows] = self.steps[int(s)].probabilities(obs[rows], int(s))
-        return out
+        from offline_adp.qfunctions import per_step
+
+        return per_step(obs, t, len(self.steps), self.n_actions, lambda k, x: self.steps[k].probabilities(x, k))

@@ -101,6 +101,18 @@ class RegressorQ(QFunction):
         return predict_model(self.models[0], self.encoder.all_pairs(phi)).reshape(self.n_actions, n).T
 
 
+def per_step(obs: np.ndarray, t: TimeArg, n_steps: int, width: int, fn: Any) -> np.ndarray:
+    """Evaluate ``fn(step, obs_rows) -> (m, width)`` once per distinct step in ``t``
+    (a scalar or one per row; steps >= ``n_steps`` use the last)."""
+    obs = np.asarray(obs)
+    tt = np.broadcast_to(np.minimum(np.asarray(t), n_steps - 1), (len(obs),))
+    out = np.empty((len(obs), width))
+    for step in np.unique(tt):
+        rows = tt == step
+        out[rows] = fn(int(step), obs[rows])
+    return out
+
+
 class TimeIndexedQ(QFunction):
     """One Q-function per step t = 0..T-1 (finite horizon); steps >= T use the last."""
 
@@ -108,13 +120,7 @@ class TimeIndexedQ(QFunction):
         self.qs, self.n_actions = qs, qs[0].n_actions
 
     def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
-        obs = np.asarray(obs)
-        tt = np.broadcast_to(np.minimum(np.asarray(t), len(self.qs) - 1), (len(obs),))
-        out = np.empty((len(obs), self.n_actions))
-        for step in np.unique(tt):
-            rows = tt == step
-            out[rows] = self.qs[int(step)].values(obs[rows], int(step))
-        return out
+        return per_step(obs, t, len(self.qs), self.n_actions, lambda k, x: self.qs[k].values(x, k))
 
 
 # ----------------------------------------------------------------------------- tree ensembles
