@@ -171,3 +171,47 @@ def test_real_rosbag2_recording():
     assert summary["files"][0]["messages_used"]["/odom"] == 2639
     assert len(ds) + ds.n_episodes + summary["dropped_steps"] == 2639  # every odom message is a step
     assert len(ds.info.action_table) == 5 and ds.info.action_table.kind == "binned"
+
+
+@pytest.mark.parametrize("damage", ["truncate", "bitflip"])
+def test_damaged_files_recover_complete_chunks_and_report(tmp_path, damage):
+    ds = simulate("path_tracking", 6, 0, seed=5, horizon=40)
+    (f,) = write_mcap(ds, tmp_path / "logs", encoding="json", chunk_size=32 * 1024)  # many chunks
+    data = bytearray(f.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) * 2 // 3]  # a crash during recording, mid-chunk
+    else:
+        data[len(data) // 2] ^= 0xFF  # one flipped byte inside a chunk
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(IngestError, match=r"recovered \d+ messages of file .*bad.mcap, lost from offset \d+"):
+        ingest_mcap([bad], SPEC)
+    with pytest.warns(UserWarning, match="recovered"):
+        part, summary = ingest_mcap([bad], SPEC, on_error="quarantine")
+    assert 0 < part.n_episodes < ds.n_episodes
+    assert summary["files"][0]["recovered"]["messages"] > 0
+    full = ds.select_episodes(part.episode_ids)  # what was kept is exactly the original
+    np.testing.assert_allclose(part.arrays().obs, full.arrays().obs, atol=1e-9)
+
+
+def test_unindexed_file_without_summary(tmp_path):
+    from mcap.writer import IndexType, Writer
+
+    ds = simulate("path_tracking", 2, 0, seed=6, horizon=10)
+    (f,) = write_mcap(ds, tmp_path / "logs", encoding="json")
+    from mcap.reader import make_reader
+
+    out = tmp_path / "plain.mcap"
+    with open(f, "rb") as src, open(out, "wb") as dst:
+        w = Writer(dst, index_types=IndexType.NONE, use_summary_offsets=False, use_statistics=False, use_chunking=False)
+        w.start()
+        seen_s, seen_c = {}, {}
+        for sch, ch, msg in make_reader(src).iter_messages(log_time_order=False):
+            if sch.id not in seen_s:
+                seen_s[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in seen_c:
+                seen_c[ch.id] = w.register_channel(ch.topic, ch.message_encoding, seen_s[sch.id])
+            w.add_message(seen_c[ch.id], msg.log_time, msg.data, msg.publish_time)
+        w.finish()
+    back, _ = ingest_mcap([out], SPEC)
+    np.testing.assert_allclose(back.arrays().obs, ds.arrays().obs, atol=1e-9)

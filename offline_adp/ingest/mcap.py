@@ -1,15 +1,16 @@
 """MCAP logs -> dataset (the only module that imports ``mcap``).
 
-Status: first version (issue 3 in progress). Works: ``mcap_info``; JSON and ROS 2 CDR
+Status: first version (issue 3 in progress). Works: ``mcap_info``; reading in file order
+with a streaming reader (unindexed files and files without a summary; a truncated or
+corrupt file keeps every complete chunk before the damage and reports "recovered N
+messages of file X, lost from offset Y", failing or continuing per ``on_error``); JSON and ROS 2 CDR
 decoding (protobuf through ``mcap_protobuf`` when installed); a clock topic defining the
 steps; per-stream field extraction with dotted paths and list indices; ``nearest``,
 ``previous`` and ``linear`` alignment with ``max_age`` and ``fill``/``drop_step``/
 ``error`` for missing values; episodes from an event topic or from time gaps; discrete
 or binned actions; declarative costs (weighted abs/square terms, terminal cost); the
-dataset doctor at the end. Not yet: recovery from truncated or corrupt chunks with a
-report (a damaged file currently fails with an IngestError naming it), bounded memory
-for very large files (a file is read whole), parallel files, out-of-order handling
-beyond a per-stream sort.
+dataset doctor at the end. Not yet: resuming after a corrupt chunk (the chunks after it
+are lost), bounded memory for very large files (a file is read whole), parallel files.
 
 Spec (TOML), see ``docs/ingestion-spec.md``::
 
@@ -301,7 +302,46 @@ def _msg_time(which: str, msg: Any, dec: Any) -> int:
     return to_ns(get_path(dec, which))
 
 
-def _read_file(path: Path, spec: McapSpec) -> dict[str, Any]:
+def _records_in_file_order(f: Any, topics: set[str], report: dict[str, Any]):
+    """Messages of ``topics`` in file order with a streaming reader (no index or summary
+    needed). A truncated or corrupt file stops the stream at the damaged record: every
+    complete chunk before it is kept and ``report`` says how much was recovered and from
+    which byte offset the rest was lost."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    reader = StreamReader(f, validate_crcs=True)
+    report["messages"] = 0
+    try:
+        for rec in reader.records:
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+            elif isinstance(rec, Channel):
+                channels[rec.id] = rec
+            elif isinstance(rec, Message):
+                ch = channels.get(rec.channel_id)
+                if ch is not None and ch.topic in topics:
+                    report["messages"] += 1
+                    yield schemas.get(ch.schema_id), ch, rec
+    except Exception as exc:  # noqa: BLE001 - truncation/corruption surfaces as many library types
+        report["damaged"] = f"{type(exc).__name__}: {exc}"
+        report["lost_from_offset"] = int(f.tell())
+
+
+def _decoded_in_file_order(f: Any, topics: set[str], report: dict[str, Any]):
+    cache: dict[tuple[str, int | None], Any] = {}
+    factories = decoder_factories()
+    for sch, ch, msg in _records_in_file_order(f, topics, report):
+        key = (ch.message_encoding, None if sch is None else sch.id)
+        if key not in cache:
+            cache[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
+        if cache[key] is not None:
+            yield sch, ch, msg, cache[key](msg.data)
+
+
+def _read_file(path: Path, spec: McapSpec, on_error: str = "fail") -> dict[str, Any]:
     """Per stream (observation streams by index, ``"action"``, ``"clock"``, ``"episodes"``):
     times and field values, each sorted by its own time."""
     streams = {i: s for i, s in enumerate(spec.streams)}
@@ -314,10 +354,10 @@ def _read_file(path: Path, spec: McapSpec) -> dict[str, Any]:
         by_topic.setdefault(spec.episode_topic, []).append("episodes")
     data: dict[Any, dict[str, list]] = {k: {"t": []} for ks in by_topic.values() for k in ks}
     counts = {t: 0 for t in by_topic}
+    report: dict[str, Any] = {}
     try:
         with open(path, "rb") as f:
-            reader = _open_reader(f)
-            for _sch, ch, msg, dec in _safe_decoded(reader, sorted(by_topic)):
+            for _sch, ch, msg, dec in _decoded_in_file_order(f, set(by_topic), report):
                 counts[ch.topic] += 1
                 for key in by_topic[ch.topic]:
                     d = data[key]
@@ -339,6 +379,14 @@ def _read_file(path: Path, spec: McapSpec) -> dict[str, Any]:
         raise
     except Exception as exc:  # noqa: BLE001 - library errors become ours, naming the file
         raise IngestError(f"{path}: cannot read as MCAP ({type(exc).__name__}: {exc})") from exc
+    if "damaged" in report:
+        msg = (f"recovered {report['messages']} messages of file {path}, lost from offset {report['lost_from_offset']} "
+               f"({report['damaged']})")
+        if on_error == "fail":
+            raise IngestError(msg + "; re-run with --on-error quarantine to keep what was recovered")
+        import warnings
+
+        warnings.warn(msg, stacklevel=3)
     missing = [t for t in by_topic if counts[t] == 0 and t != spec.episode_topic]
     if missing:
         raise IngestError(f"{path}: no decodable messages on needed topic(s) {missing}")
@@ -347,6 +395,7 @@ def _read_file(path: Path, spec: McapSpec) -> dict[str, Any]:
         order = np.argsort(np.asarray(d["t"], dtype=np.int64), kind="stable")  # sort per stream, not the whole file
         out[key] = {k: np.asarray(v)[order] for k, v in d.items()}
     out["__counts"] = counts
+    out["__report"] = report
     return out
 
 
@@ -396,8 +445,9 @@ def ingest_mcap(
     for fi, path in enumerate(paths):
         if not path.is_file():
             raise IngestError(f"{path}: no such file")
-        d = _read_file(path, spec)
-        summary["files"].append({"path": str(path), "sha256": sha256_file(path), "messages_used": d["__counts"]})
+        d = _read_file(path, spec, on_error)
+        summary["files"].append({"path": str(path), "sha256": sha256_file(path), "messages_used": d["__counts"],
+                                 **({"recovered": d["__report"]} if "damaged" in d["__report"] else {})})
         tclk = d["clock"]["t"]
         # episodes: between start/end events, else split on gaps of the clock
         if spec.episode_topic:
@@ -407,7 +457,8 @@ def ingest_mcap(
             bounds = []
             for k in starts:
                 ends = np.flatnonzero((kind == "end") & (np.arange(len(kind)) > k))
-                if not len(ends):
+                if not len(ends):  # the log stops inside this episode (cut or crashed recording)
+                    summary["incomplete_episodes"] = summary.get("incomplete_episodes", 0) + 1
                     continue
                 e = ends[0]
                 bounds.append((ev["t"][k], ev["t"][e], str(ev.get("id_field", [f"{path.stem}-{k}"] * len(kind))[k]),

@@ -68,18 +68,18 @@ def _header(t_ns: int, frame: str = "map") -> dict:
 class _Sink:
     """Writes (topic, dict, log_time, publish_time) as JSON or ROS 2 CDR."""
 
-    def __init__(self, path: Path, encoding: str) -> None:
+    def __init__(self, path: Path, encoding: str, chunk_size: int = 1 << 20) -> None:
         self.encoding = encoding
         self.f = open(path, "wb")
         if encoding == "ros2":
             from mcap_ros2.writer import Writer as Ros2Writer
 
-            self.w = Ros2Writer(self.f)
+            self.w = Ros2Writer(self.f, chunk_size=chunk_size)
             self.schemas = {name: self.w.register_msgdef(name, d + HEADER_DEFS) for name, d in MSGDEFS.items()}
         else:
             from mcap.writer import Writer
 
-            self.w = Writer(self.f)
+            self.w = Writer(self.f, chunk_size=chunk_size)
             self.w.start(profile="", library="offline_adp simulate")
             self.channels: dict[str, int] = {}
 
@@ -130,6 +130,7 @@ def write_mcap(
     encoding: str = "json",
     layout: str = "auto",
     seed: int = 0,
+    chunk_size: int = 1 << 20,
 ) -> list[Path]:
     """Write ``ds`` as MCAP files (one per source) into ``out_dir``; returns their paths.
 
@@ -141,6 +142,8 @@ def write_mcap(
         ``auto`` picks ``vehicle`` for ``path_tracking`` data, else ``generic``.
     seed : int
         Seed of the timing jitter (latencies).
+    chunk_size : int
+        Bytes per (zstd) chunk before compression.
     """
     if encoding not in ("json", "ros2"):
         raise OfflineADPError(f"MCAP encoding must be 'json' or 'ros2', got {encoding!r}")
@@ -162,7 +165,7 @@ def write_mcap(
         for ep_id, source, e in _episodes(ds):
             if source not in sinks:
                 tmp_paths[source] = out / f".{source}.mcap.tmp"
-                sinks[source] = _Sink(tmp_paths[source], encoding)
+                sinks[source] = _Sink(tmp_paths[source], encoding, chunk_size)
             sink = sinks[source]
             if layout == "vehicle":
                 _write_vehicle_episode(sink, problem, ep_id, source, e, rng)
