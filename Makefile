@@ -34,6 +34,10 @@ test: $(VENV)/.installed-dev
 
 bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/ingest_parquet.py
+	$(BIN)/python benchmarks/ingest_mcap.py
+	$(BIN)/python benchmarks/fqi_scale.py
+	$(BIN)/python benchmarks/car_on_hill.py --seeds 0
+	$(BIN)/python benchmarks/compare_algorithms.py --quick
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check offline_adp tests benchmarks
