@@ -167,21 +167,22 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
     return info
 
 
-def _safe_decoded(reader: Any, topics: Sequence[str] | None):
-    """Decoded messages in file order (each stream is sorted later, never the whole file).
-
-    Channels no decoder understands are skipped; a needed topic that yields nothing is
-    reported by the caller, naming the topic.
-    """
+def _decoded(messages: Any):
+    """Decode (schema, channel, message) triples; channels no decoder understands are
+    skipped (a needed topic that yields nothing is reported by the caller, by name)."""
     cache: dict[tuple[str, int | None], Any] = {}
     factories = decoder_factories()
-    for sch, ch, msg in reader.iter_messages(topics=topics, log_time_order=False):
+    for sch, ch, msg in messages:
         key = (ch.message_encoding, None if sch is None else sch.id)
         if key not in cache:
             cache[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
-        decode = cache[key]
-        if decode is not None:
-            yield sch, ch, msg, decode(msg.data)
+        if cache[key] is not None:
+            yield sch, ch, msg, cache[key](msg.data)
+
+
+def _safe_decoded(reader: Any, topics: Sequence[str] | None):
+    """Decoded messages of an indexed reader, in file order."""
+    return _decoded(reader.iter_messages(topics=topics, log_time_order=False))
 
 
 # ----------------------------------------------------------------------------- spec
@@ -331,14 +332,7 @@ def _records_in_file_order(f: Any, topics: set[str], report: dict[str, Any]):
 
 
 def _decoded_in_file_order(f: Any, topics: set[str], report: dict[str, Any]):
-    cache: dict[tuple[str, int | None], Any] = {}
-    factories = decoder_factories()
-    for sch, ch, msg in _records_in_file_order(f, topics, report):
-        key = (ch.message_encoding, None if sch is None else sch.id)
-        if key not in cache:
-            cache[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
-        if cache[key] is not None:
-            yield sch, ch, msg, cache[key](msg.data)
+    return _decoded(_records_in_file_order(f, topics, report))
 
 
 def _read_file(path: Path, spec: McapSpec, on_error: str = "fail") -> dict[str, Any]:
