@@ -11,7 +11,7 @@ batched call. Representations:
 - :class:`TreeEnsemble` is a tree ensemble as plain arrays (our own export of
   scikit-learn forests): vectorised prediction, leaf lookup, and safe ``.npz`` storage.
   With its structure fixed, re-estimating leaf values from new targets is a
-  kernel averager (:func:`leaf_means`), which is the frozen-structure fast path of
+  kernel averager (:class:`~offline_adp.learners.FrozenTreesLearner`), the frozen-structure fast path of
   Ernst et al. (2005).
 - :class:`TimeIndexedQ` holds one Q per step for finite horizons (Algorithm 10).
 """
@@ -219,21 +219,6 @@ def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:
     dtype = np.int32 if sizes.sum() < 2**31 else np.int64
     # C order: a mean over the trees axis then sums in the same order as TreeEnsemble.predict
     return np.ascontiguousarray((leaves + offs[None, :]).astype(dtype))
-
-
-def leaf_means(train_leaves: np.ndarray, y: np.ndarray, n_nodes: int, weights: np.ndarray | None = None, fallback: np.ndarray | None = None) -> np.ndarray:
-    """Leaf values = (weighted) mean target of the training samples in each leaf.
-
-    ``train_leaves`` is (n, n_trees) global leaf ids; returns a value per node (nodes
-    holding no sample keep ``fallback``, or 0).
-    """
-    n, m = train_leaves.shape
-    flat = train_leaves.reshape(-1)
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
-    wsum = np.bincount(flat, weights=np.repeat(w, m), minlength=n_nodes)
-    ysum = np.bincount(flat, weights=np.repeat(w * y, m), minlength=n_nodes)
-    base = np.zeros(n_nodes) if fallback is None else fallback
-    return np.where(wsum > 0, ysum / np.where(wsum > 0, wsum, 1.0), base)
 
 
 def ensemble_predict(values: np.ndarray, leaves: np.ndarray) -> np.ndarray:
