@@ -212,14 +212,38 @@ def _import_q(spec: dict[str, Any], arrays: Any) -> QFunction:
     raise ArtifactError(f"unknown Q-function kind {spec['kind']!r}")
 
 
-def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
-    """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``)."""
+def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], arrays: dict[str, np.ndarray],
+           extra: dict[str, Any] | None) -> None:
+    """``<stem>.json`` (payload, versions, extra) + ``<stem>.npz`` (arrays) in ``directory``."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
+    np.savez(d / f"{stem}.npz", **arrays)
+    spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), **payload, **(extra or {})}
+    (d / f"{stem}.json").write_text(json.dumps(spec, indent=1))
+
+
+def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:
+    """Read what :func:`_write` wrote (arrays without pickle); warns on other versions."""
+    d = Path(directory)
+    try:
+        spec = json.loads((d / f"{stem}.json").read_text())
+        arrays = np.load(d / f"{stem}.npz", allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise ArtifactError(f"{d}: no saved {what} ({exc.filename} missing)") from exc
+    except (json.JSONDecodeError, ValueError) as exc:
+        raise ArtifactError(f"{d}: unreadable {what} artifact ({exc})") from exc
+    now = versions()
+    diff = {k: (v, now.get(k)) for k, v in spec.get("versions", {}).items() if now.get(k) != v}
+    if diff:
+        warnings.warn(f"{d}: written with other versions {diff} (saved, current)", FormatVersionWarning, stacklevel=3)
+    with arrays:
+        return build(spec[key], arrays), spec
+
+
+def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
+    """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``)."""
     arrays: dict[str, np.ndarray] = {}
-    spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), "q": _export_q(q, arrays, "q"), **(extra or {})}
-    np.savez(d / "q.npz", **arrays)
-    (d / "q.json").write_text(json.dumps(spec, indent=1))
+    _write(directory, "q", {"q": _export_q(q, arrays, "q")}, arrays, extra)
 
 
 def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
@@ -227,21 +251,7 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
 
     Warns (``FormatVersionWarning``) when the package or library versions differ.
     """
-    d = Path(directory)
-    try:
-        spec = json.loads((d / "q.json").read_text())
-        arrays = np.load(d / "q.npz", allow_pickle=False)
-    except FileNotFoundError as exc:
-        raise ArtifactError(f"{d}: no saved Q-function ({exc.filename} missing)") from exc
-    except (json.JSONDecodeError, ValueError) as exc:
-        raise ArtifactError(f"{d}: unreadable Q-function artifact ({exc})") from exc
-    now = versions()
-    diff = {k: (v, now.get(k)) for k, v in spec.get("versions", {}).items() if now.get(k) != v}
-    if diff:
-        warnings.warn(f"{d}: written with other versions {diff} (saved, current)", FormatVersionWarning, stacklevel=2)
-    with arrays:
-        q = _import_q(spec["q"], arrays)
-    return q, spec
+    return _read(directory, "q", "q", _import_q, "Q-function")
 
 
 # ----------------------------------------------------------------------------- policies
@@ -305,12 +315,8 @@ def _import_policy(spec: dict[str, Any], arrays: Any) -> Any:
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
     """Write a policy (greedy, uniform, tabular, mixture, non-stationary, classifier) as
     ``policy.json`` + ``policy.npz``."""
-    d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {}
-    spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), "policy": _export_policy(policy, arrays, "p"), **(extra or {})}
-    np.savez(d / "policy.npz", **arrays)
-    (d / "policy.json").write_text(json.dumps(spec, indent=1))
+    _write(directory, "policy", {"policy": _export_policy(policy, arrays, "p")}, arrays, extra)
 
 
 def load_policy(directory: str | PathLike[str]) -> Any:
@@ -320,10 +326,4 @@ def load_policy(directory: str | PathLike[str]) -> Any:
         from offline_adp.policies import GreedyPolicy
 
         return GreedyPolicy(load_q(d)[0])
-    try:
-        spec = json.loads((d / "policy.json").read_text())
-        arrays = np.load(d / "policy.npz", allow_pickle=False)
-    except FileNotFoundError as exc:
-        raise ArtifactError(f"{d}: no saved policy ({exc.filename} missing)") from exc
-    with arrays:
-        return _import_policy(spec["policy"], arrays)
+    return _read(d, "policy", "policy", _import_policy, "policy")[0]

@@ -50,3 +50,20 @@ def test_loading_refuses_unknown_classes(tmp_path, small_pt):
     (tmp_path / "run" / "q.json").write_text(json.dumps(spec))
     with pytest.raises(ArtifactError, match="allow-list"):
         load_q(tmp_path / "run")
+
+
+def test_other_versions_warn_for_q_functions_and_policies(tmp_path, small_pt):
+    from offline_adp.artifacts import load_policy, save_policy
+    from offline_adp.errors import FormatVersionWarning
+
+    f = FittedQIteration(regressor="tabular", n_iterations=1).fit(small_pt)
+    save_fqi(f, tmp_path / "q")
+    save_policy(f.policy_, tmp_path / "p")
+    for path, name in ((tmp_path / "q" / "q.json", "q"), (tmp_path / "p" / "policy.json", "p")):
+        spec = json.loads(path.read_text())
+        spec["versions"]["scikit-learn"] = "0.0.1"
+        path.write_text(json.dumps(spec))
+    with pytest.warns(FormatVersionWarning, match="scikit-learn"):
+        load_q(tmp_path / "q")
+    with pytest.warns(FormatVersionWarning, match="scikit-learn"):
+        load_policy(tmp_path / "p")
