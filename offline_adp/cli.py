@@ -254,6 +254,52 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from offline_adp.evaluation.run import evaluate_run
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"  {msg}", file=sys.stderr, flush=True)
+
+    fqe = json.loads(args.fqe_params) if args.fqe_params else None
+    m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
+                     n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, seed=args.seed, progress=say)
+    for line in summary_lines(m):
+        print(line)
+    print(f"{args.run}/evaluation/metrics.json")
+    return 0
+
+
+def summary_lines(m: dict) -> list[str]:
+    """A short human summary of ``metrics.json`` (policy vs demonstrator, OPE, worst-step ESS)."""
+    lines = []
+    if "rollout" in m:
+        p, d = m["rollout"]["policy"], m["rollout"]["demonstrator"]
+        extra = ""
+        if "mean_abs_cross_track_error_m" in p:
+            extra = (f"; mean |cross-track error| {p['mean_abs_cross_track_error_m']:.3f} m vs "
+                     f"{d['mean_abs_cross_track_error_m']:.3f} m, failures {p['failures']} vs {d['failures']}")
+        lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
+                     f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
+    f = m["ope"]["fqe"]
+    lines.append(f"off-policy (FQE): {f['estimate']:.3f} [{f['interval'][0]:.3f}, {f['interval'][1]:.3f}]"
+                 f"; WDR {m['ope']['wdr']['estimate']:.3f}, MIS {m['ope']['mis']['estimate']:.3f}")
+    ws = m["worst_step"]
+    lines.append(f"worst-step ESS/n {ws['ess_fraction']:.3f} at t = {ws['step']}; support violations "
+                 f"{m['behaviour']['support_violations']['fraction']:.3f} of states")
+    b = m["psdp_bound"]["references"]
+    lines.append("PSDP bound (estimate): " + ", ".join(f"{k} {v['per_step']:.3g}" for k, v in b.items()))
+    return lines
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from offline_adp.evaluation.report import build_report
+
+    path = build_report(args.run)
+    print(path)
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
@@ -376,6 +422,39 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
     f.add_argument("--quiet", "-q", action="store_true")
     f.set_defaults(func=cmd_fit)
+
+    e = sub.add_parser(
+        "evaluate",
+        help="evaluate a run's policy: simulator rollouts, off-policy estimates, shift diagnostics",
+        formatter_class=fmt,
+        description="Evaluate the policy in RUN_DIR/model on the run's dataset: Monte-Carlo rollouts when a simulator "
+        "is known (the dataset's reference problem or --simulator), the behaviour policy (logged propensities or a "
+        "classifier), off-policy estimates with bootstrap intervals (FQE, IS, WIS, PDIS, WPDIS, DR, WDR, MIS), per-step "
+        "density ratios with diagnostics, and the PSDP bound. Writes RUN_DIR/evaluation/metrics.json.",
+        epilog="examples:\n  offline-adp evaluate runs/pt-fqi\n  offline-adp evaluate runs/pt-fqi --simulator none --dataset data/pt\n"
+        "  offline-adp report runs/pt-fqi",
+    )
+    e.add_argument("run", help="run directory (from offline-adp fit)")
+    e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
+    e.add_argument("--simulator", default=None, help="reference problem to roll out in, or 'none' (default: the dataset's problem)")
+    e.add_argument("--episodes", type=int, default=500, help="rollout episodes (default 500)")
+    e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
+    e.add_argument("--fqe-bootstrap", type=int, default=10, help="FQE refits for its interval (default 10)")
+    e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--quiet", "-q", action="store_true")
+    e.set_defaults(func=cmd_evaluate)
+
+    r = sub.add_parser(
+        "report",
+        help="write RUN_DIR/report/report.html with figures from an evaluated run",
+        formatter_class=fmt,
+        description="Build a single self-contained report.html (figures embedded, also saved as PNG in report/figures/) "
+        "from RUN_DIR/evaluation/ and the fitted model.",
+        epilog="example:\n  offline-adp evaluate runs/pt-fqi && offline-adp report runs/pt-fqi",
+    )
+    r.add_argument("run")
+    r.set_defaults(func=cmd_report)
 
     i = sub.add_parser(
         "inspect",

@@ -46,9 +46,12 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
         self.fill_value = fill_value
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularRegressor:
-        rows = _rows(X)
         y = np.asarray(y, dtype=np.float64)
         w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+        X = np.asarray(X, dtype=np.float64)
+        if (w <= 0).any():  # zero-weight rows (e.g. bootstrap replicates) are not data
+            X, y, w = X[w > 0], y[w > 0], w[w > 0]
+        rows = _fit_codes(self, X)
         keys, inv = np.unique(rows, return_inverse=True)
         inv = inv.reshape(-1)
         wsum = np.bincount(inv, weights=w, minlength=len(keys))
@@ -59,16 +62,46 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         check_is_fitted(self, "keys_")
-        rows = _rows(X)
+        rows = _codes(self, X)
         pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
-        hit = self.keys_[pos] == rows
+        hit = (self.keys_[pos] == rows) & (rows >= 0)
         return np.where(hit, self.values_[pos], self.fill_value)
+
+
+def _fit_codes(est: Any, X: np.ndarray) -> np.ndarray:
+    """Store each column's distinct values (``columns_``) and mixed-radix multipliers
+    (``radix_``) on ``est``; return one int64 code per row."""
+    X = np.asarray(X, dtype=np.float64) + 0.0  # -0.0 -> 0.0
+    est.columns_ = [np.unique(X[:, j]) for j in range(X.shape[1])]
+    sizes = np.array([len(c) for c in est.columns_], dtype=np.float64)
+    if np.prod(sizes) >= 2.0**62:  # too many combinations for one int64: code the distinct rows instead
+        est.rows_ = np.unique(_rows(X))
+        est.radix_ = np.zeros(0, np.int64)
+    else:
+        est.radix_ = np.concatenate([[1], np.cumprod(sizes[:-1])]).astype(np.int64)
+    return _codes(est, X)
 
 
 def _rows(X: np.ndarray) -> np.ndarray:
     """Rows of a float matrix as one structured value each (sortable, searchable)."""
-    X = np.ascontiguousarray(np.asarray(X, dtype=np.float64) + 0.0)  # -0.0 -> 0.0
+    X = np.ascontiguousarray(X)
     return X.view([(f"f{j}", np.float64) for j in range(X.shape[1])]).reshape(-1)
+
+
+def _codes(est: Any, X: np.ndarray) -> np.ndarray:
+    """Row codes from the fitted columns; -1 for rows with a value never seen in fit."""
+    X = np.asarray(X, dtype=np.float64) + 0.0
+    if not len(est.radix_):
+        rows = _rows(X)
+        pos = np.minimum(np.searchsorted(est.rows_, rows), len(est.rows_) - 1)
+        return np.where(est.rows_[pos] == rows, pos, -1).astype(np.int64)
+    code = np.zeros(len(X), np.int64)
+    seen = np.ones(len(X), bool)
+    for j, (vals, r) in enumerate(zip(est.columns_, est.radix_, strict=True)):
+        pos = np.minimum(np.searchsorted(vals, X[:, j]), len(vals) - 1)
+        seen &= vals[pos] == X[:, j]
+        code += pos.astype(np.int64) * r
+    return np.where(seen, code, -1)
 
 
 def _extra_trees(**kw: Any) -> BaseEstimator:
@@ -153,9 +186,9 @@ class TabularClassifier(BaseEstimator):
     """
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularClassifier:
-        rows = _rows(X)
         y = np.asarray(y)
         w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+        rows = _fit_codes(self, X)
         self.classes_, yi = np.unique(y, return_inverse=True)
         keys, inv = np.unique(rows, return_inverse=True)
         votes = np.zeros((len(keys), len(self.classes_)))
@@ -166,9 +199,9 @@ class TabularClassifier(BaseEstimator):
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         check_is_fitted(self, "keys_")
-        rows = _rows(X)
+        rows = _codes(self, X)
         pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
-        return np.where(self.keys_[pos] == rows, self.labels_[pos], self.default_)
+        return np.where((self.keys_[pos] == rows) & (rows >= 0), self.labels_[pos], self.default_)
 
 
 def _lgbm_classifier(**kw: Any) -> BaseEstimator:

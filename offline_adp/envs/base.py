@@ -52,6 +52,11 @@ class ReferenceProblem:
             problem=self.name,
         )
 
+    def rollout_summary(self, states: list[np.ndarray], terminated: np.ndarray) -> dict[str, float]:
+        """Problem-specific numbers about rollouts (``states[t]``: the running episodes'
+        states at step t). Default: the fraction of episodes that terminated."""
+        return {"terminated_fraction": float(np.mean(terminated))}
+
     def make_env(self, **kwargs: Any) -> ProblemEnv:
         """This problem as a ``gymnasium.Env`` (reward = -cost)."""
         return ProblemEnv(self, **kwargs)

@@ -174,6 +174,12 @@ class PathTracking(ReferenceProblem, Simulator):
         cost = np.where(off_road, FAILURE_COST, np.abs(nxt[:, 1]) + CONTROL_WEIGHT * cmd**2)
         return StepResult(nxt, cost, off_road)
 
+    def rollout_summary(self, states: list[np.ndarray], terminated: np.ndarray) -> dict[str, float]:
+        """Mean |cross-track error| over every visited state [m], and failures (left the road)."""
+        e = np.abs(np.concatenate([x[:, 1] for x in states])) if states else np.zeros(0)
+        return {"mean_abs_cross_track_error_m": float(e.mean()) if len(e) else float("nan"),
+                "failures": int(np.sum(terminated)), "failure_fraction": float(np.mean(terminated))}
+
     def demonstrator(self, gain: float = 1.5, noise: float = 0.04, epsilon: float = 0.05) -> Policy:
         """Stanley-style human-like driver (see module docstring), stochastic with known probabilities."""
         edges = np.r_[-np.inf, (STEERING_COMMANDS[1:] + STEERING_COMMANDS[:-1]) / 2, np.inf]

@@ -25,12 +25,16 @@ class RolloutResult:
         Undiscounted sum of costs.
     length : ndarray (n_episodes,)
     terminated : ndarray of bool (n_episodes,)
+    states : list of ndarray, optional
+        ``states[t]``: the states of the episodes still running at step t (pi's
+        Monte-Carlo ``mu_t``; they feed the classifier density ratios).
     """
 
     discounted_cost: np.ndarray
     total_cost: np.ndarray
     length: np.ndarray
     terminated: np.ndarray
+    states: list[np.ndarray] | None = None
 
     @property
     def mean(self) -> float:
@@ -54,8 +58,12 @@ def rollout(
     horizon: int | None = None,
     gamma: float | None = None,
     start_states: np.ndarray | None = None,
+    record_states: bool = False,
 ) -> RolloutResult:
-    """Run ``n_episodes`` episodes of ``policy`` for at most ``horizon`` steps."""
+    """Run ``n_episodes`` episodes of ``policy`` for at most ``horizon`` steps.
+
+    With ``record_states`` the result keeps every step's states (memory: n x H x d).
+    """
     H = horizon if horizon is not None else model.horizon
     if H is None:
         raise ValueError("rollout needs a horizon (the model has none)")
@@ -66,10 +74,13 @@ def rollout(
     length = np.zeros(n, np.int64)
     term = np.zeros(n, bool)
     alive = np.ones(n, bool)
+    states: list[np.ndarray] = []
     for t in range(H):
         idx = np.flatnonzero(alive)
         if not len(idx):
             break
+        if record_states:
+            states.append(x[idx].copy())
         a = policy.act(x[idx], t, rng)
         r = model.step(x[idx], a, rng)
         disc[idx] += g**t * r.costs
@@ -78,4 +89,4 @@ def rollout(
         x[idx] = r.next_states
         term[idx] = r.terminated
         alive[idx[r.terminated]] = False
-    return RolloutResult(disc, total, length, term)
+    return RolloutResult(disc, total, length, term, states if record_states else None)

@@ -1,0 +1,88 @@
+"""The behaviour policy pi_b(a | x): logged propensities where present, else a classifier.
+
+Off-policy estimates need ``pi_b(a_i | x_i)`` of every logged action; the support check
+needs ``pi_b(. | x)`` of every action. Logged propensities are used for the first when
+every row has one; a classifier (LightGBM by default) trained on (x, a) pairs supplies
+the rest, with probabilities clipped to ``[clip, 1]`` so no ratio divides by zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from offline_adp.regressors import make_classifier
+
+
+@dataclass
+class BehaviourEstimate:
+    """pi_b at the data.
+
+    Attributes
+    ----------
+    logged_prob : ndarray (n,)
+        ``pi_b(a_i | x_i)`` of each logged action (clipped).
+    all_probs : ndarray (n, n_actions)
+        Classifier estimate of ``pi_b(. | x_i)`` (clipped, renormalised).
+    source : str
+        ``logged`` (every row had a propensity), ``estimated`` (none had), or ``mixed``.
+    clip : float
+    n_clipped : int
+        Rows whose logged-action probability was raised to ``clip``.
+    classifier : str
+    """
+
+    logged_prob: np.ndarray
+    all_probs: np.ndarray
+    source: str
+    clip: float
+    n_clipped: int
+    classifier: str
+    warnings: list[str] = field(default_factory=list)
+
+
+def estimate_behaviour(
+    obs: np.ndarray,
+    action: np.ndarray,
+    n_actions: int,
+    logged: np.ndarray | None = None,
+    *,
+    classifier: Any = "lightgbm",
+    classifier_params: dict | None = None,
+    clip: float = 1e-3,
+) -> BehaviourEstimate:
+    """Behaviour probabilities at the data (see module docstring)."""
+    clf = make_classifier(classifier, **(classifier_params or {})).fit(obs, action)
+    raw = clf.predict_proba(obs)
+    probs = np.zeros((len(action), n_actions))
+    probs[:, np.asarray(clf.classes_, dtype=np.int64)] = raw
+    probs = np.maximum(probs, clip)
+    probs /= probs.sum(axis=1, keepdims=True)
+    est = probs[np.arange(len(action)), action]
+    have = np.zeros(len(action), bool) if logged is None else np.isfinite(logged) & (logged > 0)
+    source = "logged" if have.all() else "estimated" if not have.any() else "mixed"
+    p = np.where(have, logged if logged is not None else 0.0, est)
+    n_clipped = int(np.sum(p < clip))
+    warnings = []
+    if n_clipped:
+        warnings.append(f"{n_clipped} behaviour probabilities below {clip} were clipped to it")
+    name = classifier if isinstance(classifier, str) else type(classifier).__name__
+    return BehaviourEstimate(np.maximum(p, clip), probs, source, clip, n_clipped, name, warnings)
+
+
+def support_violations(target_probs: np.ndarray, behaviour_probs: np.ndarray, step: np.ndarray,
+                       threshold: float = 0.01) -> dict[str, Any]:
+    """Where the evaluated policy puts mass on actions the data (almost) never took there.
+
+    A row violates support when pi gives at least half its mass to actions with
+    ``pi_b(a | x) < threshold``. Returns the overall fraction, the count, and the
+    fraction per step.
+    """
+    bad_mass = np.sum(target_probs * (behaviour_probs < threshold), axis=1)
+    viol = bad_mass >= 0.5
+    steps = np.unique(step)
+    per_step = {int(t): float(viol[step == t].mean()) for t in steps}
+    return {"threshold": threshold, "fraction": float(viol.mean()), "count": int(viol.sum()), "per_step": per_step,
+            "mean_unsupported_mass": float(bad_mass.mean())}

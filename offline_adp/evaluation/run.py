@@ -1,0 +1,187 @@
+"""``offline-adp evaluate RUN_DIR``: every number about a fitted policy, into ``RUN_DIR/evaluation/``.
+
+Writes (atomically: a temporary directory, then rename)::
+
+    evaluation/metrics.json     every number with the method that produced it
+    evaluation/per_step.csv     shift diagnostics per step and method
+    evaluation/ratios.parquet   the data's states with their step, source and ratio w_t(x)
+    evaluation/rollout_states.npz  pi's states per step (when a simulator was used)
+    evaluation/rollout_states_demonstrator.npz  the same for the problem's demonstrator
+
+A simulator is used when ``--simulator NAME`` is given or the dataset names its
+reference problem (``info.problem``); ``--simulator none`` forces logs only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.io import read_dataset
+from offline_adp.errors import DatasetNotFoundError, OfflineADPError
+from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
+from offline_adp.evaluation.rollout import RolloutResult, rollout
+
+
+def _rollout_block(res: RolloutResult, problem: Any) -> dict[str, Any]:
+    lo, hi = res.interval()
+    out = {"mean_discounted_cost": res.mean, "interval": [lo, hi], "level": 0.95, "n_episodes": int(len(res.length)),
+           "mean_length": float(res.length.mean()), "terminated": int(res.terminated.sum())}
+    out.update(problem.rollout_summary(res.states or [], res.terminated))
+    return out
+
+
+def _per_source(ds: TransitionDataset, w: np.ndarray, gamma: float) -> dict[str, Any]:
+    a = ds.arrays()
+    src = np.asarray(ds.table.column("source").to_numpy(zero_copy_only=False)).astype(str)
+    disc_cost = a.cost * gamma ** a.step.astype(np.float64)
+    out = {}
+    for s in sorted(set(src)):
+        m = src == s
+        eps = np.unique(a.episode[m])
+        per_ep = np.bincount(a.episode[m], weights=disc_cost[m], minlength=int(a.episode.max()) + 1)[eps]
+        out[s] = {"episodes": int(len(eps)), "transitions": int(m.sum()), "logged_mean_discounted_cost": float(per_ep.mean()),
+                  "mean_ratio": float(w[m].mean()), "policy_mass": float(w[m].sum() / max(w.sum(), 1e-300)),
+                  "data_mass": float(m.mean())}
+    return out
+
+
+def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
+    return json.loads(df.to_json(orient="records"))
+
+
+def evaluate_run(
+    run_dir: str | PathLike[str],
+    *,
+    dataset: str | PathLike[str] | None = None,
+    simulator: str | None = None,
+    n_episodes: int = 500,
+    n_boot: int = 200,
+    n_boot_fqe: int = 10,
+    fqe_params: dict[str, Any] | None = None,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Evaluate the policy of a run directory (see the module docstring); returns the metrics."""
+    from offline_adp.artifacts import load_policy
+    from offline_adp.envs import PROBLEMS, make_problem
+
+    say = progress or (lambda _m: None)
+    run = Path(run_dir)
+    if not (run / "model").is_dir():
+        raise OfflineADPError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
+    info = json.loads((run / "run.json").read_text()) if (run / "run.json").exists() else {}
+    ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
+    if not (ds_path / "meta" / "info.json").exists():
+        raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")
+    t0 = time.perf_counter()
+    ds = read_dataset(ds_path)
+    policy = load_policy(run / "model")
+    sim_name = simulator if simulator is not None else ds.info.problem
+    if sim_name in ("none", ""):
+        sim_name = None
+    if sim_name is not None and sim_name not in PROBLEMS:
+        raise OfflineADPError(f"unknown simulator {sim_name!r}; known: {sorted(PROBLEMS)} (or 'none')")
+    problem = make_problem(sim_name) if sim_name else None
+    rng = np.random.default_rng(seed)
+    metrics: dict[str, Any] = {"run": str(run), "dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
+                                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
+                                                            "sources": ds.source_counts()},
+                               "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
+    states = demo_states = None
+    refs = {}
+    T = None
+    if problem is not None:
+        from offline_adp.evaluation.offpolicy import evaluation_horizon
+
+        T, gamma, _ = evaluation_horizon(ds)
+        say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
+        x0 = problem.initial_states(n_episodes, rng)
+        pol = rollout(problem, policy, n_episodes, np.random.default_rng(seed + 1), horizon=T, gamma=gamma,
+                      start_states=x0, record_states=True)
+        demo = rollout(problem, problem.demonstrator(), n_episodes, np.random.default_rng(seed + 1), horizon=T,
+                       gamma=gamma, start_states=x0, record_states=True)
+        metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
+                              "horizon": T, "policy": _rollout_block(pol, problem), "demonstrator": _rollout_block(demo, problem)}
+        states, demo_states = pol.states, demo.states
+        refs["demonstrator"] = problem.demonstrator()
+        if sim_name == "car_on_hill":
+            from offline_adp.envs.car_on_hill import score
+
+            metrics["named"] = {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean "
+                                                      "discounted return over the 289-state grid (higher is better)"}}
+    res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
+                     policy_states=states, seed=seed, progress=say)
+    metrics.update(_offpolicy_block(res, ds))
+    if "rollout" in metrics:
+        truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+        for name, r in res.estimates.items():
+            metrics["ope"][name]["rollout_error"] = r.estimate - truth
+    metrics["seconds"] = time.perf_counter() - t0
+    say("writing evaluation/")
+    _write(run, metrics, res, ds, states, demo_states)
+    return metrics
+
+
+def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, Any]:
+    beh = res.behaviour
+    shift_block = {"recursion": {"method": "ratio recursion fitted with extra-trees (logs only)",
+                                 "per_step": _frame_records(res.diagnostics), "warnings": res.ratios.warnings}}
+    for name, (r, d) in res.extra_ratios.items():
+        label = "classifier" if name == "classifier" else f"reference:{name}"
+        method = ("probabilistic classifier between pi's simulated states and the data's, cross-fitted"
+                  if name == "classifier" else f"ratio recursion for the reference policy {name!r}")
+        shift_block[label] = {"method": method, "per_step": _frame_records(d), "warnings": r.warnings}
+    worst = res.diagnostics.iloc[1:] if len(res.diagnostics) > 1 else res.diagnostics
+    return {
+        "horizon": res.horizon,
+        "gamma": res.gamma,
+        "behaviour": {"source": beh.source, "clip": beh.clip, "n_clipped": beh.n_clipped, "classifier": beh.classifier,
+                      "support_violations": res.support, "warnings": beh.warnings},
+        "ope": {k: {**v.as_dict(), "method": k} for k, v in res.estimates.items()},
+        "ope_default": "fqe",
+        "shift": shift_block,
+        "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
+                       "ess_fraction": float(worst["ess_fraction"].min())},
+        "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
+                       "references": res.bounds},
+        "per_source": _per_source(ds, res.ratios.w, res.gamma),
+    }
+
+
+def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
+           states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
+    tmp = run / ".evaluation.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float, allow_nan=True))
+    frames = [res.diagnostics.assign(method="recursion")]
+    frames += [d.assign(method=k) for k, (_, d) in res.extra_ratios.items()]
+    pd.concat(frames, ignore_index=True).to_csv(tmp / "per_step.csv", index=False)
+    a = ds.arrays()
+    cols = {name: a.obs[:, j] for j, name in enumerate(ds.feature_names)}
+    src = ds.table.column("source")
+    extra = {"w_classifier": res.extra_ratios["classifier"][0].w} if "classifier" in res.extra_ratios else {}
+    pq.write_table(pa.table({**cols, "step": a.step, "source": src, "w": res.ratios.w, **extra}), tmp / "ratios.parquet")
+    if states is not None:
+        np.savez_compressed(tmp / "rollout_states.npz", **{f"t{t}": s for t, s in enumerate(states)})
+    if demo_states is not None:
+        np.savez_compressed(tmp / "rollout_states_demonstrator.npz", **{f"t{t}": s for t, s in enumerate(demo_states)})
+    old = run / ".evaluation.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if (run / "evaluation").exists():
+        os.replace(run / "evaluation", old)
+    os.replace(tmp, run / "evaluation")
+    shutil.rmtree(old, ignore_errors=True)

@@ -1,0 +1,266 @@
+"""Distribution shift: per-step density ratios ``w_t(x) = mu_pi^t(x) / mu_data^t(x)``.
+
+Three ways to get them, from the weakest access model to the strongest:
+
+(a) **Trace data only** — the ratio recursion (a regression form of marginalised
+    importance sampling)::
+
+        w_0 = 1
+        w_{t+1}(x') = E_data[ w_t(x_t) * pi(a_t | x_t, t) / pi_b(a_t | x_t) | x_{t+1} = x' ]
+
+    fitted step by step with a regressor (extra-trees by default) on the pairs
+    ``(x_{t+1}, w_t(x_t) * rho_t)``, clipped at 0 and normalised to mean 1 over the
+    data's step-(t+1) states. It holds because, under the data, ``x_{t+1}`` given
+    ``(x_t, a_t)`` follows the true dynamics, so re-weighting the step-t pairs by
+    ``w_t * rho_t`` turns their successor distribution into ``mu_pi^{t+1}``.
+
+(b) **Simulator** — a probabilistic classifier tells states visited by pi at step t
+    (label 1) from the data's step-t states (label 0); with cross-fitted probabilities
+    ``p``, ``w = p / (1 - p) * n_data / n_pi`` (``p`` clipped). Its AUC says how
+    separable the two are: near 1 the ratio cannot be trusted.
+
+(c) **Full model** — exact ``mu_t`` by forward recursion (the oracle for tests).
+
+:func:`diagnostics` summarises any set of ratios per step; the raw max is never
+reported alone (see the field list there).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from offline_adp.access import FullModel
+from offline_adp.algorithms import dp
+from offline_adp.policies import Policy
+from offline_adp.regressors import make_classifier, make_regressor
+
+
+@dataclass
+class DensityRatios:
+    """Density ratios at the data's own states.
+
+    Attributes
+    ----------
+    method : str
+        ``recursion``, ``classifier`` or ``exact``.
+    w : ndarray (n,)
+        ``w_{step_i}(x_i)`` for every data row ``i`` (mean 1 within each step).
+    step : ndarray (n,)
+    auc : dict step -> AUC (classifier method only)
+    uncovered : dict step -> fraction of pi's samples the classifier found (almost) no data near
+    warnings : list of str
+    """
+
+    method: str
+    w: np.ndarray
+    step: np.ndarray
+    auc: dict[int, float] = field(default_factory=dict)
+    uncovered: dict[int, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------- exact
+def policy_table(policy: Policy, n_states: int, horizon: int) -> np.ndarray:
+    """``pi_t(a | s)`` for every state index, shape (T, S, A) (observations are ``[[s]]``)."""
+    obs = np.arange(n_states, dtype=np.float64)[:, None]
+    return np.stack([policy.probabilities(obs, t) for t in range(horizon)])
+
+
+def exact_distributions(model: FullModel, policy: Policy, horizon: int) -> np.ndarray:
+    """Exact ``mu_t`` of ``policy`` on a full model, shape (T + 1, S); each row sums to 1."""
+    return dp.state_distributions(model.P, policy_table(policy, model.n_states, horizon), model.initial_distribution, horizon)
+
+
+def exact_ratios(model: FullModel, policy: Policy, behaviour: Policy, horizon: int) -> np.ndarray:
+    """Exact ``w_t(s) = mu_pi^t(s) / mu_b^t(s)``, shape (T, S); ``inf`` where only pi goes, 0 where neither."""
+    mu_pi = exact_distributions(model, policy, horizon)[:horizon]
+    mu_b = exact_distributions(model, behaviour, horizon)[:horizon]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(mu_b > 0, mu_pi / np.where(mu_b > 0, mu_b, 1.0), np.where(mu_pi > 0, np.inf, 0.0))
+
+
+# --------------------------------------------------------------------------- (a) recursion
+def _normalise(w: np.ndarray) -> np.ndarray:
+    m = w.mean() if len(w) else 1.0
+    return w / m if m > 0 else np.ones_like(w)
+
+
+def ratios_by_recursion(
+    obs: np.ndarray,
+    next_obs: np.ndarray,
+    step: np.ndarray,
+    episode: np.ndarray,
+    rho: np.ndarray,
+    *,
+    regressor: Any = "extra_trees",
+    regressor_params: dict | None = None,
+    horizon: int | None = None,
+) -> DensityRatios:
+    """Per-step ratios from logs alone (method (a), see the module docstring).
+
+    Parameters
+    ----------
+    obs, next_obs : ndarray (n, d)
+    step, episode : ndarray (n,)
+    rho : ndarray (n,)
+        ``pi(a_i | x_i, t_i) / pi_b(a_i | x_i)`` for the logged action of every row.
+    regressor, regressor_params
+        The regression learner (registry name or estimator); trees default to
+        ``min_samples_leaf=20`` so the conditional mean is not a single noisy sample.
+    horizon : int, optional
+        Last step + 1 to compute (default: all steps in the data).
+    """
+    if regressor == "extra_trees" and not regressor_params:
+        regressor_params = {"n_estimators": 30, "min_samples_leaf": 20, "max_features": 1.0}
+    T = int(step.max()) + 1 if horizon is None else min(int(horizon), int(step.max()) + 1)
+    w = np.ones(len(step))
+    warnings: list[str] = []
+    # row of step t+1 that follows row i (same episode), found with one sort
+    order = np.lexsort((step, episode))
+    nxt = np.full(len(step), -1)
+    same = (episode[order][1:] == episode[order][:-1]) & (step[order][1:] == step[order][:-1] + 1)
+    nxt[order[:-1][same]] = order[1:][same]
+    thin = []
+    for t in range(T - 1):
+        here = np.flatnonzero(step == t)
+        there = np.flatnonzero(step == t + 1)
+        if not len(there):
+            break
+        if len(here) < 500:
+            thin.append(t)
+        y = w[here] * rho[here]
+        model = make_regressor(regressor, **(regressor_params or {}))
+        model.fit(next_obs[here], y)
+        w_next = np.maximum(model.predict(obs[there]), 0.0)
+        if not np.isfinite(w_next).all() or w_next.sum() <= 0:
+            warnings.append(f"step {t + 1}: the ratio regression returned no positive mass; ratios set to 1")
+            w_next = np.ones(len(there))
+        w[there] = _normalise(w_next)
+    if thin:
+        warnings.append(f"{len(thin)} steps have fewer than 500 samples (as few as {int(min(np.sum(step == t) for t in thin))}): "
+                        "the per-step regressions shrink the ratios towards 1, so these diagnostics are optimistic; "
+                        "with a simulator prefer the classifier ratios")
+    return DensityRatios("recursion", w, step.copy(), warnings=warnings)
+
+
+# --------------------------------------------------------------------------- (b) classifier
+def ratios_by_classifier(
+    obs: np.ndarray,
+    step: np.ndarray,
+    policy_states: list[np.ndarray],
+    *,
+    classifier: Any = "lightgbm",
+    classifier_params: dict | None = None,
+    clip: float = 1e-3,
+    normalise: bool = True,
+    seed: int = 0,
+) -> DensityRatios:
+    """Per-step ratios from a classifier between pi's states and the data's (method (b)).
+
+    Parameters
+    ----------
+    obs, step : the data's states and their steps
+    policy_states : list of ndarray
+        ``policy_states[t]``: states visited by pi at step t (e.g. from
+        :func:`offline_adp.algorithms.psdp.state_samples`).
+    clip : float
+        Probabilities are clipped to ``[clip, 1 - clip]``; pi samples at the upper clip
+        count as *uncovered* (no data near them).
+    normalise : bool
+        Rescale to mean 1 per step (self-normalised; removes the class-prior error).
+    """
+    from sklearn.metrics import roc_auc_score
+    from sklearn.model_selection import StratifiedKFold
+
+    w = np.ones(len(step))
+    auc: dict[int, float] = {}
+    uncovered: dict[int, float] = {}
+    warnings: list[str] = []
+    for t, xp in enumerate(policy_states):
+        here = np.flatnonzero(step == t)
+        if not len(here) or not len(xp):
+            continue
+        X = np.vstack([obs[here], xp])
+        y = np.r_[np.zeros(len(here)), np.ones(len(xp))]
+        p = np.empty(len(y))
+        for train, test in StratifiedKFold(2, shuffle=True, random_state=seed + t).split(X, y):
+            clf = make_classifier(classifier, **(classifier_params or {})).fit(X[train], y[train])
+            p[test] = clf.predict_proba(X[test])[:, 1]
+        auc[t] = float(roc_auc_score(y, p))
+        pc = np.clip(p, clip, 1 - clip)
+        uncovered[t] = float(np.mean(pc[len(here):] >= 1 - clip))
+        r = pc[: len(here)] / (1 - pc[: len(here)]) * len(here) / len(xp)
+        w[here] = _normalise(r) if normalise else r
+        if auc[t] > 0.95:
+            warnings.append(f"step {t}: classifier AUC {auc[t]:.3f} — pi's states and the data's are almost separable; "
+                            "the ratio at this step cannot be trusted")
+    return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=warnings)
+
+
+# --------------------------------------------------------------------------- diagnostics
+def _leaves(obs: np.ndarray, w: np.ndarray, k: int, seed: int) -> np.ndarray:
+    """Regions with at least ``k`` data samples: leaves of a regression tree of w on x."""
+    from sklearn.tree import DecisionTreeRegressor
+
+    if len(w) < 2 * k:
+        return np.zeros(len(w), np.int64)
+    tree = DecisionTreeRegressor(min_samples_leaf=k, max_leaf_nodes=max(2, len(w) // k), random_state=seed)
+    return tree.fit(obs, w).apply(obs)
+
+
+def supported_sup(obs: np.ndarray, w: np.ndarray, *, k: int = 20, n_boot: int = 200, level: float = 0.95,
+                  cover_ratio: float = 20.0, seed: int = 0) -> dict[str, float]:
+    """Sup of the ratio over regions with at least ``k`` samples, its bootstrap upper bound,
+    and pi's mass in poorly covered regions (region mean ratio above ``cover_ratio``)."""
+    leaf = _leaves(obs, w, k, seed)
+    _, inv = np.unique(leaf, return_inverse=True)
+    inv = inv.reshape(-1)
+    cnt = np.bincount(inv)
+    mean = np.bincount(inv, weights=w) / cnt
+    rng = np.random.default_rng(seed)
+    sups = np.empty(n_boot)
+    for b in range(n_boot):  # resample rows within the fixed regions
+        idx = rng.integers(0, len(w), len(w))
+        c = np.bincount(inv[idx], minlength=len(cnt))
+        s = np.bincount(inv[idx], weights=w[idx], minlength=len(cnt))
+        sups[b] = np.max(np.where(c >= max(1, k // 2), s / np.maximum(c, 1), 0.0))
+    poorly = mean[inv] > cover_ratio
+    ucb = max(float(np.quantile(sups, level)), float(mean.max())) if n_boot else float(mean.max())
+    return {"supported_sup": float(mean.max()), "sup_ucb": ucb,
+            "poorly_covered_mass": float(np.sum(w[poorly]) / max(np.sum(w), 1e-300)), "n_regions": int(len(cnt))}
+
+
+def diagnostics(ratios: DensityRatios, obs: np.ndarray, *, k: int = 20, n_boot: int = 200, cover_ratio: float = 20.0,
+                seed: int = 0) -> pd.DataFrame:
+    """Per-step summary of density ratios.
+
+    Columns: ``step, n, ess_fraction`` (1 / E[w^2]), ``tv`` (0.5 E|w - 1|), ``q50, q90,
+    q99, q999, max``, ``supported_sup`` (max over regions with >= k samples),
+    ``sup_ucb`` (bootstrap upper bound of that sup), ``poorly_covered_mass``, and for
+    the classifier method ``auc`` and ``uncovered`` (pi's samples with no data near).
+    """
+    rows = []
+    for t in np.unique(ratios.step):
+        m = ratios.step == t
+        w = ratios.w[m]
+        e2 = float(np.mean(w**2))
+        row: dict[str, Any] = {"step": int(t), "n": int(m.sum()), "ess_fraction": 1.0 / e2 if e2 > 0 else 0.0,
+                               "tv": 0.5 * float(np.mean(np.abs(w - 1.0)))}
+        q = np.quantile(w, [0.5, 0.9, 0.99, 0.999])
+        row.update(q50=q[0], q90=q[1], q99=q[2], q999=q[3], max=float(w.max()))
+        row.update(supported_sup(obs[m], w, k=k, n_boot=n_boot, cover_ratio=cover_ratio, seed=seed + int(t)))
+        if ratios.auc:
+            row["auc"] = ratios.auc.get(int(t), np.nan)
+            row["uncovered"] = ratios.uncovered.get(int(t), np.nan)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def pooled_ratio_ucb(ratios: DensityRatios, obs: np.ndarray, *, k: int = 20, n_boot: int = 200, seed: int = 0) -> float:
+    """Bootstrap upper bound on ``sup_x sum_t mu_pi^t(x) / sum_t mu_data^t(x)`` (the
+    averaged-distribution ratio of PSDP's bound), from all steps' ratios pooled."""
+    return supported_sup(obs, ratios.w, k=k, n_boot=n_boot, seed=seed)["sup_ucb"]
