@@ -166,6 +166,7 @@ class FrozenTreesLearner(Learner):
         rows = np.repeat(np.arange(n), m)
         wsum = np.bincount(compact, weights=w[rows], minlength=len(self.leaf_ids))
         self.M = sparse.csr_matrix((w[rows] / wsum[compact], (compact, rows)), shape=(len(self.leaf_ids), n))
+        self._compact, self._rows = compact, rows
         self.A: dict[str, Any] = {}
         for name, (phi, a) in self.queries.items():
             leaves = train if name == "train" else sklearn_leaves(forest, self._joint(phi, a))
@@ -175,6 +176,27 @@ class FrozenTreesLearner(Learner):
             self.A[name] = sparse.csr_matrix((np.full(hit.sum(), 1.0 / m), (qrows, pos[hit])), shape=(len(leaves), len(self.leaf_ids)))
         self._rebuild = False
         self.structures += 1
+
+    def reweighted_operators(self, weights: np.ndarray) -> tuple[Any, dict[str, Any]]:
+        """Leaf-averaging operator ``M`` and query operators ``A`` for other sample weights
+        on the same structure. A leaf left with no weight is dropped from every query's
+        average over trees (rows of ``A`` renormalised over the remaining trees; a query
+        with none left keeps its original row)."""
+        from scipy import sparse
+
+        w = np.asarray(weights, dtype=np.float64)[self._rows]
+        wsum = np.bincount(self._compact, weights=w, minlength=len(self.leaf_ids))
+        vals = w / np.where(wsum[self._compact] > 0, wsum[self._compact], 1.0)
+        M = sparse.csr_matrix((vals, (self._compact, self._rows)), shape=self.M.shape)
+        keep = sparse.diags((wsum > 0).astype(np.float64))
+        A = {}
+        for name, op in self.A.items():
+            kept = (op @ keep).tocsr()
+            total = np.asarray(kept.sum(axis=1)).ravel()
+            scale = sparse.diags(np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0))
+            fallback = sparse.diags((total <= 0).astype(np.float64))
+            A[name] = (scale @ kept + fallback @ op).tocsr()
+        return M, A
 
     def fit(self, y: np.ndarray) -> None:
         self.iteration += 1

@@ -53,3 +53,17 @@ def test_two_state_on_policy_weighting_converges():
     assert ws[0] == pytest.approx(34.2 / 37, abs=1e-12) and round(ws[0], 3) == 0.924
     np.testing.assert_allclose(ws, (34.2 / 37) ** np.arange(1, 61), rtol=1e-10)
     assert abs(ws[-1]) < 0.01 and not fqe.diverged_
+
+
+def test_reweighted_value_is_the_same_fixed_point_for_uniform_weights(small_pt):
+    """Structure-conditional bootstrap: with uniform weights (any scale) the re-averaged
+    fixed point is the fitted FQE's value; other weights move it."""
+    from offline_adp.policies import UniformPolicy
+
+    fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=400,
+                            tol=1e-10, regressor_params={"n_estimators": 5}).fit(small_pt)
+    n = len(small_pt)
+    assert fqe.reweighted_value(np.ones(n), n_iterations=3000, tol=1e-12) == pytest.approx(fqe.value_, rel=1e-6)
+    assert fqe.reweighted_value(np.full(n, 3.0), n_iterations=3000, tol=1e-12) == pytest.approx(fqe.value_, rel=1e-6)
+    w = np.random.default_rng(0).poisson(1.0, n).astype(float)
+    assert fqe.reweighted_value(w) != pytest.approx(fqe.value_, rel=1e-6)

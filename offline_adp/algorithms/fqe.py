@@ -73,6 +73,40 @@ class FittedQEvaluation(FittedQIteration):
         x0 = a.obs[start] if start.any() else a.obs[:1]
         self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
 
+    def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None) -> float:
+        """The value estimate for other per-row weights, *keeping the fitted tree structure*
+        (``mode="frozen"``, discounted only): the fixed point of
+        ``v <- M_w (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` with the leaf
+        averaging operator ``M_w`` of the new weights (leaves left without weight are
+        dropped from the average over trees). This is a structure-conditional
+        bootstrap replicate: it captures the noise of the data through the leaves but not
+        the variability of the tree structure itself. Rows must be the training rows
+        (no ``validation_fraction``).
+        """
+        from offline_adp.learners import FrozenTreesLearner
+
+        d, learner = self._fit_state
+        if not isinstance(learner, FrozenTreesLearner) or self.horizon is not None or d["valid"] is not None:
+            raise ValueError("reweighted_value needs a discounted FQE fitted with mode='frozen' and no validation split")
+        w = np.asarray(sample_weight, dtype=np.float64)
+        M, ops = learner.reweighted_operators(w)
+        n, A = len(d["cost"]), d["n_actions"]
+        pi_next = self._probs[("next", None)]
+        pi_start = self.policy.probabilities(d["start_obs"], 0)  # type: ignore[union-attr]
+        boot = np.where(d["no_boot"], 0.0, d["gamma"])
+        v = np.zeros(M.shape[0])
+        for _ in range(n_iterations or self.n_iterations * 2):
+            q_next = (ops["next"] @ v).reshape(A, n).T
+            v_new = M @ (d["cost"] + boot * (pi_next * q_next).sum(axis=1))
+            done = np.max(np.abs(v_new - v)) < (tol if tol is not None else (self.tol or 0.0))
+            v = v_new
+            if done:
+                break
+        q0 = (ops["start"] @ v).reshape(A, -1).T
+        v0 = (pi_start * q0).sum(axis=1)
+        w0 = w[d["start_rows"]]
+        return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+
     def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> dict[str, Any]:
         d = super()._prepare(ds, sample_weight)
         self._next_obs_sets = {"next": d["next_obs"]}

@@ -183,6 +183,7 @@ class FittedQIteration(BaseEstimator):
         self._validate_params()
         d = self._prepare(dataset, sample_weight)
         learner = self._learner(d)
+        self._fit_state = (d, learner)  # kept for structure-conditional re-weighting (not saved)
         self.history_ = pd.DataFrame()
         self.diverged_ = False
         rows: list[dict[str, Any]] = []
@@ -213,6 +214,7 @@ class FittedQIteration(BaseEstimator):
         for phase in range(phases):
             if phase:
                 learner.restructure()  # one restructuring pass on the converged targets
+            first = k + 1  # a rebuilt structure interpolates its targets: its first change says nothing
             for _ in range(per_phase):
                 k += 1
                 if k <= done:
@@ -235,7 +237,7 @@ class FittedQIteration(BaseEstimator):
                 yield row
                 if not finite and self._check_divergence(rows, d):
                     return
-                if not finite and self.tol is not None and k > 1 and row["sup_dq"] < self.tol:
+                if not finite and self.tol is not None and k > first and row["sup_dq"] < self.tol:
                     break  # converged (in this phase)
 
     def predict(self, obs: np.ndarray, t: int | np.ndarray = 0) -> np.ndarray:
@@ -310,6 +312,8 @@ class FittedQIteration(BaseEstimator):
             "obs": a.obs[tr],
             "obs_std": a.obs.std(axis=0) + 1e-12,
             "start_phi": phi_obs[start & tr] if (start & tr).any() else phi_obs[tr][:1],
+            "start_obs": a.obs[start & tr] if (start & tr).any() else a.obs[tr][:1],
+            "start_rows": np.flatnonzero((start & tr)[tr]) if (start & tr).any() else np.zeros(1, np.int64),
             "valid": None,
             "bound": (np.abs(cost).max() / (1.0 - gamma)) if gamma < 1 else np.inf,
         }

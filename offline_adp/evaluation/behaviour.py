@@ -52,9 +52,15 @@ def estimate_behaviour(
     classifier: Any = "lightgbm",
     classifier_params: dict | None = None,
     clip: float = 1e-3,
+    max_fit_rows: int = 20_000,
+    seed: int = 0,
 ) -> BehaviourEstimate:
-    """Behaviour probabilities at the data (see module docstring)."""
-    clf = make_classifier(classifier, **(classifier_params or {})).fit(obs, action)
+    """Behaviour probabilities at the data (see module docstring); the classifier is
+    trained on at most ``max_fit_rows`` rows drawn at random."""
+    fit_rows = np.arange(len(action))
+    if len(fit_rows) > max_fit_rows:  # a random subsample is plenty for pi_b(. | x)
+        fit_rows = np.sort(np.random.default_rng(seed).choice(len(action), max_fit_rows, replace=False))
+    clf = make_classifier(classifier, **(classifier_params or {})).fit(obs[fit_rows], action[fit_rows])
     raw = clf.predict_proba(obs)
     probs = np.zeros((len(action), n_actions))
     probs[:, np.asarray(clf.classes_, dtype=np.int64)] = raw

@@ -22,7 +22,9 @@ from offline_adp.policies import Policy
 #: FQE settings for evaluation: the frozen-structure fast path keeps bootstrap refits cheap.
 #: Ernst's extra-trees defaults matter: larger leaves average Q over actions and bias FQE
 #: (measured on path_tracking: min_samples_leaf=5 doubled the estimated cost).
-DEFAULT_FQE = {"regressor": "extra_trees", "mode": "frozen", "n_iterations": 60, "tol": 1e-4}
+#: 20 trees instead of 50 keep a 100k-transition evaluation within two minutes.
+DEFAULT_FQE = {"regressor": "extra_trees", "mode": "frozen", "n_iterations": 60, "tol": 1e-4,
+               "regressor_params": {"n_estimators": 20}}
 
 
 @dataclass
@@ -116,7 +118,7 @@ def off_policy(
     say("fitted Q evaluation")
     user = dict(fqe_params or {})
     base = DEFAULT_FQE if user.get("regressor", DEFAULT_FQE["regressor"]) == DEFAULT_FQE["regressor"] else \
-        {k: v for k, v in DEFAULT_FQE.items() if k != "mode"}
+        {k: v for k, v in DEFAULT_FQE.items() if k not in ("mode", "regressor_params")}
     params = {**base, **user}
     if fqe_T is not None:
         params.pop("tol", None)
@@ -124,8 +126,12 @@ def off_policy(
     start = a.step == 0
     fitted: dict[str, FittedQEvaluation] = {}
 
+    conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
+
     def fit(counts: np.ndarray | None) -> float:
         w = None if counts is None else counts[em.row_episode]
+        if counts is not None and conditional:  # same trees, leaves re-averaged with the replicate's weights
+            return fitted["main"].reweighted_value(w)
         est = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **params)
         est.fit(ds, sample_weight=w)
         if counts is None:
@@ -137,6 +143,10 @@ def off_policy(
 
     estimates = {"fqe": ope.fqe_estimate(fit, em.n_episodes, n_boot=n_boot_fqe, level=level, seed=seed,
                                          on_replicate=lambda b: say(f"FQE bootstrap {b + 1}/{n_boot_fqe}"))}
+    if conditional and n_boot_fqe:
+        estimates["fqe"].interval_method += " (structure-conditional: tree structure fixed, leaves re-averaged)"
+        estimates["fqe"].warnings.append("the interval keeps the fitted tree structure, so it omits the structure's own "
+                                         "variability (a structure-conditional bootstrap)")
     fqe = fitted["main"]
     say("importance sampling")
     estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed))

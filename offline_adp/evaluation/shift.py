@@ -115,7 +115,7 @@ def ratios_by_recursion(
         Last step + 1 to compute (default: all steps in the data).
     """
     if regressor == "extra_trees" and not regressor_params:
-        regressor_params = {"n_estimators": 30, "min_samples_leaf": 20, "max_features": 1.0}
+        regressor_params = {"n_estimators": 10, "min_samples_leaf": 20, "max_features": 1.0}
     T = int(step.max()) + 1 if horizon is None else min(int(horizon), int(step.max()) + 1)
     w = np.ones(len(step))
     warnings: list[str] = []
