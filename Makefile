@@ -38,6 +38,7 @@ bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/fqi_scale.py
 	$(BIN)/python benchmarks/car_on_hill.py --seeds 0
 	$(BIN)/python benchmarks/compare_algorithms.py --quick
+	$(BIN)/python benchmarks/evaluation.py
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check offline_adp tests benchmarks

@@ -26,7 +26,7 @@ def main() -> None:
     ap.add_argument("--bootstrap", type=int, default=200)
     ap.add_argument("--episodes", type=int, default=500, help="rollout episodes with the simulator")
     args = ap.parse_args()
-    n_ep = max(2, args.transitions // 200)
+    n_ep = max(2, args.transitions // 110)  # exploration episodes often leave the road early
     ds = simulate("path_tracking", n_ep // 2, n_ep - n_ep // 2, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
         ds.save(Path(tmp) / "ds")

@@ -292,6 +292,37 @@ def summary_lines(m: dict) -> list[str]:
     return lines
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from offline_adp.pipeline import run_pipeline
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    overrides = {}
+    for item in args.set or []:
+        key, _, value = item.partition("=")
+        if not _:
+            raise OfflineADPError(f"--set {item!r}: expected KEY=VALUE, e.g. data.exploration=20")
+        try:
+            overrides[key] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[key] = value
+    if args.engine != "local":
+        raise OfflineADPError("--engine dask is not available yet (issue 8); use --engine local")
+    run = run_pipeline(args.pipeline, out=args.out, runs_root=args.runs, from_stage=args.from_stage, force=args.force,
+                       say=say, overrides=overrides)
+    man = json.loads((run / "manifest.json").read_text())
+    for name, st in man["stages"].items():
+        print(f"  {name:9s} {st.get('status')}{' (reused)' if st.get('reused') else ''}"
+              + (f" {st['seconds']:.1f} s" if st.get("seconds") is not None and not st.get("reused") else ""))
+    if (run / "metrics.json").exists():
+        for line in summary_lines(json.loads((run / "metrics.json").read_text())):
+            print(line)
+    print(run / "report.html" if (run / "report.html").exists() else run)
+    return 0
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from offline_adp.evaluation.report import build_report
 
@@ -444,6 +475,28 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)
+
+    rp = sub.add_parser(
+        "run",
+        help="run a pipeline file (ingest -> validate -> fit -> evaluate -> report) into a run directory",
+        formatter_class=fmt,
+        description="Run the stages of a pipeline file into runs/<name>__<seed>__<timestamp>/ (or --out). A stage "
+        "whose inputs and settings are unchanged is reused; an interrupted run continues from its last completed "
+        "stage (FQI from its last checkpointed iteration). The manifest (manifest.json) records input fingerprints, "
+        "the config hash, versions and per-stage status and timings. See offline_adp/pipeline.py for the file format.",
+        epilog="examples:\n  offline-adp run pipelines/driving.toml\n  offline-adp run pipelines/driving.toml --from evaluate\n"
+        "  offline-adp run pipelines/car_on_hill.toml --set data.exploration=200 --out runs/coh-small",
+    )
+    rp.add_argument("pipeline", help="pipeline TOML file")
+    rp.add_argument("--out", default=None, help="run directory (default: continue the latest runs/<name>__<seed>__*)")
+    rp.add_argument("--runs", default="runs", help="folder of run directories (default: runs)")
+    rp.add_argument("--from", dest="from_stage", default=None, choices=["data", "validate", "fit", "evaluate", "report"],
+                    help="recompute this stage and the ones after it")
+    rp.add_argument("--force", action="store_true", help="start a fresh run directory, reusing nothing")
+    rp.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. evaluate.episodes=50")
+    rp.add_argument("--engine", default="local", choices=["local", "dask"], help="execution engine (default: local)")
+    rp.add_argument("--quiet", "-q", action="store_true")
+    rp.set_defaults(func=cmd_run)
 
     r = sub.add_parser(
         "report",

@@ -215,7 +215,13 @@ def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:
     """Global leaf ids (as in :meth:`TreeEnsemble.from_sklearn`) via scikit-learn's fast ``apply``."""
     sizes = np.array([e.tree_.node_count for e in forest.estimators_])
     offs = np.r_[0, np.cumsum(sizes)[:-1]]
-    leaves = forest.apply(np.asarray(X, dtype=np.float32))
+    jobs = forest.n_jobs
+    if len(X) < 20_000:  # thread start-up costs more than it saves on small batches (rollouts)
+        forest.n_jobs = 1
+    try:
+        leaves = forest.apply(np.asarray(X, dtype=np.float32))
+    finally:
+        forest.n_jobs = jobs
     dtype = np.int32 if sizes.sum() < 2**31 else np.int64
     # C order: a mean over the trees axis then sums in the same order as TreeEnsemble.predict
     return np.ascontiguousarray((leaves + offs[None, :]).astype(dtype))

@@ -67,6 +67,7 @@ class FittedQEvaluation(FittedQIteration):
         if self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
         self._probs: dict[tuple[str, int | None], np.ndarray] = {}
+        self._probs_extra: dict[str, np.ndarray] = {}
         a = dataset.arrays()
         yield from super().fit_iter(dataset, sample_weight, resume)
         start = a.step == 0
@@ -92,9 +93,11 @@ class FittedQEvaluation(FittedQIteration):
         M, ops = learner.reweighted_operators(w)
         n, A = len(d["cost"]), d["n_actions"]
         pi_next = self._probs[("next", None)]
-        pi_start = self.policy.probabilities(d["start_obs"], 0)  # type: ignore[union-attr]
+        if "start" not in self._probs_extra:
+            self._probs_extra["start"] = self.policy.probabilities(d["start_obs"], 0)  # type: ignore[union-attr]
+        pi_start = self._probs_extra["start"]
         boot = np.where(d["no_boot"], 0.0, d["gamma"])
-        v = np.zeros(M.shape[0])
+        v = learner.leaf_values.copy()  # start at the fitted fixed point: replicates lie near it
         for _ in range(n_iterations or self.n_iterations * 2):
             q_next = (ops["next"] @ v).reshape(A, n).T
             v_new = M @ (d["cost"] + boot * (pi_next * q_next).sum(axis=1))

@@ -54,10 +54,10 @@ def evaluation_horizon(ds: TransitionDataset) -> tuple[int, float, int | None]:
     return T, float(gamma), (T if gamma >= 1.0 else None)
 
 
-def residual_advantage(q: Any, policy: Policy, obs: np.ndarray, step: np.ndarray, gamma: float, T: int) -> np.ndarray:
-    """``eps_t = gamma^t E_{mu_t}[ sum_a pi(a|x) Q^pi_t(x, a) - min_a Q^pi_t(x, a) ]`` over the data's step-t states."""
-    qv = q.values(obs, step)
-    gap = (policy.probabilities(obs, step) * qv).sum(axis=1) - qv.min(axis=1)
+def residual_advantage(qv: np.ndarray, probs: np.ndarray, step: np.ndarray, gamma: float, T: int) -> np.ndarray:
+    """``eps_t = gamma^t E_{mu_t}[ sum_a pi(a|x) Q^pi_t(x, a) - min_a Q^pi_t(x, a) ]`` over the data's
+    step-t states, from ``qv = Q^pi(x_i, .)`` and ``probs = pi(. | x_i)`` at every row."""
+    gap = (probs * qv).sum(axis=1) - qv.min(axis=1)
     eps = np.zeros(T)
     for t in range(T):
         m = step == t
@@ -159,7 +159,7 @@ def off_policy(
     estimates["mis"] = ope.marginalised_is_estimate(em, a.cost, rho, ratios.w, gamma, n_boot=n_boot, level=level, seed=seed)
     ope.flag_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
-    eps = residual_advantage(fqe.q_function_, policy, a.obs, a.step, gamma, T)
+    eps = residual_advantage(qv, target, a.step, gamma, T)
     res = OffPolicyResult(gamma, T, beh, estimates, ratios, diag, support, eps, fqe)
     res.bounds["self"] = {**psdp_bound(eps, diag["sup_ucb"].to_numpy()[:T],
                                        shift.pooled_ratio_ucb(ratios, a.obs, k=k_support, seed=seed)),

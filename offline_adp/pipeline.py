@@ -1,0 +1,311 @@
+"""``offline-adp run PIPELINE.toml``: the stages of a pipeline file into one run directory.
+
+A pipeline file names its stages and their settings::
+
+    name = "driving"
+    seed = 0
+
+    [data]                      # exactly one source: ingest files, or simulate
+    format = "mcap"             # "mcap" | "parquet"
+    inputs = ["../data/driving/*.mcap"]
+    spec = "../data/specs/path_tracking_mcap.toml"   # or an inline [data.spec] table
+    on_error = "quarantine"
+
+    [fit]
+    algorithm = "fqi"
+    [fit.params]
+    gamma = 0.95
+
+    [evaluate]
+    simulator = "path_tracking" # or "none"
+    episodes = 300
+
+    [report]
+
+``[data]`` may instead hold ``simulate = "car_on_hill"`` with ``demonstrations``,
+``exploration``, ``horizon`` and ``problem_options``. Paths are relative to the pipeline
+file. Unknown keys fail with the valid ones listed.
+
+The run directory (``runs/<name>__<seed>__<timestamp>/`` or ``--out``) holds::
+
+    config.json      the resolved pipeline
+    manifest.json    input fingerprints, config hash, seed, versions, per-stage status,
+                     key, timings and whether the stage was reused
+    dataset/         the data stage's dataset directory
+    validation.json  the doctor's report on it
+    fit/             the fit run directory (model/, checkpoints, run.json)
+    fit/evaluation/  metrics and arrays; fit/report/ the report
+    metrics.json, report.html, figures/   copies at the top for convenience
+
+Each stage has a *key*: a hash of its settings and of its inputs' keys (input files by
+sha256). A stage whose key matches the manifest's completed entry is reused. Without
+``--out``, the latest run directory of the same name and seed is continued, so running
+a pipeline twice reuses every stage, and a run killed mid-stage resumes from the last
+completed stage (an interrupted FQI fit resumes from its last checkpointed iteration).
+``--force`` starts a fresh directory; ``--from STAGE`` recomputes that stage and the
+ones after it.
+"""
+
+from __future__ import annotations
+
+import glob
+import hashlib
+import json
+import os
+import shutil
+import time
+import tomllib
+from collections.abc import Callable
+from datetime import UTC, datetime
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+from offline_adp.errors import SpecError
+
+STAGES = ("data", "validate", "fit", "evaluate", "report")
+TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate", "report"}
+DATA_KEYS = {"format", "inputs", "spec", "on_error", "simulate", "demonstrations", "exploration", "horizon",
+             "problem_options"}
+FIT_KEYS = {"algorithm", "params", "config"}
+EVAL_KEYS = {"simulator", "episodes", "bootstrap", "fqe_bootstrap", "fqe_params"}
+
+
+def _check(table: dict[str, Any], valid: set[str], where: str, path: Path) -> None:
+    bad = sorted(set(table) - valid)
+    if bad:
+        raise SpecError(f"{path}: unknown key(s) {bad} in {where}; valid keys are {sorted(valid)}")
+
+
+def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
+    """Read and check a pipeline file; paths become absolute (relative to the file)."""
+    p = Path(path).resolve()
+    try:
+        raw = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise SpecError(f"{path}: no such pipeline file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{path}: not valid TOML ({exc})") from exc
+    _check(raw, TOP_KEYS, "the top level", p)
+    for key in ("data", "fit"):
+        if key not in raw:
+            raise SpecError(f"{p}: a pipeline needs a [{key}] table")
+    data = dict(raw["data"])
+    _check(data, DATA_KEYS, "[data]", p)
+    if ("simulate" in data) == ("inputs" in data):
+        raise SpecError(f"{p}: [data] needs exactly one of inputs = [...] (files to ingest) or simulate = \"PROBLEM\"")
+    if "inputs" in data:
+        if data.get("format") not in ("mcap", "parquet"):
+            raise SpecError(f"{p}: [data] format must be \"mcap\" or \"parquet\", got {data.get('format')!r}")
+        files: list[str] = []
+        for pattern in data["inputs"]:
+            hits = sorted(glob.glob(str(p.parent / pattern)))
+            if not hits:
+                raise SpecError(f"{p}: [data] inputs pattern {pattern!r} matches no file (relative to {p.parent})")
+            files += hits
+        data["inputs"] = files
+        if isinstance(data.get("spec"), str):
+            data["spec"] = str((p.parent / data["spec"]).resolve())
+        elif "spec" not in data:
+            raise SpecError(f"{p}: [data] needs spec = \"FILE.toml\" or an inline [data.spec] table")
+    fit = dict(raw["fit"])
+    _check(fit, FIT_KEYS, "[fit]", p)
+    fit.setdefault("algorithm", "fqi")
+    if "config" in fit:
+        from offline_adp.runs import load_config
+
+        fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
+    ev = dict(raw.get("evaluate", {}))
+    _check(ev, EVAL_KEYS, "[evaluate]", p)
+    _check(dict(raw.get("validate", {})), set(), "[validate]", p)
+    _check(dict(raw.get("report", {})), set(), "[report]", p)
+    return {"name": str(raw.get("name", p.stem)), "seed": int(raw.get("seed", 0)), "file": str(p), "data": data,
+            "fit": fit, "evaluate": ev if "evaluate" in raw else None, "report": "report" in raw}
+
+
+def _hash(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _file_sha(path: str) -> str:
+    from offline_adp.data.io import sha256_file
+
+    return sha256_file(path)
+
+
+class Manifest:
+    """``manifest.json``: written after every stage (atomically: temp file + rename)."""
+
+    def __init__(self, run: Path, cfg: dict[str, Any]) -> None:
+        self.path = run / "manifest.json"
+        old = json.loads(self.path.read_text()) if self.path.exists() else {}
+        from offline_adp.artifacts import versions
+
+        self.data: dict[str, Any] = {"name": cfg["name"], "seed": cfg["seed"], "pipeline": cfg["file"],
+                                     "config_hash": _hash(cfg), "versions": versions(), "created": old.get("created"),
+                                     "inputs": old.get("inputs", {}), "stages": old.get("stages", {}), "runs": old.get("runs", 0) + 1}
+        self.data["created"] = self.data["created"] or datetime.now(UTC).isoformat(timespec="seconds")
+
+    def done(self, stage: str, key: str) -> bool:
+        s = self.data["stages"].get(stage)
+        return bool(s and s.get("status") == "completed" and s.get("key") == key)
+
+    def set(self, stage: str, **fields: Any) -> None:
+        self.data["stages"][stage] = {**self.data["stages"].get(stage, {}), **fields}
+        self.write()
+
+    def write(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.data, indent=1, default=str))
+        os.replace(tmp, self.path)
+
+
+def default_run_dir(cfg: dict[str, Any], root: Path, force: bool) -> Path:
+    """The latest ``<root>/<name>__<seed>__*`` directory, or a new timestamped one."""
+    prefix = f"{cfg['name']}__{cfg['seed']}__"
+    existing = sorted(d for d in root.glob(prefix + "*") if d.is_dir()) if root.exists() else []
+    if existing and not force:
+        return existing[-1]
+    return root / (prefix + datetime.now(UTC).strftime("%Y%m%dT%H%M%S"))
+
+
+def run_pipeline(
+    path: str | PathLike[str],
+    *,
+    out: str | PathLike[str] | None = None,
+    runs_root: str | PathLike[str] = "runs",
+    from_stage: str | None = None,
+    force: bool = False,
+    say: Callable[[str], None] = print,
+    overrides: dict[str, Any] | None = None,
+) -> Path:
+    """Run (or continue) a pipeline; returns the run directory."""
+    cfg = load_pipeline(path)
+    for dotted, value in (overrides or {}).items():  # e.g. {"data.exploration": 10} for reduced test sizes
+        node = cfg
+        *parents, leaf = dotted.split(".")
+        for k in parents:
+            node = node.setdefault(k, {}) if isinstance(node, dict) else node
+        node[leaf] = value
+    if from_stage is not None and from_stage not in STAGES:
+        raise SpecError(f"--from {from_stage!r}: stages are {list(STAGES)}")
+    run = Path(out) if out is not None else default_run_dir(cfg, Path(runs_root), force)
+    if force and run.exists():
+        shutil.rmtree(run)
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "config.json").write_text(json.dumps(cfg, indent=1, default=str))
+    man = Manifest(run, cfg)
+    redo = set(STAGES[STAGES.index(from_stage):]) if from_stage else set()
+    say(f"run directory: {run}")
+
+    def stage(name: str, key: str, fn: Callable[[], dict[str, Any] | None]) -> None:
+        if name not in redo and man.done(name, key):
+            man.set(name, reused=True)
+            say(f"[{name}] reused (inputs and settings unchanged)")
+            return
+        say(f"[{name}] running")
+        man.set(name, status="running", key=key, reused=False)
+        t0 = time.perf_counter()
+        try:
+            extra = fn() or {}
+        except BaseException as exc:
+            man.set(name, status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                    error=f"{type(exc).__name__}: {exc}")
+            raise
+        man.set(name, status="completed", seconds=round(time.perf_counter() - t0, 3), **extra)
+        redo.update(STAGES[STAGES.index(name) + 1:])  # everything downstream depends on this output
+
+    data = cfg["data"]
+    if "inputs" in data:
+        man.data["inputs"] = {f: _file_sha(f) for f in data["inputs"]}
+        if isinstance(data["spec"], str):
+            man.data["inputs"][data["spec"]] = _file_sha(data["spec"])
+    data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"]})
+    stage("data", data_key, lambda: _data_stage(cfg, run))
+    stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
+    fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
+    stage("fit", fit_key, lambda: _fit_stage(cfg, run, say))
+    if cfg["evaluate"] is not None:
+        eval_key = _hash({"evaluate": cfg["evaluate"], "fit": fit_key, "seed": cfg["seed"]})
+        stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say))
+        if cfg["report"]:
+            stage("report", _hash(["report", eval_key]), lambda: _report_stage(run))
+    man.write()
+    return run
+
+
+def _data_stage(cfg: dict[str, Any], run: Path) -> dict[str, Any]:
+    data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
+    shutil.rmtree(run / "dataset", ignore_errors=True)
+    if "simulate" in data:
+        from offline_adp.simulate import simulate
+
+        ds = simulate(data["simulate"], data.get("demonstrations", 100), data.get("exploration", 100), seed=cfg["seed"],
+                      horizon=data.get("horizon"), problem_options=data.get("problem_options"))
+        ds.save(run / "dataset")
+        return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
+    if data["format"] == "parquet":
+        from offline_adp.ingest.parquet import ingest_parquet
+
+        res = ingest_parquet(data["inputs"], data["spec"], run / "dataset", on_error=data.get("on_error"))
+        return res.summary()
+    from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, parse_mcap_spec
+
+    spec = load_mcap_spec(data["spec"]) if isinstance(data["spec"], str) else \
+        parse_mcap_spec(data["spec"], json.dumps(data["spec"], sort_keys=True), where=f"{cfg['file']} [data.spec]")
+    ds, summary = ingest_mcap(data["inputs"], spec, out=run / "dataset", on_error=data.get("on_error"))
+    return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
+
+
+def _validate_stage(run: Path) -> dict[str, Any]:
+    from offline_adp.data.validate import validate_directory
+
+    report = validate_directory(run / "dataset")
+    (run / "validation.json").write_text(json.dumps(report.summary(), indent=1, default=str))
+    return {"ok": bool(report.ok)}
+
+
+def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None]) -> dict[str, Any]:
+    from offline_adp.runs import fit_other, fit_run
+
+    fit = cfg["fit"]
+    params = {"random_state": cfg["seed"], **fit.get("params", {})} if fit["algorithm"] == "fqi" else dict(fit.get("params", {}))
+    target = run / "fit"
+    if fit["algorithm"] == "fqi":
+        resume = (target / "config.json").exists() and json.loads((target / "config.json").read_text())["params"] == params \
+            and (target / "checkpoint").exists()
+        if target.exists() and not resume:
+            shutil.rmtree(target)
+        if resume:
+            say("[fit] resuming from the last checkpointed iteration")
+
+        def on_iteration(row: dict[str, Any]) -> None:
+            if row["iteration"] % 10 == 0:
+                say(f"[fit] iteration {row['iteration']}: sup|dQ| {row['sup_dq']:.4g}")
+
+        est = fit_run(run / "dataset", target, params=params, resume=resume, on_iteration=on_iteration)
+        return {"iterations": len(est.history_), "diverged": bool(est.diverged_)}
+    shutil.rmtree(target, ignore_errors=True)
+    fit_other(run / "dataset", target, fit["algorithm"], params)
+    return {}
+
+
+def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None]) -> dict[str, Any]:
+    from offline_adp.evaluation.run import evaluate_run
+
+    ev = cfg["evaluate"]
+    m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
+                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
+                     seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"))
+    shutil.copy(run / "fit" / "evaluation" / "metrics.json", run / "metrics.json")
+    return {"fqe": m["ope"]["fqe"]["estimate"]}
+
+
+def _report_stage(run: Path) -> dict[str, Any]:
+    from offline_adp.evaluation.report import build_report
+
+    html = build_report(run / "fit")
+    shutil.copy(html, run / "report.html")
+    shutil.rmtree(run / "figures", ignore_errors=True)
+    shutil.copytree(html.parent / "figures", run / "figures")
+    return {"report": str(run / "report.html")}
