@@ -1,5 +1,6 @@
 # Two commands for a fresh machine with Python 3.11: `make demo` and `make test`.
 # Both create .venv on first use and reinstall only when pyproject.toml changes.
+# `make demo` runs pipelines/driving.toml; a second run reuses every stage.
 PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -20,14 +21,8 @@ $(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
-	@echo "== simulate: demonstrations + exploration on the path_tracking driving problem, as a raw Parquet log"
-	$(BIN)/offline-adp simulate path_tracking --format parquet --out $(DEMO)/logs/path_tracking.parquet \
-		--demonstrations 100 --exploration 100 --seed 0 --overwrite --quiet
-	@echo "== ingest: raw log + spec -> validated dataset directory"
-	$(BIN)/offline-adp ingest parquet $(DEMO)/logs/path_tracking.parquet \
-		--spec $(DEMO)/logs/path_tracking.spec.toml --out $(DEMO)/dataset --overwrite --quiet
-	@echo "== inspect"
-	$(BIN)/offline-adp inspect $(DEMO)/dataset
+	@echo "== the driving case study: MCAP logs -> dataset -> FQI -> simulator + off-policy evaluation -> report"
+	$(BIN)/offline-adp run pipelines/driving.toml --runs $(DEMO)/runs --quiet
 
 test: $(VENV)/.installed-dev
 	$(BIN)/python -m pytest -q

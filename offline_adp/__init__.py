@@ -28,9 +28,40 @@ from offline_adp.policies import (
     UniformPolicy,
 )
 from offline_adp.simulate import collect, simulate
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.artifacts import load_policy, load_q, save_policy, save_q
+from offline_adp.envs.car_on_hill import score as car_on_hill_score
+from offline_adp.evaluation.offpolicy import off_policy
+from offline_adp.evaluation.report import build_report
+from offline_adp.evaluation.rollout import rollout
+from offline_adp.evaluation.run import evaluate_run
+from offline_adp.evaluation.shift import diagnostics as shift_diagnostics
+from offline_adp.evaluation.shift import ratios_by_classifier, ratios_by_recursion
+from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec
+from offline_adp.pipeline import run_pipeline
+from offline_adp.policies import GreedyPolicy
 
 __all__ = [
     "__version__",
+    "FittedQEvaluation",
+    "FittedQIteration",
+    "GreedyPolicy",
+    "build_report",
+    "car_on_hill_score",
+    "evaluate_run",
+    "ingest_mcap",
+    "load_mcap_spec",
+    "load_policy",
+    "load_q",
+    "off_policy",
+    "ratios_by_classifier",
+    "ratios_by_recursion",
+    "rollout",
+    "run_pipeline",
+    "save_policy",
+    "save_q",
+    "shift_diagnostics",
     "Action",
     "ActionTable",
     "DatasetInfo",

@@ -263,7 +263,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     fqe = json.loads(args.fqe_params) if args.fqe_params else None
     m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
-                     n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, seed=args.seed, progress=say)
+                     n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, horizon=args.horizon,
+                     seed=args.seed, progress=say)
     for line in summary_lines(m):
         print(line)
     print(f"{args.run}/evaluation/metrics.json")
@@ -472,6 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
     e.add_argument("--fqe-bootstrap", type=int, default=10, help="FQE refits for its interval (default 10)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
+    e.add_argument("--horizon", type=int, default=None, help="cap the evaluation horizon (default: the data's)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)

@@ -68,7 +68,7 @@ TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate"
 DATA_KEYS = {"format", "inputs", "spec", "on_error", "simulate", "demonstrations", "exploration", "horizon",
              "problem_options"}
 FIT_KEYS = {"algorithm", "params", "config"}
-EVAL_KEYS = {"simulator", "episodes", "bootstrap", "fqe_bootstrap", "fqe_params"}
+EVAL_KEYS = {"simulator", "episodes", "bootstrap", "fqe_bootstrap", "fqe_params", "horizon"}
 
 
 def _check(table: dict[str, Any], valid: set[str], where: str, path: Path) -> None:
@@ -296,7 +296,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None]) 
     ev = cfg["evaluate"]
     m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
                      n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
-                     seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"))
+                     horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"))
     shutil.copy(run / "fit" / "evaluation" / "metrics.json", run / "metrics.json")
     return {"fqe": m["ope"]["fqe"]["estimate"]}
 

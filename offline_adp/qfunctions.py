@@ -179,20 +179,18 @@ class TreeEnsemble:
             return sklearn_leaves(forest, X)
         # scikit-learn trees compare float32 inputs with their thresholds: do the same
         X = np.asarray(X, dtype=np.float32).astype(np.float64)
-        n = len(X)
-        out = np.empty((n, self.n_trees), dtype=np.int64)
-        rows = np.arange(n)
-        for m, root in enumerate(self.roots):
-            node = np.full(n, root, dtype=np.int64)
-            active = self.left[node] >= 0
-            while active.any():
-                idx = np.flatnonzero(active)
-                nd = node[idx]
-                go_left = X[rows[idx], self.feature[nd]] <= self.threshold[nd]
-                node[idx] = np.where(go_left, self.left[nd], self.right[nd])
-                active[idx] = self.left[node[idx]] >= 0
-            out[:, m] = node
-        return out
+        n, m = len(X), self.n_trees
+        # all (row, tree) pairs descend together, one level per pass; finished pairs drop out
+        node = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # flat (n * m), row-major
+        row = np.repeat(np.arange(n), m)
+        idx = np.flatnonzero(self.left[node] >= 0)
+        while len(idx):
+            nd = node[idx]
+            go_left = X[row[idx], self.feature[nd]] <= self.threshold[nd]
+            nxt = np.where(go_left, self.left[nd], self.right[nd])
+            node[idx] = nxt
+            idx = idx[self.left[nxt] >= 0]
+        return node.reshape(n, m)
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         return ensemble_predict(self.value, self.apply(X))

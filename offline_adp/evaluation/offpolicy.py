@@ -44,13 +44,17 @@ class OffPolicyResult:
     bounds: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
-def evaluation_horizon(ds: TransitionDataset) -> tuple[int, float, int | None]:
-    """(T for trajectory estimators, gamma, FQE horizon or None for discounted FQE)."""
+def evaluation_horizon(ds: TransitionDataset, horizon: int | None = None) -> tuple[int, float, int | None]:
+    """(T for trajectory estimators, gamma, FQE horizon or None for discounted FQE).
+
+    T is the data's longest episode, capped by ``info.horizon`` and by ``horizon``.
+    """
     a = ds.arrays()
     gamma = ds.info.gamma if ds.info.gamma is not None else 1.0
     T = int(a.step.max()) + 1
-    if ds.info.horizon is not None:
-        T = min(T, int(ds.info.horizon))
+    for cap in (ds.info.horizon, horizon):
+        if cap is not None:
+            T = min(T, int(cap))
     return T, float(gamma), (T if gamma >= 1.0 else None)
 
 
@@ -93,6 +97,7 @@ def off_policy(
     reference_policies: dict[str, Policy] | None = None,
     policy_states: list[np.ndarray] | None = None,
     k_support: int = 20,
+    horizon: int | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
 ) -> OffPolicyResult:
@@ -107,7 +112,7 @@ def off_policy(
     """
     say = progress or (lambda _msg: None)
     a = ds.arrays()
-    T, gamma, fqe_T = evaluation_horizon(ds)
+    T, gamma, fqe_T = evaluation_horizon(ds, horizon)
     say("behaviour policy")
     beh = estimate_behaviour(a.obs, a.action, ds.n_actions, a.behavior_prob, classifier=behaviour_classifier, clip=clip)
     target = policy.probabilities(a.obs, a.step)

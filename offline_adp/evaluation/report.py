@@ -256,7 +256,7 @@ def _table(rows: list[dict[str, Any]], cols: list[str]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def build_report(run_dir: str | PathLike[str]) -> Path:
+def build_report(run_dir: str | PathLike[str]) -> Path:  # noqa: C901
     """Write ``RUN_DIR/report/report.html`` and ``report/figures/*.png``; returns the HTML path."""
     run = Path(run_dir)
     ev = run / "evaluation"
@@ -289,7 +289,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     _sources(figs, m)
     if problem == "path_tracking":
         _cross_track(figs, run)
-    (tmp / "report.html").write_text(_html(m, figs))
+    (tmp / "report.html").write_text(_html({**m, "run": run.resolve().name}, figs))
     old = run / ".report.old"
     shutil.rmtree(old, ignore_errors=True)
     if (run / "report").exists():
@@ -300,7 +300,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
 
 
 def _html(m: dict[str, Any], figs: _Figures) -> str:
-    parts = [f"<h1>offline_adp report: {html.escape(m['run'])}</h1>",
+    parts = [f"<h1>offline_adp report: {html.escape(m.get('run', ''))}</h1>",
              f"<p>Dataset <code>{html.escape(m['dataset']['path'])}</code>: {m['dataset']['transitions']} transitions, "
              f"{m['dataset']['episodes']} episodes, sources {html.escape(str(m['dataset']['sources']))}. "
              f"Algorithm {html.escape(str(m.get('algorithm')))}; evaluation horizon {m['horizon']}, gamma {m['gamma']:g}. "

@@ -1,0 +1,113 @@
+"""`offline-adp run`: every shipped pipeline at reduced size, stage reuse, resume, errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from offline_adp.cli import main
+from offline_adp.errors import SpecError
+from offline_adp.pipeline import load_pipeline, run_pipeline
+
+ROOT = Path(__file__).resolve().parents[1]
+PIPELINES = ROOT / "pipelines"
+#: Reduced sizes so every shipped pipeline runs in seconds.
+SMALL = {
+    "driving": {"fit.params.n_iterations": 10, "evaluate.episodes": 40, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 2,
+                "evaluate.horizon": 20, "evaluate.fqe_params": {"n_iterations": 10}},
+    "car_on_hill": {"data.exploration": 60, "fit.params.n_iterations": 10, "evaluate.episodes": 30, "evaluate.bootstrap": 20,
+                    "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 30, "evaluate.fqe_params": {"n_iterations": 10}},
+    "gridworld_divergence": {"data.exploration": 60, "fit.params.n_iterations": 8, "evaluate.episodes": 30,
+                             "evaluate.bootstrap": 20, "evaluate.fqe_params": {"mode": "refit", "n_iterations": 5}},
+    "psdp_driving": {"fit.params.horizon": 8, "fit.params.n_samples": 40, "fit.params.n_rollouts": 1,
+                     "evaluate.episodes": 30, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 8,
+                     "evaluate.fqe_params": {"n_iterations": 10}},
+}
+
+
+def quiet(_msg: str) -> None:
+    pass
+
+
+@pytest.mark.parametrize("name", sorted(SMALL))
+def test_every_shipped_pipeline_runs(name, tmp_path):
+    run = run_pipeline(PIPELINES / f"{name}.toml", out=tmp_path / name, say=quiet, overrides=SMALL[name])
+    man = json.loads((run / "manifest.json").read_text())
+    assert all(s["status"] == "completed" for s in man["stages"].values()), man["stages"]
+    assert {"data", "fit", "evaluate", "report"} <= set(man["stages"])
+    assert (run / "report.html").stat().st_size > 10_000 and (run / "metrics.json").exists()
+    m = json.loads((run / "metrics.json").read_text())
+    assert "rollout" in m
+    if name == "car_on_hill":
+        assert "car_on_hill_score" in m["named"]
+    if name == "gridworld_divergence":
+        assert (run / "figures" / "convergence.png").exists()
+
+
+def test_second_run_reuses_every_stage_and_metrics_are_identical(tmp_path):
+    over = SMALL["driving"]
+    run = run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over)
+    first = (run / "metrics.json").read_bytes()
+    again = run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over)
+    assert again == run
+    man = json.loads((run / "manifest.json").read_text())
+    assert all(s["reused"] for s in man["stages"].values()) and man["runs"] == 2
+    assert (run / "metrics.json").read_bytes() == first
+    # a changed setting recomputes that stage and everything after it, nothing before
+    over2 = {**over, "evaluate.episodes": 41}
+    run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over2)
+    st = json.loads((run / "manifest.json").read_text())["stages"]
+    assert st["data"]["reused"] and st["fit"]["reused"] and not st["evaluate"]["reused"] and not st["report"]["reused"]
+    # same pipeline, seed and inputs in a fresh directory: the same metrics
+    fresh = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "fresh", say=quiet, overrides=over)
+    a = json.loads(first)
+    b = json.loads((fresh / "metrics.json").read_text())
+    for m in (a, b):
+        m["dataset"].pop("path")
+    assert a == b
+
+
+def test_interrupted_fit_resumes_from_last_completed_stage(tmp_path, monkeypatch):
+    over = {**SMALL["driving"], "fit.params.mode": "refit", "fit.params.n_iterations": 4,
+            "fit.params.regressor_params": {"n_estimators": 5}}
+    import offline_adp.runs as runs
+
+    calls = {"n": 0}
+    real = runs._write_checkpoint
+
+    def crash_after_two(run, est, rows):
+        real(run, est, rows)
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(runs, "_write_checkpoint", crash_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "r", say=quiet, overrides=over)
+    man = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert man["stages"]["data"]["status"] == "completed" and man["stages"]["fit"]["status"] == "interrupted"
+    monkeypatch.setattr(runs, "_write_checkpoint", real)
+    said: list[str] = []
+    run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "r", say=said.append, overrides=over)
+    man = json.loads((tmp_path / "r" / "manifest.json").read_text())
+    assert man["stages"]["data"]["reused"] and man["stages"]["fit"]["status"] == "completed"
+    assert any("resuming from the last checkpointed iteration" in s for s in said)
+    assert man["stages"]["fit"]["iterations"] == 4
+
+
+def test_pipeline_errors_name_the_key(tmp_path):
+    bad = tmp_path / "p.toml"
+    bad.write_text('name = "x"\n[data]\nsimulate = "tabular"\nexplorations = 3\n[fit]\n')
+    with pytest.raises(SpecError, match="explorations.*valid keys"):
+        load_pipeline(bad)
+    bad.write_text('[data]\nformat = "mcap"\ninputs = ["nothing/*.mcap"]\nspec = "s.toml"\n[fit]\n')
+    with pytest.raises(SpecError, match="matches no file"):
+        load_pipeline(bad)
+    bad.write_text('[data]\nsimulate = "tabular"\n')
+    with pytest.raises(SpecError, match=r"needs a \[fit\] table"):
+        load_pipeline(bad)
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
