@@ -177,6 +177,13 @@ class TreeEnsemble:
         forest = getattr(self, "_forest", None)
         if forest is not None:
             return sklearn_leaves(forest, X)
+        trees = self._compiled_trees()
+        if trees is not None:
+            X32 = np.ascontiguousarray(X, dtype=np.float32)
+            out = np.empty((len(X32), self.n_trees), dtype=np.int64)
+            for m, (tree, root) in enumerate(zip(trees, self.roots, strict=True)):
+                out[:, m] = tree.apply(X32) + root
+            return out
         # scikit-learn trees compare float32 inputs with their thresholds: do the same
         X = np.asarray(X, dtype=np.float32).astype(np.float64)
         n, m = len(X), self.n_trees
@@ -191,6 +198,39 @@ class TreeEnsemble:
             node[idx] = nxt
             idx = idx[self.left[nxt] >= 0]
         return node.reshape(n, m)
+
+    def _compiled_trees(self) -> list[Any] | None:
+        """scikit-learn ``Tree`` objects rebuilt from our arrays (plain numbers, no code
+        from any file), for its compiled ``apply``; None if this scikit-learn's tree state
+        layout is not the one we know (then the numpy traversal is used)."""
+        cached = getattr(self, "_trees", False)
+        if cached is not False:
+            return cached
+        trees: list[Any] | None = []
+        try:
+            from sklearn.tree._tree import Tree
+
+            bounds = np.r_[self.roots, len(self.left)]
+            n_features = int(max(self.feature.max(), 0)) + 1
+            dtype = Tree(n_features, np.array([1], dtype=np.intp), 1).__getstate__()["nodes"].dtype
+            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+                n = hi - lo
+                nodes = np.zeros(n, dtype=dtype)
+                leaf = self.left[lo:hi] < 0
+                nodes["left_child"] = np.where(leaf, -1, self.left[lo:hi] - lo)
+                nodes["right_child"] = np.where(leaf, -1, self.right[lo:hi] - lo)
+                nodes["feature"] = np.where(leaf, -2, self.feature[lo:hi])
+                nodes["threshold"] = np.where(leaf, -2.0, self.threshold[lo:hi])
+                nodes["n_node_samples"] = 1
+                nodes["weighted_n_node_samples"] = 1.0
+                t = Tree(n_features, np.array([1], dtype=np.intp), 1)
+                t.__setstate__({"max_depth": int(n), "node_count": int(n), "nodes": nodes,
+                                "values": self.value[lo:hi].reshape(n, 1, 1).astype(np.float64)})
+                trees.append(t)
+        except Exception:  # an unknown scikit-learn layout: fall back to numpy
+            trees = None
+        self._trees = trees  # type: ignore[attr-defined]
+        return trees
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         return ensemble_predict(self.value, self.apply(X))
