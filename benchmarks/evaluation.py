@@ -37,7 +37,7 @@ def main() -> None:
             marks: list[tuple[str, float]] = []
             t0 = time.perf_counter()
             m = evaluate_run(Path(tmp) / "run", simulator=sim, n_episodes=args.episodes, n_boot=args.bootstrap,
-                             n_boot_fqe=args.fqe_bootstrap, progress=lambda s: marks.append((s, time.perf_counter())))
+                             n_boot_fqe=args.fqe_bootstrap, progress=lambda s, marks=marks: marks.append((s, time.perf_counter())))
             total = time.perf_counter() - t0
             stages: dict[str, float] = {}
             for (name, t), (_, t_next) in zip(marks, marks[1:] + [("end", t0 + total)], strict=True):

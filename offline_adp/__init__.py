@@ -12,25 +12,14 @@ from offline_adp.access import (
     StepResult,
     TraceData,
 )
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.artifacts import load_policy, load_q, save_policy, save_q
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import read_dataset, write_dataset
 from offline_adp.data.validate import ValidationReport, validate, validate_directory
 from offline_adp.envs import make_problem
-from offline_adp.ingest.parquet import ingest_parquet
-from offline_adp.policies import (
-    DeterministicPolicy,
-    EpsilonPolicy,
-    FunctionPolicy,
-    Policy,
-    StochasticFunctionPolicy,
-    TabularPolicy,
-    UniformPolicy,
-)
-from offline_adp.simulate import collect, simulate
-from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.algorithms.fqe import FittedQEvaluation
-from offline_adp.artifacts import load_policy, load_q, save_policy, save_q
 from offline_adp.envs.car_on_hill import score as car_on_hill_score
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.evaluation.report import build_report
@@ -39,8 +28,19 @@ from offline_adp.evaluation.run import evaluate_run
 from offline_adp.evaluation.shift import diagnostics as shift_diagnostics
 from offline_adp.evaluation.shift import ratios_by_classifier, ratios_by_recursion
 from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec
+from offline_adp.ingest.parquet import ingest_parquet
 from offline_adp.pipeline import run_pipeline
-from offline_adp.policies import GreedyPolicy
+from offline_adp.policies import (
+    DeterministicPolicy,
+    EpsilonPolicy,
+    FunctionPolicy,
+    GreedyPolicy,
+    Policy,
+    StochasticFunctionPolicy,
+    TabularPolicy,
+    UniformPolicy,
+)
+from offline_adp.simulate import collect, simulate
 
 __all__ = [
     "__version__",

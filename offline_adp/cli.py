@@ -271,6 +271,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _f(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
 def summary_lines(m: dict) -> list[str]:
     """A short human summary of ``metrics.json`` (policy vs demonstrator, OPE, worst-step ESS)."""
     lines = []
@@ -283,8 +287,8 @@ def summary_lines(m: dict) -> list[str]:
         lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
                      f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
     f = m["ope"]["fqe"]
-    lines.append(f"off-policy (FQE): {f['estimate']:.3f} [{f['interval'][0]:.3f}, {f['interval'][1]:.3f}]"
-                 f"; WDR {m['ope']['wdr']['estimate']:.3f}, MIS {m['ope']['mis']['estimate']:.3f}")
+    lines.append(f"off-policy (FQE): {_f(f['estimate'])} [{_f(f['interval'][0])}, {_f(f['interval'][1])}]"
+                 f"; WDR {_f(m['ope']['wdr']['estimate'])}, MIS {_f(m['ope']['mis']['estimate'])}")
     ws = m["worst_step"]
     lines.append(f"worst-step ESS/n {ws['ess_fraction']:.3f} at t = {ws['step']}; support violations "
                  f"{m['behaviour']['support_violations']['fraction']:.3f} of states")

@@ -59,7 +59,7 @@ def test_other_versions_warn_for_q_functions_and_policies(tmp_path, small_pt):
     f = FittedQIteration(regressor="tabular", n_iterations=1).fit(small_pt)
     save_fqi(f, tmp_path / "q")
     save_policy(f.policy_, tmp_path / "p")
-    for path, name in ((tmp_path / "q" / "q.json", "q"), (tmp_path / "p" / "policy.json", "p")):
+    for path, _name in ((tmp_path / "q" / "q.json", "q"), (tmp_path / "p" / "policy.json", "p")):
         spec = json.loads(path.read_text())
         spec["versions"]["scikit-learn"] = "0.0.1"
         path.write_text(json.dumps(spec))

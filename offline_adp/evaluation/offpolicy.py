@@ -16,7 +16,11 @@ import pandas as pd
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.evaluation import ope, shift
-from offline_adp.evaluation.behaviour import BehaviourEstimate, estimate_behaviour, support_violations
+from offline_adp.evaluation.behaviour import (
+    BehaviourEstimate,
+    estimate_behaviour,
+    support_violations,
+)
 from offline_adp.policies import Policy
 
 #: FQE settings for evaluation: the frozen-structure fast path keeps bootstrap refits cheap.

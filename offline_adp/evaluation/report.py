@@ -66,6 +66,10 @@ def _convergence(figs: _Figures, run: Path) -> None:
     for c, lab in (("sup_dq", "sup |Q_k - Q_{k-1}|"), ("mean_dq", "mean |Q_k - Q_{k-1}|"), ("bellman_residual", "Bellman residual (RMS)")):
         if c in h and h[c].notna().any():
             ax.plot(h["iteration"], h[c].abs(), marker=".", label=lab)
+    if "structure" in h and h["structure"].nunique() > 1:
+        for k in h.loc[h["structure"].diff() > 0, "iteration"]:
+            ax.axvline(k, color="0.5", ls=":", lw=1)
+            ax.annotate("trees rebuilt", (k, ax.get_ylim()[1]), fontsize=7, color="0.4", ha="left", va="top")
     ax.set_yscale("log")
     ax.set_xlabel("iteration k")
     ax.set_ylabel("cost units (log scale)")
@@ -121,7 +125,7 @@ def _ope(figs: _Figures, m: dict[str, Any]) -> None:
     est = np.array([ope[k]["estimate"] for k in names], dtype=float)
     lo = np.array([ope[k]["interval"][0] for k in names], dtype=float)
     hi = np.array([ope[k]["interval"][1] for k in names], dtype=float)
-    ref = [x for x in (ope["fqe"]["interval"] + [ope["fqe"]["estimate"]]) if np.isfinite(x)]
+    ref = [x for x in (ope["fqe"]["interval"] + [ope["fqe"]["estimate"]]) if x is not None and np.isfinite(x)]
     truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
     demo = m.get("rollout", {}).get("demonstrator", {}).get("mean_discounted_cost")
     ref += [x for x in (truth, demo) if x is not None]
@@ -129,13 +133,13 @@ def _ope(figs: _Figures, m: dict[str, Any]) -> None:
     xmin, xmax = min(ref) - 1.5 * span - 1e-9, max(ref) + 1.5 * span + 1e-9
     fig, ax = plt.subplots(figsize=(7, 0.45 * len(names) + 1.6))
     y = np.arange(len(names))[::-1]
-    for yi, e, l, h, k in zip(y, est, lo, hi, names, strict=True):
+    for yi, e, lo_k, hi_k, k in zip(y, est, lo, hi, names, strict=True):
         off = not (np.isfinite(e) and xmin <= e <= xmax)
         if off:
             ax.annotate(f"{k}: off scale ({e:.3g})", (xmax if not np.isfinite(e) or e > xmax else xmin, yi),
                         ha="right" if (not np.isfinite(e) or e > xmax) else "left", va="center", fontsize=8, color="gray")
             continue
-        l2, h2 = (np.clip(l, xmin, xmax), np.clip(h, xmin, xmax)) if np.isfinite(l) and np.isfinite(h) else (e, e)
+        l2, h2 = (np.clip(lo_k, xmin, xmax), np.clip(hi_k, xmin, xmax)) if np.isfinite(lo_k) and np.isfinite(hi_k) else (e, e)
         color = "C0" if not ope[k]["warnings"] else "C1"
         ax.plot([l2, h2], [yi, yi], color=color, lw=2, solid_capstyle="butt")  # a bias-corrected interval may exclude e
         ax.plot([e], [yi], "o", color=color)
@@ -218,7 +222,7 @@ def _sources(figs: _Figures, m: dict[str, Any]) -> None:
     ax.bar(x + 0.2, [ps[k]["policy_mass"] for k in names], 0.4, label="share of the policy's (re-weighted) mass")
     ax.set_xticks(x, names)
     ax.set_ylabel("fraction of transitions")
-    ax.set_title("Per-source breakdown", fontsize=10)
+    ax.set_title(f"Per-source breakdown (ratios: {m.get('per_source_ratio_method', 'recursion')})", fontsize=10)
     ax.legend(fontsize=8)
     figs.save(fig, "sources", "Per source: its share of the logged transitions and of the policy's state distribution "
               "(data re-weighted by the density ratios).")

@@ -58,6 +58,19 @@ def _per_source(ds: TransitionDataset, w: np.ndarray, gamma: float) -> dict[str,
     return out
 
 
+def _finite(obj: Any) -> Any:
+    """Standard JSON: NaN and infinities become null (an undefined estimate, e.g. WIS with no weight)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
 def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
     return json.loads(df.to_json(orient="records"))
 
@@ -161,7 +174,9 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
                        "ess_fraction": float(worst["ess_fraction"].min())},
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
                        "references": res.bounds},
-        "per_source": _per_source(ds, res.ratios.w, res.gamma),
+        "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
+                                  else res.ratios.w, res.gamma),
+        "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else "recursion",
     }
 
 
@@ -170,7 +185,7 @@ def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: Transit
     tmp = run / ".evaluation.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float, allow_nan=True))
+    (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
     frames = [res.diagnostics.assign(method="recursion")]
     frames += [d.assign(method=k) for k, (_, d) in res.extra_ratios.items()]
     pd.concat(frames, ignore_index=True).to_csv(tmp / "per_step.csv", index=False)

@@ -36,6 +36,7 @@ import pandas as pd
 from offline_adp.access import FullModel
 from offline_adp.algorithms import dp
 from offline_adp.policies import Policy
+from offline_adp.qfunctions import predict_model
 from offline_adp.regressors import make_classifier, make_regressor
 
 
@@ -135,7 +136,7 @@ def ratios_by_recursion(
         y = w[here] * rho[here]
         model = make_regressor(regressor, **(regressor_params or {}))
         model.fit(next_obs[here], y)
-        w_next = np.maximum(model.predict(obs[there]), 0.0)
+        w_next = np.maximum(predict_model(model, obs[there]), 0.0)  # deterministic forest predict
         if not np.isfinite(w_next).all() or w_next.sum() <= 0:
             warnings.append(f"step {t + 1}: the ratio regression returned no positive mass; ratios set to 1")
             w_next = np.ones(len(there))
