@@ -23,7 +23,8 @@ A pipeline file names its stages and their settings::
     [report]
 
 ``[data]`` may instead hold ``simulate = "car_on_hill"`` with ``demonstrations``,
-``exploration``, ``horizon`` and ``problem_options``. Paths are relative to the pipeline
+``exploration``, ``horizon`` and ``problem_options``, or ``builtin = "gridworld_lattice"``
+(every lattice state and move once: the Boyan & Moore setting). Paths are relative to the pipeline
 file. Unknown keys fail with the valid ones listed.
 
 The run directory (``runs/<name>__<seed>__<timestamp>/`` or ``--out``) holds::
@@ -66,7 +67,9 @@ from offline_adp.errors import SpecError
 STAGES = ("data", "validate", "fit", "evaluate", "report")
 TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate", "report"}
 DATA_KEYS = {"format", "inputs", "spec", "on_error", "simulate", "demonstrations", "exploration", "horizon",
-             "problem_options"}
+             "problem_options", "builtin"}
+#: Datasets built by a documented example rather than logged or simulated.
+BUILTIN = {"gridworld_lattice": "offline_adp.examples.gridworld_divergence:dataset"}
 FIT_KEYS = {"algorithm", "params", "config"}
 EVAL_KEYS = {"simulator", "episodes", "bootstrap", "fqe_bootstrap", "fqe_params", "horizon"}
 
@@ -92,8 +95,11 @@ def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
             raise SpecError(f"{p}: a pipeline needs a [{key}] table")
     data = dict(raw["data"])
     _check(data, DATA_KEYS, "[data]", p)
-    if ("simulate" in data) == ("inputs" in data):
-        raise SpecError(f"{p}: [data] needs exactly one of inputs = [...] (files to ingest) or simulate = \"PROBLEM\"")
+    if sum(k in data for k in ("simulate", "inputs", "builtin")) != 1:
+        raise SpecError(f"{p}: [data] needs exactly one of inputs = [...] (files to ingest), simulate = \"PROBLEM\" "
+                        f"or builtin = one of {sorted(BUILTIN)}")
+    if "builtin" in data and data["builtin"] not in BUILTIN:
+        raise SpecError(f"{p}: [data] builtin = {data['builtin']!r}; known: {sorted(BUILTIN)}")
     if "inputs" in data:
         if data.get("format") not in ("mcap", "parquet"):
             raise SpecError(f"{p}: [data] format must be \"mcap\" or \"parquet\", got {data.get('format')!r}")
@@ -237,6 +243,13 @@ def run_pipeline(
 def _data_stage(cfg: dict[str, Any], run: Path) -> dict[str, Any]:
     data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
     shutil.rmtree(run / "dataset", ignore_errors=True)
+    if "builtin" in data:
+        import importlib
+
+        module, fn = BUILTIN[data["builtin"]].split(":")
+        ds = getattr(importlib.import_module(module), fn)()
+        ds.save(run / "dataset")
+        return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
     if "simulate" in data:
         from offline_adp.simulate import simulate
 

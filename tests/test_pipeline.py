@@ -19,7 +19,7 @@ SMALL = {
                 "evaluate.horizon": 20, "evaluate.fqe_params": {"n_iterations": 10}},
     "car_on_hill": {"data.exploration": 60, "fit.params.n_iterations": 10, "evaluate.episodes": 30, "evaluate.bootstrap": 20,
                     "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 30, "evaluate.fqe_params": {"n_iterations": 10}},
-    "gridworld_divergence": {"data.exploration": 60, "fit.params.n_iterations": 8, "evaluate.episodes": 30,
+    "gridworld_divergence": {"fit.params.n_iterations": 30, "evaluate.episodes": 30,
                              "evaluate.bootstrap": 20, "evaluate.fqe_params": {"mode": "refit", "n_iterations": 5}},
     "psdp_driving": {"fit.params.horizon": 8, "fit.params.n_samples": 40, "fit.params.n_rollouts": 1,
                      "evaluate.episodes": 30, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 8,
