@@ -96,9 +96,8 @@ def flat_columns(info: Any) -> dict[str, list[str]]:
 def spread(client: Any, ddf: Any) -> Any:
     """Persist with at least one partition per worker and check every worker holds some
     (a dataset of one Parquet part would otherwise sit on a single worker)."""
-    from distributed import wait
-
     import dask.dataframe as dd
+    from distributed import wait
 
     workers = sorted(client.scheduler_info()["workers"])
     if ddf.npartitions < len(workers):
