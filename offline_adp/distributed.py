@@ -103,7 +103,8 @@ def spread(client: Any, ddf: Any) -> Any:
     if ddf.npartitions < len(workers):
         ddf = ddf.repartition(npartitions=len(workers))
     # partition i on worker i mod n, so every worker holds data (deterministic placement)
-    parts = [client.persist(ddf.partitions[i], workers=[workers[i % len(workers)]], allow_other_workers=False)
+    # (a preference, not a restriction: if that worker dies, Dask recomputes the partition elsewhere)
+    parts = [client.persist(ddf.partitions[i], workers=[workers[i % len(workers)]], allow_other_workers=True)
              for i in range(ddf.npartitions)]
     ddf = dd.concat(parts)
     wait(ddf)
@@ -160,11 +161,18 @@ class DistributedFQI:
     """
 
     def __init__(self, gamma: float = 0.95, n_iterations: int = 10, lgbm_params: dict | None = None,
-                 time_out: int = 2, random_state: int = 0) -> None:
+                 time_out: int = 2, retries: int = 2, random_state: int = 0) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
-        self.time_out, self.random_state = time_out, random_state
+        self.time_out, self.retries, self.random_state = time_out, retries, random_state
 
-    def fit(self, client: Any, dataset_dir: str | PathLike[str]) -> DistributedFQI:
+    def fit(self, client: Any, dataset_dir: str | PathLike[str],
+            on_iteration: Any = None) -> DistributedFQI:
+        """Fit on a dataset directory; ``on_iteration(k)`` is called after iteration k.
+
+        Tasks lost with a worker are recomputed by Dask; a LightGBM training that fails
+        because a worker vanished mid-way is retried (``retries`` times) on the workers
+        left, from the same Q: the iteration's inputs do not depend on which worker ran it.
+        """
         from lightgbm.dask import DaskLGBMRegressor
 
         from offline_adp.data.info import DatasetInfo
@@ -175,22 +183,34 @@ class DistributedFQI:
         cols = flat_columns(info)
         af = np.asarray(info.action_table.values, dtype=np.float64)
         enc = QEncoder(len(af), af)
-        X = ddf.map_partitions(_inputs_partition, cols["obs"], af,
-                               meta=pd.DataFrame({f"x{j}": pd.Series(dtype=np.float64) for j in range(len(cols["obs"]) + af.shape[1])}))
+        meta = pd.DataFrame({f"x{j}": pd.Series(dtype=np.float64) for j in range(len(cols["obs"]) + af.shape[1])})
+        X = ddf.map_partitions(_inputs_partition, cols["obs"], af, meta=meta)
         Xa = X.to_dask_array(lengths=True).persist()
         q: Any = _ZeroQ(len(af))
         self.history_ = []
         params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, **(self.lgbm_params or {})}
         params.pop("n_jobs", None)  # workers decide their threads
+        self.retried_ = 0
         for k in range(self.n_iterations):
-            y = distributed_targets(client, ddf, q, self.gamma, info)
-            model = DaskLGBMRegressor(client=client, time_out=self.time_out, random_state=self.random_state,
-                                      **{k: v for k, v in params.items() if k != "n_jobs"})
-            model.fit(Xa, y.to_dask_array(lengths=True))  # arrays: the local booster then predicts on numpy without name warnings
+            for attempt in range(self.retries + 1):
+                try:
+                    y = distributed_targets(client, ddf, q, self.gamma, info)
+                    model = DaskLGBMRegressor(client=client, time_out=self.time_out, random_state=self.random_state, **params)
+                    # arrays: the local booster then predicts on numpy without feature-name warnings
+                    model.fit(Xa, y.to_dask_array(lengths=True))
+                    break
+                except Exception as exc:  # a worker lost during LightGBM's collective training
+                    if attempt == self.retries:
+                        raise OfflineADPError(f"iteration {k + 1} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
+                    self.retried_ += 1
+                    ddf = spread(client, read_dataset_dask(dataset_dir))
+                    Xa = ddf.map_partitions(_inputs_partition, cols["obs"], af, meta=meta).to_dask_array(lengths=True).persist()
             local = model.to_local()
             local.set_params(n_jobs=1)
             q = RegressorQ([local], enc)
             self.history_.append({"iteration": k + 1})
+            if on_iteration is not None:
+                on_iteration(k + 1)
         self.q_function_ = q
         return self
 
