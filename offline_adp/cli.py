@@ -313,10 +313,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
             overrides[key] = value
-    if args.engine != "local":
-        raise OfflineADPError("--engine dask is not available yet (issue 8); use --engine local")
+    engine = None
+    if args.engine or args.scheduler:
+        engine = {"kind": args.engine or "dask", **({"address": args.scheduler} if args.scheduler else {})}
     run = run_pipeline(args.pipeline, out=args.out, runs_root=args.runs, from_stage=args.from_stage, force=args.force,
-                       say=say, overrides=overrides)
+                       say=say, overrides=overrides, engine=engine)
     man = json.loads((run / "manifest.json").read_text())
     for name, st in man["stages"].items():
         print(f"  {name:9s} {st.get('status')}{' (reused)' if st.get('reused') else ''}"
@@ -500,7 +501,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="recompute this stage and the ones after it")
     rp.add_argument("--force", action="store_true", help="start a fresh run directory, reusing nothing")
     rp.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. evaluate.episodes=50")
-    rp.add_argument("--engine", default="local", choices=["local", "dask"], help="execution engine (default: local)")
+    rp.add_argument("--engine", default=None, choices=["local", "dask"],
+                    help="execution engine (default: the file's [engine], else local); dask needs the dask extra")
+    rp.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a LocalCluster on 127.0.0.1)")
     rp.add_argument("--quiet", "-q", action="store_true")
     rp.set_defaults(func=cmd_run)
 

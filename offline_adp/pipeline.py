@@ -49,6 +49,7 @@ ones after it.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import hashlib
 import json
@@ -56,7 +57,7 @@ import os
 import shutil
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from os import PathLike
 from pathlib import Path
@@ -65,7 +66,8 @@ from typing import Any
 from offline_adp.errors import SpecError
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
-TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate", "report"}
+TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate", "report", "engine"}
+ENGINE_KEYS = {"kind", "address", "n_workers", "threads_per_worker", "memory_limit"}
 DATA_KEYS = {"format", "inputs", "spec", "on_error", "simulate", "demonstrations", "exploration", "horizon",
              "problem_options", "builtin"}
 #: Datasets built by a documented example rather than logged or simulated.
@@ -123,10 +125,15 @@ def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     ev = dict(raw.get("evaluate", {}))
     _check(ev, EVAL_KEYS, "[evaluate]", p)
+    engine = dict(raw.get("engine", {}))
+    _check(engine, ENGINE_KEYS, "[engine]", p)
+    if engine.get("kind", "local") not in ("local", "dask"):
+        raise SpecError(f"{p}: [engine] kind must be \"local\" or \"dask\", got {engine.get('kind')!r}")
     _check(dict(raw.get("validate", {})), set(), "[validate]", p)
     _check(dict(raw.get("report", {})), set(), "[report]", p)
     return {"name": str(raw.get("name", p.stem)), "seed": int(raw.get("seed", 0)), "file": str(p), "data": data,
-            "fit": fit, "evaluate": ev if "evaluate" in raw else None, "report": "report" in raw}
+            "fit": fit, "evaluate": ev if "evaluate" in raw else None, "report": "report" in raw,
+            "engine": {"kind": "local", **engine}}
 
 
 def _hash(obj: Any) -> str:
@@ -184,8 +191,13 @@ def run_pipeline(
     force: bool = False,
     say: Callable[[str], None] = print,
     overrides: dict[str, Any] | None = None,
+    engine: dict[str, Any] | None = None,
 ) -> Path:
-    """Run (or continue) a pipeline; returns the run directory."""
+    """Run (or continue) a pipeline; returns the run directory.
+
+    ``engine`` overrides the file's ``[engine]`` (``{"kind": "dask", "address": ...}``).
+    The engine is not part of any stage key: it changes where work runs, not results.
+    """
     cfg = load_pipeline(path)
     for dotted, value in (overrides or {}).items():  # e.g. {"data.exploration": 10} for reduced test sizes
         node = cfg
@@ -193,6 +205,8 @@ def run_pipeline(
         for k in parents:
             node = node.setdefault(k, {}) if isinstance(node, dict) else node
         node[leaf] = value
+    if engine is not None:
+        cfg["engine"] = {**cfg["engine"], **engine}
     if from_stage is not None and from_stage not in STAGES:
         raise SpecError(f"--from {from_stage!r}: stages are {list(STAGES)}")
     run = Path(out) if out is not None else default_run_dir(cfg, Path(runs_root), force)
@@ -221,13 +235,35 @@ def run_pipeline(
         man.set(name, status="completed", seconds=round(time.perf_counter() - t0, 3), **extra)
         redo.update(STAGES[STAGES.index(name) + 1:])  # everything downstream depends on this output
 
+    with _engine(cfg, say) as client:
+        _run_stages(cfg, run, man, stage, client, say)
+    man.write()
+    return run
+
+
+@contextlib.contextmanager
+def _engine(cfg: dict[str, Any], say: Callable[[str], None]) -> Iterator[Any]:
+    eng = cfg["engine"]
+    if eng.get("kind", "local") == "local":
+        yield None
+        return
+    from offline_adp.distributed import EngineConfig, dask_client
+
+    ec = EngineConfig(**{k: v for k, v in eng.items() if k in ENGINE_KEYS})
+    with dask_client(ec) as client:
+        say(f"[engine] dask: {len(client.scheduler_info()['workers'])} workers at {client.scheduler.address}")
+        yield client
+
+
+def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[..., None], client: Any,
+                say: Callable[[str], None]) -> None:
     data = cfg["data"]
     if "inputs" in data:
         man.data["inputs"] = {f: _file_sha(f) for f in data["inputs"]}
         if isinstance(data["spec"], str):
             man.data["inputs"][data["spec"]] = _file_sha(data["spec"])
     data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"]})
-    stage("data", data_key, lambda: _data_stage(cfg, run))
+    stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
     fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
     stage("fit", fit_key, lambda: _fit_stage(cfg, run, say))
@@ -236,11 +272,9 @@ def run_pipeline(
         stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say))
         if cfg["report"]:
             stage("report", _hash(["report", eval_key]), lambda: _report_stage(run))
-    man.write()
-    return run
 
 
-def _data_stage(cfg: dict[str, Any], run: Path) -> dict[str, Any]:
+def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str, Any]:
     data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
     shutil.rmtree(run / "dataset", ignore_errors=True)
     if "builtin" in data:
@@ -257,6 +291,15 @@ def _data_stage(cfg: dict[str, Any], run: Path) -> dict[str, Any]:
                       horizon=data.get("horizon"), problem_options=data.get("problem_options"))
         ds.save(run / "dataset")
         return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
+    if client is not None:  # one task per file on the workers, written here in file order
+        from offline_adp.distributed import ingest_distributed
+
+        spec = data["spec"]
+        if not isinstance(spec, str):
+            raise SpecError("the Dask engine needs [data] spec as a file path (inline specs: use the local engine)")
+        ds, reports = ingest_distributed(client, data["inputs"], spec, run / "dataset", fmt=data["format"],
+                                         on_error=data.get("on_error"))
+        return {"transitions": len(ds), "episodes": len(ds.episode_ids), "engine": "dask", "files": len(data["inputs"])}
     if data["format"] == "parquet":
         from offline_adp.ingest.parquet import ingest_parquet
 
