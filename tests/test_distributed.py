@@ -94,12 +94,11 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
 
 
 def test_distributed_ingestion_of_four_files_equals_local(client, tmp_path):
+    from offline_adp.distributed import ingest_distributed
     from offline_adp.envs import make_problem
     from offline_adp.ingest.parquet import ingest_parquet
     from offline_adp.simulate import collect
     from offline_adp.simulate.raw import write_raw
-
-    from offline_adp.distributed import ingest_distributed
 
     prob = make_problem("path_tracking")
     files = []
@@ -119,9 +118,8 @@ def test_pipeline_with_dask_engine_matches_local(tmp_path):
     """`run --engine dask`: the data stage runs per file on the workers; the metrics equal the local run's."""
     import json
 
-    from tests.test_pipeline import PIPELINES, SMALL, quiet
-
     from offline_adp.pipeline import run_pipeline
+    from tests.test_pipeline import PIPELINES, SMALL, quiet
 
     local = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "local", say=quiet, overrides=SMALL["driving"])
     dist = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "dask", say=quiet, overrides=SMALL["driving"],
