@@ -34,6 +34,7 @@ bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/car_on_hill.py --seeds 0
 	$(BIN)/python benchmarks/compare_algorithms.py --quick
 	$(BIN)/python benchmarks/evaluation.py
+	$(BIN)/python benchmarks/dask_scale.py
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check offline_adp tests benchmarks
