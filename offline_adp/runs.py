@@ -134,17 +134,12 @@ def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm:
 
 
 def _write_checkpoint(run: Path, est: FittedQIteration, rows: list[dict[str, Any]]) -> None:
-    tmp = run / "checkpoint.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
+    from offline_adp.data.io import atomic_directory
+
     q: Any = est.q_function_ if est.horizon is None else TimeIndexedQ(list(reversed(est.q_functions_)))
-    save_q(q, tmp, extra={"iteration": len(rows)})
-    pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
-    old = run / "checkpoint.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if (run / "checkpoint").exists():
-        os.replace(run / "checkpoint", old)
-    os.replace(tmp, run / "checkpoint")
-    shutil.rmtree(old, ignore_errors=True)
+    with atomic_directory(run / "checkpoint", overwrite=True) as tmp:
+        save_q(q, tmp, extra={"iteration": len(rows)})
+        pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
 
 
 def _read_checkpoint(run: Path, finite: bool) -> dict[str, Any] | None:

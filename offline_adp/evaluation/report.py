@@ -9,8 +9,6 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
-import shutil
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -281,8 +279,15 @@ def build_report(run_dir: str | PathLike[str]) -> Path:  # noqa: C901
 
         action_values = DatasetInfo.from_dict(info).action_table.values[:, 0]
     axes = MAP_FEATURES.get(problem, tuple(features[:2]) if len(features) >= 2 else None)
-    tmp = run / ".report.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
+    from offline_adp.data.io import atomic_directory
+
+    with atomic_directory(run / "report", overwrite=True) as tmp:
+        _build(run, m, ratios, features, axes, units, action_values, problem, tmp)
+    return run / "report" / "report.html"
+
+
+def _build(run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[str], axes: Any, units: dict[str, str],
+           action_values: Any, problem: str, tmp: Path) -> None:
     figs = _Figures(tmp / "figures")
     _convergence(figs, run)
     if axes is not None and all(a in features for a in axes):
@@ -294,13 +299,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:  # noqa: C901
     if problem == "path_tracking":
         _cross_track(figs, run)
     (tmp / "report.html").write_text(_html({**m, "run": run.resolve().name}, figs))
-    old = run / ".report.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if (run / "report").exists():
-        os.replace(run / "report", old)
-    os.replace(tmp, run / "report")
-    shutil.rmtree(old, ignore_errors=True)
-    return run / "report" / "report.html"
+
 
 
 def _html(m: dict[str, Any], figs: _Figures) -> str:

@@ -15,8 +15,6 @@ reference problem (``info.problem``); ``--simulator none`` forces logs only.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 from collections.abc import Callable
 from os import PathLike
@@ -182,9 +180,14 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
 
 def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
            states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
-    tmp = run / ".evaluation.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    from offline_adp.data.io import atomic_directory
+
+    with atomic_directory(run / "evaluation", overwrite=True) as tmp:
+        _write_files(tmp, metrics, res, ds, states, demo_states)
+
+
+def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
+                 states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
     (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
     frames = [res.diagnostics.assign(method="recursion")]
     frames += [d.assign(method=k) for k, (_, d) in res.extra_ratios.items()]
@@ -198,9 +201,3 @@ def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: Transit
         np.savez_compressed(tmp / "rollout_states.npz", **{f"t{t}": s for t, s in enumerate(states)})
     if demo_states is not None:
         np.savez_compressed(tmp / "rollout_states_demonstrator.npz", **{f"t{t}": s for t, s in enumerate(demo_states)})
-    old = run / ".evaluation.old"
-    shutil.rmtree(old, ignore_errors=True)
-    if (run / "evaluation").exists():
-        os.replace(run / "evaluation", old)
-    os.replace(tmp, run / "evaluation")
-    shutil.rmtree(old, ignore_errors=True)
