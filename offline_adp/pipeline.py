@@ -200,10 +200,17 @@ def run_pipeline(
     """
     cfg = load_pipeline(path)
     for dotted, value in (overrides or {}).items():  # e.g. {"data.exploration": 10} for reduced test sizes
-        node = cfg
         *parents, leaf = dotted.split(".")
+        valid = {"data": DATA_KEYS, "fit": FIT_KEYS, "evaluate": EVAL_KEYS, "engine": ENGINE_KEYS}
+        if not parents or parents[0] not in valid or (len(parents) == 1 and leaf not in valid[parents[0]]) \
+                or (len(parents) > 1 and parents[:2] != ["fit", "params"]):
+            raise SpecError(f"--set {dotted}: not a pipeline setting; settings are "
+                            + ", ".join(f"{t}.{k}" for t in valid for k in sorted(valid[t])) + ", fit.params.NAME")
+        node = cfg
         for k in parents:
-            node = node.setdefault(k, {}) if isinstance(node, dict) else node
+            if node.get(k) is None:
+                node[k] = {}
+            node = node[k]
         node[leaf] = value
     if engine is not None:
         cfg["engine"] = {**cfg["engine"], **engine}

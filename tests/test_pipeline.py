@@ -109,3 +109,8 @@ def test_pipeline_errors_name_the_key(tmp_path):
     with pytest.raises(SpecError, match=r"needs a \[fit\] table"):
         load_pipeline(bad)
     assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+
+
+def test_unknown_override_is_refused(tmp_path):
+    with pytest.raises(SpecError, match="not a pipeline setting"):
+        run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "x", say=quiet, overrides={"evaluate.episode": 5})
