@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -115,23 +116,27 @@ def spread(client: Any, ddf: Any) -> Any:
     return ddf
 
 
-def _targets_partition(df: pd.DataFrame, q: Any, gamma: float, obs_cols: list[str], next_cols: list[str]) -> pd.Series:
+def _targets_partition(df: pd.DataFrame, q: Any, gamma: float, obs_cols: list[str], next_cols: list[str],
+                       policy: Any = None) -> pd.Series:
     from offline_adp.data import schema as S
 
     if not len(df):
         return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
     nxt = df[next_cols].to_numpy(dtype=np.float64)
-    v = q.values(nxt).min(axis=1)
+    qn = q.values(nxt)
+    v = qn.min(axis=1) if policy is None else (policy.probabilities(nxt, 0) * qn).sum(axis=1)  # FQI | FQE backup
     term = df[S.TERMINATED].to_numpy(dtype=bool)
     y = df[S.COST].to_numpy(dtype=np.float64) + gamma * np.where(term, 0.0, v)
     return pd.Series(y, index=df.index, dtype=np.float64)
 
 
-def distributed_targets(client: Any, ddf: Any, q: Any, gamma: float, info: Any) -> Any:
-    """``y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')`` per partition, Q broadcast once."""
+def distributed_targets(client: Any, ddf: Any, q: Any, gamma: float, info: Any, policy: Any = None) -> Any:
+    """``y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')`` per partition (with ``policy``:
+    the FQE backup ``sum_a' pi(a'|x'_i) Q(x'_i, a')``); Q (and pi) broadcast once."""
     cols = flat_columns(info)
     q_future = client.scatter(q, broadcast=True, hash=False)
-    return ddf.map_partitions(_targets_partition, q_future, gamma, cols["obs"], cols["next_obs"],
+    p_future = client.scatter(policy, broadcast=True, hash=False) if policy is not None else None
+    return ddf.map_partitions(_targets_partition, q_future, gamma, cols["obs"], cols["next_obs"], p_future,
                               meta=pd.Series(dtype=np.float64))
 
 
@@ -161,18 +166,29 @@ class DistributedFQI:
     """
 
     def __init__(self, gamma: float = 0.95, n_iterations: int = 10, lgbm_params: dict | None = None,
-                 time_out: int = 2, retries: int = 2, random_state: int = 0) -> None:
+                 time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
-        self.time_out, self.retries, self.random_state = time_out, retries, random_state
+        self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
 
-    def fit(self, client: Any, dataset_dir: str | PathLike[str],
-            on_iteration: Any = None) -> DistributedFQI:
+    def fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any = None,
+            checkpoint_dir: str | PathLike[str] | None = None) -> DistributedFQI:
         """Fit on a dataset directory; ``on_iteration(k)`` is called after iteration k.
 
         Tasks lost with a worker are recomputed by Dask; a LightGBM training that fails
         because a worker vanished mid-way is retried (``retries`` times) on the workers
         left, from the same Q: the iteration's inputs do not depend on which worker ran it.
+        With ``checkpoint_dir`` the Q of every completed iteration is written there
+        (atomically) and a later ``fit`` continues from it, e.g. after the scheduler was
+        lost. With ``policy`` this is fitted Q *evaluation* of that policy (Algorithm 13).
         """
+        try:
+            return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
+        except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError
+            where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
+            raise OfflineADPError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: {exc}){where}") from exc
+
+    def _fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any,
+             checkpoint_dir: str | PathLike[str] | None) -> DistributedFQI:
         from lightgbm.dask import DaskLGBMRegressor
 
         from offline_adp.data.info import DatasetInfo
@@ -188,13 +204,22 @@ class DistributedFQI:
         Xa = X.to_dask_array(lengths=True).persist()
         q: Any = _ZeroQ(len(af))
         self.history_ = []
+        start = 0
+        ck = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        if ck is not None and (ck / "q.json").exists():
+            from offline_adp.artifacts import load_q
+
+            q, meta_ck = load_q(ck)
+            start = int(meta_ck["iteration"])
+            self.history_ = pd.read_csv(ck / "history.csv").to_dict("records")
         params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, **(self.lgbm_params or {})}
         params.pop("n_jobs", None)  # workers decide their threads
         self.retried_ = 0
-        for k in range(self.n_iterations):
+        for k in range(start, self.n_iterations):
+            t0 = time.perf_counter()
             for attempt in range(self.retries + 1):
                 try:
-                    y = distributed_targets(client, ddf, q, self.gamma, info)
+                    y = distributed_targets(client, ddf, q, self.gamma, info, self.policy)
                     model = DaskLGBMRegressor(client=client, time_out=self.time_out, random_state=self.random_state, **params)
                     # arrays: the local booster then predicts on numpy without feature-name warnings
                     model.fit(Xa, y.to_dask_array(lengths=True))
@@ -208,7 +233,14 @@ class DistributedFQI:
             local = model.to_local()
             local.set_params(n_jobs=1)
             q = RegressorQ([local], enc)
-            self.history_.append({"iteration": k + 1})
+            self.history_.append({"iteration": k + 1, "wall_time": time.perf_counter() - t0})
+            if ck is not None:
+                from offline_adp.artifacts import save_q
+                from offline_adp.data.io import atomic_directory
+
+                with atomic_directory(ck, overwrite=True) as tmp:
+                    save_q(q, tmp, extra={"iteration": k + 1})
+                    pd.DataFrame(self.history_).to_csv(tmp / "history.csv", index=False)
             if on_iteration is not None:
                 on_iteration(k + 1)
         self.q_function_ = q

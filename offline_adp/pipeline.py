@@ -63,6 +63,8 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+
 from offline_adp.errors import SpecError
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
@@ -273,7 +275,7 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
     stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
     fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
-    stage("fit", fit_key, lambda: _fit_stage(cfg, run, say))
+    stage("fit", fit_key, lambda: _fit_stage(cfg, run, say, client))
     if cfg["evaluate"] is not None:
         eval_key = _hash({"evaluate": cfg["evaluate"], "fit": fit_key, "seed": cfg["seed"]})
         stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say))
@@ -328,10 +330,12 @@ def _validate_stage(run: Path) -> dict[str, Any]:
     return {"ok": bool(report.ok)}
 
 
-def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None]) -> dict[str, Any]:
+def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
     from offline_adp.runs import fit_other, fit_run
 
     fit = cfg["fit"]
+    if client is not None and fit["algorithm"] == "fqi" and fit.get("params", {}).get("regressor") == "lightgbm":
+        return _fit_dask(cfg, run, say, client)
     params = {"random_state": cfg["seed"], **fit.get("params", {})} if fit["algorithm"] == "fqi" else dict(fit.get("params", {}))
     target = run / "fit"
     if fit["algorithm"] == "fqi":
@@ -372,3 +376,37 @@ def _report_stage(run: Path) -> dict[str, Any]:
     shutil.rmtree(run / "figures", ignore_errors=True)
     shutil.copytree(html.parent / "figures", run / "figures")
     return {"report": str(run / "report.html")}
+
+
+def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any) -> dict[str, Any]:
+    """FQI with LightGBM on the Dask cluster (``DistributedFQI``), into the same fit run
+    directory layout as a local fit; resumes from ``fit/checkpoint`` after a lost cluster."""
+    from offline_adp.artifacts import save_q, versions
+    from offline_adp.data.io import atomic_directory, read_dataset
+    from offline_adp.distributed import DistributedFQI
+
+    params = dict(cfg["fit"].get("params", {}))
+    allowed = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state"}
+    bad = sorted(set(params) - allowed)
+    if bad:
+        raise SpecError(f"[fit.params] {bad} are not supported by the Dask engine's FQI (supported: {sorted(allowed)}); "
+                        "use the local engine")
+    target = run / "fit"
+    target.mkdir(parents=True, exist_ok=True)
+    ds = read_dataset(run / "dataset")
+    gamma = params.get("gamma", ds.info.gamma if ds.info.gamma is not None else 0.95)
+    est = DistributedFQI(gamma=gamma, n_iterations=params.get("n_iterations", 50), lgbm_params=params.get("regressor_params"),
+                         random_state=params.get("random_state", cfg["seed"]))
+    if (target / "checkpoint" / "q.json").exists():
+        say("[fit] resuming from the last checkpointed iteration (Dask)")
+    est.fit(client, run / "dataset", checkpoint_dir=target / "checkpoint",
+            on_iteration=lambda k: say(f"[fit] iteration {k} (Dask)") if k % 10 == 0 else None)
+    with atomic_directory(target / "model", overwrite=True) as tmp:
+        save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
+                                            "policy": "greedy (argmin_a Q)"})
+        pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
+    (target / "config.json").write_text(json.dumps({"algorithm": "fqi", "engine": "dask", "params": params}, indent=1))
+    (target / "run.json").write_text(json.dumps({"dataset": str(run / "dataset"), "dataset_fingerprint": ds.fingerprint(),
+                                                 "algorithm": "fqi", "engine": "dask", "versions": versions(),
+                                                 "status": "completed", "iterations": len(est.history_)}, indent=1))
+    return {"iterations": len(est.history_), "engine": "dask"}

@@ -130,3 +130,45 @@ def test_pipeline_with_dask_engine_matches_local(tmp_path):
         m["dataset"].pop("path")
     assert a == b
     assert sorted(p.name for p in (dist / "figures").iterdir()) == sorted(p.name for p in (local / "figures").iterdir())
+
+
+def test_checkpointed_distributed_fit_resumes(client, coh, tmp_path):
+    """A fit stopped after 2 iterations continues from its checkpoint to 3 without redoing them."""
+    ds, path = coh
+    params = {"n_estimators": 20, "num_leaves": 15}
+    DistributedFQI(gamma=0.95, n_iterations=2, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck")
+    seen: list[int] = []
+    est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
+                                                                           on_iteration=seen.append)
+    assert seen == [3] and [h["iteration"] for h in est.history_] == [1, 2, 3]
+
+
+def test_distributed_fqe_of_a_fixed_policy_matches_local(client, coh):
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.policies import UniformPolicy
+
+    ds, path = coh
+    params = {"n_estimators": 50, "num_leaves": 15, "min_child_samples": 20}
+    pi = UniformPolicy(ds.n_actions)
+    dist = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params, policy=pi).fit(client, path)
+    local = FittedQEvaluation(policy=pi, gamma=0.95, regressor="lightgbm", regressor_params=params, n_iterations=3).fit(ds)
+    x = ds.arrays().obs
+    assert np.corrcoef(dist.q_function_.values(x).ravel(), local.q_function_.values(x).ravel())[0, 1] > 0.98
+
+
+def test_pipeline_fit_on_dask_with_lightgbm(tmp_path):
+    import json
+
+    from tests.test_pipeline import PIPELINES, quiet
+
+    from offline_adp.pipeline import run_pipeline
+
+    over = {"data.exploration": 40, "fit.params": {"regressor": "lightgbm", "n_iterations": 3,
+                                                   "regressor_params": {"n_estimators": 20}},
+            "evaluate.episodes": 20, "evaluate.bootstrap": 10, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 20,
+            "evaluate.fqe_params": {"n_iterations": 5}}
+    run = run_pipeline(PIPELINES / "car_on_hill.toml", out=tmp_path / "r", say=quiet, overrides=over,
+                       engine={"kind": "dask", "n_workers": 2, "threads_per_worker": 1, "memory_limit": "2GiB"})
+    st = json.loads((run / "manifest.json").read_text())["stages"]
+    assert st["fit"]["engine"] == "dask" and st["fit"]["iterations"] == 3
+    assert (run / "report.html").exists()
