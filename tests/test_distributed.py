@@ -159,9 +159,8 @@ def test_distributed_fqe_of_a_fixed_policy_matches_local(client, coh):
 def test_pipeline_fit_on_dask_with_lightgbm(tmp_path):
     import json
 
-    from tests.test_pipeline import PIPELINES, quiet
-
     from offline_adp.pipeline import run_pipeline
+    from tests.test_pipeline import PIPELINES, quiet
 
     over = {"data.exploration": 40, "fit.params": {"regressor": "lightgbm", "n_iterations": 3,
                                                    "regressor_params": {"n_estimators": 20}},
