@@ -65,6 +65,7 @@ from typing import Any
 
 import pandas as pd
 
+from offline_adp.data.io import sha256_file
 from offline_adp.errors import SpecError
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
@@ -140,12 +141,6 @@ def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
 
 def _hash(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _file_sha(path: str) -> str:
-    from offline_adp.data.io import sha256_file
-
-    return sha256_file(path)
 
 
 class Manifest:
@@ -268,9 +263,9 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
                 say: Callable[[str], None]) -> None:
     data = cfg["data"]
     if "inputs" in data:
-        man.data["inputs"] = {f: _file_sha(f) for f in data["inputs"]}
+        man.data["inputs"] = {f: sha256_file(f) for f in data["inputs"]}
         if isinstance(data["spec"], str):
-            man.data["inputs"][data["spec"]] = _file_sha(data["spec"])
+            man.data["inputs"][data["spec"]] = sha256_file(data["spec"])
     data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"]})
     stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))

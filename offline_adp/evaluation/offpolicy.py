@@ -133,6 +133,8 @@ def off_policy(
         params.pop("tol", None)
         params.pop("n_iterations", None)
     start = a.step == 0
+    x0 = a.obs[start]
+    pi_x0 = policy.probabilities(x0, 0)  # once, not per bootstrap replicate
     fitted: dict[str, FittedQEvaluation] = {}
 
     conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
@@ -145,8 +147,7 @@ def off_policy(
         est.fit(ds, sample_weight=w)
         if counts is None:
             fitted["main"] = est
-        x0 = a.obs[start]
-        v0 = (policy.probabilities(x0, 0) * est.q_function_.values(x0, 0)).sum(axis=1)
+        v0 = (pi_x0 * est.q_function_.values(x0, 0)).sum(axis=1)
         w0 = np.ones(len(x0)) if counts is None else w[start]  # type: ignore[index]
         return float(np.sum(w0 * v0) / np.sum(w0))
 

@@ -258,7 +258,7 @@ def _table(rows: list[dict[str, Any]], cols: list[str]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def build_report(run_dir: str | PathLike[str]) -> Path:  # noqa: C901
+def build_report(run_dir: str | PathLike[str]) -> Path:
     """Write ``RUN_DIR/report/report.html`` and ``report/figures/*.png``; returns the HTML path."""
     run = Path(run_dir)
     ev = run / "evaluation"
