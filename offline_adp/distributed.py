@@ -297,3 +297,25 @@ def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any,
     ds = TransitionDataset.concat([r[0] for r in results])
     write_dataset(ds, out, overwrite=overwrite)
     return ds, pd.concat([r[1] for r in results], ignore_index=True)
+
+
+class DaskTaskMap:
+    """A task map (:mod:`offline_adp.parallel`) on a Dask cluster: ``shared`` objects are
+    broadcast to every worker once, each item is one task, results come back in item
+    order (so the outcome does not depend on which worker ran what)."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+
+    def __call__(self, fn: Any, items: Any, shared: dict[str, Any] | None = None, on_done: Any = None) -> list[Any]:
+        from distributed import as_completed
+
+        items = list(items)
+        if not items:
+            return []
+        futures_shared = {k: self.client.scatter(v, broadcast=True, hash=False) for k, v in (shared or {}).items()}
+        futures = self.client.map(fn, items, pure=False, **futures_shared)
+        for k, _f in enumerate(as_completed(futures)):
+            if on_done is not None:
+                on_done(k)
+        return self.client.gather(futures)

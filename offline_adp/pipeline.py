@@ -273,7 +273,7 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
     stage("fit", fit_key, lambda: _fit_stage(cfg, run, say, client))
     if cfg["evaluate"] is not None:
         eval_key = _hash({"evaluate": cfg["evaluate"], "fit": fit_key, "seed": cfg["seed"]})
-        stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say))
+        stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say, client))
         if cfg["report"]:
             stage("report", _hash(["report", eval_key]), lambda: _report_stage(run))
 
@@ -352,13 +352,19 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     return {}
 
 
-def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None]) -> dict[str, Any]:
+def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
     from offline_adp.evaluation.run import evaluate_run
 
+    task_map = None
+    if client is not None:  # rollout pieces and FQE bootstrap replicates on the workers (same results)
+        from offline_adp.distributed import DaskTaskMap
+
+        task_map = DaskTaskMap(client)
     ev = cfg["evaluate"]
     m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
                      n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
-                     horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"))
+                     horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
+                     task_map=task_map)
     shutil.copy(run / "fit" / "evaluation" / "metrics.json", run / "metrics.json")
     return {"fqe": m["ope"]["fqe"]["estimate"]}
 

@@ -171,3 +171,39 @@ def test_pipeline_fit_on_dask_with_lightgbm(tmp_path):
     st = json.loads((run / "manifest.json").read_text())["stages"]
     assert st["fit"]["engine"] == "dask" and st["fit"]["iterations"] == 3
     assert (run / "report.html").exists()
+
+
+def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
+    """Distributed evaluation: rollout pieces and FQE bootstrap replicates run on the
+    workers give exactly the local results (the split and seeds do not depend on the engine)."""
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.distributed import DaskTaskMap
+    from offline_adp.envs import make_problem
+    from offline_adp.evaluation import ope
+    from offline_adp.evaluation.offpolicy import _reweighted_replicate
+    from offline_adp.evaluation.rollout import rollout, rollout_pieces
+    from offline_adp.policies import UniformPolicy
+
+    ds, _ = coh
+    problem = make_problem("car_on_hill")
+    fqi = FittedQIteration(gamma=0.95, regressor="extra_trees", regressor_params={"n_estimators": 5}, mode="frozen",
+                           n_iterations=5, random_state=0).fit(ds)
+    policies = {"policy": fqi.policy_, "uniform": UniformPolicy(2)}
+    x0 = problem.initial_states(60, np.random.default_rng(0))
+    kw = {"horizon": 50, "gamma": 0.95, "record_states": True}
+    local = rollout_pieces(problem, policies, x0, 7, **kw)
+    dist = rollout_pieces(problem, policies, x0, 7, task_map=DaskTaskMap(client), **kw)
+    for name in policies:
+        np.testing.assert_array_equal(dist[name].discounted_cost, local[name].discounted_cost)
+        assert all(np.array_equal(a, b) for a, b in zip(dist[name].states, local[name].states, strict=True))
+    one = rollout_pieces(problem, policies, x0, 7, n_pieces=1, **kw)["policy"]  # one piece = one plain rollout
+    plain = rollout(problem, fqi.policy_, 60, np.random.default_rng([7, 0]), start_states=x0, **kw)
+    np.testing.assert_array_equal(one.discounted_cost, plain.discounted_cost)
+
+    fqe = FittedQEvaluation(policy=UniformPolicy(2), gamma=0.95, regressor="extra_trees", mode="frozen",
+                            regressor_params={"n_estimators": 5}, n_iterations=20, random_state=0).fit(ds)
+    em = ope.EpisodeMatrix.build(ds.arrays().episode, ds.arrays().step, 100)
+    weights = [c[em.row_episode] for c in ope.bootstrap_counts(em.n_episodes, 4, seed=1)]
+    got = DaskTaskMap(client)(_reweighted_replicate, weights, shared={"fqe": fqe})
+    assert got == [fqe.reweighted_value(w) for w in weights]
+    assert len(set(got)) == 4  # the replicates differ from one another

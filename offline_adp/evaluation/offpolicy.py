@@ -21,6 +21,7 @@ from offline_adp.evaluation.behaviour import (
     estimate_behaviour,
     support_violations,
 )
+from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy
 
 #: FQE settings for evaluation: the frozen-structure fast path keeps bootstrap refits cheap.
@@ -86,6 +87,21 @@ def psdp_bound(eps: np.ndarray, ratio_ucb: np.ndarray, pooled_ucb: float | None 
     return out
 
 
+def _start_value(fqe: FittedQEvaluation, x0: np.ndarray, pi_x0: np.ndarray, w0: np.ndarray | None) -> float:
+    """sum_a pi(a|x0) Q(x0, a), averaged over the start states (weighted by ``w0``)."""
+    v0 = (pi_x0 * fqe.q_function_.values(x0, 0)).sum(axis=1)
+    return float(v0.mean()) if w0 is None else float(np.sum(w0 * v0) / np.sum(w0))
+
+
+def _reweighted_replicate(w: np.ndarray, *, fqe: FittedQEvaluation) -> float:
+    return fqe.reweighted_value(w)
+
+
+def _refit_replicate(w: np.ndarray, *, ds: TransitionDataset, params: dict[str, Any], x0: np.ndarray,
+                     pi_x0: np.ndarray, start: np.ndarray) -> float:
+    return _start_value(FittedQEvaluation(**params).fit(ds, sample_weight=w), x0, pi_x0, w[start])
+
+
 def off_policy(
     ds: TransitionDataset,
     policy: Policy,
@@ -104,6 +120,7 @@ def off_policy(
     horizon: int | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    task_map: TaskMap | None = None,
 ) -> OffPolicyResult:
     """Evaluate ``policy`` from the dataset alone.
 
@@ -112,7 +129,8 @@ def off_policy(
     ratios by the recursion and MIS from them; diagnostics; eps_t from the FQE
     Q-functions and the PSDP bound for each reference policy (``self`` always; others
     from ``reference_policies``). With ``policy_states`` (pi's states per step from a
-    simulator) the classifier ratios are added.
+    simulator) the classifier ratios are added. ``task_map`` runs the FQE bootstrap
+    replicates (default: here; see :mod:`offline_adp.parallel`).
     """
     say = progress or (lambda _msg: None)
     a = ds.arrays()
@@ -135,29 +153,23 @@ def off_policy(
     start = a.step == 0
     x0 = a.obs[start]
     pi_x0 = policy.probabilities(x0, 0)  # once, not per bootstrap replicate
-    fitted: dict[str, FittedQEvaluation] = {}
-
     conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
-
-    def fit(counts: np.ndarray | None) -> float:
-        w = None if counts is None else counts[em.row_episode]
-        if counts is not None and conditional:  # same trees, leaves re-averaged with the replicate's weights
-            return fitted["main"].reweighted_value(w)
-        est = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **params)
-        est.fit(ds, sample_weight=w)
-        if counts is None:
-            fitted["main"] = est
-        v0 = (pi_x0 * est.q_function_.values(x0, 0)).sum(axis=1)
-        w0 = np.ones(len(x0)) if counts is None else w[start]  # type: ignore[index]
-        return float(np.sum(w0 * v0) / np.sum(w0))
-
-    estimates = {"fqe": ope.fqe_estimate(fit, em.n_episodes, n_boot=n_boot_fqe, level=level, seed=seed,
-                                         on_replicate=lambda b: say(f"FQE bootstrap {b + 1}/{n_boot_fqe}"))}
+    fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **params).fit(ds)
+    est = _start_value(fqe, x0, pi_x0, None)
+    counts = ope.bootstrap_counts(em.n_episodes, n_boot_fqe, seed)
+    on_done = lambda b: say(f"FQE bootstrap {b + 1}/{n_boot_fqe}")  # noqa: E731
+    run = task_map or local_map
+    if conditional:  # same trees, leaves re-averaged with the replicate's weights
+        reps = run(_reweighted_replicate, [c[em.row_episode] for c in counts], shared={"fqe": fqe}, on_done=on_done)
+    else:
+        reps = run(_refit_replicate, [c[em.row_episode] for c in counts], on_done=on_done,
+                   shared={"ds": ds, "params": {"policy": policy, "horizon": fqe_T, "gamma": gamma, "random_state": seed,
+                                                **params}, "x0": x0, "pi_x0": pi_x0, "start": start})
+    estimates = {"fqe": ope.fqe_interval(est, reps, em.n_episodes, level)}
     if conditional and n_boot_fqe:
         estimates["fqe"].interval_method += " (structure-conditional: tree structure fixed, leaves re-averaged)"
         estimates["fqe"].warnings.append("the interval keeps the fitted tree structure, so it omits the structure's own "
                                          "variability (a structure-conditional bootstrap)")
-    fqe = fitted["main"]
     say("importance sampling")
     estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed))
     qv = fqe.q_function_.values(a.obs, a.step)

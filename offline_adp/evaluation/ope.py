@@ -25,7 +25,7 @@ ratios w_t) are held fixed across replicates; FQE is refitted on each replicate.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -205,14 +205,15 @@ def marginalised_is_estimate(
     return res
 
 
-def fqe_estimate(
-    fit: Callable[[np.ndarray | None], float], n_episodes: int, *, n_boot: int = 20, level: float = 0.95, seed: int = 0,
-    on_replicate: Callable[[int], None] | None = None,
-) -> OPEResult:
-    """FQE's value with a trajectory-bootstrap interval.
+def bootstrap_counts(n_episodes: int, n_boot: int, seed: int = 0) -> list[np.ndarray]:
+    """Episode multiplicities of ``n_boot`` trajectory-bootstrap replicates (seeded)."""
+    rng = np.random.default_rng(seed)
+    return [np.bincount(rng.integers(0, n_episodes, n_episodes), minlength=n_episodes).astype(np.float64)
+            for _ in range(n_boot)]
 
-    ``fit(episode_counts)`` refits FQE with each episode weighted by how often the
-    replicate drew it (``None``: the original data) and returns the value estimate.
+
+def fqe_interval(est: float, reps: Sequence[float], n_episodes: int, level: float = 0.95) -> OPEResult:
+    """FQE's value ``est`` with the interval from its bootstrap replicates ``reps``.
 
     The interval is the percentile interval ``[q_lo, q_hi]`` of the replicates, unless
     their mean is shifted from the estimate by more than a quarter of its width: then
@@ -223,15 +224,7 @@ def fqe_estimate(
     basic one held it); on tabular FQE the shift is negligible and the percentile
     interval covers as it should.
     """
-    est = fit(None)
-    rng = np.random.default_rng(seed)
-    reps = []
-    for b in range(n_boot):
-        counts = np.bincount(rng.integers(0, n_episodes, n_episodes), minlength=n_episodes).astype(np.float64)
-        reps.append(fit(counts))
-        if on_replicate:
-            on_replicate(b)
-    if not reps:
+    if not len(reps):
         return OPEResult("fqe", est, (np.nan, np.nan), float(n_episodes), level)
     q_lo, q_hi = float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
     shift = float(np.mean(reps)) - est
@@ -244,6 +237,26 @@ def fqe_estimate(
         res = OPEResult("fqe", est, (q_lo, q_hi), float(n_episodes), level)
     res.percentile_interval = (q_lo, q_hi)
     return res
+
+
+def fqe_estimate(
+    fit: Callable[[np.ndarray | None], float], n_episodes: int, *, n_boot: int = 20, level: float = 0.95, seed: int = 0,
+    on_replicate: Callable[[int], None] | None = None,
+) -> OPEResult:
+    """FQE's value with a trajectory-bootstrap interval, run here.
+
+    ``fit(episode_counts)`` refits FQE with each episode weighted by how often the
+    replicate drew it (``None``: the original data) and returns the value estimate; see
+    :func:`fqe_interval` for the interval. (``off_policy`` runs the replicates through a
+    task map instead, so they can go to Dask workers.)
+    """
+    est = fit(None)
+    reps = []
+    for b, counts in enumerate(bootstrap_counts(n_episodes, n_boot, seed)):
+        reps.append(fit(counts))
+        if on_replicate:
+            on_replicate(b)
+    return fqe_interval(est, reps, n_episodes, level)
 
 
 def flag_against(results: dict[str, OPEResult], reference: str = "fqe") -> None:

@@ -6,11 +6,13 @@ time step, never a per-state Python loop.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from offline_adp.access import ResetModel
+from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy
 
 
@@ -90,3 +92,47 @@ def rollout(
         term[idx] = r.terminated
         alive[idx[r.terminated]] = False
     return RolloutResult(disc, total, length, term, states if record_states else None)
+
+
+def _rollout_piece(piece: tuple[np.ndarray, list[int]], *, model: ResetModel, policies: dict[str, Policy],
+                   horizon: int | None, gamma: float | None, record_states: bool) -> dict[str, RolloutResult]:
+    x0, seed = piece
+    return {name: rollout(model, pol, len(x0), np.random.default_rng(seed), horizon=horizon, gamma=gamma,
+                          start_states=x0, record_states=record_states) for name, pol in policies.items()}
+
+
+def _merge(results: list[RolloutResult], record_states: bool) -> RolloutResult:
+    cat = lambda name: np.concatenate([getattr(r, name) for r in results])  # noqa: E731
+    states = None
+    if record_states:
+        H = max(len(r.states or []) for r in results)
+        states = [np.concatenate([r.states[t] for r in results if r.states is not None and len(r.states) > t])
+                  for t in range(H)]
+    return RolloutResult(cat("discounted_cost"), cat("total_cost"), cat("length"), cat("terminated"), states)
+
+
+def rollout_pieces(
+    model: ResetModel,
+    policies: dict[str, Policy],
+    start_states: np.ndarray,
+    seed: int,
+    *,
+    horizon: int | None = None,
+    gamma: float | None = None,
+    record_states: bool = False,
+    n_pieces: int = 8,
+    task_map: TaskMap | None = None,
+    on_done: Callable[[int], None] | None = None,
+) -> dict[str, RolloutResult]:
+    """Roll out several policies from the same start states with common random numbers,
+    split into ``n_pieces`` pieces of episodes (seed ``[seed, k]`` for piece k, shared by
+    all policies) that ``task_map`` may run anywhere, e.g. on Dask workers
+    (:class:`offline_adp.distributed.DaskTaskMap`). The split does not depend on the
+    engine, so local and distributed runs give identical results.
+    """
+    pieces = [(x0, [seed, k]) for k, x0 in enumerate(np.array_split(np.asarray(start_states, dtype=np.float64), n_pieces))
+              if len(x0)]
+    run = task_map or local_map
+    out = run(_rollout_piece, pieces, shared={"model": model, "policies": policies, "horizon": horizon, "gamma": gamma,
+                                              "record_states": record_states}, on_done=on_done)
+    return {name: _merge([o[name] for o in out], record_states) for name in policies}

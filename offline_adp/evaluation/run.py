@@ -30,7 +30,8 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
-from offline_adp.evaluation.rollout import RolloutResult, rollout
+from offline_adp.evaluation.rollout import RolloutResult, rollout_pieces
+from offline_adp.parallel import TaskMap
 
 
 def _rollout_block(res: RolloutResult, problem: Any) -> dict[str, Any]:
@@ -85,8 +86,13 @@ def evaluate_run(
     horizon: int | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    task_map: TaskMap | None = None,
 ) -> dict[str, Any]:
     """Evaluate the policy of a run directory (see the module docstring); returns the metrics.
+
+    ``task_map`` runs the rollout pieces and the FQE bootstrap replicates (default: here;
+    :class:`offline_adp.distributed.DaskTaskMap` spreads them over Dask workers with the
+    same result).
 
     ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
     capped by the dataset's horizon).
@@ -125,10 +131,9 @@ def evaluate_run(
         T, gamma, _ = evaluation_horizon(ds, horizon)
         say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
         x0 = problem.initial_states(n_episodes, rng)
-        pol = rollout(problem, policy, n_episodes, np.random.default_rng(seed + 1), horizon=T, gamma=gamma,
-                      start_states=x0, record_states=True)
-        demo = rollout(problem, problem.demonstrator(), n_episodes, np.random.default_rng(seed + 1), horizon=T,
-                       gamma=gamma, start_states=x0, record_states=True)
+        ro = rollout_pieces(problem, {"policy": policy, "demonstrator": problem.demonstrator()}, x0, seed + 1, horizon=T,
+                            gamma=gamma, record_states=True, task_map=task_map)
+        pol, demo = ro["policy"], ro["demonstrator"]
         metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
                               "horizon": T, "policy": _rollout_block(pol, problem), "demonstrator": _rollout_block(demo, problem)}
         states, demo_states = pol.states, demo.states
@@ -139,7 +144,8 @@ def evaluate_run(
             metrics["named"] = {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean "
                                                       "discounted return over the 289-state grid (higher is better)"}}
     res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                     policy_states=states, horizon=horizon, seed=seed, progress=say)
+                     policy_states=states, horizon=horizon, seed=seed, progress=say,
+                     task_map=task_map)
     metrics.update(_offpolicy_block(res, ds))
     if "rollout" in metrics:
         truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
