@@ -155,6 +155,13 @@ class DistributedFQI:
     ``DaskLGBMRegressor.fit`` on the joint inputs ``[x, action value]``; the fitted booster
     becomes the next Q (a :class:`~offline_adp.qfunctions.RegressorQ`).
 
+    With ``warm_start=True`` (the FQI issue's warm-start mode, distributed): each
+    iteration adds ``trees_per_iteration`` trees boosted from ``init_score = Q_{k-1}(x_i,
+    a_i)``, so ``Q_k = Q_{k-1} + new trees`` (a :class:`~offline_adp.learners.BoostedSumQ`).
+    Every partition keeps its rows' cached ``Q_{k-1}(x_i, a_i)`` and ``Q_{k-1}(x'_i, a')``
+    next to the data on its worker; an iteration evaluates only the new trees there, so
+    its cost does not grow with the number of iterations.
+
     Parameters
     ----------
     gamma : float
@@ -163,12 +170,23 @@ class DistributedFQI:
         LightGBM parameters (default: the ``lightgbm`` registry entry's).
     time_out : int
         Minutes LightGBM's Dask network setup may wait (so nothing hangs for hours).
+    retries : int
+        Times an iteration whose LightGBM training lost a worker is retried.
+    random_state : int
+    policy : Policy, optional
+        Evaluate this policy (FQE backup) instead of the greedy one.
+    warm_start : bool
+        Boost each Q from the previous one (see above).
+    trees_per_iteration : int
+        New trees per iteration with ``warm_start``.
     """
 
     def __init__(self, gamma: float = 0.95, n_iterations: int = 10, lgbm_params: dict | None = None,
-                 time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None) -> None:
+                 time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None,
+                 warm_start: bool = False, trees_per_iteration: int = 10) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
         self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
+        self.warm_start, self.trees_per_iteration = warm_start, trees_per_iteration
 
     def fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any = None,
             checkpoint_dir: str | PathLike[str] | None = None) -> DistributedFQI:
@@ -182,7 +200,8 @@ class DistributedFQI:
         lost. With ``policy`` this is fitted Q *evaluation* of that policy (Algorithm 13).
         """
         try:
-            return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
+            with client.as_current():  # every compute goes to this client, even when others exist
+                return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
         except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError
             where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
             raise OfflineADPError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: {exc}){where}") from exc
@@ -214,25 +233,48 @@ class DistributedFQI:
             self.history_ = pd.read_csv(ck / "history.csv").to_dict("records")
         params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, **(self.lgbm_params or {})}
         params.pop("n_jobs", None)  # workers decide their threads
+        if self.warm_start:
+            params["n_estimators"] = self.trees_per_iteration
+            boosters = [getattr(b, "booster", b) for b in getattr(q, "boosters", [])]
+            ddf = self._cache(client, ddf, boosters, cols, af, fresh=True)
         self.retried_ = 0
         for k in range(start, self.n_iterations):
             t0 = time.perf_counter()
             for attempt in range(self.retries + 1):
                 try:
-                    y = distributed_targets(client, ddf, q, self.gamma, info, self.policy)
-                    model = DaskLGBMRegressor(client=client, time_out=self.time_out, random_state=self.random_state, **params)
+                    if self.warm_start:
+                        y = ddf.map_partitions(_cached_targets, self.gamma, len(af), cols["next_obs"],
+                                               client.scatter(self.policy, broadcast=True, hash=False)
+                                               if self.policy is not None else None, meta=pd.Series(dtype=np.float64))
+                        init = {"init_score": ddf[_CACHE_SA].to_dask_array(lengths=True)}
+                    else:
+                        y = distributed_targets(client, ddf, q, self.gamma, info, self.policy)
+                        init = {}
+                    model = DaskLGBMRegressor(client=client, time_out=self.time_out,
+                                              random_state=self.random_state + (k if self.warm_start else 0), **params)
                     # arrays: the local booster then predicts on numpy without feature-name warnings
-                    model.fit(Xa, y.to_dask_array(lengths=True))
+                    model.fit(Xa, y.to_dask_array(lengths=True), **init)
                     break
                 except Exception as exc:  # a worker lost during LightGBM's collective training
+                    if client.status != "running":  # the scheduler itself is gone: nothing to retry on
+                        raise OSError(f"no connection to the scheduler: {exc}") from exc
                     if attempt == self.retries:
                         raise OfflineADPError(f"iteration {k + 1} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
                     self.retried_ += 1
                     ddf = spread(client, read_dataset_dask(dataset_dir))
                     Xa = ddf.map_partitions(_inputs_partition, cols["obs"], af, meta=meta).to_dask_array(lengths=True).persist()
-            local = model.to_local()
-            local.set_params(n_jobs=1)
-            q = RegressorQ([local], enc)
+                    if self.warm_start:
+                        ddf = self._cache(client, ddf, boosters, cols, af, fresh=True)
+            if self.warm_start:
+                from offline_adp.learners import BoostedSumQ
+
+                boosters.append(model.booster_)
+                ddf = self._cache(client, ddf, [model.booster_], cols, af)
+                q = BoostedSumQ(list(boosters), enc)
+            else:
+                local = model.to_local()
+                local.set_params(n_jobs=1)
+                q = RegressorQ([local], enc)
             self.history_.append({"iteration": k + 1, "wall_time": time.perf_counter() - t0})
             if ck is not None:
                 from offline_adp.artifacts import save_q
@@ -246,6 +288,64 @@ class DistributedFQI:
         self.q_function_ = q
         return self
 
+
+    @staticmethod
+    def _cache(client: Any, ddf: Any, boosters: list[Any], cols: dict[str, list[str]], af: np.ndarray,
+               fresh: bool = False) -> Any:
+        """Add the predictions of ``boosters`` to each partition's cached Q columns (``fresh``:
+        start the cache at 0), persisted where the partitions are."""
+        from distributed import wait
+
+        b = client.scatter([list(boosters)], broadcast=True, hash=False)[0]  # one future holding the list
+        meta = ddf._meta if not fresh else _add_predictions(ddf._meta, [], cols["obs"], cols["next_obs"], af, True)
+        out = ddf.map_partitions(_add_predictions, b, cols["obs"], cols["next_obs"], af, fresh, meta=meta).persist()
+        wait(out)
+        return out
+
+
+_CACHE_SA = "_q_sa"
+
+
+def _cache_next(j: int) -> str:
+    return f"_q_next{j}"
+
+
+def _add_predictions(df: pd.DataFrame, boosters: list[Any], obs_cols: list[str], next_cols: list[str], af: np.ndarray,
+                     fresh: bool) -> pd.DataFrame:
+    """``df`` with its cached ``Q(x_i, a_i)`` and ``Q(x'_i, a')`` columns increased by the
+    boosters' raw predictions (single-threaded: a worker's thread budget is its own)."""
+    from offline_adp.data import schema as S
+
+    df = df.copy()
+    A = len(af)
+    if fresh:
+        df[_CACHE_SA] = 0.0
+        for j in range(A):
+            df[_cache_next(j)] = 0.0
+    if not len(df) or not boosters:
+        return df
+    x = df[obs_cols].to_numpy(dtype=np.float64)
+    nxt = df[next_cols].to_numpy(dtype=np.float64)
+    a = df[S.ACTION].to_numpy(dtype=np.int64)
+    for bst in boosters:
+        df[_CACHE_SA] += bst.predict(np.hstack([x, af[a]]), raw_score=True, num_threads=1)
+        for j in range(A):
+            xa = np.hstack([nxt, np.broadcast_to(af[j], (len(nxt), af.shape[1]))])
+            df[_cache_next(j)] += bst.predict(xa, raw_score=True, num_threads=1)
+    return df
+
+
+def _cached_targets(df: pd.DataFrame, gamma: float, n_actions: int, next_cols: list[str], policy: Any) -> pd.Series:
+    """Targets from the cached ``Q_{k-1}(x'_i, a')`` (min over a', or the policy's average)."""
+    from offline_adp.data import schema as S
+
+    qn = df[[_cache_next(j) for j in range(n_actions)]].to_numpy(dtype=np.float64)
+    if not len(df):
+        return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
+    v = qn.min(axis=1) if policy is None else (policy.probabilities(df[next_cols].to_numpy(dtype=np.float64), 0) * qn).sum(axis=1)
+    term = df[S.TERMINATED].to_numpy(dtype=bool)
+    y = df[S.COST].to_numpy(dtype=np.float64) + gamma * np.where(term, 0.0, v)
+    return pd.Series(y, index=df.index, dtype=np.float64)
 
 
 class _ZeroQ:

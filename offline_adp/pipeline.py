@@ -387,17 +387,21 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     from offline_adp.distributed import DistributedFQI
 
     params = dict(cfg["fit"].get("params", {}))
-    allowed = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state"}
+    allowed = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state", "mode", "trees_per_iteration"}
     bad = sorted(set(params) - allowed)
     if bad:
         raise SpecError(f"[fit.params] {bad} are not supported by the Dask engine's FQI (supported: {sorted(allowed)}); "
                         "use the local engine")
+    if params.get("mode", "refit") not in ("refit", "warm_start"):
+        raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine (use 'refit' or "
+                        "'warm_start', or the local engine)")
     target = run / "fit"
     target.mkdir(parents=True, exist_ok=True)
     ds = read_dataset(run / "dataset")
     gamma = params.get("gamma", ds.info.gamma if ds.info.gamma is not None else 0.95)
     est = DistributedFQI(gamma=gamma, n_iterations=params.get("n_iterations", 50), lgbm_params=params.get("regressor_params"),
-                         random_state=params.get("random_state", cfg["seed"]))
+                         random_state=params.get("random_state", cfg["seed"]), warm_start=params.get("mode") == "warm_start",
+                         trees_per_iteration=params.get("trees_per_iteration", 10))
     if (target / "checkpoint" / "q.json").exists():
         say("[fit] resuming from the last checkpointed iteration (Dask)")
     est.fit(client, run / "dataset", checkpoint_dir=target / "checkpoint",

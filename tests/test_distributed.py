@@ -207,3 +207,80 @@ def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
     got = DaskTaskMap(client)(_reweighted_replicate, weights, shared={"fqe": fqe})
     assert got == [fqe.reweighted_value(w) for w in weights]
     assert len(set(got)) == 4  # the replicates differ from one another
+
+
+def test_a_lost_scheduler_gives_a_clear_error_and_the_fit_resumes_from_its_checkpoint(client, coh, tmp_path):
+    """Scheduler and workers in their own processes; the scheduler is killed after
+    iteration 1. The fit stops with an OfflineADPError naming the checkpoint, and a fit on
+    another cluster continues from iteration 2, matching an undisturbed 3-iteration fit."""
+    import subprocess
+    import sys
+    import time
+
+    import dask
+    from distributed import Client
+
+    from offline_adp.errors import OfflineADPError
+
+    ds, path = coh
+    params = {"n_estimators": 30, "num_leaves": 15, "min_child_samples": 20}
+    sf = tmp_path / "scheduler.json"
+    cli = [sys.executable, "-m"]
+    sched = subprocess.Popen(cli + ["distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+                                    "--no-dashboard", "--scheduler-file", str(sf)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers = subprocess.Popen(cli + ["distributed.cli.dask_worker", "--scheduler-file", str(sf), "--nworkers", "2",
+                                      "--nthreads", "1", "--no-dashboard", "--memory-limit", "2GiB"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        for _ in range(300):
+            if sf.exists():
+                break
+            time.sleep(0.1)
+        remote = Client(scheduler_file=str(sf), timeout="3s")  # how long it tries to reconnect
+        remote.wait_for_workers(2, timeout=60)
+
+        def kill_scheduler(k):
+            if k == 1:
+                sched.kill()
+                sched.wait()
+
+        ck = tmp_path / "ck"
+        with dask.config.set({"distributed.comm.timeouts.connect": "3s"}), \
+                pytest.raises(OfflineADPError, match="lost the Dask cluster.*checkpoint"):
+            DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(remote, path, checkpoint_dir=ck,
+                                                                               on_iteration=kill_scheduler)
+        remote.close(timeout=5)
+    finally:
+        for p in (sched, workers):
+            p.kill()
+            p.wait()
+    seen: list[int] = []
+    resumed = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=ck,
+                                                                               on_iteration=seen.append)
+    assert seen == [2, 3]  # iteration 1 came from the checkpoint
+    undisturbed = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path)
+    x = ds.arrays().obs
+    assert np.corrcoef(resumed.q_function_.values(x).ravel(), undisturbed.q_function_.values(x).ravel())[0, 1] > 0.98
+
+
+def test_distributed_warm_start_agrees_with_local_warm_start_and_resumes(client, coh, tmp_path):
+    """Warm start on Dask: Q_k = Q_{k-1} + a few trees, cached predictions on the workers.
+    Close to the single-process warm-start mode; a checkpointed run continues to the same Q."""
+    ds, path = coh
+    params = {"num_leaves": 15, "min_child_samples": 20}
+    dist = DistributedFQI(gamma=0.95, n_iterations=6, lgbm_params=params, warm_start=True,
+                          trees_per_iteration=10).fit(client, path)
+    local = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=params, mode="warm_start",
+                             trees_per_iteration=10, n_iterations=6, random_state=0).fit(ds)
+    x = ds.arrays().obs
+    qd = dist.q_function_.values(x)
+    assert len(dist.q_function_.boosters) == 6
+    assert np.corrcoef(qd.ravel(), local.q_function_.values(x).ravel())[0, 1] > 0.98
+    ck = tmp_path / "ck"
+    DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params, warm_start=True).fit(client, path, checkpoint_dir=ck)
+    seen: list[int] = []
+    resumed = DistributedFQI(gamma=0.95, n_iterations=6, lgbm_params=params, warm_start=True).fit(
+        client, path, checkpoint_dir=ck, on_iteration=seen.append)
+    assert seen == [4, 5, 6]
+    assert np.corrcoef(resumed.q_function_.values(x).ravel(), qd.ravel())[0, 1] > 0.98
