@@ -132,8 +132,10 @@ class TransitionDataset:
         source: Sequence[str] | np.ndarray | str = "unknown",
         behavior_prob: np.ndarray | None = None,
         t_ns: np.ndarray | None = None,
+        extra: dict[str, Any] | None = None,
     ) -> TransitionDataset:
-        """Build from numpy arrays (obs and next_obs of shape (n, d) in feature order)."""
+        """Build from numpy arrays (obs and next_obs of shape (n, d) in feature order);
+        ``extra`` columns (e.g. provenance such as ``src_file``) are kept as they are."""
         n = len(cost)
         obs = np.asarray(obs, dtype=np.float64).reshape(n, -1)
         next_obs = np.asarray(next_obs, dtype=np.float64).reshape(n, -1)
@@ -156,6 +158,7 @@ class TransitionDataset:
         cols[S.SOURCE] = src
         if behavior_prob is not None:
             cols[S.BEHAVIOR_PROB] = np.asarray(behavior_prob, dtype=np.float64)
+        cols.update(extra or {})
         return cls(pa.table(cols), info)
 
     @classmethod
