@@ -104,14 +104,44 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
 
 
 def cmd_ingest_mcap(args: argparse.Namespace) -> int:
-    from offline_adp.ingest.mcap import ingest_mcap
+    from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, resolve_sources
 
-    ds, summary = ingest_mcap(args.inputs, args.spec, args.out, on_error=args.on_error, overwrite=args.overwrite)
-    print(f"doctor: {'OK' if summary['doctor']['ok'] else summary['doctor']}")
-    for f in summary["files"]:
-        print(f"  {f['path']}: messages used per topic {f['messages_used']}")
-    print(f"wrote {args.out}: {summary['episodes']} episodes, {summary['transitions']} transitions, per source "
-          f"{summary['per_source']}, steps dropped for missing values {summary['dropped_steps']}")
+    spec = load_mcap_spec(args.spec)
+    n_rec = len(resolve_sources(args.inputs, spec))
+    bar = None
+    if not args.quiet and n_rec > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_rec, unit="recording", desc="ingest mcap", file=sys.stderr)
+    progress = (lambda done, total: bar.update(done - bar.n)) if bar is not None else None
+    try:
+        ds, s = ingest_mcap(args.inputs, spec, args.out, on_error=args.on_error, overwrite=args.overwrite,
+                            jobs=args.jobs, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    print(f"doctor: {'OK' if s['doctor']['ok'] else s['doctor']}")
+    rows = [("file", "used", "skipped", "recovered")]
+    for f in s["files"]:
+        rec = f.get("recovered")
+        rows.append((f["path"], str(sum(f["messages_used"].values())), str(sum(f["messages_skipped"].values())),
+                     "-" if rec is None else f"{rec['messages']} msgs, damage: {rec['text'].split(', ', 1)[1]}"))
+    width = [max(len(r[i]) for r in rows) for i in range(3)]
+    for r in rows:
+        print(f"  {r[0]:<{width[0]}}  {r[1]:>{width[1]}}  {r[2]:>{width[2]}}  {r[3]}")
+    print(f"  messages used per topic: {s['messages_used']}")
+    if s["messages_skipped"]:
+        print(f"  messages skipped (topics not in the spec, not decoded): {s['messages_skipped']}")
+    print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
+    notes = {"dropped_steps": "steps dropped for missing values (missing = 'drop_step')",
+             "outside_episode_steps": "steps outside any start/end episode", "condition_steps":
+             "steps under an end condition", "short_episodes": "episodes with fewer than 2 steps",
+             "incomplete_episodes": "episodes without their end (cut recordings)", "episodes_lost_to_damage":
+             "episodes that overlapped a lost chunk", "restarts": "time-source restarts (episode boundaries)",
+             "quarantined_rows": "rows quarantined by the doctor"}
+    for k, text in notes.items():
+        if s.get(k):
+            print(f"  {text}: {s[k]}")
     return 0
 
 
@@ -397,15 +427,21 @@ def build_parser() -> argparse.ArgumentParser:
         "mcap",
         help="MCAP logs (JSON, ROS 2 CDR, protobuf)",
         formatter_class=fmt,
-        description="Ingest MCAP recordings through a TOML spec: a clock topic defines the steps, streams are "
-        "aligned to it (nearest, previous, linear; max_age), episodes come from an event topic or time gaps, the cost "
-        "is a declared weighted sum of terms. Use `offline-adp mcap-info` to find topics and field paths.",
-        epilog="example:\n  offline-adp ingest mcap logs/*.mcap --spec data/specs/path_tracking_mcap.toml --out data/pt",
+        description="Ingest MCAP recordings through a TOML spec: a clock topic (or rate) defines the steps, streams "
+        "are aligned to it (nearest, previous, linear; max_age), episodes come from an event topic, time gaps, time "
+        "restarts or field conditions, the cost is a field, a negated reward or a declared weighted sum of terms. "
+        "Files stream through bounded memory; parts of a split recording (NAME_0.mcap, NAME_1.mcap ...) form one "
+        "recording. Use `offline-adp mcap-info` to find topics and field paths (docs/ingestion-spec.md).",
+        epilog="example:\n  offline-adp ingest mcap logs/*.mcap --spec data/specs/path_tracking_mcap.toml --out data/pt "
+        "--jobs 2",
     )
-    im.add_argument("inputs", nargs="+", help="MCAP files")
+    im.add_argument("inputs", nargs="*", help="MCAP files or globs (default: the spec's [sources] files)")
     im.add_argument("--spec", required=True)
     im.add_argument("--out", required=True)
-    im.add_argument("--on-error", choices=("fail", "quarantine"), default=None)
+    im.add_argument("--on-error", choices=("fail", "quarantine"), default=None,
+                    help="damaged files and doctor findings: fail (default: the spec's on_error) or keep what is sound")
+    im.add_argument("--jobs", "-j", type=int, default=1, help="recordings ingested in parallel processes (output "
+                    "order does not depend on it)")
     im.add_argument("--overwrite", action="store_true")
     im.add_argument("--quiet", "-q", action="store_true")
     im.set_defaults(func=cmd_ingest_mcap)

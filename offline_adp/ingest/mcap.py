@@ -190,14 +190,15 @@ def _safe_decoded(reader: Any, topics: Sequence[str] | None):
 
 
 # ----------------------------------------------------------------------------- spec
-ROLES = ("obs", "cost", "reward", "terminal", "episode")
+ROLES = ("obs", "aux", "cost", "reward", "terminal", "episode")
 
 
 @dataclass(frozen=True)
 class StreamSpec:
     """One topic's fields, how they are timed and aligned to the steps, and what a missing
     value means. ``role``: ``obs`` fields are features; the others are auxiliary values
-    (usable in cost terms and episode conditions): ``cost``/``reward`` (the cost, or the
+    (usable in cost terms and episode conditions): ``aux`` (nothing more),
+    ``cost``/``reward`` (the cost, or the
     negated reward, when ``[cost]`` declares no terms), ``terminal`` (non-zero marks a
     terminal step), ``episode`` (a change of value starts a new episode)."""
 
@@ -662,7 +663,8 @@ class _Recording:
         self.used = {t: 0 for t in self.by_topic}
         self.late = {t: 0 for t in self.by_topic}
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
-                      "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0}
+                      "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
+                      "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
         obs = spec.obs_names
@@ -812,6 +814,8 @@ class _Recording:
         return w - self.lag
 
     def _flush(self, final: bool = False) -> None:
+        held = sum(len(b) for b in self.bufs.values())
+        self.stats["max_buffered_messages"] = max(self.stats["max_buffered_messages"], held)
         while True:
             e = self.active
             w = np.inf if final else self._watermark(e)
@@ -1111,7 +1115,7 @@ def ingest_mcap(
                                "messages_used": {}, "messages_skipped": {}, "late_messages": {}}
     for res, rec in zip(results, recordings, strict=True):
         for k, v in res["stats"].items():
-            summary[k] = summary.get(k, 0) + v
+            summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
         for name in ("used", "late"):
             tgt = summary["messages_used" if name == "used" else "late_messages"]
             for t, v in res[name].items():
