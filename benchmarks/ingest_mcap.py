@@ -4,7 +4,7 @@ Logs come from `simulate path_tracking` (vehicle layout: odometry 50 Hz, trackin
 and steering command 10 Hz, episode events), as JSON and as ROS 2 CDR, at two sizes.
 Each measurement runs in a fresh subprocess so peak RSS is its own.
 
-    python benchmarks/ingest_mcap.py [--episodes 75 150]
+    python benchmarks/ingest_mcap.py [--episodes 75 300]
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ CHILD = textwrap.dedent(
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--episodes", type=int, nargs="+", default=[75, 150])
+    ap.add_argument("--episodes", type=int, nargs="+", default=[75, 300])
     args = ap.parse_args()
     from offline_adp.simulate import simulate
     from offline_adp.simulate.mcap_writer import write_mcap
