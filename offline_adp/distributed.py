@@ -358,8 +358,9 @@ class _ZeroQ:
         return np.zeros((len(obs), self.n_actions))
 
 
-def _ingest_file(path: str, spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any]:
-    """One file -> (dataset, doctor findings) on a worker; nothing is written there."""
+def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any]:
+    """One file (MCAP: one recording, i.e. a file or the parts of a split recording) ->
+    (dataset, doctor findings) on a worker; nothing is written there."""
     if fmt == "parquet":
         from offline_adp.ingest.parquet import ingest_tables
 
@@ -367,8 +368,9 @@ def _ingest_file(path: str, spec: Any, fmt: str, on_error: str | None) -> tuple[
         return res.dataset, res.report.findings.assign(file=str(path))
     from offline_adp.ingest.mcap import ingest_mcap
 
-    ds, summary = ingest_mcap([path], spec, on_error=on_error)
-    return ds, pd.DataFrame([{**{k: v for k, v in summary.items() if np.isscalar(v)}, "file": str(path)}])
+    parts = path if isinstance(path, list) else [path]
+    ds, summary = ingest_mcap(parts, spec, on_error=on_error)
+    return ds, pd.DataFrame([{**{k: v for k, v in summary.items() if np.isscalar(v)}, "file": ", ".join(parts)}])
 
 
 def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any, out: str | PathLike[str], *,
@@ -391,7 +393,11 @@ def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any,
             from offline_adp.ingest.mcap import load_mcap_spec
 
             spec = load_mcap_spec(spec)
-    paths = [str(Path(f).resolve()) for f in files]
+    paths: list[Any] = [str(Path(f).resolve()) for f in files]
+    if fmt == "mcap":  # the parts of a split recording stay together
+        from offline_adp.ingest.mcap import resolve_sources
+
+        paths = [[str(p) for p in rec] for rec in resolve_sources(paths, spec)]
     futures = client.map(_ingest_file, paths, spec=spec, fmt=fmt, on_error=on_error, pure=False)
     results = client.gather(futures)  # in file order: deterministic part order
     ds = TransitionDataset.concat([r[0] for r in results])
