@@ -2,7 +2,9 @@
 
 Logs come from `simulate path_tracking` (vehicle layout: odometry 50 Hz, tracking state
 and steering command 10 Hz, episode events), as JSON and as ROS 2 CDR, at two sizes.
-Each measurement runs in a fresh subprocess so peak RSS is its own.
+Each measurement runs in a fresh subprocess so peak RSS is its own. "max buffered msgs"
+is the most messages our streaming assembler held at once (bounded by the reorder
+window, not the file).
 
     python benchmarks/ingest_mcap.py [--episodes 75 300]
 """
@@ -24,6 +26,7 @@ CHILD = textwrap.dedent(
     path, mode, spec = sys.argv[1], sys.argv[2], sys.argv[3]
     topics = ["/planning/tracking_state", "/vehicle/odometry", "/control/steering_cmd", "/episode/event"]
     t0 = time.perf_counter()
+    buffered = None
     if mode == "raw":
         from mcap.reader import make_reader
         from mcap_ros2.decoder import DecoderFactory
@@ -36,8 +39,10 @@ CHILD = textwrap.dedent(
         from offline_adp.ingest.mcap import ingest_mcap
         ds, s = ingest_mcap([path], spec)
         n = sum(s["files"][0]["messages_used"].values())
+        buffered = s["max_buffered_messages"]
     wall = time.perf_counter() - t0
-    print(json.dumps({"messages": n, "wall": wall, "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+    print(json.dumps({"messages": n, "wall": wall, "buffered": buffered,
+                      "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
     """
 )
 
@@ -49,7 +54,7 @@ def main() -> None:
     from offline_adp.simulate import simulate
     from offline_adp.simulate.mcap_writer import write_mcap
 
-    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} {'ours/raw':>8} {'raw RSS MiB':>11} {'ours RSS MiB':>12}")
+    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} {'ours/raw':>8} {'raw RSS MiB':>11} {'ours RSS MiB':>12} {'max buffered msgs':>17}")
     with tempfile.TemporaryDirectory() as d:
         for n_ep in args.episodes:
             ds = simulate("path_tracking", n_ep, 0, seed=0, horizon=200)
@@ -62,7 +67,7 @@ def main() -> None:
                 r, o = res["raw"], res["ours"]
                 print(f"{enc:<9} {n_ep:>8} {f.stat().st_size / 1e6:>6.1f} {r['messages']:>9} {r['messages'] / r['wall']:>10,.0f} "
                       f"{o['messages'] / o['wall']:>10,.0f} {(o['messages'] / o['wall']) / (r['messages'] / r['wall']):>8.2f} "
-                      f"{r['rss_mib']:>11.0f} {o['rss_mib']:>12.0f}", flush=True)
+                      f"{r['rss_mib']:>11.0f} {o['rss_mib']:>12.0f} {o['buffered']:>17}", flush=True)
 
 
 if __name__ == "__main__":

@@ -125,14 +125,34 @@ def test_missing_values_error_fill_or_drop(tmp_path):
 
 
 def test_undecodable_channels_unneeded_skipped_needed_named(tmp_path):
+    from mcap.writer import Writer
+
     _synthetic(tmp_path, with_bad_channel=True)
     info = mcap_info(tmp_path / "b.mcap")
     assert info["topics"]["/weird"]["fields"] is None  # listed, not decodable
-    ds, _ = ingest_mcap([tmp_path / "a.mcap"], _spec())
-    assert len(ds) == 9
+    # the good topics and an undecodable one in one file: unneeded, it is skipped (counted, never decoded)
+    mixed = tmp_path / "mixed.mcap"
+    with open(mixed, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema(name="x", encoding="jsonschema", data=b"{}")
+        bad = w.register_schema(name="p", encoding="protobuf", data=b"\x00")
+        weird = w.register_channel(topic="/weird", message_encoding="my-encoding", schema_id=bad)
+        chans = {t: w.register_channel(topic=t, message_encoding="json", schema_id=sid) for t in ("/clock", "/fast", "/cmd")}
+        for k in range(10):
+            t = k * 100 * MS
+            w.add_message(weird, log_time=t, publish_time=t, data=b"\x01\x02")
+            w.add_message(chans["/clock"], log_time=t, publish_time=t, data=json.dumps({"k": k}).encode())
+            for j in range(5):
+                w.add_message(chans["/fast"], log_time=t + j * 20 * MS, publish_time=t,
+                              data=json.dumps({"pos": {"x": (t + j * 20 * MS) / 1e9}}).encode())
+            w.add_message(chans["/cmd"], log_time=t + 7 * MS, publish_time=t, data=json.dumps({"u": [0.5 * (k % 3)]}).encode())
+        w.finish()
+    ds, s = ingest_mcap([mixed], _spec())
+    assert len(ds) == 9 and s["messages_skipped"] == {"/weird": 10}
     spec = _spec(extra_stream={"topic": "/weird", "fields": {"w": "w"}})
     with pytest.raises(IngestError, match="needed topic '/weird' has message encoding 'my-encoding'"):
-        ingest_mcap([tmp_path / "b.mcap"], spec)
+        ingest_mcap([mixed], spec)
 
 
 def test_bad_field_path_and_spec_errors(tmp_path):
