@@ -156,7 +156,10 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
         rng = info.get("time_range_ns")
         print(f"{info['file']}: profile {info['profile'] or '-'}, library {info['library']!r}, summary {info['summary']}, "
               f"indexed {info.get('indexed', False)}, compression {info.get('compression', '?')}"
-              + (f", {(rng[1] - rng[0]) / 1e9:.1f} s of messages" if rng else ""))
+              + (f", {(rng[1] - rng[0]) / 1e9:.1f} s of messages" if rng else "")
+              + (" (no readable summary: counted by scanning the records)" if info.get("scanned") else ""))
+        if info.get("damage"):
+            print(f"  DAMAGE: {info['damage']}")
         for topic, t in sorted(info["topics"].items()):
             print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']!s:>7} msgs {t['rate_hz']!s:>8} Hz")
             if t["fields"]:

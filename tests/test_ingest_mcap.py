@@ -212,6 +212,11 @@ def test_damaged_files_recover_complete_chunks_and_report(tmp_path, damage):
         part, summary = ingest_mcap([bad], SPEC, on_error="quarantine")
     assert 0 < part.n_episodes < ds.n_episodes
     assert summary["files"][0]["recovered"]["messages"] > 0
+    if damage == "truncate":  # mcap-info on a cut file: a record scan, saying what was lost
+        info = mcap_info(bad)
+        assert info["scanned"] and "lost from offset" in info["damage"]
+        n = info["topics"]["/vehicle/odometry"]["messages"]
+        assert 0 < n < 6 * 40 * 5 and info["topics"]["/vehicle/odometry"]["fields"]
     full = ds.select_episodes(part.episode_ids)  # what was kept is exactly the original
     np.testing.assert_allclose(part.arrays().obs, full.arrays().obs, atol=1e-9)
     np.testing.assert_array_equal(part.arrays().action, full.arrays().action)

@@ -29,6 +29,7 @@ Spec (TOML), see ``docs/ingestion-spec.md``::
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import re
@@ -131,43 +132,98 @@ def _open_reader(f: Any) -> Any:
 
 def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
     """Profile, library, summary/index presence, compression, time range, and per topic:
-    schema, encoding, count, rate and the field paths of the first decodable message."""
+    schema, encoding, count, rate and the field paths of the first decodable message.
+
+    Files without a summary, or whose summary cannot be read (a crashed recording), are
+    scanned record by record instead; the result then says what was recovered and lost.
+    """
     path = Path(path)
     try:
         with open(path, "rb") as f:
+            size = f.seek(0, 2)
+            f.seek(max(size - 8, 0))
+            if size < 16 or f.read(8) != _MAGIC:  # no closing magic: cut short; the library would guess a summary
+                return _scan_info(path)
+            f.seek(0)
             reader = _open_reader(f)
             header = reader.get_header()
             summary = reader.get_summary()
-            info: dict[str, Any] = {"file": str(path), "profile": header.profile, "library": header.library,
-                                    "summary": summary is not None, "topics": {}}
-            if summary is not None:
-                st = summary.statistics
-                info["indexed"] = bool(summary.chunk_indexes)
-                info["compression"] = sorted({c.compression or "none" for c in summary.chunk_indexes})
-                if st is not None:
-                    info["time_range_ns"] = [st.message_start_time, st.message_end_time]
-                    dur = max((st.message_end_time - st.message_start_time) / 1e9, 1e-9)
-                    for cid, ch in summary.channels.items():
-                        sch = summary.schemas.get(ch.schema_id)
-                        n = st.channel_message_counts.get(cid, 0)
-                        info["topics"][ch.topic] = {"schema": sch.name if sch else "", "encoding": ch.message_encoding,
-                                                    "messages": n, "rate_hz": round(n / dur, 3), "fields": None}
+        if summary is None or summary.statistics is None:
+            return _scan_info(path)
+    except IngestError:
+        raise
+    except Exception:  # noqa: BLE001 - no readable summary: fall back to the record scan
+        return _scan_info(path)
+    try:
+        info: dict[str, Any] = {"file": str(path), "profile": header.profile, "library": header.library,
+                                "summary": True, "topics": {}}
+        st = summary.statistics
+        info["indexed"] = bool(summary.chunk_indexes)
+        info["compression"] = sorted({c.compression or "none" for c in summary.chunk_indexes})
+        info["time_range_ns"] = [st.message_start_time, st.message_end_time]
+        dur = max((st.message_end_time - st.message_start_time) / 1e9, 1e-9)
+        for cid, ch in summary.channels.items():
+            sch = summary.schemas.get(ch.schema_id)
+            n = st.channel_message_counts.get(cid, 0)
+            info["topics"][ch.topic] = {"schema": sch.name if sch else "", "encoding": ch.message_encoding,
+                                        "messages": n, "rate_hz": round(n / dur, 3), "fields": None}
         with open(path, "rb") as f:
             reader = _open_reader(f)
-            pending = set(info["topics"]) if info["topics"] else None
+            pending = set(info["topics"])
             for sch, ch, _msg, dec in _safe_decoded(reader, None):
                 t = info["topics"].setdefault(ch.topic, {"schema": sch.name if sch else "", "encoding": ch.message_encoding,
                                                          "messages": None, "rate_hz": None, "fields": None})
                 if t["fields"] is None:
                     t["fields"] = field_paths(dec)
-                    if pending is not None:
-                        pending.discard(ch.topic)
-                        if not pending:
-                            break
-    except IngestError:
-        raise
+                    pending.discard(ch.topic)
+                    if not pending:
+                        break
     except Exception as exc:  # noqa: BLE001 - any library error becomes ours, naming the file
         raise IngestError(f"{path}: cannot read as MCAP ({type(exc).__name__}: {exc})") from exc
+    return info
+
+
+def _scan_info(path: Path) -> dict[str, Any]:
+    """``mcap_info`` by a record scan: counts, time range and rates from the messages."""
+    report: dict[str, Any] = {}
+    topics: dict[str, dict[str, Any]] = {}
+    lo = hi = None
+    decoders: dict[Any, Any] = {}
+    factories = decoder_factories()
+    try:
+        with open(path, "rb") as f:
+            for sch, ch, msg in scan_records(f, None, report):
+                t = topics.get(ch.topic)
+                if t is None:
+                    t = topics[ch.topic] = {"schema": sch.name if sch else "", "encoding": ch.message_encoding,
+                                            "messages": 0, "rate_hz": None, "fields": None, "_t": [msg.log_time, msg.log_time]}
+                t["messages"] += 1
+                t["_t"] = [min(t["_t"][0], msg.log_time), max(t["_t"][1], msg.log_time)]
+                lo = msg.log_time if lo is None else min(lo, msg.log_time)
+                hi = msg.log_time if hi is None else max(hi, msg.log_time)
+                if t["fields"] is None:
+                    key = (ch.message_encoding, None if sch is None else sch.id)
+                    if key not in decoders:
+                        decoders[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch))
+                                              is not None), None)
+                    if decoders[key] is not None:
+                        with contextlib.suppress(Exception):
+                            t["fields"] = field_paths(decoders[key](msg.data))
+    except IngestError as exc:
+        raise IngestError(f"{path}: cannot read as MCAP ({exc})") from None
+    except Exception as exc:  # noqa: BLE001
+        raise IngestError(f"{path}: cannot read as MCAP ({type(exc).__name__}: {exc})") from exc
+    dur = max(((hi or 0) - (lo or 0)) / 1e9, 1e-9)
+    for t in topics.values():
+        t["rate_hz"] = round(t["messages"] / dur, 3)
+        del t["_t"]
+    head = report.get("header", {})
+    info = {"file": str(path), "profile": head.get("profile", ""), "library": head.get("library", ""), "summary": False,
+            "indexed": False, "compression": sorted(report.get("compression", set())), "topics": topics,
+            "scanned": True, **({"time_range_ns": [lo, hi]} if lo is not None else {})}
+    text = damage_text(path, report)
+    if text:
+        info["damage"] = text
     return info
 
 
@@ -450,7 +506,7 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any]):
 
     from mcap.data_stream import ReadDataStream
     from mcap.opcode import Opcode
-    from mcap.records import Channel, Chunk, Message, Schema
+    from mcap.records import Channel, Chunk, Header, Message, Schema
     from mcap.stream_reader import breakup_chunk
 
     schemas: dict[int, Any] = {}
@@ -506,6 +562,7 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any]):
             except Exception as exc:  # noqa: BLE001 - a corrupt chunk header: skip the record
                 report["lost_chunks"].append({"offset": offset, "error": f"{type(exc).__name__}: {exc}"})
                 continue
+            report.setdefault("compression", set()).add(chunk.compression or "none")
             try:
                 records = breakup_chunk(chunk, validate_crc=True)
             except Exception as exc:  # noqa: BLE001 - zstd/lz4/CRC errors of many library types
@@ -521,6 +578,12 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any]):
                 report["lost_chunks"].append({"offset": offset, "error": f"message record: {type(exc).__name__}: {exc}"})
                 continue
             yield from wanted([rec])
+        elif opcode == Opcode.HEADER:
+            try:
+                h = Header.read(stream)
+                report["header"] = {"profile": h.profile, "library": h.library}
+            except Exception as exc:  # noqa: BLE001
+                report["lost_chunks"].append({"offset": offset, "error": f"header record: {type(exc).__name__}: {exc}"})
         elif opcode in parsers:
             try:
                 yield from wanted([parsers[opcode](stream)])
