@@ -118,13 +118,18 @@ def spread(client: Any, ddf: Any) -> Any:
 
 def _targets_partition(df: pd.DataFrame, q: Any, gamma: float, obs_cols: list[str], next_cols: list[str],
                        policy: Any = None) -> pd.Series:
-    from offline_adp.data import schema as S
 
     if not len(df):
         return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
-    nxt = df[next_cols].to_numpy(dtype=np.float64)
-    qn = q.values(nxt)
-    v = qn.min(axis=1) if policy is None else (policy.probabilities(nxt, 0) * qn).sum(axis=1)  # FQI | FQE backup
+    return _backup(df, q.values(df[next_cols].to_numpy(dtype=np.float64)), gamma, next_cols, policy)
+
+
+def _backup(df: pd.DataFrame, qn: np.ndarray, gamma: float, next_cols: list[str], policy: Any) -> pd.Series:
+    """``c + gamma (1 - term) v(x')`` with ``v`` = min_a' Q(x', a') (FQI) or the policy's
+    average (FQE), given ``qn = Q(x', .)`` for the partition's rows."""
+    from offline_adp.data import schema as S
+
+    v = qn.min(axis=1) if policy is None else (policy.probabilities(df[next_cols].to_numpy(dtype=np.float64), 0) * qn).sum(axis=1)
     term = df[S.TERMINATED].to_numpy(dtype=bool)
     y = df[S.COST].to_numpy(dtype=np.float64) + gamma * np.where(term, 0.0, v)
     return pd.Series(y, index=df.index, dtype=np.float64)
@@ -337,15 +342,9 @@ def _add_predictions(df: pd.DataFrame, boosters: list[Any], obs_cols: list[str],
 
 def _cached_targets(df: pd.DataFrame, gamma: float, n_actions: int, next_cols: list[str], policy: Any) -> pd.Series:
     """Targets from the cached ``Q_{k-1}(x'_i, a')`` (min over a', or the policy's average)."""
-    from offline_adp.data import schema as S
-
-    qn = df[[_cache_next(j) for j in range(n_actions)]].to_numpy(dtype=np.float64)
     if not len(df):
         return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
-    v = qn.min(axis=1) if policy is None else (policy.probabilities(df[next_cols].to_numpy(dtype=np.float64), 0) * qn).sum(axis=1)
-    term = df[S.TERMINATED].to_numpy(dtype=bool)
-    y = df[S.COST].to_numpy(dtype=np.float64) + gamma * np.where(term, 0.0, v)
-    return pd.Series(y, index=df.index, dtype=np.float64)
+    return _backup(df, df[[_cache_next(j) for j in range(n_actions)]].to_numpy(dtype=np.float64), gamma, next_cols, policy)
 
 
 class _ZeroQ:

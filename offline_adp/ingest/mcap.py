@@ -79,6 +79,22 @@ def decoder_factories() -> list[Any]:
     return out
 
 
+class _Decoders:
+    """The decoder of each (message encoding, schema) pair, looked up once; None when no
+    installed decoder reads it."""
+
+    def __init__(self) -> None:
+        self.factories = decoder_factories()
+        self.cache: dict[tuple[str, int | None], Any] = {}
+
+    def __call__(self, sch: Any, ch: Any) -> Any:
+        key = (ch.message_encoding, None if sch is None else sch.id)
+        if key not in self.cache:
+            self.cache[key] = next((d for fac in self.factories if (d := fac.decoder_for(ch.message_encoding, sch))
+                                    is not None), None)
+        return self.cache[key]
+
+
 _TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
 
 
@@ -188,27 +204,20 @@ def _scan_info(path: Path) -> dict[str, Any]:
     report: dict[str, Any] = {}
     topics: dict[str, dict[str, Any]] = {}
     lo = hi = None
-    decoders: dict[Any, Any] = {}
-    factories = decoder_factories()
+    decoders = _Decoders()
     try:
         with open(path, "rb") as f:
             for sch, ch, msg in scan_records(f, None, report):
                 t = topics.get(ch.topic)
                 if t is None:
                     t = topics[ch.topic] = {"schema": sch.name if sch else "", "encoding": ch.message_encoding,
-                                            "messages": 0, "rate_hz": None, "fields": None, "_t": [msg.log_time, msg.log_time]}
+                                            "messages": 0, "rate_hz": None, "fields": None}
                 t["messages"] += 1
-                t["_t"] = [min(t["_t"][0], msg.log_time), max(t["_t"][1], msg.log_time)]
                 lo = msg.log_time if lo is None else min(lo, msg.log_time)
                 hi = msg.log_time if hi is None else max(hi, msg.log_time)
-                if t["fields"] is None:
-                    key = (ch.message_encoding, None if sch is None else sch.id)
-                    if key not in decoders:
-                        decoders[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch))
-                                              is not None), None)
-                    if decoders[key] is not None:
-                        with contextlib.suppress(Exception):
-                            t["fields"] = field_paths(decoders[key](msg.data))
+                if t["fields"] is None and (dec := decoders(sch, ch)) is not None:
+                    with contextlib.suppress(Exception):  # an undecodable first message leaves fields unknown
+                        t["fields"] = field_paths(dec(msg.data))
     except IngestError as exc:
         raise IngestError(f"{path}: cannot read as MCAP ({exc})") from None
     except Exception as exc:  # noqa: BLE001
@@ -216,7 +225,6 @@ def _scan_info(path: Path) -> dict[str, Any]:
     dur = max(((hi or 0) - (lo or 0)) / 1e9, 1e-9)
     for t in topics.values():
         t["rate_hz"] = round(t["messages"] / dur, 3)
-        del t["_t"]
     head = report.get("header", {})
     info = {"file": str(path), "profile": head.get("profile", ""), "library": head.get("library", ""), "summary": False,
             "indexed": False, "compression": sorted(report.get("compression", set())), "topics": topics,
@@ -230,14 +238,10 @@ def _scan_info(path: Path) -> dict[str, Any]:
 def _decoded(messages: Any):
     """Decode (schema, channel, message) triples; channels no decoder understands are
     skipped (a needed topic that yields nothing is reported by the caller, by name)."""
-    cache: dict[tuple[str, int | None], Any] = {}
-    factories = decoder_factories()
+    decoders = _Decoders()
     for sch, ch, msg in messages:
-        key = (ch.message_encoding, None if sch is None else sch.id)
-        if key not in cache:
-            cache[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
-        if cache[key] is not None:
-            yield sch, ch, msg, cache[key](msg.data)
+        if (dec := decoders(sch, ch)) is not None:
+            yield sch, ch, msg, dec(msg.data)
 
 
 def _safe_decoded(reader: Any, topics: Sequence[str] | None):
@@ -757,21 +761,17 @@ class _Recording:
         report: dict[str, Any] = {}
         self.live_reports.append(report)  # lost chunks become known while reading
         before = dict(self.used)
-        decoders: dict[tuple[str, int | None], Any] = {}
-        factories = decoder_factories()
+        decoders = _Decoders()
         n_since = 0
         try:
             with open(path, "rb") as f:
                 for sch, ch, msg in scan_records(f, set(self.by_topic), report):
-                    key = (ch.message_encoding, None if sch is None else sch.id)
-                    if key not in decoders:
-                        decoders[key] = next((d for fac in factories if (d := fac.decoder_for(ch.message_encoding, sch))
-                                              is not None), None)
-                        if decoders[key] is None:
-                            raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
-                                              f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
-                                              f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
-                    self._add(ch.topic, msg, decoders[key](msg.data), file_index, path)
+                    dec = decoders(sch, ch)
+                    if dec is None:
+                        raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
+                                          f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
+                                          f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
+                    self._add(ch.topic, msg, dec(msg.data), file_index, path)
                     n_since += 1
                     if n_since >= 5000:
                         n_since = 0
