@@ -675,7 +675,6 @@ class _Episode:
     ep_id: str
     source: str
     parts: list[dict[str, np.ndarray]] = field(default_factory=list)
-    terminated: bool = False
 
     def add(self, steps: dict[str, np.ndarray], sl: slice) -> None:
         if sl.stop > sl.start:
@@ -852,9 +851,8 @@ class _Recording:
         """Steps of epoch ``e`` up to this time have all their data (inf: the epoch is over)."""
         ce = self.epoch[self.clock_key]
         if ce > e:
-            later = [self.maxt[self.clock_key] or 0]
-            if all(v > e for v in self.epoch.values()) or \
-                    ((later[0] - self.clock_first.get(ce, later[0])) >= self.reorder):
+            now = self.maxt[self.clock_key] or 0
+            if all(v > e for v in self.epoch.values()) or now - self.clock_first.get(ce, now) >= self.reorder:
                 return np.inf
         latest = [self.maxt[k] for k in self.epoch if self.epoch[k] == e and self.maxt[k] is not None]
         if not latest:
