@@ -1,0 +1,165 @@
+"""The one configuration layer: typed, validated models for every file a user writes.
+
+Ingestion specs (Parquet/CSV and MCAP), pipeline files and fit configs are pydantic v2
+models built on :class:`ConfigModel`. This module gives them one way to
+
+- read a TOML file (:func:`load_toml`: missing file, non-UTF-8 bytes and TOML syntax
+  errors become a :class:`~offline_adp.errors.SpecError` naming the file and line);
+- validate a mapping against a model (:func:`validate_config`: every pydantic error
+  becomes one :class:`~offline_adp.errors.SpecError` naming the file, the dotted key,
+  what was expected (the allowed values for a ``Literal``) and what was found);
+- publish a JSON Schema (:func:`json_schema`) so editors complete and check the TOML.
+
+Models forbid unknown keys (a typo is an error listing the valid keys) and are frozen.
+Nothing here runs code from a file.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import tomllib
+from collections.abc import Mapping
+from os import PathLike
+from pathlib import Path
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ConfigDict
+from pydantic import ValidationError as _PydanticValidationError
+
+from offline_adp.errors import SpecError
+
+M = TypeVar("M", bound="ConfigModel")
+
+
+class ConfigModel(BaseModel):
+    """Base of every configuration model: unknown keys forbidden (listing the valid ones),
+    frozen, values checked on load (``n_iterations = "ten"`` is an error naming the key,
+    not a crash later). Lax pydantic mode, so TOML arrays fill tuples and integers fill
+    floats."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False, validate_default=True)
+
+
+def load_toml(path: str | PathLike[str], what: str = "configuration") -> dict[str, Any]:
+    """Read a TOML file into a dict, or raise a SpecError naming the file and the fault.
+
+    Parameters
+    ----------
+    path : path-like
+        The TOML file.
+    what : str
+        What the file is, for the message (``"pipeline"``, ``"ingestion spec"``...).
+    """
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise SpecError(f"{p}: no such {what} file") from None
+    except IsADirectoryError:
+        raise SpecError(f"{p}: is a directory, expected a {what} file (TOML)") from None
+    except OSError as e:
+        raise SpecError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise SpecError(f"{p}: line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start}); "
+                        f"save the {what} as UTF-8") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SpecError(f"{p}: not valid TOML: {e}") from None
+
+
+def _loc(loc: tuple[Any, ...], section: str | None) -> str:
+    parts = [section] if section else []
+    for x in loc:
+        if isinstance(x, int):
+            parts.append(f"[{x}]")
+        else:
+            parts.append(("." if parts else "") + str(x))
+    return "".join(parts).replace(".[", "[") or "(top level)"
+
+
+def _valid_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str] | None:
+    """The field names of the (nested) model at ``loc``'s parent, if it can be followed."""
+    cur: Any = model
+    for x in loc[:-1]:
+        if isinstance(x, int):
+            continue
+        fields = getattr(cur, "model_fields", None)
+        if not fields or x not in fields:
+            return None
+        ann = fields[x].annotation
+        cur = _model_in(ann)
+        if cur is None:
+            return None
+    fields = getattr(cur, "model_fields", None)
+    if not fields:
+        return None
+    return sorted(f.alias or n for n, f in fields.items())
+
+
+def _model_in(ann: Any) -> type[BaseModel] | None:
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return ann
+    for a in getattr(ann, "__args__", ()) or ():
+        m = _model_in(a)
+        if m is not None:
+            return m
+    return None
+
+
+def format_validation_error(err: _PydanticValidationError, model: type[BaseModel], source: str,
+                            section: str | None = None) -> str:
+    """One readable message for all of a pydantic error's entries."""
+    lines = []
+    for e in err.errors():
+        loc = tuple(e.get("loc", ()))
+        where = _loc(loc, section)
+        typ = e.get("type", "")
+        if typ == "extra_forbidden":
+            valid = _valid_keys(model, loc) or []
+            close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            lines.append(f"{where}: unknown key{hint}; valid keys are {valid}")
+        elif typ == "missing":
+            lines.append(f"{where}: missing required key")
+        else:
+            msg = e.get("msg", "invalid value")
+            ctx = e.get("ctx") or {}
+            if typ == "literal_error" and "expected" in ctx:
+                msg = f"expected one of {ctx['expected']}"
+            got = e.get("input")
+            got_s = repr(got)
+            if len(got_s) > 80:
+                got_s = got_s[:77] + "..."
+            lines.append(f"{where}: {msg}, got {got_s}")
+    head = f"{source}: " if source else ""
+    if len(lines) == 1:
+        return head + lines[0]
+    return head + f"{len(lines)} problems:\n  " + "\n  ".join(lines)
+
+
+def validate_config(model: type[M], data: Mapping[str, Any] | None, source: str | PathLike[str] = "",
+                    section: str | None = None) -> M:
+    """Validate ``data`` against ``model``; any problem is one SpecError naming the file
+    (``source``), the dotted key (prefixed with ``section``) and the allowed values.
+    """
+    try:
+        return model.model_validate(dict(data or {}))
+    except _PydanticValidationError as e:
+        raise SpecError(format_validation_error(e, model, str(source), section)) from None
+
+
+def json_schema(model: type[BaseModel]) -> dict[str, Any]:
+    """The JSON Schema of a configuration model (for editors checking TOML, e.g. Taplo)."""
+    return model.model_json_schema()
+
+
+def write_json_schema(model: type[BaseModel], path: str | PathLike[str]) -> Path:
+    """Write :func:`json_schema` of ``model`` to ``path`` (pretty-printed, sorted keys)."""
+    p = Path(path)
+    p.write_text(json.dumps(json_schema(model), indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    return p
