@@ -23,7 +23,7 @@ from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.psdp import PSDP, IteratedPSDP
 from offline_adp.envs import CarOnHill, PathTracking
 from offline_adp.envs.car_on_hill import score as coh_score
-from offline_adp.evaluation.rollout import rollout
+from offline_adp.rollout import rollout
 from offline_adp.simulate import simulate
 
 

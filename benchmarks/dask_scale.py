@@ -26,7 +26,7 @@ import numpy as np
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
-from offline_adp.distributed import DistributedFQI, EngineConfig, dask_client
+from offline_adp.engines.dask import DistributedFQI, EngineConfig, dask_client
 from offline_adp.envs import CarOnHill
 
 PARAMS = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1}

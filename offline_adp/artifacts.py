@@ -256,8 +256,8 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
 
 # ----------------------------------------------------------------------------- policies
 def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    from offline_adp.algorithms.psdp import ClassifierPolicy
     from offline_adp.policies import (
+        ClassifierPolicy,
         GreedyPolicy,
         MixturePolicy,
         NonStationaryPolicy,
@@ -285,8 +285,8 @@ def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str
 
 
 def _import_policy(spec: dict[str, Any], arrays: Any) -> Any:
-    from offline_adp.algorithms.psdp import ClassifierPolicy
     from offline_adp.policies import (
+        ClassifierPolicy,
         GreedyPolicy,
         MixturePolicy,
         NonStationaryPolicy,

@@ -383,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    from offline_adp.envs import PROBLEMS
+    from offline_adp.envs import PROBLEM_NAMES
 
     s = sub.add_parser(
         "simulate",
@@ -396,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  offline-adp simulate path_tracking --format parquet --out logs/pt.parquet\n"
         "  offline-adp simulate path_tracking --format mcap-ros2 --out logs/ros2/",
     )
-    s.add_argument("problem", choices=sorted(PROBLEMS))
+    s.add_argument("problem", choices=PROBLEM_NAMES)
     s.add_argument("--out", required=True, help="dataset directory, raw table file, or MCAP directory")
     s.add_argument("--format", choices=FORMATS, default="dataset", help="output format (default: dataset)")
     s.add_argument("--demonstrations", type=int, default=100, help="demonstration episodes (default 100)")

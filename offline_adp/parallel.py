@@ -2,7 +2,7 @@
 
 A *task map* has the signature ``task_map(fn, items, shared=None, on_done=None) -> list``
 and returns ``[fn(item, **shared) for item in items]`` in the order of ``items``. The
-local one is a plain loop; :class:`offline_adp.distributed.DaskTaskMap` sends each item
+local one is a plain loop; :class:`offline_adp.engines.dask.DaskTaskMap` sends each item
 to a worker with the ``shared`` objects broadcast once. Callers split their work into a
 number of pieces that does not depend on the engine (with a seed per piece), so both
 give the same result.

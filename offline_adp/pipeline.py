@@ -251,7 +251,7 @@ def _engine(cfg: dict[str, Any], say: Callable[[str], None]) -> Iterator[Any]:
     if eng.get("kind", "local") == "local":
         yield None
         return
-    from offline_adp.distributed import EngineConfig, dask_client
+    from offline_adp.engines.dask import EngineConfig, dask_client
 
     ec = EngineConfig(**{k: v for k, v in eng.items() if k in ENGINE_KEYS})
     with dask_client(ec) as client:
@@ -296,7 +296,7 @@ def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str,
         ds.save(run / "dataset")
         return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
     if client is not None:  # one task per file on the workers, written here in file order
-        from offline_adp.distributed import ingest_distributed
+        from offline_adp.engines.dask import ingest_distributed
 
         spec = data["spec"]
         if not isinstance(spec, str):
@@ -357,7 +357,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
 
     task_map = None
     if client is not None:  # rollout pieces and FQE bootstrap replicates on the workers (same results)
-        from offline_adp.distributed import DaskTaskMap
+        from offline_adp.engines.dask import DaskTaskMap
 
         task_map = DaskTaskMap(client)
     ev = cfg["evaluate"]
@@ -384,7 +384,7 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     directory layout as a local fit; resumes from ``fit/checkpoint`` after a lost cluster."""
     from offline_adp.artifacts import save_q, versions
     from offline_adp.data.io import atomic_directory, read_dataset
-    from offline_adp.distributed import DistributedFQI
+    from offline_adp.engines.dask import DistributedFQI
 
     params = dict(cfg["fit"].get("params", {}))
     allowed = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state", "mode", "trees_per_iteration"}

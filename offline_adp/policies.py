@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -170,3 +171,24 @@ class NonStationaryPolicy(Policy):
         from offline_adp.qfunctions import per_step
 
         return per_step(obs, t, len(self.steps), self.n_actions, lambda k, x: self.steps[k].probabilities(x, k))
+
+
+def apply_feature_map(feature_map: Any, obs: np.ndarray) -> np.ndarray:
+    """``feature_map(obs)`` (a callable or a fitted transformer), or ``obs`` itself."""
+    obs = np.asarray(obs, dtype=np.float64)
+    if feature_map is None:
+        return obs
+    return np.asarray(feature_map.transform(obs) if hasattr(feature_map, "transform") else feature_map(obs), dtype=np.float64)
+
+
+class ClassifierPolicy(DeterministicPolicy):
+    """A deterministic policy that predicts the action with a fitted classifier
+    (on ``feature_map(obs)`` when a feature map is given); PSDP's per-step policies."""
+
+    def __init__(self, classifier: Any, n_actions: int, constant: int | None = None, feature_map: Any = None) -> None:
+        self.classifier, self.n_actions, self.constant, self.feature_map = classifier, n_actions, constant, feature_map
+
+    def actions(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
+        if self.constant is not None:
+            return np.full(len(obs), self.constant, np.int32)
+        return np.asarray(self.classifier.predict(apply_feature_map(self.feature_map, obs)), dtype=np.int32)

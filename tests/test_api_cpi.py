@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.api import ApproximatePolicyIteration
 from offline_adp.algorithms.cpi import ConservativePolicyIteration
 from offline_adp.algorithms.fqe import FittedQEvaluation

@@ -10,7 +10,7 @@ pytest.importorskip("dask.dataframe")
 
 from offline_adp.algorithms.fqi import FittedQIteration  # noqa: E402
 from offline_adp.data import schema as S  # noqa: E402
-from offline_adp.distributed import (  # noqa: E402
+from offline_adp.engines.dask import (  # noqa: E402
     DistributedFQI,
     EngineConfig,
     dask_client,
@@ -94,7 +94,7 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
 
 
 def test_distributed_ingestion_of_four_files_equals_local(client, tmp_path):
-    from offline_adp.distributed import ingest_distributed
+    from offline_adp.engines.dask import ingest_distributed
     from offline_adp.envs import make_problem
     from offline_adp.ingest.parquet import ingest_parquet
     from offline_adp.simulate import collect
@@ -177,11 +177,11 @@ def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
     """Distributed evaluation: rollout pieces and FQE bootstrap replicates run on the
     workers give exactly the local results (the split and seeds do not depend on the engine)."""
     from offline_adp.algorithms.fqe import FittedQEvaluation
-    from offline_adp.distributed import DaskTaskMap
+    from offline_adp.engines.dask import DaskTaskMap
     from offline_adp.envs import make_problem
     from offline_adp.evaluation import ope
     from offline_adp.evaluation.offpolicy import _reweighted_replicate
-    from offline_adp.evaluation.rollout import rollout, rollout_pieces
+    from offline_adp.rollout import rollout, rollout_pieces
     from offline_adp.policies import UniformPolicy
 
     ds, _ = coh

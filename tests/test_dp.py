@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.envs import TabularMDP
 from offline_adp.policies import TabularPolicy
 from offline_adp.simulate import collect

@@ -16,7 +16,7 @@ from offline_adp.access import (
     Simulator,
     require,
 )
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.envs import CarOnHill, Gridworld, PathTracking, TabularMDP, TwoState, make_problem
 from offline_adp.envs.car_on_hill import score, score_grid
 from offline_adp.envs.gridworld import optimal_cost_to_go

@@ -2,7 +2,7 @@
 
 Behaviour and target policies are noisy versions of the optimal policy (mild shift) or
 of the optimal and the *worst* policy (strong shift). Truth comes from exact dynamic
-programming (:mod:`offline_adp.algorithms.dp`) and exact state distributions.
+programming (:mod:`offline_adp.dp`) and exact state distributions.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.psdp import state_samples
 from offline_adp.envs.tabular import TabularMDP
 from offline_adp.evaluation import shift

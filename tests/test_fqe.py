@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.envs import TabularMDP
 from offline_adp.errors import DivergenceWarning

@@ -9,7 +9,7 @@ import pytest
 from sklearn.preprocessing import OneHotEncoder
 
 from offline_adp import TransitionDataset
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.envs import Gridworld, TabularMDP
@@ -144,7 +144,7 @@ def test_bad_parameters_are_reported():
 def test_iterated_fqi_improves_on_exploration_data():
     from offline_adp.algorithms.iterated_fqi import IteratedFQI
     from offline_adp.envs import CarOnHill
-    from offline_adp.evaluation.rollout import rollout
+    from offline_adp.rollout import rollout
     from offline_adp.policies import UniformPolicy
 
     model = CarOnHill(horizon=100)

@@ -87,7 +87,7 @@ class ApproximatePolicyIteration(BaseEstimator):
                 break
             prev_actions, pi = actions, improved
             if self.model is not None and self.episodes_per_iteration:
-                from offline_adp.simulate import collect
+                from offline_adp.rollout import collect
 
                 new = collect(self.model, improved, self.episodes_per_iteration, rng, source="policy", episode_prefix=f"api{k:03d}")
                 data = TransitionDataset.concat([data, new])

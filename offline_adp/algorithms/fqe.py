@@ -136,5 +136,5 @@ class FittedQEvaluation(FittedQIteration):
 def on_policy_weights(state_index: np.ndarray, occupancy: np.ndarray) -> np.ndarray:
     """Per-sample weights ``w_i = occupancy[s_i]``: the expected (discounted) time the
     evaluated policy spends in each sample's state, e.g. ``(1 - gamma)^-1`` times
-    :func:`offline_adp.algorithms.dp.discounted_occupancy` for tabular problems."""
+    :func:`offline_adp.dp.discounted_occupancy` for tabular problems."""
     return np.asarray(occupancy, dtype=np.float64)[np.asarray(state_index, dtype=np.int64).reshape(-1)]

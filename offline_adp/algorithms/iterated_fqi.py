@@ -25,7 +25,7 @@ from sklearn.base import BaseEstimator, clone
 from offline_adp.access import ResetModel, require
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.evaluation.rollout import rollout
+from offline_adp.rollout import rollout
 from offline_adp.policies import EpsilonPolicy, UniformPolicy
 
 
@@ -70,7 +70,7 @@ class IteratedFQI(BaseEstimator):
         rng = np.random.default_rng(self.random_state)
         proto = self.fqi if self.fqi is not None else FittedQIteration()
         H = self.horizon if self.horizon is not None else model.horizon
-        from offline_adp.simulate import collect
+        from offline_adp.rollout import collect
 
         data = dataset
         if data is None:

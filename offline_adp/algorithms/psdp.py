@@ -41,34 +41,15 @@ import numpy as np
 import pandas as pd
 from sklearn.base import BaseEstimator, clone
 
-from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, require
-from offline_adp.algorithms import dp
+from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, StepResult, require
+from offline_adp import dp
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import DeterministicPolicy, GreedyPolicy, NonStationaryPolicy, Policy
+from offline_adp.policies import ClassifierPolicy, GreedyPolicy, NonStationaryPolicy, Policy, apply_feature_map
 from offline_adp.qfunctions import QEncoder, RegressorQ
 from offline_adp.regressors import make_classifier, make_regressor
+from offline_adp.rollout import rollout, run_episodes, state_samples
 
 Baseline = TransitionDataset | Policy | list | Callable[[int, int, np.random.Generator], np.ndarray]
-
-
-def _features(feature_map: Any, obs: np.ndarray) -> np.ndarray:
-    obs = np.asarray(obs, dtype=np.float64)
-    if feature_map is None:
-        return obs
-    return np.asarray(feature_map.transform(obs) if hasattr(feature_map, "transform") else feature_map(obs), dtype=np.float64)
-
-
-class ClassifierPolicy(DeterministicPolicy):
-    """A deterministic policy that predicts the action with a fitted classifier
-    (on ``feature_map(obs)`` when a feature map is given)."""
-
-    def __init__(self, classifier: Any, n_actions: int, constant: int | None = None, feature_map: Any = None) -> None:
-        self.classifier, self.n_actions, self.constant, self.feature_map = classifier, n_actions, constant, feature_map
-
-    def actions(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
-        if self.constant is not None:
-            return np.full(len(obs), self.constant, np.int32)
-        return np.asarray(self.classifier.predict(_features(self.feature_map, obs)), dtype=np.int32)
 
 
 class PSDP(BaseEstimator):
@@ -177,30 +158,31 @@ class PSDP(BaseEstimator):
         n, m, A = len(S), self.n_rollouts, model.n_actions
         X0 = np.repeat(S, m, axis=0)
         B = len(X0)
-        x = np.tile(X0, (A, 1))  # block a holds rows a * B .. (a + 1) * B
-        alive, total = np.ones(A * B, bool), np.zeros(A * B)
-        rng = np.random.default_rng([self.random_state, t])
-        for k in range(t, T):
-            if not alive.any():
-                break
-            act = np.repeat(np.arange(A), B) if k == t else np.zeros(A * B, np.int64)
-            if k > t:
-                idx = np.flatnonzero(alive)
-                act[idx] = future[k - t - 1].act(x[idx], k, rng)
-            seed = int(rng.integers(2**62))
-            for a in range(A):
-                blk = np.arange(a * B, (a + 1) * B)
-                live = blk[alive[blk]]
-                if not len(live):
+        block = np.repeat(np.arange(A), B)  # block a holds rows a * B .. (a + 1) * B and starts with action a
+        total = np.zeros(A * B)
+        live = {"rows": np.arange(A * B)}  # the running rows, in run_episodes' order
+
+        def act(xs: np.ndarray, j: int, rng: np.random.Generator) -> np.ndarray:
+            return block.copy() if j == 0 else future[j - 1].act(xs, t + j, rng)
+
+        def step(xs: np.ndarray, a: np.ndarray, rng: np.random.Generator) -> StepResult:
+            seed = int(rng.integers(2**62))  # one seed per step, shared by the action blocks
+            nxt, cost, term = np.empty_like(xs), np.empty(len(xs)), np.empty(len(xs), bool)
+            for b in range(A):
+                sel = np.flatnonzero(block[live["rows"]] == b)
+                if not len(sel):
                     continue
-                if isinstance(model, Simulator):
-                    r = model.step_seeded(x[live], act[live], seed)
-                else:
-                    r = model.step(x[live], act[live], np.random.default_rng(seed))
-                self.simulator_steps_ += len(live)
-                total[live] += gamma ** (k - t) * r.costs
-                x[live] = r.next_states
-                alive[live[r.terminated]] = False
+                r = model.step_seeded(xs[sel], a[sel], seed) if isinstance(model, Simulator) else \
+                    model.step(xs[sel], a[sel], np.random.default_rng(seed))
+                nxt[sel], cost[sel], term[sel] = r.next_states, r.costs, r.terminated
+            self.simulator_steps_ += len(xs)
+            return StepResult(nxt, cost, term)
+
+        def visit(j: int, idx: np.ndarray, xs: np.ndarray, a: np.ndarray, r: StepResult) -> None:
+            total[idx] += gamma**j * r.costs
+            live["rows"] = idx[~r.terminated]
+
+        run_episodes(step, act, np.tile(X0, (A, 1)), T - t, np.random.default_rng([self.random_state, t]), visit=visit)
         return total.reshape(A, n, m).mean(axis=2).T
 
     def _exact_q(self, model: FullModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
@@ -226,7 +208,7 @@ class PSDP(BaseEstimator):
         if not keep.any() or len(np.unique(label[keep])) == 1:
             return ClassifierPolicy(None, n_actions, constant=int(label[keep][0]) if keep.any() else 0)
         clf = make_classifier(self.classifier, **(self.learner_params or {}))
-        clf.fit(_features(self.feature_map, S[keep]), label[keep], sample_weight=weight[keep])
+        clf.fit(apply_feature_map(self.feature_map, S[keep]), label[keep], sample_weight=weight[keep])
         return ClassifierPolicy(clf, n_actions, feature_map=self.feature_map)
 
 
@@ -237,25 +219,7 @@ class _Map:
         self.fn = fn
 
     def transform(self, obs: np.ndarray) -> np.ndarray:
-        return _features(self.fn, obs)
-
-
-def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.random.Generator) -> list[np.ndarray]:
-    """States of ``n`` rollouts of ``policy`` at each step t < T (Monte-Carlo mu_t).
-
-    Episodes that terminated early are restarted from a reset so every step has ``n``
-    samples (the distribution over the states occupied at step t of non-terminated
-    episodes, the PSDP baseline).
-    """
-    out = []
-    x = model.initial_states(n, rng)
-    for t in range(T):
-        out.append(x.copy())
-        r = model.step(x, policy.act(x, t, rng), rng)
-        x = r.next_states
-        if r.terminated.any():
-            x[r.terminated] = model.initial_states(int(r.terminated.sum()), rng)
-    return out
+        return apply_feature_map(self.fn, obs)
 
 
 def psdp_bound(eps: np.ndarray, mu_ref: np.ndarray, mu: np.ndarray) -> float:
@@ -293,8 +257,6 @@ class IteratedPSDP(BaseEstimator):
             states = np.arange(model.n_states, dtype=np.float64)[:, None]
             pi = np.stack([policy.probabilities(states, t) for t in range(T)])
             return float(model.initial_distribution @ dp.policy_evaluation_finite(model.P, model.C, pi, T, gamma).V[0])
-        from offline_adp.evaluation.rollout import rollout
-
         return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T, gamma=gamma).mean
 
     def fit(self, model: ResetModel, start_policy: Policy) -> IteratedPSDP:

@@ -21,6 +21,7 @@ import numpy as np
 from offline_adp.access import Simulator, StepResult
 from offline_adp.data.info import ActionTable, Feature
 from offline_adp.envs.base import ReferenceProblem
+from offline_adp.rollout import rollout
 from offline_adp.policies import EpsilonPolicy, FunctionPolicy, Policy
 
 M, G = 1.0, 9.81
@@ -94,18 +95,6 @@ def score(policy: Policy, max_steps: int = 1000) -> float:
     0.95^1000 is negligible).
     """
     prob = CarOnHill(horizon=None)
-    x = score_grid()
-    ret = np.zeros(len(x))
-    alive = np.ones(len(x), bool)
-    disc = 1.0
-    for t in range(max_steps):
-        idx = np.flatnonzero(alive)
-        if not len(idx):
-            break
-        a = policy.act(x[idx], t)
-        r = prob.step_seeded(x[idx], a)
-        ret[idx] += disc * -r.costs
-        x[idx] = r.next_states
-        alive[idx[r.terminated]] = False
-        disc *= prob.gamma
-    return float(ret.mean())
+    res = rollout(prob, policy, 0, np.random.default_rng(0), horizon=max_steps, gamma=prob.gamma,
+                  start_states=score_grid(), step=lambda x, a, rng: prob.step_seeded(x, a))
+    return float(-res.mean)

@@ -30,7 +30,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
-from offline_adp.evaluation.rollout import RolloutResult, rollout_pieces
+from offline_adp.rollout import RolloutResult, rollout_pieces
 from offline_adp.parallel import TaskMap
 
 
@@ -91,7 +91,7 @@ def evaluate_run(
     """Evaluate the policy of a run directory (see the module docstring); returns the metrics.
 
     ``task_map`` runs the rollout pieces and the FQE bootstrap replicates (default: here;
-    :class:`offline_adp.distributed.DaskTaskMap` spreads them over Dask workers with the
+    :class:`offline_adp.engines.dask.DaskTaskMap` spreads them over Dask workers with the
     same result).
 
     ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
