@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from offline_adp import dp
 from offline_adp.access import (
     AccessModelError,
     FullModel,
@@ -16,7 +17,6 @@ from offline_adp.access import (
     Simulator,
     require,
 )
-from offline_adp import dp
 from offline_adp.envs import CarOnHill, Gridworld, PathTracking, TabularMDP, TwoState, make_problem
 from offline_adp.envs.car_on_hill import score, score_grid
 from offline_adp.envs.gridworld import optimal_cost_to_go

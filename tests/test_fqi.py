@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from sklearn.preprocessing import OneHotEncoder
 
-from offline_adp import TransitionDataset
-from offline_adp import dp
+from offline_adp import TransitionDataset, dp
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.envs import Gridworld, TabularMDP
@@ -144,8 +143,8 @@ def test_bad_parameters_are_reported():
 def test_iterated_fqi_improves_on_exploration_data():
     from offline_adp.algorithms.iterated_fqi import IteratedFQI
     from offline_adp.envs import CarOnHill
-    from offline_adp.rollout import rollout
     from offline_adp.policies import UniformPolicy
+    from offline_adp.rollout import rollout
 
     model = CarOnHill(horizon=100)
     it = IteratedFQI(FittedQIteration(gamma=0.95, n_iterations=20, mode="frozen", regressor_params={"n_estimators": 10}),

@@ -30,8 +30,8 @@ from sklearn.base import BaseEstimator, clone
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.rollout import rollout
 from offline_adp.policies import GreedyPolicy, MixturePolicy, Policy, UniformPolicy
+from offline_adp.rollout import rollout
 
 DEFAULT_STEPS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
 

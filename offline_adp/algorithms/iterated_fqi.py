@@ -25,8 +25,8 @@ from sklearn.base import BaseEstimator, clone
 from offline_adp.access import ResetModel, require
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.rollout import rollout
 from offline_adp.policies import EpsilonPolicy, UniformPolicy
+from offline_adp.rollout import rollout
 
 
 class IteratedFQI(BaseEstimator):

@@ -41,10 +41,23 @@ import numpy as np
 import pandas as pd
 from sklearn.base import BaseEstimator, clone
 
-from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, StepResult, require
 from offline_adp import dp
+from offline_adp.access import (
+    FullModel,
+    GenerativeModel,
+    ResetModel,
+    Simulator,
+    StepResult,
+    require,
+)
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import ClassifierPolicy, GreedyPolicy, NonStationaryPolicy, Policy, apply_feature_map
+from offline_adp.policies import (
+    ClassifierPolicy,
+    GreedyPolicy,
+    NonStationaryPolicy,
+    Policy,
+    apply_feature_map,
+)
 from offline_adp.qfunctions import QEncoder, RegressorQ
 from offline_adp.regressors import make_classifier, make_regressor
 from offline_adp.rollout import rollout, run_episodes, state_samples

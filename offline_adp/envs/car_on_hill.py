@@ -21,8 +21,8 @@ import numpy as np
 from offline_adp.access import Simulator, StepResult
 from offline_adp.data.info import ActionTable, Feature
 from offline_adp.envs.base import ReferenceProblem
-from offline_adp.rollout import rollout
 from offline_adp.policies import EpsilonPolicy, FunctionPolicy, Policy
+from offline_adp.rollout import rollout
 
 M, G = 1.0, 9.81
 DT_CONTROL, DT_EULER = 0.1, 0.001

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from offline_adp.access import FullModel
 from offline_adp import dp
+from offline_adp.access import FullModel
 from offline_adp.data.info import ActionTable, Feature
 from offline_adp.envs.base import ReferenceProblem
 from offline_adp.policies import EpsilonPolicy, Policy, TabularPolicy

@@ -30,8 +30,8 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
-from offline_adp.rollout import RolloutResult, rollout_pieces
 from offline_adp.parallel import TaskMap
+from offline_adp.rollout import RolloutResult, rollout_pieces
 
 
 def _rollout_block(res: RolloutResult, problem: Any) -> dict[str, Any]:

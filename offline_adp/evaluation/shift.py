@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from offline_adp.access import FullModel
 from offline_adp import dp
+from offline_adp.access import FullModel
 from offline_adp.policies import Policy
 from offline_adp.qfunctions import predict_model
 from offline_adp.regressors import make_classifier, make_regressor
