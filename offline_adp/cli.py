@@ -10,12 +10,13 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from offline_adp._version import __version__
-from offline_adp.errors import OfflineADPError, ValidationError
+from offline_adp.errors import OfflineADPError
 
 FORMATS = ("dataset", "parquet", "csv", "mcap-json", "mcap-ros2")
+#: The algorithm registry's names (offline_adp.algorithms.registry; a test keeps them equal).
+ALGORITHM_NAMES = ("fqi", "fqe", "api", "cpi", "psdp")
 
 
 def _progress(quiet: bool):
@@ -51,29 +52,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                       problem_options=options, on_step=on_step)
     finally:
         close()
-    out = Path(args.out)
-    if args.format == "dataset":
-        from offline_adp.data.validate import validate
+    from offline_adp.simulate.write import write_simulated
 
-        report = validate(ds)
-        if not report.ok:  # a simulator bug, never user input
-            raise ValidationError("simulated data failed the doctor:\n" + report.to_text(), report)
-        ds.save(out, overwrite=args.overwrite)
-        written = [out]
-    elif args.format in ("parquet", "csv"):
-        from offline_adp.simulate.raw import write_raw
-
-        if out.suffix == "":
-            out = out / f"{ds.info.problem}.{args.format}"
-        if out.exists() and not args.overwrite:
-            raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
-        written = list(write_raw(ds, out, fmt=args.format))
-    else:
-        from offline_adp.simulate.mcap_writer import write_mcap
-
-        if out.exists() and any(out.iterdir()) and not args.overwrite:
-            raise OfflineADPError(f"{out} is not empty; pass --overwrite to write into it")
-        written = write_mcap(ds, out, encoding=args.format.split("-")[1], seed=args.seed)
+    written = write_simulated(ds, args.out, args.format, overwrite=args.overwrite, seed=args.seed)
     counts = ds.source_counts()
     _say(args, f"simulated {ds.info.problem}: {ds.n_episodes} episodes, {len(ds)} transitions {counts}")
     for p in written:
@@ -182,86 +163,22 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    import numpy as np
+    from offline_adp.data.summary import dataset_summary, summary_text
 
-    from offline_adp.data import schema as S
-    from offline_adp.data.io import read_dataset, read_quarantine
-
-    ds = read_dataset(args.dataset)
-    info = ds.info
-    ep = ds.episode_table()
-    a = ds.table.column(S.ACTION).to_numpy()
-    cost = ds.table.column(S.COST).to_numpy()
-    report = {
-        "path": str(args.dataset),
-        "name": info.name,
-        "problem": info.problem,
-        "format_version": info.format_version,
-        "transitions": len(ds),
-        "episodes": ds.n_episodes,
-        "features": [f"{f.name} [{f.unit}]" if f.unit else f.name for f in info.features],
-        "actions": {
-            "kind": info.action_table.kind,
-            "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(), strict=True)},
-            "coverage": {n: int(c) for n, c in zip(info.action_table.names, np.bincount(a, minlength=ds.n_actions), strict=True)},
-        },
-        "per_source": {
-            str(src): {
-                "episodes": int(len(g)),
-                "transitions": int(g["length"].sum()),
-                "mean_total_cost": float(g["total_cost"].mean()),
-                "terminated": int(g[S.TERMINATED].sum()),
-            }
-            for src, g in ep.groupby(S.SOURCE, observed=True)
-        },
-        "episode_length": {q: float(v) for q, v in zip(("min", "p25", "median", "p75", "max"), np.quantile(ep["length"], [0, 0.25, 0.5, 0.75, 1]), strict=True)} if len(ep) else {},
-        "cost": {"mean": float(cost.mean()), "std": float(cost.std()), "min": float(cost.min()), "max": float(cost.max())} if len(cost) else {},
-        "gamma": info.gamma,
-        "horizon": info.horizon,
-        "propensities": info.propensity_source if ds.has_propensities else "none",
-        "fingerprint": ds.fingerprint()[:16],
-    }
-    q = read_quarantine(args.dataset)
-    if q is not None:
-        report["quarantined_rows"] = q.num_rows
-    if args.json:
-        print(json.dumps(report, indent=2))
-        return 0
-    print(f"{report['path']}  ({report['transitions']} transitions, {report['episodes']} episodes, format {report['format_version']})")
-    print(f"  features    {', '.join(report['features'])}")
-    print(f"  actions     {info.action_table.kind} over {list(info.action_table.dims)}: " + ", ".join(f"{i}:{n} {v}" for i, (n, v) in enumerate(report["actions"]["table"].items())))
-    print("  coverage    " + ", ".join(f"{n}: {c}" for n, c in report["actions"]["coverage"].items()))
-    for src, d in report["per_source"].items():
-        print(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost {d['mean_total_cost']:.4g}, terminated {d['terminated']}")
-    el = report["episode_length"]
-    if el:
-        print(f"  ep. length  min {el['min']:.0f}  p25 {el['p25']:.0f}  median {el['median']:.0f}  p75 {el['p75']:.0f}  max {el['max']:.0f}")
-    c = report["cost"]
-    if c:
-        print(f"  cost/step   mean {c['mean']:.4g}  std {c['std']:.4g}  min {c['min']:.4g}  max {c['max']:.4g}")
-    print(f"  hints       gamma={info.gamma} horizon={info.horizon}; propensities: {report['propensities']}")
-    if "quarantined_rows" in report:
-        print(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
+    report = dataset_summary(args.dataset)
+    print(json.dumps(report, indent=2) if args.json else summary_text(report))
     return 0
 
 
 # ---------------------------------------------------------------------------- fit
 def cmd_fit(args: argparse.Namespace) -> int:
+    from offline_adp.algorithms.registry import get_algorithm
     from offline_adp.runs import fit_run, load_config
 
     params = load_config(args.config, args.algorithm)
-    if args.algorithm != "fqi":
-        from offline_adp.runs import fit_other
-
-        if args.resume:
-            raise OfflineADPError("--resume is for fqi runs (the other algorithms run as a whole)")
-        est = fit_other(args.dataset, args.out, args.algorithm, params)
-        print(f"fitted {args.algorithm}: {len(est.history_)} history rows")
-        print(est.history_.tail(5).to_string(index=False))
-        print(f"{args.out}/model")
-        return 0
+    entry = get_algorithm(args.algorithm)
     bar = None
-    if not args.quiet:
+    if not args.quiet and entry.resumable:
         from tqdm import tqdm
 
         total = params.get("horizon") or params.get("n_iterations", 50) * (2 if params.get("mode") == "frozen" else 1)
@@ -275,16 +192,31 @@ def cmd_fit(args: argparse.Namespace) -> int:
             bar.update(1)
 
     try:
-        est = fit_run(args.dataset, args.out, algorithm=args.algorithm, params=params or None, resume=args.resume, on_iteration=on_iteration)
+        est = fit_run(args.dataset, args.out, algorithm=args.algorithm, params=params or None, resume=args.resume,
+                      on_iteration=on_iteration)
     finally:
         if bar is not None:
             bar.close()
-    h = est.history_.iloc[-1]
-    print(f"fitted {args.algorithm}: {len(est.history_)} iterations, last sup|dQ| {h['sup_dq']:.4g}, "
-          f"Bellman residual {h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"
-          + ("; DIVERGED (see warnings)" if est.diverged_ else ""))
+    for line in fit_summary_lines(est, args.algorithm):
+        print(line)
     print(f"{args.out}/model")
     return 0
+
+
+def fit_summary_lines(est: object, algorithm: str) -> list[str]:
+    """What ``fit`` prints: the last history rows, and the convergence verdict when there is one."""
+    import pandas as pd
+
+    hist = getattr(est, "history_", None)
+    lines = [f"fitted {algorithm}: {0 if hist is None else len(hist)} iterations"]
+    if isinstance(hist, pd.DataFrame) and len(hist):
+        lines.append(hist.tail(5).to_string(index=False))
+    verdict = getattr(est, "verdict_", None)
+    if verdict is not None:
+        lines.append(f"verdict: {verdict}")
+    elif getattr(est, "diverged_", False):
+        lines.append(f"verdict: diverging ({getattr(est, 'divergence_message_', 'see warnings')})")
+    return lines
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -359,6 +291,20 @@ def cmd_run(args: argparse.Namespace) -> int:
         for line in summary_lines(json.loads((run / "metrics.json").read_text())):
             print(line)
     print(run / "report.html" if (run / "report.html").exists() else run)
+    return 0
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from offline_adp.schemas import schemas, write_schemas
+
+    if args.write:
+        for p in write_schemas(args.write):
+            print(p)
+        return 0
+    all_ = schemas()
+    if args.kind not in all_:
+        raise OfflineADPError(f"schema {args.kind!r}: known kinds are {sorted(all_)}")
+    print(json.dumps(all_[args.kind], indent=2, sort_keys=True))
     return 0
 
 
@@ -492,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
         "  baseline_source = \"demonstration\"\n  drop_features = [\"s\"]",
     )
     f.add_argument("dataset")
-    f.add_argument("--algorithm", default="fqi", choices=["fqi", "fqe", "api", "cpi", "psdp"])
+    f.add_argument("--algorithm", default="fqi", choices=list(ALGORITHM_NAMES))
     f.add_argument("--config", default=None, help="TOML file with the algorithm's parameters")
     f.add_argument("--out", required=True, help="run directory")
     f.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
@@ -557,6 +503,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("run")
     r.set_defaults(func=cmd_report)
+
+    sc = sub.add_parser(
+        "schema",
+        help="print the JSON Schema of a configuration file type (for editors checking TOML)",
+        formatter_class=fmt,
+        description="Print the JSON Schema of a pipeline file or a fit config, or write them all to a folder.",
+        epilog="examples:\n  offline-adp schema pipeline > pipeline.schema.json\n  offline-adp schema --write docs/schemas",
+    )
+    sc.add_argument("kind", nargs="?", default="pipeline", help="pipeline | fit-config (default: pipeline)")
+    sc.add_argument("--write", nargs="?", const="docs/schemas", default=None, metavar="DIR",
+                    help="write every schema as DIR/NAME.schema.json (default DIR: docs/schemas)")
+    sc.set_defaults(func=cmd_schema)
 
     i = sub.add_parser(
         "inspect",

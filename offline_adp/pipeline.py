@@ -53,61 +53,148 @@ import contextlib
 import glob
 import hashlib
 import json
-import os
 import shutil
 import time
-import tomllib
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pandas as pd
+from pydantic import Field, model_validator
 
+from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
+from offline_adp.config import ConfigModel, load_toml, validate_config
 from offline_adp.data.io import sha256_file
+from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
+from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
-TOP_KEYS = {"name", "seed", "description", "data", "validate", "fit", "evaluate", "report", "engine"}
-ENGINE_KEYS = {"kind", "address", "n_workers", "threads_per_worker", "memory_limit"}
-DATA_KEYS = {"format", "inputs", "spec", "on_error", "simulate", "demonstrations", "exploration", "horizon",
-             "problem_options", "builtin"}
 #: Datasets built by a documented example rather than logged or simulated.
 BUILTIN = {"gridworld_lattice": "offline_adp.examples.gridworld_divergence:dataset"}
-FIT_KEYS = {"algorithm", "params", "config"}
-EVAL_KEYS = {"simulator", "episodes", "bootstrap", "fqe_bootstrap", "fqe_params", "horizon"}
 
 
-def _check(table: dict[str, Any], valid: set[str], where: str, path: Path) -> None:
-    bad = sorted(set(table) - valid)
-    if bad:
-        raise SpecError(f"{path}: unknown key(s) {bad} in {where}; valid keys are {sorted(valid)}")
+# ---------------------------------------------------------------------------- the file's model
+class EngineSection(ConfigModel):
+    """``[engine]``: where the heavy loops run (never what they compute)."""
+
+    kind: Literal["local", "dask"] = "local"
+    address: str | None = None
+    n_workers: int | None = Field(None, ge=1)
+    threads_per_worker: int | None = Field(None, ge=1)
+    memory_limit: str | None = None
 
 
-def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
-    """Read and check a pipeline file; paths become absolute (relative to the file)."""
+class DataSection(ConfigModel):
+    """``[data]``: exactly one of ``inputs`` (files to ingest), ``simulate`` or ``builtin``."""
+
+    format: Literal["mcap", "parquet"] | None = None
+    inputs: list[str] | None = None
+    spec: str | dict[str, Any] | None = None
+    on_error: Literal["fail", "quarantine"] | None = None
+    simulate: str | None = None
+    demonstrations: int = Field(100, ge=0)
+    exploration: int = Field(100, ge=0)
+    horizon: int | None = Field(None, ge=1)
+    problem_options: dict[str, Any] | None = None
+    builtin: Literal[tuple(BUILTIN)] | None = None  # type: ignore[valid-type]
+
+    @model_validator(mode="after")
+    def _one_source(self) -> DataSection:
+        given = [k for k in ("inputs", "simulate", "builtin") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("[data] needs exactly one of inputs = [...] (files to ingest), simulate = \"PROBLEM\" or "
+                             f"builtin = one of {sorted(BUILTIN)}; got {given or 'none'}")
+        if self.inputs is not None:
+            if self.format is None:
+                raise ValueError('[data] with inputs needs format = "mcap" or "parquet"')
+            if self.spec is None:
+                raise ValueError('[data] needs spec = "FILE.toml" or an inline [data.spec] table')
+        if self.simulate is not None and self.simulate not in PROBLEM_NAMES:
+            raise ValueError(f"[data] simulate = {self.simulate!r}: known problems are {list(PROBLEM_NAMES)}")
+        return self
+
+
+class FitSection(ConfigModel):
+    """``[fit]``: the algorithm, its parameters (``[fit.params]``) or a config file."""
+
+    algorithm: Literal[tuple(ALGORITHMS)] = "fqi"  # type: ignore[valid-type]
+    params: dict[str, Any] = Field(default_factory=dict)
+    config: str | None = None
+
+
+class EvaluateSection(ConfigModel):
+    """``[evaluate]``: rollouts, off-policy estimates, shift diagnostics."""
+
+    simulator: str | None = None
+    episodes: int = Field(500, ge=1)
+    bootstrap: int = Field(200, ge=2)
+    fqe_bootstrap: int = Field(10, ge=2)
+    fqe_params: dict[str, Any] | None = None
+    horizon: int | None = Field(None, ge=1)
+
+    @model_validator(mode="after")
+    def _known_simulator(self) -> EvaluateSection:
+        check_simulator_name(self.simulator)
+        return self
+
+
+class EmptySection(ConfigModel):
+    """A table that takes no keys (``[validate]``, ``[report]``)."""
+
+
+class PipelineFile(ConfigModel):
+    """A pipeline file (see the module docstring). JSON Schema: ``docs/schemas/pipeline.schema.json``."""
+
+    name: str | None = Field(None, pattern=NAME_PATTERN)
+    seed: int = Field(0, ge=0)
+    description: str | None = None
+    data: DataSection
+    validate_: EmptySection | None = Field(None, alias="validate")
+    fit: FitSection
+    evaluate: EvaluateSection | None = None
+    report: EmptySection | None = None
+    engine: EngineSection = Field(default_factory=EngineSection)
+
+
+def check_simulator_name(name: str | None) -> None:
+    """A simulator setting: ``None``/``"none"`` or a reference problem's name."""
+    if name is not None and name != "none" and name not in PROBLEM_NAMES:
+        raise ValueError(f"simulator = {name!r}: known simulators are {list(PROBLEM_NAMES)} or 'none'")
+
+
+def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:
+    """``--set data.exploration=10``: set a dotted key of the raw file (checked with it)."""
+    tables = {"data": DataSection, "fit": FitSection, "evaluate": EvaluateSection, "engine": EngineSection}
+    valid = [f"{t}.{k}" for t, m in tables.items() for k in m.model_fields] + ["fit.params.NAME"]
+    for dotted, value in overrides.items():
+        *parents, leaf = dotted.split(".")
+        ok = bool(parents) and parents[0] in tables and (
+            (len(parents) == 1 and leaf in tables[parents[0]].model_fields) or parents[:2] == ["fit", "params"])
+        if not ok:
+            raise SpecError(f"--set {dotted}: not a pipeline setting; settings are {', '.join(valid)}")
+        node = raw
+        for k in parents:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[leaf] = value
+
+
+def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Read and check a whole pipeline file before anything runs; paths become absolute
+    (relative to the file). Every problem is a SpecError naming the file and key: unknown
+    keys and values, a spec that does not load, fit parameters the algorithm does not
+    take or values it refuses, an unknown simulator.
+    """
     p = Path(path).resolve()
-    try:
-        raw = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise SpecError(f"{path}: no such pipeline file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{path}: not valid TOML ({exc})") from exc
-    _check(raw, TOP_KEYS, "the top level", p)
-    for key in ("data", "fit"):
-        if key not in raw:
-            raise SpecError(f"{p}: a pipeline needs a [{key}] table")
-    data = dict(raw["data"])
-    _check(data, DATA_KEYS, "[data]", p)
-    if sum(k in data for k in ("simulate", "inputs", "builtin")) != 1:
-        raise SpecError(f"{p}: [data] needs exactly one of inputs = [...] (files to ingest), simulate = \"PROBLEM\" "
-                        f"or builtin = one of {sorted(BUILTIN)}")
-    if "builtin" in data and data["builtin"] not in BUILTIN:
-        raise SpecError(f"{p}: [data] builtin = {data['builtin']!r}; known: {sorted(BUILTIN)}")
+    raw = load_toml(p, "pipeline")
+    _apply_overrides(raw, overrides or {})
+    model = validate_config(PipelineFile, raw, str(p))
+    data = model.data.model_dump(exclude_none=True)
     if "inputs" in data:
-        if data.get("format") not in ("mcap", "parquet"):
-            raise SpecError(f"{p}: [data] format must be \"mcap\" or \"parquet\", got {data.get('format')!r}")
         files: list[str] = []
         for pattern in data["inputs"]:
             hits = sorted(glob.glob(str(p.parent / pattern)))
@@ -115,28 +202,36 @@ def load_pipeline(path: str | PathLike[str]) -> dict[str, Any]:
                 raise SpecError(f"{p}: [data] inputs pattern {pattern!r} matches no file (relative to {p.parent})")
             files += hits
         data["inputs"] = files
-        if isinstance(data.get("spec"), str):
+        if isinstance(data["spec"], str):
             data["spec"] = str((p.parent / data["spec"]).resolve())
-        elif "spec" not in data:
-            raise SpecError(f"{p}: [data] needs spec = \"FILE.toml\" or an inline [data.spec] table")
-    fit = dict(raw["fit"])
-    _check(fit, FIT_KEYS, "[fit]", p)
-    fit.setdefault("algorithm", "fqi")
+        _check_spec(data, p)
+    fit = model.fit.model_dump(exclude_none=True)
+    entry = get_algorithm(fit["algorithm"])
     if "config" in fit:
         from offline_adp.runs import load_config
 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
-    ev = dict(raw.get("evaluate", {}))
-    _check(ev, EVAL_KEYS, "[evaluate]", p)
-    engine = dict(raw.get("engine", {}))
-    _check(engine, ENGINE_KEYS, "[engine]", p)
-    if engine.get("kind", "local") not in ("local", "dask"):
-        raise SpecError(f"{p}: [engine] kind must be \"local\" or \"dask\", got {engine.get('kind')!r}")
-    _check(dict(raw.get("validate", {})), set(), "[validate]", p)
-    _check(dict(raw.get("report", {})), set(), "[report]", p)
-    return {"name": str(raw.get("name", p.stem)), "seed": int(raw.get("seed", 0)), "file": str(p), "data": data,
-            "fit": fit, "evaluate": ev if "evaluate" in raw else None, "report": "report" in raw,
-            "engine": {"kind": "local", **engine}}
+    entry.check_params(fit["params"], str(p), "fit.params")
+    if model.evaluate is not None and model.evaluate.fqe_params:
+        get_algorithm("fqe").check_params(model.evaluate.fqe_params, str(p), "evaluate.fqe_params")
+    return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"), "seed": model.seed,
+            "file": str(p), "data": data, "fit": fit,
+            "evaluate": model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None,
+            "report": model.report is not None, "engine": model.engine.model_dump(exclude_none=True)}
+
+
+def _check_spec(data: dict[str, Any], p: Path) -> None:
+    """Load the ingestion spec now, so a bad spec fails before any stage runs."""
+    spec = data["spec"]
+    if data["format"] == "parquet":
+        from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
+
+        load_parquet_spec(spec) if isinstance(spec, str) else parse_parquet_spec(spec, where=f"{p} [data.spec]")
+    else:
+        from offline_adp.ingest.mcap import load_mcap_spec, parse_mcap_spec
+
+        load_mcap_spec(spec) if isinstance(spec, str) else parse_mcap_spec(
+            spec, json.dumps(spec, sort_keys=True), where=f"{p} [data.spec]", base_dir=str(p.parent))
 
 
 def _hash(obj: Any) -> str:
@@ -146,9 +241,9 @@ def _hash(obj: Any) -> str:
 class Manifest:
     """``manifest.json``: written after every stage (atomically: temp file + rename)."""
 
-    def __init__(self, run: Path, cfg: dict[str, Any]) -> None:
-        self.path = run / "manifest.json"
-        old = json.loads(self.path.read_text()) if self.path.exists() else {}
+    def __init__(self, rd: RunDirectory, cfg: dict[str, Any]) -> None:
+        self.rd = rd
+        old = rd.read_json("manifest.json") if rd.exists("manifest.json") else {}
         from offline_adp.artifacts import versions
 
         self.data: dict[str, Any] = {"name": cfg["name"], "seed": cfg["seed"], "pipeline": cfg["file"],
@@ -165,9 +260,7 @@ class Manifest:
         self.write()
 
     def write(self) -> None:
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.data, indent=1, default=str))
-        os.replace(tmp, self.path)
+        self.rd.write_json("manifest.json", self.data)
 
 
 def default_run_dir(cfg: dict[str, Any], root: Path, force: bool) -> Path:
@@ -195,30 +288,26 @@ def run_pipeline(
     ``engine`` overrides the file's ``[engine]`` (``{"kind": "dask", "address": ...}``).
     The engine is not part of any stage key: it changes where work runs, not results.
     """
-    cfg = load_pipeline(path)
-    for dotted, value in (overrides or {}).items():  # e.g. {"data.exploration": 10} for reduced test sizes
-        *parents, leaf = dotted.split(".")
-        valid = {"data": DATA_KEYS, "fit": FIT_KEYS, "evaluate": EVAL_KEYS, "engine": ENGINE_KEYS}
-        if not parents or parents[0] not in valid or (len(parents) == 1 and leaf not in valid[parents[0]]) \
-                or (len(parents) > 1 and parents[:2] != ["fit", "params"]):
-            raise SpecError(f"--set {dotted}: not a pipeline setting; settings are "
-                            + ", ".join(f"{t}.{k}" for t in valid for k in sorted(valid[t])) + ", fit.params.NAME")
-        node = cfg
-        for k in parents:
-            if node.get(k) is None:
-                node[k] = {}
-            node = node[k]
-        node[leaf] = value
+    cfg = load_pipeline(path, overrides)  # e.g. {"data.exploration": 10} for reduced test sizes
     if engine is not None:
-        cfg["engine"] = {**cfg["engine"], **engine}
+        cfg["engine"] = validate_config(EngineSection, {**cfg["engine"], **engine}, "--engine/--scheduler").model_dump(
+            exclude_none=True)
     if from_stage is not None and from_stage not in STAGES:
         raise SpecError(f"--from {from_stage!r}: stages are {list(STAGES)}")
     run = Path(out) if out is not None else default_run_dir(cfg, Path(runs_root), force)
-    if force and run.exists():
-        shutil.rmtree(run)
-    run.mkdir(parents=True, exist_ok=True)
-    (run / "config.json").write_text(json.dumps(cfg, indent=1, default=str))
-    man = Manifest(run, cfg)
+    with RunDirectory(run).lock() as rd:
+        if force:
+            for child in rd.path.iterdir():
+                if child.name != rd.LOCK:
+                    rd.remove(child.name)
+        _run_locked(cfg, rd, from_stage, say)
+    return run
+
+
+def _run_locked(cfg: dict[str, Any], rd: RunDirectory, from_stage: str | None, say: Callable[[str], None]) -> None:
+    run = rd.path
+    rd.write_json("config.json", cfg)
+    man = Manifest(rd, cfg)
     redo = set(STAGES[STAGES.index(from_stage):]) if from_stage else set()
     say(f"run directory: {run}")
 
@@ -242,7 +331,6 @@ def run_pipeline(
     with _engine(cfg, say) as client:
         _run_stages(cfg, run, man, stage, client, say)
     man.write()
-    return run
 
 
 @contextlib.contextmanager
@@ -253,7 +341,7 @@ def _engine(cfg: dict[str, Any], say: Callable[[str], None]) -> Iterator[Any]:
         return
     from offline_adp.engines.dask import EngineConfig, dask_client
 
-    ec = EngineConfig(**{k: v for k, v in eng.items() if k in ENGINE_KEYS})
+    ec = EngineConfig(**{k: v for k, v in eng.items() if k in EngineSection.model_fields})
     with dask_client(ec) as client:
         say(f"[engine] dask: {len(client.scheduler_info()['workers'])} workers at {client.scheduler.address}")
         yield client
@@ -326,30 +414,30 @@ def _validate_stage(run: Path) -> dict[str, Any]:
 
 
 def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
-    from offline_adp.runs import fit_other, fit_run
+    from offline_adp.runs import fit_run
 
     fit = cfg["fit"]
-    if client is not None and fit["algorithm"] == "fqi" and fit.get("params", {}).get("regressor") == "lightgbm":
+    entry = get_algorithm(fit["algorithm"])
+    if client is not None and entry.name == "fqi" and fit.get("params", {}).get("regressor") == "lightgbm":
         return _fit_dask(cfg, run, say, client)
-    params = {"random_state": cfg["seed"], **fit.get("params", {})} if fit["algorithm"] == "fqi" else dict(fit.get("params", {}))
-    target = run / "fit"
-    if fit["algorithm"] == "fqi":
-        resume = (target / "config.json").exists() and json.loads((target / "config.json").read_text())["params"] == params \
-            and (target / "checkpoint").exists()
-        if target.exists() and not resume:
-            shutil.rmtree(target)
-        if resume:
-            say("[fit] resuming from the last checkpointed iteration")
+    params = dict(fit.get("params", {}))
+    if "random_state" in entry.params_model().model_fields:
+        params.setdefault("random_state", cfg["seed"])
+    target = RunDirectory(run / "fit")
+    resume = entry.resumable and target.exists("checkpoint") and target.exists(target.CONFIG) \
+        and target.read_json(target.CONFIG).get("params") == params
+    if resume:
+        say("[fit] resuming from the last checkpointed iteration")
+    elif target.path.exists():
+        shutil.rmtree(target.path)
 
-        def on_iteration(row: dict[str, Any]) -> None:
-            if row["iteration"] % 10 == 0:
-                say(f"[fit] iteration {row['iteration']}: sup|dQ| {row['sup_dq']:.4g}")
+    def on_iteration(row: dict[str, Any]) -> None:
+        if row.get("iteration", 0) % 10 == 0:
+            say(f"[fit] iteration {row['iteration']}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
-        est = fit_run(run / "dataset", target, params=params, resume=resume, on_iteration=on_iteration)
-        return {"iterations": len(est.history_), "diverged": bool(est.diverged_)}
-    shutil.rmtree(target, ignore_errors=True)
-    fit_other(run / "dataset", target, fit["algorithm"], params)
-    return {}
+    est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration)
+    hist = getattr(est, "history_", None)
+    return {"iterations": 0 if hist is None else len(hist), "diverged": bool(getattr(est, "diverged_", False))}
 
 
 def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
@@ -383,7 +471,8 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     """FQI with LightGBM on the Dask cluster (``DistributedFQI``), into the same fit run
     directory layout as a local fit; resumes from ``fit/checkpoint`` after a lost cluster."""
     from offline_adp.artifacts import save_q, versions
-    from offline_adp.data.io import atomic_directory, read_dataset
+    from offline_adp.data.discount import resolve_discount
+    from offline_adp.data.io import read_dataset
     from offline_adp.engines.dask import DistributedFQI
 
     params = dict(cfg["fit"].get("params", {}))
@@ -395,23 +484,24 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     if params.get("mode", "refit") not in ("refit", "warm_start"):
         raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine (use 'refit' or "
                         "'warm_start', or the local engine)")
-    target = run / "fit"
-    target.mkdir(parents=True, exist_ok=True)
     ds = read_dataset(run / "dataset")
-    gamma = params.get("gamma", ds.info.gamma if ds.info.gamma is not None else 0.95)
+    gamma = resolve_discount(ds.info, params.get("gamma")).gamma
     est = DistributedFQI(gamma=gamma, n_iterations=params.get("n_iterations", 50), lgbm_params=params.get("regressor_params"),
                          random_state=params.get("random_state", cfg["seed"]), warm_start=params.get("mode") == "warm_start",
                          trees_per_iteration=params.get("trees_per_iteration", 10))
-    if (target / "checkpoint" / "q.json").exists():
-        say("[fit] resuming from the last checkpointed iteration (Dask)")
-    est.fit(client, run / "dataset", checkpoint_dir=target / "checkpoint",
-            on_iteration=lambda k: say(f"[fit] iteration {k} (Dask)") if k % 10 == 0 else None)
-    with atomic_directory(target / "model", overwrite=True) as tmp:
-        save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
-                                            "policy": "greedy (argmin_a Q)"})
-        pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
-    (target / "config.json").write_text(json.dumps({"algorithm": "fqi", "engine": "dask", "params": params}, indent=1))
-    (target / "run.json").write_text(json.dumps({"dataset": str(run / "dataset"), "dataset_fingerprint": ds.fingerprint(),
-                                                 "algorithm": "fqi", "engine": "dask", "versions": versions(),
-                                                 "status": "completed", "iterations": len(est.history_)}, indent=1))
+    with RunDirectory(run / "fit").lock() as rd:
+        resuming = (rd.path / "checkpoint" / "q.json").exists()
+        if resuming:
+            say("[fit] resuming from the last checkpointed iteration (Dask)")
+        rd.write_json(rd.CONFIG, {"algorithm": "fqi", "engine": "dask", "params": params})
+        status = {"dataset": str(run / "dataset"), "dataset_fingerprint": ds.fingerprint(), "algorithm": "fqi",
+                  "engine": "dask", "versions": versions(), "status": "running"}
+        rd.write_json(rd.STATUS, status)
+        est.fit(client, run / "dataset", checkpoint_dir=rd.path / "checkpoint",
+                on_iteration=lambda k: say(f"[fit] iteration {k} (Dask)") if k % 10 == 0 else None)
+        with rd.subdirectory(rd.MODEL) as tmp:
+            save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
+                                                "policy": "greedy (argmin_a Q)"})
+            pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
+        rd.write_json(rd.STATUS, {**status, "status": "completed", "iterations": len(est.history_)})
     return {"iterations": len(est.history_), "engine": "dask"}

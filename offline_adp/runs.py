@@ -1,23 +1,23 @@
-"""``offline-adp fit``: configuration, run directories, checkpoints and resume.
+"""``offline-adp fit``: configuration, the fit run directory, checkpoints and resume.
 
-A run directory holds::
+A fit run directory (:class:`~offline_adp.data.rundir.RunDirectory`) holds::
 
-    RUN_DIR/config.json        the resolved algorithm parameters
+    RUN_DIR/config.json        the algorithm and its checked parameters
     RUN_DIR/checkpoint/        the last completed iteration (Q-function, history), replaced atomically
-    RUN_DIR/model/             the fitted Q-function(s), params.json, history.csv (written at the end)
-    RUN_DIR/run.json           dataset path and fingerprint, status, timings, versions
+    RUN_DIR/model/             the fitted artifacts, params.json, history.csv (written last, as a whole)
+    RUN_DIR/run.json           dataset path and fingerprint, status, wall and CPU seconds, versions
 
-Ctrl-C or a crash leaves ``checkpoint/`` at the last completed iteration;
-``--resume`` continues from it.
+Every algorithm of the registry (:mod:`offline_adp.algorithms.registry`) is fitted by
+:func:`fit_run` into this one layout. The directory is locked while it is written, so a
+second ``fit`` into the same ``--out`` fails at once; ``config.json`` is written before
+the work starts and ``model/`` only at the end, so the two can never disagree.
+Resumable algorithms (FQI) checkpoint every iteration: after Ctrl-C or a crash,
+``--resume`` continues from the last completed iteration.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
 import time
-import tomllib
 from collections.abc import Callable
 from os import PathLike
 from pathlib import Path
@@ -25,125 +25,41 @@ from typing import Any
 
 import pandas as pd
 
-from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
-from offline_adp.artifacts import load_q, save_q, versions
+from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm
+from offline_adp.artifacts import load_q, save_policy, save_q, versions
+from offline_adp.config import load_toml
 from offline_adp.data.io import read_dataset
-from offline_adp.errors import OfflineADPError, SpecError
+from offline_adp.data.rundir import RunDirectory
+from offline_adp.errors import OfflineADPError
 from offline_adp.qfunctions import TimeIndexedQ
-
-ALGORITHMS = {"fqi": FittedQIteration}
-#: Keys of each algorithm's TOML table besides its estimator's parameters, and the
-#: access model it needs (trace data unless a simulator is named).
-EXTRA_KEYS = {
-    "fqi": set(),
-    "fqe": {"policy"},
-    "api": {"fqe"},
-    "cpi": {"fqe", "simulator", "problem_options"},
-    "psdp": {"simulator", "problem_options", "baseline_source", "drop_features"},
-}
-
-
-def _estimator_class(algorithm: str) -> type:
-    from offline_adp.algorithms.api import ApproximatePolicyIteration
-    from offline_adp.algorithms.cpi import ConservativePolicyIteration
-    from offline_adp.algorithms.fqe import FittedQEvaluation
-    from offline_adp.algorithms.psdp import PSDP
-
-    return {"fqi": FittedQIteration, "fqe": FittedQEvaluation, "api": ApproximatePolicyIteration,
-            "cpi": ConservativePolicyIteration, "psdp": PSDP}[algorithm]
 
 
 def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, Any]:
-    """Algorithm parameters from a TOML file's ``[<algorithm>]`` table (or its top level).
+    """Algorithm parameters from a TOML file's ``[<algorithm>]`` table (or its top level),
+    checked against the algorithm's configuration model before anything runs.
 
     Relative paths (``policy``) are resolved against the config file's folder.
     """
-    if algorithm not in EXTRA_KEYS:
-        raise SpecError(f"unknown algorithm {algorithm!r}; known: {sorted(EXTRA_KEYS)}")
+    entry = get_algorithm(algorithm)
     if path is None:
         return {}
-    try:
-        raw = tomllib.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise SpecError(f"{path}: no such config file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{path}: not valid TOML ({exc})") from exc
+    raw = load_toml(path, "fit configuration")
     params = dict(raw.get(algorithm, raw))
-    valid = set(_estimator_class(algorithm)().get_params()) - {"fqe", "policy", "model", "initial_policy", "initial_q", "psdp"}
-    valid |= EXTRA_KEYS[algorithm]
-    unknown = sorted(set(params) - valid)
-    if unknown:
-        raise SpecError(f"{path}: unknown key(s) {unknown} for {algorithm}; valid keys are {sorted(valid)}")
-    if "fqe" in params:
-        fqe_valid = set(_estimator_class("fqe")().get_params()) - {"policy", "initial_q"}
-        bad = sorted(set(params["fqe"]) - fqe_valid)
-        if bad:
-            raise SpecError(f"{path}: unknown key(s) {bad} in [{algorithm}.fqe]; valid keys are {sorted(fqe_valid)}")
-    if "policy" in params:
+    entry.check_params(params, str(path), algorithm)
+    if params.get("policy") is not None:
         params["policy"] = str((Path(path).parent / params["policy"]).resolve())
     return params
 
 
-def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm: str, params: dict[str, Any]) -> Any:
-    """FQE, API, CPI or PSDP into a run directory (``model/`` holds policy, params, history)."""
-    from offline_adp.algorithms.fqe import FittedQEvaluation
-    from offline_adp.artifacts import load_policy, save_policy
-    from offline_adp.envs import make_problem
-
-    run = Path(out)
-    if run.exists():
-        raise OfflineADPError(f"{run} already exists; choose another --out (only fqi runs can be resumed)")
-    ds = read_dataset(dataset)
-    p = dict(params)
-    fqe = FittedQEvaluation(**p.pop("fqe")) if "fqe" in p else None
-    sim = make_problem(p.pop("simulator"), **p.pop("problem_options", {})) if "simulator" in p else None
-    t0 = time.perf_counter()
-    if algorithm == "fqe":
-        if "policy" not in p:
-            raise SpecError("fqe needs the policy to evaluate: policy = \"RUN_DIR/model\" in [fqe]")
-        est = FittedQEvaluation(policy=load_policy(p.pop("policy")), **p).fit(ds)
-        summary = {"value": est.value_}
-    elif algorithm == "api":
-        est = _estimator_class("api")(fqe=fqe, **p).fit(ds)
-        summary = {"value": float(est.history_["value"].iloc[-1])}
-    elif algorithm == "cpi":
-        est = _estimator_class("cpi")(fqe=fqe, model=sim, **p).fit(ds)
-        summary = {"value": float(est.history_["value"].iloc[-1])}
-    else:
-        if sim is None:
-            raise SpecError("psdp needs a simulator (a reference problem): simulator = \"path_tracking\" in [psdp]")
-        source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)
-        from offline_adp.features import drop_features
-
-        baseline = ds.filter_source(source) if source else ds
-        fmap = drop_features(ds.feature_names, drop) if drop else None
-        est = _estimator_class("psdp")(feature_map=fmap, **p).fit(sim, baseline)
-        summary = {"simulator_steps": est.simulator_steps_}
-    tmp = run.parent / f".{run.name}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    save_policy(est.policy_, tmp / "model", extra={"algorithm": algorithm, "dataset_fingerprint": ds.fingerprint()})
-    if getattr(est, "q_function_", None) is not None:
-        save_q(est.q_function_, tmp / "model")
-    est.history_.to_csv(tmp / "model" / "history.csv", index=False)
-    (tmp / "config.json").write_text(json.dumps({"algorithm": algorithm, "params": params}, indent=1, default=str))
-    status = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm, "versions": versions(),
-              "status": "completed", "fit_seconds": time.perf_counter() - t0, **summary}
-    (tmp / "run.json").write_text(json.dumps(status, indent=1, default=float))
-    os.replace(tmp, run)
-    return est
-
-
-def _write_checkpoint(run: Path, est: FittedQIteration, rows: list[dict[str, Any]]) -> None:
-    from offline_adp.data.io import atomic_directory
-
+def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> None:
     q: Any = est.q_function_ if est.horizon is None else TimeIndexedQ(list(reversed(est.q_functions_)))
-    with atomic_directory(run / "checkpoint", overwrite=True) as tmp:
+    with RunDirectory(run).subdirectory(RunDirectory.CHECKPOINT) as tmp:
         save_q(q, tmp, extra={"iteration": len(rows)})
         pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
 
 
 def _read_checkpoint(run: Path, finite: bool) -> dict[str, Any] | None:
-    ck = run / "checkpoint"
+    ck = run / RunDirectory.CHECKPOINT
     if not (ck / "q.json").exists():
         return None
     q, _ = load_q(ck)
@@ -151,6 +67,49 @@ def _read_checkpoint(run: Path, finite: bool) -> dict[str, Any] | None:
     rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
     # finite horizons are stored as Q_{T-1}, Q_{T-2}, ... (the order they were fitted)
     return {"q": list(q.qs) if finite else q, "history": rows}
+
+
+def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every: int,
+             on_iteration: Callable[[dict[str, Any]], None] | None) -> None:
+    """Run a resumable algorithm's ``fit_iter``, checkpointing every ``checkpoint_every`` iterations."""
+    state = _read_checkpoint(rd.path, est.horizon is not None) if resume else None
+    rows: list[dict[str, Any]] = list(state["history"]) if state else []
+    for row in est.fit_iter(ds, resume=state):
+        rows.append(row)
+        if len(rows) % checkpoint_every == 0 and est.mode != "frozen":
+            _write_checkpoint(rd.path, est, rows)
+        if on_iteration:
+            on_iteration(row)
+
+
+def _save_model(entry: AlgorithmEntry, est: Any, rd: RunDirectory, fingerprint: str) -> None:
+    with rd.subdirectory(RunDirectory.MODEL) as tmp:
+        if entry.artifact == "q":
+            from offline_adp.algorithms.fqi import save_fqi
+
+            save_fqi(est, tmp, dataset_fingerprint=fingerprint)
+            return
+        save_policy(est.policy_, tmp, extra={"algorithm": entry.name, "dataset_fingerprint": fingerprint})
+        if getattr(est, "q_function_", None) is not None:
+            save_q(est.q_function_, tmp)
+        pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
+
+
+def _summary(est: Any) -> dict[str, Any]:
+    """Numbers for run.json: the value estimate, iterations, the fit's convergence verdict."""
+    out: dict[str, Any] = {}
+    hist = getattr(est, "history_", None)
+    if hist is not None:
+        out["iterations"] = len(hist)
+    if getattr(est, "value_", None) is not None:
+        out["value"] = float(est.value_)
+    elif isinstance(hist, pd.DataFrame) and "value" in hist:
+        out["value"] = float(hist["value"].iloc[-1])
+    for attr in ("simulator_steps_", "diverged_", "verdict_"):
+        v = getattr(est, attr, None)
+        if v is not None:
+            out[attr.rstrip("_")] = v if not hasattr(v, "item") else v.item()
+    return out
 
 
 def fit_run(
@@ -162,48 +121,76 @@ def fit_run(
     resume: bool = False,
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
     checkpoint_every: int = 1,
-) -> FittedQIteration:
-    """Fit ``algorithm`` on a dataset directory into a run directory (see module docstring)."""
-    run = Path(out)
+) -> Any:
+    """Fit ``algorithm`` on a dataset directory into a run directory (see module docstring).
+
+    Parameters
+    ----------
+    dataset : path-like
+        A dataset directory.
+    out : path-like
+        The run directory: must not hold a run yet, unless ``resume``.
+    algorithm : str
+        A name of :data:`offline_adp.algorithms.registry.ALGORITHMS`.
+    params : dict, optional
+        The algorithm's parameters (checked before anything runs).
+    resume : bool
+        Continue an interrupted run of a resumable algorithm from its last checkpoint.
+    on_iteration : callable, optional
+        Called with each iteration's history row (resumable algorithms).
+    checkpoint_every : int
+        Checkpoint every this many iterations.
+
+    Returns
+    -------
+    The fitted estimator.
+    """
+    entry = get_algorithm(algorithm)
     params = dict(params or {})
-    if run.exists() and not resume:
-        raise OfflineADPError(f"{run} already exists; use --resume to continue it or choose another --out")
-    if resume and not run.exists():
-        raise OfflineADPError(f"{run} does not exist: nothing to resume")
+    entry.check_params(params, "parameters")
+    rd = RunDirectory(out)
+    if resume and not entry.resumable:
+        raise OfflineADPError(f"--resume is for {[n for n in ('fqi',) if get_algorithm(n).resumable]} runs; "
+                              f"{algorithm} runs as a whole")
+    if resume and not rd.path.exists():
+        raise OfflineADPError(f"{rd.path} does not exist: nothing to resume")
     ds = read_dataset(dataset)
-    run.mkdir(parents=True, exist_ok=True)
-    if resume:
-        saved = json.loads((run / "config.json").read_text())
-        if params and params != saved["params"]:
-            raise OfflineADPError(f"{run}: --resume with different parameters than the run was started with ({saved['params']})")
-        params = saved["params"]
-        info = json.loads((run / "run.json").read_text())
-        if info["dataset_fingerprint"] != ds.fingerprint():
-            raise OfflineADPError(f"{run}: the dataset changed since the run started (fingerprint differs); start a new run")
-    else:
-        (run / "config.json").write_text(json.dumps({"algorithm": algorithm, "params": params}, indent=1))
-    est = ALGORITHMS[algorithm](**params)
-    status = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm, "versions": versions(), "status": "running"}
-    (run / "run.json").write_text(json.dumps(status, indent=1))
-    state = _read_checkpoint(run, est.horizon is not None) if resume else None
-    t0 = time.perf_counter()
-    rows: list[dict[str, Any]] = list(state["history"]) if state else []
-    try:
-        for row in est.fit_iter(ds, resume=state):
-            rows.append(row)
-            if len(rows) % checkpoint_every == 0 and est.mode != "frozen":
-                _write_checkpoint(run, est, rows)
-            if on_iteration:
-                on_iteration(row)
-    except KeyboardInterrupt:
-        status.update(status="interrupted", completed_iterations=len(rows))
-        (run / "run.json").write_text(json.dumps(status, indent=1))
-        raise
-    model_tmp = run / "model.tmp"
-    shutil.rmtree(model_tmp, ignore_errors=True)
-    save_fqi(est, model_tmp, dataset_fingerprint=ds.fingerprint())
-    shutil.rmtree(run / "model", ignore_errors=True)
-    os.replace(model_tmp, run / "model")
-    status.update(status="completed", iterations=len(rows), fit_seconds=time.perf_counter() - t0, diverged=bool(est.diverged_))
-    (run / "run.json").write_text(json.dumps(status, indent=1))
+    with rd.lock():
+        if resume:
+            if not rd.exists(rd.CONFIG):
+                raise OfflineADPError(f"{rd.path} has no {rd.CONFIG}: it is not a fit run directory that can be resumed "
+                                      "(start it without --resume, or choose another --out)")
+            saved = rd.read_json(rd.CONFIG)
+            if saved.get("algorithm") != algorithm:
+                raise OfflineADPError(f"{rd.path}: the run was started with algorithm {saved.get('algorithm')!r}, not {algorithm!r}")
+            if params and params != saved["params"]:
+                raise OfflineADPError(f"{rd.path}: --resume with different parameters than the run was started with "
+                                      f"({saved['params']})")
+            params = saved["params"]
+            if rd.read_json(rd.STATUS).get("dataset_fingerprint") != ds.fingerprint():
+                raise OfflineADPError(f"{rd.path}: the dataset changed since the run started (fingerprint differs); "
+                                      "start a new run")
+        elif any(rd.exists(n) for n in (rd.CONFIG, rd.STATUS, rd.MODEL)):
+            raise OfflineADPError(f"{rd.path} already holds a run; use --resume to continue it or choose another --out")
+        else:
+            rd.write_json(rd.CONFIG, {"algorithm": algorithm, "params": params})
+        status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm,
+                                  "access": entry.access, "versions": versions(), "status": "running"}
+        rd.write_json(rd.STATUS, status)
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            if entry.resumable:
+                est = entry.estimator_class()(**params)
+                _iterate(rd, est, ds, resume, checkpoint_every, on_iteration)
+            else:
+                est = entry.build_and_fit(params, ds)
+        except BaseException as exc:
+            status.update(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                          error=f"{type(exc).__name__}: {exc}")
+            rd.write_json(rd.STATUS, status)
+            raise
+        _save_model(entry, est, rd, ds.fingerprint())
+        status.update(status="completed", fit_seconds=time.perf_counter() - wall, cpu_seconds=time.process_time() - cpu,
+                      **_summary(est))
+        rd.write_json(rd.STATUS, status)
     return est

@@ -81,7 +81,7 @@ def test_fit_cli_errors(tmp_path, pt_dir, capsys):
     cfg.write_text("[fqi]\nn_iteration = 3\n")
     assert main(["fit", str(pt_dir), "--config", str(cfg), "--out", str(tmp_path / "r"), "-q"]) == 2
     err = capsys.readouterr().err
-    assert "unknown key(s) ['n_iteration']" in err and "n_iterations" in err
+    assert "fqi.n_iteration: unknown key (did you mean 'n_iterations'?)" in err and "valid keys are" in err
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "nothing"), "--resume", "-q"]) == 2
 
 

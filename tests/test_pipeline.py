@@ -106,7 +106,7 @@ def test_pipeline_errors_name_the_key(tmp_path):
     with pytest.raises(SpecError, match="matches no file"):
         load_pipeline(bad)
     bad.write_text('[data]\nsimulate = "tabular"\n')
-    with pytest.raises(SpecError, match=r"needs a \[fit\] table"):
+    with pytest.raises(SpecError, match=r"fit: missing required key"):
         load_pipeline(bad)
     assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
 

@@ -1,0 +1,225 @@
+"""The algorithm registry: name -> estimator class, configuration model, access model, artifact.
+
+One table replaces the if/elif chains of the CLI, the fit runner and the pipeline:
+``offline-adp fit --algorithm NAME``, a pipeline's ``[fit] algorithm`` and the Python
+function :func:`offline_adp.runs.fit` all look the algorithm up here.
+
+Each entry's *configuration model* (the keys a TOML ``[NAME]`` table or a pipeline's
+``[fit.params]`` may hold) is generated from the estimator's constructor signature,
+so it cannot drift from the code: the estimator's parameters with their annotated types,
+minus those that take Python objects (regressor instances, policies, models), plus the
+entry's *extra keys* (a policy to evaluate by path, a simulator by name, a nested
+``fqe`` table). Values are then checked by the estimator's own ``_validate_params``
+(the scikit-learn place for it) before anything runs, so ``mode = "fast"`` fails at
+load time naming the file and key.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import types
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cache
+from typing import Any
+
+from pydantic import create_model
+
+from offline_adp.config import ConfigModel, validate_config
+from offline_adp.errors import SpecError, UnknownNameError
+
+_SIMPLE = (int, float, str, bool, dict, list, tuple, type(None))
+
+
+@dataclass(frozen=True)
+class AlgorithmEntry:
+    """One algorithm of the chapter as the runner sees it.
+
+    Attributes
+    ----------
+    name : str
+        The name in the CLI and in configuration files.
+    estimator : str
+        ``"module:Class"`` of the scikit-learn style estimator.
+    access : str
+        The weakest access model it needs (the chapter's list).
+    summary : str
+        One line for ``--help``.
+    resumable : bool
+        Fits iteration by iteration with checkpoints (``--resume``).
+    artifact : str
+        What ``model/`` holds: ``"q"`` (a Q-function and its greedy policy) or
+        ``"policy"`` (a policy, and its Q-function when it has one).
+    extra : dict
+        Configuration keys besides the estimator's parameters: name -> (type, default).
+    exclude : tuple of str
+        Constructor parameters that take Python objects and have no configuration form.
+    """
+
+    name: str
+    estimator: str
+    access: str
+    summary: str
+    resumable: bool = False
+    artifact: str = "policy"
+    extra: dict[str, tuple[Any, Any]] = field(default_factory=dict)
+    exclude: tuple[str, ...] = ()
+    fit_with: Callable[[AlgorithmEntry, dict[str, Any], Any], Any] | None = None
+
+    def build_and_fit(self, params: dict[str, Any], dataset: Any) -> Any:
+        """Construct the estimator from checked ``params`` (extra keys resolved: a policy
+        loaded, a simulator made) and fit it on ``dataset``; returns the fitted estimator."""
+        return (self.fit_with or _fit_on_data)(self, dict(params), dataset)
+
+    def estimator_class(self) -> type:
+        module, cls = self.estimator.split(":")
+        return getattr(importlib.import_module(module), cls)
+
+    def params_model(self) -> type[ConfigModel]:
+        """The pydantic model of this algorithm's configuration table."""
+        return _params_model(self.name)
+
+    def check_params(self, params: dict[str, Any] | None, source: str = "", section: str | None = None) -> dict[str, Any]:
+        """Validate ``params`` (types, then the estimator's value checks); returns them
+        with relative paths left as given. Raises SpecError naming file and key."""
+        model = validate_config(self.params_model(), params or {}, source, section or self.name)
+        given = model.model_dump(exclude_unset=True)
+        if "fqe" in given:
+            FQE.check_params(given["fqe"], source, f"{section or self.name}.fqe")
+        est_params = {k: v for k, v in given.items() if k not in self.extra}
+        est = self.estimator_class()(**est_params)
+        # the estimator's own value checks (scikit-learn's place for them), when it has any
+        if any("_validate_params" in vars(c) for c in type(est).__mro__ if c.__module__.startswith("offline_adp")):
+            try:
+                est._validate_params()
+            except (ValueError, TypeError) as exc:
+                where = f"{source}: " if source else ""
+                raise SpecError(f"{where}[{section or self.name}] {exc}") from None
+        return dict(params or {})
+
+
+def _config_type(annotation: Any) -> Any | None:
+    """The annotation if every member of it is a plain configuration type (else None)."""
+    if annotation is Any:
+        return Any
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is None:
+        return annotation if annotation in _SIMPLE else None
+    if origin in (typing.Union, types.UnionType):
+        return annotation if all(_config_type(a) is not None for a in args) else None
+    if origin in (dict, list, tuple, typing.Literal):
+        return annotation
+    return None
+
+
+@cache
+def _params_model(name: str) -> type[ConfigModel]:
+    entry = ALGORITHMS[name]
+    cls = entry.estimator_class()
+    sig = inspect.signature(cls.__init__)
+    try:
+        hints = typing.get_type_hints(cls.__init__)
+    except Exception:  # an annotation that cannot be resolved at run time: accept any value
+        hints = {}
+    fields: dict[str, Any] = {}
+    for name, p in sig.parameters.items():
+        if name == "self" or name in entry.exclude or p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL):
+            continue
+        typ = _config_type(hints.get(name, Any))
+        if typ is None:
+            continue
+        fields[name] = (typ, p.default)
+    for name, (typ, default) in entry.extra.items():
+        fields[name] = (typ, default)
+    model = create_model(f"{cls.__name__}Config", __base__=ConfigModel, **fields)
+    model.__doc__ = f"Configuration of {entry.name}: {entry.summary}"
+    return model
+
+
+def _fit_on_data(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    return entry.estimator_class()(**p).fit(ds)
+
+
+def _make_fqe(p: dict[str, Any]) -> Any:
+    return FQE.estimator_class()(**p.pop("fqe")) if p.get("fqe") is not None else p.pop("fqe", None)
+
+
+def _simulator(p: dict[str, Any]) -> Any:
+    from offline_adp.envs import make_problem
+
+    name, options = p.pop("simulator", None), p.pop("problem_options", None) or {}
+    return make_problem(name, **options) if name is not None else None
+
+
+def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    from offline_adp.artifacts import load_policy
+
+    if p.get("policy") is None:
+        raise SpecError('fqe needs the policy to evaluate: policy = "RUN_DIR/model" in [fqe]')
+    return entry.estimator_class()(policy=load_policy(p.pop("policy")), **p).fit(ds)
+
+
+def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    return entry.estimator_class()(fqe=_make_fqe(p), **p).fit(ds)
+
+
+def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    fqe = _make_fqe(p)
+    return entry.estimator_class()(fqe=fqe, model=_simulator(p), **p).fit(ds)
+
+
+def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    from offline_adp.features import drop_features
+
+    sim = _simulator(p)
+    if sim is None:
+        raise SpecError('psdp needs a simulator (a reference problem): simulator = "path_tracking" in [psdp]')
+    source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)
+    baseline = ds.filter_source(source) if source else ds
+    fmap = drop_features(ds.feature_names, drop) if drop else None
+    return entry.estimator_class()(feature_map=fmap, **p).fit(sim, baseline)
+
+
+FQI = AlgorithmEntry(
+    "fqi", "offline_adp.algorithms.fqi:FittedQIteration", "trace data",
+    "fitted Q-iteration (Algorithms 10, 11; tree-based as in Ernst, Geurts & Wehenkel 2005)",
+    resumable=True, artifact="q", exclude=("feature_map", "initial_q"),
+)
+FQE = AlgorithmEntry(
+    "fqe", "offline_adp.algorithms.fqe:FittedQEvaluation", "trace data",
+    "fitted Q evaluation of a saved policy (Algorithms 12, 13)",
+    extra={"policy": (str | None, None)}, exclude=("policy", "feature_map", "initial_q"), fit_with=_fit_fqe,
+)
+API = AlgorithmEntry(
+    "api", "offline_adp.algorithms.api:ApproximatePolicyIteration", "trace data",
+    "approximate policy iteration (FQE + greedy improvement)",
+    extra={"fqe": (dict[str, Any] | None, None)}, exclude=("fqe", "initial_policy", "model"), fit_with=_fit_api,
+)
+CPI = AlgorithmEntry(
+    "cpi", "offline_adp.algorithms.cpi:ConservativePolicyIteration", "trace data (reset model for rollout values)",
+    "conservative policy iteration (Kakade & Langford 2002), line search or the safe step",
+    extra={"fqe": (dict[str, Any] | None, None), "simulator": (str | None, None),
+           "problem_options": (dict[str, Any] | None, None)},
+    exclude=("fqe", "initial_policy", "model"), fit_with=_fit_cpi,
+)
+PSDP = AlgorithmEntry(
+    "psdp", "offline_adp.algorithms.psdp:PSDP", "reset model (a simulator) + baseline state distribution",
+    "policy search by dynamic programming (Algorithm 14)",
+    extra={"simulator": (str | None, None), "problem_options": (dict[str, Any] | None, None),
+           "baseline_source": (str | None, None), "drop_features": (list[str] | None, None)},
+    exclude=("feature_map",), fit_with=_fit_psdp,
+)
+
+#: name -> entry, in the order ``--help`` lists them.
+ALGORITHMS: dict[str, AlgorithmEntry] = {e.name: e for e in (FQI, FQE, API, CPI, PSDP)}
+
+
+def get_algorithm(name: str) -> AlgorithmEntry:
+    """The registry entry for ``name`` (``UnknownNameError`` lists the known names)."""
+    try:
+        return ALGORITHMS[name]
+    except KeyError:
+        raise UnknownNameError(f"unknown algorithm {name!r}; known: {list(ALGORITHMS)}") from None

@@ -1,0 +1,172 @@
+"""``RunDirectory``: the one owner of a run directory's layout, atomic writes and lock.
+
+A fit run directory (``offline-adp fit --out RUN``, a pipeline's ``fit/``) and a
+pipeline run directory are both run directories::
+
+    RUN/.lock            held while a process writes the run (a second writer fails at once)
+    RUN/config.json      the resolved configuration, written before the work starts
+    RUN/run.json         status, dataset fingerprint, versions, wall and CPU seconds
+    RUN/checkpoint/      the last completed iteration (resumable algorithms)
+    RUN/model/           the fitted artifacts (written last, as a whole)
+
+Every file is written to a temporary name in the same directory and renamed over the
+target (``os.replace``), and every subdirectory through
+:func:`offline_adp.data.io.atomic_directory`; a rename replaces a symbolic link
+planted at the target instead of writing through it, so nothing outside the run is
+ever written. A crash leaves the previous version of each file, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import shutil
+from collections.abc import Iterator
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+from offline_adp.errors import OfflineADPError
+
+#: What a run or pipeline name may be: no path separators, no glob characters.
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
+
+
+class RunLockedError(OfflineADPError):
+    """Another process is writing the same run directory."""
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """A pipeline/run name usable as one path component (letters, digits, ``._-``)."""
+    if not isinstance(name, str) or not re.match(NAME_PATTERN, name) or name in (".", ".."):
+        raise OfflineADPError(f"{what} {name!r} is not allowed: use letters, digits, '.', '_' and '-' "
+                              "(no path separators or glob characters), starting with a letter or digit")
+    return name
+
+
+class RunDirectory:
+    """A run directory (see the module docstring).
+
+    Parameters
+    ----------
+    path : path-like
+        The directory; created (with its parents) by :meth:`lock`.
+    """
+
+    LOCK = ".lock"
+    CONFIG = "config.json"
+    STATUS = "run.json"
+    MODEL = "model"
+    CHECKPOINT = "checkpoint"
+
+    def __init__(self, path: str | PathLike[str]) -> None:
+        self.path = Path(path)
+        self._lock: Any = None
+
+    def __repr__(self) -> str:
+        return f"RunDirectory({str(self.path)!r})"
+
+    # ------------------------------------------------------------------ lock
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[RunDirectory]:
+        """Hold the run's lock for the block; a second writer gets :class:`RunLockedError`
+        at once (exit 2 on the CLI). Re-entrant within one object."""
+        if self._lock is not None:
+            yield self
+            return
+        from filelock import FileLock, Timeout
+
+        if self.path.is_symlink():
+            raise OfflineADPError(f"{self.path} is a symbolic link; give the real directory as the run directory")
+        self.path.mkdir(parents=True, exist_ok=True)
+        lock = FileLock(str(self.path / self.LOCK), timeout=0)
+        try:
+            lock.acquire()
+        except Timeout:
+            raise RunLockedError(f"{self.path} is being written by another process (its lock {self.path / self.LOCK} "
+                                 "is held); wait for it to finish or choose another directory") from None
+        self._lock = lock
+        try:
+            self.clean_stale_temporaries()
+            yield self
+        finally:
+            self._lock = None
+            lock.release()
+
+    def clean_stale_temporaries(self) -> list[Path]:
+        """Remove temporary files and directories of ours left by a killed writer
+        (``.NAME.tmp-*``, ``.NAME.old-*``, ``*.tmp``); only safe under the lock."""
+        removed = []
+        for p in self.path.iterdir():
+            if re.match(r"^\..+\.(tmp|old)-", p.name) or (p.name.endswith(".tmp") and p.name.startswith(".")):
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    p.unlink(missing_ok=True)
+                removed.append(p)
+        return removed
+
+    # ------------------------------------------------------------------ files
+    def file(self, name: str) -> Path:
+        """``RUN/name``, refusing names that would leave the directory."""
+        p = self.path / name
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise OfflineADPError(f"{name!r}: not a file name inside {self.path}")
+        return p
+
+    def exists(self, name: str) -> bool:
+        return self.file(name).exists()
+
+    def write_text(self, name: str, text: str) -> Path:
+        """Write ``RUN/name`` atomically (temporary file in the same folder, then rename);
+        a symbolic link at the target is replaced, never followed."""
+        target = self.file(name)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.parent / f".{target.name}.tmp"
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, target)
+        return target
+
+    def write_json(self, name: str, obj: Any) -> Path:
+        return self.write_text(name, json.dumps(obj, indent=1, default=_json_default) + "\n")
+
+    def read_json(self, name: str) -> dict[str, Any]:
+        p = self.file(name)
+        try:
+            return json.loads(p.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise OfflineADPError(f"{p}: missing (is {self.path} a run directory?)") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise OfflineADPError(f"{p}: not valid JSON ({exc})") from None
+
+    @contextlib.contextmanager
+    def subdirectory(self, name: str) -> Iterator[Path]:
+        """Yield a temporary directory that replaces ``RUN/name`` as a whole on success."""
+        from offline_adp.data.io import atomic_directory
+
+        target = self.file(name)
+        if target.is_symlink():
+            target.unlink()
+        with atomic_directory(target, overwrite=True) as tmp:
+            yield tmp
+
+    def remove(self, name: str) -> None:
+        p = self.file(name)
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+        elif p.exists():
+            shutil.rmtree(p)
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "item"):
+        return o.item()
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)

@@ -1,0 +1,89 @@
+"""What ``offline-adp inspect`` shows: a dataset's schema, counts, coverage and statistics."""
+
+from __future__ import annotations
+
+from os import PathLike
+from typing import Any
+
+import numpy as np
+
+from offline_adp.data import schema as S
+from offline_adp.data.io import read_dataset, read_quarantine
+
+
+def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:
+    """Schema, counts per source, action coverage, episode lengths and cost statistics of
+    the dataset directory ``path`` (JSON-serialisable)."""
+    ds = read_dataset(path)
+    info = ds.info
+    ep = ds.episode_table()
+    a = ds.table.column(S.ACTION).to_numpy()
+    cost = ds.table.column(S.COST).to_numpy()
+    n_actions = ds.n_actions
+    in_range = (a >= 0) & (a < n_actions)
+    report: dict[str, Any] = {
+        "path": str(path),
+        "name": info.name,
+        "problem": info.problem,
+        "format_version": info.format_version,
+        "transitions": len(ds),
+        "episodes": ds.n_episodes,
+        "features": [f"{f.name} [{f.unit}]" if f.unit else f.name for f in info.features],
+        "actions": {
+            "kind": info.action_table.kind,
+            "dims": list(info.action_table.dims),
+            "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(), strict=True)},
+            "coverage": {n: int(c) for n, c in zip(info.action_table.names,
+                                                   np.bincount(a[in_range], minlength=n_actions), strict=True)},
+            "out_of_range": int((~in_range).sum()),
+        },
+        "per_source": {
+            str(src): {
+                "episodes": int(len(g)),
+                "transitions": int(g["length"].sum()),
+                "mean_total_cost": float(g["total_cost"].mean()),
+                "terminated": int(g[S.TERMINATED].sum()),
+            }
+            for src, g in ep.groupby(S.SOURCE, observed=True)
+        },
+        "episode_length": {q: float(v) for q, v in zip(("min", "p25", "median", "p75", "max"),
+                                                        np.quantile(ep["length"], [0, 0.25, 0.5, 0.75, 1]), strict=True)}
+        if len(ep) else {},
+        "cost": {"mean": float(cost.mean()), "std": float(cost.std()), "min": float(cost.min()), "max": float(cost.max())}
+        if len(cost) else {},
+        "gamma": info.gamma,
+        "horizon": info.horizon,
+        "propensities": info.propensity_source if ds.has_propensities else "none",
+        "fingerprint": ds.fingerprint()[:16],
+    }
+    q = read_quarantine(path)
+    if q is not None:
+        report["quarantined_rows"] = q.num_rows
+    return report
+
+
+def summary_text(report: dict[str, Any]) -> str:
+    """The human form of :func:`dataset_summary`."""
+    acts = report["actions"]
+    lines = [f"{report['path']}  ({report['transitions']} transitions, {report['episodes']} episodes, "
+             f"format {report['format_version']})",
+             f"  features    {', '.join(report['features'])}",
+             f"  actions     {acts['kind']} over {acts['dims']}: "
+             + ", ".join(f"{i}:{n} {v}" for i, (n, v) in enumerate(acts["table"].items())),
+             "  coverage    " + ", ".join(f"{n}: {c}" for n, c in acts["coverage"].items())
+             + (f"; {acts['out_of_range']} rows with an action outside the table (run offline-adp validate)"
+                if acts["out_of_range"] else "")]
+    for src, d in report["per_source"].items():
+        lines.append(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost "
+                     f"{d['mean_total_cost']:.4g}, terminated {d['terminated']}")
+    el = report["episode_length"]
+    if el:
+        lines.append(f"  ep. length  min {el['min']:.0f}  p25 {el['p25']:.0f}  median {el['median']:.0f}  "
+                     f"p75 {el['p75']:.0f}  max {el['max']:.0f}")
+    c = report["cost"]
+    if c:
+        lines.append(f"  cost/step   mean {c['mean']:.4g}  std {c['std']:.4g}  min {c['min']:.4g}  max {c['max']:.4g}")
+    lines.append(f"  hints       gamma={report['gamma']} horizon={report['horizon']}; propensities: {report['propensities']}")
+    if "quarantined_rows" in report:
+        lines.append(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
+    return "\n".join(lines)

@@ -1,0 +1,43 @@
+"""Write a simulated dataset in the format ``offline-adp simulate --format`` names."""
+
+from __future__ import annotations
+
+from os import PathLike
+from pathlib import Path
+
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import OfflineADPError, ValidationError
+
+#: ``--format`` choices: a dataset directory, a raw table, or MCAP recordings.
+FORMATS = ("dataset", "parquet", "csv", "mcap-json", "mcap-ros2")
+
+
+def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = "dataset", *, overwrite: bool = False,
+                    seed: int = 0) -> list[Path]:
+    """Write ``ds`` as a dataset directory (checked by the doctor first), a Parquet/CSV
+    table (``out`` a file, or a folder that gets ``PROBLEM.FORMAT``) or MCAP files
+    (``mcap-json``/``mcap-ros2`` into the folder ``out``); returns the written paths."""
+    out = Path(out)
+    if fmt not in FORMATS:
+        raise OfflineADPError(f"format {fmt!r}: expected one of {list(FORMATS)}")
+    if fmt == "dataset":
+        from offline_adp.data.validate import validate
+
+        report = validate(ds)
+        if not report.ok:  # a simulator bug, never user input
+            raise ValidationError("simulated data failed the doctor:\n" + report.to_text(), report)
+        ds.save(out, overwrite=overwrite)
+        return [out]
+    if fmt in ("parquet", "csv"):
+        from offline_adp.simulate.raw import write_raw
+
+        if out.suffix == "":
+            out = out / f"{ds.info.problem}.{fmt}"
+        if out.exists() and not overwrite:
+            raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+        return list(write_raw(ds, out, fmt=fmt))
+    from offline_adp.simulate.mcap_writer import write_mcap
+
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise OfflineADPError(f"{out} is not empty; pass --overwrite to write into it")
+    return list(write_mcap(ds, out, encoding=fmt.split("-")[1], seed=seed))
