@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 DEMO   := demo_out
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test test-fast bench lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,13 @@ demo: $(VENV)/.installed
 	$(BIN)/offline-adp run pipelines/driving.toml --runs $(DEMO)/runs --quiet
 
 test: $(VENV)/.installed-dev
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
+
+# The unit layer only (no slow or end-to-end tests): under 2 minutes on 2 cores.
+test-fast: $(VENV)/.installed-dev
+	$(BIN)/lint-imports
+	$(BIN)/python -m pytest -q -m "not slow and not integration"
 
 bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/ingest_parquet.py
@@ -38,6 +44,7 @@ bench: $(VENV)/.installed-dev
 
 lint: $(VENV)/.installed-dev
 	$(BIN)/ruff check offline_adp tests benchmarks
+	$(BIN)/lint-imports
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

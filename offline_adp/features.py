@@ -3,26 +3,45 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.utils.validation import validate_data
 
 
 class SelectColumns(TransformerMixin, BaseEstimator):
-    """Keep the observation columns ``columns`` (indices), in that order."""
+    """Keep the observation columns ``columns`` (indices), in that order.
+
+    Stateless: usable without ``fit`` (``requires_fit`` is False); ``fit`` records the
+    input width, which ``transform`` then checks.
+    """
 
     def __init__(self, columns: Sequence[int] = (0,)) -> None:
         self.columns = columns
 
     def fit(self, X: np.ndarray, y: object = None) -> SelectColumns:
-        self.n_features_in_ = np.asarray(X).shape[1]
+        X = validate_data(self, X, dtype=np.float64)
+        self._check_columns(X.shape[1])
         return self
 
     def transform(self, X: np.ndarray) -> np.ndarray:
-        return np.asarray(X, dtype=np.float64)[:, list(self.columns)]
+        X = validate_data(self, X, dtype=np.float64, reset=False)
+        self._check_columns(X.shape[1])
+        return X[:, list(self.columns)]
+
+    def _check_columns(self, width: int) -> None:
+        bad = [c for c in self.columns if not -width <= int(c) < width]
+        if bad:
+            raise ValueError(f"SelectColumns: columns {bad} are outside an input of {width} features")
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         return self.transform(X)
+
+    def __sklearn_tags__(self) -> Any:
+        tags = super().__sklearn_tags__()
+        tags.requires_fit = False
+        return tags
 
 
 def drop_features(feature_names: Sequence[str], drop: Sequence[str]) -> SelectColumns:

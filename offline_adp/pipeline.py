@@ -130,8 +130,8 @@ class EvaluateSection(ConfigModel):
 
     simulator: str | None = None
     episodes: int = Field(500, ge=1)
-    bootstrap: int = Field(200, ge=2)
-    fqe_bootstrap: int = Field(10, ge=2)
+    bootstrap: int = Field(200, ge=0)
+    fqe_bootstrap: int = Field(10, ge=0)
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
 

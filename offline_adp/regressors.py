@@ -24,8 +24,9 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from sklearn.base import BaseEstimator, RegressorMixin, clone
-from sklearn.utils.validation import check_is_fitted
+from sklearn.base import BaseEstimator, ClassifierMixin, RegressorMixin, clone
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.validation import _check_sample_weight, check_is_fitted, validate_data
 
 from offline_adp.errors import UnknownNameError
 
@@ -35,6 +36,7 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
 
     With one-hot or index inputs this is the tabular learner of the chapter, for which
     fitted Q-iteration is exact dynamic programming on the data's empirical model.
+    Rows with zero weight (e.g. left out of a bootstrap replicate) are not data.
 
     Parameters
     ----------
@@ -46,22 +48,22 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
         self.fill_value = fill_value
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularRegressor:
-        y = np.asarray(y, dtype=np.float64)
-        w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
-        X = np.asarray(X, dtype=np.float64)
-        if (w <= 0).any():  # zero-weight rows (e.g. bootstrap replicates) are not data
-            X, y, w = X[w > 0], y[w > 0], w[w > 0]
+        X, y = validate_data(self, X, y, dtype=np.float64, y_numeric=True)
+        w = _check_sample_weight(sample_weight, X, dtype=np.float64)
+        if not (w > 0).any():
+            raise ValueError("TabularRegressor: every sample weight is zero; there is no data to fit")
+        X, y, w = X[w > 0], y[w > 0], w[w > 0]
         rows = _fit_codes(self, X)
         keys, inv = np.unique(rows, return_inverse=True)
         inv = inv.reshape(-1)
         wsum = np.bincount(inv, weights=w, minlength=len(keys))
         self.keys_ = keys
         self.values_ = np.bincount(inv, weights=w * y, minlength=len(keys)) / np.where(wsum > 0, wsum, 1.0)
-        self.n_features_in_ = np.asarray(X).shape[1]
         return self
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         check_is_fitted(self, "keys_")
+        X = validate_data(self, X, dtype=np.float64, reset=False)
         rows = _codes(self, X)
         pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
         hit = (self.keys_[pos] == rows) & (rows >= 0)
@@ -179,26 +181,31 @@ def make_regressor(spec: str | BaseEstimator, **params: Any) -> BaseEstimator:
         raise UnknownNameError(f"regressor {spec!r}: bad parameters {sorted(params)} ({exc})") from None
 
 
-class TabularClassifier(BaseEstimator):
+class TabularClassifier(ClassifierMixin, BaseEstimator):
     """Weighted majority label of each distinct input row (a lookup-table classifier).
 
-    Unseen rows get the overall weighted majority label.
+    Unseen rows get the overall weighted majority label; ties go to the smallest label.
     """
 
     def fit(self, X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None = None) -> TabularClassifier:
-        y = np.asarray(y)
-        w = np.ones(len(y)) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+        X, y = validate_data(self, X, y, dtype=np.float64)
+        check_classification_targets(y)
+        w = _check_sample_weight(sample_weight, X, dtype=np.float64)
+        if not (w > 0).any():
+            raise ValueError("TabularClassifier: every sample weight is zero; there is no data to fit")
+        X, y, w = X[w > 0], y[w > 0], w[w > 0]
         rows = _fit_codes(self, X)
         self.classes_, yi = np.unique(y, return_inverse=True)
         keys, inv = np.unique(rows, return_inverse=True)
         votes = np.zeros((len(keys), len(self.classes_)))
-        np.add.at(votes, (inv.reshape(-1), yi), w)
+        np.add.at(votes, (inv.reshape(-1), yi.reshape(-1)), w)
         self.keys_, self.labels_ = keys, self.classes_[votes.argmax(axis=1)]
-        self.default_ = self.classes_[np.bincount(yi, weights=w, minlength=len(self.classes_)).argmax()]
+        self.default_ = self.classes_[np.bincount(yi.reshape(-1), weights=w, minlength=len(self.classes_)).argmax()]
         return self
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         check_is_fitted(self, "keys_")
+        X = validate_data(self, X, dtype=np.float64, reset=False)
         rows = _codes(self, X)
         pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
         return np.where((self.keys_[pos] == rows) & (rows >= 0), self.labels_[pos], self.default_)

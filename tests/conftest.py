@@ -26,6 +26,18 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+#: Modules that drive whole CLI commands or pipelines end to end (marked ``integration``;
+#: ``make test-fast`` leaves them out, ``make test`` and CI run everything).
+INTEGRATION_MODULES = {"test_pipeline", "test_cli", "test_fit_run", "test_distributed", "test_notebooks",
+                       "test_concurrency"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.module.__name__.rsplit(".", 1)[-1] in INTEGRATION_MODULES:
+            item.add_marker(pytest.mark.integration)
+
+
 @pytest.fixture(scope="session")
 def small_pt():
     """A small path_tracking dataset (demonstrations + exploration)."""

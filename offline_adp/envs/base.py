@@ -25,6 +25,12 @@ class ReferenceProblem:
     action_table: ActionTable
     #: Dotted path of the module documenting the problem's source.
     reference: str = ""
+    #: Seconds per step (for time axes), when the problem has a physical clock.
+    dt: float | None = None
+    #: MCAP layout ``offline-adp simulate --format mcap-*`` writes (``generic`` or ``vehicle``).
+    mcap_layout: str = "generic"
+    #: Features whose mean absolute value over rollout time is worth a figure: name -> label.
+    traced_features: dict[str, str] = {}
 
     @property
     def feature_names(self) -> list[str]:
@@ -56,6 +62,16 @@ class ReferenceProblem:
         """Problem-specific numbers about rollouts (``states[t]``: the running episodes'
         states at step t). Default: the fraction of episodes that terminated."""
         return {"terminated_fraction": float(np.mean(terminated))}
+
+    def named_scores(self, policy: Policy) -> dict[str, dict[str, Any]]:
+        """Scores the problem's literature defines for a policy (name -> {"value", "method"});
+        none by default. The evaluation reports them next to its own numbers."""
+        return {}
+
+    def summary_line(self, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
+        """Problem-specific words after the rollout comparison on the CLI (from the two
+        :meth:`rollout_summary` blocks); empty by default."""
+        return ""
 
     def make_env(self, **kwargs: Any) -> ProblemEnv:
         """This problem as a ``gymnasium.Env`` (reward = -cost)."""

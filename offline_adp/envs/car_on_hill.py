@@ -16,6 +16,8 @@ The paper's score is the mean discounted return over the 289 start states
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from offline_adp.access import Simulator, StepResult
@@ -68,6 +70,10 @@ class CarOnHill(ReferenceProblem, Simulator):
         win = (p > 1.0) & (np.abs(s) <= 3.0)
         reward = np.where(lose, -1.0, np.where(win, 1.0, 0.0))
         return StepResult(np.column_stack([p, s]), 0.0 - reward, lose | win)  # 0.0 - 0.0 is +0.0, not -0.0
+
+    def named_scores(self, policy: Policy) -> dict[str, dict[str, Any]]:
+        return {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean discounted return "
+                                      "over the 289-state grid (higher is better)"}}
 
     def demonstrator(self) -> Policy:
         """Energy pumping with limits, plus 10% random pushes.

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from scipy.special import ndtr
@@ -173,6 +174,17 @@ class PathTracking(ReferenceProblem, Simulator):
         off_road = np.abs(nxt[:, 1]) > ROAD_HALF_WIDTH
         cost = np.where(off_road, FAILURE_COST, np.abs(nxt[:, 1]) + CONTROL_WEIGHT * cmd**2)
         return StepResult(nxt, cost, off_road)
+
+    dt = DT
+    mcap_layout = "vehicle"
+    traced_features = {"e": "mean |cross-track error| [m]"}
+
+    def summary_line(self, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
+        if "mean_abs_cross_track_error_m" not in policy:
+            return ""
+        return (f"mean |cross-track error| {policy['mean_abs_cross_track_error_m']:.3f} m vs "
+                f"{demonstrator['mean_abs_cross_track_error_m']:.3f} m, failures {policy['failures']} vs "
+                f"{demonstrator['failures']}")
 
     def rollout_summary(self, states: list[np.ndarray], terminated: np.ndarray) -> dict[str, float]:
         """Mean |cross-track error| over every visited state [m], and failures (left the road)."""

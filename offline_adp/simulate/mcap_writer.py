@@ -139,7 +139,7 @@ def write_mcap(
     encoding : {"json", "ros2"}
         Message encoding; ``ros2`` needs the ``vehicle`` layout.
     layout : {"auto", "generic", "vehicle"}
-        ``auto`` picks ``vehicle`` for ``path_tracking`` data, else ``generic``.
+        ``auto`` takes the problem's ``mcap_layout`` (``vehicle`` for ``path_tracking``), else ``generic``.
     seed : int
         Seed of the timing jitter (latencies).
     chunk_size : int
@@ -148,7 +148,9 @@ def write_mcap(
     if encoding not in ("json", "ros2"):
         raise OfflineADPError(f"MCAP encoding must be 'json' or 'ros2', got {encoding!r}")
     if layout == "auto":
-        layout = "vehicle" if ds.info.problem == "path_tracking" else "generic"
+        from offline_adp.envs import PROBLEM_NAMES, problem_class
+
+        layout = problem_class(ds.info.problem).mcap_layout if ds.info.problem in PROBLEM_NAMES else "generic"
     if encoding == "ros2" and layout != "vehicle":
         raise OfflineADPError("ROS 2 encoding is written for the vehicle layout (path_tracking data) only")
     out = Path(out_dir)
