@@ -381,6 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"offline-adp {__version__}")
     p.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
+    p.epilog += "\n\nglobal options (before or after the subcommand): -v/--verbose, -q/--quiet, --log-level LEVEL"
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     from offline_adp.envs import PROBLEMS
@@ -568,6 +569,10 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("dataset")
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_inspect)
+
+    from offline_adp.progress import add_logging_options
+
+    add_logging_options(p)  # -v/-q/--log-level on the top level and on every subcommand
     return p
 
 
@@ -578,6 +583,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        from offline_adp.progress import apply_logging_options
+
+        apply_logging_options(args)
         return int(args.func(args))
     except OfflineADPError as exc:
         if args.traceback:

@@ -44,7 +44,13 @@ from sklearn.base import BaseEstimator, clone
 from offline_adp.access import FullModel, GenerativeModel, ResetModel, Simulator, require
 from offline_adp.algorithms import dp
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import DeterministicPolicy, GreedyPolicy, NonStationaryPolicy, Policy
+from offline_adp.policies import (
+    DeterministicPolicy,
+    GreedyPolicy,
+    NonStationaryPolicy,
+    Policy,
+    attach_signature,
+)
 from offline_adp.qfunctions import QEncoder, RegressorQ
 from offline_adp.regressors import make_classifier, make_regressor
 
@@ -144,12 +150,12 @@ class PSDP(BaseEstimator):
             future = steps[t + 1 :]
             Q = self._exact_q(model, S, t, future, gamma, T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
             steps[t] = self._learn(S, Q, model.n_actions)  # pi_t
-            chosen = steps[t].act(S, t, rng)  # type: ignore[union-attr]
+            chosen = steps[t].act_index(S, t, rng)  # type: ignore[union-attr]
             eps = Q[np.arange(len(S)), chosen] - Q.min(axis=1)
             self.samples_[t] = (S, Q)
             rows.append({"step": t, "eps_hat": float(eps.mean()), "mean_q_min": float(Q.min(axis=1).mean()),
                          "seconds": time.perf_counter() - t0})
-        self.policy_ = NonStationaryPolicy(steps)  # type: ignore[arg-type]
+        self.policy_ = attach_signature(NonStationaryPolicy(steps), model)  # type: ignore[arg-type]
         self.history_ = pd.DataFrame(rows)
         return self
 
@@ -186,7 +192,7 @@ class PSDP(BaseEstimator):
             act = np.repeat(np.arange(A), B) if k == t else np.zeros(A * B, np.int64)
             if k > t:
                 idx = np.flatnonzero(alive)
-                act[idx] = future[k - t - 1].act(x[idx], k, rng)
+                act[idx] = future[k - t - 1].act_index(x[idx], k, rng)
             seed = int(rng.integers(2**62))
             for a in range(A):
                 blk = np.arange(a * B, (a + 1) * B)
@@ -251,7 +257,7 @@ def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.ran
     x = model.initial_states(n, rng)
     for t in range(T):
         out.append(x.copy())
-        r = model.step(x, policy.act(x, t, rng), rng)
+        r = model.step(x, policy.act_index(x, t, rng), rng)
         x = r.next_states
         if r.terminated.any():
             x[r.terminated] = model.initial_states(int(r.terminated.sum()), rng)

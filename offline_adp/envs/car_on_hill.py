@@ -102,7 +102,7 @@ def score(policy: Policy, max_steps: int = 1000) -> float:
         idx = np.flatnonzero(alive)
         if not len(idx):
             break
-        a = policy.act(x[idx], t)
+        a = policy.act_index(x[idx], t)
         r = prob.step_seeded(x[idx], a)
         ret[idx] += disc * -r.costs
         x[idx] = r.next_states

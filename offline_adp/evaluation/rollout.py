@@ -83,7 +83,7 @@ def rollout(
             break
         if record_states:
             states.append(x[idx].copy())
-        a = policy.act(x[idx], t, rng)
+        a = policy.act_index(x[idx], t, rng)
         r = model.step(x[idx], a, rng)
         disc[idx] += g**t * r.costs
         total[idx] += r.costs
