@@ -370,6 +370,14 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- export / annotate / convert
+def cmd_export(args: argparse.Namespace) -> int:
+    from offline_adp.deploy import export_run
+
+    print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
@@ -569,6 +577,22 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("dataset")
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_inspect)
+
+    ex = sub.add_parser(
+        "export",
+        help="export a run's policy for deployment (ONNX)",
+        formatter_class=fmt,
+        description="Write the policy of RUN_DIR as an ONNX model: input `observation` (double, N x d, columns in the "
+        "order of the feature names stored in the model metadata with their units; time-indexed policies also take "
+        "`t`), outputs `action` (the action table's values), `action_index` and, for greedy policies, `q_values`. "
+        "Stochastic policies (CPI mixtures) are refused. See docs/deploy.md.",
+        epilog="example:\n  offline-adp export runs/pt-fqi --format onnx --out policy.onnx",
+    )
+    ex.add_argument("run", help="run directory (from offline-adp fit or run)")
+    ex.add_argument("--format", default="onnx", choices=["onnx"])
+    ex.add_argument("--out", required=True, help="file to write")
+    ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
+    ex.set_defaults(func=cmd_export)
 
     from offline_adp.progress import add_logging_options
 
