@@ -378,6 +378,13 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert(args: argparse.Namespace) -> int:
+    from offline_adp.formats import convert
+
+    print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format, overwrite=args.overwrite))
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
@@ -593,6 +600,23 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", required=True, help="file to write")
     ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
     ex.set_defaults(func=cmd_export)
+
+    cv = sub.add_parser(
+        "convert",
+        help="convert datasets between our format, D4RL arrays, Minari and the LeRobot layout",
+        formatter_class=fmt,
+        description="Read SOURCE (--from: a dataset directory, a D4RL .npz, a local Minari dataset id or directory; "
+        "nothing is downloaded) and write OUT (--to: a dataset directory, a D4RL .npz, a Minari dataset id under "
+        "MINARI_DATASETS_PATH, a LeRobot-layout directory). Transitions are kept exactly. See docs/formats.md.",
+        epilog="examples:\n  offline-adp convert data/pt --to minari --out offline_adp/pt-v0\n"
+        "  offline-adp convert logs/hopper.npz --from d4rl --out data/hopper",
+    )
+    cv.add_argument("source")
+    cv.add_argument("--from", dest="from_format", default="dataset", choices=["dataset", "d4rl", "minari"])
+    cv.add_argument("--to", dest="to_format", default="dataset", choices=["dataset", "d4rl", "minari", "lerobot"])
+    cv.add_argument("--out", required=True)
+    cv.add_argument("--overwrite", action="store_true")
+    cv.set_defaults(func=cmd_convert)
 
     from offline_adp.progress import add_logging_options
 

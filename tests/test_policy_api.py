@@ -90,12 +90,10 @@ def test_fitted_policies_carry_the_dataset_signature(small_pt):
     from offline_adp.algorithms.fqi import FittedQIteration
 
     f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1}, n_iterations=2).fit(small_pt)
-    df = small_pt.to_pandas() if hasattr(small_pt, "to_pandas") else None
     obs = small_pt.arrays().obs[:50]
     frame = pd.DataFrame(obs, columns=small_pt.feature_names)
     idx = f.policy_.act_index(obs)
     np.testing.assert_array_equal(f.policy_.act(frame[frame.columns[::-1]]), small_pt.info.action_table.values[idx, 0])
-    del df
 
 
 # ----------------------------------------------------------------------------- logging and progress
