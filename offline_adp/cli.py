@@ -378,6 +378,16 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_annotate(args: argparse.Namespace) -> int:
+    from offline_adp.annotate import annotate_mcap
+
+    s = annotate_mcap(args.run, args.log, args.out, spec=args.spec, dataset=args.dataset, overwrite=args.overwrite)
+    _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); policy agrees with the log "
+         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics {', '.join(s['topics'])}")
+    print(s["out"])
+    return 0
+
+
 def cmd_convert(args: argparse.Namespace) -> int:
     from offline_adp.formats import convert
 
@@ -600,6 +610,24 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--out", required=True, help="file to write")
     ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
     ex.set_defaults(func=cmd_export)
+
+    an = sub.add_parser(
+        "annotate",
+        help="write a copy of an MCAP log with the policy's actions, Q-gap, density ratio and support along it",
+        formatter_class=fmt,
+        description="Ingest LOG with the run's MCAP spec (from its dataset's provenance, or --spec) and write OUT: every "
+        "message of LOG plus JSON topics (with JSON schemas) at each logged step's time: /offline_adp/action (policy vs "
+        "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag). "
+        "Open OUT in Foxglove to plot them on the log's timeline.",
+        epilog="example:\n  offline-adp annotate runs/pt-fqi --log logs/demonstration.mcap --out annotated.mcap",
+    )
+    an.add_argument("run", help="run directory")
+    an.add_argument("--log", required=True, help="MCAP log to annotate")
+    an.add_argument("--out", required=True, help="annotated MCAP file to write")
+    an.add_argument("--spec", default=None, help="MCAP ingestion spec (default: the one the run's dataset was ingested with)")
+    an.add_argument("--dataset", default=None, help="the run's dataset (default: from the run)")
+    an.add_argument("--overwrite", action="store_true")
+    an.set_defaults(func=cmd_annotate)
 
     cv = sub.add_parser(
         "convert",
