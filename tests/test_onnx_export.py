@@ -81,10 +81,11 @@ def test_fqi_extra_trees_agrees_on_every_reference_problem(datasets, problem):
 @pytest.mark.parametrize("problem,kw", [
     ("car_on_hill", {"regressor": "lightgbm", "regressor_params": {"n_estimators": 20, "n_jobs": 1}}),
     ("path_tracking", {"regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "mode": "warm_start", "trees_per_iteration": 5}),
+    ("car_on_hill", {"regressor": "random_forest", "regressor_params": {"n_estimators": 10, "n_jobs": 1}}),
     ("path_tracking", {"regressor": "extra_trees", "regressor_params": {"n_estimators": 10}, "action_encoding": "per_action",
                        "action_input": "onehot"}),
 ])
-def test_fqi_lightgbm_and_per_action_agree(datasets, problem, kw):
+def test_fqi_lightgbm_random_forest_and_per_action_agree(datasets, problem, kw):
     ds = datasets[problem]
     f = FittedQIteration(n_iterations=6, gamma=0.95, **kw).fit(ds)
     X = _states(ds)
