@@ -46,6 +46,19 @@ def resolve_level(verbose: int = 0, quiet: bool = False, log_level: str | None =
     return max(logging.DEBUG, logging.WARNING - 10 * int(verbose))
 
 
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """A StreamHandler writing to whatever ``sys.stderr`` is at emit time (it may be
+    replaced, e.g. by test capture or a notebook, after the handler was installed)."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
 def configure_logging(level: int = logging.WARNING, stream: Any = None) -> logging.Handler:
     """Send the package's log records at ``level`` and above to ``stream`` (stderr) as
     ``LEVEL name: message`` lines; replaces a handler installed by an earlier call."""
@@ -53,7 +66,7 @@ def configure_logging(level: int = logging.WARNING, stream: Any = None) -> loggi
     for h in list(log.handlers):
         if getattr(h, "_oadp_cli", False):
             log.removeHandler(h)
-    handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler = logging.StreamHandler(stream) if stream is not None else _StderrHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     handler._oadp_cli = True  # type: ignore[attr-defined]
     log.addHandler(handler)
@@ -97,7 +110,7 @@ class Progress:
 
             self._bar = tqdm(total=total, desc=desc, unit="it", file=sys.stderr, leave=False)
         if verbose and not _has_handler(self.logger):
-            self._handler = logging.StreamHandler(sys.stderr)
+            self._handler = _StderrHandler()
             self._handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
             logging.getLogger(PACKAGE).addHandler(self._handler)
         if verbose:
