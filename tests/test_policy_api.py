@@ -8,6 +8,8 @@ import logging
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import SchemaError
@@ -157,3 +159,15 @@ def test_bad_log_level_is_a_usage_error(capsys):
         main(["inspect", "data", "--log-level", "loud"])
     assert exc.value.code == 2
     assert "--log-level" in capsys.readouterr().err
+
+
+@settings(max_examples=60)
+@given(perm=st.permutations(["p", "s", "k"]), n=st.integers(1, 30), seed=st.integers(0, 2**16))
+def test_any_column_order_gives_the_same_actions(perm, n, seed):
+    """Property: a DataFrame or dict in any column order gives the actions of the rule on
+    the canonically ordered array."""
+    pi = attach_signature(FunctionPolicy(_rule, 3), INFO)
+    X = np.random.default_rng(seed).integers(-2, 3, size=(n, 3)).astype(float)  # small ints: many p == s ties
+    df = pd.DataFrame(X, columns=["p", "s", "k"])[list(perm)]
+    np.testing.assert_array_equal(pi.act(df, return_index=True), _rule(X))
+    np.testing.assert_array_equal(pi.act({c: df[c].to_numpy() for c in perm}, return_index=True), _rule(X))
