@@ -22,7 +22,7 @@ $(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
 
 demo: $(VENV)/.installed
 	@echo "== the driving case study: MCAP logs -> dataset -> FQI -> simulator + off-policy evaluation -> report"
-	$(BIN)/offline-adp run pipelines/driving.toml --runs $(DEMO)/runs --quiet
+	$(BIN)/offline-adp run pipelines/driving.toml --runs $(DEMO)/runs
 
 test: $(VENV)/.installed-dev
 	$(BIN)/lint-imports

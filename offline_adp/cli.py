@@ -316,6 +316,31 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- export / annotate / convert
+def cmd_export(args: argparse.Namespace) -> int:
+    from offline_adp.deploy import export_run
+
+    print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
+    return 0
+
+
+def cmd_annotate(args: argparse.Namespace) -> int:
+    from offline_adp.annotate import annotate_mcap
+
+    s = annotate_mcap(args.run, args.log, args.out, spec=args.spec, dataset=args.dataset, overwrite=args.overwrite)
+    _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); policy agrees with the log "
+         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics {', '.join(s['topics'])}")
+    print(s["out"])
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from offline_adp.formats import convert
+
+    print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format, overwrite=args.overwrite))
+    return 0
+
+
 # ---------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.RawDescriptionHelpFormatter
@@ -327,6 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"offline-adp {__version__}")
     p.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
+    p.epilog += "\n\nglobal options (before or after the subcommand): -v/--verbose, -q/--quiet, --log-level LEVEL"
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     from offline_adp.envs import PROBLEM_NAMES
@@ -526,6 +552,61 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("dataset")
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_inspect)
+
+    ex = sub.add_parser(
+        "export",
+        help="export a run's policy for deployment (ONNX)",
+        formatter_class=fmt,
+        description="Write the policy of RUN_DIR as an ONNX model: input `observation` (double, N x d, columns in the "
+        "order of the feature names stored in the model metadata with their units; time-indexed policies also take "
+        "`t`), outputs `action` (the action table's values), `action_index` and, for greedy policies, `q_values`. "
+        "Stochastic policies (CPI mixtures) are refused. See docs/deploy.md.",
+        epilog="example:\n  offline-adp export runs/pt-fqi --format onnx --out policy.onnx",
+    )
+    ex.add_argument("run", help="run directory (from offline-adp fit or run)")
+    ex.add_argument("--format", default="onnx", choices=["onnx"])
+    ex.add_argument("--out", required=True, help="file to write")
+    ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
+    ex.set_defaults(func=cmd_export)
+
+    an = sub.add_parser(
+        "annotate",
+        help="write a copy of an MCAP log with the policy's actions, Q-gap, density ratio and support along it",
+        formatter_class=fmt,
+        description="Ingest LOG with the run's MCAP spec (from its dataset's provenance, or --spec) and write OUT: every "
+        "message of LOG plus JSON topics (with JSON schemas) at each logged step's time: /offline_adp/action (policy vs "
+        "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag). "
+        "Open OUT in Foxglove to plot them on the log's timeline.",
+        epilog="example:\n  offline-adp annotate runs/pt-fqi --log logs/demonstration.mcap --out annotated.mcap",
+    )
+    an.add_argument("run", help="run directory")
+    an.add_argument("--log", required=True, help="MCAP log to annotate")
+    an.add_argument("--out", required=True, help="annotated MCAP file to write")
+    an.add_argument("--spec", default=None, help="MCAP ingestion spec (default: the one the run's dataset was ingested with)")
+    an.add_argument("--dataset", default=None, help="the run's dataset (default: from the run)")
+    an.add_argument("--overwrite", action="store_true")
+    an.set_defaults(func=cmd_annotate)
+
+    cv = sub.add_parser(
+        "convert",
+        help="convert datasets between our format, D4RL arrays, Minari and the LeRobot layout",
+        formatter_class=fmt,
+        description="Read SOURCE (--from: a dataset directory, a D4RL .npz, a local Minari dataset id or directory; "
+        "nothing is downloaded) and write OUT (--to: a dataset directory, a D4RL .npz, a Minari dataset id under "
+        "MINARI_DATASETS_PATH, a LeRobot-layout directory). Transitions are kept exactly. See docs/formats.md.",
+        epilog="examples:\n  offline-adp convert data/pt --to minari --out offline_adp/pt-v0\n"
+        "  offline-adp convert logs/hopper.npz --from d4rl --out data/hopper",
+    )
+    cv.add_argument("source")
+    cv.add_argument("--from", dest="from_format", default="dataset", choices=["dataset", "d4rl", "minari"])
+    cv.add_argument("--to", dest="to_format", default="dataset", choices=["dataset", "d4rl", "minari", "lerobot"])
+    cv.add_argument("--out", required=True)
+    cv.add_argument("--overwrite", action="store_true")
+    cv.set_defaults(func=cmd_convert)
+
+    from offline_adp.progress import add_logging_options
+
+    add_logging_options(p)  # -v/-q/--log-level on the top level and on every subcommand
     return p
 
 
@@ -536,6 +617,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        from offline_adp.progress import apply_logging_options
+
+        apply_logging_options(args)
         return int(args.func(args))
     except OfflineADPError as exc:
         if args.traceback:

@@ -143,7 +143,7 @@ def rollout(
         length[idx] += 1
         term[idx] = r.terminated
 
-    run_episodes(step or model.step, policy.act, x0, H, rng, visit=visit)
+    run_episodes(step or model.step, policy.act_index, x0, H, rng, visit=visit)
     return RolloutResult(disc, total, length, term, states if record_states else None)
 
 
@@ -215,7 +215,7 @@ def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.ran
     episodes, the PSDP baseline).
     """
     out: list[np.ndarray] = []
-    run_episodes(model.step, policy.act, model.initial_states(n, rng), T, rng,
+    run_episodes(model.step, policy.act_index, model.initial_states(n, rng), T, rng,
                  visit=lambda t, idx, xs, a, r: out.append(xs.copy()), restart=model.initial_states)
     return out
 

@@ -22,7 +22,7 @@ def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iteratio
     fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=400, tol=1e-14)
     api = ApproximatePolicyIteration(fqe, n_iterations=S + 1).fit(ds, sample_weight=w)
     opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
-    np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None]), opt.policy)
+    np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None], return_index=True), opt.policy)
     assert len(api.history_) <= S + 1 and api.history_["changed"].iloc[-1] == 0.0  # stopped: no change
     # values estimated by FQE decrease (policy improvement), ending at the optimal value
     v = api.history_["value"].to_numpy()
@@ -36,7 +36,7 @@ def test_api_finite_horizon():
     api = ApproximatePolicyIteration(fqe, n_iterations=10).fit(ds, sample_weight=w)
     opt = dp.value_iteration_finite(m.P, m.C, 4)
     for t in range(4):
-        np.testing.assert_array_equal(api.policy_.act(np.arange(8.0)[:, None], t), opt.policy[t])
+        np.testing.assert_array_equal(api.policy_.act(np.arange(8.0)[:, None], t, return_index=True), opt.policy[t])
 
 
 def _exact_cost(m, policy):
@@ -75,7 +75,7 @@ def test_mixture_policy():
     b = TabularPolicy(np.array([1, 1]), n_actions=2)
     mix = MixturePolicy([a], [1.0]).mix(b, 0.25)
     np.testing.assert_allclose(mix.probabilities(np.array([[0.0], [1.0]])), [[0.75, 0.25], [0.0, 1.0]])
-    acts = mix.act(np.zeros((20000, 1)), 0, np.random.default_rng(0))
+    acts = mix.act(np.zeros((20000, 1)), 0, np.random.default_rng(0), return_index=True)
     assert abs(acts.mean() - 0.25) < 0.02
     with pytest.raises(ValueError):
         MixturePolicy([a, b], [0.5, 0.6])

@@ -89,6 +89,6 @@ def test_discounted_occupancy_sums_to_one_and_matches_series():
 def test_tabular_policy_time_varying():
     pol = TabularPolicy(np.array([[0, 1], [1, 0]]), n_actions=2)
     obs = np.array([[0.0], [1.0]])
-    np.testing.assert_array_equal(pol.act(obs, 0), [0, 1])
-    np.testing.assert_array_equal(pol.act(obs, 1), [1, 0])
-    np.testing.assert_array_equal(pol.act(obs, 7), [1, 0])  # beyond T: last rule
+    np.testing.assert_array_equal(pol.act(obs, 0, return_index=True), [0, 1])
+    np.testing.assert_array_equal(pol.act(obs, 1, return_index=True), [1, 0])
+    np.testing.assert_array_equal(pol.act(obs, 7, return_index=True), [1, 0])  # beyond T: last rule

@@ -102,7 +102,7 @@ def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
         out = tmp_path / alg
         assert main(["fit", str(pt_dir), "--algorithm", alg, "--config", str(_cfg(tmp_path, alg, body)), "--out", str(out), "-q"]) == 0, alg
         pi = load_policy(out / "model")
-        assert pi.act(obs, 0, np.random.default_rng(0)).shape == (len(obs),)
+        assert pi.act(obs, 0, np.random.default_rng(0), return_index=True).shape == (len(obs),)
         assert json.loads((out / "run.json").read_text())["status"] == "completed"
 
 

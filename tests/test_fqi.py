@@ -43,7 +43,7 @@ def test_finite_horizon_tabular_equals_value_iteration(seed):
     sol = dp.value_iteration_finite(m.P, m.C, 6)
     for t in range(6):
         np.testing.assert_allclose(_q_table(f.q_functions_[t], 12), sol.Q[t], atol=1e-8, rtol=0)
-    np.testing.assert_array_equal(f.policy_.act(np.arange(12.0)[:, None], 2), sol.policy[2])
+    np.testing.assert_array_equal(f.policy_.act(np.arange(12.0)[:, None], 2, return_index=True), sol.policy[2])
     assert list(f.history_["step"]) == [5, 4, 3, 2, 1, 0]
 
 
@@ -68,7 +68,7 @@ def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode):
                          tol=1e-7, mode=mode)
     f.fit(ds, sample_weight=w)
     sol = dp.value_iteration_discounted(m.P, m.C, 0.9)
-    np.testing.assert_array_equal(f.policy_.act(np.arange(15.0)[:, None]), sol.policy)
+    np.testing.assert_array_equal(f.policy_.act(np.arange(15.0)[:, None], return_index=True), sol.policy)
     np.testing.assert_allclose(_q_table(f.q_function_, 15), sol.Q, atol=1e-5)
 
 

@@ -31,7 +31,7 @@ def test_psdp_with_exact_q_and_a_tabular_classifier_is_optimal(seed):
     opt = dp.value_iteration_finite(m.P, m.C, T)
     states = np.arange(float(S))[:, None]
     for t in range(T):
-        np.testing.assert_array_equal(p.policy_.act(states, t), opt.policy[t])
+        np.testing.assert_array_equal(p.policy_.act(states, t, return_index=True), opt.policy[t])
 
 
 def test_psdp_rollout_estimates_approach_the_optimum():
@@ -104,4 +104,4 @@ def test_psdp_needs_a_generative_model_for_arbitrary_baselines():
         PSDP(horizon=3).fit(ResetOnly(), [np.zeros((1, 1))] * 3)
     # with mu_t from rollouts of a baseline policy, a reset model is enough: pushing 0 is cheaper
     p = PSDP(horizon=3, n_samples=10, n_rollouts=1, classifier="tabular").fit(ResetOnly(), UniformPolicy(2))
-    assert (p.policy_.act(np.array([[0.0], [1.0], [2.0]]), 0) == 0).all()
+    assert (p.policy_.act(np.array([[0.0], [1.0], [2.0]]), 0, return_index=True) == 0).all()

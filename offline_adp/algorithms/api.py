@@ -23,7 +23,7 @@ from sklearn.base import BaseEstimator, clone
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import GreedyPolicy, Policy, UniformPolicy
+from offline_adp.policies import GreedyPolicy, Policy, UniformPolicy, attach_signature
 
 
 def _greedy_actions(policy: Policy, obs: np.ndarray, horizon: int | None) -> np.ndarray:
@@ -93,4 +93,5 @@ class ApproximatePolicyIteration(BaseEstimator):
                 data = TransitionDataset.concat([data, new])
                 w = None if w is None else np.r_[w, np.ones(len(new))]
         self.history_ = pd.DataFrame(rows)
+        attach_signature(self.policy_, dataset)
         return self

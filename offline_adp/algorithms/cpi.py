@@ -30,7 +30,13 @@ from sklearn.base import BaseEstimator, clone
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import GreedyPolicy, MixturePolicy, Policy, UniformPolicy
+from offline_adp.policies import (
+    GreedyPolicy,
+    MixturePolicy,
+    Policy,
+    UniformPolicy,
+    attach_signature,
+)
 from offline_adp.rollout import rollout
 
 DEFAULT_STEPS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
@@ -113,6 +119,6 @@ class ConservativePolicyIteration(BaseEstimator):
             pi, value = best, best_value  # type: ignore[assignment]
             rows.append({"iteration": k, "alpha": best_alpha, "value": value, "n_components": len(pi.components),
                          "seconds": time.perf_counter() - t0})
-        self.policy_ = pi
+        self.policy_ = attach_signature(pi, dataset)
         self.history_ = pd.DataFrame(rows)
         return self

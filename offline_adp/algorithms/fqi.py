@@ -40,7 +40,7 @@ from sklearn.base import BaseEstimator
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import DivergenceWarning, NotFittedError
 from offline_adp.learners import FrozenTreesLearner, Learner, LightGBMWarmStartLearner, RefitLearner
-from offline_adp.policies import GreedyPolicy
+from offline_adp.policies import GreedyPolicy, attach_signature
 from offline_adp.qfunctions import QEncoder, QFunction, TimeIndexedQ
 from offline_adp.regressors import make_regressor
 
@@ -161,10 +161,20 @@ class FittedQIteration(BaseEstimator):
         self.random_state = random_state
 
     # ------------------------------------------------------------------ public API
-    def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> FittedQIteration:
-        """Run the iteration to the end (see :meth:`fit_iter`); returns self."""
-        for _ in self.fit_iter(dataset, sample_weight):
-            pass
+    def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
+            show_progress: bool = False) -> FittedQIteration:
+        """Run the iteration to the end (see :meth:`fit_iter`); returns self.
+
+        ``show_progress`` draws a progress bar on stderr, ``verbose`` logs each
+        iteration's diagnostics (INFO, logger ``offline_adp.algorithms.fqi``). The policy
+        gets the dataset's :class:`~offline_adp.policies.PolicySignature`.
+        """
+        from offline_adp.progress import fit_progress
+
+        with fit_progress(self, verbose, show_progress) as bar:
+            for row in self.fit_iter(dataset, sample_weight):
+                bar.update(row)
+        attach_signature(getattr(self, "policy_", None), dataset)
         return self
 
     def fit_iter(

@@ -57,6 +57,7 @@ from offline_adp.policies import (
     NonStationaryPolicy,
     Policy,
     apply_feature_map,
+    attach_signature,
 )
 from offline_adp.qfunctions import QEncoder, RegressorQ
 from offline_adp.regressors import make_classifier, make_regressor
@@ -138,12 +139,12 @@ class PSDP(BaseEstimator):
             future = steps[t + 1 :]
             Q = self._exact_q(model, S, t, future, gamma, T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
             steps[t] = self._learn(S, Q, model.n_actions)  # pi_t
-            chosen = steps[t].act(S, t, rng)  # type: ignore[union-attr]
+            chosen = steps[t].act_index(S, t, rng)  # type: ignore[union-attr]
             eps = Q[np.arange(len(S)), chosen] - Q.min(axis=1)
             self.samples_[t] = (S, Q)
             rows.append({"step": t, "eps_hat": float(eps.mean()), "mean_q_min": float(Q.min(axis=1).mean()),
                          "seconds": time.perf_counter() - t0})
-        self.policy_ = NonStationaryPolicy(steps)  # type: ignore[arg-type]
+        self.policy_ = attach_signature(NonStationaryPolicy(steps), model)  # type: ignore[arg-type]
         self.history_ = pd.DataFrame(rows)
         return self
 
@@ -176,7 +177,7 @@ class PSDP(BaseEstimator):
         live = {"rows": np.arange(A * B)}  # the running rows, in run_episodes' order
 
         def act(xs: np.ndarray, j: int, rng: np.random.Generator) -> np.ndarray:
-            return block.copy() if j == 0 else future[j - 1].act(xs, t + j, rng)
+            return block.copy() if j == 0 else future[j - 1].act_index(xs, t + j, rng)
 
         def step(xs: np.ndarray, a: np.ndarray, rng: np.random.Generator) -> StepResult:
             seed = int(rng.integers(2**62))  # one seed per step, shared by the action blocks

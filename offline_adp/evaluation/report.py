@@ -96,7 +96,7 @@ def _maps(figs: _Figures, run: Path, ratios: pd.DataFrame, features: list[str], 
     sliced = len(features) > 2
     note = " (other features at their data medians)" if sliced else ""
     policy = load_policy(run / "model")
-    acts = policy.act(obs, 0, np.random.default_rng(0))
+    acts = policy.act_index(obs, 0, np.random.default_rng(0))
     fig, ax = plt.subplots(figsize=(6.2, 4.6))
     im = ax.pcolormesh(gx, gy, action_values[acts].reshape(gx.shape), shading="auto", cmap="coolwarm")
     fig.colorbar(im, ax=ax, label="chosen action (command value)")

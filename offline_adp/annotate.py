@@ -1,0 +1,239 @@
+"""See the policy on the log: ``offline-adp annotate RUN_DIR --log FILE.mcap --out annotated.mcap``.
+
+The log is ingested with the run's MCAP ingestion spec (the spec stored in the run's
+dataset provenance, or ``spec=``), which gives the logged steps with their log times
+(``t_ns``). At each step the run's policy is evaluated and four JSON topics (with JSON
+schemas, so Foxglove plots them on the log's timeline) are added next to every message
+of the log, stamped with the step's time:
+
+``/offline_adp/action``
+    the policy's action (value and index) vs the logged one, and whether they agree;
+``/offline_adp/q_gap``
+    ``Q(x, a_logged) - Q(x, a_policy)`` (cost units; >= 0 for a greedy policy: how much
+    worse the logged action is by the policy's own Q), null when the policy has no Q;
+``/offline_adp/density_ratio``
+    the per-step importance ratio ``pi(a_logged | x) / pi_b(a_logged | x)``;
+``/offline_adp/support``
+    ``out_of_support``: the behaviour policy (almost) never takes the policy's action
+    there, ``pi_b(a_policy | x) < threshold`` (the support check of the evaluation).
+
+``pi_b`` uses the logged propensities when the ingested log has them, else a classifier
+fitted on the run's dataset (or on the log when that is not found) and evaluated at
+the log's states, with probabilities clipped to ``[1e-3, 1]`` as in
+:mod:`offline_adp.evaluation.behaviour`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.errors import IngestError, OfflineADPError
+from offline_adp.progress import get_logger
+
+log = get_logger(__name__)
+
+PREFIX = "/offline_adp"
+CLIP = 1e-3
+THRESHOLD = 0.01
+
+_num = {"type": ["number", "null"]}
+SCHEMAS: dict[str, dict[str, Any]] = {
+    "action": {
+        "title": "offline_adp.PolicyAction", "type": "object",
+        "description": "The run's policy action vs the logged action at a logged step.",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
+                       "policy_action": {"type": "array", "items": {"type": "number"}},
+                       "policy_action_index": {"type": "integer"},
+                       "logged_action": {"type": "array", "items": {"type": "number"}},
+                       "logged_action_index": {"type": "integer"}, "agree": {"type": "boolean"},
+                       "action_dims": {"type": "array", "items": {"type": "string"}}},
+    },
+    "q_gap": {
+        "title": "offline_adp.QGap", "type": "object",
+        "description": "Q(x, logged action) - Q(x, policy action), in cost units (null without a Q-function).",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "q_gap": _num,
+                       "q_policy": _num, "q_logged": _num},
+    },
+    "density_ratio": {
+        "title": "offline_adp.DensityRatio", "type": "object",
+        "description": "Per-step importance ratio pi(logged action | x) / pi_b(logged action | x).",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "ratio": {"type": "number"},
+                       "policy_prob": {"type": "number"}, "behaviour_prob": {"type": "number"},
+                       "behaviour_source": {"type": "string"}},
+    },
+    "support": {
+        "title": "offline_adp.Support", "type": "object",
+        "description": "out_of_support: the behaviour policy takes the policy's action with probability < threshold.",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "out_of_support": {"type": "boolean"},
+                       "behaviour_prob_of_policy_action": {"type": "number"}, "threshold": {"type": "number"}},
+    },
+}
+
+
+def _spec_for(run_dataset: Path | None, spec: Any) -> Any:
+    from offline_adp.ingest.mcap import load_mcap_spec
+
+    if spec is not None:
+        return spec if not isinstance(spec, str | PathLike) else load_mcap_spec(spec)
+    raw = None
+    if run_dataset is not None:
+        info = json.loads((run_dataset / "meta" / "info.json").read_text())
+        raw = (info.get("provenance") or {}).get("spec")
+    if not raw:
+        raise OfflineADPError("the run's dataset does not record an MCAP ingestion spec (it was not ingested from MCAP); "
+                              "pass --spec FILE.toml")
+    try:  # the spec as the run's dataset recorded it
+        from offline_adp.ingest.mcap import parse_mcap_spec
+    except ImportError as exc:  # pragma: no cover - depends on the ingestion module's layout
+        raise OfflineADPError("cannot rebuild the run's MCAP spec here; pass --spec FILE.toml") from exc
+    return parse_mcap_spec(raw, where=f"{run_dataset}/meta/info.json provenance.spec", base_dir=str(run_dataset))
+
+
+def _behaviour_probs(obs: np.ndarray, fit_obs: np.ndarray, fit_action: np.ndarray, n_actions: int) -> np.ndarray:
+    """pi_b(. | x) at ``obs`` from a classifier fitted on (fit_obs, fit_action), clipped."""
+    from offline_adp.regressors import make_classifier
+
+    if len(np.unique(fit_action)) == 1:
+        probs = np.zeros((len(obs), n_actions))
+        probs[:, int(fit_action[0])] = 1.0
+    else:
+        clf = make_classifier("lightgbm").fit(fit_obs, fit_action)
+        probs = np.zeros((len(obs), n_actions))
+        probs[:, np.asarray(clf.classes_, dtype=np.int64)] = clf.predict_proba(obs)
+    probs = np.maximum(probs, CLIP)
+    return probs / probs.sum(axis=1, keepdims=True)
+
+
+def annotate_steps(policy: Any, log_ds: Any, fit_ds: Any = None) -> dict[str, Any]:
+    """The annotation values at every step of ``log_ds`` (arrays, one row per step)."""
+    a = log_ds.arrays()
+    obs, step, logged = a.obs, a.step, a.action.astype(np.int64)
+    n, A = len(obs), policy.n_actions
+    idx = np.asarray(policy.act_index(obs, step), dtype=np.int64)
+    pi_probs = policy.probabilities(obs, step)
+    rows = np.arange(n)
+    q = getattr(policy, "q", None)
+    qv = q.values(obs, step) if q is not None and hasattr(q, "values") else None
+    src = fit_ds if fit_ds is not None else log_ds
+    fa = src.arrays()
+    b_all = _behaviour_probs(obs, fa.obs, fa.action, A)
+    b_logged = b_all[rows, logged]
+    source = "estimated" if fit_ds is not None else "estimated (from the log)"
+    if a.behavior_prob is not None and np.isfinite(a.behavior_prob).all():
+        b_logged, source = np.maximum(a.behavior_prob, CLIP), "logged"
+    return {
+        "policy_index": idx, "logged_index": logged,
+        "q_policy": None if qv is None else qv[rows, idx], "q_logged": None if qv is None else qv[rows, logged],
+        "policy_prob": pi_probs[rows, logged], "behaviour_prob": b_logged,
+        "ratio": pi_probs[rows, logged] / b_logged,
+        "behaviour_prob_of_policy_action": b_all[rows, idx],
+        "out_of_support": b_all[rows, idx] < THRESHOLD,
+        "behaviour_source": source,
+    }
+
+
+def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], out: str | PathLike[str], *,
+                  spec: Any = None, dataset: str | PathLike[str] | None = None, overwrite: bool = False) -> dict[str, Any]:
+    """Write ``out``: every message of ``log_file`` plus the four annotation topics (see
+    module docstring). Returns a summary (steps, agreement, out-of-support count)."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    from offline_adp.deploy import load_run_policy, run_dataset
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+    if Path(out).resolve() == Path(log_file).resolve():
+        raise OfflineADPError(f"--out {out} is the input log; write the annotated copy elsewhere")
+    policy = load_run_policy(run_dir, dataset)
+    try:
+        ds_path: Path | None = run_dataset(run_dir, dataset)
+    except OfflineADPError:
+        ds_path = None
+    mspec = _spec_for(ds_path, spec)
+    log_ds, _summary = ingest_mcap([log_file], mspec)
+    if "t_ns" not in log_ds.table.column_names:
+        raise IngestError(f"{log_file}: the ingested steps have no log times (t_ns)")
+    sig = policy.signature
+    if log_ds.feature_names != list(sig.feature_names):
+        raise OfflineADPError(f"{log_file}: the spec gives features {log_ds.feature_names}, the policy reads "
+                              f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested with (--spec)")
+    if not np.array_equal(log_ds.info.action_table.values, sig.action_table.values):
+        raise OfflineADPError(f"{log_file}: the spec's action table {log_ds.info.action_table.values.ravel().tolist()} "
+                              f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
+    fit_ds = None
+    if ds_path is not None:
+        from offline_adp.data.io import read_dataset
+
+        fit_ds = read_dataset(ds_path)
+    v = annotate_steps(policy, log_ds, fit_ds)
+    t_ns = log_ds.column("t_ns").astype(np.int64)
+    ep = log_ds.column("episode_id").astype(str)
+    step = log_ds.column("step").astype(np.int64)
+    values = sig.action_table.values
+    dims = list(sig.action_table.dims)
+
+    def f(x: Any) -> float | None:
+        return None if x is None or not np.isfinite(x) else float(x)
+
+    tmp = out.with_name(f".{out.name}.tmp")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    n_copied = 0
+    try:
+        with open(log_file, "rb") as fin, open(tmp, "wb") as fout:
+            reader = make_reader(fin)
+            w = Writer(fout, compression=CompressionType.ZSTD)
+            w.start(profile=reader.get_header().profile, library="offline_adp annotate")
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            for schema, channel, msg in reader.iter_messages(log_time_order=False):
+                if schema is not None and schema.id not in schema_ids:
+                    schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                if channel.id not in channel_ids:
+                    channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding,
+                                                                 schema_ids.get(channel.schema_id, 0), dict(channel.metadata))
+                w.add_message(channel_ids[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+                n_copied += 1
+            chans = {}
+            for name, schema in SCHEMAS.items():
+                sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+                chans[name] = w.register_channel(f"{PREFIX}/{name}", "json", sid)
+            for i in range(len(t_ns)):  # one message per step and topic (the output's size, not a data loop)
+                pi_i, lg_i = int(v["policy_index"][i]), int(v["logged_index"][i])
+                base = {"episode_id": ep[i], "step": int(step[i])}
+                qp = None if v["q_policy"] is None else f(v["q_policy"][i])
+                ql = None if v["q_logged"] is None else f(v["q_logged"][i])
+                msgs = {
+                    "action": {**base, "policy_action": values[pi_i].tolist(), "policy_action_index": pi_i,
+                               "logged_action": values[lg_i].tolist(), "logged_action_index": lg_i,
+                               "agree": pi_i == lg_i, "action_dims": dims},
+                    "q_gap": {**base, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp, "q_logged": ql},
+                    "density_ratio": {**base, "ratio": float(v["ratio"][i]), "policy_prob": float(v["policy_prob"][i]),
+                                      "behaviour_prob": float(v["behaviour_prob"][i]), "behaviour_source": v["behaviour_source"]},
+                    "support": {**base, "out_of_support": bool(v["out_of_support"][i]),
+                                "behaviour_prob_of_policy_action": float(v["behaviour_prob_of_policy_action"][i]),
+                                "threshold": THRESHOLD},
+                }
+                for name, m in msgs.items():
+                    w.add_message(chans[name], int(t_ns[i]), json.dumps(m).encode(), int(t_ns[i]), i)
+            w.finish()
+        os.replace(tmp, out)
+    except Exception as exc:
+        tmp.unlink(missing_ok=True)
+        if isinstance(exc, OfflineADPError):
+            raise
+        raise IngestError(f"{log_file}: cannot copy the log's messages ({type(exc).__name__}: {exc})") from exc
+    summary = {"out": str(out), "messages_copied": n_copied, "steps": int(len(t_ns)),
+               "agreement": float(np.mean(v["policy_index"] == v["logged_index"])) if len(t_ns) else None,
+               "out_of_support": int(np.sum(v["out_of_support"])), "behaviour": v["behaviour_source"],
+               "topics": [f"{PREFIX}/{k}" for k in SCHEMAS]}
+    log.info("annotated %s -> %s: %d steps, agreement %s", log_file, out, summary["steps"], summary["agreement"])
+    return summary

@@ -1,0 +1,436 @@
+"""Policy export to ONNX: a graph from the named observation vector to the action.
+
+The exported model has
+
+- input ``observation``: double ``(N, d)``, columns in the order of the policy's
+  feature names (recorded with their units in the model metadata), and for
+  time-indexed policies ``t``: int64 ``(N,)`` (steps ``>= T`` use the last step's rule,
+  negative steps the first);
+- outputs ``action`` (double ``(N, k)``, the action table's value vector), ``action_index``
+  (int64 ``(N,)``) and, for greedy policies, ``q_values`` (double ``(N, n_actions)``,
+  costs: the policy picks the lowest, ties to the lowest index).
+
+Metadata (``model.metadata_props``): ``feature_names``, ``feature_units``,
+``action_names``, ``action_dims``, ``action_units``, ``action_values`` (JSON),
+``policy_kind``, ``time_indexed``, ``n_steps``, ``offline_adp_version``.
+
+What can be expressed: greedy policies over Q-functions made of scikit-learn forests
+(extra trees, random forests, also as saved :class:`~offline_adp.qfunctions.TreeEnsemble`
+arrays) or LightGBM boosters (including the warm-start sum of boosters), with joint
+(``[phi(x), action features]``) or per-action encodings and a column-selection feature
+map; time-indexed Q-functions (finite-horizon FQI, FQE) and PSDP's time-indexed
+policies (one rule per step); PSDP's forest classifiers. Stochastic policies (CPI
+mixtures, uniform, epsilon-greedy) and lookup tables are refused with
+:class:`ExportError`: a deployed controller should be deterministic, export the
+mixture's components instead.
+
+Numerics: trees are written with the ONNX-ML ``TreeEnsembleRegressor`` operator with
+double-precision thresholds and leaf values (``nodes_values_as_tensor``). scikit-learn
+compares float32-rounded inputs with its double thresholds; the graph does the same
+(a float32 round trip of the regressor input) so splits agree exactly. LightGBM
+compares doubles, as does the graph. The remaining difference is the summation order
+of leaf values (about 1e-16 relative), which can flip the argmin between two actions
+whose Q-values tie to that precision.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.errors import OfflineADPError
+from offline_adp.progress import get_logger
+
+log = get_logger(__name__)
+
+OPSET = 17
+ML_OPSET = 5
+
+
+class ExportError(OfflineADPError):
+    """A policy (or a part of it) cannot be expressed in the export format."""
+
+
+# ----------------------------------------------------------------------------- graph builder
+class _Graph:
+    """Nodes and initializers with unique names."""
+
+    def __init__(self) -> None:
+        from onnx import helper
+
+        self.h = helper
+        self.nodes: list[Any] = []
+        self.inits: list[Any] = []
+        self.k = 0
+
+    def name(self, stem: str) -> str:
+        self.k += 1
+        return f"{stem}_{self.k}"
+
+    def const(self, value: np.ndarray, stem: str = "c") -> str:
+        from onnx import numpy_helper
+
+        n = self.name(stem)
+        self.inits.append(numpy_helper.from_array(np.asarray(value), n))
+        return n
+
+    def op(self, op_type: str, inputs: list[str], stem: str | None = None, domain: str = "", outputs: int = 1,
+           **attrs: Any) -> str:
+        outs = [self.name(stem or op_type.lower()) for _ in range(outputs)]
+        self.nodes.append(self.h.make_node(op_type, inputs, outs, domain=domain, **attrs))
+        return outs[0]
+
+
+# ----------------------------------------------------------------------------- trees
+def _tree_node(g: _Graph, X: str, trees: dict[str, np.ndarray], aggregate: str) -> str:
+    """An ONNX-ML ``TreeEnsemble`` node (double splits, weights and output) on double
+    input ``X``; output (N, 1).
+
+    ``trees`` holds global node arrays: ``leaf`` (bool), ``feature``, ``threshold``,
+    ``left``/``right`` (global child index, go left when ``x <= threshold``), ``weight``
+    (leaf values) and ``roots``.
+    """
+    from onnx import numpy_helper
+
+    leaf = np.asarray(trees["leaf"], bool)
+    left, right = np.asarray(trees["left"], np.int64), np.asarray(trees["right"], np.int64)
+    roots = np.asarray(trees["roots"], np.int64)
+    interior = np.flatnonzero(~leaf)
+    leaves = np.flatnonzero(leaf)
+    ipos = np.full(len(leaf), -1, np.int64)
+    ipos[interior] = np.arange(len(interior))
+    lpos = np.full(len(leaf), -1, np.int64)
+    lpos[leaves] = np.arange(len(leaves))
+
+    def child(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        is_leaf = leaf[c]
+        return np.where(is_leaf, lpos[c], ipos[c]), is_leaf.astype(np.int64)
+
+    tid, tleaf = child(left[interior])
+    fid, fleaf = child(right[interior])
+    feature = np.asarray(trees["feature"], np.int64)[interior]
+    split = np.asarray(trees["threshold"], np.float64)[interior]
+    # a tree that is a single leaf: one node whose branches both reach that leaf
+    single = roots[leaf[roots]]
+    tree_roots = np.where(leaf[roots], len(interior) + np.cumsum(leaf[roots]) - 1, ipos[roots])
+    tid, fid = np.r_[tid, lpos[single]], np.r_[fid, lpos[single]]
+    tleaf, fleaf = np.r_[tleaf, np.ones(len(single), np.int64)], np.r_[fleaf, np.ones(len(single), np.int64)]
+    feature, split = np.r_[feature, np.zeros(len(single), np.int64)], np.r_[split, np.zeros(len(single))]
+    n_nodes = len(feature)
+    attrs: dict[str, Any] = {
+        "tree_roots": tree_roots.tolist(),
+        "nodes_featureids": feature.tolist(),
+        "nodes_splits": numpy_helper.from_array(split.astype(np.float64)),
+        "nodes_modes": numpy_helper.from_array(np.zeros(n_nodes, np.uint8)),  # BRANCH_LEQ
+        "nodes_truenodeids": tid.tolist(),
+        "nodes_trueleafs": tleaf.tolist(),
+        "nodes_falsenodeids": fid.tolist(),
+        "nodes_falseleafs": fleaf.tolist(),
+        "leaf_targetids": [0] * len(leaves),
+        "leaf_weights": numpy_helper.from_array(np.asarray(trees["weight"], np.float64)[leaves]),
+        "n_targets": 1,
+        "aggregate_function": {"AVERAGE": 0, "SUM": 1}[aggregate],
+        "post_transform": 0,
+    }
+    return g.op("TreeEnsemble", [X], "trees", domain="ai.onnx.ml", **attrs)
+
+
+def _ensemble_arrays(ens: Any, weight: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Node arrays of a :class:`TreeEnsemble` (leaf weights: its values or ``weight``)."""
+    left = np.asarray(ens.left)
+    return {"leaf": left < 0, "feature": np.asarray(ens.feature), "threshold": np.asarray(ens.threshold), "left": left,
+            "right": np.asarray(ens.right), "roots": np.asarray(ens.roots),
+            "weight": np.asarray(ens.value if weight is None else weight, np.float64)}
+
+
+def _lightgbm_arrays(boosters: list[Any]) -> dict[str, np.ndarray]:
+    """Node arrays of LightGBM boosters (all trees summed: the raw score)."""
+    cols: dict[str, list[Any]] = {k: [] for k in ("leaf", "feature", "threshold", "left", "right", "weight")}
+    roots: list[int] = []
+    for b in boosters:
+        dump = b.dump_model()
+        if dump.get("num_class", 1) != 1:
+            raise ExportError("a multi-class LightGBM model is not a Q-function regressor")
+        for info in dump["tree_info"]:
+            roots.append(len(cols["leaf"]))
+            stack = [info["tree_structure"]]
+            pending: list[tuple[int, str, Any]] = []
+            while stack or pending:  # one tree's nodes (model size, not data size)
+                if pending:
+                    parent, side, nd = pending.pop()
+                    cols[side][parent] = len(cols["leaf"])
+                else:
+                    nd = stack.pop()
+                j = len(cols["leaf"])
+                if "split_feature" not in nd:
+                    for k, v in (("leaf", True), ("feature", 0), ("threshold", 0.0), ("left", -1), ("right", -1),
+                                 ("weight", float(nd.get("leaf_value", 0.0)))):
+                        cols[k].append(v)
+                    continue
+                if nd.get("decision_type", "<=") != "<=" or nd.get("missing_type", "None") == "Zero":
+                    raise ExportError(f"LightGBM split {nd.get('decision_type')} with missing_type {nd.get('missing_type')} "
+                                      "is not supported (numerical '<=' splits only, no zero_as_missing)")
+                for k, v in (("leaf", False), ("feature", int(nd["split_feature"])), ("threshold", float(nd["threshold"])),
+                             ("left", -1), ("right", -1), ("weight", 0.0)):
+                    cols[k].append(v)
+                pending.append((j, "right", nd["right_child"]))
+                pending.append((j, "left", nd["left_child"]))
+    out = {k: np.asarray(v) for k, v in cols.items()}
+    out["leaf"] = out["leaf"].astype(bool)
+    out["roots"] = np.asarray(roots, np.int64)
+    return out
+
+
+def _booster_of(model: Any) -> Any | None:
+    name = type(model).__name__
+    if name == "Booster":
+        return model
+    if name == "_Booster":  # a loaded artifact
+        return model.booster
+    if name in ("LGBMRegressor",):
+        return model.booster_
+    return None
+
+
+def _regressor(g: _Graph, model: Any, X: str) -> str:
+    """``model.predict(X)`` as a node: (N, 1) double."""
+    from offline_adp.qfunctions import TreeEnsemble
+
+    booster = _booster_of(model)
+    if booster is not None:
+        return _tree_node(g, X, _lightgbm_arrays([booster]), "SUM")
+    if isinstance(model, TreeEnsemble) or (hasattr(model, "estimators_") and hasattr(model.estimators_[0], "tree_")
+                                          and not hasattr(model, "classes_")):
+        ens = model if isinstance(model, TreeEnsemble) else TreeEnsemble.from_sklearn(model)
+        return _tree_node(g, _float32_roundtrip(g, X), _ensemble_arrays(ens), "AVERAGE")
+    raise ExportError(f"cannot export a {type(model).__name__} regressor to ONNX; supported: scikit-learn forests "
+                      "(extra_trees, random_forest), LightGBM")
+
+
+def _float32_roundtrip(g: _Graph, X: str) -> str:
+    from onnx import TensorProto
+
+    return g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
+
+
+# ----------------------------------------------------------------------------- Q and policies
+def _phi(g: _Graph, fmap: Any, X: str) -> str:
+    if fmap is None:
+        return X
+    from offline_adp.features import SelectColumns
+
+    if isinstance(fmap, SelectColumns):
+        return g.op("Gather", [X, g.const(np.asarray(list(fmap.columns), np.int64), "columns")], "phi", axis=1)
+    raise ExportError(f"cannot export the feature map {type(fmap).__name__} to ONNX; supported: SelectColumns "
+                      "(drop_features)")
+
+
+def _q_values(g: _Graph, q: Any, X: str) -> str:
+    """Q-values (N, n_actions) of a stationary Q-function."""
+    from offline_adp.learners import BoostedSumQ
+    from offline_adp.qfunctions import RegressorQ, TreeQ
+
+    if not isinstance(q, RegressorQ | TreeQ | BoostedSumQ):
+        raise ExportError(f"cannot export a {type(q).__name__} Q-function to ONNX")
+    enc = q.encoder
+    phi = _phi(g, enc.feature_map, X)
+    A = enc.n_actions
+    if isinstance(q, BoostedSumQ):
+        boosters = [_booster_of(b) for b in q.boosters]
+        if any(b is None for b in boosters):
+            raise ExportError("cannot export a BoostedSumQ whose boosters are not LightGBM models")
+        pairs = _all_pairs(g, phi, enc.action_features)
+        flat = _tree_node(g, pairs, _lightgbm_arrays(boosters), "SUM")
+    elif enc.per_action:
+        cols = [_regressor(g, m, phi) for m in q.models]
+        return g.op("Concat", cols, "q", axis=1)
+    else:
+        flat = _regressor(g, q.models[0], _all_pairs(g, phi, enc.action_features))
+    # action-major rows (a * N + i) -> (N, A)
+    return g.op("Transpose", [g.op("Reshape", [flat, g.const(np.array([A, -1], np.int64))])], "q", perm=[1, 0])
+
+
+def _all_pairs(g: _Graph, phi: str, action_features: np.ndarray) -> str:
+    """Joint inputs for every action, action-major: row ``a * N + i`` is ``[phi(x_i), f(a)]``."""
+    af = np.asarray(action_features, dtype=np.float64)
+    A, k = af.shape
+    n = g.op("Slice", [g.op("Shape", [phi]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
+    tiled = g.op("Tile", [phi, g.const(np.array([A, 1], np.int64))], "tiled")
+    shape = g.op("Concat", [g.const(np.array([A], np.int64)), n, g.const(np.array([k], np.int64))], "shape", axis=0)
+    acts = g.op("Expand", [g.const(af.reshape(A, 1, k), "action_features"), shape], "acts")
+    acts = g.op("Reshape", [acts, g.const(np.array([-1, k], np.int64))], "acts2")
+    return g.op("Concat", [tiled, acts], "pairs", axis=1)
+
+
+def _policy(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
+    """(action index (N,) int64, Q-values (N, A) or None) of a stationary rule."""
+    from offline_adp.policies import GreedyPolicy
+
+    if isinstance(pi, GreedyPolicy):
+        q = _q_values(g, pi.q, X)
+        return g.op("ArgMin", [q], "index", axis=1, keepdims=0, select_last_index=0), q
+    if type(pi).__name__ == "ClassifierPolicy":
+        return _classifier_policy(g, pi, X), None
+    raise ExportError(_refusal(pi))
+
+
+def _refusal(pi: Any) -> str:
+    kind = type(pi).__name__
+    if kind in ("MixturePolicy", "UniformPolicy", "EpsilonPolicy", "StochasticFunctionPolicy"):
+        return (f"a {kind} is stochastic (it draws its action at random) and is not exported to ONNX; export a "
+                "deterministic policy (for a CPI mixture: one of its components, policy.components[k])")
+    return (f"cannot export a {kind} to ONNX; supported: greedy policies over tree-ensemble/LightGBM Q-functions "
+            "(FQI, FQE, API), PSDP's time-indexed policies (forest classifiers or greedy regression)")
+
+
+def _classifier_policy(g: _Graph, pi: Any, X: str) -> str:
+    from onnx import TensorProto
+
+    from offline_adp.qfunctions import TreeEnsemble
+
+    one = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
+    if pi.constant is not None:
+        return g.op("Expand", [g.const(np.array(pi.constant, np.int64)), one], "index")
+    clf = pi.classifier
+    if type(clf).__name__ == "_TreeClassifier":  # a loaded artifact
+        ens, cv, classes = clf.ensemble, np.asarray(clf.class_values), np.asarray(clf.classes_)
+    elif hasattr(clf, "classes_") and hasattr(clf, "estimators_") and hasattr(clf.estimators_[0], "tree_"):
+        ens = TreeEnsemble.from_sklearn(clf)
+        probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
+        cv, classes = probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300), np.asarray(clf.classes_)
+    else:
+        raise ExportError(f"cannot export a {type(clf).__name__} classifier to ONNX; supported: scikit-learn forest "
+                          "classifiers (PSDP's classifier='extra_trees')")
+    phi = _float32_roundtrip(g, _phi(g, pi.feature_map, X))
+    proba = g.op("Concat", [_tree_node(g, phi, _ensemble_arrays(ens, cv[:, c]), "AVERAGE") for c in range(cv.shape[1])],
+                 "proba", axis=1)
+    k = g.op("ArgMax", [proba], "class", axis=1, keepdims=0, select_last_index=0)
+    idx = g.op("Gather", [g.const(classes.astype(np.int64), "classes"), k], "index", axis=0)
+    return g.op("Cast", [idx], "index64", to=TensorProto.INT64)
+
+
+def _steps(pi: Any) -> list[Any] | None:
+    """The per-step rules of a time-indexed policy, or None if stationary."""
+    from offline_adp.policies import GreedyPolicy, NonStationaryPolicy
+    from offline_adp.qfunctions import TimeIndexedQ
+
+    if isinstance(pi, NonStationaryPolicy):
+        return list(pi.steps)
+    if isinstance(pi, GreedyPolicy) and isinstance(pi.q, TimeIndexedQ):
+        return [GreedyPolicy(q) for q in pi.q.qs]
+    return None
+
+
+# ----------------------------------------------------------------------------- public API
+def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_policy") -> Any:
+    """The ONNX model (``onnx.ModelProto``) of a deterministic policy; see the module docstring.
+
+    Parameters
+    ----------
+    policy : Policy
+    signature : PolicySignature, optional
+        Feature names/units and action table (default: ``policy.signature``).
+    name : str
+        Graph name.
+
+    Raises
+    ------
+    ExportError
+        The policy has no signature, or a part of it cannot be expressed.
+    """
+    try:
+        import onnx
+        from onnx import TensorProto, helper
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ExportError("ONNX export needs the onnx package: pip install 'offline-adp[onnx]'") from exc
+    from offline_adp._version import __version__
+
+    sig = signature if signature is not None else getattr(policy, "signature", None)
+    if sig is None:
+        raise ExportError("the policy has no signature (feature names and action table); export a run directory, "
+                          "or pass signature=PolicySignature.from_info(dataset.info)")
+    d, values = len(sig.feature_names), sig.action_table.values
+    if values.shape[0] != policy.n_actions:
+        raise ExportError(f"the signature's action table has {values.shape[0]} actions, the policy {policy.n_actions}")
+    g = _Graph()
+    X = "observation"
+    inputs = [helper.make_tensor_value_info(X, TensorProto.DOUBLE, ["N", d])]
+    steps = _steps(policy)
+    if steps is None:
+        index, q = _policy(g, policy, X)
+    else:
+        inputs.append(helper.make_tensor_value_info("t", TensorProto.INT64, ["N"]))
+        T = len(steps)
+        outs = [_policy(g, s, X) for s in steps]
+        tc = g.op("Max", [g.op("Min", ["t", g.const(np.array(T - 1, np.int64))]), g.const(np.array(0, np.int64))], "tc")
+        col = g.op("Unsqueeze", [tc, g.const(np.array([1], np.int64))], "tcol")
+        stacked = g.op("Concat", [g.op("Unsqueeze", [i, g.const(np.array([1], np.int64))]) for i, _ in outs], "steps", axis=1)
+        index = g.op("Squeeze", [g.op("GatherElements", [stacked, col], axis=1), g.const(np.array([1], np.int64))], "index")
+        q = None
+        if all(qq is not None for _, qq in outs):
+            A = policy.n_actions
+            qs = g.op("Concat", [g.op("Unsqueeze", [qq, g.const(np.array([1], np.int64))]) for _, qq in outs], "qs", axis=1)
+            n = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
+            shape = g.op("Concat", [n, g.const(np.array([1, A], np.int64))], "qshape", axis=0)
+            idx3 = g.op("Expand", [g.op("Reshape", [tc, g.const(np.array([-1, 1, 1], np.int64))]), shape], "qidx")
+            q = g.op("Reshape", [g.op("GatherElements", [qs, idx3], axis=1), g.const(np.array([-1, A], np.int64))], "q")
+    g.nodes.append(helper.make_node("Cast", [index], ["action_index"], to=TensorProto.INT64))
+    g.nodes.append(helper.make_node("Gather", [g.const(values, "action_values"), "action_index"], ["action"], axis=0))
+    outputs = [helper.make_tensor_value_info("action", TensorProto.DOUBLE, ["N", values.shape[1]]),
+               helper.make_tensor_value_info("action_index", TensorProto.INT64, ["N"])]
+    if q is not None:
+        g.nodes.append(helper.make_node("Identity", [q], ["q_values"]))
+        outputs.append(helper.make_tensor_value_info("q_values", TensorProto.DOUBLE, ["N", policy.n_actions]))
+    graph = helper.make_graph(g.nodes, name, inputs, outputs, g.inits)
+    graph.doc_string = ("observation columns: " + ", ".join(f"{n} [{u}]" if u else n for n, u in zip(sig.feature_names, sig.feature_units, strict=True))
+                        + "; action: " + ", ".join(sig.action_table.dims) + (" ; t: time step (int64)" if steps else ""))
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET), helper.make_opsetid("ai.onnx.ml", ML_OPSET)],
+                              producer_name="offline_adp", producer_version=__version__)
+    model.ir_version = min(model.ir_version, 9)
+    at = sig.action_table
+    meta = {
+        "feature_names": json.dumps(list(sig.feature_names)),
+        "feature_units": json.dumps(list(sig.feature_units)),
+        "action_names": json.dumps(at.names),
+        "action_dims": json.dumps(list(at.dims)),
+        "action_units": json.dumps(list(at.units)),
+        "action_values": json.dumps(values.tolist()),
+        "policy_kind": type(policy).__name__,
+        "time_indexed": json.dumps(steps is not None),
+        "n_steps": json.dumps(len(steps) if steps is not None else None),
+        "offline_adp_version": __version__,
+    }
+    helper.set_model_props(model, meta)
+    onnx.checker.check_model(model)
+    return model
+
+
+def save_onnx(policy: Any, path: str | PathLike[str], signature: Any = None) -> Path:
+    """Write ``policy`` as an ONNX model to ``path`` (atomically); see :func:`policy_to_onnx`."""
+    model = policy_to_onnx(policy, signature)
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_bytes(model.SerializeToString())
+    os.replace(tmp, out)
+    log.info("wrote %s (%d nodes, %.1f kB)", out, len(model.graph.node), out.stat().st_size / 1e3)
+    return out
+
+
+def onnx_metadata(path: str | PathLike[str]) -> dict[str, Any]:
+    """The metadata of an exported policy (JSON values decoded)."""
+    import onnx
+
+    model = onnx.load(str(path))
+    out: dict[str, Any] = {}
+    for p in model.metadata_props:
+        try:
+            out[p.key] = json.loads(p.value)
+        except json.JSONDecodeError:
+            out[p.key] = p.value
+    return out

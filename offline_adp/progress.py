@@ -1,0 +1,216 @@
+"""Logging and progress reporting, like a library should.
+
+Every module logs to a child of the package logger ``offline_adp`` (``get_logger(__name__)``),
+which has only a ``NullHandler``: an application decides what is shown
+(``logging.basicConfig(level=logging.INFO)`` or ``logging.getLogger("offline_adp")``).
+The CLI calls :func:`configure_logging` from ``-v/-q/--log-level``.
+
+Long loops report through :class:`Progress`: a tqdm bar on stderr when ``show_progress``
+and one INFO log record per update when ``verbose`` (shown on stderr even if the
+application configured no logging).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Mapping
+from types import TracebackType
+from typing import Any
+
+PACKAGE = "offline_adp"
+logging.getLogger(PACKAGE).addHandler(logging.NullHandler())
+
+LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
+
+
+def get_logger(name: str = PACKAGE) -> logging.Logger:
+    """The package logger or one of its children (pass ``__name__``)."""
+    if name != PACKAGE and not name.startswith(PACKAGE + "."):
+        name = f"{PACKAGE}.{name}"
+    return logging.getLogger(name)
+
+
+def resolve_level(verbose: int = 0, quiet: bool = False, log_level: str | None = None) -> int:
+    """The logging level from CLI flags: ``--log-level`` wins, then ``-q`` (ERROR), then
+    WARNING lowered one step per ``-v`` (``-v`` INFO, ``-vv`` DEBUG)."""
+    if log_level:
+        name = str(log_level).upper()
+        if name not in LEVELS:
+            from offline_adp.errors import SpecError
+
+            raise SpecError(f"--log-level {log_level!r}: expected one of {list(LEVELS)}")
+        return getattr(logging, name)
+    if quiet:
+        return logging.ERROR
+    return max(logging.DEBUG, logging.WARNING - 10 * int(verbose))
+
+
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """A StreamHandler writing to whatever ``sys.stderr`` is at emit time (it may be
+    replaced, e.g. by test capture or a notebook, after the handler was installed)."""
+
+    @property  # type: ignore[override]
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
+def configure_logging(level: int = logging.WARNING, stream: Any = None) -> logging.Handler:
+    """Send the package's log records at ``level`` and above to ``stream`` (stderr) as
+    ``LEVEL name: message`` lines; replaces a handler installed by an earlier call."""
+    log = logging.getLogger(PACKAGE)
+    for h in list(log.handlers):
+        if getattr(h, "_oadp_cli", False):
+            log.removeHandler(h)
+    handler = logging.StreamHandler(stream) if stream is not None else _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    handler._oadp_cli = True  # type: ignore[attr-defined]
+    log.addHandler(handler)
+    log.setLevel(level)
+    return handler
+
+
+def _fmt(v: Any) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+class Progress:
+    """Progress of a loop of ``total`` updates.
+
+    Parameters
+    ----------
+    total : int or None
+        Expected number of updates (None: unknown).
+    desc : str
+        What is running (the bar's label and the log records' prefix).
+    show_progress : bool
+        Draw a tqdm bar on stderr.
+    verbose : bool
+        Log one INFO record per update (to stderr if the application configured no
+        handler for the package logger).
+    fields : tuple of str
+        Keys of an update's ``row`` to show (bar postfix and log record).
+    logger : Logger, optional
+        Where the records go (default: the package logger).
+    """
+
+    def __init__(self, total: int | None, desc: str, *, show_progress: bool = False, verbose: bool = False,
+                 fields: tuple[str, ...] = (), logger: logging.Logger | None = None) -> None:
+        self.total, self.desc, self.fields = total, desc, fields
+        self.verbose, self.n = verbose, 0
+        self.logger = logger or get_logger()
+        self._bar: Any = None
+        self._handler: logging.Handler | None = None
+        if show_progress:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=desc, unit="it", file=sys.stderr, leave=False)
+        if verbose and not _has_handler(self.logger):
+            self._handler = _StderrHandler()
+            self._handler.setFormatter(logging.Formatter("%(name)s: %(message)s"))
+            logging.getLogger(PACKAGE).addHandler(self._handler)
+        if verbose:
+            self._old_level = logging.getLogger(PACKAGE).level
+            if not self.logger.isEnabledFor(logging.INFO):
+                logging.getLogger(PACKAGE).setLevel(logging.INFO)
+
+    def update(self, row: Mapping[str, Any] | None = None, n: int = 1) -> None:
+        """Advance by ``n``; ``row`` (e.g. an iteration's diagnostics) is shown."""
+        self.n += n
+        shown = {k: row[k] for k in self.fields if row is not None and k in row and row[k] is not None}
+        if self._bar is not None:
+            if shown:
+                self._bar.set_postfix({k: _fmt(v) for k, v in shown.items()}, refresh=False)
+            self._bar.update(n)
+        if self.verbose:
+            of = f"/{self.total}" if self.total else ""
+            self.logger.info("%s %d%s %s", self.desc, self.n, of, " ".join(f"{k}={_fmt(v)}" for k, v in shown.items()))
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        if self.verbose:
+            logging.getLogger(PACKAGE).setLevel(self._old_level)
+        if self._handler is not None:
+            logging.getLogger(PACKAGE).removeHandler(self._handler)
+            self._handler = None
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+
+def _has_handler(logger: logging.Logger) -> bool:
+    """Whether a record from ``logger`` reaches a real (non-Null) handler."""
+    lg: logging.Logger | None = logger
+    while lg is not None:
+        if any(not isinstance(h, logging.NullHandler) for h in lg.handlers):
+            return True
+        if not lg.propagate:
+            return False
+        lg = lg.parent
+    return False
+
+
+def fit_progress(est: Any, verbose: bool = False, show_progress: bool = False) -> Progress:
+    """A :class:`Progress` for an iterative estimator's ``fit`` (FQI, FQE): the total is
+    ``horizon``, else ``n_iterations`` (twice for the frozen-structure mode), and the
+    shown fields are the usual convergence diagnostics."""
+    total = getattr(est, "horizon", None) or (getattr(est, "n_iterations", 0) * (2 if getattr(est, "mode", "") == "frozen" else 1)) or None
+    name = type(est).__name__
+    return Progress(total, name, show_progress=show_progress, verbose=verbose,
+                    fields=("iteration", "sup_dq", "bellman_residual", "start_value", "wall_time"),
+                    logger=get_logger(type(est).__module__))
+
+
+# ----------------------------------------------------------------------------- CLI options
+def add_logging_options(parser: Any) -> None:
+    """Add ``-v/--verbose``, ``-q/--quiet`` and ``--log-level`` to an argparse parser and
+    to every (nested) subcommand, so they are accepted before or after the subcommand.
+
+    Subcommand-level values are stored under their own names (default: unset), so a
+    subcommand's default never overrides the top-level flag; :func:`apply_logging_options`
+    combines them. A subcommand that already has ``--quiet`` keeps its own.
+    """
+    import argparse
+
+    def add(p: Any, top: bool) -> None:
+        sfx = "" if top else "_sub"
+        d = {} if top else {"default": argparse.SUPPRESS}
+        have = {s for a in p._actions for s in a.option_strings}
+        g = p.add_argument_group("logging") if not top else p
+        if "-v" not in have:
+            g.add_argument("-v", "--verbose", action="count", dest=f"log_verbose{sfx}", help="more log output (-vv: debug)",
+                           **({"default": 0} if top else d))
+        if "-q" not in have and "--quiet" not in have:
+            g.add_argument("-q", "--quiet", action="store_true", dest=f"log_quiet{sfx}", help="only errors",
+                           **({"default": False} if top else d))
+        if "--log-level" not in have:
+            g.add_argument("--log-level", dest=f"log_level{sfx}", type=str.upper, choices=LEVELS, metavar="LEVEL",
+                           help=f"logging level, one of {', '.join(LEVELS)}", **({"default": None} if top else d))
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for sp in a.choices.values():
+                    add(sp, False)
+
+    add(parser, True)
+
+
+def apply_logging_options(args: Any) -> int:
+    """Combine top-level and subcommand logging flags from parsed ``args``, set
+    ``args.quiet`` (for the commands' own progress output) and configure logging;
+    returns the level."""
+    verbose = int(getattr(args, "log_verbose", 0) or 0) + int(getattr(args, "log_verbose_sub", 0) or 0)
+    quiet = bool(getattr(args, "log_quiet", False) or getattr(args, "log_quiet_sub", False) or getattr(args, "quiet", False))
+    level_name = getattr(args, "log_level_sub", None) or getattr(args, "log_level", None)
+    args.quiet = quiet
+    level = resolve_level(verbose, quiet, level_name)
+    configure_logging(level)
+    return level
