@@ -53,7 +53,6 @@ import contextlib
 import glob
 import hashlib
 import json
-import shutil
 import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
@@ -368,7 +367,7 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
 
 def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str, Any]:
     data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
-    shutil.rmtree(run / "dataset", ignore_errors=True)
+    RunDirectory(run).remove("dataset")
     if "builtin" in data:
         import importlib
 
@@ -409,7 +408,7 @@ def _validate_stage(run: Path) -> dict[str, Any]:
     from offline_adp.data.validate import validate_directory
 
     report = validate_directory(run / "dataset")
-    (run / "validation.json").write_text(json.dumps(report.summary(), indent=1, default=str))
+    RunDirectory(run).write_json("validation.json", report.summary())
     return {"ok": bool(report.ok)}
 
 
@@ -429,7 +428,7 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     if resume:
         say("[fit] resuming from the last checkpointed iteration")
     elif target.path.exists():
-        shutil.rmtree(target.path)
+        RunDirectory(run).remove("fit")
 
     def on_iteration(row: dict[str, Any]) -> None:
         if row.get("iteration", 0) % 10 == 0:
@@ -453,7 +452,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
                      n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
                      horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
                      task_map=task_map)
-    shutil.copy(run / "fit" / "evaluation" / "metrics.json", run / "metrics.json")
+    RunDirectory(run).copy_in(run / "fit" / "evaluation" / "metrics.json", "metrics.json")
     return {"fqe": m["ope"]["fqe"]["estimate"]}
 
 
@@ -461,9 +460,9 @@ def _report_stage(run: Path) -> dict[str, Any]:
     from offline_adp.evaluation.report import build_report
 
     html = build_report(run / "fit")
-    shutil.copy(html, run / "report.html")
-    shutil.rmtree(run / "figures", ignore_errors=True)
-    shutil.copytree(html.parent / "figures", run / "figures")
+    rd = RunDirectory(run)
+    rd.copy_in(html, "report.html")
+    rd.copy_in(html.parent / "figures", "figures")
     return {"report": str(run / "report.html")}
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from offline_adp.algorithms.fqi import load_fqi
 from offline_adp.data.rundir import RunDirectory, RunLockedError
+from offline_adp.errors import OfflineADPError
 
 pytestmark = pytest.mark.integration
 
@@ -90,3 +91,33 @@ def test_lock_is_exclusive_and_writes_do_not_follow_links(tmp_path):
     assert not (rd.path / "config.json").is_symlink()
     with rd.lock():  # the next writer cleans our stale temporaries
         assert not (rd.path / ".model.tmp-abc").exists()
+
+
+def test_pipeline_writes_replace_planted_links(tmp_path):
+    from offline_adp.pipeline import run_pipeline
+
+    p = tmp_path / "p.toml"
+    p.write_text('name = "p"\n[data]\nsimulate = "tabular"\ndemonstrations = 20\nexploration = 20\n'
+                 "[fit]\n[fit.params]\nn_iterations = 3\n[fit.params.regressor_params]\nn_estimators = 5\nn_jobs = 1\n"
+                 '[evaluate]\nsimulator = "tabular"\nepisodes = 20\nbootstrap = 20\nfqe_bootstrap = 2\n[report]\n')
+    out = tmp_path / "r"
+    out.mkdir()
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "manifest.json").write_text("{}")
+    (out / "manifest.json").symlink_to(outside / "manifest.json")
+    with pytest.raises(OfflineADPError, match="manifest.json is a symbolic link"):
+        run_pipeline(p, out=out, say=lambda s: None)
+    out = tmp_path / "r2"
+    out.mkdir()
+    for name in ("config.json", "manifest.json", "metrics.json", "report.html", "validation.json"):
+        (outside / name).write_text("precious")
+        if name != "manifest.json":
+            (out / name).symlink_to(outside / name)
+    (out / "figures").symlink_to(outside, target_is_directory=True)
+    run_pipeline(p, out=out, say=lambda s: None)
+    for name in ("config.json", "manifest.json", "metrics.json", "report.html", "validation.json"):
+        assert (outside / name).read_text() == "precious", name
+        assert not (out / name).is_symlink() and (out / name).stat().st_size > 0
+    assert not (out / "figures").is_symlink() and sorted(outside.iterdir()) == sorted(outside / n for n in (
+        "config.json", "manifest.json", "metrics.json", "report.html", "validation.json"))

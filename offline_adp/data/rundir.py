@@ -137,7 +137,10 @@ class RunDirectory:
         return self.write_text(name, json.dumps(obj, indent=1, default=_json_default) + "\n")
 
     def read_json(self, name: str) -> dict[str, Any]:
+        """Read ``RUN/name``; a symbolic link there is refused (it was not written by us)."""
         p = self.file(name)
+        if p.is_symlink():
+            raise OfflineADPError(f"{p} is a symbolic link, not a file this run wrote; remove it")
         try:
             return json.loads(p.read_text(encoding="utf-8"))
         except FileNotFoundError:
@@ -155,6 +158,22 @@ class RunDirectory:
             target.unlink()
         with atomic_directory(target, overwrite=True) as tmp:
             yield tmp
+
+    def copy_in(self, src: str | PathLike[str], name: str) -> Path:
+        """Copy the file or directory ``src`` to ``RUN/name`` atomically, replacing what
+        was there (a planted link included) without writing through it."""
+        src = Path(src)
+        if src.is_dir():
+            with self.subdirectory(name) as tmp:
+                shutil.copytree(src, tmp, dirs_exist_ok=True)
+            return self.file(name)
+        target = self.file(name)
+        tmp = target.parent / f".{target.name}.tmp"
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        shutil.copyfile(src, tmp, follow_symlinks=True)
+        os.replace(tmp, target)
+        return target
 
     def remove(self, name: str) -> None:
         p = self.file(name)
