@@ -28,7 +28,7 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 #: Modules that drive whole CLI commands or pipelines end to end (marked ``integration``;
 #: ``make test-fast`` leaves them out, ``make test`` and CI run everything).
-INTEGRATION_MODULES = {"test_pipeline", "test_cli", "test_fit_run", "test_distributed", "test_notebooks",
+INTEGRATION_MODULES = {"test_pipeline", "test_cli", "test_fit_run", "test_distributed", "test_notebooks", "test_report",
                        "test_concurrency"}
 
 

@@ -14,6 +14,7 @@ from offline_adp.policies import MixturePolicy, TabularPolicy, UniformPolicy
 from tests.test_fqi import full_support_dataset
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iterations(seed):
     S = 12
@@ -44,6 +45,7 @@ def _exact_cost(m, policy):
     return float(m.initial_distribution @ dp.policy_evaluation_discounted(m.P, m.C, pi, m.gamma).V)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rule", ["line_search", "kakade_langford"])
 def test_cpi_estimated_value_never_increases_and_policy_improves(rule):
     m = TabularMDP(n_states=10, n_actions=3, horizon=30, gamma=0.9, seed=4)
@@ -56,6 +58,7 @@ def test_cpi_estimated_value_never_increases_and_policy_improves(rule):
     assert _exact_cost(m, cpi.policy_) < _exact_cost(m, UniformPolicy(3))
 
 
+@pytest.mark.slow
 def test_cpi_off_policy_estimates_from_logs():
     m = TabularMDP(n_states=10, n_actions=3, horizon=None, gamma=0.9, seed=6)
     ds, w = full_support_dataset(m)

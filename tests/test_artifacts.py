@@ -26,6 +26,7 @@ from offline_adp.artifacts import ArtifactError, load_q
     ],
     ids=["trees", "frozen", "warm_start", "lightgbm", "ridge+scaler", "knn", "mlp", "finite"],
 )
+@pytest.mark.slow
 def test_round_trip_predictions_identical(tmp_path, small_pt, kwargs):
     import warnings
 

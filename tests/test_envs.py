@@ -57,6 +57,7 @@ def test_car_on_hill_matches_independent_integration(start):
             break
 
 
+@pytest.mark.slow
 def test_car_on_hill_score_grid_and_terminal_rewards():
     g = score_grid()
     assert g.shape == (289, 2) and g[:, 0].min() == -1 and g[:, 1].max() == 3

@@ -134,6 +134,7 @@ def test_wdr_within_eight_percent_at_1k(mild_1k):
     assert lo < mild_1k.estimates["wdr"].estimate < hi
 
 
+@pytest.mark.slow
 def test_mis_within_three_percent_at_10k():
     pib, pi = CASES["strong"]
     res = off_policy(logged(pib, 10_000, 12), pi, fqe_params=TABULAR_FQE, ratio_regressor="tabular", n_boot=50, n_boot_fqe=0)
@@ -150,6 +151,7 @@ def test_importance_sampling_family_on_mild_shift(mild_1k):
         assert abs(mild_1k.estimates[name].estimate - truth) <= tol * truth, name
 
 
+@pytest.mark.slow
 def test_bootstrap_intervals_cover_the_truth():
     """FQE and WDR trajectory-bootstrap 95% intervals cover the true value
     in >= 85% of 30 seeds."""
@@ -165,6 +167,7 @@ def test_bootstrap_intervals_cover_the_truth():
     assert min(hits.values()) >= 26, hits
 
 
+@pytest.mark.slow
 def test_psdp_bound_matches_exact_and_holds():
     """Theorem 2 with mu = the data's distribution and pi_ref = the optimal policy."""
     pib, pi = CASES["mild"]

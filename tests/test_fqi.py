@@ -140,6 +140,7 @@ def test_bad_parameters_are_reported():
         FittedQIteration(mode="fast").fit(gridworld_dataset())
 
 
+@pytest.mark.slow
 def test_iterated_fqi_improves_on_exploration_data():
     from offline_adp.algorithms.iterated_fqi import IteratedFQI
     from offline_adp.envs import CarOnHill

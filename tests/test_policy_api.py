@@ -114,6 +114,7 @@ def test_fit_verbose_prints_without_logging_configured_and_progress_bar(small_pt
     from offline_adp.algorithms.fqi import FittedQIteration
 
     monkeypatch.setattr(logging.getLogger(), "handlers", [])  # as in a fresh notebook (pytest adds its own)
+    monkeypatch.setattr(logging.getLogger("offline_adp"), "level", logging.NOTSET)  # earlier CLI calls set it
 
     est = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1}, n_iterations=2)
     est.fit(small_pt)
