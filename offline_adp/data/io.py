@@ -105,6 +105,7 @@ def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
     stats["source_counts"] = ds.source_counts()
     stats["terminated_episodes"] = int(ds.table.column(S.TERMINATED).to_numpy().sum())
     stats["truncated_episodes"] = int(ds.table.column(S.TRUNCATED).to_numpy().sum())
+    stats["terminated_and_truncated"] = int((ds.table.column(S.TERMINATED).to_numpy() & ds.table.column(S.TRUNCATED).to_numpy()).sum())
     return stats
 
 
