@@ -35,7 +35,7 @@ from offline_adp._version import __version__
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset, encode_strings, sorted_encoding
 from offline_adp.data.info import DatasetInfo, Feature
-from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.io import locked_directory, sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, ValidationError
 from offline_adp.ingest.actions import bin_continuous, map_discrete
@@ -430,10 +430,16 @@ def ingest_parquet(
     ValidationError
         The doctor found defects and ``on_error`` is ``"fail"`` (the default).
     """
-    if Path(out).exists() and not overwrite:
-        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     if not isinstance(spec, ParquetSpec):
         spec = load_parquet_spec(spec)
+    with locked_directory(out, what="dataset"):  # a second ingest into `out` fails now, not at the end
+        return _ingest_locked(inputs, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
+
+
+def _ingest_locked(inputs: Sequence[str | PathLike[str]], spec: ParquetSpec, out: str | PathLike[str], *,
+                   on_error: str | None, overwrite: bool, progress: Callable[[str], None] | None) -> IngestResult:
+    if (Path(out).exists() or Path(out).is_symlink()) and not overwrite:
+        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     res = ingest_tables(inputs, spec, on_error=on_error, progress=progress)
     if progress:
         progress(f"writing {out}")
