@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import re
 import zipfile
+import zlib
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,9 @@ MAX_EXPANSION = 64
 MEMBER_NAME = re.compile(r"^[A-Za-z0-9_]+(\.[A-Za-z0-9_]+)*\.npy$")
 #: dtype kinds an artifact array may have: bool, signed/unsigned integer, float, unicode.
 ALLOWED_KINDS = frozenset("biufU")
+#: What reading a damaged zip member can raise (CRC, inflate, unsupported flags, encryption).
+ZIP_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError,
+              OverflowError, KeyError, TypeError, SyntaxError)
 #: Most nodes / leaves / features a single tree or model may declare.
 MAX_NODES = 1 << 31
 
@@ -89,7 +93,7 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) 
         zf = zipfile.ZipFile(p)
     except FileNotFoundError:
         raise
-    except (OSError, zipfile.BadZipFile, ValueError, EOFError) as exc:
+    except ZIP_ERRORS as exc:
         raise ArtifactError(f"{where}: not a readable .npz archive ({exc})") from None
     out: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}
     total = 0
@@ -104,8 +108,8 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) 
             key = name[:-4]
             if key in out:
                 raise _fail(where, key, "member appears twice")
-            if zi.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
-                raise _fail(where, key, f"unsupported zip compression {zi.compress_type}")
+            if zi.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED) or zi.flag_bits & 0x61:
+                raise _fail(where, key, f"unsupported zip member (compression {zi.compress_type}, flags {zi.flag_bits:#x})")
             if zi.compress_type == zipfile.ZIP_STORED and zi.file_size != zi.compress_size:
                 raise _fail(where, key, "stored member with inconsistent sizes")
             if zi.file_size > max_expansion * max(zi.compress_size, 1) + 4096:
@@ -123,7 +127,7 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) 
                     else:
                         raise ValueError(f"unknown .npy version {version}")
                     header_len = f.tell()
-            except (ValueError, OSError, zipfile.BadZipFile, EOFError, SyntaxError, TypeError, KeyError) as exc:
+            except ZIP_ERRORS as exc:
                 raise _fail(where, key, f"unreadable array header ({exc})") from None
             if not plain_dtype(dtype):
                 raise _fail(where, key, f"dtype {dtype} is not allowed (bool, integer, float or string arrays only)")
@@ -144,7 +148,7 @@ def array(arrays: Any, key: str, where: str, *, kinds: str, ndim: int | None = N
         a = np.asarray(arrays[key])
     except KeyError:
         raise _fail(where, key, "array missing from the .npz") from None
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+    except ZIP_ERRORS as exc:
         raise _fail(where, key, f"unreadable array ({exc})") from None
     if a.dtype.kind not in kinds or not plain_dtype(a.dtype):
         raise _fail(where, key, f"dtype {a.dtype} where {'/'.join(_KIND_NAMES[k] for k in kinds)} is required")

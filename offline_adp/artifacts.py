@@ -355,7 +355,7 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
         raise ArtifactError(f"{d}: no saved {what} ({exc.filename} missing)") from exc
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise ArtifactError(f"{jpath}: unreadable {what} description ({type(exc).__name__}: {exc})") from None
-    except (ValueError, OSError) as exc:
+    except C.ZIP_ERRORS as exc:
         raise ArtifactError(f"{npath}: unreadable {what} arrays ({exc})") from None
     if not isinstance(spec, dict) or key not in spec:
         raise ArtifactError(f"{jpath}: no {key!r} entry (not a saved {what})")
@@ -370,7 +370,7 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
             return build(spec[key], arrays, where), spec
         except (ArtifactError, FormatVersionWarning):
             raise
-        except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError, RecursionError, MemoryError) as exc:
+        except (*C.ZIP_ERRORS, IndexError, AttributeError, RecursionError, MemoryError) as exc:
             raise ArtifactError(f"{where}: malformed {what} ({type(exc).__name__}: {exc})") from None
 
 
