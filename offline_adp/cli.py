@@ -42,9 +42,9 @@ def _say(args: argparse.Namespace, msg: str) -> None:
 
 # ---------------------------------------------------------------------------- simulate
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from offline_adp.simulate import simulate
+    from offline_adp.simulate import parse_problem_options, simulate
 
-    options = json.loads(args.problem_options) if args.problem_options else None
+    options = parse_problem_options(args.problem_options) or None
     on_step, close = _progress(args.quiet)
     try:
         ds = simulate(args.problem, args.demonstrations, args.exploration, seed=args.seed, horizon=args.horizon,
@@ -203,7 +203,8 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         "actions": {
             "kind": info.action_table.kind,
             "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(), strict=True)},
-            "coverage": {n: int(c) for n, c in zip(info.action_table.names, np.bincount(a, minlength=ds.n_actions), strict=True)},
+            "coverage": {**{n: int(c) for n, c in zip(info.action_table.names, np.bincount(a[(a >= 0) & (a < ds.n_actions)], minlength=ds.n_actions), strict=True)},
+                         **({"(outside the action table)": int(((a < 0) | (a >= ds.n_actions)).sum())} if ((a < 0) | (a >= ds.n_actions)).any() else {})},
         },
         "per_source": {
             str(src): {

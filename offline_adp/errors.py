@@ -44,6 +44,11 @@ class ArtifactError(OfflineADPError):
     the file and the member."""
 
 
+class InvalidArgumentError(OfflineADPError, ValueError):
+    """A function or command-line argument has a bad value (negative count, options that
+    are not a JSON object...); the message names the argument and what is allowed."""
+
+
 class LockedError(OfflineADPError):
     """Another process holds the lock of a dataset or run directory we are asked to write."""
 

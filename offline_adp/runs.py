@@ -28,6 +28,7 @@ import pandas as pd
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
 from offline_adp.artifacts import load_q, save_q, versions
 from offline_adp.data.io import read_dataset
+from offline_adp.data.validate import require_usable
 from offline_adp.errors import OfflineADPError, SpecError
 from offline_adp.qfunctions import TimeIndexedQ
 
@@ -94,6 +95,7 @@ def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm:
     if run.exists():
         raise OfflineADPError(f"{run} already exists; choose another --out (only fqi runs can be resumed)")
     ds = read_dataset(dataset)
+    require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
     p = dict(params)
     fqe = FittedQEvaluation(**p.pop("fqe")) if "fqe" in p else None
     sim = make_problem(p.pop("simulator"), **p.pop("problem_options", {})) if "simulator" in p else None
@@ -171,6 +173,7 @@ def fit_run(
     if resume and not run.exists():
         raise OfflineADPError(f"{run} does not exist: nothing to resume")
     ds = read_dataset(dataset)
+    require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
     run.mkdir(parents=True, exist_ok=True)
     if resume:
         saved = json.loads((run / "config.json").read_text())

@@ -10,7 +10,9 @@ Rules (check codes in brackets):
   reports both when a goal is reached on the time-limit step): the transition is
   terminated (absorbing, never bootstrapped) and the report counts such rows
   (``summary()["terminated_and_truncated"]``);
-- no NaN/inf in obs, cost, next_obs [``non_finite``]; no nulls in required columns, nor in
+- no NaN/inf in obs, cost, next_obs [``non_finite``], nor magnitudes beyond
+  :data:`MAX_ABS_VALUE` (1e150: their squares, in every regressor's loss, overflow)
+  [``value_out_of_range``]; no nulls in required columns, nor in
   ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
 - actions inside the action table [``action_out_of_range``];
 - propensities in (0, 1] [``propensity_out_of_range``];
@@ -48,6 +50,7 @@ CHECKS: tuple[str, ...] = (
     "flag_not_last",
     "end_unflagged",
     "non_finite",
+    "value_out_of_range",
     "action_out_of_range",
     "propensity_out_of_range",
     "time_decreasing",
@@ -56,6 +59,9 @@ CHECKS: tuple[str, ...] = (
     "episodes_stale",
     "episode_split_across_parts",
 )
+#: Largest magnitude of an observation or cost the doctor accepts: squared errors of larger
+#: values overflow float64 (1.8e308) in every regressor, so a fit could only produce inf/NaN.
+MAX_ABS_VALUE = 1e150
 FINDING_COLUMNS = ["check", "file", "row", S.EPISODE_ID, S.STEP, "column", "message"]
 
 
@@ -227,6 +233,8 @@ def validate(
     for c in (*ds.obs_columns, S.COST, *ds.next_obs_columns):
         v = t.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
         add("non_finite", ~np.isfinite(v) & ~np.asarray(pc.is_null(t.column(c))), c, "value is NaN or infinite")
+        add("value_out_of_range", np.isfinite(v) & (np.abs(v) > MAX_ABS_VALUE), c,
+            f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column")
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
     add(
@@ -264,6 +272,50 @@ def validate(
     return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both)
 
 
+def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>") -> ValidationReport:
+    """Refuse a dataset an algorithm cannot be fitted on: empty, or failing the doctor.
+
+    ``where`` is the dataset directory ``ds`` was read from (findings then name its part
+    files and rows) or a label.
+
+    Raises
+    ------
+    ValidationError
+        One line naming ``where``, the counts per check and the first finding's file, row
+        and column (``offline-adp validate`` lists them all).
+    """
+    from offline_adp.errors import ValidationError
+
+    if len(ds) == 0:
+        raise ValidationError(f"{where}: the dataset has no transitions; nothing to fit")
+    report = validate(ds, origin=_directory_origin(Path(where), ds) if Path(where).is_dir() else None)
+    if not report.ok:
+        f = report.findings.iloc[0]
+        counts = ", ".join(f"{k} {v}" for k, v in report.counts().items())
+        raise ValidationError(
+            f"{where}: the dataset fails the doctor ({counts}); first: {f['file']}: row {f['row']} "
+            f"(episode {f[S.EPISODE_ID]}, step {f[S.STEP]}) column {f['column']!r}: {f['message']}; "
+            f"see `offline-adp validate {where}`", report)
+    return report
+
+
+def _directory_origin(path: Path, ds: TransitionDataset) -> RowOrigin | None:
+    """Part file and row of each row of ``ds`` read from directory ``path`` (None if the
+    rows were re-sorted on reading, so that they no longer line up with the parts)."""
+    import pyarrow.parquet as pq
+
+    from offline_adp.data.io import part_files
+
+    parts = part_files(path)
+    sizes = [pq.ParquetFile(p).metadata.num_rows for p in parts]
+    origin = RowOrigin(
+        [str(p) for p in parts],
+        np.repeat(np.arange(len(parts)), sizes),
+        np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int),
+    )
+    return origin if ds.table.num_rows == len(origin.row) and ds.was_sorted else None
+
+
 def _bool(t: pa.Table, name: str) -> np.ndarray:
     return np.asarray(t.column(name).fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
 
@@ -279,24 +331,15 @@ def _messages(mask: np.ndarray, fmt) -> np.ndarray:
 def validate_directory(path: str | PathLike[str]) -> ValidationReport:
     """Load a dataset directory and run the doctor, naming part files and rows in them;
     then check the directory's metadata against its data (see the module docstring)."""
-    import pyarrow.parquet as pq
-
-    from offline_adp.data.io import part_files, read_dataset, read_info
+    from offline_adp.data.io import read_dataset, read_info
 
     path = Path(path)
     ds = read_dataset(path)
-    parts = part_files(path)
-    sizes = [pq.ParquetFile(p).metadata.num_rows for p in parts]
-    origin = RowOrigin(
-        [str(p) for p in parts],
-        np.repeat(np.arange(len(parts)), sizes),
-        np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int),
-    )
     # rows are read in part order; the constructor re-sorts only a dataset whose parts were
     # edited out of order, and then the part/row names would no longer line up
-    aligned = ds.table.num_rows == len(origin.row) and ds.was_sorted
-    report = validate(ds, origin=origin if aligned else None)
-    meta = _metadata_findings(path, ds, read_info(path), origin if aligned else None)
+    origin = _directory_origin(path, ds)
+    report = validate(ds, origin=origin)
+    meta = _metadata_findings(path, ds, read_info(path), origin)
     if len(meta):
         report.findings = pd.concat([report.findings, meta], ignore_index=True)[FINDING_COLUMNS] if len(report.findings) else meta
     return report

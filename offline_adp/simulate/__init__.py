@@ -10,7 +10,9 @@ policies, labelled by ``source``. Writers for a raw Parquet table and MCAP live 
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Callable
+import json
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +21,7 @@ from offline_adp.access import ResetModel
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.envs import make_problem
 from offline_adp.envs.base import ReferenceProblem
+from offline_adp.errors import InvalidArgumentError, OfflineADPError
 from offline_adp.policies import Policy
 
 #: Start of simulated logs (2024-01-01T00:00:00Z), so timestamps look like a real log's.
@@ -51,7 +54,7 @@ def collect(
     assert isinstance(problem, ResetModel)
     H = horizon if horizon is not None else problem.horizon
     if H is None or H <= 0:
-        raise ValueError(f"{problem.name}: collecting needs a positive horizon, got {H}")
+        raise InvalidArgumentError(f"{problem.name}: collecting needs a positive horizon, got {H}")
     x = problem.initial_states(n_episodes, rng) if start_states is None else np.array(start_states, dtype=np.float64)
     n = len(x)
     alive = np.ones(n, bool)
@@ -100,6 +103,25 @@ def collect(
     )
 
 
+def _count(value: Any, name: str, lo: int = 0, hi: int = 10**9) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or not lo <= value <= hi:
+        raise InvalidArgumentError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    return int(value)
+
+
+def parse_problem_options(text: str | None) -> dict[str, Any]:
+    """``--problem-options`` (a JSON object of constructor keywords) as a dict."""
+    if not text:
+        return {}
+    try:
+        opts = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InvalidArgumentError(f"--problem-options: not valid JSON ({exc.msg} at character {exc.pos}): {text!r}") from None
+    if not isinstance(opts, dict):
+        raise InvalidArgumentError(f"--problem-options: expected a JSON object such as '{{\"n_states\": 30}}', got {text!r}")
+    return opts
+
+
 def simulate(
     problem: str | ReferenceProblem,
     n_demonstrations: int = 100,
@@ -116,7 +138,24 @@ def simulate(
     exploration episodes (``explore-NNNNNN``) ``problem.exploration()``; both log their
     propensities. Deterministic for a given seed.
     """
-    prob = make_problem(problem, **(problem_options or {})) if isinstance(problem, str) else problem
+    n_demonstrations = _count(n_demonstrations, "n_demonstrations")
+    n_exploration = _count(n_exploration, "n_exploration")
+    if n_demonstrations + n_exploration == 0:
+        raise InvalidArgumentError("simulate needs at least one demonstration or exploration episode")
+    seed = _count(seed, "seed", 0, 2**63 - 1)
+    if horizon is not None:
+        horizon = _count(horizon, "horizon", 1, 10**7)
+    if problem_options is not None and not (isinstance(problem_options, Mapping) and all(isinstance(k, str) for k in problem_options)):
+        raise InvalidArgumentError(f"problem_options must map option names to values, got {problem_options!r}")
+    if isinstance(problem, str):
+        try:
+            prob = make_problem(problem, **(problem_options or {}))
+        except OfflineADPError:
+            raise
+        except (ValueError, TypeError, OverflowError, MemoryError) as exc:  # the constructor rejected a value
+            raise InvalidArgumentError(f"problem {problem!r}: options {dict(problem_options or {})} rejected ({exc})") from None
+    else:
+        prob = problem
     rng = np.random.default_rng(seed)
     H = horizon if horizon is not None else prob.horizon  # type: ignore[attr-defined]
     parts = []
@@ -128,7 +167,7 @@ def simulate(
         parts.append(collect(prob, prob.exploration(), n_exploration, rng, horizon=H, source="exploration",
                              episode_prefix="explore", t0_ns=t0, on_step=on_step))
     if not parts:
-        raise ValueError("simulate needs at least one demonstration or exploration episode")
+        raise InvalidArgumentError("simulate needs at least one demonstration or exploration episode")
     ds = TransitionDataset.concat(parts) if len(parts) > 1 else parts[0]
     prov = {
         "generator": "offline-adp simulate",
