@@ -175,3 +175,20 @@ def test_lightgbm_text_checked_against_features(tmp_path, small_pt):
     (tmp_path / "r" / "q.json").write_text(json.dumps(spec))
     out = _load_in_child(tmp_path / "r", small_pt.arrays().obs.shape[1])
     assert out.startswith("ArtifactError:") and "split_feature" in out, out
+
+
+def test_policy_artifact_of_a_run_is_checked_the_same_way(tree_run, tmp_path):
+    """`evaluate` loads RUN/model/policy.json (a greedy policy holding the Q arrays)."""
+    from offline_adp.artifacts import load_policy, save_policy
+    from offline_adp.policies import GreedyPolicy
+
+    src, obs = tree_run
+    q, _ = load_q(src)
+    save_policy(GreedyPolicy(q), tmp_path / "model")
+    with np.load(tmp_path / "model" / "policy.npz") as z:
+        arrs = {k: z[k].copy() for k in z.files}
+    key = next(k for k in arrs if k.endswith(".feature"))
+    arrs[key][0] = -7
+    np.savez(tmp_path / "model" / "policy.npz", **arrs)
+    with pytest.raises(ArtifactError, match=r"policy\.\{json,npz\}: .*feature: negative split feature -7"):
+        load_policy(tmp_path / "model")
