@@ -191,3 +191,11 @@ def test_gymnasium_mountain_car_goal_on_time_limit_step_ingests(tmp_path):
 
     stats = json.loads((tmp_path / "ds" / S.STATS_FILE).read_text())
     assert stats["terminated_and_truncated"] == 1
+
+
+def test_text_with_nulls_in_a_feature_column_names_file_row_column(tmp_path):
+    """Found by the nightly fuzz profile: a string column with nulls crashed in Arrow's cast."""
+    t = _df()
+    t["x"] = pd.Series(["0.5", None, "x"], dtype=object)
+    with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'x': 'x' is not a number"):
+        _ingest(tmp_path, t)

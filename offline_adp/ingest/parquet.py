@@ -126,25 +126,26 @@ def _first_unparsable(c: pa.ChunkedArray, target: pa.DataType) -> int | None:
 
 def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
     c = table.column(col)
-    if c.null_count and dtype is not object:
+    if dtype is object:
+        return c.to_numpy(zero_copy_only=False)
+    numeric = pa.types.is_boolean(c.type) or pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type)
+    if not numeric and dtype is not bool:
+        i = _first_unparsable(c, pa.float64())
+        if i is not None:
+            raise IngestError(f"{_where(file_of, i)}: column {col!r}: {c[i].as_py()!r} is not a number")
+        try:
+            c = c.cast(pa.float64())
+        except (ValueError, TypeError, pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} cannot be read as "
+                              f"{np.dtype(dtype).name} ({exc})") from None
+    if c.null_count:
         bad = np.flatnonzero(np.asarray(pc.is_null(c)))
         if dtype is bool:
             return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
         if np.dtype(dtype).kind == "f":
-            c = c.cast(pa.float64()) if not pa.types.is_floating(c.type) else c
-            return c.to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
+            return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
         raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r} is missing ({len(bad)} missing values in the column)")
-    if dtype is object:
-        return c.to_numpy(zero_copy_only=False)
-    if pa.types.is_boolean(c.type) or pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type):
-        return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
-    i = _first_unparsable(c, pa.float64())
-    if i is not None:
-        raise IngestError(f"{_where(file_of, i)}: column {col!r}: {c[i].as_py()!r} is not a number")
-    try:
-        return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype, copy=False)
-    except (ValueError, TypeError, pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} cannot be read as {np.dtype(dtype).name} ({exc})") from None
+    return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
 
 
 def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray]:
