@@ -192,3 +192,28 @@ def test_policy_artifact_of_a_run_is_checked_the_same_way(tree_run, tmp_path):
     np.savez(tmp_path / "model" / "policy.npz", **arrs)
     with pytest.raises(ArtifactError, match=r"policy\.\{json,npz\}: .*feature: negative split feature -7"):
         load_policy(tmp_path / "model")
+
+
+@pytest.mark.integration
+def test_evaluate_on_a_crafted_run_exits_2_with_one_line(tmp_path):
+    """The issue's scenario: a run directory shared by a colleague, with an out-of-range
+    feature index in the saved trees; `offline-adp evaluate` used to segfault."""
+    from offline_adp.cli import main
+    from offline_adp.simulate import simulate
+
+    simulate("gridworld", 3, 3, seed=2, horizon=30).save(tmp_path / "ds")
+    (tmp_path / "fit.toml").write_text("[fqi]\nn_iterations = 2\nregressor_params = { n_estimators = 2, n_jobs = 1 }\n")
+    assert main(["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--algorithm", "fqi",
+                 "--config", str(tmp_path / "fit.toml"), "-q"]) == 0
+    model = tmp_path / "run" / "model"
+    with np.load(model / "q.npz") as z:
+        arrs = {k: z[k].copy() for k in z.files}
+    arrs["q.m0.feature"][0] = 10**6
+    np.savez(model / "q.npz", **arrs)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-m", "offline_adp", "evaluate", str(tmp_path / "run"), "--episodes", "2", "-q"],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 2, (r.returncode, r.stderr[-500:])
+    lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
+    assert "Traceback" not in r.stderr and lines[-1].startswith("offline-adp evaluate: error:")
+    assert "q.m0.feature" in lines[-1] and "model/q." in lines[-1]
