@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from sklearn.preprocessing import StandardScaler
 
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
 from offline_adp.artifacts import load_policy, load_q
@@ -34,13 +35,15 @@ from offline_adp.errors import ArtifactError
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 40
 HANG_S = 60
-KINDS = ["trees", "frozen", "warm_start", "ridge", "tabular"]
+KINDS = ["trees", "frozen", "warm_start", "ridge", "tabular", "knn", "mlp"]
 _FIT = {
     "trees": dict(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1, "min_samples_leaf": 5}),
     "frozen": dict(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1, "min_samples_leaf": 5}, mode="frozen"),
     "warm_start": dict(regressor="lightgbm", mode="warm_start", trees_per_iteration=2),
     "ridge": dict(regressor="ridge", action_encoding="per_action"),
     "tabular": dict(regressor="tabular", horizon=2),
+    "knn": dict(regressor="knn", feature_map=StandardScaler()),
+    "mlp": dict(regressor="mlp", regressor_params={"max_iter": 5, "hidden_layer_sizes": (4,)}),
 }
 COUNTS: dict[str, int] = {}
 
