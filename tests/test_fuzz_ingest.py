@@ -197,6 +197,69 @@ def test_fuzz_spec_bytes(tmp_path, edits):
         COUNTS["spec bytes: refused"] = COUNTS.get("spec bytes: refused", 0) + 1
 
 
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory):
+    from offline_adp.simulate import simulate
+
+    d = tmp_path_factory.mktemp("dsdir") / "ds"
+    simulate("gridworld", 2, 2, seed=4, horizon=20).save(d, rows_per_part=30)
+    return d
+
+
+def _json_paths(obj, prefix=()):
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _json_paths(v, (*prefix, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj[:5]):
+            yield from _json_paths(v, (*prefix, i))
+
+
+@SETTINGS
+@given(pick=st.integers(0, 10**6), value=st.sampled_from([None, -1, 0, 1, "x", [], {}, True, 1e308, [["a"]], {"name": 3}]),
+       delete=st.booleans(), part_op=st.sampled_from(["none", "none", "drop", "text", "null"]), col=st.integers(0, 100))
+def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, part_op, col):
+    """A damaged or hand-edited dataset directory (info.json entries, a part's column
+    dropped, turned to text or to nulls) is read and doctored, or refused with our error."""
+    import json
+
+    d = tmp_path / "ds"
+    shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(dataset_dir, d)
+    info = json.loads((d / "meta" / "info.json").read_text())
+    paths = [p for p in _json_paths(info) if p]
+    path = paths[pick % len(paths)]
+    parent = info
+    for x in path[:-1]:
+        parent = parent[x]
+    if delete and isinstance(parent, dict):
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = value
+    (d / "meta" / "info.json").write_text(json.dumps(info))
+    if part_op != "none":
+        p = d / "data" / "part-00000.parquet"
+        t = pq.read_table(p)
+        name = t.column_names[col % t.num_columns]
+        i = t.schema.get_field_index(name)
+        if part_op == "drop":
+            t = t.remove_column(i)
+        elif part_op == "text":
+            t = t.set_column(i, name, pa.array(["x"] * t.num_rows))
+        else:
+            t = t.set_column(i, name, pa.nulls(t.num_rows, t.schema.field(name).type))
+        pq.write_table(t, p)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            validate_directory(d)
+            read_dataset(d).arrays()
+        COUNTS["dataset dirs: read"] = COUNTS.get("dataset dirs: read", 0) + 1
+    except OfflineADPError:
+        COUNTS["dataset dirs: refused"] = COUNTS.get("dataset dirs: refused", 0) + 1
+
+
 def test_report_counts(capsys):
     with capsys.disabled():
         print(f"\ningest fuzz: {COUNTS} (nightly={NIGHTLY})")

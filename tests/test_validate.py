@@ -55,6 +55,7 @@ DEFECTS = {
     "flag_not_last": (lambda r: r[1].update({S.TERMINATED: True}), S.TERMINATED),
     "end_unflagged": (lambda r: r[3].update({S.TRUNCATED: False}), "terminated,truncated"),
     "non_finite": (lambda r: r[2].update({S.COST: float("nan")}), S.COST),
+    "value_out_of_range": (lambda r: r[2].update({"obs.x": -1e200}), "obs.x"),
     "action_out_of_range": (lambda r: r[2].update({S.ACTION: 7}), S.ACTION),
     "propensity_out_of_range": (lambda r: r[2].update({S.BEHAVIOR_PROB: 0.0}), S.BEHAVIOR_PROB),
     "time_decreasing": (lambda r: r[2].update({S.T_NS: -5}), S.T_NS),

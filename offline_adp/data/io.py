@@ -346,9 +346,12 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
             raise SchemaError(f"{p}: unreadable Parquet part ({exc})") from exc
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
-    except pa.ArrowInvalid as exc:
-        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from exc
-    return TransitionDataset(table, info)
+    except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from None
+    try:
+        return TransitionDataset(table, info)
+    except SchemaError as exc:
+        raise SchemaError(f"{path}: {exc}") from None
 
 
 def read_quarantine(path: str | PathLike[str]) -> pa.Table | None:
