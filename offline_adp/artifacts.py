@@ -69,6 +69,7 @@ def _jsonable(v: Any) -> bool:
 
 
 def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    est = getattr(est, "_oadp_inner", est)  # a loaded estimator re-saved (resume)
     name = type(est).__name__
     if hasattr(est, "classes_") and hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
         ens = TreeEnsemble.from_sklearn(est)
@@ -139,6 +140,45 @@ class _Booster:
         if np.ndim(X) != 2 or np.shape(X)[1] != n:
             raise ArtifactError(f"{self.where}: {self.member}: model reads {n} features, the input has shape {np.shape(X)}")
         return self.booster.predict(X, raw_score=raw_score)
+
+
+class _Guarded:
+    """A loaded scikit-learn estimator (or pipeline) whose ``predict``/``transform``/
+    ``predict_proba`` turn any failure into one ArtifactError naming the artifact: stored
+    attributes can be consistent with each other and still not fit the data they are
+    given (e.g. a scaler declaring 1 input feature applied to 7)."""
+
+    def __init__(self, inner: Any, where: str, what: str) -> None:
+        self._oadp_inner, self._oadp_where, self._oadp_what = inner, where, what
+
+    def __getattr__(self, name: str) -> Any:  # fitted attributes (classes_, n_features_in_...)
+        if name.startswith("_oadp"):
+            raise AttributeError(name)
+        return getattr(self._oadp_inner, name)
+
+    def _call(self, method: str, X: Any) -> Any:
+        try:
+            return getattr(self._oadp_inner, method)(X)
+        except ArtifactError:
+            raise
+        except Exception as exc:  # whatever the stored attributes make the estimator raise
+            raise ArtifactError(f"{self._oadp_where}: {self._oadp_what}.{method} failed on input of shape "
+                                f"{np.shape(X)} ({type(exc).__name__}: {exc})") from None
+
+    def predict(self, X: Any) -> Any:
+        return self._call("predict", X)
+
+    def transform(self, X: Any) -> Any:
+        return self._call("transform", X)
+
+    def predict_proba(self, X: Any) -> Any:
+        return self._call("predict_proba", X)
+
+
+def _guard(est: Any, where: str, what: str) -> Any:
+    """Wrap a loaded scikit-learn estimator or pipeline in :class:`_Guarded` (tree
+    ensembles and boosters check their inputs themselves and stay as they are)."""
+    return est if isinstance(est, TreeEnsemble | _TreeClassifier | _Booster) or where == "<memory>" else _Guarded(est, where, what)
 
 
 class _TreeClassifier:
@@ -217,6 +257,10 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
         if set(fit_data) != {"_fit_X", "_y"}:
             raise ArtifactError(f"{where}: {spec['class']} needs both _fit_X and _y")
         est.fit(fit_data["_fit_X"], fit_data["_y"])
+    if "n_features_in_" in attrs or ALLOWED[spec["class"]].startswith("sklearn"):  # fitted sklearn estimators declare it
+        w = getattr(est, "n_features_in_", None)
+        if isinstance(w, bool) or not isinstance(w, int | np.integer) or not 1 <= w <= 1_000_000:
+            raise ArtifactError(f"{where}: {spec['class']}: n_features_in_ must be an integer in [1, 1000000], found {w!r}")
     _probe(est, where, spec["class"])
     return est
 
@@ -285,7 +329,7 @@ def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFu
     per_action = e.get("per_action")
     if not isinstance(per_action, bool):
         raise ArtifactError(f"{where}: encoder.per_action must be true or false")
-    fmap = None if e.get("feature_map") is None else _import_estimator(e["feature_map"], arrays, where)
+    fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where, "feature_map")
     enc = QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap)
     kind = spec.get("kind")
     if kind == "boosted_sum":
@@ -298,7 +342,7 @@ def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFu
         models = spec.get("models")
         if not isinstance(models, list) or len(models) != (n_actions if per_action else 1):
             raise ArtifactError(f"{where}: regressor Q needs {n_actions if per_action else 1} model(s)")
-        q = RegressorQ([_import_estimator(m, arrays, where) for m in models], enc)
+        q = RegressorQ([_guard(_import_estimator(m, arrays, where), where, f"model {i}") for i, m in enumerate(models)], enc)
         widths = [_model_width(m) for m in q.models]  # type: ignore[attr-defined]
     else:
         raise ArtifactError(f"{where}: unknown Q-function kind {kind!r}")
@@ -323,6 +367,7 @@ def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFu
 
 
 def _model_width(m: Any) -> int | None:
+    m = getattr(m, "_oadp_inner", m)
     if isinstance(m, TreeEnsemble | _TreeClassifier):
         return getattr(m, "n_features_in_", None) if isinstance(m, TreeEnsemble) else None
     if isinstance(m, _Booster):
@@ -462,7 +507,7 @@ def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -
         constant = spec.get("constant")
         if constant is not None:
             C.check_int(constant, where, "constant", 0, n_actions - 1)
-        clf = None if spec.get("classifier") is None else _import_estimator(spec["classifier"], arrays, where)
+        clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
         if clf is None and constant is None:
             raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
         classes = getattr(clf, "classes_", None)
@@ -470,7 +515,7 @@ def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -
             c = np.asarray(classes)
             if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
                 raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
-        fmap = None if spec.get("feature_map") is None else _import_estimator(spec["feature_map"], arrays, where)
+        fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
         return ClassifierPolicy(clf, n_actions, constant, fmap)
     raise ArtifactError(f"{where}: unknown policy kind {kind!r}")
 
