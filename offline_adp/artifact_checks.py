@@ -31,6 +31,7 @@ the member (array key or model) at fault.
 from __future__ import annotations
 
 import re
+import tokenize
 import zipfile
 import zlib
 from os import PathLike
@@ -51,7 +52,7 @@ MEMBER_NAME = re.compile(r"^[A-Za-z0-9_]+(\.[A-Za-z0-9_]+)*\.npy$")
 ALLOWED_KINDS = frozenset("biufU")
 #: What reading a damaged zip member can raise (CRC, inflate, unsupported flags, encryption).
 ZIP_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError,
-              OverflowError, KeyError, TypeError, SyntaxError)
+              OverflowError, KeyError, TypeError, SyntaxError, tokenize.TokenError)
 #: Most nodes / leaves / features a single tree or model may declare.
 MAX_NODES = 1 << 31
 

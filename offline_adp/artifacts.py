@@ -157,8 +157,8 @@ class _Guarded:
         return getattr(self._oadp_inner, name)
 
     def _call(self, method: str, X: Any) -> Any:
-        try:
-            return getattr(self._oadp_inner, method)(X)
+        try:  # on a copy: stored parameters (e.g. copy=False) must not let it edit the caller's array
+            return getattr(self._oadp_inner, method)(np.array(X, copy=True))
         except ArtifactError:
             raise
         except Exception as exc:  # whatever the stored attributes make the estimator raise

@@ -84,7 +84,9 @@ def _outcome(d: Path, obs: np.ndarray, ref: np.ndarray, unchanged: bool) -> str:
             warnings.simplefilter("ignore")
             try:
                 q, _ = load_q(d)
-                v = np.asarray(q.values(obs, 0))
+                x = obs.copy()
+                v = np.asarray(q.values(x, 0))
+                np.testing.assert_array_equal(x, obs)  # a crafted artifact must not edit its input
             except ArtifactError as exc:
                 assert str(exc) and "\n" not in str(exc).strip().splitlines()[0]
                 return "rejected"

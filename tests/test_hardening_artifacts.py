@@ -217,3 +217,20 @@ def test_evaluate_on_a_crafted_run_exits_2_with_one_line(tmp_path):
     lines = [x for x in r.stderr.strip().splitlines() if x.strip()]
     assert "Traceback" not in r.stderr and lines[-1].startswith("offline-adp evaluate: error:")
     assert "q.m0.feature" in lines[-1] and "model/q." in lines[-1]
+
+
+def test_stored_parameters_cannot_make_a_model_edit_its_input(tmp_path, small_pt):
+    """Found by the nightly fuzz: a feature map stored with copy=False scaled the caller's
+    observations in place (e.g. a dataset's arrays) on every prediction."""
+    from sklearn.preprocessing import StandardScaler
+
+    f = FittedQIteration(n_iterations=1, regressor="knn", feature_map=StandardScaler()).fit(small_pt)
+    save_fqi(f, tmp_path / "r")
+    spec = json.loads((tmp_path / "r" / "q.json").read_text())
+    spec["q"]["encoder"]["feature_map"]["params"]["copy"] = False
+    (tmp_path / "r" / "q.json").write_text(json.dumps(spec))
+    q, _ = load_q(tmp_path / "r")
+    obs = small_pt.arrays().obs[:20].copy()
+    before = obs.copy()
+    np.testing.assert_array_equal(q.values(obs, 0), f.q_function_.values(before, 0))
+    np.testing.assert_array_equal(obs, before)
