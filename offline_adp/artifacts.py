@@ -19,8 +19,9 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp import artifact_checks as C
 from offline_adp._version import __version__
-from offline_adp.errors import FormatVersionWarning, OfflineADPError
+from offline_adp.errors import ArtifactError, FormatVersionWarning
 from offline_adp.learners import BoostedSumQ
 from offline_adp.qfunctions import (
     QEncoder,
@@ -50,10 +51,6 @@ ALLOWED = {
 }
 
 
-class ArtifactError(OfflineADPError):
-    """An artifact cannot be written or read safely."""
-
-
 def versions() -> dict[str, str]:
     """Versions of the package and the libraries whose models we store."""
     import lightgbm
@@ -72,6 +69,7 @@ def _jsonable(v: Any) -> bool:
 
 
 def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    est = getattr(est, "_oadp_inner", est)  # a loaded estimator re-saved (resume)
     name = type(est).__name__
     if hasattr(est, "classes_") and hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
         ens = TreeEnsemble.from_sklearn(est)
@@ -82,10 +80,10 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
         return {"kind": "tree_classifier", "key": key}
     if hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
         arrays.update(TreeEnsemble.from_sklearn(est).to_arrays(f"{key}."))
-        return {"kind": "tree_ensemble", "key": key}
+        return {"kind": "tree_ensemble", "key": key, "n_features": _width(est)}
     if isinstance(est, TreeEnsemble):
         arrays.update(est.to_arrays(f"{key}."))
-        return {"kind": "tree_ensemble", "key": key}
+        return {"kind": "tree_ensemble", "key": key, "n_features": _width(getattr(est, "_forest", None) or est)}
     booster = getattr(est, "booster_", None) if name == "LGBMRegressor" else (est if name == "Booster" else None)
     if booster is not None:
         return {"kind": "lightgbm", "model": booster.model_to_string()}
@@ -121,14 +119,66 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
     return {"kind": "sklearn", "class": name, "params": params, "attrs": attrs}
 
 
+def _width(est: Any) -> int | None:
+    """The input width a fitted estimator declares, if any."""
+    w = getattr(est, "n_features_in_", None)
+    return int(w) if isinstance(w, int | np.integer) else None
+
+
 class _Booster:
-    def __init__(self, model: str) -> None:
+    """A LightGBM booster rebuilt from checked model text (:func:`check_lightgbm_text`)."""
+
+    def __init__(self, model: str, where: str = "<memory>", member: str = "lightgbm model") -> None:
         import lightgbm as lgb
 
-        self.booster = lgb.Booster(model_str=model)
+        text = C.check_lightgbm_text(model, where, member) if where != "<memory>" else model
+        self.booster = lgb.Booster(model_str=text)
+        self.where, self.member = where, member
 
     def predict(self, X: np.ndarray, raw_score: bool = False) -> np.ndarray:
+        n = self.booster.num_feature()
+        if np.ndim(X) != 2 or np.shape(X)[1] != n:
+            raise ArtifactError(f"{self.where}: {self.member}: model reads {n} features, the input has shape {np.shape(X)}")
         return self.booster.predict(X, raw_score=raw_score)
+
+
+class _Guarded:
+    """A loaded scikit-learn estimator (or pipeline) whose ``predict``/``transform``/
+    ``predict_proba`` turn any failure into one ArtifactError naming the artifact: stored
+    attributes can be consistent with each other and still not fit the data they are
+    given (e.g. a scaler declaring 1 input feature applied to 7)."""
+
+    def __init__(self, inner: Any, where: str, what: str) -> None:
+        self._oadp_inner, self._oadp_where, self._oadp_what = inner, where, what
+
+    def __getattr__(self, name: str) -> Any:  # fitted attributes (classes_, n_features_in_...)
+        if name.startswith("_oadp"):
+            raise AttributeError(name)
+        return getattr(self._oadp_inner, name)
+
+    def _call(self, method: str, X: Any) -> Any:
+        try:  # on a copy: stored parameters (e.g. copy=False) must not let it edit the caller's array
+            return getattr(self._oadp_inner, method)(np.array(X, copy=True))
+        except ArtifactError:
+            raise
+        except Exception as exc:  # whatever the stored attributes make the estimator raise
+            raise ArtifactError(f"{self._oadp_where}: {self._oadp_what}.{method} failed on input of shape "
+                                f"{np.shape(X)} ({type(exc).__name__}: {exc})") from None
+
+    def predict(self, X: Any) -> Any:
+        return self._call("predict", X)
+
+    def transform(self, X: Any) -> Any:
+        return self._call("transform", X)
+
+    def predict_proba(self, X: Any) -> Any:
+        return self._call("predict_proba", X)
+
+
+def _guard(est: Any, where: str, what: str) -> Any:
+    """Wrap a loaded scikit-learn estimator or pipeline in :class:`_Guarded` (tree
+    ensembles and boosters check their inputs themselves and stay as they are)."""
+    return est if isinstance(est, TreeEnsemble | _TreeClassifier | _Booster) or where == "<memory>" else _Guarded(est, where, what)
 
 
 class _TreeClassifier:
@@ -145,38 +195,97 @@ class _TreeClassifier:
         return self.classes_[self.predict_proba(X).argmax(axis=1)]
 
 
-def _import_estimator(spec: dict[str, Any], arrays: Any) -> Any:
-    kind = spec["kind"]
-    if kind == "tree_ensemble":
-        return TreeEnsemble.from_arrays(arrays, f"{spec['key']}.")
+def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
+    """Rebuild an estimator from its JSON ``spec`` and checked arrays (see
+    :mod:`offline_adp.artifact_checks`); anything malformed is an :class:`ArtifactError`."""
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: estimator entry is not a JSON object")
+    kind = spec.get("kind")
+    if kind in ("tree_ensemble", "tree_classifier"):
+        key = spec.get("key")
+        if not isinstance(key, str):
+            raise ArtifactError(f"{where}: {kind} entry without an array key")
+        width = spec.get("n_features")
+        width = None if width is None else C.check_int(width, where, f"{key}.n_features", 1)
+        ens = TreeEnsemble(**C.check_tree_arrays(arrays, f"{key}.", where, width))
+        ens.n_features_in_ = width  # type: ignore[attr-defined]
+        if kind == "tree_ensemble":
+            return ens
+        cv = C.array(arrays, f"{key}.class_values", where, kinds="f", ndim=2)
+        classes = C.array(arrays, f"{key}.classes", where, kinds="biufU", ndim=1)
+        if cv.shape != (len(ens.left), len(classes)) or len(classes) == 0 or not np.all(np.isfinite(cv)):
+            raise ArtifactError(f"{where}: {key}.class_values: shape {cv.shape} (or non-finite values) where "
+                                f"({len(ens.left)} nodes, {len(classes)} classes) is required")
+        return _TreeClassifier(ens, cv, classes)
     if kind == "lightgbm":
-        return _Booster(spec["model"])
-    if kind == "tree_classifier":
-        return _TreeClassifier(TreeEnsemble.from_arrays(arrays, f"{spec['key']}."), np.asarray(arrays[f"{spec['key']}.class_values"]),
-                               np.asarray(arrays[f"{spec['key']}.classes"]))
+        return _Booster(spec.get("model"), where)
     if kind == "pipeline":
         from sklearn.pipeline import Pipeline
 
-        return Pipeline([(n, _import_estimator(s, arrays)) for n, s in spec["steps"]])
-    if kind != "sklearn" or spec["class"] not in ALLOWED:
-        raise ArtifactError(f"refusing to load estimator {spec.get('class', kind)!r}: not in the allow-list")
+        steps = spec.get("steps")
+        if not isinstance(steps, list) or not steps or not all(isinstance(x, list) and len(x) == 2 and isinstance(x[0], str) for x in steps):
+            raise ArtifactError(f"{where}: pipeline entry needs a list of [name, estimator] steps")
+        return Pipeline([(n, _import_estimator(s, arrays, where)) for n, s in steps])
+    if kind != "sklearn" or spec.get("class") not in ALLOWED:
+        raise ArtifactError(f"{where}: refusing to load estimator {spec.get('class', kind)!r}: not in the allow-list")
     cls = getattr(importlib.import_module(ALLOWED[spec["class"]]), spec["class"])
-    est = cls(**spec["params"])
+    params, attrs = spec.get("params"), spec.get("attrs")
+    if not isinstance(params, dict) or not isinstance(attrs, dict):
+        raise ArtifactError(f"{where}: {spec['class']} entry needs 'params' and 'attrs' objects")
+    try:
+        est = cls(**params)
+    except (TypeError, ValueError) as exc:
+        raise ArtifactError(f"{where}: {spec['class']} parameters rejected ({exc})") from None
     fit_data = {}
-    for k, a in spec["attrs"].items():
+    for k, a in attrs.items():
+        # only fitted data attributes: never a dunder or anything the class defines (methods)
+        if not isinstance(k, str) or k.startswith("__") or hasattr(cls, k) or not isinstance(a, dict):
+            raise ArtifactError(f"{where}: {spec['class']} attribute {k!r} is not a fitted attribute")
         if "array" in a:
-            val: Any = np.asarray(arrays[a["array"]])
-        elif "arrays" in a:
-            val = [np.asarray(arrays[x]) for x in a["arrays"]]
-        else:
+            val: Any = C.array(arrays, a["array"], where, kinds="biufUV")
+        elif "arrays" in a and isinstance(a["arrays"], list):
+            val = [C.array(arrays, x, where, kinds="biufUV") for x in a["arrays"]]
+        elif "value" in a:
             val = a["value"]
+        else:
+            raise ArtifactError(f"{where}: {spec['class']} attribute {k!r} has no array or value")
         if k in ("_fit_X", "_y"):
             fit_data[k] = val
         else:
             setattr(est, k, val)
     if fit_data:  # k-NN: rebuild the search structure from the stored training data
+        if set(fit_data) != {"_fit_X", "_y"}:
+            raise ArtifactError(f"{where}: {spec['class']} needs both _fit_X and _y")
         est.fit(fit_data["_fit_X"], fit_data["_y"])
+    if "n_features_in_" in attrs or ALLOWED[spec["class"]].startswith("sklearn"):  # fitted sklearn estimators declare it
+        w = getattr(est, "n_features_in_", None)
+        if isinstance(w, bool) or not isinstance(w, int | np.integer) or not 1 <= w <= 1_000_000:
+            raise ArtifactError(f"{where}: {spec['class']}: n_features_in_ must be an integer in [1, 1000000], found {w!r}")
+    _probe(est, where, spec["class"])
     return est
+
+
+def _probe(est: Any, where: str, what: str) -> None:
+    """Run a fitted estimator once on a representative input of its declared width, so
+    inconsistent stored attributes fail here as an ArtifactError, not later as a raw error."""
+    width = _width(est)
+    if width is None:
+        return
+    if not 1 <= width <= 1_000_000:
+        raise ArtifactError(f"{where}: {what}: n_features_in_ = {width} out of range")
+    cats = getattr(est, "categories_", None)
+    X = np.zeros((2, width)) if cats is None else np.array([[c[0] if len(c) else 0 for c in cats]] * 2, dtype=object)
+    method = next((getattr(est, m) for m in ("predict", "transform") if hasattr(est, m)), None)
+    if method is None:
+        return
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = np.asarray(method(X))
+    except Exception as exc:  # any failure means the stored attributes do not fit together
+        raise ArtifactError(f"{where}: {what}: stored attributes are inconsistent ({type(exc).__name__}: {exc})") from None
+    if out.dtype == object or len(out) != 2:
+        raise ArtifactError(f"{where}: {what}: predicts {out.shape} {out.dtype} for 2 rows")
 
 
 # ----------------------------------------------------------------------------- Q-functions
@@ -199,17 +308,71 @@ def _export_q(q: QFunction, arrays: dict[str, np.ndarray], key: str) -> dict[str
     raise ArtifactError(f"cannot save a {type(q).__name__}")
 
 
-def _import_q(spec: dict[str, Any], arrays: Any) -> QFunction:
-    if spec["kind"] == "time_indexed":
-        return TimeIndexedQ([_import_q(x, arrays) for x in spec["qs"]])
-    e = spec["encoder"]
-    fmap = None if e["feature_map"] is None else _import_estimator(e["feature_map"], arrays)
-    enc = QEncoder(e["n_actions"], np.asarray(arrays[e["action_features"]]), e["per_action"], fmap)
-    if spec["kind"] == "boosted_sum":
-        return BoostedSumQ([_Booster(m) for m in spec["boosters"]], enc)
-    if spec["kind"] == "regressor":
-        return RegressorQ([_import_estimator(m, arrays) for m in spec["models"]], enc)
-    raise ArtifactError(f"unknown Q-function kind {spec['kind']!r}")
+def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFunction:
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: Q-function entry is not a JSON object")
+    if spec.get("kind") == "time_indexed":
+        qs = spec.get("qs")
+        if not isinstance(qs, list) or not qs:
+            raise ArtifactError(f"{where}: time_indexed Q needs a non-empty 'qs' list")
+        out = TimeIndexedQ([_import_q(x, arrays, where) for x in qs])
+        if len({q.n_actions for q in out.qs}) != 1:
+            raise ArtifactError(f"{where}: time_indexed Q mixes action counts")
+        return out
+    e = spec.get("encoder")
+    if not isinstance(e, dict):
+        raise ArtifactError(f"{where}: Q-function entry without an 'encoder' object")
+    n_actions = C.check_int(e.get("n_actions"), where, "encoder.n_actions", 1, 1_000_000)
+    af = C.array(arrays, e.get("action_features"), where, kinds="biuf", ndim=2)
+    if af.shape[0] != n_actions or not np.all(np.isfinite(af)):
+        raise ArtifactError(f"{where}: {e.get('action_features')}: shape {af.shape} (or non-finite) for {n_actions} actions")
+    per_action = e.get("per_action")
+    if not isinstance(per_action, bool):
+        raise ArtifactError(f"{where}: encoder.per_action must be true or false")
+    fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where, "feature_map")
+    enc = QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap)
+    kind = spec.get("kind")
+    if kind == "boosted_sum":
+        b = spec.get("boosters")
+        if not isinstance(b, list) or not b or per_action:
+            raise ArtifactError(f"{where}: boosted_sum Q needs a non-empty 'boosters' list and a joint encoder")
+        q: QFunction = BoostedSumQ([_Booster(m, where, f"booster {i}") for i, m in enumerate(b)], enc)
+        widths = [x.booster.num_feature() for x in q.boosters]  # type: ignore[attr-defined]
+    elif kind == "regressor":
+        models = spec.get("models")
+        if not isinstance(models, list) or len(models) != (n_actions if per_action else 1):
+            raise ArtifactError(f"{where}: regressor Q needs {n_actions if per_action else 1} model(s)")
+        q = RegressorQ([_guard(_import_estimator(m, arrays, where), where, f"model {i}") for i, m in enumerate(models)], enc)
+        widths = [_model_width(m) for m in q.models]  # type: ignore[attr-defined]
+    else:
+        raise ArtifactError(f"{where}: unknown Q-function kind {kind!r}")
+    # the models' input width agrees with the encoder's; then one probe prediction
+    k = 0 if per_action else af.shape[1]
+    known = {w for w in widths if w is not None}
+    if len(known) > 1:
+        raise ArtifactError(f"{where}: the models read different input widths {sorted(known)}")
+    d = _width(fmap) if fmap is not None else (known.pop() - k if known else None)
+    if d is not None:
+        if d < 1:
+            raise ArtifactError(f"{where}: models read {d + k} inputs, fewer than the {k} action features")
+        try:
+            v = np.asarray(q.values(np.zeros((2, d))))
+        except ArtifactError:
+            raise
+        except Exception as exc:
+            raise ArtifactError(f"{where}: the Q-function cannot predict ({type(exc).__name__}: {exc})") from None
+        if v.shape != (2, n_actions):
+            raise ArtifactError(f"{where}: the Q-function predicts shape {v.shape}, expected (2, {n_actions})")
+    return q
+
+
+def _model_width(m: Any) -> int | None:
+    m = getattr(m, "_oadp_inner", m)
+    if isinstance(m, TreeEnsemble | _TreeClassifier):
+        return getattr(m, "n_features_in_", None) if isinstance(m, TreeEnsemble) else None
+    if isinstance(m, _Booster):
+        return m.booster.num_feature()
+    return _width(m)
 
 
 def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], arrays: dict[str, np.ndarray],
@@ -223,21 +386,37 @@ def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], a
 
 
 def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:
-    """Read what :func:`_write` wrote (arrays without pickle); warns on other versions."""
+    """Read what :func:`_write` wrote (arrays without pickle, every member checked before
+    use, see :mod:`offline_adp.artifact_checks`); warns on other versions."""
     d = Path(directory)
+    jpath, npath = d / f"{stem}.json", d / f"{stem}.npz"
     try:
-        spec = json.loads((d / f"{stem}.json").read_text())
-        arrays = np.load(d / f"{stem}.npz", allow_pickle=False)
+        if jpath.stat().st_size > 1 << 30:
+            raise ArtifactError(f"{jpath}: {jpath.stat().st_size} bytes is too large for an artifact description")
+        spec = json.loads(jpath.read_bytes().decode("utf-8"))
+        C.check_npz(npath)
+        arrays = np.load(npath, allow_pickle=False)
     except FileNotFoundError as exc:
         raise ArtifactError(f"{d}: no saved {what} ({exc.filename} missing)") from exc
-    except (json.JSONDecodeError, ValueError) as exc:
-        raise ArtifactError(f"{d}: unreadable {what} artifact ({exc})") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise ArtifactError(f"{jpath}: unreadable {what} description ({type(exc).__name__}: {exc})") from None
+    except C.ZIP_ERRORS as exc:
+        raise ArtifactError(f"{npath}: unreadable {what} arrays ({exc})") from None
+    if not isinstance(spec, dict) or key not in spec:
+        raise ArtifactError(f"{jpath}: no {key!r} entry (not a saved {what})")
+    vs = spec.get("versions", {})
     now = versions()
-    diff = {k: (v, now.get(k)) for k, v in spec.get("versions", {}).items() if now.get(k) != v}
+    diff = {k: (v, now.get(k)) for k, v in vs.items() if now.get(k) != v} if isinstance(vs, dict) else {}
     if diff:
         warnings.warn(f"{d}: written with other versions {diff} (saved, current)", FormatVersionWarning, stacklevel=3)
+    where = f"{jpath.parent / stem}.{{json,npz}}"
     with arrays:
-        return build(spec[key], arrays), spec
+        try:
+            return build(spec[key], arrays, where), spec
+        except (ArtifactError, FormatVersionWarning):
+            raise
+        except (*C.ZIP_ERRORS, IndexError, AttributeError, RecursionError, MemoryError) as exc:
+            raise ArtifactError(f"{where}: malformed {what} ({type(exc).__name__}: {exc})") from None
 
 
 def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
@@ -284,7 +463,7 @@ def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str
     raise ArtifactError(f"cannot save a {type(pi).__name__} policy safely")
 
 
-def _import_policy(spec: dict[str, Any], arrays: Any) -> Any:
+def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
     from offline_adp.policies import (
         ClassifierPolicy,
         GreedyPolicy,
@@ -294,22 +473,51 @@ def _import_policy(spec: dict[str, Any], arrays: Any) -> Any:
         UniformPolicy,
     )
 
-    kind = spec["kind"]
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: policy entry is not a JSON object")
+    kind = spec.get("kind")
     if kind == "greedy":
-        return GreedyPolicy(_import_q(spec["q"], arrays))
+        return GreedyPolicy(_import_q(spec.get("q"), arrays, where))  # type: ignore[arg-type]
     if kind == "uniform":
-        return UniformPolicy(spec["n_actions"])
+        return UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000))
     if kind == "tabular":
-        return TabularPolicy(np.asarray(arrays[spec["table"]]))
-    if kind == "mixture":
-        return MixturePolicy([_import_policy(c, arrays) for c in spec["components"]], spec["weights"])
-    if kind == "non_stationary":
-        return NonStationaryPolicy([_import_policy(c, arrays) for c in spec["steps"]])
+        table = C.array(arrays, spec.get("table"), where, kinds="biuf")  # type: ignore[arg-type]
+        if table.ndim not in (2, 3) or 0 in table.shape or not np.all(np.isfinite(table)) or np.any(table < 0):
+            raise ArtifactError(f"{where}: {spec.get('table')}: a policy table needs finite probabilities >= 0 of shape "
+                                f"(states, actions) or (steps, states, actions), got {table.shape}")
+        return TabularPolicy(table)
+    if kind in ("mixture", "non_stationary"):
+        parts = spec.get("components" if kind == "mixture" else "steps")
+        if not isinstance(parts, list) or not parts:
+            raise ArtifactError(f"{where}: {kind} policy needs a non-empty list of policies")
+        pols = [_import_policy(c, arrays, where) for c in parts]
+        if len({p.n_actions for p in pols}) != 1:
+            raise ArtifactError(f"{where}: {kind} policy mixes action counts")
+        if kind == "non_stationary":
+            return NonStationaryPolicy(pols)
+        w = spec.get("weights")
+        if not isinstance(w, list) or len(w) != len(pols) or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in w):
+            raise ArtifactError(f"{where}: mixture needs one numeric weight per component")
+        try:
+            return MixturePolicy(pols, w)
+        except ValueError as exc:
+            raise ArtifactError(f"{where}: {exc}") from None
     if kind == "classifier":
-        clf = None if spec["classifier"] is None else _import_estimator(spec["classifier"], arrays)
-        fmap = None if spec["feature_map"] is None else _import_estimator(spec["feature_map"], arrays)
-        return ClassifierPolicy(clf, spec["n_actions"], spec["constant"], fmap)
-    raise ArtifactError(f"unknown policy kind {kind!r}")
+        n_actions = C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000)
+        constant = spec.get("constant")
+        if constant is not None:
+            C.check_int(constant, where, "constant", 0, n_actions - 1)
+        clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
+        if clf is None and constant is None:
+            raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
+        classes = getattr(clf, "classes_", None)
+        if classes is not None:
+            c = np.asarray(classes)
+            if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
+                raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
+        fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
+        return ClassifierPolicy(clf, n_actions, constant, fmap)
+    raise ArtifactError(f"{where}: unknown policy kind {kind!r}")
 
 
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:

@@ -43,9 +43,9 @@ def _say(args: argparse.Namespace, msg: str) -> None:
 
 # ---------------------------------------------------------------------------- simulate
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from offline_adp.simulate import simulate
+    from offline_adp.simulate import parse_problem_options, simulate
 
-    options = json.loads(args.problem_options) if args.problem_options else None
+    options = parse_problem_options(args.problem_options) or None
     on_step, close = _progress(args.quiet)
     try:
         ds = simulate(args.problem, args.demonstrations, args.exploration, seed=args.seed, horizon=args.horizon,

@@ -38,6 +38,21 @@ class ValidationError(OfflineADPError):
         self.report = report
 
 
+class ArtifactError(OfflineADPError):
+    """A saved artifact (Q-function, policy, checkpoint) cannot be written or read safely:
+    a member is missing, malformed, out of range or out of proportion; the message names
+    the file and the member."""
+
+
+class InvalidArgumentError(OfflineADPError, ValueError):
+    """A function or command-line argument has a bad value (negative count, options that
+    are not a JSON object...); the message names the argument and what is allowed."""
+
+
+class LockedError(OfflineADPError):
+    """Another process holds the lock of a dataset or run directory we are asked to write."""
+
+
 class DatasetNotFoundError(OfflineADPError, FileNotFoundError):
     """A path that should be a dataset directory is missing or is not one."""
 

@@ -297,8 +297,7 @@ def run_pipeline(
     with RunDirectory(run).lock() as rd:
         if force:
             for child in rd.path.iterdir():
-                if child.name != rd.LOCK:
-                    rd.remove(child.name)
+                rd.remove(child.name)
         _run_locked(cfg, rd, from_stage, say)
     return run
 

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.errors import ArtifactError
+
 TimeArg = int | np.ndarray
 
 
@@ -177,6 +179,12 @@ class TreeEnsemble:
         forest = getattr(self, "_forest", None)
         if forest is not None:
             return sklearn_leaves(forest, X)
+        need = getattr(self, "_n_features", None)  # compiled trees read X[:, feature] unchecked
+        if need is None:
+            inner = self.left >= 0
+            need = self._n_features = int(self.feature[inner].max()) + 1 if inner.any() else 0  # type: ignore[attr-defined]
+        if np.ndim(X) != 2 or np.shape(X)[1] < need:
+            raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
         trees = self._compiled_trees()
         if trees is not None:
             X32 = np.ascontiguousarray(X, dtype=np.float32)

@@ -17,6 +17,7 @@ import numpy as np
 
 from offline_adp.access import ResetModel, StepResult
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy
 
@@ -173,7 +174,7 @@ def collect(
     """
     H = horizon if horizon is not None else problem.horizon
     if H is None or H <= 0:
-        raise ValueError(f"{getattr(problem, 'name', problem)}: collecting needs a positive horizon, got {H}")
+        raise InvalidArgumentError(f"{getattr(problem, 'name', problem)}: collecting needs a positive horizon, got {H}")
     x0 = problem.initial_states(n_episodes, rng) if start_states is None else np.asarray(start_states, dtype=np.float64)
     rec: dict[str, list[np.ndarray]] = {k: [] for k in ("ep", "step", "obs", "a", "c", "nxt", "term", "trunc", "prob")}
     probs: list[np.ndarray] = []

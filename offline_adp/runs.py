@@ -30,6 +30,7 @@ from offline_adp.artifacts import load_q, save_policy, save_q, versions
 from offline_adp.config import load_toml
 from offline_adp.data.io import read_dataset
 from offline_adp.data.rundir import RunDirectory
+from offline_adp.data.validate import require_usable
 from offline_adp.errors import OfflineADPError
 from offline_adp.qfunctions import TimeIndexedQ
 
@@ -155,6 +156,7 @@ def fit_run(
     if resume and not rd.path.exists():
         raise OfflineADPError(f"{rd.path} does not exist: nothing to resume")
     ds = read_dataset(dataset)
+    require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
     with rd.lock():
         if resume:
             if not rd.exists(rd.CONFIG):

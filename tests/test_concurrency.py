@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from offline_adp.algorithms.fqi import load_fqi
-from offline_adp.data.rundir import RunDirectory, RunLockedError
-from offline_adp.errors import OfflineADPError
+from offline_adp.data.rundir import RunDirectory
+from offline_adp.errors import LockedError, OfflineADPError
 
 pytestmark = pytest.mark.integration
 
@@ -54,7 +54,7 @@ def test_two_fits_into_one_out(tmp_path, ds_dir):
     _, err2 = second.communicate(timeout=300)
     _, err1 = first.communicate(timeout=600)
     assert (first.returncode, second.returncode) == (0, 2), (err1, err2)
-    assert "being written by another process" in err2 or "already holds a run" in err2
+    assert "another process is writing this run directory" in err2 or "already holds a run" in err2
     assert len(err2.strip().splitlines()) == 1, "one line, no traceback"
     config = json.loads((out / "config.json").read_text())
     assert config["params"]["n_iterations"] == 40
@@ -72,7 +72,7 @@ def test_two_pipeline_runs_into_one_directory(tmp_path):
     _, err2 = second.communicate(timeout=300)
     _, err1 = first.communicate(timeout=600)
     assert (first.returncode, second.returncode) == (0, 2), (err1, err2)
-    assert "being written by another process" in err2
+    assert "another process is writing this run directory" in err2
     man = json.loads((out / "manifest.json").read_text())
     assert all(s["status"] == "completed" for s in man["stages"].values())
 
@@ -82,7 +82,7 @@ def test_lock_is_exclusive_and_writes_do_not_follow_links(tmp_path):
     outside = tmp_path / "outside.txt"
     outside.write_text("precious")
     with rd.lock():
-        with pytest.raises(RunLockedError, match="being written by another process"), RunDirectory(rd.path).lock():
+        with pytest.raises(LockedError, match="another process is writing this run directory"), RunDirectory(rd.path).lock():
             pass
         (rd.path / "config.json").symlink_to(outside)
         (rd.path / ".model.tmp-abc").mkdir()  # a killed writer's leftovers

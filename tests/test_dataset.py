@@ -117,7 +117,8 @@ def test_atomic_write_leaves_nothing_on_crash(tmp_path, small_pt, monkeypatch):
     monkeypatch.setattr(dio.pq, "write_table", failing)
     with pytest.raises(OSError):
         small_pt.save(tmp_path / "ds", rows_per_part=100)
-    assert list(tmp_path.iterdir()) == []  # no half-written dataset, no temp dir left
+    # no half-written dataset, no temp dir left (only the lock file, see data.io.locked_directory)
+    assert [p.name for p in tmp_path.iterdir()] == [".ds.lock"]
 
 
 def test_overwrite_is_atomic_and_explicit(tmp_path, small_pt):
@@ -127,7 +128,7 @@ def test_overwrite_is_atomic_and_explicit(tmp_path, small_pt):
     half = small_pt.select_episodes(small_pt.episode_ids[:3])
     half.save(tmp_path / "ds", overwrite=True)
     assert len(TransitionDataset.load(tmp_path / "ds")) == len(half)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".ds.lock", "ds"]
 
 
 def test_load_errors(tmp_path, small_pt):
@@ -171,3 +172,15 @@ def test_episode_index_is_consistent_across_chunks(small_pt):
     expected = np.unique(chunked.column(S.EPISODE_ID), return_inverse=True)[1]
     np.testing.assert_array_equal(chunked.episode_index, expected)
     assert chunked.fingerprint() == small_pt.fingerprint()
+
+
+def test_null_episode_id_in_a_part_is_a_schema_error(tmp_path, small_pt):
+    """A hand-edited part with missing episode ids: our error naming the directory, not an IndexError."""
+    small_pt.save(tmp_path / "ds")
+    p = tmp_path / "ds" / "data" / "part-00000.parquet"
+    t = pq.read_table(p)
+    ids = t.column(S.EPISODE_ID).to_pylist()
+    ids[3] = None
+    pq.write_table(t.set_column(t.schema.get_field_index(S.EPISODE_ID), S.EPISODE_ID, pa.array(ids, pa.string())), p)
+    with pytest.raises(SchemaError, match=r"ds: row 3: episode_id is missing"):
+        TransitionDataset.load(tmp_path / "ds")

@@ -115,7 +115,7 @@ def test_quantile_bins_keep_values(tmp_path):
 
 def test_unknown_key_lists_valid_keys(tmp_path):
     (tmp_path / "s.toml").write_text(STEP_SPEC.replace('order = "t"', 'order = "t"\nepisode_col = "x"'))
-    with pytest.raises(SpecError, match=r"unknown key\(s\) \['episode_col'\]; valid keys are \['id', 'order'"):
+    with pytest.raises(SpecError, match=r"s.toml: episode.episode_col: unknown key; valid keys are \['id', 'order'"):
         load_parquet_spec(tmp_path / "s.toml")
     with pytest.raises(SpecError, match="valid keys"):
         parse_parquet_spec({"kindd": "steps"})
@@ -190,6 +190,41 @@ def test_spec_rejects_inconsistent_choices():
         parse_parquet_spec({**base, "action": {"column": "a", "n_bins": 3}})
     with pytest.raises(SpecError, match="next_columns"):
         parse_parquet_spec({**base, "observations": {"columns": ["x"]}})
-    with pytest.raises(SpecError, match=r"episode.step: expected str"):
+    with pytest.raises(SpecError, match=r"episode.step: Input should be a valid string, got 3"):
         parse_parquet_spec({**base, "episode": {"id": "e", "step": 3}})
     assert isinstance(pa.__version__, str)
+
+
+def test_checked_in_json_schema_is_the_models():
+    """docs/schemas/ingest-spec.schema.json is what the model publishes (regenerate with
+    ``offline_adp.config.write_json_schema(ParquetSpecModel, path)``)."""
+    import json
+    from pathlib import Path
+
+    from offline_adp.ingest.spec import parquet_spec_schema
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "schemas" / "ingest-spec.schema.json"
+    assert json.loads(path.read_text()) == parquet_spec_schema()
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        ({"csv": {"delimiter": ";;"}}, r"csv.delimiter: String should have at most 1 character"),
+        ({"csv": {"delimiter": ""}}, r"csv.delimiter"),
+        ({"hints": {"gamma": 2.0}}, r"hints.gamma: Input should be less than or equal to 1"),
+        ({"hints": {"horizon": "ten"}}, r"hints.horizon: Input should be a valid integer"),
+        ({"action": {"column": "a", "type": "discret"}}, r"action.type: expected one of 'discrete' or 'continuous', got 'discret'"),
+        ({"action": {"column": "a", "type": "continuous", "n_bins": 0}}, r"action.n_bins: Input should be greater than or equal to 1"),
+        ({"action": {"column": "a", "type": "continuous", "edges": [1.0, 0.0]}}, r"action.edges"),
+        ({"action": {"column": "a", "values": [1, 1]}}, r"action.values: entries must be unique"),
+        ({"observations": {"columns": ["x", "x"], "next_columns": ["a", "b"]}}, r"observations.columns"),
+        ({"episode": {"id": "e", "step": "k", "time_unit": "h"}}, r"episode.time_unit: expected one of"),
+        ({"on_error": "ignore"}, r"on_error: expected one of 'fail' or 'quarantine'"),
+    ],
+)
+def test_spec_values_are_checked_naming_the_key(edit, match):
+    base = {"episode": {"id": "e", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["nx"]},
+            "action": {"column": "a"}, "cost": {"column": "c"}}
+    with pytest.raises(SpecError, match=match):
+        parse_parquet_spec({**base, **edit}, where="my.toml")

@@ -53,14 +53,16 @@ DEFECTS = {
     "step_not_contiguous": (lambda r: r[1].update({S.STEP: 5}), S.STEP),
     "next_obs_mismatch": (lambda r: r[1].update({"next_obs.x": 99.0}), "next_obs.x"),
     "flag_not_last": (lambda r: r[1].update({S.TERMINATED: True}), S.TERMINATED),
-    "both_flags": (lambda r: r[3].update({S.TERMINATED: True}), "terminated,truncated"),
     "end_unflagged": (lambda r: r[3].update({S.TRUNCATED: False}), "terminated,truncated"),
     "non_finite": (lambda r: r[2].update({S.COST: float("nan")}), S.COST),
+    "value_out_of_range": (lambda r: r[2].update({"obs.x": -1e200}), "obs.x"),
     "action_out_of_range": (lambda r: r[2].update({S.ACTION: 7}), S.ACTION),
     "propensity_out_of_range": (lambda r: r[2].update({S.BEHAVIOR_PROB: 0.0}), S.BEHAVIOR_PROB),
     "time_decreasing": (lambda r: r[2].update({S.T_NS: -5}), S.T_NS),
     "null_value": (lambda r: r[2].update({"obs.x": None}), "obs.x"),
 }
+#: checks of a directory's metadata against its data (tested in test_directory_metadata_checks)
+DIRECTORY_CHECKS = {"info_stale", "fingerprint_mismatch", "episodes_stale", "episode_split_across_parts"}
 
 
 @pytest.mark.parametrize("check", sorted(DEFECTS))
@@ -83,7 +85,68 @@ def test_each_defect_class_is_reported_with_file_row_column(check):
 
 
 def test_every_check_is_covered_by_a_test():
-    assert set(DEFECTS) == set(CHECKS)
+    assert set(DEFECTS) | DIRECTORY_CHECKS == set(CHECKS)
+
+
+def test_terminated_and_truncated_on_one_row_is_terminated_and_counted():
+    """gymnasium reports both flags when the goal is reached on the time-limit step."""
+    rows = _good()
+    rows[7][S.TERMINATED] = True  # e1's last row: truncated and terminated
+    rows[11][S.TERMINATED] = True
+    ds = TransitionDataset(pa.Table.from_pylist(rows), INFO)
+    rep = validate(ds)
+    assert rep.ok, rep.to_text()
+    assert rep.summary()["terminated_and_truncated"] == 2
+    assert "2 rows both terminated and truncated" in rep.to_text()
+    # still a defect when it is not the episode's last row
+    rows[5][S.TERMINATED] = rows[5][S.TRUNCATED] = True
+    rep = validate(TransitionDataset(pa.Table.from_pylist(rows), INFO))
+    assert set(rep.findings["check"]) == {"flag_not_last"}
+
+
+def _rewrite_parts(d, bounds):
+    import pyarrow.parquet as pq
+
+    from offline_adp.data.io import part_files
+
+    t = pa.concat_tables([pq.read_table(p) for p in part_files(d)])
+    for p in part_files(d):
+        p.unlink()
+    for k, (lo, hi) in enumerate(bounds):
+        pq.write_table(t.slice(lo, hi - lo), d / "data" / f"part-{k:05d}.parquet")
+    return t
+
+
+@pytest.mark.parametrize("case", ["info_stale", "fingerprint_mismatch", "episodes_stale", "episode_split_across_parts"])
+def test_directory_metadata_checks(tmp_path, case):
+    import json
+
+    import pyarrow.parquet as pq
+
+    ds = TransitionDataset(pa.Table.from_pylist(_good()), INFO)
+    d = tmp_path / "d"
+    ds.save(d, rows_per_part=4)
+    assert validate_directory(d).ok
+    info = json.loads((d / S.INFO_FILE).read_text())
+    if case == "info_stale":
+        info["n_transitions"] += 4
+        (d / S.INFO_FILE).write_text(json.dumps(info))
+    elif case == "fingerprint_mismatch":
+        p = d / "data" / "part-00001.parquet"
+        t = pq.read_table(p)
+        pq.write_table(t.set_column(t.schema.get_field_index(S.COST), S.COST, pa.array(np.full(t.num_rows, 2.0))), p)
+    elif case == "episodes_stale":
+        ep = pq.read_table(d / S.EPISODES_FILE)
+        pq.write_table(ep.slice(0, 2), d / S.EPISODES_FILE)
+    else:
+        _rewrite_parts(d, [(0, 6), (6, 12)])  # episode e1 (rows 4..7) now spans two parts
+    rep = validate_directory(d)
+    assert set(rep.findings["check"]) == {case}, rep.to_text()
+    h = rep.findings.iloc[0]
+    if case == "episode_split_across_parts":
+        assert h["file"].endswith("part-00001.parquet") and h[S.EPISODE_ID] == "e1" and h["row"] == 0 and h[S.STEP] == 2
+    else:
+        assert h["file"].endswith("info.json" if case != "episodes_stale" else "episodes.parquet")
 
 
 def test_quarantine_keeps_every_rejected_row():

@@ -442,11 +442,15 @@ def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.Diction
                 if name == S.EPISODE_ID and pa.types.is_dictionary(col.type):
                     col = col.cast(col.type.value_type)
                 col = col.cast(target)
-            except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError) as exc:
                 raise SchemaError(f"column {name!r}: cannot cast {col.type} to {target}: {exc}") from exc
         cols.append(col)
     order = [n for n in _column_order(info) if n in names] + [n for n in names if n not in _column_order(info)]
     table = pa.table(dict(zip(names, cols, strict=True))).select(order)
+    ids = table.column(S.EPISODE_ID)
+    if ids.null_count:  # a row without an episode cannot be placed in one (or sorted)
+        i = int(np.flatnonzero(np.asarray(pc.is_null(ids)))[0])
+        raise SchemaError(f"row {i}: episode_id is missing (null) in {ids.null_count} rows; every row needs an episode id")
     if not table.num_rows:
         return table, None, True
     enc = _sorted_encoding(table)

@@ -12,11 +12,13 @@ Layout (``docs/dataset-format.md``)::
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import json
 import os
+import secrets
 import shutil
-import tempfile
+import threading
 import warnings
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -34,6 +36,7 @@ from offline_adp.data.info import DatasetInfo
 from offline_adp.errors import (
     DatasetNotFoundError,
     FormatVersionWarning,
+    LockedError,
     OfflineADPError,
     SchemaError,
 )
@@ -50,36 +53,147 @@ def sha256_file(path: str | PathLike[str], chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+_HELD: dict[str, list[Any]] = {}  # lock file -> [FileLock, depth]: re-entrant within a process
+_HELD_GUARD = threading.Lock()
+
+
+def lock_path(target: str | PathLike[str]) -> Path:
+    """The lock file guarding writes to ``target``: ``.NAME.lock`` next to it."""
+    t = Path(target).absolute()
+    return t.parent / f".{t.name}.lock"
+
+
 @contextlib.contextmanager
-def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False) -> Iterator[Path]:
+def locked_directory(target: str | PathLike[str], *, what: str = "directory") -> Iterator[Path]:
+    """Hold the exclusive write lock of ``target`` (a dataset or run directory) for the block.
+
+    The lock is an OS file lock (:mod:`filelock`) on ``.NAME.lock`` next to ``target``,
+    released when the block ends or the process dies (no stale locks after ``kill -9``).
+    Re-entrant within one process (an ingest holding the lock can call
+    :func:`write_dataset`). A second process gets a :class:`LockedError` at once,
+    rather than waiting or silently replacing the first one's output.
+
+    Yields the lock file's path.
+    """
+    from filelock import FileLock, Timeout
+
+    lp = lock_path(target)
+    key = str(lp)
+    with _HELD_GUARD:
+        held = _HELD.get(key)
+        if held is not None:
+            held[1] += 1
+    if held is None:
+        lp.parent.mkdir(parents=True, exist_ok=True)
+        lock = FileLock(lp, timeout=0)
+        try:
+            lock.acquire()
+        except Timeout:
+            raise LockedError(f"{target}: another process is writing this {what} (lock {lp} is held); "
+                              "wait for it to finish or write somewhere else") from None
+        with _HELD_GUARD:
+            _HELD[key] = held = [lock, 1]
+    try:
+        yield lp
+    finally:
+        with _HELD_GUARD:
+            held[1] -= 1
+            last = held[1] == 0
+            if last:
+                del _HELD[key]
+        if last:
+            held[0].release()
+
+
+def _remove(path: Path) -> None:
+    """Remove a file, directory tree or symlink without following a symlink."""
+    if path.is_symlink() or not path.is_dir():
+        path.unlink(missing_ok=True)
+    else:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def _new_sibling(target: Path, tag: str) -> Path:
+    """A fresh directory ``.NAME.tag-XXXXXXXX`` next to ``target`` with normal permissions
+    (0777 minus the umask, unlike ``mkdtemp``'s 0700), never an existing path or link."""
+    for _ in range(100):
+        p = target.parent / f".{target.name}.{tag}-{secrets.token_hex(4)}"
+        try:
+            os.mkdir(p)
+            return p
+        except FileExistsError:
+            continue
+    raise OfflineADPError(f"{target.parent}: cannot create a temporary directory for {target.name}")
+
+
+def clean_stale_temporaries(target: str | PathLike[str]) -> list[Path]:
+    """Remove ``.NAME.tmp-*`` / ``.NAME.old-*`` left next to ``target`` by killed writes.
+
+    Call it only while holding :func:`locked_directory` on ``target`` (every writer of
+    ``target`` does, so whatever is there then is stale). Symlinks are removed, never
+    followed. Returns what was removed.
+    """
+    target = Path(target)
+    if not target.parent.is_dir():
+        return []
+    gone = []
+    for pattern in (f".{target.name}.tmp-*", f".{target.name}.old-*"):
+        for p in target.parent.glob(glob.escape(pattern[:-1]) + "*"):
+            _remove(p)
+            gone.append(p)
+    return gone
+
+
+@contextlib.contextmanager
+def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, clean_stale: bool = False) -> Iterator[Path]:
     """Yield a temporary directory next to ``target``; on success rename it to ``target``.
 
     A crash or exception inside the block removes the temporary directory and leaves
-    ``target`` as it was (absent, or the previous version when overwriting).
+    ``target`` as it was (absent, or the previous version when overwriting). The
+    temporary directory is new (never a planted path or link) and gets normal
+    permissions; a ``target`` that is a symlink is replaced, not followed. With
+    ``clean_stale`` (only while holding :func:`locked_directory` on ``target``), temporary
+    directories left by killed writes of ``target`` are removed first.
     """
     target = Path(target)
-    if target.exists() and not overwrite:
+    if clean_stale:
+        clean_stale_temporaries(target)
+    if (target.exists() or target.is_symlink()) and not overwrite:
         raise OfflineADPError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    tmp = _new_sibling(target, "tmp")
     try:
         yield tmp
-        if target.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+        if target.exists() or target.is_symlink():
+            trash = _new_sibling(target, "old")
             os.replace(target, trash / "old")
             os.replace(tmp, target)
-            shutil.rmtree(trash, ignore_errors=True)
+            _remove(trash)
         else:
             os.replace(tmp, target)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
         raise
+
+
+def write_text_nofollow(path: str | PathLike[str], text: str) -> None:
+    """Write ``text`` to ``path`` without following a symlink planted at ``path``
+    (``O_NOFOLLOW``: a link there is an error, not a write to wherever it points)."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    except OSError as exc:
+        if path.is_symlink():
+            raise OfflineADPError(f"{path} is a symbolic link; refusing to write through it") from None
+        raise OfflineADPError(f"{path}: cannot write ({exc.strerror})") from None
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
 
 
 def write_json(path: Path, obj: Any) -> None:
     from offline_adp.data.info import _json_default
 
-    path.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    write_text_nofollow(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
 
 
 def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
@@ -105,6 +219,7 @@ def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
     stats["source_counts"] = ds.source_counts()
     stats["terminated_episodes"] = int(ds.table.column(S.TERMINATED).to_numpy().sum())
     stats["truncated_episodes"] = int(ds.table.column(S.TRUNCATED).to_numpy().sum())
+    stats["terminated_and_truncated"] = int((ds.table.column(S.TERMINATED).to_numpy() & ds.table.column(S.TRUNCATED).to_numpy()).sum())
     return stats
 
 
@@ -126,7 +241,7 @@ def write_dataset(
     """
     path = Path(path)
     ep = ds.episode_table()
-    with atomic_directory(path, overwrite=overwrite) as tmp:
+    with locked_directory(path, what="dataset"), atomic_directory(path, overwrite=overwrite, clean_stale=True) as tmp:
         (tmp / S.DATA_DIR).mkdir()
         (tmp / S.META_DIR).mkdir()
         def write_part(k: int, lo: int, hi: int) -> None:
@@ -231,9 +346,12 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
             raise SchemaError(f"{p}: unreadable Parquet part ({exc})") from exc
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
-    except pa.ArrowInvalid as exc:
-        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from exc
-    return TransitionDataset(table, info)
+    except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from None
+    try:
+        return TransitionDataset(table, info)
+    except SchemaError as exc:
+        raise SchemaError(f"{path}: {exc}") from None
 
 
 def read_quarantine(path: str | PathLike[str]) -> pa.Table | None:

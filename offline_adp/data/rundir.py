@@ -3,7 +3,7 @@
 A fit run directory (``offline-adp fit --out RUN``, a pipeline's ``fit/``) and a
 pipeline run directory are both run directories::
 
-    RUN/.lock            held while a process writes the run (a second writer fails at once)
+    RUN/../.RUN.lock     held while a process writes the run (a second writer fails at once)
     RUN/config.json      the resolved configuration, written before the work starts
     RUN/run.json         status, dataset fingerprint, versions, wall and CPU seconds
     RUN/checkpoint/      the last completed iteration (resumable algorithms)
@@ -34,10 +34,6 @@ from offline_adp.errors import OfflineADPError
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
 
 
-class RunLockedError(OfflineADPError):
-    """Another process is writing the same run directory."""
-
-
 def check_name(name: str, what: str = "name") -> str:
     """A pipeline/run name usable as one path component (letters, digits, ``._-``)."""
     if not isinstance(name, str) or not re.match(NAME_PATTERN, name) or name in (".", ".."):
@@ -55,7 +51,6 @@ class RunDirectory:
         The directory; created (with its parents) by :meth:`lock`.
     """
 
-    LOCK = ".lock"
     CONFIG = "config.json"
     STATUS = "run.json"
     MODEL = "model"
@@ -63,7 +58,6 @@ class RunDirectory:
 
     def __init__(self, path: str | PathLike[str]) -> None:
         self.path = Path(path)
-        self._lock: Any = None
 
     def __repr__(self) -> str:
         return f"RunDirectory({str(self.path)!r})"
@@ -71,29 +65,18 @@ class RunDirectory:
     # ------------------------------------------------------------------ lock
     @contextlib.contextmanager
     def lock(self) -> Iterator[RunDirectory]:
-        """Hold the run's lock for the block; a second writer gets :class:`RunLockedError`
-        at once (exit 2 on the CLI). Re-entrant within one object."""
-        if self._lock is not None:
-            yield self
-            return
-        from filelock import FileLock, Timeout
+        """Hold the run's write lock for the block (:func:`offline_adp.data.io.locked_directory`,
+        the same lock as dataset directories): a second writer gets
+        :class:`~offline_adp.errors.LockedError` at once (exit 2 on the CLI). Re-entrant.
+        Under the lock, a killed writer's temporaries are removed first."""
+        from offline_adp.data.io import locked_directory
 
         if self.path.is_symlink():
             raise OfflineADPError(f"{self.path} is a symbolic link; give the real directory as the run directory")
-        self.path.mkdir(parents=True, exist_ok=True)
-        lock = FileLock(str(self.path / self.LOCK), timeout=0)
-        try:
-            lock.acquire()
-        except Timeout:
-            raise RunLockedError(f"{self.path} is being written by another process (its lock {self.path / self.LOCK} "
-                                 "is held); wait for it to finish or choose another directory") from None
-        self._lock = lock
-        try:
+        with locked_directory(self.path, what="run directory"):
+            self.path.mkdir(parents=True, exist_ok=True)
             self.clean_stale_temporaries()
             yield self
-        finally:
-            self._lock = None
-            lock.release()
 
     def clean_stale_temporaries(self) -> list[Path]:
         """Remove temporary files and directories of ours left by a killed writer

@@ -71,7 +71,7 @@ def summary_text(report: dict[str, Any]) -> str:
              f"  actions     {acts['kind']} over {acts['dims']}: "
              + ", ".join(f"{i}:{n} {v}" for i, (n, v) in enumerate(acts["table"].items())),
              "  coverage    " + ", ".join(f"{n}: {c}" for n, c in acts["coverage"].items())
-             + (f"; {acts['out_of_range']} rows with an action outside the table (run offline-adp validate)"
+             + (f", (outside the action table): {acts['out_of_range']} (run offline-adp validate)"
                 if acts["out_of_range"] else "")]
     for src, d in report["per_source"].items():
         lines.append(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost "

@@ -5,15 +5,27 @@ Rules (check codes in brackets):
 - steps of each episode are contiguous from 0 [``step_not_contiguous``];
 - ``next_obs`` of step t equals ``obs`` of step t+1 unless the episode ended
   [``next_obs_mismatch``];
-- ``terminated``/``truncated`` only on an episode's last row [``flag_not_last``], never
-  both [``both_flags``], and the last row carries one of them [``end_unflagged``];
-- no NaN/inf in obs, cost, next_obs [``non_finite``]; no nulls in required columns
-  [``null_value``];
+- ``terminated``/``truncated`` only on an episode's last row [``flag_not_last``], and the
+  last row carries one of them [``end_unflagged``]; both on one row is valid (gymnasium
+  reports both when a goal is reached on the time-limit step): the transition is
+  terminated (absorbing, never bootstrapped) and the report counts such rows
+  (``summary()["terminated_and_truncated"]``);
+- no NaN/inf in obs, cost, next_obs [``non_finite``], nor magnitudes beyond
+  :data:`MAX_ABS_VALUE` (1e150: their squares, in every regressor's loss, overflow)
+  [``value_out_of_range``]; no nulls in required columns, nor in
+  ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
 - actions inside the action table [``action_out_of_range``];
 - propensities in (0, 1] [``propensity_out_of_range``];
 - timestamps non-decreasing within an episode [``time_decreasing``].
 
 Every finding names the file, the row in that file, the (episode_id, step) and the column.
+
+A dataset *directory* is also checked against its own metadata
+(:func:`validate_directory`): ``meta/info.json`` counts [``info_stale``] and fingerprint
+[``fingerprint_mismatch``], ``meta/episodes.parquet`` [``episodes_stale``], and every
+episode inside one part file [``episode_split_across_parts``] - what a hand-edited or
+partly replaced directory gets wrong. These findings name the metadata file and key
+(row -1 when no data row is at fault).
 """
 
 from __future__ import annotations
@@ -36,13 +48,20 @@ CHECKS: tuple[str, ...] = (
     "step_not_contiguous",
     "next_obs_mismatch",
     "flag_not_last",
-    "both_flags",
     "end_unflagged",
     "non_finite",
+    "value_out_of_range",
     "action_out_of_range",
     "propensity_out_of_range",
     "time_decreasing",
+    "info_stale",
+    "fingerprint_mismatch",
+    "episodes_stale",
+    "episode_split_across_parts",
 )
+#: Largest magnitude of an observation or cost the doctor accepts: squared errors of larger
+#: values overflow float64 (1.8e308) in every regressor, so a fit could only produce inf/NaN.
+MAX_ABS_VALUE = 1e150
 FINDING_COLUMNS = ["check", "file", "row", S.EPISODE_ID, S.STEP, "column", "message"]
 
 
@@ -86,6 +105,7 @@ class ValidationReport:
     findings: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=FINDING_COLUMNS))
     n_rows: int = 0
     n_episodes: int = 0
+    n_terminated_and_truncated: int = 0
 
     @property
     def ok(self) -> bool:
@@ -108,12 +128,15 @@ class ValidationReport:
             "n_findings": len(self.findings),
             "bad_episodes": int(len(self.bad_episodes)),
             "counts": self.counts(),
+            "terminated_and_truncated": self.n_terminated_and_truncated,
         }
 
     def to_text(self, max_findings: int = 20) -> str:
         """Human-readable report: counts per check, then the first findings."""
+        both = (f" ({self.n_terminated_and_truncated} rows both terminated and truncated: treated as terminated)"
+                if self.n_terminated_and_truncated else "")
         if self.ok:
-            return f"OK: {self.n_rows} transitions in {self.n_episodes} episodes pass every check."
+            return f"OK: {self.n_rows} transitions in {self.n_episodes} episodes pass every check.{both}"
         lines = [
             f"FAILED: {len(self.findings)} findings in {len(self.bad_episodes)} of {self.n_episodes} episodes "
             f"({self.n_rows} transitions checked)"
@@ -172,10 +195,12 @@ def validate(
             )
 
     # nulls in required columns (cast to numpy would hide them)
-    for c in (S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *ds.obs_columns, *ds.next_obs_columns):
+    timed = (S.T_NS,) if S.T_NS in t.column_names else ()
+    for c in (S.EPISODE_ID, S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *timed, *ds.obs_columns, *ds.next_obs_columns):
         col = t.column(c)
         if col.null_count:
-            add("null_value", np.asarray(pc.is_null(col)), c, "value is missing (null)")
+            add("null_value", np.asarray(pc.is_null(col)), c,
+                "time is missing, not finite or beyond int64 nanoseconds" if c == S.T_NS else "value is missing (null)")
 
     # steps contiguous from 0
     starts = np.flatnonzero(first)
@@ -185,7 +210,7 @@ def validate(
 
     term = _bool(t, S.TERMINATED)
     trunc = _bool(t, S.TRUNCATED)
-    add("both_flags", term & trunc, "terminated,truncated", "row is both terminated and truncated")
+    n_both = int((term & trunc).sum())  # valid: terminated wins (absorbing); counted, not a finding
     add("flag_not_last", (term | trunc) & ~last, S.TERMINATED, "episode flagged as ended before its last row")
     add("end_unflagged", last & ~term & ~trunc, "terminated,truncated", "last row of the episode is neither terminated nor truncated")
 
@@ -208,6 +233,8 @@ def validate(
     for c in (*ds.obs_columns, S.COST, *ds.next_obs_columns):
         v = t.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
         add("non_finite", ~np.isfinite(v) & ~np.asarray(pc.is_null(t.column(c))), c, "value is NaN or infinite")
+        add("value_out_of_range", np.isfinite(v) & (np.abs(v) > MAX_ABS_VALUE), c,
+            f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column")
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
     add(
@@ -231,7 +258,7 @@ def validate(
         add("time_decreasing", dec, S.T_NS, "timestamp earlier than the previous step's")
 
     if not parts:
-        return ValidationReport(n_rows=n, n_episodes=len(ep_ids))
+        return ValidationReport(n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both)
     f = pd.concat(parts, ignore_index=True)
     idx = f.pop("_idx").to_numpy()
     origin = origin if origin is not None else RowOrigin.of(ds)
@@ -242,7 +269,51 @@ def validate(
     f["check"] = pd.Categorical(f["check"], categories=list(CHECKS))
     f = f.sort_values(["row", "check"], kind="stable").reset_index(drop=True)
     f["check"] = f["check"].astype(str)
-    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids))
+    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both)
+
+
+def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>") -> ValidationReport:
+    """Refuse a dataset an algorithm cannot be fitted on: empty, or failing the doctor.
+
+    ``where`` is the dataset directory ``ds`` was read from (findings then name its part
+    files and rows) or a label.
+
+    Raises
+    ------
+    ValidationError
+        One line naming ``where``, the counts per check and the first finding's file, row
+        and column (``offline-adp validate`` lists them all).
+    """
+    from offline_adp.errors import ValidationError
+
+    if len(ds) == 0:
+        raise ValidationError(f"{where}: the dataset has no transitions; nothing to fit")
+    report = validate(ds, origin=_directory_origin(Path(where), ds) if Path(where).is_dir() else None)
+    if not report.ok:
+        f = report.findings.iloc[0]
+        counts = ", ".join(f"{k} {v}" for k, v in report.counts().items())
+        raise ValidationError(
+            f"{where}: the dataset fails the doctor ({counts}); first: {f['file']}: row {f['row']} "
+            f"(episode {f[S.EPISODE_ID]}, step {f[S.STEP]}) column {f['column']!r}: {f['message']}; "
+            f"see `offline-adp validate {where}`", report)
+    return report
+
+
+def _directory_origin(path: Path, ds: TransitionDataset) -> RowOrigin | None:
+    """Part file and row of each row of ``ds`` read from directory ``path`` (None if the
+    rows were re-sorted on reading, so that they no longer line up with the parts)."""
+    import pyarrow.parquet as pq
+
+    from offline_adp.data.io import part_files
+
+    parts = part_files(path)
+    sizes = [pq.ParquetFile(p).metadata.num_rows for p in parts]
+    origin = RowOrigin(
+        [str(p) for p in parts],
+        np.repeat(np.arange(len(parts)), sizes),
+        np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int),
+    )
+    return origin if ds.table.num_rows == len(origin.row) and ds.was_sorted else None
 
 
 def _bool(t: pa.Table, name: str) -> np.ndarray:
@@ -258,23 +329,67 @@ def _messages(mask: np.ndarray, fmt) -> np.ndarray:
 
 
 def validate_directory(path: str | PathLike[str]) -> ValidationReport:
-    """Load a dataset directory and run the doctor, naming part files and rows in them."""
-    from offline_adp.data.io import part_files, read_dataset
+    """Load a dataset directory and run the doctor, naming part files and rows in them;
+    then check the directory's metadata against its data (see the module docstring)."""
+    from offline_adp.data.io import read_dataset, read_info
 
     path = Path(path)
     ds = read_dataset(path)
-    parts = part_files(path)
-    import pyarrow.parquet as pq
-
-    sizes = [pq.ParquetFile(p).metadata.num_rows for p in parts]
-    origin = RowOrigin(
-        [str(p) for p in parts],
-        np.repeat(np.arange(len(parts)), sizes),
-        np.concatenate([np.arange(s) for s in sizes]) if sizes else np.zeros(0, int),
-    )
     # rows are read in part order; the constructor re-sorts only a dataset whose parts were
     # edited out of order, and then the part/row names would no longer line up
-    return validate(ds, origin=origin if ds.table.num_rows == len(origin.row) and ds.was_sorted else None)
+    origin = _directory_origin(path, ds)
+    report = validate(ds, origin=origin)
+    meta = _metadata_findings(path, ds, read_info(path), origin)
+    if len(meta):
+        report.findings = pd.concat([report.findings, meta], ignore_index=True)[FINDING_COLUMNS] if len(report.findings) else meta
+    return report
+
+
+def _metadata_findings(path: Path, ds: TransitionDataset, raw: dict, origin: RowOrigin | None) -> pd.DataFrame:
+    """Findings of the directory's metadata against its data (dataset-level: row -1)."""
+    rows: list[dict[str, object]] = []
+    info_file = str(path / S.INFO_FILE)
+
+    def add(check: str, file: str, column: str, message: str, row: int = -1, episode: str = "", step: int = -1) -> None:
+        rows.append({"check": check, "file": file, "row": row, S.EPISODE_ID: episode, S.STEP: step, "column": column, "message": message})
+
+    for key, actual in (("n_transitions", len(ds)), ("n_episodes", ds.n_episodes)):
+        if key in raw and raw[key] != actual:
+            add("info_stale", info_file, key, f"info.json says {raw[key]!r}, the data has {actual}")
+    if "fingerprint" in raw and raw["fingerprint"] != ds.fingerprint():
+        add("fingerprint_mismatch", info_file, "fingerprint",
+            "the data's fingerprint differs from info.json's: the parts were changed after writing")
+    ep_path = path / S.EPISODES_FILE
+    if ep_path.exists():
+        try:
+            stored = pd.read_parquet(ep_path)
+        except (OSError, ValueError) as exc:
+            add("episodes_stale", str(ep_path), "", f"unreadable ({exc})")
+        else:
+            actual_ep = ds.episode_table()
+            cols = [c for c in (S.EPISODE_ID, "length", S.TERMINATED, S.TRUNCATED, "first_row") if c in stored.columns]
+            same = len(stored) == len(actual_ep) and all(
+                np.array_equal(stored[c].astype(str).to_numpy(), actual_ep[c].astype(str).to_numpy()) for c in cols)
+            if not same:
+                add("episodes_stale", str(ep_path), ",".join(cols),
+                    f"episodes.parquet lists {len(stored)} episodes that do not match the data's {len(actual_ep)}")
+    else:
+        add("episodes_stale", str(ep_path), "", "missing")
+    if origin is not None and len(origin.files) > 1 and len(ds):
+        codes = ds.episode_index
+        starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]])
+        part = origin.file_index
+        first_part = np.repeat(part[starts], np.diff(np.r_[starts, len(codes)]))
+        split = np.flatnonzero(part != first_part)
+        seen: set[int] = set()
+        for i in split[:1000]:  # one finding per split episode
+            if codes[i] in seen:
+                continue
+            seen.add(int(codes[i]))
+            add("episode_split_across_parts", str(origin.files[part[i]]), S.EPISODE_ID,
+                f"episode continues from {origin.files[first_part[i]]} (an episode must lie in one part)",
+                row=int(origin.row[i]), episode=str(ds.episode_ids[codes[i]]), step=int(ds.table.column(S.STEP)[i].as_py()))
+    return pd.DataFrame(rows, columns=FINDING_COLUMNS)
 
 
 def split_quarantine(ds: TransitionDataset, report: ValidationReport) -> tuple[TransitionDataset, pa.Table]:

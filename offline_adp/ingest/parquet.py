@@ -35,7 +35,7 @@ from offline_adp._version import __version__
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset, encode_strings, sorted_encoding
 from offline_adp.data.info import DatasetInfo, Feature
-from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.io import locked_directory, sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, ValidationError
 from offline_adp.ingest.actions import bin_continuous, map_discrete
@@ -63,6 +63,7 @@ class IngestResult:
             "quarantined_episodes": self.quarantined_episodes,
             "quarantined_rows": self.quarantined_rows,
             "dropped_last_rows": self.dropped_last_rows,
+            "terminated_and_truncated": self.report.n_terminated_and_truncated,
             "inputs": len(self.inputs),
         }
 
@@ -93,22 +94,130 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
             table = pq.read_table(path, columns=cols)
         except (OSError, pa.ArrowInvalid) as exc:
             raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
-    return table.select(cols)
+    table = table.select(cols)
+    for name in cols:  # CSV cells that are not UTF-8 arrive as binary
+        col = table.column(name)
+        if pa.types.is_binary(col.type) or pa.types.is_large_binary(col.type):
+            for i, v in enumerate(col.to_pylist()):  # error path only: stops at the first bad cell
+                try:
+                    if v is not None:
+                        v.decode("utf-8")
+                except UnicodeDecodeError:
+                    raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the file as UTF-8") from None
+            raise IngestError(f"{path}: column {name!r} holds binary data, not text or numbers")
+    return table
+
+
+def _where(file_of: Callable[[np.ndarray], str], i: int) -> str:
+    """``"FILE: row R"`` of sorted row ``i`` (``file_of`` carries the row-in-file map)."""
+    return f"{file_of(np.array([i]))}: row {getattr(file_of, 'rows', np.arange(i + 1))[i]}"
+
+
+def _first_unparsable(c: pa.ChunkedArray, target: pa.DataType) -> int | None:
+    """Index of the first non-null value of ``c`` that does not convert to ``target``."""
+    if pa.types.is_string(c.type) or pa.types.is_large_string(c.type):
+        import pandas as pd
+
+        vals = pd.Series(c.to_numpy(zero_copy_only=False))
+        bad = np.flatnonzero(pd.to_numeric(vals, errors="coerce").isna().to_numpy() & vals.notna().to_numpy())
+        return int(bad[0]) if len(bad) else None
+    return None
 
 
 def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
     c = table.column(col)
-    if c.null_count and dtype is not object:
+    if dtype is object:
+        return c.to_numpy(zero_copy_only=False)
+    numeric = pa.types.is_boolean(c.type) or pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type)
+    if not numeric and dtype is not bool:
+        i = _first_unparsable(c, pa.float64())
+        if i is not None:
+            raise IngestError(f"{_where(file_of, i)}: column {col!r}: {c[i].as_py()!r} is not a number")
+        try:
+            c = c.cast(pa.float64())
+        except (ValueError, TypeError, pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} cannot be read as "
+                              f"{np.dtype(dtype).name} ({exc})") from None
+    if c.null_count:
         bad = np.flatnonzero(np.asarray(pc.is_null(c)))
         if dtype is bool:
             return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
         if np.dtype(dtype).kind == "f":
-            return c.to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
-        raise IngestError(f"{file_of(bad[:1])}: column {col!r} has {len(bad)} missing values (first at row {bad[0]})")
+            return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
+        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r} is missing ({len(bad)} missing values in the column)")
+    return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
+
+
+def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray]:
+    """A bool flag column and its null mask (a null flag is kept null: the doctor reports
+    it, it never silently becomes False)."""
+    if not col:
+        return np.zeros(n, bool), np.zeros(n, bool)
+    c = table.column(col)
+    if not pa.types.is_boolean(c.type):
+        if pa.types.is_integer(c.type) or pa.types.is_floating(c.type):
+            v = c.to_numpy(zero_copy_only=False)
+            bad = np.flatnonzero(~np.isin(v, [0, 1]) & ~np.isnan(v.astype(np.float64)))
+            if len(bad):
+                raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: {v[bad[0]]!r} is not a flag (true/false or 0/1)")
+            c = pc.not_equal(c, 0)
+        else:
+            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column (bool or 0/1)")
+    null = np.asarray(pc.is_null(c)) if c.null_count else np.zeros(n, bool)
+    return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool), null
+
+
+def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
+    """The step column minus ``base`` as int64: integral, within int32 (what the format stores)."""
+    c = table.column(col)
+    v = _np(table, col, np.float64 if not pa.types.is_integer(c.type) else np.int64, file_of)
+    if v.dtype.kind == "f":
+        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
+        if len(bad):
+            raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {float(v[bad[0]])!r} is not a whole number")
+        if len(v) and np.abs(v).max() >= 2**62:
+            i = int(np.argmax(np.abs(v)))
+            raise IngestError(f"{_where(file_of, i)}: column {col!r}: step {float(v[i])!r} is out of range")
+        v = v.astype(np.int64)
+    step = v - base
+    bad = np.flatnonzero((step < 0) | (step > np.iinfo(np.int32).max))
+    if len(bad):
+        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {int(v[bad[0]])} "
+                          f"is outside [{base}, {base + np.iinfo(np.int32).max}] (steps are stored as int32 from 0)")
+    return step
+
+
+def _times_ns(table: pa.Table, col: str, unit: str, file_of: Callable[[np.ndarray], str]) -> pa.Array:
+    """Times in int64 nanoseconds; a time that is missing, not finite or beyond int64 stays
+    null (the doctor reports it as a missing value of ``t_ns`` naming file and row)."""
+    tv = table.column(col)
     try:
-        return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False) if dtype is not object else c.to_numpy(zero_copy_only=False)
-    except (ValueError, TypeError, pa.ArrowInvalid) as exc:
-        raise IngestError(f"column {col!r} cannot be read as {np.dtype(dtype).name}: {exc}") from exc
+        if pa.types.is_timestamp(tv.type):
+            return tv.cast(pa.timestamp("ns")).cast(pa.int64()).combine_chunks()
+        if pa.types.is_integer(tv.type):
+            return pc.multiply_checked(tv.cast(pa.int64()), TIME_UNITS[unit]).combine_chunks()
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
+        raise IngestError(f"{file_of(np.array([0]))}: column {col!r}: times do not fit int64 nanoseconds ({exc})") from None
+    x = _np(table, col, np.float64, file_of) * TIME_UNITS[unit]
+    ok = np.isfinite(x) & (np.abs(x) < 2.0**63 - 1024)
+    return pa.array(np.where(ok, np.round(np.where(ok, x, 0.0)), 0).astype(np.int64), mask=~ok)
+
+
+def _type_conflict(tables: list[pa.Table], metas: list[dict[str, Any]]) -> str | None:
+    """Which column has which type in which two files, when files disagree."""
+    first: dict[str, tuple[pa.DataType, str]] = {}
+    for t, m in zip(tables, metas, strict=True):
+        for f in t.schema:
+            if f.name in first and first[f.name][0] != f.type:
+                a_type, a_path = first[f.name]
+                try:
+                    pa.concat_tables([pa.table({f.name: pa.array([], a_type)}), pa.table({f.name: pa.array([], f.type)})],
+                                     promote_options="permissive")
+                except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
+                    return (f"column {f.name!r} is {a_type} in {a_path} but {f.type} in {m['path']}; "
+                            "give the column one type in every file")
+            first.setdefault(f.name, (f.type, m["path"]))
+    return None
 
 
 def ingest_tables(
@@ -133,6 +242,10 @@ def ingest_tables(
             if progress:
                 progress(f"reading {p}")
             t = _read(p, spec)
+            ids = t.column(spec.episode.id)
+            if ids.null_count:
+                i = int(np.flatnonzero(np.asarray(pc.is_null(ids)))[0])
+                raise IngestError(f"{p}: row {i} column {spec.episode.id!r}: episode id is missing (null); every row needs one")
             t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
                 "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
             )
@@ -144,8 +257,8 @@ def ingest_tables(
             m["sha256"] = h.result() if h is not None else None
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
-    except pa.ArrowInvalid as exc:
-        raise IngestError(f"input files have incompatible column types: {exc}") from exc
+    except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+        raise IngestError(_type_conflict(tables, metas) or f"input files have incompatible column types: {exc}") from None
     names_of = np.array([m["path"] for m in metas], dtype=object)
 
     # episodes may not span files (they would silently merge)
@@ -173,6 +286,8 @@ def ingest_tables(
     def file_of(i: np.ndarray) -> str:
         return str(names_of[fidx[i[0]]]) if len(i) else "?"
 
+    file_of.rows = rows  # type: ignore[attr-defined]  # row in its file, for _where
+
     ep_ids = table.column(spec.episode.id)
     codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
     first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
@@ -180,7 +295,7 @@ def ingest_tables(
     starts = np.flatnonzero(first)
     lens = np.diff(np.r_[starts, n])
     if spec.episode.step:
-        step = _np(table, spec.episode.step, np.int64, file_of) - spec.episode.step_base
+        step = _steps(table, spec.episode.step, spec.episode.step_base, file_of)
     else:
         # dense rank of the order value within the episode: ties share a step (doctor flags them)
         ov = table.column(order_col).to_numpy(zero_copy_only=False)
@@ -193,8 +308,8 @@ def ingest_tables(
     has_next = bool(spec.observations.next_columns)
     nxt_given = [_np(table, c, np.float64, file_of) for c in spec.observations.next_columns] if has_next else None
 
-    term = _np(table, spec.terminated_column, bool, file_of) if spec.terminated_column else np.zeros(n, bool)
-    trunc_col = _np(table, spec.truncated_column, bool, file_of) if spec.truncated_column else np.zeros(n, bool)
+    term, term_null = _flag(table, spec.terminated_column, n, file_of)
+    trunc_col, trunc_null = _flag(table, spec.truncated_column, n, file_of)
     # rule: an episode's end is truncated unless the terminal column says terminated
     trunc = trunc_col | (last & ~term)
 
@@ -237,27 +352,22 @@ def ingest_tables(
     names = list(spec.observations.names or spec.observations.columns)
     cols: dict[str, Any] = {S.EPISODE_ID: ep_ids, S.STEP: step.astype(np.int32)}
     if spec.episode.time:
-        tv = table.column(spec.episode.time)
-        if pa.types.is_timestamp(tv.type):
-            cols[S.T_NS] = tv.cast(pa.timestamp("ns")).cast(pa.int64())
-        elif pa.types.is_integer(tv.type):
-            cols[S.T_NS] = pc.multiply(tv.cast(pa.int64()), TIME_UNITS[spec.episode.time_unit])
-        else:
-            cols[S.T_NS] = np.round(_np(table, spec.episode.time, np.float64, file_of) * TIME_UNITS[spec.episode.time_unit]).astype(np.int64)
+        cols[S.T_NS] = _times_ns(table, spec.episode.time, spec.episode.time_unit, file_of)
     for j, nm in enumerate(names):
         cols[S.obs_column(nm)] = obs[j]
     cols[S.ACTION] = action
     cols[S.COST] = cost
     for j, nm in enumerate(names):
         cols[S.next_obs_column(nm)] = nxt[j]
-    cols[S.TERMINATED] = term
-    cols[S.TRUNCATED] = trunc
+    cols[S.TERMINATED] = pa.array(term, mask=term_null) if term_null.any() else term
+    cols[S.TRUNCATED] = pa.array(trunc, mask=trunc_null) if trunc_null.any() else trunc
     if spec.source_column:
         cols[S.SOURCE] = encode_strings(table.column(spec.source_column).cast(pa.string()))
     else:
         cols[S.SOURCE] = pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([spec.source_value]))
     if spec.propensity_column:
-        cols[S.BEHAVIOR_PROB] = table.column(spec.propensity_column).cast(pa.float64())
+        prop = _np(table, spec.propensity_column, np.float64, file_of)  # a non-number names its file and row
+        cols[S.BEHAVIOR_PROB] = pa.array(prop, mask=np.asarray(pc.is_null(table.column(spec.propensity_column))))
     cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32)), pa.array(names_of.astype(str).tolist()))
     cols["src_row"] = rows
     out = pa.table({k: (v.combine_chunks() if isinstance(v, pa.ChunkedArray) else v) for k, v in cols.items()})
@@ -321,10 +431,16 @@ def ingest_parquet(
     ValidationError
         The doctor found defects and ``on_error`` is ``"fail"`` (the default).
     """
-    if Path(out).exists() and not overwrite:
-        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     if not isinstance(spec, ParquetSpec):
         spec = load_parquet_spec(spec)
+    with locked_directory(out, what="dataset"):  # a second ingest into `out` fails now, not at the end
+        return _ingest_locked(inputs, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
+
+
+def _ingest_locked(inputs: Sequence[str | PathLike[str]], spec: ParquetSpec, out: str | PathLike[str], *,
+                   on_error: str | None, overwrite: bool, progress: Callable[[str], None] | None) -> IngestResult:
+    if (Path(out).exists() or Path(out).is_symlink()) and not overwrite:
+        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     res = ingest_tables(inputs, spec, on_error=on_error, progress=progress)
     if progress:
         progress(f"writing {out}")

@@ -1,49 +1,34 @@
-"""Ingestion spec for Parquet/CSV tables (TOML) as frozen dataclasses, checked on load.
+"""Ingestion spec for Parquet/CSV tables (TOML): a typed model on the configuration layer.
 
-Every table of the spec accepts only its documented keys; an unknown key fails with
-the list of valid ones. ``docs/ingestion-spec.md`` documents each key with examples.
+The file is read with :func:`offline_adp.config.load_toml` (missing file, non-UTF-8 bytes
+and TOML syntax errors name the file and line) and validated against
+:class:`ParquetSpecModel` with :func:`offline_adp.config.validate_config`: unknown keys
+(listing the valid ones), wrong types and bad values (``csv.delimiter = ";;"``,
+``action.type = "discret"``, ``hints.gamma = 2``) are one :class:`SpecError` naming the file
+and the dotted key. Rules across keys (``step`` or ``order``, ``next_columns`` for
+transition tables, one of ``cost.column``/``cost.reward``...) are checked next, with the
+same naming. The result is converted to the frozen dataclasses the readers use
+(:class:`ParquetSpec`). ``docs/ingestion-spec.md`` documents each key;
+``docs/schemas/ingest-spec.schema.json`` is the JSON Schema (:func:`parquet_spec_schema`)
+for editors.
 """
 
 from __future__ import annotations
 
 import hashlib
-import tomllib
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
+from pydantic import Field, field_validator
+
+from offline_adp.config import ConfigModel, json_schema, load_toml, validate_config
 from offline_adp.errors import SpecError
 
 TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
-
-
-def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise SpecError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(allowed)}")
-
-
-def _get(table: Mapping[str, Any], key: str, typ: type | tuple[type, ...], where: str, default: Any = None, required: bool = False) -> Any:
-    if key not in table:
-        if required:
-            raise SpecError(f"{where}: missing required key {key!r}")
-        return default
-    v = table[key]
-    if typ is float and isinstance(v, int) and not isinstance(v, bool):
-        v = float(v)
-    if not isinstance(v, typ) or (isinstance(v, bool) and typ is not bool):
-        tn = typ.__name__ if isinstance(typ, type) else " or ".join(t.__name__ for t in typ)
-        raise SpecError(f"{where}.{key}: expected {tn}, got {type(v).__name__} {v!r}")
-    return v
-
-
-def _str_list(table: Mapping[str, Any], key: str, where: str, required: bool = False) -> tuple[str, ...]:
-    v = _get(table, key, list, where, default=[], required=required)
-    if not all(isinstance(x, str) for x in v):
-        raise SpecError(f"{where}.{key}: expected a list of column names (strings), got {v!r}")
-    return tuple(v)
 
 
 @dataclass(frozen=True)
@@ -125,161 +110,238 @@ class ParquetSpec:
         return list(dict.fromkeys(cols))
 
 
-_TOP = {"kind", "format", "name", "on_error", "episode", "observations", "action", "cost", "end", "source", "propensity", "hints", "csv"}
+# ----------------------------------------------------------------------------- the TOML model
+Str = Annotated[str, Field(strict=True)]
+Column = Annotated[str, Field(strict=True, min_length=1, max_length=1000)]
+Int = Annotated[int, Field(strict=True)]
+Number = Annotated[float, Field(strict=True)]
+Label = Annotated[int, Field(strict=True)] | Annotated[float, Field(strict=True)] | Annotated[str, Field(strict=True)]
 
 
-def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "spec") -> ParquetSpec:
-    """Check and convert a spec mapping (from TOML) into a :class:`ParquetSpec`."""
-    _check_keys(data, _TOP, where)
-    kind = _get(data, "kind", str, where, "transitions")
-    if kind not in ("transitions", "steps"):
-        raise SpecError(f"{where}.kind: expected 'transitions' or 'steps', got {kind!r}")
-    fmt = _get(data, "format", str, where, "auto")
-    if fmt not in ("auto", "parquet", "csv"):
-        raise SpecError(f"{where}.format: expected 'auto', 'parquet' or 'csv', got {fmt!r}")
-    on_error = _get(data, "on_error", str, where, "fail")
-    if on_error not in ("fail", "quarantine"):
-        raise SpecError(f"{where}.on_error: expected 'fail' or 'quarantine', got {on_error!r}")
+def _unique(v: tuple[str, ...] | None) -> tuple[str, ...] | None:
+    if v is not None and len(set(v)) != len(v):
+        raise ValueError(f"entries must be unique, got {list(v)}")
+    return v
 
-    e = _get(data, "episode", dict, where, required=True)
-    w = f"{where}.episode"
-    _check_keys(e, {"id", "step", "step_base", "order", "time", "time_unit"}, w)
-    ep = EpisodeSpec(
-        id=_get(e, "id", str, w, required=True),
-        step=_get(e, "step", str, w),
-        step_base=_get(e, "step_base", int, w, 0),
-        order=_get(e, "order", str, w),
-        time=_get(e, "time", str, w),
-        time_unit=_get(e, "time_unit", str, w, "ns"),
-    )
-    if ep.time_unit not in TIME_UNITS:
-        raise SpecError(f"{w}.time_unit: expected one of {list(TIME_UNITS)}, got {ep.time_unit!r}")
-    if ep.step and ep.order:
-        raise SpecError(f"{w}: give either 'step' (an integer step column) or 'order' (any sortable column), not both")
-    if not (ep.step or ep.order or ep.time):
-        raise SpecError(f"{w}: rows need an ordering within episodes: give 'step', 'order' or 'time'")
 
-    o = _get(data, "observations", dict, where, required=True)
-    w = f"{where}.observations"
-    _check_keys(o, {"columns", "next_columns", "names", "units"}, w)
-    obs = ObservationSpec(
-        columns=_str_list(o, "columns", w, required=True),
-        next_columns=_str_list(o, "next_columns", w),
-        names=_str_list(o, "names", w),
-        units=_get(o, "units", dict, w, {}),
-    )
-    if not obs.columns:
-        raise SpecError(f"{w}.columns: list at least one observation column")
-    if obs.next_columns and len(obs.next_columns) != len(obs.columns):
-        raise SpecError(f"{w}: next_columns has {len(obs.next_columns)} entries, columns has {len(obs.columns)}")
-    if obs.names and len(obs.names) != len(obs.columns):
-        raise SpecError(f"{w}: names has {len(obs.names)} entries, columns has {len(obs.columns)}")
-    if kind == "transitions" and not obs.next_columns:
-        raise SpecError(f"{w}.next_columns: required for kind = 'transitions' (or use kind = 'steps')")
-    unknown_units = set(obs.units) - set(obs.names or obs.columns)
-    if unknown_units:
-        raise SpecError(f"{w}.units: keys {sorted(unknown_units)} are not observation names {list(obs.names or obs.columns)}")
+class EpisodeModel(ConfigModel):
+    """``[episode]``: which column identifies episodes and which orders rows within them."""
 
-    a = _get(data, "action", dict, where, required=True)
-    w = f"{where}.action"
-    _check_keys(a, {"column", "type", "values", "names", "edges", "n_bins", "bin_value", "dim", "unit", "vectors", "dims"}, w)
-    vectors = _get(a, "vectors", list, w)
-    dims = _get(a, "dims", list, w)
-    values = _get(a, "values", list, w)
-    names = _get(a, "names", list, w)
-    edges = _get(a, "edges", list, w)
-    act = ActionSpec(
-        column=_get(a, "column", str, w, required=True),
-        type=_get(a, "type", str, w, "discrete"),
-        values=tuple(values) if values is not None else None,
-        names=tuple(str(n) for n in names) if names is not None else None,
-        edges=tuple(float(x) for x in edges) if edges is not None else None,
-        n_bins=_get(a, "n_bins", int, w),
-        bin_value=_get(a, "bin_value", str, w, "mean"),
-        dim=_get(a, "dim", str, w, "a"),
-        unit=_get(a, "unit", str, w, ""),
-        vectors=tuple(tuple(float(x) for x in (v if isinstance(v, list) else [v])) for v in vectors) if vectors is not None else None,
-        dims=tuple(str(d) for d in dims) if dims is not None else None,
-    )
+    id: Column = Field(description="episode id column (any type; compared as strings)")
+    step: Column | None = Field(None, description="integer step column, used as is (minus step_base)")
+    step_base: Annotated[int, Field(strict=True, ge=-(2**31), le=2**31 - 1)] = Field(0, description="first step value (e.g. 1)")
+    order: Column | None = Field(None, description="any sortable column: steps are its dense rank within the episode")
+    time: Column | None = Field(None, description="optional timestamp column -> t_ns")
+    time_unit: Literal["s", "ms", "us", "ns"] = Field("ns", description="unit of a numeric time column")
+
+
+class ObservationsModel(ConfigModel):
+    """``[observations]``: feature columns, their next-state columns, names and units."""
+
+    columns: tuple[Column, ...] = Field(min_length=1, description="feature columns, in order")
+    next_columns: tuple[Column, ...] = Field((), description="next-state columns (required for kind = 'transitions')")
+    names: tuple[Column, ...] = Field((), description="feature names (default: the column names)")
+    units: dict[Str, Str] = Field(default_factory=dict, description="unit per feature name")
+
+    _u = field_validator("columns", "names")(_unique)
+
+
+class ActionModel(ConfigModel):
+    """``[action]``: the action column and how it becomes an index into the action table."""
+
+    column: Column
+    type: Literal["discrete", "continuous"] = "discrete"
+    values: tuple[Label, ...] | None = Field(None, min_length=1, description="discrete: the action table in index order")
+    names: tuple[Str, ...] | None = Field(None, min_length=1, description="action names")
+    edges: tuple[Number, ...] | None = Field(None, description="continuous: bin edges (-inf/inf allowed)")
+    n_bins: Annotated[int, Field(strict=True, ge=1, le=100_000)] | None = Field(None, description="continuous: that many quantile bins")
+    bin_value: Literal["mean", "center"] = "mean"
+    dim: Str = "a"
+    unit: Str = ""
+    vectors: tuple[Number | tuple[Number, ...], ...] | None = Field(None, description="each discrete action's value vector")
+    dims: tuple[Str, ...] | None = Field(None, description="names of the components of the value vectors")
+
+    _u = field_validator("names", "dims")(_unique)
+
+    @field_validator("edges")
+    @classmethod
+    def _edges(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and (len(v) < 2 or any(math.isnan(x) for x in v) or any(b <= a for a, b in zip(v, v[1:], strict=False))):
+            raise ValueError(f"need at least two strictly increasing edges, got {list(v)}")
+        return v
+
+
+class CostModel(ConfigModel):
+    """``[cost]``: a cost column (lower is better) or a reward column (negated)."""
+
+    column: Column | None = None
+    reward: Column | None = None
+
+
+class EndModel(ConfigModel):
+    """``[end]``: optional flag columns (bool or 0/1)."""
+
+    terminated: Column | None = None
+    truncated: Column | None = None
+
+
+class SourceModel(ConfigModel):
+    """``[source]``: a label column, or one label for every row."""
+
+    column: Column | None = None
+    value: Str | None = None
+
+
+class PropensityModel(ConfigModel):
+    """``[propensity]``: probability of the logged action under the behaviour policy."""
+
+    column: Column | None = None
+
+
+class HintsModel(ConfigModel):
+    """``[hints]``: problem hints stored in info.json."""
+
+    gamma: Annotated[float, Field(strict=True, gt=0.0, le=1.0)] | None = None
+    horizon: Annotated[int, Field(strict=True, ge=1, le=2**31 - 1)] | None = None
+
+
+class CsvModel(ConfigModel):
+    """``[csv]``: how CSV files are parsed."""
+
+    delimiter: Annotated[str, Field(strict=True, min_length=1, max_length=1)] = ","
+
+    @field_validator("delimiter")
+    @classmethod
+    def _delim(cls, v: str) -> str:
+        if v in ('"', "\n", "\r"):
+            raise ValueError(f"{v!r} cannot separate fields")
+        return v
+
+
+class ParquetSpecModel(ConfigModel):
+    """An ingestion spec for Parquet/CSV tables (``offline-adp ingest parquet --spec``)."""
+
+    kind: Literal["transitions", "steps"] = Field("transitions", description="rows with next-state columns, or one row per step")
+    format: Literal["auto", "parquet", "csv"] = "auto"
+    name: Str = ""
+    on_error: Literal["fail", "quarantine"] = "fail"
+    episode: EpisodeModel
+    observations: ObservationsModel
+    action: ActionModel
+    cost: CostModel
+    end: EndModel = EndModel()
+    source: SourceModel = SourceModel()
+    propensity: PropensityModel = PropensityModel()
+    hints: HintsModel = HintsModel()
+    csv: CsvModel = CsvModel()
+
+
+def parquet_spec_schema() -> dict[str, Any]:
+    """The JSON Schema of a Parquet/CSV ingestion spec (``docs/schemas/ingest-spec.schema.json``)."""
+    return json_schema(ParquetSpecModel)
+
+
+def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
+    """Unknown keys of a plain TOML table (used by the MCAP spec reader)."""
+    if not isinstance(table, Mapping):
+        raise SpecError(f"{where}: expected a table, got {type(table).__name__} {table!r}")
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise SpecError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(allowed)}")
+
+
+def _action(a: ActionModel, w: str) -> ActionSpec:
+    vectors = None if a.vectors is None else tuple(tuple(v) if isinstance(v, tuple) else (float(v),) for v in a.vectors)
+    act = ActionSpec(column=a.column, type=a.type, values=a.values, names=a.names, edges=a.edges, n_bins=a.n_bins,
+                     bin_value=a.bin_value, dim=a.dim, unit=a.unit, vectors=vectors, dims=a.dims)
     if act.vectors is not None:
         if act.values is None or len(act.vectors) != len(act.values):
             raise SpecError(f"{w}.vectors: give one value vector per entry of 'values'")
         if len({len(v) for v in act.vectors}) != 1 or (act.dims is not None and len(act.dims) != len(act.vectors[0])):
             raise SpecError(f"{w}.vectors: all vectors need the same length, matching 'dims'")
-    if act.type not in ("discrete", "continuous"):
-        raise SpecError(f"{w}.type: expected 'discrete' or 'continuous', got {act.type!r}")
+        if not all(math.isfinite(x) for v in act.vectors for x in v):
+            raise SpecError(f"{w}.vectors: values must be finite")
     if act.type == "continuous":
         if (act.edges is None) == (act.n_bins is None):
             raise SpecError(f"{w}: a continuous action needs exactly one of 'edges' or 'n_bins'")
-        if act.edges is not None and (len(act.edges) < 2 or list(act.edges) != sorted(act.edges)):
-            raise SpecError(f"{w}.edges: need at least two increasing edges, got {list(act.edges)}")
-        if act.n_bins is not None and act.n_bins < 1:
-            raise SpecError(f"{w}.n_bins: must be >= 1, got {act.n_bins}")
-        if act.bin_value not in ("mean", "center"):
-            raise SpecError(f"{w}.bin_value: expected 'mean' or 'center', got {act.bin_value!r}")
         if act.values is not None:
             raise SpecError(f"{w}.values: only for discrete actions (continuous ones are binned)")
     elif act.edges is not None or act.n_bins is not None:
         raise SpecError(f"{w}: 'edges'/'n_bins' bin continuous actions; set type = 'continuous'")
+    if act.values is not None:
+        if len({(type(v) is str, v) for v in act.values}) != len(act.values):
+            raise SpecError(f"{w}.values: entries must be unique, got {list(act.values)}")
+        if any(isinstance(v, float) and not math.isfinite(v) for v in act.values):
+            raise SpecError(f"{w}.values: numbers must be finite")
     if act.names is not None and act.values is not None and len(act.names) != len(act.values):
         raise SpecError(f"{w}: names has {len(act.names)} entries, values has {len(act.values)}")
+    return act
 
-    c = _get(data, "cost", dict, where, required=True)
-    w = f"{where}.cost"
-    _check_keys(c, {"column", "reward"}, w)
-    cost_col, reward_col = _get(c, "column", str, w), _get(c, "reward", str, w)
-    if (cost_col is None) == (reward_col is None):
-        raise SpecError(f"{w}: give exactly one of 'column' (a cost, lower is better) or 'reward' (negated)")
 
-    end = _get(data, "end", dict, where, {})
-    w = f"{where}.end"
-    _check_keys(end, {"terminated", "truncated"}, w)
-    src = _get(data, "source", dict, where, {})
-    w = f"{where}.source"
-    _check_keys(src, {"column", "value"}, w)
-    if "column" in src and "value" in src:
-        raise SpecError(f"{w}: give either 'column' or 'value', not both")
-    prop = _get(data, "propensity", dict, where, {})
-    _check_keys(prop, {"column"}, f"{where}.propensity")
-    hints = _get(data, "hints", dict, where, {})
-    _check_keys(hints, {"gamma", "horizon"}, f"{where}.hints")
-    csv = _get(data, "csv", dict, where, {})
-    _check_keys(csv, {"delimiter"}, f"{where}.csv")
+def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "spec") -> ParquetSpec:
+    """Check and convert a spec mapping (from TOML) into a :class:`ParquetSpec`.
+
+    Raises
+    ------
+    SpecError
+        Naming ``where`` (the file), the dotted key, what was expected and what was found.
+    """
+    if not isinstance(data, Mapping):
+        raise SpecError(f"{where}: expected a table of keys, got {type(data).__name__}")
+    m = validate_config(ParquetSpecModel, data, source=where)
+    w = f"{where}: episode"
+    ep = EpisodeSpec(id=m.episode.id, step=m.episode.step, step_base=m.episode.step_base, order=m.episode.order,
+                     time=m.episode.time, time_unit=m.episode.time_unit)
+    if ep.step and ep.order:
+        raise SpecError(f"{w}: give either 'step' (an integer step column) or 'order' (any sortable column), not both")
+    if not (ep.step or ep.order or ep.time):
+        raise SpecError(f"{w}: rows need an ordering within episodes: give 'step', 'order' or 'time'")
+    o = m.observations
+    w = f"{where}: observations"
+    obs = ObservationSpec(columns=o.columns, next_columns=o.next_columns, names=o.names, units=dict(o.units))
+    if obs.next_columns and len(obs.next_columns) != len(obs.columns):
+        raise SpecError(f"{w}: next_columns has {len(obs.next_columns)} entries, columns has {len(obs.columns)}")
+    if obs.names and len(obs.names) != len(obs.columns):
+        raise SpecError(f"{w}: names has {len(obs.names)} entries, columns has {len(obs.columns)}")
+    if m.kind == "transitions" and not obs.next_columns:
+        raise SpecError(f"{w}.next_columns: required for kind = 'transitions' (or use kind = 'steps')")
+    unknown_units = set(obs.units) - set(obs.names or obs.columns)
+    if unknown_units:
+        raise SpecError(f"{w}.units: keys {sorted(unknown_units)} are not observation names {list(obs.names or obs.columns)}")
+    act = _action(m.action, f"{where}: action")
+    if (m.cost.column is None) == (m.cost.reward is None):
+        raise SpecError(f"{where}: cost: give exactly one of 'column' (a cost, lower is better) or 'reward' (negated)")
+    if m.source.column is not None and m.source.value is not None:
+        raise SpecError(f"{where}: source: give either 'column' or 'value', not both")
     return ParquetSpec(
-        kind=kind,
+        kind=m.kind,
         episode=ep,
         observations=obs,
         action=act,
-        cost_column=cost_col,
-        reward_column=reward_col,
-        terminated_column=_get(end, "terminated", str, f"{where}.end"),
-        truncated_column=_get(end, "truncated", str, f"{where}.end"),
-        source_column=_get(src, "column", str, f"{where}.source"),
-        source_value=_get(src, "value", str, f"{where}.source", "unknown"),
-        propensity_column=_get(prop, "column", str, f"{where}.propensity"),
-        gamma=_get(hints, "gamma", float, f"{where}.hints"),
-        horizon=_get(hints, "horizon", int, f"{where}.hints"),
-        format=fmt,
-        name=_get(data, "name", str, where, ""),
-        on_error=on_error,
-        csv_delimiter=_get(csv, "delimiter", str, f"{where}.csv", ","),
+        cost_column=m.cost.column,
+        reward_column=m.cost.reward,
+        terminated_column=m.end.terminated,
+        truncated_column=m.end.truncated,
+        source_column=m.source.column,
+        source_value=m.source.value if m.source.value is not None else "unknown",
+        propensity_column=m.propensity.column,
+        gamma=m.hints.gamma,
+        horizon=m.hints.horizon,
+        format=m.format,
+        name=m.name,
+        on_error=m.on_error,
+        csv_delimiter=m.csv.delimiter,
         raw=dict(data),
         text=text,
     )
 
 
 def load_parquet_spec(path: str | PathLike[str]) -> ParquetSpec:
-    """Read and check a TOML spec file."""
+    """Read and check a TOML spec file (see :func:`parse_parquet_spec`)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise SpecError(f"{path}: cannot read spec ({exc.strerror})") from exc
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise SpecError(f"{path}: not valid TOML ({exc})") from exc
-    return parse_parquet_spec(data, text=text, where=str(path))
+    data = load_toml(path, "ingestion spec")
+    return parse_parquet_spec(data, text=path.read_bytes().decode("utf-8"), where=str(path))
 
 
-__all__ = ["ParquetSpec", "EpisodeSpec", "ObservationSpec", "ActionSpec", "parse_parquet_spec", "load_parquet_spec"]
+__all__ = ["ParquetSpec", "ParquetSpecModel", "EpisodeSpec", "ObservationSpec", "ActionSpec", "parse_parquet_spec",
+           "load_parquet_spec", "parquet_spec_schema"]
