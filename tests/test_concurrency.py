@@ -14,7 +14,7 @@ import pytest
 
 from offline_adp.algorithms.fqi import load_fqi
 from offline_adp.data.rundir import RunDirectory
-from offline_adp.errors import LockedError, OfflineADPError
+from offline_adp.errors import OfflineADPError
 
 pytestmark = pytest.mark.integration
 
@@ -81,9 +81,11 @@ def test_lock_is_exclusive_and_writes_do_not_follow_links(tmp_path):
     rd = RunDirectory(tmp_path / "run")
     outside = tmp_path / "outside.txt"
     outside.write_text("precious")
+    probe = ("import sys\nfrom offline_adp.data.rundir import RunDirectory\nfrom offline_adp.errors import LockedError\n"
+             "try:\n    RunDirectory(sys.argv[1]).lock().__enter__()\nexcept LockedError as e:\n    print(e); sys.exit(2)\n")
     with rd.lock():
-        with pytest.raises(LockedError, match="another process is writing this run directory"), RunDirectory(rd.path).lock():
-            pass
+        other = subprocess.run([sys.executable, "-c", probe, str(rd.path)], capture_output=True, text=True)
+        assert other.returncode == 2 and "another process is writing this run directory" in other.stdout
         (rd.path / "config.json").symlink_to(outside)
         (rd.path / ".model.tmp-abc").mkdir()  # a killed writer's leftovers
         rd.write_json("config.json", {"a": 1})
