@@ -434,36 +434,106 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- policies
-def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    from offline_adp.policies import (
-        ClassifierPolicy,
-        GreedyPolicy,
-        MixturePolicy,
-        NonStationaryPolicy,
-        TabularPolicy,
-        UniformPolicy,
-    )
+# Each policy kind registers how it is written and read: ``kind`` in policy.json names the
+# reader; the writer is found by the policy's class (its MRO), never by an isinstance chain.
+_POLICY_WRITERS: dict[type, tuple[str, Any]] = {}
+_POLICY_READERS: dict[str, Any] = {}
 
-    if isinstance(pi, GreedyPolicy):
-        return {"kind": "greedy", "q": _export_q(pi.q, arrays, f"{key}.q")}
-    if isinstance(pi, UniformPolicy):
-        return {"kind": "uniform", "n_actions": pi.n_actions}
-    if isinstance(pi, TabularPolicy):
-        arrays[f"{key}.table"] = pi.table
-        return {"kind": "tabular", "table": f"{key}.table"}
-    if isinstance(pi, MixturePolicy):
-        return {"kind": "mixture", "weights": pi.weights.tolist(),
-                "components": [_export_policy(c, arrays, f"{key}.c{i}") for i, c in enumerate(pi.components)]}
-    if isinstance(pi, NonStationaryPolicy):
-        return {"kind": "non_stationary", "steps": [_export_policy(c, arrays, f"{key}.t{i}") for i, c in enumerate(pi.steps)]}
-    if isinstance(pi, ClassifierPolicy):
-        fmap = None if pi.feature_map is None else _export_estimator(pi.feature_map, arrays, f"{key}.phi")
-        clf = None if pi.classifier is None else _export_estimator(pi.classifier, arrays, f"{key}.clf")
-        return {"kind": "classifier", "n_actions": pi.n_actions, "constant": pi.constant, "classifier": clf, "feature_map": fmap}
+
+def register_policy_kind(kind: str, cls: type, write: Any, read: Any) -> None:
+    """Make policies of class ``cls`` savable as ``kind``: ``write(pi, arrays, key) ->
+    dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> policy``
+    (checking every field before use; ``ArtifactError`` naming ``where``)."""
+    _POLICY_WRITERS[cls] = (kind, write)
+    _POLICY_READERS[kind] = read
+
+
+def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    _register_policies()
+    for cls in type(pi).__mro__:
+        if cls in _POLICY_WRITERS:
+            kind, write = _POLICY_WRITERS[cls]
+            return {"kind": kind, **write(pi, arrays, key)}
     raise ArtifactError(f"cannot save a {type(pi).__name__} policy safely")
 
 
 def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
+    _register_policies()
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: policy entry is not a JSON object")
+    read = _POLICY_READERS.get(spec.get("kind"))  # type: ignore[arg-type]
+    if read is None:
+        raise ArtifactError(f"{where}: unknown policy kind {spec.get('kind')!r}; known: {sorted(_POLICY_READERS)}")
+    return read(spec, arrays, where)
+
+
+def _write_tabular(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    arrays[f"{key}.table"] = pi.table
+    return {"table": f"{key}.table"}
+
+
+def _read_tabular(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import TabularPolicy
+
+    table = C.array(arrays, spec.get("table"), where, kinds="biuf")  # type: ignore[arg-type]
+    if table.ndim not in (2, 3) or 0 in table.shape or not np.all(np.isfinite(table)) or np.any(table < 0):
+        raise ArtifactError(f"{where}: {spec.get('table')}: a policy table needs finite probabilities >= 0 of shape "
+                            f"(states, actions) or (steps, states, actions), got {table.shape}")
+    return TabularPolicy(table)
+
+
+def _read_parts(spec: dict[str, Any], arrays: Any, where: str, field: str, kind: str) -> list[Any]:
+    parts = spec.get(field)
+    if not isinstance(parts, list) or not parts:
+        raise ArtifactError(f"{where}: {kind} policy needs a non-empty list of policies")
+    pols = [_import_policy(c, arrays, where) for c in parts]
+    if len({p.n_actions for p in pols}) != 1:
+        raise ArtifactError(f"{where}: {kind} policy mixes action counts")
+    return pols
+
+
+def _read_mixture(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import MixturePolicy
+
+    pols = _read_parts(spec, arrays, where, "components", "mixture")
+    w = spec.get("weights")
+    if not isinstance(w, list) or len(w) != len(pols) or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in w):
+        raise ArtifactError(f"{where}: mixture needs one numeric weight per component")
+    try:
+        return MixturePolicy(pols, w)
+    except ValueError as exc:
+        raise ArtifactError(f"{where}: {exc}") from None
+
+
+def _write_classifier(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    fmap = None if pi.feature_map is None else _export_estimator(pi.feature_map, arrays, f"{key}.phi")
+    clf = None if pi.classifier is None else _export_estimator(pi.classifier, arrays, f"{key}.clf")
+    return {"n_actions": pi.n_actions, "constant": pi.constant, "classifier": clf, "feature_map": fmap}
+
+
+def _read_classifier(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import ClassifierPolicy
+
+    n_actions = C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000)
+    constant = spec.get("constant")
+    if constant is not None:
+        C.check_int(constant, where, "constant", 0, n_actions - 1)
+    clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
+    if clf is None and constant is None:
+        raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
+    classes = getattr(clf, "classes_", None)
+    if classes is not None:
+        c = np.asarray(classes)
+        if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
+            raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
+    fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
+    return ClassifierPolicy(clf, n_actions, constant, fmap)
+
+
+def _register_policies() -> None:
+    """Register the package's policy kinds (once; policies import lazily to keep this module light)."""
+    if _POLICY_READERS:
+        return
     from offline_adp.policies import (
         ClassifierPolicy,
         GreedyPolicy,
@@ -473,51 +543,22 @@ def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -
         UniformPolicy,
     )
 
-    if not isinstance(spec, dict):
-        raise ArtifactError(f"{where}: policy entry is not a JSON object")
-    kind = spec.get("kind")
-    if kind == "greedy":
-        return GreedyPolicy(_import_q(spec.get("q"), arrays, where))  # type: ignore[arg-type]
-    if kind == "uniform":
-        return UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000))
-    if kind == "tabular":
-        table = C.array(arrays, spec.get("table"), where, kinds="biuf")  # type: ignore[arg-type]
-        if table.ndim not in (2, 3) or 0 in table.shape or not np.all(np.isfinite(table)) or np.any(table < 0):
-            raise ArtifactError(f"{where}: {spec.get('table')}: a policy table needs finite probabilities >= 0 of shape "
-                                f"(states, actions) or (steps, states, actions), got {table.shape}")
-        return TabularPolicy(table)
-    if kind in ("mixture", "non_stationary"):
-        parts = spec.get("components" if kind == "mixture" else "steps")
-        if not isinstance(parts, list) or not parts:
-            raise ArtifactError(f"{where}: {kind} policy needs a non-empty list of policies")
-        pols = [_import_policy(c, arrays, where) for c in parts]
-        if len({p.n_actions for p in pols}) != 1:
-            raise ArtifactError(f"{where}: {kind} policy mixes action counts")
-        if kind == "non_stationary":
-            return NonStationaryPolicy(pols)
-        w = spec.get("weights")
-        if not isinstance(w, list) or len(w) != len(pols) or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in w):
-            raise ArtifactError(f"{where}: mixture needs one numeric weight per component")
-        try:
-            return MixturePolicy(pols, w)
-        except ValueError as exc:
-            raise ArtifactError(f"{where}: {exc}") from None
-    if kind == "classifier":
-        n_actions = C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000)
-        constant = spec.get("constant")
-        if constant is not None:
-            C.check_int(constant, where, "constant", 0, n_actions - 1)
-        clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
-        if clf is None and constant is None:
-            raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
-        classes = getattr(clf, "classes_", None)
-        if classes is not None:
-            c = np.asarray(classes)
-            if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
-                raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
-        fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
-        return ClassifierPolicy(clf, n_actions, constant, fmap)
-    raise ArtifactError(f"{where}: unknown policy kind {kind!r}")
+    register_policy_kind("greedy", GreedyPolicy, lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")},
+                         lambda spec, arrays, where: GreedyPolicy(_import_q(spec.get("q"), arrays, where)))  # type: ignore[arg-type]
+    register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {"n_actions": pi.n_actions},
+                         lambda spec, arrays, where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
+                                                                               1_000_000)))
+    register_policy_kind("tabular", TabularPolicy, _write_tabular, _read_tabular)
+    register_policy_kind("mixture", MixturePolicy,
+                         lambda pi, arrays, key: {"weights": pi.weights.tolist(), "components": [
+                             _export_policy(c, arrays, f"{key}.c{i}") for i, c in enumerate(pi.components)]},
+                         _read_mixture)
+    register_policy_kind("non_stationary", NonStationaryPolicy,
+                         lambda pi, arrays, key: {"steps": [_export_policy(c, arrays, f"{key}.t{i}")
+                                                            for i, c in enumerate(pi.steps)]},
+                         lambda spec, arrays, where: NonStationaryPolicy(
+                             _read_parts(spec, arrays, where, "steps", "non_stationary")))
+    register_policy_kind("classifier", ClassifierPolicy, _write_classifier, _read_classifier)
 
 
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
