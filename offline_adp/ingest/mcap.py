@@ -730,6 +730,7 @@ class _Recording:
         self.late = {t: 0 for t in self.by_topic}
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
+                      "orphan_messages": 0,
                       "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
@@ -807,20 +808,8 @@ class _Recording:
                 s = self.value_keys[k]
                 t = _msg_time(s.time, msg, dec)
                 values = [float(get_path(dec, p)) for p in s.fields.values()]
-            if self.epoch[k] < self.active:  # an idle stream that never saw its time restart: catch up
-                self.epoch[k], self.maxt[k] = self.active, None
-            e = self.epoch[k]
-            m = self.maxt[k]
-            if m is not None and self.restart > 0 and t < m - self.restart:  # the time source went backwards
-                e = self.epoch[k] = max(e + 1, self.epoch[self.clock_key] + (k == self.clock_key))
-                self.maxt[k] = m = None
-                if k == self.clock_key:
-                    self.stats["restarts"] += 1
-            if m is None or t > m:
-                self.maxt[k] = t
-            if k == self.clock_key and e not in self.clock_first:
-                self.clock_first[e] = t
-            if e < self.active:  # its epoch was already assembled
+            e = self._epoch_of(k, t)
+            if e is None:  # late for an epoch already over (by file order, not by flush points)
                 self.late[topic] += 1
                 continue
             if e == self.active and self.flushed_t is not None and t < self.flushed_t - self.lag:
@@ -829,6 +818,55 @@ class _Recording:
             if b is None:
                 b = self.bufs[(k, e)] = _Buffer(self.names[k], object if k == "events" else np.float64)
             b.add(t, file_index, values)
+
+    def _epoch_of(self, k: Any, t: int) -> int | None:
+        """The epoch of a message of key ``k`` at time ``t``, from the file order alone
+        (never from what has been flushed): see "Epochs" in docs/ingestion-spec.md.
+
+        The clock's epoch advances when its time jumps back more than ``restart``. Any
+        other stream is placed against the clock's current epoch ``ce`` and latest time
+        ``cm``: a time more than ``restart`` below ``cm`` is the next epoch's (the stream
+        restarted before the clock); a stream still in ``ce - 1`` whose time has not
+        jumped back and lies more than ``restart`` above ``cm`` is a late message of
+        ``ce - 1``; anything else is ``ce``'s. A stream ahead of the clock stays ahead
+        until the clock follows (a second jump back while ahead replaces its buffer: the
+        clock skipped that epoch). None: the message belongs to an epoch that is over.
+        """
+        r = self.restart
+        m, ek = self.maxt[k], self.epoch[k]
+        own_restart = m is not None and r > 0 and t < m - r
+        ck = self.clock_key
+        if k == ck:
+            e = ek + 1 if own_restart else ek
+            if own_restart:
+                self.stats["restarts"] += 1
+            if e not in self.clock_first:
+                self.clock_first[e] = t
+        else:
+            ce, cm = self.epoch[ck], self.maxt[ck]
+            ahead = cm is not None and r > 0 and t < cm - r
+            if ek == ce + 1 and m is not None:  # ahead of the clock
+                e = ek
+                if own_restart:  # a second restart before the clock's: the clock has no such epoch
+                    b = self.bufs.pop((k, ek), None)
+                    self.stats["orphan_messages"] += len(b) if b is not None else 0
+            elif ek == ce and m is not None and not own_restart:
+                e = ce
+            elif ek == ce - 1 and m is not None and not own_restart and cm is not None and r > 0 and t > cm + r:
+                e = ek  # a late message of the epoch before the clock's restart
+                if cm - self.clock_first.get(ce, cm) >= self.reorder:
+                    return None
+            else:
+                e = ce + 1 if ahead else ce
+        if e != ek:
+            self.epoch[k], m = e, None
+        elif own_restart:
+            m = None
+        if m is None or t > m:
+            self.maxt[k] = t
+        if e < self.active:  # defensive: never happens for messages on time (see the rules above)
+            return None
+        return e
 
     def _lost_ranges(self) -> list[tuple[int, int]]:
         """Time ranges (widened by the reorder window) of the chunks lost so far."""
@@ -852,7 +890,8 @@ class _Recording:
         ce = self.epoch[self.clock_key]
         if ce > e:
             now = self.maxt[self.clock_key] or 0
-            if all(v > e for v in self.epoch.values()) or now - self.clock_first.get(ce, now) >= self.reorder:
+            if (ce > e + 1 or all(v > e for v in self.epoch.values())
+                    or now - self.clock_first.get(ce, now) >= self.reorder):  # no message can still join e
                 return np.inf
         latest = [self.maxt[k] for k in self.epoch if self.epoch[k] == e and self.maxt[k] is not None]
         if not latest:
