@@ -1,0 +1,184 @@
+"""Recordings -> dataset: the ``ingest_mcap`` entry point."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from collections.abc import Sequence
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp._version import __version__
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import DatasetInfo, Feature
+from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.validate import split_quarantine, validate
+from offline_adp.errors import IngestError, ValidationError
+from offline_adp.ingest.actions import bin_continuous, map_discrete
+from offline_adp.ingest.mcap.assembler import _Recording
+from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
+from offline_adp.ingest.mcap.sources import resolve_sources
+from offline_adp.ingest.mcap.spec import McapSpec, load_mcap_spec
+
+
+def _run_recording(files: list[Path], spec: McapSpec, on_error: str, file_index: int) -> RecordingResult:
+    return _Recording(files, spec, on_error, file_index).run()
+
+
+def ingest_mcap(
+    files: Sequence[str | PathLike[str]],
+    spec: McapSpec | str | PathLike[str],
+    out: str | PathLike[str] | None = None,
+    *,
+    on_error: str | None = None,
+    overwrite: bool = False,
+    jobs: int = 1,
+    progress: Any = None,
+) -> tuple[TransitionDataset, dict[str, Any]]:
+    """Ingest MCAP files into a dataset (written atomically to ``out`` when given).
+
+    ``files`` may hold globs; empty means the spec's ``[sources] files``. Recordings (a
+    file, or the parts of a split recording) are assembled independently — in a process
+    pool with ``jobs > 1`` — and concatenated in input order, so the result does not
+    depend on ``jobs``. Returns the dataset and a summary: per file its sha256, messages
+    read and skipped per topic, damage recovered; per topic the messages used; steps
+    dropped, outside any episode or under an end condition; episodes, transitions and
+    per-source counts. ``progress(done, total)`` is called after each recording.
+    """
+    if not isinstance(spec, McapSpec):
+        spec = load_mcap_spec(spec)
+    if out is not None and Path(out).exists() and not overwrite:
+        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    on_error = on_error or spec.on_error
+    recordings = resolve_sources(files, spec)
+    starts = np.cumsum([0] + [len(r) for r in recordings])[:-1].tolist()
+    args = [(r, spec, on_error, s) for r, s in zip(recordings, starts, strict=True)]
+    results: list[dict[str, Any]] = []
+    if jobs > 1 and len(recordings) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(jobs, len(recordings)), mp_context=mp.get_context("spawn")) as pool:
+            for k, res in enumerate(pool.map(_run_recording, *zip(*args, strict=True))):  # input order
+                results.append(res)
+                if progress:
+                    progress(k + 1, len(recordings))
+    else:
+        for k, a in enumerate(args):
+            results.append(_run_recording(*a))
+            if progress:
+                progress(k + 1, len(recordings))
+    paths = [p for r in recordings for p in r]
+    summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
+                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}}
+    for res, rec in zip(results, recordings, strict=True):
+        for k, v in res.stats.items():
+            summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
+        for name in ("used", "late"):
+            tgt = summary["messages_used" if name == "used" else "late_messages"]
+            for t, v in getattr(res, name).items():
+                tgt[t] = tgt.get(t, 0) + v
+        for f in res.files:
+            for t, v in f["messages_skipped"].items():
+                summary["messages_skipped"][t] = summary["messages_skipped"].get(t, 0) + v
+            summary["files"].append({**f, "sha256": sha256_file(f["path"])})
+        if res.missing_topics:
+            needed = [s for s in (*spec.streams, spec.action_stream) if s.topic in res.missing_topics]
+            clock_missing = (spec.clock_topic or "") in res.missing_topics
+            if clock_missing or any(s.missing == "error" for s in needed):
+                msg = (f"{', '.join(map(str, rec))}: no decodable messages on needed topic(s) {res.missing_topics} "
+                       "(present in other recordings? set missing = 'fill' or 'drop_step' on that stream)")
+                if on_error == "fail" or not any(len(r.episodes) for r in results):
+                    raise IngestError(msg)
+                import warnings
+
+                warnings.warn(msg, stacklevel=2)
+    summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
+    if summary["late_messages"]:
+        import warnings
+
+        warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
+                      f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); steps before "
+                      "them were aligned without them. Raise reorder_window.", stacklevel=2)
+    eps = [ep for r in results for ep in r.episodes]
+    if not eps:
+        raise IngestError(f"no episode with at least one transition in {[str(p) for p in paths]}")
+    ds = _dataset(eps, spec, paths, summary)
+    report = validate(ds)
+    summary["doctor"] = report.summary()
+    if not report.ok:
+        if on_error == "fail":
+            raise ValidationError(report.to_text(), report)
+        ds, q = split_quarantine(ds, report)
+        summary["quarantined_rows"] = q.num_rows
+    if out is not None:
+        write_dataset(ds, out, overwrite=overwrite, extra_meta={"ingest": _jsonable(summary)})
+    summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts())
+    return ds, summary
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary: dict[str, Any]) -> TransitionDataset:
+    """Episodes -> dataset: action table, costs, provenance (``src_file`` per row)."""
+    import pyarrow as pa
+
+    cat = lambda k: np.concatenate([getattr(e, k) for e in eps])  # noqa: E731
+    obs, nxt, aux, aux_next = cat("obs"), cat("next"), cat("aux"), cat("aux_next")
+    lengths = np.array([len(e.t) for e in eps])
+    raw_action = cat("act")
+    if spec.action.type == "discrete":
+        action, atable = map_discrete(raw_action, spec.action)
+    else:
+        action, atable = bin_continuous(raw_action, spec.action)
+    term = np.zeros(len(obs), bool)
+    ends = np.cumsum(lengths) - 1
+    term[ends] = [e.terminated for e in eps]
+    trunc = np.zeros(len(obs), bool)
+    trunc[ends] = ~term[ends]
+    obs_names, aux_names = spec.obs_names, spec.aux_names
+
+    def column(name: str, at: str = "step") -> np.ndarray:
+        if name == "action":
+            return atable.values[action, 0]
+        if name in obs_names:
+            return (nxt if at == "next" else obs)[:, obs_names.index(name)]
+        return (aux_next if at == "next" else aux)[:, aux_names.index(name)]
+
+    if spec.cost_field is not None:
+        cost = column(spec.cost_field).copy()
+    elif spec.reward_field is not None:
+        cost = -column(spec.reward_field)
+    else:
+        cost = np.zeros(len(obs))
+        for t in spec.cost_terms:
+            x = column(t["field"], t.get("at", "step"))
+            op, w = t.get("op", "abs"), float(t.get("weight", 1.0))
+            cost += w * (np.abs(x) if op == "abs" else x * x if op == "square" else x)
+    if spec.terminal_cost is not None:
+        cost = np.where(term, spec.terminal_cost, cost)
+    cost = cost + 0.0  # no -0.0
+    info = DatasetInfo(
+        features=tuple(Feature(n) for n in obs_names), action_table=atable, gamma=spec.gamma, horizon=spec.horizon,
+        propensity_source="unknown", name=spec.name,
+        provenance={"inputs": summary["files"], "spec": spec.raw, "package_version": __version__,
+                    "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "generator": "offline-adp ingest mcap"},
+    )
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=np.repeat([e.ep for e in eps], lengths), step=np.concatenate([np.arange(n) for n in lengths]),
+        obs=obs, action=action, cost=cost, next_obs=nxt, terminated=term, truncated=trunc,
+        source=np.repeat([e.src for e in eps], lengths), t_ns=cat("t"),
+        extra={"src_file": pa.DictionaryArray.from_arrays(pa.array(cat("file").astype(np.int32)),
+                                                          pa.array([str(p) for p in paths]))},
+    )
+    return ds
