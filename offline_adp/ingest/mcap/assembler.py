@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -235,12 +235,18 @@ class _Recording(EpisodeSegmenter):
                 self.stats["restarts"] += 1
             if e not in self.clock_first:
                 self.clock_first[e] = t
+                for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
+                    m2 = self.maxt[k2]
+                    if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
+                        b = self.bufs.pop((k2, e), None)
+                        self.stats["orphan_messages"] += len(b) if b is not None else 0
+                        self.maxt[k2] = None
             if self.pending_losses:
                 self._resolve_losses(e)
         else:
             ce, cm = self.epoch[ck], self.maxt[ck]
             ahead = cm is not None and r > 0 and t < cm - r
-            if ek == ce + 1 and m is not None:  # ahead of the clock
+            if m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
                 e = ek
                 if own_restart:  # a second restart before the clock's: the clock has no such epoch
                     b = self.bufs.pop((k, ek), None)
@@ -442,3 +448,19 @@ class _Recording(EpisodeSegmenter):
         if not keep.all():
             steps = {k: v[keep] for k, v in steps.items()}
         self._segment(e, steps)
+
+
+def assemble(parts: Sequence[Iterable[Message]], spec: McapSpec, *, name: str = "memory", on_error: str = "fail",
+             flush_every: int = 5000) -> RecordingResult:
+    """Assemble one recording given as decoded messages in file order (one iterable per
+    file part) — the streaming assembler without MCAP files, e.g. for tests.
+
+    ``flush_every``: messages between flushes (the result never depends on it for
+    messages no later in the file than ``reorder_window``)."""
+    files = [Path(f"{name}.mcap")] if len(parts) == 1 else [Path(f"{name}_{i}.mcap") for i in range(len(parts))]
+    rec = _Recording(files, spec, on_error, 0, flush_every=flush_every)
+    for i, msgs in enumerate(parts):
+        if i and spec.per_file:
+            rec._new_epoch_everywhere()
+        rec.feed(msgs, i)
+    return rec.finish()
