@@ -6,6 +6,7 @@ known by construction (each field encodes its own time, step or episode)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -260,8 +261,31 @@ def test_a_topic_missing_from_one_file_of_many_follows_its_missing_rule(tmp_path
 
 def test_empty_file_and_undecodable_needed_channel(tmp_path):
     (tmp_path / "empty.mcap").write_bytes(b"")
-    with pytest.raises(IngestError, match="empty.mcap: no decodable messages on needed topic"):
+    with pytest.raises(IngestError, match=r"empty.mcap: empty file \(0 bytes\)"):
         ingest_mcap([tmp_path / "empty.mcap"], spec())
+
+
+def test_a_bad_file_in_a_glob_is_named_and_under_quarantine_skipped_and_counted(tmp_path):
+    d = tmp_path / "logs"
+    d.mkdir()
+    write_log(d / "a.mcap", episode_messages(8))
+    (d / "b.mcap").write_bytes(b"not an mcap file at all")
+    (d / "c.mcap").write_bytes(b"")
+    write_log(d / "d.mcap", episode_messages(8, ep=1))
+    with pytest.raises(IngestError, match=r"b.mcap: not an MCAP file"):
+        ingest_mcap([str(d / "*.mcap")], spec())
+    with pytest.warns(UserWarning, match="skipped"):
+        ds, s = ingest_mcap([str(d / "*.mcap")], spec(), on_error="quarantine")
+    assert ds.n_episodes == 2 and len(ds) == 14
+    skipped = {Path(f["files"][0]).name: f["error"] for f in s["skipped_files"]}
+    assert set(skipped) == {"b.mcap", "c.mcap"} and "empty" in skipped["c.mcap"]
+
+
+def test_a_missing_command_topic_is_named(tmp_path):
+    f = write_log(tmp_path / "nocmd.mcap", [m for m in episode_messages(8) if m[0] != "/cmd"])
+    act = {**spec().raw["action"], "missing": "drop_step"}
+    with pytest.raises(IngestError, match=r"topics without any message: \['/cmd'\]; 8 steps dropped"):
+        ingest_mcap([f], spec(action=act))
 
 
 def test_a_terminal_role_field_and_a_reward_field(tmp_path):

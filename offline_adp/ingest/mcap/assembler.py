@@ -69,6 +69,8 @@ class _Recording(EpisodeSegmenter):
                  flush_every: int = 5000) -> None:
         self.files, self.spec, self.on_error, self.file0 = files, spec, on_error, file_index
         self.flush_every = max(int(flush_every), 1)
+        self.cut = False
+        self.final = False
         self.n_since = 0
         self.name = re.sub(r"_\d+$", "", files[0].stem) if len(files) > 1 else files[0].stem
         self.value_keys: dict[Any, StreamSpec] = {("s", i): s for i, s in enumerate(spec.streams)}
@@ -108,7 +110,7 @@ class _Recording(EpisodeSegmenter):
         self.late = {t: 0 for t in self.by_topic}
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
-                      "orphan_messages": 0,
+                      "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
                       "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
@@ -125,7 +127,7 @@ class _Recording(EpisodeSegmenter):
             if fi and self.spec.per_file:
                 self._new_epoch_everywhere()
             self._read(path, self.file0 + fi)
-        return self.finish()
+        return self.finish(cut=bool(self.live_reports) and "lost_from_offset" in self.live_reports[-1])
 
     def feed(self, messages: Iterable[Message], file_index: int | None = None) -> None:
         """Add decoded messages in file order (flushing every ``flush_every`` messages)."""
@@ -137,22 +139,25 @@ class _Recording(EpisodeSegmenter):
                 self.n_since = 0
                 self._flush()
 
-    def finish(self) -> RecordingResult:
-        """Assemble what is left; leave out the episodes damage touched (counted)."""
+    def finish(self, cut: bool = False) -> RecordingResult:
+        """Assemble what is left. Episodes damage touched, and with ``cut`` (the recording
+        ends inside a record) the episode it ends in, are marked rejected (``reason``), counted.
+        """
         if self.pending_losses:
             self._resolve_losses(self.epoch[self.clock_key])
+        self.cut = cut
         self._flush(final=True)
-        if any(r.get("lost_chunks") for r in self.live_reports):
-            kept = [ep for ep in self.out if not self._episode_damaged(ep)]
-            self.stats["episodes_lost_to_damage"] += len(self.out) - len(kept)
-            self.out = kept
+        for ep in self.out:
+            if not ep.reason and (lost := self._episode_damaged(ep)):
+                ep.reason = lost
+                self.stats["episodes_lost_to_damage"] += 1
         missing = [t for t, n in self.used.items() if n == 0 and t != self.spec.episode_topic]
         return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing)
 
     def _read(self, path: Path, file_index: int) -> None:
         from collections import Counter
 
-        report: dict[str, Any] = {}
+        report: dict[str, Any] = {"_path": str(path)}
         self.live_reports.append(report)  # lost chunks become known while reading
         before = dict(self.used)
         decoders = _Decoders()
@@ -167,8 +172,10 @@ class _Recording(EpisodeSegmenter):
                                           f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
                                           f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
                     self.feed((Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)),), file_index)
-        except IngestError:
-            raise
+        except IngestError as exc:
+            if str(path) in str(exc):
+                raise
+            raise IngestError(f"{path}: {exc}") from None
         except (KeyError, AttributeError, IndexError, TypeError, ValueError) as exc:
             raise IngestError(f"{path}: a field path of the spec does not match the messages ({type(exc).__name__}: "
                               f"{exc}); run `offline-adp mcap-info` to list the fields") from exc
@@ -180,8 +187,9 @@ class _Recording(EpisodeSegmenter):
                  "messages_skipped": dict(Counter(report.get("skipped", {}))), **({"empty": True} if report.get("empty") else {})}
         if text:
             entry["recovered"] = {"messages": report["messages"], "lost_chunks": report["lost_chunks"],
-                                  **{k: report[k] for k in ("lost_from_offset", "damaged") if k in report}, "text": text}
-            if self.on_error == "fail":
+                                  **{k: report[k] for k in ("lost_from_offset", "damaged", "messages_lost") if k in report},
+                                  "text": text}
+            if self.on_error == "fail" and report["lost_chunks"]:  # a file merely cut short is kept (its last episode is not)
                 raise IngestError(text + "; re-run with --on-error quarantine to keep what was recovered")
             import warnings
 
@@ -309,8 +317,14 @@ class _Recording(EpisodeSegmenter):
             c["_epochs"] = eps
         self.pending_losses = []
 
-    def _episode_damaged(self, ep: EpisodeRows) -> bool:
-        return any(ep.t[0] <= b and ep.t_end >= a for a, b in self._lost_ranges(ep.epoch))
+    def _episode_damaged(self, ep: EpisodeRows) -> str:
+        """The reason an episode is lost to damage ("" if it is not)."""
+        for r in self.live_reports:
+            for c in r.get("lost_chunks", []):
+                for e, a, b in c.get("_epochs", ()):
+                    if e == ep.epoch and ep.t[0] <= b + self.reorder and ep.t_end >= a - self.reorder:
+                        return f"damage: lost chunk at offset {c['offset']} of {r.get('_path', 'the file')}"
+        return ""
 
     def _new_epoch_everywhere(self) -> None:
         e = max(self.epoch.values()) + 1
@@ -347,6 +361,7 @@ class _Recording(EpisodeSegmenter):
         return w - self.lag
 
     def _flush(self, final: bool = False) -> None:
+        self.final = final
         held = sum(len(b) for b in self.bufs.values())
         self.stats["max_buffered_messages"] = max(self.stats["max_buffered_messages"], held)
         while True:
@@ -357,7 +372,8 @@ class _Recording(EpisodeSegmenter):
             self._emit_ready(e, w)
             if w != np.inf:
                 return
-            self._close(None)  # the epoch is over: so is its episode
+            self._close(None, cut=final and self.cut and self.active == max(self.epoch.values()))
+            # the epoch is over: so is its episode (in the last epoch of a cut recording: cut)
             for k in list(self.bufs):
                 if k[1] == e:
                     del self.bufs[k]
@@ -416,6 +432,10 @@ class _Recording(EpisodeSegmenter):
         aux = np.empty((n, len(spec.aux_names)))
         keep = np.ones(n, bool)
         damaged = self._damaged(e, times)  # steps whose messages may be in a lost chunk: their episode is left out
+        if self.cut and e == max(self.epoch.values()):  # steps whose data may have been written after the cut
+            top = max((m for k, m in self.maxt.items() if m is not None and self.epoch[k] == e), default=None)
+            if top is not None:
+                damaged |= times >= top - self.lag
         missing_here = np.zeros(n, bool)
         act, act_ok = np.zeros(n), np.ones(n, bool)
         for k, s in self.value_keys.items():
@@ -440,11 +460,12 @@ class _Recording(EpisodeSegmenter):
                 else:
                     where, j = self.col[name]
                     (obs if where == "obs" else aux)[:, j] = v
-        hit = damaged & (missing_here | ~act_ok)
+        hit = damaged & (missing_here | ~keep)  # lacks data that damage may have taken: episode rejected
         self.stats["damaged_steps"] += int(hit.sum())
-        keep &= ~hit
         self.stats["dropped_steps"] += int((~keep & ~hit).sum())
-        steps = {"t": times, "file": files, "lt": lts, "obs": obs, "aux": aux, "act": act, "act_ok": act_ok}
+        keep |= hit
+        steps = {"t": times, "file": files, "lt": lts, "obs": obs, "aux": aux, "act": act, "act_ok": act_ok,
+                 "hit": hit, "act_hit": damaged & ~act_ok}
         if not keep.all():
             steps = {k: v[keep] for k, v in steps.items()}
         self._segment(e, steps)

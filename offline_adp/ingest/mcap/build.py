@@ -15,7 +15,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import sha256_file, write_dataset
 from offline_adp.data.validate import split_quarantine, validate
-from offline_adp.errors import IngestError, ValidationError
+from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.actions import bin_continuous, map_discrete
 from offline_adp.ingest.mcap.assembler import _Recording
 from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
@@ -23,8 +23,15 @@ from offline_adp.ingest.mcap.sources import resolve_sources
 from offline_adp.ingest.mcap.spec import McapSpec, load_mcap_spec
 
 
-def _run_recording(files: list[Path], spec: McapSpec, on_error: str, file_index: int) -> RecordingResult:
-    return _Recording(files, spec, on_error, file_index).run()
+def _run_recording(files: list[Path], spec: McapSpec, on_error: str, file_index: int) -> RecordingResult | str:
+    """One recording; under quarantine a recording that cannot be read at all gives the
+    error text (the file is skipped and counted), under fail the error."""
+    try:
+        return _Recording(files, spec, on_error, file_index).run()
+    except IngestError as exc:
+        if on_error == "fail" or isinstance(exc, SpecError):
+            raise
+        return str(exc)
 
 
 def ingest_mcap(
@@ -39,23 +46,43 @@ def ingest_mcap(
 ) -> tuple[TransitionDataset, dict[str, Any]]:
     """Ingest MCAP files into a dataset (written atomically to ``out`` when given).
 
-    ``files`` may hold globs; empty means the spec's ``[sources] files``. Recordings (a
-    file, or the parts of a split recording) are assembled independently — in a process
-    pool with ``jobs > 1`` — and concatenated in input order, so the result does not
-    depend on ``jobs``. Returns the dataset and a summary: per file its sha256, messages
-    read and skipped per topic, damage recovered; per topic the messages used; steps
-    dropped, outside any episode or under an end condition; episodes, transitions and
-    per-source counts. ``progress(done, total)`` is called after each recording.
+    ``files`` may hold globs and rosbag2 bag directories; empty means the spec's
+    ``[sources] files``. Recordings (a file, or the parts of a split recording) are
+    assembled independently — in a process pool with ``jobs > 1`` — and concatenated in
+    input order, so the result does not depend on ``jobs``. Returns the dataset and a
+    summary: per file its sha256, messages read and skipped per topic, damage recovered;
+    per topic the messages used; steps dropped, outside any episode or under an end
+    condition; episodes, transitions and per-source counts; under ``on_error =
+    "quarantine"`` the rows set aside in ``quarantine/`` (``rows in the dataset + rows in
+    quarantine = transitions_assembled``) and the files skipped.
+    ``progress(done, total)`` is called after each recording.
     """
-    if not isinstance(spec, McapSpec):
-        spec = load_mcap_spec(spec)
     if out is not None and Path(out).exists() and not overwrite:
         raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    ds, quarantine, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
+    if out is not None:
+        write_dataset(ds, out, overwrite=overwrite, quarantine=quarantine, extra_meta={"ingest": _jsonable(summary)})
+    return ds, summary
+
+
+def ingest_mcap_tables(
+    files: Sequence[str | PathLike[str]],
+    spec: McapSpec | str | PathLike[str],
+    *,
+    on_error: str | None = None,
+    jobs: int = 1,
+    progress: Any = None,
+) -> tuple[TransitionDataset, Any, dict[str, Any]]:
+    """:func:`ingest_mcap` without writing: (dataset, quarantine table or None, summary)."""
+    if not isinstance(spec, McapSpec):
+        spec = load_mcap_spec(spec)
     on_error = on_error or spec.on_error
+    if on_error not in ("fail", "quarantine"):
+        raise IngestError(f"on_error must be 'fail' or 'quarantine', got {on_error!r}")
     recordings = resolve_sources(files, spec)
     starts = np.cumsum([0] + [len(r) for r in recordings])[:-1].tolist()
     args = [(r, spec, on_error, s) for r, s in zip(recordings, starts, strict=True)]
-    results: list[dict[str, Any]] = []
+    results: list[RecordingResult | str] = []
     if jobs > 1 and len(recordings) > 1:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
@@ -70,10 +97,24 @@ def ingest_mcap(
             results.append(_run_recording(*a))
             if progress:
                 progress(k + 1, len(recordings))
-    paths = [p for r in recordings for p in r]
+    import warnings
+
     summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
-                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}}
+                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}, "skipped_files": []}
+    good: list[tuple[RecordingResult, list[Path]]] = []
     for res, rec in zip(results, recordings, strict=True):
+        if isinstance(res, str):  # unreadable under quarantine: named, skipped, counted
+            summary["skipped_files"].append({"files": [str(p) for p in rec], "error": res})
+            warnings.warn(f"skipped: {res}", stacklevel=2)
+            continue
+        if res.files and all(f.get("empty") for f in res.files):
+            msg = f"{', '.join(map(str, rec))}: empty file (0 bytes)"
+            if on_error == "fail":
+                raise IngestError(msg)
+            summary["skipped_files"].append({"files": [str(p) for p in rec], "error": msg})
+            warnings.warn(f"skipped: {msg}", stacklevel=2)
+            continue
+        good.append((res, rec))
         for k, v in res.stats.items():
             summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
         for name in ("used", "late"):
@@ -90,33 +131,49 @@ def ingest_mcap(
             if clock_missing or any(s.missing == "error" for s in needed):
                 msg = (f"{', '.join(map(str, rec))}: no decodable messages on needed topic(s) {res.missing_topics} "
                        "(present in other recordings? set missing = 'fill' or 'drop_step' on that stream)")
-                if on_error == "fail" or not any(len(r.episodes) for r in results):
+                if on_error == "fail" or not any(not isinstance(r, str) and len(r.episodes) for r in results):
                     raise IngestError(msg)
-                import warnings
-
                 warnings.warn(msg, stacklevel=2)
     summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
     if summary["late_messages"]:
-        import warnings
-
         warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
                       f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); steps before "
                       "them were aligned without them. Raise reorder_window.", stacklevel=2)
-    eps = [ep for r in results for ep in r.episodes]
-    if not eps:
-        raise IngestError(f"no episode with at least one transition in {[str(p) for p in paths]}")
-    ds = _dataset(eps, spec, paths, summary)
+    paths = [p for r in recordings for p in r]
+    eps = [ep for r, _ in good for ep in r.episodes]
+    rejected = [ep for ep in eps if ep.reason]
+    kept = [ep for ep in eps if not ep.reason]
+    summary["transitions_assembled"] = int(sum(len(e.t) for e in eps))
+    summary["rejected_episodes"] = [{"episode": e.ep, "transitions": len(e.t), "reason": e.reason} for e in rejected]
+    if not kept:
+        silent = sorted(t for r, _ in good for t, n in r.used.items() if n == 0)
+        raise IngestError(
+            f"no episode with at least one transition in {[str(p) for p in paths]}"
+            + (f"; topics without any message: {silent}" if silent else "")
+            + (f"; {summary.get('dropped_steps', 0)} steps dropped for missing values" if summary.get("dropped_steps") else "")
+            + (f"; rejected episodes: {[e['reason'] for e in summary['rejected_episodes']][:3]}" if rejected else "")
+            + (f"; skipped files: {summary['skipped_files']}" if summary["skipped_files"] else ""))
+    ds_all = _dataset(eps, spec, paths, summary)
+    row_rejected = np.repeat([bool(e.reason) for e in eps], [len(e.t) for e in eps])
+    import pyarrow as pa
+
+    q_tables = []
+    if rejected and on_error == "quarantine":
+        reasons = np.repeat([e.reason for e in rejected], [len(e.t) for e in rejected])
+        q_tables.append(ds_all.table.filter(pa.array(row_rejected)).append_column("reason", pa.array(reasons, pa.string())))
+    ds = TransitionDataset(ds_all.table.filter(pa.array(~row_rejected)), ds_all.info) if rejected else ds_all
     report = validate(ds)
     summary["doctor"] = report.summary()
     if not report.ok:
         if on_error == "fail":
             raise ValidationError(report.to_text(), report)
         ds, q = split_quarantine(ds, report)
-        summary["quarantined_rows"] = q.num_rows
-    if out is not None:
-        write_dataset(ds, out, overwrite=overwrite, extra_meta={"ingest": _jsonable(summary)})
+        q_tables.append(q)
+    quarantine = pa.concat_tables(q_tables) if q_tables else None
+    summary["quarantined_rows"] = 0 if quarantine is None else quarantine.num_rows
+    summary["dropped_rows"] = int(row_rejected.sum()) if on_error == "fail" else 0
     summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts())
-    return ds, summary
+    return ds, quarantine, summary
 
 
 def _jsonable(obj: Any) -> Any:
@@ -130,7 +187,8 @@ def _jsonable(obj: Any) -> Any:
 
 
 def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary: dict[str, Any]) -> TransitionDataset:
-    """Episodes -> dataset: action table, costs, provenance (``src_file`` per row)."""
+    """Episodes -> dataset: action table, costs, provenance (``src_file`` and
+    ``src_log_time``, the log_time of the message that made the step, per row)."""
     import pyarrow as pa
 
     cat = lambda k: np.concatenate([getattr(e, k) for e in eps])  # noqa: E731
@@ -179,6 +237,7 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
         obs=obs, action=action, cost=cost, next_obs=nxt, terminated=term, truncated=trunc,
         source=np.repeat([e.src for e in eps], lengths), t_ns=cat("t"),
         extra={"src_file": pa.DictionaryArray.from_arrays(pa.array(cat("file").astype(np.int32)),
-                                                          pa.array([str(p) for p in paths]))},
+                                                          pa.array([str(p) for p in paths])),
+               "src_log_time": pa.array(cat("log_time").astype(np.int64))},
     )
     return ds

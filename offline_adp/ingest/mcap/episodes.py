@@ -159,28 +159,51 @@ class EpisodeSegmenter:
             out[steps] = [k] * int(steps.sum())
         return out
 
-    def _close(self, terminated: bool | None) -> None:
+    def _close(self, terminated: bool | None, cut: bool = False) -> None:
+        """Close the episode being assembled. ``cut``: the recording ends inside it.
+
+        Rejected episodes keep their rows with a ``reason`` (they go to ``quarantine/``):
+        cut, no end event, a step without a command (under ``on_error = "fail"`` the last
+        is an error)."""
         ep, self.cur = self.cur, None
         if ep is None or not ep.parts:
             return
         st = {k: np.concatenate([p[k] for p in ep.parts]) for k in ep.parts[0]}
+        reason = ""
+        if cut:
+            reason = "cut: the recording ends inside this episode"
+            self.stats["cut_episodes"] += 1
         if self.spec.episode_topic:
             info = self.event_info.get(ep.key)
             ended = info is not None and info[2] is not None
             if not ended and terminated is None:  # the log stops inside this episode (cut or crashed recording)
-                self.stats["incomplete_episodes"] += 1
-                return
+                if not reason:
+                    reason = "incomplete: the log ends before this episode's end event"
+                    self.stats["incomplete_episodes"] += 1
+                terminated = False
             if terminated is None:
                 terminated = bool(info[2])  # type: ignore[index]
+        n = len(st["t"]) - 1
+        hit = st["hit"] | np.r_[st["act_hit"][:n], False]  # the last step needs no command
+        if hit.any() and not reason:
+            k = int(np.flatnonzero(hit)[0])
+            reason = (f"damage: step {k} (log_time {int(st['lt'][k])}) lacks messages lost to damage in "
+                      f"{self.files[int(st['file'][k]) - self.file0]}")
+            self.stats["episodes_lost_to_damage"] += 1
         n = len(st["t"]) - 1
         if n < 1:
             self.stats["short_episodes"] += 1
             return
-        if not st["act_ok"][:n].all():
+        if not st["act_ok"][:n].all() and not reason:
             k = int(np.flatnonzero(~st["act_ok"][:n])[0])
-            raise IngestError(f"{self.files[int(st['file'][k]) - self.file0]}: episode {ep.ep_id}, step {k}: no "
-                              f"{self.spec.action_stream.topic} command within max_age = {self.spec.action_stream.max_age} s")
+            msg = (f"{self.files[int(st['file'][k]) - self.file0]}: episode {ep.ep_id}, step {k} (log_time "
+                   f"{int(st['lt'][k])}): no {self.spec.action_stream.topic} command within max_age = "
+                   f"{self.spec.action_stream.max_age} s")
+            if self.on_error == "fail":
+                raise IngestError(msg)
+            reason = "no command: " + msg
+            self.stats["episodes_without_command"] += 1
         self.out.append(EpisodeRows(
             ep=ep.ep_id, src=ep.source, t=st["t"][:n], file=st["file"][:n], obs=st["obs"][:-1], next=st["obs"][1:],
             aux=st["aux"][:-1], aux_next=st["aux"][1:], act=st["act"][:n], terminated=bool(terminated),
-            t_end=int(st["t"][-1]), epoch=ep.epoch, log_time=st["lt"][:n]))
+            t_end=int(st["t"][-1]), epoch=ep.epoch, log_time=st["lt"][:n], reason=reason))

@@ -37,6 +37,7 @@ class EpisodeRows:
     t_end: int
     epoch: int = 0
     log_time: np.ndarray | None = None
+    reason: str = ""  # why the episode is rejected ("" = kept): it goes to quarantine/ with this reason
 
 
 @dataclass
