@@ -155,17 +155,19 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
             continue
         rng = info.get("time_range_ns")
         print(f"{info['file']}: profile {info['profile'] or '-'}, library {info['library']!r}, summary {info['summary']}, "
-              f"indexed {info.get('indexed', False)}, compression {info.get('compression', '?')}"
-              + (f", {(rng[1] - rng[0]) / 1e9:.1f} s of messages" if rng else "")
-              + (" (no readable summary: counted by scanning the records)" if info.get("scanned") else ""))
+              f"compression {info.get('compression', '?')}, {info['messages']} messages"
+              + (f", log_time {rng[0] / 1e9:.3f} .. {rng[1] / 1e9:.3f} s" if rng else ""))
         if info.get("damage"):
             print(f"  DAMAGE: {info['damage']}")
         for topic, t in sorted(info["topics"].items()):
-            print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']!s:>7} msgs {t['rate_hz']!s:>8} Hz")
-            if t["fields"]:
-                print("      fields: " + ", ".join(t["fields"][:40]) + (" ..." if len(t["fields"]) > 40 else ""))
-            else:
-                print("      fields: (not decodable with the installed decoders)")
+            rate = f"{t['rate_hz']} Hz" if t["rate_hz"] is not None else t["status"]
+            extra = "".join(f", {t[k]} {k}" for k in ("restarts", "gaps") if t.get(k))
+            print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']:>7} msgs  {rate}{extra}")
+            if t["field_info"]:
+                shown = [f"{x['path']} ({x['type']}: {x['sample']!r})" for x in t["field_info"][:40]]
+                print("      fields: " + ", ".join(shown) + (" ..." if len(t["field_info"]) > 40 else ""))
+            elif t["status"].startswith("not decodable"):
+                print(f"      {t['status']}")
     return 0
 
 

@@ -186,7 +186,8 @@ class _Recording(EpisodeSegmenter):
         entry = {"path": str(path), "messages_used": {t: n - before[t] for t, n in self.used.items()},
                  "messages_skipped": dict(Counter(report.get("skipped", {}))), **({"empty": True} if report.get("empty") else {})}
         if text:
-            entry["recovered"] = {"messages": report["messages"], "lost_chunks": report["lost_chunks"],
+            lost = [{k: v for k, v in c.items() if not k.startswith("_")} for c in report["lost_chunks"]]
+            entry["recovered"] = {"messages": report["messages"], "lost_chunks": lost,
                                   **{k: report[k] for k in ("lost_from_offset", "damaged", "messages_lost") if k in report},
                                   "text": text}
             if self.on_error == "fail" and report["lost_chunks"]:  # a file merely cut short is kept (its last episode is not)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Sequence
 from typing import Any
+
+from offline_adp.errors import IngestError
 
 
 class JsonDecoderFactory:
@@ -43,11 +44,22 @@ class _Decoders:
         self.cache: dict[tuple[str, int | None], Any] = {}
 
     def __call__(self, sch: Any, ch: Any) -> Any:
+        """The decoder, None if no installed decoder reads the encoding; a schema a decoder
+        cannot parse (e.g. a ROS 2 service definition with ``---``) is an IngestError
+        naming the topic and schema."""
         key = (ch.message_encoding, None if sch is None else sch.id)
         if key not in self.cache:
-            self.cache[key] = next((d for fac in self.factories if (d := fac.decoder_for(ch.message_encoding, sch))
-                                    is not None), None)
-        return self.cache[key]
+            try:
+                self.cache[key] = next((d for fac in self.factories
+                                        if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
+            except Exception as exc:  # noqa: BLE001 - schema parse errors of many library types
+                self.cache[key] = IngestError(f"topic {ch.topic!r}: its schema {getattr(sch, 'name', '')!r} "
+                                              f"({getattr(sch, 'encoding', '')}) cannot be parsed "
+                                              f"({type(exc).__name__}: {exc})")
+        d = self.cache[key]
+        if isinstance(d, IngestError):
+            raise IngestError(str(d))
+        return d
 
 
 _TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
@@ -76,46 +88,44 @@ def to_ns(value: Any) -> int:
     return int(round(float(value) * 1e9))
 
 
-def field_paths(msg: Any, prefix: str = "", depth: int = 0) -> list[str]:
-    """Leaf field paths of a decoded message (for ``mcap-info``)."""
-    if depth > 6:
-        return [prefix]
+def _is_proto(msg: Any) -> bool:
+    return hasattr(msg, "DESCRIPTOR") and hasattr(msg, "ListFields") and hasattr(msg.DESCRIPTOR, "fields")
+
+
+def field_values(msg: Any, prefix: str = "", depth: int = 0) -> list[tuple[str, Any]]:
+    """(leaf field path, value) of a decoded message: dicts (JSON), ROS 2 objects,
+    protobuf messages (by their real field names); lists by their first element."""
+    if depth > 8:
+        return [(prefix, msg)]
     if isinstance(msg, dict):
         items = list(msg.items())
-    elif hasattr(msg, "__slots__") or hasattr(msg, "__dict__"):
+    elif _is_proto(msg):
+        items = []
+        for f in msg.DESCRIPTOR.fields:
+            v = getattr(msg, f.name)
+            if not _is_proto(v) and hasattr(v, "__len__") and not isinstance(v, str | bytes):
+                v = list(v)  # a repeated field: its first element, or an empty list
+            items.append((f.name, v))
+    elif isinstance(msg, list | tuple) or (hasattr(msg, "__len__") and hasattr(msg, "__getitem__")
+                                           and not isinstance(msg, str | bytes | bytearray) and not hasattr(msg, "__slots__")):
+        seq = list(msg)
+        if not seq:
+            return [(f"{prefix}[0]", None)]
+        return field_values(seq[0], f"{prefix}[0]", depth + 1)
+    elif hasattr(msg, "__slots__") or (hasattr(msg, "__dict__") and not isinstance(msg, type)):
         names = getattr(msg, "__slots__", None) or [k for k in vars(msg) if not k.startswith("_")]
         items = [(k, getattr(msg, k)) for k in names]
-    elif isinstance(msg, list | tuple) and msg:
-        return field_paths(msg[0], f"{prefix}[0]", depth + 1)
     else:
-        return [prefix]
-    out: list[str] = []
+        return [(prefix, msg)]
+    out: list[tuple[str, Any]] = []
     for k, v in items:
-        out += field_paths(v, f"{prefix}.{k}" if prefix else str(k), depth + 1)
+        out += field_values(v, f"{prefix}.{k}" if prefix else str(k), depth + 1)
     return out
 
 
-
-def _open_reader(f: Any) -> Any:
-    from mcap.reader import make_reader
-
-    return make_reader(f, decoder_factories=decoder_factories())
-
-
-
-def _decoded(messages: Any):
-    """Decode (schema, channel, message) triples; channels no decoder understands are
-    skipped (a needed topic that yields nothing is reported by the caller, by name)."""
-    decoders = _Decoders()
-    for sch, ch, msg in messages:
-        if (dec := decoders(sch, ch)) is not None:
-            yield sch, ch, msg, dec(msg.data)
-
-
-def _safe_decoded(reader: Any, topics: Sequence[str] | None):
-    """Decoded messages of an indexed reader, in file order."""
-    return _decoded(reader.iter_messages(topics=topics, log_time_order=False))
-
+def field_paths(msg: Any, prefix: str = "", depth: int = 0) -> list[str]:
+    """Leaf field paths of a decoded message (for ``mcap-info``)."""
+    return [p for p, _ in field_values(msg, prefix, depth)]
 
 
 def _msg_time(which: str, msg: Any, dec: Any) -> int:

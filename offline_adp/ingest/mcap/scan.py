@@ -49,8 +49,8 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
     from mcap.records import Channel, Chunk, Header, Message, Schema
     from mcap.stream_reader import breakup_chunk
 
-    schemas: dict[int, Any] = {}
-    channels: dict[int, Any] = {}
+    schemas: dict[int, Any] = report.setdefault("schemas", {})
+    channels: dict[int, Any] = report.setdefault("channels", {})
     report.setdefault("messages", 0)
     report.setdefault("lost_chunks", [])
     skipped = report.setdefault("skipped", {})
