@@ -73,6 +73,9 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
                 if len(channels) > max_channels:
                     raise IngestError(f"more than {max_channels} channels (a corrupt or hostile file?)")
             elif isinstance(rec, Message):
+                if not (0 <= rec.log_time < 1 << 63 and 0 <= rec.publish_time < 1 << 63):
+                    raise IngestError(f"a message on channel {rec.channel_id} has log_time {rec.log_time} / publish_time "
+                                      f"{rec.publish_time} ns, beyond the int64 range (a corrupt record?)")
                 ch = channels.get(rec.channel_id)
                 if ch is not None and (topics is None or ch.topic in topics):
                     report["messages"] += 1
