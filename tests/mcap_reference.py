@@ -202,10 +202,11 @@ def assemble(messages: list[Message], spec: McapSpec, name: str = "mem") -> RefR
                 else:
                     aux[:, aux_names.index(nm)] = v
         res.dropped_steps += int((~keep).sum())
+        idx = np.flatnonzero(keep)  # a dropped step between two kept ones splits the episode there
         t, obs, aux, act, act_ok = ct[keep], obs[keep], aux[keep], act[keep], act_ok[keep]
         if not len(t):
             continue
-        starts = [0] + [i for i in range(1, len(t)) if t[i] - t[i - 1] > spec.gap * 1e9]
+        starts = [0] + [i for i in range(1, len(t)) if t[i] - t[i - 1] > spec.gap * 1e9 or idx[i] - idx[i - 1] > 1]
         for a, b in zip(starts, [*starts[1:], len(t)], strict=True):
             ep_id = f"{name}-{counter:05d}"
             counter += 1

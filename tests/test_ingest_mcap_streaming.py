@@ -132,7 +132,10 @@ def test_event_driven_commands_hold_within_max_age(tmp_path):
         ingest_mcap([f], spec(action={**held, "max_age": 0.15}))
     ds, s = ingest_mcap([f], spec(action={**held, "max_age": 0.15, "missing": "drop_step"}))
     assert s["dropped_steps"] == 10  # ticks 2 and 3 of every 4 are more than 150 ms after their command
-    assert len(ds) == 9
+    # a dropped step splits its episode (no transition stitched across it): pairs of ticks 4j, 4j + 1
+    assert len(ds) == 5 and ds.n_episodes == 5 and s["episode_splits"] == 4
+    a = ds.arrays()
+    np.testing.assert_allclose(a.next_obs[:, 0] - a.obs[:, 0], 0.1, atol=1e-9)  # every transition is one tick
 
 
 def test_end_and_terminal_conditions_cut_episodes(tmp_path):

@@ -71,6 +71,7 @@ class _Recording(EpisodeSegmenter):
         self.flush_every = max(int(flush_every), 1)
         self.cut = False
         self.final = False
+        self.pending_drop = False  # the last steps assembled were dropped: the next kept one starts an episode
         self.n_since = 0
         self.name = re.sub(r"_\d+$", "", files[0].stem) if len(files) > 1 else files[0].stem
         self.value_keys: dict[Any, StreamSpec] = {("s", i): s for i, s in enumerate(spec.streams)}
@@ -111,6 +112,7 @@ class _Recording(EpisodeSegmenter):
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
                       "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
+                      "episode_splits": 0,
                       "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
@@ -379,6 +381,7 @@ class _Recording(EpisodeSegmenter):
                 if k[1] == e:
                     del self.bufs[k]
             self.last_step_t, self.last_episode_value, self.next_tick, self.waiting = None, None, None, None
+            self.pending_drop = False
             self.flushed_t = None
             self.active += 1
             if self.active > max(self.epoch.values()):
@@ -465,10 +468,20 @@ class _Recording(EpisodeSegmenter):
         self.stats["damaged_steps"] += int(hit.sum())
         self.stats["dropped_steps"] += int((~keep & ~hit).sum())
         keep |= hit
+        # a dropped step inside an episode splits it (no transition is stitched across the gap)
+        cum = np.cumsum(~keep)
+        at = cum[keep]
+        split = np.diff(np.r_[0, at]) > 0
+        if len(split):
+            split[0] |= self.pending_drop
+            self.stats["episode_splits"] += int(split[1:].sum()) + int(split[0] and self.last_step_t is not None)
+        self.pending_drop = bool((~keep[np.flatnonzero(keep)[-1] + 1:]).any()) if keep.any() else \
+            self.pending_drop or bool((~keep).any())
         steps = {"t": times, "file": files, "lt": lts, "obs": obs, "aux": aux, "act": act, "act_ok": act_ok,
                  "hit": hit, "act_hit": damaged & ~act_ok}
         if not keep.all():
             steps = {k: v[keep] for k, v in steps.items()}
+        steps["split"] = split
         self._segment(e, steps)
 
 

@@ -50,7 +50,7 @@ class EpisodeSegmenter:
                 gap[0] = True
             key = (self.seg + np.cumsum(gap)).astype(object)  # a new key at every gap
             self.seg = int(key[-1])
-        brk = np.zeros(n, bool)
+        brk = st["split"].copy() if "split" in st else np.zeros(n, bool)
         if self.episode_fields:
             vals = np.column_stack([st["aux"][:, self.col[f][1]] for f in self.episode_fields])
             prev_v = np.vstack([vals[:1] if self.last_episode_value is None else self.last_episode_value, vals[:-1]])
