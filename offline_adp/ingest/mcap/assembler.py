@@ -441,7 +441,8 @@ class _Recording(EpisodeSegmenter):
             if top is not None:
                 damaged |= times >= top - self.lag
         missing_here = np.zeros(n, bool)
-        act, act_ok = np.zeros(n), np.ones(n, bool)
+        act_cols: list[np.ndarray] = []
+        act_ok = np.ones(n, bool)
         for k, s in self.value_keys.items():
             b = self.bufs.get((k, e))
             a = b.arrays() if b is not None else {"t": np.zeros(0, np.int64), **{nm: np.zeros(0) for nm in s.fields}}
@@ -460,10 +461,12 @@ class _Recording(EpisodeSegmenter):
                                           "'fill' or 'drop_step')")
                     missing_here |= ~good
                 if k == "action":
-                    act, act_ok = v, good
+                    act_cols.append(v)
+                    act_ok = act_ok & good
                 else:
                     where, j = self.col[name]
                     (obs if where == "obs" else aux)[:, j] = v
+        act = act_cols[0] if len(act_cols) == 1 else np.column_stack(act_cols)  # a vector action: one column each
         hit = damaged & (missing_here | ~keep)  # lacks data that damage may have taken: episode rejected
         self.stats["damaged_steps"] += int(hit.sum())
         self.stats["dropped_steps"] += int((~keep & ~hit).sum())

@@ -79,8 +79,10 @@ def get_path(msg: Any, path: str) -> Any:
 
 
 def to_ns(value: Any) -> int:
-    """A time value in ns: ``{sec, nanosec}`` (ROS 2), ``{sec, nsec}``, or float seconds."""
-    for s, n in (("sec", "nanosec"), ("sec", "nsec"), ("secs", "nsecs")):
+    """A time value in ns: ``{sec, nanosec}`` (ROS 2 ``builtin_interfaces/Time``),
+    ``{sec, nsec}`` / ``{secs, nsecs}`` (ROS 1), ``{seconds, nanos}``
+    (``google.protobuf.Timestamp``), or float seconds."""
+    for s, n in (("sec", "nanosec"), ("sec", "nsec"), ("secs", "nsecs"), ("seconds", "nanos")):
         if isinstance(value, dict) and s in value:
             return int(value[s]) * 1_000_000_000 + int(value.get(n, 0))
         if hasattr(value, s):

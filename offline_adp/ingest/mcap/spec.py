@@ -33,6 +33,7 @@ class StreamSpec:
     missing: str = "error"
     fill: float = 0.0
     role: str = "obs"
+    units: dict[str, str] = field(default_factory=dict)  # unit per field name (features keep it)
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,7 @@ class McapSpec:
     action_stream: StreamSpec
     action: ActionSpec
     cost_terms: tuple[dict[str, Any], ...]
+    action_bins: dict[str, Any] = field(default_factory=dict)  # vector continuous actions: per component
     terminal_cost: float | None = None
     cost_field: str | None = None
     reward_field: str | None = None
@@ -92,7 +94,9 @@ class McapSpec:
 
 
 _ALIGN = ("nearest", "previous", "linear")
-_STREAM_KEYS = {"topic", "fields", "time", "align", "max_age", "missing", "fill", "role"}
+_STREAM_KEYS = {"topic", "fields", "time", "align", "max_age", "missing", "fill", "role", "units"}
+_ACTION_KEYS = {"topic", "field", "fields", "time", "align", "max_age", "missing", "fill", "type", "values", "names",
+                "edges", "n_bins", "bin_value", "dim", "dims", "unit", "vectors"}
 
 
 def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> StreamSpec:
@@ -101,7 +105,11 @@ def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> Stre
         raise SpecError(f"{where}: missing required key 'topic'")
     s = StreamSpec(topic=d["topic"], fields=dict(d.get("fields", {})), time=d.get("time", "log_time"),
                    align=d.get("align", "nearest"), max_age=float(d.get("max_age", 0.1)),
-                   missing=d.get("missing", "error"), fill=float(d.get("fill", 0.0)), role=d.get("role", "obs"))
+                   missing=d.get("missing", "error"), fill=float(d.get("fill", 0.0)), role=d.get("role", "obs"),
+                   units=dict(d.get("units", {})))
+    if not set(s.units) <= set(s.fields):
+        raise SpecError(f"{where}.units: {sorted(set(s.units) - set(s.fields))} are not fields of this stream "
+                        f"{sorted(s.fields)}")
     if s.align not in _ALIGN:
         raise SpecError(f"{where}.align: expected one of {list(_ALIGN)}, got {s.align!r}")
     if s.missing not in ("fill", "drop_step", "error"):
@@ -128,6 +136,50 @@ def _conditions(items: Any, where: str, names: list[str]) -> tuple[Condition, ..
     return tuple(out)
 
 
+def _vector_action(a: dict[str, Any], dims: list[str], where: str) -> tuple[ActionSpec, dict[str, Any]]:
+    """A vector action (several fields): ``discrete`` with ``vectors`` (the table's value
+    vectors, matched component-wise), or ``continuous`` binned per component into a
+    product table (``edges`` / ``n_bins``: one value for every component, or a table per
+    component name)."""
+    typ = a.get("type", "discrete")
+    if typ not in ("discrete", "continuous"):
+        raise SpecError(f"{where}.type: expected 'discrete' or 'continuous', got {typ!r}")
+    if "values" in a:
+        raise SpecError(f"{where}.values: a vector action lists its actions as vectors = [[...], ...] "
+                        f"(one component per field {dims})")
+    bins: dict[str, Any] = {}
+    if typ == "discrete":
+        vec = a.get("vectors")
+        if not vec or any(not isinstance(v, list) or len(v) != len(dims) for v in vec):
+            raise SpecError(f"{where}.vectors: a discrete vector action needs vectors = [[...], ...], each with "
+                            f"{len(dims)} components ({dims})")
+        try:
+            vectors = tuple(tuple(float(x) for x in v) for v in vec)
+        except (TypeError, ValueError):
+            raise SpecError(f"{where}.vectors: expected numbers, got {vec!r}") from None
+    else:
+        vectors = None
+        if ("edges" in a) == ("n_bins" in a):
+            raise SpecError(f"{where}: a continuous vector action needs edges or n_bins (one for all components, or "
+                            f"a table per component {dims})")
+        for key in ("edges", "n_bins"):
+            if key in a:
+                v = a[key]
+                per = v if isinstance(v, dict) else {d: v for d in dims}
+                if set(per) != set(dims):
+                    raise SpecError(f"{where}.{key}: give one for each component {dims}, got {sorted(per)}")
+                for d, x in per.items():
+                    if key == "edges" and (not isinstance(x, list) or len(x) < 2):
+                        raise SpecError(f"{where}.edges.{d}: expected at least two bin edges, got {x!r}")
+                    if key == "n_bins" and (not isinstance(x, int) or x < 1):
+                        raise SpecError(f"{where}.n_bins.{d}: expected a positive integer, got {x!r}")
+                bins = {d: {key: per[d]} for d in dims}
+    names = a.get("names")
+    spec = ActionSpec(column="action", type=typ, names=tuple(names) if names else None, vectors=vectors,
+                      dims=tuple(dims), unit=str(a.get("unit", "")), bin_value=a.get("bin_value", "mean"))
+    return spec, bins
+
+
 def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", base_dir: str = ".") -> McapSpec:
     _check_keys(data, {"name", "on_error", "sources", "clock", "episodes", "streams", "action", "cost", "source",
                        "hints"}, where)
@@ -144,22 +196,39 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
     if dup:
         raise SpecError(f"{where}.streams: field names {dup} are declared more than once")
     a = dict(data.get("action") or {})
-    if "topic" not in a or "field" not in a:
-        raise SpecError(f"{where}.action: needs 'topic' and 'field'")
-    act_field = a.pop("field")
-    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS and k != "fields"} | {"fields": {"action": act_field}},
+    _check_keys(a, _ACTION_KEYS, f"{where}.action")
+    if "topic" not in a or ("field" in a) == ("fields" in a):
+        raise SpecError(f"{where}.action: needs 'topic' and either 'field' (one field path) or 'fields' (a vector "
+                        "action: {name = path, ...}); valid keys are " + str(sorted(_ACTION_KEYS)))
+    if "field" in a:
+        act_fields = {"action": a.pop("field")}
+    else:
+        act_fields = a.pop("fields")
+        if isinstance(act_fields, list):
+            act_fields = {p: p for p in act_fields}
+        if not isinstance(act_fields, dict) or not act_fields:
+            raise SpecError(f"{where}.action.fields: map each component name to a field path, e.g. "
+                            "{ v = 'linear.x', w = 'angular.z' }")
+    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS} | {"fields": act_fields},
                          f"{where}.action", fields_required=False)
-    from offline_adp.ingest.spec import parse_parquet_spec
+    action_bins: dict[str, Any] = {}
+    if len(act_fields) == 1:
+        from offline_adp.ingest.spec import parse_parquet_spec
 
-    action = parse_parquet_spec({"episode": {"id": "e", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["x"]},
-                                 "action": {"column": "action", **a}, "cost": {"column": "c"}}, where=where).action
+        action = parse_parquet_spec({"episode": {"id": "e", "step": "k"},
+                                     "observations": {"columns": ["x"], "next_columns": ["x"]},
+                                     "action": {"column": "action", **a}, "cost": {"column": "c"}}, where=where).action
+    else:
+        action, action_bins = _vector_action(a, list(act_fields), f"{where}.action")
     cost = data.get("cost") or {}
     _check_keys(cost, {"terms", "terminal_cost", "field", "reward"}, f"{where}.cost")
     terms = tuple(cost.get("terms", []))
     for i, t in enumerate(terms):
         _check_keys(t, {"field", "op", "weight", "at"}, f"{where}.cost.terms[{i}]")
-        if t.get("field") not in [*names, "action"]:
-            raise SpecError(f"{where}.cost.terms[{i}].field: {t.get('field')!r} is not a stream field {names} or 'action'")
+        act_names = ["action"] + ([f"action.{n}" for n in act_fields] if len(act_fields) > 1 else [])
+        if t.get("field") not in [*names, *act_names]:
+            raise SpecError(f"{where}.cost.terms[{i}].field: {t.get('field')!r} is not a stream field {names} or "
+                            f"one of {act_names}")
         if t.get("op", "abs") not in ("abs", "square", "identity"):
             raise SpecError(f"{where}.cost.terms[{i}].op: expected 'abs', 'square' or 'identity'")
         if t.get("at", "step") not in ("step", "next"):
@@ -191,7 +260,7 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
         raise SpecError(f"{where}.on_error: expected 'fail' or 'quarantine', got {on_error!r}")
     return McapSpec(
         clock_topic=clock.get("topic"), clock_time=clock.get("time", "log_time"), streams=streams, action_stream=act_stream,
-        action=action, cost_terms=terms, terminal_cost=cost.get("terminal_cost"), cost_field=cost_field,
+        action=action, action_bins=action_bins, cost_terms=terms, terminal_cost=cost.get("terminal_cost"), cost_field=cost_field,
         reward_field=reward_field, rate_hz=None if "rate_hz" not in clock else float(clock["rate_hz"]),
         reorder_window=float(clock.get("reorder_window", 2.0)), episode_topic=ep.get("topic"),
         episode_fields={k: ep[k] for k in ("id_field", "event_field", "terminated_field", "source_field") if k in ep},
