@@ -136,12 +136,18 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     notes = {"dropped_steps": "steps dropped for missing values (missing = 'drop_step')",
              "outside_episode_steps": "steps outside any start/end episode", "condition_steps":
              "steps under an end condition", "short_episodes": "episodes with fewer than 2 steps",
-             "incomplete_episodes": "episodes without their end (cut recordings)", "episodes_lost_to_damage":
-             "episodes that overlapped a lost chunk", "restarts": "time-source restarts (episode boundaries)",
-             "quarantined_rows": "rows quarantined by the doctor"}
+             "incomplete_episodes": "episodes without their end event", "episodes_lost_to_damage":
+             "episodes that lost messages to damage", "restarts": "time-source restarts (episode boundaries)",
+             "cut_episodes": "episodes the recording ends inside (cut)", "episode_splits":
+             "episodes split at dropped steps", "orphan_messages": "messages of an epoch without clock messages",
+             "episodes_without_command": "episodes with a step without a command",
+             "quarantined_rows": f"rows set aside with a reason in {args.out}/quarantine/",
+             "dropped_rows": "rows of rejected episodes left out (on_error = fail)"}
     for k, text in notes.items():
         if s.get(k):
             print(f"  {text}: {s[k]}")
+    for f in s.get("skipped_files", []):
+        print(f"  skipped {', '.join(f['files'])}: {f['error']}")
     return 0
 
 

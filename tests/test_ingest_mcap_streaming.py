@@ -304,3 +304,26 @@ def test_a_terminal_role_field_and_a_reward_field(tmp_path):
     a = ds.arrays()
     assert a.terminated.tolist()[:6] == [False] * 5 + [True] and ds.n_episodes == 2  # steps 0..6, then 7..9
     np.testing.assert_allclose(a.cost, -np.round(a.obs[:, 0] * 10), atol=1e-9)  # r = k at the step
+
+
+def test_a_rosbag2_bag_directory_is_one_recording_in_metadata_order(tmp_path):
+    """What `ros2 bag record` writes: a directory with metadata.yaml and the split files."""
+    bag = tmp_path / "rosbag2_2026_11_22"
+    bag.mkdir()
+    msgs = episode_messages(40, with_events=True, ep_id="run-1")
+    third = len(msgs) // 3
+    for i in range(3):  # the file names do not sort in recording order: metadata.yaml decides
+        write_log(bag / f"part_{['b', 'c', 'a'][i]}.mcap", msgs[i * third:(i + 1) * third if i < 2 else None])
+    (bag / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: mcap\n  relative_file_paths:\n"
+        "    - part_b.mcap\n    - part_c.mcap\n    - part_a.mcap\n  duration:\n    nanoseconds: 4000000000\n")
+    ev = {"topic": "/event", "id_field": "id", "event_field": "event", "terminated_field": "terminated"}
+    ds, s = ingest_mcap([bag], spec(episodes=ev))
+    assert list(ds.episode_ids) == ["run-1"] and len(ds) == 39
+    assert [Path(p).name for p in s["recordings"][0]] == ["part_b.mcap", "part_c.mcap", "part_a.mcap"]
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
+                                       "  relative_file_paths:\n    - x.db3\n")
+    with pytest.raises(IngestError, match="stored as 'sqlite3', not MCAP"):
+        ingest_mcap([bag], spec(episodes=ev))
+    with pytest.raises(IngestError, match="no file matches"):
+        ingest_mcap([str(tmp_path / "nothing*")], spec())
