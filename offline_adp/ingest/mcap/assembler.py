@@ -14,6 +14,7 @@ from offline_adp.ingest.mcap.align import _align
 from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, get_path
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
+from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
 from offline_adp.ingest.mcap.scan import damage_text, scan_records
 from offline_adp.ingest.mcap.spec import McapSpec, StreamSpec
 
@@ -164,16 +165,11 @@ class _Recording(EpisodeSegmenter):
         before = dict(self.used)
         decoders = _Decoders()
         try:
-            with open(path, "rb") as f:
-                self.n_lost_seen = 0
-                for sch, ch, msg in scan_records(f, set(self.by_topic), report):
-                    self._note_losses(report)
-                    dec = decoders(sch, ch)
-                    if dec is None:
-                        raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
-                                          f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
-                                          f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
-                    self.feed((Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)),), file_index)
+            if is_rosbags_input(path):  # a ROS 1 .bag or a rosbag2 SQLite bag: the rosbags readers
+                for m in read_rosbags(path, set(self.by_topic), report):
+                    self.feed((m,), file_index)
+            else:
+                self._read_mcap(path, file_index, report, decoders)
         except IngestError as exc:
             if str(path) in str(exc):
                 raise
@@ -198,6 +194,18 @@ class _Recording(EpisodeSegmenter):
 
             warnings.warn(text, stacklevel=4)
         self.reports.append(entry)
+
+    def _read_mcap(self, path: Path, file_index: int, report: dict[str, Any], decoders: _Decoders) -> None:
+        with open(path, "rb") as f:
+            self.n_lost_seen = 0
+            for sch, ch, msg in scan_records(f, set(self.by_topic), report):
+                self._note_losses(report)
+                dec = decoders(sch, ch)
+                if dec is None:
+                    raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
+                                      f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
+                                      f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
+                self.feed((Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)),), file_index)
 
     def _add(self, msg: Message, file_index: int) -> None:
         topic, dec = msg.topic, msg.data

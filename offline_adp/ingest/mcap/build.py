@@ -124,7 +124,9 @@ def ingest_mcap_tables(
         for f in res.files:
             for t, v in f["messages_skipped"].items():
                 summary["messages_skipped"][t] = summary["messages_skipped"].get(t, 0) + v
-            summary["files"].append({**f, "sha256": sha256_file(f["path"])})
+            fp = Path(f["path"])
+            digest = sha256_file(fp) if fp.is_file() else {q.name: sha256_file(q) for q in sorted(fp.iterdir()) if q.is_file()}
+            summary["files"].append({**f, "sha256": digest})
         if res.missing_topics:
             needed = [s for s in (*spec.streams, spec.action_stream) if s.topic in res.missing_topics]
             clock_missing = (spec.clock_topic or "") in res.missing_topics

@@ -73,7 +73,9 @@ def resolve_sources(files: Sequence[str | PathLike[str]], spec: McapSpec) -> lis
         for h in hits:
             path = Path(h)
             if path.is_dir():  # a rosbag2 bag: one recording
-                groups[("bag", str(path))] = list(enumerate(bag_files(path)))
+                from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input
+
+                groups[("bag", str(path))] = [(0, path)] if is_rosbags_input(path) else list(enumerate(bag_files(path)))
                 continue
             if not path.is_file():
                 raise IngestError(f"{h}: no such file")
