@@ -321,9 +321,13 @@ def test_a_rosbag2_bag_directory_is_one_recording_in_metadata_order(tmp_path):
     ds, s = ingest_mcap([bag], spec(episodes=ev))
     assert list(ds.episode_ids) == ["run-1"] and len(ds) == 39
     assert [Path(p).name for p in s["recordings"][0]] == ["part_b.mcap", "part_c.mcap", "part_a.mcap"]
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: other\n"
+                                       "  relative_file_paths:\n    - x.other\n")
+    with pytest.raises(IngestError, match="stored as 'other', not MCAP"):
+        ingest_mcap([bag], spec(episodes=ev))
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
-                                       "  relative_file_paths:\n    - x.db3\n")
-    with pytest.raises(IngestError, match="stored as 'sqlite3', not MCAP"):
+                                       "  relative_file_paths:\n    - x.db3\n")  # SQLite: read by rosbags, named
+    with pytest.raises(IngestError, match="rosbag2_2026_11_22: cannot read as a ROS bag"):
         ingest_mcap([bag], spec(episodes=ev))
     with pytest.raises(IngestError, match="no file matches"):
         ingest_mcap([str(tmp_path / "nothing*")], spec())

@@ -127,6 +127,7 @@ def _alarm(*_):
     raise _Timeout
 
 
+@pytest.mark.filterwarnings("ignore::UserWarning")
 @settings(max_examples=N_FUZZ)
 @given(st.sampled_from(sorted(BASES)),
        st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),

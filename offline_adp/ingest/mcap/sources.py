@@ -34,8 +34,8 @@ def bag_files(directory: Path) -> list[Path]:
         except Exception as exc:  # noqa: BLE001 - yaml errors of several types
             raise IngestError(f"{meta}: cannot read the bag's metadata ({type(exc).__name__}: {exc})") from None
         if storage and storage != "mcap":
-            raise IngestError(f"{directory}: a rosbag2 bag stored as {storage!r}, not MCAP (convert it with "
-                              "`ros2 bag convert`, or record with --storage mcap)")
+            raise IngestError(f"{directory}: a rosbag2 bag stored as {storage!r}, not MCAP or SQLite (convert it "
+                              "with `ros2 bag convert`, or record with --storage mcap)")
         if not rel:
             raise IngestError(f"{meta}: lists no files (relative_file_paths)")
         files = [directory / r for r in rel]
