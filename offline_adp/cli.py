@@ -152,9 +152,12 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
 
 
 def cmd_mcap_info(args: argparse.Namespace) -> int:
-    from offline_adp.ingest.mcap import mcap_info
+    from pathlib import Path
 
-    for path in args.files:
+    from offline_adp.ingest.mcap import mcap_info
+    from offline_adp.ingest.mcap.sources import bag_files
+
+    for path in [p for f in args.files for p in (bag_files(Path(f)) if Path(f).is_dir() else [f])]:
         info = mcap_info(path)
         if args.json:
             print(json.dumps(info, indent=2, default=str))
