@@ -196,16 +196,23 @@ class _Recording(EpisodeSegmenter):
         self.reports.append(entry)
 
     def _read_mcap(self, path: Path, file_index: int, report: dict[str, Any], decoders: _Decoders) -> None:
+        add, every = self._add, self.flush_every
+        lost = report.setdefault("lost_chunks", [])
         with open(path, "rb") as f:
             self.n_lost_seen = 0
             for sch, ch, msg in scan_records(f, set(self.by_topic), report):
-                self._note_losses(report)
+                if len(lost) > self.n_lost_seen:
+                    self._note_losses(report)
                 dec = decoders(sch, ch)
                 if dec is None:
                     raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
                                       f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
                                       f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
-                self.feed((Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)),), file_index)
+                add(Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)), file_index)
+                self.n_since += 1
+                if self.n_since >= every:  # as feed(): one flush per flush_every messages
+                    self.n_since = 0
+                    self._flush()
 
     def _add(self, msg: Message, file_index: int) -> None:
         topic, dec = msg.topic, msg.data

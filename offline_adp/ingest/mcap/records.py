@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Message:
     """One decoded message as the assembler sees it: topic, MCAP times (ns) and the
     decoded value (a dict, a ROS 2 or protobuf object)."""
