@@ -103,7 +103,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                 e = ek
                 late = cm - clock_first.get(ce, cm) >= reorder
             else:
-                e = ce + (cm is not None and r > 0 and t < cm - r)
+                e = ce + (cm is not None and r > 0 and clock_first.get(ce, cm) - r <= t < cm - r)
             if late:  # the epoch is over: the message is counted, not used
                 res.late += 1
                 continue

@@ -79,3 +79,31 @@ def test_a_late_starting_command_stream_is_never_paired_across_episodes(tmp_path
     # the first k episodes have no command: their steps are dropped, counted
     assert s["dropped_steps"] == k * 300 and s["restarts"] == n_ep - 1
     assert not s["late_messages"]
+
+
+def test_a_stale_first_stamp_is_not_taken_for_a_restart(tmp_path):
+    """Like amcl in a real nav2 bag: the first pose is stamped seconds before the clock's
+    first message (and logged after it). It belongs to the current epoch (older than
+    anything the clock covered), not to a next one: the steps use it."""
+    msgs = []
+    for k in range(90):  # odometry (the clock) at 30 Hz from 10 s
+        t = 10_000 * MS + k * 33 * MS
+        msgs.append(("/odom", t, {"x": float(k)}))
+        if k == 5:
+            msgs.append(("/pose", 6_000 * MS, {"p": -1.0}))  # stamped 4 s before the first odometry
+        if k % 18 == 17:
+            msgs.append(("/pose", t - 10 * MS, {"p": float(k)}))
+    f = write_log(tmp_path / "nav.mcap", msgs)
+    sp = parse_mcap_spec({
+        "clock": {"topic": "/odom"},
+        "streams": [{"topic": "/odom", "fields": {"x": "x"}, "max_age": 0.001},
+                    {"topic": "/pose", "fields": {"p": "p"}, "align": "previous", "max_age": 5.0}],
+        "action": {"topic": "/odom", "field": "x", "max_age": 0.001, "type": "continuous", "n_bins": 2},
+        "cost": {"terms": [{"field": "x", "op": "abs"}]},
+    })
+    ds, s = ingest_mcap([f], sp)
+    a = ds.arrays()
+    k = a.obs[:, 0].astype(int)
+    expected = np.where(k < 17, -1.0, (k + 1) // 18 * 18 - 1.0)  # the last pose at or before each step
+    np.testing.assert_array_equal(a.obs[:, 1], expected)
+    assert s["restarts"] == 0 and s["orphan_messages"] == 0 and len(ds) == 89

@@ -243,9 +243,9 @@ class _Recording(EpisodeSegmenter):
         (never from what has been flushed): see "Epochs" in docs/ingestion-spec.md.
 
         The clock's epoch advances when its time jumps back more than ``restart``. Any
-        other stream is placed against the clock's current epoch ``ce`` and latest time
-        ``cm``: a time more than ``restart`` below ``cm`` is the next epoch's (the stream
-        restarted before the clock); a stream still in ``ce - 1`` whose time has not
+        other stream is placed against the clock's current epoch ``ce``, its first time
+        ``cf`` and latest time ``cm``: a time in ``[cf - restart, cm - restart)`` is the
+        next epoch's (the stream restarted before the clock); a stream still in ``ce - 1`` whose time has not
         jumped back and lies more than ``restart`` above ``cm`` is a late message of
         ``ce - 1``; anything else is ``ce``'s. A stream ahead of the clock stays ahead
         until the clock follows (a second jump back while ahead replaces its buffer: the
@@ -271,7 +271,9 @@ class _Recording(EpisodeSegmenter):
                 self._resolve_losses(e)
         else:
             ce, cm = self.epoch[ck], self.maxt[ck]
-            ahead = cm is not None and r > 0 and t < cm - r
+            # the time jumped back within what the clock has covered in this epoch (older than the epoch's
+            # first clock message: stale data of this epoch, e.g. a late localization stamp)
+            ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
             if m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
                 e = ek
                 if own_restart:  # a second restart before the clock's: the clock has no such epoch
