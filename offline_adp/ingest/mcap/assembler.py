@@ -196,7 +196,7 @@ class _Recording(EpisodeSegmenter):
         self.reports.append(entry)
 
     def _read_mcap(self, path: Path, file_index: int, report: dict[str, Any], decoders: _Decoders) -> None:
-        add, every = self._add, self.flush_every
+        add, every = self._add_fields, self.flush_every
         lost = report.setdefault("lost_chunks", [])
         with open(path, "rb") as f:
             self.n_lost_seen = 0
@@ -208,25 +208,28 @@ class _Recording(EpisodeSegmenter):
                     raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
                                       f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
                                       f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
-                add(Message(ch.topic, msg.log_time, msg.publish_time, dec(msg.data)), file_index)
+                add(ch.topic, msg.log_time, msg.publish_time, dec(msg.data), file_index)
                 self.n_since += 1
                 if self.n_since >= every:  # as feed(): one flush per flush_every messages
                     self.n_since = 0
                     self._flush()
 
     def _add(self, msg: Message, file_index: int) -> None:
-        topic, dec = msg.topic, msg.data
+        self._add_fields(msg.topic, msg.log_time, msg.publish_time, msg.data, file_index)
+
+    def _add_fields(self, topic: str, log_time: int, publish_time: int, dec: Any, file_index: int) -> None:
         self.used[topic] += 1
+        times: dict[str, int] = {}  # one time per time field of this message
         for k in self.by_topic[topic]:
             if k == "events":
-                t = int(msg.log_time)
+                t = int(log_time)
                 values = [get_path(dec, p) for p in self.spec.episode_fields.values()]
-            elif k == "clock":
-                t, values = _msg_time(self.spec.clock_time, msg, dec), []
             else:
-                s = self.value_keys[k]
-                t = _msg_time(s.time, msg, dec)
-                values = [float(get_path(dec, p)) for p in s.fields.values()]
+                which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
+                t = times.get(which)
+                if t is None:
+                    t = times[which] = _msg_time(which, log_time, publish_time, dec)
+                values = [] if k == "clock" else [float(get_path(dec, p)) for p in self.value_keys[k].fields.values()]
             e = self._epoch_of(k, t)
             if e is None:  # late for an epoch already over (by file order, not by flush points)
                 self.late[topic] += 1
@@ -236,7 +239,7 @@ class _Recording(EpisodeSegmenter):
             b = self.bufs.get((k, e))
             if b is None:
                 b = self.bufs[(k, e)] = _Buffer(self.names[k], object if k == "events" else np.float64)
-            b.add(t, file_index, values, int(msg.log_time))
+            b.add(t, file_index, values, int(log_time))
 
     def _epoch_of(self, k: Any, t: int) -> int | None:
         """The epoch of a message of key ``k`` at time ``t``, from the file order alone

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 from typing import Any
@@ -42,35 +43,43 @@ class _Decoders:
     def __init__(self) -> None:
         self.factories = decoder_factories()
         self.cache: dict[tuple[str, int | None], Any] = {}
+        self.errors: dict[tuple[str, int | None], str] = {}
 
     def __call__(self, sch: Any, ch: Any) -> Any:
         """The decoder, None if no installed decoder reads the encoding; a schema a decoder
         cannot parse (e.g. a ROS 2 service definition with ``---``) is an IngestError
         naming the topic and schema."""
         key = (ch.message_encoding, None if sch is None else sch.id)
-        if key not in self.cache:
-            try:
-                self.cache[key] = next((d for fac in self.factories
+        try:
+            return self.cache[key]
+        except KeyError:
+            pass
+        if key in self.errors:
+            raise IngestError(self.errors[key])
+        try:
+            d = self.cache[key] = next((d for fac in self.factories
                                         if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
-            except Exception as exc:  # noqa: BLE001 - schema parse errors of many library types
-                self.cache[key] = IngestError(f"topic {ch.topic!r}: its schema {getattr(sch, 'name', '')!r} "
-                                              f"({getattr(sch, 'encoding', '')}) cannot be parsed "
-                                              f"({type(exc).__name__}: {exc})")
-        d = self.cache[key]
-        if isinstance(d, IngestError):
-            raise IngestError(str(d))
+        except Exception as exc:  # noqa: BLE001 - schema parse errors of many library types
+            self.errors[key] = (f"topic {ch.topic!r}: its schema {getattr(sch, 'name', '')!r} "
+                                f"({getattr(sch, 'encoding', '')}) cannot be parsed ({type(exc).__name__}: {exc})")
+            raise IngestError(self.errors[key]) from None
         return d
 
 
 _TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
 
 
+@functools.lru_cache(maxsize=4096)
+def _steps_of(path: str) -> tuple[tuple[str, int | None], ...]:
+    return tuple((name, int(index) if index else None) for name, index in _TOKEN.findall(path))
+
+
 def get_path(msg: Any, path: str) -> Any:
     """Value at a dotted path with list indices (``transforms[0].transform.translation.x``)."""
     cur = msg
-    for name, index in _TOKEN.findall(path):
-        if index:
-            cur = cur[int(index)]
+    for name, index in _steps_of(path):
+        if index is not None:
+            cur = cur[index]
         elif isinstance(cur, dict):
             cur = cur[name]
         else:
@@ -130,9 +139,9 @@ def field_paths(msg: Any, prefix: str = "", depth: int = 0) -> list[str]:
     return [p for p, _ in field_values(msg, prefix, depth)]
 
 
-def _msg_time(which: str, msg: Any, dec: Any) -> int:
+def _msg_time(which: str, log_time: int, publish_time: int, dec: Any) -> int:
     if which == "log_time":
-        return int(msg.log_time)
+        return int(log_time)
     if which == "publish_time":
-        return int(msg.publish_time)
+        return int(publish_time)
     return to_ns(get_path(dec, which))
