@@ -98,3 +98,20 @@ def test_dask_ingest_keeps_quarantine(tmp_path):
     a, b = read_quarantine(tmp_path / "local"), read_quarantine(tmp_path / "dist")
     assert b is not None and a.num_rows == b.num_rows == s["quarantined_rows"]
     assert a.column("reason").to_pylist() == b.column("reason").to_pylist()
+
+
+def test_the_doctor_on_an_mcap_dataset_directory_names_file_and_log_time(tmp_path):
+    import pyarrow as pa
+
+    from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.data.io import write_dataset
+    from offline_adp.data.validate import validate_directory
+
+    f = write_log(tmp_path / "ok.mcap", episode_messages(10))
+    ds, _ = ingest_mcap([f], _spec())
+    col = ds.table.column("obs.x").to_numpy().copy()
+    col[4] = np.nan  # a defect the doctor finds, at step 4
+    t = ds.table.set_column(ds.table.column_names.index("obs.x"), "obs.x", pa.array(col))
+    write_dataset(TransitionDataset(t, ds.info), tmp_path / "ds")
+    report = validate_directory(tmp_path / "ds")
+    assert not report.ok and f"{f}: log_time {T0 + 4 * 100 * MS} (episode ok-00000, step 4)" in report.to_text()

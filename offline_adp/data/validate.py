@@ -266,11 +266,14 @@ def _messages(mask: np.ndarray, fmt) -> np.ndarray:
 
 
 def validate_directory(path: str | PathLike[str]) -> ValidationReport:
-    """Load a dataset directory and run the doctor, naming part files and rows in them."""
+    """Load a dataset directory and run the doctor, naming part files and rows in them
+    (datasets ingested from MCAP: the recording and the message's log_time)."""
     from offline_adp.data.io import part_files, read_dataset
 
     path = Path(path)
     ds = read_dataset(path)
+    if "src_file" in ds.table.column_names and "src_log_time" in ds.table.column_names:
+        return validate(ds)  # ingested from MCAP: name the recording and the message's log_time
     parts = part_files(path)
     import pyarrow.parquet as pq
 
