@@ -1,27 +1,30 @@
-"""MCAP logs -> dataset (the only module that imports ``mcap``).
+"""MCAP logs (and ROS bags) -> dataset: the only package that imports ``mcap``.
 
-Reading: a record-level scan of each file in file order (no index or summary needed).
-A chunk that fails to decompress or to match its CRC is skipped and reported ("lost
-chunk at offset Y"), and reading continues with the next record; a file cut short
-(crash during recording) keeps every complete record before the cut and reports
-"recovered N messages of file X, lost from offset Y". Per ``on_error`` the damage fails
-the ingestion or is reported and the episodes it touched are left out.
+One job per module:
 
-Assembly streams: messages go into per-stream buffers; once every stream has moved
-``reorder_window`` seconds past a step, the step is aligned (``nearest``, ``previous``,
-``linear`` with ``max_age``), joined to the episode being assembled, and the buffers are
-pruned. Memory is bounded by the episode being assembled plus the reorder window, not
-by the file. Time sources that go backwards (``log_time`` restarting between
-concatenated episodes) start a new *epoch*: an episode boundary.
+- ``scan``: record-level scan of a file in file order (no index or summary needed),
+  recovery from damage (lost chunks, a cut), bounds on untrusted lengths and counts;
+- ``decode``: decoders (JSON, ROS 2 CDR, protobuf), field paths, message times;
+- ``info``: ``mcap-info`` (every readable file described, damage shown);
+- ``spec``: the ingestion spec (TOML) as frozen dataclasses, checked on load;
+- ``sources``: inputs -> recordings (globs, split recordings, rosbag2 bag directories);
+- ``rosbags_source``: ROS 1 ``.bag`` and rosbag2 SQLite bags through ``rosbags``;
+- ``records``: the typed records passed between the parts;
+- ``align``: one stream's values at the step times;
+- ``assembler``: the streaming assembler (epochs from the file order, watermark,
+  bounded buffers, steps); ``assemble`` runs it on in-memory messages;
+- ``episodes``: cutting steps into episodes (events, gaps, conditions, drops);
+- ``build``: ``ingest_mcap``: recordings -> dataset, quarantine, summary.
 
-Spec (TOML), see ``docs/ingestion-spec.md``::
+Memory is bounded by the episode being assembled plus the reorder window, not by the
+file. The epoch rules, damage accounting and spec keys are in ``docs/ingestion-spec.md``::
 
     [sources]  files (globs, relative to the spec), split_recordings
     [clock]    topic | rate_hz (+ reference), time, reorder_window
     [episodes] topic, id_field, event_field, terminated_field, source_field, gap,
                restart, per_file, end_when, terminal_when
-    [[streams]] topic, role, time, align, max_age, missing, fill, fields = {name = "path"}
-    [action]   topic, field, time, align, max_age, + the Parquet spec's action keys
+    [[streams]] topic, role, time, align, max_age, missing, fill, units, fields = {name = "path"}
+    [action]   topic, field | fields, time, align, max_age, missing, fill, + action table keys
     [cost]     terms = [{field, op, weight, at}] | field | reward, terminal_cost
     [source]   value | by_file = {glob = label}
     [hints]    gamma, horizon
