@@ -107,3 +107,25 @@ def test_a_stale_first_stamp_is_not_taken_for_a_restart(tmp_path):
     expected = np.where(k < 17, -1.0, (k + 1) // 18 * 18 - 1.0)  # the last pose at or before each step
     np.testing.assert_array_equal(a.obs[:, 1], expected)
     assert s["restarts"] == 0 and s["orphan_messages"] == 0 and len(ds) == 89
+
+
+def test_per_file_epochs_keep_the_parts_of_a_split_recording_apart(tmp_path):
+    """[episodes] per_file = true: every part file is an epoch of its own, even when its
+    times overlap the previous part's by less than `restart` (no time jump to see)."""
+    for part in range(2):
+        msgs = []
+        for j in range(20):  # both parts cover the same 1 s of log_time
+            t = T0 + j * 50 * MS
+            msgs.append(("/cmd", t - 2 * MS, {"u": float(part), "ep": part}))
+            msgs.append(("/state", t, {"x": 1000.0 * part + j, "ep": part}))
+            msgs.append(("/reward", t + MS, {"r": -float(part), "ep": part}))
+        write_log(tmp_path / f"rec_{part}.mcap", msgs)
+    d = rl_spec(2.0).raw
+    sp = parse_mcap_spec({**d, "episodes": {"restart": 5.0, "gap": 1.0, "per_file": True}})
+    ds, s = ingest_mcap([tmp_path / "rec_0.mcap", tmp_path / "rec_1.mcap"], sp)
+    a = ds.arrays()
+    x_ep = np.floor(a.obs[:, 0] / 1000).astype(int)
+    assert ds.n_episodes == 2 and len(ds) == 2 * 19
+    np.testing.assert_array_equal(ds.info.action_table.values[a.action, 0], x_ep)
+    np.testing.assert_array_equal(a.cost, x_ep.astype(float))
+    np.testing.assert_array_equal(a.obs[:, 0] % 1000, np.r_[np.arange(19), np.arange(19)])
