@@ -2,7 +2,9 @@
 
 Logs come from `simulate path_tracking` (vehicle layout: odometry 50 Hz, tracking state
 and steering command 10 Hz, episode events), as JSON and as ROS 2 CDR, at two sizes.
-Each measurement runs in a fresh subprocess so peak RSS is its own. "max buffered msgs"
+Each measurement runs in a fresh subprocess so peak RSS is its own. "ours/raw" compares
+wall-clock rates, "CPU ours/raw" the rates per CPU second of each process (steadier on a
+shared machine). "max buffered msgs"
 is the most messages our streaming assembler held at once (bounded by the reorder
 window, not the file).
 
@@ -25,7 +27,7 @@ CHILD = textwrap.dedent(
     import json, resource, sys, time
     path, mode, spec = sys.argv[1], sys.argv[2], sys.argv[3]
     topics = ["/planning/tracking_state", "/vehicle/odometry", "/control/steering_cmd", "/episode/event"]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     buffered = None
     if mode == "raw":
         from mcap.reader import make_reader
@@ -40,8 +42,8 @@ CHILD = textwrap.dedent(
         ds, s = ingest_mcap([path], spec)
         n = sum(s["files"][0]["messages_used"].values())
         buffered = s["max_buffered_messages"]
-    wall = time.perf_counter() - t0
-    print(json.dumps({"messages": n, "wall": wall, "buffered": buffered,
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"messages": n, "wall": wall, "cpu": cpu, "buffered": buffered,
                       "rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
     """
 )
@@ -54,7 +56,8 @@ def main() -> None:
     from offline_adp.simulate import simulate
     from offline_adp.simulate.mcap_writer import write_mcap
 
-    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} {'ours/raw':>8} {'raw RSS MiB':>11} {'ours RSS MiB':>12} {'max buffered msgs':>17}")
+    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} {'ours/raw':>8} "
+          f"{'CPU ours/raw':>12} {'raw RSS MiB':>11} {'ours RSS MiB':>12} {'max buffered msgs':>17}")
     with tempfile.TemporaryDirectory() as d:
         for n_ep in args.episodes:
             ds = simulate("path_tracking", n_ep, 0, seed=0, horizon=200)
@@ -67,6 +70,7 @@ def main() -> None:
                 r, o = res["raw"], res["ours"]
                 print(f"{enc:<9} {n_ep:>8} {f.stat().st_size / 1e6:>6.1f} {r['messages']:>9} {r['messages'] / r['wall']:>10,.0f} "
                       f"{o['messages'] / o['wall']:>10,.0f} {(o['messages'] / o['wall']) / (r['messages'] / r['wall']):>8.2f} "
+                      f"{(o['messages'] / o['cpu']) / (r['messages'] / r['cpu']):>12.2f} "
                       f"{r['rss_mib']:>11.0f} {o['rss_mib']:>12.0f} {o['buffered']:>17}", flush=True)
 
 

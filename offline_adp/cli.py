@@ -117,36 +117,47 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     notes = {"dropped_steps": "steps dropped for missing values (missing = 'drop_step')",
              "outside_episode_steps": "steps outside any start/end episode", "condition_steps":
              "steps under an end condition", "short_episodes": "episodes with fewer than 2 steps",
-             "incomplete_episodes": "episodes without their end (cut recordings)", "episodes_lost_to_damage":
-             "episodes that overlapped a lost chunk", "restarts": "time-source restarts (episode boundaries)",
-             "quarantined_rows": "rows quarantined by the doctor"}
+             "incomplete_episodes": "episodes without their end event", "episodes_lost_to_damage":
+             "episodes that lost messages to damage", "restarts": "time-source restarts (episode boundaries)",
+             "cut_episodes": "episodes the recording ends inside (cut)", "episode_splits":
+             "episodes split at dropped steps", "orphan_messages": "messages of an epoch without clock messages",
+             "episodes_without_command": "episodes with a step without a command",
+             "quarantined_rows": f"rows set aside with a reason in {args.out}/quarantine/",
+             "dropped_rows": "rows of rejected episodes left out (on_error = fail)"}
     for k, text in notes.items():
         if s.get(k):
             print(f"  {text}: {s[k]}")
+    for f in s.get("skipped_files", []):
+        print(f"  skipped {', '.join(f['files'])}: {f['error']}")
     return 0
 
 
 def cmd_mcap_info(args: argparse.Namespace) -> int:
-    from offline_adp.ingest.mcap import mcap_info
+    from pathlib import Path
 
-    for path in args.files:
+    from offline_adp.ingest.mcap import mcap_info
+    from offline_adp.ingest.mcap.sources import bag_files
+
+    for path in [p for f in args.files for p in (bag_files(Path(f)) if Path(f).is_dir() else [f])]:
         info = mcap_info(path)
         if args.json:
             print(json.dumps(info, indent=2, default=str))
             continue
         rng = info.get("time_range_ns")
         print(f"{info['file']}: profile {info['profile'] or '-'}, library {info['library']!r}, summary {info['summary']}, "
-              f"indexed {info.get('indexed', False)}, compression {info.get('compression', '?')}"
-              + (f", {(rng[1] - rng[0]) / 1e9:.1f} s of messages" if rng else "")
-              + (" (no readable summary: counted by scanning the records)" if info.get("scanned") else ""))
+              f"compression {info.get('compression', '?')}, {info['messages']} messages"
+              + (f", log_time {rng[0] / 1e9:.3f} .. {rng[1] / 1e9:.3f} s" if rng else ""))
         if info.get("damage"):
             print(f"  DAMAGE: {info['damage']}")
         for topic, t in sorted(info["topics"].items()):
-            print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']!s:>7} msgs {t['rate_hz']!s:>8} Hz")
-            if t["fields"]:
-                print("      fields: " + ", ".join(t["fields"][:40]) + (" ..." if len(t["fields"]) > 40 else ""))
-            else:
-                print("      fields: (not decodable with the installed decoders)")
+            rate = f"{t['rate_hz']} Hz" if t["rate_hz"] is not None else t["status"]
+            extra = "".join(f", {t[k]} {k}" for k in ("restarts", "gaps") if t.get(k))
+            print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']:>7} msgs  {rate}{extra}")
+            if t["field_info"]:
+                shown = [f"{x['path']} ({x['type']}: {x['sample']!r})" for x in t["field_info"][:40]]
+                print("      fields: " + ", ".join(shown) + (" ..." if len(t["field_info"]) > 40 else ""))
+            elif t["status"].startswith("not decodable"):
+                print(f"      {t['status']}")
     return 0
 
 

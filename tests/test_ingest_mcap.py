@@ -195,26 +195,43 @@ def test_real_rosbag2_recording():
 
 @pytest.mark.parametrize("damage", ["truncate", "bitflip"])
 def test_damaged_files_recover_complete_chunks_and_report(tmp_path, damage):
+    from offline_adp.data.io import read_quarantine
+    from offline_adp.ingest.mcap import scan_records
+
     ds = simulate("path_tracking", 6, 0, seed=5, horizon=40)
     (f,) = write_mcap(ds, tmp_path / "logs", encoding="json", chunk_size=32 * 1024)  # many chunks
     data = bytearray(f.read_bytes())
     if damage == "truncate":
         data = data[: len(data) * 2 // 3]  # a crash during recording, mid-chunk
-        expected = r"recovered \d+ messages of file .*bad.mcap, lost from offset \d+"
+        expected = r"recovered \d+ messages of file .*bad.mcap, cut at offset \d+ .*an unknown number of messages lost"
     else:
         data[len(data) // 2] ^= 0xFF  # one flipped byte inside a chunk
         expected = r"recovered \d+ messages of file .*bad.mcap, lost 1 corrupt chunk\(s\) at offset\(s\) \d+ \(ZstdError"
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
-    with pytest.raises(IngestError, match=expected):
-        ingest_mcap([bad], SPEC)
+    if damage == "truncate":  # a file cut short: every complete episode is kept in both modes
+        with pytest.warns(UserWarning, match=expected):
+            kept_fail, s_fail = ingest_mcap([bad], SPEC)
+        assert s_fail["cut_episodes"] == 1 and s_fail["dropped_rows"] > 0  # the cut episode: reported, left out
+    else:
+        with pytest.raises(IngestError, match=expected):
+            ingest_mcap([bad], SPEC)
     with pytest.warns(UserWarning, match="recovered"):
-        part, summary = ingest_mcap([bad], SPEC, on_error="quarantine")
+        part, summary = ingest_mcap([bad], SPEC, tmp_path / "q", on_error="quarantine")
     assert 0 < part.n_episodes < ds.n_episodes
     assert summary["files"][0]["recovered"]["messages"] > 0
-    if damage == "truncate":  # mcap-info on a cut file: a record scan, saying what was lost
-        info = mcap_info(bad)
-        assert info["scanned"] and "lost from offset" in info["damage"]
+    q = read_quarantine(tmp_path / "q")
+    assert len(part) + q.num_rows == summary["transitions_assembled"]  # nothing silently lost
+    assert set(q.column("reason").to_pylist()) <= {r["reason"] for r in summary["rejected_episodes"]}
+    if damage == "truncate":
+        assert list(kept_fail.episode_ids) == list(part.episode_ids)
+        with open(bad, "rb") as fh:  # ground truth: the episodes whose end event survived the cut
+            ended = [json.loads(m.data)["episode_id"] for _, ch, m in scan_records(fh, {"/episode/event"}, {})
+                     if json.loads(m.data)["event"] == "end"]
+        assert list(part.episode_ids) == ended
+        assert summary["cut_episodes"] == 1 and all(r.startswith("cut") for r in q.column("reason").to_pylist())
+        info = mcap_info(bad)  # mcap-info on a cut file: a record scan, saying what was lost
+        assert info["scanned"] and "cut at offset" in info["damage"]
         n = info["topics"]["/vehicle/odometry"]["messages"]
         assert 0 < n < 6 * 40 * 5 and info["topics"]["/vehicle/odometry"]["fields"]
     full = ds.select_episodes(part.episode_ids)  # what was kept is exactly the original

@@ -6,6 +6,7 @@ known by construction (each field encodes its own time, step or episode)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,7 +132,10 @@ def test_event_driven_commands_hold_within_max_age(tmp_path):
         ingest_mcap([f], spec(action={**held, "max_age": 0.15}))
     ds, s = ingest_mcap([f], spec(action={**held, "max_age": 0.15, "missing": "drop_step"}))
     assert s["dropped_steps"] == 10  # ticks 2 and 3 of every 4 are more than 150 ms after their command
-    assert len(ds) == 9
+    # a dropped step splits its episode (no transition stitched across it): pairs of ticks 4j, 4j + 1
+    assert len(ds) == 5 and ds.n_episodes == 5 and s["episode_splits"] == 4
+    a = ds.arrays()
+    np.testing.assert_allclose(a.next_obs[:, 0] - a.obs[:, 0], 0.1, atol=1e-9)  # every transition is one tick
 
 
 def test_end_and_terminal_conditions_cut_episodes(tmp_path):
@@ -251,7 +255,7 @@ def test_a_topic_missing_from_one_file_of_many_follows_its_missing_rule(tmp_path
     write_log(tmp_path / "b.mcap", episode_messages(6, ep=1))  # no /extra here
     extra = {"topic": "/extra", "fields": {"y": "y"}, "align": "previous", "max_age": 100.0}
     files = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
-    with pytest.raises(IngestError, match=r"b.mcap: step at t = 10.000000 s: no /extra message"):
+    with pytest.raises(IngestError, match=r"b.mcap: step at t = 10.000000 s \(log_time 10000000000\): no /extra message"):
         ingest_mcap(files, spec(streams=[spec().raw["streams"][0], extra]))
     ds, _ = ingest_mcap(files, spec(streams=[spec().raw["streams"][0], {**extra, "missing": "fill", "fill": -1.0}]))
     y = ds.arrays().obs[:, 1]
@@ -260,8 +264,31 @@ def test_a_topic_missing_from_one_file_of_many_follows_its_missing_rule(tmp_path
 
 def test_empty_file_and_undecodable_needed_channel(tmp_path):
     (tmp_path / "empty.mcap").write_bytes(b"")
-    with pytest.raises(IngestError, match="empty.mcap: no decodable messages on needed topic"):
+    with pytest.raises(IngestError, match=r"empty.mcap: empty file \(0 bytes\)"):
         ingest_mcap([tmp_path / "empty.mcap"], spec())
+
+
+def test_a_bad_file_in_a_glob_is_named_and_under_quarantine_skipped_and_counted(tmp_path):
+    d = tmp_path / "logs"
+    d.mkdir()
+    write_log(d / "a.mcap", episode_messages(8))
+    (d / "b.mcap").write_bytes(b"not an mcap file at all")
+    (d / "c.mcap").write_bytes(b"")
+    write_log(d / "d.mcap", episode_messages(8, ep=1))
+    with pytest.raises(IngestError, match=r"b.mcap: not an MCAP file"):
+        ingest_mcap([str(d / "*.mcap")], spec())
+    with pytest.warns(UserWarning, match="skipped"):
+        ds, s = ingest_mcap([str(d / "*.mcap")], spec(), on_error="quarantine")
+    assert ds.n_episodes == 2 and len(ds) == 14
+    skipped = {Path(f["files"][0]).name: f["error"] for f in s["skipped_files"]}
+    assert set(skipped) == {"b.mcap", "c.mcap"} and "empty" in skipped["c.mcap"]
+
+
+def test_a_missing_command_topic_is_named(tmp_path):
+    f = write_log(tmp_path / "nocmd.mcap", [m for m in episode_messages(8) if m[0] != "/cmd"])
+    act = {**spec().raw["action"], "missing": "drop_step"}
+    with pytest.raises(IngestError, match=r"topics without any message: \['/cmd'\]; 8 steps dropped"):
+        ingest_mcap([f], spec(action=act))
 
 
 def test_a_terminal_role_field_and_a_reward_field(tmp_path):
@@ -277,3 +304,30 @@ def test_a_terminal_role_field_and_a_reward_field(tmp_path):
     a = ds.arrays()
     assert a.terminated.tolist()[:6] == [False] * 5 + [True] and ds.n_episodes == 2  # steps 0..6, then 7..9
     np.testing.assert_allclose(a.cost, -np.round(a.obs[:, 0] * 10), atol=1e-9)  # r = k at the step
+
+
+def test_a_rosbag2_bag_directory_is_one_recording_in_metadata_order(tmp_path):
+    """What `ros2 bag record` writes: a directory with metadata.yaml and the split files."""
+    bag = tmp_path / "rosbag2_2026_11_22"
+    bag.mkdir()
+    msgs = episode_messages(40, with_events=True, ep_id="run-1")
+    third = len(msgs) // 3
+    for i in range(3):  # the file names do not sort in recording order: metadata.yaml decides
+        write_log(bag / f"part_{['b', 'c', 'a'][i]}.mcap", msgs[i * third:(i + 1) * third if i < 2 else None])
+    (bag / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: mcap\n  relative_file_paths:\n"
+        "    - part_b.mcap\n    - part_c.mcap\n    - part_a.mcap\n  duration:\n    nanoseconds: 4000000000\n")
+    ev = {"topic": "/event", "id_field": "id", "event_field": "event", "terminated_field": "terminated"}
+    ds, s = ingest_mcap([bag], spec(episodes=ev))
+    assert list(ds.episode_ids) == ["run-1"] and len(ds) == 39
+    assert [Path(p).name for p in s["recordings"][0]] == ["part_b.mcap", "part_c.mcap", "part_a.mcap"]
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: other\n"
+                                       "  relative_file_paths:\n    - x.other\n")
+    with pytest.raises(IngestError, match="stored as 'other', not MCAP"):
+        ingest_mcap([bag], spec(episodes=ev))
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
+                                       "  relative_file_paths:\n    - x.db3\n")  # SQLite: read by rosbags, named
+    with pytest.raises(IngestError, match="rosbag2_2026_11_22: cannot read as a ROS bag"):
+        ingest_mcap([bag], spec(episodes=ev))
+    with pytest.raises(IngestError, match="no file matches"):
+        ingest_mcap([str(tmp_path / "nothing*")], spec())

@@ -72,19 +72,23 @@ class RowOrigin:
     files: Sequence[str]
     file_index: np.ndarray
     row: np.ndarray
+    label: str = "row"  # what ``row`` counts: "row" (of a table) or "log_time" (ns, of an MCAP message)
 
     @classmethod
     def of(cls, ds: TransitionDataset) -> RowOrigin:
-        """From the dataset's ``src_file``/``src_row`` columns if present, else its own rows."""
+        """From the dataset's ``src_file``/``src_row`` (or, ingested from MCAP,
+        ``src_file``/``src_log_time``) columns if present, else its own rows."""
         t = ds.table
-        if "src_file" in t.column_names and "src_row" in t.column_names:
+        loc = next((c for c in ("src_row", "src_log_time") if c in t.column_names), None)
+        if "src_file" in t.column_names and loc is not None:
             col = t.column("src_file").combine_chunks()
             if not pa.types.is_dictionary(col.type):
                 col = pc.dictionary_encode(col)
             return cls(
                 [str(x) for x in col.dictionary.to_pylist()],
                 col.indices.to_numpy(zero_copy_only=False),
-                t.column("src_row").to_numpy(zero_copy_only=False),
+                t.column(loc).to_numpy(zero_copy_only=False),
+                "row" if loc == "src_row" else "log_time",
             )
         return cls(["<memory>"], np.zeros(len(ds), np.int64), np.arange(len(ds)))
 
@@ -97,15 +101,19 @@ class ValidationReport:
     ----------
     findings : pandas.DataFrame
         One row per finding, columns ``check, file, row, episode_id, step, column,
-        message``; ``row`` is the 0-based row within ``file``.
+        message``; ``row`` is the 0-based row within ``file`` (for MCAP inputs: the
+        message's ``log_time`` in ns, see ``row_label``).
     n_rows, n_episodes : int
         Size of what was checked.
+    row_label : str
+        ``"row"`` or ``"log_time"``: what the ``row`` column counts.
     """
 
     findings: pd.DataFrame = field(default_factory=lambda: pd.DataFrame(columns=FINDING_COLUMNS))
     n_rows: int = 0
     n_episodes: int = 0
     n_terminated_and_truncated: int = 0
+    row_label: str = "row"
 
     @property
     def ok(self) -> bool:
@@ -145,7 +153,7 @@ class ValidationReport:
             lines.append(f"  {check:<26} {n}")
         for r in self.findings.head(max_findings).itertuples(index=False):
             lines.append(
-                f"  {r.file}: row {r.row} (episode {r.episode_id!s}, step {r.step}) column {r.column!r}: "
+                f"  {r.file}: {self.row_label} {r.row} (episode {r.episode_id!s}, step {r.step}) column {r.column!r}: "
                 f"[{r.check}] {r.message}"
             )
         if len(self.findings) > max_findings:
@@ -269,7 +277,8 @@ def validate(
     f["check"] = pd.Categorical(f["check"], categories=list(CHECKS))
     f = f.sort_values(["row", "check"], kind="stable").reset_index(drop=True)
     f["check"] = f["check"].astype(str)
-    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both)
+    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both,
+                            row_label=origin.label)
 
 
 def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>") -> ValidationReport:
@@ -329,15 +338,17 @@ def _messages(mask: np.ndarray, fmt) -> np.ndarray:
 
 
 def validate_directory(path: str | PathLike[str]) -> ValidationReport:
-    """Load a dataset directory and run the doctor, naming part files and rows in them;
-    then check the directory's metadata against its data (see the module docstring)."""
+    """Load a dataset directory and run the doctor, naming part files and rows in them
+    (datasets ingested from MCAP: the recording and the message's log_time); then check
+    the directory's metadata against its data (see the module docstring)."""
     from offline_adp.data.io import read_dataset, read_info
 
     path = Path(path)
     ds = read_dataset(path)
+    mcap = "src_file" in ds.table.column_names and "src_log_time" in ds.table.column_names
     # rows are read in part order; the constructor re-sorts only a dataset whose parts were
     # edited out of order, and then the part/row names would no longer line up
-    origin = _directory_origin(path, ds)
+    origin = None if mcap else _directory_origin(path, ds)
     report = validate(ds, origin=origin)
     meta = _metadata_findings(path, ds, read_info(path), origin)
     if len(meta):

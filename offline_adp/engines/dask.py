@@ -357,19 +357,20 @@ class _ZeroQ:
         return np.zeros((len(obs), self.n_actions))
 
 
-def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any]:
+def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any, Any]:
     """One file (MCAP: one recording, i.e. a file or the parts of a split recording) ->
-    (dataset, doctor findings) on a worker; nothing is written there."""
+    (dataset, doctor findings, quarantined rows or None) on a worker; nothing is written there."""
     if fmt == "parquet":
         from offline_adp.ingest.parquet import ingest_tables
 
         res = ingest_tables([path], spec, on_error=on_error)
-        return res.dataset, res.report.findings.assign(file=str(path))
-    from offline_adp.ingest.mcap import ingest_mcap
+        return res.dataset, res.report.findings.assign(file=str(path)), res.quarantine
+    from offline_adp.ingest.mcap.build import ingest_mcap_tables
 
     parts = path if isinstance(path, list) else [path]
-    ds, summary = ingest_mcap(parts, spec, on_error=on_error)
-    return ds, pd.DataFrame([{**{k: v for k, v in summary.items() if np.isscalar(v)}, "file": ", ".join(parts)}])
+    ds, quarantine, summary = ingest_mcap_tables(parts, spec, on_error=on_error)
+    return (ds, pd.DataFrame([{**{k: v for k, v in summary.items() if np.isscalar(v)}, "file": ", ".join(parts)}]),
+            quarantine)
 
 
 def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any, out: str | PathLike[str], *,
@@ -400,7 +401,11 @@ def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any,
     futures = client.map(_ingest_file, paths, spec=spec, fmt=fmt, on_error=on_error, pure=False)
     results = client.gather(futures)  # in file order: deterministic part order
     ds = TransitionDataset.concat([r[0] for r in results])
-    write_dataset(ds, out, overwrite=overwrite)
+    quarantined = [r[2] for r in results if r[2] is not None and r[2].num_rows]
+    import pyarrow as pa
+
+    write_dataset(ds, out, overwrite=overwrite,
+                  quarantine=pa.concat_tables(quarantined, promote_options="default") if quarantined else None)
     return ds, pd.concat([r[1] for r in results], ignore_index=True)
 
 

@@ -1,0 +1,524 @@
+"""The streaming assembler: epochs, watermark, buffers, steps."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.errors import IngestError
+from offline_adp.ingest.mcap.align import _align
+from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, get_path
+from offline_adp.ingest.mcap.episodes import EpisodeSegmenter
+from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
+from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
+from offline_adp.ingest.mcap.scan import damage_text, scan_records
+from offline_adp.ingest.mcap.spec import McapSpec, StreamSpec
+
+
+class _Buffer:
+    """One key's messages in one epoch: appended in file order, sorted by time on demand
+    (each stream on its own: never a global sort of the file)."""
+
+    def __init__(self, names: list[str], dtype: Any = np.float64) -> None:
+        self.names, self.dtype = names, dtype
+        self.new: dict[str, list] = {"t": [], "file": [], "lt": [], **{n: [] for n in names}}
+        self.arr: dict[str, np.ndarray] = {"t": np.zeros(0, np.int64), "file": np.zeros(0, np.int32),
+                                           "lt": np.zeros(0, np.int64), **{n: np.zeros(0, dtype) for n in names}}
+
+    def add(self, t: int, file: int, values: list[Any], log_time: int = 0) -> None:
+        self.new["t"].append(t)
+        self.new["file"].append(file)
+        self.new["lt"].append(log_time)
+        for n, v in zip(self.names, values, strict=True):
+            self.new[n].append(v)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        if self.new["t"]:
+            merged = {k: np.concatenate([self.arr[k], np.asarray(self.new[k], dtype=self.arr[k].dtype)]) for k in self.arr}
+            order = np.argsort(merged["t"], kind="stable")
+            self.arr = {k: v[order] for k, v in merged.items()}
+            self.new = {k: [] for k in self.new}
+        return self.arr
+
+    def prune(self, cutoff: int) -> None:
+        """Drop messages before ``cutoff`` but keep the last one before it (``previous`` holds it)."""
+        a = self.arrays()
+        i = max(int(np.searchsorted(a["t"], cutoff, side="left")) - 1, 0)
+        if i:
+            self.arr = {k: v[i:] for k, v in a.items()}
+
+    def __len__(self) -> int:
+        return len(self.arr["t"]) + len(self.new["t"])
+
+
+
+
+class _Recording(EpisodeSegmenter):
+    """Streams one recording (one file, or the parts of a split recording) into episodes.
+
+    Steps: the clock topic's messages (or ``rate_hz`` ticks over the first observation
+    stream). A step is aligned once every stream has moved ``reorder_window`` plus its
+    ``max_age`` past it; buffers are then pruned, so memory holds the episode being
+    assembled and a few seconds of messages, whatever the file size.
+    """
+
+    def __init__(self, files: list[Path], spec: McapSpec, on_error: str, file_index: int,
+                 flush_every: int = 5000) -> None:
+        self.files, self.spec, self.on_error, self.file0 = files, spec, on_error, file_index
+        self.flush_every = max(int(flush_every), 1)
+        self.cut = False
+        self.final = False
+        self.pending_drop = False  # the last steps assembled were dropped: the next kept one starts an episode
+        self.n_since = 0
+        self.name = re.sub(r"_\d+$", "", files[0].stem) if len(files) > 1 else files[0].stem
+        self.value_keys: dict[Any, StreamSpec] = {("s", i): s for i, s in enumerate(spec.streams)}
+        self.value_keys["action"] = spec.action_stream
+        self.clock_key: Any = "clock" if spec.clock_topic else ("s", next(i for i, s in enumerate(spec.streams)
+                                                                          if s.role == "obs"))
+        self.by_topic: dict[str, list[Any]] = {}
+        for k, s in self.value_keys.items():
+            self.by_topic.setdefault(s.topic, []).append(k)
+        if spec.clock_topic:
+            self.by_topic.setdefault(spec.clock_topic, []).append("clock")
+        if spec.episode_topic:
+            self.by_topic.setdefault(spec.episode_topic, []).append("events")
+        self.names = {k: list(s.fields) for k, s in self.value_keys.items()}
+        self.names["clock"] = []
+        self.names["events"] = list(spec.episode_fields)
+        self.epoch: dict[Any, int] = {k: 0 for ks in self.by_topic.values() for k in ks}
+        self.maxt: dict[Any, int | None] = {k: None for k in self.epoch}
+        self.bufs: dict[tuple[Any, int], _Buffer] = {}
+        self.clock_first: dict[int, int] = {}
+        self.active = 0
+        self.flushed_t: int | None = None  # time of the last step handed to the episodes
+        self.lag = int((spec.reorder_window + max(s.max_age for s in self.value_keys.values())) * 1e9)
+        self.reorder = int(spec.reorder_window * 1e9)
+        self.restart = int(spec.restart * 1e9)
+        self.next_tick: int | None = None
+        self.last_step_t: int | None = None
+        self.last_episode_value: np.ndarray | None = None
+        self.waiting: Any = None  # key of an episode an end/terminal condition closed, while it still holds
+        self.counter = 0
+        self.seg = 0
+        self.event_info: dict[Any, tuple[str, str | None, bool | None]] = {}
+        self.splits: dict[Any, int] = {}
+        self.cur: Any = None  # the episode being assembled (episodes._Episode)
+        self.out: list[EpisodeRows] = []
+        self.used = {t: 0 for t in self.by_topic}
+        self.late = {t: 0 for t in self.by_topic}
+        self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
+                      "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
+                      "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
+                      "episode_splits": 0,
+                      "max_buffered_messages": 0}
+        self.reports: list[dict[str, Any]] = []
+        self.live_reports: list[dict[str, Any]] = []
+        self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
+        self.n_lost_seen = 0
+        obs = spec.obs_names
+        aux = spec.aux_names
+        self.col = {n: ("obs", obs.index(n)) for n in obs} | {n: ("aux", aux.index(n)) for n in aux}
+        self.episode_fields = [n for s in spec.streams if s.role == "episode" for n in s.fields]
+
+    # ------------------------------------------------------------------ reading
+    def run(self) -> RecordingResult:
+        for fi, path in enumerate(self.files):
+            if fi and self.spec.per_file:
+                self._new_epoch_everywhere()
+            self._read(path, self.file0 + fi)
+        return self.finish(cut=bool(self.live_reports) and "lost_from_offset" in self.live_reports[-1])
+
+    def feed(self, messages: Iterable[Message], file_index: int | None = None) -> None:
+        """Add decoded messages in file order (flushing every ``flush_every`` messages)."""
+        fi = self.file0 if file_index is None else file_index
+        for m in messages:
+            self._add(m, fi)
+            self.n_since += 1
+            if self.n_since >= self.flush_every:
+                self.n_since = 0
+                self._flush()
+
+    def finish(self, cut: bool = False) -> RecordingResult:
+        """Assemble what is left. Episodes damage touched, and with ``cut`` (the recording
+        ends inside a record) the episode it ends in, are marked rejected (``reason``), counted.
+        """
+        if self.pending_losses:
+            self._resolve_losses(self.epoch[self.clock_key])
+        self.cut = cut
+        self._flush(final=True)
+        for ep in self.out:
+            if not ep.reason and (lost := self._episode_damaged(ep)):
+                ep.reason = lost
+                self.stats["episodes_lost_to_damage"] += 1
+        missing = [t for t, n in self.used.items() if n == 0 and t != self.spec.episode_topic]
+        return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing)
+
+    def _read(self, path: Path, file_index: int) -> None:
+        from collections import Counter
+
+        report: dict[str, Any] = {"_path": str(path)}
+        self.live_reports.append(report)  # lost chunks become known while reading
+        before = dict(self.used)
+        decoders = _Decoders()
+        try:
+            if is_rosbags_input(path):  # a ROS 1 .bag or a rosbag2 SQLite bag: the rosbags readers
+                for m in read_rosbags(path, set(self.by_topic), report):
+                    self.feed((m,), file_index)
+            else:
+                self._read_mcap(path, file_index, report, decoders)
+        except IngestError as exc:
+            if str(path) in str(exc):
+                raise
+            raise IngestError(f"{path}: {exc}") from None
+        except (KeyError, AttributeError, IndexError, TypeError, ValueError) as exc:
+            raise IngestError(f"{path}: a field path of the spec does not match the messages ({type(exc).__name__}: "
+                              f"{exc}); run `offline-adp mcap-info` to list the fields") from exc
+        except Exception as exc:  # noqa: BLE001 - any other library error becomes ours, naming the file
+            raise IngestError(f"{path}: cannot read as MCAP ({type(exc).__name__}: {exc})") from exc
+        self._note_losses(report)
+        text = damage_text(path, report)
+        entry = {"path": str(path), "messages_used": {t: n - before[t] for t, n in self.used.items()},
+                 "messages_skipped": dict(Counter(report.get("skipped", {}))), **({"empty": True} if report.get("empty") else {})}
+        if text:
+            lost = [{k: v for k, v in c.items() if not k.startswith("_")} for c in report["lost_chunks"]]
+            entry["recovered"] = {"messages": report["messages"], "lost_chunks": lost,
+                                  **{k: report[k] for k in ("lost_from_offset", "damaged", "messages_lost") if k in report},
+                                  "text": text}
+            if self.on_error == "fail" and report["lost_chunks"]:  # a file merely cut short is kept (its last episode is not)
+                raise IngestError(text + "; re-run with --on-error quarantine to keep what was recovered")
+            import warnings
+
+            warnings.warn(text, stacklevel=4)
+        self.reports.append(entry)
+
+    def _read_mcap(self, path: Path, file_index: int, report: dict[str, Any], decoders: _Decoders) -> None:
+        add, every = self._add_fields, self.flush_every
+        lost = report.setdefault("lost_chunks", [])
+        with open(path, "rb") as f:
+            self.n_lost_seen = 0
+            for sch, ch, msg in scan_records(f, set(self.by_topic), report):
+                if len(lost) > self.n_lost_seen:
+                    self._note_losses(report)
+                dec = decoders(sch, ch)
+                if dec is None:
+                    raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
+                                      f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
+                                      f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
+                add(ch.topic, msg.log_time, msg.publish_time, dec(msg.data), file_index)
+                self.n_since += 1
+                if self.n_since >= every:  # as feed(): one flush per flush_every messages
+                    self.n_since = 0
+                    self._flush()
+
+    def _add(self, msg: Message, file_index: int) -> None:
+        self._add_fields(msg.topic, msg.log_time, msg.publish_time, msg.data, file_index)
+
+    def _add_fields(self, topic: str, log_time: int, publish_time: int, dec: Any, file_index: int) -> None:
+        self.used[topic] += 1
+        times: dict[str, int] = {}  # one time per time field of this message
+        for k in self.by_topic[topic]:
+            if k == "events":
+                t = int(log_time)
+                values = [get_path(dec, p) for p in self.spec.episode_fields.values()]
+            else:
+                which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
+                t = times.get(which)
+                if t is None:
+                    t = times[which] = _msg_time(which, log_time, publish_time, dec)
+                values = [] if k == "clock" else [float(get_path(dec, p)) for p in self.value_keys[k].fields.values()]
+            e = self._epoch_of(k, t)
+            if e is None:  # late for an epoch already over (by file order, not by flush points)
+                self.late[topic] += 1
+                continue
+            if e == self.active and self.flushed_t is not None and t < self.flushed_t - self.lag:
+                self.late[topic] += 1  # steps before it were aligned without it
+            b = self.bufs.get((k, e))
+            if b is None:
+                b = self.bufs[(k, e)] = _Buffer(self.names[k], object if k == "events" else np.float64)
+            b.add(t, file_index, values, int(log_time))
+
+    def _epoch_of(self, k: Any, t: int) -> int | None:
+        """The epoch of a message of key ``k`` at time ``t``, from the file order alone
+        (never from what has been flushed): see "Epochs" in docs/ingestion-spec.md.
+
+        The clock's epoch advances when its time jumps back more than ``restart``. Any
+        other stream is placed against the clock's current epoch ``ce``, its first time
+        ``cf`` and latest time ``cm``: a time in ``[cf - restart, cm - restart)`` is the
+        next epoch's (the stream restarted before the clock); a stream still in ``ce - 1`` whose time has not
+        jumped back and lies more than ``restart`` above ``cm`` is a late message of
+        ``ce - 1``; anything else is ``ce``'s. A stream ahead of the clock stays ahead
+        until the clock follows (a second jump back while ahead replaces its buffer: the
+        clock skipped that epoch). None: the message belongs to an epoch that is over.
+        """
+        r = self.restart
+        m, ek = self.maxt[k], self.epoch[k]
+        own_restart = m is not None and r > 0 and t < m - r
+        ck = self.clock_key
+        if k == ck:
+            e = ek + 1 if own_restart else ek
+            if own_restart:
+                self.stats["restarts"] += 1
+            if e not in self.clock_first:
+                self.clock_first[e] = t
+                for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
+                    m2 = self.maxt[k2]
+                    if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
+                        b = self.bufs.pop((k2, e), None)
+                        self.stats["orphan_messages"] += len(b) if b is not None else 0
+                        self.maxt[k2] = None
+            if self.pending_losses:
+                self._resolve_losses(e)
+        else:
+            ce, cm = self.epoch[ck], self.maxt[ck]
+            # the time jumped back within what the clock has covered in this epoch (older than the epoch's
+            # first clock message: stale data of this epoch, e.g. a late localization stamp)
+            ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
+            if m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
+                e = ek
+                if own_restart:  # a second restart before the clock's: the clock has no such epoch
+                    b = self.bufs.pop((k, ek), None)
+                    self.stats["orphan_messages"] += len(b) if b is not None else 0
+            elif ek == ce and m is not None and not own_restart:
+                e = ce
+            elif ek == ce - 1 and m is not None and not own_restart and cm is not None and r > 0 and t > cm + r:
+                e = ek  # a late message of the epoch before the clock's restart
+                if cm - self.clock_first.get(ce, cm) >= self.reorder:
+                    return None
+            else:
+                e = ce + 1 if ahead else ce
+        if e != ek:
+            self.epoch[k], m = e, None
+        elif own_restart:
+            m = None
+        if m is None or t > m:
+            self.maxt[k] = t
+        if e < self.active:  # defensive: never happens for messages on time (see the rules above)
+            return None
+        return e
+
+    def _lost_ranges(self, e: int) -> list[tuple[float, float]]:
+        """Time ranges (widened by the reorder window) of the chunks lost so far that may
+        have held messages of epoch ``e``."""
+        out: list[tuple[float, float]] = []
+        for r in self.live_reports:
+            for c in r.get("lost_chunks", []):
+                out += [(a - self.reorder, b + self.reorder) for ep, a, b in c.get("_epochs", ()) if ep == e]
+        return out
+
+    def _damaged(self, e: int, t: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(t), bool)
+        for a, b in self._lost_ranges(e):
+            out |= (t >= a) & (t <= b)
+        return out
+
+    def _note_losses(self, report: dict[str, Any]) -> None:
+        """Chunks lost since the last message: they held messages of the clock's current
+        epoch and, if the clock restarted inside them, of the next ones (known at the next
+        clock message; see ``_resolve_losses``)."""
+        lost = report.get("lost_chunks", [])
+        for c in lost[self.n_lost_seen:]:
+            ce = self.epoch[self.clock_key]
+            c["_ce"] = ce
+            a, b = float(c.get("start_ns", -np.inf)), float(c.get("end_ns", np.inf))
+            c["_epochs"] = [(ce, a, b), (ce + 1, a, b)]  # until the next clock message says more
+            self.pending_losses.append(c)
+        self.n_lost_seen = len(lost)
+
+    def _resolve_losses(self, ce_after: int) -> None:
+        """The epochs a lost chunk may have held: every epoch from the one the clock was in
+        when it was lost to the one of the next clock message; the first and the last only
+        within the chunk's time range (the last only if the chunk reaches back to its start)."""
+        for c in self.pending_losses:
+            ce, a, b = c["_ce"], float(c.get("start_ns", -np.inf)), float(c.get("end_ns", np.inf))
+            eps = [(ce, a, b)] + [(e, -np.inf, np.inf) for e in range(ce + 1, ce_after)]
+            if ce_after > ce and a <= self.clock_first.get(ce_after, np.inf) + self.reorder:
+                eps.append((ce_after, a, b))
+            c["_epochs"] = eps
+        self.pending_losses = []
+
+    def _episode_damaged(self, ep: EpisodeRows) -> str:
+        """The reason an episode is lost to damage ("" if it is not)."""
+        for r in self.live_reports:
+            for c in r.get("lost_chunks", []):
+                for e, a, b in c.get("_epochs", ()):
+                    if e == ep.epoch and ep.t[0] <= b + self.reorder and ep.t_end >= a - self.reorder:
+                        return f"damage: lost chunk at offset {c['offset']} of {r.get('_path', 'the file')}"
+        return ""
+
+    def _new_epoch_everywhere(self) -> None:
+        e = max(self.epoch.values()) + 1
+        for k in self.epoch:
+            self.epoch[k], self.maxt[k] = e, None
+
+    # ------------------------------------------------------------------ flushing
+    def _watermark(self, e: int) -> float:
+        """Steps of epoch ``e`` up to this time have all their data (inf: the epoch is over)."""
+        ce = self.epoch[self.clock_key]
+        if ce > e:
+            now = self.maxt[self.clock_key] or 0
+            if (ce > e + 1 or all(v > e for v in self.epoch.values())
+                    or now - self.clock_first.get(ce, now) >= self.reorder):  # no message can still join e
+                return np.inf
+        latest = [self.maxt[k] for k in self.epoch if self.epoch[k] == e and self.maxt[k] is not None]
+        if not latest:
+            return -np.inf
+        top = max(latest)
+        span = top - self.clock_first.get(e, top)
+        w = np.inf
+        for k in self.epoch:
+            if k == "events":
+                continue
+            if self.epoch[k] > e:
+                continue
+            if self.epoch[k] < e or self.maxt[k] is None:
+                if span <= self.reorder:
+                    return -np.inf  # this stream may still come (e.g. written topic by topic)
+                continue
+            if self.maxt[k] < top - self.reorder:
+                continue  # an idle stream (event-driven commands): do not wait for it
+            w = min(w, self.maxt[k])
+        return w - self.lag
+
+    def _flush(self, final: bool = False) -> None:
+        self.final = final
+        held = sum(len(b) for b in self.bufs.values())
+        self.stats["max_buffered_messages"] = max(self.stats["max_buffered_messages"], held)
+        while True:
+            e = self.active
+            w = np.inf if final else self._watermark(e)
+            if w == -np.inf:
+                return
+            self._emit_ready(e, w)
+            if w != np.inf:
+                return
+            self._close(None, cut=final and self.cut and self.active == max(self.epoch.values()))
+            # the epoch is over: so is its episode (in the last epoch of a cut recording: cut)
+            for k in list(self.bufs):
+                if k[1] == e:
+                    del self.bufs[k]
+            self.last_step_t, self.last_episode_value, self.next_tick, self.waiting = None, None, None, None
+            self.pending_drop = False
+            self.flushed_t = None
+            self.active += 1
+            if self.active > max(self.epoch.values()):
+                return
+
+    def _ticks(self, e: int, w: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Step times, their files and the log_time of the message that made each step:
+        clock messages, or rate_hz ticks over the reference stream."""
+        none = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int64)
+        b = self.bufs.get((self.clock_key, e))
+        if b is None:
+            return none
+        a = b.arrays()
+        start = 0 if self.flushed_t is None else int(np.searchsorted(a["t"], self.flushed_t, side="right"))
+        stop = len(a["t"]) if w == np.inf else int(np.searchsorted(a["t"], w, side="right"))
+        t, f, lt = a["t"][start:stop], a["file"][start:stop], a["lt"][start:stop]
+        if self.spec.rate_hz is None:
+            return t, f, lt
+        period = int(round(1e9 / self.spec.rate_hz))
+        gap = int(self.spec.gap * 1e9)
+        out_t, out_f, out_lt = [], [], []
+        prev = self.flushed_t
+        for ti, fi, li in zip(t.tolist(), f.tolist(), lt.tolist(), strict=True):  # per reference message, not per row of data
+            if self.next_tick is None or prev is None or ti - prev > gap:
+                self.next_tick = ti
+            if self.next_tick <= ti:
+                k = np.arange(self.next_tick, ti + 1, period, dtype=np.int64)
+                out_t.append(k)
+                out_f.append(np.full(len(k), fi, np.int32))
+                out_lt.append(np.full(len(k), li, np.int64))
+                self.next_tick = int(k[-1]) + period
+            prev = ti
+        if not out_t:
+            return none
+        return np.concatenate(out_t), np.concatenate(out_f), np.concatenate(out_lt)
+
+    def _emit_ready(self, e: int, w: float) -> None:
+        times, files, lts = self._ticks(e, w)
+        if len(times):
+            last_clock = self.bufs[(self.clock_key, e)].arrays()["t"]
+            upto = int(last_clock[-1]) if w == np.inf else int(last_clock[np.searchsorted(last_clock, w, side="right") - 1])
+            self._steps(e, times, files, lts)
+            self.flushed_t = upto
+            for (k, ek), b in self.bufs.items():
+                if ek == e and k != "events":
+                    b.prune(upto - self.lag)
+
+    def _steps(self, e: int, times: np.ndarray, files: np.ndarray, lts: np.ndarray) -> None:
+        spec = self.spec
+        n = len(times)
+        obs = np.empty((n, len(spec.obs_names)))
+        aux = np.empty((n, len(spec.aux_names)))
+        keep = np.ones(n, bool)
+        damaged = self._damaged(e, times)  # steps whose messages may be in a lost chunk: their episode is left out
+        if self.cut and e == max(self.epoch.values()):  # steps whose data may have been written after the cut
+            top = max((m for k, m in self.maxt.items() if m is not None and self.epoch[k] == e), default=None)
+            if top is not None:
+                damaged |= times >= top - self.lag
+        missing_here = np.zeros(n, bool)
+        act_cols: list[np.ndarray] = []
+        act_ok = np.ones(n, bool)
+        for k, s in self.value_keys.items():
+            b = self.bufs.get((k, e))
+            a = b.arrays() if b is not None else {"t": np.zeros(0, np.int64), **{nm: np.zeros(0) for nm in s.fields}}
+            for name in s.fields:
+                v, good = _align(a["t"], a[name], times, s)
+                if s.missing == "fill":
+                    v, good = np.where(good, v, s.fill), np.ones(n, bool)
+                elif s.missing == "drop_step":
+                    keep &= good
+                elif k != "action":
+                    if not (good | damaged).all():
+                        j = int(np.flatnonzero(~(good | damaged))[0])
+                        raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
+                                          f"(log_time {int(lts[j])}): no "
+                                          f"{s.topic} message within max_age = {s.max_age} s for {name!r} (use missing = "
+                                          "'fill' or 'drop_step')")
+                    missing_here |= ~good
+                if k == "action":
+                    act_cols.append(v)
+                    act_ok = act_ok & good
+                else:
+                    where, j = self.col[name]
+                    (obs if where == "obs" else aux)[:, j] = v
+        act = act_cols[0] if len(act_cols) == 1 else np.column_stack(act_cols)  # a vector action: one column each
+        hit = damaged & (missing_here | ~keep)  # lacks data that damage may have taken: episode rejected
+        self.stats["damaged_steps"] += int(hit.sum())
+        self.stats["dropped_steps"] += int((~keep & ~hit).sum())
+        keep |= hit
+        # a dropped step inside an episode splits it (no transition is stitched across the gap)
+        cum = np.cumsum(~keep)
+        at = cum[keep]
+        split = np.diff(np.r_[0, at]) > 0
+        if len(split):
+            split[0] |= self.pending_drop
+            self.stats["episode_splits"] += int(split[1:].sum()) + int(split[0] and self.last_step_t is not None)
+        self.pending_drop = bool((~keep[np.flatnonzero(keep)[-1] + 1:]).any()) if keep.any() else \
+            self.pending_drop or bool((~keep).any())
+        steps = {"t": times, "file": files, "lt": lts, "obs": obs, "aux": aux, "act": act, "act_ok": act_ok,
+                 "hit": hit, "act_hit": damaged & ~act_ok}
+        if not keep.all():
+            steps = {k: v[keep] for k, v in steps.items()}
+        steps["split"] = split
+        self._segment(e, steps)
+
+
+def assemble(parts: Sequence[Iterable[Message]], spec: McapSpec, *, name: str = "memory", on_error: str = "fail",
+             flush_every: int = 5000) -> RecordingResult:
+    """Assemble one recording given as decoded messages in file order (one iterable per
+    file part) — the streaming assembler without MCAP files, e.g. for tests.
+
+    ``flush_every``: messages between flushes (the result never depends on it for
+    messages no later in the file than ``reorder_window``)."""
+    files = [Path(f"{name}.mcap")] if len(parts) == 1 else [Path(f"{name}_{i}.mcap") for i in range(len(parts))]
+    rec = _Recording(files, spec, on_error, 0, flush_every=flush_every)
+    for i, msgs in enumerate(parts):
+        if i and spec.per_file:
+            rec._new_epoch_everywhere()
+        rec.feed(msgs, i)
+    return rec.finish()

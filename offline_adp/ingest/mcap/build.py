@@ -1,0 +1,315 @@
+"""Recordings -> dataset: the ``ingest_mcap`` entry point."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from collections.abc import Sequence
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp._version import __version__
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
+from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.validate import split_quarantine, validate
+from offline_adp.errors import IngestError, SpecError, ValidationError
+from offline_adp.ingest.actions import bin_continuous, map_discrete
+from offline_adp.ingest.mcap.assembler import _Recording
+from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
+from offline_adp.ingest.mcap.sources import resolve_sources
+from offline_adp.ingest.mcap.spec import McapSpec, load_mcap_spec
+
+
+def _run_recording(files: list[Path], spec: McapSpec, on_error: str, file_index: int) -> RecordingResult | str:
+    """One recording; under quarantine a recording that cannot be read at all gives the
+    error text (the file is skipped and counted), under fail the error."""
+    try:
+        return _Recording(files, spec, on_error, file_index).run()
+    except IngestError as exc:
+        if on_error == "fail" or isinstance(exc, SpecError):
+            raise
+        return str(exc)
+
+
+def ingest_mcap(
+    files: Sequence[str | PathLike[str]],
+    spec: McapSpec | str | PathLike[str],
+    out: str | PathLike[str] | None = None,
+    *,
+    on_error: str | None = None,
+    overwrite: bool = False,
+    jobs: int = 1,
+    progress: Any = None,
+) -> tuple[TransitionDataset, dict[str, Any]]:
+    """Ingest MCAP files into a dataset (written atomically to ``out`` when given).
+
+    ``files`` may hold globs and rosbag2 bag directories; empty means the spec's
+    ``[sources] files``. Recordings (a file, or the parts of a split recording) are
+    assembled independently — in a process pool with ``jobs > 1`` — and concatenated in
+    input order, so the result does not depend on ``jobs``. Returns the dataset and a
+    summary: per file its sha256, messages read and skipped per topic, damage recovered;
+    per topic the messages used; steps dropped, outside any episode or under an end
+    condition; episodes, transitions and per-source counts; under ``on_error =
+    "quarantine"`` the rows set aside in ``quarantine/`` (``rows in the dataset + rows in
+    quarantine = transitions_assembled``) and the files skipped.
+    ``progress(done, total)`` is called after each recording.
+    """
+    if out is not None and Path(out).exists() and not overwrite:
+        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    ds, quarantine, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
+    if out is not None:
+        write_dataset(ds, out, overwrite=overwrite, quarantine=quarantine, extra_meta={"ingest": _jsonable(summary)})
+    return ds, summary
+
+
+def ingest_mcap_tables(
+    files: Sequence[str | PathLike[str]],
+    spec: McapSpec | str | PathLike[str],
+    *,
+    on_error: str | None = None,
+    jobs: int = 1,
+    progress: Any = None,
+) -> tuple[TransitionDataset, Any, dict[str, Any]]:
+    """:func:`ingest_mcap` without writing: (dataset, quarantine table or None, summary)."""
+    if not isinstance(spec, McapSpec):
+        spec = load_mcap_spec(spec)
+    on_error = on_error or spec.on_error
+    if on_error not in ("fail", "quarantine"):
+        raise IngestError(f"on_error must be 'fail' or 'quarantine', got {on_error!r}")
+    recordings = resolve_sources(files, spec)
+    starts = np.cumsum([0] + [len(r) for r in recordings])[:-1].tolist()
+    args = [(r, spec, on_error, s) for r, s in zip(recordings, starts, strict=True)]
+    results: list[RecordingResult | str] = []
+    if jobs > 1 and len(recordings) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(jobs, len(recordings)), mp_context=mp.get_context("spawn")) as pool:
+            for k, res in enumerate(pool.map(_run_recording, *zip(*args, strict=True))):  # input order
+                results.append(res)
+                if progress:
+                    progress(k + 1, len(recordings))
+    else:
+        for k, a in enumerate(args):
+            results.append(_run_recording(*a))
+            if progress:
+                progress(k + 1, len(recordings))
+    import warnings
+
+    summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
+                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}, "skipped_files": []}
+    good: list[tuple[RecordingResult, list[Path]]] = []
+    for res, rec in zip(results, recordings, strict=True):
+        if isinstance(res, str):  # unreadable under quarantine: named, skipped, counted
+            summary["skipped_files"].append({"files": [str(p) for p in rec], "error": res})
+            warnings.warn(f"skipped: {res}", stacklevel=2)
+            continue
+        if res.files and all(f.get("empty") for f in res.files):
+            msg = f"{', '.join(map(str, rec))}: empty file (0 bytes)"
+            if on_error == "fail":
+                raise IngestError(msg)
+            summary["skipped_files"].append({"files": [str(p) for p in rec], "error": msg})
+            warnings.warn(f"skipped: {msg}", stacklevel=2)
+            continue
+        good.append((res, rec))
+        for k, v in res.stats.items():
+            summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
+        for name in ("used", "late"):
+            tgt = summary["messages_used" if name == "used" else "late_messages"]
+            for t, v in getattr(res, name).items():
+                tgt[t] = tgt.get(t, 0) + v
+        for f in res.files:
+            for t, v in f["messages_skipped"].items():
+                summary["messages_skipped"][t] = summary["messages_skipped"].get(t, 0) + v
+            fp = Path(f["path"])
+            digest = sha256_file(fp) if fp.is_file() else {q.name: sha256_file(q) for q in sorted(fp.iterdir()) if q.is_file()}
+            summary["files"].append({**f, "sha256": digest})
+        if res.missing_topics:
+            needed = [s for s in (*spec.streams, spec.action_stream) if s.topic in res.missing_topics]
+            clock_missing = (spec.clock_topic or "") in res.missing_topics
+            if clock_missing or any(s.missing == "error" for s in needed):
+                msg = (f"{', '.join(map(str, rec))}: no decodable messages on needed topic(s) {res.missing_topics} "
+                       "(present in other recordings? set missing = 'fill' or 'drop_step' on that stream)")
+                if on_error == "fail" or not any(not isinstance(r, str) and len(r.episodes) for r in results):
+                    raise IngestError(msg)
+                warnings.warn(msg, stacklevel=2)
+    summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
+    if summary["late_messages"]:
+        warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
+                      f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); steps before "
+                      "them were aligned without them. Raise reorder_window.", stacklevel=2)
+    paths = [p for r in recordings for p in r]
+    eps = [ep for r, _ in good for ep in r.episodes]
+    rejected = [ep for ep in eps if ep.reason]
+    kept = [ep for ep in eps if not ep.reason]
+    summary["transitions_assembled"] = int(sum(len(e.t) for e in eps))
+    summary["rejected_episodes"] = [{"episode": e.ep, "transitions": len(e.t), "reason": e.reason} for e in rejected]
+    if not kept:
+        silent = sorted(t for r, _ in good for t, n in r.used.items() if n == 0)
+        raise IngestError(
+            f"no episode with at least one transition in {[str(p) for p in paths]}"
+            + (f"; topics without any message: {silent}" if silent else "")
+            + (f"; {summary.get('dropped_steps', 0)} steps dropped for missing values" if summary.get("dropped_steps") else "")
+            + (f"; rejected episodes: {[e['reason'] for e in summary['rejected_episodes']][:3]}" if rejected else "")
+            + (f"; skipped files: {summary['skipped_files']}" if summary["skipped_files"] else ""))
+    ds_all = _dataset(eps, spec, paths, summary)
+    row_rejected = np.repeat([bool(e.reason) for e in eps], [len(e.t) for e in eps])
+    import pyarrow as pa
+
+    q_tables = []
+    if rejected and on_error == "quarantine":
+        reasons = np.repeat([e.reason for e in rejected], [len(e.t) for e in rejected])
+        q_tables.append(ds_all.table.filter(pa.array(row_rejected)).append_column("reason", pa.array(reasons, pa.string())))
+    ds = TransitionDataset(ds_all.table.filter(pa.array(~row_rejected)), ds_all.info) if rejected else ds_all
+    report = validate(ds)
+    summary["doctor"] = report.summary()
+    if not report.ok:
+        if on_error == "fail":
+            raise ValidationError(report.to_text(), report)
+        ds, q = split_quarantine(ds, report)
+        q_tables.append(q)
+    quarantine = pa.concat_tables(q_tables) if q_tables else None
+    summary["quarantined_rows"] = 0 if quarantine is None else quarantine.num_rows
+    summary["dropped_rows"] = int(row_rejected.sum()) if on_error == "fail" else 0
+    summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts())
+    return ds, quarantine, summary
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary: dict[str, Any]) -> TransitionDataset:
+    """Episodes -> dataset: action table, costs, provenance (``src_file`` and
+    ``src_log_time``, the log_time of the message that made the step, per row)."""
+    import pyarrow as pa
+
+    cat = lambda k: np.concatenate([getattr(e, k) for e in eps])  # noqa: E731
+    obs, nxt, aux, aux_next = cat("obs"), cat("next"), cat("aux"), cat("aux_next")
+    lengths = np.array([len(e.t) for e in eps])
+    raw_action = cat("act")
+    if raw_action.ndim == 2:  # a vector action (several fields)
+        action, atable = vector_actions(raw_action, spec)
+    elif spec.action.type == "discrete":
+        action, atable = map_discrete(raw_action, spec.action)
+    else:
+        action, atable = bin_continuous(raw_action, spec.action)
+    term = np.zeros(len(obs), bool)
+    ends = np.cumsum(lengths) - 1
+    term[ends] = [e.terminated for e in eps]
+    trunc = np.zeros(len(obs), bool)
+    trunc[ends] = ~term[ends]
+    obs_names, aux_names = spec.obs_names, spec.aux_names
+    units = {n: u for st in spec.streams for n, u in st.units.items()}
+
+    def column(name: str, at: str = "step") -> np.ndarray:
+        if name == "action" or name.startswith("action."):
+            j = atable.dims.index(name[7:]) if name.startswith("action.") else 0
+            return np.where(action >= 0, atable.values[np.maximum(action, 0), j], np.nan)
+        if name in obs_names:
+            return (nxt if at == "next" else obs)[:, obs_names.index(name)]
+        return (aux_next if at == "next" else aux)[:, aux_names.index(name)]
+
+    if spec.cost_field is not None:
+        cost = column(spec.cost_field).copy()
+    elif spec.reward_field is not None:
+        cost = -column(spec.reward_field)
+    else:
+        cost = np.zeros(len(obs))
+        for t in spec.cost_terms:
+            x = column(t["field"], t.get("at", "step"))
+            op, w = t.get("op", "abs"), float(t.get("weight", 1.0))
+            cost += w * (np.abs(x) if op == "abs" else x * x if op == "square" else x)
+    if spec.terminal_cost is not None:
+        cost = np.where(term, spec.terminal_cost, cost)
+    cost = cost + 0.0  # no -0.0
+    info = DatasetInfo(
+        features=tuple(Feature(n, unit=units.get(n, "")) for n in obs_names), action_table=atable, gamma=spec.gamma, horizon=spec.horizon,
+        propensity_source="unknown", name=spec.name,
+        provenance={"inputs": summary["files"], "spec": spec.raw, "package_version": __version__,
+                    "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "generator": "offline-adp ingest mcap"},
+    )
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=np.repeat([e.ep for e in eps], lengths), step=np.concatenate([np.arange(n) for n in lengths]),
+        obs=obs, action=action, cost=cost, next_obs=nxt, terminated=term, truncated=trunc,
+        source=np.repeat([e.src for e in eps], lengths), t_ns=cat("t"),
+        extra={"src_file": pa.DictionaryArray.from_arrays(pa.array(cat("file").astype(np.int32)),
+                                                          pa.array([str(p) for p in paths])),
+               "src_log_time": pa.array(cat("log_time").astype(np.int64))},
+    )
+    return ds
+
+
+def vector_actions(raw: np.ndarray, spec: McapSpec) -> tuple[np.ndarray, ActionTable]:
+    """A vector action (one column per ``[action] fields`` component) -> action indices.
+
+    ``discrete``: each command is matched to the table's ``vectors`` component-wise
+    (within 1e-9, relative); unmatched commands get index -1 (the doctor reports them).
+    ``continuous``: each component is binned on its own (``edges`` or ``n_bins``
+    quantiles; beyond the outer edges into the end bins) and the action is the cell of
+    the product table (index = row-major over the components); each cell's value is the
+    mean command of the cell (``bin_value = "mean"``; its centre when empty) or its centre.
+    """
+    a = spec.action
+    dims = tuple(a.dims or ())
+    x = np.asarray(raw, dtype=np.float64)
+    if a.type == "discrete":
+        table = np.asarray(a.vectors, dtype=np.float64)
+        tol = 1e-9 * np.maximum(1.0, np.abs(table))
+        idx = np.full(len(x), -1, np.int64)
+        for k in range(len(table)):
+            idx[(np.abs(x - table[k]) <= tol[k]).all(axis=1)] = k
+        values = [tuple(float(v) for v in row) for row in table]
+        names = list(a.names) if a.names else [",".join(f"{d}={v:g}" for d, v in zip(dims, row, strict=True))
+                                                  for row in values]
+        kind = "discrete"
+    else:
+        per_dim = []
+        for j, d in enumerate(dims):
+            b = spec.action_bins[d]
+            col = x[:, j]
+            finite = col[np.isfinite(col)]
+            if "edges" in b:
+                edges = np.asarray(b["edges"], dtype=np.float64)
+            else:
+                if not len(finite):
+                    raise IngestError(f"action.{d}: no finite values to compute quantile bins")
+                edges = np.unique(np.quantile(finite, np.linspace(0, 1, int(b["n_bins"]) + 1)))
+                if len(edges) < 2:
+                    edges = np.array([finite.min() - 0.5, finite.max() + 0.5])
+            nb = len(edges) - 1
+            lo = np.where(np.isfinite(edges[:-1]), edges[:-1], edges[1:])
+            hi = np.where(np.isfinite(edges[1:]), edges[1:], edges[:-1])
+            per_dim.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, nb - 1), (lo + hi) / 2, nb))
+        shape = tuple(nb for _, _, nb in per_dim)
+        ok = np.isfinite(x).all(axis=1)
+        idx = np.where(ok, np.ravel_multi_index(tuple(i for i, _, _ in per_dim), shape), -1)
+        cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
+        centre = np.column_stack([per_dim[j][1][cells[:, j]] for j in range(len(dims))])
+        vals = centre.copy()
+        if a.bin_value == "mean":
+            counts = np.bincount(idx[ok], minlength=len(cells))
+            for j in range(len(dims)):
+                sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
+                vals[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
+        values = [tuple(float(v) for v in row) for row in vals]
+        names = list(a.names) if a.names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True))
+                                                  for row in values]
+        if len(set(names)) != len(names):  # equal representative values (e.g. empty cells): name by bin indices
+            names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
+        kind = "binned"
+    if len(names) != len(values):
+        raise IngestError(f"action.names has {len(names)} entries for {len(values)} actions")
+    table = ActionTable(actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)), dims=dims,
+                        kind=kind, units=(a.unit,) * len(dims) if a.unit else ())
+    return idx.astype(np.int32), table
+

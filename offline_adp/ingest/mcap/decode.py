@@ -1,0 +1,147 @@
+"""Message decoding (JSON, ROS 2 CDR, protobuf), field paths and message times."""
+
+from __future__ import annotations
+
+import functools
+import json
+import re
+from typing import Any
+
+from offline_adp.errors import IngestError
+
+
+class JsonDecoderFactory:
+    """Decodes ``json`` message encoding to dicts."""
+
+    def decoder_for(self, message_encoding: str, schema: Any) -> Any:
+        if message_encoding == "json":
+            return lambda data: json.loads(data)
+        return None
+
+
+def decoder_factories() -> list[Any]:
+    out: list[Any] = [JsonDecoderFactory()]
+    try:
+        from mcap_ros2.decoder import DecoderFactory as Ros2
+
+        out.append(Ros2())
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        from mcap_protobuf.decoder import DecoderFactory as Proto
+
+        out.append(Proto())
+    except ImportError:  # pragma: no cover
+        pass
+    return out
+
+
+class _Decoders:
+    """The decoder of each (message encoding, schema) pair, looked up once; None when no
+    installed decoder reads it."""
+
+    def __init__(self) -> None:
+        self.factories = decoder_factories()
+        self.cache: dict[tuple[str, int | None], Any] = {}
+        self.errors: dict[tuple[str, int | None], str] = {}
+
+    def __call__(self, sch: Any, ch: Any) -> Any:
+        """The decoder, None if no installed decoder reads the encoding; a schema a decoder
+        cannot parse (e.g. a ROS 2 service definition with ``---``) is an IngestError
+        naming the topic and schema."""
+        key = (ch.message_encoding, None if sch is None else sch.id)
+        try:
+            return self.cache[key]
+        except KeyError:
+            pass
+        if key in self.errors:
+            raise IngestError(self.errors[key])
+        try:
+            d = self.cache[key] = next((d for fac in self.factories
+                                        if (d := fac.decoder_for(ch.message_encoding, sch)) is not None), None)
+        except Exception as exc:  # noqa: BLE001 - schema parse errors of many library types
+            self.errors[key] = (f"topic {ch.topic!r}: its schema {getattr(sch, 'name', '')!r} "
+                                f"({getattr(sch, 'encoding', '')}) cannot be parsed ({type(exc).__name__}: {exc})")
+            raise IngestError(self.errors[key]) from None
+        return d
+
+
+_TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
+
+
+@functools.lru_cache(maxsize=4096)
+def _steps_of(path: str) -> tuple[tuple[str, int | None], ...]:
+    return tuple((name, int(index) if index else None) for name, index in _TOKEN.findall(path))
+
+
+def get_path(msg: Any, path: str) -> Any:
+    """Value at a dotted path with list indices (``transforms[0].transform.translation.x``)."""
+    cur = msg
+    for name, index in _steps_of(path):
+        if index is not None:
+            cur = cur[index]
+        elif isinstance(cur, dict):
+            cur = cur[name]
+        else:
+            cur = getattr(cur, name)
+    return cur
+
+
+def to_ns(value: Any) -> int:
+    """A time value in ns: ``{sec, nanosec}`` (ROS 2 ``builtin_interfaces/Time``),
+    ``{sec, nsec}`` / ``{secs, nsecs}`` (ROS 1), ``{seconds, nanos}``
+    (``google.protobuf.Timestamp``), or float seconds."""
+    for s, n in (("sec", "nanosec"), ("sec", "nsec"), ("secs", "nsecs"), ("seconds", "nanos")):
+        if isinstance(value, dict) and s in value:
+            return int(value[s]) * 1_000_000_000 + int(value.get(n, 0))
+        if hasattr(value, s):
+            return int(getattr(value, s)) * 1_000_000_000 + int(getattr(value, n, 0))
+    return int(round(float(value) * 1e9))
+
+
+def _is_proto(msg: Any) -> bool:
+    return hasattr(msg, "DESCRIPTOR") and hasattr(msg, "ListFields") and hasattr(msg.DESCRIPTOR, "fields")
+
+
+def field_values(msg: Any, prefix: str = "", depth: int = 0) -> list[tuple[str, Any]]:
+    """(leaf field path, value) of a decoded message: dicts (JSON), ROS 2 objects,
+    protobuf messages (by their real field names); lists by their first element."""
+    if depth > 8:
+        return [(prefix, msg)]
+    if isinstance(msg, dict):
+        items = list(msg.items())
+    elif _is_proto(msg):
+        items = []
+        for f in msg.DESCRIPTOR.fields:
+            v = getattr(msg, f.name)
+            if not _is_proto(v) and hasattr(v, "__len__") and not isinstance(v, str | bytes):
+                v = list(v)  # a repeated field: its first element, or an empty list
+            items.append((f.name, v))
+    elif isinstance(msg, list | tuple) or (hasattr(msg, "__len__") and hasattr(msg, "__getitem__")
+                                           and not isinstance(msg, str | bytes | bytearray) and not hasattr(msg, "__slots__")):
+        seq = list(msg)
+        if not seq:
+            return [(f"{prefix}[0]", None)]
+        return field_values(seq[0], f"{prefix}[0]", depth + 1)
+    elif hasattr(msg, "__slots__") or (hasattr(msg, "__dict__") and not isinstance(msg, type)):
+        names = getattr(msg, "__slots__", None) or [k for k in vars(msg) if not k.startswith("_")]
+        items = [(k, getattr(msg, k)) for k in names]
+    else:
+        return [(prefix, msg)]
+    out: list[tuple[str, Any]] = []
+    for k, v in items:
+        out += field_values(v, f"{prefix}.{k}" if prefix else str(k), depth + 1)
+    return out
+
+
+def field_paths(msg: Any, prefix: str = "", depth: int = 0) -> list[str]:
+    """Leaf field paths of a decoded message (for ``mcap-info``)."""
+    return [p for p, _ in field_values(msg, prefix, depth)]
+
+
+def _msg_time(which: str, log_time: int, publish_time: int, dec: Any) -> int:
+    if which == "log_time":
+        return int(log_time)
+    if which == "publish_time":
+        return int(publish_time)
+    return to_ns(get_path(dec, which))

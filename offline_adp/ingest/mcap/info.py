@@ -1,0 +1,178 @@
+"""``mcap-info``: what a file holds, per topic, from a record scan (no index or summary
+needed, damage shown, nothing refused that can be read)."""
+
+from __future__ import annotations
+
+from array import array
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.errors import IngestError
+from offline_adp.ingest.mcap.decode import _Decoders, field_values
+from offline_adp.ingest.mcap.scan import damage_text, scan_records
+
+RESTART_S = 1.0  # a topic's log_time jumping back more than this starts a new epoch (as [episodes] restart)
+MAX_PERIODS = 1_000_000  # periods kept per topic for the median (then every other one)
+
+
+class _Topic:
+    """Running statistics of one topic: count, epochs, periods within epochs."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.last: int | None = None
+        self.restarts = 0
+        self.periods = array("q")
+        self.stride = 1
+        self.first_fields: list[dict[str, Any]] | None = None
+        self.error: str | None = None
+
+    def add(self, t: int) -> None:
+        self.n += 1
+        if self.last is not None:
+            d = t - self.last
+            if d < -RESTART_S * 1e9:
+                self.restarts += 1
+            elif d > 0 and self.n % self.stride == 0:
+                self.periods.append(d)
+                if len(self.periods) >= MAX_PERIODS:
+                    self.periods = self.periods[::2]
+                    self.stride *= 2
+        self.last = t if self.last is None or t > self.last or t < self.last - RESTART_S * 1e9 else self.last
+
+    def rate(self) -> dict[str, Any]:
+        """Rate as the median period within epochs; gaps (periods > 5 x median and 1 s) counted."""
+        if self.n == 0:
+            return {"rate_hz": None, "status": "empty"}
+        p = np.frombuffer(self.periods, dtype=np.int64) if len(self.periods) else np.zeros(0, np.int64)
+        if not len(p):
+            return {"rate_hz": None, "restarts": self.restarts, "gaps": 0,
+                    "status": "1 message" if self.n == 1 else "no period (all messages at one time)"}
+        med = float(np.median(p))
+        gap = max(5 * med, 1e9)
+        gaps = int((p > gap).sum()) * self.stride
+        med = float(np.median(p[p <= gap])) if (p <= gap).any() else med
+        return {"rate_hz": round(1e9 / med, 3), "restarts": self.restarts, "gaps": gaps, "status": "ok"}
+
+
+def _type_name(v: Any) -> str:
+    if isinstance(v, bool | np.bool_):
+        return "bool"
+    if isinstance(v, int | np.integer):
+        return "int"
+    if isinstance(v, float | np.floating):
+        return "float"
+    if isinstance(v, str):
+        return "string"
+    if isinstance(v, bytes | bytearray):
+        return "bytes"
+    return "null" if v is None else type(v).__name__
+
+
+def _sample(v: Any) -> Any:
+    if isinstance(v, bytes | bytearray):
+        return f"<{len(v)} bytes>"
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, str) and len(v) > 60:
+        return v[:57] + "..."
+    return v
+
+
+def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
+    """Describe an MCAP file by scanning its records.
+
+    Returns the profile and library, whether it has a summary, its compression, time
+    range and damage (corrupt chunks, a cut, with the messages lost), and per topic:
+    schema, encoding, message count, rate (median period per epoch, Hz) with the time
+    restarts and gaps counted, ``status`` (``ok``, ``empty``, ``1 message``, or why it
+    cannot be decoded), the field paths (``fields``) and per field its type and a sample
+    value (``field_info``) from the first decodable message. A channel whose schema no
+    decoder can parse is listed with the reason; the rest of the file is described.
+
+    Raises
+    ------
+    IngestError
+        Only when the file cannot be read as MCAP at all (missing, or not MCAP).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise IngestError(f"{path}: no such file")
+    report: dict[str, Any] = {}
+    topics: dict[int, _Topic] = {}
+    decoders = _Decoders()
+    lo = hi = None
+    try:
+        with open(path, "rb") as f:
+            for sch, ch, msg in scan_records(f, None, report):
+                t = topics.get(ch.id)
+                if t is None:
+                    t = topics[ch.id] = _Topic()
+                lt = int(msg.log_time)
+                t.add(lt)
+                lo = lt if lo is None else min(lo, lt)
+                hi = lt if hi is None else max(hi, lt)
+                if t.first_fields is None and t.error is None:
+                    try:
+                        dec = decoders(sch, ch)
+                        if dec is None:
+                            t.error = (f"no installed decoder reads message encoding {ch.message_encoding!r} "
+                                       f"(schema encoding {getattr(sch, 'encoding', '')!r})")
+                        else:
+                            t.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
+                                              for p, v in field_values(dec(msg.data))]
+                    except IngestError as exc:
+                        t.error = str(exc)
+                    except Exception as exc:  # noqa: BLE001 - a message its decoder cannot read
+                        t.error = f"first message not decodable ({type(exc).__name__}: {exc})"
+    except IngestError as exc:
+        raise IngestError(f"{path}: cannot read as MCAP ({exc})") from None
+    except OSError as exc:
+        raise IngestError(f"{path}: cannot read ({exc})") from exc
+    out_topics: dict[str, Any] = {}
+    for cid, ch in sorted(report.get("channels", {}).items()):
+        sch = report.get("schemas", {}).get(ch.schema_id)
+        t = topics.get(cid, _Topic())
+        entry = {"schema": sch.name if sch else "", "encoding": ch.message_encoding, "messages": t.n, **t.rate(),
+                 "fields": [x["path"] for x in t.first_fields] if t.first_fields else None,
+                 "field_info": t.first_fields}
+        if t.error:
+            entry["status"] = "not decodable: " + t.error
+        key = ch.topic if ch.topic not in out_topics else f"{ch.topic} (channel {cid})"
+        out_topics[key] = entry
+    head = report.get("header", {})
+    info: dict[str, Any] = {"file": str(path), "profile": head.get("profile", ""), "library": head.get("library", ""),
+                            "summary": _has_summary(path), "compression": sorted(report.get("compression", set())),
+                            "topics": out_topics, "scanned": True, "messages": report.get("messages", 0)}
+    info["indexed"] = info["summary"]
+    if lo is not None:
+        info["time_range_ns"] = [lo, hi]
+    if report.get("empty"):
+        info["damage"] = "empty file (0 bytes)"
+    elif (text := damage_text(path, report)):
+        info["damage"] = text
+    return info
+
+
+def _has_summary(path: Path) -> bool:
+    """Whether the file ends with a footer pointing at a summary section."""
+    import struct
+
+    from offline_adp.ingest.mcap.scan import _MAGIC
+
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, 2)
+            if size < 8 + 9 + 20 + 8:
+                return False
+            f.seek(size - 8 - 29)
+            tail = f.read(29 + 8)
+        if tail[-8:] != _MAGIC or tail[0] != 0x02:
+            return False
+        summary_start = struct.unpack_from("<Q", tail, 9)[0]
+        return 0 < summary_start < size
+    except OSError:
+        return False

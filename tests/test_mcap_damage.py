@@ -1,0 +1,98 @@
+"""Damage accounting by epoch and episode, not raw time: a lost chunk in a log whose time
+restarts every episode costs exactly the episodes whose messages it held; a file cut
+mid-step keeps every complete episode under both ``on_error`` modes and reports the cut
+one; a cut that lost no message says so. Ground truth comes from the intact file: which
+messages (and so which episodes) each chunk held."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from offline_adp.data.io import read_quarantine
+from offline_adp.errors import IngestError
+from offline_adp.ingest.mcap import ingest_mcap, mcap_info
+from tests.test_mcap_epochs import rl_log, rl_spec, write_log
+
+
+def _records(data: bytes):
+    """(offset, opcode, length) of every top-level record after the magic."""
+    out, off = [], 8
+    while off + 9 <= len(data):
+        op, n = struct.unpack_from("<BQ", data, off)
+        out.append((off, op, n))
+        off += 9 + n
+    return out
+
+
+def _chunk_episodes(data: bytes) -> list[tuple[int, int, set[int]]]:
+    """Per chunk record: (offset, length, episodes of its messages)."""
+    from io import BytesIO
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
+
+    out = []
+    for off, op, n in _records(data):
+        if op == 0x06:  # chunk
+            chunk = Chunk.read(ReadDataStream(BytesIO(data[off + 9:off + 9 + n])))
+            eps = {json.loads(r.data)["ep"] for r in breakup_chunk(chunk) if isinstance(r, Message)}
+            out.append((off, n, eps))
+    return out
+
+
+def _episode_of(ds) -> np.ndarray:
+    return np.floor(ds.arrays().obs[:, 0] / 1000).astype(int)  # x = 1000 * episode + step
+
+
+@pytest.mark.parametrize("which", ["inside an episode", "across a restart"])
+def test_a_lost_chunk_costs_exactly_the_episodes_it_held(tmp_path, which):
+    src = write_log(tmp_path / "rl.mcap", rl_log(n_episodes=8, k_absent=0, n_steps=300))
+    data = bytearray(src.read_bytes())
+    chunks = _chunk_episodes(bytes(data))
+    pick = [c for c in chunks if len(c[2]) == (1 if which == "inside an episode" else 2)]
+    off, n, held = pick[len(pick) // 2]
+    data[off + 9 + n - 40] ^= 0xFF  # one flipped byte in the chunk's compressed data
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(IngestError, match="lost 1 corrupt chunk"):
+        ingest_mcap([bad], rl_spec(2.0))
+    with pytest.warns(UserWarning, match="recovered"):
+        ds, s = ingest_mcap([bad], rl_spec(2.0), tmp_path / "q", on_error="quarantine")
+    kept = sorted(set(_episode_of(ds)))
+    assert kept == sorted(set(range(8)) - held)  # every other episode survives, whole
+    assert len(ds) == 299 * len(kept)
+    assert s["episodes_lost_to_damage"] == len(held)
+    q = read_quarantine(tmp_path / "q")  # the damaged episodes' rows: in quarantine, with the reason
+    assert len(ds) + (q.num_rows if q is not None else 0) == s["transitions_assembled"]
+    a = ds.arrays()
+    np.testing.assert_array_equal(ds.info.action_table.values[a.action, 0], _episode_of(ds) % 4)
+    info = mcap_info(bad)  # mcap-info describes the file and shows the damage
+    assert "lost 1 corrupt chunk" in info["damage"] and info["topics"]["/state"]["messages"] > 0
+
+
+@pytest.mark.parametrize("on_error", ["fail", "quarantine"])
+def test_a_file_cut_mid_step_keeps_every_complete_episode(tmp_path, on_error):
+    """The recording stops between a state and its reward (a crash): every episode before
+    the cut is kept whole in both modes; the cut one is reported (left out under fail, in
+    quarantine/ under quarantine)."""
+    msgs = rl_log(n_episodes=5, k_absent=0, n_steps=300)
+    cut_at = next(i for i, m in enumerate(msgs) if m[2].get("ep") == 4 and m[0] == "/reward" and m[1] > 6_000_000_000)
+    src = write_log(tmp_path / "rl.mcap", msgs[:cut_at])  # ends right after a state: its reward never came
+    data = src.read_bytes()
+    end = max(off + 9 + n for off, op, n in _records(data) if op == 0x06)
+    (tmp_path / "cut.mcap").write_bytes(data[:end + 5])  # and the file stops inside the next record header
+    with pytest.warns(UserWarning, match=r"cut at offset \d+ .*no message lost"):
+        ds, s = ingest_mcap([tmp_path / "cut.mcap"], rl_spec(2.0), tmp_path / "out", on_error=on_error)
+    assert sorted(set(_episode_of(ds))) == [0, 1, 2, 3] and len(ds) == 4 * 299
+    assert s["cut_episodes"] == 1
+    q = read_quarantine(tmp_path / "out")
+    if on_error == "quarantine":
+        assert q is not None and set(q.column("reason").to_pylist()) == {"cut: the recording ends inside this episode"}
+        assert len(ds) + q.num_rows == s["transitions_assembled"]
+    else:
+        assert q is None and s["dropped_rows"] == s["transitions_assembled"] - len(ds) > 0
