@@ -87,7 +87,7 @@ def test_dask_ingest_keeps_quarantine(tmp_path):
     pytest.importorskip("distributed")
     from distributed import Client, LocalCluster
 
-    from offline_adp.distributed import ingest_distributed
+    from offline_adp.engines.dask import ingest_distributed
 
     f = _log(tmp_path)
     local, s = ingest_mcap([f], _spec(), tmp_path / "local", on_error="quarantine")
