@@ -264,7 +264,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if not args.quiet:
         from tqdm import tqdm
 
-        total = params.get("horizon") or params.get("n_iterations", 50) * (2 if params.get("mode") == "frozen" else 1)
+        total = params.get("horizon") or params.get("n_iterations", 50)
         bar = tqdm(total=total, desc=f"fit {args.algorithm}", unit="it", file=sys.stderr)
 
     def on_iteration(row: dict) -> None:
@@ -281,8 +281,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
             bar.close()
     h = est.history_.iloc[-1]
     print(f"fitted {args.algorithm}: {len(est.history_)} iterations, last sup|dQ| {h['sup_dq']:.4g}, "
-          f"Bellman residual {h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"
-          + ("; DIVERGED (see warnings)" if est.diverged_ else ""))
+          f"Bellman residual {h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}")
+    print(f"verdict: {est.verdict_} ({est.verdict_message_})")
     print(f"{args.out}/model")
     return 0
 

@@ -251,7 +251,9 @@ class DistributedFQI:
                         y = ddf.map_partitions(_cached_targets, self.gamma, len(af), cols["next_obs"],
                                                client.scatter(self.policy, broadcast=True, hash=False)
                                                if self.policy is not None else None, meta=pd.Series(dtype=np.float64))
-                        init = {"init_score": ddf[_CACHE_SA].to_dask_array(lengths=True)}
+                        # the residual y - Q_{k-1}(x_i, a_i), boosted from its mean (as the local warm start)
+                        y = y - ddf[_CACHE_SA]
+                        init = {}
                     else:
                         y = distributed_targets(client, ddf, q, self.gamma, info, self.policy)
                         init = {}

@@ -97,7 +97,7 @@ def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm:
     p = dict(params)
     fqe = FittedQEvaluation(**p.pop("fqe")) if "fqe" in p else None
     sim = make_problem(p.pop("simulator"), **p.pop("problem_options", {})) if "simulator" in p else None
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if algorithm == "fqe":
         if "policy" not in p:
             raise SpecError("fqe needs the policy to evaluate: policy = \"RUN_DIR/model\" in [fqe]")
@@ -127,7 +127,8 @@ def fit_other(dataset: str | PathLike[str], out: str | PathLike[str], algorithm:
     est.history_.to_csv(tmp / "model" / "history.csv", index=False)
     (tmp / "config.json").write_text(json.dumps({"algorithm": algorithm, "params": params}, indent=1, default=str))
     status = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm, "versions": versions(),
-              "status": "completed", "fit_seconds": time.perf_counter() - t0, **summary}
+              "status": "completed", "fit_seconds": time.perf_counter() - t0, "fit_cpu_seconds": time.process_time() - c0,
+              **summary}
     (tmp / "run.json").write_text(json.dumps(status, indent=1, default=float))
     os.replace(tmp, run)
     return est
@@ -186,15 +187,22 @@ def fit_run(
     status = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm, "versions": versions(), "status": "running"}
     (run / "run.json").write_text(json.dumps(status, indent=1))
     state = _read_checkpoint(run, est.horizon is not None) if resume else None
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     rows: list[dict[str, Any]] = list(state["history"]) if state else []
+    written, last_write, write_cost = len(rows), time.perf_counter(), 0.0
     try:
         for row in est.fit_iter(ds, resume=state):
             rows.append(row)
-            if len(rows) % checkpoint_every == 0 and est.mode != "frozen":
+            # every mode checkpoints; when writing costs more than a tenth of the iterations since
+            # the last write (a frozen structure is large, its iterations cheap), less often
+            if len(rows) % checkpoint_every == 0 and time.perf_counter() - last_write >= 10 * write_cost:
+                w0 = time.perf_counter()
                 _write_checkpoint(run, est, rows)
+                written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
             if on_iteration:
                 on_iteration(row)
+        if written != len(rows):  # the last iteration is always checkpointed before model/ is written
+            _write_checkpoint(run, est, rows)
     except KeyboardInterrupt:
         status.update(status="interrupted", completed_iterations=len(rows))
         (run / "run.json").write_text(json.dumps(status, indent=1))
@@ -204,6 +212,8 @@ def fit_run(
     save_fqi(est, model_tmp, dataset_fingerprint=ds.fingerprint())
     shutil.rmtree(run / "model", ignore_errors=True)
     os.replace(model_tmp, run / "model")
-    status.update(status="completed", iterations=len(rows), fit_seconds=time.perf_counter() - t0, diverged=bool(est.diverged_))
+    status.update(status="completed", iterations=len(rows), fit_seconds=time.perf_counter() - t0,
+                  fit_cpu_seconds=time.process_time() - c0, diverged=bool(est.diverged_), verdict=est.verdict_,
+                  verdict_message=est.verdict_message_)
     (run / "run.json").write_text(json.dumps(status, indent=1))
     return est
