@@ -250,7 +250,7 @@ class FrozenTreesLearner(Learner):
         """The saved ``Q_k`` carries its structure: recompute the leaves of the training and
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
-        self.ensemble = q.ensembles[0]  # type: ignore[attr-defined]
+        self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
         X = self.encoder.pairs(self.phi, self.actions)
         self._operators(self.ensemble.apply, self.ensemble.apply(X))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)

@@ -15,7 +15,7 @@ is never by itself a reason to flag a fit. The monitor flags only what is unambi
    least ``1.5x`` the growth over the ``W`` before, both halves of the last window grow
    (the second at least as much as the first, and the first by at least a fifth of the
    total, so a single jump such as a restructured tree never qualifies), and the growth
-   is at least 10% of ``M_k``. Iterates approaching a fixed point from ``Q_0`` decelerate
+   is at least 20% of ``M_k``, at 3 consecutive iterations. Iterates approaching a fixed point from ``Q_0`` decelerate
    (growth shrinks like ``gamma^k``), values growing linearly (undiscounted shortest
    paths) do not accelerate, and geometric divergence ``M_k ~ r^k`` with ``r^W >= 1.5``
    does.
@@ -53,17 +53,21 @@ class DivergenceMonitor:
                     f"{self.bound_text} = {self.bound:.4g} by more than {self.margin:.0%}")
         if not np.isfinite(last["max_abs_q"]):
             return f"iteration {last['iteration']}: max |Q| is not finite"
-        W, h = self.window, self.window // 2
-        if self.finite or len(rows) < 2 * W:
+        W = self.window
+        if self.finite or len(rows) < 2 * W + 2:
             return None
         M = np.r_[self.q0_abs, [r["max_abs_q"] for r in rows]]  # M[k] = max |Q_k|
         k = len(M) - 1
-        prev, d1, d2 = M[k - W] - M[k - 2 * W], M[k - W + h] - M[k - W], M[k] - M[k - W + h]
-        total = d1 + d2
-        if total > 1.5 * max(prev, 0.0) and d2 >= d1 >= 0.2 * total > 0 and total >= 0.1 * M[k]:
+        if all(self._accelerating(M, j) for j in range(k - 2, k + 1)):  # sustained: 3 checks in a row
             return (f"iteration {last['iteration']}: max |Q| is growing faster and faster: {M[k - 2 * W]:.4g} -> "
                     f"{M[k - W]:.4g} -> {M[k]:.4g} over the last {2 * W} iterations")
         return None
+
+    def _accelerating(self, M: np.ndarray, k: int) -> bool:
+        W, h = self.window, self.window // 2
+        prev, d1, d2 = M[k - W] - M[k - 2 * W], M[k - W + h] - M[k - W], M[k] - M[k - W + h]
+        total = d1 + d2
+        return bool(total > 1.5 * max(prev, 0.0) and d2 >= d1 >= 0.2 * total > 0 and total >= 0.2 * M[k])
 
 
 def trend(values: list[float]) -> str:
