@@ -312,13 +312,17 @@ def summary_lines(m: dict) -> list[str]:
     """A short human summary of ``metrics.json`` (policy vs demonstrator, OPE, worst-step ESS)."""
     lines = []
     if "rollout" in m:
-        p, d = m["rollout"]["policy"], m["rollout"]["demonstrator"]
+        p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
         extra = ""
-        if "mean_abs_cross_track_error_m" in p:
+        if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
+            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, "
+                         f"{p['interval'][1]:.3f}]; {m['rollout'].get('note', 'no demonstrator')}")
+        elif "mean_abs_cross_track_error_m" in p:
             extra = (f"; mean |cross-track error| {p['mean_abs_cross_track_error_m']:.3f} m vs "
                      f"{d['mean_abs_cross_track_error_m']:.3f} m, failures {p['failures']} vs {d['failures']}")
-        lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
-                     f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
+        if d is not None:
+            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
+                         f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
     f = m["ope"]["fqe"]
     lines.append(f"off-policy (FQE): {_f(f['estimate'])} [{_f(f['interval'][0])}, {_f(f['interval'][1])}]"
                  f"; WDR {_f(m['ope']['wdr']['estimate'])}, MIS {_f(m['ope']['mis']['estimate'])}")
@@ -512,7 +516,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("run", help="run directory (from offline-adp fit)")
     e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
-    e.add_argument("--simulator", default=None, help="reference problem to roll out in, or 'none' (default: the dataset's problem)")
+    e.add_argument("--simulator", default=None, help="reference problem to roll out in, gym:ENV_ID (a registered gymnasium "
+                   "environment; features by declared order, actions by the action table's values), or 'none' "
+                   "(default: the dataset's problem)")
     e.add_argument("--episodes", type=int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
     e.add_argument("--fqe-bootstrap", type=int, default=10, help="FQE refits for its interval (default 10)")
