@@ -188,18 +188,30 @@ class FrozenTreesLearner(Learner):
         self.M = sparse.csr_matrix((w[rows] / wsum[compact[order]], rows, indptr), shape=(L, n))
         del order
         self._compact, self._m = compact, m
-        self.A: dict[str, Any] = {}
+        # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
+        # weight, which contributes 0): Q(query) = mean over trees of leaf values
+        self.pos: dict[str, np.ndarray] = {}
         for name, (phi, a) in self.queries.items():
-            leaves = train if name == "train" else leaves_of(self._joint(phi, a))
-            pos = lookup[leaves.reshape(-1)]
-            nq = len(leaves)
-            if (pos >= 0).all():  # every query leaf holds training samples: m entries per row
-                self.A[name] = sparse.csr_matrix((np.full(nq * m, 1.0 / m), pos, np.arange(0, nq * m + 1, m, dtype=idx_t)),
-                                                 shape=(nq, L))
-            else:  # leaves whose training samples all have weight 0
-                hit = pos >= 0
-                qrows = np.repeat(np.arange(nq, dtype=np.int32), m)[hit]
-                self.A[name] = sparse.csr_matrix((np.full(hit.sum(), 1.0 / m), (qrows, pos[hit])), shape=(nq, L))
+            if name == "train":  # every training leaf holds its own sample: a view, no copy
+                self.pos[name] = compact.reshape(n, m)
+                continue
+            pos = lookup[leaves_of(self._joint(phi, a))]
+            pos[pos < 0] = L
+            self.pos[name] = pos
+
+    @property
+    def A(self) -> dict[str, Any]:
+        """The query operators as sparse matrices ``A[q, leaf] = 1 / n_trees`` (built on demand)."""
+        from scipy import sparse
+
+        L, out = len(self.leaf_ids), {}
+        for name, pos in self.pos.items():
+            nq, m = pos.shape
+            flat = pos.reshape(-1)
+            hit = flat < L
+            qrows = np.repeat(np.arange(nq, dtype=np.int64), m)[hit]
+            out[name] = sparse.csr_matrix((np.full(int(hit.sum()), 1.0 / m), (qrows, flat[hit])), shape=(nq, L))
+        return out
 
     def reweighted_operators(self, weights: np.ndarray) -> tuple[Any, dict[str, Any]]:
         """Leaf-averaging operator ``M`` and query operators ``A`` for other sample weights
@@ -238,7 +250,7 @@ class FrozenTreesLearner(Learner):
 
     def predict(self, name: str) -> np.ndarray:
         phi, actions = self.queries[name]
-        v = self.A[name] @ self.leaf_values  # mean over trees of the reached leaves
+        v = _tree_mean(np.r_[self.leaf_values, 0.0], self.pos[name])  # mean over trees of the reached leaves
         return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
 
     def snapshot(self) -> QFunction:
@@ -259,6 +271,14 @@ class FrozenTreesLearner(Learner):
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         self._pending = self.built_on_constant
         self.iteration = iteration
+
+
+def _tree_mean(values: np.ndarray, pos: np.ndarray, chunk: int = 65_536) -> np.ndarray:
+    """``values[pos].mean(axis=1)`` in row chunks (no (n, n_trees) float temporary)."""
+    out = np.empty(len(pos))
+    for lo in range(0, len(pos), chunk):
+        out[lo:lo + chunk] = values[pos[lo:lo + chunk]].mean(axis=1)
+    return out
 
 
 class BoostedSumQ(QFunction):
