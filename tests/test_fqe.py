@@ -68,3 +68,19 @@ def test_reweighted_value_is_the_same_fixed_point_for_uniform_weights(small_pt):
     assert fqe.reweighted_value(np.full(n, 3.0), n_iterations=3000, tol=1e-12) == pytest.approx(fqe.value_, rel=1e-6)
     w = np.random.default_rng(0).poisson(1.0, n).astype(float)
     assert fqe.reweighted_value(w) != pytest.approx(fqe.value_, rel=1e-6)
+
+
+@pytest.mark.parametrize("gamma", [0.9, 0.5])
+def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
+    """FittedQEvaluation(policy, horizon=T, gamma=g): the T-step discounted evaluation of a
+    time-varying policy, Q_t backed up with pi at t+1 (issue 15 relies on it)."""
+    m = TabularMDP(n_states=8, n_actions=2, horizon=None, gamma=0.95, seed=11)
+    ds, w = full_support_dataset(m)
+    pi = np.random.default_rng(2).dirichlet(np.ones(2), size=(4, 8))
+    fqe = FittedQEvaluation(policy=TabularPolicy(pi), horizon=4, gamma=gamma, regressor="tabular", action_input="onehot")
+    fqe.fit(ds, sample_weight=w)
+    exact = dp.policy_evaluation_finite(m.P, m.C, pi, 4, gamma=gamma)
+    for t in range(4):
+        np.testing.assert_allclose(fqe.q_functions_[t].values(np.arange(8.0)[:, None]), exact.Q[t], atol=1e-10, rtol=0)
+    np.testing.assert_allclose(fqe.value_, exact.V[0][ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)].mean(), atol=1e-10)
+    assert fqe.verdict_ == "completed"
