@@ -195,7 +195,11 @@ class FrozenTreesLearner(Learner):
             if name == "train":  # every training leaf holds its own sample: a view, no copy
                 self.pos[name] = compact.reshape(n, m)
                 continue
-            pos = lookup[leaves_of(self._joint(phi, a))]
+            X = self._joint(phi, a)
+            pos = np.empty((len(X), m), np.int32)
+            for lo in range(0, len(X), 262_144):  # leaf lookups in row chunks: bounded temporaries
+                pos[lo:lo + 262_144] = lookup[leaves_of(X[lo:lo + 262_144])]
+            del X
             pos[pos < 0] = L
             self.pos[name] = pos
 
