@@ -57,7 +57,7 @@ class FittedQEvaluation(FittedQIteration):
                  mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
-                 initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 2) -> None:
+                 initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,

@@ -203,7 +203,7 @@ class FittedQIteration(BaseEstimator):
         divergence_slack: float = 0.1,
         initial_q: QFunction | None = None,
         random_state: int = 0,
-        n_structures: int = 2,
+        n_structures: int = 4,
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
