@@ -22,7 +22,7 @@ BASE = {"n_iterations": 8, "regressor_params": {"n_estimators": 5, "n_jobs": 1},
 MODES = {
     "refit": {"mode": "refit"},
     "refit_noise": {"mode": "refit", "target_noise": 0.05, "next_state_noise": 0.05},
-    "frozen": {"mode": "frozen"},
+    "frozen": {"mode": "frozen", "n_structures": 2},  # builds at 1 and 5: tol can stop it at 6
     "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "trees_per_iteration": 3},
     "finite_frozen": {"mode": "frozen", "horizon": 5},
 }
