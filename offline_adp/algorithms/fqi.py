@@ -71,6 +71,8 @@ class Noise:
 
 @dataclass(frozen=True)
 class Iterate:
+    """What one pass of the loop produced (the learner holds Q_k itself)."""
+
     k: int  #: iteration, 1-based
     t: int | None  #: the step fitted (finite horizon), else None
     q_next_old: np.ndarray  #: Q_{k-1}(x'_i, .)
@@ -342,7 +344,7 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
     backup = make_backup(data)
     finite = est.horizon is not None
     total = est.horizon if finite else est.n_iterations
-    monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=_q0_abs(est, data), margin=est.divergence_slack,
+    monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=est.divergence_slack,
                                 window=est.patience, finite=finite)
     est._fit_state = (data, learner, backup)  # kept for structure-conditional re-weighting (not saved)
     rows: list[dict[str, Any]] = []
@@ -395,12 +397,6 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
     if rows:
         rows[-1]["verdict"] = est.verdict_
         est.__dict__["_history_dirty"] = True
-
-
-def _q0_abs(est: FittedQIteration, data: Prepared) -> float:
-    if est.initial_q is None:
-        return 0.0
-    return float(np.abs(est.initial_q.values(data.obs, 0)).max())
 
 
 def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:

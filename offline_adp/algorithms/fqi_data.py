@@ -14,7 +14,7 @@ states that enters the target ``y_i = c_i + gamma (1 - term_i) V(x'_i)``:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -53,7 +53,7 @@ class Prepared:
     bound: float  #: the monitor's value bound
     bound_text: str
     infeasible_cost: float | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    q0_abs: float = 0.0  #: max |Q_0| on the data (0 without initial_q)
 
     @property
     def n(self) -> int:
@@ -136,7 +136,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         start_phi=phi_obs[start] if start.any() else phi_obs[tr][:1],
         start_obs=a.obs[start] if start.any() else a.obs[tr][:1],
         start_rows=np.flatnonzero(start[tr]) if start.any() else np.zeros(1, np.int64),
-        bound=float(bound), bound_text=text, infeasible_cost=infeasible_cost,
+        bound=float(bound), bound_text=text, infeasible_cost=infeasible_cost, q0_abs=float(initial_q_abs),
     )
 
 
