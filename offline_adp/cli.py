@@ -261,8 +261,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(f"{args.out}/model")
         return 0
     if params.get("mode") in ("frozen", "warm_start"):  # fast paths that did not hold on every problem of the suite
-        print(f"warning: mode = {params['mode']!r} lost score against mode = 'refit' on classic-control problems "
-              "(benchmarks/fqi_suite.py); compare with a refit run on your data", file=sys.stderr)
+        print(f"warning: mode = {params['mode']!r} did not hold the refit score on every problem of "
+              "benchmarks/fqi_suite.py; compare with a mode = 'refit' run on your data", file=sys.stderr)
     bar = None
     if not args.quiet:
         from tqdm import tqdm
