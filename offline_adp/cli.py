@@ -188,11 +188,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     params = load_config(args.config, args.algorithm)
     entry = get_algorithm(args.algorithm)
+    caveat = getattr(entry.estimator_class(), "mode_caveat", None)
+    if caveat is not None and caveat(params.get("mode")):
+        print(f"warning: {caveat(params.get('mode'))}", file=sys.stderr)
     bar = None
     if not args.quiet and entry.resumable:
         from tqdm import tqdm
 
-        total = params.get("horizon") or params.get("n_iterations", 50) * (2 if params.get("mode") == "frozen" else 1)
+        total = params.get("horizon") or params.get("n_iterations", 50)
         bar = tqdm(total=total, desc=f"fit {args.algorithm}", unit="it", file=sys.stderr)
 
     def on_iteration(row: dict) -> None:
@@ -215,18 +218,23 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def fit_summary_lines(est: object, algorithm: str) -> list[str]:
-    """What ``fit`` prints: the last history rows, and the convergence verdict when there is one."""
+    """What ``fit`` prints: the last iteration's numbers, and the convergence verdict when there is one."""
     import pandas as pd
 
     hist = getattr(est, "history_", None)
-    lines = [f"fitted {algorithm}: {0 if hist is None else len(hist)} iterations"]
-    if isinstance(hist, pd.DataFrame) and len(hist):
-        lines.append(hist.tail(5).to_string(index=False))
+    n = 0 if hist is None else len(hist)
+    if isinstance(hist, pd.DataFrame) and n and {"sup_dq", "bellman_residual", "start_value"} <= set(hist.columns):
+        h = hist.iloc[-1]
+        lines = [f"fitted {algorithm}: {n} iterations, last sup|dQ| {h['sup_dq']:.4g}, Bellman residual "
+                 f"{h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"]
+    else:
+        lines = [f"fitted {algorithm}: {n} history rows"]
+        if isinstance(hist, pd.DataFrame) and n:
+            lines.append(hist.tail(5).to_string(index=False))
     verdict = getattr(est, "verdict_", None)
     if verdict is not None:
-        lines.append(f"verdict: {verdict}")
-    elif getattr(est, "diverged_", False):
-        lines.append(f"verdict: diverging ({getattr(est, 'divergence_message_', 'see warnings')})")
+        msg = getattr(est, "verdict_message_", "")
+        lines.append(f"verdict: {verdict}" + (f" ({msg})" if msg else ""))
     return lines
 
 
@@ -255,13 +263,17 @@ def summary_lines(m: dict) -> list[str]:
     """A short human summary of ``metrics.json`` (policy vs demonstrator, OPE, worst-step ESS)."""
     lines = []
     if "rollout" in m:
-        p, d = m["rollout"]["policy"], m["rollout"]["demonstrator"]
+        p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
         extra = ""
-        if "mean_abs_cross_track_error_m" in p:
+        if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
+            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, "
+                         f"{p['interval'][1]:.3f}]; {m['rollout'].get('note', 'no demonstrator')}")
+        elif "mean_abs_cross_track_error_m" in p:
             extra = (f"; mean |cross-track error| {p['mean_abs_cross_track_error_m']:.3f} m vs "
                      f"{d['mean_abs_cross_track_error_m']:.3f} m, failures {p['failures']} vs {d['failures']}")
-        lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
-                     f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
+        if d is not None:
+            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
+                         f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
     f = m["ope"]["fqe"]
     lines.append(f"off-policy (FQE): {_f(f['estimate'])} [{_f(f['interval'][0])}, {_f(f['interval'][1])}]"
                  f"; WDR {_f(m['ope']['wdr']['estimate'])}, MIS {_f(m['ope']['mis']['estimate'])}")
@@ -495,7 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("run", help="run directory (from offline-adp fit)")
     e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
-    e.add_argument("--simulator", default=None, help="reference problem to roll out in, or 'none' (default: the dataset's problem)")
+    e.add_argument("--simulator", default=None, help="reference problem to roll out in, gym:ENV_ID (a registered gymnasium "
+                   "environment; features by declared order, actions by the action table's values), or 'none' "
+                   "(default: the dataset's problem)")
     e.add_argument("--episodes", type=int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
     e.add_argument("--fqe-bootstrap", type=int, default=10, help="FQE refits for its interval (default 10)")

@@ -66,7 +66,8 @@ class Learner:
         self.queries = {"train": (phi, self.actions), **queries}
         self.iteration = 0
 
-    def fit(self, y: np.ndarray) -> None:
+    def fit(self, y: np.ndarray, k: int) -> None:
+        """``Q_k = LEARN({((x_i, a_i), y_i)})``; iteration ``k``'s randomness depends on ``k`` only."""
         raise NotImplementedError
 
     def predict(self, name: str) -> np.ndarray:
@@ -76,9 +77,13 @@ class Learner:
         """The current Q as a standalone Q-function."""
         raise NotImplementedError
 
-    def restore(self, q: QFunction, iteration: int) -> None:
-        """Continue from a saved ``Q_k`` (iteration ``k`` done)."""
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
+        """Continue from a saved ``Q_k`` (iteration ``k`` done; ``rows``: the history 1..k)."""
         raise NotImplementedError(f"{type(self).__name__} cannot resume")
+
+    def state(self) -> dict[str, Any]:
+        """Extra per-iteration facts for the history row (e.g. the structures built)."""
+        return {}
 
     @staticmethod
     def _select(q_all: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
@@ -86,11 +91,28 @@ class Learner:
 
 
 class RefitLearner(Learner):
-    """Clone and refit LEARN on every iteration (any scikit-learn regressor)."""
+    """Clone and refit LEARN on every iteration (any scikit-learn regressor).
 
-    def fit(self, y: np.ndarray) -> None:
-        self.iteration += 1
-        seed = self.seed + self.iteration
+    Predictions are cached per iteration. Logged transitions mostly continue each other
+    (``x_i == x'_{i-1}``), so the training pairs' values are read from the next-state
+    predictions where the regression input is the same (``reuse`` maps those rows), and
+    only the other rows are predicted: a third less prediction with two actions.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        phi_next = self.queries["next"][0] if "next" in self.queries else None
+        same = np.zeros(len(self.phi), bool)
+        if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
+            same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
+        self.reuse = np.flatnonzero(same)  # row i's input equals next-query row i - 1's
+        if len(self.reuse):
+            self.queries["train_rest"] = (self.phi[~same], self.actions[~same])
+        self._cache: dict[str, np.ndarray] = {}
+
+    def fit(self, y: np.ndarray, k: int) -> None:
+        self.iteration = k
+        seed = self.seed + k
         if self.encoder.per_action:
             models = []
             for a in range(self.encoder.n_actions):
@@ -103,79 +125,126 @@ class RefitLearner(Learner):
             m = _seeded(clone(self.regressor), seed)
             models = [_fit(m, self.encoder.pairs(self.phi, self.actions), y, self.weights)]
         self.q = RegressorQ(models, self.encoder)
+        self._cache = {}
 
     def predict(self, name: str) -> np.ndarray:
-        phi, actions = self.queries[name]
-        if actions is not None and not self.encoder.per_action:
-            return predict_model(self.q.models[0], self.encoder.pairs(phi, actions))
-        return self._select(self.q.values_phi(phi), actions)
+        if name not in self._cache:
+            if name == "train" and len(self.reuse):
+                out = np.empty(len(self.phi))
+                rest = np.ones(len(self.phi), bool)
+                rest[self.reuse] = False
+                out[rest] = self.predict("train_rest")
+                out[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
+                self._cache[name] = out
+            else:
+                phi, actions = self.queries[name]
+                if actions is not None and not self.encoder.per_action:
+                    self._cache[name] = predict_model(self.q.models[0], self.encoder.pairs(phi, actions))
+                else:
+                    self._cache[name] = self._select(self.q.values_phi(phi), actions)
+        return self._cache[name]
 
     def snapshot(self) -> QFunction:
         return self.q
 
-    def restore(self, q: QFunction, iteration: int) -> None:
-        self.q, self.iteration = q, iteration  # type: ignore[assignment]
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
+        self.q, self.iteration, self._cache = q, iteration, {}  # type: ignore[assignment]
 
 
 class FrozenTreesLearner(Learner):
     """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
 
-    The structure is (re)built by the next ``fit`` after :meth:`restructure` (and on the
-    first ``fit``): the ensemble is fitted to that iteration's targets plus a tiny jitter
-    (std ``1e-6 * (1 + std(y))``, so that trees grow fully even where the first targets
-    are constant), and the leaves of every training and query input are computed once.
-    With the structure fixed, each leaf's value is the weighted mean target of its
-    training samples and a prediction is the mean over trees: two fixed sparse operators
-    (a kernel averager whose rows sum to 1)::
+    The structure is (re)built at the iterations in ``restructure_at`` (and at the next
+    iteration whenever the targets it was built on were constant, e.g. the first targets
+    of a problem with one cost per step: a structure fitted to constant targets is a
+    random partition). A build fits the ensemble to that iteration's targets plus a tiny
+    jitter (std ``1e-6 * (1 + std(y))``, so that trees grow fully) and computes the leaf
+    of every training and query input once. With the structure fixed, each leaf's value
+    is the weighted mean target of its training samples and a prediction is the mean
+    over trees: two fixed sparse operators (a kernel averager whose rows sum to 1)::
 
         v_k = M @ y_k              M[leaf, i] = w_i / (sum of w in the leaf)
         Q_k(query) = A_query @ v_k  A_query[q, leaf] = 1 / n_trees for the q's leaves
 
-    An iteration is a few sparse mat-vecs: no tree fitting, no traversal.
+    An iteration is a few sparse mat-vecs: no tree fitting, no traversal. With a fixed
+    structure the update is a gamma-contraction, so it converges -- to the fixed point of
+    *that* averager, which is only as good as the structure: a structure fitted to early
+    targets cannot represent what later targets need (see the ``mode`` notes of
+    :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
-        self._rebuild = True
+        self.restructure_at = frozenset(restructure_at) | {1}
+        self._pending = True  # no structure yet
         self.structures = 0
+        self.built_on_constant = False
 
-    def restructure(self) -> None:
-        self._rebuild = True
-
-    def _build(self, y: np.ndarray) -> None:
-        from scipy import sparse
-
+    def _build(self, y: np.ndarray, k: int) -> None:
         X = self.encoder.pairs(self.phi, self.actions)
-        rng = np.random.default_rng([self.seed, self.iteration, 7])
+        rng = np.random.default_rng([self.seed, k, 7])
         jitter = rng.normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
-        forest = _fit(_seeded(clone(self.regressor), self.seed + self.iteration), X, y + jitter, self.weights)
+        forest = _fit(_seeded(clone(self.regressor), self.seed + k), X, y + jitter, self.weights)
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         self.ensemble = TreeEnsemble.from_sklearn(forest)
-        n, m = len(y), self.ensemble.n_trees
-        train = sklearn_leaves(forest, X)  # (n, m) global leaf ids
+        self._operators(lambda Z: sklearn_leaves(forest, Z), sklearn_leaves(forest, X))
+        self.structures += 1
+        self.built_on_constant = bool(np.ptp(y) == 0.0)
+
+    def _operators(self, leaves_of: Any, train: np.ndarray) -> None:
+        """The averaging operator ``M`` and the query operators ``A`` from the training
+        leaves (n, m) and a leaf lookup for the queries (int32 indices, CSR built directly)."""
+        from scipy import sparse
+
+        n, m = train.shape
         used = np.zeros(len(self.ensemble.value), bool)
         used[train.reshape(-1)] = True
         self.leaf_ids = np.flatnonzero(used)  # leaves holding training samples, compact index
-        lookup = np.full(len(used), -1, np.int64)
-        lookup[self.leaf_ids] = np.arange(len(self.leaf_ids))
-        compact = lookup[train.reshape(-1)]
+        L = len(self.leaf_ids)
+        lookup = np.full(len(used), -1, np.int32)
+        lookup[self.leaf_ids] = np.arange(L, dtype=np.int32)
+        compact = lookup[train.reshape(-1)]  # (n * m,), row-major: row i's trees together
         w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        rows = np.repeat(np.arange(n), m)
-        wsum = np.bincount(compact, weights=w[rows], minlength=len(self.leaf_ids))
-        self.M = sparse.csr_matrix((w[rows] / wsum[compact], (compact, rows)), shape=(len(self.leaf_ids), n))
-        self._compact, self._rows = compact, rows
-        self.A: dict[str, Any] = {}
+        wsum = np.bincount(compact, weights=np.repeat(w, m), minlength=L)
+        # M in CSR by leaf: sort the (row, tree) pairs by leaf (stable: rows ascending)
+        order = np.argsort(compact, kind="stable")
+        rows = (order // m).astype(np.int32 if n < 2**31 - 1 else np.int64)
+        idx_t = np.int32 if n * m < 2**31 - 1 else np.int64
+        indptr = np.r_[0, np.cumsum(np.bincount(compact, minlength=L))].astype(idx_t)
+        self.M = sparse.csr_matrix((w[rows] / wsum[compact[order]], rows, indptr), shape=(L, n))
+        del order
+        self._compact, self._m = compact, m
+        # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
+        # weight, which contributes 0): Q(query) = mean over trees of leaf values
+        self.pos: dict[str, np.ndarray] = {}
         for name, (phi, a) in self.queries.items():
-            leaves = train if name == "train" else sklearn_leaves(forest, self._joint(phi, a))
-            pos = lookup[leaves.reshape(-1)]
-            hit = pos >= 0  # every leaf holds training samples unless their weights are 0
-            qrows = np.repeat(np.arange(len(leaves)), m)[hit]
-            self.A[name] = sparse.csr_matrix((np.full(hit.sum(), 1.0 / m), (qrows, pos[hit])), shape=(len(leaves), len(self.leaf_ids)))
-        self._rebuild = False
-        self.structures += 1
+            if name == "train":  # every training leaf holds its own sample: a view, no copy
+                self.pos[name] = compact.reshape(n, m)
+                continue
+            X = self._joint(phi, a)
+            pos = np.empty((len(X), m), np.int32)
+            for lo in range(0, len(X), 262_144):  # leaf lookups in row chunks: bounded temporaries
+                pos[lo:lo + 262_144] = lookup[leaves_of(X[lo:lo + 262_144])]
+            del X
+            pos[pos < 0] = L
+            self.pos[name] = pos
+
+    @property
+    def A(self) -> dict[str, Any]:
+        """The query operators as sparse matrices ``A[q, leaf] = 1 / n_trees`` (built on demand)."""
+        from scipy import sparse
+
+        L, out = len(self.leaf_ids), {}
+        for name, pos in self.pos.items():
+            nq, m = pos.shape
+            flat = pos.reshape(-1)
+            hit = flat < L
+            qrows = np.repeat(np.arange(nq, dtype=np.int64), m)[hit]
+            out[name] = sparse.csr_matrix((np.full(int(hit.sum()), 1.0 / m), (qrows, flat[hit])), shape=(nq, L))
+        return out
 
     def reweighted_operators(self, weights: np.ndarray) -> tuple[Any, dict[str, Any]]:
         """Leaf-averaging operator ``M`` and query operators ``A`` for other sample weights
@@ -184,10 +253,11 @@ class FrozenTreesLearner(Learner):
         with none left keeps its original row)."""
         from scipy import sparse
 
-        w = np.asarray(weights, dtype=np.float64)[self._rows]
+        rows = np.repeat(np.arange(len(self._compact) // self._m), self._m)
+        w = np.asarray(weights, dtype=np.float64)[rows]
         wsum = np.bincount(self._compact, weights=w, minlength=len(self.leaf_ids))
         vals = w / np.where(wsum[self._compact] > 0, wsum[self._compact], 1.0)
-        M = sparse.csr_matrix((vals, (self._compact, self._rows)), shape=self.M.shape)
+        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=self.M.shape)
         keep = sparse.diags((wsum > 0).astype(np.float64))
         A = {}
         for name, op in self.A.items():
@@ -198,24 +268,50 @@ class FrozenTreesLearner(Learner):
             A[name] = (scale @ kept + fallback @ op).tocsr()
         return M, A
 
-    def fit(self, y: np.ndarray) -> None:
-        self.iteration += 1
-        if self._rebuild:
-            self._build(y)
+    def fit(self, y: np.ndarray, k: int) -> None:
+        self.iteration = k
+        if self._pending or k in self.restructure_at:
+            self._build(y, k)
+        self._pending = self.built_on_constant  # constant targets say nothing about where to split
         self.leaf_values = self.M @ np.asarray(y, dtype=np.float64)  # leaf means of y_k
+
+    def state(self) -> dict[str, Any]:
+        return {"structure": self.structures, "structure_on_constant": self.built_on_constant}
 
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
     def predict(self, name: str) -> np.ndarray:
         phi, actions = self.queries[name]
-        v = self.A[name] @ self.leaf_values  # mean over trees of the reached leaves
+        v = _tree_mean(np.r_[self.leaf_values, 0.0], self.pos[name])  # mean over trees of the reached leaves
         return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
 
     def snapshot(self) -> QFunction:
         value = self.ensemble.value.copy()
         value[self.leaf_ids] = self.leaf_values
         return TreeQ([self.ensemble.with_values(value)], self.encoder)
+
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
+        """The saved ``Q_k`` carries its structure: recompute the leaves of the training and
+        query inputs with it (the same leaves the structure's forest gave) and read the
+        leaf values back."""
+        self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
+        X = self.encoder.pairs(self.phi, self.actions)
+        self._operators(self.ensemble.apply, self.ensemble.apply(X))
+        self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
+        last = (rows or [{}])[-1]
+        self.structures = int(last.get("structure") or 1)
+        self.built_on_constant = bool(last.get("structure_on_constant") or False)
+        self._pending = self.built_on_constant
+        self.iteration = iteration
+
+
+def _tree_mean(values: np.ndarray, pos: np.ndarray, chunk: int = 65_536) -> np.ndarray:
+    """``values[pos].mean(axis=1)`` in row chunks (no (n, n_trees) float temporary)."""
+    out = np.empty(len(pos))
+    for lo in range(0, len(pos), chunk):
+        out[lo:lo + chunk] = values[pos[lo:lo + chunk]].mean(axis=1)
+    return out
 
 
 class BoostedSumQ(QFunction):
@@ -232,8 +328,12 @@ class BoostedSumQ(QFunction):
 
 class LightGBMWarmStartLearner(Learner):
     """Warm-started boosting: each iteration adds ``trees_per_iteration`` trees fitted to
-    ``y_k - Q_{k-1}`` on the training pairs; cached predictions make each step cost only
-    the new trees. Joint encoding only; the regressor's LightGBM parameters are reused.
+    the residual ``y_k - Q_{k-1}`` on the training pairs, boosted from its (weighted)
+    mean, so ``Q_k = Q_{k-1} + mean residual + new trees``: a constant change of the
+    targets (every logged cost the same) is learned, not lost. Cached predictions make
+    each step cost only the new trees. Joint encoding only. LightGBM parameters come from
+    a LightGBM regressor; any other regressor gets ``num_leaves=63, learning_rate=0.3``
+    (10 trees then go ~97% of the way to each iteration's targets).
     """
 
     def __init__(self, *args: Any, trees_per_iteration: int = 10, **kwargs: Any) -> None:
@@ -243,16 +343,20 @@ class LightGBMWarmStartLearner(Learner):
         import lightgbm as lgb
 
         self.lgb = lgb
-        p = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
+        is_lgb = type(self.regressor).__name__.startswith("LGBM")
+        p = self.regressor.get_params() if is_lgb else {}
         self.params = {
             "objective": "regression",
-            "num_leaves": p.get("num_leaves", 31),
-            "learning_rate": p.get("learning_rate", 0.1) if p.get("learning_rate") is not None else 0.1,
+            "num_leaves": p.get("num_leaves", 63),
+            "learning_rate": p.get("learning_rate") if p.get("learning_rate") is not None else 0.3,
             "min_data_in_leaf": p.get("min_child_samples", 20),
             "verbose": -1,
-            "num_threads": p.get("n_jobs", 0) if (p.get("n_jobs") or 0) > 0 else 0,
+            # one thread unless the regressor asks for more: on a loaded machine LightGBM's
+            # spinning OpenMP threads burned 5-50x the CPU of a single thread at 10k-50k rows
+            "num_threads": p.get("n_jobs") if (p.get("n_jobs") or 0) > 0 else 1,
             "seed": self.seed,
             "deterministic": True,
+            "boost_from_average": True,
         }
         self.trees_per_iteration = trees_per_iteration
         self.X = {name: self._joint(phi, a) for name, (phi, a) in self.queries.items()}
@@ -264,12 +368,10 @@ class LightGBMWarmStartLearner(Learner):
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
-    def fit(self, y: np.ndarray) -> None:
-        self.iteration += 1
-        self.data.set_label(y)
-        self.data.set_init_score(self.cache["train"])  # boost from the previous Q
-        booster = self.lgb.train({**self.params, "seed": self.seed + self.iteration}, self.data,
-                                 num_boost_round=self.trees_per_iteration)
+    def fit(self, y: np.ndarray, k: int) -> None:
+        self.iteration = k
+        self.data.set_label(y - self.cache["train"])  # the residual; its mean goes into the first tree
+        booster = self.lgb.train({**self.params, "seed": self.seed + k}, self.data, num_boost_round=self.trees_per_iteration)
         self.boosters.append(booster)
         for name, X in self.X.items():  # only the new trees are evaluated
             self.cache[name] = self.cache[name] + booster.predict(X, raw_score=True)
@@ -282,7 +384,7 @@ class LightGBMWarmStartLearner(Learner):
     def snapshot(self) -> QFunction:
         return BoostedSumQ(list(self.boosters), self.encoder)
 
-    def restore(self, q: QFunction, iteration: int) -> None:
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
         self.boosters = [getattr(b, "booster", b) for b in q.boosters]  # type: ignore[attr-defined]
         self.iteration = iteration
         for name, X in self.X.items():  # the same sums, in the same order, as when fitting

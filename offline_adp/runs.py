@@ -53,13 +53,13 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
 
 
 def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> None:
-    q: Any = est.q_function_ if est.horizon is None else TimeIndexedQ(list(reversed(est.q_functions_)))
+    q: Any = est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))
     with RunDirectory(run).subdirectory(RunDirectory.CHECKPOINT) as tmp:
         save_q(q, tmp, extra={"iteration": len(rows)})
         pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
 
 
-def _read_checkpoint(run: Path, finite: bool) -> dict[str, Any] | None:
+def _read_checkpoint(run: Path) -> dict[str, Any] | None:
     ck = run / RunDirectory.CHECKPOINT
     if not (ck / "q.json").exists():
         return None
@@ -67,20 +67,27 @@ def _read_checkpoint(run: Path, finite: bool) -> dict[str, Any] | None:
     hist = pd.read_csv(ck / "history.csv")
     rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
     # finite horizons are stored as Q_{T-1}, Q_{T-2}, ... (the order they were fitted)
-    return {"q": list(q.qs) if finite else q, "history": rows}
+    return {"q": list(q.qs) if isinstance(q, TimeIndexedQ) else q, "history": rows}
 
 
 def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every: int,
              on_iteration: Callable[[dict[str, Any]], None] | None) -> None:
     """Run a resumable algorithm's ``fit_iter``, checkpointing every ``checkpoint_every`` iterations."""
-    state = _read_checkpoint(rd.path, est.horizon is not None) if resume else None
+    state = _read_checkpoint(rd.path) if resume else None
     rows: list[dict[str, Any]] = list(state["history"]) if state else []
+    written, last_write, write_cost = len(rows), time.perf_counter(), 0.0
     for row in est.fit_iter(ds, resume=state):
         rows.append(row)
-        if len(rows) % checkpoint_every == 0 and est.mode != "frozen":
+        # every mode checkpoints; when writing costs more than a tenth of the iterations since
+        # the last write (a frozen structure is large, its iterations cheap), less often
+        if len(rows) % checkpoint_every == 0 and time.perf_counter() - last_write >= 10 * write_cost:
+            w0 = time.perf_counter()
             _write_checkpoint(rd.path, est, rows)
+            written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
         if on_iteration:
             on_iteration(row)
+    if written != len(rows):  # the last iteration is always checkpointed before model/ is written
+        _write_checkpoint(rd.path, est, rows)
 
 
 def _save_model(entry: AlgorithmEntry, est: Any, rd: RunDirectory, fingerprint: str) -> None:
@@ -106,7 +113,7 @@ def _summary(est: Any) -> dict[str, Any]:
         out["value"] = float(est.value_)
     elif isinstance(hist, pd.DataFrame) and "value" in hist:
         out["value"] = float(hist["value"].iloc[-1])
-    for attr in ("simulator_steps_", "diverged_", "verdict_"):
+    for attr in ("simulator_steps_", "diverged_", "verdict_", "verdict_message_"):
         v = getattr(est, attr, None)
         if v is not None:
             out[attr.rstrip("_")] = v if not hasattr(v, "item") else v.item()
@@ -192,7 +199,7 @@ def fit_run(
             rd.write_json(rd.STATUS, status)
             raise
         _save_model(entry, est, rd, ds.fingerprint())
-        status.update(status="completed", fit_seconds=time.perf_counter() - wall, cpu_seconds=time.process_time() - cpu,
+        status.update(status="completed", fit_seconds=time.perf_counter() - wall, fit_cpu_seconds=time.process_time() - cpu,
                       **_summary(est))
         rd.write_json(rd.STATUS, status)
     return est

@@ -37,7 +37,8 @@ def test_discounted_fqe_equals_exact_policy_evaluation():
 
 
 def test_two_state_unweighted_backup_multiplies_w_by_six_gamma_over_five():
-    with pytest.warns(DivergenceWarning, match="iteration 1: max \\|Q\\|"):
+    # bound max|Q_0| = 2 (costs 0): 2 * 1.08 is inside the 10% margin, 2 * 1.08^2 = 2.33 is not
+    with pytest.warns(DivergenceWarning, match="iteration 2: max \\|Q\\| = 2.333 exceeds the bound"):
         ws, fqe = two_state.run(weighted=False, n_backups=12)
     assert ws[0] == pytest.approx(1.08, abs=1e-12)  # not 1.2 as the chapter's text has it
     np.testing.assert_allclose(ws, 1.08 ** np.arange(1, 13), rtol=1e-12)  # geometric divergence
@@ -67,3 +68,19 @@ def test_reweighted_value_is_the_same_fixed_point_for_uniform_weights(small_pt):
     assert fqe.reweighted_value(np.full(n, 3.0), n_iterations=3000, tol=1e-12) == pytest.approx(fqe.value_, rel=1e-6)
     w = np.random.default_rng(0).poisson(1.0, n).astype(float)
     assert fqe.reweighted_value(w) != pytest.approx(fqe.value_, rel=1e-6)
+
+
+@pytest.mark.parametrize("gamma", [0.9, 0.5])
+def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
+    """FittedQEvaluation(policy, horizon=T, gamma=g): the T-step discounted evaluation of a
+    time-varying policy, Q_t backed up with pi at t+1 (issue 15 relies on it)."""
+    m = TabularMDP(n_states=8, n_actions=2, horizon=None, gamma=0.95, seed=11)
+    ds, w = full_support_dataset(m)
+    pi = np.random.default_rng(2).dirichlet(np.ones(2), size=(4, 8))
+    fqe = FittedQEvaluation(policy=TabularPolicy(pi), horizon=4, gamma=gamma, regressor="tabular", action_input="onehot")
+    fqe.fit(ds, sample_weight=w)
+    exact = dp.policy_evaluation_finite(m.P, m.C, pi, 4, gamma=gamma)
+    for t in range(4):
+        np.testing.assert_allclose(fqe.q_functions_[t].values(np.arange(8.0)[:, None]), exact.Q[t], atol=1e-10, rtol=0)
+    np.testing.assert_allclose(fqe.value_, exact.V[0][ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)].mean(), atol=1e-10)
+    assert fqe.verdict_ == "completed"

@@ -16,8 +16,12 @@ Per-sample weights (``fit(..., sample_weight=w)``) make LEARN a weighted regress
 *on-policy weighting* (``w_i`` = expected time pi spends in ``x_i``, see
 :func:`on_policy_weights`) is the chapter's remedy for the divergence of linear
 evaluation (the two-state example, :mod:`offline_adp.examples.two_state`).
-Everything else (learners, monitor, modes) is shared with
-:class:`~offline_adp.algorithms.fqi.FittedQIteration`.
+It is the loop of :func:`~offline_adp.algorithms.fqi.fitted_q_loop` with the policy's
+backup (:class:`~offline_adp.algorithms.fqi_data.PolicyBackup`); everything else
+(learners, monitor, modes, resume) is shared with
+:class:`~offline_adp.algorithms.fqi.FittedQIteration`. A finite horizon ``T`` works with
+any ``gamma`` (e.g. a T-step evaluation on discounted logs): ``Q^pi_t`` for t = 0..T-1,
+the backup at step t using ``pi(. | x', t+1)`` (time-varying policies honoured).
 """
 
 from __future__ import annotations
@@ -26,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.algorithms.fqi import FittedQIteration, run_fitted_q
+from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import Policy
 from offline_adp.qfunctions import QFunction
@@ -51,28 +56,35 @@ class FittedQEvaluation(FittedQIteration):
                  action_input: str = "value", feature_map: Any = None, n_iterations: int = 50, tol: float | None = None,
                  mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
-                 on_divergence: str = "stop", patience: int = 5, divergence_slack: float = 1.0,
-                 initial_q: QFunction | None = None, random_state: int = 0) -> None:
+                 on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
+                 initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
                          n_iterations=n_iterations, tol=tol, mode=mode, trees_per_iteration=trees_per_iteration,
                          infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
-                         divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state)
+                         divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
+                         n_structures=n_structures)
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None):
+        """As :meth:`FittedQIteration.fit_iter`, with the policy's backup; sets ``value_`` at the end."""
         if self.policy is None:
             raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
         if self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
-        self._probs: dict[tuple[str, int | None], np.ndarray] = {}
-        self._probs_extra: dict[str, np.ndarray] = {}
+        yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup)
         a = dataset.arrays()
-        yield from super().fit_iter(dataset, sample_weight, resume)
         start = a.step == 0
         x0 = a.obs[start] if start.any() else a.obs[:1]
         self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
+
+    def _backup(self, data: Prepared) -> PolicyBackup:
+        sets = {"next": data.train.next_obs, "start": data.start_obs}
+        if data.valid is not None:
+            sets["valid_next"] = data.valid.next_obs
+        stationary = not getattr(self.policy, "time_varying", getattr(self, "horizon_", self.horizon) is not None)
+        return PolicyBackup(self.policy, sets, stationary)
 
     def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None) -> float:
         """The value estimate for other per-row weights, *keeping the fitted tree structure*
@@ -86,48 +98,27 @@ class FittedQEvaluation(FittedQIteration):
         """
         from offline_adp.learners import FrozenTreesLearner
 
-        d, learner = self._fit_state
-        if not isinstance(learner, FrozenTreesLearner) or self.horizon is not None or d["valid"] is not None:
+        d, learner, backup = self._fit_state
+        if not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None:
             raise ValueError("reweighted_value needs a discounted FQE fitted with mode='frozen' and no validation split")
         w = np.asarray(sample_weight, dtype=np.float64)
         M, ops = learner.reweighted_operators(w)
-        n, A = len(d["cost"]), d["n_actions"]
-        pi_next = self._probs[("next", None)]
-        if "start" not in self._probs_extra:
-            self._probs_extra["start"] = self.policy.probabilities(d["start_obs"], 0)  # type: ignore[union-attr]
-        pi_start = self._probs_extra["start"]
-        boot = np.where(d["no_boot"], 0.0, d["gamma"])
+        n, A = d.n, d.n_actions
+        pi_next = backup.probabilities("next", 0)
+        pi_start = backup.probabilities("start", 0)
+        boot = np.where(d.train.no_boot, 0.0, d.gamma)
         v = learner.leaf_values.copy()  # start at the fitted fixed point: replicates lie near it
         for _ in range(n_iterations or self.n_iterations * 2):
             q_next = (ops["next"] @ v).reshape(A, n).T
-            v_new = M @ (d["cost"] + boot * (pi_next * q_next).sum(axis=1))
+            v_new = M @ (d.train.cost + boot * (pi_next * q_next).sum(axis=1))
             done = np.max(np.abs(v_new - v)) < (tol if tol is not None else (self.tol or 0.0))
             v = v_new
             if done:
                 break
         q0 = (ops["start"] @ v).reshape(A, -1).T
         v0 = (pi_start * q0).sum(axis=1)
-        w0 = w[d["start_rows"]]
+        w0 = w[d.start_rows]
         return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
-
-    def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> dict[str, Any]:
-        d = super()._prepare(ds, sample_weight)
-        self._next_obs_sets = {"next": d["next_obs"]}
-        if d["valid"] is not None:
-            self._next_obs_sets["valid_next"] = d["valid"]["next_obs"]
-        return d
-
-    def _next_value(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
-        """``sum_a' pi(a' | x', t+1) Q(x', a')`` (expected over pi's action probabilities)."""
-        t_next = 0 if t is None else t + 1
-        key = (which, None if self._stationary() else t_next)
-        if key not in self._probs:
-            x = self._next_obs_sets[which]
-            self._probs[key] = self.policy.probabilities(x, t_next)  # type: ignore[union-attr]
-        return (self._probs[key] * q_next).sum(axis=1)
-
-    def _stationary(self) -> bool:
-        return not getattr(self.policy, "time_varying", self.horizon is not None)
 
     def _result_policy(self, q: QFunction) -> Any:
         return self.policy

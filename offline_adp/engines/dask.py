@@ -169,7 +169,8 @@ class DistributedFQI:
 
     Parameters
     ----------
-    gamma : float
+    gamma : float, optional
+        Default: the dataset's hint, else 0.95 (:func:`offline_adp.data.discount.resolve_discount`).
     n_iterations : int
     lgbm_params : dict
         LightGBM parameters (default: the ``lightgbm`` registry entry's).
@@ -186,7 +187,7 @@ class DistributedFQI:
         New trees per iteration with ``warm_start``.
     """
 
-    def __init__(self, gamma: float = 0.95, n_iterations: int = 10, lgbm_params: dict | None = None,
+    def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
                  time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None,
                  warm_start: bool = False, trees_per_iteration: int = 10) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
@@ -215,10 +216,12 @@ class DistributedFQI:
              checkpoint_dir: str | PathLike[str] | None) -> DistributedFQI:
         from lightgbm.dask import DaskLGBMRegressor
 
+        from offline_adp.data.discount import resolve_discount
         from offline_adp.data.info import DatasetInfo
         from offline_adp.qfunctions import QEncoder, RegressorQ
 
         info = DatasetInfo.from_dict(json.loads((Path(dataset_dir) / "meta" / "info.json").read_text()))
+        self.gamma_ = resolve_discount(info, self.gamma).gamma  # the package's one rule (no finite horizon here)
         ddf = spread(client, read_dataset_dask(dataset_dir))
         cols = flat_columns(info)
         af = np.asarray(info.action_table.values, dtype=np.float64)
@@ -248,12 +251,14 @@ class DistributedFQI:
             for attempt in range(self.retries + 1):
                 try:
                     if self.warm_start:
-                        y = ddf.map_partitions(_cached_targets, self.gamma, len(af), cols["next_obs"],
+                        y = ddf.map_partitions(_cached_targets, self.gamma_, len(af), cols["next_obs"],
                                                client.scatter(self.policy, broadcast=True, hash=False)
                                                if self.policy is not None else None, meta=pd.Series(dtype=np.float64))
-                        init = {"init_score": ddf[_CACHE_SA].to_dask_array(lengths=True)}
+                        # the residual y - Q_{k-1}(x_i, a_i), boosted from its mean (as the local warm start)
+                        y = y - ddf[_CACHE_SA]
+                        init = {}
                     else:
-                        y = distributed_targets(client, ddf, q, self.gamma, info, self.policy)
+                        y = distributed_targets(client, ddf, q, self.gamma_, info, self.policy)
                         init = {}
                     model = DaskLGBMRegressor(client=client, time_out=self.time_out,
                                               random_state=self.random_state + (k if self.warm_start else 0), **params)

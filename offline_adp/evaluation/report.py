@@ -310,7 +310,7 @@ def _html(m: dict[str, Any], figs: _Figures) -> str:
              "Costs are minimised: lower is better.</p>"]
     if "rollout" in m:
         r = m["rollout"]
-        rows = [{"policy": k, **{c: v for c, v in r[k].items()}} for k in ("policy", "demonstrator")]
+        rows = [{"policy": k, **{c: v for c, v in r[k].items()}} for k in ("policy", "demonstrator") if k in r]
         cols = ["policy"] + [c for c in rows[0] if c != "policy"]
         parts += ["<h2>Performance in the simulator</h2>", f"<p>{html.escape(r['method'])}.</p>", _table(rows, cols)]
     if "named" in m:

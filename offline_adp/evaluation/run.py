@@ -98,7 +98,7 @@ def evaluate_run(
     capped by the dataset's horizon).
     """
     from offline_adp.artifacts import load_policy
-    from offline_adp.envs import PROBLEMS, make_problem
+    from offline_adp.envs.gym import resolve_simulator
 
     say = progress or (lambda _m: None)
     run = Path(run_dir)
@@ -114,9 +114,7 @@ def evaluate_run(
     sim_name = simulator if simulator is not None else ds.info.problem
     if sim_name in ("none", ""):
         sim_name = None
-    if sim_name is not None and sim_name not in PROBLEMS:
-        raise OfflineADPError(f"unknown simulator {sim_name!r}; known: {sorted(PROBLEMS)} (or 'none')")
-    problem = make_problem(sim_name) if sim_name else None
+    problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
                                                             "transitions": len(ds), "episodes": len(ds.episode_ids),
@@ -131,13 +129,18 @@ def evaluate_run(
         T, gamma, _ = evaluation_horizon(ds, horizon)
         say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
         x0 = problem.initial_states(n_episodes, rng)
-        ro = rollout_pieces(problem, {"policy": policy, "demonstrator": problem.demonstrator()}, x0, seed + 1, horizon=T,
-                            gamma=gamma, record_states=True, task_map=task_map)
-        pol, demo = ro["policy"], ro["demonstrator"]
+        demonstrator = problem.demonstrator()  # None for a gymnasium environment
+        pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
+        ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
+        pol, demo = ro["policy"], ro.get("demonstrator")
         metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
-                              "horizon": T, "policy": _rollout_block(pol, problem), "demonstrator": _rollout_block(demo, problem)}
-        states, demo_states = pol.states, demo.states
-        refs["demonstrator"] = problem.demonstrator()
+                              "horizon": T, "policy": _rollout_block(pol, problem)}
+        if demo is None:
+            metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
+        else:
+            metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
+            refs["demonstrator"] = demonstrator
+        states, demo_states = pol.states, (demo.states if demo is not None else None)
         if sim_name == "car_on_hill":
             from offline_adp.envs.car_on_hill import score
 

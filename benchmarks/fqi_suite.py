@@ -1,0 +1,159 @@
+"""FQI quality-and-cost suite: every mode on every problem, side by side in one run.
+
+Problems (score: higher is better):
+
+- ``car_on_hill``: Ernst et al. (2005): 1000 random episodes from (-0.5, 0) (<= 100
+  steps), gamma 0.95, 50 iterations; score = mean discounted return over the 289-state
+  grid. The score swings 0.12-0.30 with the data seed alone: use several ``--data-seeds``.
+- ``CartPole-v1``, ``Acrobot-v1``, ``MountainCar-v0`` (gymnasium): logs of uniformly random
+  actions, each held 1-8 steps (:func:`offline_adp.envs.gym.record_random_log`), 50,000
+  transitions (MountainCar: episodes of up to 2000 steps, else the log holds no goal), gamma
+  0.99; score = mean undiscounted return of the greedy policy in
+  gymnasium over 20 fixed episode seeds (random play: ~22 / -500 / -200).
+- ``path_tracking``: 50 demonstration + 150 exploration episodes, gamma 0.95; score =
+  minus the mean discounted cost of 200 rollouts in the simulator.
+
+Learner: extra-trees, 50 trees, ``min_samples_split=2`` (the registry default). For every
+(problem, mode): the score's mean and spread (std) over ``--learner-seeds``, the fit's
+CPU seconds (``time.process_time``), and the CPU ratio to ``refit`` measured in the same
+run. The monitor only warns; every fit's verdict is printed.
+
+    nice -n 10 python benchmarks/fqi_suite.py --quick          # minutes: 10k transitions, fewer iterations
+    nice -n 10 python benchmarks/fqi_suite.py [--problems ...] [--modes refit frozen warm_start] \
+        [--learner-seeds 0 1 2] [--data-seeds 0] [--transitions 50000] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+
+import numpy as np
+
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.errors import DivergenceWarning
+
+GYM = {"CartPole-v1": 100, "Acrobot-v1": 100, "MountainCar-v0": 200}  # iterations (MountainCar: goal info travels far)
+MODES = {
+    "refit": {"mode": "refit"},
+    "frozen": {"mode": "frozen"},  # the default schedule: 4 structures
+    "frozen2": {"mode": "frozen", "n_structures": 2},
+    "warm_start": {"mode": "warm_start"},
+}
+
+
+def gym_dataset(env_id: str, n: int, seed: int) -> TransitionDataset:
+    from offline_adp.envs.gym import record_random_log
+
+    # MountainCar's 200-step limit: random play reaches the goal 0-2 times in 50k transitions (nothing to
+    # learn); episodes of up to 2000 steps reach it ~25 times. Scoring keeps gymnasium's own limit.
+    log = record_random_log(env_id, n, seed=seed, **({"max_episode_steps": 2000} if env_id == "MountainCar-v0" else {}))
+    d = log["obs"].shape[1]
+    n_act = int(log["action"].max()) + 1
+    info = DatasetInfo(features=tuple(Feature(f"o{j}") for j in range(d)),
+                       action_table=ActionTable.from_values(np.arange(n_act, dtype=float)), gamma=0.99, name=env_id)
+    term = log["terminated"].astype(bool)
+    return TransitionDataset.from_arrays(
+        info, episode_id=np.char.zfill(log["episode"].astype(int).astype(str), 6), step=log["step"], obs=log["obs"],
+        action=log["action"].astype(int), cost=-log["reward"], next_obs=log["next_obs"], terminated=term,
+        truncated=log["truncated"].astype(bool) & ~term)
+
+
+def gym_score(env_id: str, policy, n_episodes: int = 20) -> float:
+    """Mean return of ``policy`` over episodes seeded 10_000 + i, all stepped together."""
+    import gymnasium
+
+    envs = [gymnasium.make(env_id) for _ in range(n_episodes)]
+    obs = np.array([e.reset(seed=10_000 + i)[0] for i, e in enumerate(envs)], dtype=np.float64)
+    ret, alive = np.zeros(n_episodes), np.ones(n_episodes, bool)
+    t = 0
+    while alive.any():
+        idx = np.flatnonzero(alive)
+        acts = policy.act(obs[idx], t)
+        for j, i in enumerate(idx):
+            o, r, term, trunc, _ = envs[i].step(int(acts[j]))
+            obs[i], ret[i] = o, ret[i] + r
+            alive[i] = not (term or trunc)
+        t += 1
+    return float(ret.mean())
+
+
+def problem(name: str, n: int, data_seed: int, quick: bool):
+    """(dataset, gamma, iterations, score function)."""
+    if name == "car_on_hill":
+        from offline_adp.envs.car_on_hill import score
+        from offline_adp.simulate import simulate
+
+        ds = simulate("car_on_hill", 0, 300 if quick else 1000, seed=data_seed, horizon=100)
+        return ds, 0.95, 50, score
+    if name == "path_tracking":
+        from offline_adp.envs import make_problem
+        from offline_adp.evaluation.rollout import rollout
+        from offline_adp.simulate import simulate
+
+        ds = simulate("path_tracking", 15 if quick else 50, 45 if quick else 150, seed=data_seed, horizon=100)
+        model = make_problem("path_tracking")
+        return ds, 0.95, 50, lambda pi: -rollout(model, pi, 200, np.random.default_rng(123), horizon=100, gamma=0.95).mean
+    ds = gym_dataset(name, n, data_seed)
+    iters = GYM[name] if not quick else GYM[name] // 2
+    return ds, 0.99, iters, lambda pi: gym_score(name, pi, 10 if quick else 20)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--problems", nargs="+", default=["car_on_hill", *GYM, "path_tracking"])
+    ap.add_argument("--modes", nargs="+", default=["refit", "frozen", "warm_start"], choices=list(MODES))
+    ap.add_argument("--learner-seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--data-seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--transitions", type=int, default=50_000)
+    ap.add_argument("--trees", type=int, default=50)
+    ap.add_argument("--action-encoding", default="joint", choices=["joint", "per_action"])
+    ap.add_argument("--quick", action="store_true", help="10k transitions, 20 trees, half the iterations, 2 learner seeds")
+    ap.add_argument("--json", default=None, help="write every fit's numbers here")
+    args = ap.parse_args()
+    if args.quick:
+        args.transitions, args.trees, args.learner_seeds = 10_000, 20, args.learner_seeds[:2]
+    records = []
+    for name in args.problems:
+        for ds_seed in args.data_seeds:
+            ds, gamma, iters, score = problem(name, args.transitions, ds_seed, args.quick)
+            print(f"\n{name} (data seed {ds_seed}): {len(ds)} transitions, {ds.n_episodes} episodes, gamma {gamma}, "
+                  f"{iters} iterations", flush=True)
+            for mode in args.modes:
+                for ls in args.learner_seeds:
+                    f = FittedQIteration(gamma=gamma, n_iterations=iters, random_state=ls, action_encoding=args.action_encoding,
+                                         regressor_params={"n_estimators": args.trees}, **MODES[mode])
+                    with warnings.catch_warnings(record=True) as caught:
+                        warnings.simplefilter("always", DivergenceWarning)
+                        warnings.simplefilter("ignore", UserWarning)
+                        c0, w0 = time.process_time(), time.perf_counter()
+                        f.fit(ds)
+                        cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+                    sc = score(f.policy_)
+                    flagged = any(issubclass(w.category, DivergenceWarning) for w in caught)
+                    rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
+                           "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged}
+                    records.append(rec)
+                    print(f"  {mode:<11} seed {ls}: score {sc:+9.3f}  CPU {cpu:7.1f} s  wall {wall:6.1f} s  "
+                          f"{f.verdict_}{' (FLAGGED)' if flagged else ''}", flush=True)
+    print("\nproblem         mode        score mean   spread(std)   CPU s (mean)   CPU / refit   flags")
+    for name in args.problems:
+        ref = [r["cpu_s"] for r in records if r["problem"] == name and r["mode"] == "refit"]
+        for mode in args.modes:
+            rs = [r for r in records if r["problem"] == name and r["mode"] == mode]
+            s = np.array([r["score"] for r in rs])
+            cpu = float(np.mean([r["cpu_s"] for r in rs]))
+            ratio = f"{cpu / np.mean(ref):.3f}" if ref else "-"
+            print(f"{name:<15} {mode:<11} {s.mean():+10.3f}   {s.std(ddof=1) if len(s) > 1 else 0.0:10.3f}   {cpu:12.1f}   "
+                  f"{ratio:>11}   {sum(r['flagged'] for r in rs)}")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(records, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

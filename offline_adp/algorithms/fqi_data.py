@@ -1,0 +1,165 @@
+"""Typed, prepared inputs of the fitted-Q loop (Algorithms 10-13) and its two backups.
+
+:func:`prepare` turns a :class:`~offline_adp.data.dataset.TransitionDataset` into a
+frozen :class:`Prepared`: the regression inputs of the training pairs ``(phi(x_i), a_i)``,
+their costs and bootstrap mask, the next states, the start states, an optional held-out
+:class:`Samples` set for the Bellman residual, and the value bound the monitor checks.
+
+A *backup* maps ``Q_{k-1}(x', .)`` (shape (n, n_actions)) to the value of the next
+states that enters the target ``y_i = c_i + gamma (1 - term_i) V(x'_i)``:
+
+- :class:`GreedyBackup` (FQI, Algorithms 10/11): ``V(x') = min_a' Q(x', a')``;
+- :class:`PolicyBackup` (FQE, Algorithms 12/13): ``V(x') = sum_a' pi(a' | x', t+1) Q(x', a')``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.discount import resolve_discount
+from offline_adp.qfunctions import QEncoder
+
+
+@dataclass(frozen=True)
+class Samples:
+    """One set of transitions as the loop needs them."""
+
+    phi: np.ndarray  #: phi(x_i), (n, d)
+    actions: np.ndarray  #: a_i, (n,) int
+    cost: np.ndarray  #: c_i
+    no_boot: np.ndarray  #: terminated (or infeasible): no bootstrap
+    phi_next: np.ndarray  #: phi(x'_i)
+    next_obs: np.ndarray  #: x'_i (raw, for policies and next-state noise)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Everything the fitted-Q loop reads; built once per fit by :func:`prepare`."""
+
+    train: Samples
+    valid: Samples | None
+    weights: np.ndarray | None
+    gamma: float
+    n_actions: int
+    encoder: QEncoder
+    obs: np.ndarray  #: training x_i (raw)
+    obs_std: np.ndarray  #: per-feature std (next-state noise unit)
+    start_phi: np.ndarray
+    start_obs: np.ndarray
+    start_rows: np.ndarray  #: rows of the training set that start an episode
+    bound: float  #: the monitor's value bound
+    bound_text: str
+    infeasible_cost: float | None = None
+    q0_abs: float = 0.0  #: max |Q_0| on the data (0 without initial_q)
+
+    @property
+    def n(self) -> int:
+        return len(self.train.cost)
+
+    def targets(self, v_next: np.ndarray) -> np.ndarray:
+        """``y_i = c_i + gamma (1 - term_i) V(x'_i)``, clamped at ``c^-``."""
+        s = self.train
+        y = s.cost + self.gamma * np.where(s.no_boot, 0.0, v_next)
+        return y if self.infeasible_cost is None else np.minimum(y, self.infeasible_cost)
+
+
+def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
+            validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
+            action_encoding: str, infeasible_cost: float | None, target_noise: float,
+            initial_q_abs: float, who: str) -> Prepared:
+    """Validate the dataset and build the loop's inputs (see the module docstring)."""
+    if not isinstance(ds, TransitionDataset):
+        raise TypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
+    if len(ds) == 0:
+        raise ValueError("the dataset is empty")
+    g = resolve_discount(ds.info, gamma, horizon).gamma  # callers pass the resolved values; this keeps prepare() usable alone
+    a = ds.arrays()
+    if horizon is None and not g < 1.0 and not a.terminated.any():
+        raise ValueError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless episodes terminate "
+                         "(a shortest-path problem); give a horizon instead")
+    w_all = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
+    if w_all is not None and w_all.shape != (len(ds),):
+        raise ValueError(f"sample_weight has shape {w_all.shape}, expected ({len(ds)},)")
+    tr = np.ones(len(ds), bool)
+    if validation_fraction:
+        rng = np.random.default_rng(random_state)
+        n_ep = ds.n_episodes
+        val_eps = np.zeros(n_ep, bool)
+        val_eps[rng.permutation(n_ep)[: max(1, int(round(validation_fraction * n_ep)))]] = True
+        tr = ~val_eps[ds.episode_index]
+    fmap = None
+    if feature_map is not None:
+        from sklearn.base import clone
+
+        fmap = clone(feature_map).fit(a.obs[tr])
+    at = ds.info.action_table
+    af = at.values if action_input == "value" else np.eye(len(at))
+    enc = QEncoder(len(at), af, per_action=action_encoding == "per_action", feature_map=fmap)
+    no_boot = a.terminated.copy()
+    if infeasible_cost is not None:
+        no_boot |= a.cost >= infeasible_cost
+    phi_obs, phi_next = enc.phi(a.obs), enc.phi(a.next_obs)
+
+    def samples(rows: np.ndarray) -> Samples:
+        return Samples(phi_obs[rows], a.action[rows].astype(np.int64), a.cost[rows], no_boot[rows], phi_next[rows],
+                       a.next_obs[rows])
+
+    start = (a.step == 0) & tr
+    cmax = float(np.abs(a.cost).max())
+    if horizon is not None:  # |Q_t| <= max|c| sum_{j < T} gamma^j + max|Q_T|
+        bound, text = cmax * float(np.sum(g ** np.arange(horizon))), "max|c| sum_{j<T} gamma^j"
+    elif g < 1:
+        bound, text = cmax / (1.0 - g), "max|c| / (1 - gamma)"
+    else:
+        bound, text = np.inf, "none (undiscounted)"
+    if infeasible_cost is not None:
+        bound, text = max(min(bound, abs(infeasible_cost)), cmax), "max(min(max|c| / (1 - gamma), |c^-|), max|c|)"
+    if target_noise and g < 1:  # noisy targets may overshoot by a few noise std
+        bound, text = bound + 4 * target_noise / (1.0 - g), text + " + 4 noise / (1 - gamma)"
+    if initial_q_abs:
+        bound, text = bound + initial_q_abs, text + " + max|Q_0|"
+    return Prepared(
+        train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
+        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=len(at), encoder=enc, obs=a.obs[tr],
+        obs_std=a.obs.std(axis=0) + 1e-12,
+        start_phi=phi_obs[start] if start.any() else phi_obs[tr][:1],
+        start_obs=a.obs[start] if start.any() else a.obs[tr][:1],
+        start_rows=np.flatnonzero(start[tr]) if start.any() else np.zeros(1, np.int64),
+        bound=float(bound), bound_text=text, infeasible_cost=infeasible_cost, q0_abs=float(initial_q_abs),
+    )
+
+
+class Backup(Protocol):
+    """``V(x') from Q(x', .)`` for the query set ``which`` (``"next"`` or ``"valid_next"``)
+    at the step ``t`` being fitted (``None``: infinite horizon)."""
+
+    def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray: ...
+
+
+class GreedyBackup:
+    """FQI: ``V(x') = min_a' Q(x', a')`` (costs are minimised)."""
+
+    def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
+        return q_next.min(axis=1)
+
+
+class PolicyBackup:
+    """FQE: ``V(x') = sum_a' pi(a' | x', t+1) Q(x', a')``; probabilities computed once per
+    (query set, step) (once per query set for a stationary policy)."""
+
+    def __init__(self, policy: Any, next_obs: dict[str, np.ndarray], stationary: bool) -> None:
+        self.policy, self.next_obs, self.stationary = policy, next_obs, stationary
+        self.cache: dict[tuple[str, int | None], np.ndarray] = {}
+
+    def probabilities(self, which: str, t_next: int) -> np.ndarray:
+        key = (which, None if self.stationary else t_next)
+        if key not in self.cache:
+            self.cache[key] = self.policy.probabilities(self.next_obs[which], t_next)
+        return self.cache[key]
+
+    def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
+        return (self.probabilities(which, 0 if t is None else t + 1) * q_next).sum(axis=1)

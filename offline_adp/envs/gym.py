@@ -1,0 +1,171 @@
+"""Any registered gymnasium environment as a simulator (a reset model) for rollouts.
+
+``--simulator gym:ENV_ID`` (CLI ``offline-adp evaluate``, pipeline ``[evaluate]
+simulator``, Python :func:`resolve_simulator`) rolls a fitted policy out in
+``gymnasium.make(ENV_ID)``:
+
+- **Observations.** The dataset's observation features, in their declared order, are the
+  environment's observation vector (a 1-D ``Box``); the widths must agree. Column names
+  do not matter (a log may call CartPole's features ``cart_x, cart_v, pole, pole_rate``).
+- **Actions.** Action ``i`` of the dataset's action table is the environment action
+  ``values[i]`` (a ``Discrete`` space; the table's values must be valid integer actions).
+- **Costs** are ``-reward``; ``terminated`` ends an episode (absorbing). The environment's
+  own time limit is not applied: the rollout's horizon is the evaluation's ``T``.
+
+A gymnasium environment can be reset and stepped, not teleported: :meth:`GymResetModel.step`
+accepts only states that it produced itself (from :meth:`~GymResetModel.initial_states` or
+an earlier step), which is how rollouts use a reset model. Each live episode is one
+environment instance, found by its current observation. There is no demonstrator for an
+arbitrary environment (:meth:`~GymResetModel.demonstrator` returns ``None``; the
+evaluation then skips the comparison and says so).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from offline_adp.access import ResetModel, StepResult
+from offline_adp.data.info import DatasetInfo
+from offline_adp.errors import AccessModelError, OfflineADPError, UnknownNameError
+
+PREFIX = "gym:"
+
+
+class GymResetModel(ResetModel):
+    """A registered gymnasium environment as a batched reset model (see the module docstring).
+
+    Parameters
+    ----------
+    env_id : str
+        A registered gymnasium id, e.g. ``"CartPole-v1"``.
+    info : DatasetInfo
+        The dataset's metadata: features (width and order) and action table.
+    gamma : float, optional
+        Default: the dataset's hint, else 1.0.
+    make_kwargs
+        Passed to ``gymnasium.make``.
+    """
+
+    def __init__(self, env_id: str, info: DatasetInfo, gamma: float | None = None, **make_kwargs: Any) -> None:
+        import gymnasium
+
+        self.env_id, self.make_kwargs, self.name = env_id, make_kwargs, PREFIX + env_id
+        try:
+            probe = gymnasium.make(env_id, **make_kwargs)
+        except gymnasium.error.Error as exc:
+            raise UnknownNameError(f"simulator {self.name!r}: gymnasium cannot make {env_id!r} ({exc})") from None
+        obs_space, act_space = probe.observation_space, probe.action_space
+        spec = probe.spec
+        probe.close()
+        if not isinstance(obs_space, gymnasium.spaces.Box) or len(obs_space.shape) != 1:
+            raise OfflineADPError(f"simulator {self.name!r}: observations must be a 1-D Box, got {obs_space}")
+        if not isinstance(act_space, gymnasium.spaces.Discrete):
+            raise OfflineADPError(f"simulator {self.name!r}: actions must be Discrete, got {act_space}")
+        width = int(obs_space.shape[0])
+        names = [f.name for f in info.features]
+        if len(names) != width:
+            raise OfflineADPError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
+                                  f"{len(names)} features {names}; they are matched by declared order")
+        values = np.asarray(info.action_table.values, dtype=np.float64)
+        if values.ndim != 2 or values.shape[1] != 1:
+            raise OfflineADPError(f"simulator {self.name!r}: the action table must hold one number per action "
+                                  f"(the environment's action), got shape {values.shape}")
+        env_actions = values[:, 0]
+        lo, n = int(act_space.start), int(act_space.n)
+        bad = [float(v) for v in env_actions if v != round(v) or not lo <= v < lo + n]
+        if bad:
+            raise OfflineADPError(f"simulator {self.name!r}: action values {bad} are not actions of {act_space} "
+                                  f"(the action table's values are passed to the environment)")
+        self.env_actions = env_actions.astype(np.int64)
+        self.n_actions, self.obs_dim = len(env_actions), width
+        self.gamma = float(gamma if gamma is not None else (info.gamma if info.gamma is not None else 1.0))
+        self.horizon = spec.max_episode_steps if spec is not None else None
+        self._live: dict[bytes, list[Any]] = {}
+
+    def _make(self) -> Any:
+        import gymnasium
+
+        return gymnasium.make(self.env_id, **self.make_kwargs).unwrapped  # no time limit, no checker
+
+    def initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        seeds = rng.integers(0, 2**31 - 1, size=n)
+        out = np.empty((n, self.obs_dim))
+        for i, seed in enumerate(seeds):  # one environment per episode
+            env = self._make()
+            obs, _ = env.reset(seed=int(seed))
+            out[i] = obs
+            self._live.setdefault(out[i].tobytes(), []).append(env)
+        return out
+
+    def step(self, states: np.ndarray, actions: np.ndarray, rng: np.random.Generator) -> StepResult:
+        states = np.asarray(states, dtype=np.float64)
+        n = len(states)
+        nxt, costs, term = np.empty((n, self.obs_dim)), np.empty(n), np.zeros(n, bool)
+        envs = []
+        for i in range(n):
+            stack = self._live.get(states[i].tobytes())
+            if not stack:
+                raise AccessModelError(f"simulator {self.name!r} is a reset model: it can only step states it produced "
+                                       "(from initial_states or an earlier step)")
+            envs.append(stack.pop())
+        for i, (env, a) in enumerate(zip(envs, np.asarray(actions, dtype=np.int64), strict=True)):
+            obs, reward, terminated, _truncated, _ = env.step(int(self.env_actions[a]))
+            nxt[i], costs[i], term[i] = obs, -float(reward), terminated
+            if terminated:
+                env.close()
+            else:
+                self._live.setdefault(nxt[i].tobytes(), []).append(env)
+        return StepResult(nxt, costs, term)
+
+    def demonstrator(self) -> None:
+        """No demonstrator for an arbitrary environment."""
+        return None
+
+    def rollout_summary(self, states: list[np.ndarray], terminated: np.ndarray) -> dict[str, float]:
+        return {"terminated_fraction": float(np.mean(terminated))}
+
+
+def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
+    """The simulator for ``--simulator NAME``: ``None`` for ``None``/``""``/``"none"``,
+    a :class:`GymResetModel` for ``"gym:ENV_ID"``, else a named reference problem."""
+    if name is None or name in ("", "none"):
+        return None
+    if name.startswith(PREFIX):
+        return GymResetModel(name[len(PREFIX):], info)
+    from offline_adp.envs import PROBLEMS, make_problem
+
+    if name not in PROBLEMS:
+        raise OfflineADPError(f"unknown simulator {name!r}; known: {sorted(PROBLEMS)}, "
+                              "gym:ENV_ID (a registered gymnasium environment) or 'none'")
+    return make_problem(name)
+
+
+def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: int = 8,
+                      **make_kwargs: Any) -> dict[str, np.ndarray]:
+    """A log of uniformly random actions, each held for 1..``max_hold`` steps, in
+    ``gymnasium.make(env_id)`` (with its time limit), as numpy columns: ``episode, step,
+    obs (n, d), action, reward, next_obs, terminated, truncated`` (gymnasium's flags as
+    returned: both may be true on one row). Episodes run to their end, so the log may
+    exceed ``n_transitions`` by one episode."""
+    import gymnasium
+
+    env = gymnasium.make(env_id, **make_kwargs)
+    rng = np.random.default_rng(seed)
+    n_act = int(env.action_space.n)
+    cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs", "terminated", "truncated")}
+    ep = 0
+    while len(cols["step"]) < n_transitions:
+        obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)))
+        t, hold, a, done = 0, 0, 0, False
+        while not done:
+            if hold == 0:
+                a, hold = int(rng.integers(n_act)), int(rng.integers(1, max_hold + 1))
+            nxt, r, term, trunc, _ = env.step(a)
+            for k, v in zip(cols, (ep, t, obs, a, r, nxt, term, trunc), strict=True):
+                cols[k].append(v)
+            obs, t, hold, done = nxt, t + 1, hold - 1, term or trunc
+        ep += 1
+    env.close()
+    return {k: np.asarray(v, dtype=np.float64 if k in ("obs", "next_obs", "reward") else None) for k, v in cols.items()}

@@ -1,0 +1,95 @@
+"""Kill-and-resume in every FQI mode gives the uninterrupted fit's Q (issue 14).
+
+Two windows: an interruption after some checkpoint (Ctrl-C in ``fit_run``), and a kill
+after the last checkpoint but before ``model/`` was written (simulated by removing
+``model/`` of a finished run and marking it running, which is exactly what such a kill
+leaves). Both with and without ``tol``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from offline_adp.algorithms.fqi import load_fqi
+from offline_adp.runs import fit_run
+from offline_adp.simulate import simulate
+
+BASE = {"n_iterations": 8, "regressor_params": {"n_estimators": 5, "n_jobs": 1}, "random_state": 4}
+MODES = {
+    "refit": {"mode": "refit"},
+    "refit_noise": {"mode": "refit", "target_noise": 0.05, "next_state_noise": 0.05},
+    "frozen": {"mode": "frozen", "n_structures": 2},  # builds at 1 and 5: tol can stop it at 6
+    "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "trees_per_iteration": 3},
+    "finite_frozen": {"mode": "frozen", "horizon": 5},
+}
+
+
+@pytest.fixture(scope="module")
+def pt_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pt") / "ds"
+    simulate("path_tracking", 8, 8, seed=5, horizon=40).save(d)
+    return d
+
+
+@pytest.fixture(scope="module")
+def obs():
+    return simulate("path_tracking", 2, 2, seed=9, horizon=15).arrays().obs
+
+
+def _params(name: str, tol: bool) -> dict:
+    p = {**BASE, **MODES[name]}
+    if tol:
+        p["tol"] = 1e9  # converged as soon as the mode allows: the resumed fit must stop at the same iteration
+    return p
+
+
+def _same(a, b, obs, horizon=None):
+    for t in range(horizon or 1):
+        np.testing.assert_array_equal(a.predict(obs, t), b.predict(obs, t))
+    np.testing.assert_array_equal(a.history_["sup_dq"].to_numpy(), b.history_["sup_dq"].to_numpy())
+
+
+@pytest.mark.parametrize("tol", [False, True])
+@pytest.mark.parametrize("name", list(MODES))
+def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, pt_dir, obs, name, tol):
+    params = _params(name, tol)
+    ref = fit_run(pt_dir, tmp_path / "ref", params=params)
+    stop_at = 2 if tol and name != "finite_frozen" else 3
+
+    def interrupt(row):
+        if row["iteration"] == stop_at:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(pt_dir, tmp_path / "run", params=params, on_iteration=interrupt)
+    est = fit_run(pt_dir, tmp_path / "run", params=params, resume=True)
+    _same(est, ref, obs, params.get("horizon"))
+    _same(load_fqi(tmp_path / "run" / "model"), ref, obs, params.get("horizon"))
+    assert est.verdict_ == ref.verdict_
+    if tol and "horizon" not in params:  # a finite horizon runs its T steps whatever tol says
+        assert ref.verdict_ == "converged" and len(ref.history_) < BASE["n_iterations"]
+
+
+@pytest.mark.parametrize("tol", [False, True])
+@pytest.mark.parametrize("name", ["refit", "frozen", "warm_start"])
+def test_killed_after_the_last_checkpoint_resumes_without_an_extra_iteration(tmp_path, pt_dir, obs, name, tol):
+    params = _params(name, tol)
+    run = tmp_path / "run"
+    ref = fit_run(pt_dir, run, params=params)
+    n = len(ref.history_)
+    assert json.loads((run / "checkpoint" / "q.json").read_text())["iteration"] == n  # the last iteration is checkpointed
+    shutil.rmtree(run / "model")  # what a kill between the last checkpoint and the final write leaves
+    status = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**status, "status": "running"}))
+    seen = []
+    est = fit_run(pt_dir, run, params=params, resume=True, on_iteration=seen.append)
+    assert seen == []  # nothing left to do
+    _same(est, ref, obs)
+    _same(load_fqi(run / "model"), ref, obs)
+    done = json.loads((run / "run.json").read_text())
+    assert done["status"] == "completed" and done["iterations"] == n and done["verdict"] == ref.verdict_
+    assert done["fit_cpu_seconds"] >= 0

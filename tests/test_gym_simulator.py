@@ -1,0 +1,109 @@
+"""gym:ENV_ID simulators: a registered gymnasium environment as a reset model for rollouts."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium
+import numpy as np
+import pandas as pd
+import pytest
+
+from offline_adp.cli import main
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.envs.gym import GymResetModel, record_random_log, resolve_simulator
+from offline_adp.errors import AccessModelError, OfflineADPError
+
+CARTPOLE = DatasetInfo(features=tuple(Feature(n) for n in ("cart_x", "cart_v", "pole", "pole_rate")),
+                       action_table=ActionTable.from_values([0.0, 1.0]), gamma=0.99)
+
+
+def test_steps_match_a_plain_gymnasium_loop_with_the_same_seeds():
+    model = GymResetModel("CartPole-v1", CARTPOLE)
+    x = model.initial_states(3, np.random.default_rng(7))
+    seeds = np.random.default_rng(7).integers(0, 2**31 - 1, size=3)  # how initial_states draws its seeds
+    envs = [gymnasium.make("CartPole-v1") for _ in seeds]
+    ref = np.array([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)], dtype=np.float64)
+    np.testing.assert_array_equal(x, ref)
+    actions = np.random.default_rng(1).integers(0, 2, size=(30, 3))
+    alive = np.arange(3)
+    for t in range(30):
+        r = model.step(x[alive], actions[t, alive], np.random.default_rng(0))
+        for j, i in enumerate(alive):
+            obs, rew, term, _, _ = envs[i].step(int(actions[t, i]))
+            np.testing.assert_array_equal(r.next_states[j], obs)
+            assert r.costs[j] == -rew and r.terminated[j] == term
+        x[alive] = r.next_states
+        alive = alive[~r.terminated]
+        if not len(alive):
+            break
+    with pytest.raises(AccessModelError, match="reset model"):
+        model.step(np.full((1, 4), 123.0), np.zeros(1, int), np.random.default_rng(0))
+
+
+def test_widths_and_actions_are_checked():
+    three = DatasetInfo(features=(Feature("a"), Feature("b"), Feature("c")), action_table=ActionTable.from_values([0.0, 1.0]))
+    with pytest.raises(OfflineADPError, match="4 entries, the dataset has 3 features"):
+        resolve_simulator("gym:CartPole-v1", three)
+    bad = DatasetInfo(features=CARTPOLE.features, action_table=ActionTable.from_values([-1.0, 1.0]))
+    with pytest.raises(OfflineADPError, match=r"action values \[-1.0\]"):
+        resolve_simulator("gym:CartPole-v1", bad)
+    with pytest.raises(OfflineADPError, match="cannot make"):
+        resolve_simulator("gym:NoSuchEnv-v0", CARTPOLE)
+    assert resolve_simulator("none", CARTPOLE) is None
+
+
+SPEC = """
+kind = "transitions"
+name = "cartpole log"
+[episode]
+id = "run"
+step = "tick"
+[observations]
+columns = ["cart_x", "cart_v", "pole", "pole_rate"]
+next_columns = ["cart_x2", "cart_v2", "pole2", "pole_rate2"]
+[action]
+column = "push"
+type = "discrete"
+values = [0, 1]
+[cost]
+reward = "r"
+[end]
+terminated = "fell"
+truncated = "time_up"
+[source]
+value = "exploration"
+[hints]
+gamma = 0.99
+"""
+
+
+@pytest.mark.integration
+def test_evaluate_a_cartpole_run_in_gymnasium(tmp_path, capsys):
+    log = record_random_log("CartPole-v1", 1500, seed=3)
+    names = ["cart_x", "cart_v", "pole", "pole_rate"]
+    df = pd.DataFrame({"run": log["episode"].astype(int), "tick": log["step"].astype(int), "push": log["action"].astype(int),
+                       "r": log["reward"], "fell": log["terminated"], "time_up": log["truncated"] & ~log["terminated"],
+                       **{n: log["obs"][:, j] for j, n in enumerate(names)},
+                       **{n + "2": log["next_obs"][:, j] for j, n in enumerate(names)}})
+    df.to_parquet(tmp_path / "cartpole.parquet")
+    (tmp_path / "spec.toml").write_text(SPEC)
+    (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 8\nmode = "frozen"\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
+    ds, run = tmp_path / "ds", tmp_path / "run"
+    assert main(["ingest", "parquet", str(tmp_path / "cartpole.parquet"), "--spec", str(tmp_path / "spec.toml"), "--out", str(ds), "-q"]) == 0
+    assert main(["fit", str(ds), "--config", str(tmp_path / "fqi.toml"), "--out", str(run), "-q"]) == 0
+    assert "verdict: " in capsys.readouterr().out
+    assert main(["evaluate", str(run), "--simulator", "gym:CartPole-v1", "--episodes", "16", "--bootstrap", "5",
+                 "--fqe-bootstrap", "0", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "no demonstrator" in out
+    m = json.loads((run / "evaluation" / "metrics.json").read_text())
+    r = m["rollout"]
+    assert m["simulator"] == "gym:CartPole-v1" and "demonstrator" not in r and "comparison skipped" in r["note"]
+    p = r["policy"]
+    assert p["n_episodes"] == 16 and 1 <= p["mean_length"] <= r["horizon"]
+    # every CartPole step pays reward 1: the discounted cost of an episode of length L is -(1 - g^L) / (1 - g)
+    L = p["mean_length"]
+    assert p["mean_discounted_cost"] <= -(1 - 0.99**L) / (1 - 0.99) + 1e-9  # Jensen: mean of a concave function of L
+    assert main(["evaluate", str(run), "--simulator", "gym:MountainCar-v0", "--episodes", "4", "-q"]) == 2  # 2 != 4 features
+    assert "4 features" in capsys.readouterr().err
