@@ -314,7 +314,8 @@ class FittedQIteration(BaseEstimator):
         if self.initial_q is not None:
             a = ds.arrays()
             q0 = float(np.abs(self.initial_q.values(a.obs, 0)).max())
-        disc = resolve_discount(ds.info, self.gamma, self.horizon)  # the package's one rule
+        disc = resolve_discount(ds.info, self.gamma, self.horizon,  # the package's one rule
+                                terminates=bool(len(ds)) and bool(ds.arrays().terminated.any()))
         self.gamma_, self.horizon_ = disc.gamma, disc.horizon
         data = prepare(ds, gamma=self.gamma_, horizon=self.horizon_, sample_weight=sample_weight,
                        validation_fraction=self.validation_fraction, random_state=self.random_state,

@@ -10,11 +10,13 @@ so a dataset is fitted and evaluated on the same quantity:
    :data:`DEFAULT_GAMMA` without one.
 
 The horizon (finite-horizon algorithms, one Q per step) is used when it is set
-explicitly, or when the resolved ``gamma`` is 1 and the dataset declares a horizon:
-undiscounted costs need a finite horizon, and a dataset that declares ``gamma = 1`` and
-``horizon = 10`` (``simulate tabular``) means the 10-step problem. A discounted dataset's
-horizon hint is a time limit (episodes are truncated there and bootstrapped), not a
-finite-horizon problem, so it is not used as ``T``.
+explicitly, or when the resolved ``gamma`` is 1, the dataset declares a horizon and its
+episodes never terminate: undiscounted costs without absorbing states need a finite
+horizon, so a dataset that declares ``gamma = 1`` and ``horizon = 10`` (``simulate
+tabular``) means the 10-step problem. Undiscounted data whose episodes terminate is a
+shortest-path problem (Boyan & Moore's gridworld) and stays infinite-horizon. A discounted
+dataset's horizon hint is a time limit (episodes are truncated there and bootstrapped),
+not a finite-horizon problem, so it is not used as ``T``.
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ class Discount:
         return f"gamma = {self.gamma:g} ({self.gamma_source}), {h} ({self.horizon_source})"
 
 
-def resolve_discount(info: Any = None, gamma: float | None = None, horizon: int | None = None) -> Discount:
+def resolve_discount(info: Any = None, gamma: float | None = None, horizon: int | None = None,
+                     terminates: bool = False) -> Discount:
     """Apply the rule of this module.
 
     Parameters
@@ -59,6 +62,8 @@ def resolve_discount(info: Any = None, gamma: float | None = None, horizon: int 
         The dataset's metadata (its ``gamma`` and ``horizon`` hints), if any.
     gamma, horizon : optional
         Explicit settings.
+    terminates : bool
+        Whether the data's episodes reach absorbing states (a shortest-path problem).
 
     Raises
     ------
@@ -81,6 +86,6 @@ def resolve_discount(info: Any = None, gamma: float | None = None, horizon: int 
         g, g_src = (1.0 if T is not None else DEFAULT_GAMMA), "default"
     if not 0.0 < g <= 1.0:
         raise SpecError(f"gamma must be in (0, 1], got {g!r} ({g_src})")
-    if T is None and g >= 1.0 and hint_horizon is not None:
+    if T is None and g >= 1.0 and hint_horizon is not None and not terminates:
         T, T_src = int(hint_horizon), "dataset"
     return Discount(g, T, g_src, T_src)
