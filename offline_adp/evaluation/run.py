@@ -70,6 +70,20 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
+def _simulator_note(asked: str | None, dataset_problem: str | None, known: list[str]) -> str | None:
+    """Why no simulator was used, and how to name one (None when one was)."""
+    if asked is not None and asked not in ("none", ""):
+        return None
+    if asked in ("none", ""):
+        return ("no simulator used (--simulator none): every number comes from the logs alone; name one with "
+                f"--simulator NAME ({', '.join(known)}) to add rollout truth and classifier shift diagnostics")
+    if not dataset_problem:
+        return ("no simulator used: the dataset names no reference problem (meta/info.json has no 'problem'); "
+                f"every number comes from the logs alone. If a simulator exists, pass --simulator NAME "
+                f"({', '.join(known)})")
+    return None
+
+
 def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
     return json.loads(df.to_json(orient="records"))
 
@@ -81,9 +95,10 @@ def evaluate_run(
     simulator: str | None = None,
     n_episodes: int = 500,
     n_boot: int = 200,
-    n_boot_fqe: int = 10,
+    n_boot_fqe: int | None = None,
     fqe_params: dict[str, Any] | None = None,
     horizon: int | None = None,
+    estimand: str = "finite",
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
@@ -95,7 +110,10 @@ def evaluate_run(
     same result).
 
     ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
-    capped by the dataset's horizon).
+    capped by the dataset's horizon). ``estimand`` is ``"finite"`` (the T-step value the
+    rollouts measure) or ``"infinite"`` (FQE only; see
+    :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
+    default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
     """
     from offline_adp.artifacts import load_policy
     from offline_adp.envs import PROBLEMS, make_problem
@@ -117,11 +135,15 @@ def evaluate_run(
     if sim_name is not None and sim_name not in PROBLEMS:
         raise OfflineADPError(f"unknown simulator {sim_name!r}; known: {sorted(PROBLEMS)} (or 'none')")
     problem = make_problem(sim_name) if sim_name else None
+    note = _simulator_note(simulator, ds.info.problem, sorted(PROBLEMS))
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
                                                             "transitions": len(ds), "episodes": len(ds.episode_ids),
                                                             "sources": ds.source_counts()},
                                "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
+    if note:
+        metrics["simulator_note"] = note
+        metrics["warnings"].append(note)
     states = demo_states = None
     refs = {}
     T = None
@@ -144,13 +166,18 @@ def evaluate_run(
             metrics["named"] = {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean "
                                                       "discounted return over the 289-state grid (higher is better)"}}
     res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                     policy_states=states, horizon=horizon, seed=seed, progress=say,
+                     policy_states=states, horizon=horizon, estimand=estimand, seed=seed, progress=say,
                      task_map=task_map)
     metrics.update(_offpolicy_block(res, ds))
     if "rollout" in metrics:
         truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+        metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
+            f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
         for name, r in res.estimates.items():
             metrics["ope"][name]["rollout_error"] = r.estimate - truth
+    from offline_adp.evaluation.summary import headline
+
+    metrics["headline"] = headline(_finite(metrics), run)
     say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
     _write(run, metrics, res, ds, states, demo_states)
     return metrics
@@ -166,7 +193,16 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
                   if name == "classifier" else f"ratio recursion for the reference policy {name!r}")
         shift_block[label] = {"method": method, "per_step": _frame_records(d), "warnings": r.warnings}
     worst = res.diagnostics.iloc[1:] if len(res.diagnostics) > 1 else res.diagnostics
+    from offline_adp.evaluation.shift import MIN_STATES_PER_STEP
+
+    extra: dict[str, Any] = {"per_step_counts": [int(c) for c in res.per_step_counts],
+                             "min_states_per_step": MIN_STATES_PER_STEP, "behaviour_value": res.behaviour_value}
+    if res.pooled is not None:
+        extra["pooled_shift"] = {**res.pooled[1], "method": "ratio recursion pooled over time (stationary approximation)",
+                                 "warnings": res.pooled[0].warnings}
     return {
+        "estimand": res.estimand.as_dict(),
+        **extra,
         "horizon": res.horizon,
         "gamma": res.gamma,
         "behaviour": {"source": beh.source, "clip": beh.clip, "n_clipped": beh.n_clipped, "classifier": beh.classifier,
