@@ -543,6 +543,31 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("run")
     r.set_defaults(func=cmd_report)
 
+    cp = sub.add_parser(
+        "compare",
+        help="rank candidate policies (run directories) on the same logs, off-policy",
+        formatter_class=fmt,
+        description="Evaluate every run's policy on one dataset (reusing matching evaluations) and rank them by the "
+        "most reliable off-policy estimate, with intervals, shift and convergence verdicts; with a simulator, score "
+        "the ranking against the rollout truth (Spearman, Kendall, regret of the top pick).",
+        epilog="example:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json",
+    )
+    cp.add_argument("runs", nargs="+", help="run directories (at least two)")
+    cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
+    cp.add_argument("--simulator", default=None, help="as for evaluate: a reference problem or 'none'")
+    cp.add_argument("--estimator", default=None, help="rank by this estimator (default: the most reliable for all)")
+    cp.add_argument("--episodes", type=int, default=300, help="rollout episodes per candidate (default 300)")
+    cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
+    cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
+    cp.add_argument("--quiet", "-q", action="store_true")
+
+    def cmd_compare(args: argparse.Namespace) -> int:
+        from offline_adp.evaluation.compare import cli as compare_cli
+
+        return compare_cli(args)
+
+    cp.set_defaults(func=cmd_compare)
+
     i = sub.add_parser(
         "inspect",
         help="summarise a dataset",

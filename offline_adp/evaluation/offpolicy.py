@@ -15,8 +15,8 @@ import pandas as pd
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.evaluation import ope, shift
 from offline_adp.errors import OfflineADPError
+from offline_adp.evaluation import ope, shift
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,

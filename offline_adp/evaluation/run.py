@@ -195,6 +195,7 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
     worst = res.diagnostics.iloc[1:] if len(res.diagnostics) > 1 else res.diagnostics
     from offline_adp.evaluation.shift import MIN_STATES_PER_STEP
 
+    thin = len(res.per_step_counts) > 1 and int(res.per_step_counts[1:].min()) < MIN_STATES_PER_STEP
     extra: dict[str, Any] = {"per_step_counts": [int(c) for c in res.per_step_counts],
                              "min_states_per_step": MIN_STATES_PER_STEP, "behaviour_value": res.behaviour_value}
     if res.pooled is not None:
@@ -215,8 +216,9 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
                        "references": res.bounds},
         "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
-                                  else res.ratios.w, res.gamma),
-        "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else "recursion",
+                                  else res.pooled[0].w if thin and res.pooled is not None else res.ratios.w, res.gamma),
+        "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else
+        "pooled" if thin and res.pooled is not None else "recursion",
     }
 
 
@@ -238,6 +240,8 @@ def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: T
     cols = {name: a.obs[:, j] for j, name in enumerate(ds.feature_names)}
     src = ds.table.column("source")
     extra = {"w_classifier": res.extra_ratios["classifier"][0].w} if "classifier" in res.extra_ratios else {}
+    if res.pooled is not None:
+        extra["w_pooled"] = res.pooled[0].w
     pq.write_table(pa.table({**cols, "step": a.step, "source": src, "w": res.ratios.w, **extra}), tmp / "ratios.parquet")
     if states is not None:
         np.savez_compressed(tmp / "rollout_states.npz", **{f"t{t}": s for t, s in enumerate(states)})
