@@ -231,6 +231,7 @@ def marginalised_is_estimate(
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
     res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
+    _warn_degenerate(res, em.n_episodes)
     return res
 
 

@@ -424,7 +424,9 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
         kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{b['interval'][0]:.4g}, {b['interval'][1]:.4g}] (95%), "
            f"{html.escape(b['label'])}, the most reliable estimator here")
     else:
-        kv("Best estimate", "none: no estimator is reliable on these logs (see below)")
+        top = next((e for e in h["ranking"] if e["tier"] == 1), None)
+        kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "
+           f"{html.escape(top['reason'])}" if top else "none: no estimator is usable on these logs (see below)")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"]["demonstrator"]
         kv("Simulator truth", f"policy {p['mean_discounted_cost']:.4g} [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}] vs "

@@ -31,6 +31,9 @@ ESTIMATOR_NAMES = {
     "pdis": "PDIS (per-decision IS)", "wpdis": "WPDIS (weighted per-decision IS)", "dr": "DR (doubly robust)",
     "wdr": "WDR (weighted doubly robust)", "mis": "MIS (marginalised IS)",
 }
+#: Estimators from the least to the most fragile under distribution shift: model-based FQE
+#: (the default), doubly robust, marginalised IS (state ratios), then the trajectory-weighted ones.
+ROBUSTNESS = ("fqe", "wdr", "dr", "mis", "wpdis", "pdis", "wis", "is")
 #: A classifier AUC above this: pi's states and the data's are almost separable at that step.
 AUC_SEPARABLE = 0.95
 #: Support is "left" when more than this fraction of the data's states see pi choose unlogged actions.
@@ -47,8 +50,9 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     Tier 0 ``reliable``: finite, inside the possible range, targets the declared estimand,
     has an interval. Tier 1 ``no interval``: the interval was withheld (degenerate-ish
     weights) or not computed. Tier 2 ``not usable``: degenerate weights, an estimate outside
-    the possible range of the cost, or another estimand. Within a tier: narrower intervals
-    first (FQE first on ties).
+    the possible range of the cost, or another estimand. Within a tier, by
+    :data:`ROBUSTNESS` (never by interval width: a narrow interval from fixed, wrong
+    ratios would flatter).
     """
     rng = m.get("estimand", {}).get("possible_range")
     out = []
@@ -72,7 +76,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
                     "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
                     "estimate": est, "interval": iv if has_iv else None, "level": r.get("level"), "width": width})
-    out.sort(key=lambda e: (e["tier"], e["width"], e["name"] != "fqe", e["name"]))
+    order = {k: i for i, k in enumerate(ROBUSTNESS)}
+    out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
         e["rank"] = i + 1
         e["width"] = None if not np.isfinite(e["width"]) else e["width"]
@@ -172,7 +177,10 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     best = next((e for e in ranking if e["tier"] == 0), None)
     beh = m.get("behaviour_value")
     if best is None:
-        perf = "cannot say whether the policy is better than the behaviour: no estimator is reliable here"
+        top = next((e for e in ranking if e["tier"] == 1), None)
+        perf = ("cannot say whether the policy is better than the behaviour: "
+                + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
+                   if top else "no estimator is reliable here"))
         side = "unknown"
     elif beh is None:
         perf, side = f"best estimate {best['estimate']:.4g} (no behaviour baseline)", "unknown"
@@ -242,7 +250,9 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(b['interval'][0])}, "
                      f"{_f(b['interval'][1])}]" + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
     else:
-        lines.append("off-policy: no reliable estimate (see the report)")
+        top = next((e for e in h["ranking"] if e["tier"] == 1), None)
+        lines.append(f"off-policy: {top['name'].upper()} {_f(top['estimate'])} (no interval: {top['reason']})" if top
+                     else "off-policy: no usable estimate (see the report)")
     bad = [e["name"].upper() for e in h["ranking"] if e["tier"] == 2]
     if bad:
         lines.append(f"not usable here: {', '.join(bad)}")
