@@ -209,7 +209,8 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     support = ("LEFT the data's support: " + "; ".join(left)) if left else (
         "stays within the data's support" if shift.get("enough_data") else
         "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else ""))
-    return {"performance": side, "text": f"{perf}. Policy {support}. {conv['text']}.", "support_left": bool(left)}
+    ct = conv["text"][:1].upper() + conv["text"][1:]
+    return {"performance": side, "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
 
 
 def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, Any]:
@@ -245,7 +246,7 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     elif m.get("simulator_note"):
         lines.append(m["simulator_note"])
     b = h["best"]
-    others = [e for e in h["ranking"] if e["tier"] == 0 and e is not b][:2]
+    others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
     if b is not None:
         lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(b['interval'][0])}, "
                      f"{_f(b['interval'][1])}]" + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
