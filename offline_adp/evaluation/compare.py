@@ -110,14 +110,17 @@ def compare_runs(
         raise OfflineADPError("the candidates' evaluations target different quantities (horizon or discount differ); "
                               "re-run with the same --horizon, or pass force")
     rankings = [rank_estimators(m) for m in metrics]
-    if estimator is None:
-        common = [e["name"] for e in rankings[0] if e["tier"] == 0
-                  and all(any(x["name"] == e["name"] and x["tier"] == 0 for x in rk) for rk in rankings)]
-        estimator = common[0] if common else None
+    if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
+        for max_tier in (0, 1):
+            common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
+                      and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
+            if common:
+                estimator = common[0]
+                break
     rows = []
     for r, m, rk in zip(runs, metrics, rankings, strict=True):
         pick = next((e for e in rk if e["name"] == estimator), None) if estimator else next(
-            (e for e in rk if e["tier"] == 0), None)
+            (e for e in rk if e["tier"] <= 1), None)
         h = m.get("headline") or headline(m, r)
         truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
         rows.append({"run": str(r), "name": r.name if r.name != "fit" else r.parent.name,
