@@ -73,7 +73,7 @@ def gym_score(env_id: str, policy, n_episodes: int = 20) -> float:
     t = 0
     while alive.any():
         idx = np.flatnonzero(alive)
-        acts = policy.act(obs[idx], t)
+        acts = policy.act_index(obs[idx], t)
         for j, i in enumerate(idx):
             o, r, term, trunc, _ = envs[i].step(int(acts[j]))
             obs[i], ret[i] = o, ret[i] + r
@@ -92,7 +92,7 @@ def problem(name: str, n: int, data_seed: int, quick: bool):
         return ds, 0.95, 50, score
     if name == "path_tracking":
         from offline_adp.envs import make_problem
-        from offline_adp.evaluation.rollout import rollout
+        from offline_adp.rollout import rollout
         from offline_adp.simulate import simulate
 
         ds = simulate("path_tracking", 15 if quick else 50, 45 if quick else 150, seed=data_seed, horizon=100)

@@ -248,41 +248,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     fqe = json.loads(args.fqe_params) if args.fqe_params else None
     m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
                      n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, horizon=args.horizon,
-                     seed=args.seed, progress=say)
+                     estimand=args.estimand, seed=args.seed, progress=say)
     for line in summary_lines(m):
         print(line)
     print(f"{args.run}/evaluation/metrics.json")
     return 0
 
 
-def _f(x: float | None) -> str:
-    return "n/a" if x is None else f"{x:.3f}"
-
 
 def summary_lines(m: dict) -> list[str]:
-    """A short human summary of ``metrics.json`` (policy vs demonstrator, OPE, worst-step ESS)."""
-    lines = []
-    if "rollout" in m:
-        p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
-        extra = ""
-        if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
-            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, "
-                         f"{p['interval'][1]:.3f}]; {m['rollout'].get('note', 'no demonstrator')}")
-        elif "mean_abs_cross_track_error_m" in p:
-            extra = (f"; mean |cross-track error| {p['mean_abs_cross_track_error_m']:.3f} m vs "
-                     f"{d['mean_abs_cross_track_error_m']:.3f} m, failures {p['failures']} vs {d['failures']}")
-        if d is not None:
-            lines.append(f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}] "
-                         f"vs demonstrator {d['mean_discounted_cost']:.3f}{extra}")
-    f = m["ope"]["fqe"]
-    lines.append(f"off-policy (FQE): {_f(f['estimate'])} [{_f(f['interval'][0])}, {_f(f['interval'][1])}]"
-                 f"; WDR {_f(m['ope']['wdr']['estimate'])}, MIS {_f(m['ope']['mis']['estimate'])}")
-    ws = m["worst_step"]
-    lines.append(f"worst-step ESS/n {ws['ess_fraction']:.3f} at t = {ws['step']}; support violations "
-                 f"{m['behaviour']['support_violations']['fraction']:.3f} of states")
-    b = m["psdp_bound"]["references"]
-    lines.append("PSDP bound (estimate): " + ", ".join(f"{k} {v['per_step']:.3g}" for k, v in b.items()))
-    return lines
+    """A short human summary of ``metrics.json`` (see :mod:`offline_adp.evaluation.summary`)."""
+    from offline_adp.evaluation.summary import summary_lines as lines
+
+    return lines(m)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -512,7 +490,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the dataset's problem)")
     e.add_argument("--episodes", type=int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
-    e.add_argument("--fqe-bootstrap", type=int, default=10, help="FQE refits for its interval (default 10)")
+    e.add_argument("--fqe-bootstrap", type=int, default=None,
+                   help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
+    e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
+                   help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
     e.add_argument("--horizon", type=int, default=None, help="cap the evaluation horizon (default: the data's)")
     e.add_argument("--seed", type=int, default=0)
@@ -566,6 +547,31 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--write", nargs="?", const="docs/schemas", default=None, metavar="DIR",
                     help="write every schema as DIR/NAME.schema.json (default DIR: docs/schemas)")
     sc.set_defaults(func=cmd_schema)
+
+    cp = sub.add_parser(
+        "compare",
+        help="rank candidate policies (run directories) on the same logs, off-policy",
+        formatter_class=fmt,
+        description="Evaluate every run's policy on one dataset (reusing matching evaluations) and rank them by the "
+        "most reliable off-policy estimate, with intervals, shift and convergence verdicts; with a simulator, score "
+        "the ranking against the rollout truth (Spearman, Kendall, regret of the top pick).",
+        epilog="example:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json",
+    )
+    cp.add_argument("runs", nargs="+", help="run directories (at least two)")
+    cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
+    cp.add_argument("--simulator", default=None, help="as for evaluate: a reference problem or 'none'")
+    cp.add_argument("--estimator", default=None, help="rank by this estimator (default: the most reliable for all)")
+    cp.add_argument("--episodes", type=int, default=300, help="rollout episodes per candidate (default 300)")
+    cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
+    cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
+    cp.add_argument("--quiet", "-q", action="store_true")
+
+    def cmd_compare(args: argparse.Namespace) -> int:
+        from offline_adp.evaluation.compare import cli as compare_cli
+
+        return compare_cli(args)
+
+    cp.set_defaults(func=cmd_compare)
 
     i = sub.add_parser(
         "inspect",

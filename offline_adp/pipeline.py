@@ -159,9 +159,11 @@ class PipelineFile(ConfigModel):
 
 
 def check_simulator_name(name: str | None) -> None:
-    """A simulator setting: ``None``/``"none"`` or a reference problem's name."""
-    if name is not None and name != "none" and name not in PROBLEM_NAMES:
-        raise ValueError(f"simulator = {name!r}: known simulators are {list(PROBLEM_NAMES)} or 'none'")
+    """A simulator setting: ``None``/``"none"``, a reference problem's name or ``gym:ENV_ID``
+    (a registered gymnasium environment: checked when the evaluate stage makes it)."""
+    if name is not None and name != "none" and name not in PROBLEM_NAMES and not (
+            name.startswith("gym:") and len(name) > 4):
+        raise ValueError(f"simulator = {name!r}: known simulators are {list(PROBLEM_NAMES)}, gym:ENV_ID or 'none'")
 
 
 def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:

@@ -13,7 +13,7 @@ import pytest
 from offline_adp import dp
 from offline_adp.algorithms.psdp import state_samples
 from offline_adp.envs.tabular import TabularMDP
-from offline_adp.evaluation import shift
+from offline_adp.evaluation import ope, shift
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from offline_adp.simulate import collect
@@ -130,8 +130,14 @@ def test_wdr_within_eight_percent_at_1k(mild_1k):
     truth = true_value(CASES["mild"][1])
     for name in ("wdr", "dr"):
         assert abs(mild_1k.estimates[name].estimate - truth) <= 0.08 * truth, name
-    lo, hi = mild_1k.estimates["wdr"].interval
-    assert lo < mild_1k.estimates["wdr"].estimate < hi
+    wdr = mild_1k.estimates["wdr"]
+    if wdr.ess >= ope.MIN_ESS_FOR_INTERVAL:
+        lo, hi = wdr.interval
+        assert lo < wdr.estimate < hi
+    else:  # too few effective episodes for a bootstrap interval to cover as labelled: withheld, said so
+        assert wdr.level is None and np.isnan(wdr.interval).all() and "none" in wdr.interval_method
+        lo, hi = wdr.percentile_interval
+        assert lo < wdr.estimate < hi
 
 
 @pytest.mark.slow
@@ -151,20 +157,7 @@ def test_importance_sampling_family_on_mild_shift(mild_1k):
         assert abs(mild_1k.estimates[name].estimate - truth) <= tol * truth, name
 
 
-@pytest.mark.slow
-def test_bootstrap_intervals_cover_the_truth():
-    """FQE and WDR trajectory-bootstrap 95% intervals cover the true value
-    in >= 85% of 30 seeds."""
-    pib, pi = CASES["mild"]
-    truth = true_value(pi)
-    hits = {"fqe": 0, "wdr": 0}
-    for seed in range(30):
-        res = off_policy(logged(pib, 1000, 100 + seed), pi, fqe_params=TABULAR_FQE, ratio_regressor="tabular",
-                         n_boot=100, n_boot_fqe=20, seed=seed)
-        for k in hits:
-            lo, hi = res.estimates[k].interval
-            hits[k] += lo <= truth <= hi
-    assert min(hits.values()) >= 26, hits
+# Interval coverage over seeds (FQE, and the IS family under heavy weights): tests/test_eval_estimand.py.
 
 
 @pytest.mark.slow

@@ -10,8 +10,10 @@ mixture that keeps its components and weights::
         pi'      = argmin_a Q^{pi_k}(x, a)                     (greedy)
         alpha    = argmin_{alpha in grid, incl. 0} estimate((1 - alpha) pi_k + alpha pi')
                    (line search; or Kakade & Langford's step
-                    alpha = (1 - gamma) * A / (4 R),  A = E_{x ~ D}[V^{pi_k}(x) - Q^{pi_k}(x, pi'(x))],
-                    R = max |c|)
+                    alpha = A / (4 R H),  A = E_{x ~ D}[V^{pi_k}(x) - Q^{pi_k}(x, pi'(x))],
+                    R = max |c|,  H = 1 / (1 - gamma) (discounted) or T (gamma = 1,
+                    horizon T; with both, the smaller): Kakade & Langford's (1 - gamma)
+                    is 1 / H)
         pi_{k+1} = (1 - alpha) pi_k + alpha pi'
         J_{k+1}  = estimate(pi_{k+1})
 
@@ -40,6 +42,17 @@ from offline_adp.policies import (
 from offline_adp.rollout import rollout
 
 DEFAULT_STEPS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
+
+
+def effective_horizon(gamma: float, horizon: int | None) -> float:
+    """``H`` of the Kakade-Langford step: ``1 / (1 - gamma)``, or the horizon T when gamma = 1
+    (the smaller of the two when both are finite)."""
+    h = 1.0 / (1.0 - gamma) if gamma < 1.0 else np.inf
+    if horizon is not None:
+        h = min(h, float(horizon))
+    if not np.isfinite(h):
+        raise ValueError("the Kakade-Langford step needs gamma < 1 or a finite horizon")
+    return h
 
 
 class ConservativePolicyIteration(BaseEstimator):
@@ -106,11 +119,12 @@ class ConservativePolicyIteration(BaseEstimator):
             fqe = clone(self._proto()).set_params(policy=pi).fit(dataset, sample_weight=sample_weight)  # Q^{pi_k}
             greedy = GreedyPolicy(fqe.q_function_)
             if self.step_rule == "kakade_langford":
-                q = fqe.q_function_.values(a.obs)
-                v = (pi.probabilities(a.obs) * q).sum(axis=1)
+                q = fqe.q_function_.values(a.obs, a.step)
+                v = (pi.probabilities(a.obs, a.step) * q).sum(axis=1)
                 adv = float(np.mean(v - q.min(axis=1)))  # expected improvement, >= 0
                 gamma = fqe.gamma if fqe.gamma is not None else (dataset.info.gamma if dataset.info.gamma is not None else 0.95)
-                alphas = [0.0, float(np.clip((1 - gamma) * adv / (4 * r_max), 0.0, 1.0))]
+                horizon = fqe.horizon or dataset.info.horizon or int(a.step.max()) + 1
+                alphas = [0.0, float(np.clip(adv / (4 * r_max * effective_horizon(gamma, horizon)), 0.0, 1.0))]
             else:
                 alphas = sorted({0.0, *self.step_sizes})
             cands = [(alpha, pi.mix(greedy, alpha) if alpha > 0 else pi) for alpha in alphas]

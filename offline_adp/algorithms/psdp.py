@@ -18,7 +18,7 @@ PSDP (Algorithm 14), horizon T::
     return (pi_0, ..., pi_{T-1})
 
 Guarantee (the chapter's Theorem 2): with eps_t = E_{s ~ mu_t}[Q_t(s, pi_t(s)) -
-min_a Q_t(s, a)], for every reference policy, ``J(pi) <= J(pi_ref) + sum_t eps_t *
+min_a Q_t(s, a)] (estimated on held-out states from mu_t, ``history_["eps_hat"]``), for every reference policy, ``J(pi) <= J(pi_ref) + sum_t eps_t *
 ||mu_ref_t / mu_t||_inf`` (:func:`psdp_bound`).
 
 Iterated PSDP (Algorithms 15, 16)::
@@ -90,13 +90,19 @@ class PSDP(BaseEstimator):
     q_estimator : {"rollout", "exact"}
         ``exact`` computes Q_t by dynamic programming on a full model (the test oracle).
     gamma : float or None
+    n_holdout : int or None
+        Fresh states drawn from mu_t at each step, not used to learn pi_t, on which
+        ``eps_hat`` is measured (default ``n_samples // 4``; 0: measure on the training
+        states, which is biased low).
     random_state : int
 
     Attributes
     ----------
     policy_ : NonStationaryPolicy
-    history_ : DataFrame ``step, eps_hat, mean_q_min, seconds``
-        ``eps_hat``: the mean estimated excess cost of pi_t's choice on the samples.
+    history_ : DataFrame ``step, eps_hat, eps_train, mean_q_min, seconds``
+        ``eps_hat``: the mean estimated excess cost of pi_t's choice on held-out states
+        from mu_t (the eps_t of the bound); ``eps_train``: the same on the training
+        states (optimistic: pi_t was fitted to them).
     samples_ : list of (states, Q estimates) per step (for diagnostics and the bound)
     simulator_steps_ : int
         Simulator transitions used.
@@ -105,7 +111,7 @@ class PSDP(BaseEstimator):
     def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5, learner: str = "classification",
                  classifier: Any = "extra_trees", regressor: Any = "extra_trees", learner_params: dict | None = None,
                  feature_map: Any = None, q_estimator: str = "rollout", gamma: float | None = None,
-                 random_state: int = 0) -> None:
+                 n_holdout: int | None = None, random_state: int = 0) -> None:
         self.horizon = horizon
         self.n_samples = n_samples
         self.n_rollouts = n_rollouts
@@ -116,6 +122,7 @@ class PSDP(BaseEstimator):
         self.feature_map = feature_map
         self.q_estimator = q_estimator
         self.gamma = gamma
+        self.n_holdout = n_holdout
         self.random_state = random_state
 
     # ------------------------------------------------------------------ algorithm 14
@@ -140,9 +147,17 @@ class PSDP(BaseEstimator):
             Q = self._exact_q(model, S, t, future, gamma, T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
             steps[t] = self._learn(S, Q, model.n_actions)  # pi_t
             chosen = steps[t].act_index(S, t, rng)  # type: ignore[union-attr]
-            eps = Q[np.arange(len(S)), chosen] - Q.min(axis=1)
+            eps_train = float(np.mean(Q[np.arange(len(S)), chosen] - Q.min(axis=1)))
             self.samples_[t] = (S, Q)
-            rows.append({"step": t, "eps_hat": float(eps.mean()), "mean_q_min": float(Q.min(axis=1).mean()),
+            n_out = self.n_samples // 4 if self.n_holdout is None else int(self.n_holdout)
+            eps_out = eps_train
+            if n_out > 0:  # eps_t on fresh states from mu_t: pi_t never saw them
+                H = mu(t, n_out, rng)
+                QH = self._exact_q(model, H, t, future, gamma, T) if self.q_estimator == "exact" else \
+                    self._rollout_q(model, H, t, future, gamma, T, stream=1)
+                ch = steps[t].act_index(H, t, rng)  # type: ignore[union-attr]
+                eps_out = float(np.mean(QH[np.arange(len(H)), ch] - QH.min(axis=1)))
+            rows.append({"step": t, "eps_hat": eps_out, "eps_train": eps_train, "mean_q_min": float(Q.min(axis=1).mean()),
                          "seconds": time.perf_counter() - t0})
         self.policy_ = attach_signature(NonStationaryPolicy(steps), model)  # type: ignore[arg-type]
         self.history_ = pd.DataFrame(rows)
@@ -162,7 +177,8 @@ class PSDP(BaseEstimator):
             return lambda t, n, r: np.asarray(baseline[t])[r.integers(0, len(baseline[t]), n)]
         return baseline
 
-    def _rollout_q(self, model: ResetModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
+    def _rollout_q(self, model: ResetModel, S: np.ndarray, t: int, future: list, gamma: float, T: int,
+                   stream: int = 0) -> np.ndarray:
         """Q_t(s_i, a): mean over m rollouts of the learned future policies.
 
         All actions advance in one batch (one policy call per step); the simulator is
@@ -196,7 +212,8 @@ class PSDP(BaseEstimator):
             total[idx] += gamma**j * r.costs
             live["rows"] = idx[~r.terminated]
 
-        run_episodes(step, act, np.tile(X0, (A, 1)), T - t, np.random.default_rng([self.random_state, t]), visit=visit)
+        rng = np.random.default_rng([self.random_state, t] + ([stream] if stream else []))
+        run_episodes(step, act, np.tile(X0, (A, 1)), T - t, rng, visit=visit)
         return total.reshape(A, n, m).mean(axis=2).T
 
     def _exact_q(self, model: FullModel, S: np.ndarray, t: int, future: list, gamma: float, T: int) -> np.ndarray:
@@ -237,9 +254,15 @@ class _Map:
 
 
 def psdp_bound(eps: np.ndarray, mu_ref: np.ndarray, mu: np.ndarray) -> float:
-    """``sum_t eps_t * max_s mu_ref_t(s) / mu_t(s)`` (infinite where mu_t misses mass of mu_ref_t)."""
-    ratio = np.where(mu > 0, mu_ref / np.where(mu > 0, mu, 1.0), np.where(mu_ref > 0, np.inf, 0.0))
-    return float(np.sum(np.asarray(eps) * ratio.max(axis=1)))
+    """``sum_t eps_t * max_s mu_ref_t(s) / mu_t(s)``.
+
+    ``+inf`` where mu_t misses mass of mu_ref_t, even when ``eps_t = 0``: eps_t is measured
+    on mu_t, so it says nothing about the states only mu_ref_t visits (0 x inf is no bound).
+    """
+    ratio = np.where(mu > 0, mu_ref / np.where(mu > 0, mu, 1.0), np.where(mu_ref > 0, np.inf, 0.0)).max(axis=1)
+    if np.isinf(ratio).any():
+        return float("inf")
+    return float(np.sum(np.asarray(eps) * ratio))
 
 
 class IteratedPSDP(BaseEstimator):

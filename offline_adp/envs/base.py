@@ -31,6 +31,8 @@ class ReferenceProblem:
     mcap_layout: str = "generic"
     #: Features whose mean absolute value over rollout time is worth a figure: name -> label.
     traced_features: dict[str, str] = {}
+    #: The two features the report's policy, value and coverage maps span (None: the first two).
+    map_features: tuple[str, str] | None = None
 
     @property
     def feature_names(self) -> list[str]:
@@ -68,7 +70,8 @@ class ReferenceProblem:
         none by default. The evaluation reports them next to its own numbers."""
         return {}
 
-    def summary_line(self, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
+    @classmethod
+    def summary_line(cls, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
         """Problem-specific words after the rollout comparison on the CLI (from the two
         :meth:`rollout_summary` blocks); empty by default."""
         return ""

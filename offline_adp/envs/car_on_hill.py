@@ -71,6 +71,8 @@ class CarOnHill(ReferenceProblem, Simulator):
         reward = np.where(lose, -1.0, np.where(win, 1.0, 0.0))
         return StepResult(np.column_stack([p, s]), 0.0 - reward, lose | win)  # 0.0 - 0.0 is +0.0, not -0.0
 
+    map_features = ("p", "s")
+
     def named_scores(self, policy: Policy) -> dict[str, dict[str, Any]]:
         return {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean discounted return "
                                       "over the 289-state grid (higher is better)"}}

@@ -134,10 +134,10 @@ def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
         return None
     if name.startswith(PREFIX):
         return GymResetModel(name[len(PREFIX):], info)
-    from offline_adp.envs import PROBLEMS, make_problem
+    from offline_adp.envs import PROBLEM_NAMES, make_problem
 
-    if name not in PROBLEMS:
-        raise OfflineADPError(f"unknown simulator {name!r}; known: {sorted(PROBLEMS)}, "
+    if name not in PROBLEM_NAMES:
+        raise OfflineADPError(f"unknown simulator {name!r}; known: {list(PROBLEM_NAMES)}, "
                               "gym:ENV_ID (a registered gymnasium environment) or 'none'")
     return make_problem(name)
 

@@ -178,8 +178,10 @@ class PathTracking(ReferenceProblem, Simulator):
     dt = DT
     mcap_layout = "vehicle"
     traced_features = {"e": "mean |cross-track error| [m]"}
+    map_features = ("e", "e_psi")
 
-    def summary_line(self, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
+    @classmethod
+    def summary_line(cls, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
         if "mean_abs_cross_track_error_m" not in policy:
             return ""
         return (f"mean |cross-track error| {policy['mean_abs_cross_track_error_m']:.3f} m vs "

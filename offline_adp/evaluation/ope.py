@@ -42,7 +42,10 @@ class OPEResult:
     estimate : float
         Expected discounted cost of the evaluated policy.
     interval : (float, float)
-        Bootstrap percentile interval at ``level``.
+        Bootstrap percentile interval at ``level`` (NaN when withheld: see ``level``).
+    level : float or None
+        The interval's nominal coverage; ``None`` when no interval is given because it
+        would not mean what its level says (degenerate importance weights).
     ess : float or None
         Effective sample size (episodes), ``(sum w)^2 / sum w^2`` of the final weights
         (the worst step for per-decision estimators).
@@ -53,15 +56,17 @@ class OPEResult:
     estimate: float
     interval: tuple[float, float]
     ess: float | None
-    level: float = 0.95
+    level: float | None = 0.95
     warnings: list[str] = field(default_factory=list)
     percentile_interval: tuple[float, float] | None = None
     interval_method: str = "percentile bootstrap over episodes"
+    comparable: bool = True
+    degenerate: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
-             "level": self.level,
-             "ess": self.ess, "warnings": list(self.warnings)}
+             "level": self.level, "ess": self.ess, "warnings": list(self.warnings), "degenerate": self.degenerate,
+             "comparable": self.comparable}
         if self.percentile_interval is not None:
             d["percentile_interval"] = list(self.percentile_interval)
         return d
@@ -181,9 +186,33 @@ def doubly_robust_estimates(
     return out
 
 
+#: Importance-weighted bootstrap intervals are withheld below this effective sample size
+#: (episodes). Measured on tabular problems (T = 10, 30 seeds): percentile intervals labelled
+#: 95% covered 60-90% at ESS ~ 9, 87-93% at ESS ~ 45, 3-67% at ESS ~ 2.
+MIN_ESS_FOR_INTERVAL = 100.0
+
+
 def _warn_degenerate(r: OPEResult, n: int) -> None:
-    if r.ess is not None and r.ess < 0.01 * n:
+    """Degenerate weights: say so, and withhold an interval that would not cover as labelled."""
+    if r.ess is None:
+        return
+    if r.ess < 0.01 * n:
+        r.degenerate = True
         r.warnings.append(f"effective sample size {r.ess:.1f} of {n} episodes: the weights are degenerate")
+    if r.ess < MIN_ESS_FOR_INTERVAL and np.all(np.isfinite(r.interval)):
+        r.percentile_interval = r.interval
+        r.interval = (float("nan"), float("nan"))
+        r.level = None
+        r.interval_method = (f"none: effective sample size {r.ess:.1f} < {MIN_ESS_FOR_INTERVAL:g} episodes, so a bootstrap "
+                             "interval would not cover as labelled (its raw percentiles are kept as percentile_interval)")
+
+
+def check_interval(r: OPEResult) -> None:
+    """Warn when an interval excludes its own estimate (a shifted bootstrap)."""
+    lo, hi = r.interval
+    if np.isfinite(lo) and np.isfinite(hi) and np.isfinite(r.estimate) and not lo <= r.estimate <= hi:
+        r.warnings.append(f"the interval [{lo:.4g}, {hi:.4g}] excludes the estimate {r.estimate:.4g}: the bootstrap "
+                          "replicates are shifted; treat the interval as unreliable")
 
 
 def marginalised_is_estimate(
@@ -202,6 +231,7 @@ def marginalised_is_estimate(
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
     res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
+    _warn_degenerate(res, em.n_episodes)
     return res
 
 
@@ -225,7 +255,9 @@ def fqe_interval(est: float, reps: Sequence[float], n_episodes: int, level: floa
     interval covers as it should.
     """
     if not len(reps):
-        return OPEResult("fqe", est, (np.nan, np.nan), float(n_episodes), level)
+        res = OPEResult("fqe", est, (np.nan, np.nan), float(n_episodes), None)
+        res.interval_method = "none (no bootstrap replicates)"
+        return res
     q_lo, q_hi = float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
     shift = float(np.mean(reps)) - est
     if abs(shift) > 0.25 * (q_hi - q_lo):
@@ -236,6 +268,7 @@ def fqe_interval(est: float, reps: Sequence[float], n_episodes: int, level: floa
     else:
         res = OPEResult("fqe", est, (q_lo, q_hi), float(n_episodes), level)
     res.percentile_interval = (q_lo, q_hi)
+    check_interval(res)
     return res
 
 
@@ -266,5 +299,5 @@ def flag_against(results: dict[str, OPEResult], reference: str = "fqe") -> None:
         return
     lo, hi = ref.interval
     for name, r in results.items():
-        if name != reference and not lo <= r.estimate <= hi:
+        if name != reference and r.comparable and np.isfinite(r.estimate) and not lo <= r.estimate <= hi:
             r.warnings.append(f"outside the {reference.upper()} interval [{lo:.4g}, {hi:.4g}]")

@@ -16,10 +16,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from offline_adp.envs import PROBLEM_NAMES, problem_class
 from offline_adp.errors import OfflineADPError
 
-#: Two features spanning the value/policy maps and coverage maps, per problem.
-MAP_FEATURES = {"path_tracking": ("e", "e_psi"), "car_on_hill": ("p", "s")}
 UNITS = {"e": "m", "e_psi": "rad", "p": "", "v": "m/s", "s": "m", "delta": "rad", "kappa": "1/m"}
 
 
@@ -87,97 +86,149 @@ def _grid(ratios: pd.DataFrame, features: list[str], axes: tuple[str, str], n: i
     return gx, gy, obs
 
 
+def _support_mask(ratios: pd.DataFrame, axes: tuple[str, str], gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Grid cells with no logged state within one cell (True = outside the data's support)."""
+    xa, ya = axes
+    ex = np.linspace(gx[0, 0], gx[0, -1], gx.shape[1] + 1)
+    ey = np.linspace(gy[0, 0], gy[-1, 0], gy.shape[0] + 1)
+    h, _, _ = np.histogram2d(ratios[ya].to_numpy(), ratios[xa].to_numpy(), bins=[ey, ex])
+    p = np.pad(h, 1)  # one-cell neighbourhood: a cell next to data counts as supported
+    near = sum(p[1 + i: 1 + i + h.shape[0], 1 + j: 1 + j + h.shape[1]] for i in (-1, 0, 1) for j in (-1, 0, 1))
+    return near < 1
+
+
+def _shade_unsupported(ax: Any, gx: np.ndarray, gy: np.ndarray, mask: np.ndarray) -> None:
+    if mask.any():
+        ax.pcolormesh(gx, gy, np.ma.masked_where(~mask, np.ones_like(gx)), shading="auto", cmap="Greys", vmin=0,
+                      vmax=1.4, alpha=0.75)
+        ax.contourf(gx, gy, mask.astype(float), levels=[0.5, 1.5], colors="none", hatches=["///"])
+
+
 def _maps(figs: _Figures, run: Path, ratios: pd.DataFrame, features: list[str], axes: tuple[str, str],
-          units: dict[str, str], action_values: np.ndarray) -> None:
+          units: dict[str, str], action_values: np.ndarray, action_names: list[str] | None = None,
+          action_label: str = "action") -> None:
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
     from offline_adp.artifacts import load_policy, load_q
 
     plt = _plt()
     gx, gy, obs = _grid(ratios, features, axes)
+    mask = _support_mask(ratios, axes, gx, gy)
     sliced = len(features) > 2
     note = " (other features at their data medians)" if sliced else ""
     policy = load_policy(run / "model")
     acts = policy.act_index(obs, 0, np.random.default_rng(0))
-    fig, ax = plt.subplots(figsize=(6.2, 4.6))
-    im = ax.pcolormesh(gx, gy, action_values[acts].reshape(gx.shape), shading="auto", cmap="coolwarm")
-    fig.colorbar(im, ax=ax, label="chosen action (command value)")
+    n_act = len(action_values)
+    base = plt.get_cmap("RdBu_r" if n_act > 2 else "coolwarm")
+    cmap = ListedColormap([base(x) for x in np.linspace(0.08, 0.92, n_act)])
+    norm = BoundaryNorm(np.arange(n_act + 1) - 0.5, n_act)
+    fig, ax = plt.subplots(figsize=(6.6, 4.8))
+    im = ax.pcolormesh(gx, gy, acts.reshape(gx.shape), shading="auto", cmap=cmap, norm=norm)
+    _shade_unsupported(ax, gx, gy, mask)
+    cb = fig.colorbar(im, ax=ax, ticks=np.arange(n_act))
+    cb.ax.set_yticklabels(action_names or [f"{v:g}" for v in action_values], fontsize=8)
+    cb.set_label(f"chosen {action_label}")
     ax.set_xlabel(_label(axes[0], units))
     ax.set_ylabel(_label(axes[1], units))
-    ax.set_title("Policy map" + note, fontsize=10)
-    figs.save(fig, "policy_map", "Policy map: the learned policy's action over two state features" + note + ".")
+    ax.set_title("Policy map at t = 0" + note, fontsize=10)
+    figs.save(fig, "policy_map", "Policy map: the learned policy's action over two state features" + note +
+              "; one colour per discrete action. Hatched grey: no logged state nearby (outside the data's support, "
+              "where the policy is extrapolated).")
     if (run / "model" / "q.json").exists():
         q, _ = load_q(run / "model")
         v = q.values(obs, 0).min(axis=1)
-        fig, ax = plt.subplots(figsize=(6.2, 4.6))
+        fig, ax = plt.subplots(figsize=(6.6, 4.8))
         im = ax.pcolormesh(gx, gy, v.reshape(gx.shape), shading="auto", cmap="viridis")
-        fig.colorbar(im, ax=ax, label="min_a Q(x, a): expected discounted cost")
+        _shade_unsupported(ax, gx, gy, mask)
+        fig.colorbar(im, ax=ax, label="min_a Q(x, a): expected discounted cost to go")
         ax.set_xlabel(_label(axes[0], units))
         ax.set_ylabel(_label(axes[1], units))
         ax.set_title("Value map" + note, fontsize=10)
-        figs.save(fig, "value_map", "Value map: min over actions of the fitted Q (cost to go)" + note + ".")
+        figs.save(fig, "value_map", "Value map: min over actions of the fitted Q (cost to go)" + note +
+                  "; hatched grey: outside the data's support.")
 
 
-def _ope(figs: _Figures, m: dict[str, Any]) -> None:
+TIER_COLOURS = {0: "#1f77b4", 1: "#8c8c8c", 2: "#d62728"}
+
+
+def _ope(figs: _Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) -> None:
+    """Usable estimators on one readable scale; the unusable ones listed, not plotted."""
     plt = _plt()
-    ope = m["ope"]
-    names = list(ope)
-    est = np.array([ope[k]["estimate"] for k in names], dtype=float)
-    lo = np.array([ope[k]["interval"][0] for k in names], dtype=float)
-    hi = np.array([ope[k]["interval"][1] for k in names], dtype=float)
-    ref = [x for x in (ope["fqe"]["interval"] + [ope["fqe"]["estimate"]]) if x is not None and np.isfinite(x)]
+    shown = [e for e in ranking if e["tier"] < 2 and e["estimate"] is not None]
+    if not shown:
+        return
     truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
     demo = m.get("rollout", {}).get("demonstrator", {}).get("mean_discounted_cost")
-    ref += [x for x in (truth, demo) if x is not None]
-    span = max(ref) - min(ref) if len(ref) > 1 else 1.0
-    xmin, xmax = min(ref) - 1.5 * span - 1e-9, max(ref) + 1.5 * span + 1e-9
-    fig, ax = plt.subplots(figsize=(7, 0.45 * len(names) + 1.6))
-    y = np.arange(len(names))[::-1]
-    for yi, e, lo_k, hi_k, k in zip(y, est, lo, hi, names, strict=True):
-        off = not (np.isfinite(e) and xmin <= e <= xmax)
-        if off:
-            ax.annotate(f"{k}: off scale ({e:.3g})", (xmax if not np.isfinite(e) or e > xmax else xmin, yi),
-                        ha="right" if (not np.isfinite(e) or e > xmax) else "left", va="center", fontsize=8, color="gray")
-            continue
-        l2, h2 = (np.clip(lo_k, xmin, xmax), np.clip(hi_k, xmin, xmax)) if np.isfinite(lo_k) and np.isfinite(hi_k) else (e, e)
-        color = "C0" if not ope[k]["warnings"] else "C1"
-        ax.plot([l2, h2], [yi, yi], color=color, lw=2, solid_capstyle="butt")  # a bias-corrected interval may exclude e
-        ax.plot([e], [yi], "o", color=color)
+    beh = (m.get("behaviour_value") or {}).get("mean")
+    pts = [e["estimate"] for e in shown] + [v for e in shown if e["interval"] for v in e["interval"]]
+    pts += [v for v in (truth, demo, beh) if v is not None]
+    lo, hi = min(pts), max(pts)
+    pad = 0.08 * (hi - lo) if hi > lo else 1.0
+    fig, ax = plt.subplots(figsize=(8.5, 0.55 * len(shown) + 2.0))
+    y = np.arange(len(shown))[::-1]
+    for yi, e in zip(y, shown, strict=True):
+        c = TIER_COLOURS[e["tier"]]
+        if e["interval"]:
+            ax.plot(e["interval"], [yi, yi], color=c, lw=3, solid_capstyle="butt", alpha=0.8)
+        ax.plot([e["estimate"]], [yi], "o", color=c, ms=7)
     if truth is not None:
-        ax.axvline(truth, color="k", ls="--", label="policy, rollout truth")
+        ax.axvline(truth, color="k", ls="--", lw=1.5, label="policy: simulator truth")
     if demo is not None:
-        ax.axvline(demo, color="C2", ls=":", label="demonstrator, rollout")
-    ax.set_yticks(y, [k.upper() for k in names])
-    ax.set_xlim(xmin, xmax)
-    ax.set_xlabel(f"expected discounted cost over {m['horizon']} steps (gamma = {m['gamma']:g})")
-    ax.set_title("Off-policy estimates with 95% intervals (orange: flagged)", fontsize=10)
-    if truth is not None or demo is not None:
-        ax.legend(fontsize=8, loc="lower right")
-    figs.save(fig, "ope", "Off-policy estimates (points, 95% bootstrap intervals) against the simulator's rollout truth when known; "
-              "orange estimates carry a warning (see the table).")
+        ax.axvline(demo, color="#2ca02c", ls=":", lw=1.5, label="demonstrator: simulator")
+    if beh is not None:
+        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    ax.set_yticks(y, [e["label"] for e in shown], fontsize=9)
+    ax.set_ylim(-0.6, len(shown) - 0.4)
+    ax.set_xlim(lo - pad, hi + pad)
+    est = m.get("estimand", {})
+    ax.set_xlabel(f"expected discounted cost over {est.get('horizon', m.get('horizon'))} steps "
+                  f"(gamma = {est.get('gamma', m.get('gamma')):g}; lower is better)")
+    ax.set_title("Off-policy estimates (blue: with 95% interval; grey: interval withheld)", fontsize=10)
+    if truth is not None or demo is not None or beh is not None:
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.grid(axis="x", alpha=0.3)
+    bad = [e for e in ranking if e["tier"] == 2]
+    caption = ("Off-policy estimates ranked by reliability (most reliable at the top) with their 95% bootstrap "
+               "intervals, against the simulator truth and the behaviour's logged cost.")
+    if bad:
+        caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} ({e['reason']})" for e in bad) + "."
+    figs.save(fig, "ope", caption)
 
 
-def _ratios(figs: _Figures, m: dict[str, Any]) -> None:
+def _ratios(figs: _Figures, m: dict[str, Any], primary: str, pooled: dict[str, Any] | None = None) -> None:
+    """ESS/n per step for every method (the headline's method drawn boldly) and the
+    headline method's ratio quantiles."""
     plt = _plt()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    names = {"classifier": "classifier (simulator)", "recursion": "recursion (logs only)"}
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.0))
     for i, (name, block) in enumerate(m["shift"].items()):
         d = pd.DataFrame(block["per_step"])
         if d.empty:
             continue
-        c = f"C{i}"
-        a1.plot(d["step"], d["q90"], color=c, ls="-", label=f"{name}: 90% quantile")
-        a1.plot(d["step"], d["q99"], color=c, ls="--", label=f"{name}: 99% quantile")
-        a1.plot(d["step"], d["sup_ucb"], color=c, ls=":", label=f"{name}: supported sup (UCB)")
-        a2.plot(d["step"], d["ess_fraction"], color=c, marker=".", label=name)
-    a1.set_yscale("log")
+        bold = name == primary
+        a1.plot(d["step"], d["ess_fraction"], color=f"C{i}", lw=2.2 if bold else 1.0, alpha=1 if bold else 0.6,
+                label=names.get(name, name.replace("reference:", "reference: ")) + (" (headline)" if bold else ""))
+        if bold:
+            a2.plot(d["step"], d["q90"], color="C0", label="90% quantile")
+            a2.plot(d["step"], d["q99"], color="C1", label="99% quantile")
+            a2.plot(d["step"], d["sup_ucb"], color="C3", ls=":", label="supported max (upper bound)")
+    if pooled is not None:
+        a1.axhline(pooled["ess_fraction"], color="k", ls="--", lw=1.5,
+                   label=f"pooled over time (headline): {pooled['ess_fraction']:.3f}")
+    a1.set_ylim(0, 1.05)
     a1.set_xlabel("time step t")
-    a1.set_ylabel("density ratio w_t (log scale)")
-    a1.set_title("Per-step ratio quantiles", fontsize=10)
-    a1.legend(fontsize=6)
-    a2.set_ylim(0, 1.05)
+    a1.set_ylabel("ESS / n = 1 / E[w_t^2]")
+    a1.set_title("Effective sample size per step (1 = no shift)", fontsize=10)
+    a1.legend(fontsize=8, loc="best")
+    a2.set_yscale("log")
     a2.set_xlabel("time step t")
-    a2.set_ylabel("ESS / n = 1 / E[w^2]")
-    a2.set_title("Effective sample size per step", fontsize=10)
-    a2.legend(fontsize=7)
-    figs.save(fig, "ratios", "Density ratios mu_pi^t / mu_data^t per step: quantiles, supported sup with its bootstrap upper bound, and ESS.")
+    a2.set_ylabel("density ratio w_t (log scale)")
+    a2.set_title(f"Ratio quantiles: {names.get(primary, primary)}"
+                 + (" (few states per step: optimistic)" if pooled is not None else ""), fontsize=10)
+    a2.legend(fontsize=8, loc="best")
+    figs.save(fig, "ratios", "Density ratios mu_pi^t / mu_data^t per step. Left: effective sample size by every method "
+              "(the headline's method bold; the logs-only recursion shrinks towards 1 where a step has few states). "
+              "Right: quantiles of the headline method's ratios and the bootstrap upper bound of their supported max.")
 
 
 def _coverage(figs: _Figures, run: Path, ratios: pd.DataFrame, features: list[str], axes: tuple[str, str],
@@ -199,12 +250,13 @@ def _coverage(figs: _Figures, run: Path, ratios: pd.DataFrame, features: list[st
     a1.set_ylabel(_label(ya, units))
     a1.set_title("Where the data and the policy go", fontsize=10)
     a1.legend(fontsize=7, markerscale=4)
-    wcol = "w_classifier" if "w_classifier" in sub else "w"
+    wcol = next(c for c in ("w_classifier", "w_pooled", "w") if c in sub)
     sc = a2.scatter(sub[xa], sub[ya], s=2, c=np.log10(np.maximum(sub[wcol], 1e-3)), cmap="magma", vmin=-2, vmax=2)
     fig.colorbar(sc, ax=a2, label="log10 w_t(x) (policy density / data density)")
     a2.set_xlabel(_label(xa, units))
     a2.set_ylabel(_label(ya, units))
-    a2.set_title(f"Coverage: density ratio at the data's states ({'classifier' if wcol != 'w' else 'recursion'})", fontsize=10)
+    a2.set_title("Coverage: density ratio at the data's states ("
+                  + {"w_classifier": "classifier", "w_pooled": "pooled over time"}.get(wcol, "recursion") + ")", fontsize=10)
     figs.save(fig, "coverage", "Coverage map: data by source with the policy's simulated states (left); the density ratio "
               "w_t at every data state (right; classifier ratios when a simulator was used, else the recursion; "
               "bright = the policy goes there more often than the data).")
@@ -221,41 +273,90 @@ def _sources(figs: _Figures, m: dict[str, Any]) -> None:
     ax.set_xticks(x, names)
     ax.set_ylabel("fraction of transitions")
     ax.set_title(f"Per-source breakdown (ratios: {m.get('per_source_ratio_method', 'recursion')})", fontsize=10)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, frameon=False)
     figs.save(fig, "sources", "Per source: its share of the logged transitions and of the policy's state distribution "
               "(data re-weighted by the density ratios).")
 
 
-def _cross_track(figs: _Figures, run: Path) -> None:
+def _traced(figs: _Figures, run: Path, features: list[str], traced: dict[str, str], dt: float | None, sim: str) -> None:
+    """Per feature the problem traces (``ReferenceProblem.traced_features``): its mean
+    absolute value over rollout time, learned policy vs demonstrator."""
     plt = _plt()
-    z = {}
-    for who in ("policy", "demonstrator"):
-        p = run / "evaluation" / ("rollout_states.npz" if who == "policy" else "rollout_states_demonstrator.npz")
-        if not p.exists():
-            return
-        with np.load(p) as f:
-            z[who] = [np.abs(f[f"t{t}"][:, 1]).mean() for t in range(len(f.files))]
-    fig, ax = plt.subplots(figsize=(6.5, 3.4))
-    for who, v in z.items():
-        ax.plot(np.arange(len(v)) * 0.1, v, label=who)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("mean |cross-track error| [m]")
-    ax.set_title("Cross-track error in the simulator", fontsize=10)
-    ax.legend()
-    figs.save(fig, "cross_track", "Mean absolute cross-track error over time in the path_tracking simulator: learned policy vs demonstrator.")
+    for name, label in traced.items():
+        if name not in features:
+            continue
+        j = features.index(name)
+        z = {}
+        for who, fname in (("policy", "rollout_states.npz"), ("demonstrator", "rollout_states_demonstrator.npz")):
+            p = run / "evaluation" / fname
+            if p.exists():
+                with np.load(p) as f:
+                    z[who] = [np.abs(f[f"t{t}"][:, j]).mean() for t in range(len(f.files))]
+        if not z:
+            continue
+        fig, ax = plt.subplots(figsize=(6.5, 3.4))
+        for who, v in z.items():
+            ax.plot(np.arange(len(v)) * (dt or 1.0), v, label=who)
+        ax.set_xlabel("time [s]" if dt else "step")
+        ax.set_ylabel(label)
+        ax.set_title(f"{label[:1].upper()}{label[1:]} in the simulator", fontsize=10)
+        ax.legend()
+        figs.save(fig, f"traced_{name}", f"{label[:1].upper()}{label[1:]} over time in the {sim} simulator: learned "
+                  "policy vs demonstrator.")
 
 
-def _table(rows: list[dict[str, Any]], cols: list[str]) -> str:
-    def fmt(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        if isinstance(v, list):
-            return "[" + ", ".join(fmt(x) for x in v) + "]"
-        return html.escape(str(v))
+#: Human column labels for the report's tables.
+LABELS = {
+    "estimator": "estimator", "estimate": "estimate", "interval": "95% interval", "interval_method": "interval method",
+    "ess": "effective sample size (episodes)", "rollout_error": "error vs simulator truth", "warnings": "warnings",
+    "step": "step t", "n": "data states", "ess_fraction": "ESS / n", "tv": "total variation", "q50": "median ratio",
+    "q90": "90% quantile", "q99": "99% quantile", "max": "max ratio", "supported_sup": "supported max",
+    "sup_ucb": "supported max (upper bound)", "poorly_covered_mass": "policy mass poorly covered",
+    "auc": "classifier AUC", "uncovered": "policy states without data", "mean_discounted_cost": "mean discounted cost",
+    "n_episodes": "episodes", "mean_length": "mean length (steps)", "terminated": "terminated episodes",
+    "level": "level", "episodes": "episodes", "transitions": "transitions",
+    "logged_mean_discounted_cost": "logged mean discounted cost", "data_mass": "share of the data",
+    "policy_mass": "share of the policy's mass", "mean_ratio": "mean ratio", "reference": "reference policy",
+    "per_step": "per-step bound", "averaged": "averaged bound", "method": "method", "rank": "rank",
+    "reliability": "reliability", "reason": "why", "failures": "failures",
+    "mean_abs_cross_track_error_m": "mean |cross-track error| [m]",
+}
 
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c, ''))}</td>" for c in cols) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "&ndash;"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return "&ndash;" if not np.isfinite(v) else f"{v:.4g}"
+    if isinstance(v, list | tuple):
+        if len(v) == 2 and all(isinstance(x, int | float) or x is None for x in v):
+            return "&ndash;" if any(x is None for x in v) else f"[{_fmt(v[0])}, {_fmt(v[1])}]"
+        return "<br>".join(_fmt(x) for x in v) if v else "&ndash;"
+    if isinstance(v, dict):
+        return ", ".join(f"{html.escape(str(k))}: {_fmt(x)}" for k, x in v.items())
+    return html.escape(str(v).replace("_", " ") if isinstance(v, str) and v.isidentifier() else str(v))
+
+
+def _table(rows: list[dict[str, Any]], cols: list[str], cls: str = "") -> str:
+    head = "".join(f"<th>{html.escape(LABELS.get(c, c.replace('_', ' ')))}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{_fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in rows)
+    return f"<table class='{cls}'><tr>{head}</tr>{body}</table>"
+
+
+def _title(run: Path, m: dict[str, Any]) -> str:
+    """The pipeline's name (run/../config.json or manifest.json), else the run directory's."""
+    for folder in (run, run.parent):
+        for name in ("manifest.json", "config.json"):
+            try:
+                cfg = json.loads((folder / name).read_text())
+            except (OSError, ValueError):
+                continue
+            if isinstance(cfg, dict) and isinstance(cfg.get("name"), str):
+                desc = cfg.get("description")
+                return cfg["name"] + (f": {desc}" if isinstance(desc, str) and desc else "")
+    return run.resolve().name if run.name != "fit" else run.resolve().parent.name
 
 
 def build_report(run_dir: str | PathLike[str]) -> Path:
@@ -266,92 +367,177 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
         raise OfflineADPError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
     m = json.loads((ev / "metrics.json").read_text())
     ratios = pd.read_parquet(ev / "ratios.parquet")
-    features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier")]
+    features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier", "w_pooled")]
     problem = m.get("simulator") or ""
     info_path = Path(m["dataset"]["path"]) / "meta" / "info.json"
     units = dict(UNITS)
-    action_values = None
+    actions: dict[str, Any] = {}
     if info_path.exists():
         info = json.loads(info_path.read_text())
-        units.update({f["name"]: f.get("unit", "") for f in info.get("features", [])})
+        units.update({f["name"]: f["unit"] for f in info.get("features", []) if f.get("unit")})  # never blank a fallback
         problem = problem or info.get("problem") or ""
         from offline_adp.data.info import DatasetInfo
 
-        action_values = DatasetInfo.from_dict(info).action_table.values[:, 0]
-    axes = MAP_FEATURES.get(problem, tuple(features[:2]) if len(features) >= 2 else None)
+        table = DatasetInfo.from_dict(info).action_table
+        dims = list(getattr(table, "dims", []) or [])
+        aunits = list(getattr(table, "units", []) or [])
+        names = table.names() if callable(table.names) else table.names
+        actions = {"values": table.values[:, 0], "names": [str(n) for n in names] or None,
+                   "label": (dims[0] if dims else "action") + (f" [{aunits[0]}]" if aunits and aunits[0] else "")}
+        units.setdefault("cost", "")
+    cls = problem_class(problem) if problem in PROBLEM_NAMES else None  # problem-specific: the ReferenceProblem's hooks
+    axes = getattr(cls, "map_features", None) or (tuple(features[:2]) if len(features) >= 2 else None)
     from offline_adp.data.io import atomic_directory
 
     with atomic_directory(run / "report", overwrite=True) as tmp:
-        _build(run, m, ratios, features, axes, units, action_values, problem, tmp)
+        _build(run, m, ratios, features, axes, units, actions, problem, tmp)
     return run / "report" / "report.html"
 
 
 def _build(run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[str], axes: Any, units: dict[str, str],
-           action_values: Any, problem: str, tmp: Path) -> None:
+           actions: dict[str, Any], problem: str, tmp: Path) -> None:
+    from offline_adp.evaluation.summary import headline
+
+    h = headline(m, run)
     figs = _Figures(tmp / "figures")
-    _convergence(figs, run)
+    _ope(figs, m, h["ranking"])
+    primary = "classifier" if h["shift"]["method"] == "classifier" else "recursion"
+    _ratios(figs, m, primary, m.get("pooled_shift") if not h["shift"].get("enough_data", True) else None)
     if axes is not None and all(a in features for a in axes):
-        _maps(figs, run, ratios, features, axes, units, action_values if action_values is not None else np.arange(100.0))
+        vals = actions.get("values")
+        _maps(figs, run, ratios, features, axes, units, vals if vals is not None else np.arange(100.0),
+              actions.get("names"), actions.get("label", "action"))
         _coverage(figs, run, ratios, features, axes, units)
-    _ope(figs, m)
-    _ratios(figs, m)
+    _convergence(figs, run)
     _sources(figs, m)
-    if problem == "path_tracking":
-        _cross_track(figs, run)
-    (tmp / "report.html").write_text(_html({**m, "run": run.resolve().name}, figs))
+    cls = problem_class(problem) if problem in PROBLEM_NAMES else None
+    if cls is not None and cls.traced_features:
+        _traced(figs, run, features, cls.traced_features, cls.dt, problem)
+    csv = (run / "evaluation" / "per_step.csv").read_bytes() if (run / "evaluation" / "per_step.csv").exists() else b""
+    (tmp / "report.html").write_text(_html(m, h, figs, _title(run, m), csv))
 
 
+def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
+    v, b, sh, cv = h["verdict"], h["best"], h["shift"], h["convergence"]
+    cls = {"better": "good", "worse": "bad"}.get(v["performance"], "meh")
+    text = v["text"][:1].upper() + v["text"][1:]
+    rows = [f"<p class='verdict {cls}'>{html.escape(text)}</p>", "<table class='kv'>"]
 
-def _html(m: dict[str, Any], figs: _Figures) -> str:
-    parts = [f"<h1>offline_adp report: {html.escape(m.get('run', ''))}</h1>",
-             f"<p>Dataset <code>{html.escape(m['dataset']['path'])}</code>: {m['dataset']['transitions']} transitions, "
-             f"{m['dataset']['episodes']} episodes, sources {html.escape(str(m['dataset']['sources']))}. "
-             f"Algorithm {html.escape(str(m.get('algorithm')))}; evaluation horizon {m['horizon']}, gamma {m['gamma']:g}. "
-             "Costs are minimised: lower is better.</p>"]
+    def kv(k: str, val: str) -> None:
+        rows.append(f"<tr><th>{html.escape(k)}</th><td>{val}</td></tr>")
+
+    est = m.get("estimand", {})
+    kv("Estimand", html.escape(est.get("quantity", f"expected discounted cost over {m.get('horizon')} steps")) +
+       " (lower is better)")
+    if b is not None:
+        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{b['interval'][0]:.4g}, {b['interval'][1]:.4g}] (95%), "
+           f"{html.escape(b['label'])}, the most reliable estimator here")
+    else:
+        top = next((e for e in h["ranking"] if e["tier"] == 1), None)
+        kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "
+           f"{html.escape(top['reason'])}" if top else "none: no estimator is usable on these logs (see below)")
     if "rollout" in m:
-        r = m["rollout"]
-        rows = [{"policy": k, **{c: v for c, v in r[k].items()}} for k in ("policy", "demonstrator") if k in r]
-        cols = ["policy"] + [c for c in rows[0] if c != "policy"]
-        parts += ["<h2>Performance in the simulator</h2>", f"<p>{html.escape(r['method'])}.</p>", _table(rows, cols)]
-    if "named" in m:
-        parts += ["<h2>Named evaluations</h2>", _table([{"name": k, **v} for k, v in m["named"].items()], ["name", "value", "method"])]
-    ope_rows = [{"estimator": k.upper(), **v} for k, v in m["ope"].items()]
-    parts += ["<h2>Off-policy estimates (logs only)</h2>",
-              f"<p>Behaviour probabilities: {m['behaviour']['source']} (clip {m['behaviour']['clip']}, "
-              f"{m['behaviour']['n_clipped']} clipped); support violations: "
-              f"{m['behaviour']['support_violations']['fraction']:.3f} of states (pi puts most mass on actions the data "
-              f"took with probability < {m['behaviour']['support_violations']['threshold']}).</p>",
-              _table(ope_rows, ["estimator", "estimate", "interval", "interval_method", "ess", "rollout_error", "warnings"])]
-    ws = m["worst_step"]
-    parts += ["<h2>Distribution shift</h2>",
-              f"<p>Worst step by effective sample size: t = {ws['step']}, ESS/n = {ws['ess_fraction']:.3f}. "
-              "The raw maximum of the ratio is never a reliable number on its own; read it next to the supported sup "
-              "(regions with at least 20 data samples), its bootstrap upper bound and the mass in poorly covered regions.</p>"]
-    for name, block in m["shift"].items():
-        d = block["per_step"]
-        cols = [c for c in ("step", "n", "ess_fraction", "tv", "q50", "q90", "q99", "max", "supported_sup", "sup_ucb",
-                            "poorly_covered_mass", "auc", "uncovered") if d and c in d[0]]
-        parts += [f"<h3>{html.escape(name)}</h3><p>{html.escape(block['method'])}</p>", _table(d, cols)]
-        if block["warnings"]:
-            parts.append("<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in block["warnings"]) + "</ul>")
-    b = m["psdp_bound"]
-    parts += ["<h2>PSDP performance bound</h2>",
-              f"<p>{html.escape(b['label'])}: J(pi) - J(pi_ref) &le; sum_t eps_t &middot; UCB_t(sup mu_ref^t / mu^t), with "
-              "mu^t the data's distribution. An estimate, not a guarantee.</p>",
-              _table([{"reference": k, **v} for k, v in b["references"].items()],
-                     ["reference", "per_step", "averaged", "poorly_covered_mass", "method"]),
-              f"<p>eps_t (residual advantage per step): {', '.join(f'{e:.3g}' for e in b['eps'][:20])}"
-              + (" ..." if len(b["eps"]) > 20 else "") + "</p>"]
-    parts += ["<h2>Per source</h2>", _table([{"source": k, **v} for k, v in m["per_source"].items()],
-                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
-                                           "policy_mass", "mean_ratio"])]
-    parts.append("<h2>Figures</h2>")
+        p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
+        vs = f" vs demonstrator {d['mean_discounted_cost']:.4g}" if d is not None else " (no demonstrator to compare with)"
+        kv("Simulator truth", f"policy {p['mean_discounted_cost']:.4g} [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]{vs} "
+           f"({html.escape(str(m.get('simulator')))}, {p['n_episodes']} episodes)")
+    else:
+        kv("Simulator", html.escape(m.get("simulator_note") or "none used"))
+    bv = m.get("behaviour_value")
+    if bv:
+        kv("Behaviour (logged)", f"{bv['mean']:.4g} [{bv['interval'][0]:.4g}, {bv['interval'][1]:.4g}] over "
+           f"{bv['episodes']} episodes")
+    kv("Distribution shift", html.escape(sh["text"]))
+    kv("Fit", html.escape(cv["text"]))
+    kv("Warnings", f"{h['n_warnings']} (listed with each estimator and diagnostic below)")
+    rows.append("</table>")
+    return "<section class='summary'><h2>Summary</h2>" + "".join(rows) + "</section>"
+
+
+def _details(summary: str, body: str, open_: bool = False) -> str:
+    return f"<details{' open' if open_ else ''}><summary>{summary}</summary>{body}</details>"
+
+
+def _html(m: dict[str, Any], h: dict[str, Any], figs: _Figures, title: str, csv: bytes) -> str:
+    ds = m["dataset"]
+    src = ", ".join(f"{k}: {v}" for k, v in (ds.get("sources") or {}).items())
+    parts = [f"<h1>{html.escape(title)}</h1>",
+             f"<p class='sub'>Policy fitted by {html.escape(str(m.get('algorithm') or 'unknown').upper())} on "
+             f"{ds['transitions']:,} transitions in {ds['episodes']} episodes ({html.escape(src)}). "
+             "Costs are minimised: lower is better.</p>",
+             _summary_box(m, h), "<h2>Figures</h2>"]
     for name, caption, path in figs.items:
         data = base64.b64encode(path.read_bytes()).decode()
         parts.append(f'<figure id="{name}"><img alt="{html.escape(name)}" src="data:image/png;base64,{data}">'
                      f"<figcaption>{html.escape(caption)} (<code>figures/{name}.png</code>)</figcaption></figure>")
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}table{border-collapse:collapse;"
-             "font-size:12px;margin:.5em 0}td,th{border:1px solid #ccc;padding:2px 6px}img{max-width:100%}"
-             "figcaption{font-size:12px;color:#444}")
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>offline_adp report</title><style>{style}</style>"
+    # estimators ranked by reliability; the unusable ones collapsed with the reason
+    rk = h["ranking"]
+    ope = m["ope"]
+
+    def row(e: dict[str, Any]) -> dict[str, Any]:
+        r = ope[e["name"]]
+        return {"rank": e["rank"], "estimator": e["label"], "estimate": e["estimate"], "interval": e["interval"],
+                "interval_method": r.get("interval_method"), "ess": r.get("ess"), "rollout_error": r.get("rollout_error"),
+                "reason": e["reason"] or "", "warnings": r.get("warnings") or []}
+
+    cols = ["rank", "estimator", "estimate", "interval", "interval_method", "ess"] + \
+        (["rollout_error"] if "rollout" in m else []) + ["warnings"]
+    good = [row(e) for e in rk if e["tier"] < 2]
+    bad = [row(e) for e in rk if e["tier"] == 2]
+    parts += ["<h2>Off-policy estimates, most reliable first</h2>",
+              "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
+              "with a 95% interval; grey rows have no interval (it was withheld because it would not cover as "
+              "labelled).</p>", _table(good, cols, "ope")]
+    if bad:
+        parts.append(_details(f"{len(bad)} estimators not usable on these logs: "
+                              + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
+                              "<p>Their weights are degenerate, or their estimate is impossible for this cost, or they "
+                              "target another quantity. They are never quoted as support.</p>"
+                              + _table(bad, ["estimator", "estimate", "reason", "warnings"])))
+    beh = m["behaviour"]
+    sv = beh["support_violations"]
+    parts += ["<h2>Distribution shift</h2>", f"<p><b>{html.escape(h['shift']['text'])}</b>.</p>",
+              f"<p>Behaviour probabilities: {html.escape(str(beh['source']))} (clipped at {beh['clip']:g}, "
+              f"{beh['n_clipped']} rows clipped). The policy puts most of its mass on actions the data took with "
+              f"probability below {sv['threshold']:g} at {sv['fraction']:.1%} of the data's states.</p>"]
+    names = {"classifier": "Classifier ratios (simulator)", "recursion": "Ratio recursion (logs only)"}
+    scols = ["step", "n", "ess_fraction", "tv", "q50", "q90", "q99", "max", "supported_sup", "sup_ucb",
+             "poorly_covered_mass", "auc", "uncovered"]
+    link = (f"<a download='per_step.csv' href='data:text/csv;base64,{base64.b64encode(csv).decode()}'>per_step.csv</a>"
+            if csv else "per_step.csv")
+    for name, block in m["shift"].items():
+        d = block["per_step"]
+        cols_ = [c for c in scols if d and c in d[0]]
+        warn = block.get("warnings") or []
+        body = f"<p>{html.escape(block['method'])}. All steps: {link} (also <code>evaluation/per_step.csv</code>).</p>"
+        if warn:
+            body += "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in warn[:5]) + "</ul>"
+            if len(warn) > 5:
+                body += f"<p>... and {len(warn) - 5} more of the same kind (metrics.json).</p>"
+        body += _table(d, cols_, "steps")
+        parts.append(_details(f"{names.get(name, html.escape(name.replace('reference:', 'Reference policy: ')))}: "
+                              f"per-step table ({len(d)} steps, {len(warn)} warnings)", body))
+    b = m["psdp_bound"]
+    parts += ["<h2>PSDP performance bound</h2>",
+              f"<p>{html.escape(b['label'])}: J(pi) &minus; J(pi_ref) &le; &sum;<sub>t</sub> eps_t &middot; "
+              "UCB_t(sup mu_ref^t / mu^t), with mu^t the data's distribution. An estimate, not a guarantee.</p>",
+              _table([{"reference": k, **v} for k, v in b["references"].items()],
+                     ["reference", "per_step", "averaged", "poorly_covered_mass", "method"])]
+    parts += ["<h2>Per source</h2>", _table([{"source": k, **v} for k, v in m["per_source"].items()],
+                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
+                                           "policy_mass", "mean_ratio"])]
+    if m.get("warnings"):
+        parts += ["<h2>Evaluation warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in m["warnings"])
+                  + "</ul>"]
+    style = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:auto;padding:1em;color:#222}"
+             "h1{font-size:1.6em;margin-bottom:.2em}.sub{color:#555;margin-top:0}"
+             "table{border-collapse:collapse;font-size:12px;margin:.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;"
+             "vertical-align:top}th{background:#f3f3f3;text-align:left}img{max-width:100%}"
+             "figure{margin:1em 0}figcaption{font-size:12px;color:#444}"
+             ".summary{border:2px solid #444;border-radius:6px;padding:.2em 1em 1em;background:#fafafa}"
+             ".summary h2{margin:.4em 0}.kv th{width:170px}.kv td,.kv th{font-size:13px}"
+             ".verdict{font-size:15px;padding:.5em;border-radius:4px}.good{background:#e3f4e1}.bad{background:#fbe3e3}"
+             ".meh{background:#f4f0dc}details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
+             "table.ope td{max-width:360px}")
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}</style>"
             f"</head><body>{''.join(parts)}</body></html>")

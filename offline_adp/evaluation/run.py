@@ -70,6 +70,20 @@ def _finite(obj: Any) -> Any:
     return obj
 
 
+def _simulator_note(asked: str | None, dataset_problem: str | None, known: list[str]) -> str | None:
+    """Why no simulator was used, and how to name one (None when one was)."""
+    if asked is not None and asked not in ("none", ""):
+        return None
+    if asked in ("none", ""):
+        return ("no simulator used (--simulator none): every number comes from the logs alone; name one with "
+                f"--simulator NAME ({', '.join(known)}) to add rollout truth and classifier shift diagnostics")
+    if not dataset_problem:
+        return ("no simulator used: the dataset names no reference problem (meta/info.json has no 'problem'); "
+                f"every number comes from the logs alone. If a simulator exists, pass --simulator NAME "
+                f"({', '.join(known)})")
+    return None
+
+
 def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
     return json.loads(df.to_json(orient="records"))
 
@@ -81,9 +95,10 @@ def evaluate_run(
     simulator: str | None = None,
     n_episodes: int = 500,
     n_boot: int = 200,
-    n_boot_fqe: int = 10,
+    n_boot_fqe: int | None = None,
     fqe_params: dict[str, Any] | None = None,
     horizon: int | None = None,
+    estimand: str = "finite",
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
@@ -95,9 +110,13 @@ def evaluate_run(
     same result).
 
     ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
-    capped by the dataset's horizon).
+    capped by the dataset's horizon). ``estimand`` is ``"finite"`` (the T-step value the
+    rollouts measure) or ``"infinite"`` (FQE only; see
+    :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
+    default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
     """
     from offline_adp.artifacts import load_policy
+    from offline_adp.envs import PROBLEM_NAMES
     from offline_adp.envs.gym import resolve_simulator
 
     say = progress or (lambda _m: None)
@@ -115,11 +134,15 @@ def evaluate_run(
     if sim_name in ("none", ""):
         sim_name = None
     problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
+    note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
                                                             "transitions": len(ds), "episodes": len(ds.episode_ids),
                                                             "sources": ds.source_counts()},
                                "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
+    if note:
+        metrics["simulator_note"] = note
+        metrics["warnings"].append(note)
     states = demo_states = None
     refs = {}
     T = None
@@ -141,19 +164,22 @@ def evaluate_run(
             metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
             refs["demonstrator"] = demonstrator
         states, demo_states = pol.states, (demo.states if demo is not None else None)
-        if sim_name == "car_on_hill":
-            from offline_adp.envs.car_on_hill import score
-
-            metrics["named"] = {"car_on_hill_score": {"value": score(policy), "method": "Ernst et al. (2005): mean "
-                                                      "discounted return over the 289-state grid (higher is better)"}}
+        named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
+        if named:
+            metrics["named"] = named
     res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                     policy_states=states, horizon=horizon, seed=seed, progress=say,
+                     policy_states=states, horizon=horizon, estimand=estimand, seed=seed, progress=say,
                      task_map=task_map)
     metrics.update(_offpolicy_block(res, ds))
     if "rollout" in metrics:
         truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+        metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
+            f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
         for name, r in res.estimates.items():
             metrics["ope"][name]["rollout_error"] = r.estimate - truth
+    from offline_adp.evaluation.summary import headline
+
+    metrics["headline"] = headline(_finite(metrics), run)
     say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
     _write(run, metrics, res, ds, states, demo_states)
     return metrics
@@ -169,7 +195,17 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
                   if name == "classifier" else f"ratio recursion for the reference policy {name!r}")
         shift_block[label] = {"method": method, "per_step": _frame_records(d), "warnings": r.warnings}
     worst = res.diagnostics.iloc[1:] if len(res.diagnostics) > 1 else res.diagnostics
+    from offline_adp.evaluation.shift import MIN_STATES_PER_STEP
+
+    thin = len(res.per_step_counts) > 1 and int(res.per_step_counts[1:].min()) < MIN_STATES_PER_STEP
+    extra: dict[str, Any] = {"per_step_counts": [int(c) for c in res.per_step_counts],
+                             "min_states_per_step": MIN_STATES_PER_STEP, "behaviour_value": res.behaviour_value}
+    if res.pooled is not None:
+        extra["pooled_shift"] = {**res.pooled[1], "method": "ratio recursion pooled over time (stationary approximation)",
+                                 "warnings": res.pooled[0].warnings}
     return {
+        "estimand": res.estimand.as_dict(),
+        **extra,
         "horizon": res.horizon,
         "gamma": res.gamma,
         "behaviour": {"source": beh.source, "clip": beh.clip, "n_clipped": beh.n_clipped, "classifier": beh.classifier,
@@ -182,8 +218,9 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
                        "references": res.bounds},
         "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
-                                  else res.ratios.w, res.gamma),
-        "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else "recursion",
+                                  else res.pooled[0].w if thin and res.pooled is not None else res.ratios.w, res.gamma),
+        "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else
+        "pooled" if thin and res.pooled is not None else "recursion",
     }
 
 
@@ -205,6 +242,8 @@ def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: T
     cols = {name: a.obs[:, j] for j, name in enumerate(ds.feature_names)}
     src = ds.table.column("source")
     extra = {"w_classifier": res.extra_ratios["classifier"][0].w} if "classifier" in res.extra_ratios else {}
+    if res.pooled is not None:
+        extra["w_pooled"] = res.pooled[0].w
     pq.write_table(pa.table({**cols, "step": a.step, "source": src, "w": res.ratios.w, **extra}), tmp / "ratios.parquet")
     if states is not None:
         np.savez_compressed(tmp / "rollout_states.npz", **{f"t{t}": s for t, s in enumerate(states)})

@@ -148,6 +148,74 @@ def ratios_by_recursion(
     return DensityRatios("recursion", w, step.copy(), warnings=warnings)
 
 
+#: Below this many data states per step, per-step ratios cannot be estimated (the
+#: regressions shrink them to 1 and ESS/n reads 1.0 whatever the shift).
+MIN_STATES_PER_STEP = 500
+
+
+def ratios_pooled(
+    obs: np.ndarray,
+    next_obs: np.ndarray,
+    step: np.ndarray,
+    rho: np.ndarray,
+    *,
+    regressor: Any = "extra_trees",
+    regressor_params: dict | None = None,
+    horizon: int | None = None,
+    n_sweeps: int | None = None,
+) -> DensityRatios:
+    """Ratios of the time-averaged distributions ``W(x) = sum_t mu_pi^t(x) / sum_t mu_data^t(x)``
+    from logs alone, pooling every step into one regression (stationary problems: the
+    dynamics and the policy do not depend on t).
+
+    The recursion of method (a) with one regressor for all steps, iterated to a fixed
+    point (``w = 1`` at the start states)::
+
+        W_{k+1}(x') = E_data[ W_k(x_t) * rho_t | x_{t+1} = x' ]   (all t < T - 1 pooled)
+
+    normalised to mean 1 over the data's states at steps >= 1. Pooling gives the
+    regression T times the samples of one step, at the price of the stationarity
+    assumption (it averages the per-step ratios). ``w`` holds ``W(x_i)`` for every row.
+    """
+    if regressor == "extra_trees" and not regressor_params:
+        regressor_params = {"n_estimators": 10, "min_samples_leaf": 20, "max_features": 1.0}
+    T = int(step.max()) + 1 if horizon is None else min(int(horizon), int(step.max()) + 1)
+    keep = step < T
+    src = np.flatnonzero(keep & (step < T - 1))
+    dst = np.flatnonzero(keep & (step >= 1))
+    w = np.ones(len(step))
+    if not len(src) or not len(dst):
+        return DensityRatios("pooled", w, step.copy(), warnings=["one step only: nothing to pool"])
+    for _ in range(n_sweeps if n_sweeps is not None else min(T, 20)):
+        model = make_regressor(regressor, **(regressor_params or {}))
+        model.fit(next_obs[src], w[src] * rho[src])
+        new = np.maximum(predict_model(model, obs[dst]), 0.0)
+        if not np.isfinite(new).all() or new.sum() <= 0:
+            return DensityRatios("pooled", np.ones(len(step)), step.copy(),
+                                 warnings=["the pooled ratio regression returned no positive mass; ratios set to 1"])
+        new = _normalise(new)
+        done = np.max(np.abs(new - w[dst])) < 1e-6
+        w[dst] = new
+        if done:
+            break
+    return DensityRatios("pooled", w, step.copy(),
+                         warnings=["pooled over time: assumes the problem and the policy are stationary"])
+
+
+def pooled_summary(ratios: DensityRatios) -> dict[str, Any]:
+    """ESS/n, total variation and quantiles of pooled ratios (all rows at steps >= 1)."""
+    w = ratios.w[ratios.step >= 1] if (ratios.step >= 1).any() else ratios.w
+    e2 = float(np.mean(w**2))
+    q = np.quantile(w, [0.5, 0.9, 0.99])
+    return {"n": int(len(w)), "ess_fraction": 1.0 / e2 if e2 > 0 else 0.0, "tv": 0.5 * float(np.mean(np.abs(w - 1.0))),
+            "q50": float(q[0]), "q90": float(q[1]), "q99": float(q[2]), "max": float(w.max())}
+
+
+def per_step_counts(step: np.ndarray, horizon: int) -> np.ndarray:
+    """Data states at each step t < horizon."""
+    return np.bincount(step[step < horizon].astype(np.int64), minlength=horizon)[:horizon]
+
+
 # --------------------------------------------------------------------------- (b) classifier
 def ratios_by_classifier(
     obs: np.ndarray,

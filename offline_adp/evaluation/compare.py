@@ -1,0 +1,204 @@
+"""``offline-adp compare RUN_DIR...``: rank candidate policies on the same logs.
+
+Off-policy selection (as in SCOPE-RL, Kiyohara et al. 2023): every candidate is evaluated on
+the same dataset with the same estimator, and ranked by its estimated cost (lower is
+better), each with its interval, its shift verdict and its fit's convergence. When the
+simulator truth is known for every candidate (a reference problem), the ranking is scored
+against it:
+
+- **Spearman's rank correlation** and **Kendall's tau** between the estimated and the true
+  costs (1: the same order);
+- **regret of the top pick**: ``J(top pick) - min_k J(k)`` by the simulator (0: the best
+  candidate was chosen), also relative to the spread ``max_k J(k) - min_k J(k)``.
+
+Candidates already evaluated on the same dataset (``RUN_DIR/evaluation/metrics.json`` with
+the dataset's fingerprint and the same simulator) are not re-evaluated unless ``force``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.errors import OfflineADPError
+from offline_adp.evaluation.summary import headline, rank_estimators
+
+
+def _metrics(run: Path) -> dict[str, Any] | None:
+    p = run / "evaluation" / "metrics.json"
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def _dataset_of(run: Path) -> str | None:
+    try:
+        return json.loads((run / "run.json").read_text()).get("dataset")
+    except (OSError, ValueError):
+        return None
+
+
+def _fingerprint(path: str) -> str:
+    from offline_adp.data.io import read_dataset
+
+    return read_dataset(path).fingerprint()
+
+
+def compare_runs(
+    run_dirs: Sequence[str | PathLike[str]],
+    *,
+    dataset: str | PathLike[str] | None = None,
+    simulator: str | None = None,
+    estimator: str | None = None,
+    force: bool = False,
+    evaluate_params: dict[str, Any] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Rank the policies of ``run_dirs`` on one dataset (see the module docstring).
+
+    Parameters
+    ----------
+    run_dirs : run directories (from ``offline-adp fit`` or a pipeline's ``fit/``), at least 2.
+    dataset : the logs to compare on (default: the one every run was fitted on; they must agree).
+    simulator : as for ``evaluate`` (default: the dataset's reference problem).
+    estimator : rank by this estimator (default: the most reliable one that is reliable for
+        every candidate, else each candidate's most reliable one, said so).
+    force : re-evaluate even when a matching evaluation exists.
+    evaluate_params : extra keyword arguments for :func:`offline_adp.evaluation.run.evaluate_run`.
+
+    Returns
+    -------
+    dict with ``candidates`` (ranked), ``estimator``, ``dataset``, and ``selection`` (rank
+    correlations and regret) when the simulator truth is known.
+    """
+    from offline_adp.evaluation.run import evaluate_run
+
+    say = progress or (lambda _m: None)
+    runs = [Path(r) for r in run_dirs]
+    if len(runs) < 2:
+        raise OfflineADPError("compare needs at least two run directories")
+    for r in runs:
+        if not (r / "model").is_dir():
+            raise OfflineADPError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+    if dataset is None:
+        paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
+        if "" in paths:
+            raise OfflineADPError("a run does not name its dataset; pass --dataset DIR")
+        fps = {_fingerprint(p) for p in paths}
+        if len(fps) > 1:
+            raise OfflineADPError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
+                                  "one with --dataset DIR")
+        dataset = sorted(paths)[0]
+    ds_path = str(Path(dataset).resolve())
+    fp = _fingerprint(ds_path)
+    metrics = []
+    for r in runs:
+        m = _metrics(r)
+        same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
+                and (simulator is None or (m.get("simulator") or "none") == simulator))
+        if force or not same:
+            say(f"evaluating {r}")
+            m = json.loads(json.dumps(evaluate_run(r, dataset=ds_path, simulator=simulator, progress=say,
+                                                   **(evaluate_params or {})), default=float))
+            m = _metrics(r) or m
+        metrics.append(m)
+    estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
+    if len(estimands) > 1:
+        raise OfflineADPError("the candidates' evaluations target different quantities (horizon or discount differ); "
+                              "re-run with the same --horizon, or pass force")
+    rankings = [rank_estimators(m) for m in metrics]
+    if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
+        for max_tier in (0, 1):
+            common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
+                      and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
+            if common:
+                estimator = common[0]
+                break
+    rows = []
+    for r, m, rk in zip(runs, metrics, rankings, strict=True):
+        pick = next((e for e in rk if e["name"] == estimator), None) if estimator else next(
+            (e for e in rk if e["tier"] <= 1), None)
+        h = m.get("headline") or headline(m, r)
+        truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
+        rows.append({"run": str(r), "name": r.name if r.name != "fit" else r.parent.name,
+                     "algorithm": m.get("algorithm"), "estimator": pick["name"] if pick else None,
+                     "estimate": pick["estimate"] if pick else None, "interval": pick["interval"] if pick else None,
+                     "reliability": pick["tier_label"] if pick else "no reliable estimate",
+                     "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
+                     "convergence": h["convergence"]["text"], "truth": truth})
+    usable = [x for x in rows if x["estimate"] is not None and np.isfinite(x["estimate"])]
+    rest = [x for x in rows if x not in usable]
+    usable.sort(key=lambda x: x["estimate"])
+    for i, x in enumerate(usable + rest):
+        x["rank"] = i + 1 if x in usable else None
+    out: dict[str, Any] = {"dataset": {"path": ds_path, "fingerprint": fp}, "estimator": estimator or "mixed",
+                           "estimand": metrics[0].get("estimand", {}).get("quantity"), "candidates": usable + rest,
+                           "method": "candidates ranked by their off-policy estimate of the declared estimand "
+                                     "(lower cost first)"}
+    if estimator is None:
+        out["note"] = "no estimator is reliable for every candidate: each is ranked by its own most reliable one"
+    if len(usable) >= 2 and all(x["truth"] is not None for x in usable):
+        out["selection"] = selection_scores([x["estimate"] for x in usable], [x["truth"] for x in usable])
+    return out
+
+
+def selection_scores(estimated: Sequence[float], truth: Sequence[float]) -> dict[str, Any]:
+    """Spearman's rho and Kendall's tau between estimated and true costs, and the regret of
+    the top pick (the candidate with the lowest estimated cost) by the truth."""
+    from scipy.stats import kendalltau, spearmanr
+
+    e, t = np.asarray(estimated, dtype=float), np.asarray(truth, dtype=float)
+    top = int(np.argmin(e))
+    spread = float(t.max() - t.min())
+    regret = float(t[top] - t.min())
+    return {"spearman": float(spearmanr(e, t).statistic), "kendall": float(kendalltau(e, t).statistic),
+            "regret_top1": regret, "relative_regret_top1": regret / spread if spread > 0 else 0.0,
+            "top_pick_is_best": bool(regret <= 0.0), "n_candidates": int(len(e)),
+            "method": "simulator rollouts of every candidate (same start states and seeds) as the truth"}
+
+
+def compare_lines(res: dict[str, Any]) -> list[str]:
+    """A table of the ranking for the terminal."""
+    lines = [f"candidates on {res['dataset']['path']} ranked by {res['estimator'].upper()} "
+             f"({res['estimand']}; lower cost is better)"]
+    if res.get("note"):
+        lines.append(res["note"])
+    lines.append(f"{'rank':>4}  {'candidate':24s} {'estimate':>9s}  {'95% interval':21s} {'truth':>8s}  shift / support")
+    for c in res["candidates"]:
+        iv = c["interval"]
+        ivs = f"[{iv[0]:.3f}, {iv[1]:.3f}]" if iv else "none"
+        est = f"{c['estimate']:.3f}" if c["estimate"] is not None else "n/a"
+        tr = f"{c['truth']:.3f}" if c["truth"] is not None else "-"
+        sup = "LEFT support" if c["support_left"] else "in support"
+        lines.append(f"{c['rank'] if c['rank'] else '-':>4}  {c['name'][:24]:24s} {est:>9s}  {ivs:21s} {tr:>8s}  "
+                     f"{sup}; {c['shift']}")
+    s = res.get("selection")
+    if s:
+        lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; regret of the top "
+                     f"pick {s['regret_top1']:.3f} ({s['relative_regret_top1']:.0%} of the candidates' spread)")
+    return lines
+
+
+def cli(args: Any) -> int:
+    """``offline-adp compare`` (arguments parsed in :mod:`offline_adp.cli`)."""
+    import sys
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"  {msg}", file=sys.stderr, flush=True)
+
+    res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
+                       force=args.force, evaluate_params={"n_episodes": args.episodes}, progress=say)
+    for line in compare_lines(res):
+        print(line)
+    if args.json:
+        from offline_adp.evaluation.run import _finite
+
+        tmp = Path(args.json).with_suffix(".tmp")
+        tmp.write_text(json.dumps(_finite(res), indent=1, default=float, allow_nan=False))
+        tmp.replace(args.json)
+        print(args.json)
+    return 0

@@ -1,0 +1,272 @@
+"""The headline of an evaluation: what a person is told first, and nothing that flatters.
+
+:func:`headline` condenses ``metrics.json`` into
+
+- the **best estimate**: estimators ranked by reliability (:func:`rank_estimators`), the
+  degenerate and the impossible ones never quoted;
+- the **shift verdict**: the most trustworthy diagnostic available, named: classifier
+  ratios when a simulator was used; from logs only, per-step ratios only when every step
+  has enough states (:data:`~offline_adp.evaluation.shift.MIN_STATES_PER_STEP`), else
+  "not enough data per step" and, for a stationary policy, ratios pooled over time;
+- the **verdict line**: better or worse than the behaviour, with what confidence; whether
+  the policy left the data's support; whether the fit converged (``run.json`` /
+  ``model/history.csv``);
+- the count of warnings.
+
+:func:`summary_lines` prints it (the CLI's summary after ``evaluate`` and ``run``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+#: Human names of the estimators.
+ESTIMATOR_NAMES = {
+    "fqe": "FQE (fitted Q evaluation)", "is": "IS (trajectory importance sampling)", "wis": "WIS (weighted IS)",
+    "pdis": "PDIS (per-decision IS)", "wpdis": "WPDIS (weighted per-decision IS)", "dr": "DR (doubly robust)",
+    "wdr": "WDR (weighted doubly robust)", "mis": "MIS (marginalised IS)",
+}
+#: Estimators from the least to the most fragile under distribution shift: model-based FQE
+#: (the default), doubly robust, marginalised IS (state ratios), then the trajectory-weighted ones.
+ROBUSTNESS = ("fqe", "wdr", "dr", "mis", "wpdis", "pdis", "wis", "is")
+#: A classifier AUC above this: pi's states and the data's are almost separable at that step.
+AUC_SEPARABLE = 0.95
+#: Support is "left" when more than this fraction of the data's states see pi choose unlogged actions.
+SUPPORT_FRACTION = 0.05
+
+
+def _finite(x: Any) -> bool:
+    return x is not None and isinstance(x, int | float) and bool(np.isfinite(x))
+
+
+def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
+    """Estimators ordered by reliability, each with a tier and the reason.
+
+    Tier 0 ``reliable``: finite, inside the possible range, targets the declared estimand,
+    has an interval. Tier 1 ``no interval``: the interval was withheld (degenerate-ish
+    weights) or not computed. Tier 2 ``not usable``: degenerate weights, an estimate outside
+    the possible range of the cost, or another estimand. Within a tier, by
+    :data:`ROBUSTNESS` (never by interval width: a narrow interval from fixed, wrong
+    ratios would flatter).
+    """
+    rng = m.get("estimand", {}).get("possible_range")
+    out = []
+    for name, r in m["ope"].items():
+        est, iv = r.get("estimate"), r.get("interval") or [None, None]
+        has_iv = _finite(iv[0]) and _finite(iv[1])
+        reasons = []
+        if not _finite(est):
+            reasons.append("no finite estimate")
+        elif rng and not (rng[0] - 1e-9 <= est <= rng[1] + 1e-9):
+            reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
+        if r.get("degenerate"):
+            ess = r.get("ess")
+            reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})" if _finite(ess) else ""))
+        if r.get("comparable") is False:
+            reasons.append("estimates another quantity than the one asked for")
+        tier = 2 if reasons else (0 if has_iv else 1)
+        if tier == 1:
+            reasons.append(r.get("interval_method", "no interval"))
+        width = (iv[1] - iv[0]) if has_iv else np.inf
+        out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
+                    "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
+                    "estimate": est, "interval": iv if has_iv else None, "level": r.get("level"), "width": width})
+    order = {k: i for i, k in enumerate(ROBUSTNESS)}
+    out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
+    for i, e in enumerate(out):
+        e["rank"] = i + 1
+        e["width"] = None if not np.isfinite(e["width"]) else e["width"]
+    return out
+
+
+def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
+    """The most trustworthy shift diagnostic available, named, with its verdict text."""
+    shift = m.get("shift", {})
+    if "classifier" in shift:
+        d = pd.DataFrame(shift["classifier"]["per_step"])
+        if not d.empty:
+            i = d["ess_fraction"].idxmin()
+            sep = int((d.get("auc", pd.Series(dtype=float)) > AUC_SEPARABLE).sum())
+            unc = float(d["uncovered"].max()) if "uncovered" in d else 0.0
+            text = (f"classifier ratios (simulator): worst-step ESS/n {d.loc[i, 'ess_fraction']:.3f} at t = "
+                    f"{int(d.loc[i, 'step'])}; AUC > {AUC_SEPARABLE} at {sep} of {len(d)} steps")
+            return {"method": "classifier", "ess_fraction": float(d.loc[i, "ess_fraction"]), "step": int(d.loc[i, "step"]),
+                    "separable_steps": sep, "n_steps": int(len(d)), "max_uncovered": unc, "text": text,
+                    "enough_data": True}
+    counts = m.get("per_step_counts")
+    thin = counts is not None and len(counts) > 1 and min(counts[1:] or counts) < m.get("min_states_per_step", 500)
+    pooled = m.get("pooled_shift")
+    if thin:
+        few = int(min(counts[1:] or counts))
+        text = f"not enough data per step to estimate the shift (as few as {few} states per step)"
+        out = {"method": "none", "ess_fraction": None, "text": text, "enough_data": False}
+        if pooled:
+            out.update(method="pooled", ess_fraction=pooled["ess_fraction"], pooled=pooled)
+            out["text"] = (text + f"; ratios pooled over time (stationary approximation): ESS/n "
+                           f"{pooled['ess_fraction']:.3f}, 99% quantile {pooled['q99']:.3g}")
+        return out
+    ws = m.get("worst_step", {})
+    if ws:
+        return {"method": "recursion", "ess_fraction": ws.get("ess_fraction"), "step": ws.get("step"),
+                "text": f"ratio recursion (logs only): worst-step ESS/n {ws['ess_fraction']:.3f} at t = {ws['step']}",
+                "enough_data": True}
+    return {"method": "none", "ess_fraction": None, "text": "no shift diagnostic", "enough_data": False}
+
+
+def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
+    """Did the fit converge? From ``run.json`` (its ``convergence`` verdict when present,
+    else ``diverged``/``status``) and the last change in ``model/history.csv`` against the
+    fit's ``tol``. Missing files give ``unknown``."""
+    if run_dir is None:
+        return {"verdict": "unknown", "text": "fit convergence unknown (no run directory)"}
+    run = Path(run_dir)
+    info: dict[str, Any] = {}
+    try:
+        info = json.loads((run / "run.json").read_text())
+    except (OSError, ValueError):
+        pass
+    conv = info.get("convergence")
+    if isinstance(conv, dict) and conv.get("verdict"):
+        v = str(conv["verdict"])
+        return {"verdict": v, "text": f"fit: {conv.get('text') or v}", "source": "run.json"}
+    if isinstance(conv, str) and conv:
+        return {"verdict": conv, "text": f"fit: {conv}", "source": "run.json"}
+    if info.get("diverged"):
+        return {"verdict": "diverged", "text": "fit DIVERGED (run.json): its policy and values are not to be trusted",
+                "source": "run.json"}
+    tol = None
+    try:
+        tol = json.loads((run / "config.json").read_text()).get("params", {}).get("tol")
+    except (OSError, ValueError, AttributeError):
+        pass
+    hist = run / "model" / "history.csv"
+    if hist.exists():
+        try:
+            h = pd.read_csv(hist)
+        except (OSError, ValueError):
+            h = pd.DataFrame()
+        if "sup_dq" in h and h["sup_dq"].notna().any() and ("step" not in h or h["step"].isna().all()):
+            last = float(h["sup_dq"].dropna().iloc[-1])
+            k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)
+            if tol is not None:
+                ok = last < float(tol)
+                return {"verdict": "converged" if ok else "not converged", "last_change": last, "tol": tol,
+                        "text": f"fit {'converged' if ok else 'did NOT converge'}: last change {last:.3g} "
+                                f"{'<' if ok else '>='} tol {tol:g} after {k} iterations", "source": "history.csv"}
+            return {"verdict": "unknown", "last_change": last,
+                    "text": f"fit ran {k} iterations, last change {last:.3g} (no tol set)", "source": "history.csv"}
+        if "step" in h and h["step"].notna().any():
+            return {"verdict": "finite horizon", "text": "fit: finite horizon (backward induction, no convergence to "
+                    "check)", "source": "history.csv"}
+    status = info.get("status")
+    return {"verdict": "unknown", "text": f"fit convergence unknown (status {status})" if status else
+            "fit convergence unknown"}
+
+
+def behaviour_value(m: dict[str, Any]) -> dict[str, Any] | None:
+    return m.get("behaviour_value")
+
+
+def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+    """Better or worse than the behaviour (with what confidence), support, convergence."""
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    beh = m.get("behaviour_value")
+    if best is None:
+        top = next((e for e in ranking if e["tier"] == 1), None)
+        perf = ("cannot say whether the policy is better than the behaviour: "
+                + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
+                   if top else "no estimator is reliable here"))
+        side = "unknown"
+    elif beh is None:
+        perf, side = f"best estimate {best['estimate']:.4g} (no behaviour baseline)", "unknown"
+    else:
+        lo, hi = best["interval"]
+        b = beh["mean"]
+        if hi < b:
+            side, conf = "better", "its 95% interval lies below the behaviour's logged cost"
+        elif lo > b:
+            side, conf = "worse", "its 95% interval lies above the behaviour's logged cost"
+        else:
+            side, conf = "indistinguishable", "its 95% interval contains the behaviour's logged cost"
+        perf = (f"{'better than' if side == 'better' else 'worse than' if side == 'worse' else 'not distinguishable from'}"
+                f" the behaviour: {best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g} "
+                f"({conf})")
+    sv = m.get("behaviour", {}).get("support_violations", {}).get("fraction")
+    left = []
+    if _finite(sv) and sv > SUPPORT_FRACTION:
+        left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
+    if shift.get("method") == "classifier":
+        if shift.get("separable_steps"):
+            left.append(f"its states are almost separable from the data's at {shift['separable_steps']} of "
+                        f"{shift['n_steps']} steps")
+        if shift.get("max_uncovered", 0) > SUPPORT_FRACTION:
+            left.append(f"up to {shift['max_uncovered']:.0%} of its simulated states have no data near them")
+    support = ("LEFT the data's support: " + "; ".join(left)) if left else (
+        "stays within the data's support" if shift.get("enough_data") else
+        "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else ""))
+    ct = conv["text"][:1].upper() + conv["text"][1:]
+    return {"performance": side, "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+
+
+def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, Any]:
+    """The summary box of an evaluation (see the module docstring)."""
+    ranking = rank_estimators(m)
+    shift = shift_verdict(m)
+    conv = fit_convergence(run_dir)
+    v = verdict(m, ranking, shift, conv)
+    n_warn = len(m.get("warnings", [])) + sum(len(r.get("warnings", [])) for r in m["ope"].values())
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    return {"best": best, "ranking": ranking, "shift": shift, "convergence": conv, "verdict": v, "n_warnings": n_warn}
+
+
+def _f(x: Any) -> str:
+    return f"{x:.3f}" if _finite(x) else "n/a"
+
+
+def _problem_words(sim: str | None, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
+    from offline_adp.envs import PROBLEM_NAMES, problem_class
+
+    if sim not in PROBLEM_NAMES:
+        return ""
+    return problem_class(sim).summary_line(policy, demonstrator)
+
+
+def summary_lines(m: dict[str, Any]) -> list[str]:
+    """A short human summary of ``metrics.json``: estimand, simulator truth, best estimate,
+    shift verdict, verdict line."""
+    h = m.get("headline") or headline(m)
+    lines = []
+    if m.get("estimand"):
+        lines.append(f"estimand: {m['estimand']['quantity']}")
+    if "rollout" in m:
+        p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
+        cost = f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}]"
+        if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
+            lines.append(f"{cost}; {m['rollout'].get('note', 'no demonstrator to compare with')}")
+        else:
+            words = _problem_words(m.get("simulator"), p, d)  # the ReferenceProblem's own summary words
+            lines.append(f"{cost} vs demonstrator {d['mean_discounted_cost']:.3f}" + (f"; {words}" if words else ""))
+    elif m.get("simulator_note"):
+        lines.append(m["simulator_note"])
+    b = h["best"]
+    others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
+    if b is not None:
+        lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(b['interval'][0])}, "
+                     f"{_f(b['interval'][1])}]" + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
+    else:
+        top = next((e for e in h["ranking"] if e["tier"] == 1), None)
+        lines.append(f"off-policy: {top['name'].upper()} {_f(top['estimate'])} (no interval: {top['reason']})" if top
+                     else "off-policy: no usable estimate (see the report)")
+    bad = [e["name"].upper() for e in h["ranking"] if e["tier"] == 2]
+    if bad:
+        lines.append(f"not usable here: {', '.join(bad)}")
+    lines.append(f"shift: {h['shift']['text']}")
+    lines.append(f"verdict: {h['verdict']['text']}")
+    if h["n_warnings"]:
+        lines.append(f"{h['n_warnings']} warnings (metrics.json, report)")
+    return lines
