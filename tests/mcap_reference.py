@@ -69,6 +69,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
     epoch: dict[Any, int] = {}
     maxt: dict[Any, int] = {}
     clock_first: dict[int, int] = {}
+    seen: dict[Any, int | None] = {}  # the clock's latest time when each stream's latest time was read
     out: dict[Any, list[tuple[Any, int, int, list[float]]]] = {}  # per (key, epoch)
     res = RefResult([])
     for m in messages:
@@ -83,6 +84,8 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             ce, cm = epoch.get(clock, 0), maxt.get(clock)
             ek, mk = epoch.get(k, ce), maxt.get(k)
             own = mk is not None and r > 0 and t < mk - r
+            if k != clock and mk is not None and ek == ce and cm is not None and seen.get(k) is not None and r > 0:
+                own = t < mk + max(cm - seen[k], 0) - r  # behind its own pace with the clock
             late = False
             if k == clock:
                 e = ek + own
@@ -107,7 +110,10 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             if late:  # the epoch is over: the message is counted, not used
                 res.late += 1
                 continue
-            maxt[k] = t if (e != ek or own or mk is None) else max(mk, t)
+            if e != ek or own or mk is None or t > mk:
+                maxt[k] = t
+                if k != clock:
+                    seen[k] = maxt.get(clock) if e == epoch.get(clock, 0) else None
             epoch[k] = e
             out.setdefault((k, e), []).append((k, e, t, vals))
     return [x for v in out.values() for x in v], res

@@ -86,6 +86,8 @@ class _Recording(EpisodeSegmenter):
             self.by_topic.setdefault(spec.clock_topic, []).append("clock")
         if spec.episode_topic:
             self.by_topic.setdefault(spec.episode_topic, []).append("events")
+        for keys in self.by_topic.values():  # the clock first: the other keys of its message are placed against it
+            keys.sort(key=lambda x: x != self.clock_key)
         self.names = {k: list(s.fields) for k, s in self.value_keys.items()}
         self.names["clock"] = []
         self.names["events"] = list(spec.episode_fields)
@@ -93,6 +95,7 @@ class _Recording(EpisodeSegmenter):
         self.maxt: dict[Any, int | None] = {k: None for k in self.epoch}
         self.bufs: dict[tuple[Any, int], _Buffer] = {}
         self.clock_first: dict[int, int] = {}
+        self.clock_seen: dict[Any, int | None] = {}
         self.active = 0
         self.flushed_t: int | None = None  # time of the last step handed to the episodes
         self.lag = int((spec.reorder_window + max(s.max_age for s in self.value_keys.values())) * 1e9)
@@ -274,6 +277,12 @@ class _Recording(EpisodeSegmenter):
                 self._resolve_losses(e)
         else:
             ce, cm = self.epoch[ck], self.maxt[ck]
+            seen = self.clock_seen.get(k)
+            if m is not None and ek == ce and cm is not None and seen is not None and r > 0:
+                # a stream keeps pace with the clock: it restarted if its time fell more than
+                # `restart` behind its last time plus what the clock ran since (a stream silent
+                # for most of an episode resumes in the next one at a time above its last)
+                own_restart = t < m + max(cm - seen, 0) - r
             # the time jumped back within what the clock has covered in this epoch (older than the epoch's
             # first clock message: stale data of this epoch, e.g. a late localization stamp)
             ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
@@ -296,6 +305,8 @@ class _Recording(EpisodeSegmenter):
             m = None
         if m is None or t > m:
             self.maxt[k] = t
+            if k != ck:  # the clock's time when this stream's latest time was read (same epoch only)
+                self.clock_seen[k] = self.maxt[ck] if e == self.epoch[ck] else None
         if e < self.active:  # defensive: never happens for messages on time (see the rules above)
             return None
         return e
@@ -366,7 +377,10 @@ class _Recording(EpisodeSegmenter):
         latest = [self.maxt[k] for k in self.epoch if self.epoch[k] == e and self.maxt[k] is not None]
         if not latest:
             return -np.inf
-        top = max(latest)
+        cm = self.maxt[self.clock_key]
+        # the clock's time is the reference (a stream's time far ahead of it is anomalous
+        # data and must not make the others look idle); without the clock in e, the latest
+        top = cm if ce == e and cm is not None else max(latest)
         span = top - self.clock_first.get(e, top)
         w = np.inf
         for k in self.epoch:
