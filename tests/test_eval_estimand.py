@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.envs.tabular import TabularMDP
 from offline_adp.evaluation import ope, shift

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.algorithms import dp
+from offline_adp import dp
 from offline_adp.algorithms.cpi import ConservativePolicyIteration, effective_horizon
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.psdp import PSDP, psdp_bound

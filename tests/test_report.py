@@ -57,7 +57,7 @@ def test_evaluate_and_report_with_simulator(pt_run, capsys):
     assert m["headline"]["shift"]["ess_fraction"] == pytest.approx(worst)
     assert main(["report", str(run)]) == 0
     figs = _check_report(run)
-    assert {"convergence", "policy_map", "value_map", "ope", "ratios", "coverage", "sources", "cross_track"} <= figs
+    assert {"convergence", "policy_map", "value_map", "ope", "ratios", "coverage", "sources", "traced_e"} <= figs
     html = (run / "report" / "report.html").read_text()
     summary = html[html.index("<section class='summary'>"):html.index("</section>")]
     assert "classifier ratios (simulator)" in summary and "Simulator truth" in summary
@@ -73,7 +73,7 @@ def test_evaluate_and_report_from_logs_only(pt_run, tmp_path):
     assert set(m["shift"]) == {"recursion"}
     assert main(["report", str(run)]) == 0
     figs = _check_report(run)
-    assert "cross_track" not in figs and {"ope", "ratios", "coverage"} <= figs
+    assert "traced_e" not in figs and {"ope", "ratios", "coverage"} <= figs
 
 
 def test_evaluate_errors_name_the_problem(tmp_path, capsys):

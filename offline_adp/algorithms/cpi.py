@@ -122,8 +122,8 @@ class ConservativePolicyIteration(BaseEstimator):
                 q = fqe.q_function_.values(a.obs, a.step)
                 v = (pi.probabilities(a.obs, a.step) * q).sum(axis=1)
                 adv = float(np.mean(v - q.min(axis=1)))  # expected improvement, >= 0
-                gamma = fqe.gamma if fqe.gamma is not None else (dataset.info.gamma if dataset.info.gamma is not None else 0.95)
-                horizon = fqe.horizon or dataset.info.horizon or int(a.step.max()) + 1
+                gamma = fqe.gamma_  # resolved by the fit (offline_adp.data.discount)
+                horizon = fqe.horizon_ or dataset.info.horizon or int(a.step.max()) + 1
                 alphas = [0.0, float(np.clip(adv / (4 * r_max * effective_horizon(gamma, horizon)), 0.0, 1.0))]
             else:
                 alphas = sorted({0.0, *self.step_sizes})

@@ -15,6 +15,7 @@ import pandas as pd
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import OfflineADPError
 from offline_adp.evaluation import ope, shift
 from offline_adp.evaluation.behaviour import (
@@ -61,7 +62,7 @@ def evaluation_horizon(ds: TransitionDataset, horizon: int | None = None) -> tup
     (See :func:`declare_estimand` for the quantity every estimator targets.)
     """
     a = ds.arrays()
-    gamma = ds.info.gamma if ds.info.gamma is not None else 1.0
+    gamma = resolve_discount(ds.info).gamma  # the package's one rule, as the fit used
     T = int(a.step.max()) + 1
     for cap in (ds.info.horizon, horizon):
         if cap is not None:
