@@ -418,7 +418,7 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
 
     fit = cfg["fit"]
     entry = get_algorithm(fit["algorithm"])
-    if client is not None and entry.name == "fqi" and fit.get("params", {}).get("regressor") == "lightgbm":
+    if client is not None and entry.dask and fit.get("params", {}).get("regressor") == "lightgbm":
         return _fit_dask(cfg, run, say, client)
     params = dict(fit.get("params", {}))
     if "random_state" in entry.params_model().model_fields:

@@ -49,6 +49,8 @@ class AlgorithmEntry:
         One line for ``--help``.
     resumable : bool
         Fits iteration by iteration with checkpoints (``--resume``).
+    dask : bool
+        The Dask engine has a distributed version of it.
     artifact : str
         What ``model/`` holds: ``"q"`` (a Q-function and its greedy policy) or
         ``"policy"`` (a policy, and its Q-function when it has one).
@@ -67,6 +69,8 @@ class AlgorithmEntry:
     extra: dict[str, tuple[Any, Any]] = field(default_factory=dict)
     exclude: tuple[str, ...] = ()
     fit_with: Callable[[AlgorithmEntry, dict[str, Any], Any], Any] | None = None
+    #: The Dask engine has a distributed version (``engines/dask.py``), used with LightGBM.
+    dask: bool = False
 
     def build_and_fit(self, params: dict[str, Any], dataset: Any) -> Any:
         """Construct the estimator from checked ``params`` (extra keys resolved: a policy
@@ -186,7 +190,7 @@ def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 FQI = AlgorithmEntry(
     "fqi", "offline_adp.algorithms.fqi:FittedQIteration", "trace data",
     "fitted Q-iteration (Algorithms 10, 11; tree-based as in Ernst, Geurts & Wehenkel 2005)",
-    resumable=True, artifact="q", exclude=("feature_map", "initial_q"),
+    resumable=True, artifact="q", exclude=("feature_map", "initial_q"), dask=True,
 )
 FQE = AlgorithmEntry(
     "fqe", "offline_adp.algorithms.fqe:FittedQEvaluation", "trace data",
