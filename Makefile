@@ -26,12 +26,12 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-dev
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 # The unit layer only (no slow or end-to-end tests): under 2 minutes on 2 cores.
 test-fast: $(VENV)/.installed-dev
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -m "not slow and not integration"
+	$(BIN)/python -m pytest -q -n 2 -m "not slow and not integration"
 
 bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/ingest_parquet.py
