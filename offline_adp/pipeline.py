@@ -472,6 +472,7 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     directory layout as a local fit; resumes from ``fit/checkpoint`` after a lost cluster."""
     from offline_adp.artifacts import save_q, versions
     from offline_adp.data.io import read_dataset
+    from offline_adp.data.validate import require_usable
     from offline_adp.engines.dask import DistributedFQI
 
     params = dict(cfg["fit"].get("params", {}))
@@ -484,6 +485,7 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
         raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine (use 'refit' or "
                         "'warm_start', or the local engine)")
     ds = read_dataset(run / "dataset")
+    require_usable(ds, run / "dataset")  # empty or failing the doctor: one error before any cluster work
     est = DistributedFQI(gamma=params.get("gamma"), n_iterations=params.get("n_iterations", 50), lgbm_params=params.get("regressor_params"),
                          random_state=params.get("random_state", cfg["seed"]), warm_start=params.get("mode") == "warm_start",
                          trees_per_iteration=params.get("trees_per_iteration", 10))
