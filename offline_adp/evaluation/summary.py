@@ -256,8 +256,12 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     b = h["best"]
     others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
     if b is not None:
-        lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(b['interval'][0])}, "
-                     f"{_f(b['interval'][1])}]" + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
+        lo, hi = b["interval"]
+        outside = lo is not None and hi is not None and not lo <= b["estimate"] <= hi
+        lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(lo)}, {_f(hi)}]"
+                     + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
+                        "interval as unreliable)" if outside else "")
+                     + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         lines.append(f"off-policy: {top['name'].upper()} {_f(top['estimate'])} (no interval: {top['reason']})" if top
