@@ -31,6 +31,7 @@ from sklearn.preprocessing import StandardScaler
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
 from offline_adp.artifacts import load_policy, load_q
 from offline_adp.errors import ArtifactError
+from tests.fuzz_util import json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 40
@@ -181,16 +182,6 @@ JSON_VALUES = [None, -1, 0, 1, 2, 10**9, 2**64, -(2**63), "x", "", [], {}, [[]],
                {"kind": "sklearn", "class": "os.system", "params": {}, "attrs": {}}]
 
 
-def _json_paths(obj, prefix=()):
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _json_paths(v, (*prefix, k))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj[:50]):
-            yield from _json_paths(v, (*prefix, i))
-
-
 @settings(max_examples=N, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(kind=st.sampled_from(KINDS), pick=st.integers(0, 100_000), value=st.sampled_from(JSON_VALUES), delete=st.booleans())
 def test_fuzz_json(saved, tmp_path, kind, pick, value, delete):
@@ -198,7 +189,7 @@ def test_fuzz_json(saved, tmp_path, kind, pick, value, delete):
     src, ref = arts[kind]
     d = _copy(src, tmp_path / "j")
     spec = json.loads((src / "q.json").read_text())
-    paths = [p for p in _json_paths(spec) if p and p[0] == "q"]
+    paths = [p for p in json_paths(spec) if p and p[0] == "q"]
     path = paths[pick % len(paths)]
     parent = spec
     for x in path[:-1]:

@@ -30,6 +30,7 @@ from offline_adp.data.validate import validate_directory
 from offline_adp.errors import OfflineADPError
 from offline_adp.ingest.parquet import ingest_parquet
 from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
+from tests.fuzz_util import json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 30
@@ -206,16 +207,6 @@ def dataset_dir(tmp_path_factory):
     return d
 
 
-def _json_paths(obj, prefix=()):
-    yield prefix
-    if isinstance(obj, dict):
-        for k, v in obj.items():
-            yield from _json_paths(v, (*prefix, k))
-    elif isinstance(obj, list):
-        for i, v in enumerate(obj[:5]):
-            yield from _json_paths(v, (*prefix, i))
-
-
 @SETTINGS
 @given(pick=st.integers(0, 10**6), value=st.sampled_from([None, -1, 0, 1, "x", [], {}, True, 1e308, [["a"]], {"name": 3}]),
        delete=st.booleans(), part_op=st.sampled_from(["none", "none", "drop", "text", "null"]), col=st.integers(0, 100))
@@ -228,7 +219,7 @@ def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, pa
     shutil.rmtree(d, ignore_errors=True)
     shutil.copytree(dataset_dir, d)
     info = json.loads((d / "meta" / "info.json").read_text())
-    paths = [p for p in _json_paths(info) if p]
+    paths = [p for p in json_paths(info, max_items=5) if p]
     path = paths[pick % len(paths)]
     parent = info
     for x in path[:-1]:
