@@ -430,8 +430,11 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
     kv("Estimand", html.escape(est.get("quantity", f"expected discounted cost over {m.get('horizon')} steps")) +
        " (lower is better)")
     if b is not None:
-        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{b['interval'][0]:.4g}, {b['interval'][1]:.4g}] (95%), "
-           f"{html.escape(b['label'])}, the most reliable estimator here")
+        lo, hi = b["interval"]
+        caveat = "" if lo <= b["estimate"] <= hi else (" &mdash; <b>the interval excludes the estimate</b>: its bootstrap "
+                                                      "replicates are shifted, treat the interval as unreliable")
+        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (95%), "
+           f"{html.escape(b['label'])}, the most reliable estimator here{caveat}")
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "
