@@ -31,7 +31,7 @@ from sklearn.preprocessing import StandardScaler
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
 from offline_adp.artifacts import load_policy, load_q
 from offline_adp.errors import ArtifactError
-from tests.fuzz_util import json_paths
+from tests.fuzz_util import edit_json_path, json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 40
@@ -191,13 +191,7 @@ def test_fuzz_json(saved, tmp_path, kind, pick, value, delete):
     spec = json.loads((src / "q.json").read_text())
     paths = [p for p in json_paths(spec) if p and p[0] == "q"]
     path = paths[pick % len(paths)]
-    parent = spec
-    for x in path[:-1]:
-        parent = parent[x]
-    if delete and isinstance(parent, dict):
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = value
+    edit_json_path(spec, path, value, delete)
     (d / "q.json").write_text(json.dumps(spec))
     _check(d, obs, ref, False, "json entries")
 

@@ -30,7 +30,7 @@ from offline_adp.data.validate import validate_directory
 from offline_adp.errors import OfflineADPError
 from offline_adp.ingest.parquet import ingest_parquet
 from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
-from tests.fuzz_util import json_paths
+from tests.fuzz_util import edit_json_path, json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 30
@@ -221,13 +221,7 @@ def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, pa
     info = json.loads((d / "meta" / "info.json").read_text())
     paths = [p for p in json_paths(info, max_items=5) if p]
     path = paths[pick % len(paths)]
-    parent = info
-    for x in path[:-1]:
-        parent = parent[x]
-    if delete and isinstance(parent, dict):
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = value
+    edit_json_path(info, path, value, delete)
     (d / "meta" / "info.json").write_text(json.dumps(info))
     if part_op != "none":
         p = d / "data" / "part-00000.parquet"

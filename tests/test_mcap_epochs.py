@@ -6,31 +6,14 @@ Every value encodes its own episode, so the right pairing is known by constructi
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
 from offline_adp.ingest.mcap import ingest_mcap, parse_mcap_spec
+from tests.test_ingest_mcap_streaming import write_log
 
 MS = 1_000_000
 T0 = 5_000 * MS
-
-
-def write_log(path, messages):
-    from mcap.writer import Writer
-
-    with open(path, "wb") as f:
-        w = Writer(f, chunk_size=4096)
-        w.start()
-        sid = w.register_schema(name="x", encoding="jsonschema", data=b"{}")
-        chans: dict[str, int] = {}
-        for topic, t, m in messages:
-            if topic not in chans:
-                chans[topic] = w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
-            w.add_message(chans[topic], log_time=t, publish_time=t, data=json.dumps(m).encode())
-        w.finish()
-    return path
 
 
 def rl_log(n_episodes=8, k_absent=3, n_steps=300):

@@ -10,21 +10,9 @@ import pytest
 
 from offline_adp.data.io import read_dataset, read_quarantine
 from offline_adp.errors import ValidationError
-from offline_adp.ingest.mcap import ingest_mcap, parse_mcap_spec
+from offline_adp.ingest.mcap import ingest_mcap
 from tests.test_ingest_mcap_streaming import MS, T0, episode_messages, write_log
-
-
-def _spec(**over):
-    d = {
-        "clock": {"topic": "/clock", "reorder_window": 0.5},
-        "episodes": {"gap": 1.0},
-        "streams": [{"topic": "/fast", "fields": {"x": "pos.x"}, "align": "previous", "max_age": 0.05}],
-        "action": {"topic": "/cmd", "field": "u[0]", "align": "previous", "max_age": 0.05, "type": "discrete",
-                   "values": [0.0, 1.0, 2.0]},
-        "cost": {"terms": [{"field": "x", "op": "square"}]},
-        **over,
-    }
-    return parse_mcap_spec(d)
+from tests.test_ingest_mcap_streaming import spec as _spec
 
 
 def _log(tmp_path):
