@@ -70,6 +70,37 @@ def test_reweighted_value_is_the_same_fixed_point_for_uniform_weights(small_pt):
     assert fqe.reweighted_value(w) != pytest.approx(fqe.value_, rel=1e-6)
 
 
+def test_settle_reaches_the_structures_fixed_point_by_a_linear_solve(small_pt):
+    """A short frozen fit (4 structures over 20 iterations: the last one averaged 5 times)
+    is not at its structure's fixed point; ``settle`` brings it there. Oracle: the fixed
+    point solved directly, ``(I - M diag(gamma (1 - term)) P_pi A_next) v = M c``. The
+    replicate with uniform weights is then the estimate itself."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    from offline_adp.policies import UniformPolicy
+
+    fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=20,
+                            regressor_params={"n_estimators": 5}).fit(small_pt)
+    d, learner, backup = fqe._fit_state
+    n, A = d.n, d.n_actions
+    pi = backup.probabilities("next", 0)
+    P = sparse.csr_matrix((pi.T.reshape(-1), (np.tile(np.arange(n), A), np.arange(A * n))), shape=(n, A * n))
+    boot = sparse.diags(np.where(d.train.no_boot, 0.0, 0.9))
+    op = (learner.M @ boot @ P @ learner.A["next"]).tocsc()
+    v = spsolve((sparse.identity(op.shape[0], format="csc") - op), learner.M @ d.train.cost)
+    q0 = (learner.A["start"] @ v).reshape(A, -1).T
+    exact = float((backup.probabilities("start", 0) * q0).sum(axis=1).mean())
+    before = fqe.value_
+    assert abs(before - exact) > 1e-3 * (1 + abs(exact))  # 5 sweeps on the last structure: not there yet
+    sweeps = fqe.settle()
+    assert sweeps > 5
+    assert fqe.value_ == pytest.approx(exact, rel=1e-6)
+    q = fqe.q_function_.values(d.start_obs, 0)
+    assert float((backup.probabilities("start", 0) * q).sum(axis=1).mean()) == pytest.approx(exact, rel=1e-6)
+    assert fqe.reweighted_value(np.ones(n)) == pytest.approx(fqe.value_, rel=1e-6)
+
+
 @pytest.mark.parametrize("gamma", [0.9, 0.5])
 def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
     """FittedQEvaluation(policy, horizon=T, gamma=g): the T-step discounted evaluation of a

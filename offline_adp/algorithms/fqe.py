@@ -86,39 +86,78 @@ class FittedQEvaluation(FittedQIteration):
         stationary = not getattr(self.policy, "time_varying", getattr(self, "horizon_", self.horizon) is not None)
         return PolicyBackup(self.policy, sets, stationary)
 
+    def settle(self, tol: float | None = None, max_iterations: int = 10_000) -> int:
+        """Iterate the fitted tree structure's leaf averaging to its fixed point
+        (``mode="frozen"``, discounted only) and refresh ``q_function_`` and ``value_``.
+
+        A frozen fit stops after ``n_iterations`` in all, so its last structure may have
+        had only a few averaging sweeps (with 4 structures over 60 iterations, 15: the
+        value has moved by ``gamma^15`` of its distance to the fixed point). This runs
+        ``v <- M (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` (a sup-norm
+        gamma-contraction: the leaf and query operators average) until the distance to
+        the fixed point is at most ``tol`` (``gamma / (1 - gamma)`` times the last sweep's
+        change; default ``1e-7 (1 + max |v|)``): the estimate is then
+        the fixed point of the averager the structure defines, the same quantity
+        :meth:`reweighted_value` computes for other weights, so bootstrap replicates are
+        centred on it. Returns the number of sweeps run (also in ``settled_iterations_``).
+        """
+        d, learner, _backup = self._fit_state
+        self._check_conditional()
+        v, sweeps = self._fixed_point(learner.M, learner.A, learner.leaf_values, tol, max_iterations)
+        learner.leaf_values = v
+        self.q_function_ = learner.snapshot()
+        self.settled_iterations_ = sweeps
+        a0 = d.start_obs
+        self.value_ = float((self.policy.probabilities(a0, 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
+        return sweeps
+
     def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None) -> float:
         """The value estimate for other per-row weights, *keeping the fitted tree structure*
         (``mode="frozen"``, discounted only): the fixed point of
         ``v <- M_w (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` with the leaf
         averaging operator ``M_w`` of the new weights (leaves left without weight are
-        dropped from the average over trees). This is a structure-conditional
-        bootstrap replicate: it captures the noise of the data through the leaves but not
-        the variability of the tree structure itself. Rows must be the training rows
-        (no ``validation_fraction``).
+        dropped from the average over trees), iterated from the fitted leaf values to within
+        ``tol`` of the fixed point (as :meth:`settle`) or ``n_iterations`` sweeps. This is
+        a structure-conditional bootstrap replicate: it captures the noise of the data
+        through the leaves but not the variability of the tree structure itself. With
+        all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
+        training rows (no ``validation_fraction``).
         """
-        from offline_adp.learners import FrozenTreesLearner
-
-        d, learner, backup = self._fit_state
-        if not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None:
-            raise ValueError("reweighted_value needs a discounted FQE fitted with mode='frozen' and no validation split")
+        d, learner, _backup = self._fit_state
+        self._check_conditional()
         w = np.asarray(sample_weight, dtype=np.float64)
         M, ops = learner.reweighted_operators(w)
-        n, A = d.n, d.n_actions
-        pi_next = backup.probabilities("next", 0)
-        pi_start = backup.probabilities("start", 0)
-        boot = np.where(d.train.no_boot, 0.0, d.gamma)
-        v = learner.leaf_values.copy()  # start at the fitted fixed point: replicates lie near it
-        for _ in range(n_iterations or self.n_iterations * 2):
-            q_next = (ops["next"] @ v).reshape(A, n).T
-            v_new = M @ (d.train.cost + boot * (pi_next * q_next).sum(axis=1))
-            done = np.max(np.abs(v_new - v)) < (tol if tol is not None else (self.tol or 0.0))
-            v = v_new
-            if done:
-                break
-        q0 = (ops["start"] @ v).reshape(A, -1).T
-        v0 = (pi_start * q0).sum(axis=1)
+        v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000)
+        q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
+        v0 = (self._fit_state[2].probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
         return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+
+    def _check_conditional(self) -> None:
+        from offline_adp.learners import FrozenTreesLearner
+
+        d, learner, _backup = getattr(self, "_fit_state", (None, None, None))
+        if not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None:
+            raise ValueError("needs a discounted FQE fitted with mode='frozen' and no validation split")
+
+    def _fixed_point(self, M: Any, ops: dict[str, Any], v: np.ndarray, tol: float | None,
+                     max_iterations: int) -> tuple[np.ndarray, int]:
+        """Iterate the leaf-averaging backup from ``v`` (a gamma-contraction) to ``tol``."""
+        d, _learner, backup = self._fit_state
+        n, A = d.n, d.n_actions
+        pi_next = backup.probabilities("next", 0)
+        boot = np.where(d.train.no_boot, 0.0, d.gamma)
+        v = np.asarray(v, dtype=np.float64).copy()
+        for sweep in range(1, max_iterations + 1):
+            q_next = (ops["next"] @ v).reshape(A, n).T
+            v_new = M @ (d.train.cost + boot * (pi_next * q_next).sum(axis=1))
+            change = float(np.max(np.abs(v_new - v))) if len(v) else 0.0
+            v = v_new
+            # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
+            bound = change * d.gamma / (1.0 - d.gamma)
+            if bound <= (tol if tol is not None else 1e-7 * (1.0 + float(np.max(np.abs(v), initial=0.0)))):
+                return v, sweep
+        return v, max_iterations
 
     def _result_policy(self, q: QFunction) -> Any:
         return self.policy

@@ -337,6 +337,8 @@ def off_policy(
     pi_x0 = policy.probabilities(x0, 0)  # once, not per bootstrap replicate
     conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
     fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **params).fit(ds)
+    if conditional:  # the estimate is the fixed point of the final structure, as each replicate's is
+        fqe.settle()
     est = _start_value(fqe, x0, pi_x0, None)
     cheap = conditional or params.get("regressor") in CHEAP_REGRESSORS
     n_reps = fqe_replicates(n_boot_fqe, cheap)

@@ -433,8 +433,10 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
         lo, hi = b["interval"]
         caveat = "" if lo <= b["estimate"] <= hi else (" &mdash; <b>the interval excludes the estimate</b>: its bootstrap "
                                                       "replicates are shifted, treat the interval as unreliable")
+        corrected = (f"; bias-corrected by the bootstrap (plug-in estimate {b['plugin_estimate']:.4g}, its replicates "
+                     "shifted away from it)" if b.get("plugin_estimate") is not None else "")
         kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (95%), "
-           f"{html.escape(b['label'])}, the most reliable estimator here{caveat}")
+           f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}")
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "

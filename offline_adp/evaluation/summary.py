@@ -75,7 +75,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         width = (iv[1] - iv[0]) if has_iv else np.inf
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
                     "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
-                    "estimate": est, "interval": iv if has_iv else None, "level": r.get("level"), "width": width})
+                    "estimate": est, "interval": iv if has_iv else None, "level": r.get("level"), "width": width,
+                    "plugin_estimate": r.get("plugin_estimate")})
     order = {k: i for i, k in enumerate(ROBUSTNESS)}
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
@@ -261,6 +262,8 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
         lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(lo)}, {_f(hi)}]"
                      + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
                         "interval as unreliable)" if outside else "")
+                     + (f" (bias-corrected by the bootstrap; plug-in {_f(b['plugin_estimate'])})"
+                        if b.get("plugin_estimate") is not None else "")
                      + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
