@@ -132,25 +132,27 @@ def test_every_estimator_targets_the_declared_estimand(gamma):
         assert abs(e.mean()) <= 4 * se + 0.02 * J, (k, e.mean(), se, J)
 
 
-@pytest.mark.slow
-def test_fqe_interval_coverage_over_seeds():
-    """FQE's 95% interval (200 replicates, 1000 ten-step episodes, mild shift), 30 seeds per gamma.
+#: Coverage is a binomial proportion: over 30 seeds its standard error is ~0.045, too coarse to tell 0.90 from
+#: 0.95, so the coverage test runs 100 seeds per gamma (issue 15 asked for 30).
+N_COVERAGE_SEEDS = 100
 
-    Measured: 26/30 (gamma 0.9) and 27/30 (gamma 1.0) on these seeds; 54/60 on seeds 0-59 and 84/90 on seeds
-    30-119 at gamma 0.9: tabular FQE's percentile intervals cover about 92%, slightly below nominal (1000 replicates,
-    bias-corrected or normal intervals did not change that). Issue 15 asks for >= 0.90 over 30 seeds: met at gamma 1.0,
-    NOT at gamma 0.9 (0.87). The test holds the measured floor so a regression (e.g. the old infinite-horizon FQE,
-    0 of 30) fails it."""
-    hits = {}
-    for gamma in GAMMAS:
-        mdp, pib, pi = problem(gamma, "mild")
-        J = truth(mdp, pi, gamma)
-        hits[gamma] = 0
-        for seed in range(N_SEEDS):
-            lo, hi = fqe_estimate(mdp, pib, pi, gamma, 1000, seed).interval
-            hits[gamma] += lo <= J <= hi
-    assert min(hits.values()) >= 0.85 * N_SEEDS, hits
-    assert sum(hits.values()) >= 0.88 * N_SEEDS * len(GAMMAS), hits
+
+@pytest.mark.slow
+@pytest.mark.parametrize("gamma", GAMMAS)
+def test_fqe_interval_coverage_over_seeds(gamma):
+    """FQE's 95% interval (200 replicates, 1000 ten-step episodes, mild shift) covers the exact value at least
+    90% of the time over 100 seeds.
+
+    Measured with the same estimator and seeds: 0.92 (gamma 0.9) and 0.93 (gamma 1.0)
+    on seeds 0-99; 0.935 over seeds 0-599 at gamma 0.9 (the bootstrap standard deviation 0.0110 equals the
+    estimator's spread over seeds, 0.0109). The old infinite-horizon FQE covered 0 of 30."""
+    mdp, pib, pi = problem(gamma, "mild")
+    J = truth(mdp, pi, gamma)
+    hits = 0
+    for seed in range(N_COVERAGE_SEEDS):
+        lo, hi = fqe_estimate(mdp, pib, pi, gamma, 1000, seed).interval
+        hits += lo <= J <= hi
+    assert hits >= 0.90 * N_COVERAGE_SEEDS, (gamma, hits)
 
 
 @pytest.mark.slow
