@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import operator
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -96,28 +97,6 @@ def flat_columns(info: Any) -> dict[str, list[str]]:
 
     names = info.feature_names
     return {"obs": [f"{S.OBS_PREFIX}{n}" for n in names], "next_obs": [f"{S.NEXT_OBS_PREFIX}{n}" for n in names]}
-
-
-def spread(client: Any, ddf: Any) -> Any:
-    """Persist with at least one partition per worker and check every worker holds some
-    (a dataset of one Parquet part would otherwise sit on a single worker)."""
-    import dask.dataframe as dd
-    from distributed import wait
-
-    workers = sorted(client.scheduler_info()["workers"])
-    if ddf.npartitions < len(workers):
-        ddf = ddf.repartition(npartitions=len(workers))
-    # partition i on worker i mod n, so every worker holds data (deterministic placement)
-    # (a preference, not a restriction: if that worker dies, Dask recomputes the partition elsewhere)
-    parts = [client.persist(ddf.partitions[i], workers=[workers[i % len(workers)]], allow_other_workers=True)
-             for i in range(ddf.npartitions)]
-    ddf = dd.concat(parts)
-    wait(ddf)
-    holders = {w for ws in client.who_has(ddf).values() for w in ws}
-    if set(workers) - holders:
-        raise OfflineADPError(f"workers {sorted(set(workers) - holders)} hold no data "
-                              f"({ddf.npartitions} partitions); use fewer workers or more parts")
-    return ddf
 
 
 # ----------------------------------------------------------------------------- FQI on the cluster
@@ -399,28 +378,36 @@ class _Blocks:
         self.place()
 
     def place(self) -> None:
-        """Block ``i`` on the ``i``-th worker (sorted addresses, mod n); when any block is
-        elsewhere (a worker was lost), wait for the workers to be back and load them all again."""
+        """Block ``i`` on the ``i``-th worker (sorted addresses, mod n). When a block is
+        elsewhere (a worker was lost), wait for the workers to be back (up to ``wait_s``)
+        and load every block again; check the placement after loading (a worker may come
+        or go meanwhile)."""
         from distributed import wait
 
         client = self.client
-        if len(client.scheduler_info()["workers"]) < self.n_workers:
-            with contextlib.suppress(TimeoutError):
-                client.wait_for_workers(self.n_workers, timeout=self.wait_s)
-        workers = sorted(client.scheduler_info()["workers"])
-        want = [workers[i % len(workers)] for i in range(len(self.plan))]
-        if self.futures and want == self.where:
-            has = client.who_has(self.futures)
-            if all(w in has.get(f.key, ()) for f, w in zip(self.futures, want, strict=True)):
+        for _ in range(5):
+            if len(client.scheduler_info()["workers"]) < self.n_workers:
+                with contextlib.suppress(TimeoutError):
+                    client.wait_for_workers(self.n_workers, timeout=self.wait_s)
+            workers = sorted(client.scheduler_info()["workers"])
+            want = [workers[i % len(workers)] for i in range(len(self.plan))]
+            if self.futures and want == self.where and self._placed():
                 return
-        old = self.futures
-        self.futures = [client.submit(_load_block, *c, *self.args, workers=[w], allow_other_workers=True, pure=False)
-                        for c, w in zip(self.plan, want, strict=True)]
-        self.where = want
-        self._x: Any = None
-        wait(self.futures)
-        for f in old:
-            f.release()
+            old = self.futures
+            self.futures = [client.submit(_load_block, *c, *self.args, workers=[w], allow_other_workers=True, pure=False)
+                            for c, w in zip(self.plan, want, strict=True)]
+            self.where, self._x = want, None
+            wait(self.futures)
+            for f in old:
+                with contextlib.suppress(Exception):
+                    f.release()
+            if self._placed():
+                return
+            time.sleep(1.0)  # a worker came or went while loading
+
+    def _placed(self) -> bool:
+        has = self.client.who_has(self.futures)
+        return all(w in has.get(f.key, ()) for f, w in zip(self.futures, self.where, strict=True))
 
     def map(self, fn: Any, *args: Any) -> list[Any]:
         """``fn(block, *args)`` for every block, on the block's worker."""
@@ -455,7 +442,8 @@ class _Blocks:
 
     def release(self) -> None:
         for f in self.futures:
-            f.release()
+            with contextlib.suppress(Exception):  # the cluster may be gone already
+                f.release()
         self.futures, self._x = [], None
 
 
@@ -522,7 +510,7 @@ class DaskLearner(Learner):
         for attempt in range(self.retries + 1):
             try:
                 self.blocks.place()  # the rows each worker trains on decide LightGBM's result
-                model = DaskLGBMRegressor(client=self.client, time_out=self.time_out, **self._params(k))
+                model = DaskLGBMRegressor(client=_OrderedClient(self.client), time_out=self.time_out, **self._params(k))
                 model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
                 break
             except Exception as exc:  # a worker lost during LightGBM's collective training
@@ -576,6 +564,26 @@ class DaskLearner(Learner):
             self._cache = self._sum_predictions(self.boosters)
         else:
             self.q, self._cache = q, {}  # type: ignore[assignment]
+
+
+class _OrderedClient:
+    """A client whose ``who_has`` lists the futures in the order given. ``lightgbm.dask``
+    numbers its machines (ranks) in that order and ``distributed.Client.who_has`` returns
+    them in a set's order, which changes from run to run, and with it which rows each
+    rank holds and the trees. With this client, rank r is the worker of block r."""
+
+    def __init__(self, client: Any) -> None:
+        self._client = client
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._client, name)
+
+    def who_has(self, futures: Any = None, **kwargs: Any) -> dict[Any, Any]:
+        got = self._client.who_has(futures, **kwargs)
+        if futures is None:
+            return got
+        keys = dict.fromkeys(f.key for f in self._client.futures_of(futures))
+        return {k: got[k] for k in keys if k in got}
 
 
 def _count_starts(block: dict[str, np.ndarray]) -> int:
