@@ -30,7 +30,7 @@ import pandas as pd
 
 from offline_adp.errors import OfflineADPError
 from offline_adp.learners import BoostedSumQ, Learner, LightGBMWarmStartLearner
-from offline_adp.qfunctions import QFunction, RegressorQ
+from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
 
 
 def _require_dask() -> None:
@@ -356,7 +356,11 @@ def _load_block(path: str, lo: int, hi: int, obs_cols: list[str], next_cols: lis
         return np.column_stack([t.column(c).to_numpy().astype(np.float64, copy=False) for c in names])
 
     obs, a, step = matrix(obs_cols), t.column(S.ACTION).to_numpy().astype(np.int64), t.column(S.STEP).to_numpy()
-    return {"X": np.hstack([obs, action_features[a]]), "next": matrix(next_cols), "start": obs[step == 0],
+    nxt = matrix(next_cols)
+    follows = np.zeros(len(obs), bool)  # x_i == x'_{i-1}: a logged episode continues
+    follows[1:] = (obs[1:] == nxt[:-1]).all(axis=1)
+    return {"X": np.hstack([obs, action_features[a]]), "next": nxt, "start": obs[step == 0],
+            "start_pos": np.flatnonzero(step == 0), "follows": follows,
             "first": obs[:1], "action": a, "cost": t.column(S.COST).to_numpy().astype(np.float64, copy=False),
             "terminated": t.column(S.TERMINATED).to_numpy(), "step": step}
 
@@ -447,24 +451,28 @@ class _Blocks:
         self.futures, self._x = [], None
 
 
-def _predict_block(block: dict[str, np.ndarray], model: Any, names: tuple[str, ...], encoder: Any,
-                   booster: bool) -> dict[str, np.ndarray]:
-    """Predictions of one model on a block: ``train`` ``(m,)`` at the logged actions, ``next``
-    and ``start`` ``(m, n_actions)`` for every action (one thread: the worker's own)."""
-    from offline_adp.qfunctions import predict_model
-
+def _predict_block(block: dict[str, np.ndarray], model: Any, encoder: Any, booster: bool) -> dict[str, np.ndarray]:
+    """One model's predictions on a block, one thread (the worker's own): ``next`` and
+    ``start`` ``(m, n_actions)`` for every action, ``train`` ``(m,)`` at the logged
+    actions. A training input equal to one already predicted (the previous row's next
+    state, or a start state) is read from there: the same input gives the same value."""
     def pred(X: np.ndarray) -> np.ndarray:
         if not len(X):
             return np.zeros(0)
         return np.asarray(model.predict(X, raw_score=True, num_threads=1), dtype=np.float64) if booster else predict_model(model, X)
 
-    out = {}
-    for name in names:
-        if name == "train":
-            out[name] = pred(block["X"])
-        else:
-            x = block[name]
-            out[name] = pred(encoder.all_pairs(x)).reshape(encoder.n_actions, len(x)).T
+    def all_actions(x: np.ndarray) -> np.ndarray:
+        return pred(encoder.all_pairs(x)).reshape(encoder.n_actions, len(x)).T
+
+    out = {"next": all_actions(block["next"]), "start": all_actions(block["start"])}
+    a, follows, start = block["action"], block["follows"], block["start_pos"]
+    train = np.empty(len(a))
+    rest = ~follows
+    rest[start] = False
+    train[follows] = out["next"][np.flatnonzero(follows) - 1, a[follows]]
+    train[start] = out["start"][np.arange(len(start)), a[start]]
+    train[rest] = pred(block["X"][rest])
+    out["train"] = train
     return out
 
 
@@ -529,14 +537,13 @@ class DaskLearner(Learner):
             self.q = RegressorQ([local], self.encoder)
             self._cache = {}
 
-    def _predict(self, model: Any, names: tuple[str, ...], booster: bool) -> dict[str, np.ndarray]:
+    def _predict(self, model: Any, booster: bool) -> dict[str, np.ndarray]:
+        """``model`` on every query set, one task per block on its worker."""
         m = self.client.scatter(model, broadcast=True, hash=False)
-        got = self.client.gather(self.blocks.map(_predict_block, m, names, self.encoder, booster))
-        A = self.encoder.n_actions
-        out = {name: np.concatenate([g[name] for g in got]) if name == "train" else
-               np.concatenate([g[name].reshape(-1, A) for g in got]) for name in names}
-        if "start" in out and self.n_start == 0:  # no start state in the data: the first row (as in-process)
-            out["start"] = _predict_rows(model, self.encoder, self.start_obs, booster)
+        got = self.client.gather(self.blocks.map(_predict_block, m, self.encoder, booster))
+        out = {name: np.concatenate([g[name] for g in got]) for name in self.QUERIES}
+        if self.n_start == 0:  # no start state in the data: the first row (as in-process)
+            out["start"] = _predict_block(_query_block(self.start_obs), model, self.encoder, booster)["start"]
         return out
 
     def _sum_predictions(self, boosters: list[Any]) -> dict[str, np.ndarray]:
@@ -545,13 +552,13 @@ class DaskLearner(Learner):
         total = {"train": np.zeros(n), "next": np.zeros((n, A)),
                  "start": np.zeros((self.n_start if self.n_start else len(self.start_obs), A))}
         for b in boosters:
-            new = self._predict(b, self.QUERIES, booster=True)
+            new = self._predict(b, booster=True)
             total = {name: total[name] + new[name] for name in self.QUERIES}
         return total
 
     def predict(self, name: str) -> np.ndarray:
-        if name not in self._cache:
-            self._cache.update(self._predict(self.q.models[0], (name,), booster=False))
+        if not self._cache:  # refit: Q_k on every query set at once (the loop and its diagnostics read all)
+            self._cache = self._predict(self.q.models[0], booster=False)
         return self._cache[name]
 
     def snapshot(self) -> QFunction:
@@ -590,9 +597,10 @@ def _count_starts(block: dict[str, np.ndarray]) -> int:
     return len(block["start"])
 
 
-def _predict_rows(model: Any, encoder: Any, x: np.ndarray, booster: bool) -> np.ndarray:
-    """``model``'s Q at states ``x`` for every action, on the client."""
-    return _predict_block({"start": x}, model, ("start",), encoder, booster)["start"]
+def _query_block(x: np.ndarray) -> dict[str, np.ndarray]:
+    """States ``x`` as a block whose ``start`` set they are (client-side predictions)."""
+    return {"next": x[:0], "start": x, "start_pos": np.zeros(0, np.int64), "follows": np.zeros(0, bool),
+            "action": np.zeros(0, np.int64), "X": np.zeros((0, x.shape[1]))}
 
 
 def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any, Any]:
