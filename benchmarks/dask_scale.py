@@ -11,7 +11,7 @@ and nanny process), the Dask/local wall ratio (target < 1.2), the workers' peak 
 the refit mode (``--iterations``, default 3) and the warm-start mode (10 new trees per
 iteration from cached predictions, ``--warm-iterations``, default 5).
 
-    python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start]
+    python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start] [--no-local]
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ def main() -> None:
     ap.add_argument("--modes", nargs="+", default=["refit", "warm_start"], choices=["refit", "warm_start"])
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--warm-iterations", type=int, default=5)
+    ap.add_argument("--no-local", action="store_true", help="time the Dask side only")
     args = ap.parse_args()
     print(f"{'transitions':>12s} {'mode':>10s} {'local s/it':>10s} {'cpu/it':>7s} {'dask s/it':>10s} {'cpu/it':>7s} "
           f"{'ratio':>6s}  worker peak RSS (MB)")
@@ -75,14 +76,14 @@ def main() -> None:
             path = Path(tmp) / f"coh{n}"
             make(n, path)
             ds = read_dataset(path)
-            local = {}
-            for mode in args.modes:
+            local = {mode: (float("nan"), float("nan")) for mode in args.modes}
+            for mode in [] if args.no_local else args.modes:
                 n_it = args.iterations if mode == "refit" else args.warm_iterations
                 est = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=PARAMS, n_iterations=n_it,
                                        mode=mode, trees_per_iteration=10).fit(ds)
                 h = est.history_.iloc[1:]  # iterations 2..: targets need a prediction
                 local[mode] = (float(h["wall_time"].mean()), float(h["cpu_time"].mean()))
-            del ds, est
+            del ds
             for mode in args.modes:
                 n_it = args.iterations if mode == "refit" else args.warm_iterations
                 with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="10GiB")) as client:
