@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import operator
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -519,7 +520,9 @@ class DaskLearner(Learner):
             try:
                 self.blocks.place()  # the rows each worker trains on decide LightGBM's result
                 model = DaskLGBMRegressor(client=_OrderedClient(self.client), time_out=self.time_out, **self._params(k))
-                model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
+                with warnings.catch_warnings():  # said on every fit: the workers' threads are their own
+                    warnings.filterwarnings("ignore", message="Parameter n_jobs will be ignored")
+                    model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
                 break
             except Exception as exc:  # a worker lost during LightGBM's collective training
                 if self.client.status != "running":  # the scheduler itself is gone: nothing to retry on
