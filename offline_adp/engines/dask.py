@@ -141,7 +141,9 @@ class DistributedFQI:
     time_out : int
         Minutes LightGBM's Dask network setup may wait (so nothing hangs for hours).
     retries : int
-        Times an iteration whose LightGBM training lost a worker is retried.
+        Times an iteration whose LightGBM training lost a worker (or found its rows on
+        other workers than their blocks') is retried; the last try trains wherever the
+        rows are (the Q may then differ from an undisturbed fit's).
     random_state : int
         Iteration k's trees are seeded with ``random_state + k``.
     policy : Policy, optional
@@ -160,7 +162,7 @@ class DistributedFQI:
     estimator_ : FittedQIteration
         The in-process estimator the loop ran for (holds the same attributes).
     retried_ : int
-        Trainings retried after a lost worker.
+        Trainings retried (a lost worker, rows not in their places).
     """
 
     def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
@@ -519,7 +521,9 @@ class DaskLearner(Learner):
         for attempt in range(self.retries + 1):
             try:
                 self.blocks.place()  # the rows each worker trains on decide LightGBM's result
-                model = DaskLGBMRegressor(client=_OrderedClient(self.client), time_out=self.time_out, **self._params(k))
+                where = self.blocks.where if attempt < self.retries else None  # last attempt: train wherever
+                model = DaskLGBMRegressor(client=_OrderedClient(self.client, where), time_out=self.time_out,
+                                          **self._params(k))
                 with warnings.catch_warnings():  # said on every fit: the workers' threads are their own
                     warnings.filterwarnings("ignore", message="Parameter n_jobs will be ignored")
                     model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
@@ -530,6 +534,7 @@ class DaskLearner(Learner):
                 if attempt == self.retries:
                     raise OfflineADPError(f"iteration {k} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
                 self.retried += 1
+                time.sleep(1.0)  # let the scheduler see a worker that went
         if self.warm_start:
             self.boosters.append(model.booster_)
             new = self._sum_predictions([model.booster_])
@@ -577,13 +582,15 @@ class DaskLearner(Learner):
 
 
 class _OrderedClient:
-    """A client whose ``who_has`` lists the futures in the order given. ``lightgbm.dask``
-    numbers its machines (ranks) in that order and ``distributed.Client.who_has`` returns
-    them in a set's order, which changes from run to run, and with it which rows each
-    rank holds and the trees. With this client, rank r is the worker of block r."""
+    """A client for ``lightgbm.dask`` whose ``who_has`` lists the futures in the order
+    given and checks that part r is on ``where[r]``. ``lightgbm.dask`` numbers its
+    machines (ranks) in that order, and ``distributed.Client.who_has`` returns a set's
+    order, which changes from run to run, and with it which rows each rank holds and the
+    trees. With this client, rank r is the worker of block r; a part computed elsewhere (a
+    worker came or went) raises :class:`_Misplaced` before any training, and is retried."""
 
-    def __init__(self, client: Any) -> None:
-        self._client = client
+    def __init__(self, client: Any, where: list[str] | None) -> None:
+        self._client, self._where = client, where
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._client, name)
@@ -592,8 +599,14 @@ class _OrderedClient:
         got = self._client.who_has(futures, **kwargs)
         if futures is None:
             return got
-        keys = dict.fromkeys(f.key for f in self._client.futures_of(futures))
+        keys = list(dict.fromkeys(f.key for f in self._client.futures_of(futures)))
+        if self._where is not None and len(keys) == len(self._where) and any(w not in got.get(k, ()) for k, w in zip(keys, self._where, strict=True)):
+            raise _Misplaced(f"LightGBM's parts are not on their blocks' workers: {[got.get(k) for k in keys]}")
         return {k: got[k] for k in keys if k in got}
+
+
+class _Misplaced(RuntimeError):
+    """A LightGBM part on another worker than its block (retried after placing the blocks)."""
 
 
 def _count_starts(block: dict[str, np.ndarray]) -> int:
