@@ -102,8 +102,9 @@ def flat_columns(info: Any) -> dict[str, list[str]]:
 
 # ----------------------------------------------------------------------------- FQI on the cluster
 class DistributedFQI:
-    """Fitted Q-iteration (Algorithm 11; with ``policy``, fitted Q evaluation, Algorithm 13)
-    with LEARN on a Dask cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
+    """Fitted Q-iteration (Algorithm 11, or 10 for a dataset whose hints make it finite
+    horizon; with ``policy``, fitted Q evaluation, Algorithms 13/12) with LEARN on a Dask
+    cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
 
     It is the package's one fitted-Q loop
     (:func:`~offline_adp.algorithms.fqi.run_fitted_q` and
@@ -288,11 +289,12 @@ class _DaskEngine:
         af = np.asarray(info.action_table.values, dtype=np.float64)
         cols = flat_columns(info)
         n_workers = len(self.client.scheduler_info()["workers"])
-        self.blocks = _Blocks(self.client, _chunk_plan(parts, n_workers), cols["obs"], cols["next_obs"], af, n_workers)
+        plan = _chunk_plan(parts, n_workers)
+        if not plan:
+            raise ValueError("the dataset is empty")
+        self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers)
         v = self.blocks.gather(("cost", "terminated", "action", "step"))
         cost, term, step = v["cost"], v["terminated"], v["step"]
-        if not len(cost):
-            raise ValueError("the dataset is empty")
         est = self.est
         disc = resolve_discount(info, est.gamma, est.horizon, terminates=bool(term.any()))
         est.gamma_, est.horizon_ = disc.gamma, disc.horizon
