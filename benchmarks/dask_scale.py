@@ -12,6 +12,7 @@ the refit mode (``--iterations``, default 3) and the warm-start mode (10 new tre
 iteration from cached predictions, ``--warm-iterations``, default 5).
 
     python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start] [--no-local]
+                                    [--data uniform|episodes]
 """
 
 from __future__ import annotations
@@ -32,6 +33,15 @@ from offline_adp.engines.dask import DistributedFQI, EngineConfig, dask_client
 from offline_adp.envs import CarOnHill
 
 PARAMS = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1}
+
+
+def make_episodes(n: int, path: Path) -> None:
+    """Logged episodes instead (``--data episodes``): random-action car-on-the-hill episodes
+    of up to 100 steps from the package's simulator, about ``n`` transitions; most rows
+    continue the previous one and 1-2% start an episode."""
+    from offline_adp.simulate import simulate
+
+    simulate("car_on_hill", 0, max(1, n // 52), seed=0, horizon=100).save(path)
 
 
 def make(n: int, path: Path) -> None:
@@ -68,13 +78,15 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--warm-iterations", type=int, default=5)
     ap.add_argument("--no-local", action="store_true", help="time the Dask side only")
+    ap.add_argument("--data", choices=["uniform", "episodes"], default="uniform",
+                    help="one-step transitions from uniform states (every row starts an episode), or logged episodes")
     args = ap.parse_args()
     print(f"{'transitions':>12s} {'mode':>10s} {'local s/it':>10s} {'cpu/it':>7s} {'dask s/it':>10s} {'cpu/it':>7s} "
           f"{'ratio':>6s}  worker peak RSS (MB)")
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
             path = Path(tmp) / f"coh{n}"
-            make(n, path)
+            (make if args.data == "uniform" else make_episodes)(n, path)
             ds = read_dataset(path)
             local = {mode: (float("nan"), float("nan")) for mode in args.modes}
             for mode in [] if args.no_local else args.modes:
