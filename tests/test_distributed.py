@@ -178,6 +178,12 @@ def test_checkpointed_distributed_fit_resumes(client, coh, tmp_path):
     x = ds.arrays().obs
     np.testing.assert_array_equal(est.q_function_.values(x), whole.q_function_.values(x))
     assert est.verdict_ == whole.verdict_
+    # killed after the last checkpoint, before the caller saved the model: nothing is redone
+    again: list[int] = []
+    done = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
+                                                                            on_iteration=again.append)
+    assert again == [] and done.history_["iteration"].tolist() == [1, 2, 3] and done.verdict_ == whole.verdict_
+    np.testing.assert_array_equal(done.q_function_.values(x), whole.q_function_.values(x))
 
 
 def test_distributed_fqe_of_a_fixed_policy_matches_local(client, coh):
