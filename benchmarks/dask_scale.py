@@ -1,16 +1,18 @@
-"""One-machine scale check of the Dask engine: FQI with LightGBM, local multi-thread vs
-Dask 2 workers x 1 thread, at 1M and 4M transitions.
+"""One-machine scale check of the Dask engine: FQI with LightGBM, local vs Dask
+2 workers x 1 thread.
 
 Data: uniformly random car-on-the-hill states and actions, one step each (the
 "uniform" setting of Ernst et al.), saved as a dataset directory (500k-row parts).
-Timed: the second FQI iteration on each side (its targets need the batched prediction of
-Q_1), after the data is loaded (local: read into memory; Dask: read and spread over the
-workers).
-Reported: seconds per iteration, the Dask/local ratio (target < 1.2), and the peak RSS of
-each worker process; the same for the warm-start mode (10 new trees per iteration from
-cached predictions; timed: the mean of iterations 2-5).
+Timed, on each side: iterations 2..K (their targets need the batched prediction of
+Q_{k-1}), after the data is loaded (local: read into memory; Dask: read and spread over
+the workers, i.e. the first iteration). Reported per iteration: wall seconds and CPU
+seconds (the Dask side counts this process, i.e. client and scheduler, plus every worker
+and nanny process), the Dask/local wall ratio (target < 1.2), the workers' peak RSS; for
+the refit mode (``--iterations``, default 3) and the warm-start mode (10 new trees per
+iteration from cached predictions, ``--warm-iterations``, default 5).
 
-    python benchmarks/dask_scale.py [--sizes 1000000 4000000]
+    python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start] [--no-local]
+                                    [--data uniform|episodes]
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
@@ -30,6 +33,15 @@ from offline_adp.engines.dask import DistributedFQI, EngineConfig, dask_client
 from offline_adp.envs import CarOnHill
 
 PARAMS = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1}
+
+
+def make_episodes(n: int, path: Path) -> None:
+    """Logged episodes instead (``--data episodes``): random-action car-on-the-hill episodes
+    of up to 100 steps from the package's simulator, about ``n`` transitions; most rows
+    continue the previous one and 1-2% start an episode."""
+    from offline_adp.simulate import simulate
+
+    simulate("car_on_hill", 0, max(1, n // 52), seed=0, horizon=100).save(path)
 
 
 def make(n: int, path: Path) -> None:
@@ -47,33 +59,57 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def tree_cpu() -> float:
+    """CPU seconds of this process and all its live descendants (Dask workers, nannies)."""
+    me = psutil.Process()
+    total = sum(me.cpu_times()[:2])
+    for p in me.children(recursive=True):
+        try:
+            total += sum(p.cpu_times()[:2])
+        except psutil.NoSuchProcess:
+            pass
+    return total
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[1_000_000, 4_000_000])
+    ap.add_argument("--modes", nargs="+", default=["refit", "warm_start"], choices=["refit", "warm_start"])
+    ap.add_argument("--iterations", type=int, default=3)
+    ap.add_argument("--warm-iterations", type=int, default=5)
+    ap.add_argument("--no-local", action="store_true", help="time the Dask side only")
+    ap.add_argument("--data", choices=["uniform", "episodes"], default="uniform",
+                    help="one-step transitions from uniform states (every row starts an episode), or logged episodes")
     args = ap.parse_args()
-    print(f"{'transitions':>12s} {'mode':>10s} {'local s/it':>10s} {'dask s/it':>10s} {'ratio':>6s}  worker peak RSS (MB)")
+    print(f"{'transitions':>12s} {'mode':>10s} {'local s/it':>10s} {'cpu/it':>7s} {'dask s/it':>10s} {'cpu/it':>7s} "
+          f"{'ratio':>6s}  worker peak RSS (MB)")
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
             path = Path(tmp) / f"coh{n}"
-            make(n, path)
+            (make if args.data == "uniform" else make_episodes)(n, path)
             ds = read_dataset(path)
-            est = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=PARAMS, n_iterations=2).fit(ds)
-            local = {"refit": float(est.history_["wall_time"].iloc[1])}  # the second iteration: targets need a prediction
-            est = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=PARAMS, n_iterations=5,
-                                   mode="warm_start", trees_per_iteration=10).fit(ds)
-            local["warm_start"] = float(est.history_["wall_time"].iloc[1:].mean())
-            del ds, est
-            for mode, n_it in (("refit", 2), ("warm_start", 5)):
+            local = {mode: (float("nan"), float("nan")) for mode in args.modes}
+            for mode in [] if args.no_local else args.modes:
+                n_it = args.iterations if mode == "refit" else args.warm_iterations
+                est = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=PARAMS, n_iterations=n_it,
+                                       mode=mode, trees_per_iteration=10).fit(ds)
+                h = est.history_.iloc[1:]  # iterations 2..: targets need a prediction
+                local[mode] = (float(h["wall_time"].mean()), float(h["cpu_time"].mean()))
+            del ds
+            for mode in args.modes:
+                n_it = args.iterations if mode == "refit" else args.warm_iterations
                 with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="10GiB")) as client:
-                    marks: list[float] = []
+                    marks: list[tuple[float, float]] = []
                     t0 = time.perf_counter()
                     DistributedFQI(gamma=0.95, n_iterations=n_it, lgbm_params=PARAMS, warm_start=mode == "warm_start",
                                    trees_per_iteration=10).fit(
-                        client, path, on_iteration=lambda k, marks=marks: marks.append(time.perf_counter()))
-                    dask_it = (marks[-1] - marks[0]) / (n_it - 1)  # iterations 2.. (data already spread)
-                    first = marks[0] - t0
+                        client, path, on_iteration=lambda k, marks=marks: marks.append((time.perf_counter(), tree_cpu())))
+                    dask_it = (marks[-1][0] - marks[0][0]) / (n_it - 1)  # iterations 2.. (data already spread)
+                    dask_cpu = (marks[-1][1] - marks[0][1]) / (n_it - 1)
+                    first = marks[0][0] - t0
                     rss = client.run(peak_rss_mb)
-                print(f"{n:12d} {mode:>10s} {local[mode]:10.2f} {dask_it:10.2f} {dask_it / local[mode]:6.2f}  "
+                lw, lc = local[mode]
+                print(f"{n:12d} {mode:>10s} {lw:10.2f} {lc:7.2f} {dask_it:10.2f} {dask_cpu:7.2f} {dask_it / lw:6.2f}  "
                       + ", ".join(f"{v:.0f}" for v in rss.values())
                       + f"   (dask first iteration incl. load+spread {first:.1f} s)", flush=True)
 

@@ -343,9 +343,19 @@ class LightGBMWarmStartLearner(Learner):
         import lightgbm as lgb
 
         self.lgb = lgb
-        is_lgb = type(self.regressor).__name__.startswith("LGBM")
-        p = self.regressor.get_params() if is_lgb else {}
-        self.params = {
+        self.params = self.booster_params(self.regressor, self.seed)
+        self.trees_per_iteration = trees_per_iteration
+        self.X = {name: self._joint(phi, a) for name, (phi, a) in self.queries.items()}
+        self.cache = {name: np.zeros(len(X)) for name, X in self.X.items()}
+        self.boosters: list[Any] = []
+        self.data = self.lgb.Dataset(self.X["train"], label=np.zeros(len(self.X["train"])), weight=self.weights,
+                                     free_raw_data=False, params={"verbose": -1})
+
+    @staticmethod
+    def booster_params(regressor: Any, seed: int) -> dict[str, Any]:
+        """``lightgbm.train`` parameters of one iteration's trees (also the Dask engine's)."""
+        p = regressor.get_params() if type(regressor).__name__.startswith("LGBM") else {}
+        return {
             "objective": "regression",
             "num_leaves": p.get("num_leaves", 63),
             "learning_rate": p.get("learning_rate") if p.get("learning_rate") is not None else 0.3,
@@ -354,16 +364,10 @@ class LightGBMWarmStartLearner(Learner):
             # one thread unless the regressor asks for more: on a loaded machine LightGBM's
             # spinning OpenMP threads burned 5-50x the CPU of a single thread at 10k-50k rows
             "num_threads": p.get("n_jobs") if (p.get("n_jobs") or 0) > 0 else 1,
-            "seed": self.seed,
+            "seed": seed,
             "deterministic": True,
             "boost_from_average": True,
         }
-        self.trees_per_iteration = trees_per_iteration
-        self.X = {name: self._joint(phi, a) for name, (phi, a) in self.queries.items()}
-        self.cache = {name: np.zeros(len(X)) for name, X in self.X.items()}
-        self.boosters: list[Any] = []
-        self.data = self.lgb.Dataset(self.X["train"], label=np.zeros(len(self.X["train"])), weight=self.weights,
-                                     free_raw_data=False, params={"verbose": -1})
 
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)

@@ -14,9 +14,7 @@ from offline_adp.engines.dask import (  # noqa: E402
     DistributedFQI,
     EngineConfig,
     dask_client,
-    distributed_targets,
     read_dataset_dask,
-    spread,
 )
 from offline_adp.simulate import simulate  # noqa: E402
 
@@ -43,15 +41,70 @@ def test_read_parquet_columns_then_persist_still_computes(client, coh):
     assert len(ddf.compute()) == len(ds)
 
 
-def test_distributed_targets_equal_local_targets(client, coh):
-    ds, path = coh
-    local = FittedQIteration(gamma=0.95, regressor="lightgbm", n_iterations=2, random_state=0).fit(ds)
-    q = local.q_function_
-    a = ds.arrays()
-    expected = a.cost + 0.95 * np.where(a.terminated, 0.0, q.values(a.next_obs).min(axis=1))
-    ddf = spread(client, read_dataset_dask(path))
-    got = distributed_targets(client, ddf, q, 0.95, ds.info).compute().to_numpy()
-    np.testing.assert_array_equal(got, expected)  # same rows in the same order, same predictions
+@pytest.fixture(scope="module")
+def one_worker():
+    with dask_client(EngineConfig(kind="dask", n_workers=1, threads_per_worker=1, memory_limit="2GiB")) as c:
+        yield c
+
+
+def _same_fit(a, b, x):
+    """Equal Q on the states ``x`` and equal per-iteration diagnostics (not the clocks)."""
+    np.testing.assert_array_equal(a.q_function_.values(x), b.q_function_.values(x))
+    cols = ["iteration", "sup_dq", "mean_dq", "max_abs_q", "bellman_residual", "greedy_changed", "start_value"]
+    ha, hb = (np.asarray(h.history_[cols], dtype=float) for h in (a, b))
+    np.testing.assert_allclose(ha, hb, rtol=1e-12, atol=1e-12)  # reductions may sum in another order
+    assert a.verdict_ == b.verdict_
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["refit", "warm_start", "fqe"])
+def test_dask_fit_equals_the_in_process_fit_of_its_estimator(one_worker, coh, tmp_path, kind):
+    """The oracle: on one worker (LightGBM then trains on one machine, as in-process) the
+    Dask fit runs the same loop with the same targets, seeds and trees, so Q, the history
+    and the verdict equal :meth:`DistributedFQI.estimator`'s in-process fit; a fit stopped
+    after 2 iterations and resumed from its checkpoint gives that Q too."""
+    from offline_adp.data.io import read_dataset
+    from offline_adp.policies import UniformPolicy
+
+    _, path = coh
+    ds = read_dataset(path)
+    params = {"n_estimators": 20, "num_leaves": 15, "n_jobs": 1}  # one LightGBM thread in-process, as on the worker
+    kw = {"gamma": 0.95, "lgbm_params": params, "random_state": 4, "warm_start": kind == "warm_start",
+          "policy": UniformPolicy(2) if kind == "fqe" else None}
+    dist = DistributedFQI(n_iterations=4, **kw).fit(one_worker, path)
+    local = dist.estimator().fit(ds)
+    assert type(local).__name__ == ("FittedQEvaluation" if kind == "fqe" else "FittedQIteration")
+    x = ds.arrays().obs
+    _same_fit(dist, local, x)
+    if kind == "fqe":
+        assert dist.value_ == pytest.approx(local.value_, rel=1e-12)
+    ck = tmp_path / "ck"
+    DistributedFQI(n_iterations=2, **kw).fit(one_worker, path, checkpoint_dir=ck)
+    seen: list[int] = []
+    resumed = DistributedFQI(n_iterations=4, **kw).fit(one_worker, path, checkpoint_dir=ck, on_iteration=seen.append)
+    assert seen == [3, 4]
+    _same_fit(resumed, local, x)
+
+
+def test_dask_finite_horizon_fit_equals_the_in_process_fit(one_worker, tmp_path):
+    """gamma = 1 on a dataset with a 5-step horizon hint is Algorithm 10 (one Q per step):
+    the same generic loop, so the Dask fit equals the in-process one step by step, and a
+    checkpoint of the finished fit (a TimeIndexedQ) gives it back without refitting."""
+    from offline_adp.data.io import read_dataset
+
+    simulate("car_on_hill", 0, 60, seed=5, horizon=5).save(tmp_path / "ds")
+    ds = read_dataset(tmp_path / "ds")
+    kw = {"gamma": 1.0, "lgbm_params": {"n_estimators": 10, "num_leaves": 7, "n_jobs": 1}}
+    dist = DistributedFQI(**kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=tmp_path / "ck")
+    local = dist.estimator().fit(ds)
+    assert dist.estimator_.horizon_ == local.horizon_ == 5 and len(dist.history_) == 5
+    x = ds.arrays().obs
+    for t in range(5):
+        np.testing.assert_array_equal(dist.q_function_.values(x, t), local.q_function_.values(x, t))
+    seen: list[int] = []
+    again = DistributedFQI(**kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=tmp_path / "ck", on_iteration=seen.append)
+    assert seen == []
+    np.testing.assert_array_equal(again.q_function_.values(x, 2), local.q_function_.values(x, 2))
 
 
 def test_two_distributed_iterations_agree_with_single_process(client, coh):
@@ -65,8 +118,9 @@ def test_two_distributed_iterations_agree_with_single_process(client, coh):
 
 
 def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
-    """Kill one worker process after iteration 1: its partitions are recomputed elsewhere
-    (the nanny restarts it empty) and the fit completes, close to an undisturbed fit."""
+    """Kill one worker process after iteration 1: the nanny restarts it empty, the rows go
+    back to their places (block i on the i-th worker) and the fit completes with the Q of
+    an undisturbed fit."""
     import os
 
     ds, path = coh
@@ -88,8 +142,7 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
     assert len(est.history_) == 3 and killed
     assert killed[0] not in client.scheduler_info()["workers"]  # the process really went away
     x = ds.arrays().obs
-    a, b = est.q_function_.values(x).ravel(), undisturbed.q_function_.values(x).ravel()
-    assert np.corrcoef(a, b)[0, 1] > 0.98
+    np.testing.assert_array_equal(est.q_function_.values(x), undisturbed.q_function_.values(x))
     client.wait_for_workers(2, timeout=60)
 
 
@@ -133,14 +186,25 @@ def test_pipeline_with_dask_engine_matches_local(tmp_path):
 
 
 def test_checkpointed_distributed_fit_resumes(client, coh, tmp_path):
-    """A fit stopped after 2 iterations continues from its checkpoint to 3 without redoing them."""
+    """A fit stopped after 2 iterations continues from its checkpoint to 3 without redoing
+    them, to the Q of an uninterrupted 3-iteration fit on two workers."""
     ds, path = coh
     params = {"n_estimators": 20, "num_leaves": 15}
     DistributedFQI(gamma=0.95, n_iterations=2, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck")
     seen: list[int] = []
     est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
                                                                            on_iteration=seen.append)
-    assert seen == [3] and [h["iteration"] for h in est.history_] == [1, 2, 3]
+    assert seen == [3] and est.history_["iteration"].tolist() == [1, 2, 3]
+    whole = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path)
+    x = ds.arrays().obs
+    np.testing.assert_array_equal(est.q_function_.values(x), whole.q_function_.values(x))
+    assert est.verdict_ == whole.verdict_
+    # killed after the last checkpoint, before the caller saved the model: nothing is redone
+    again: list[int] = []
+    done = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
+                                                                            on_iteration=again.append)
+    assert again == [] and done.history_["iteration"].tolist() == [1, 2, 3] and done.verdict_ == whole.verdict_
+    np.testing.assert_array_equal(done.q_function_.values(x), whole.q_function_.values(x))
 
 
 def test_distributed_fqe_of_a_fixed_policy_matches_local(client, coh):
@@ -260,13 +324,14 @@ def test_a_lost_scheduler_gives_a_clear_error_and_the_fit_resumes_from_its_check
                                                                                on_iteration=seen.append)
     assert seen == [2, 3]  # iteration 1 came from the checkpoint
     undisturbed = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path)
-    x = ds.arrays().obs
-    assert np.corrcoef(resumed.q_function_.values(x).ravel(), undisturbed.q_function_.values(x).ravel())[0, 1] > 0.98
+    x = ds.arrays().obs  # two workers there and here: the same rows on each, the same Q
+    np.testing.assert_array_equal(resumed.q_function_.values(x), undisturbed.q_function_.values(x))
 
 
 def test_distributed_warm_start_agrees_with_local_warm_start_and_resumes(client, coh, tmp_path):
-    """Warm start on Dask: Q_k = Q_{k-1} + a few trees, cached predictions on the workers.
-    Close to the single-process warm-start mode; a checkpointed run continues to the same Q."""
+    """Warm start on Dask: Q_k = Q_{k-1} + a few trees, only the new trees evaluated.
+    Close to the single-process warm-start mode on two workers; a checkpointed run
+    continues to the same Q."""
     ds, path = coh
     params = {"num_leaves": 15, "min_child_samples": 20}
     dist = DistributedFQI(gamma=0.95, n_iterations=6, lgbm_params=params, warm_start=True,
@@ -283,4 +348,4 @@ def test_distributed_warm_start_agrees_with_local_warm_start_and_resumes(client,
     resumed = DistributedFQI(gamma=0.95, n_iterations=6, lgbm_params=params, warm_start=True).fit(
         client, path, checkpoint_dir=ck, on_iteration=seen.append)
     assert seen == [4, 5, 6]
-    assert np.corrcoef(resumed.q_function_.values(x).ravel(), qd.ravel())[0, 1] > 0.98
+    np.testing.assert_array_equal(resumed.q_function_.values(x), qd)

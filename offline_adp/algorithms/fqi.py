@@ -362,12 +362,15 @@ def _isna(v: Any) -> bool:
 
 # ----------------------------------------------------------------------------- bookkeeping around the loop
 def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weight: np.ndarray | None,
-                 resume: dict[str, Any] | None, make_backup: Any) -> Iterator[dict[str, Any]]:
+                 resume: dict[str, Any] | None, make_backup: Any, prepare: Any = None,
+                 make_learner: Any = None) -> Iterator[dict[str, Any]]:
     """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
-    the fitted attributes of ``est`` up to date (FQI and FQE alike)."""
+    the fitted attributes of ``est`` up to date (FQI and FQE alike). ``prepare(dataset,
+    sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and
+    ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN)."""
     est._validate_params()
-    data = est._prepare(dataset, sample_weight)
-    learner = est._learner(data)
+    data = (prepare or est._prepare)(dataset, sample_weight)
+    learner = (make_learner or est._learner)(data)
     backup = make_backup(data)
     finite = est.horizon_ is not None
     total = est.horizon_ if finite else est.n_iterations

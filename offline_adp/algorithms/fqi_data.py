@@ -67,6 +67,24 @@ class Prepared:
         return y if self.infeasible_cost is None else np.minimum(y, self.infeasible_cost)
 
 
+def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: float | None = None,
+                target_noise: float = 0.0, initial_q_abs: float = 0.0) -> tuple[float, str]:
+    """The monitor's bound on ``|Q|`` from ``max |c|`` (and how it was computed)."""
+    if horizon is not None:  # |Q_t| <= max|c| sum_{j < T} gamma^j + max|Q_T|
+        bound, text = cmax * float(np.sum(g ** np.arange(horizon))), "max|c| sum_{j<T} gamma^j"
+    elif g < 1:
+        bound, text = cmax / (1.0 - g), "max|c| / (1 - gamma)"
+    else:
+        bound, text = np.inf, "none (undiscounted)"
+    if infeasible_cost is not None:
+        bound, text = max(min(bound, abs(infeasible_cost)), cmax), "max(min(max|c| / (1 - gamma), |c^-|), max|c|)"
+    if target_noise and g < 1:  # noisy targets may overshoot by a few noise std
+        bound, text = bound + 4 * target_noise / (1.0 - g), text + " + 4 noise / (1 - gamma)"
+    if initial_q_abs:
+        bound, text = bound + initial_q_abs, text + " + max|Q_0|"
+    return float(bound), text
+
+
 def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
@@ -109,19 +127,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
                        a.next_obs[rows])
 
     start = (a.step == 0) & tr
-    cmax = float(np.abs(a.cost).max())
-    if horizon is not None:  # |Q_t| <= max|c| sum_{j < T} gamma^j + max|Q_T|
-        bound, text = cmax * float(np.sum(g ** np.arange(horizon))), "max|c| sum_{j<T} gamma^j"
-    elif g < 1:
-        bound, text = cmax / (1.0 - g), "max|c| / (1 - gamma)"
-    else:
-        bound, text = np.inf, "none (undiscounted)"
-    if infeasible_cost is not None:
-        bound, text = max(min(bound, abs(infeasible_cost)), cmax), "max(min(max|c| / (1 - gamma), |c^-|), max|c|)"
-    if target_noise and g < 1:  # noisy targets may overshoot by a few noise std
-        bound, text = bound + 4 * target_noise / (1.0 - g), text + " + 4 noise / (1 - gamma)"
-    if initial_q_abs:
-        bound, text = bound + initial_q_abs, text + " + max|Q_0|"
+    bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs)
     return Prepared(
         train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
         weights=None if w_all is None else w_all[tr], gamma=g, n_actions=len(at), encoder=enc, obs=a.obs[tr],

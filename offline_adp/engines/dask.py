@@ -1,11 +1,14 @@
-"""Scale-out on Dask (``pip install offline-adp[dask]``): data-parallel FQI targets and
-distributed LightGBM (``lightgbm.dask``). Single-process stays the default.
+"""Scale-out on Dask (``pip install offline-adp[dask]``): distributed ingestion, FQI and
+FQE with LightGBM trained by ``lightgbm.dask``, and task maps for evaluation.
+Single-process stays the default.
 
-What scales here: reading the dataset's Parquet parts as a Dask DataFrame (one partition
-per part), the per-iteration targets ``y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')``
-computed with ``map_partitions`` against the previous Q broadcast to every worker, and
-the regression itself with ``DaskLGBMRegressor``. What does not: extra-trees (scikit-learn)
-stay single-node.
+:class:`DistributedFQI` is not a second fitted-Q loop: it runs the package's loop
+(:func:`~offline_adp.algorithms.fqi.run_fitted_q`) with the data prepared here (the
+dataset's rows as blocks on the workers, the per-transition vectors on the client) and a
+learner whose fit and predictions run on the cluster (:class:`DaskLearner`). What scales:
+the regression (data-parallel LightGBM) and the predictions over every block; the
+targets are O(n) vector arithmetic on the client. Extra-trees (scikit-learn) stay
+single-node (the local engine).
 
 Pitfall (dask 2026.8): persisting the direct output of ``read_parquet(columns=...)``
 breaks later computes; :func:`read_dataset_dask` inserts a ``map_partitions`` first.
@@ -14,8 +17,9 @@ breaks later computes; :func:`read_dataset_dask` inserts a ``map_partitions`` fi
 from __future__ import annotations
 
 import contextlib
-import json
+import operator
 import time
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -26,6 +30,8 @@ import numpy as np
 import pandas as pd
 
 from offline_adp.errors import OfflineADPError
+from offline_adp.learners import BoostedSumQ, Learner, LightGBMWarmStartLearner
+from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
 
 
 def _require_dask() -> None:
@@ -94,78 +100,36 @@ def flat_columns(info: Any) -> dict[str, list[str]]:
     return {"obs": [f"{S.OBS_PREFIX}{n}" for n in names], "next_obs": [f"{S.NEXT_OBS_PREFIX}{n}" for n in names]}
 
 
-def spread(client: Any, ddf: Any) -> Any:
-    """Persist with at least one partition per worker and check every worker holds some
-    (a dataset of one Parquet part would otherwise sit on a single worker)."""
-    import dask.dataframe as dd
-    from distributed import wait
-
-    workers = sorted(client.scheduler_info()["workers"])
-    if ddf.npartitions < len(workers):
-        ddf = ddf.repartition(npartitions=len(workers))
-    # partition i on worker i mod n, so every worker holds data (deterministic placement)
-    # (a preference, not a restriction: if that worker dies, Dask recomputes the partition elsewhere)
-    parts = [client.persist(ddf.partitions[i], workers=[workers[i % len(workers)]], allow_other_workers=True)
-             for i in range(ddf.npartitions)]
-    ddf = dd.concat(parts)
-    wait(ddf)
-    holders = {w for ws in client.who_has(ddf).values() for w in ws}
-    if set(workers) - holders:
-        raise OfflineADPError(f"workers {sorted(set(workers) - holders)} hold no data "
-                              f"({ddf.npartitions} partitions); use fewer workers or more parts")
-    return ddf
-
-
-def _targets_partition(df: pd.DataFrame, q: Any, gamma: float, obs_cols: list[str], next_cols: list[str],
-                       policy: Any = None) -> pd.Series:
-
-    if not len(df):
-        return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
-    return _backup(df, q.values(df[next_cols].to_numpy(dtype=np.float64)), gamma, next_cols, policy)
-
-
-def _backup(df: pd.DataFrame, qn: np.ndarray, gamma: float, next_cols: list[str], policy: Any) -> pd.Series:
-    """``c + gamma (1 - term) v(x')`` with ``v`` = min_a' Q(x', a') (FQI) or the policy's
-    average (FQE), given ``qn = Q(x', .)`` for the partition's rows."""
-    from offline_adp.data import schema as S
-
-    v = qn.min(axis=1) if policy is None else (policy.probabilities(df[next_cols].to_numpy(dtype=np.float64), 0) * qn).sum(axis=1)
-    term = df[S.TERMINATED].to_numpy(dtype=bool)
-    y = df[S.COST].to_numpy(dtype=np.float64) + gamma * np.where(term, 0.0, v)
-    return pd.Series(y, index=df.index, dtype=np.float64)
-
-
-def distributed_targets(client: Any, ddf: Any, q: Any, gamma: float, info: Any, policy: Any = None) -> Any:
-    """``y_i = c_i + gamma (1 - term_i) min_a' Q(x'_i, a')`` per partition (with ``policy``:
-    the FQE backup ``sum_a' pi(a'|x'_i) Q(x'_i, a')``); Q (and pi) broadcast once."""
-    cols = flat_columns(info)
-    q_future = client.scatter(q, broadcast=True, hash=False)
-    p_future = client.scatter(policy, broadcast=True, hash=False) if policy is not None else None
-    return ddf.map_partitions(_targets_partition, q_future, gamma, cols["obs"], cols["next_obs"], p_future,
-                              meta=pd.Series(dtype=np.float64))
-
-
-def _inputs_partition(df: pd.DataFrame, obs_cols: list[str], action_features: np.ndarray) -> pd.DataFrame:
-    from offline_adp.data import schema as S
-
-    a = df[S.ACTION].to_numpy(dtype=np.int64)
-    X = np.hstack([df[obs_cols].to_numpy(dtype=np.float64), action_features[a]])
-    return pd.DataFrame(X, index=df.index, columns=[f"x{j}" for j in range(X.shape[1])])
-
-
+# ----------------------------------------------------------------------------- FQI on the cluster
 class DistributedFQI:
-    """Fitted Q-iteration (Algorithm 11) with LightGBM trained by ``lightgbm.dask``.
+    """Fitted Q-iteration (Algorithm 11, or 10 for a dataset whose hints make it finite
+    horizon; with ``policy``, fitted Q evaluation, Algorithms 13/12) with LEARN on a Dask
+    cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
 
-    Per iteration: targets with :func:`distributed_targets` (previous Q broadcast), then
-    ``DaskLGBMRegressor.fit`` on the joint inputs ``[x, action value]``; the fitted booster
-    becomes the next Q (a :class:`~offline_adp.qfunctions.RegressorQ`).
+    It is the package's one fitted-Q loop
+    (:func:`~offline_adp.algorithms.fqi.run_fitted_q` and
+    :func:`~offline_adp.algorithms.fqi.fitted_q_loop`) run for :meth:`estimator`, the
+    in-process estimator with the same parameters, with two parts supplied from here: the
+    prepared data and the learner (:class:`DaskLearner`). Per iteration::
 
-    With ``warm_start=True`` (the FQI issue's warm-start mode, distributed): each
-    iteration adds ``trees_per_iteration`` trees boosted from ``init_score = Q_{k-1}(x_i,
-    a_i)``, so ``Q_k = Q_{k-1} + new trees`` (a :class:`~offline_adp.learners.BoostedSumQ`).
-    Every partition keeps its rows' cached ``Q_{k-1}(x_i, a_i)`` and ``Q_{k-1}(x'_i, a')``
-    next to the data on its worker; an iteration evaluates only the new trees there, so
-    its cost does not grow with the number of iterations.
+        y_i = c_i + gamma (1 - term_i) min_a' Q_{k-1}(x'_i, a')    (client: numpy, O(n))
+        Q_k = LEARN({((x_i, a_i), y_i)})                            (workers: lightgbm.dask)
+        Q_k(x'_i, a'), Q_k(x_i, a_i), Q_k(x_0, a)                  (workers, per block)
+
+    The regression inputs stay on the workers, block ``i`` of the dataset's rows on the
+    ``i``-th worker (sorted addresses, modulo their number): LightGBM's data-parallel
+    result depends on which rows each worker holds, so this placement is restored before
+    every training (after a worker was lost and restarted, the fit continues to the same
+    Q). The client holds the per-transition vectors the loop reads (cost, flags, actions,
+    ``Q(x', .)``: ``8 (n_actions + 3)`` bytes per transition; next states too for FQE).
+    With one worker the result equals :meth:`estimator`'s in-process fit (LightGBM with
+    one thread); with several, LightGBM's data-parallel training gives a close, not an
+    equal, Q (its histogram bins come from each worker's rows).
+
+    ``warm_start=True`` is the in-process ``mode="warm_start"``: each iteration adds
+    ``trees_per_iteration`` trees fitted to the residual ``y_k - Q_{k-1}(x_i, a_i)``;
+    the cached predictions live on the client, only the new trees are evaluated on the
+    workers. History, divergence monitor and verdict are the in-process ones.
 
     Parameters
     ----------
@@ -173,18 +137,33 @@ class DistributedFQI:
         Default: the dataset's hint, else 0.95 (:func:`offline_adp.data.discount.resolve_discount`).
     n_iterations : int
     lgbm_params : dict
-        LightGBM parameters (default: the ``lightgbm`` registry entry's).
+        LightGBM parameters (on top of the ``lightgbm`` registry entry's); ``n_jobs`` is
+        ignored on the cluster (a worker uses its own threads).
     time_out : int
         Minutes LightGBM's Dask network setup may wait (so nothing hangs for hours).
     retries : int
-        Times an iteration whose LightGBM training lost a worker is retried.
+        Times an iteration whose LightGBM training lost a worker (or found its rows on
+        other workers than their blocks') is retried; the last try trains wherever the
+        rows are (the Q may then differ from an undisturbed fit's).
     random_state : int
+        Iteration k's trees are seeded with ``random_state + k``.
     policy : Policy, optional
         Evaluate this policy (FQE backup) instead of the greedy one.
     warm_start : bool
         Boost each Q from the previous one (see above).
     trees_per_iteration : int
         New trees per iteration with ``warm_start``.
+
+    Attributes
+    ----------
+    q_function_, history_, verdict_, verdict_message_, diverged_, divergence_message_, gamma_
+        As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s.
+    value_ : float
+        With ``policy``: the estimated expected cost from the data's start states.
+    estimator_ : FittedQIteration
+        The in-process estimator the loop ran for (holds the same attributes).
+    retried_ : int
+        Trainings retried (a lost worker, rows not in their places).
     """
 
     def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
@@ -194,16 +173,26 @@ class DistributedFQI:
         self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
         self.warm_start, self.trees_per_iteration = warm_start, trees_per_iteration
 
+    def estimator(self) -> Any:
+        """The in-process estimator with these parameters (the loop this engine runs)."""
+        from offline_adp.algorithms.fqe import FittedQEvaluation
+        from offline_adp.algorithms.fqi import FittedQIteration
+
+        common = {"gamma": self.gamma, "regressor": "lightgbm", "regressor_params": self.lgbm_params,
+                  "n_iterations": self.n_iterations, "mode": "warm_start" if self.warm_start else "refit",
+                  "trees_per_iteration": self.trees_per_iteration, "random_state": self.random_state}
+        return FittedQEvaluation(policy=self.policy, **common) if self.policy is not None else FittedQIteration(**common)
+
     def fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any = None,
             checkpoint_dir: str | PathLike[str] | None = None) -> DistributedFQI:
         """Fit on a dataset directory; ``on_iteration(k)`` is called after iteration k.
 
         Tasks lost with a worker are recomputed by Dask; a LightGBM training that fails
-        because a worker vanished mid-way is retried (``retries`` times) on the workers
-        left, from the same Q: the iteration's inputs do not depend on which worker ran it.
-        With ``checkpoint_dir`` the Q of every completed iteration is written there
-        (atomically) and a later ``fit`` continues from it, e.g. after the scheduler was
-        lost. With ``policy`` this is fitted Q *evaluation* of that policy (Algorithm 13).
+        because a worker vanished mid-way is retried (``retries`` times) from the same Q,
+        with the rows back in their places. With ``checkpoint_dir`` the Q and history of
+        every completed iteration are written there (atomically) and a later ``fit``
+        continues from them, e.g. after the scheduler was lost, to the Q of an
+        uninterrupted fit.
         """
         try:
             with client.as_current():  # every compute goes to this client, even when others exist
@@ -214,152 +203,422 @@ class DistributedFQI:
 
     def _fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any,
              checkpoint_dir: str | PathLike[str] | None) -> DistributedFQI:
-        from lightgbm.dask import DaskLGBMRegressor
+        from offline_adp.algorithms.fqi import run_fitted_q
+        from offline_adp.algorithms.fqi_data import GreedyBackup
 
-        from offline_adp.data.discount import resolve_discount
-        from offline_adp.data.info import DatasetInfo
-        from offline_adp.qfunctions import QEncoder, RegressorQ
-
-        info = DatasetInfo.from_dict(json.loads((Path(dataset_dir) / "meta" / "info.json").read_text()))
-        self.gamma_ = resolve_discount(info, self.gamma).gamma  # the package's one rule (no finite horizon here)
-        ddf = spread(client, read_dataset_dask(dataset_dir))
-        cols = flat_columns(info)
-        af = np.asarray(info.action_table.values, dtype=np.float64)
-        enc = QEncoder(len(af), af)
-        meta = pd.DataFrame({f"x{j}": pd.Series(dtype=np.float64) for j in range(len(cols["obs"]) + af.shape[1])})
-        X = ddf.map_partitions(_inputs_partition, cols["obs"], af, meta=meta)
-        Xa = X.to_dask_array(lengths=True).persist()
-        q: Any = _ZeroQ(len(af))
-        self.history_ = []
-        start = 0
+        est = self.estimator()
+        engine = _DaskEngine(client, est, self)
         ck = Path(checkpoint_dir) if checkpoint_dir is not None else None
-        if ck is not None and (ck / "q.json").exists():
-            from offline_adp.artifacts import load_q
-
-            q, meta_ck = load_q(ck)
-            start = int(meta_ck["iteration"])
-            self.history_ = pd.read_csv(ck / "history.csv").to_dict("records")
-        params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, **(self.lgbm_params or {})}
-        params.pop("n_jobs", None)  # workers decide their threads
-        if self.warm_start:
-            params["n_estimators"] = self.trees_per_iteration
-            boosters = [getattr(b, "booster", b) for b in getattr(q, "boosters", [])]
-            ddf = self._cache(client, ddf, boosters, cols, af, fresh=True)
-        self.retried_ = 0
-        for k in range(start, self.n_iterations):
-            t0 = time.perf_counter()
-            for attempt in range(self.retries + 1):
-                try:
-                    if self.warm_start:
-                        y = ddf.map_partitions(_cached_targets, self.gamma_, len(af), cols["next_obs"],
-                                               client.scatter(self.policy, broadcast=True, hash=False)
-                                               if self.policy is not None else None, meta=pd.Series(dtype=np.float64))
-                        # the residual y - Q_{k-1}(x_i, a_i), boosted from its mean (as the local warm start)
-                        y = y - ddf[_CACHE_SA]
-                        init = {}
-                    else:
-                        y = distributed_targets(client, ddf, q, self.gamma_, info, self.policy)
-                        init = {}
-                    model = DaskLGBMRegressor(client=client, time_out=self.time_out,
-                                              random_state=self.random_state + (k if self.warm_start else 0), **params)
-                    # arrays: the local booster then predicts on numpy without feature-name warnings
-                    model.fit(Xa, y.to_dask_array(lengths=True), **init)
-                    break
-                except Exception as exc:  # a worker lost during LightGBM's collective training
-                    if client.status != "running":  # the scheduler itself is gone: nothing to retry on
-                        raise OSError(f"no connection to the scheduler: {exc}") from exc
-                    if attempt == self.retries:
-                        raise OfflineADPError(f"iteration {k + 1} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
-                    self.retried_ += 1
-                    ddf = spread(client, read_dataset_dask(dataset_dir))
-                    Xa = ddf.map_partitions(_inputs_partition, cols["obs"], af, meta=meta).to_dask_array(lengths=True).persist()
-                    if self.warm_start:
-                        ddf = self._cache(client, ddf, boosters, cols, af, fresh=True)
-            if self.warm_start:
-                from offline_adp.learners import BoostedSumQ
-
-                boosters.append(model.booster_)
-                ddf = self._cache(client, ddf, [model.booster_], cols, af)
-                q = BoostedSumQ(list(boosters), enc)
-            else:
-                local = model.to_local()
-                local.set_params(n_jobs=1)
-                q = RegressorQ([local], enc)
-            self.history_.append({"iteration": k + 1, "wall_time": time.perf_counter() - t0})
-            if ck is not None:
-                from offline_adp.artifacts import save_q
-                from offline_adp.data.io import atomic_directory
-
-                with atomic_directory(ck, overwrite=True) as tmp:
-                    save_q(q, tmp, extra={"iteration": k + 1})
-                    pd.DataFrame(self.history_).to_csv(tmp / "history.csv", index=False)
-            if on_iteration is not None:
-                on_iteration(k + 1)
-        self.q_function_ = q
+        resume = _read_checkpoint(ck) if ck is not None else None
+        rows: list[dict[str, Any]] = list(resume["history"]) if resume else []
+        backup = est._backup if self.policy is not None else (lambda data: GreedyBackup())
+        try:
+            for row in run_fitted_q(est, dataset_dir, None, resume, backup, prepare=engine.prepare,
+                                    make_learner=engine.learner):
+                rows.append(row)
+                if ck is not None:
+                    _write_checkpoint(ck, est, rows)
+                if on_iteration is not None:
+                    on_iteration(row["iteration"])
+        finally:
+            engine.release()
+        est.__dict__.pop("_fit_state", None)  # holds the cluster-side learner
+        self.estimator_ = est
+        self.gamma_, self.q_function_, self.history_ = est.gamma_, est.q_function_, est.history_
+        self.verdict_, self.verdict_message_ = est.verdict_, est.verdict_message_
+        self.diverged_, self.divergence_message_ = est.diverged_, est.divergence_message_
+        self.retried_ = engine.retried
+        if self.policy is not None and self.q_function_ is not None:
+            x0 = engine.data.start_obs
+            self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
         return self
 
 
-    @staticmethod
-    def _cache(client: Any, ddf: Any, boosters: list[Any], cols: dict[str, list[str]], af: np.ndarray,
-               fresh: bool = False) -> Any:
-        """Add the predictions of ``boosters`` to each partition's cached Q columns (``fresh``:
-        start the cache at 0), persisted where the partitions are."""
-        from distributed import wait
+def _write_checkpoint(ck: Path, est: Any, rows: list[dict[str, Any]]) -> None:
+    from offline_adp.artifacts import save_q
+    from offline_adp.data.io import atomic_directory
+    from offline_adp.qfunctions import TimeIndexedQ
 
-        b = client.scatter([list(boosters)], broadcast=True, hash=False)[0]  # one future holding the list
-        meta = ddf._meta if not fresh else _add_predictions(ddf._meta, [], cols["obs"], cols["next_obs"], af, True)
-        out = ddf.map_partitions(_add_predictions, b, cols["obs"], cols["next_obs"], af, fresh, meta=meta).persist()
-        wait(out)
-        return out
+    q: Any = est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))
+    with atomic_directory(ck, overwrite=True) as tmp:
+        save_q(q, tmp, extra={"iteration": len(rows)})
+        pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
 
 
-_CACHE_SA = "_q_sa"
+def _read_checkpoint(ck: Path) -> dict[str, Any] | None:
+    """``{"q", "history"}`` for :func:`~offline_adp.algorithms.fqi.run_fitted_q`'s resume, or None."""
+    from offline_adp.artifacts import load_q
+    from offline_adp.qfunctions import TimeIndexedQ
+
+    if not (ck / "q.json").exists():
+        return None
+    hist = pd.read_csv(ck / "history.csv")
+    if "sup_dq" not in hist.columns:
+        raise OfflineADPError(f"{ck}: a checkpoint of an older version of the Dask FQI (no diagnostics); "
+                              "remove it to start the fit again")
+    q, _ = load_q(ck)
+    rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
+    return {"q": list(q.qs) if isinstance(q, TimeIndexedQ) else q, "history": rows}
 
 
-def _cache_next(j: int) -> str:
-    return f"_q_next{j}"
+class _DaskEngine:
+    """The two parts :func:`~offline_adp.algorithms.fqi.run_fitted_q` takes from the Dask
+    engine: the prepared data (vectors on the client, inputs on the workers) and the learner."""
+
+    def __init__(self, client: Any, est: Any, cfg: DistributedFQI) -> None:
+        self.client, self.est, self.cfg = client, est, cfg
+        self.blocks: _Blocks | None = None
+        self.learner_: DaskLearner | None = None
+
+    @property
+    def retried(self) -> int:
+        return 0 if self.learner_ is None else self.learner_.retried
+
+    def prepare(self, dataset_dir: str | PathLike[str], sample_weight: Any = None) -> Any:
+        from offline_adp.algorithms.fqi_data import Prepared, Samples, value_bound
+        from offline_adp.data.discount import resolve_discount
+        from offline_adp.data.info import DatasetInfo
+        from offline_adp.data.io import part_files, read_info
+        from offline_adp.qfunctions import QEncoder
+
+        path = Path(dataset_dir)
+        info = DatasetInfo.from_dict(read_info(path), where=str(path / "meta" / "info.json"))
+        parts = [str(p) for p in part_files(path)]
+        if not parts:
+            raise OfflineADPError(f"{path}: no data parts")
+        af = np.asarray(info.action_table.values, dtype=np.float64)
+        cols = flat_columns(info)
+        n_workers = len(self.client.scheduler_info()["workers"])
+        plan = _chunk_plan(parts, n_workers)
+        if not plan:
+            raise ValueError("the dataset is empty")
+        self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers)
+        v = self.blocks.gather(("cost", "terminated", "action", "step"))
+        cost, term, step = v["cost"], v["terminated"], v["step"]
+        est = self.est
+        disc = resolve_discount(info, est.gamma, est.horizon, terminates=bool(term.any()))
+        est.gamma_, est.horizon_ = disc.gamma, disc.horizon
+        if disc.horizon is None and not disc.gamma < 1.0 and not term.any():
+            raise ValueError(f"the infinite-horizon algorithm needs gamma < 1 (got {disc.gamma}) unless episodes "
+                             "terminate (a shortest-path problem); give a horizon instead")
+        bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon)
+        start = step == 0
+        start_obs = self.blocks.gather(("start",))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
+        next_obs = self.blocks.gather(("next",))["next"] if self.cfg.policy is not None else None  # FQE's backup
+        est._encoder = enc = QEncoder(len(af), af)
+        actions = v["action"].astype(np.int64)
+        # phi, next inputs and observations stay on the workers (self.blocks): None here
+        train = Samples(phi=None, actions=actions, cost=cost, no_boot=term, phi_next=None, next_obs=next_obs)  # type: ignore[arg-type]
+        self.data = Prepared(train=train, valid=None, weights=None, gamma=disc.gamma, n_actions=len(af), encoder=enc,
+                             obs=None, obs_std=None, start_phi=None, start_obs=start_obs,  # type: ignore[arg-type]
+                             start_rows=np.flatnonzero(start) if start.any() else np.zeros(1, np.int64),
+                             bound=bound, bound_text=text)
+        return self.data
+
+    def learner(self, data: Any) -> DaskLearner:
+        from offline_adp.regressors import make_regressor
+
+        est, cfg = self.est, self.cfg
+        reg = make_regressor(est.regressor, **(est.regressor_params or {}))
+        assert self.blocks is not None
+        self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
+                                    warm_start=est.mode == "warm_start", trees_per_iteration=est.trees_per_iteration,
+                                    time_out=cfg.time_out, retries=cfg.retries, start_obs=data.start_obs)
+        return self.learner_
+
+    def release(self) -> None:
+        if self.blocks is not None:
+            self.blocks.release()
 
 
-def _add_predictions(df: pd.DataFrame, boosters: list[Any], obs_cols: list[str], next_cols: list[str], af: np.ndarray,
-                     fresh: bool) -> pd.DataFrame:
-    """``df`` with its cached ``Q(x_i, a_i)`` and ``Q(x'_i, a')`` columns increased by the
-    boosters' raw predictions (single-threaded: a worker's thread budget is its own)."""
+def _chunk_plan(parts: list[str], n_workers: int) -> list[tuple[str, int, int]]:
+    """Row ranges ``(part, lo, hi)`` in dataset order: one per Parquet part, the largest
+    halved until there is one per worker (a function of the data and ``n_workers`` only)."""
+    import pyarrow.parquet as pq
+
+    plan = [(p, 0, pq.ParquetFile(p).metadata.num_rows) for p in parts]
+    plan = [c for c in plan if c[2] > c[1]]
+    while plan and len(plan) < n_workers:
+        j = max(range(len(plan)), key=lambda i: plan[i][2] - plan[i][1])
+        p, lo, hi = plan[j]
+        if hi - lo < 2:
+            break
+        plan[j:j + 1] = [(p, lo, (lo + hi) // 2), (p, (lo + hi) // 2, hi)]
+    return plan
+
+
+def _load_block(path: str, lo: int, hi: int, obs_cols: list[str], next_cols: list[str],
+                action_features: np.ndarray) -> dict[str, np.ndarray]:
+    """Rows ``lo:hi`` of one Parquet part as the arrays a worker keeps (joint training
+    inputs ``[x, f(a)]``, next states, start states) and the client's vectors."""
+    import pyarrow.parquet as pq
+
     from offline_adp.data import schema as S
 
-    df = df.copy()
-    A = len(af)
-    if fresh:
-        df[_CACHE_SA] = 0.0
-        for j in range(A):
-            df[_cache_next(j)] = 0.0
-    if not len(df) or not boosters:
-        return df
-    x = df[obs_cols].to_numpy(dtype=np.float64)
-    nxt = df[next_cols].to_numpy(dtype=np.float64)
-    a = df[S.ACTION].to_numpy(dtype=np.int64)
-    for bst in boosters:
-        df[_CACHE_SA] += bst.predict(np.hstack([x, af[a]]), raw_score=True, num_threads=1)
-        for j in range(A):
-            xa = np.hstack([nxt, np.broadcast_to(af[j], (len(nxt), af.shape[1]))])
-            df[_cache_next(j)] += bst.predict(xa, raw_score=True, num_threads=1)
-    return df
+    t = pq.read_table(path, columns=[*obs_cols, *next_cols, S.ACTION, S.COST, S.TERMINATED, S.STEP]).slice(lo, hi - lo)
+
+    def matrix(names: list[str]) -> np.ndarray:
+        return np.column_stack([t.column(c).to_numpy().astype(np.float64, copy=False) for c in names])
+
+    obs, a, step = matrix(obs_cols), t.column(S.ACTION).to_numpy().astype(np.int64), t.column(S.STEP).to_numpy()
+    nxt = matrix(next_cols)
+    follows = np.zeros(len(obs), bool)  # x_i == x'_{i-1}: a logged episode continues
+    follows[1:] = (obs[1:] == nxt[:-1]).all(axis=1)
+    return {"X": np.hstack([obs, action_features[a]]), "next": nxt, "start": obs[step == 0],
+            "start_pos": np.flatnonzero(step == 0), "follows": follows,
+            "first": obs[:1], "action": a, "cost": t.column(S.COST).to_numpy().astype(np.float64, copy=False),
+            "terminated": t.column(S.TERMINATED).to_numpy(), "step": step}
 
 
-def _cached_targets(df: pd.DataFrame, gamma: float, n_actions: int, next_cols: list[str], policy: Any) -> pd.Series:
-    """Targets from the cached ``Q_{k-1}(x'_i, a')`` (min over a', or the policy's average)."""
-    if not len(df):
-        return pd.Series(np.zeros(0), index=df.index, dtype=np.float64)
-    return _backup(df, df[[_cache_next(j) for j in range(n_actions)]].to_numpy(dtype=np.float64), gamma, next_cols, policy)
+def _pick(block: dict[str, np.ndarray], keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    return {k: block[k] for k in keys}
 
 
-class _ZeroQ:
-    """Q_0 = 0."""
+class _Blocks:
+    """The dataset's rows as blocks on the workers, block ``i`` on the ``i``-th worker."""
 
-    def __init__(self, n_actions: int) -> None:
-        self.n_actions = n_actions
+    def __init__(self, client: Any, plan: list[tuple[str, int, int]], obs_cols: list[str], next_cols: list[str],
+                 action_features: np.ndarray, n_workers: int, wait_s: float = 60.0) -> None:
+        self.client, self.plan, self.n_workers, self.wait_s = client, plan, n_workers, wait_s
+        self.args = (obs_cols, next_cols, action_features)
+        self.futures: list[Any] = []
+        self.where: list[str] = []
+        self.lengths = [hi - lo for _, lo, hi in plan]
+        self.place()
 
-    def values(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
-        return np.zeros((len(obs), self.n_actions))
+    def place(self) -> None:
+        """Block ``i`` on the ``i``-th worker (sorted addresses, mod n). When a block is
+        elsewhere (a worker was lost), wait for the workers to be back (up to ``wait_s``)
+        and load every block again; check the placement after loading (a worker may come
+        or go meanwhile)."""
+        from distributed import wait
+
+        client = self.client
+        for _ in range(5):
+            if len(client.scheduler_info()["workers"]) < self.n_workers:
+                with contextlib.suppress(TimeoutError):
+                    client.wait_for_workers(self.n_workers, timeout=self.wait_s)
+            workers = sorted(client.scheduler_info()["workers"])
+            want = [workers[i % len(workers)] for i in range(len(self.plan))]
+            if self.futures and want == self.where and self._placed():
+                return
+            old = self.futures
+            self.futures = [client.submit(_load_block, *c, *self.args, workers=[w], allow_other_workers=True, pure=False)
+                            for c, w in zip(self.plan, want, strict=True)]
+            self.where, self._x = want, None
+            wait(self.futures)
+            for f in old:
+                with contextlib.suppress(Exception):
+                    f.release()
+            if self._placed():
+                return
+            time.sleep(1.0)  # a worker came or went while loading
+
+    def _placed(self) -> bool:
+        has = self.client.who_has(self.futures)
+        return all(w in has.get(f.key, ()) for f, w in zip(self.futures, self.where, strict=True))
+
+    def map(self, fn: Any, *args: Any) -> list[Any]:
+        """``fn(block, *args)`` for every block, on the block's worker."""
+        return [self.client.submit(fn, f, *args, workers=[w], allow_other_workers=True, pure=False)
+                for f, w in zip(self.futures, self.where, strict=True)]
+
+    def gather(self, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+        """The blocks' arrays ``keys``, concatenated in row order, on the client."""
+        got = self.client.gather(self.map(_pick, keys))
+        return {k: np.concatenate([g[k] for g in got]) for k in keys}
+
+    def training_inputs(self) -> Any:
+        """The joint inputs ``[x_i, f(a_i)]`` as a Dask array, chunk ``i`` on block ``i``'s worker."""
+        import dask.array as da
+
+        if self._x is None:
+            width = len(self.args[0]) + self.args[2].shape[1]
+            parts = self.map(operator.getitem, "X")
+            self._x = da.concatenate([da.from_delayed(f, shape=(m, width), dtype=np.float64)
+                                      for f, m in zip(parts, self.lengths, strict=True)])
+        return self._x
+
+    def labels(self, y: np.ndarray) -> Any:
+        """``y`` as a Dask array chunked (and placed) like :meth:`training_inputs`."""
+        import dask.array as da
+
+        edges = np.r_[0, np.cumsum(self.lengths)]
+        futs = [self.client.scatter(y[lo:hi], workers=[w], hash=False)
+                for lo, hi, w in zip(edges[:-1], edges[1:], self.where, strict=True)]
+        return da.concatenate([da.from_delayed(f, shape=(m,), dtype=np.float64)
+                               for f, m in zip(futs, self.lengths, strict=True)])
+
+    def release(self) -> None:
+        for f in self.futures:
+            with contextlib.suppress(Exception):  # the cluster may be gone already
+                f.release()
+        self.futures, self._x = [], None
+
+
+def _predict_block(block: dict[str, np.ndarray], model: Any, encoder: Any, booster: bool) -> dict[str, np.ndarray]:
+    """One model's predictions on a block, one thread (the worker's own): ``next`` and
+    ``start`` ``(m, n_actions)`` for every action, ``train`` ``(m,)`` at the logged
+    actions. A training input equal to one already predicted (the previous row's next
+    state, or a start state) is read from there: the same input gives the same value."""
+    def pred(X: np.ndarray) -> np.ndarray:
+        if not len(X):
+            return np.zeros(0)
+        return np.asarray(model.predict(X, raw_score=True, num_threads=1), dtype=np.float64) if booster else predict_model(model, X)
+
+    def all_actions(x: np.ndarray) -> np.ndarray:
+        return pred(encoder.all_pairs(x)).reshape(encoder.n_actions, len(x)).T
+
+    out = {"next": all_actions(block["next"]), "start": all_actions(block["start"])}
+    a, follows, start = block["action"], block["follows"], block["start_pos"]
+    train = np.empty(len(a))
+    rest = ~follows
+    rest[start] = False
+    train[follows] = out["next"][np.flatnonzero(follows) - 1, a[follows]]
+    train[start] = out["start"][np.arange(len(start)), a[start]]
+    train[rest] = pred(block["X"][rest])
+    out["train"] = train
+    return out
+
+
+class DaskLearner(Learner):
+    """LEARN on the cluster over the dataset's blocks (:class:`DistributedFQI`): LightGBM
+    trained data-parallel by ``lightgbm.dask`` on the joint inputs ``[x, f(a)]``;
+    predictions of the training, next and start sets computed block by block on the
+    workers and gathered. ``warm_start``: each iteration boosts ``trees_per_iteration``
+    trees on the residual from the previous Q, with the sums cached on the client (as
+    :class:`~offline_adp.learners.LightGBMWarmStartLearner`, with its parameters).
+    Iteration ``k``'s trees are seeded with ``seed + k``.
+    """
+
+    QUERIES = ("train", "next", "start")
+
+    def __init__(self, client: Any, blocks: _Blocks, regressor: Any, encoder: Any, actions: np.ndarray, seed: int, *,
+                 warm_start: bool = False, trees_per_iteration: int = 10, time_out: int = 2, retries: int = 2,
+                 start_obs: np.ndarray | None = None) -> None:
+        super().__init__(regressor, encoder, None, actions, {}, None, seed)  # type: ignore[arg-type]
+        self.client, self.blocks, self.warm_start, self.trees_per_iteration = client, blocks, warm_start, trees_per_iteration
+        self.time_out, self.retries, self.retried = time_out, retries, 0
+        self.start_obs = start_obs  # start states when no block has one (the first row)
+        self.n_start = int(sum(blocks.client.gather(blocks.map(_count_starts))))
+        self.boosters: list[Any] = []
+        self._cache: dict[str, np.ndarray] = {}
+        if warm_start:
+            self._cache = self._sum_predictions([])
+
+    def _params(self, k: int) -> dict[str, Any]:
+        if self.warm_start:  # the in-process warm start's parameters, in the scikit-learn interface's names
+            p = LightGBMWarmStartLearner.booster_params(self.regressor, self.seed + k)
+            renamed = {"min_data_in_leaf": "min_child_samples", "seed": "random_state"}
+            params = {renamed.get(key, key): v for key, v in p.items() if key != "num_threads"}
+            return {**params, "n_estimators": self.trees_per_iteration}
+        params = {key: v for key, v in self.regressor.get_params().items() if key != "n_jobs"}  # workers decide threads
+        return {**params, "random_state": self.seed + k}
+
+    def fit(self, y: np.ndarray, k: int) -> None:
+        from lightgbm.dask import DaskLGBMRegressor
+
+        self.iteration = k
+        label = y - self._cache["train"] if self.warm_start else y  # warm start: the residual, boosted from its mean
+        for attempt in range(self.retries + 1):
+            try:
+                self.blocks.place()  # the rows each worker trains on decide LightGBM's result
+                where = self.blocks.where if attempt < self.retries else None  # last attempt: train wherever
+                model = DaskLGBMRegressor(client=_OrderedClient(self.client, where), time_out=self.time_out,
+                                          **self._params(k))
+                with warnings.catch_warnings():  # said on every fit: the workers' threads are their own
+                    warnings.filterwarnings("ignore", message="Parameter n_jobs will be ignored")
+                    model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
+                break
+            except Exception as exc:  # a worker lost during LightGBM's collective training
+                if self.client.status != "running":  # the scheduler itself is gone: nothing to retry on
+                    raise OSError(f"no connection to the scheduler: {exc}") from exc
+                if attempt == self.retries:
+                    raise OfflineADPError(f"iteration {k} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
+                self.retried += 1
+                time.sleep(1.0)  # let the scheduler see a worker that went
+        if self.warm_start:
+            self.boosters.append(model.booster_)
+            new = self._sum_predictions([model.booster_])
+            self._cache = {name: self._cache[name] + new[name] for name in self.QUERIES}
+        else:
+            local = model.to_local()
+            local.set_params(n_jobs=1)
+            self.q = RegressorQ([local], self.encoder)
+            self._cache = {}
+
+    def _predict(self, model: Any, booster: bool) -> dict[str, np.ndarray]:
+        """``model`` on every query set, one task per block on its worker."""
+        m = self.client.scatter(model, broadcast=True, hash=False)
+        got = self.client.gather(self.blocks.map(_predict_block, m, self.encoder, booster))
+        out = {name: np.concatenate([g[name] for g in got]) for name in self.QUERIES}
+        if self.n_start == 0:  # no start state in the data: the first row (as in-process)
+            out["start"] = _predict_block(_query_block(self.start_obs), model, self.encoder, booster)["start"]
+        return out
+
+    def _sum_predictions(self, boosters: list[Any]) -> dict[str, np.ndarray]:
+        """``sum_b b(X)`` over ``boosters`` for every query set, added in order (as cached in-process)."""
+        A, n = self.encoder.n_actions, len(self.actions)
+        total = {"train": np.zeros(n), "next": np.zeros((n, A)),
+                 "start": np.zeros((self.n_start if self.n_start else len(self.start_obs), A))}
+        for b in boosters:
+            new = self._predict(b, booster=True)
+            total = {name: total[name] + new[name] for name in self.QUERIES}
+        return total
+
+    def predict(self, name: str) -> np.ndarray:
+        if not self._cache:  # refit: Q_k on every query set at once (the loop and its diagnostics read all)
+            self._cache = self._predict(self.q.models[0], booster=False)
+        return self._cache[name]
+
+    def snapshot(self) -> QFunction:
+        return BoostedSumQ(list(self.boosters), self.encoder) if self.warm_start else self.q
+
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
+        self.iteration = iteration
+        if self.warm_start:
+            self.boosters = [getattr(b, "booster", b) for b in q.boosters]  # type: ignore[attr-defined]
+            self._cache = self._sum_predictions(self.boosters)
+        else:
+            self.q, self._cache = q, {}  # type: ignore[assignment]
+
+
+class _OrderedClient:
+    """A client for ``lightgbm.dask`` whose ``who_has`` lists the futures in the order
+    given and checks that part r is on ``where[r]``. ``lightgbm.dask`` numbers its
+    machines (ranks) in that order, and ``distributed.Client.who_has`` returns a set's
+    order, which changes from run to run, and with it which rows each rank holds and the
+    trees. With this client, rank r is the worker of block r; a part computed elsewhere (a
+    worker came or went) raises :class:`_Misplaced` before any training, and is retried."""
+
+    def __init__(self, client: Any, where: list[str] | None) -> None:
+        self._client, self._where = client, where
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._client, name)
+
+    def who_has(self, futures: Any = None, **kwargs: Any) -> dict[Any, Any]:
+        got = self._client.who_has(futures, **kwargs)
+        if futures is None:
+            return got
+        keys = list(dict.fromkeys(f.key for f in self._client.futures_of(futures)))
+        if self._where is not None and len(keys) == len(self._where) and any(w not in got.get(k, ()) for k, w in zip(keys, self._where, strict=True)):
+            raise _Misplaced(f"LightGBM's parts are not on their blocks' workers: {[got.get(k) for k in keys]}")
+        return {k: got[k] for k in keys if k in got}
+
+
+class _Misplaced(RuntimeError):
+    """A LightGBM part on another worker than its block (retried after placing the blocks)."""
+
+
+def _count_starts(block: dict[str, np.ndarray]) -> int:
+    return len(block["start"])
+
+
+def _query_block(x: np.ndarray) -> dict[str, np.ndarray]:
+    """States ``x`` as a block whose ``start`` set they are (client-side predictions)."""
+    return {"next": x[:0], "start": x, "start_pos": np.zeros(0, np.int64), "follows": np.zeros(0, bool),
+            "action": np.zeros(0, np.int64), "X": np.zeros((0, x.shape[1]))}
 
 
 def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | None) -> tuple[Any, Any, Any]:
