@@ -501,7 +501,10 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
                 on_iteration=lambda k: say(f"[fit] iteration {k} (Dask)") if k % 10 == 0 else None)
         with rd.subdirectory(rd.MODEL) as tmp:
             save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
-                                                "policy": "greedy (argmin_a Q)"})
+                                                "policy": "greedy (argmin_a Q)", "verdict": est.verdict_,
+                                                "verdict_message": est.verdict_message_})
             pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
-        rd.write_json(rd.STATUS, {**status, "status": "completed", "iterations": len(est.history_)})
-    return {"iterations": len(est.history_), "engine": "dask"}
+        verdict = {"verdict": est.verdict_, "verdict_message": est.verdict_message_}
+        rd.write_json(rd.STATUS, {**status, "status": "completed", "iterations": len(est.history_), **verdict})
+    say(f"[fit] {est.verdict_message_}")
+    return {"iterations": len(est.history_), "engine": "dask", **verdict}

@@ -234,6 +234,8 @@ def test_pipeline_fit_on_dask_with_lightgbm(tmp_path):
                        engine={"kind": "dask", "n_workers": 2, "threads_per_worker": 1, "memory_limit": "2GiB"})
     st = json.loads((run / "manifest.json").read_text())["stages"]
     assert st["fit"]["engine"] == "dask" and st["fit"]["iterations"] == 3
+    assert st["fit"]["verdict"] == "still changing"  # 3 iterations, no tol: the in-process verdict rule
+    assert json.loads((run / "fit" / "model" / "q.json").read_text())["verdict"] == "still changing"
     assert (run / "report.html").exists()
 
 
