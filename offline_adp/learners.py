@@ -101,8 +101,9 @@ class RefitLearner(Learner):
     regression input is bitwise the same, and only the remaining distinct inputs (episode
     starts, mostly) are predicted, for all actions at once: ~1-2% extra rows instead of
     +50% (one value per training pair). Predictions are cached per iteration.
-    Scikit-learn forests predict on one thread unless the regressor's ``n_jobs`` was set
-    explicitly (see :func:`offline_adp.qfunctions.sklearn_leaves`).
+    Registry forests (``extra_trees``, ``random_forest``) fit on all cores but predict on
+    one thread unless ``n_jobs`` was given (:mod:`offline_adp.regressors`): the fitted
+    models' ``n_jobs`` is set to 1.
     """
 
     _DERIVED = ("train", "start")  # query sets read from the next-state predictions where possible
@@ -110,6 +111,7 @@ class RefitLearner(Learner):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._cache: dict[str, np.ndarray] = {}
+        self._predict_jobs = getattr(self.regressor, "_oadp_predict_jobs", None)  # see regressors._predict_on_one_thread
         self._source: dict[str, np.ndarray] = {}  # query -> row of [next; extra] holding each row's input
         if "next" not in self.queries:
             return
@@ -135,6 +137,10 @@ class RefitLearner(Learner):
         else:
             m = _seeded(clone(self.regressor), seed)
             models = [_fit(m, self.encoder.pairs(self.phi, self.actions), y, self.weights)]
+        if self._predict_jobs is not None:
+            for m in models:
+                if hasattr(m, "estimators_") and hasattr(m, "n_jobs"):
+                    m.n_jobs = self._predict_jobs
         self.q = RegressorQ(models, self.encoder)
         self._cache = {}
 
