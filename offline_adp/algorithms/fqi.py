@@ -113,7 +113,12 @@ class FittedQIteration(BaseEstimator):
     regressor_params : dict, optional
         Parameters for a registry name.
     action_encoding : {"joint", "per_action"}
-        One model on ``[phi(x), action]`` or one model per action on ``phi(x)``.
+        One model on ``[phi(x), action]`` or one model per action on ``phi(x)``
+        (Ernst et al.'s and mushroom-rl's design). Measured with refit extra-trees
+        (``benchmarks/fqi_suite.py --quick``, paired over unselected data seeds):
+        ``joint`` scored far better on CartPole-v1 (331 vs 151, all 5 seeds), the same on
+        Acrobot-v1, and slightly worse on car-on-the-hill (0.193 vs 0.220, 7 of 9 seeds);
+        ``per_action`` fits ~20% less CPU. The frozen and warm-start modes need ``joint``.
     action_input : {"value", "onehot"}
         What a joint model sees of the action: its value vector from the action table
         (Ernst et al.'s choice) or a one-hot code.
