@@ -173,32 +173,72 @@ class FrozenTreesLearner(Learner):
     :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
     """
 
-    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), **kwargs: Any) -> None:
+    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), max_samples: float | None = None,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
+        if max_samples is not None and not 0.0 < float(max_samples) <= 1.0:
+            raise ValueError(f"max_samples must be in (0, 1] or None, got {max_samples!r}")
         self.restructure_at = frozenset(restructure_at) | {1}
+        self.max_samples = max_samples
         self._pending = True  # no structure yet
         self.structures = 0
         self.built_on_constant = False
+        phi_next = self.queries["next"][0] if "next" in self.queries else None
+        same = np.zeros(len(self.phi), bool)
+        if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
+            same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
+        self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
+        self._cache: dict[str, np.ndarray] = {}
+
+    def _structure_model(self, k: int) -> Any:
+        model = _seeded(clone(self.regressor), self.seed + k)
+        if self.max_samples is not None and self.max_samples < 1.0:
+            if "max_samples" not in model.get_params():
+                raise ValueError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
+                                 f"not {type(model).__name__}")
+            model.set_params(bootstrap=True, max_samples=float(self.max_samples))
+        return model
 
     def _build(self, y: np.ndarray, k: int) -> None:
         X = self.encoder.pairs(self.phi, self.actions)
+        self.structures += 1
+        self.built_on_constant = bool(np.ptp(y) == 0.0)
+        if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
+            self.ensemble = _constant_ensemble(float(y[0]), self.regressor)
+            self._operators(self.ensemble.apply)
+            return
         rng = np.random.default_rng([self.seed, k, 7])
         jitter = rng.normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
-        forest = _fit(_seeded(clone(self.regressor), self.seed + k), X, y + jitter, self.weights)
+        forest = _fit(self._structure_model(k), X, y + jitter, self.weights)
+        del X
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         self.ensemble = TreeEnsemble.from_sklearn(forest)
-        self._operators(lambda Z: sklearn_leaves(forest, Z), sklearn_leaves(forest, X))
-        self.structures += 1
-        self.built_on_constant = bool(np.ptp(y) == 0.0)
+        self._operators(lambda Z: sklearn_leaves(forest, Z))
 
-    def _operators(self, leaves_of: Any, train: np.ndarray) -> None:
-        """The averaging operator ``M`` and the query operators ``A`` from the training
-        leaves (n, m) and a leaf lookup for the queries (int32 indices, CSR built directly)."""
+    def _operators(self, leaves_of: Any) -> None:
+        """The averaging operator ``M`` and the query operators (leaf positions) from a leaf
+        lookup ``leaves_of(X) -> (len(X), n_trees)``. Training rows that continue the previous
+        row (``x_i == x'_{i-1}``) take their leaves from the next-state lookup (a third of
+        the lookups with two actions); int32 indices, ``M`` built directly as CSC."""
         from scipy import sparse
 
+        raw: dict[str, np.ndarray] = {}
+        for name, (phi, a) in self.queries.items():
+            if name != "train":
+                raw[name] = self._leaves(leaves_of, self._joint(phi, a))
+        n = len(self.phi)
+        if len(self.reuse) and "next" in raw:
+            train = np.empty((n, raw["next"].shape[1]), raw["next"].dtype)
+            rest = np.ones(n, bool)
+            rest[self.reuse] = False
+            if rest.any():
+                train[rest] = self._leaves(leaves_of, self.encoder.pairs(self.phi[rest], self.actions[rest]))
+            train[self.reuse] = raw["next"][self.actions[self.reuse] * n + self.reuse - 1]
+        else:
+            train = self._leaves(leaves_of, self.encoder.pairs(self.phi, self.actions))
         n, m = train.shape
         used = np.zeros(len(self.ensemble.value), bool)
         used[train.reshape(-1)] = True
@@ -209,28 +249,34 @@ class FrozenTreesLearner(Learner):
         compact = lookup[train.reshape(-1)]  # (n * m,), row-major: row i's trees together
         w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         wsum = np.bincount(compact, weights=np.repeat(w, m), minlength=L)
-        # M in CSR by leaf: sort the (row, tree) pairs by leaf (stable: rows ascending)
-        order = np.argsort(compact, kind="stable")
-        rows = (order // m).astype(np.int32 if n < 2**31 - 1 else np.int64)
+        # M as CSC, one column per training row holding its m leaves: no sort needed
         idx_t = np.int32 if n * m < 2**31 - 1 else np.int64
-        indptr = np.r_[0, np.cumsum(np.bincount(compact, minlength=L))].astype(idx_t)
-        self.M = sparse.csr_matrix((w[rows] / wsum[compact[order]], rows, indptr), shape=(L, n))
-        del order
+        indptr = np.arange(0, n * m + 1, m, dtype=idx_t)
+        self.M = sparse.csc_matrix((np.repeat(w, m) / wsum[compact], compact, indptr), shape=(L, n))
         self._compact, self._m = compact, m
         # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
         # weight, which contributes 0): Q(query) = mean over trees of leaf values
-        self.pos: dict[str, np.ndarray] = {}
-        for name, (phi, a) in self.queries.items():
-            if name == "train":  # every training leaf holds its own sample: a view, no copy
-                self.pos[name] = compact.reshape(n, m)
-                continue
-            X = self._joint(phi, a)
-            pos = np.empty((len(X), m), np.int32)
-            for lo in range(0, len(X), 262_144):  # leaf lookups in row chunks: bounded temporaries
-                pos[lo:lo + 262_144] = lookup[leaves_of(X[lo:lo + 262_144])]
-            del X
-            pos[pos < 0] = L
+        self.pos: dict[str, np.ndarray] = {"train": compact.reshape(n, m)}  # every training leaf holds its own sample
+        for name in list(raw):
+            leaves = raw.pop(name)
+            pos = leaves if leaves.dtype == np.int32 else np.empty(leaves.shape, np.int32)
+            for lo in range(0, len(pos), 65_536):  # in place when int32, in row chunks
+                chunk = lookup[leaves[lo:lo + 65_536]]
+                chunk[chunk < 0] = L
+                pos[lo:lo + 65_536] = chunk
             self.pos[name] = pos
+
+    @staticmethod
+    def _leaves(leaves_of: Any, X: np.ndarray, chunk: int = 262_144) -> np.ndarray:
+        """Leaf lookups in row chunks (bounded temporaries)."""
+        first = leaves_of(X[:chunk])
+        if len(X) <= chunk:
+            return first
+        out = np.empty((len(X), first.shape[1]), first.dtype)
+        out[:chunk] = first
+        for lo in range(chunk, len(X), chunk):
+            out[lo:lo + chunk] = leaves_of(X[lo:lo + chunk])
+        return out
 
     @property
     def A(self) -> dict[str, Any]:
@@ -274,6 +320,7 @@ class FrozenTreesLearner(Learner):
             self._build(y, k)
         self._pending = self.built_on_constant  # constant targets say nothing about where to split
         self.leaf_values = self.M @ np.asarray(y, dtype=np.float64)  # leaf means of y_k
+        self._cache = {}
 
     def state(self) -> dict[str, Any]:
         return {"structure": self.structures, "structure_on_constant": self.built_on_constant}
@@ -282,9 +329,20 @@ class FrozenTreesLearner(Learner):
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
     def predict(self, name: str) -> np.ndarray:
+        if name in self._cache:
+            return self._cache[name]
         phi, actions = self.queries[name]
-        v = _tree_mean(np.r_[self.leaf_values, 0.0], self.pos[name])  # mean over trees of the reached leaves
-        return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+        values = np.r_[self.leaf_values, 0.0]
+        if name == "train" and len(self.reuse) and "next" in self.pos:  # the same leaves: the same numbers
+            v = np.empty(len(phi))
+            rest = np.ones(len(phi), bool)
+            rest[self.reuse] = False
+            v[rest] = _tree_mean(values, self.pos[name][rest])
+            v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
+        else:
+            v = _tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
+        self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+        return self._cache[name]
 
     def snapshot(self) -> QFunction:
         value = self.ensemble.value.copy()
@@ -296,14 +354,22 @@ class FrozenTreesLearner(Learner):
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
         self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
-        X = self.encoder.pairs(self.phi, self.actions)
-        self._operators(self.ensemble.apply, self.ensemble.apply(X))
+        self._operators(self.ensemble.apply)
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
+        self._cache = {}
         last = (rows or [{}])[-1]
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         self._pending = self.built_on_constant
         self.iteration = iteration
+
+
+def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:
+    """An ensemble of one-leaf trees predicting ``value`` (as many trees as the regressor has)."""
+    m = int(regressor.get_params().get("n_estimators", 1))
+    minus = np.full(m, -1, np.int64)
+    return TreeEnsemble(left=minus, right=minus.copy(), feature=np.full(m, -2, np.int64), threshold=np.full(m, -2.0),
+                        value=np.full(m, value), roots=np.arange(m, dtype=np.int64))
 
 
 def _tree_mean(values: np.ndarray, pos: np.ndarray, chunk: int = 65_536) -> np.ndarray:

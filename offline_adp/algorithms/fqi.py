@@ -146,6 +146,10 @@ class FittedQIteration(BaseEstimator):
         For ``warm_start``.
     n_structures : int
         For ``frozen``: scheduled structure builds over ``n_iterations``.
+    structure_max_samples : float or None
+        For ``frozen``: each tree's structure is grown on a bootstrap sample of this
+        fraction of the rows (``bootstrap=True, max_samples=...``); its leaves are then
+        averaged over *all* training rows falling in them. ``None``: the regressor's own.
     infeasible_cost : float or None
         The chapter's ``c^-``.
     target_noise, next_state_noise : float
@@ -210,6 +214,7 @@ class FittedQIteration(BaseEstimator):
         initial_q: QFunction | None = None,
         random_state: int = 0,
         n_structures: int = 4,
+        structure_max_samples: float | None = None,
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -232,6 +237,7 @@ class FittedQIteration(BaseEstimator):
         self.initial_q = initial_q
         self.random_state = random_state
         self.n_structures = n_structures
+        self.structure_max_samples = structure_max_samples
 
     # ------------------------------------------------------------------ public API
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
@@ -340,7 +346,7 @@ class FittedQIteration(BaseEstimator):
             queries["valid_next"] = (data.valid.phi_next, None)
         args = (reg, data.encoder, data.train.phi, data.train.actions, queries, data.weights, self.random_state)
         if self.mode == "frozen":
-            return FrozenTreesLearner(*args, restructure_at=self._schedule())
+            return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self.structure_max_samples)
         if self.mode == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
