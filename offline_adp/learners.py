@@ -173,6 +173,8 @@ class FrozenTreesLearner(Learner):
     :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
     """
 
+    tie_jitter = True
+
     def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), max_samples: float | None = None,
                  **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -207,16 +209,21 @@ class FrozenTreesLearner(Learner):
         self.built_on_constant = bool(np.ptp(y) == 0.0)
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
             self.ensemble = _constant_ensemble(float(y[0]), self.regressor)
+            self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
             self._operators(self.ensemble.apply)
             return
-        rng = np.random.default_rng([self.seed, k, 7])
-        jitter = rng.normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
-        forest = _fit(self._structure_model(k), X, y + jitter, self.weights)
+        if self.tie_jitter and len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
+            y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+        forest = _fit(self._structure_model(k), X, y, self.weights)
         del X
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         self.ensemble = TreeEnsemble.from_sklearn(forest)
         self._operators(lambda Z: sklearn_leaves(forest, Z))
+        # every leaf lookup the fit needs is done: keep only the arrays (the forest's own node
+        # arrays are as large again); later lookups use trees rebuilt from the arrays
+        self.ensemble._forest = None  # type: ignore[attr-defined]
+        self.ensemble.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
 
     def _operators(self, leaves_of: Any) -> None:
         """The averaging operator ``M`` and the query operators (leaf positions) from a leaf
