@@ -22,6 +22,7 @@ Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks for all actions
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -154,34 +155,49 @@ class RefitLearner(Learner):
 class FrozenTreesLearner(Learner):
     """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
 
+    Ernst, Geurts & Wehenkel (2005), "Tree-based batch mode reinforcement learning",
+    JMLR 6, section 4.3: with the tree structure frozen, fitted Q-iteration is a kernel
+    averager and converges. Update rule, with the structure built at iteration ``s``::
+
+        structure_s = LEARN({((x_i, a_i), y_s,i)})         (at s in restructure_at)
+        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w of the training rows in the leaf)
+        Q_k(query) = mean over trees of v_k[leaf of the query in that tree]
+
     The structure is (re)built at the iterations in ``restructure_at`` (and at the next
-    iteration whenever the targets it was built on were constant, e.g. the first targets
-    of a problem with one cost per step: a structure fitted to constant targets is a
-    random partition). A build fits the ensemble to that iteration's targets plus a tiny
-    jitter (std ``1e-6 * (1 + std(y))``, so that trees grow fully) and computes the leaf
-    of every training and query input once. With the structure fixed, each leaf's value
-    is the weighted mean target of its training samples and a prediction is the mean
-    over trees: two fixed sparse operators (a kernel averager whose rows sum to 1)::
+    iteration whenever the targets were constant, e.g. the first targets of a problem with
+    one cost per step: LEARN on constant targets is that constant, represented by one-leaf
+    trees, and says nothing about where to split). A build grows the ensemble on that
+    iteration's targets (plus a tiny jitter, std ``1e-6 * (1 + std(y))``, only when the
+    targets have ties, so that tied nodes still split; without ties a build on all rows
+    is exactly the refit step) -- each tree on a bootstrap sample of ``max_samples`` of
+    the rows if given -- and looks up the leaf of every training and query input once
+    (training rows that continue the previous row reuse the next-state lookups). Leaves
+    are then *honest*: each leaf's value is the weighted mean target over **all** training
+    rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
+    dropped after the lookups (the arrays of :class:`~offline_adp.qfunctions.TreeEnsemble`
+    remain). An iteration is a sparse mat-vec and a gather: no tree fitting, no traversal.
+    With a fixed structure the update is a gamma-contraction, so it converges -- to the
+    fixed point of *that* averager, which is only as good as the structure: a structure
+    fitted to early targets cannot represent what later targets need.
 
-        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w in the leaf)
-        Q_k(query) = A_query @ v_k  A_query[q, leaf] = 1 / n_trees for the q's leaves
-
-    An iteration is a few sparse mat-vecs: no tree fitting, no traversal. With a fixed
-    structure the update is a gamma-contraction, so it converges -- to the fixed point of
-    *that* averager, which is only as good as the structure: a structure fitted to early
-    targets cannot represent what later targets need (see the ``mode`` notes of
-    :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
+    Measured (``benchmarks/fqi_suite.py``, see the ``mode`` notes of
+    :class:`~offline_adp.algorithms.fqi.FittedQIteration`): 4 evenly spaced builds on all
+    rows hold the refit score on car-on-the-hill, Acrobot and path tracking at ~1/10 of its
+    CPU but not on CartPole with 10k transitions (~210-240 vs ~380-440). Structures grown
+    on 1/8 of the rows (``max_samples=0.125``, 8-16 builds) bring CartPole to ~350-390 at
+    the same CPU but lose Acrobot (~-200 vs -131) and path tracking (-11.7 vs -5.8): leaves
+    averaging ~8 rows are too coarse there.
     """
 
-    tie_jitter = True
-
-    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), max_samples: float | None = None,
-                 **kwargs: Any) -> None:
+    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),
+                 max_samples: float | Sequence[float | None] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
-        if max_samples is not None and not 0.0 < float(max_samples) <= 1.0:
-            raise ValueError(f"max_samples must be in (0, 1] or None, got {max_samples!r}")
+        fractions = list(max_samples) if isinstance(max_samples, list | tuple) else [max_samples]
+        for f in fractions:
+            if f is not None and not (isinstance(f, int | float) and 0.0 < float(f) <= 1.0):
+                raise ValueError(f"max_samples must be in (0, 1] or None (or a list of those), got {max_samples!r}")
         self.restructure_at = frozenset(restructure_at) | {1}
         self.max_samples = max_samples
         self._pending = True  # no structure yet
@@ -194,13 +210,22 @@ class FrozenTreesLearner(Learner):
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
         self._cache: dict[str, np.ndarray] = {}
 
+    def fraction(self, k: int) -> float | None:
+        """The row fraction the structure built at iteration ``k`` is grown on (None: all):
+        ``max_samples``, or its entry for the last scheduled build at or before ``k``."""
+        if not isinstance(self.max_samples, list | tuple):
+            return self.max_samples
+        j = sum(1 for s in sorted(self.restructure_at) if s <= k) - 1
+        return self.max_samples[min(max(j, 0), len(self.max_samples) - 1)] if self.max_samples else None
+
     def _structure_model(self, k: int) -> Any:
         model = _seeded(clone(self.regressor), self.seed + k)
-        if self.max_samples is not None and self.max_samples < 1.0:
+        f = self.fraction(k)
+        if f is not None and f < 1.0:
             if "max_samples" not in model.get_params():
                 raise ValueError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
                                  f"not {type(model).__name__}")
-            model.set_params(bootstrap=True, max_samples=float(self.max_samples))
+            model.set_params(bootstrap=True, max_samples=float(f))
         return model
 
     def _build(self, y: np.ndarray, k: int) -> None:
@@ -212,7 +237,7 @@ class FrozenTreesLearner(Learner):
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
             self._operators(self.ensemble.apply)
             return
-        if self.tie_jitter and len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
+        if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
             y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
         forest = _fit(self._structure_model(k), X, y, self.weights)
         del X

@@ -92,3 +92,14 @@ def test_constant_targets_give_the_constant_without_a_forest():
     f2 = FittedQIteration(gamma=0.9, n_iterations=3, mode="frozen", n_structures=1, regressor_params=TREES).fit(ds)
     assert list(f2.history_["structure"]) == [1, 2, 3]  # targets stay constant (1 + 0.9 * 1, ...): a one-leaf "build" each time
     np.testing.assert_allclose(f2.predict(obs), np.full((len(obs), 2), 1 + 0.9 + 0.81), rtol=1e-12)
+
+
+def test_a_list_gives_each_scheduled_build_its_row_fraction():
+    ds = _continuous()
+    f = FittedQIteration(gamma=0.9, n_iterations=4, mode="frozen", n_structures=2, structure_max_samples=[0.3, 1.0],
+                         regressor_params=TREES).fit(ds)
+    learner = f._fit_state[1]
+    assert [learner.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
+    assert len(learner.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)  # the last: grown on every row
+    with pytest.raises(ValueError, match="max_samples"):
+        FittedQIteration(mode="frozen", structure_max_samples=[0.5, 1.5], regressor_params=TREES).fit(ds)
