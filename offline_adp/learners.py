@@ -254,8 +254,7 @@ class FrozenTreesLearner(Learner):
         """The averaging operator ``M`` and the query operators (leaf positions) from a leaf
         lookup ``leaves_of(X) -> (len(X), n_trees)``. Training rows that continue the previous
         row (``x_i == x'_{i-1}``) take their leaves from the next-state lookup (a third of
-        the lookups with two actions); int32 indices, ``M`` built directly as CSC."""
-        from scipy import sparse
+        the lookups with two actions); int32 indices."""
 
         raw: dict[str, np.ndarray] = {}
         for name, (phi, a) in self.queries.items():
@@ -279,16 +278,17 @@ class FrozenTreesLearner(Learner):
         lookup = np.full(len(used), -1, np.int32)
         lookup[self.leaf_ids] = np.arange(L, dtype=np.int32)
         compact = lookup[train.reshape(-1)]  # (n * m,), row-major: row i's trees together
-        w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        wsum = np.bincount(compact, weights=np.repeat(w, m), minlength=L)
-        # M as CSC, one column per training row holding its m leaves: no sort needed
-        idx_t = np.int32 if n * m < 2**31 - 1 else np.int64
-        indptr = np.arange(0, n * m + 1, m, dtype=idx_t)
-        self.M = sparse.csc_matrix((np.repeat(w, m) / wsum[compact], compact, indptr), shape=(L, n))
+        del train, used
+        # tree t's leaves are the compact range [bounds[t], bounds[t + 1]): leaf sums are one
+        # bincount per tree over the (n, m) leaf matrix, no (n * m) float operator is stored
+        ends = np.r_[self.ensemble.roots[1:], len(self.ensemble.value)]
+        self._bounds = np.r_[0, np.searchsorted(self.leaf_ids, ends)]
         self._compact, self._m = compact, m
+        self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
         # weight, which contributes 0): Q(query) = mean over trees of leaf values
         self.pos: dict[str, np.ndarray] = {"train": compact.reshape(n, m)}  # every training leaf holds its own sample
+        self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
         for name in list(raw):
             leaves = raw.pop(name)
             pos = leaves if leaves.dtype == np.int32 else np.empty(leaves.shape, np.int32)
@@ -297,6 +297,25 @@ class FrozenTreesLearner(Learner):
                 chunk[chunk < 0] = L
                 pos[lo:lo + 65_536] = chunk
             self.pos[name] = pos
+
+    def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
+        """``sum of v_i`` over the training rows in each leaf (compact index)."""
+        pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
+        for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
+            out[lo:hi] = np.bincount(pos[:, t] - lo, weights=v, minlength=hi - lo)
+        return out
+
+    @property
+    def M(self) -> Any:
+        """The leaf-averaging operator as a sparse (leaves, n) matrix (built on demand):
+        ``M[leaf, i] = w_i / (sum of w in the leaf)``, so ``leaf_values = M @ y``."""
+        from scipy import sparse
+
+        n, m = self.pos["train"].shape
+        w = np.ones(n) if self._w is None else self._w
+        indptr = np.arange(0, n * m + 1, m, dtype=np.int64)
+        return sparse.csc_matrix((np.repeat(w, m) / self._wsum[self._compact], self._compact, indptr),
+                                 shape=(len(self.leaf_ids), n))
 
     @staticmethod
     def _leaves(leaves_of: Any, X: np.ndarray, chunk: int = 262_144) -> np.ndarray:
@@ -335,7 +354,7 @@ class FrozenTreesLearner(Learner):
         w = np.asarray(weights, dtype=np.float64)[rows]
         wsum = np.bincount(self._compact, weights=w, minlength=len(self.leaf_ids))
         vals = w / np.where(wsum[self._compact] > 0, wsum[self._compact], 1.0)
-        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=self.M.shape)
+        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=(len(self.leaf_ids), len(rows) // self._m))
         keep = sparse.diags((wsum > 0).astype(np.float64))
         A = {}
         for name, op in self.A.items():
@@ -351,7 +370,8 @@ class FrozenTreesLearner(Learner):
         if self._pending or k in self.restructure_at:
             self._build(y, k)
         self._pending = self.built_on_constant  # constant targets say nothing about where to split
-        self.leaf_values = self.M @ np.asarray(y, dtype=np.float64)  # leaf means of y_k
+        y = np.asarray(y, dtype=np.float64)
+        self.leaf_values = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum  # leaf means of y_k
         self._cache = {}
 
     def state(self) -> dict[str, Any]:
