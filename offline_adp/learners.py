@@ -175,7 +175,8 @@ class FrozenTreesLearner(Learner):
     are then *honest*: each leaf's value is the weighted mean target over **all** training
     rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
     dropped after the lookups (the arrays of :class:`~offline_adp.qfunctions.TreeEnsemble`
-    remain). An iteration is a sparse mat-vec and a gather: no tree fitting, no traversal.
+    remain). An iteration is one bincount per tree over the (n, trees) leaf matrix and a
+    gather: no tree fitting, no traversal.
     With a fixed structure the update is a gamma-contraction, so it converges -- to the
     fixed point of *that* averager, which is only as good as the structure: a structure
     fitted to early targets cannot represent what later targets need.
@@ -253,7 +254,7 @@ class FrozenTreesLearner(Learner):
         self.ensemble.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
 
     def _operators(self, leaves_of: Any) -> None:
-        """The averaging operator ``M`` and the query operators (leaf positions) from a leaf
+        """The training leaf matrix, the leaf weights and the query operators (leaf positions) from a leaf
         lookup ``leaves_of(X) -> (len(X), n_trees)``. Training rows that continue the previous
         row (``x_i == x'_{i-1}``) take their leaves from the next-state lookup (a third of
         the lookups with two actions); int32 indices."""
