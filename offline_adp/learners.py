@@ -189,7 +189,8 @@ class FrozenTreesLearner(Learner):
     the same CPU but lose Acrobot (~-200 vs -131) and path tracking (-11.7 vs -5.8): leaves
     averaging ~8 rows are too coarse there. Cheap early builds with the last ones on all
     rows (``max_samples=[0.125] * 7 + [1.0] * 3``, 10 builds) held all four at 10k
-    transitions, at 0.11-0.14 of refit's CPU.
+    transitions, at 0.11-0.14 of refit's CPU; at 50k transitions CartPole scored 466 +- 20
+    (4 builds on all rows: 452 +- 57) against refit's 496 +- 7, at 0.06-0.07 of its CPU.
     """
 
     def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),

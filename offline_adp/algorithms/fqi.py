@@ -134,14 +134,15 @@ class FittedQIteration(BaseEstimator):
         point of the averager its structure defines, which is as good as the structure.
         Measured (``benchmarks/fqi_suite.py``): it held the refit score on car-on-the-hill,
         Acrobot, path tracking and MountainCar, but NOT on CartPole with 10k transitions and
-        20 trees (~210-240 vs refit ~380-440 over 4 learner seeds); with 50k transitions and
-        50 trees CartPole scored 432 +- 70 against one refit run's 488 (no refit spread
-        measured). ``structure_max_samples`` (structures on a row subsample, honest leaves)
+        20 trees (~210-240 vs refit ~380-440 over 4 learner seeds), nor with 50k transitions
+        and 50 trees (452 +- 57 vs refit 496 +- 7 over 3 seeds, at 0.06 of its CPU).
+        ``structure_max_samples`` (structures on a row subsample, honest leaves)
         trades the other way: 1/8 of the rows for every build gave CartPole ~350-390 but
         lost Acrobot and path tracking; 10 builds, the first 7 on 1/8 of the rows and the
         last 3 on all (``structure_max_samples=[0.125] * 7 + [1.0] * 3``) held the refit
         score on car-on-the-hill, CartPole, Acrobot and path tracking at that quick size, at
-        0.11-0.14 of refit's CPU (4 structures: 0.09-0.13). Measure on
+        0.11-0.14 of refit's CPU (4 structures: 0.09-0.13), but not CartPole at 50k
+        transitions (466 +- 20 vs 496 +- 7, at 0.07 of its CPU). Measure on
         your problem. ``warm_start``: LightGBM, ``trees_per_iteration``
         new trees per iteration boosted from the previous Q (joint encoding; with a
         non-LightGBM regressor it uses LightGBM with 63 leaves and learning rate 0.3, and
