@@ -4,7 +4,11 @@ Synthetic linear-Gaussian system x' = 0.95 x + B[a] + noise, cost |x|^2 + 0.1 a^
 of 100 steps. Each (size, mode) runs 50 iterations in a fresh subprocess so that peak
 RSS is its own; per-iteration time is the median of the iterations.
 
-    python benchmarks/fqi_scale.py [--sizes 100000 1000000] [--modes warm_start frozen] [--iterations 50]
+    python benchmarks/fqi_scale.py [--sizes 100000 1000000] [--modes warm_start frozen frozen_sub] [--iterations 50]
+
+Modes: ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen`` (extra-trees,
+``min_samples_leaf=20``, the default structure schedule), ``frozen_sub`` (the same with
+each tree grown on 1/8 of the rows, ``structure_max_samples=0.125``), ``refit_lightgbm``.
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ CHILD = textwrap.dedent(
     cfg = {
         "warm_start": dict(mode="warm_start", regressor="lightgbm", trees_per_iteration=10),
         "frozen": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20}),
+        "frozen_sub": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20},
+                           structure_max_samples=0.125),
         "refit_lightgbm": dict(mode="refit", regressor="lightgbm"),
     }[mode]
     f = FittedQIteration(gamma=0.95, n_iterations=iters, **cfg)

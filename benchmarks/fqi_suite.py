@@ -42,6 +42,10 @@ MODES = {
     "refit": {"mode": "refit"},
     "frozen": {"mode": "frozen"},  # the default schedule: 4 structures
     "frozen2": {"mode": "frozen", "n_structures": 2},
+    # each structure grown on 1/8 of the rows (bootstrap), leaves averaged over all rows
+    "frozen_sub": {"mode": "frozen", "n_structures": 4, "structure_max_samples": 0.125},
+    # 10 builds: 7 cheap (1/8 of the rows), the last 3 on all rows
+    "frozen_hybrid": {"mode": "frozen", "n_structures": 10, "structure_max_samples": [0.125] * 7 + [1.0] * 3},
     "warm_start": {"mode": "warm_start"},
 }
 

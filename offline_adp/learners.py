@@ -22,6 +22,7 @@ Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks for all actions
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -191,51 +192,125 @@ def _row_sources(base: np.ndarray, sets: list[np.ndarray]) -> tuple[list[np.ndar
 class FrozenTreesLearner(Learner):
     """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
 
+    Ernst, Geurts & Wehenkel (2005), "Tree-based batch mode reinforcement learning",
+    JMLR 6, section 4.3: with the tree structure frozen, fitted Q-iteration is a kernel
+    averager and converges. Update rule, with the structure built at iteration ``s``::
+
+        structure_s = LEARN({((x_i, a_i), y_s,i)})         (at s in restructure_at)
+        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w of the training rows in the leaf)
+        Q_k(query) = mean over trees of v_k[leaf of the query in that tree]
+
     The structure is (re)built at the iterations in ``restructure_at`` (and at the next
-    iteration whenever the targets it was built on were constant, e.g. the first targets
-    of a problem with one cost per step: a structure fitted to constant targets is a
-    random partition). A build fits the ensemble to that iteration's targets plus a tiny
-    jitter (std ``1e-6 * (1 + std(y))``, so that trees grow fully) and computes the leaf
-    of every training and query input once. With the structure fixed, each leaf's value
-    is the weighted mean target of its training samples and a prediction is the mean
-    over trees: two fixed sparse operators (a kernel averager whose rows sum to 1)::
+    iteration whenever the targets were constant, e.g. the first targets of a problem with
+    one cost per step: LEARN on constant targets is that constant, represented by one-leaf
+    trees, and says nothing about where to split). A build grows the ensemble on that
+    iteration's targets (plus a tiny jitter, std ``1e-6 * (1 + std(y))``, only when the
+    targets have ties, so that tied nodes still split; without ties a build on all rows
+    is exactly the refit step) -- each tree on a bootstrap sample of ``max_samples`` of
+    the rows if given -- and looks up the leaf of every training and query input once
+    (training rows that continue the previous row reuse the next-state lookups). Leaves
+    are then *honest*: each leaf's value is the weighted mean target over **all** training
+    rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
+    dropped after the lookups (the arrays of :class:`~offline_adp.qfunctions.TreeEnsemble`
+    remain). An iteration is one bincount per tree over the (n, trees) leaf matrix and a
+    gather: no tree fitting, no traversal.
+    With a fixed structure the update is a gamma-contraction, so it converges -- to the
+    fixed point of *that* averager, which is only as good as the structure: a structure
+    fitted to early targets cannot represent what later targets need.
 
-        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w in the leaf)
-        Q_k(query) = A_query @ v_k  A_query[q, leaf] = 1 / n_trees for the q's leaves
-
-    An iteration is a few sparse mat-vecs: no tree fitting, no traversal. With a fixed
-    structure the update is a gamma-contraction, so it converges -- to the fixed point of
-    *that* averager, which is only as good as the structure: a structure fitted to early
-    targets cannot represent what later targets need (see the ``mode`` notes of
-    :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
+    Measured (``benchmarks/fqi_suite.py``, see the ``mode`` notes of
+    :class:`~offline_adp.algorithms.fqi.FittedQIteration`): 4 evenly spaced builds on all
+    rows hold the refit score on car-on-the-hill, Acrobot and path tracking at ~1/10 of its
+    CPU but not on CartPole with 10k transitions (~210-240 vs ~380-440). Structures grown
+    on 1/8 of the rows (``max_samples=0.125``, 8-16 builds) bring CartPole to ~350-390 at
+    the same CPU but lose Acrobot (~-200 vs -131) and path tracking (-11.7 vs -5.8): leaves
+    averaging ~8 rows are too coarse there. Cheap early builds with the last ones on all
+    rows (``max_samples=[0.125] * 7 + [1.0] * 3``, 10 builds) held all four at 10k
+    transitions, at 0.11-0.14 of refit's CPU; at 50k transitions CartPole scored 466 +- 20
+    (4 builds on all rows: 452 +- 57) against refit's 496 +- 7, at 0.06-0.07 of its CPU.
     """
 
-    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,), **kwargs: Any) -> None:
+    def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),
+                 max_samples: float | Sequence[float | None] | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
+        fractions = list(max_samples) if isinstance(max_samples, list | tuple) else [max_samples]
+        for f in fractions:
+            if f is not None and not (isinstance(f, int | float) and 0.0 < float(f) <= 1.0):
+                raise ValueError(f"max_samples must be in (0, 1] or None (or a list of those), got {max_samples!r}")
         self.restructure_at = frozenset(restructure_at) | {1}
+        self.max_samples = max_samples
         self._pending = True  # no structure yet
         self.structures = 0
         self.built_on_constant = False
+        phi_next = self.queries["next"][0] if "next" in self.queries else None
+        same = np.zeros(len(self.phi), bool)
+        if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
+            same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
+        self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
+        self._cache: dict[str, np.ndarray] = {}
+
+    def fraction(self, k: int) -> float | None:
+        """The row fraction the structure built at iteration ``k`` is grown on (None: all):
+        ``max_samples``, or its entry for the last scheduled build at or before ``k``."""
+        if not isinstance(self.max_samples, list | tuple):
+            return self.max_samples
+        j = sum(1 for s in sorted(self.restructure_at) if s <= k) - 1
+        return self.max_samples[min(max(j, 0), len(self.max_samples) - 1)] if self.max_samples else None
+
+    def _structure_model(self, k: int) -> Any:
+        model = _seeded(clone(self.regressor), self.seed + k)
+        f = self.fraction(k)
+        if f is not None and f < 1.0:
+            if "max_samples" not in model.get_params():
+                raise ValueError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
+                                 f"not {type(model).__name__}")
+            model.set_params(bootstrap=True, max_samples=float(f))
+        return model
 
     def _build(self, y: np.ndarray, k: int) -> None:
         X = self.encoder.pairs(self.phi, self.actions)
-        rng = np.random.default_rng([self.seed, k, 7])
-        jitter = rng.normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
-        forest = _fit(_seeded(clone(self.regressor), self.seed + k), X, y + jitter, self.weights)
+        self.structures += 1
+        self.built_on_constant = bool(np.ptp(y) == 0.0)
+        if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
+            self.ensemble = _constant_ensemble(float(y[0]), self.regressor)
+            self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
+            self._operators(self.ensemble.apply)
+            return
+        if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
+            y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+        forest = _fit(self._structure_model(k), X, y, self.weights)
+        del X
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         self.ensemble = TreeEnsemble.from_sklearn(forest)
-        self._operators(lambda Z: sklearn_leaves(forest, Z), sklearn_leaves(forest, X))
-        self.structures += 1
-        self.built_on_constant = bool(np.ptp(y) == 0.0)
+        self._operators(lambda Z: sklearn_leaves(forest, Z))
+        # every leaf lookup the fit needs is done: keep only the arrays (the forest's own node
+        # arrays are as large again); later lookups use trees rebuilt from the arrays
+        self.ensemble._forest = None  # type: ignore[attr-defined]
+        self.ensemble.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
 
-    def _operators(self, leaves_of: Any, train: np.ndarray) -> None:
-        """The averaging operator ``M`` and the query operators ``A`` from the training
-        leaves (n, m) and a leaf lookup for the queries (int32 indices, CSR built directly)."""
-        from scipy import sparse
+    def _operators(self, leaves_of: Any) -> None:
+        """The training leaf matrix, the leaf weights and the query operators (leaf positions) from a leaf
+        lookup ``leaves_of(X) -> (len(X), n_trees)``. Training rows that continue the previous
+        row (``x_i == x'_{i-1}``) take their leaves from the next-state lookup (a third of
+        the lookups with two actions); int32 indices."""
 
+        raw: dict[str, np.ndarray] = {}
+        for name, (phi, a) in self.queries.items():
+            if name != "train":
+                raw[name] = self._leaves(leaves_of, self._joint(phi, a))
+        n = len(self.phi)
+        if len(self.reuse) and "next" in raw:
+            train = np.empty((n, raw["next"].shape[1]), raw["next"].dtype)
+            rest = np.ones(n, bool)
+            rest[self.reuse] = False
+            if rest.any():
+                train[rest] = self._leaves(leaves_of, self.encoder.pairs(self.phi[rest], self.actions[rest]))
+            train[self.reuse] = raw["next"][self.actions[self.reuse] * n + self.reuse - 1]
+        else:
+            train = self._leaves(leaves_of, self.encoder.pairs(self.phi, self.actions))
         n, m = train.shape
         used = np.zeros(len(self.ensemble.value), bool)
         used[train.reshape(-1)] = True
@@ -244,30 +319,56 @@ class FrozenTreesLearner(Learner):
         lookup = np.full(len(used), -1, np.int32)
         lookup[self.leaf_ids] = np.arange(L, dtype=np.int32)
         compact = lookup[train.reshape(-1)]  # (n * m,), row-major: row i's trees together
-        w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        wsum = np.bincount(compact, weights=np.repeat(w, m), minlength=L)
-        # M in CSR by leaf: sort the (row, tree) pairs by leaf (stable: rows ascending)
-        order = np.argsort(compact, kind="stable")
-        rows = (order // m).astype(np.int32 if n < 2**31 - 1 else np.int64)
-        idx_t = np.int32 if n * m < 2**31 - 1 else np.int64
-        indptr = np.r_[0, np.cumsum(np.bincount(compact, minlength=L))].astype(idx_t)
-        self.M = sparse.csr_matrix((w[rows] / wsum[compact[order]], rows, indptr), shape=(L, n))
-        del order
+        del train, used
+        # tree t's leaves are the compact range [bounds[t], bounds[t + 1]): leaf sums are one
+        # bincount per tree over the (n, m) leaf matrix, no (n * m) float operator is stored
+        ends = np.r_[self.ensemble.roots[1:], len(self.ensemble.value)]
+        self._bounds = np.r_[0, np.searchsorted(self.leaf_ids, ends)]
         self._compact, self._m = compact, m
+        self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
         # weight, which contributes 0): Q(query) = mean over trees of leaf values
-        self.pos: dict[str, np.ndarray] = {}
-        for name, (phi, a) in self.queries.items():
-            if name == "train":  # every training leaf holds its own sample: a view, no copy
-                self.pos[name] = compact.reshape(n, m)
-                continue
-            X = self._joint(phi, a)
-            pos = np.empty((len(X), m), np.int32)
-            for lo in range(0, len(X), 262_144):  # leaf lookups in row chunks: bounded temporaries
-                pos[lo:lo + 262_144] = lookup[leaves_of(X[lo:lo + 262_144])]
-            del X
-            pos[pos < 0] = L
+        self.pos: dict[str, np.ndarray] = {"train": compact.reshape(n, m)}  # every training leaf holds its own sample
+        self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
+        for name in list(raw):
+            leaves = raw.pop(name)
+            pos = leaves if leaves.dtype == np.int32 else np.empty(leaves.shape, np.int32)
+            for lo in range(0, len(pos), 65_536):  # in place when int32, in row chunks
+                chunk = lookup[leaves[lo:lo + 65_536]]
+                chunk[chunk < 0] = L
+                pos[lo:lo + 65_536] = chunk
             self.pos[name] = pos
+
+    def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
+        """``sum of v_i`` over the training rows in each leaf (compact index)."""
+        pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
+        for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
+            out[lo:hi] = np.bincount(pos[:, t] - lo, weights=v, minlength=hi - lo)
+        return out
+
+    @property
+    def M(self) -> Any:
+        """The leaf-averaging operator as a sparse (leaves, n) matrix (built on demand):
+        ``M[leaf, i] = w_i / (sum of w in the leaf)``, so ``leaf_values = M @ y``."""
+        from scipy import sparse
+
+        n, m = self.pos["train"].shape
+        w = np.ones(n) if self._w is None else self._w
+        indptr = np.arange(0, n * m + 1, m, dtype=np.int64)
+        return sparse.csc_matrix((np.repeat(w, m) / self._wsum[self._compact], self._compact, indptr),
+                                 shape=(len(self.leaf_ids), n))
+
+    @staticmethod
+    def _leaves(leaves_of: Any, X: np.ndarray, chunk: int = 262_144) -> np.ndarray:
+        """Leaf lookups in row chunks (bounded temporaries)."""
+        first = leaves_of(X[:chunk])
+        if len(X) <= chunk:
+            return first
+        out = np.empty((len(X), first.shape[1]), first.dtype)
+        out[:chunk] = first
+        for lo in range(chunk, len(X), chunk):
+            out[lo:lo + chunk] = leaves_of(X[lo:lo + chunk])
+        return out
 
     @property
     def A(self) -> dict[str, Any]:
@@ -294,7 +395,7 @@ class FrozenTreesLearner(Learner):
         w = np.asarray(weights, dtype=np.float64)[rows]
         wsum = np.bincount(self._compact, weights=w, minlength=len(self.leaf_ids))
         vals = w / np.where(wsum[self._compact] > 0, wsum[self._compact], 1.0)
-        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=self.M.shape)
+        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=(len(self.leaf_ids), len(rows) // self._m))
         keep = sparse.diags((wsum > 0).astype(np.float64))
         A = {}
         for name, op in self.A.items():
@@ -310,7 +411,9 @@ class FrozenTreesLearner(Learner):
         if self._pending or k in self.restructure_at:
             self._build(y, k)
         self._pending = self.built_on_constant  # constant targets say nothing about where to split
-        self.leaf_values = self.M @ np.asarray(y, dtype=np.float64)  # leaf means of y_k
+        y = np.asarray(y, dtype=np.float64)
+        self.leaf_values = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum  # leaf means of y_k
+        self._cache = {}
 
     def state(self) -> dict[str, Any]:
         return {"structure": self.structures, "structure_on_constant": self.built_on_constant}
@@ -319,9 +422,20 @@ class FrozenTreesLearner(Learner):
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
     def predict(self, name: str) -> np.ndarray:
+        if name in self._cache:
+            return self._cache[name]
         phi, actions = self.queries[name]
-        v = _tree_mean(np.r_[self.leaf_values, 0.0], self.pos[name])  # mean over trees of the reached leaves
-        return v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+        values = np.r_[self.leaf_values, 0.0]
+        if name == "train" and len(self.reuse) and "next" in self.pos:  # the same leaves: the same numbers
+            v = np.empty(len(phi))
+            rest = np.ones(len(phi), bool)
+            rest[self.reuse] = False
+            v[rest] = _tree_mean(values, self.pos[name][rest])
+            v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
+        else:
+            v = _tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
+        self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+        return self._cache[name]
 
     def snapshot(self) -> QFunction:
         value = self.ensemble.value.copy()
@@ -333,14 +447,22 @@ class FrozenTreesLearner(Learner):
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
         self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
-        X = self.encoder.pairs(self.phi, self.actions)
-        self._operators(self.ensemble.apply, self.ensemble.apply(X))
+        self._operators(self.ensemble.apply)
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
+        self._cache = {}
         last = (rows or [{}])[-1]
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         self._pending = self.built_on_constant
         self.iteration = iteration
+
+
+def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:
+    """An ensemble of one-leaf trees predicting ``value`` (as many trees as the regressor has)."""
+    m = int(regressor.get_params().get("n_estimators", 1))
+    minus = np.full(m, -1, np.int64)
+    return TreeEnsemble(left=minus, right=minus.copy(), feature=np.full(m, -2, np.int64), threshold=np.full(m, -2.0),
+                        value=np.full(m, value), roots=np.arange(m, dtype=np.int64))
 
 
 def _tree_mean(values: np.ndarray, pos: np.ndarray, chunk: int = 65_536) -> np.ndarray:

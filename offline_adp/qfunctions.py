@@ -245,8 +245,9 @@ class TreeEnsemble:
 
     def with_values(self, value: np.ndarray) -> TreeEnsemble:
         out = TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
-        if getattr(self, "_forest", None) is not None:
-            out._forest = self._forest  # type: ignore[attr-defined]
+        for k in ("_forest", "_trees", "_n_features", "n_features_in_"):  # same structure: same leaf lookup
+            if getattr(self, k, None) is not None:
+                setattr(out, k, getattr(self, k))
         return out
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:

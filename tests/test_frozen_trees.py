@@ -1,0 +1,105 @@
+"""The frozen-structure learner against independent references (issue 14).
+
+- A structure rebuilt on every iteration from all rows is the refit loop: same Q.
+- Structures grown on a row subsample keep *honest* leaves: each leaf's value is the
+  (weighted) mean target over every training row that falls in it, and a prediction is the
+  mean over trees; checked against a brute-force per-tree computation from the forest's
+  own leaf lookups.
+- Constant targets (one cost per step) give the constant Q without growing a forest.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_adp import TransitionDataset
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.simulate import simulate
+
+TREES = {"n_estimators": 6, "n_jobs": 1}
+
+
+@pytest.fixture(scope="module")
+def pt():
+    return simulate("path_tracking", 6, 6, seed=3, horizon=30)
+
+
+def _continuous(n: int = 300, cost: np.ndarray | None = None, seed: int = 0) -> TransitionDataset:
+    """Two episodes of a noisy 2-d walk under random actions; distinct costs unless given."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.normal(size=(n + 1, 2)), axis=0) * 0.1
+    obs, nxt = x[:-1], x[1:]
+    info = DatasetInfo(features=(Feature("x"), Feature("v")), action_table=ActionTable.from_values([0.0, 1.0]))
+    half = n // 2
+    nxt = nxt.copy()
+    nxt[half - 1] = obs[half - 1] + 0.05  # the first episode ends there (not continued by row half)
+    return TransitionDataset.from_arrays(
+        info, episode_id=np.repeat(["a", "b"], [half, n - half]), step=np.r_[np.arange(half), np.arange(n - half)],
+        obs=obs, action=rng.integers(0, 2, n), cost=rng.uniform(0, 1, n) if cost is None else cost, next_obs=nxt,
+        terminated=np.zeros(n, bool), truncated=np.arange(n) == half - 1)
+
+
+def test_a_structure_rebuilt_every_iteration_from_all_rows_is_the_refit_loop():
+    ds = _continuous()
+    kw = dict(gamma=0.9, n_iterations=4, regressor_params=TREES, random_state=2)
+    refit = FittedQIteration(mode="refit", **kw).fit(ds)
+    frozen = FittedQIteration(mode="frozen", n_structures=4, **kw).fit(ds)
+    obs = np.random.default_rng(5).normal(size=(50, 2)) * 0.5
+    assert list(frozen.history_["structure"]) == [1, 2, 3, 4]
+    np.testing.assert_allclose(frozen.predict(obs), refit.predict(obs), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(frozen.history_["sup_dq"], refit.history_["sup_dq"], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_subsampled_structures_average_every_training_row_in_a_leaf(pt, weighted):
+    a = pt.arrays()
+    w = np.random.default_rng(0).uniform(0.2, 2.0, len(pt)) if weighted else None
+    f = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", structure_max_samples=0.3, regressor_params=TREES,
+                         random_state=1).fit(pt, sample_weight=w)
+    learner = f._fit_state[1]
+    model = learner._structure_model(1)
+    assert model.bootstrap and model.max_samples == 0.3
+    ens = learner.ensemble
+    full = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params=TREES, random_state=1).fit(pt)
+    assert len(ens.value) < 0.5 * len(full._fit_state[1].ensemble.value)  # trees grown on ~30% of the rows
+    enc = learner.encoder
+    X = enc.pairs(a.obs, a.action)
+    y = a.cost  # iteration 1: the targets are the costs
+    ww = np.ones(len(y)) if w is None else w
+    obs = simulate("path_tracking", 2, 2, seed=8, horizon=20).arrays().obs
+    Xq = enc.all_pairs(obs)
+    leaf_train, leaf_q = ens.apply(X), ens.apply(Xq)
+    expect = np.zeros(len(Xq))
+    for t in range(ens.n_trees):  # brute force, tree by tree: weighted mean of y over the rows in the query's leaf
+        for i, leaf in enumerate(leaf_q[:, t]):
+            rows = leaf_train[:, t] == leaf
+            expect[i] += (ww[rows] * y[rows]).sum() / ww[rows].sum() if rows.any() else 0.0
+    expect /= ens.n_trees
+    np.testing.assert_allclose(f.predict(obs), expect.reshape(enc.n_actions, len(obs)).T, rtol=1e-12, atol=1e-12)
+    # the training predictions (partly read from the next-state lookups) are the same averages
+    np.testing.assert_allclose(learner.predict("train"),
+                               f.q_function_.values(a.obs)[np.arange(len(a.obs)), a.action], rtol=1e-12, atol=1e-12)
+
+
+def test_constant_targets_give_the_constant_without_a_forest():
+    ds = _continuous(cost=np.ones(300))
+    obs = ds.arrays().obs
+    f = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params=TREES).fit(ds)
+    assert not hasattr(f._fit_state[1].ensemble, "_forest")
+    np.testing.assert_allclose(f.predict(obs), np.ones((len(obs), 2)), rtol=1e-12)
+    f2 = FittedQIteration(gamma=0.9, n_iterations=3, mode="frozen", n_structures=1, regressor_params=TREES).fit(ds)
+    assert list(f2.history_["structure"]) == [1, 2, 3]  # targets stay constant (1 + 0.9 * 1, ...): a one-leaf "build" each time
+    np.testing.assert_allclose(f2.predict(obs), np.full((len(obs), 2), 1 + 0.9 + 0.81), rtol=1e-12)
+
+
+def test_a_list_gives_each_scheduled_build_its_row_fraction():
+    ds = _continuous()
+    f = FittedQIteration(gamma=0.9, n_iterations=4, mode="frozen", n_structures=2, structure_max_samples=[0.3, 1.0],
+                         regressor_params=TREES).fit(ds)
+    learner = f._fit_state[1]
+    assert [learner.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
+    assert len(learner.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)  # the last: grown on every row
+    with pytest.raises(ValueError, match="max_samples"):
+        FittedQIteration(mode="frozen", structure_max_samples=[0.5, 1.5], regressor_params=TREES).fit(ds)
