@@ -57,7 +57,8 @@ class FittedQEvaluation(FittedQIteration):
                  mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
-                 initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4) -> None:
+                 initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
+                 structure_max_samples: float | list[float | None] | None = None) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
@@ -65,7 +66,7 @@ class FittedQEvaluation(FittedQIteration):
                          infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
-                         n_structures=n_structures)
+                         n_structures=n_structures, structure_max_samples=structure_max_samples)
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None):
         """As :meth:`FittedQIteration.fit_iter`, with the policy's backup; sets ``value_`` at the end."""
