@@ -373,10 +373,16 @@ class FrozenTreesLearner(Learner):
     @property
     def A(self) -> dict[str, Any]:
         """The query operators as sparse matrices ``A[q, leaf] = 1 / n_trees`` (built on demand)."""
+        return self.query_operators()
+
+    def query_operators(self, names: tuple[str, ...] | None = None) -> dict[str, Any]:
+        """``A`` for the query sets ``names`` only (default: all)."""
         from scipy import sparse
 
         L, out = len(self.leaf_ids), {}
         for name, pos in self.pos.items():
+            if names is not None and name not in names:
+                continue
             nq, m = pos.shape
             flat = pos.reshape(-1)
             hit = flat < L
@@ -384,11 +390,13 @@ class FrozenTreesLearner(Learner):
             out[name] = sparse.csr_matrix((np.full(int(hit.sum()), 1.0 / m), (qrows, flat[hit])), shape=(nq, L))
         return out
 
-    def reweighted_operators(self, weights: np.ndarray) -> tuple[Any, dict[str, Any]]:
+    def reweighted_operators(self, weights: np.ndarray, base: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         """Leaf-averaging operator ``M`` and query operators ``A`` for other sample weights
         on the same structure. A leaf left with no weight is dropped from every query's
         average over trees (rows of ``A`` renormalised over the remaining trees; a query
-        with none left keeps its original row)."""
+        with none left keeps its original row). ``base``: the unweighted query operators
+        to reweight (default: all of :attr:`A`, built here), so that many replicates
+        build them once."""
         from scipy import sparse
 
         rows = np.repeat(np.arange(len(self._compact) // self._m), self._m)
@@ -398,7 +406,7 @@ class FrozenTreesLearner(Learner):
         M = sparse.csr_matrix((vals, (self._compact, rows)), shape=(len(self.leaf_ids), len(rows) // self._m))
         keep = sparse.diags((wsum > 0).astype(np.float64))
         A = {}
-        for name, op in self.A.items():
+        for name, op in (self.A if base is None else base).items():
             kept = (op @ keep).tocsr()
             total = np.asarray(kept.sum(axis=1)).ravel()
             scale = sparse.diags(np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0))

@@ -104,7 +104,7 @@ class FittedQEvaluation(FittedQIteration):
         """
         d, learner, _backup = self._fit_state
         self._check_conditional()
-        v, sweeps = self._fixed_point(learner.M, learner.A, learner.leaf_values, tol, max_iterations)
+        v, sweeps = self._fixed_point(learner.M, self._query_operators(), learner.leaf_values, tol, max_iterations)
         learner.leaf_values = v
         self.q_function_ = learner.snapshot()
         self.settled_iterations_ = sweeps
@@ -127,12 +127,22 @@ class FittedQEvaluation(FittedQIteration):
         d, learner, _backup = self._fit_state
         self._check_conditional()
         w = np.asarray(sample_weight, dtype=np.float64)
-        M, ops = learner.reweighted_operators(w)
+        M, ops = learner.reweighted_operators(w, base=self._query_operators())
         v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000)
         q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
         v0 = (self._fit_state[2].probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
         return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+
+    def _query_operators(self) -> dict[str, Any]:
+        """The fitted structure's next-state and start-state operators, built once per fit
+        (every replicate reweights the same ones)."""
+        learner = self._fit_state[1]
+        cached = self.__dict__.get("_ops_cache")
+        if cached is None or cached[0] is not learner:
+            cached = (learner, learner.query_operators(("next", "start")))
+            self.__dict__["_ops_cache"] = cached
+        return cached[1]
 
     def _check_conditional(self) -> None:
         from offline_adp.learners import FrozenTreesLearner
