@@ -115,3 +115,24 @@ def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
         np.testing.assert_allclose(fqe.q_functions_[t].values(np.arange(8.0)[:, None]), exact.Q[t], atol=1e-10, rtol=0)
     np.testing.assert_allclose(fqe.value_, exact.V[0][ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)].mean(), atol=1e-10)
     assert fqe.verdict_ == "completed"
+
+
+def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
+    """Unfitted, wrong weight length, undiscounted: a clear error, not a traceback or a silent answer."""
+    from sklearn.exceptions import NotFittedError
+
+    from offline_adp.policies import UniformPolicy
+
+    pi = UniformPolicy(small_pt.n_actions)
+    with pytest.raises(NotFittedError):
+        FittedQEvaluation(policy=pi, gamma=0.9, mode="frozen").settle()
+    fqe = FittedQEvaluation(policy=pi, gamma=0.9, mode="frozen", n_iterations=4,
+                            regressor_params={"n_estimators": 3}).fit(small_pt)
+    with pytest.raises(ValueError, match="training rows"):
+        fqe.reweighted_value(np.ones(len(small_pt) + 1))
+    with pytest.raises(TypeError, match="TransitionDataset"):
+        FittedQEvaluation(policy=pi).fit("not a dataset")
+    fqe._fit_state = (fqe._fit_state[0].__class__(**{**fqe._fit_state[0].__dict__, "gamma": 1.0}),
+                      *fqe._fit_state[1:])  # the guard, not a division by 1 - gamma
+    with pytest.raises(ValueError, match="gamma < 1"):
+        fqe.settle()

@@ -72,6 +72,8 @@ class FittedQEvaluation(FittedQIteration):
         """As :meth:`FittedQIteration.fit_iter`, with the policy's backup; sets ``value_`` at the end."""
         if self.policy is None:
             raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
+        if not isinstance(dataset, TransitionDataset):
+            raise TypeError(f"FittedQEvaluation.fit needs a TransitionDataset, got {type(dataset).__name__}")
         if self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
         yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup)
@@ -102,8 +104,8 @@ class FittedQEvaluation(FittedQIteration):
         :meth:`reweighted_value` computes for other weights, so bootstrap replicates are
         centred on it. Returns the number of sweeps run (also in ``settled_iterations_``).
         """
-        d, learner, _backup = self._fit_state
         self._check_conditional()
+        d, learner, _backup = self._fit_state
         v, sweeps = self._fixed_point(learner.M, self._query_operators(), learner.leaf_values, tol, max_iterations)
         learner.leaf_values = v
         self.q_function_ = learner.snapshot()
@@ -124,13 +126,15 @@ class FittedQEvaluation(FittedQIteration):
         all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
         training rows (no ``validation_fraction``).
         """
-        d, learner, _backup = self._fit_state
         self._check_conditional()
+        d, learner, backup = self._fit_state
         w = np.asarray(sample_weight, dtype=np.float64)
+        if w.shape != (d.n,):
+            raise ValueError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
         M, ops = learner.reweighted_operators(w, base=self._query_operators())
         v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000)
         q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
-        v0 = (self._fit_state[2].probabilities("start", 0) * q0).sum(axis=1)
+        v0 = (backup.probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
         return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
 
@@ -145,11 +149,16 @@ class FittedQEvaluation(FittedQIteration):
         return cached[1]
 
     def _check_conditional(self) -> None:
+        from sklearn.exceptions import NotFittedError
+
         from offline_adp.learners import FrozenTreesLearner
 
-        d, learner, _backup = getattr(self, "_fit_state", (None, None, None))
-        if not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None:
-            raise ValueError("needs a discounted FQE fitted with mode='frozen' and no validation split")
+        if not hasattr(self, "_fit_state"):
+            raise NotFittedError("this FittedQEvaluation is not fitted in this process (fit it first)")
+        d, learner, _backup = self._fit_state
+        if (not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None
+                or d.gamma >= 1.0):
+            raise ValueError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
 
     def _fixed_point(self, M: Any, ops: dict[str, Any], v: np.ndarray, tol: float | None,
                      max_iterations: int) -> tuple[np.ndarray, int]:
@@ -157,11 +166,10 @@ class FittedQEvaluation(FittedQIteration):
         d, _learner, backup = self._fit_state
         n, A = d.n, d.n_actions
         pi_next = backup.probabilities("next", 0)
-        boot = np.where(d.train.no_boot, 0.0, d.gamma)
         v = np.asarray(v, dtype=np.float64).copy()
         for sweep in range(1, max_iterations + 1):
             q_next = (ops["next"] @ v).reshape(A, n).T
-            v_new = M @ (d.train.cost + boot * (pi_next * q_next).sum(axis=1))
+            v_new = M @ d.targets((pi_next * q_next).sum(axis=1))  # the loop's own targets (c^- clamp included)
             change = float(np.max(np.abs(v_new - v))) if len(v) else 0.0
             v = v_new
             # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
