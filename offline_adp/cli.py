@@ -36,6 +36,17 @@ def _progress(quiet: bool):
     return on_step, bar.close
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (a usage error, exit 2, otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
 def _say(args: argparse.Namespace, msg: str) -> None:
     if not getattr(args, "quiet", False):
         print(msg, file=sys.stderr)
@@ -245,7 +256,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"  {msg}", file=sys.stderr, flush=True)
 
-    fqe = json.loads(args.fqe_params) if args.fqe_params else None
+    from offline_adp.algorithms.registry import get_algorithm
+    from offline_adp.config import parse_json_object
+
+    fqe = get_algorithm("fqe").check_params(parse_json_object(args.fqe_params, "--fqe-params"), "--fqe-params") \
+        if args.fqe_params else None
     m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
                      n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, horizon=args.horizon,
                      estimand=args.estimand, seed=args.seed, progress=say)
@@ -488,14 +503,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--simulator", default=None, help="reference problem to roll out in, gym:ENV_ID (a registered gymnasium "
                    "environment; features by declared order, actions by the action table's values), or 'none' "
                    "(default: the dataset's problem)")
-    e.add_argument("--episodes", type=int, default=500, help="rollout episodes (default 500)")
+    e.add_argument("--episodes", type=_positive_int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
     e.add_argument("--fqe-bootstrap", type=int, default=None,
                    help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
-    e.add_argument("--horizon", type=int, default=None, help="cap the evaluation horizon (default: the data's)")
+    e.add_argument("--horizon", type=_positive_int, default=None, help="cap the evaluation horizon (default: the data's)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)
@@ -561,7 +576,7 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
     cp.add_argument("--simulator", default=None, help="as for evaluate: a reference problem or 'none'")
     cp.add_argument("--estimator", default=None, help="rank by this estimator (default: the most reliable for all)")
-    cp.add_argument("--episodes", type=int, default=300, help="rollout episodes per candidate (default 300)")
+    cp.add_argument("--episodes", type=_positive_int, default=300, help="rollout episodes per candidate (default 300)")
     cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
     cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
     cp.add_argument("--quiet", "-q", action="store_true")

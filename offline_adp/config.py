@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict
 from pydantic import ValidationError as _PydanticValidationError
 
-from offline_adp.errors import SpecError
+from offline_adp.errors import InvalidArgumentError, SpecError
 
 M = TypeVar("M", bound="ConfigModel")
 
@@ -163,3 +163,17 @@ def write_json_schema(model: type[BaseModel], path: str | PathLike[str]) -> Path
     p = Path(path)
     p.write_text(json.dumps(json_schema(model), indent=2, sort_keys=True) + "\n", encoding="utf-8")
     return p
+
+
+def parse_json_object(text: str | None, flag: str, example: str = '{"n_iterations": 30}') -> dict[str, Any]:
+    """A command-line option holding a JSON object (``None``/empty: ``{}``); anything else
+    raises :class:`InvalidArgumentError` naming the option."""
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InvalidArgumentError(f"{flag}: not valid JSON ({exc.msg} at character {exc.pos}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise InvalidArgumentError(f"{flag}: expected a JSON object such as '{example}', got {text!r}")
+    return value

@@ -93,3 +93,20 @@ def test_simulate_mcap_generic_json(tmp_path):
     acts = [d for t, d in msgs if t == "/action"]
     assert len(obs) == len(acts) + 2  # one final observation per episode
     assert {"p", "s", "step"} <= set(obs[0]) and acts[0]["value"][0] in (-4.0, 4.0)
+
+
+@pytest.mark.parametrize("args, said", [
+    (["--fqe-params", "{bad"], "--fqe-params: not valid JSON"),
+    (["--fqe-params", "[1]"], "--fqe-params: expected a JSON object"),
+    (["--fqe-params", '{"n_iterationz": 3}'], "did you mean 'n_iterations'"),
+    (["--episodes", "0"], "expected a positive integer"),
+    (["--horizon", "-3"], "expected a positive integer"),
+])
+def test_evaluate_refuses_bad_options_in_one_line(tmp_path, capsys, args, said):
+    """Checked before the run directory is even opened: exit 2 and one line, no traceback."""
+    try:
+        code = main(["evaluate", str(tmp_path / "no-run"), *args])
+    except SystemExit as exc:  # argparse usage errors
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2 and said in err and "Traceback" not in err

@@ -10,13 +10,13 @@ policies, labelled by ``source``. Writers for a raw Parquet table and MCAP live 
 from __future__ import annotations
 
 import datetime as _dt
-import json
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
 from offline_adp._version import __version__
+from offline_adp.config import parse_json_object
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.envs import make_problem
 from offline_adp.envs.base import ReferenceProblem
@@ -34,15 +34,7 @@ def _count(value: Any, name: str, lo: int = 0, hi: int = 10**9) -> int:
 
 def parse_problem_options(text: str | None) -> dict[str, Any]:
     """``--problem-options`` (a JSON object of constructor keywords) as a dict."""
-    if not text:
-        return {}
-    try:
-        opts = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InvalidArgumentError(f"--problem-options: not valid JSON ({exc.msg} at character {exc.pos}): {text!r}") from None
-    if not isinstance(opts, dict):
-        raise InvalidArgumentError(f"--problem-options: expected a JSON object such as '{{\"n_states\": 30}}', got {text!r}")
-    return opts
+    return parse_json_object(text, "--problem-options", '{"n_states": 30}')
 
 
 def simulate(
