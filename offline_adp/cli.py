@@ -251,6 +251,7 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from offline_adp.evaluation.run import evaluate_run
+    from offline_adp.evaluation.summary import summary_lines
 
     def say(msg: str) -> None:
         if not args.quiet:
@@ -269,13 +270,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     print(f"{args.run}/evaluation/metrics.json")
     return 0
 
-
-
-def summary_lines(m: dict) -> list[str]:
-    """A short human summary of ``metrics.json`` (see :mod:`offline_adp.evaluation.summary`)."""
-    from offline_adp.evaluation.summary import summary_lines as lines
-
-    return lines(m)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -304,6 +298,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"  {name:9s} {st.get('status')}{' (reused)' if st.get('reused') else ''}"
               + (f" {st['seconds']:.1f} s" if st.get("seconds") is not None and not st.get("reused") else ""))
     if (run / "metrics.json").exists():
+        from offline_adp.evaluation.summary import summary_lines
+
         for line in summary_lines(json.loads((run / "metrics.json").read_text())):
             print(line)
     print(run / "report.html" if (run / "report.html").exists() else run)

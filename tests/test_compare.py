@@ -69,3 +69,14 @@ def test_compare_needs_two_runs_on_the_same_logs(candidates, tmp_path):
     with pytest.raises(OfflineADPError, match="not a run directory"):
         compare_runs([runs[0], tmp_path])
     assert main(["compare", str(runs[0]), str(tmp_path)]) == 2
+
+
+def test_compare_refuses_an_unknown_estimator_before_any_work(tmp_path):
+    from offline_adp.errors import OfflineADPError
+    from offline_adp.evaluation.compare import compare_runs
+
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for r in runs:
+        (r / "model").mkdir(parents=True)
+    with pytest.raises(OfflineADPError, match="unknown estimator 'fqee'"):
+        compare_runs(runs, estimator="fqee")

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import OfflineADPError
-from offline_adp.evaluation.summary import headline, rank_estimators
+from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
 
 
 def _metrics(run: Path) -> dict[str, Any] | None:
@@ -80,6 +80,8 @@ def compare_runs(
     runs = [Path(r) for r in run_dirs]
     if len(runs) < 2:
         raise OfflineADPError("compare needs at least two run directories")
+    if estimator is not None and estimator not in ESTIMATOR_NAMES:
+        raise OfflineADPError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
     for r in runs:
         if not (r / "model").is_dir():
             raise OfflineADPError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")

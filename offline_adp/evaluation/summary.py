@@ -169,10 +169,6 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
             "fit convergence unknown"}
 
 
-def behaviour_value(m: dict[str, Any]) -> dict[str, Any] | None:
-    return m.get("behaviour_value")
-
-
 def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
     """Better or worse than the behaviour (with what confidence), support, convergence."""
     best = next((e for e in ranking if e["tier"] == 0), None)
