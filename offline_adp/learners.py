@@ -318,32 +318,40 @@ class FrozenTreesLearner(Learner):
         L = len(self.leaf_ids)
         lookup = np.full(len(used), -1, np.int32)
         lookup[self.leaf_ids] = np.arange(L, dtype=np.int32)
-        compact = lookup[train.reshape(-1)]  # (n * m,), row-major: row i's trees together
+        # tree-major (m, n) leaf positions: tree t's row is contiguous and only touches tree
+        # t's compact leaf range [bounds[t], bounds[t + 1]) (cache-sized), so a leaf sum is one
+        # contiguous bincount per tree and a prediction one gather per tree
+        compact = np.ascontiguousarray(lookup[train].T)
         del train, used
-        # tree t's leaves are the compact range [bounds[t], bounds[t + 1]): leaf sums are one
-        # bincount per tree over the (n, m) leaf matrix, no (n * m) float operator is stored
         ends = np.r_[self.ensemble.roots[1:], len(self.ensemble.value)]
         self._bounds = np.r_[0, np.searchsorted(self.leaf_ids, ends)]
-        self._compact, self._m = compact, m
+        self._m = m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        # query operators as leaf positions only, (nq, m) int32 (L: a leaf without training
+        # query operators as leaf positions only, (m, nq) int32 (L: a leaf without training
         # weight, which contributes 0): Q(query) = mean over trees of leaf values
-        self.pos: dict[str, np.ndarray] = {"train": compact.reshape(n, m)}  # every training leaf holds its own sample
+        self.pos: dict[str, np.ndarray] = {"train": compact}  # every training leaf holds its own sample
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
         for name in list(raw):
             leaves = raw.pop(name)
-            pos = leaves if leaves.dtype == np.int32 else np.empty(leaves.shape, np.int32)
-            for lo in range(0, len(pos), 65_536):  # in place when int32, in row chunks
+            pos = np.empty(leaves.shape[::-1], np.int32)
+            for lo in range(0, leaves.shape[0], 65_536):  # in row chunks
                 chunk = lookup[leaves[lo:lo + 65_536]]
                 chunk[chunk < 0] = L
-                pos[lo:lo + 65_536] = chunk
+                pos[:, lo:lo + 65_536] = chunk.T
+            del leaves
             self.pos[name] = pos
+        self._rest = None  # tree-major positions of the training rows that are not reused (cached)
+
+    @property
+    def _compact(self) -> np.ndarray:
+        """The training rows' compact leaves, flat tree-major: entry ``t * n + i``."""
+        return self.pos["train"].reshape(-1)
 
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
         """``sum of v_i`` over the training rows in each leaf (compact index)."""
         pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
         for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
-            out[lo:hi] = np.bincount(pos[:, t] - lo, weights=v, minlength=hi - lo)
+            out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
         return out
 
     @property
@@ -352,10 +360,10 @@ class FrozenTreesLearner(Learner):
         ``M[leaf, i] = w_i / (sum of w in the leaf)``, so ``leaf_values = M @ y``."""
         from scipy import sparse
 
-        n, m = self.pos["train"].shape
+        m, n = self.pos["train"].shape
         w = np.ones(n) if self._w is None else self._w
-        indptr = np.arange(0, n * m + 1, m, dtype=np.int64)
-        return sparse.csc_matrix((np.repeat(w, m) / self._wsum[self._compact], self._compact, indptr),
+        flat = self._compact
+        return sparse.csr_matrix((np.tile(w, m) / self._wsum[flat], (flat, np.tile(np.arange(n), m))),
                                  shape=(len(self.leaf_ids), n))
 
     @staticmethod
@@ -383,10 +391,10 @@ class FrozenTreesLearner(Learner):
         for name, pos in self.pos.items():
             if names is not None and name not in names:
                 continue
-            nq, m = pos.shape
-            flat = pos.reshape(-1)
+            m, nq = pos.shape
+            flat = pos.reshape(-1)  # tree-major
             hit = flat < L
-            qrows = np.repeat(np.arange(nq, dtype=np.int64), m)[hit]
+            qrows = np.tile(np.arange(nq, dtype=np.int64), m)[hit]
             out[name] = sparse.csr_matrix((np.full(int(hit.sum()), 1.0 / m), (qrows, flat[hit])), shape=(nq, L))
         return out
 
@@ -399,11 +407,13 @@ class FrozenTreesLearner(Learner):
         build them once."""
         from scipy import sparse
 
-        rows = np.repeat(np.arange(len(self._compact) // self._m), self._m)
+        m, n = self.pos["train"].shape
+        compact = self._compact  # flat tree-major
+        rows = np.tile(np.arange(n), m)
         w = np.asarray(weights, dtype=np.float64)[rows]
-        wsum = np.bincount(self._compact, weights=w, minlength=len(self.leaf_ids))
-        vals = w / np.where(wsum[self._compact] > 0, wsum[self._compact], 1.0)
-        M = sparse.csr_matrix((vals, (self._compact, rows)), shape=(len(self.leaf_ids), len(rows) // self._m))
+        wsum = np.bincount(compact, weights=w, minlength=len(self.leaf_ids))
+        vals = w / np.where(wsum[compact] > 0, wsum[compact], 1.0)
+        M = sparse.csr_matrix((vals, (compact, rows)), shape=(len(self.leaf_ids), n))
         keep = sparse.diags((wsum > 0).astype(np.float64))
         A = {}
         for name, op in (self.A if base is None else base).items():
@@ -438,7 +448,9 @@ class FrozenTreesLearner(Learner):
             v = np.empty(len(phi))
             rest = np.ones(len(phi), bool)
             rest[self.reuse] = False
-            v[rest] = _tree_mean(values, self.pos[name][rest])
+            if self._rest is None:
+                self._rest = np.ascontiguousarray(self.pos[name][:, rest])
+            v[rest] = _tree_mean(values, self._rest)
             v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
         else:
             v = _tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
@@ -473,12 +485,13 @@ def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:
                         value=np.full(m, value), roots=np.arange(m, dtype=np.int64))
 
 
-def _tree_mean(values: np.ndarray, pos: np.ndarray, chunk: int = 65_536) -> np.ndarray:
-    """``values[pos].mean(axis=1)`` in row chunks (no (n, n_trees) float temporary)."""
-    out = np.empty(len(pos))
-    for lo in range(0, len(pos), chunk):
-        out[lo:lo + chunk] = values[pos[lo:lo + chunk]].mean(axis=1)
-    return out
+def _tree_mean(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """``values[pos].mean(axis=0)`` for tree-major ``pos`` (m, nq), one gather per tree (each
+    within that tree's leaf range), no (m, nq) float temporary."""
+    out = np.zeros(pos.shape[1])
+    for row in pos:
+        out += values[row]
+    return out / len(pos)
 
 
 class BoostedSumQ(QFunction):
