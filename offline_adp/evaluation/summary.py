@@ -18,12 +18,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+
+from offline_adp.data.rundir import read_json_file, read_table_file
 
 #: Human names of the estimators.
 ESTIMATOR_NAMES = {
@@ -126,11 +127,7 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
     if run_dir is None:
         return {"verdict": "unknown", "text": "fit convergence unknown (no run directory)"}
     run = Path(run_dir)
-    info: dict[str, Any] = {}
-    try:
-        info = json.loads((run / "run.json").read_text())
-    except (OSError, ValueError):
-        pass
+    info = read_json_file(run / "run.json") if (run / "run.json").is_file() else {}
     conv = info.get("convergence")
     if isinstance(conv, dict) and conv.get("verdict"):
         v = str(conv["verdict"])
@@ -140,17 +137,11 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
     if info.get("diverged"):
         return {"verdict": "diverged", "text": "fit DIVERGED (run.json): its policy and values are not to be trusted",
                 "source": "run.json"}
-    tol = None
-    try:
-        tol = json.loads((run / "config.json").read_text()).get("params", {}).get("tol")
-    except (OSError, ValueError, AttributeError):
-        pass
+    cfg = read_json_file(run / "config.json") if (run / "config.json").is_file() else {}
+    tol = cfg.get("params", {}).get("tol") if isinstance(cfg.get("params"), dict) else None
     hist = run / "model" / "history.csv"
     if hist.exists():
-        try:
-            h = pd.read_csv(hist)
-        except (OSError, ValueError):
-            h = pd.DataFrame()
+        h = read_table_file(hist)
         if "sup_dq" in h and h["sup_dq"].notna().any() and ("step" not in h or h["step"].isna().all()):
             last = float(h["sup_dq"].dropna().iloc[-1])
             k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)
