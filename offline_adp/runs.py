@@ -25,7 +25,7 @@ from typing import Any
 
 import pandas as pd
 
-from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm
+from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resumable_algorithms
 from offline_adp.artifacts import load_q, save_policy, save_q, versions
 from offline_adp.config import load_toml
 from offline_adp.data.io import read_dataset
@@ -158,7 +158,7 @@ def fit_run(
     entry.check_params(params, "parameters")
     rd = RunDirectory(out)
     if resume and not entry.resumable:
-        raise OfflineADPError(f"--resume is for {[n for n in ('fqi',) if get_algorithm(n).resumable]} runs; "
+        raise OfflineADPError(f"--resume is for {resumable_algorithms()} runs; "
                               f"{algorithm} runs as a whole")
     if resume and not rd.path.exists():
         raise OfflineADPError(f"{rd.path} does not exist: nothing to resume")
