@@ -503,7 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the dataset's problem)")
     e.add_argument("--episodes", type=_positive_int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
-    e.add_argument("--fqe-bootstrap", type=int, default=None,
+    from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
+
+    e.add_argument("--fqe-bootstrap", type=int, default=FQE_BOOTSTRAP_DEFAULT,
                    help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")

@@ -69,6 +69,7 @@ from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
 #: Datasets built by a documented example rather than logged or simulated.
@@ -130,7 +131,9 @@ class EvaluateSection(ConfigModel):
     simulator: str | None = None
     episodes: int = Field(500, ge=1)
     bootstrap: int = Field(200, ge=0)
-    fqe_bootstrap: int = Field(10, ge=0)
+    fqe_bootstrap: int | None = Field(
+        FQE_BOOTSTRAP_DEFAULT, ge=0, description="FQE bootstrap replicates; omitted: as `offline-adp evaluate` (200 "
+        "when replicates are cheap, else 50); 0: no interval")
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
 
@@ -457,7 +460,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
         task_map = DaskTaskMap(client)
     ev = cfg["evaluate"]
     m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
-                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
+                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", FQE_BOOTSTRAP_DEFAULT), fqe_params=ev.get("fqe_params"),
                      horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
                      task_map=task_map)
     RunDirectory(run).copy_in(run / "fit" / "evaluation" / "metrics.json", "metrics.json")

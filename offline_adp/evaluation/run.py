@@ -30,6 +30,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.data.rundir import read_json_file
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
@@ -96,7 +97,7 @@ def evaluate_run(
     simulator: str | None = None,
     n_episodes: int = 500,
     n_boot: int = 200,
-    n_boot_fqe: int | None = None,
+    n_boot_fqe: int | None = FQE_BOOTSTRAP_DEFAULT,
     fqe_params: dict[str, Any] | None = None,
     horizon: int | None = None,
     estimand: str = "finite",
