@@ -109,3 +109,23 @@ def test_readers_name_the_file(tmp_path):
     rd = RunDirectory(tmp_path / "run")
     with pytest.raises(ArtifactError, match="run.json: missing"):
         rd.read_json(rd.STATUS)
+
+
+def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys):
+    from offline_adp.runs import fit_run
+    from offline_adp.simulate import simulate
+
+    simulate("gridworld", 3, 3, seed=3, horizon=30).save(tmp_path / "ds")
+    params = {"n_iterations": 6, "regressor_params": {"n_estimators": 5}}
+
+    def interrupt(row):
+        if row["iteration"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(tmp_path / "ds", tmp_path / "run", params=params, on_iteration=interrupt)
+    hist = tmp_path / "run" / "checkpoint" / "history.csv"
+    assert hist.is_file()
+    hist.write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
+    _one_line_error(capsys, ["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--resume", "--quiet"],
+                    "checkpoint/history.csv")
