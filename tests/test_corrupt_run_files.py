@@ -129,3 +129,10 @@ def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys):
     hist.write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
     _one_line_error(capsys, ["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--resume", "--quiet"],
                     "checkpoint/history.csv")
+
+
+def test_export_with_a_corrupt_run_json_exits_2(evaluated, tmp_path, capsys):
+    a, _ = _copy(evaluated, tmp_path)
+    _truncate(a / "run.json")
+    _one_line_error(capsys, ["export", str(a), "--out", str(tmp_path / "p.onnx")], "run.json")
+    assert not (tmp_path / "p.onnx").exists()
