@@ -83,7 +83,9 @@ def _spec_for(run_dataset: Path | None, spec: Any) -> Any:
         return spec if not isinstance(spec, str | PathLike) else load_mcap_spec(spec)
     raw = None
     if run_dataset is not None:
-        info = json.loads((run_dataset / "meta" / "info.json").read_text())
+        from offline_adp.data.io import read_info
+
+        info = read_info(run_dataset)
         raw = (info.get("provenance") or {}).get("spec")
     if not raw:
         raise OfflineADPError("the run's dataset does not record an MCAP ingestion spec (it was not ingested from MCAP); "

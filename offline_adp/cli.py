@@ -293,14 +293,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         engine = {"kind": args.engine or "dask", **({"address": args.scheduler} if args.scheduler else {})}
     run = run_pipeline(args.pipeline, out=args.out, runs_root=args.runs, from_stage=args.from_stage, force=args.force,
                        say=say, overrides=overrides, engine=engine)
-    man = json.loads((run / "manifest.json").read_text())
+    from offline_adp.data.rundir import read_json_file
+
+    man = read_json_file(run / "manifest.json")
     for name, st in man["stages"].items():
         print(f"  {name:9s} {st.get('status')}{' (reused)' if st.get('reused') else ''}"
               + (f" {st['seconds']:.1f} s" if st.get("seconds") is not None and not st.get("reused") else ""))
     if (run / "metrics.json").exists():
         from offline_adp.evaluation.summary import summary_lines
 
-        for line in summary_lines(json.loads((run / "metrics.json").read_text())):
+        for line in summary_lines(read_json_file(run / "metrics.json")):
             print(line)
     print(run / "report.html" if (run / "report.html").exists() else run)
     return 0
@@ -501,7 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default: the dataset's problem)")
     e.add_argument("--episodes", type=_positive_int, default=500, help="rollout episodes (default 500)")
     e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
-    e.add_argument("--fqe-bootstrap", type=int, default=None,
+    from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
+
+    e.add_argument("--fqe-bootstrap", type=int, default=FQE_BOOTSTRAP_DEFAULT,
                    help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")

@@ -9,11 +9,12 @@ from the ``meta/info.json`` of the dataset the run was fitted on.
 
 from __future__ import annotations
 
-import json
 from os import PathLike
 from pathlib import Path
 from typing import Any
 
+from offline_adp.data.io import read_info
+from offline_adp.data.rundir import read_json_file
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
 from offline_adp.progress import get_logger
 
@@ -40,7 +41,7 @@ def run_dataset(run_dir: str | PathLike[str], dataset: str | PathLike[str] | Non
         for d in (model.parent, run, run / "fit"):
             rj = d / "run.json"
             if rj.exists():
-                p = Path(json.loads(rj.read_text()).get("dataset", ""))
+                p = Path(read_json_file(rj).get("dataset", ""))
                 cands += [p, d / p] if not p.is_absolute() else [p]
         cands.append(run / "dataset")
     for c in cands:
@@ -60,11 +61,11 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
     model = _model_dir(run)
     policy = load_policy(model)
     if (model / "signature.json").exists() and dataset is None:
-        policy.signature = PolicySignature.from_dict(json.loads((model / "signature.json").read_text()),
+        policy.signature = PolicySignature.from_dict(read_json_file(model / "signature.json"),
                                                      where=str(model / "signature.json"))
     else:
         ds = run_dataset(run, dataset)
-        info = DatasetInfo.from_dict(json.loads((ds / "meta" / "info.json").read_text()), where=str(ds / "meta" / "info.json"))
+        info = DatasetInfo.from_dict(read_info(ds), where=str(ds / "meta" / "info.json"))
         policy.signature = PolicySignature.from_info(info)
     if len(policy.signature.action_table) != policy.n_actions:
         raise OfflineADPError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "

@@ -69,6 +69,7 @@ from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 
 STAGES = ("data", "validate", "fit", "evaluate", "report")
 #: Datasets built by a documented example rather than logged or simulated.
@@ -130,7 +131,9 @@ class EvaluateSection(ConfigModel):
     simulator: str | None = None
     episodes: int = Field(500, ge=1)
     bootstrap: int = Field(200, ge=0)
-    fqe_bootstrap: int = Field(10, ge=0)
+    fqe_bootstrap: int | None = Field(
+        FQE_BOOTSTRAP_DEFAULT, ge=0, description="FQE bootstrap replicates; omitted: as `offline-adp evaluate` (200 "
+        "when replicates are cheap, else 50); 0: no interval")
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
 
@@ -223,16 +226,24 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
 
 def _check_spec(data: dict[str, Any], p: Path) -> None:
     """Load the ingestion spec now, so a bad spec fails before any stage runs."""
-    spec = data["spec"]
+    _load_spec(data, p)
+
+
+def _load_spec(data: dict[str, Any], p: str | PathLike[str]) -> Any:
+    """The ``[data]`` section's ingestion spec, checked: a file path is loaded (relative
+    paths inside it are relative to that file), an inline ``[data.spec]`` table is parsed
+    with paths inside it relative to the pipeline file ``p``. The one loader of the
+    check (:func:`load_pipeline`) and of the data stage, so both read the same spec."""
+    spec, p = data["spec"], Path(p)
     if data["format"] == "parquet":
         from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
 
-        load_parquet_spec(spec) if isinstance(spec, str) else parse_parquet_spec(spec, where=f"{p} [data.spec]")
-    else:
-        from offline_adp.ingest.mcap import load_mcap_spec, parse_mcap_spec
+        return load_parquet_spec(spec) if isinstance(spec, str) else parse_parquet_spec(
+            spec, where=f"{p} [data.spec]")
+    from offline_adp.ingest.mcap import load_mcap_spec, parse_mcap_spec
 
-        load_mcap_spec(spec) if isinstance(spec, str) else parse_mcap_spec(
-            spec, json.dumps(spec, sort_keys=True), where=f"{p} [data.spec]", base_dir=str(p.parent))
+    return load_mcap_spec(spec) if isinstance(spec, str) else parse_mcap_spec(
+        spec, json.dumps(spec, sort_keys=True), where=f"{p} [data.spec]", base_dir=str(p.parent))
 
 
 def _hash(obj: Any) -> str:
@@ -395,12 +406,11 @@ def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str,
     if data["format"] == "parquet":
         from offline_adp.ingest.parquet import ingest_parquet
 
-        res = ingest_parquet(data["inputs"], data["spec"], run / "dataset", on_error=data.get("on_error"))
+        res = ingest_parquet(data["inputs"], _load_spec(data, cfg["file"]), run / "dataset", on_error=data.get("on_error"))
         return res.summary()
-    from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, parse_mcap_spec
+    from offline_adp.ingest.mcap import ingest_mcap
 
-    spec = load_mcap_spec(data["spec"]) if isinstance(data["spec"], str) else \
-        parse_mcap_spec(data["spec"], json.dumps(data["spec"], sort_keys=True), where=f"{cfg['file']} [data.spec]")
+    spec = _load_spec(data, cfg["file"])
     ds, summary = ingest_mcap(data["inputs"], spec, out=run / "dataset", on_error=data.get("on_error"))
     return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
 
@@ -450,7 +460,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
         task_map = DaskTaskMap(client)
     ev = cfg["evaluate"]
     m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
-                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", 10), fqe_params=ev.get("fqe_params"),
+                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", FQE_BOOTSTRAP_DEFAULT), fqe_params=ev.get("fqe_params"),
                      horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
                      task_map=task_map)
     RunDirectory(run).copy_in(run / "fit" / "evaluation" / "metrics.json", "metrics.json")

@@ -25,11 +25,11 @@ from typing import Any
 
 import pandas as pd
 
-from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm
+from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resumable_algorithms
 from offline_adp.artifacts import load_q, save_policy, save_q, versions
 from offline_adp.config import load_toml
 from offline_adp.data.io import read_dataset
-from offline_adp.data.rundir import RunDirectory
+from offline_adp.data.rundir import RunDirectory, read_table_file
 from offline_adp.data.validate import require_usable
 from offline_adp.errors import OfflineADPError
 from offline_adp.qfunctions import TimeIndexedQ
@@ -64,7 +64,7 @@ def _read_checkpoint(run: Path) -> dict[str, Any] | None:
     if not (ck / "q.json").exists():
         return None
     q, _ = load_q(ck)
-    hist = pd.read_csv(ck / "history.csv")
+    hist = read_table_file(ck / "history.csv")  # corrupt or missing: ArtifactError naming it
     rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
     # finite horizons are stored as Q_{T-1}, Q_{T-2}, ... (the order they were fitted)
     return {"q": list(q.qs) if isinstance(q, TimeIndexedQ) else q, "history": rows}
@@ -158,7 +158,7 @@ def fit_run(
     entry.check_params(params, "parameters")
     rd = RunDirectory(out)
     if resume and not entry.resumable:
-        raise OfflineADPError(f"--resume is for {[n for n in ('fqi',) if get_algorithm(n).resumable]} runs; "
+        raise OfflineADPError(f"--resume is for {resumable_algorithms()} runs; "
                               f"{algorithm} runs as a whole")
     if resume and not rd.path.exists():
         raise OfflineADPError(f"{rd.path} does not exist: nothing to resume")

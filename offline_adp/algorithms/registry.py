@@ -221,6 +221,12 @@ PSDP = AlgorithmEntry(
 ALGORITHMS: dict[str, AlgorithmEntry] = {e.name: e for e in (FQI, FQE, API, CPI, PSDP)}
 
 
+def resumable_algorithms() -> list[str]:
+    """Names of the algorithms whose entry is ``resumable`` (``--resume`` continues them
+    from their last checkpoint), in registry order."""
+    return [name for name, entry in ALGORITHMS.items() if entry.resumable]
+
+
 def get_algorithm(name: str) -> AlgorithmEntry:
     """The registry entry for ``name`` (``UnknownNameError`` lists the known names)."""
     try:

@@ -305,9 +305,14 @@ def read_info(path: str | PathLike[str]) -> dict[str, Any]:
             "`offline-adp ingest parquet ...` or `offline-adp simulate ...`"
         )
     try:
-        return json.loads(info_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SchemaError(f"{info_path}: not valid JSON ({exc})") from exc
+        raw = json.loads(info_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SchemaError(f"{info_path}: not valid JSON ({exc})") from None
+    except OSError as exc:
+        raise SchemaError(f"{info_path}: cannot be read ({exc.strerror or exc})") from None
+    if not isinstance(raw, dict):
+        raise SchemaError(f"{info_path}: expected a JSON object, found {type(raw).__name__}")
+    return raw
 
 
 def part_files(path: str | PathLike[str]) -> list[Path]:

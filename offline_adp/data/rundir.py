@@ -28,7 +28,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import ArtifactError, OfflineADPError
 
 #: What a run or pipeline name may be: no path separators, no glob characters.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
@@ -120,16 +120,13 @@ class RunDirectory:
         return self.write_text(name, json.dumps(obj, indent=1, default=_json_default) + "\n")
 
     def read_json(self, name: str) -> dict[str, Any]:
-        """Read ``RUN/name``; a symbolic link there is refused (it was not written by us)."""
+        """Read ``RUN/name`` (a JSON object); a symbolic link there is refused (it was not
+        written by us). Missing or corrupt: :class:`~offline_adp.errors.ArtifactError`
+        naming the file."""
         p = self.file(name)
         if p.is_symlink():
-            raise OfflineADPError(f"{p} is a symbolic link, not a file this run wrote; remove it")
-        try:
-            return json.loads(p.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise OfflineADPError(f"{p}: missing (is {self.path} a run directory?)") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise OfflineADPError(f"{p}: not valid JSON ({exc})") from None
+            raise ArtifactError(f"{p} is a symbolic link, not a file this run wrote; remove it")
+        return read_json_file(p, missing=f"missing (is {self.path} a run directory?)")
 
     @contextlib.contextmanager
     def subdirectory(self, name: str) -> Iterator[Path]:
@@ -172,3 +169,44 @@ def _json_default(o: Any) -> Any:
     if hasattr(o, "tolist"):
         return o.tolist()
     return str(o)
+
+
+def read_json_file(path: str | PathLike[str], *, missing: str = "missing") -> dict[str, Any]:
+    """Read a JSON object written by this package (``run.json``, ``metrics.json``, ...).
+
+    A missing, unreadable, truncated or non-object file raises
+    :class:`~offline_adp.errors.ArtifactError` whose message starts with the file's path
+    (``missing`` is what it says when the file does not exist), never a raw
+    ``JSONDecodeError``.
+    """
+    p = Path(path)
+    try:
+        obj = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ArtifactError(f"{p}: {missing}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ArtifactError(f"{p}: not valid JSON ({exc}); the file is corrupt or truncated, write it again") from None
+    except OSError as exc:
+        raise ArtifactError(f"{p}: cannot be read ({exc.strerror or exc})") from None
+    if not isinstance(obj, dict):
+        raise ArtifactError(f"{p}: expected a JSON object, found {type(obj).__name__}")
+    return obj
+
+
+def read_table_file(path: str | PathLike[str]) -> Any:
+    """Read a Parquet (``.parquet``) or CSV table written by this package as a
+    ``pandas.DataFrame``; a missing or corrupt file raises
+    :class:`~offline_adp.errors.ArtifactError` naming it."""
+    import pandas as pd
+    import pyarrow as pa
+
+    p = Path(path)
+    try:
+        if p.suffix == ".parquet":
+            return pd.read_parquet(p)
+        return pd.read_csv(p)
+    except FileNotFoundError:
+        raise ArtifactError(f"{p}: missing") from None
+    except (OSError, ValueError, pa.ArrowException, pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise ArtifactError(f"{p}: not a readable {'Parquet' if p.suffix == '.parquet' else 'CSV'} table ({exc}); "
+                            "the file is corrupt or truncated, write it again") from None

@@ -25,20 +25,19 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.data.rundir import read_json_file
 from offline_adp.errors import OfflineADPError
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
 
 
 def _metrics(run: Path) -> dict[str, Any] | None:
     p = run / "evaluation" / "metrics.json"
-    return json.loads(p.read_text()) if p.exists() else None
+    return read_json_file(p) if p.exists() else None
 
 
 def _dataset_of(run: Path) -> str | None:
-    try:
-        return json.loads((run / "run.json").read_text()).get("dataset")
-    except (OSError, ValueError):
-        return None
+    p = run / "run.json"
+    return read_json_file(p).get("dataset") if p.exists() else None
 
 
 def _fingerprint(path: str) -> str:
@@ -98,7 +97,7 @@ def compare_runs(
     fp = _fingerprint(ds_path)
     metrics = []
     for r in runs:
-        m = _metrics(r)
+        m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
         same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
                 and (simulator is None or (m.get("simulator") or "none") == simulator))
         if force or not same:

@@ -16,8 +16,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from offline_adp.data.io import read_info
+from offline_adp.data.rundir import read_json_file, read_table_file
 from offline_adp.envs import PROBLEM_NAMES, problem_class
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import ArtifactError, OfflineADPError
 
 UNITS = {"e": "m", "e_psi": "rad", "p": "", "v": "m/s", "s": "m", "delta": "rad", "kappa": "1/m"}
 
@@ -54,7 +56,7 @@ def _convergence(figs: _Figures, run: Path) -> None:
     h_path = run / "model" / "history.csv"
     if not h_path.exists():
         return
-    h = pd.read_csv(h_path)
+    h = read_table_file(h_path)
     cols = [c for c in ("sup_dq", "bellman_residual", "mean_dq") if c in h]
     if not cols or "iteration" not in h:
         return
@@ -365,20 +367,23 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     ev = run / "evaluation"
     if not (ev / "metrics.json").exists():
         raise OfflineADPError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
-    m = json.loads((ev / "metrics.json").read_text())
-    ratios = pd.read_parquet(ev / "ratios.parquet")
+    m = read_json_file(ev / "metrics.json")
+    ratios = read_table_file(ev / "ratios.parquet")
     features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier", "w_pooled")]
     problem = m.get("simulator") or ""
-    info_path = Path(m["dataset"]["path"]) / "meta" / "info.json"
+    ds_path = (m.get("dataset") or {}).get("path") if isinstance(m.get("dataset"), dict) else None
+    if not isinstance(ds_path, str):
+        raise ArtifactError(f"{ev / 'metrics.json'}: no dataset.path; run `offline-adp evaluate {run}` again")
+    info_path = Path(ds_path) / "meta" / "info.json"
     units = dict(UNITS)
     actions: dict[str, Any] = {}
     if info_path.exists():
-        info = json.loads(info_path.read_text())
+        info = read_info(info_path.parent.parent)
         units.update({f["name"]: f["unit"] for f in info.get("features", []) if f.get("unit")})  # never blank a fallback
         problem = problem or info.get("problem") or ""
         from offline_adp.data.info import DatasetInfo
 
-        table = DatasetInfo.from_dict(info).action_table
+        table = DatasetInfo.from_dict(info, where=str(info_path)).action_table
         dims = list(getattr(table, "dims", []) or [])
         aunits = list(getattr(table, "units", []) or [])
         names = table.names() if callable(table.names) else table.names

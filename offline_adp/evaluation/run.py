@@ -28,7 +28,9 @@ import pyarrow.parquet as pq
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
+from offline_adp.data.rundir import read_json_file
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
@@ -95,7 +97,7 @@ def evaluate_run(
     simulator: str | None = None,
     n_episodes: int = 500,
     n_boot: int = 200,
-    n_boot_fqe: int | None = None,
+    n_boot_fqe: int | None = FQE_BOOTSTRAP_DEFAULT,
     fqe_params: dict[str, Any] | None = None,
     horizon: int | None = None,
     estimand: str = "finite",
@@ -123,7 +125,7 @@ def evaluate_run(
     run = Path(run_dir)
     if not (run / "model").is_dir():
         raise OfflineADPError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
-    info = json.loads((run / "run.json").read_text()) if (run / "run.json").exists() else {}
+    info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
     ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
     if not (ds_path / "meta" / "info.json").exists():
         raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")

@@ -18,12 +18,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+
+from offline_adp.data.rundir import read_json_file, read_table_file
 
 #: Human names of the estimators.
 ESTIMATOR_NAMES = {
@@ -119,38 +120,40 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
     return {"method": "none", "ess_fraction": None, "text": "no shift diagnostic", "enough_data": False}
 
 
+#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.verdict`,
+#: stored in ``run.json`` as ``verdict`` and ``verdict_message``).
+_FIT_VERDICT_WORDS = {"converged": "fit converged", "still changing": "fit did NOT converge",
+                      "diverging": "fit DIVERGED", "completed": "fit completed"}
+
+
 def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
-    """Did the fit converge? From ``run.json`` (its ``convergence`` verdict when present,
-    else ``diverged``/``status``) and the last change in ``model/history.csv`` against the
-    fit's ``tol``. Missing files give ``unknown``."""
+    """Did the fit converge? The fit's own verdict stored in ``run.json`` (``verdict`` and
+    ``verdict_message``, written by :func:`offline_adp.runs.fit_run` and the Dask engine)
+    when present. Run directories written before the verdict was stored: ``diverged``,
+    else the last change in ``model/history.csv`` against the fit's ``tol``. Missing files
+    give ``unknown``; a corrupt one is an :class:`~offline_adp.errors.ArtifactError`."""
     if run_dir is None:
         return {"verdict": "unknown", "text": "fit convergence unknown (no run directory)"}
     run = Path(run_dir)
-    info: dict[str, Any] = {}
-    try:
-        info = json.loads((run / "run.json").read_text())
-    except (OSError, ValueError):
-        pass
-    conv = info.get("convergence")
-    if isinstance(conv, dict) and conv.get("verdict"):
-        v = str(conv["verdict"])
-        return {"verdict": v, "text": f"fit: {conv.get('text') or v}", "source": "run.json"}
-    if isinstance(conv, str) and conv:
-        return {"verdict": conv, "text": f"fit: {conv}", "source": "run.json"}
+    info = read_json_file(run / "run.json") if (run / "run.json").is_file() else {}
+    cfg = read_json_file(run / "config.json") if (run / "config.json").is_file() else {}
+    tol = cfg.get("params", {}).get("tol") if isinstance(cfg.get("params"), dict) else None
+    stored = info.get("verdict")
+    if isinstance(stored, str) and stored:
+        msg = info.get("verdict_message")
+        words = _FIT_VERDICT_WORDS.get(stored, f"fit: {stored}")
+        text = f"{words}: {msg}" if isinstance(msg, str) and msg else words
+        if stored == "still changing" and isinstance(tol, int | float):
+            text += f"; tol = {tol:g}"
+        if stored == "diverging":
+            text += "; its policy and values are not to be trusted"
+        return {"verdict": stored, "text": text, "source": "run.json"}
     if info.get("diverged"):
         return {"verdict": "diverged", "text": "fit DIVERGED (run.json): its policy and values are not to be trusted",
                 "source": "run.json"}
-    tol = None
-    try:
-        tol = json.loads((run / "config.json").read_text()).get("params", {}).get("tol")
-    except (OSError, ValueError, AttributeError):
-        pass
     hist = run / "model" / "history.csv"
     if hist.exists():
-        try:
-            h = pd.read_csv(hist)
-        except (OSError, ValueError):
-            h = pd.DataFrame()
+        h = read_table_file(hist)
         if "sup_dq" in h and h["sup_dq"].notna().any() and ("step" not in h or h["step"].isna().all()):
             last = float(h["sup_dq"].dropna().iloc[-1])
             k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)

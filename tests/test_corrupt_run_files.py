@@ -1,0 +1,138 @@
+"""A corrupt, truncated or wrong-shaped file in a real run directory (``run.json``,
+``evaluation/metrics.json``, ``evaluation/ratios.parquet``, ``model/history.csv``) makes
+the command that reads it exit 2 with one line on stderr naming the file, never a raw
+traceback."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+
+from offline_adp.cli import main
+from offline_adp.data.rundir import RunDirectory, read_json_file, read_table_file
+from offline_adp.errors import ArtifactError
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    """A small gridworld log, two quick FQI fits, the first evaluated from the logs."""
+    from offline_adp.simulate import simulate
+
+    root = tmp_path_factory.mktemp("corrupt")
+    simulate("gridworld", 4, 4, seed=3, horizon=30).save(root / "ds")
+    cfg = root / "fqi.toml"
+    cfg.write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n")
+    for name in ("a", "b"):
+        assert main(["fit", str((root / "ds").resolve()), "--config", str(cfg), "--out", str(root / name),
+                     "--quiet"]) == 0
+    assert main(["evaluate", str(root / "a"), "--simulator", "none", "--bootstrap", "5", "--fqe-bootstrap", "0",
+                 "--quiet"]) == 0
+    assert (root / "a" / "evaluation" / "ratios.parquet").is_file()
+    return root
+
+
+def _copy(root, tmp_path):
+    for name in ("a", "b"):
+        shutil.copytree(root / name, tmp_path / name)
+    return tmp_path / "a", tmp_path / "b"
+
+
+def _truncate(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _one_line_error(capsys, argv, filename):
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err, err
+    lines = [x for x in err.strip().splitlines() if "error:" in x]
+    assert len(lines) == 1, err
+    assert filename in lines[0], err
+    return lines[0]
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "list"])
+def test_evaluate_with_a_corrupt_run_json_exits_2(evaluated, tmp_path, capsys, damage):
+    a, _ = _copy(evaluated, tmp_path)
+    p = a / "run.json"
+    if damage == "truncate":
+        _truncate(p)
+    elif damage == "garbage":
+        p.write_bytes(b"\xff\xfe\x00garbage")
+    else:
+        p.write_text("[1, 2]")
+    _one_line_error(capsys, ["evaluate", str(a), "--simulator", "none", "--quiet"], "run.json")
+
+
+@pytest.mark.parametrize("name", ["metrics.json", "ratios.parquet"])
+def test_report_with_a_corrupt_evaluation_file_exits_2(evaluated, tmp_path, capsys, name):
+    a, _ = _copy(evaluated, tmp_path)
+    _truncate(a / "evaluation" / name)
+    line = _one_line_error(capsys, ["report", str(a)], f"evaluation/{name}")
+    assert "corrupt" in line
+    assert not (a / "report").exists()
+
+
+def test_report_with_a_corrupt_history_or_run_json_exits_2(evaluated, tmp_path, capsys):
+    a, _ = _copy(evaluated, tmp_path)
+    (a / "model" / "history.csv").write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
+    _one_line_error(capsys, ["report", str(a)], "history.csv")
+    shutil.rmtree(tmp_path / "a")
+    a, _ = _copy(evaluated, tmp_path / "again")
+    _truncate(a / "run.json")
+    _one_line_error(capsys, ["report", str(a)], "run.json")
+
+
+@pytest.mark.parametrize("name", ["evaluation/metrics.json", "run.json"])
+def test_compare_with_a_corrupt_file_exits_2(evaluated, tmp_path, capsys, name):
+    a, b = _copy(evaluated, tmp_path)
+    _truncate(a / name)
+    _one_line_error(capsys, ["compare", str(a), str(b), "--simulator", "none", "--quiet"], name)
+
+
+def test_readers_name_the_file(tmp_path):
+    p = tmp_path / "x.json"
+    with pytest.raises(ArtifactError, match="x.json: missing"):
+        read_json_file(p)
+    p.write_text('{"a": 1')
+    with pytest.raises(ArtifactError, match="x.json: not valid JSON"):
+        read_json_file(p)
+    p.write_text('{"a": 1}')
+    assert read_json_file(p) == {"a": 1}
+    q = tmp_path / "t.parquet"
+    q.write_bytes(b"PAR1 not really")
+    with pytest.raises(ArtifactError, match="t.parquet: not a readable Parquet table"):
+        read_table_file(q)
+    rd = RunDirectory(tmp_path / "run")
+    with pytest.raises(ArtifactError, match="run.json: missing"):
+        rd.read_json(rd.STATUS)
+
+
+def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys):
+    from offline_adp.runs import fit_run
+    from offline_adp.simulate import simulate
+
+    simulate("gridworld", 3, 3, seed=3, horizon=30).save(tmp_path / "ds")
+    params = {"n_iterations": 6, "regressor_params": {"n_estimators": 5}}
+
+    def interrupt(row):
+        if row["iteration"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(tmp_path / "ds", tmp_path / "run", params=params, on_iteration=interrupt)
+    hist = tmp_path / "run" / "checkpoint" / "history.csv"
+    assert hist.is_file()
+    hist.write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
+    _one_line_error(capsys, ["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--resume", "--quiet"],
+                    "checkpoint/history.csv")
+
+
+def test_export_with_a_corrupt_run_json_exits_2(evaluated, tmp_path, capsys):
+    a, _ = _copy(evaluated, tmp_path)
+    _truncate(a / "run.json")
+    _one_line_error(capsys, ["export", str(a), "--out", str(tmp_path / "p.onnx")], "run.json")
+    assert not (tmp_path / "p.onnx").exists()
