@@ -39,8 +39,9 @@ from offline_adp.errors import DivergenceWarning
 
 GYM = {"CartPole-v1": 100, "Acrobot-v1": 100, "MountainCar-v0": 200}  # iterations (MountainCar: goal info travels far)
 MODES = {
+    "default": {},  # FittedQIteration's defaults (mode="auto": frozen, one structure per 12.5 iterations)
     "refit": {"mode": "refit"},
-    "frozen": {"mode": "frozen"},  # the default schedule: 4 structures
+    "frozen": {"mode": "frozen"},  # the default schedule
     "frozen2": {"mode": "frozen", "n_structures": 2},
     # each structure grown on 1/8 of the rows (bootstrap), leaves averaged over all rows
     "frozen_sub": {"mode": "frozen", "n_structures": 4, "structure_max_samples": 0.125},
@@ -110,7 +111,7 @@ def problem(name: str, n: int, data_seed: int, quick: bool):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problems", nargs="+", default=["car_on_hill", *GYM, "path_tracking"])
-    ap.add_argument("--modes", nargs="+", default=["refit", "frozen", "warm_start"], choices=list(MODES))
+    ap.add_argument("--modes", nargs="+", default=["refit", "default", "warm_start"], choices=list(MODES))
     ap.add_argument("--learner-seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--data-seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--transitions", type=int, default=50_000)
@@ -142,6 +143,9 @@ def main() -> None:
                     rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
                            "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged}
                     records.append(rec)
+                    if args.json:  # after every fit: a long run keeps what it measured
+                        with open(args.json, "w") as fh:
+                            json.dump(records, fh, indent=1)
                     print(f"  {mode:<11} seed {ls}: score {sc:+9.3f}  CPU {cpu:7.1f} s  wall {wall:6.1f} s  "
                           f"{f.verdict_}{' (FLAGGED)' if flagged else ''}", flush=True)
     print("\nproblem         mode        score mean   spread(std)   CPU s (mean)   CPU / refit   flags")
@@ -154,9 +158,6 @@ def main() -> None:
             ratio = f"{cpu / np.mean(ref):.3f}" if ref else "-"
             print(f"{name:<15} {mode:<11} {s.mean():+10.3f}   {s.std(ddof=1) if len(s) > 1 else 0.0:10.3f}   {cpu:12.1f}   "
                   f"{ratio:>11}   {sum(r['flagged'] for r in rs)}")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(records, fh, indent=1)
 
 
 if __name__ == "__main__":

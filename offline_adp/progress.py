@@ -161,9 +161,9 @@ def _has_handler(logger: logging.Logger) -> bool:
 
 def fit_progress(est: Any, verbose: bool = False, show_progress: bool = False) -> Progress:
     """A :class:`Progress` for an iterative estimator's ``fit`` (FQI, FQE): the total is
-    ``horizon``, else ``n_iterations`` (twice for the frozen-structure mode), and the
+    ``horizon``, else ``n_iterations``, and the
     shown fields are the usual convergence diagnostics."""
-    total = getattr(est, "horizon", None) or (getattr(est, "n_iterations", 0) * (2 if getattr(est, "mode", "") == "frozen" else 1)) or None
+    total = getattr(est, "horizon", None) or getattr(est, "n_iterations", 0) or None
     name = type(est).__name__
     return Progress(total, name, show_progress=show_progress, verbose=verbose,
                     fields=("iteration", "sup_dq", "bellman_residual", "start_value", "wall_time"),

@@ -50,7 +50,9 @@ from offline_adp.policies import GreedyPolicy, attach_signature
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
 from offline_adp.regressors import make_regressor
 
-MODES = ("refit", "frozen", "warm_start")
+#: default frozen schedule: structures per iteration (8 over 100 iterations), measured in benchmarks/fqi_suite.py
+STRUCTURES_PER_ITERATION = 0.08
+MODES = ("auto", "refit", "frozen", "warm_start")
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -219,7 +221,7 @@ class FittedQIteration(BaseEstimator):
         feature_map: Any = None,
         n_iterations: int = 50,
         tol: float | None = None,
-        mode: str = "refit",
+        mode: str = "auto",
         trees_per_iteration: int = 10,
         infeasible_cost: float | None = None,
         target_noise: float = 0.0,
@@ -230,7 +232,7 @@ class FittedQIteration(BaseEstimator):
         divergence_slack: float = 0.1,
         initial_q: QFunction | None = None,
         random_state: int = 0,
-        n_structures: int = 4,
+        n_structures: int | None = None,
         structure_max_samples: float | list[float | None] | None = None,
     ) -> None:
         self.horizon = horizon
@@ -327,9 +329,9 @@ class FittedQIteration(BaseEstimator):
             raise ValueError(f"horizon must be a positive integer or None, got {self.horizon!r}")
         if self.on_divergence not in ("stop", "warn", "ignore"):
             raise ValueError(f"on_divergence must be 'stop', 'warn' or 'ignore', got {self.on_divergence!r}")
-        if self.next_state_noise and self.mode != "refit":
+        if self.next_state_noise and self.mode not in ("refit", "auto"):
             raise ValueError("next_state_noise needs mode='refit' (the other modes precompute next-state inputs)")
-        if int(self.n_structures) < 1 or int(self.patience) < 2:
+        if (self.n_structures is not None and int(self.n_structures) < 1) or int(self.patience) < 2:
             raise ValueError(f"n_structures must be >= 1 and patience >= 2, got {self.n_structures}, {self.patience}")
 
     def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> Prepared:
@@ -349,22 +351,38 @@ class FittedQIteration(BaseEstimator):
         return data
 
     def _schedule(self) -> tuple[int, ...]:
-        """Iterations at which ``mode="frozen"`` builds a structure."""
+        """Iterations at which ``mode="frozen"`` builds a structure: ``n_structures`` evenly
+        spaced over the K iterations, by default one per 12.5 (``round(0.08 K)``, at least 2)."""
         T = getattr(self, "horizon_", self.horizon)
         K = T if T is not None else self.n_iterations
-        S = max(1, min(int(self.n_structures), K))
+        S = max(2, round(STRUCTURES_PER_ITERATION * K)) if self.n_structures is None else int(self.n_structures)
+        S = max(1, min(S, K))
         return tuple(sorted({1 + (j * K) // S for j in range(S)}))
+
+    def resolved_mode(self, regressor: Any = None) -> str:
+        """The mode a fit runs: ``mode``, or for ``"auto"`` ``"frozen"`` where it applies (a
+        discounted fit, a bagged scikit-learn tree ensemble, the joint action encoding, no
+        next-state noise) and ``"refit"`` elsewhere."""
+        if self.mode != "auto":
+            return self.mode
+        from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
+
+        reg = regressor if regressor is not None else make_regressor(self.regressor, **(self.regressor_params or {}))
+        finite = getattr(self, "horizon_", self.horizon) is not None
+        fits = isinstance(reg, ExtraTreesRegressor | RandomForestRegressor) and self.action_encoding == "joint"
+        return "frozen" if fits and not finite and not self.next_state_noise else "refit"
 
     def _learner(self, data: Prepared) -> Learner:
         reg = make_regressor(self.regressor, **(self.regressor_params or {}))
+        self.mode_ = self.resolved_mode(reg)
         queries: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"next": (data.train.phi_next, None), "start": (data.start_phi, None)}
         if data.valid is not None:
             queries["valid"] = (data.valid.phi, data.valid.actions)
             queries["valid_next"] = (data.valid.phi_next, None)
         args = (reg, data.encoder, data.train.phi, data.train.actions, queries, data.weights, self.random_state)
-        if self.mode == "frozen":
+        if self.mode_ == "frozen":
             return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self.structure_max_samples)
-        if self.mode == "warm_start":
+        if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
                               "(LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
@@ -458,7 +476,7 @@ def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:
     if est.tol is None or est.horizon_ is not None or len(rows) < 2:
         return False
     last, prev = rows[-1], rows[-2]
-    if est.mode == "frozen" and (last["iteration"] < max(est._schedule()) or last.get("structure_on_constant")):
+    if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule()) or last.get("structure_on_constant")):
         return False
     return last["sup_dq"] < est.tol and last.get("structure") == prev.get("structure")
 

@@ -319,6 +319,9 @@ class _DaskEngine:
         from offline_adp.regressors import make_regressor
 
         est, cfg = self.est, self.cfg
+        if est.mode == "frozen":
+            raise ValueError("the Dask engine runs mode 'refit' or 'warm_start'; mode = 'frozen' runs in process")
+        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # 'auto': refit on the workers
         reg = make_regressor(est.regressor, **(est.regressor_params or {}))
         assert self.blocks is not None
         self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
