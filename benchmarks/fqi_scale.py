@@ -6,7 +6,8 @@ RSS is its own; per-iteration time is the median of the iterations.
 
     python benchmarks/fqi_scale.py [--sizes 100000 1000000] [--modes warm_start frozen frozen_sub] [--iterations 50]
 
-Modes: ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen`` (extra-trees,
+Modes: ``default`` (``FittedQIteration``'s defaults: ``mode="auto"``, i.e. frozen extra-trees grown
+fully, each structure on at most 131,072 rows), ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen`` (extra-trees,
 ``min_samples_leaf=20``, the default structure schedule), ``frozen_sub`` (the same with
 each tree grown on 1/8 of the rows, ``structure_max_samples=0.125``), ``refit_lightgbm``.
 """
@@ -42,6 +43,7 @@ CHILD = textwrap.dedent(
                                        next_obs=nxt, terminated=np.zeros(n, bool), truncated=np.tile(np.arange(T) == T - 1, E))
     del x, obs, nxt
     cfg = {
+        "default": {},
         "warm_start": dict(mode="warm_start", regressor="lightgbm", trees_per_iteration=10),
         "frozen": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20}),
         "frozen_sub": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20},
@@ -64,7 +66,7 @@ CHILD = textwrap.dedent(
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
-    ap.add_argument("--modes", nargs="+", default=["warm_start"])
+    ap.add_argument("--modes", nargs="+", default=["default"])
     ap.add_argument("--iterations", type=int, default=50)
     args = ap.parse_args()
     print(f"{'n':>9} {'mode':<15} {'iters':>5} {'wall s':>8} {'CPU s':>8} {'median it s':>11} {'max it s':>9} {'peak RSS GiB':>12}")

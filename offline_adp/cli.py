@@ -236,7 +236,9 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
     n = 0 if hist is None else len(hist)
     if isinstance(hist, pd.DataFrame) and n and {"sup_dq", "bellman_residual", "start_value"} <= set(hist.columns):
         h = hist.iloc[-1]
-        lines = [f"fitted {algorithm}: {n} iterations, last sup|dQ| {h['sup_dq']:.4g}, Bellman residual "
+        mode = getattr(est, "mode_", None)
+        how = f" ({mode} mode{', auto' if getattr(est, 'mode', None) == 'auto' else ''})" if mode else ""
+        lines = [f"fitted {algorithm}{how}: {n} iterations, last sup|dQ| {h['sup_dq']:.4g}, Bellman residual "
                  f"{h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"]
     else:
         lines = [f"fitted {algorithm}: {n} history rows"]

@@ -113,7 +113,7 @@ def _summary(est: Any) -> dict[str, Any]:
         out["value"] = float(est.value_)
     elif isinstance(hist, pd.DataFrame) and "value" in hist:
         out["value"] = float(hist["value"].iloc[-1])
-    for attr in ("simulator_steps_", "diverged_", "verdict_", "verdict_message_"):
+    for attr in ("mode_", "simulator_steps_", "diverged_", "verdict_", "verdict_message_"):
         v = getattr(est, attr, None)
         if v is not None:
             out[attr.rstrip("_")] = v if not hasattr(v, "item") else v.item()

@@ -42,7 +42,7 @@ def ds_dir(tmp_path_factory):
 
 def _cfg(tmp_path: Path, n: int) -> Path:
     p = tmp_path / f"fqi{n}.toml"
-    p.write_text(f"[fqi]\nn_iterations = {n}\n[fqi.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
+    p.write_text(f"[fqi]\nn_iterations = {n}\nmode = \"refit\"\n[fqi.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
     return p
 
 
@@ -64,7 +64,7 @@ def test_two_fits_into_one_out(tmp_path, ds_dir):
 def test_two_pipeline_runs_into_one_directory(tmp_path):
     p = tmp_path / "p.toml"
     p.write_text('name = "p"\n[data]\nsimulate = "path_tracking"\ndemonstrations = 10\nexploration = 10\nhorizon = 60\n'
-                 "[fit]\n[fit.params]\nn_iterations = 40\n[fit.params.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
+                 "[fit]\n[fit.params]\nn_iterations = 40\nmode = \"refit\"\n[fit.params.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
     out = tmp_path / "r"
     first = _cli("run", str(p), "--out", str(out), "-q")
     _wait_for(out / "manifest.json", first)

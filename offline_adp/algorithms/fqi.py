@@ -52,6 +52,8 @@ from offline_adp.regressors import make_regressor
 
 #: default frozen schedule: structures per iteration (8 over 100 iterations), measured in benchmarks/fqi_suite.py
 STRUCTURES_PER_ITERATION = 0.08
+#: ``structure_max_samples="auto"``: a frozen structure is grown on at most this many rows (bootstrap)
+STRUCTURE_ROWS = 131_072
 MODES = ("auto", "refit", "frozen", "warm_start")
 
 
@@ -132,43 +134,42 @@ class FittedQIteration(BaseEstimator):
     tol : float or None
         Stop early when ``sup_i |Q_k - Q_{k-1}|`` on the data falls below ``tol`` (not on
         an iteration that rebuilt a tree structure, nor before the last scheduled one).
-    mode : {"refit", "frozen", "warm_start"}
-        ``refit`` (default): the plain loop, any regressor, re-fitted every iteration.
+    mode : {"auto", "refit", "frozen", "warm_start"}
+        ``auto`` (default): ``frozen`` where it applies (a discounted fit, a bagged
+        scikit-learn tree ensemble such as the default extra-trees, the joint action
+        encoding, no next-state noise), else ``refit``; the mode that ran is ``mode_``.
+        ``refit``: the plain loop, any regressor, re-fitted every iteration.
         ``frozen``: a scikit-learn tree ensemble's structure is built at ``n_structures``
         evenly spaced iterations (and again after any build on constant targets), and the
-        iterations in between only re-average leaf values (Ernst et al. 2005, section 4.3;
-        ~10x less CPU with 4 structures). Between builds it converges towards the fixed
-        point of the averager its structure defines, which is as good as the structure.
-        Measured (``benchmarks/fqi_suite.py``): it held the refit score on car-on-the-hill,
-        Acrobot, path tracking and MountainCar, but NOT on CartPole with 10k transitions and
-        20 trees (~210-240 vs refit ~380-440 over 4 learner seeds), nor with 50k transitions
-        and 50 trees (452 +- 57 vs refit 496 +- 7 over 3 seeds, at 0.06 of its CPU).
-        ``structure_max_samples`` (structures on a row subsample, honest leaves)
-        trades the other way: 1/8 of the rows for every build gave CartPole ~350-390 but
-        lost Acrobot and path tracking; 10 builds, the first 7 on 1/8 of the rows and the
-        last 3 on all (``structure_max_samples=[0.125] * 7 + [1.0] * 3``) held the refit
-        score on car-on-the-hill, CartPole, Acrobot and path tracking at that quick size, at
-        0.11-0.14 of refit's CPU (4 structures: 0.09-0.13), but not CartPole at 50k
-        transitions (466 +- 20 vs 496 +- 7, at 0.07 of its CPU). Measure on
-        your problem. ``warm_start``: LightGBM, ``trees_per_iteration``
-        new trees per iteration boosted from the previous Q (joint encoding; with a
-        non-LightGBM regressor it uses LightGBM with 63 leaves and learning rate 0.3, and
-        says so in a warning). Boosting a few trees per iteration is a partial LEARN; it
-        did not hold the refit score on any problem of the suite (e.g. car-on-the-hill
-        0.10 vs 0.20, CartPole 141 vs 441 in the quick suite).
+        iterations in between only re-average leaf values (Ernst et al. 2005, section 4.3).
+        Between builds it converges towards the fixed point of the averager its structure
+        defines, which is only as good as the structure, so the number of builds matters:
+        with 4 builds over 100 iterations CartPole-v1 scored 452 +- 57 against refit's
+        496 +- 7, with 8 (the default, one per 12.5 iterations) 498 +- 3 at 0.10 of
+        refit's CPU (``benchmarks/fqi_suite.py``, 50k transitions, 50 trees, 3 learner
+        seeds). Suite results for the default: docs/fqi-modes.md.
+        ``warm_start``: LightGBM, ``trees_per_iteration`` new trees per iteration boosted
+        from the previous Q (joint encoding; with a non-LightGBM regressor it uses LightGBM
+        with 63 leaves and learning rate 0.3, and says so in a warning). Boosting a few
+        trees per iteration is a partial LEARN; it did not hold the refit score on any
+        problem of the suite (e.g. car-on-the-hill 0.10 vs 0.20, CartPole 141 vs 441 in
+        the quick suite), and the CLI warns.
     trees_per_iteration : int
         For ``warm_start``.
-    n_structures : int
-        For ``frozen``: scheduled structure builds over ``n_iterations``.
-    structure_max_samples : float, list of (float or None), or None
+    n_structures : int or None
+        For ``frozen``: scheduled structure builds over the K iterations; None: one per
+        12.5 iterations (``round(0.08 K)``, at least 2). Each build costs about one refit
+        iteration; an averaging iteration costs a few percent of one.
+    structure_max_samples : "auto", float, list of (float or None), or None
         For ``frozen``: each tree's structure is grown on a bootstrap sample of this
         fraction of the rows (``bootstrap=True, max_samples=...``); its leaves are then
         averaged over *all* training rows falling in them. Builds are cheaper and the
         forest smaller (about ``2 * fraction * n`` nodes a fully grown tree, instead of
-        ``2n``), so more structures fit the same CPU and large data fit in memory, but
-        each leaf averages ~``1 / fraction`` rows: coarser. A list gives one fraction per
-        scheduled build (``1.0``: all rows), e.g. ``[0.125] * 7 + [1.0] * 3`` with
-        ``n_structures=10``: cheap early builds, full late ones. ``None``: the regressor's own.
+        ``2n``), but each leaf averages ~``1 / fraction`` rows: coarser (1/8 of the rows
+        for every build lost Acrobot and path tracking at 10k transitions). A list gives
+        one fraction per scheduled build (``1.0``: all rows). ``"auto"`` (default): all
+        rows up to 131,072, a bootstrap of 131,072 rows beyond (so 1M transitions fit in
+        memory and time); ``None``: the regressor's own.
     infeasible_cost : float or None
         The chapter's ``c^-``.
     target_noise, next_state_noise : float
@@ -198,6 +199,8 @@ class FittedQIteration(BaseEstimator):
     q_function_ : QFunction
         ``Q`` (infinite horizon) or a :class:`TimeIndexedQ` over ``Q_0..Q_{T-1}``.
     policy_ : GreedyPolicy
+    mode_ : str
+        The mode that ran (``mode`` with ``"auto"`` resolved).
     history_ : pandas.DataFrame
         One row per iteration: ``iteration, step, sup_dq, mean_dq, max_abs_q,
         bellman_residual, greedy_changed, start_value, target_std, wall_time, cpu_time,
@@ -233,7 +236,7 @@ class FittedQIteration(BaseEstimator):
         initial_q: QFunction | None = None,
         random_state: int = 0,
         n_structures: int | None = None,
-        structure_max_samples: float | list[float | None] | None = None,
+        structure_max_samples: float | list[float | None] | str | None = "auto",
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -313,8 +316,8 @@ class FittedQIteration(BaseEstimator):
     def mode_caveat(mode: str | None) -> str | None:
         """What a user should know before trusting ``mode`` (None: nothing): the fast paths
         did not hold the refit score on every problem of ``benchmarks/fqi_suite.py``."""
-        if mode in ("frozen", "warm_start"):
-            return (f"mode = {mode!r} did not hold the refit score on every problem of benchmarks/fqi_suite.py; "
+        if mode == "warm_start":
+            return (f"mode = {mode!r} did not hold the refit score on any problem of benchmarks/fqi_suite.py; "
                     "compare with a mode = 'refit' run on your data")
         return None
 
@@ -359,6 +362,14 @@ class FittedQIteration(BaseEstimator):
         S = max(1, min(S, K))
         return tuple(sorted({1 + (j * K) // S for j in range(S)}))
 
+    def _structure_fraction(self, n: int, regressor: Any) -> float | list[float | None] | None:
+        """``structure_max_samples`` with ``"auto"`` resolved: each structure grown on at most
+        ``STRUCTURE_ROWS`` rows (a bootstrap fraction) when the regressor bags, else all."""
+        f = self.structure_max_samples
+        if not (isinstance(f, str) and f == "auto"):
+            return f
+        return STRUCTURE_ROWS / n if n > STRUCTURE_ROWS and "max_samples" in regressor.get_params() else None
+
     def resolved_mode(self, regressor: Any = None) -> str:
         """The mode a fit runs: ``mode``, or for ``"auto"`` ``"frozen"`` where it applies (a
         discounted fit, a bagged scikit-learn tree ensemble, the joint action encoding, no
@@ -381,7 +392,7 @@ class FittedQIteration(BaseEstimator):
             queries["valid_next"] = (data.valid.phi_next, None)
         args = (reg, data.encoder, data.train.phi, data.train.actions, queries, data.weights, self.random_state)
         if self.mode_ == "frozen":
-            return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self.structure_max_samples)
+            return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self._structure_fraction(data.n, reg))
         if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
