@@ -35,7 +35,6 @@ from offline_adp.qfunctions import (
     TreeEnsemble,
     TreeQ,
     predict_model,
-    sklearn_leaves,
 )
 
 Query = tuple[np.ndarray, np.ndarray | None]
@@ -278,7 +277,7 @@ class FrozenTreesLearner(Learner):
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
             self.ensemble = _constant_ensemble(float(y[0]), self.regressor)
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
-            self._operators(self.ensemble.apply)
+            self._operators(self._per_tree(self.ensemble.apply))
             return
         if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
             y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
@@ -287,62 +286,79 @@ class FrozenTreesLearner(Learner):
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         self.ensemble = TreeEnsemble.from_sklearn(forest)
-        self._operators(lambda Z: sklearn_leaves(forest, Z))
+        self._operators(self._sklearn_per_tree(forest, self.ensemble.roots))
         # every leaf lookup the fit needs is done: keep only the arrays (the forest's own node
         # arrays are as large again); later lookups use trees rebuilt from the arrays
         self.ensemble._forest = None  # type: ignore[attr-defined]
         self.ensemble.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
 
-    def _operators(self, leaves_of: Any) -> None:
-        """The training leaf matrix, the leaf weights and the query operators (leaf positions) from a leaf
-        lookup ``leaves_of(X) -> (len(X), n_trees)``. Training rows that continue the previous
-        row (``x_i == x'_{i-1}``) take their leaves from the next-state lookup (a third of
-        the lookups with two actions); int32 indices."""
-
-        raw: dict[str, np.ndarray] = {}
-        for name, (phi, a) in self.queries.items():
-            if name != "train":
-                raw[name] = self._leaves(leaves_of, self._joint(phi, a))
-        n = len(self.phi)
-        if len(self.reuse) and "next" in raw:
-            train = np.empty((n, raw["next"].shape[1]), raw["next"].dtype)
-            rest = np.ones(n, bool)
-            rest[self.reuse] = False
-            if rest.any():
-                train[rest] = self._leaves(leaves_of, self.encoder.pairs(self.phi[rest], self.actions[rest]))
-            train[self.reuse] = raw["next"][self.actions[self.reuse] * n + self.reuse - 1]
-        else:
-            train = self._leaves(leaves_of, self.encoder.pairs(self.phi, self.actions))
-        n, m = train.shape
-        used = np.zeros(len(self.ensemble.value), bool)
-        used[train.reshape(-1)] = True
-        self.leaf_ids = np.flatnonzero(used)  # leaves holding training samples, compact index
-        L = len(self.leaf_ids)
-        lookup = np.full(len(used), -1, np.int32)
-        lookup[self.leaf_ids] = np.arange(L, dtype=np.int32)
-        # tree-major (m, n) leaf positions: tree t's row is contiguous and only touches tree
-        # t's compact leaf range [bounds[t], bounds[t + 1]) (cache-sized), so a leaf sum is one
-        # contiguous bincount per tree and a prediction one gather per tree
-        compact = np.ascontiguousarray(lookup[train].T)
-        del train, used
+    def _operators(self, tree_leaves: Any) -> None:
+        """The training leaf matrix, the leaf weights and the query operators (leaf positions),
+        tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
+        every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
+        take their leaves from the next-state lookup (a third of the lookups with two
+        actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
+        held: one tree's lookups at a time."""
+        n, m = len(self.phi), len(self.ensemble.roots)
+        names = [q for q in self.queries if q != "train"]
+        inputs = {q: self._joint(*self.queries[q]) for q in names}
+        reuse = self.reuse if len(self.reuse) and "next" in inputs else np.zeros(0, np.int64)
+        rest = np.ones(n, bool)
+        rest[reuse] = False
+        gens = {q: tree_leaves(inputs[q]) for q in names}
+        if rest.any():
+            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
+        from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
         ends = np.r_[self.ensemble.roots[1:], len(self.ensemble.value)]
-        self._bounds = np.r_[0, np.searchsorted(self.leaf_ids, ends)]
-        self._m = m
+        self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
+        train = np.empty((m, n), np.int32)
+        ids, bounds = [], [0]
+        for t in range(m):
+            raw = {q: next(g) for q, g in gens.items()}
+            root, lo = int(self.ensemble.roots[t]), bounds[-1]
+            leaf = np.empty(n, np.int64)
+            leaf[rest] = raw.pop("", None) if rest.any() else 0
+            if len(reuse):
+                leaf[reuse] = raw["next"][from_next]
+            used = np.zeros(int(ends[t]) - root, bool)
+            used[leaf - root] = True
+            local = np.flatnonzero(used)  # this tree's leaves holding training samples
+            lookup = np.full(len(used), -1, np.int32)
+            lookup[local] = lo + np.arange(len(local), dtype=np.int32)
+            train[t] = lookup[leaf - root]
+            for q in names:
+                self.pos[q][t] = lookup[raw[q] - root]  # -1: a leaf without training samples
+            ids.append(local + root)
+            bounds.append(lo + len(local))
+        self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        L = len(self.leaf_ids)
+        for q in names:  # a leaf without training weight reads value L (0)
+            p = self.pos[q]
+            p[p < 0] = L
+        self._bounds, self._m = np.asarray(bounds), m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        # query operators as leaf positions only, (m, nq) int32 (L: a leaf without training
-        # weight, which contributes 0): Q(query) = mean over trees of leaf values
-        self.pos: dict[str, np.ndarray] = {"train": compact}  # every training leaf holds its own sample
+        self.pos["train"] = train  # every training leaf holds its own sample
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
-        for name in list(raw):
-            leaves = raw.pop(name)
-            pos = np.empty(leaves.shape[::-1], np.int32)
-            for lo in range(0, leaves.shape[0], 65_536):  # in row chunks
-                chunk = lookup[leaves[lo:lo + 65_536]]
-                chunk[chunk < 0] = L
-                pos[:, lo:lo + 65_536] = chunk.T
-            del leaves
-            self.pos[name] = pos
         self._rest = None  # tree-major positions of the training rows that are not reused (cached)
+
+    @staticmethod
+    def _per_tree(leaves_of: Any) -> Any:
+        """``tree_leaves`` from a whole-ensemble lookup ``leaves_of(X) -> (len(X), n_trees)``."""
+        def gen(X: np.ndarray) -> Any:
+            full = FrozenTreesLearner._leaves(leaves_of, X)
+            for t in range(full.shape[1]):
+                yield np.asarray(full[:, t], dtype=np.int64)
+        return gen
+
+    @staticmethod
+    def _sklearn_per_tree(forest: Any, roots: np.ndarray) -> Any:
+        """``tree_leaves`` for a fitted scikit-learn forest: each tree's compiled ``apply`` on
+        float32 inputs (the leaves ``forest.apply`` gives), one tree at a time."""
+        def gen(X: np.ndarray) -> Any:
+            X32 = np.ascontiguousarray(X, dtype=np.float32)
+            for est, root in zip(forest.estimators_, roots, strict=True):
+                yield np.asarray(est.tree_.apply(X32), dtype=np.int64) + int(root)
+        return gen
 
     @property
     def _compact(self) -> np.ndarray:
@@ -469,7 +485,7 @@ class FrozenTreesLearner(Learner):
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
         self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
-        self._operators(self.ensemble.apply)
+        self._operators(self._per_tree(self.ensemble.apply))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
         self._cache = {}
         last = (rows or [{}])[-1]

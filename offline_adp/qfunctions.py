@@ -157,18 +157,19 @@ class TreeEnsemble:
 
     @classmethod
     def _from_trees(cls, trees: list[Any]) -> TreeEnsemble:
-        sizes = np.array([t.node_count for t in trees])
-        offs = np.r_[0, np.cumsum(sizes)[:-1]]
-        left = np.concatenate([np.where(t.children_left >= 0, t.children_left + o, -1) for t, o in zip(trees, offs, strict=True)])
-        right = np.concatenate([np.where(t.children_right >= 0, t.children_right + o, -1) for t, o in zip(trees, offs, strict=True)])
-        return cls(
-            left=left.astype(np.int64),
-            right=right.astype(np.int64),
-            feature=np.concatenate([t.feature for t in trees]).astype(np.int64),
-            threshold=np.concatenate([t.threshold for t in trees]).astype(np.float64),
-            value=np.concatenate([t.value[:, 0, 0] for t in trees]).astype(np.float64),
-            roots=offs.astype(np.int64),
-        )
+        sizes = np.array([t.node_count for t in trees], dtype=np.int64)
+        offs = np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64)
+        total = int(sizes.sum())
+        left, right = np.empty(total, np.int64), np.empty(total, np.int64)
+        feature, threshold, value = np.empty(total, np.int64), np.empty(total), np.empty(total)
+        for t, o, k in zip(trees, offs, sizes, strict=True):  # one copy of each field, into place
+            left[o:o + k], right[o:o + k] = t.children_left, t.children_right
+            feature[o:o + k], threshold[o:o + k], value[o:o + k] = t.feature, t.threshold, t.value[:, 0, 0]
+        shift = np.repeat(offs, sizes)  # child ids are local to their tree: make them global
+        inner = left >= 0
+        left[inner] += shift[inner]
+        right[inner] += shift[inner]
+        return cls(left=left, right=right, feature=feature, threshold=threshold, value=value, roots=offs)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
         """Global leaf index reached in each tree, shape (n, n_trees).

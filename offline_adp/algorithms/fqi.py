@@ -272,9 +272,13 @@ class FittedQIteration(BaseEstimator):
         """
         from offline_adp.progress import fit_progress
 
-        with fit_progress(self, verbose, show_progress) as bar:
-            for row in self.fit_iter(dataset, sample_weight):
-                bar.update(row)
+        self.__dict__["_defer_result"] = True  # nobody reads Q_k between iterations: build the result once
+        try:
+            with fit_progress(self, verbose, show_progress) as bar:
+                for row in self.fit_iter(dataset, sample_weight):
+                    bar.update(row)
+        finally:
+            self.__dict__.pop("_defer_result", None)
         attach_signature(getattr(self, "policy_", None), dataset)
         return self
 
@@ -461,7 +465,8 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
             q_train = q_train_new
             if finite:
                 qs.append(learner.snapshot())
-            _set_result(est, learner, qs)
+            if finite or not est.__dict__.get("_defer_result"):
+                _set_result(est, learner, qs)
             if not (est.on_divergence == "ignore" or est.diverged_):
                 msg = monitor.check(rows)
                 if msg:
@@ -472,6 +477,8 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
             if _finished(est, rows, total):
                 break
             t0, c0 = time.perf_counter(), time.process_time()
+    if rows and est.__dict__.get("_defer_result"):
+        _set_result(est, learner, qs)
     conv = _converged(est, rows)
     est.verdict_, est.verdict_message_ = verdict(rows, tol=est.tol, finite=finite, divergence=est.divergence_message_,
                                                  converged=conv, window=est.patience)
