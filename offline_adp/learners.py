@@ -275,7 +275,7 @@ class FrozenTreesLearner(Learner):
         self.structures += 1
         self.built_on_constant = bool(np.ptp(y) == 0.0)
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
-            self.ensemble = _constant_ensemble(float(y[0]), self.regressor)
+            self._set_ensemble(_constant_ensemble(float(y[0]), self.regressor))
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
             self._operators(self._per_tree(self.ensemble.apply))
             return
@@ -285,12 +285,26 @@ class FrozenTreesLearner(Learner):
         del X
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
-        self.ensemble = TreeEnsemble.from_sklearn(forest)
-        self._operators(self._sklearn_per_tree(forest, self.ensemble.roots))
-        # every leaf lookup the fit needs is done: keep only the arrays (the forest's own node
-        # arrays are as large again); later lookups use trees rebuilt from the arrays
-        self.ensemble._forest = None  # type: ignore[attr-defined]
-        self.ensemble.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
+        # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
+        # (snapshot: a checkpoint, the end of the fit), not at every build
+        sizes = np.array([e.tree_.node_count for e in forest.estimators_], dtype=np.int64)
+        self.ensemble, self._forest = None, forest
+        self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
+        self._operators(self._sklearn_per_tree(forest, self._roots))
+
+    def _set_ensemble(self, ensemble: TreeEnsemble) -> None:
+        self.ensemble, self._forest = ensemble, None
+        self._roots, self._n_nodes = np.asarray(ensemble.roots), len(ensemble.value)
+
+    def _exported(self) -> TreeEnsemble:
+        """The structure as arrays, exported from the forest on first use (then the forest,
+        whose node arrays are as large again, is dropped)."""
+        if self.ensemble is None:
+            ens = TreeEnsemble.from_sklearn(self._forest)
+            ens._forest = None  # type: ignore[attr-defined]  # later lookups use trees rebuilt from the arrays
+            ens.n_features_in_ = int(self._forest.n_features_in_)  # type: ignore[attr-defined]
+            self._set_ensemble(ens)
+        return self.ensemble
 
     def _operators(self, tree_leaves: Any) -> None:
         """The training leaf matrix, the leaf weights and the query operators (leaf positions),
@@ -299,7 +313,7 @@ class FrozenTreesLearner(Learner):
         take their leaves from the next-state lookup (a third of the lookups with two
         actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
         held: one tree's lookups at a time."""
-        n, m = len(self.phi), len(self.ensemble.roots)
+        n, m = len(self.phi), len(self._roots)
         names = [q for q in self.queries if q != "train"]
         inputs = {q: self._joint(*self.queries[q]) for q in names}
         reuse = self.reuse if len(self.reuse) and "next" in inputs else np.zeros(0, np.int64)
@@ -309,13 +323,13 @@ class FrozenTreesLearner(Learner):
         if rest.any():
             gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
         from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
-        ends = np.r_[self.ensemble.roots[1:], len(self.ensemble.value)]
+        ends = np.r_[self._roots[1:], self._n_nodes]
         self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
         train = np.empty((m, n), np.int32)
         ids, bounds = [], [0]
         for t in range(m):
             raw = {q: next(g) for q, g in gens.items()}
-            root, lo = int(self.ensemble.roots[t]), bounds[-1]
+            root, lo = int(self._roots[t]), bounds[-1]
             leaf = np.empty(n, np.int64)
             leaf[rest] = raw.pop("", None) if rest.any() else 0
             if len(reuse):
@@ -476,15 +490,16 @@ class FrozenTreesLearner(Learner):
         return self._cache[name]
 
     def snapshot(self) -> QFunction:
-        value = self.ensemble.value.copy()
+        ens = self._exported()
+        value = ens.value.copy()
         value[self.leaf_ids] = self.leaf_values
-        return TreeQ([self.ensemble.with_values(value)], self.encoder)
+        return TreeQ([ens.with_values(value)], self.encoder)
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
         """The saved ``Q_k`` carries its structure: recompute the leaves of the training and
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
-        self.ensemble = q.models[0]  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
+        self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
         self._operators(self._per_tree(self.ensemble.apply))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
         self._cache = {}
