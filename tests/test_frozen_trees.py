@@ -103,3 +103,35 @@ def test_a_list_gives_each_scheduled_build_its_row_fraction():
     assert len(learner.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)  # the last: grown on every row
     with pytest.raises(ValueError, match="max_samples"):
         FittedQIteration(mode="frozen", structure_max_samples=[0.5, 1.5], regressor_params=TREES).fit(ds)
+
+
+def test_the_auto_mode_runs_frozen_where_it_applies_and_refit_elsewhere():
+    ds = _continuous()
+    f = FittedQIteration(gamma=0.9, n_iterations=25, regressor_params=TREES).fit(ds)  # the defaults
+    assert (f.mode, f.mode_) == ("auto", "frozen")
+    assert f.history_["structure"].max() == 2  # round(0.08 * 25) builds, evenly spaced
+    assert FittedQIteration(n_iterations=100)._schedule() == (1, 13, 26, 38, 51, 63, 76, 88)
+    for other in ({"regressor": "lightgbm", "regressor_params": {"n_estimators": 5}}, {"action_encoding": "per_action"},
+                  {"horizon": 3}, {"next_state_noise": 0.1}):
+        g = FittedQIteration(gamma=0.9, n_iterations=2, **({"regressor_params": TREES} | other)).fit(ds)
+        assert g.mode_ == "refit", other
+    # the same schedule asked for explicitly is the same fit
+    h = FittedQIteration(gamma=0.9, n_iterations=25, mode="frozen", n_structures=2, regressor_params=TREES).fit(ds)
+    obs = np.random.default_rng(1).normal(size=(40, 2)) * 0.5
+    np.testing.assert_array_equal(f.predict(obs), h.predict(obs))
+
+
+def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
+    import offline_adp.algorithms.fqi as fqi
+
+    ds = _continuous(400)
+    kw = dict(gamma=0.9, n_iterations=2, mode="frozen", n_structures=1, regressor_params=TREES)
+    full = FittedQIteration(**kw).fit(ds)._fit_state[1]
+    assert full.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
+    monkeypatch.setattr(fqi, "STRUCTURE_ROWS", 100)
+    capped = FittedQIteration(**kw).fit(ds)._fit_state[1]
+    assert capped.fraction(1) == pytest.approx(100 / 400)
+    # a bootstrap of 100 rows: at most 100 distinct samples, so fewer than 2 * 100 nodes a tree
+    assert len(capped.ensemble.value) < TREES["n_estimators"] * 2 * 100
+    # ... while every training row still reads a leaf averaged over all rows in it
+    assert np.isfinite(capped.predict("train")).all()
