@@ -110,3 +110,15 @@ def _cfg(tmp_path, alg, body):
     p = tmp_path / f"{alg}.toml"
     p.write_text(f"[{alg}]\n{body}")
     return p
+
+
+def test_fit_cli_names_the_mode_that_ran_and_warns_only_for_warm_start(tmp_path, pt_dir, capsys):
+    default = _cfg(tmp_path, "fqi", "n_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(default)]) == 0
+    cap = capsys.readouterr()
+    assert "fitted fqi (frozen mode, auto): 3 iterations" in cap.out and "warning" not in cap.err
+    assert json.loads((tmp_path / "a" / "run.json").read_text())["mode"] == "frozen"
+    warm = _cfg(tmp_path, "fqi", 'n_iterations = 2\nmode = "warm_start"\nregressor = "lightgbm"\n'
+                                 '[fqi.regressor_params]\nn_estimators = 5\n')
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "b"), "--config", str(warm), "-q"]) == 0
+    assert "warning: mode = 'warm_start' did not hold the refit score" in capsys.readouterr().err
