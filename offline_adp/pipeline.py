@@ -491,7 +491,7 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     if bad:
         raise SpecError(f"[fit.params] {bad} are not supported by the Dask engine's FQI (supported: {sorted(allowed)}); "
                         "use the local engine")
-    if params.get("mode", "refit") not in ("refit", "warm_start"):
+    if params.get("mode", "auto") not in ("auto", "refit", "warm_start"):  # 'auto' is refit on the Dask engine
         raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine (use 'refit' or "
                         "'warm_start', or the local engine)")
     ds = read_dataset(run / "dataset")
