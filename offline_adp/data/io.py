@@ -304,15 +304,9 @@ def read_info(path: str | PathLike[str]) -> dict[str, Any]:
             f"{path} is not a dataset directory (no {S.INFO_FILE}); create one with "
             "`offline-adp ingest parquet ...` or `offline-adp simulate ...`"
         )
-    try:
-        raw = json.loads(info_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SchemaError(f"{info_path}: not valid JSON ({exc})") from None
-    except OSError as exc:
-        raise SchemaError(f"{info_path}: cannot be read ({exc.strerror or exc})") from None
-    if not isinstance(raw, dict):
-        raise SchemaError(f"{info_path}: expected a JSON object, found {type(raw).__name__}")
-    return raw
+    from offline_adp.data.rundir import read_json_file
+
+    return read_json_file(info_path, error=SchemaError)
 
 
 def part_files(path: str | PathLike[str]) -> list[Path]:

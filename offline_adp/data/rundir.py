@@ -171,11 +171,12 @@ def _json_default(o: Any) -> Any:
     return str(o)
 
 
-def read_json_file(path: str | PathLike[str], *, missing: str = "missing") -> dict[str, Any]:
+def read_json_file(path: str | PathLike[str], *, missing: str = "missing",
+                   error: type[OfflineADPError] = ArtifactError) -> dict[str, Any]:
     """Read a JSON object written by this package (``run.json``, ``metrics.json``, ...).
 
     A missing, unreadable, truncated or non-object file raises
-    :class:`~offline_adp.errors.ArtifactError` whose message starts with the file's path
+    ``error`` (default :class:`~offline_adp.errors.ArtifactError`) whose message starts with the file's path
     (``missing`` is what it says when the file does not exist), never a raw
     ``JSONDecodeError``.
     """
@@ -183,13 +184,13 @@ def read_json_file(path: str | PathLike[str], *, missing: str = "missing") -> di
     try:
         obj = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ArtifactError(f"{p}: {missing}") from None
+        raise error(f"{p}: {missing}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ArtifactError(f"{p}: not valid JSON ({exc}); the file is corrupt or truncated, write it again") from None
+        raise error(f"{p}: not valid JSON ({exc}); the file is corrupt or truncated, write it again") from None
     except OSError as exc:
-        raise ArtifactError(f"{p}: cannot be read ({exc.strerror or exc})") from None
+        raise error(f"{p}: cannot be read ({exc.strerror or exc})") from None
     if not isinstance(obj, dict):
-        raise ArtifactError(f"{p}: expected a JSON object, found {type(obj).__name__}")
+        raise error(f"{p}: expected a JSON object, found {type(obj).__name__}")
     return obj
 
 
