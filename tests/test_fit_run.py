@@ -122,3 +122,11 @@ def test_fit_cli_names_the_mode_that_ran_and_warns_only_for_warm_start(tmp_path,
                                  '[fqi.regressor_params]\nn_estimators = 5\n')
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "b"), "--config", str(warm), "-q"]) == 0
     assert "warning: mode = 'warm_start' did not hold the refit score" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ['"bogus"', "2.5", "[0.5, 0.0]"])
+def test_fit_cli_refuses_a_bad_structure_max_samples_in_one_line(tmp_path, pt_dir, capsys, value):
+    cfg = _cfg(tmp_path, "fqi", f"n_iterations = 2\nstructure_max_samples = {value}\n")
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "r"), "--config", str(cfg), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "structure_max_samples must be" in err and len(err.strip().splitlines()) == 1
