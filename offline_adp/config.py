@@ -24,7 +24,10 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict
+import types
+import typing
+
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 from pydantic import ValidationError as _PydanticValidationError
 
 from offline_adp.errors import InvalidArgumentError, SpecError
@@ -36,9 +39,32 @@ class ConfigModel(BaseModel):
     """Base of every configuration model: unknown keys forbidden (listing the valid ones),
     frozen, values checked on load (``n_iterations = "ten"`` is an error naming the key,
     not a crash later). Lax pydantic mode, so TOML arrays fill tuples and integers fill
-    floats."""
+    floats; but ``true``/``false`` only where a field takes a bool (lax pydantic reads
+    ``true`` as 1 or 1.0, so ``n_structures = true`` would run as 1)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=False, validate_default=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        field = cls.model_fields.get(info.field_name) if info.field_name else None
+        if isinstance(value, bool) and field is not None and not _takes_bool(field.annotation):
+            raise ValueError(f"a bool ({str(value).lower()}) is not a valid value here")
+        return value
+
+
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field annotated ``annotation`` accepts a bool as a bool (or anything)."""
+    if annotation is bool or annotation is Any or annotation is object:
+        return True
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return any(_takes_bool(a) for a in typing.get_args(annotation))
+    if origin is typing.Annotated:
+        return _takes_bool(typing.get_args(annotation)[0])
+    if origin is typing.Literal:
+        return any(isinstance(a, bool) for a in typing.get_args(annotation))
+    return False
 
 
 def load_toml(path: str | PathLike[str], what: str = "configuration") -> dict[str, Any]:

@@ -37,6 +37,11 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD.replace('simulate = "tabular"', 'simulate = "tabulr"'), r"simulate = 'tabulr': known problems"),
     (GOOD + '[engine]\nkind = "spark"\n', r"engine.kind: expected one of 'local' or 'dask'"),
     ('name = "p"\n[data]\nsimulate = "tabular"\n', r"fit: missing required key"),
+    # lax pydantic would read true as 1 / 1.0: n_structures = true ran as 1 build, a bool
+    # structure_max_samples was accepted here and failed inside the fit with a traceback
+    (GOOD + "[fit.params]\nn_structures = true\n", r"fit.params.n_structures: .*a bool \(true\) is not a valid value"),
+    (GOOD + "[fit.params]\nstructure_max_samples = true\n", r"fit.params.structure_max_samples: .*a bool \(true\)"),
+    (GOOD + "[fit.params]\ngamma = false\n", r"fit.params.gamma: .*a bool \(false\)"),
 ])
 def test_pipeline_file_is_checked_before_anything_runs(tmp_path, text, match):
     p = _pipeline(tmp_path, text)
@@ -46,6 +51,20 @@ def test_pipeline_file_is_checked_before_anything_runs(tmp_path, text, match):
     runs = tmp_path / "runs"
     assert main(["run", str(p), "--runs", str(runs), "-q"]) == 2
     assert not runs.exists(), "a bad pipeline must not create its run directory"
+
+
+def test_bool_fields_still_take_bools(tmp_path):
+    # fqi's on_divergence is a string, per_action flags etc. are bools: a bool field keeps working
+    from offline_adp.config import ConfigModel, validate_config
+
+    class M(ConfigModel):
+        flag: bool = False
+        either: int | bool = 0
+        number: float = 0.0
+
+    assert validate_config(M, {"flag": True, "either": True, "number": 1}, "x.toml", "s").flag is True
+    with pytest.raises(SpecError, match=r"s.number: .*a bool"):
+        validate_config(M, {"number": True}, "x.toml", "s")
 
 
 def test_pipeline_name_from_a_file_name_is_checked(tmp_path):
