@@ -366,11 +366,15 @@ class FrozenTreesLearner(Learner):
 
     @staticmethod
     def _sklearn_per_tree(forest: Any, roots: np.ndarray) -> Any:
-        """``tree_leaves`` for a fitted scikit-learn forest: each tree's compiled ``apply`` on
-        float32 inputs (the leaves ``forest.apply`` gives), one tree at a time."""
+        """``tree_leaves`` for a fitted scikit-learn forest (the leaves ``forest.apply`` gives)."""
+        return FrozenTreesLearner._compiled_per_tree([e.tree_ for e in forest.estimators_], roots)
+
+    @staticmethod
+    def _compiled_per_tree(trees: list[Any], roots: np.ndarray) -> Any:
+        """``tree_leaves`` for compiled scikit-learn ``Tree`` objects: each tree's ``apply`` on
+        float32 inputs, one tree at a time (no (rows, trees) matrix)."""
         def gen(X: np.ndarray) -> Any:
             X32 = np.ascontiguousarray(X, dtype=np.float32)
-            trees = [e.tree_ for e in forest.estimators_]
             first = np.asarray(trees[0].apply(X32), dtype=np.int64)
             yield first + int(roots[0])
             # rows in the order of their leaf in the first tree (depth-first ids): neighbours
@@ -512,7 +516,11 @@ class FrozenTreesLearner(Learner):
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
         self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
-        self._operators(self._per_tree(self.ensemble.apply))
+        ens = self.ensemble
+        ens.apply(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # checks its feature indices against our inputs
+        trees = ens._compiled_trees()
+        # tree by tree where scikit-learn's compiled trees can be rebuilt (no (rows, trees) lookup matrix)
+        self._operators(self._per_tree(ens.apply) if trees is None else self._compiled_per_tree(trees, np.asarray(ens.roots)))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
         self._cache = {}
         last = (rows or [{}])[-1]
