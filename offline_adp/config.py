@@ -19,13 +19,12 @@ from __future__ import annotations
 import difflib
 import json
 import tomllib
+import types
+import typing
 from collections.abc import Mapping
 from os import PathLike
 from pathlib import Path
 from typing import Any, TypeVar
-
-import types
-import typing
 
 from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 from pydantic import ValidationError as _PydanticValidationError
