@@ -64,7 +64,6 @@ class Learner:
         self.regressor, self.encoder = regressor, encoder
         self.phi, self.actions, self.weights, self.seed = phi, np.asarray(actions, dtype=np.int64), weights, seed
         self.queries = {"train": (phi, self.actions), **queries}
-        self.iteration = 0
 
     def fit(self, y: np.ndarray, k: int) -> None:
         """``Q_k = LEARN({((x_i, a_i), y_i)})``; iteration ``k``'s randomness depends on ``k`` only."""
@@ -124,7 +123,6 @@ class RefitLearner(Learner):
         self.queries["extra"] = (extra, None)  # distinct inputs not among the next states
 
     def fit(self, y: np.ndarray, k: int) -> None:
-        self.iteration = k
         seed = self.seed + k
         if self.encoder.per_action:
             models = []
@@ -163,7 +161,7 @@ class RefitLearner(Learner):
         return self.q
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
-        self.q, self.iteration, self._cache = q, iteration, {}  # type: ignore[assignment]
+        self.q, self._cache = q, {}  # type: ignore[assignment]
 
 
 def _row_sources(base: np.ndarray, sets: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
@@ -471,7 +469,6 @@ class FrozenTreesLearner(Learner):
         return M, A
 
     def fit(self, y: np.ndarray, k: int) -> None:
-        self.iteration = k
         if self._pending or k in self.restructure_at:
             self._build(y, k)
         self._pending = self.built_on_constant  # constant targets say nothing about where to split
@@ -527,7 +524,6 @@ class FrozenTreesLearner(Learner):
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         self._pending = self.built_on_constant
-        self.iteration = iteration
 
 
 def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:
@@ -606,7 +602,6 @@ class LightGBMWarmStartLearner(Learner):
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
 
     def fit(self, y: np.ndarray, k: int) -> None:
-        self.iteration = k
         self.data.set_label(y - self.cache["train"])  # the residual; its mean goes into the first tree
         booster = self.lgb.train({**self.params, "seed": self.seed + k}, self.data, num_boost_round=self.trees_per_iteration)
         self.boosters.append(booster)
@@ -623,7 +618,6 @@ class LightGBMWarmStartLearner(Learner):
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
         self.boosters = [getattr(b, "booster", b) for b in q.boosters]  # type: ignore[attr-defined]
-        self.iteration = iteration
         for name, X in self.X.items():  # the same sums, in the same order, as when fitting
             c = np.zeros(len(X))
             for b in self.boosters:

@@ -521,7 +521,6 @@ class DaskLearner(Learner):
     def fit(self, y: np.ndarray, k: int) -> None:
         from lightgbm.dask import DaskLGBMRegressor
 
-        self.iteration = k
         label = y - self._cache["train"] if self.warm_start else y  # warm start: the residual, boosted from its mean
         for attempt in range(self.retries + 1):
             try:
@@ -578,7 +577,6 @@ class DaskLearner(Learner):
         return BoostedSumQ(list(self.boosters), self.encoder) if self.warm_start else self.q
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
-        self.iteration = iteration
         if self.warm_start:
             self.boosters = [getattr(b, "booster", b) for b in q.boosters]  # type: ignore[attr-defined]
             self._cache = self._sum_predictions(self.boosters)
