@@ -537,9 +537,10 @@ def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:
 def _tree_mean(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """``values[pos].mean(axis=0)`` for tree-major ``pos`` (m, nq), one gather per tree (each
     within that tree's leaf range), no (m, nq) float temporary."""
-    out = np.zeros(pos.shape[1])
-    for row in pos:
-        out += values[row]
+    out, tmp = np.zeros(pos.shape[1]), np.empty(pos.shape[1])
+    for row in pos:  # positions are ours, all in range: "clip" skips numpy's buffered bounds check (~2x)
+        values.take(row, out=tmp, mode="clip")
+        out += tmp
     return out / len(pos)
 
 
