@@ -93,3 +93,25 @@ def test_killed_after_the_last_checkpoint_resumes_without_an_extra_iteration(tmp
     done = json.loads((run / "run.json").read_text())
     assert done["status"] == "completed" and done["iterations"] == n and done["verdict"] == ref.verdict_
     assert done["fit_cpu_seconds"] >= 0
+
+
+def test_frozen_resume_without_compiled_trees_takes_the_numpy_lookups(tmp_path, pt_dir, obs, monkeypatch):
+    """Restoring a frozen structure looks leaves up with scikit-learn's compiled trees
+    rebuilt from the saved arrays; where this scikit-learn's tree layout is unknown it
+    falls back to the numpy traversal. Both give the uninterrupted fit's Q."""
+    from offline_adp.qfunctions import TreeEnsemble
+
+    params = _params("frozen", False)
+    ref = fit_run(pt_dir, tmp_path / "ref", params=params)
+    calls = []
+
+    def interrupt(row):
+        if row["iteration"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(pt_dir, tmp_path / "run", params=params, on_iteration=interrupt)
+    monkeypatch.setattr(TreeEnsemble, "_compiled_trees", lambda self: calls.append(1))  # None: "unknown layout"
+    est = fit_run(pt_dir, tmp_path / "run", params=params, resume=True)
+    assert calls  # the fallback was taken
+    _same(est, ref, obs)
