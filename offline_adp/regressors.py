@@ -63,11 +63,7 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
         return self
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        check_is_fitted(self, "keys_")
-        X = validate_data(self, X, dtype=np.float64, reset=False)
-        rows = _codes(self, X)
-        pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
-        hit = (self.keys_[pos] == rows) & (rows >= 0)
+        pos, hit = _table_rows(self, X)
         return np.where(hit, self.values_[pos], self.fill_value)
 
 
@@ -89,6 +85,15 @@ def _rows(X: np.ndarray) -> np.ndarray:
     """Rows of a float matrix as one structured value each (sortable, searchable)."""
     X = np.ascontiguousarray(X)
     return X.view([(f"f{j}", np.float64) for j in range(X.shape[1])]).reshape(-1)
+
+
+def _table_rows(est: Any, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a fitted table estimator: each row's position in ``keys_`` and whether it is there."""
+    check_is_fitted(est, "keys_")
+    X = validate_data(est, X, dtype=np.float64, reset=False)
+    rows = _codes(est, X)
+    pos = np.minimum(np.searchsorted(est.keys_, rows), len(est.keys_) - 1)
+    return pos, (est.keys_[pos] == rows) & (rows >= 0)
 
 
 def _codes(est: Any, X: np.ndarray) -> np.ndarray:
@@ -214,11 +219,8 @@ class TabularClassifier(ClassifierMixin, BaseEstimator):
         return self
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        check_is_fitted(self, "keys_")
-        X = validate_data(self, X, dtype=np.float64, reset=False)
-        rows = _codes(self, X)
-        pos = np.minimum(np.searchsorted(self.keys_, rows), len(self.keys_) - 1)
-        return np.where((self.keys_[pos] == rows) & (rows >= 0), self.labels_[pos], self.default_)
+        pos, hit = _table_rows(self, X)
+        return np.where(hit, self.labels_[pos], self.default_)
 
 
 def _lgbm_classifier(**kw: Any) -> BaseEstimator:
