@@ -21,7 +21,7 @@ import json
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from os import PathLike
 from pathlib import Path
 from typing import Any, TypeVar
@@ -47,9 +47,54 @@ class ConfigModel(BaseModel):
     @classmethod
     def _no_bool_for_numbers(cls, value: Any, info: ValidationInfo) -> Any:
         field = cls.model_fields.get(info.field_name) if info.field_name else None
-        if isinstance(value, bool) and field is not None and not _takes_bool(field.annotation):
-            raise ValueError(f"a bool ({str(value).lower()}) is not a valid value here")
+        if field is not None:
+            bad = _misplaced_bool(value, [field.annotation])
+            if bad is not None:
+                raise ValueError(f"a bool ({str(bad).lower()}) is not a valid value here")
         return value
+
+
+def _misplaced_bool(value: Any, annotations: list[Any]) -> bool | None:
+    """A bool in ``value`` (itself, or an element of a list/tuple, recursively) where none of
+    ``annotations`` takes one; None if there is none. Mappings (e.g. a regressor's
+    parameters, passed through as given) are not looked into."""
+    if isinstance(value, bool):
+        return None if any(_takes_bool(a) for a in annotations) else value
+    if isinstance(value, list | tuple):
+        elements: list[Any] = []
+        for a in annotations:
+            e = _elements(a)
+            if e is None:  # any element type
+                return None
+            elements += e
+        if not elements:  # not a sequence field: pydantic refuses the list itself
+            return None
+        for v in value:
+            bad = _misplaced_bool(v, elements)
+            if bad is not None:
+                return bad
+    return None
+
+
+def _elements(annotation: Any) -> list[Any] | None:
+    """Element types of the sequence types in ``annotation`` ([] if none; None if any)."""
+    if annotation is Any or annotation is object:
+        return None
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        out: list[Any] = []
+        for a in typing.get_args(annotation):
+            e = _elements(a)
+            if e is None:
+                return None
+            out += e
+        return out
+    if origin is typing.Annotated:
+        return _elements(typing.get_args(annotation)[0])
+    if annotation in (list, tuple) or origin in (list, tuple, Sequence):
+        args = [a for a in typing.get_args(annotation) if a is not Ellipsis]
+        return args or None
+    return []
 
 
 def _takes_bool(annotation: Any) -> bool:

@@ -347,6 +347,9 @@ class FrozenTreesLearner(Learner):
         for q in names:  # a leaf without training weight reads value L (0)
             p = self.pos[q]
             p[p < 0] = L
+        for q, p in [*self.pos.items(), ("train", train)]:  # _tree_mean gathers with mode="clip": keep them in range
+            if p.size and (int(p.min()) < 0 or int(p.max()) > L):
+                raise RuntimeError(f"frozen structure: leaf positions of {q!r} outside [0, {L}]")
         self._bounds, self._m = np.asarray(bounds), m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         self.pos["train"] = train  # every training leaf holds its own sample
@@ -514,7 +517,7 @@ class FrozenTreesLearner(Learner):
         leaf values back."""
         self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
         ens = self.ensemble
-        ens.apply(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # checks its feature indices against our inputs
+        ens.check_inputs(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # before any compiled lookup
         trees = ens._compiled_trees()
         # tree by tree where scikit-learn's compiled trees can be rebuilt (no (rows, trees) lookup matrix)
         self._operators(self._per_tree(ens.apply) if trees is None else self._compiled_per_tree(trees, np.asarray(ens.roots)))

@@ -180,12 +180,7 @@ class TreeEnsemble:
         forest = getattr(self, "_forest", None)
         if forest is not None:
             return sklearn_leaves(forest, X)
-        need = getattr(self, "_n_features", None)  # compiled trees read X[:, feature] unchecked
-        if need is None:
-            inner = self.left >= 0
-            need = self._n_features = int(self.feature[inner].max()) + 1 if inner.any() else 0  # type: ignore[attr-defined]
-        if np.ndim(X) != 2 or np.shape(X)[1] < need:
-            raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
+        self.check_inputs(X)
         trees = self._compiled_trees()
         if trees is not None:
             X32 = np.ascontiguousarray(X, dtype=np.float32)
@@ -207,6 +202,16 @@ class TreeEnsemble:
             node[idx] = nxt
             idx = idx[self.left[nxt] >= 0]
         return node.reshape(n, m)
+
+    def check_inputs(self, X: np.ndarray) -> None:
+        """Raise ArtifactError unless ``X`` is 2-d and has every feature a split reads:
+        compiled trees read ``X[:, feature]`` unchecked, so call this before using them."""
+        need = getattr(self, "_n_features", None)
+        if need is None:
+            inner = self.left >= 0
+            need = self._n_features = int(self.feature[inner].max()) + 1 if inner.any() else 0  # type: ignore[attr-defined]
+        if np.ndim(X) != 2 or np.shape(X)[1] < need:
+            raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
 
     def _compiled_trees(self) -> list[Any] | None:
         """scikit-learn ``Tree`` objects rebuilt from our arrays (plain numbers, no code

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import inspect
 import json
+from typing import Any
 
 import pytest
 
@@ -42,6 +43,7 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD + "[fit.params]\nn_structures = true\n", r"fit.params.n_structures: .*a bool \(true\) is not a valid value"),
     (GOOD + "[fit.params]\nstructure_max_samples = true\n", r"fit.params.structure_max_samples: .*a bool \(true\)"),
     (GOOD + "[fit.params]\ngamma = false\n", r"fit.params.gamma: .*a bool \(false\)"),
+    (GOOD + "[fit.params]\nstructure_max_samples = [0.5, true]\n", r"fit.params.structure_max_samples: .*a bool \(true\)"),
 ])
 def test_pipeline_file_is_checked_before_anything_runs(tmp_path, text, match):
     p = _pipeline(tmp_path, text)
@@ -61,10 +63,18 @@ def test_bool_fields_still_take_bools(tmp_path):
         flag: bool = False
         either: int | bool = 0
         number: float = 0.0
+        flags: tuple[bool, ...] = ()
+        numbers: list[float | list[float]] = []
+        params: dict[str, Any] = {}
+        anything: list = []
 
-    assert validate_config(M, {"flag": True, "either": True, "number": 1}, "x.toml", "s").flag is True
+    m = validate_config(M, {"flag": True, "either": True, "number": 1, "flags": [True, False], "params": {"bootstrap": True},
+                             "anything": [True]}, "x.toml", "s")
+    assert m.flag is True and m.either is True and m.flags == (True, False) and m.params == {"bootstrap": True}
     with pytest.raises(SpecError, match=r"s.number: .*a bool"):
         validate_config(M, {"number": True}, "x.toml", "s")
+    with pytest.raises(SpecError, match=r"s.numbers: .*a bool \(false\)"):
+        validate_config(M, {"numbers": [1.0, [2.0, False]]}, "x.toml", "s")
 
 
 def test_pipeline_name_from_a_file_name_is_checked(tmp_path):
