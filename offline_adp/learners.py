@@ -234,10 +234,7 @@ class FrozenTreesLearner(Learner):
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
-        fractions = list(max_samples) if isinstance(max_samples, list | tuple) else [max_samples]
-        for f in fractions:
-            if f is not None and not (isinstance(f, int | float) and 0.0 < float(f) <= 1.0):
-                raise ValueError(f"max_samples must be in (0, 1] or None (or a list of those), got {max_samples!r}")
+        check_structure_fractions(max_samples)
         self.restructure_at = frozenset(restructure_at) | {1}
         self.max_samples = max_samples
         self._pending = True  # no structure yet
@@ -527,6 +524,16 @@ class FrozenTreesLearner(Learner):
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         self._pending = self.built_on_constant
+
+
+def check_structure_fractions(value: Any) -> None:
+    """Raise ValueError unless ``value`` is a row fraction in (0, 1], None, or a list of those
+    (the frozen structures' ``max_samples``)."""
+    fractions = list(value) if isinstance(value, list | tuple) else [value]
+    if not all(f is None or (isinstance(f, int | float) and not isinstance(f, bool) and 0.0 < float(f) <= 1.0)
+               for f in fractions):
+        raise ValueError(f"structure_max_samples must be 'auto', a fraction in (0, 1], None, or a list of "
+                         f"fractions/None, got {value!r}")
 
 
 def _constant_ensemble(value: float, regressor: Any) -> TreeEnsemble:

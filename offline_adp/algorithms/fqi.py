@@ -45,7 +45,13 @@ from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, verdict
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import DivergenceWarning, NotFittedError
-from offline_adp.learners import FrozenTreesLearner, Learner, LightGBMWarmStartLearner, RefitLearner
+from offline_adp.learners import (
+    FrozenTreesLearner,
+    Learner,
+    LightGBMWarmStartLearner,
+    RefitLearner,
+    check_structure_fractions,
+)
 from offline_adp.policies import GreedyPolicy, attach_signature
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
 from offline_adp.regressors import make_regressor
@@ -339,12 +345,8 @@ class FittedQIteration(BaseEstimator):
             raise ValueError(f"on_divergence must be 'stop', 'warn' or 'ignore', got {self.on_divergence!r}")
         if self.next_state_noise and self.mode not in ("refit", "auto"):
             raise ValueError("next_state_noise needs mode='refit' (the other modes precompute next-state inputs)")
-        f = self.structure_max_samples
-        fractions = list(f) if isinstance(f, list | tuple) else [f]
-        if not (f == "auto" or all(x is None or (isinstance(x, int | float) and not isinstance(x, bool) and 0.0 < float(x) <= 1.0)
-                                   for x in fractions)):
-            raise ValueError(f"structure_max_samples must be 'auto', a fraction in (0, 1], None, or a list of "
-                             f"fractions/None, got {f!r}")
+        if not (isinstance(self.structure_max_samples, str) and self.structure_max_samples == "auto"):
+            check_structure_fractions(self.structure_max_samples)
         if (self.n_structures is not None and int(self.n_structures) < 1) or int(self.patience) < 2:
             raise ValueError(f"n_structures must be >= 1 and patience >= 2, got {self.n_structures}, {self.patience}")
 
