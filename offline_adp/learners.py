@@ -272,7 +272,7 @@ class FrozenTreesLearner(Learner):
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
             self._set_ensemble(_constant_ensemble(float(y[0]), self.regressor))
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
-            self._operators(self._per_tree(self.ensemble.apply))
+            self._operators(self._ensemble_per_tree(self.ensemble))
             return
         if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
             y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
@@ -361,6 +361,15 @@ class FrozenTreesLearner(Learner):
             for t in range(full.shape[1]):
                 yield np.asarray(full[:, t], dtype=np.int64)
         return gen
+
+    def _ensemble_per_tree(self, ens: TreeEnsemble) -> Any:
+        """``tree_leaves`` for a structure held as arrays (a restored checkpoint, the
+        constant-target structure): scikit-learn's compiled trees rebuilt from the arrays,
+        tree by tree (no (rows, trees) lookup matrix), after checking that every feature a
+        split reads is among our inputs; the numpy traversal where they cannot be rebuilt."""
+        ens.check_inputs(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # before any compiled lookup
+        trees = ens._compiled_trees()
+        return self._per_tree(ens.apply) if trees is None else self._compiled_per_tree(trees, np.asarray(ens.roots))
 
     @staticmethod
     def _sklearn_per_tree(forest: Any, roots: np.ndarray) -> Any:
@@ -513,11 +522,7 @@ class FrozenTreesLearner(Learner):
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
         self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
-        ens = self.ensemble
-        ens.check_inputs(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # before any compiled lookup
-        trees = ens._compiled_trees()
-        # tree by tree where scikit-learn's compiled trees can be rebuilt (no (rows, trees) lookup matrix)
-        self._operators(self._per_tree(ens.apply) if trees is None else self._compiled_per_tree(trees, np.asarray(ens.roots)))
+        self._operators(self._ensemble_per_tree(self.ensemble))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
         self._cache = {}
         last = (rows or [{}])[-1]
