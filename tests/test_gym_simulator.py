@@ -108,3 +108,104 @@ def test_evaluate_a_cartpole_run_in_gymnasium(tmp_path, capsys):
     assert -(1 - 0.99**L) / (1 - 0.99) - 1e-9 <= p["mean_discounted_cost"] <= -1.0
     assert main(["evaluate", str(run), "--simulator", "gym:MountainCar-v0", "--episodes", "4", "-q"]) == 2  # 2 != 4 features
     assert "4 features" in capsys.readouterr().err
+
+
+PENDULUM_TABLE = ActionTable.from_values([-1.5, 0.25, 2.0])
+PENDULUM = DatasetInfo(features=tuple(Feature(n) for n in ("cos_th", "sin_th", "omega")),
+                       action_table=PENDULUM_TABLE, gamma=0.95)
+
+
+def test_box_actions_step_like_a_plain_gymnasium_loop():
+    """A continuous-action environment: action i is the box action [values[i]]."""
+    model = GymResetModel("Pendulum-v1", PENDULUM)
+    x = model.initial_states(2, np.random.default_rng(4))
+    seeds = np.random.default_rng(4).integers(0, 2**31 - 1, size=2)
+    envs = [gymnasium.make("Pendulum-v1") for _ in seeds]
+    ref = np.array([e.reset(seed=int(s))[0] for e, s in zip(envs, seeds, strict=True)], dtype=np.float64)
+    np.testing.assert_array_equal(x, ref)
+    values = np.array([-1.5, 0.25, 2.0], dtype=np.float32)
+    actions = np.random.default_rng(2).integers(0, 3, size=(25, 2))
+    for t in range(25):
+        r = model.step(x, actions[t], np.random.default_rng(0))
+        for i in range(2):
+            obs, rew, term, _, _ = envs[i].step(values[actions[t, i]:actions[t, i] + 1])
+            np.testing.assert_array_equal(r.next_states[i], obs)
+            assert r.costs[i] == -rew and r.terminated[i] == term
+        x = r.next_states
+
+
+def test_box_action_tables_are_checked():
+    wide = DatasetInfo(features=PENDULUM.features, action_table=ActionTable.from_values([-3.0, 0.0, 2.0]))
+    with pytest.raises(OfflineADPError, match=r"action\(s\) \[0\] with values \[\[-3.0\]\] are outside the action box"):
+        resolve_simulator("gym:Pendulum-v1", wide)
+    two = DatasetInfo(features=PENDULUM.features, action_table=ActionTable.from_values([[0.0, 1.0], [1.0, 0.0]], dims=("u", "w")))
+    with pytest.raises(OfflineADPError, match="vectors of 1 numbers.*shape \\(2, 2\\)"):
+        resolve_simulator("gym:Pendulum-v1", two)
+    with pytest.raises(OfflineADPError, match="unbounded"):
+        gymnasium.register("offline_adp_test/UnboundedBox-v0", entry_point=_UnboundedBox)
+        record_random_log("offline_adp_test/UnboundedBox-v0", 10)
+
+
+class _UnboundedBox(gymnasium.Env):
+    observation_space = gymnasium.spaces.Box(-1.0, 1.0, (1,))
+    action_space = gymnasium.spaces.Box(-np.inf, np.inf, (1,))
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(1, np.float32), 0.0, True, False, {}
+
+
+PENDULUM_SPEC = """
+kind = "transitions"
+name = "pendulum log"
+[episode]
+id = "ep"
+step = "t"
+[observations]
+columns = ["c", "s", "w"]
+next_columns = ["c2", "s2", "w2"]
+[action]
+column = "torque"
+type = "continuous"
+n_bins = 5
+[cost]
+reward = "r"
+[end]
+terminated = "term"
+truncated = "trunc"
+[source]
+value = "exploration"
+[hints]
+gamma = 0.95
+"""
+
+
+@pytest.mark.integration
+def test_evaluate_a_pendulum_run_with_binned_torques_in_gymnasium(tmp_path, capsys):
+    """Continuous commands binned at ingestion, rolled out in a continuous-action environment."""
+    log = record_random_log("Pendulum-v1", 1200, seed=5)
+    assert log["action"].shape == (len(log["step"]),) and np.abs(log["action"]).max() <= 2.0
+    names = ["c", "s", "w"]
+    df = pd.DataFrame({"ep": log["episode"].astype(int), "t": log["step"].astype(int), "torque": log["action"],
+                       "r": log["reward"], "term": log["terminated"], "trunc": log["truncated"] & ~log["terminated"],
+                       **{n: log["obs"][:, j] for j, n in enumerate(names)},
+                       **{n + "2": log["next_obs"][:, j] for j, n in enumerate(names)}})
+    df.to_csv(tmp_path / "pendulum.csv", index=False)
+    (tmp_path / "spec.toml").write_text(PENDULUM_SPEC)
+    (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 5\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
+    ds, run = tmp_path / "ds", tmp_path / "run"
+    assert main(["ingest", "parquet", str(tmp_path / "pendulum.csv"), "--spec", str(tmp_path / "spec.toml"), "--out", str(ds), "-q"]) == 0
+    assert main(["fit", str(ds), "--config", str(tmp_path / "fqi.toml"), "--out", str(run), "-q"]) == 0
+    assert main(["evaluate", str(run), "--simulator", "gym:Pendulum-v1", "--episodes", "6", "--bootstrap", "5",
+                 "--fqe-bootstrap", "0", "-q"]) == 0
+    capsys.readouterr()
+    m = json.loads((run / "evaluation" / "metrics.json").read_text())
+    r = m["rollout"]
+    p = r["policy"]
+    assert m["simulator"] == "gym:Pendulum-v1" and p["n_episodes"] == 6
+    # Pendulum never terminates: every episode runs the horizon; each step's cost is in [0, pi^2 + 0.1 * 8^2 + 0.001 * 2^2]
+    assert p["mean_length"] == r["horizon"]
+    worst = (np.pi**2 + 0.1 * 64 + 0.001 * 4) * (1 - 0.95 ** r["horizon"]) / (1 - 0.95)
+    assert 0.0 < p["mean_discounted_cost"] < worst

@@ -8,7 +8,11 @@ simulator``, Python :func:`resolve_simulator`) rolls a fitted policy out in
   environment's observation vector (a 1-D ``Box``); the widths must agree. Column names
   do not matter (a log may call CartPole's features ``cart_x, cart_v, pole, pole_rate``).
 - **Actions.** Action ``i`` of the dataset's action table is the environment action
-  ``values[i]`` (a ``Discrete`` space; the table's values must be valid integer actions).
+  ``values[i]``. For a ``Discrete`` space the table holds one number per action, a valid
+  integer action. For a 1-D ``Box`` space of ``d`` entries (continuous commands, e.g.
+  Pendulum's torque) the table holds ``d`` numbers per action, each within the box's bounds
+  -- typically the bins' representative commands of a log ingested with
+  ``type = "continuous"``.
 - **Costs** are ``-reward``; ``terminated`` ends an episode (absorbing). The environment's
   own time limit is not applied: the rollout's horizon is the evaluation's ``T``.
 
@@ -61,25 +65,13 @@ class GymResetModel(ResetModel):
         probe.close()
         if not isinstance(obs_space, gymnasium.spaces.Box) or len(obs_space.shape) != 1:
             raise OfflineADPError(f"simulator {self.name!r}: observations must be a 1-D Box, got {obs_space}")
-        if not isinstance(act_space, gymnasium.spaces.Discrete):
-            raise OfflineADPError(f"simulator {self.name!r}: actions must be Discrete, got {act_space}")
         width = int(obs_space.shape[0])
         names = [f.name for f in info.features]
         if len(names) != width:
             raise OfflineADPError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
                                   f"{len(names)} features {names}; they are matched by declared order")
-        values = np.asarray(info.action_table.values, dtype=np.float64)
-        if values.ndim != 2 or values.shape[1] != 1:
-            raise OfflineADPError(f"simulator {self.name!r}: the action table must hold one number per action "
-                                  f"(the environment's action), got shape {values.shape}")
-        env_actions = values[:, 0]
-        lo, n = int(act_space.start), int(act_space.n)
-        bad = [float(v) for v in env_actions if v != round(v) or not lo <= v < lo + n]
-        if bad:
-            raise OfflineADPError(f"simulator {self.name!r}: action values {bad} are not actions of {act_space} "
-                                  f"(the action table's values are passed to the environment)")
-        self.env_actions = env_actions.astype(np.int64)
-        self.n_actions, self.obs_dim = len(env_actions), width
+        self.env_actions = _env_actions(self.name, act_space, np.asarray(info.action_table.values, dtype=np.float64))
+        self.n_actions, self.obs_dim = len(self.env_actions), width
         self.gamma = float(gamma if gamma is not None else (info.gamma if info.gamma is not None else 1.0))
         self.horizon = spec.max_episode_steps if spec is not None else None
         self._live: dict[bytes, list[Any]] = {}
@@ -111,7 +103,7 @@ class GymResetModel(ResetModel):
                                        "(from initial_states or an earlier step)")
             envs.append(stack.pop())
         for i, (env, a) in enumerate(zip(envs, np.asarray(actions, dtype=np.int64), strict=True)):
-            obs, reward, terminated, _truncated, _ = env.step(int(self.env_actions[a]))
+            obs, reward, terminated, _truncated, _ = env.step(self.env_actions[a])
             nxt[i], costs[i], term[i] = obs, -float(reward), terminated
             if terminated:
                 env.close()
@@ -125,6 +117,36 @@ class GymResetModel(ResetModel):
 
     def rollout_summary(self, states: list[np.ndarray], terminated: np.ndarray) -> dict[str, float]:
         return {"terminated_fraction": float(np.mean(terminated))}
+
+
+def _env_actions(name: str, space: Any, values: np.ndarray) -> list[Any]:
+    """The environment action for each row of the action table's ``values`` (see the module
+    docstring), checked against ``space``."""
+    import gymnasium
+
+    if isinstance(space, gymnasium.spaces.Discrete):
+        if values.ndim != 2 or values.shape[1] != 1:
+            raise OfflineADPError(f"simulator {name!r}: the action table must hold one number per action "
+                                  f"(the environment's action), got shape {values.shape}")
+        lo, n = int(space.start), int(space.n)
+        bad = [float(v) for v in values[:, 0] if v != round(v) or not lo <= v < lo + n]
+        if bad:
+            raise OfflineADPError(f"simulator {name!r}: action values {bad} are not actions of {space} "
+                                  f"(the action table's values are passed to the environment)")
+        return [int(v) for v in values[:, 0]]
+    if isinstance(space, gymnasium.spaces.Box) and len(space.shape) == 1:
+        d = int(space.shape[0])
+        if values.ndim != 2 or values.shape[1] != d:
+            raise OfflineADPError(f"simulator {name!r}: its actions are vectors of {d} numbers ({space}); the action "
+                                  f"table's values have shape {values.shape}, one row of {d} per action is needed")
+        low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+        slack = 1e-6 * (1.0 + np.maximum(np.abs(low), np.abs(high)))  # float32 bounds, rounded commands
+        outside = np.flatnonzero(((values < low - slack) | (values > high + slack)).any(axis=1))
+        if len(outside):
+            raise OfflineADPError(f"simulator {name!r}: action(s) {outside.tolist()} with values "
+                                  f"{values[outside].tolist()} are outside the action box [{low.tolist()}, {high.tolist()}]")
+        return list(np.clip(values, low, high).astype(space.dtype))
+    raise OfflineADPError(f"simulator {name!r}: actions must be Discrete or a 1-D Box, got {space}")
 
 
 def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
@@ -148,24 +170,48 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
     ``gymnasium.make(env_id)`` (with its time limit), as numpy columns: ``episode, step,
     obs (n, d), action, reward, next_obs, terminated, truncated`` (gymnasium's flags as
     returned: both may be true on one row). Episodes run to their end, so the log may
-    exceed ``n_transitions`` by one episode."""
+    exceed ``n_transitions`` by one episode.
+
+    ``action`` is an integer per row for a ``Discrete`` action space; for a 1-D ``Box``
+    (continuous commands, drawn uniformly within its bounds) a float per row when the box
+    has one entry, else a ``(n, d)`` array."""
     import gymnasium
 
     env = gymnasium.make(env_id, **make_kwargs)
     rng = np.random.default_rng(seed)
-    n_act = int(env.action_space.n)
+    space = env.action_space
+    if isinstance(space, gymnasium.spaces.Discrete):
+        start, n_act = int(space.start), int(space.n)
+
+        def draw() -> Any:
+            return start + int(rng.integers(n_act))
+    elif isinstance(space, gymnasium.spaces.Box) and len(space.shape) == 1:
+        low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
+        if not (np.isfinite(low).all() and np.isfinite(high).all()):
+            raise OfflineADPError(f"record_random_log({env_id!r}): the action box {space} is unbounded; "
+                                  "uniformly random actions need finite bounds")
+
+        def draw() -> Any:
+            return rng.uniform(low, high).astype(space.dtype)
+    else:
+        raise OfflineADPError(f"record_random_log({env_id!r}): actions must be Discrete or a 1-D Box, got {space}")
     cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs", "terminated", "truncated")}
     ep = 0
     while len(cols["step"]) < n_transitions:
         obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)))
-        t, hold, a, done = 0, 0, 0, False
+        t, hold, a, done = 0, 0, None, False
         while not done:
             if hold == 0:
-                a, hold = int(rng.integers(n_act)), int(rng.integers(1, max_hold + 1))
+                a, hold = draw(), int(rng.integers(1, max_hold + 1))
             nxt, r, term, trunc, _ = env.step(a)
             for k, v in zip(cols, (ep, t, obs, a, r, nxt, term, trunc), strict=True):
                 cols[k].append(v)
             obs, t, hold, done = nxt, t + 1, hold - 1, term or trunc
         ep += 1
     env.close()
-    return {k: np.asarray(v, dtype=np.float64 if k in ("obs", "next_obs", "reward") else None) for k, v in cols.items()}
+    out = {k: np.asarray(v, dtype=np.float64 if k in ("obs", "next_obs", "reward") else None) for k, v in cols.items()}
+    if out["action"].ndim == 2 and out["action"].shape[1] == 1:
+        out["action"] = out["action"][:, 0]
+    if out["action"].dtype.kind == "f":
+        out["action"] = out["action"].astype(np.float64)
+    return out
