@@ -135,3 +135,26 @@ def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
     assert len(capped.ensemble.value) < TREES["n_estimators"] * 2 * 100
     # ... while every training row still reads a leaf averaged over all rows in it
     assert np.isfinite(capped.predict("train")).all()
+
+
+def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
+    """``fit`` exports the frozen structure once, at the end; ``fit_iter`` sets ``q_function_``
+    after every iteration (a caller may read it in between). Both end on the same Q."""
+    from offline_adp import learners
+
+    ds = _continuous()
+    calls = []
+    original = learners.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    params = dict(gamma=0.9, n_iterations=6, mode="frozen", n_structures=2, regressor_params=TREES, random_state=1)
+    a = FittedQIteration(**params).fit(ds)
+    assert len(calls) == 1
+    calls.clear()
+    b = FittedQIteration(**params)
+    seen = []
+    for _ in b.fit_iter(ds):
+        seen.append(b.q_function_.values(ds.arrays().obs[:5]).copy())
+    assert len(calls) == 6 and len(seen) == 6
+    assert not np.array_equal(seen[0], seen[-1])
+    X = ds.arrays().obs
+    np.testing.assert_array_equal(a.q_function_.values(X), b.q_function_.values(X))

@@ -68,7 +68,8 @@ class FittedQEvaluation(FittedQIteration):
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
                          n_structures=n_structures, structure_max_samples=structure_max_samples)
 
-    def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None):
+    def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
+                 *, deferred: bool = False):
         """As :meth:`FittedQIteration.fit_iter`, with the policy's backup; sets ``value_`` at the end."""
         if self.policy is None:
             raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
@@ -76,7 +77,7 @@ class FittedQEvaluation(FittedQIteration):
             raise TypeError(f"FittedQEvaluation.fit needs a TransitionDataset, got {type(dataset).__name__}")
         if self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
-        yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup)
+        yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup, deferred=deferred)
         a = dataset.arrays()
         start = a.step == 0
         x0 = a.obs[start] if start.any() else a.obs[:1]

@@ -279,18 +279,14 @@ class FittedQIteration(BaseEstimator):
         """
         from offline_adp.progress import fit_progress
 
-        self.__dict__["_defer_result"] = True  # nobody reads Q_k between iterations: build the result once
-        try:
-            with fit_progress(self, verbose, show_progress) as bar:
-                for row in self.fit_iter(dataset, sample_weight):
-                    bar.update(row)
-        finally:
-            self.__dict__.pop("_defer_result", None)
+        with fit_progress(self, verbose, show_progress) as bar:
+            for row in self.fit_iter(dataset, sample_weight, deferred=True):  # nobody reads Q_k in between
+                bar.update(row)
         attach_signature(getattr(self, "policy_", None), dataset)
         return self
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None,
-                 resume: dict[str, Any] | None = None) -> Iterator[dict[str, Any]]:
+                 resume: dict[str, Any] | None = None, *, deferred: bool = False) -> Iterator[dict[str, Any]]:
         """Fit, yielding each iteration's diagnostics (a dict, one ``history_`` row).
 
         ``resume`` continues an interrupted fit from a checkpoint: ``{"q": Q_k (or the
@@ -298,8 +294,12 @@ class FittedQIteration(BaseEstimator):
         the same data and parameters the result equals an uninterrupted fit in every mode
         (iteration k's randomness depends on ``random_state + k`` only); a checkpoint
         that already ends the fit (last iteration, converged, stopped) runs nothing.
+
+        ``deferred=True`` sets ``q_function_`` and ``policy_`` once, at the end, instead of
+        after every iteration (an infinite-horizon frozen fit then exports its structure
+        once); :meth:`fit` uses it.
         """
-        return run_fitted_q(self, dataset, sample_weight, resume, lambda data: GreedyBackup())
+        return run_fitted_q(self, dataset, sample_weight, resume, lambda data: GreedyBackup(), deferred=deferred)
 
     def predict(self, obs: np.ndarray, t: int | np.ndarray = 0) -> np.ndarray:
         """Q-values of all actions, shape (n, n_actions)."""
@@ -428,11 +428,12 @@ def _isna(v: Any) -> bool:
 # ----------------------------------------------------------------------------- bookkeeping around the loop
 def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weight: np.ndarray | None,
                  resume: dict[str, Any] | None, make_backup: Any, prepare: Any = None,
-                 make_learner: Any = None) -> Iterator[dict[str, Any]]:
+                 make_learner: Any = None, deferred: bool = False) -> Iterator[dict[str, Any]]:
     """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
     the fitted attributes of ``est`` up to date (FQI and FQE alike). ``prepare(dataset,
     sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and
-    ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN)."""
+    ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN).
+    ``deferred``: an infinite-horizon ``Q_k`` becomes ``est.q_function_`` at the end only."""
     est._validate_params()
     data = (prepare or est._prepare)(dataset, sample_weight)
     learner = (make_learner or est._learner)(data)
@@ -474,7 +475,7 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
             q_train = q_train_new
             if finite:
                 qs.append(learner.snapshot())
-            if finite or not est.__dict__.get("_defer_result"):
+            if finite or not deferred:
                 _set_result(est, learner, qs)
             if not (est.on_divergence == "ignore" or est.diverged_):
                 msg = monitor.check(rows)
@@ -486,7 +487,7 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
             if _finished(est, rows, total):
                 break
             t0, c0 = time.perf_counter(), time.process_time()
-    if rows and est.__dict__.get("_defer_result"):
+    if rows and deferred:
         _set_result(est, learner, qs)
     conv = _converged(est, rows)
     est.verdict_, est.verdict_message_ = verdict(rows, tol=est.tol, finite=finite, divergence=est.divergence_message_,
