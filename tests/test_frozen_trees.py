@@ -158,3 +158,26 @@ def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
     assert not np.array_equal(seen[0], seen[-1])
     X = ds.arrays().obs
     np.testing.assert_array_equal(a.q_function_.values(X), b.q_function_.values(X))
+
+
+def test_fqe_fit_also_builds_its_result_once(monkeypatch):
+    """FQE runs the same loop: ``fit`` defers, ``fit_iter`` does not, same Q."""
+    from offline_adp import learners
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.policies import UniformPolicy
+
+    ds = _continuous()
+    calls = []
+    original = learners.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    params = dict(policy=UniformPolicy(2), gamma=0.9, n_iterations=5, mode="frozen", n_structures=2,
+                  regressor_params=TREES, random_state=2)
+    a = FittedQEvaluation(**params).fit(ds)
+    assert len(calls) == 1
+    calls.clear()
+    b = FittedQEvaluation(**params)
+    for _ in b.fit_iter(ds):
+        pass
+    assert len(calls) == 5
+    X = ds.arrays().obs
+    np.testing.assert_array_equal(a.q_function_.values(X), b.q_function_.values(X))

@@ -142,19 +142,79 @@ def test_box_action_tables_are_checked():
     with pytest.raises(OfflineADPError, match="vectors of 1 numbers.*shape \\(2, 2\\)"):
         resolve_simulator("gym:Pendulum-v1", two)
     with pytest.raises(OfflineADPError, match="unbounded"):
-        gymnasium.register("offline_adp_test/UnboundedBox-v0", entry_point=_UnboundedBox)
-        record_random_log("offline_adp_test/UnboundedBox-v0", 10)
+        record_random_log("offline_adp_test/Echo-v0", 10, action_space=gymnasium.spaces.Box(-np.inf, np.inf, (1,)))
 
 
-class _UnboundedBox(gymnasium.Env):
-    observation_space = gymnasium.spaces.Box(-1.0, 1.0, (1,))
-    action_space = gymnasium.spaces.Box(-np.inf, np.inf, (1,))
+class _Echo(gymnasium.Env):
+    """Observes the last action it was given (two numbers); ends after 3 steps."""
+
+    observation_space = gymnasium.spaces.Box(-np.inf, np.inf, (2,))
+
+    def __init__(self, action_space=None):
+        self.action_space = action_space if action_space is not None else gymnasium.spaces.Discrete(3, start=1)
+        self.received = []
 
     def reset(self, *, seed=None, options=None):
-        return np.zeros(1, np.float32), {}
+        self.t = 0
+        return np.zeros(2, np.float32), {}
 
     def step(self, action):
-        return np.zeros(1, np.float32), 0.0, True, False, {}
+        self.received.append(action)
+        self.t += 1
+        a = np.atleast_1d(np.asarray(action, np.float32))
+        obs = np.array([a[0], a[-1]], np.float32) + np.float32(0.001 * self.t)
+        if isinstance(action, np.ndarray):
+            action[...] = 99  # an environment that scribbles on its action must not change the table
+        return obs, 0.0, self.t >= 3, False, {}
+
+
+@pytest.fixture(autouse=True)
+def _echo_env():
+    gymnasium.register("offline_adp_test/Echo-v0", entry_point=_Echo)
+    yield
+    del gymnasium.envs.registry["offline_adp_test/Echo-v0"]
+
+
+def _echo(values, space, dims=("a",)):
+    info = DatasetInfo(features=(Feature("p"), Feature("q")), action_table=ActionTable.from_values(values, dims=dims))
+    return GymResetModel("offline_adp_test/Echo-v0", info, action_space=space)
+
+
+def test_echo_environment_receives_the_table_values():
+    """Discrete with a nonzero start, a two-entry box, a value within the slack (clipped)."""
+    cases = [([[1.0], [3.0]], gymnasium.spaces.Discrete(3, start=1), ("a",), [[1.0, 1.0], [3.0, 3.0]]),
+             ([[0.5, -1.0], [2.0 + 1e-7, 0.25]], gymnasium.spaces.Box(-1.0, 2.0, (2,)), ("u", "w"), [[0.5, -1.0], [2.0, 0.25]])]
+    for values, space, dims, sent in cases:
+        model = _echo(values, space, dims)
+        for rep in range(2):  # the second pass sees the table unchanged by the environment's scribbling
+            x = model.initial_states(2, np.random.default_rng(rep))
+            r = model.step(x, np.array([0, 1]), np.random.default_rng(0))
+            np.testing.assert_allclose(r.next_states - 0.001, np.array(sent), rtol=0, atol=1e-6)
+    with pytest.raises(OfflineADPError, match=r"action values \[4.0\] are not actions"):
+        _echo([[1.0], [4.0]], gymnasium.spaces.Discrete(3, start=1))
+    with pytest.raises(OfflineADPError, match=r"action values \[nan\]"):
+        _echo([[1.0], [np.nan]], gymnasium.spaces.Discrete(3, start=1))
+
+
+def test_box_bounds_are_checked_side_by_side():
+    half = gymnasium.spaces.Box(np.array([0.0, -np.inf], np.float32), np.array([np.inf, 1.0], np.float32))
+    _echo([[0.0, 1.0], [1e6, -1e6]], half, ("u", "w"))  # within an open side: fine
+    for values, bad in ([[-5.0, 0.0], [1.0, 0.0]], "[0]"), ([[1.0, 0.0], [1.0, 7.0]], "[1]"), ([[np.nan, 0.0]], "[0]"):
+        with pytest.raises(OfflineADPError, match=f"action\\(s\\) \\{bad[0]}{bad[1:-1]}\\] with values"):
+            _echo(values, half, ("u", "w"))
+    ints = gymnasium.spaces.Box(0, 5, (1,), np.int64)
+    with pytest.raises(OfflineADPError, match=r"holds integers.*\[\[2.5\]\]"):
+        _echo([[1.0], [2.5]], ints)
+    _echo([[1.0], [5.0]], ints)
+
+
+def test_random_logs_draw_within_the_action_space():
+    log = record_random_log("offline_adp_test/Echo-v0", 200, seed=0)
+    assert set(np.unique(log["action"])) == {1, 2, 3}
+    log = record_random_log("offline_adp_test/Echo-v0", 300, seed=0, action_space=gymnasium.spaces.Box(0, 2, (1,), np.int64))
+    assert set(np.unique(log["action"])) == {0, 1, 2}
+    log = record_random_log("offline_adp_test/Echo-v0", 50, seed=0, action_space=gymnasium.spaces.Box(-1.0, 1.0, (2,)))
+    assert log["action"].shape == (len(log["step"]), 2) and np.abs(log["action"]).max() <= 1.0
 
 
 PENDULUM_SPEC = """

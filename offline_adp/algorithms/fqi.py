@@ -295,9 +295,11 @@ class FittedQIteration(BaseEstimator):
         (iteration k's randomness depends on ``random_state + k`` only); a checkpoint
         that already ends the fit (last iteration, converged, stopped) runs nothing.
 
-        ``deferred=True`` sets ``q_function_`` and ``policy_`` once, at the end, instead of
-        after every iteration (an infinite-horizon frozen fit then exports its structure
-        once); :meth:`fit` uses it.
+        ``deferred=True`` sets an infinite-horizon fit's ``q_function_`` and ``policy_``
+        once, when the iteration ends, instead of after every iteration (a frozen fit then
+        exports its structure once); :meth:`fit` uses it. A caller that stops a deferred
+        ``fit_iter`` early is left without them. A finite-horizon fit sets them after every
+        step either way.
         """
         return run_fitted_q(self, dataset, sample_weight, resume, lambda data: GreedyBackup(), deferred=deferred)
 
@@ -428,7 +430,7 @@ def _isna(v: Any) -> bool:
 # ----------------------------------------------------------------------------- bookkeeping around the loop
 def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weight: np.ndarray | None,
                  resume: dict[str, Any] | None, make_backup: Any, prepare: Any = None,
-                 make_learner: Any = None, deferred: bool = False) -> Iterator[dict[str, Any]]:
+                 make_learner: Any = None, *, deferred: bool = False) -> Iterator[dict[str, Any]]:
     """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
     the fitted attributes of ``est`` up to date (FQI and FQE alike). ``prepare(dataset,
     sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and

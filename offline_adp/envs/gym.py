@@ -103,7 +103,8 @@ class GymResetModel(ResetModel):
                                        "(from initial_states or an earlier step)")
             envs.append(stack.pop())
         for i, (env, a) in enumerate(zip(envs, np.asarray(actions, dtype=np.int64), strict=True)):
-            obs, reward, terminated, _truncated, _ = env.step(self.env_actions[a])
+            action = self.env_actions[a]  # a fresh copy: an environment may change its action in place
+            obs, reward, terminated, _truncated, _ = env.step(action.copy() if isinstance(action, np.ndarray) else action)
             nxt[i], costs[i], term[i] = obs, -float(reward), terminated
             if terminated:
                 env.close()
@@ -129,7 +130,7 @@ def _env_actions(name: str, space: Any, values: np.ndarray) -> list[Any]:
             raise OfflineADPError(f"simulator {name!r}: the action table must hold one number per action "
                                   f"(the environment's action), got shape {values.shape}")
         lo, n = int(space.start), int(space.n)
-        bad = [float(v) for v in values[:, 0] if v != round(v) or not lo <= v < lo + n]
+        bad = [float(v) for v in values[:, 0] if not np.isfinite(v) or v != round(v) or not lo <= v < lo + n]
         if bad:
             raise OfflineADPError(f"simulator {name!r}: action values {bad} are not actions of {space} "
                                   f"(the action table's values are passed to the environment)")
@@ -140,11 +141,16 @@ def _env_actions(name: str, space: Any, values: np.ndarray) -> list[Any]:
             raise OfflineADPError(f"simulator {name!r}: its actions are vectors of {d} numbers ({space}); the action "
                                   f"table's values have shape {values.shape}, one row of {d} per action is needed")
         low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
-        slack = 1e-6 * (1.0 + np.maximum(np.abs(low), np.abs(high)))  # float32 bounds, rounded commands
-        outside = np.flatnonzero(((values < low - slack) | (values > high + slack)).any(axis=1))
+        with np.errstate(invalid="ignore"):  # each side its own slack (float32 bounds, rounded commands)
+            inside = (values >= low - 1e-6 * (1.0 + np.abs(low))) & (values <= high + 1e-6 * (1.0 + np.abs(high)))
+        outside = np.flatnonzero(~inside.all(axis=1))  # NaN is never inside
         if len(outside):
             raise OfflineADPError(f"simulator {name!r}: action(s) {outside.tolist()} with values "
                                   f"{values[outside].tolist()} are outside the action box [{low.tolist()}, {high.tolist()}]")
+        if np.issubdtype(space.dtype, np.integer) and not (values == np.round(values)).all():
+            rows = np.flatnonzero((values != np.round(values)).any(axis=1))
+            raise OfflineADPError(f"simulator {name!r}: its action box holds integers ({space}); action(s) "
+                                  f"{rows.tolist()} have values {values[rows].tolist()}")
         return list(np.clip(values, low, high).astype(space.dtype))
     raise OfflineADPError(f"simulator {name!r}: actions must be Discrete or a 1-D Box, got {space}")
 
@@ -191,8 +197,12 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
             raise OfflineADPError(f"record_random_log({env_id!r}): the action box {space} is unbounded; "
                                   "uniformly random actions need finite bounds")
 
-        def draw() -> Any:
-            return rng.uniform(low, high).astype(space.dtype)
+        if np.issubdtype(space.dtype, np.integer):
+            def draw() -> Any:
+                return rng.integers(low.astype(np.int64), high.astype(np.int64), endpoint=True).astype(space.dtype)
+        else:
+            def draw() -> Any:
+                return rng.uniform(low, high).astype(space.dtype)
     else:
         raise OfflineADPError(f"record_random_log({env_id!r}): actions must be Discrete or a 1-D Box, got {space}")
     cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs", "terminated", "truncated")}
@@ -203,7 +213,7 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
         while not done:
             if hold == 0:
                 a, hold = draw(), int(rng.integers(1, max_hold + 1))
-            nxt, r, term, trunc, _ = env.step(a)
+            nxt, r, term, trunc, _ = env.step(a.copy() if isinstance(a, np.ndarray) else a)  # the log keeps a
             for k, v in zip(cols, (ep, t, obs, a, r, nxt, term, trunc), strict=True):
                 cols[k].append(v)
             obs, t, hold, done = nxt, t + 1, hold - 1, term or trunc
