@@ -18,6 +18,17 @@ CARTPOLE = DatasetInfo(features=tuple(Feature(n) for n in ("cart_x", "cart_v", "
                        action_table=ActionTable.from_values([0.0, 1.0]), gamma=0.99)
 
 
+def _log_table(log: dict, features: list[str], columns: tuple[str, ...]) -> pd.DataFrame:
+    """A :func:`record_random_log` log as a user's table: ``columns`` names the episode, step,
+    action, reward, terminated and truncated columns; next-state features get a "2"."""
+    episode, step, action, reward, terminated, truncated = columns
+    return pd.DataFrame({episode: log["episode"].astype(int), step: log["step"].astype(int), action: log["action"],
+                         reward: log["reward"], terminated: log["terminated"],
+                         truncated: log["truncated"] & ~log["terminated"],
+                         **{n: log["obs"][:, j] for j, n in enumerate(features)},
+                         **{n + "2": log["next_obs"][:, j] for j, n in enumerate(features)}})
+
+
 def test_steps_match_a_plain_gymnasium_loop_with_the_same_seeds():
     model = GymResetModel("CartPole-v1", CARTPOLE)
     x = model.initial_states(3, np.random.default_rng(7))
@@ -82,10 +93,7 @@ gamma = 0.99
 def test_evaluate_a_cartpole_run_in_gymnasium(tmp_path, capsys):
     log = record_random_log("CartPole-v1", 1500, seed=3)
     names = ["cart_x", "cart_v", "pole", "pole_rate"]
-    df = pd.DataFrame({"run": log["episode"].astype(int), "tick": log["step"].astype(int), "push": log["action"].astype(int),
-                       "r": log["reward"], "fell": log["terminated"], "time_up": log["truncated"] & ~log["terminated"],
-                       **{n: log["obs"][:, j] for j, n in enumerate(names)},
-                       **{n + "2": log["next_obs"][:, j] for j, n in enumerate(names)}})
+    df = _log_table(log, names, ("run", "tick", "push", "r", "fell", "time_up"))
     df.to_parquet(tmp_path / "cartpole.parquet")
     (tmp_path / "spec.toml").write_text(SPEC)
     (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 8\nmode = "frozen"\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
@@ -248,10 +256,7 @@ def test_evaluate_a_pendulum_run_with_binned_torques_in_gymnasium(tmp_path, caps
     log = record_random_log("Pendulum-v1", 1200, seed=5)
     assert log["action"].shape == (len(log["step"]),) and np.abs(log["action"]).max() <= 2.0
     names = ["c", "s", "w"]
-    df = pd.DataFrame({"ep": log["episode"].astype(int), "t": log["step"].astype(int), "torque": log["action"],
-                       "r": log["reward"], "term": log["terminated"], "trunc": log["truncated"] & ~log["terminated"],
-                       **{n: log["obs"][:, j] for j, n in enumerate(names)},
-                       **{n + "2": log["next_obs"][:, j] for j, n in enumerate(names)}})
+    df = _log_table(log, names, ("ep", "t", "torque", "r", "term", "trunc"))
     df.to_csv(tmp_path / "pendulum.csv", index=False)
     (tmp_path / "spec.toml").write_text(PENDULUM_SPEC)
     (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 5\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
