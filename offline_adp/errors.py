@@ -78,3 +78,9 @@ class FormatVersionWarning(UserWarning):
 
 class DivergenceWarning(RuntimeWarning):
     """An iterative algorithm's values grew beyond what the problem allows."""
+
+
+class ClusterWarning(RuntimeWarning):
+    """A Dask fit went on in a degraded way (e.g. on fewer workers than it started with),
+    so its result may differ from an undisturbed fit's."""
+

@@ -141,9 +141,43 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
     est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, on_iteration=kill_one)
     assert len(est.history_) == 3 and killed
     assert killed[0] not in client.scheduler_info()["workers"]  # the process really went away
+    assert est.unplaced_iterations_ == []  # the restarted worker was back in time: every block on its worker
     x = ds.arrays().obs
     np.testing.assert_array_equal(est.q_function_.values(x), undisturbed.q_function_.values(x))
     client.wait_for_workers(2, timeout=60)
+
+
+def test_a_worker_that_does_not_come_back_is_reported(coh):
+    """A worker removed for good after iteration 1: after ``worker_wait_s`` the fit goes on
+    with both blocks on the remaining worker, lists iterations 2 and 3 as trained away from
+    their placement and warns that the Q may differ from an undisturbed fit's."""
+    import time
+
+    from offline_adp.errors import ClusterWarning
+
+    ds, path = coh
+    params = {"n_estimators": 20, "num_leaves": 15, "min_child_samples": 20}
+    with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="2GiB")) as c:
+        undisturbed = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(c, path)
+        assert undisturbed.unplaced_iterations_ == []
+
+        def shrink(k):
+            if k == 1:
+                c.cluster.scale(1)  # the second worker is closed for good, not restarted
+                deadline = time.monotonic() + 60
+                while len(c.scheduler_info()["workers"]) > 1 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+
+        with pytest.warns(ClusterWarning, match=r"iterations \[2, 3\]"):
+            est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params, worker_wait_s=1).fit(
+                c, path, on_iteration=shrink)
+        assert len(c.scheduler_info()["workers"]) == 1
+    assert est.unplaced_iterations_ == [2, 3] and len(est.history_) == 3
+    x = ds.arrays().obs
+    qa, qb = est.q_function_.values(x), undisturbed.q_function_.values(x)
+    cols = ["sup_dq", "mean_dq", "max_abs_q", "bellman_residual"]  # iteration 1 ran on both workers, undisturbed
+    np.testing.assert_allclose(est.history_[cols].to_numpy()[0], undisturbed.history_[cols].to_numpy()[0], rtol=1e-12)
+    assert np.corrcoef(qa.ravel(), qb.ravel())[0, 1] > 0.98  # the same problem, learnt on one machine from iteration 2
 
 
 def test_distributed_ingestion_of_four_files_equals_local(client, tmp_path):

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import ClusterWarning, OfflineADPError
 from offline_adp.learners import BoostedSumQ, Learner, LightGBMWarmStartLearner
 from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
 
@@ -40,6 +40,10 @@ def _require_dask() -> None:
         import distributed  # noqa: F401
     except ImportError:
         raise OfflineADPError("the Dask engine needs the dask extra: pip install 'offline-adp[dask]'") from None
+
+
+LOST_WORKER_TIMEOUT_S = 120
+"""Seconds a local cluster waits for a restarted worker process to register (Dask's default: 15)."""
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,7 @@ class EngineConfig:
 def dask_client(cfg: EngineConfig) -> Iterator[Any]:
     """A ``distributed.Client`` for the config (a LocalCluster on 127.0.0.1 unless ``address``)."""
     _require_dask()
+    import dask
     from distributed import Client, LocalCluster
 
     if cfg.address:
@@ -71,9 +76,14 @@ def dask_client(cfg: EngineConfig) -> Iterator[Any]:
         finally:
             client.close()
         return
-    with LocalCluster(n_workers=cfg.n_workers, threads_per_worker=cfg.threads_per_worker, processes=True,
-                      host="127.0.0.1", dashboard_address=":0" if cfg.dashboard else None,
-                      memory_limit=cfg.memory_limit) as cluster, Client(cluster) as client:
+    # A worker process that dies is restarted by its nanny; the cluster gives the new process
+    # ``lost-worker-timeout`` to register before it closes the nanny for good. Dask's 15 s is
+    # less than a restart (spawn, imports) takes on a busy 2-core machine, and a cluster that
+    # dropped a worker trains on fewer machines (another Q), so a local cluster waits longer.
+    with (dask.config.set({"distributed.deploy.lost-worker-timeout": f"{LOST_WORKER_TIMEOUT_S}s"}),
+          LocalCluster(n_workers=cfg.n_workers, threads_per_worker=cfg.threads_per_worker, processes=True,
+                       host="127.0.0.1", dashboard_address=":0" if cfg.dashboard else None,
+                       memory_limit=cfg.memory_limit) as cluster, Client(cluster) as client):
         yield client
 
 
@@ -145,6 +155,9 @@ class DistributedFQI:
         Times an iteration whose LightGBM training lost a worker (or found its rows on
         other workers than their blocks') is retried; the last try trains wherever the
         rows are (the Q may then differ from an undisturbed fit's).
+    worker_wait_s : float
+        Seconds to wait for a lost worker to be back before an iteration trains on the
+        workers there are (that iteration is then listed in ``unplaced_iterations_``).
     random_state : int
         Iteration k's trees are seeded with ``random_state + k``.
     policy : Policy, optional
@@ -164,13 +177,18 @@ class DistributedFQI:
         The in-process estimator the loop ran for (holds the same attributes).
     retried_ : int
         Trainings retried (a lost worker, rows not in their places).
+    unplaced_iterations_ : list of int
+        Iterations trained with some block away from its worker (fewer workers than at
+        the start after ``worker_wait_s``, or the last retry): their Q may differ from an
+        undisturbed fit's. A :class:`~offline_adp.errors.ClusterWarning` names them.
     """
 
     def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
                  time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None,
-                 warm_start: bool = False, trees_per_iteration: int = 10) -> None:
+                 warm_start: bool = False, trees_per_iteration: int = 10, worker_wait_s: float = 60.0) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
         self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
+        self.worker_wait_s = worker_wait_s
         self.warm_start, self.trees_per_iteration = warm_start, trees_per_iteration
 
     def estimator(self) -> Any:
@@ -228,6 +246,11 @@ class DistributedFQI:
         self.verdict_, self.verdict_message_ = est.verdict_, est.verdict_message_
         self.diverged_, self.divergence_message_ = est.diverged_, est.divergence_message_
         self.retried_ = engine.retried
+        self.unplaced_iterations_ = engine.unplaced
+        if self.unplaced_iterations_:
+            warnings.warn(f"iterations {self.unplaced_iterations_} trained with rows away from their workers (a worker "
+                          f"lost and not back within worker_wait_s = {self.worker_wait_s} s, or the last retry): the Q "
+                          "may differ from an undisturbed fit's", ClusterWarning, stacklevel=2)
         if self.policy is not None and self.q_function_ is not None:
             x0 = engine.data.start_obs
             self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
@@ -274,6 +297,10 @@ class _DaskEngine:
     def retried(self) -> int:
         return 0 if self.learner_ is None else self.learner_.retried
 
+    @property
+    def unplaced(self) -> list[int]:
+        return [] if self.learner_ is None else list(self.learner_.unplaced)
+
     def prepare(self, dataset_dir: str | PathLike[str], sample_weight: Any = None) -> Any:
         from offline_adp.algorithms.fqi_data import Prepared, Samples, value_bound
         from offline_adp.data.discount import resolve_discount
@@ -292,7 +319,8 @@ class _DaskEngine:
         plan = _chunk_plan(parts, n_workers)
         if not plan:
             raise ValueError("the dataset is empty")
-        self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers)
+        self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers,
+                              wait_s=self.cfg.worker_wait_s)
         v = self.blocks.gather(("cost", "terminated", "action", "step"))
         cost, term, step = v["cost"], v["terminated"], v["step"]
         est = self.est
@@ -386,6 +414,7 @@ class _Blocks:
         self.args = (obs_cols, next_cols, action_features)
         self.futures: list[Any] = []
         self.where: list[str] = []
+        self.short = False  # the last placement had fewer workers than at the start
         self.lengths = [hi - lo for _, lo, hi in plan]
         self.place()
 
@@ -398,10 +427,8 @@ class _Blocks:
 
         client = self.client
         for _ in range(5):
-            if len(client.scheduler_info()["workers"]) < self.n_workers:
-                with contextlib.suppress(TimeoutError):
-                    client.wait_for_workers(self.n_workers, timeout=self.wait_s)
-            workers = sorted(client.scheduler_info()["workers"])
+            workers = self._workers()
+            self.short = len(workers) < self.n_workers
             want = [workers[i % len(workers)] for i in range(len(self.plan))]
             if self.futures and want == self.where and self._placed():
                 return
@@ -416,6 +443,17 @@ class _Blocks:
             if self._placed():
                 return
             time.sleep(1.0)  # a worker came or went while loading
+
+    def _workers(self) -> list[str]:
+        """The scheduler's workers (sorted), once there are ``n_workers`` of them or after
+        ``wait_s``. Polled from the scheduler: ``Client.wait_for_workers`` on a local
+        cluster counts the cluster's cached list, which still holds a worker that just died."""
+        deadline = time.monotonic() + self.wait_s
+        while True:
+            workers = sorted(self.client.scheduler_info()["workers"])
+            if len(workers) >= self.n_workers or time.monotonic() >= deadline:
+                return workers
+            time.sleep(0.25)
 
     def _placed(self) -> bool:
         has = self.client.who_has(self.futures)
@@ -502,6 +540,7 @@ class DaskLearner(Learner):
         super().__init__(regressor, encoder, None, actions, {}, None, seed)  # type: ignore[arg-type]
         self.client, self.blocks, self.warm_start, self.trees_per_iteration = client, blocks, warm_start, trees_per_iteration
         self.time_out, self.retries, self.retried = time_out, retries, 0
+        self.unplaced: list[int] = []  # iterations trained with a block away from its worker
         self.start_obs = start_obs  # start states when no block has one (the first row)
         self.n_start = int(sum(blocks.client.gather(blocks.map(_count_starts))))
         self.boosters: list[Any] = []
@@ -525,12 +564,13 @@ class DaskLearner(Learner):
         for attempt in range(self.retries + 1):
             try:
                 self.blocks.place()  # the rows each worker trains on decide LightGBM's result
-                where = self.blocks.where if attempt < self.retries else None  # last attempt: train wherever
-                model = DaskLGBMRegressor(client=_OrderedClient(self.client, where), time_out=self.time_out,
-                                          **self._params(k))
+                ordered = _OrderedClient(self.client, self.blocks.where, strict=attempt < self.retries)  # last: wherever
+                model = DaskLGBMRegressor(client=ordered, time_out=self.time_out, **self._params(k))
                 with warnings.catch_warnings():  # said on every fit: the workers' threads are their own
                     warnings.filterwarnings("ignore", message="Parameter n_jobs will be ignored")
                     model.fit(self.blocks.training_inputs(), self.blocks.labels(label))
+                if ordered.misplaced or self.blocks.short:
+                    self.unplaced.append(k)
                 break
             except Exception as exc:  # a worker lost during LightGBM's collective training
                 if self.client.status != "running":  # the scheduler itself is gone: nothing to retry on
@@ -586,14 +626,18 @@ class DaskLearner(Learner):
 
 class _OrderedClient:
     """A client for ``lightgbm.dask`` whose ``who_has`` lists the futures in the order
-    given and checks that part r is on ``where[r]``. ``lightgbm.dask`` numbers its
-    machines (ranks) in that order, and ``distributed.Client.who_has`` returns a set's
-    order, which changes from run to run, and with it which rows each rank holds and the
-    trees. With this client, rank r is the worker of block r; a part computed elsewhere (a
-    worker came or went) raises :class:`_Misplaced` before any training, and is retried."""
+    given, part r held by ``where[r]`` alone. ``lightgbm.dask`` numbers its machines
+    (ranks) in that order and trains part r on the first worker listed for it, and
+    ``distributed.Client.who_has`` returns sets (whose order changes from run to run, and
+    a part copied to a second worker has two holders), and with them which rows each rank
+    holds and the trees. With this client, rank r is the worker of block r. A part not on
+    its block's worker (a worker came or went) raises :class:`_Misplaced` before any
+    training, and is retried; with ``strict=False`` (the last try) it trains where it is
+    and ``misplaced`` says so."""
 
-    def __init__(self, client: Any, where: list[str] | None) -> None:
-        self._client, self._where = client, where
+    def __init__(self, client: Any, where: list[str], strict: bool = True) -> None:
+        self._client, self._where, self._strict = client, where, strict
+        self.misplaced = False
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._client, name)
@@ -603,9 +647,13 @@ class _OrderedClient:
         if futures is None:
             return got
         keys = list(dict.fromkeys(f.key for f in self._client.futures_of(futures)))
-        if self._where is not None and len(keys) == len(self._where) and any(w not in got.get(k, ()) for k, w in zip(keys, self._where, strict=True)):
+        placed = len(keys) == len(self._where) and all(w in got.get(k, ()) for k, w in zip(keys, self._where, strict=True))
+        if placed:
+            return {k: (w,) for k, w in zip(keys, self._where, strict=True)}
+        if self._strict:
             raise _Misplaced(f"LightGBM's parts are not on their blocks' workers: {[got.get(k) for k in keys]}")
-        return {k: got[k] for k in keys if k in got}
+        self.misplaced = True
+        return {k: tuple(sorted(got[k])) for k in keys if k in got}
 
 
 class _Misplaced(RuntimeError):
