@@ -34,6 +34,12 @@ from offline_adp.learners import BoostedSumQ, Learner, LightGBMWarmStartLearner
 from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
 
 
+def _one_line(exc: BaseException, limit: int = 400) -> str:
+    """An exception's text on one line (Dask's span lines and list every future), shortened."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _require_dask() -> None:
     try:
         import dask  # noqa: F401
@@ -217,7 +223,8 @@ class DistributedFQI:
                 return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
         except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError
             where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
-            raise OfflineADPError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: {exc}){where}") from exc
+            raise OfflineADPError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: "
+                                 f"{_one_line(exc)}){where}") from exc
 
     def _fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any,
              checkpoint_dir: str | PathLike[str] | None) -> DistributedFQI:
@@ -574,9 +581,10 @@ class DaskLearner(Learner):
                 break
             except Exception as exc:  # a worker lost during LightGBM's collective training
                 if self.client.status != "running":  # the scheduler itself is gone: nothing to retry on
-                    raise OSError(f"no connection to the scheduler: {exc}") from exc
+                    raise OSError(f"no connection to the scheduler: {_one_line(exc)}") from exc
                 if attempt == self.retries:
-                    raise OfflineADPError(f"iteration {k} failed {attempt + 1} times on the Dask cluster: {exc}") from exc
+                    raise OfflineADPError(f"iteration {k} failed {attempt + 1} times on the Dask cluster: "
+                                         f"{_one_line(exc)}") from exc
                 self.retried += 1
                 time.sleep(1.0)  # let the scheduler see a worker that went
         if self.warm_start:
