@@ -83,4 +83,3 @@ class DivergenceWarning(RuntimeWarning):
 class ClusterWarning(RuntimeWarning):
     """A Dask fit went on in a degraded way (e.g. on fewer workers than it started with),
     so its result may differ from an undisturbed fit's."""
-

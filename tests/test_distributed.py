@@ -11,6 +11,7 @@ pytest.importorskip("dask.dataframe")
 from offline_adp.algorithms.fqi import FittedQIteration  # noqa: E402
 from offline_adp.data import schema as S  # noqa: E402
 from offline_adp.engines.dask import (  # noqa: E402
+    LOST_WORKER_TIMEOUT_S,
     DistributedFQI,
     EngineConfig,
     dask_client,
@@ -138,13 +139,45 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
                 pass
             killed.append(victim)
 
-    est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, on_iteration=kill_one)
+    # wait for the restart as long as the local cluster keeps the killed worker's nanny (a busy machine is slow)
+    est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params, worker_wait_s=LOST_WORKER_TIMEOUT_S).fit(
+        client, path, on_iteration=kill_one)
     assert len(est.history_) == 3 and killed
     assert killed[0] not in client.scheduler_info()["workers"]  # the process really went away
     assert est.unplaced_iterations_ == []  # the restarted worker was back in time: every block on its worker
     x = ds.arrays().obs
     np.testing.assert_array_equal(est.q_function_.values(x), undisturbed.q_function_.values(x))
     client.wait_for_workers(2, timeout=60)
+
+
+def test_a_worker_added_mid_fit_does_not_change_the_ranks(coh, tmp_path):
+    """A fit started on one worker over two blocks (two Parquet parts), with a second worker
+    joining after iteration 1: the blocks stay on as many workers as at the start (one
+    LightGBM rank), so the Q is still the in-process fit's (the oracle) and no iteration
+    is reported as unplaced. Spreading the blocks over the new worker would make two ranks."""
+    import time
+
+    from offline_adp.data.io import read_dataset
+
+    ds, _ = coh
+    path = tmp_path / "two_parts"
+    ds.save(path, rows_per_part=len(ds) // 2 + 1)
+    assert len(list((path / "data").glob("*.parquet"))) == 2
+    params = {"n_estimators": 20, "num_leaves": 15, "n_jobs": 1}
+    kw = {"gamma": 0.95, "lgbm_params": params, "random_state": 4, "n_iterations": 3}
+    with dask_client(EngineConfig(kind="dask", n_workers=1, threads_per_worker=1, memory_limit="2GiB")) as c:
+        def grow(k):
+            if k == 1:
+                c.cluster.scale(2)
+                deadline = time.monotonic() + 120
+                while len(c.scheduler_info()["workers"]) < 2 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                assert len(c.scheduler_info()["workers"]) == 2
+
+        est = DistributedFQI(**kw).fit(c, path, on_iteration=grow)
+    assert est.unplaced_iterations_ == []
+    local = est.estimator().fit(read_dataset(path))
+    _same_fit(est, local, ds.arrays().obs)
 
 
 def test_a_worker_that_does_not_come_back_is_reported(coh):

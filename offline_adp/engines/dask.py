@@ -86,7 +86,10 @@ def dask_client(cfg: EngineConfig) -> Iterator[Any]:
     # ``lost-worker-timeout`` to register before it closes the nanny for good. Dask's 15 s is
     # less than a restart (spawn, imports) takes on a busy 2-core machine, and a cluster that
     # dropped a worker trains on fewer machines (another Q), so a local cluster waits longer.
-    with (dask.config.set({"distributed.deploy.lost-worker-timeout": f"{LOST_WORKER_TIMEOUT_S}s"}),
+    from dask.utils import parse_timedelta
+
+    lost = max(LOST_WORKER_TIMEOUT_S, parse_timedelta(dask.config.get("distributed.deploy.lost-worker-timeout")) or 0)
+    with (dask.config.set({"distributed.deploy.lost-worker-timeout": f"{lost}s"}),
           LocalCluster(n_workers=cfg.n_workers, threads_per_worker=cfg.threads_per_worker, processes=True,
                        host="127.0.0.1", dashboard_address=":0" if cfg.dashboard else None,
                        memory_limit=cfg.memory_limit) as cluster, Client(cluster) as client):
@@ -164,6 +167,9 @@ class DistributedFQI:
     worker_wait_s : float
         Seconds to wait for a lost worker to be back before an iteration trains on the
         workers there are (that iteration is then listed in ``unplaced_iterations_``).
+        After one such wait the fit does not wait again until the number of workers
+        changes. Workers that join never add LightGBM ranks: the blocks stay on as many
+        workers as the fit started with.
     random_state : int
         Iteration k's trees are seeded with ``random_state + k``.
     policy : Policy, optional
@@ -221,7 +227,9 @@ class DistributedFQI:
         try:
             with client.as_current():  # every compute goes to this client, even when others exist
                 return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
-        except (OSError, TimeoutError) as exc:  # CommClosedError is an OSError
+        except Exception as exc:  # CommClosedError is an OSError; a lost scheduler cancels the futures too
+            if not isinstance(exc, OSError | TimeoutError) and client.status == "running":
+                raise
             where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
             raise OfflineADPError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: "
                                  f"{_one_line(exc)}){where}") from exc
@@ -422,6 +430,7 @@ class _Blocks:
         self.futures: list[Any] = []
         self.where: list[str] = []
         self.short = False  # the last placement had fewer workers than at the start
+        self._gave_up_at = -1  # the worker count at which a wait last timed out
         self.lengths = [hi - lo for _, lo, hi in plan]
         self.place()
 
@@ -433,9 +442,11 @@ class _Blocks:
         from distributed import wait
 
         client = self.client
+        deadline = time.monotonic() + self.wait_s  # one wait per placement, however many tries
         for _ in range(5):
-            workers = self._workers()
-            self.short = len(workers) < self.n_workers
+            workers = self._workers(deadline)[: self.n_workers]  # as many ranks as at the start, never more
+            ranks = min(len(self.plan), self.n_workers)
+            self.short = min(len(self.plan), len(workers)) < ranks  # fewer LightGBM ranks than at the start
             want = [workers[i % len(workers)] for i in range(len(self.plan))]
             if self.futures and want == self.where and self._placed():
                 return
@@ -451,14 +462,24 @@ class _Blocks:
                 return
             time.sleep(1.0)  # a worker came or went while loading
 
-    def _workers(self) -> list[str]:
-        """The scheduler's workers (sorted), once there are ``n_workers`` of them or after
-        ``wait_s``. Polled from the scheduler: ``Client.wait_for_workers`` on a local
-        cluster counts the cluster's cached list, which still holds a worker that just died."""
-        deadline = time.monotonic() + self.wait_s
+    def _workers(self, deadline: float) -> list[str]:
+        """The scheduler's running workers (sorted), once there are ``n_workers`` of them or
+        at ``deadline``; after one wait timed out, not again while their number stays the
+        same (a worker lost for good costs one wait, not one per iteration). Polled from the
+        scheduler: ``Client.wait_for_workers`` goes through a local cluster's own worker
+        bookkeeping, and in a stress run here it returned while the restarted worker was
+        still missing."""
         while True:
-            workers = sorted(self.client.scheduler_info()["workers"])
-            if len(workers) >= self.n_workers or time.monotonic() >= deadline:
+            if self.client.status != "running":
+                raise OSError(f"the Dask client is {self.client.status}: no scheduler to place the blocks on")
+            info = self.client.scheduler_info()["workers"]
+            workers = sorted(w for w, d in info.items() if d.get("status", "running") == "running")
+            if len(workers) >= self.n_workers or len(workers) == self._gave_up_at:
+                return workers
+            if time.monotonic() >= deadline:
+                if not workers:
+                    raise OfflineADPError(f"no running Dask worker after waiting {self.wait_s:g} s (worker_wait_s)")
+                self._gave_up_at = len(workers)
                 return workers
             time.sleep(0.25)
 
@@ -475,6 +496,9 @@ class _Blocks:
         """The blocks' arrays ``keys``, concatenated in row order, on the client."""
         got = self.client.gather(self.map(_pick, keys))
         return {k: np.concatenate([g[k] for g in got]) for k in keys}
+
+    def forget_inputs(self) -> None:
+        self._x = None
 
     def training_inputs(self) -> Any:
         """The joint inputs ``[x_i, f(a_i)]`` as a Dask array, chunk ``i`` on block ``i``'s worker."""
@@ -580,6 +604,7 @@ class DaskLearner(Learner):
                     self.unplaced.append(k)
                 break
             except Exception as exc:  # a worker lost during LightGBM's collective training
+                self.blocks.forget_inputs()  # the next try builds the training inputs afresh
                 if self.client.status != "running":  # the scheduler itself is gone: nothing to retry on
                     raise OSError(f"no connection to the scheduler: {_one_line(exc)}") from exc
                 if attempt == self.retries:
@@ -658,6 +683,8 @@ class _OrderedClient:
         placed = len(keys) == len(self._where) and all(w in got.get(k, ()) for k, w in zip(keys, self._where, strict=True))
         if placed:
             return {k: (w,) for k, w in zip(keys, self._where, strict=True)}
+        if any(not got.get(k) for k in keys):
+            raise _Misplaced(f"LightGBM parts held by no worker: {[k for k in keys if not got.get(k)]}")
         if self._strict:
             raise _Misplaced(f"LightGBM's parts are not on their blocks' workers: {[got.get(k) for k in keys]}")
         self.misplaced = True
