@@ -467,14 +467,16 @@ class FrozenTreesLearner(Learner):
         wsum = np.bincount(compact, weights=w, minlength=len(self.leaf_ids))
         vals = w / np.where(wsum[compact] > 0, wsum[compact], 1.0)
         M = sparse.csr_matrix((vals, (compact, rows)), shape=(len(self.leaf_ids), n))
-        keep = sparse.diags((wsum > 0).astype(np.float64))
+        keep = wsum > 0
         A = {}
-        for name, op in (self.A if base is None else base).items():
-            kept = (op @ keep).tocsr()
-            total = np.asarray(kept.sum(axis=1)).ravel()
-            scale = sparse.diags(np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0))
-            fallback = sparse.diags((total <= 0).astype(np.float64))
-            A[name] = (scale @ kept + fallback @ op).tocsr()
+        for name, op in (self.A if base is None else base).items():  # entry by entry, on op's own sparsity
+            op = op.tocsr()
+            row = np.repeat(np.arange(op.shape[0]), np.diff(op.indptr))
+            kept = np.where(keep[op.indices], op.data, 0.0)
+            total = np.bincount(row, weights=kept, minlength=op.shape[0])
+            scale = np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)
+            data = np.where((total > 0)[row], kept * scale[row], op.data)  # a row with no leaf left: unchanged
+            A[name] = sparse.csr_matrix((data, op.indices, op.indptr), shape=op.shape)
         return M, A
 
     def fit(self, y: np.ndarray, k: int) -> None:

@@ -101,6 +101,71 @@ def test_settle_reaches_the_structures_fixed_point_by_a_linear_solve(small_pt):
     assert fqe.reweighted_value(np.ones(n)) == pytest.approx(fqe.value_, rel=1e-6)
 
 
+def _reweighted_fixed_point_oracle(fqe, w):
+    """The replicate's value computed independently, tree by tree: ``M_w[leaf, i] = w_i /
+    sum_{j in leaf} w_j``; a query averages (weight 1/m each) the trees whose reached leaf
+    kept some weight, renormalised over them (unchanged when none did); then the linear
+    solve ``(I - M_w diag(gamma (1 - term)) P_pi A_next) v = M_w c`` and the w-weighted
+    start value."""
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    d, learner, backup = fqe._fit_state
+    n, A, L = d.n, d.n_actions, len(learner.leaf_ids)
+    m = learner.pos["train"].shape[0]
+    comp = learner._compact.reshape(m, n)
+    wsum = np.zeros(L)
+    for t in range(m):
+        np.add.at(wsum, comp[t], w)
+    rows, cols, vals = [], [], []
+    for t in range(m):
+        ok = wsum[comp[t]] > 0
+        rows.append(comp[t][ok]), cols.append(np.arange(n)[ok]), vals.append(w[ok] / wsum[comp[t][ok]])
+    M = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(L, n))
+
+    def query(name):
+        pos = learner.pos[name]  # (m, queries); L = no training leaf
+        hit = pos < L
+        alive = hit & (wsum[np.minimum(pos, L - 1)] > 0)
+        use = np.where(alive.any(axis=0)[None, :], alive, hit)
+        weight = use / np.maximum(np.where(alive.any(axis=0), use.sum(axis=0), m), 1)
+        q, t = np.nonzero(use.T)
+        return sparse.csr_matrix((weight.T[q, t], (q, pos.T[q, t])), shape=(pos.shape[1], L))
+
+    nxt, start = query("next"), query("start")
+    pi = backup.probabilities("next", 0)
+    P = sparse.csr_matrix((pi.T.reshape(-1), (np.tile(np.arange(n), A), np.arange(A * n))), shape=(n, A * n))
+    boot = sparse.diags(np.where(d.train.no_boot, 0.0, d.gamma))
+    op = (M @ boot @ P @ nxt).tocsc()
+    v = spsolve(sparse.identity(L, format="csc") - op, M @ d.train.cost)
+    v0 = (backup.probabilities("start", 0) * (start @ v).reshape(A, -1).T).sum(axis=1)
+    w0 = w[d.start_rows]
+    return float(np.sum(w0 * v0) / np.sum(w0))
+
+
+@pytest.mark.parametrize("policy", ["uniform", "deterministic"])
+def test_reweighted_replicate_equals_an_independent_linear_solve(small_pt, policy):
+    """Bootstrap weights with many zeros (leaves left empty, queries renormalised over the
+    trees that kept weight): the replicate's fixed point equals the oracle's solve, for a
+    stochastic policy and for a deterministic one (whose untaken next actions the sweep
+    leaves out); the bootstrap's looser ``rtol`` stays within its bound."""
+    from offline_adp.evaluation.offpolicy import REPLICATE_RTOL
+    from offline_adp.policies import FunctionPolicy, UniformPolicy
+
+    A = small_pt.n_actions
+    pol = UniformPolicy(A) if policy == "uniform" else \
+        FunctionPolicy(lambda x, t: (np.abs(x[:, 0] * 7).astype(int)) % A, A)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.9, mode="frozen", n_iterations=20,
+                            regressor_params={"n_estimators": 5}).fit(small_pt)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        w = rng.poisson(0.7, len(small_pt)).astype(float)  # ~half the rows out: empty leaves
+        exact = _reweighted_fixed_point_oracle(fqe, w)
+        assert fqe.reweighted_value(w, tol=1e-12) == pytest.approx(exact, rel=1e-8, abs=1e-10)
+        scale = 1 + np.max(np.abs(fqe._fit_state[1].leaf_values))
+        assert abs(fqe.reweighted_value(w, rtol=REPLICATE_RTOL) - exact) <= 2 * REPLICATE_RTOL * scale
+
+
 @pytest.mark.parametrize("gamma", [0.9, 0.5])
 def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
     """FittedQEvaluation(policy, horizon=T, gamma=g): the T-step discounted evaluation of a

@@ -115,13 +115,15 @@ class FittedQEvaluation(FittedQIteration):
         self.value_ = float((self.policy.probabilities(a0, 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
         return sweeps
 
-    def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None) -> float:
+    def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None,
+                         rtol: float = 1e-7) -> float:
         """The value estimate for other per-row weights, *keeping the fitted tree structure*
         (``mode="frozen"``, discounted only): the fixed point of
         ``v <- M_w (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` with the leaf
         averaging operator ``M_w`` of the new weights (leaves left without weight are
         dropped from the average over trees), iterated from the fitted leaf values to within
-        ``tol`` of the fixed point (as :meth:`settle`) or ``n_iterations`` sweeps. This is
+        ``tol`` of the fixed point (default ``rtol (1 + max |v|)``, as :meth:`settle`) or
+        ``n_iterations`` sweeps. This is
         a structure-conditional bootstrap replicate: it captures the noise of the data
         through the leaves but not the variability of the tree structure itself. With
         all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
@@ -133,7 +135,7 @@ class FittedQEvaluation(FittedQIteration):
         if w.shape != (d.n,):
             raise ValueError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
         M, ops = learner.reweighted_operators(w, base=self._query_operators())
-        v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000)
+        v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000, rtol)
         q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
         v0 = (backup.probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
@@ -162,20 +164,33 @@ class FittedQEvaluation(FittedQIteration):
             raise ValueError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
 
     def _fixed_point(self, M: Any, ops: dict[str, Any], v: np.ndarray, tol: float | None,
-                     max_iterations: int) -> tuple[np.ndarray, int]:
-        """Iterate the leaf-averaging backup from ``v`` (a gamma-contraction) to ``tol``."""
+                     max_iterations: int, rtol: float = 1e-7) -> tuple[np.ndarray, int]:
+        """Iterate the leaf-averaging backup from ``v`` (a gamma-contraction) to ``tol``.
+
+        The policy's expectation over next actions is folded into one operator first,
+        ``P = sum_a diag(pi(a|x')) A_next[a]`` (rows of actions the policy never takes
+        left out), so a sweep is two sparse products; for a deterministic policy ``P`` has
+        ``1/A`` of ``A_next``'s entries."""
+        from scipy import sparse
+
         d, _learner, backup = self._fit_state
         n, A = d.n, d.n_actions
-        pi_next = backup.probabilities("next", 0)
+        pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
+        i, a = np.nonzero(pi_next > 0)
+        pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
+        P = (pick @ ops["next"]).tocsr()  # V(x'_i) = sum_a pi(a|x'_i) Q(x'_i, a) as one operator on the leaf values
         v = np.asarray(v, dtype=np.float64).copy()
+        if not len(v):
+            return v, 1
+        diff = np.empty_like(v)
         for sweep in range(1, max_iterations + 1):
-            q_next = (ops["next"] @ v).reshape(A, n).T
-            v_new = M @ d.targets((pi_next * q_next).sum(axis=1))  # the loop's own targets (c^- clamp included)
-            change = float(np.max(np.abs(v_new - v))) if len(v) else 0.0
+            v_new = M @ d.targets(P @ v)  # the loop's own targets (c^- clamp included)
+            np.subtract(v_new, v, out=diff)
+            change = max(float(diff.max()), -float(diff.min()))
             v = v_new
             # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
             bound = change * d.gamma / (1.0 - d.gamma)
-            if bound <= (tol if tol is not None else 1e-7 * (1.0 + float(np.max(np.abs(v), initial=0.0)))):
+            if bound <= (tol if tol is not None else rtol * (1.0 + max(float(v.max()), -float(v.min())))):
                 return v, sweep
         return v, max_iterations
 
