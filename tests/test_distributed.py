@@ -150,6 +150,13 @@ def test_a_worker_killed_mid_fit_does_not_stop_it(client, coh):
     client.wait_for_workers(2, timeout=60)
 
 
+@pytest.mark.parametrize("bad", [-1, float("inf"), "60", True])
+def test_a_bad_worker_wait_is_refused_before_anything_runs(client, coh, bad):
+    _, path = coh
+    with pytest.raises(ValueError, match="worker_wait_s must be a number of seconds"):
+        DistributedFQI(gamma=0.95, n_iterations=1, worker_wait_s=bad).fit(client, path)
+
+
 def test_a_worker_added_mid_fit_does_not_change_the_ranks(coh, tmp_path):
     """A fit started on one worker over two blocks (two Parquet parts), with a second worker
     joining after iteration 1: the blocks stay on as many workers as at the start (one

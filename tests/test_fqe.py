@@ -195,6 +195,9 @@ def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
                             regressor_params={"n_estimators": 3}).fit(small_pt)
     with pytest.raises(ValueError, match="training rows"):
         fqe.reweighted_value(np.ones(len(small_pt) + 1))
+    for bad in (0.0, -1e-5, float("nan")):  # would run every sweep allowed instead of stopping
+        with pytest.raises(ValueError, match="rtol must be > 0"):
+            fqe.reweighted_value(np.ones(len(small_pt)), rtol=bad)
     with pytest.raises(TypeError, match="TransitionDataset"):
         FittedQEvaluation(policy=pi).fit("not a dataset")
     fqe._fit_state = (fqe._fit_state[0].__class__(**{**fqe._fit_state[0].__dict__, "gamma": 1.0}),

@@ -130,6 +130,8 @@ class FittedQEvaluation(FittedQIteration):
         training rows (no ``validation_fraction``).
         """
         self._check_conditional()
+        if not rtol > 0:
+            raise ValueError(f"rtol must be > 0, got {rtol!r}")
         d, learner, backup = self._fit_state
         w = np.asarray(sample_weight, dtype=np.float64)
         if w.shape != (d.n,):

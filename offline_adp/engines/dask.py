@@ -224,6 +224,9 @@ class DistributedFQI:
         continues from them, e.g. after the scheduler was lost, to the Q of an
         uninterrupted fit.
         """
+        w = self.worker_wait_s
+        if isinstance(w, bool) or not isinstance(w, int | float) or not 0 <= w < float("inf"):
+            raise ValueError(f"worker_wait_s must be a number of seconds >= 0, got {w!r}")
         try:
             with client.as_current():  # every compute goes to this client, even when others exist
                 return self._fit(client, dataset_dir, on_iteration, checkpoint_dir)
