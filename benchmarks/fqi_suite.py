@@ -108,6 +108,14 @@ def problem(name: str, n: int, data_seed: int, quick: bool):
     return ds, 0.99, iters, lambda pi: gym_score(name, pi, 10 if quick else 20)
 
 
+def structure_trees(history) -> list[list[int]]:
+    """``[iteration, trees]`` for every structure build of a frozen fit (empty otherwise)."""
+    if "structure_trees" not in history:
+        return []
+    built = history["structure"].diff().fillna(1) != 0
+    return [[int(i), int(t)] for i, t in zip(history["iteration"][built], history["structure_trees"][built], strict=True)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problems", nargs="+", default=["car_on_hill", *GYM, "path_tracking"])
@@ -141,13 +149,16 @@ def main() -> None:
                     sc = score(f.policy_)
                     flagged = any(issubclass(w.category, DivergenceWarning) for w in caught)
                     rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
-                           "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged}
+                           "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged,
+                           "builds": structure_trees(f.history_)}
                     records.append(rec)
                     if args.json:  # after every fit: a long run keeps what it measured
                         with open(args.json, "w") as fh:
                             json.dump(records, fh, indent=1)
+                    trees = "/".join(str(t) for _, t in rec["builds"])
                     print(f"  {mode:<11} seed {ls}: score {sc:+9.3f}  CPU {cpu:7.1f} s  wall {wall:6.1f} s  "
-                          f"{f.verdict_}{' (FLAGGED)' if flagged else ''}", flush=True)
+                          f"{f.verdict_}{' (FLAGGED)' if flagged else ''}{f'  trees per build {trees}' if trees else ''}",
+                          flush=True)
     print("\nproblem         mode        score mean   spread(std)   CPU s (mean)   CPU / refit   flags")
     for name in args.problems:
         ref = [r["cpu_s"] for r in records if r["problem"] == name and r["mode"] == "refit"]

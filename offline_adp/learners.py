@@ -23,6 +23,7 @@ Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks for all actions
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -186,6 +187,41 @@ def _row_sources(base: np.ndarray, sets: list[np.ndarray]) -> tuple[list[np.ndar
     return out, extra.reshape((len(extra),) + base.shape[1:])
 
 
+@dataclass(frozen=True)
+class TreeScreen:
+    """How many trees a frozen build of fitted Q-iteration grows (:class:`FrozenTreesLearner`).
+
+    A build first grows ``trees`` trees. It grows the regressor's full count only when
+    :meth:`FrozenTreesLearner._screen_bias` -- the extra downward bias of the greedy targets
+    ``min_a' Q(x', a')`` from averaging fewer trees, carried through the horizon
+    ``1 / (1 - gamma)``, relative to ``std(y)`` -- exceeds ``tol``. ``rows`` marks the next
+    states whose value enters the targets (None: all).
+    """
+
+    trees: int
+    tol: float
+    gamma: float
+    rows: np.ndarray | None = None
+
+
+def greedy_min_bias(gap: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """``min(mu_a, mu_b) - E[min(X_a, X_b)] >= 0`` when ``X_b - X_a ~ N(gap, tau^2)``, ``gap >= 0``:
+    how far a min over two noisy estimates falls below the min of their means,
+    ``tau * pdf(gap / tau) - gap * cdf(-gap / tau)`` (0 where ``tau = 0``).
+
+    This is the bias a greedy backup ``min_a' Q(x', a')`` picks up from Monte Carlo noise in
+    ``Q`` (the downward counterpart of Q-learning's max bias); a forest of ``m`` trees whose
+    per-tree gaps spread by ``sd`` has ``tau = sd / sqrt(m)``.
+    """
+    from scipy.special import ndtr
+
+    gap, tau = np.asarray(gap, dtype=np.float64), np.asarray(tau, dtype=np.float64)
+    safe = np.where(tau > 0, tau, 1.0)
+    z = gap / safe
+    out = safe * np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi) - gap * ndtr(-z)
+    return np.where(tau > 0, np.maximum(out, 0.0), 0.0)
+
+
 class FrozenTreesLearner(Learner):
     """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
 
@@ -209,7 +245,12 @@ class FrozenTreesLearner(Learner):
     are then *honest*: each leaf's value is the weighted mean target over **all** training
     rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
     dropped after the lookups (the arrays of :class:`~offline_adp.qfunctions.TreeEnsemble`
-    remain). An iteration is one bincount per tree over the tree-major (trees, n) leaf
+    remain). With a ``screen`` (:class:`TreeScreen`; fitted Q-iteration's default) a build
+    first grows ``screen.trees`` trees and grows the rest of the forest (scikit-learn's warm
+    start: the same trees a one-shot fit grows) only when the greedy targets would be
+    measurably biased by the smaller forest (:func:`greedy_min_bias`, carried through
+    ``1 / (1 - gamma)``, above ``screen.tol * std(y)``).
+    An iteration is one bincount per tree over the tree-major (trees, n) leaf
     matrix and one gather per tree (each within that tree's leaves, so cache-sized): no
     tree fitting, no traversal.
     With a fixed structure the update is a gamma-contraction, so it converges -- to the
@@ -230,13 +271,16 @@ class FrozenTreesLearner(Learner):
     """
 
     def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),
-                 max_samples: float | Sequence[float | None] | None = None, **kwargs: Any) -> None:
+                 max_samples: float | Sequence[float | None] | None = None, screen: TreeScreen | None = None,
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
         check_structure_fractions(max_samples)
         self.restructure_at = frozenset(restructure_at) | {1}
         self.max_samples = max_samples
+        self.screen = screen
+        self.screen_value: float | None = None  # the last build's screen (None: not screened)
         self._pending = True  # no structure yet
         self.structures = 0
         self.built_on_constant = False
@@ -269,15 +313,30 @@ class FrozenTreesLearner(Learner):
         X = self.encoder.pairs(self.phi, self.actions)
         self.structures += 1
         self.built_on_constant = bool(np.ptp(y) == 0.0)
+        self.screen_value = None
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
             self._set_ensemble(_constant_ensemble(float(y[0]), self.regressor))
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
             self._operators(self._ensemble_per_tree(self.ensemble))
             return
+        grow = y
         if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
-            y = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
-        forest = _fit(self._structure_model(k), X, y, self.weights)
-        del X
+            grow = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+        model = self._structure_model(k)
+        params = model.get_params()
+        full = int(params.get("n_estimators") or 0)
+        screen = self.screen is not None and "warm_start" in params and full > self.screen.trees
+        if screen:  # the first trees of a warm-started forest are the first trees of the full one
+            model.set_params(n_estimators=self.screen.trees, warm_start=True)
+        self._adopt(_fit(model, X, grow, self.weights))
+        if screen:
+            self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
+            if self.screen_value > self.screen.tol:  # the greedy targets need the whole forest
+                model.set_params(n_estimators=full)
+                self._adopt(_fit(model, X, grow, self.weights))
+
+    def _adopt(self, forest: Any) -> None:
+        """Take ``forest`` as the structure: look up every training and query input in it."""
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
@@ -286,6 +345,32 @@ class FrozenTreesLearner(Learner):
         self.ensemble, self._forest = None, forest
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
         self._operators(self._sklearn_per_tree(forest, self._roots))
+
+    def _screen_bias(self, y: np.ndarray, full: int) -> float:
+        """How much the greedy targets would lose by keeping the screen's trees instead of
+        all ``full``: :func:`greedy_min_bias` at every bootstrapped next state, from the
+        per-tree values of its two best actions, averaged (with the sample weights),
+        carried through the horizon ``1 / (1 - gamma)`` and divided by ``std(y)``."""
+        s = self.screen
+        assert s is not None
+        P, A = self.pos["next"], self.encoder.n_actions
+        m, n = P.shape[0], P.shape[1] // A
+        if A < 2 or s.gamma >= 1.0:
+            return 0.0 if A < 2 else float("inf")
+        vals = np.r_[self._leaf_sums(y if self._w is None else self._w * y) / self._wsum, 0.0]
+        rows = np.arange(n) if s.rows is None else np.flatnonzero(s.rows)
+        w = np.ones(n) if self._w is None else self._w
+        total = 0.0
+        for lo in range(0, len(rows), 32_768):  # bounded temporaries at any size
+            r = rows[lo:lo + 32_768]
+            per_tree = vals[P[:, (np.arange(A)[:, None] * n + r).ravel()]].reshape(m, A, len(r))  # action-major queries
+            best = np.argsort(per_tree.mean(axis=0), axis=0, kind="stable")[:2]
+            j = np.arange(len(r))
+            d = per_tree[:, best[1], j] - per_tree[:, best[0], j]  # per-tree gap to the runner-up
+            gap, sd = d.mean(axis=0), d.std(axis=0, ddof=1)
+            total += float((greedy_min_bias(gap, sd / np.sqrt(m)) - greedy_min_bias(gap, sd / np.sqrt(full))) @ w[r])
+        scale = float(np.std(y)) * (1.0 - s.gamma) * float(w[rows].sum())
+        return total / scale if scale > 0 else 0.0
 
     def _set_ensemble(self, ensemble: TreeEnsemble) -> None:
         self.ensemble, self._forest = ensemble, None
@@ -488,7 +573,8 @@ class FrozenTreesLearner(Learner):
         self._cache = {}
 
     def state(self) -> dict[str, Any]:
-        return {"structure": self.structures, "structure_on_constant": self.built_on_constant}
+        return {"structure": self.structures, "structure_on_constant": self.built_on_constant,
+                "structure_trees": int(self._m), "structure_screen": self.screen_value}
 
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
@@ -530,6 +616,8 @@ class FrozenTreesLearner(Learner):
         last = (rows or [{}])[-1]
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
+        screened = last.get("structure_screen")
+        self.screen_value = None if screened is None else float(screened)
         self._pending = self.built_on_constant
 
 

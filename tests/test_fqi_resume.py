@@ -25,6 +25,11 @@ MODES = {
     "frozen": {"mode": "frozen", "n_structures": 2},  # builds at 1 and 5: tol can stop it at 6
     "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "trees_per_iteration": 3},
     "finite_frozen": {"mode": "frozen", "horizon": 5},
+    # builds screened on 2 of 6 trees: kept small (tol huge), or grown to 6 by warm start (tol 0)
+    "frozen_screen_kept": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
+                           "screen_trees": 2, "screen_tol": 1e9},
+    "frozen_screen_grown": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
+                            "screen_trees": 2, "screen_tol": 0.0},
 }
 
 
@@ -70,6 +75,11 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, pt_dir, obs, na
     _same(est, ref, obs, params.get("horizon"))
     _same(load_fqi(tmp_path / "run" / "model"), ref, obs, params.get("horizon"))
     assert est.verdict_ == ref.verdict_
+    if "screen" in name:  # the screen's decisions and values survive the interruption
+        trees = ref.history_["structure_trees"].to_numpy()
+        assert set(trees) == ({2} if name.endswith("kept") else {6})
+        np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(), trees)
+        np.testing.assert_array_equal(est.history_["structure_screen"].to_numpy(), ref.history_["structure_screen"].to_numpy())
     if tol and "horizon" not in params:  # a finite horizon runs its T steps whatever tol says
         assert ref.verdict_ == "converged" and len(ref.history_) < BASE["n_iterations"]
 

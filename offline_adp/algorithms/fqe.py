@@ -66,7 +66,8 @@ class FittedQEvaluation(FittedQIteration):
                          infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
-                         n_structures=n_structures, structure_max_samples=structure_max_samples)
+                         n_structures=n_structures, structure_max_samples=structure_max_samples,
+                         screen_trees=None)  # the screen is about a greedy backup's min
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
                  *, deferred: bool = False):

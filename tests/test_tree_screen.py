@@ -1,0 +1,133 @@
+"""The frozen builds' tree screen (issue 14) against independent references.
+
+- :func:`greedy_min_bias` against Monte Carlo sampling of ``min(X_a, X_b)``.
+- The screen value a build records against a brute-force computation from the fitted
+  forest's own per-tree leaves.
+- A screened build that grows the whole forest gives the unscreened fit bit for bit; one
+  that keeps the screen's trees gives the fit of a forest of that size.
+- The decision follows ``screen_tol`` on both sides of the recorded value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from offline_adp import TransitionDataset
+from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.learners import greedy_min_bias
+from offline_adp.regressors import make_regressor
+
+
+def _walk(n: int = 240, seed: int = 0, n_actions: int = 3) -> TransitionDataset:
+    """A noisy 2-d walk under random actions, distinct costs, a few terminal rows."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.normal(size=(n + 1, 2)), axis=0) * 0.1
+    obs, nxt = x[:-1], x[1:].copy()
+    info = DatasetInfo(features=(Feature("x"), Feature("v")),
+                       action_table=ActionTable.from_values(np.arange(n_actions, dtype=float)))
+    term = np.zeros(n, bool)
+    term[[n // 3, n - 1]] = True
+    ep = np.cumsum(np.r_[0, term[:-1]])
+    step = np.concatenate([np.arange(c) for c in np.bincount(ep)])
+    return TransitionDataset.from_arrays(
+        info, episode_id=np.char.zfill(ep.astype(str), 3), step=step, obs=obs, action=rng.integers(0, n_actions, n),
+        cost=rng.uniform(0, 1, n), next_obs=nxt, terminated=term, truncated=np.zeros(n, bool))
+
+
+@settings(max_examples=25, deadline=None)
+@given(gap=st.floats(0.0, 3.0), tau=st.floats(0.05, 2.0))
+def test_min_bias_is_the_shortfall_of_a_noisy_min(gap, tau):
+    d = np.random.default_rng(0).normal(gap, tau, 400_000)  # X_b - X_a; E[min(X_a, X_b)] - mu_a = E[min(0, D)]
+    sampled = -np.minimum(0.0, d).mean()
+    se = np.minimum(0.0, d).std() / np.sqrt(len(d))
+    assert abs(float(greedy_min_bias(np.array(gap), np.array(tau))) - sampled) <= 5 * se + 1e-12
+
+
+def test_min_bias_shape():
+    tau = np.array([0.0, 0.5, 1.0, 1.0, 1.0])
+    gap = np.array([1.0, 0.0, 0.0, 1.0, 5.0])
+    b = greedy_min_bias(gap, tau)
+    assert b[0] == 0.0  # no noise, no bias
+    np.testing.assert_allclose(b[1:3], tau[1:3] / np.sqrt(2 * np.pi))  # a tie: E[min] = -tau / sqrt(2 pi)
+    assert b[2] > b[3] > b[4] > 0.0  # clearer decisions, less bias
+
+
+def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: int, seed: int) -> float:
+    """The screen of the first build (k = 1, targets = costs), tree by tree from scikit-learn."""
+    a = ds.arrays()
+    enc = est._encoder
+    X = enc.pairs(a.obs, a.action)
+    y = a.cost
+    forest = make_regressor("extra_trees", n_estimators=m, n_jobs=1).set_params(random_state=seed + 1).fit(X, y)
+    A = enc.n_actions
+    per_tree = np.empty((m, len(a.obs), A))
+    for t, tree in enumerate(forest.estimators_):
+        leaf = tree.apply(X.astype(np.float32))
+        total = np.bincount(leaf, weights=y, minlength=tree.tree_.node_count)
+        count = np.bincount(leaf, minlength=tree.tree_.node_count)
+        mean = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+        for act in range(A):
+            q = enc.pairs(a.next_obs, np.full(len(a.obs), act))
+            per_tree[t, :, act] = mean[tree.apply(q.astype(np.float32))]
+    keep = ~a.terminated
+    out = []
+    for i in np.flatnonzero(keep):
+        v = per_tree[:, i, :]
+        order = np.argsort(v.mean(axis=0), kind="stable")
+        d = v[:, order[1]] - v[:, order[0]]
+        sd = d.std(ddof=1)
+        out.append(greedy_min_bias(d.mean(), sd / np.sqrt(m)) - greedy_min_bias(d.mean(), sd / np.sqrt(full)))
+    return float(np.mean(out) / (1 - est.gamma_) / y.std())
+
+
+@pytest.mark.parametrize("n_actions", [2, 3])
+def test_the_recorded_screen_is_the_brute_force_one(n_actions):
+    ds = _walk(n_actions=n_actions)
+    est = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
+                           screen_trees=3, screen_tol=1e9, random_state=5).fit(ds)
+    row = est.history_.iloc[0]
+    assert row["structure_trees"] == 3
+    assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5), rel=1e-9)
+
+
+def test_growing_the_whole_forest_is_the_unscreened_fit_and_keeping_is_a_smaller_forest():
+    ds = _walk(seed=1)
+    obs = np.random.default_rng(3).normal(size=(40, 2)) * 0.3
+    kw = dict(gamma=0.95, n_iterations=9, mode="frozen", n_structures=3, random_state=2)
+    plain = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=None, **kw).fit(ds)
+    grown = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=0.0, **kw).fit(ds)
+    np.testing.assert_array_equal(grown.predict(obs), plain.predict(obs))
+    np.testing.assert_array_equal(grown.history_["sup_dq"], plain.history_["sup_dq"])
+    assert set(grown.history_["structure_trees"]) == {8} and grown.history_["structure_screen"].notna().all()
+    assert plain.history_["structure_screen"].isna().all()
+
+    kept = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e9, **kw).fit(ds)
+    small = FittedQIteration(regressor_params={"n_estimators": 3, "n_jobs": 1}, screen_trees=None, **kw).fit(ds)
+    np.testing.assert_array_equal(kept.predict(obs), small.predict(obs))
+    assert set(kept.history_["structure_trees"]) == {3}
+
+
+def test_the_decision_follows_the_tolerance_on_both_sides():
+    ds = _walk(seed=2)
+    kw = dict(gamma=0.99, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
+              screen_trees=3, random_state=0)
+    value = FittedQIteration(screen_tol=0.0, **kw).fit(ds).history_["structure_screen"].iloc[0]
+    assert value > 0
+    assert FittedQIteration(screen_tol=value * 1.001, **kw).fit(ds).history_["structure_trees"].iloc[0] == 3
+    assert FittedQIteration(screen_tol=value * 0.999, **kw).fit(ds).history_["structure_trees"].iloc[0] == 8
+
+
+@pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": True}, {"screen_trees": "10"},
+                                 {"screen_tol": -0.1}, {"screen_tol": float("nan")}, {"screen_tol": True}])
+def test_bad_screen_parameters_are_refused_before_fitting(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        FittedQIteration(gamma=0.9, n_iterations=1, **bad).fit(_walk())
+
+
+def test_policy_evaluation_does_not_screen():
+    assert FittedQEvaluation(policy=None).screen_trees is None
