@@ -32,7 +32,7 @@ import warnings
 
 import numpy as np
 
-from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import DivergenceWarning
@@ -108,14 +108,6 @@ def problem(name: str, n: int, data_seed: int, quick: bool):
     return ds, 0.99, iters, lambda pi: gym_score(name, pi, 10 if quick else 20)
 
 
-def structure_trees(history) -> list[list[int]]:
-    """``[iteration, trees]`` for every structure build of a frozen fit (empty otherwise)."""
-    if "structure_trees" not in history:
-        return []
-    built = history["structure"].diff().fillna(1) != 0
-    return [[int(i), int(t)] for i, t in zip(history["iteration"][built], history["structure_trees"][built], strict=True)]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problems", nargs="+", default=["car_on_hill", *GYM, "path_tracking"])
@@ -150,7 +142,7 @@ def main() -> None:
                     flagged = any(issubclass(w.category, DivergenceWarning) for w in caught)
                     rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
                            "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged,
-                           "builds": structure_trees(f.history_)}
+                           "builds": [[b["iteration"], b["trees"]] for b in structure_builds(f.history_)]}
                     records.append(rec)
                     if args.json:  # after every fit: a long run keeps what it measured
                         with open(args.json, "w") as fh:

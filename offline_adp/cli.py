@@ -240,6 +240,14 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
         how = f" ({mode} mode{', auto' if getattr(est, 'mode', None) == 'auto' else ''})" if mode else ""
         lines = [f"fitted {algorithm}{how}: {n} iterations, last sup|dQ| {h['sup_dq']:.4g}, Bellman residual "
                  f"{h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"]
+        from offline_adp.algorithms.fqi import structure_builds
+
+        builds = structure_builds(hist)
+        if builds:
+            screened = any(b["screen"] is not None for b in builds)
+            lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
+                         f"trees {'/'.join(str(b['trees']) for b in builds)}"
+                         + (" (screened: the whole forest only where the greedy targets needed it)" if screened else ""))
     else:
         lines = [f"fitted {algorithm}: {n} history rows"]
         if isinstance(hist, pd.DataFrame) and n:

@@ -113,6 +113,10 @@ def _summary(est: Any) -> dict[str, Any]:
         out["value"] = float(est.value_)
     elif isinstance(hist, pd.DataFrame) and "value" in hist:
         out["value"] = float(hist["value"].iloc[-1])
+    if isinstance(hist, pd.DataFrame) and "structure_trees" in hist:
+        from offline_adp.algorithms.fqi import structure_builds
+
+        out["structure_builds"] = structure_builds(hist)
     for attr in ("mode_", "simulator_steps_", "diverged_", "verdict_", "verdict_message_"):
         v = getattr(est, attr, None)
         if v is not None:

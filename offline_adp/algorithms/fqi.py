@@ -456,6 +456,18 @@ class FittedQIteration(BaseEstimator):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(dataset) first")
 
 
+def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
+    """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen"}``
+    per build, in order (``screen``: the build's screen value, None when not screened);
+    an empty list for the other modes."""
+    if not len(history) or "structure_trees" not in history:
+        return []
+    built = history["structure"].diff().fillna(1).to_numpy() != 0
+    rows = history.loc[built, ["iteration", "structure_trees", "structure_screen"]]
+    return [{"iteration": int(i), "trees": int(t), "screen": None if _isna(s) else float(s)}
+            for i, t, s in rows.itertuples(index=False)]
+
+
 def _isna(v: Any) -> bool:
     return v is None or (isinstance(v, float) and np.isnan(v))
 
