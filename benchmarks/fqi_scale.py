@@ -25,7 +25,7 @@ CHILD = textwrap.dedent(
     import json, resource, sys, time
     import numpy as np
     from offline_adp import TransitionDataset, DatasetInfo, Feature, ActionTable
-    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
     n, mode, iters = int(sys.argv[1]), sys.argv[2], int(sys.argv[3])
     rng = np.random.default_rng(0)
     T = 100; E = n // T; n = E * T
@@ -58,7 +58,8 @@ CHILD = textwrap.dedent(
     it = f.history_["wall_time"].to_numpy()
     print(json.dumps({"n": n, "mode": mode, "iterations": len(it), "wall_s": wall, "cpu_s": time.process_time() - c0,
                       "median_iter_s": float(np.median(it)), "max_iter_s": float(it.max()), "peak_rss_gib": peak,
-                      "start_value": float(f.history_["start_value"].iloc[-1])}))
+                      "start_value": float(f.history_["start_value"].iloc[-1]),
+                      "trees": [b["trees"] for b in structure_builds(f.history_)]}))
     """
 )
 
@@ -75,7 +76,8 @@ def main() -> None:
             out = subprocess.run([sys.executable, "-c", CHILD, str(n), mode, str(args.iterations)], check=True, capture_output=True, text=True)
             r = json.loads(out.stdout.strip().splitlines()[-1])
             print(f"{r['n']:>9} {r['mode']:<15} {r['iterations']:>5} {r['wall_s']:>8.1f} {r['cpu_s']:>8.1f} {r['median_iter_s']:>11.3f} "
-                  f"{r['max_iter_s']:>9.3f} {r['peak_rss_gib']:>12.2f}", flush=True)
+                  f"{r['max_iter_s']:>9.3f} {r['peak_rss_gib']:>12.2f}"
+                  + (f"   trees per build {'/'.join(map(str, r['trees']))}" if r.get("trees") else ""), flush=True)
 
 
 if __name__ == "__main__":

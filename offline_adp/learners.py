@@ -332,6 +332,7 @@ class FrozenTreesLearner(Learner):
         if screen:
             self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
             if self.screen_value > self.screen.tol:  # the greedy targets need the whole forest
+                self.pos, self._rest = {}, None  # the screen's lookups are not held while the forest grows
                 model.set_params(n_estimators=full)
                 self._adopt(_fit(model, X, grow, self.weights))
 
