@@ -142,7 +142,8 @@ def main() -> None:
                     flagged = any(issubclass(w.category, DivergenceWarning) for w in caught)
                     rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
                            "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged,
-                           "builds": [[b["iteration"], b["trees"]] for b in structure_builds(f.history_)]}
+                           "builds": [[b["iteration"], "const" if b["constant"] else b["trees"]]
+                                      for b in structure_builds(f.history_)]}
                     records.append(rec)
                     if args.json:  # after every fit: a long run keeps what it measured
                         with open(args.json, "w") as fh:

@@ -194,8 +194,10 @@ class TreeScreen:
     A build first grows ``trees`` trees. It grows the regressor's full count only when
     :meth:`FrozenTreesLearner._screen_bias` -- the extra downward bias of the greedy targets
     ``min_a' Q(x', a')`` from averaging fewer trees, carried through the horizon
-    ``1 / (1 - gamma)``, relative to ``std(y)`` -- exceeds ``tol``. ``rows`` marks the next
-    states whose value enters the targets (None: all).
+    ``1 / (1 - gamma)``, relative to ``std(y)`` -- exceeds ``tol`` (or is NaN). ``rows``
+    marks the next states whose value enters the targets (None: all). No screen (the whole
+    forest at once) with ``tol = 0``, ``gamma >= 1``, one action, a forest of at most
+    ``trees`` trees, or a regressor without ``warm_start``.
     """
 
     trees: int
@@ -325,19 +327,23 @@ class FrozenTreesLearner(Learner):
         model = self._structure_model(k)
         params = model.get_params()
         full = int(params.get("n_estimators") or 0)
-        screen = self.screen is not None and "warm_start" in params and full > self.screen.trees
-        if screen:  # the first trees of a warm-started forest are the first trees of the full one
-            model.set_params(n_estimators=self.screen.trees, warm_start=True)
+        s = self.screen
+        screen = (s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
+                  and "warm_start" in params and full > s.trees)
+        if not screen:
+            self._adopt(_fit(model, X, grow, self.weights))
+            return
+        assert s is not None
+        model.set_params(n_estimators=s.trees, warm_start=True)  # its trees are the full forest's first ones
         self._adopt(_fit(model, X, grow, self.weights))
-        if screen:
-            self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
-            if self.screen_value > self.screen.tol:  # the greedy targets need the whole forest
-                self.pos, self._rest = {}, None  # the screen's lookups are not held while the forest grows
-                model.set_params(n_estimators=full)
-                self._adopt(_fit(model, X, grow, self.weights))
+        self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
+        if not self.screen_value <= s.tol:  # the greedy targets need the whole forest (NaN: to be safe)
+            model.set_params(n_estimators=full)
+            self._adopt(_fit(model, X, grow, self.weights), start=s.trees)
 
-    def _adopt(self, forest: Any) -> None:
-        """Take ``forest`` as the structure: look up every training and query input in it."""
+    def _adopt(self, forest: Any, start: int = 0) -> None:
+        """Take ``forest`` as the structure: look up every training and query input in it
+        (from tree ``start`` on: the earlier trees' lookups are held, see :meth:`_operators`)."""
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
             raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
@@ -345,19 +351,20 @@ class FrozenTreesLearner(Learner):
         sizes = np.array([e.tree_.node_count for e in forest.estimators_], dtype=np.int64)
         self.ensemble, self._forest = None, forest
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
-        self._operators(self._sklearn_per_tree(forest, self._roots))
+        trees = [e.tree_ for e in forest.estimators_]
+        self._operators(self._compiled_per_tree(trees[start:], self._roots[start:]), start=start)
 
     def _screen_bias(self, y: np.ndarray, full: int) -> float:
         """How much the greedy targets would lose by keeping the screen's trees instead of
-        all ``full``: :func:`greedy_min_bias` at every bootstrapped next state, from the
-        per-tree values of its two best actions, averaged (with the sample weights),
-        carried through the horizon ``1 / (1 - gamma)`` and divided by ``std(y)``."""
+        all ``full``: at every bootstrapped next state, :func:`greedy_min_bias` of the best
+        action (under the screen's trees) against each other action, from their per-tree
+        gaps, summed over the other actions (a union bound: exact with two actions, an upper
+        bound with more); averaged with the sample weights, carried through the horizon
+        ``1 / (1 - gamma)`` and divided by the (weighted) standard deviation of ``y``."""
         s = self.screen
         assert s is not None
         P, A = self.pos["next"], self.encoder.n_actions
         m, n = P.shape[0], P.shape[1] // A
-        if A < 2 or s.gamma >= 1.0:
-            return 0.0 if A < 2 else float("inf")
         vals = np.r_[self._leaf_sums(y if self._w is None else self._w * y) / self._wsum, 0.0]
         rows = np.arange(n) if s.rows is None else np.flatnonzero(s.rows)
         w = np.ones(n) if self._w is None else self._w
@@ -365,12 +372,18 @@ class FrozenTreesLearner(Learner):
         for lo in range(0, len(rows), 32_768):  # bounded temporaries at any size
             r = rows[lo:lo + 32_768]
             per_tree = vals[P[:, (np.arange(A)[:, None] * n + r).ravel()]].reshape(m, A, len(r))  # action-major queries
-            best = np.argsort(per_tree.mean(axis=0), axis=0, kind="stable")[:2]
             j = np.arange(len(r))
-            d = per_tree[:, best[1], j] - per_tree[:, best[0], j]  # per-tree gap to the runner-up
-            gap, sd = d.mean(axis=0), d.std(axis=0, ddof=1)
-            total += float((greedy_min_bias(gap, sd / np.sqrt(m)) - greedy_min_bias(gap, sd / np.sqrt(full))) @ w[r])
-        scale = float(np.std(y)) * (1.0 - s.gamma) * float(w[rows].sum())
+            best = np.argmin(per_tree.mean(axis=0), axis=0)
+            shortfall = np.zeros(len(r))
+            for other in range(A):
+                d = per_tree[:, other, j] - per_tree[:, best, j]  # per-tree gap (0 where other is the best)
+                gap, sd = d.mean(axis=0), d.std(axis=0, ddof=1)
+                shortfall += greedy_min_bias(gap, sd / np.sqrt(m)) - greedy_min_bias(gap, sd / np.sqrt(full))
+            total += float(shortfall @ w[r])
+        wr = w[rows]
+        mean = float(np.average(y, weights=w))
+        std = float(np.sqrt(np.average((y - mean) ** 2, weights=w)))
+        scale = std * (1.0 - s.gamma) * float(wr.sum())
         return total / scale if scale > 0 else 0.0
 
     def _set_ensemble(self, ensemble: TreeEnsemble) -> None:
@@ -387,13 +400,15 @@ class FrozenTreesLearner(Learner):
             self._set_ensemble(ens)
         return self.ensemble
 
-    def _operators(self, tree_leaves: Any) -> None:
+    def _operators(self, tree_leaves: Any, start: int = 0) -> None:
         """The training leaf matrix, the leaf weights and the query operators (leaf positions),
         tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
         every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
         take their leaves from the next-state lookup (a third of the lookups with two
         actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
-        held: one tree's lookups at a time."""
+        held: one tree's lookups at a time. ``start > 0``: the first ``start`` trees are
+        those whose lookups are held already (a screened build growing its forest); their
+        positions are kept and ``tree_leaves`` yields the later trees only."""
         n, m = len(self.phi), len(self._roots)
         names = [q for q in self.queries if q != "train"]
         inputs = {q: self._joint(*self.queries[q]) for q in names}
@@ -405,10 +420,17 @@ class FrozenTreesLearner(Learner):
             gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
         from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
         ends = np.r_[self._roots[1:], self._n_nodes]
+        held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
         self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
         train = np.empty((m, n), np.int32)
         ids, bounds = [], [0]
-        for t in range(m):
+        if start:  # the same trees, the same compact leaves; "no training leaf" is re-marked below
+            for q, p in [*self.pos.items(), ("train", train)]:
+                p[:start] = held[q][:start]
+                p[:start][p[:start] == len(held_ids)] = -1
+            ids, bounds = [held_ids], [int(b) for b in held_bounds[:start + 1]]
+            del held
+        for t in range(start, m):
             raw = {q: next(g) for q, g in gens.items()}
             root, lo = int(self._roots[t]), bounds[-1]
             leaf = np.empty(n, np.int64)
@@ -456,11 +478,6 @@ class FrozenTreesLearner(Learner):
         ens.check_inputs(self.encoder.pairs(self.phi[:1], self.actions[:1]))  # before any compiled lookup
         trees = ens._compiled_trees()
         return self._per_tree(ens.apply) if trees is None else self._compiled_per_tree(trees, np.asarray(ens.roots))
-
-    @staticmethod
-    def _sklearn_per_tree(forest: Any, roots: np.ndarray) -> Any:
-        """``tree_leaves`` for a fitted scikit-learn forest (the leaves ``forest.apply`` gives)."""
-        return FrozenTreesLearner._compiled_per_tree([e.tree_ for e in forest.estimators_], roots)
 
     @staticmethod
     def _compiled_per_tree(trees: list[Any], roots: np.ndarray) -> Any:

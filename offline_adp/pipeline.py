@@ -215,7 +215,7 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
         from offline_adp.runs import load_config
 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
-    entry.check_params(fit["params"], str(p), "fit.params")
+    fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
     if model.evaluate is not None and model.evaluate.fqe_params:
         get_algorithm("fqe").check_params(model.evaluate.fqe_params, str(p), "evaluate.fqe_params")
     return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"), "seed": model.seed,

@@ -45,8 +45,7 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
     if path is None:
         return {}
     raw = load_toml(path, "fit configuration")
-    params = dict(raw.get(algorithm, raw))
-    entry.check_params(params, str(path), algorithm)
+    params = entry.check_params(dict(raw.get(algorithm, raw)), str(path), algorithm)
     if params.get("policy") is not None:
         params["policy"] = str((Path(path).parent / params["policy"]).resolve())
     return params
@@ -158,8 +157,7 @@ def fit_run(
     The fitted estimator.
     """
     entry = get_algorithm(algorithm)
-    params = dict(params or {})
-    entry.check_params(params, "parameters")
+    params = entry.check_params(dict(params or {}), "parameters")
     rd = RunDirectory(out)
     if resume and not entry.resumable:
         raise OfflineADPError(f"--resume is for {resumable_algorithms()} runs; "

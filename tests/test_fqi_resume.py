@@ -25,11 +25,11 @@ MODES = {
     "frozen": {"mode": "frozen", "n_structures": 2},  # builds at 1 and 5: tol can stop it at 6
     "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "trees_per_iteration": 3},
     "finite_frozen": {"mode": "frozen", "horizon": 5},
-    # builds screened on 2 of 6 trees: kept small (tol huge), or grown to 6 by warm start (tol 0)
+    # builds screened on 2 of 6 trees: kept small (tol huge), or grown to 6 by warm start (tol tiny)
     "frozen_screen_kept": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
                            "screen_trees": 2, "screen_tol": 1e9},
     "frozen_screen_grown": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
-                            "screen_trees": 2, "screen_tol": 0.0},
+                            "screen_trees": 2, "screen_tol": 1e-12},
 }
 
 

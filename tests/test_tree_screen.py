@@ -57,42 +57,51 @@ def test_min_bias_shape():
     assert b[2] > b[3] > b[4] > 0.0  # clearer decisions, less bias
 
 
-def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: int, seed: int) -> float:
-    """The screen of the first build (k = 1, targets = costs), tree by tree from scikit-learn."""
+def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: int, seed: int,
+                  w: np.ndarray | None) -> float:
+    """The screen of the first build (k = 1, targets = costs), tree by tree from scikit-learn,
+    state by state: the best action against each other one, summed; weighted mean over the
+    non-terminal next states; times 1 / (1 - gamma); over the weighted std of the costs."""
     a = ds.arrays()
     enc = est._encoder
     X = enc.pairs(a.obs, a.action)
     y = a.cost
-    forest = make_regressor("extra_trees", n_estimators=m, n_jobs=1).set_params(random_state=seed + 1).fit(X, y)
+    w = np.ones(len(y)) if w is None else w
+    forest = make_regressor("extra_trees", n_estimators=m, n_jobs=1).set_params(random_state=seed + 1)
+    forest.fit(X, y, sample_weight=w)
     A = enc.n_actions
     per_tree = np.empty((m, len(a.obs), A))
     for t, tree in enumerate(forest.estimators_):
         leaf = tree.apply(X.astype(np.float32))
-        total = np.bincount(leaf, weights=y, minlength=tree.tree_.node_count)
-        count = np.bincount(leaf, minlength=tree.tree_.node_count)
-        mean = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+        total = np.bincount(leaf, weights=w * y, minlength=tree.tree_.node_count)
+        mass = np.bincount(leaf, weights=w, minlength=tree.tree_.node_count)
+        mean = np.divide(total, mass, out=np.zeros_like(total), where=mass > 0)
         for act in range(A):
-            q = enc.pairs(a.next_obs, np.full(len(a.obs), act))
-            per_tree[t, :, act] = mean[tree.apply(q.astype(np.float32))]
-    keep = ~a.terminated
-    out = []
-    for i in np.flatnonzero(keep):
+            per_tree[t, :, act] = mean[tree.apply(enc.pairs(a.next_obs, np.full(len(a.obs), act)).astype(np.float32))]
+    rows = np.flatnonzero(~a.terminated)
+    short = np.zeros(len(rows))
+    for k, i in enumerate(rows):
         v = per_tree[:, i, :]
-        order = np.argsort(v.mean(axis=0), kind="stable")
-        d = v[:, order[1]] - v[:, order[0]]
-        sd = d.std(ddof=1)
-        out.append(greedy_min_bias(d.mean(), sd / np.sqrt(m)) - greedy_min_bias(d.mean(), sd / np.sqrt(full)))
-    return float(np.mean(out) / (1 - est.gamma_) / y.std())
+        best = int(np.argmin(v.mean(axis=0)))
+        for other in range(A):
+            if other != best:
+                d = v[:, other] - v[:, best]
+                sd = d.std(ddof=1)
+                short[k] += greedy_min_bias(d.mean(), sd / np.sqrt(m)) - greedy_min_bias(d.mean(), sd / np.sqrt(full))
+    mu = np.average(y, weights=w)
+    return float(np.average(short, weights=w[rows]) / (1 - est.gamma_) / np.sqrt(np.average((y - mu) ** 2, weights=w)))
 
 
+@pytest.mark.parametrize("weighted", [False, True])
 @pytest.mark.parametrize("n_actions", [2, 3])
-def test_the_recorded_screen_is_the_brute_force_one(n_actions):
+def test_the_recorded_screen_is_the_brute_force_one(n_actions, weighted):
     ds = _walk(n_actions=n_actions)
+    w = np.random.default_rng(1).uniform(0.2, 3.0, len(ds)) if weighted else None
     est = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
-                           screen_trees=3, screen_tol=1e9, random_state=5).fit(ds)
+                           screen_trees=3, screen_tol=1e9, random_state=5).fit(ds, sample_weight=w)
     row = est.history_.iloc[0]
     assert row["structure_trees"] == 3
-    assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5), rel=1e-9)
+    assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5, w), rel=1e-9)
 
 
 def test_growing_the_whole_forest_is_the_unscreened_fit_and_keeping_is_a_smaller_forest():
@@ -100,7 +109,7 @@ def test_growing_the_whole_forest_is_the_unscreened_fit_and_keeping_is_a_smaller
     obs = np.random.default_rng(3).normal(size=(40, 2)) * 0.3
     kw = dict(gamma=0.95, n_iterations=9, mode="frozen", n_structures=3, random_state=2)
     plain = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=None, **kw).fit(ds)
-    grown = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=0.0, **kw).fit(ds)
+    grown = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e-12, **kw).fit(ds)
     np.testing.assert_array_equal(grown.predict(obs), plain.predict(obs))
     np.testing.assert_array_equal(grown.history_["sup_dq"], plain.history_["sup_dq"])
     assert set(grown.history_["structure_trees"]) == {8} and grown.history_["structure_screen"].notna().all()
@@ -116,18 +125,61 @@ def test_the_decision_follows_the_tolerance_on_both_sides():
     ds = _walk(seed=2)
     kw = dict(gamma=0.99, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
               screen_trees=3, random_state=0)
-    value = FittedQIteration(screen_tol=0.0, **kw).fit(ds).history_["structure_screen"].iloc[0]
+    value = FittedQIteration(screen_tol=1e-12, **kw).fit(ds).history_["structure_screen"].iloc[0]
     assert value > 0
     assert FittedQIteration(screen_tol=value * 1.001, **kw).fit(ds).history_["structure_trees"].iloc[0] == 3
     assert FittedQIteration(screen_tol=value * 0.999, **kw).fit(ds).history_["structure_trees"].iloc[0] == 8
 
 
-@pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": True}, {"screen_trees": "10"},
+@pytest.mark.parametrize("case", ["tol0", "gamma1", "one_action", "small_forest"])
+def test_no_screen_where_it_has_nothing_to_decide(case):
+    """tol 0, gamma 1, one action, or a forest no larger than the screen: the whole forest,
+    no screen value."""
+    ds = _walk(n_actions=1 if case == "one_action" else 2)
+    kw = dict(gamma=1.0 if case == "gamma1" else 0.9, n_iterations=2, mode="frozen", n_structures=2,
+              regressor_params={"n_estimators": 3 if case == "small_forest" else 8, "n_jobs": 1},
+              screen_trees=3, screen_tol=0.0 if case == "tol0" else 1e9)
+    h = FittedQIteration(**kw).fit(ds).history_
+    assert set(h["structure_trees"]) == {kw["regressor_params"]["n_estimators"]}
+    assert h["structure_screen"].isna().all()
+
+
+def test_weighted_grown_build_is_the_unscreened_one_with_bootstrap_rows():
+    ds = _walk(seed=4)
+    w = np.random.default_rng(2).uniform(0.2, 3.0, len(ds))
+    obs = np.random.default_rng(3).normal(size=(30, 2)) * 0.3
+    kw = dict(gamma=0.95, n_iterations=5, mode="frozen", n_structures=2, structure_max_samples=0.5, random_state=1,
+              regressor_params={"n_estimators": 7, "n_jobs": 2})
+    plain = FittedQIteration(screen_trees=None, **kw).fit(ds, sample_weight=w)
+    grown = FittedQIteration(screen_trees=2, screen_tol=1e-12, **kw).fit(ds, sample_weight=w)
+    assert set(grown.history_["structure_trees"]) == {7}
+    np.testing.assert_array_equal(grown.predict(obs), plain.predict(obs))
+
+
+def test_policy_evaluation_fits_without_screening():
+    from offline_adp.policies import FunctionPolicy
+
+    ds = _walk(n_actions=2)
+    fqe = FittedQEvaluation(policy=FunctionPolicy(lambda x, t: np.zeros(len(x), int), n_actions=2), gamma=0.9,
+                            n_iterations=2, mode="frozen", regressor_params={"n_estimators": 12, "n_jobs": 1}).fit(ds)
+    assert set(fqe.history_["structure_trees"]) == {12} and fqe.history_["structure_screen"].isna().all()
+
+
+def test_structure_builds_reads_histories_from_before_the_screen():
+    import pandas as pd
+
+    from offline_adp.algorithms.fqi import structure_builds
+
+    h = pd.DataFrame({"iteration": [1, 2, 3, 4], "structure": [1, 1, 2, 3],
+                      "structure_trees": [np.nan, np.nan, 10, 50], "structure_screen": [np.nan, np.nan, 0.001, np.nan],
+                      "structure_on_constant": [True, True, False, np.nan]})
+    assert structure_builds(h) == [{"iteration": 1, "trees": None, "screen": None, "constant": True},
+                                   {"iteration": 3, "trees": 10, "screen": 0.001, "constant": False},
+                                   {"iteration": 4, "trees": 50, "screen": None, "constant": False}]
+
+
+@pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": 1}, {"screen_trees": True}, {"screen_trees": "10"},
                                  {"screen_tol": -0.1}, {"screen_tol": float("nan")}, {"screen_tol": True}])
 def test_bad_screen_parameters_are_refused_before_fitting(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         FittedQIteration(gamma=0.9, n_iterations=1, **bad).fit(_walk())
-
-
-def test_policy_evaluation_does_not_screen():
-    assert FittedQEvaluation(policy=None).screen_trees is None

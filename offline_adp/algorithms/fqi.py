@@ -374,8 +374,9 @@ class FittedQIteration(BaseEstimator):
             check_structure_fractions(self.structure_max_samples)
         if self.screen_trees is not None and (isinstance(self.screen_trees, bool)
                                               or not isinstance(self.screen_trees, int | np.integer)
-                                              or self.screen_trees < 1):
-            raise ValueError(f"screen_trees must be a positive integer or None, got {self.screen_trees!r}")
+                                              or self.screen_trees < 2):
+            raise ValueError(f"screen_trees must be an integer >= 2 (a spread needs two trees) or None, "
+                             f"got {self.screen_trees!r}")
         if (isinstance(self.screen_tol, bool) or not isinstance(self.screen_tol, int | float | np.floating)
                 or not np.isfinite(self.screen_tol) or self.screen_tol < 0):
             raise ValueError(f"screen_tol must be a finite number >= 0, got {self.screen_tol!r}")
@@ -457,15 +458,19 @@ class FittedQIteration(BaseEstimator):
 
 
 def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
-    """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen"}``
-    per build, in order (``screen``: the build's screen value, None when not screened);
-    an empty list for the other modes."""
+    """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen",
+    "constant"}`` per build, in order (``screen``: the build's screen value, None when not
+    screened; ``constant``: a build on constant targets, one-leaf trees; ``trees`` None in
+    rows written before trees were recorded); an empty list for the other modes."""
     if not len(history) or "structure_trees" not in history:
         return []
     built = history["structure"].diff().fillna(1).to_numpy() != 0
-    rows = history.loc[built, ["iteration", "structure_trees", "structure_screen"]]
-    return [{"iteration": int(i), "trees": int(t), "screen": None if _isna(s) else float(s)}
-            for i, t, s in rows.itertuples(index=False)]
+    cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant"]
+    rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
+    return [{"iteration": int(r["iteration"]),
+             "trees": None if _isna(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
+             "screen": None if _isna(r.get("structure_screen")) else float(r["structure_screen"]),
+             "constant": not _isna(r.get("structure_on_constant")) and bool(r["structure_on_constant"])} for r in rows]
 
 
 def _isna(v: Any) -> bool:

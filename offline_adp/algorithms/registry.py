@@ -87,7 +87,8 @@ class AlgorithmEntry:
 
     def check_params(self, params: dict[str, Any] | None, source: str = "", section: str | None = None) -> dict[str, Any]:
         """Validate ``params`` (types, then the estimator's value checks); returns them
-        with relative paths left as given. Raises SpecError naming file and key."""
+        with relative paths left as given and numbers as validated (a whole float for an
+        integer field becomes that integer). Raises SpecError naming file and key."""
         model = validate_config(self.params_model(), params or {}, source, section or self.name)
         given = model.model_dump(exclude_unset=True)
         if "fqe" in given:
@@ -101,7 +102,11 @@ class AlgorithmEntry:
             except (ValueError, TypeError) as exc:
                 where = f"{source}: " if source else ""
                 raise SpecError(f"{where}[{section or self.name}] {exc}") from None
-        return dict(params or {})
+        out = dict(params or {})
+        for k, v in given.items():  # numbers as validated (``2.0`` for an integer field runs as 2)
+            if k in out and isinstance(v, int | float) and not isinstance(v, bool) and type(out[k]) is not type(v):
+                out[k] = v
+        return out
 
 
 def _config_type(annotation: Any) -> Any | None:
