@@ -154,8 +154,9 @@ class FittedQIteration(BaseEstimator):
         with 4 builds over 100 iterations CartPole-v1 scored 452 +- 57 against refit's
         496 +- 7, with 8 (the default, one per 12.5 iterations) 498 +- 3 at 0.10 of
         refit's CPU (``benchmarks/fqi_suite.py``, 50k transitions, 50 trees, 3 learner
-        seeds). On the whole suite it scored as well as refit or better on every problem
-        at 0.07-0.11 of its CPU (docs/fqi-modes.md).
+        seeds). Each build grows as many trees as the greedy targets need
+        (``screen_trees``). On the whole suite it scored as well as refit or better on
+        every problem at 0.02-0.08 of its CPU (docs/fqi-modes.md).
         ``warm_start``: LightGBM, ``trees_per_iteration`` new trees per iteration boosted
         from the previous Q (joint encoding; with a non-LightGBM regressor it uses LightGBM
         with 63 leaves and learning rate 0.3, and says so in a warning). Boosting a few
@@ -186,11 +187,15 @@ class FittedQIteration(BaseEstimator):
         Carlo noise between the two best actions
         (:func:`~offline_adp.learners.greedy_min_bias`), averaged over the next states,
         carried through the horizon ``1 / (1 - gamma)``, above ``screen_tol * std(y)``.
-        Long horizons with close actions get the whole forest; short horizons or clear
-        decisions do not need it. Measured (``benchmarks/fqi_suite.py``, docs/fqi-modes.md):
-        car-on-the-hill (gamma 0.95) built 10 trees in 35 of its 36 builds over 9 data
-        seeds, at 0.02 of refit's CPU, scoring as refit; CartPole-v1 (gamma 0.99) built
-        the whole forest every time. None: always the whole forest.
+        The shortfall is summed over the actions other than the best (exact with two
+        actions, an upper bound with more). Long horizons with close actions get the whole
+        forest; short horizons or clear decisions do not need it. No screen with
+        ``screen_tol = 0``, ``gamma >= 1``, one action, or ``n_estimators <= screen_trees``.
+        Measured (``benchmarks/fqi_suite.py``, docs/fqi-modes.md): car-on-the-hill (gamma
+        0.95) kept 10 trees in 34 of its 36 builds over 9 data seeds and scored as refit
+        (+0.004 +- 0.013 paired) at 0.027 of its CPU; CartPole-v1, Acrobot-v1,
+        MountainCar-v0 (gamma 0.99) and path tracking (7 actions) grew the whole forest at
+        every build. None: always the whole forest.
     screen_tol : float
         The screen's threshold, a fraction of the targets' standard deviation (>= 0; 0
         grows the whole forest at every build).
