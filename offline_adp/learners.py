@@ -635,7 +635,7 @@ class FrozenTreesLearner(Learner):
         self.structures = int(last.get("structure") or 1)
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         screened = last.get("structure_screen")
-        self.screen_value = None if screened is None else float(screened)
+        self.screen_value = None if screened is None or screened != screened else float(screened)  # NaN: none
         self._pending = self.built_on_constant
 
 

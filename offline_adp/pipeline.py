@@ -216,11 +216,11 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
-    if model.evaluate is not None and model.evaluate.fqe_params:
-        get_algorithm("fqe").check_params(model.evaluate.fqe_params, str(p), "evaluate.fqe_params")
+    evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None
+    if evaluate is not None and evaluate.get("fqe_params"):
+        evaluate["fqe_params"] = get_algorithm("fqe").check_params(evaluate["fqe_params"], str(p), "evaluate.fqe_params")
     return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"), "seed": model.seed,
-            "file": str(p), "data": data, "fit": fit,
-            "evaluate": model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None,
+            "file": str(p), "data": data, "fit": fit, "evaluate": evaluate,
             "report": model.report is not None, "engine": model.engine.model_dump(exclude_none=True)}
 
 

@@ -147,3 +147,21 @@ def test_a_whole_float_for_an_integer_key_runs_as_that_integer(tmp_path, pt_dir)
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body)), "-q"]) == 0
     run = json.loads((tmp_path / "a" / "run.json").read_text())
     assert run["status"] == "completed" and {b["trees"] for b in run["structure_builds"]} == {2}
+
+
+def test_whole_floats_are_validated_integers_in_nested_and_pipeline_fqe_params():
+    from offline_adp.algorithms.registry import get_algorithm
+
+    out = get_algorithm("api").check_params({"n_iterations": 2.0, "fqe": {"n_iterations": 3.0, "gamma": 0.9}})
+    assert out["n_iterations"] == 2 and type(out["n_iterations"]) is int
+    assert out["fqe"] == {"n_iterations": 3, "gamma": 0.9} and type(out["fqe"]["n_iterations"]) is int
+
+
+def test_a_pipeline_passes_on_validated_fit_and_fqe_numbers():
+    from offline_adp.pipeline import load_pipeline
+    from tests.test_pipeline import PIPELINES
+
+    spec = load_pipeline(PIPELINES / "car_on_hill.toml", overrides={"fit.params": {"n_iterations": 3.0},
+                                                                    "evaluate.fqe_params": {"n_iterations": 5.0}})
+    assert type(spec["fit"]["params"]["n_iterations"]) is int and spec["fit"]["params"]["n_iterations"] == 3
+    assert type(spec["evaluate"]["fqe_params"]["n_iterations"]) is int and spec["evaluate"]["fqe_params"]["n_iterations"] == 5

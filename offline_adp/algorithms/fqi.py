@@ -184,7 +184,7 @@ class FittedQIteration(BaseEstimator):
         full count (its ``n_estimators``, scikit-learn's warm start: the same trees a
         one-shot fit grows) only when the smaller forest would bias the greedy targets:
         the expected shortfall of ``min_a' Q(x', a')`` below the full forest's from Monte
-        Carlo noise between the two best actions
+        Carlo noise between the best action and the others
         (:func:`~offline_adp.learners.greedy_min_bias`), averaged over the next states,
         carried through the horizon ``1 / (1 - gamma)``, above ``screen_tol * std(y)``.
         The shortfall is summed over the actions other than the best (exact with two

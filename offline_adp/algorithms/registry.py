@@ -91,8 +91,7 @@ class AlgorithmEntry:
         integer field becomes that integer). Raises SpecError naming file and key."""
         model = validate_config(self.params_model(), params or {}, source, section or self.name)
         given = model.model_dump(exclude_unset=True)
-        if "fqe" in given:
-            FQE.check_params(given["fqe"], source, f"{section or self.name}.fqe")
+        fqe = FQE.check_params(given["fqe"], source, f"{section or self.name}.fqe") if "fqe" in given else None
         est_params = {k: v for k, v in given.items() if k not in self.extra}
         est = self.estimator_class()(**est_params)
         # the estimator's own value checks (scikit-learn's place for them), when it has any
@@ -106,6 +105,8 @@ class AlgorithmEntry:
         for k, v in given.items():  # numbers as validated (``2.0`` for an integer field runs as 2)
             if k in out and isinstance(v, int | float) and not isinstance(v, bool) and type(out[k]) is not type(v):
                 out[k] = v
+        if fqe is not None and isinstance(out.get("fqe"), dict):
+            out["fqe"] = {**out["fqe"], **{k: v for k, v in fqe.items() if k in out["fqe"]}}
         return out
 
 
