@@ -247,7 +247,8 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
             screened = any(b["screen"] is not None for b in builds)
             lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
                          f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"
-                         + (" (screened: the whole forest only where the greedy targets needed it)" if screened else ""))
+                         + (" (screened; the screen lost score on CartPole at gamma 0.95: compare with an unscreened fit,"
+                            " docs/fqi-modes.md)" if screened else ""))
     else:
         lines = [f"fitted {algorithm}: {n} history rows"]
         if isinstance(hist, pd.DataFrame) and n:

@@ -247,7 +247,7 @@ class FrozenTreesLearner(Learner):
     are then *honest*: each leaf's value is the weighted mean target over **all** training
     rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
     dropped after the lookups (the arrays of :class:`~offline_adp.qfunctions.TreeEnsemble`
-    remain). With a ``screen`` (:class:`TreeScreen`; fitted Q-iteration's default) a build
+    remain). With a ``screen`` (:class:`TreeScreen`; opt-in, ``FittedQIteration(screen_trees=...)``) a build
     first grows ``screen.trees`` trees and grows the rest of the forest (scikit-learn's warm
     start: the same trees a one-shot fit grows) only when the greedy targets would be
     measurably biased by the smaller forest (:func:`greedy_min_bias`, carried through

@@ -154,9 +154,8 @@ class FittedQIteration(BaseEstimator):
         with 4 builds over 100 iterations CartPole-v1 scored 452 +- 57 against refit's
         496 +- 7, with 8 (the default, one per 12.5 iterations) 498 +- 3 at 0.10 of
         refit's CPU (``benchmarks/fqi_suite.py``, 50k transitions, 50 trees, 3 learner
-        seeds). Each build grows as many trees as the greedy targets need
-        (``screen_trees``). On the whole suite it scored as well as refit or better on
-        every problem at 0.02-0.08 of its CPU (docs/fqi-modes.md).
+        seeds). On the whole suite it scored as well as refit or better on every problem
+        at 0.07-0.11 of its CPU (docs/fqi-modes.md).
         ``warm_start``: LightGBM, ``trees_per_iteration`` new trees per iteration boosted
         from the previous Q (joint encoding; with a non-LightGBM regressor it uses LightGBM
         with 63 leaves and learning rate 0.3, and says so in a warning). Boosting a few
@@ -180,22 +179,22 @@ class FittedQIteration(BaseEstimator):
         rows up to 131,072, a bootstrap of 131,072 rows beyond (so 1M transitions fit in
         memory and time); ``None``: the regressor's own.
     screen_trees : int or None
-        For ``frozen``: each build first grows this many trees, and grows the regressor's
-        full count (its ``n_estimators``, scikit-learn's warm start: the same trees a
-        one-shot fit grows) only when the smaller forest would bias the greedy targets:
-        the expected shortfall of ``min_a' Q(x', a')`` below the full forest's from Monte
-        Carlo noise between the best action and the others
-        (:func:`~offline_adp.learners.greedy_min_bias`), averaged over the next states,
-        carried through the horizon ``1 / (1 - gamma)``, above ``screen_tol * std(y)``.
-        The shortfall is summed over the actions other than the best (exact with two
-        actions, an upper bound with more). Long horizons with close actions get the whole
-        forest; short horizons or clear decisions do not need it. No screen with
+        For ``frozen``, opt-in (None, the default: every build grows the whole forest).
+        Each build first grows this many trees, and grows the regressor's full count (its
+        ``n_estimators``, scikit-learn's warm start: the same trees a one-shot fit grows)
+        only when the smaller forest would bias the greedy targets: the expected shortfall
+        of ``min_a' Q(x', a')`` below the full forest's from Monte Carlo noise between the
+        best action and the others (:func:`~offline_adp.learners.greedy_min_bias`, summed
+        over the other actions), averaged over the next states, carried through the
+        horizon ``1 / (1 - gamma)``, above ``screen_tol * std(y)``. No screen with
         ``screen_tol = 0``, ``gamma >= 1``, one action, or ``n_estimators <= screen_trees``.
-        Measured (``benchmarks/fqi_suite.py``, docs/fqi-modes.md): car-on-the-hill (gamma
-        0.95) kept 10 trees in 34 of its 36 builds over 9 data seeds and scored as refit
-        (+0.004 +- 0.013 paired) at 0.027 of its CPU; CartPole-v1, Acrobot-v1,
-        MountainCar-v0 (gamma 0.99) and path tracking (7 actions) grew the whole forest at
-        every build. None: always the whole forest.
+        **Not the default because it did not hold everywhere** (docs/fqi-modes.md):
+        with ``screen_trees=10`` car-on-the-hill (gamma 0.95) kept 10 trees in 34 of 36
+        builds over 9 data seeds and scored as refit (+0.004 +- 0.013 paired) at 0.027 of
+        its CPU, but CartPole-v1 at gamma 0.95 kept 10 trees in its last three builds at
+        screen values like car-on-the-hill's (0.002-0.003) and scored 136 / 318 / 346
+        against 296 / 366 / 431 unscreened (learner seeds 0-2). Compare with an
+        unscreened fit before relying on it.
     screen_tol : float
         The screen's threshold, a fraction of the targets' standard deviation (>= 0; 0
         grows the whole forest at every build).
@@ -268,7 +267,7 @@ class FittedQIteration(BaseEstimator):
         random_state: int = 0,
         n_structures: int | None = None,
         structure_max_samples: float | list[float | None] | str | None = "auto",
-        screen_trees: int | None = 10,
+        screen_trees: int | None = None,
         screen_tol: float = 0.005,
     ) -> None:
         self.horizon = horizon
