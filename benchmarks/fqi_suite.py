@@ -48,6 +48,9 @@ MODES = {
     # 10 builds: 7 cheap (1/8 of the rows), the last 3 on all rows
     "frozen_hybrid": {"mode": "frozen", "n_structures": 10, "structure_max_samples": [0.125] * 7 + [1.0] * 3},
     "warm_start": {"mode": "warm_start"},
+    # opt-in tree savings (docs/fqi-modes.md): the screen, and early builds of 10 trees
+    "screened": {"screen_trees": 10},
+    "early": {"early_build_trees": 10},
 }
 
 
@@ -118,6 +121,8 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--action-encoding", default="joint", choices=["joint", "per_action"])
     ap.add_argument("--quick", action="store_true", help="10k transitions, 20 trees, half the iterations, 2 learner seeds")
+    ap.add_argument("--gamma", type=float, default=None, help="override each problem's gamma (e.g. 0.95 for a held-out check)")
+    ap.add_argument("--iterations", type=int, default=None, help="override each problem's iteration count")
     ap.add_argument("--json", default=None, help="write every fit's numbers here")
     args = ap.parse_args()
     if args.quick:
@@ -126,6 +131,8 @@ def main() -> None:
     for name in args.problems:
         for ds_seed in args.data_seeds:
             ds, gamma, iters, score = problem(name, args.transitions, ds_seed, args.quick)
+            gamma = args.gamma if args.gamma is not None else gamma
+            iters = args.iterations if args.iterations is not None else iters
             print(f"\n{name} (data seed {ds_seed}): {len(ds)} transitions, {ds.n_episodes} episodes, gamma {gamma}, "
                   f"{iters} iterations", flush=True)
             for mode in args.modes:

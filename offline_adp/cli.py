@@ -245,10 +245,12 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
         builds = structure_builds(hist)
         if builds:
             screened = any(b["screen"] is not None for b in builds)
+            early = getattr(est, "early_build_trees", None) is not None
+            caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")
             lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
                          f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"
-                         + (" (screened; the screen lost score on CartPole at gamma 0.95: compare with an unscreened fit,"
-                            " docs/fqi-modes.md)" if screened else ""))
+                         + (f" ({caveat}: lost score on CartPole at gamma 0.95; compare with a fit that grows every"
+                            " forest whole, docs/fqi-modes.md)" if caveat else ""))
     else:
         lines = [f"fitted {algorithm}: {n} history rows"]
         if isinstance(hist, pd.DataFrame) and n:

@@ -206,6 +206,49 @@ class TreeScreen:
     rows: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class EarlyBuilds:
+    """How many trees a frozen build grows when little of its error reaches the final Q.
+
+    The error of fitted Q-iteration's last iterate is bounded by the errors of its LEARN
+    steps, each carried by ``gamma`` per later iteration: ``sup|Q_K - Q*| <= sum_j
+    gamma^(K - j) eps_j + gamma^K sup|Q_0 - Q*|`` (the chapter's approximate value iteration
+    bound). A frozen structure built at ``s`` serves the iterations ``s .. e`` up to the
+    next build, so its weight in that bound is ``W(s, e) = sum_{j=s..e} gamma^(K - j)``.
+    A build whose weight is less than ``ratio`` of the last build's
+    (:func:`build_weight`) grows ``trees`` trees instead of the whole forest: its Monte
+    Carlo error is damped before the fit ends. The last build always grows the whole
+    forest. ``n_iterations`` is K. Opt-in (``FittedQIteration(early_build_trees=...)``):
+    the bound damps an early structure's error in the values, but not in the later
+    structures, which are grown on the targets it produced; CartPole-v1 at gamma 0.95
+    lost score with it (docs/fqi-modes.md).
+    """
+
+    trees: int
+    gamma: float
+    n_iterations: int
+    ratio: float = 0.5
+
+
+def build_weight(k: int, schedule: Sequence[int], gamma: float, n_iterations: int) -> float:
+    """``W(k, e) / W(s_last, K)``: how much of the error of a structure built at iteration
+    ``k`` (serving up to ``e``, the iteration before the next scheduled build, or ``K``)
+    reaches the final Q, relative to the last scheduled build's, where ``W(s, e) =
+    sum_{j=s..e} gamma^(K - j)`` (see :class:`EarlyBuilds`). 1 for a build at or after the
+    last scheduled one."""
+    K = int(n_iterations)
+    sched = sorted(int(s) for s in schedule)
+    later = [s for s in sched if s > k]
+    if not later or k >= K:
+        return 1.0
+
+    def W(s: int, e: int) -> float:
+        j = np.arange(s, e + 1, dtype=np.float64)
+        return float(np.sum(gamma ** (K - j)))
+
+    return W(k, later[0] - 1) / W(min(sched[-1], K), K)
+
+
 def greedy_min_bias(gap: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """``min(mu_a, mu_b) - E[min(X_a, X_b)] >= 0`` when ``X_b - X_a ~ N(gap, tau^2)``, ``gap >= 0``:
     how far a min over two noisy estimates falls below the min of their means,
@@ -251,7 +294,9 @@ class FrozenTreesLearner(Learner):
     first grows ``screen.trees`` trees and grows the rest of the forest (scikit-learn's warm
     start: the same trees a one-shot fit grows) only when the greedy targets would be
     measurably biased by the smaller forest (:func:`greedy_min_bias`, carried through
-    ``1 / (1 - gamma)``, above ``screen.tol * std(y)``).
+    ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
+    (:class:`EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
+    (:func:`build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
     An iteration is one bincount per tree over the tree-major (trees, n) leaf
     matrix and one gather per tree (each within that tree's leaves, so cache-sized): no
     tree fitting, no traversal.
@@ -274,7 +319,7 @@ class FrozenTreesLearner(Learner):
 
     def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),
                  max_samples: float | Sequence[float | None] | None = None, screen: TreeScreen | None = None,
-                 **kwargs: Any) -> None:
+                 early: EarlyBuilds | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
@@ -282,6 +327,7 @@ class FrozenTreesLearner(Learner):
         self.restructure_at = frozenset(restructure_at) | {1}
         self.max_samples = max_samples
         self.screen = screen
+        self.early = early
         self.screen_value: float | None = None  # the last build's screen (None: not screened)
         self._pending = True  # no structure yet
         self.structures = 0
@@ -327,6 +373,12 @@ class FrozenTreesLearner(Learner):
         model = self._structure_model(k)
         params = model.get_params()
         full = int(params.get("n_estimators") or 0)
+        e = self.early
+        if (e is not None and e.gamma < 1.0 and 0 < e.trees < full
+                and build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio):
+            model.set_params(n_estimators=e.trees)  # an early build: its error is damped before the end
+            self._adopt(_fit(model, X, grow, self.weights))
+            return
         s = self.screen
         screen = (s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
                   and "warm_start" in params and full > s.trees)

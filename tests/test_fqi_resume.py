@@ -14,7 +14,7 @@ import shutil
 import numpy as np
 import pytest
 
-from offline_adp.algorithms.fqi import load_fqi
+from offline_adp.algorithms.fqi import load_fqi, structure_builds
 from offline_adp.runs import fit_run
 from offline_adp.simulate import simulate
 
@@ -30,6 +30,9 @@ MODES = {
                            "screen_trees": 2, "screen_tol": 1e9},
     "frozen_screen_grown": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
                             "screen_trees": 2, "screen_tol": 1e-12},
+    # builds at 1, 3 and 6; at gamma 0.5 the first two are early (2 trees), the last grows all 6
+    "frozen_early": {"mode": "frozen", "n_structures": 3, "gamma": 0.5, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
+                     "early_build_trees": 2},
 }
 
 
@@ -80,6 +83,10 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, pt_dir, obs, na
         assert set(trees) == ({2} if name.endswith("kept") else {6})
         np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(), trees)
         np.testing.assert_array_equal(est.history_["structure_screen"].to_numpy(), ref.history_["structure_screen"].to_numpy())
+    if name == "frozen_early":  # the early builds' smaller forests survive the interruption too
+        builds = structure_builds(ref.history_)
+        assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 2), (3, 2), (6, 6)]
+        np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(), ref.history_["structure_trees"].to_numpy())
     if tol and "horizon" not in params:  # a finite horizon runs its T steps whatever tol says
         assert ref.verdict_ == "converged" and len(ref.history_) < BASE["n_iterations"]
 

@@ -67,7 +67,8 @@ class FittedQEvaluation(FittedQIteration):
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
                          n_structures=n_structures, structure_max_samples=structure_max_samples,
-                         screen_trees=None)  # the screen is about a greedy backup's min
+                         screen_trees=None,  # the screen is about a greedy backup's min
+                         early_build_trees=None)  # every build grows the whole forest
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
                  *, deferred: bool = False):
