@@ -245,7 +245,10 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
         builds = structure_builds(hist)
         if builds:
             screened = any(b["screen"] is not None for b in builds)
-            early = getattr(est, "early_build_trees", None) is not None
+            grown = [b["trees"] for b in builds if not b["constant"] and b["trees"]]
+            early = (getattr(est, "early_build_trees", None) is not None and bool(grown)
+                     and any(b["screen"] is None and not b["constant"] and (b["trees"] or 0) < max(grown)
+                             for b in builds))  # an unscreened build grew fewer trees than another
             caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")
             lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
                          f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"

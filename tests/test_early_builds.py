@@ -8,10 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
 from offline_adp.learners import build_weight
-from offline_adp.policies import UniformPolicy
 from offline_adp.simulate import simulate
 
 
@@ -24,13 +22,14 @@ def _closed_form(s: int, e: int, gamma: float, K: int) -> float:
 @given(gamma=st.floats(0.05, 0.999), K=st.integers(2, 300), data=st.data())
 def test_weight_is_the_ratio_of_geometric_sums(gamma, K, data):
     sched = sorted(data.draw(st.sets(st.integers(1, K), min_size=1, max_size=12)) | {1})
-    k = data.draw(st.sampled_from(sched))
+    # a scheduled build, or one re-triggered the iteration after a build on constant targets
+    k = data.draw(st.sampled_from(sched)) + data.draw(st.integers(0, 1))
     w = build_weight(k, sched, gamma, K)
-    if k == sched[-1]:
+    later = [s for s in sched if s > k]
+    if not later or k >= K:
         assert w == 1.0
         return
-    nxt = min(s for s in sched if s > k)
-    expected = _closed_form(k, nxt - 1, gamma, K) / _closed_form(sched[-1], K, gamma, K)
+    expected = _closed_form(k, later[0] - 1, gamma, K) / _closed_form(sched[-1], K, gamma, K)
     assert w == pytest.approx(expected, rel=1e-9)
 
 
@@ -40,12 +39,15 @@ def test_a_later_build_weighs_more_than_an_earlier_one_of_the_same_length():
     assert w[0] < w[1] < w[2] < w[3] == 1.0
 
 
-def test_which_builds_are_early_on_the_suites_schedules():
-    # car-on-the-hill: gamma 0.95, 50 iterations, builds at 1, 13, 26, 38
-    car = [build_weight(k, [1, 13, 26, 38], 0.95, 50) for k in (1, 13, 26, 38)]
-    assert [w < 0.5 for w in car] == [True, True, True, False]
-    # CartPole at gamma 0.99 and 50 iterations: every build's error still reaches the end
-    assert all(build_weight(k, [1, 13, 26, 38], 0.99, 50) >= 0.5 for k in (1, 13, 26, 38))
+@pytest.mark.parametrize(("gamma", "K", "early"), [
+    (0.95, 50, [1, 13, 26]),  # car-on-the-hill: all but the last
+    (0.99, 50, []),  # every build's error still reaches the end
+    (0.99, 100, [1, 13, 26]),
+    (0.99, 200, [1, 13, 26, 38, 51, 63, 76, 88, 101, 113, 126]),
+])
+def test_which_builds_are_early_on_the_default_schedules(gamma, K, early):
+    sched = list(FittedQIteration(gamma=gamma, n_iterations=K)._schedule())
+    assert [k for k in sched if build_weight(k, sched, gamma, K) < 0.5] == early
 
 
 @pytest.fixture(scope="module")
@@ -64,8 +66,8 @@ def test_a_fit_grows_early_builds_small_and_the_last_whole(pt):
     builds = structure_builds(f.history_)
     sched = [b["iteration"] for b in builds]
     assert sched == [1, 6, 11, 16]
-    want = [3 if build_weight(k, sched, 0.8, 20) < 0.5 else 8 for k in sched]
-    assert [b["trees"] for b in builds] == want and want[-1] == 8 and 3 in want
+    # weights 0.035, 0.107, 0.33 and 1 (sums of 0.8^(20 - j) over each build's iterations)
+    assert [b["trees"] for b in builds] == [3, 3, 3, 8]
     full = _fit(pt, early_build_trees=None)
     assert [b["trees"] for b in structure_builds(full.history_)] == [8, 8, 8, 8]
 
@@ -82,11 +84,11 @@ def test_an_early_build_is_the_smaller_forest_it_names(pt):
     assert not np.array_equal(da[15:], ds[15:])
 
 
-def test_policy_evaluation_grows_every_build_whole(pt):
-    pi = UniformPolicy(pt.n_actions)
-    f = FittedQEvaluation(policy=pi, mode="frozen", n_iterations=20, gamma=0.8, n_structures=4,
-                          regressor_params={"n_estimators": 8, "n_jobs": 1}).fit(pt)
-    assert [b["trees"] for b in structure_builds(f.history_)] == [8, 8, 8, 8]
+def test_a_finite_horizon_grows_every_build_whole(pt):
+    """Each iterate of a finite-horizon fit is the policy at one step: nothing is damped."""
+    f = FittedQIteration(horizon=10, gamma=0.5, mode="frozen", n_structures=4, early_build_trees=2,
+                         regressor_params={"n_estimators": 6, "n_jobs": 1}).fit(pt)
+    assert {b["trees"] for b in structure_builds(f.history_) if not b["constant"]} == {6}
 
 
 @pytest.mark.parametrize("bad", [0, -1, 2.5, True, "10"])

@@ -149,6 +149,11 @@ def test_fit_cli_reports_early_builds_with_their_caveat(tmp_path, pt_dir, capsys
     assert "tree structures: 3 built (iterations 1, 3, 5), trees 2/2/5 (early builds: lost score on CartPole" in out
     builds = json.loads((tmp_path / "a" / "run.json").read_text())["structure_builds"]
     assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 2), (3, 2), (5, 5)]
+    # at gamma 0.99 no build is early: the line carries no caveat
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "b"),
+                 "--config", str(_cfg(tmp_path, "fqi", body.replace("gamma = 0.3", "gamma = 0.99")))]) == 0
+    out = capsys.readouterr().out
+    assert "trees 5/5/5\n" in out and "early builds" not in out
 
 
 def test_a_whole_float_for_an_integer_key_runs_as_that_integer(tmp_path, pt_dir):

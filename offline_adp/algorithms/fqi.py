@@ -207,10 +207,13 @@ class FittedQIteration(BaseEstimator):
         step by ``gamma^(K - j)`` (the chapter's bound on approximate value iteration), so
         a structure serving iterations ``s .. e`` weighs ``sum_{j=s..e} gamma^(K - j)``
         (:func:`~offline_adp.learners.build_weight`). The last build always grows the
-        whole forest, and ``tol`` never stops a fit before it.
+        whole forest (unless the screen keeps fewer), and ``tol`` never stops a fit before
+        it; the weights assume all K iterations run, so a fit that ``tol`` stops early has
+        damped its early builds' error less. No effect with a finite horizon, where every
+        iterate is the policy at one step.
         **Not the default because it did not hold everywhere** (docs/fqi-modes.md): with
         ``early_build_trees=10`` CartPole-v1, Acrobot-v1 and MountainCar-v0 at gamma 0.99
-        (100-200 iterations) scored as with whole builds at 0.48-0.78 of the CPU, but
+        (100-200 iterations) scored as with whole builds at 0.46-0.76 of the CPU, but
         CartPole-v1 at gamma 0.95 and 50 iterations lost on two of three data seeds
         (e.g. 275 / 465 / 228 against 347 / 464 / 349). The bound damps an early
         structure's error in the values, not in the later structures grown on the targets
@@ -467,7 +470,9 @@ class FittedQIteration(BaseEstimator):
         if self.mode_ == "frozen":
             screen = None if self.screen_trees is None else TreeScreen(int(self.screen_trees), float(self.screen_tol),
                                                                        data.gamma, ~data.train.no_boot)
-            early = (None if self.early_build_trees is None
+            # a finite horizon's every iterate is the policy at one step: no build's error is damped
+            finite = getattr(self, "horizon_", self.horizon) is not None
+            early = (None if self.early_build_trees is None or finite
                      else EarlyBuilds(int(self.early_build_trees), data.gamma, int(self.n_iterations)))
             return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self._structure_fraction(data.n, reg),
                                       screen=screen, early=early)
