@@ -374,13 +374,12 @@ class FrozenTreesLearner(Learner):
         params = model.get_params()
         full = int(params.get("n_estimators") or 0)
         e = self.early
-        if (e is not None and e.gamma < 1.0 and 0 < e.trees < full
-                and build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio):
-            model.set_params(n_estimators=e.trees)  # an early build: its error is damped before the end
-            self._adopt(_fit(model, X, grow, self.weights))
-            return
+        early = (e is not None and e.gamma < 1.0 and 0 < e.trees < full
+                 and build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio)
+        if early:  # its error is damped before the end: the forest's first trees only, unscreened
+            model.set_params(n_estimators=e.trees)
         s = self.screen
-        screen = (s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
+        screen = (not early and s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
                   and "warm_start" in params and full > s.trees)
         if not screen:
             self._adopt(_fit(model, X, grow, self.weights))
