@@ -24,11 +24,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 from sklearn.base import clone
 
+from offline_adp import extra_trees
 from offline_adp.qfunctions import (
     QEncoder,
     QFunction,
@@ -36,6 +38,7 @@ from offline_adp.qfunctions import (
     TreeEnsemble,
     TreeQ,
     predict_model,
+    sklearn_tree,
 )
 
 Query = tuple[np.ndarray, np.ndarray | None]
@@ -319,8 +322,12 @@ class FrozenTreesLearner(Learner):
 
     def __init__(self, *args: Any, restructure_at: tuple[int, ...] = (1,),
                  max_samples: float | Sequence[float | None] | None = None, screen: TreeScreen | None = None,
-                 early: EarlyBuilds | None = None, **kwargs: Any) -> None:
+                 early: EarlyBuilds | None = None, builder: str = "auto", **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        if builder not in ("auto", "sklearn"):
+            raise ValueError(f"tree_builder must be 'auto' or 'sklearn', got {builder!r}")
+        self.builder = builder
+        self.native = False  # whether the last build was grown by the compiled builder
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
         check_structure_fractions(max_samples)
@@ -381,6 +388,19 @@ class FrozenTreesLearner(Learner):
         s = self.screen
         screen = (not early and s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
                   and "warm_start" in params and full > s.trees)
+        native = (extra_trees.native_params(model, len(X), X.shape[1])
+                  if self.builder == "auto" and extra_trees.available() and _sklearn_trees_known() else None)
+        self.native = native is not None
+        if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
+            first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
+            self._adopt_grown(extra_trees.grow_trees(X, grow, self.weights, native, range(first)), X.shape[1])
+            if screen:
+                assert s is not None
+                self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
+                if not self.screen_value <= s.tol:
+                    more = extra_trees.grow_trees(X, grow, self.weights, native, range(s.trees, full))
+                    self._adopt_grown(more, X.shape[1], start=s.trees)
+            return
         if not screen:
             self._adopt(_fit(model, X, grow, self.weights))
             return
@@ -404,6 +424,16 @@ class FrozenTreesLearner(Learner):
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
         trees = [e.tree_ for e in forest.estimators_]
         self._operators(self._compiled_per_tree(trees[start:], self._roots[start:]), start=start)
+
+    def _adopt_grown(self, trees: list[extra_trees.GrownTree], n_features: int, start: int = 0) -> None:
+        """As :meth:`_adopt`, for trees from the compiled builder: held as scikit-learn
+        ``Tree`` objects set from their arrays (its compiled lookups, and the export).
+        ``start > 0``: they follow the ``start`` trees held, as a screened build grows
+        its forest."""
+        held = self._forest.estimators_[:start] if start else []
+        new = [SimpleNamespace(tree_=sklearn_tree(t.left, t.right, t.feature, t.threshold, t.value, n_features))
+               for t in trees]
+        self._adopt(SimpleNamespace(estimators_=held + new, n_features_in_=int(n_features)), start=start)
 
     def _screen_bias(self, y: np.ndarray, full: int) -> float:
         """How much the greedy targets would lose by keeping the screen's trees instead of
@@ -688,6 +718,13 @@ class FrozenTreesLearner(Learner):
         screened = last.get("structure_screen")
         self.screen_value = None if screened is None or screened != screened else float(screened)  # NaN: none
         self._pending = self.built_on_constant
+
+
+def _sklearn_trees_known() -> bool:
+    """Whether scikit-learn ``Tree`` objects can be set from arrays here (the compiled
+    builder's trees are looked up through them)."""
+    z = np.zeros(1, np.int64)
+    return sklearn_tree(z - 1, z - 1, z - 2, np.full(1, -2.0), np.zeros(1), 1) is not None
 
 
 def check_structure_fractions(value: Any) -> None:

@@ -221,28 +221,17 @@ class TreeEnsemble:
         if cached is not False:
             return cached
         trees: list[Any] | None = []
-        try:
-            from sklearn.tree._tree import Tree
-
-            bounds = np.r_[self.roots, len(self.left)]
-            n_features = int(max(self.feature.max(), 0)) + 1
-            dtype = Tree(n_features, np.array([1], dtype=np.intp), 1).__getstate__()["nodes"].dtype
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-                n = hi - lo
-                nodes = np.zeros(n, dtype=dtype)
-                leaf = self.left[lo:hi] < 0
-                nodes["left_child"] = np.where(leaf, -1, self.left[lo:hi] - lo)
-                nodes["right_child"] = np.where(leaf, -1, self.right[lo:hi] - lo)
-                nodes["feature"] = np.where(leaf, -2, self.feature[lo:hi])
-                nodes["threshold"] = np.where(leaf, -2.0, self.threshold[lo:hi])
-                nodes["n_node_samples"] = 1
-                nodes["weighted_n_node_samples"] = 1.0
-                t = Tree(n_features, np.array([1], dtype=np.intp), 1)
-                t.__setstate__({"max_depth": int(n), "node_count": int(n), "nodes": nodes,
-                                "values": self.value[lo:hi].reshape(n, 1, 1).astype(np.float64)})
-                trees.append(t)
-        except Exception:  # an unknown scikit-learn layout: fall back to numpy
-            trees = None
+        bounds = np.r_[self.roots, len(self.left)]
+        n_features = int(max(self.feature.max(), 0)) + 1
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            leaf = self.left[lo:hi] < 0
+            t = sklearn_tree(np.where(leaf, -1, self.left[lo:hi] - lo), np.where(leaf, -1, self.right[lo:hi] - lo),
+                             np.where(leaf, -2, self.feature[lo:hi]), np.where(leaf, -2.0, self.threshold[lo:hi]),
+                             self.value[lo:hi], n_features)
+            if t is None:  # an unknown scikit-learn layout: fall back to numpy
+                trees = None
+                break
+            trees.append(t)
         self._trees = trees  # type: ignore[attr-defined]
         return trees
 
@@ -271,6 +260,28 @@ class TreeEnsemble:
     @classmethod
     def from_arrays(cls, arrays: Any, prefix: str = "") -> TreeEnsemble:
         return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})
+
+
+def sklearn_tree(left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold: np.ndarray, value: np.ndarray,
+                 n_features: int) -> Any:
+    """A scikit-learn ``Tree`` from one tree's arrays (local node ids; leaves: children -1,
+    feature -2), for its compiled ``apply``: plain numbers set through its state, no code
+    from any file. None if this scikit-learn's tree state layout is not the one we know."""
+    try:
+        from sklearn.tree._tree import Tree
+
+        n = len(left)
+        t = Tree(int(n_features), np.array([1], dtype=np.intp), 1)
+        nodes = np.zeros(n, dtype=t.__getstate__()["nodes"].dtype)
+        nodes["left_child"], nodes["right_child"] = left, right
+        nodes["feature"], nodes["threshold"] = feature, threshold
+        nodes["n_node_samples"] = 1
+        nodes["weighted_n_node_samples"] = 1.0
+        t.__setstate__({"max_depth": int(n), "node_count": int(n), "nodes": nodes,
+                        "values": np.asarray(value, dtype=np.float64).reshape(n, 1, 1)})
+        return t
+    except Exception:
+        return None
 
 
 def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:

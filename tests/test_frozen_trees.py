@@ -45,7 +45,7 @@ def test_a_structure_rebuilt_every_iteration_from_all_rows_is_the_refit_loop():
     ds = _continuous()
     kw = dict(gamma=0.9, n_iterations=4, regressor_params=TREES, random_state=2)
     refit = FittedQIteration(mode="refit", **kw).fit(ds)
-    frozen = FittedQIteration(mode="frozen", n_structures=4, **kw).fit(ds)
+    frozen = FittedQIteration(mode="frozen", n_structures=4, tree_builder="sklearn", **kw).fit(ds)
     obs = np.random.default_rng(5).normal(size=(50, 2)) * 0.5
     assert list(frozen.history_["structure"]) == [1, 2, 3, 4]
     np.testing.assert_allclose(frozen.predict(obs), refit.predict(obs), rtol=0, atol=1e-9)

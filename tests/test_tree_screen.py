@@ -10,16 +10,19 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from offline_adp import TransitionDataset
+from offline_adp import TransitionDataset, extra_trees
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.learners import greedy_min_bias
+from offline_adp.qfunctions import sklearn_tree
 from offline_adp.regressors import make_regressor
 
 
@@ -61,7 +64,7 @@ def test_min_bias_shape():
 
 
 def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: int, seed: int,
-                  w: np.ndarray | None) -> float:
+                  w: np.ndarray | None, builder: str = "sklearn") -> float:
     """The screen of the first build (k = 1, targets = costs), tree by tree from scikit-learn,
     state by state: the best action against each other one, summed; weighted mean over the
     non-terminal next states; times 1 / (1 - gamma); over the weighted std of the costs."""
@@ -71,10 +74,17 @@ def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: in
     y = a.cost
     w = np.ones(len(y)) if w is None else w
     forest = make_regressor("extra_trees", n_estimators=m, n_jobs=1).set_params(random_state=seed + 1)
-    forest.fit(X, y, sample_weight=w)
+    if builder == "sklearn":
+        trees = forest.fit(X, y, sample_weight=w).estimators_
+    else:  # the compiled builder's trees, looked up through scikit-learn trees set from their arrays
+        grown = extra_trees.grow_trees(X, y, w, extra_trees.native_params(forest, *X.shape))
+        trees = [SimpleNamespace(tree_=sklearn_tree(g.left, g.right, g.feature, g.threshold, g.value, X.shape[1]))
+                 for g in grown]
+        for t in trees:
+            t.apply = t.tree_.apply
     A = enc.n_actions
     per_tree = np.empty((m, len(a.obs), A))
-    for t, tree in enumerate(forest.estimators_):
+    for t, tree in enumerate(trees):
         leaf = tree.apply(X.astype(np.float32))
         total = np.bincount(leaf, weights=w * y, minlength=tree.tree_.node_count)
         mass = np.bincount(leaf, weights=w, minlength=tree.tree_.node_count)
@@ -95,16 +105,17 @@ def _brute_screen(ds: TransitionDataset, est: FittedQIteration, m: int, full: in
     return float(np.average(short, weights=w[rows]) / (1 - est.gamma_) / np.sqrt(np.average((y - mu) ** 2, weights=w)))
 
 
+@pytest.mark.parametrize("builder", ["auto", "sklearn"])
 @pytest.mark.parametrize("weighted", [False, True])
 @pytest.mark.parametrize("n_actions", [2, 3])
-def test_the_recorded_screen_is_the_brute_force_one(n_actions, weighted):
+def test_the_recorded_screen_is_the_brute_force_one(n_actions, weighted, builder):
     ds = _walk(n_actions=n_actions)
     w = np.random.default_rng(1).uniform(0.2, 3.0, len(ds)) if weighted else None
     est = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
-                           screen_trees=3, screen_tol=1e9, random_state=5).fit(ds, sample_weight=w)
+                           screen_trees=3, screen_tol=1e9, random_state=5, tree_builder=builder).fit(ds, sample_weight=w)
     row = est.history_.iloc[0]
     assert row["structure_trees"] == 3
-    assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5, w), rel=1e-9)
+    assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5, w, builder), rel=1e-9)
 
 
 def test_growing_the_whole_forest_is_the_unscreened_fit_and_keeping_is_a_smaller_forest():

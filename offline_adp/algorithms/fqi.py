@@ -290,6 +290,7 @@ class FittedQIteration(BaseEstimator):
         screen_trees: int | None = None,
         screen_tol: float = 0.005,
         early_build_trees: int | None = None,
+        tree_builder: str = "auto",
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -316,6 +317,7 @@ class FittedQIteration(BaseEstimator):
         self.screen_trees = screen_trees
         self.screen_tol = screen_tol
         self.early_build_trees = early_build_trees
+        self.tree_builder = tree_builder
 
     # ------------------------------------------------------------------ public API
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
@@ -402,6 +404,8 @@ class FittedQIteration(BaseEstimator):
                                                    or not isinstance(self.early_build_trees, int | np.integer)
                                                    or self.early_build_trees < 1):
             raise ValueError(f"early_build_trees must be an integer >= 1 or None, got {self.early_build_trees!r}")
+        if self.tree_builder not in ("auto", "sklearn"):
+            raise ValueError(f"tree_builder must be 'auto' or 'sklearn', got {self.tree_builder!r}")
         if self.screen_trees is not None and (isinstance(self.screen_trees, bool)
                                               or not isinstance(self.screen_trees, int | np.integer)
                                               or self.screen_trees < 2):
@@ -475,7 +479,7 @@ class FittedQIteration(BaseEstimator):
             early = (None if self.early_build_trees is None or finite
                      else EarlyBuilds(int(self.early_build_trees), data.gamma, int(self.n_iterations)))
             return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self._structure_fraction(data.n, reg),
-                                      screen=screen, early=early)
+                                      screen=screen, early=early, builder=self.tree_builder)
         if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "

@@ -1,0 +1,384 @@
+"""Extremely randomized regression trees, grown by a compiled builder.
+
+Geurts, Ernst & Wehenkel (2006), "Extremely randomized trees", Machine Learning 63,
+Algorithm 1 (``Build_an_extra_tree``), as scikit-learn's ``ExtraTreesRegressor`` grows
+them; Ernst, Geurts & Wehenkel (2005) use these trees in fitted Q-iteration. A node of
+``m`` rows with targets ``y`` and weights ``w`` splits, unless it is a leaf
+(``m < min_samples_split``, ``m < 2 min_samples_leaf``, the depth reached ``max_depth``,
+or the targets are constant: weighted variance <= machine epsilon), as follows::
+
+    draw features in random order (without replacement); for each, until
+    max_features were drawn and at least one was not constant:
+        skip it if constant on the node (max - min <= 1e-7)
+        cut  t_f ~ Uniform[min_f, max_f)          (t_f = min_f if the draw lands on max_f)
+        score(f) = S_L^2 / W_L + S_R^2 / W_R       (S: sum of w y, W: sum of w on each side;
+                                                    the variance reduction up to a constant)
+    split on the feature of highest score (a side with fewer than min_samples_leaf rows
+    disqualifies a cut); the node's value is the weighted mean of y.
+
+Rows with weight 0 are left out (a bootstrap sample is the rows' draw counts as
+weights, as in scikit-learn). Inputs are compared as float32, as scikit-learn does, so
+a tree reads the same inputs the same way in either implementation.
+
+Why a second implementation: the frozen-structure mode of fitted Q-iteration
+(:class:`offline_adp.learners.FrozenTreesLearner`) spends most of its time growing
+structures, and this builder grows the same trees (the same algorithm and defaults; not
+the same random draws) at about a third of scikit-learn's CPU on car-on-the-hill's
+56k rows (``benchmarks/tree_builder.py``). The statistical equivalence is tested against
+scikit-learn (``tests/test_extra_trees.py``). Everything else (refit, any other
+regressor or setting) uses scikit-learn.
+
+The kernel is compiled by numba on first use (a few seconds, cached on disk after).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: scikit-learn's constants: a feature is constant on a node when max - min <= this
+FEATURE_THRESHOLD = 1e-7
+_EPSILON = float(np.finfo(np.float64).eps)  # a node is pure when its variance is <= this
+
+# fast-math lets the compiler vectorise the scans (reassociated sums, min/max without NaN
+# semantics): the kernel uses no NaN or infinity, and its inputs are checked finite first
+_FAST = True
+
+
+@dataclass(frozen=True)
+class TreeParams:
+    """The settings of one forest, resolved for its data (what :func:`grow_trees` reads)."""
+
+    n_estimators: int
+    max_features: int
+    min_samples_split: int
+    min_samples_leaf: int
+    max_depth: int
+    bootstrap: bool
+    n_bootstrap: int  # rows drawn per tree when bootstrapping
+    random_state: int
+    n_jobs: int
+
+
+@dataclass(frozen=True)
+class GrownTree:
+    """One tree as arrays (local node ids; leaves have ``left == -1``) and the leaf of
+    each training row (-1: a row with weight 0, not in the tree)."""
+
+    left: np.ndarray
+    right: np.ndarray
+    feature: np.ndarray
+    threshold: np.ndarray
+    value: np.ndarray
+    train_leaf: np.ndarray
+
+
+_UNSUPPORTED_DEFAULTS = {"criterion": "squared_error", "max_leaf_nodes": None, "min_impurity_decrease": 0.0,
+                         "min_weight_fraction_leaf": 0.0, "ccp_alpha": 0.0, "monotonic_cst": None, "oob_score": False}
+
+
+def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | None:
+    """The compiled builder's settings for ``regressor`` on ``n_rows`` x ``n_features``
+    inputs, or None when it does not apply: anything but a plain scikit-learn
+    ``ExtraTreesRegressor``, or one with a setting the builder does not implement
+    (criterion other than squared error, ``max_leaf_nodes``, ``min_impurity_decrease``,
+    ``min_weight_fraction_leaf``, ``ccp_alpha``, ``monotonic_cst``, ``oob_score``)."""
+    from sklearn.ensemble import ExtraTreesRegressor
+
+    if type(regressor) is not ExtraTreesRegressor:
+        return None
+    p = regressor.get_params()
+    for key, default in _UNSUPPORTED_DEFAULTS.items():
+        if key in p and p[key] != default and not (default == 0.0 and p[key] == 0):
+            return None
+    seed = p.get("random_state")
+    if not isinstance(seed, int | np.integer):  # None or a RandomState: scikit-learn's own draws
+        return None
+    mf = p.get("max_features", 1.0)
+    if mf is None:
+        k = n_features
+    elif mf == "sqrt":
+        k = max(1, int(math.sqrt(n_features)))
+    elif mf == "log2":
+        k = max(1, int(math.log2(n_features)))
+    elif isinstance(mf, int | np.integer) and not isinstance(mf, bool):
+        k = int(mf)
+    elif isinstance(mf, float):
+        k = max(1, int(mf * n_features))
+    else:
+        return None
+    mss, msl = p.get("min_samples_split", 2), p.get("min_samples_leaf", 1)
+    mss = int(mss) if isinstance(mss, int | np.integer) else max(2, math.ceil(float(mss) * n_rows))
+    msl = int(msl) if isinstance(msl, int | np.integer) else max(1, math.ceil(float(msl) * n_rows))
+    depth = p.get("max_depth")
+    ms = p.get("max_samples")
+    n_boot = n_rows if ms is None else (int(ms) if isinstance(ms, int | np.integer) else max(1, round(float(ms) * n_rows)))
+    jobs = p.get("n_jobs") or 1
+    jobs = max(1, (os.cpu_count() or 1) + 1 + int(jobs)) if jobs < 0 else int(jobs)
+    return TreeParams(n_estimators=int(p["n_estimators"]), max_features=max(1, min(k, n_features)),
+                      min_samples_split=max(2, mss), min_samples_leaf=max(1, msl),
+                      max_depth=2**31 - 1 if depth is None else int(depth), bootstrap=bool(p.get("bootstrap")),
+                      n_bootstrap=n_boot, random_state=int(seed), n_jobs=jobs)
+
+
+def tree_seeds(random_state: int, t: int) -> tuple[int, np.random.Generator]:
+    """Tree ``t``'s seed for the kernel's draws and its bootstrap generator: functions of
+    ``(random_state, t)`` only, so the first trees of a forest are the same whatever its
+    size (a forest grown in two steps equals one grown at once)."""
+    ss = np.random.SeedSequence([int(random_state) & 0xFFFFFFFF, int(t)])
+    kernel_seed, boot_seed = ss.generate_state(2)
+    return int(kernel_seed), np.random.default_rng(int(boot_seed))
+
+
+def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, params: TreeParams,
+               trees: range | None = None) -> list[GrownTree]:
+    """Grow trees ``trees`` (default: all ``params.n_estimators``) of the forest on ``(X, y)``.
+
+    ``X`` is read as float32 (as scikit-learn does), ``y`` and the weights as float64;
+    all three must be finite (ValueError otherwise). Trees are grown in ``params.n_jobs``
+    threads (the kernel releases the GIL); the result does not depend on the threads.
+    """
+    X32 = np.ascontiguousarray(X, dtype=np.float32)
+    y = np.asarray(y, dtype=np.float64).ravel()
+    n, d = X32.shape
+    if len(y) != n:
+        raise ValueError(f"X has {n} rows, y has {len(y)}")
+    w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64).ravel()
+    if len(w) != n:
+        raise ValueError(f"X has {n} rows, sample_weight has {len(w)}")
+    for name, a in (("X", X32), ("y", y), ("sample_weight", w)):
+        if not np.isfinite(a).all():
+            raise ValueError(f"the extra-trees builder needs finite {name}")
+    if (w < 0).any():
+        raise ValueError("sample_weight must be >= 0")
+    trees = range(params.n_estimators) if trees is None else trees
+    base = np.empty((n, d + 3))  # rows: x (float32 values), y, w, original index
+    base[:, :d] = X32
+    base[:, d], base[:, d + 1], base[:, d + 2] = y, w, np.arange(n)
+
+    def one(t: int) -> GrownTree:
+        seed, rng = tree_seeds(params.random_state, t)
+        weight = w
+        if params.bootstrap:
+            weight = w * np.bincount(rng.integers(0, n, params.n_bootstrap), minlength=n)
+        keep = np.flatnonzero(weight > 0)
+        R = base[keep] if len(keep) < n else base.copy()
+        R[:, d + 1] = weight[keep]
+        size = max(2 * len(keep) - 1, 1)
+        left, right = np.empty(size, np.int64), np.empty(size, np.int64)
+        feature, threshold, value = np.empty(size, np.int64), np.empty(size), np.empty(size)
+        train_leaf = np.full(n, -1, np.int64)
+        weighted = bool((weight[keep] != 1.0).any())
+        count = _grow(R, d, weighted, params.max_features, params.min_samples_split, params.min_samples_leaf,
+                      params.max_depth, seed, left, right, feature, threshold, value, train_leaf)
+        return GrownTree(left[:count].copy(), right[:count].copy(), feature[:count].copy(), threshold[:count].copy(),
+                         value[:count].copy(), train_leaf)
+
+    if params.n_jobs <= 1 or len(trees) <= 1:
+        return [one(t) for t in trees]
+    with ThreadPoolExecutor(max_workers=min(params.n_jobs, len(trees))) as pool:
+        return list(pool.map(one, trees))
+
+
+# ----------------------------------------------------------------------------- the kernel
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a dependency; without it, scikit-learn grows the trees
+    numba = None
+
+
+def available() -> bool:
+    """Whether the compiled builder can run here (numba imports)."""
+    return numba is not None
+
+
+def warm_up() -> float:
+    """Compile the kernel (or load it from numba's on-disk cache) by growing one tiny
+    tree; returns the CPU seconds it took (a few seconds the first time on a machine,
+    a fraction of a second after)."""
+    import time
+
+    t = time.process_time()
+    if available():
+        rng = np.random.default_rng(0)
+        grow_trees(rng.random((8, 2)), rng.random(8), None, TreeParams(1, 2, 2, 1, 2**31 - 1, False, 8, 0, 1))
+    return time.process_time() - t
+
+
+def _kernel(fn: Any, **options: Any) -> Any:
+    return numba.njit(**options)(fn) if numba is not None else fn
+
+
+def _minmax4(R: Any, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int) -> Any:
+    """Min and max of four columns over rows [lo, hi), in one pass."""
+    a0 = R[lo, f0]; b0 = a0; a1 = R[lo, f1]; b1 = a1; a2 = R[lo, f2]; b2 = a2; a3 = R[lo, f3]; b3 = a3  # noqa: E702
+    for i in range(lo + 1, hi):
+        v0 = R[i, f0]; v1 = R[i, f1]; v2 = R[i, f2]; v3 = R[i, f3]  # noqa: E702
+        a0 = min(a0, v0); b0 = max(b0, v0); a1 = min(a1, v1); b1 = max(b1, v1)  # noqa: E702
+        a2 = min(a2, v2); b2 = max(b2, v2); a3 = min(a3, v3); b3 = max(b3, v3)  # noqa: E702
+    return a0, b0, a1, b1, a2, b2, a3, b3
+
+
+def _left_sums4(R: Any, d: int, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int,
+                t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, ql: Any, nl: Any) -> None:
+    """For four (column, cut) pairs, over rows [lo, hi) with ``x <= cut``: sum of w y,
+    sum of w, sum of w y^2 and the row count, in one pass, into entries j..j+3 of
+    ``sl``, ``wl``, ``ql`` and ``nl``."""
+    s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0; w0 = 0.0; w1 = 0.0; w2 = 0.0; w3 = 0.0  # noqa: E702
+    q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
+    for i in range(lo, hi):
+        wi = R[i, d + 1]; wy = wi * R[i, d]; wyy = wy * R[i, d]  # noqa: E702
+        c = R[i, f0] <= t0; s0 += wy if c else 0.0; w0 += wi if c else 0.0; q0 += wyy if c else 0.0; n0 += c  # noqa: E702
+        c = R[i, f1] <= t1; s1 += wy if c else 0.0; w1 += wi if c else 0.0; q1 += wyy if c else 0.0; n1 += c  # noqa: E702
+        c = R[i, f2] <= t2; s2 += wy if c else 0.0; w2 += wi if c else 0.0; q2 += wyy if c else 0.0; n2 += c  # noqa: E702
+        c = R[i, f3] <= t3; s3 += wy if c else 0.0; w3 += wi if c else 0.0; q3 += wyy if c else 0.0; n3 += c  # noqa: E702
+    sl[j] = s0; sl[j + 1] = s1; sl[j + 2] = s2; sl[j + 3] = s3  # noqa: E702
+    wl[j] = w0; wl[j + 1] = w1; wl[j + 2] = w2; wl[j + 3] = w3  # noqa: E702
+    ql[j] = q0; ql[j + 1] = q1; ql[j + 2] = q2; ql[j + 3] = q3  # noqa: E702
+    nl[j] = n0; nl[j + 1] = n1; nl[j + 2] = n2; nl[j + 3] = n3  # noqa: E702
+
+
+def _left_sums4_unweighted(R: Any, d: int, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int,
+                           t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, ql: Any,
+                           nl: Any) -> None:
+    """:func:`_left_sums4` when every weight is 1 (sum of w = the row count)."""
+    s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0; q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0  # noqa: E702
+    n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
+    for i in range(lo, hi):
+        yi = R[i, d]; yy = yi * yi  # noqa: E702
+        c = R[i, f0] <= t0; s0 += yi if c else 0.0; q0 += yy if c else 0.0; n0 += c  # noqa: E702
+        c = R[i, f1] <= t1; s1 += yi if c else 0.0; q1 += yy if c else 0.0; n1 += c  # noqa: E702
+        c = R[i, f2] <= t2; s2 += yi if c else 0.0; q2 += yy if c else 0.0; n2 += c  # noqa: E702
+        c = R[i, f3] <= t3; s3 += yi if c else 0.0; q3 += yy if c else 0.0; n3 += c  # noqa: E702
+    sl[j] = s0; sl[j + 1] = s1; sl[j + 2] = s2; sl[j + 3] = s3  # noqa: E702
+    ql[j] = q0; ql[j + 1] = q1; ql[j + 2] = q2; ql[j + 3] = q3  # noqa: E702
+    nl[j] = n0; nl[j + 1] = n1; nl[j + 2] = n2; nl[j + 3] = n3  # noqa: E702
+    wl[j] = n0; wl[j + 1] = n1; wl[j + 2] = n2; wl[j + 3] = n3  # noqa: E702
+
+
+_minmax4 = _kernel(_minmax4, inline="always", fastmath=_FAST)
+_left_sums4_unweighted = _kernel(_left_sums4_unweighted, inline="always", fastmath=_FAST)
+_left_sums4 = _kernel(_left_sums4, inline="always", fastmath=_FAST)
+
+
+def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min_leaf: int, max_depth: int,
+          seed: int, left: Any, right: Any, feature: Any, threshold: Any, value: Any, train_leaf: Any) -> int:
+    """Grow one tree depth-first on the rows of ``R`` (x_0..x_{d-1}, y, w, original index;
+    reordered in place so that each node's rows are contiguous) into the node arrays;
+    returns the node count. Node 0 is the root."""
+    n = R.shape[0]
+    width = R.shape[1]
+    np.random.seed(seed)
+    blocks = (d + 3) // 4
+    cand = np.empty(4 * blocks, np.int64)  # candidate features of a node (padded by repeating the last)
+    cut = np.empty(4 * blocks)
+    lo_x = np.empty(d)
+    hi_x = np.empty(d)
+    order = np.arange(d)
+    sl = np.empty(4 * blocks); wl = np.empty(4 * blocks); ql = np.empty(4 * blocks)  # noqa: E702
+    nl = np.empty(4 * blocks, np.int64)
+    stack = np.empty((n + 2, 4), np.int64)  # node, lo, hi, depth (depth-first: at most depth + 1 entries)
+    sums = np.empty((n + 2, 3))  # sum w y, sum w, sum w y^2 of the node's rows
+    s = 0.0; W = 0.0; q = 0.0  # noqa: E702
+    for i in range(n):
+        wy = R[i, d + 1] * R[i, d]
+        s += wy; W += R[i, d + 1]; q += wy * R[i, d]  # noqa: E702
+    stack[0, 0] = 0; stack[0, 1] = 0; stack[0, 2] = n; stack[0, 3] = 0  # noqa: E702
+    sums[0, 0] = s; sums[0, 1] = W; sums[0, 2] = q  # noqa: E702
+    top = 1
+    count = 1
+    while top > 0:
+        top -= 1
+        node = stack[top, 0]; lo = stack[top, 1]; hi = stack[top, 2]; depth = stack[top, 3]  # noqa: E702
+        s = sums[top, 0]; W = sums[top, 1]; q = sums[top, 2]  # noqa: E702
+        m = hi - lo
+        mean = s / W if W > 0 else 0.0
+        value[node] = mean
+        best = -1
+        if m >= min_split and m >= 2 * min_leaf and depth < max_depth and q / W - mean * mean > 2.220446049250313e-16:
+            for b in range(blocks):  # every feature's range on the node
+                j = 4 * b
+                r = _minmax4(R, lo, hi, min(j, d - 1), min(j + 1, d - 1), min(j + 2, d - 1), min(j + 3, d - 1))
+                for k in range(4):
+                    if j + k < d:
+                        lo_x[j + k] = r[2 * k]
+                        hi_x[j + k] = r[2 * k + 1]
+            found = 0  # features drawn in random order until max_features drawn and one not constant
+            visited = 0
+            constants = 0
+            for j in range(d):
+                if visited >= max_features and visited > constants:
+                    break
+                r_ = j + min(int(np.random.random() * (d - j)), d - j - 1)
+                f = order[r_]; order[r_] = order[j]; order[j] = f  # noqa: E702
+                visited += 1
+                if hi_x[f] <= lo_x[f] + 1e-7:
+                    constants += 1
+                    continue
+                t = lo_x[f] + (hi_x[f] - lo_x[f]) * np.random.random()
+                if t >= hi_x[f]:
+                    t = lo_x[f]
+                cand[found] = f
+                cut[found] = t
+                found += 1
+            if found > 0:
+                for k in range(found, 4 * blocks):
+                    cand[k] = cand[found - 1]
+                    cut[k] = cut[found - 1]
+                for b in range((found + 3) // 4):
+                    j = 4 * b
+                    if weighted:
+                        _left_sums4(R, d, lo, hi, cand[j], cand[j + 1], cand[j + 2], cand[j + 3],
+                                    cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, ql, nl)
+                    else:
+                        _left_sums4_unweighted(R, d, lo, hi, cand[j], cand[j + 1], cand[j + 2], cand[j + 3],
+                                               cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, ql, nl)
+                score = -1.0  # a score is >= 0
+                for k in range(found):
+                    if nl[k] < min_leaf or m - nl[k] < min_leaf or wl[k] <= 0.0 or W - wl[k] <= 0.0:
+                        continue
+                    sr = s - sl[k]
+                    v = sl[k] * sl[k] / wl[k] + sr * sr / (W - wl[k])
+                    if v > score:
+                        score = v
+                        best = k
+            if best >= 0:
+                f = cand[best]
+                t = cut[best]
+                i = lo
+                j = hi - 1
+                while True:  # rows with x_f <= t first
+                    while i <= j and R[i, f] <= t:
+                        i += 1
+                    while i <= j and R[j, f] > t:
+                        j -= 1
+                    if i >= j:
+                        break
+                    for c in range(width):
+                        tmp = R[i, c]; R[i, c] = R[j, c]; R[j, c] = tmp  # noqa: E702
+                    i += 1
+                    j -= 1
+                mid = lo + nl[best]
+                a = count; b_ = count + 1  # noqa: E702
+                count += 2
+                feature[node] = f; threshold[node] = t; left[node] = a; right[node] = b_  # noqa: E702
+                stack[top, 0] = b_; stack[top, 1] = mid; stack[top, 2] = hi; stack[top, 3] = depth + 1  # noqa: E702
+                sums[top, 0] = s - sl[best]; sums[top, 1] = W - wl[best]; sums[top, 2] = q - ql[best]  # noqa: E702
+                top += 1
+                stack[top, 0] = a; stack[top, 1] = lo; stack[top, 2] = mid; stack[top, 3] = depth + 1  # noqa: E702
+                sums[top, 0] = sl[best]; sums[top, 1] = wl[best]; sums[top, 2] = ql[best]  # noqa: E702
+                top += 1
+                continue
+        feature[node] = -2; threshold[node] = -2.0; left[node] = -1; right[node] = -1  # noqa: E702
+        for i in range(lo, hi):
+            train_leaf[np.int64(R[i, d + 2])] = node
+    return count
+
+
+_grow = _kernel(_grow, cache=True, nogil=True, fastmath=_FAST)
+
