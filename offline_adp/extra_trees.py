@@ -14,7 +14,11 @@ or the targets are constant: weighted variance <= machine epsilon), as follows::
         score(f) = S_L^2 / W_L + S_R^2 / W_R       (S: sum of w y, W: sum of w on each side;
                                                     the variance reduction up to a constant)
     split on the feature of highest score (a side with fewer than min_samples_leaf rows
-    disqualifies a cut); the node's value is the weighted mean of y.
+    disqualifies a cut; equal scores, common in nodes of two or three rows, go to one of
+    them uniformly at random, as scikit-learn's random feature order does); the node's
+    value is the weighted mean of y. When every feature is drawn (max_features >= d, the
+    default), the cuts are drawn in feature order: the same distribution without a
+    shuffle per node.
 
 Rows with weight 0 are left out (a bootstrap sample is the rows' draw counts as
 weights, as in scikit-learn). Inputs are compared as float32, as scikit-learn does, so
@@ -65,17 +69,64 @@ class TreeParams:
     n_jobs: int
 
 
+#: the node record the kernel writes: scikit-learn's ``Tree`` node layout where this
+#: scikit-learn has the one we know (then a tree is handed to scikit-learn without a copy
+#: field by field), else the same fields in a record of our own
+_OWN_NODE = np.dtype([("left_child", np.int64), ("right_child", np.int64), ("feature", np.int64),
+                      ("threshold", np.float64), ("impurity", np.float64), ("n_node_samples", np.int64),
+                      ("weighted_n_node_samples", np.float64)])
+_NODE_INTS = ("left_child", "right_child", "feature", "n_node_samples")
+_NODE_FLOATS = ("threshold", "impurity", "weighted_n_node_samples")
+
+
+def node_dtype() -> np.dtype:
+    """scikit-learn's tree node record if every field we write is an aligned 8-byte
+    integer or float in it, else our own record with those fields."""
+    global _NODE
+    if _NODE is None:
+        try:
+            from sklearn.tree._tree import Tree
+
+            dt = Tree(1, np.array([1], dtype=np.intp), 1).__getstate__()["nodes"].dtype
+            ok = dt.itemsize % 8 == 0 and all(
+                name in dt.fields and dt.fields[name][1] % 8 == 0
+                and dt.fields[name][0] == (np.dtype(np.int64) if name in _NODE_INTS else np.dtype(np.float64))
+                for name in _NODE_INTS + _NODE_FLOATS)
+            _NODE = dt if ok else _OWN_NODE
+        except Exception:
+            _NODE = _OWN_NODE
+    return _NODE
+
+
+_NODE: np.dtype | None = None
+
+
 @dataclass(frozen=True)
 class GrownTree:
-    """One tree as arrays (local node ids; leaves have ``left == -1``) and the leaf of
-    each training row (-1: a row with weight 0, not in the tree)."""
+    """One tree: its node records (:func:`node_dtype`; local node ids, leaves have
+    ``left_child == -1`` and ``feature == -2``), each node's value (the weighted mean of
+    its rows' targets) and the leaf of each training row (int32; -1: a row with weight 0,
+    not in the tree)."""
 
-    left: np.ndarray
-    right: np.ndarray
-    feature: np.ndarray
-    threshold: np.ndarray
+    nodes: np.ndarray
     value: np.ndarray
     train_leaf: np.ndarray
+
+    @property
+    def left(self) -> np.ndarray:
+        return self.nodes["left_child"]
+
+    @property
+    def right(self) -> np.ndarray:
+        return self.nodes["right_child"]
+
+    @property
+    def feature(self) -> np.ndarray:
+        return self.nodes["feature"]
+
+    @property
+    def threshold(self) -> np.ndarray:
+        return self.nodes["threshold"]
 
 
 _UNSUPPORTED_DEFAULTS = {"criterion": "squared_error", "max_leaf_nodes": None, "min_impurity_decrease": 0.0,
@@ -136,12 +187,14 @@ def tree_seeds(random_state: int, t: int) -> tuple[int, np.random.Generator]:
 
 
 def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, params: TreeParams,
-               trees: range | None = None) -> list[GrownTree]:
+               trees: range | None = None, finish: Any = None) -> list[Any]:
     """Grow trees ``trees`` (default: all ``params.n_estimators``) of the forest on ``(X, y)``.
 
     ``X`` is read as float32 (as scikit-learn does), ``y`` and the weights as float64;
     all three must be finite (ValueError otherwise). Trees are grown in ``params.n_jobs``
     threads (the kernel releases the GIL); the result does not depend on the threads.
+    ``finish(tree)``, if given, is applied to each tree in its thread and its result
+    returned instead (so a tree's full-size buffers are freed as soon as it is grown).
     """
     X32 = np.ascontiguousarray(X, dtype=np.float32)
     y = np.asarray(y, dtype=np.float64).ravel()
@@ -170,14 +223,17 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
         R = base[keep] if len(keep) < n else base.copy()
         R[:, d + 1] = weight[keep]
         size = max(2 * len(keep) - 1, 1)
-        left, right = np.empty(size, np.int64), np.empty(size, np.int64)
-        feature, threshold, value = np.empty(size, np.int64), np.empty(size), np.empty(size)
-        train_leaf = np.full(n, -1, np.int64)
+        dt = node_dtype()
+        nodes = np.zeros(size, dt)
+        ints, floats = nodes.view(np.int64).reshape(size, -1), nodes.view(np.float64).reshape(size, -1)
+        cols = np.array([dt.fields[k][1] // 8 for k in _NODE_INTS + _NODE_FLOATS], np.int64)
+        value = np.empty(size)
+        train_leaf = np.full(n, -1, np.int32)
         weighted = bool((weight[keep] != 1.0).any())
         count = _grow(R, d, weighted, params.max_features, params.min_samples_split, params.min_samples_leaf,
-                      params.max_depth, seed, left, right, feature, threshold, value, train_leaf)
-        return GrownTree(left[:count].copy(), right[:count].copy(), feature[:count].copy(), threshold[:count].copy(),
-                         value[:count].copy(), train_leaf)
+                      params.max_depth, seed, ints, floats, cols, value, train_leaf)
+        tree = GrownTree(nodes[:count], value[:count], train_leaf)
+        return finish(tree) if finish is not None else GrownTree(tree.nodes.copy(), tree.value.copy(), train_leaf)
 
     if params.n_jobs <= 1 or len(trees) <= 1:
         return [one(t) for t in trees]
@@ -267,10 +323,14 @@ _left_sums4 = _kernel(_left_sums4, inline="always", fastmath=_FAST)
 
 
 def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min_leaf: int, max_depth: int,
-          seed: int, left: Any, right: Any, feature: Any, threshold: Any, value: Any, train_leaf: Any) -> int:
+          seed: int, ints: Any, floats: Any, cols: Any, value: Any, train_leaf: Any) -> int:
     """Grow one tree depth-first on the rows of ``R`` (x_0..x_{d-1}, y, w, original index;
-    reordered in place so that each node's rows are contiguous) into the node arrays;
-    returns the node count. Node 0 is the root."""
+    reordered in place so that each node's rows are contiguous) into the node records
+    (seen as 8-byte integers ``ints`` and floats ``floats``; ``cols``: the slots of
+    left_child, right_child, feature, n_node_samples, threshold, impurity,
+    weighted_n_node_samples) and ``value``; returns the node count. Node 0 is the root."""
+    c_left = cols[0]; c_right = cols[1]; c_feat = cols[2]; c_n = cols[3]  # noqa: E702
+    c_thr = cols[4]; c_imp = cols[5]; c_w = cols[6]  # noqa: E702
     n = R.shape[0]
     width = R.shape[1]
     np.random.seed(seed)
@@ -299,8 +359,41 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
         m = hi - lo
         mean = s / W if W > 0 else 0.0
         value[node] = mean
+        var = q / W - mean * mean if W > 0 else 0.0
+        ints[node, c_n] = m
+        floats[node, c_w] = W
+        floats[node, c_imp] = max(var, 0.0)
         best = -1
-        if m >= min_split and m >= 2 * min_leaf and depth < max_depth and q / W - mean * mean > 2.220446049250313e-16:
+        if m == 2 and min_split <= 2 and min_leaf == 1 and depth < max_depth and var > 2.220446049250313e-16:
+            # two rows (a third of all splits): every cut on a feature where they differ
+            # separates them with the same score, so the split is on one of those
+            # features uniformly (the tie-break below), at a uniform cut
+            differ = 0
+            for f in range(d):
+                differ += abs(R[lo, f] - R[lo + 1, f]) > 1e-7
+            if differ > 0:
+                pick = min(int(np.random.random() * differ), differ - 1)
+                f = 0
+                for g in range(d):
+                    if abs(R[lo, g] - R[lo + 1, g]) > 1e-7:
+                        if pick == 0:
+                            f = g
+                            break
+                        pick -= 1
+                a_x = min(R[lo, f], R[lo + 1, f])
+                b_x = max(R[lo, f], R[lo + 1, f])
+                t = a_x + (b_x - a_x) * np.random.random()
+                if t >= b_x:
+                    t = a_x
+                first = lo if R[lo, f] <= t else lo + 1
+                cand[0] = f
+                cut[0] = t
+                wl[0] = R[first, d + 1]
+                sl[0] = wl[0] * R[first, d]
+                ql[0] = sl[0] * R[first, d]
+                nl[0] = 1
+                best = 0
+        elif m >= min_split and m >= 2 * min_leaf and depth < max_depth and var > 2.220446049250313e-16:
             for b in range(blocks):  # every feature's range on the node
                 j = 4 * b
                 r = _minmax4(R, lo, hi, min(j, d - 1), min(j + 1, d - 1), min(j + 2, d - 1), min(j + 3, d - 1))
@@ -311,11 +404,15 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
             found = 0  # features drawn in random order until max_features drawn and one not constant
             visited = 0
             constants = 0
+            every = max_features >= d  # all features drawn: their order only breaks ties (below)
             for j in range(d):
                 if visited >= max_features and visited > constants:
                     break
-                r_ = j + min(int(np.random.random() * (d - j)), d - j - 1)
-                f = order[r_]; order[r_] = order[j]; order[j] = f  # noqa: E702
+                if every:
+                    f = j
+                else:
+                    r_ = j + min(int(np.random.random() * (d - j)), d - j - 1)
+                    f = order[r_]; order[r_] = order[j]; order[j] = f  # noqa: E702
                 visited += 1
                 if hi_x[f] <= lo_x[f] + 1e-7:
                     constants += 1
@@ -339,6 +436,7 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                         _left_sums4_unweighted(R, d, lo, hi, cand[j], cand[j + 1], cand[j + 2], cand[j + 3],
                                                cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, ql, nl)
                 score = -1.0  # a score is >= 0
+                ties = 0
                 for k in range(found):
                     if nl[k] < min_leaf or m - nl[k] < min_leaf or wl[k] <= 0.0 or W - wl[k] <= 0.0:
                         continue
@@ -347,34 +445,39 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                     if v > score:
                         score = v
                         best = k
-            if best >= 0:
-                f = cand[best]
-                t = cut[best]
-                i = lo
-                j = hi - 1
-                while True:  # rows with x_f <= t first
-                    while i <= j and R[i, f] <= t:
-                        i += 1
-                    while i <= j and R[j, f] > t:
-                        j -= 1
-                    if i >= j:
-                        break
-                    for c in range(width):
-                        tmp = R[i, c]; R[i, c] = R[j, c]; R[j, c] = tmp  # noqa: E702
+                        ties = 1
+                    elif v == score:  # the first in a random order among equals: uniform (one pass)
+                        ties += 1
+                        if np.random.random() * ties < 1.0:
+                            best = k
+        if best >= 0:
+            f = cand[best]
+            t = cut[best]
+            i = lo
+            j = hi - 1
+            while True:  # rows with x_f <= t first
+                while i <= j and R[i, f] <= t:
                     i += 1
+                while i <= j and R[j, f] > t:
                     j -= 1
-                mid = lo + nl[best]
-                a = count; b_ = count + 1  # noqa: E702
-                count += 2
-                feature[node] = f; threshold[node] = t; left[node] = a; right[node] = b_  # noqa: E702
-                stack[top, 0] = b_; stack[top, 1] = mid; stack[top, 2] = hi; stack[top, 3] = depth + 1  # noqa: E702
-                sums[top, 0] = s - sl[best]; sums[top, 1] = W - wl[best]; sums[top, 2] = q - ql[best]  # noqa: E702
-                top += 1
-                stack[top, 0] = a; stack[top, 1] = lo; stack[top, 2] = mid; stack[top, 3] = depth + 1  # noqa: E702
-                sums[top, 0] = sl[best]; sums[top, 1] = wl[best]; sums[top, 2] = ql[best]  # noqa: E702
-                top += 1
-                continue
-        feature[node] = -2; threshold[node] = -2.0; left[node] = -1; right[node] = -1  # noqa: E702
+                if i >= j:
+                    break
+                for c in range(width):
+                    tmp = R[i, c]; R[i, c] = R[j, c]; R[j, c] = tmp  # noqa: E702
+                i += 1
+                j -= 1
+            mid = lo + nl[best]
+            a = count; b_ = count + 1  # noqa: E702
+            count += 2
+            ints[node, c_feat] = f; floats[node, c_thr] = t; ints[node, c_left] = a; ints[node, c_right] = b_  # noqa: E702
+            stack[top, 0] = b_; stack[top, 1] = mid; stack[top, 2] = hi; stack[top, 3] = depth + 1  # noqa: E702
+            sums[top, 0] = s - sl[best]; sums[top, 1] = W - wl[best]; sums[top, 2] = q - ql[best]  # noqa: E702
+            top += 1
+            stack[top, 0] = a; stack[top, 1] = lo; stack[top, 2] = mid; stack[top, 3] = depth + 1  # noqa: E702
+            sums[top, 0] = sl[best]; sums[top, 1] = wl[best]; sums[top, 2] = ql[best]  # noqa: E702
+            top += 1
+            continue
+        ints[node, c_feat] = -2; floats[node, c_thr] = -2.0; ints[node, c_left] = -1; ints[node, c_right] = -1  # noqa: E702
         for i in range(lo, hi):
             train_leaf[np.int64(R[i, d + 2])] = node
     return count

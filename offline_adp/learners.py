@@ -39,6 +39,7 @@ from offline_adp.qfunctions import (
     TreeQ,
     predict_model,
     sklearn_tree,
+    sklearn_tree_from_records,
 )
 
 Query = tuple[np.ndarray, np.ndarray | None]
@@ -393,13 +394,12 @@ class FrozenTreesLearner(Learner):
         self.native = native is not None
         if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
             first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
-            self._adopt_grown(extra_trees.grow_trees(X, grow, self.weights, native, range(first)), X.shape[1])
+            self._adopt_grown(self._grow(X, grow, native, range(first)), X.shape[1])
             if screen:
                 assert s is not None
                 self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
                 if not self.screen_value <= s.tol:
-                    more = extra_trees.grow_trees(X, grow, self.weights, native, range(s.trees, full))
-                    self._adopt_grown(more, X.shape[1], start=s.trees)
+                    self._adopt_grown(self._grow(X, grow, native, range(s.trees, full)), X.shape[1], start=s.trees)
             return
         if not screen:
             self._adopt(_fit(model, X, grow, self.weights))
@@ -412,7 +412,7 @@ class FrozenTreesLearner(Learner):
             model.set_params(n_estimators=full)
             self._adopt(_fit(model, X, grow, self.weights), start=s.trees)
 
-    def _adopt(self, forest: Any, start: int = 0) -> None:
+    def _adopt(self, forest: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
         """Take ``forest`` as the structure: look up every training and query input in it
         (from tree ``start`` on: the earlier trees' lookups are held, see :meth:`_operators`)."""
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
@@ -423,17 +423,36 @@ class FrozenTreesLearner(Learner):
         self.ensemble, self._forest = None, forest
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
         trees = [e.tree_ for e in forest.estimators_]
-        self._operators(self._compiled_per_tree(trees[start:], self._roots[start:]), start=start)
+        if train_leaves is not None:  # local ids -> global
+            train_leaves = [leaf.astype(np.int64) + int(r) for leaf, r in zip(train_leaves, self._roots[start:], strict=True)]
+        self._operators(self._compiled_per_tree(trees[start:], self._roots[start:]), start=start,
+                        train_leaves=train_leaves)
 
-    def _adopt_grown(self, trees: list[extra_trees.GrownTree], n_features: int, start: int = 0) -> None:
-        """As :meth:`_adopt`, for trees from the compiled builder: held as scikit-learn
-        ``Tree`` objects set from their arrays (its compiled lookups, and the export).
+    def _grow(self, X: np.ndarray, y: np.ndarray, native: extra_trees.TreeParams,
+              trees: range) -> list[tuple[Any, np.ndarray | None]]:
+        """Trees ``trees`` from the compiled builder, each as a scikit-learn ``Tree`` (made
+        in the builder's thread, so its full-size buffers go at once) and its training
+        rows' leaves (None unless every row is in the tree)."""
+        d = X.shape[1]
+
+        def finish(t: extra_trees.GrownTree) -> tuple[Any, np.ndarray | None]:
+            leaf = t.train_leaf if int(t.train_leaf.min(initial=0)) >= 0 else None
+            return sklearn_tree_from_records(t.nodes, t.value, d), leaf
+
+        return extra_trees.grow_trees(X, y, self.weights, native, trees, finish=finish)
+
+    def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
+        """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
+        scikit-learn ``Tree`` objects set from their records (its compiled lookups, and the
+        export), with each training row's leaf where every row is in the tree.
         ``start > 0``: they follow the ``start`` trees held, as a screened build grows
         its forest."""
         held = self._forest.estimators_[:start] if start else []
-        new = [SimpleNamespace(tree_=sklearn_tree(t.left, t.right, t.feature, t.threshold, t.value, n_features))
-               for t in trees]
-        self._adopt(SimpleNamespace(estimators_=held + new, n_features_in_=int(n_features)), start=start)
+        new = [SimpleNamespace(tree_=tree) for tree, _ in trees]
+        # every training row in every tree (no bootstrap, no zero weight): its leaf is known
+        known = all(leaf is not None for _, leaf in trees)
+        self._adopt(SimpleNamespace(estimators_=held + new, n_features_in_=int(n_features)), start=start,
+                    train_leaves=[leaf for _, leaf in trees] if known else None)
 
     def _screen_bias(self, y: np.ndarray, full: int) -> float:
         """How much the greedy targets would lose by keeping the screen's trees instead of
@@ -481,7 +500,7 @@ class FrozenTreesLearner(Learner):
             self._set_ensemble(ens)
         return self.ensemble
 
-    def _operators(self, tree_leaves: Any, start: int = 0) -> None:
+    def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
         """The training leaf matrix, the leaf weights and the query operators (leaf positions),
         tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
         every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
@@ -489,17 +508,29 @@ class FrozenTreesLearner(Learner):
         actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
         held: one tree's lookups at a time. ``start > 0``: the first ``start`` trees are
         those whose lookups are held already (a screened build growing its forest); their
-        positions are kept and ``tree_leaves`` yields the later trees only."""
+        positions are kept and ``tree_leaves`` yields the later trees only.
+
+        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, global
+        ids): every training row's leaf is known, so nothing is looked up for the training
+        rows, and the next-state queries they repeat are not looked up either: half of them
+        with two actions."""
         n, m = len(self.phi), len(self._roots)
         names = [q for q in self.queries if q != "train"]
         inputs = {q: self._joint(*self.queries[q]) for q in names}
         reuse = self.reuse if len(self.reuse) and "next" in inputs else np.zeros(0, np.int64)
         rest = np.ones(n, bool)
         rest[reuse] = False
-        gens = {q: tree_leaves(inputs[q]) for q in names}
-        if rest.any():
-            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
         from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
+        looked = None  # the next-state queries looked up (the others are training rows' leaves)
+        if train_leaves is not None and len(reuse):
+            looked = np.ones(len(inputs["next"]), bool)
+            looked[from_next] = False
+            inputs = {**inputs, "next": inputs["next"][looked]}
+        gens = {q: tree_leaves(inputs[q]) for q in names}
+        if rest.any() and train_leaves is None:
+            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
+        if looked is not None:
+            inputs["next"] = np.empty((len(looked), 0))  # only its length is read below
         ends = np.r_[self._roots[1:], self._n_nodes]
         held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
         self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
@@ -514,10 +545,18 @@ class FrozenTreesLearner(Learner):
         for t in range(start, m):
             raw = {q: next(g) for q, g in gens.items()}
             root, lo = int(self._roots[t]), bounds[-1]
-            leaf = np.empty(n, np.int64)
-            leaf[rest] = raw.pop("", None) if rest.any() else 0
-            if len(reuse):
-                leaf[reuse] = raw["next"][from_next]
+            if train_leaves is not None:
+                leaf = train_leaves[t - start]
+                if looked is not None:
+                    full = np.empty(len(looked), np.int64)
+                    full[looked] = raw["next"]
+                    full[from_next] = leaf[reuse]
+                    raw["next"] = full
+            else:
+                leaf = np.empty(n, np.int64)
+                leaf[rest] = raw.pop("", None) if rest.any() else 0
+                if len(reuse):
+                    leaf[reuse] = raw["next"][from_next]
             used = np.zeros(int(ends[t]) - root, bool)
             used[leaf - root] = True
             local = np.flatnonzero(used)  # this tree's leaves holding training samples

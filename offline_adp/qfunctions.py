@@ -284,6 +284,26 @@ def sklearn_tree(left: np.ndarray, right: np.ndarray, feature: np.ndarray, thres
         return None
 
 
+def sklearn_tree_from_records(nodes: np.ndarray, value: np.ndarray, n_features: int) -> Any:
+    """A scikit-learn ``Tree`` from node records already in its own layout (the compiled
+    extra-trees builder writes them, :func:`offline_adp.extra_trees.node_dtype`), set
+    through its state without a field-by-field copy; from the fields otherwise. None if
+    this scikit-learn's tree state layout is not the one we know."""
+    try:
+        from sklearn.tree._tree import Tree
+
+        n = len(nodes)
+        t = Tree(int(n_features), np.array([1], dtype=np.intp), 1)
+        if nodes.dtype != t.__getstate__()["nodes"].dtype:
+            return sklearn_tree(nodes["left_child"], nodes["right_child"], nodes["feature"], nodes["threshold"], value,
+                                n_features)
+        t.__setstate__({"max_depth": int(n), "node_count": int(n), "nodes": np.ascontiguousarray(nodes),
+                        "values": np.asarray(value, dtype=np.float64).reshape(n, 1, 1)})
+        return t
+    except Exception:
+        return None
+
+
 def sklearn_leaves(forest: Any, X: np.ndarray) -> np.ndarray:
     """Global leaf ids (as in :meth:`TreeEnsemble.from_sklearn`) via scikit-learn's fast ``apply``."""
     sizes = np.array([e.tree_.node_count for e in forest.estimators_])
