@@ -250,8 +250,10 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
                      and any(b["screen"] is None and not b["constant"] and (b["trees"] or 0) < max(grown)
                              for b in builds))  # an unscreened build grew fewer trees than another
             caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")
+            by = sorted({b["builder"] for b in builds if b["builder"]})
             lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
                          f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"
+                         + (f", grown by {' and '.join(by)}" if by else "")
                          + (f" ({caveat}: lost score on CartPole at gamma 0.95; compare with a fit that grows every"
                             " forest whole, docs/fqi-modes.md)" if caveat else ""))
     else:

@@ -328,7 +328,7 @@ class FrozenTreesLearner(Learner):
         if builder not in ("auto", "sklearn"):
             raise ValueError(f"tree_builder must be 'auto' or 'sklearn', got {builder!r}")
         self.builder = builder
-        self.native = False  # whether the last build was grown by the compiled builder
+        self.grown_by: str | None = None  # who grew the last build: "compiled", "scikit-learn" (None: constant)
         if self.encoder.per_action:
             raise ValueError("the frozen-structure mode needs action_encoding='joint'")
         check_structure_fractions(max_samples)
@@ -371,6 +371,7 @@ class FrozenTreesLearner(Learner):
         self.built_on_constant = bool(np.ptp(y) == 0.0)
         self.screen_value = None
         if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
+            self.grown_by = None
             self._set_ensemble(_constant_ensemble(float(y[0]), self.regressor))
             self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
             self._operators(self._ensemble_per_tree(self.ensemble))
@@ -391,7 +392,7 @@ class FrozenTreesLearner(Learner):
                   and "warm_start" in params and full > s.trees)
         native = (extra_trees.native_params(model, len(X), X.shape[1])
                   if self.builder == "auto" and extra_trees.available() and _sklearn_trees_known() else None)
-        self.native = native is not None
+        self.grown_by = "compiled" if native is not None else "scikit-learn"
         if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
             first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
             self._adopt_grown(self._grow(X, grow, native, range(first)), X.shape[1])
@@ -712,7 +713,8 @@ class FrozenTreesLearner(Learner):
 
     def state(self) -> dict[str, Any]:
         return {"structure": self.structures, "structure_on_constant": self.built_on_constant,
-                "structure_trees": int(self._m), "structure_screen": self.screen_value}
+                "structure_trees": int(self._m), "structure_screen": self.screen_value,
+                "structure_builder": self.grown_by}
 
     def _joint(self, phi: np.ndarray, actions: np.ndarray | None) -> np.ndarray:
         return self.encoder.all_pairs(phi) if actions is None else self.encoder.pairs(phi, actions)
@@ -756,6 +758,8 @@ class FrozenTreesLearner(Learner):
         self.built_on_constant = bool(last.get("structure_on_constant") or False)
         screened = last.get("structure_screen")
         self.screen_value = None if screened is None or screened != screened else float(screened)  # NaN: none
+        by = last.get("structure_builder")
+        self.grown_by = by if isinstance(by, str) else None
         self._pending = self.built_on_constant
 
 

@@ -9,7 +9,7 @@ import pytest
 from sklearn.preprocessing import OneHotEncoder
 
 from offline_adp import TransitionDataset, dp
-from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.envs import Gridworld, TabularMDP
 from offline_adp.envs.gridworld import optimal_cost_to_go
@@ -59,14 +59,18 @@ def test_infinite_horizon_tabular_equals_value_iteration(encoding):
     assert not f.diverged_
 
 
-@pytest.mark.parametrize("mode", ["refit", "frozen"])
-def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode):
+@pytest.mark.parametrize(("mode", "builder"), [("refit", "auto"), ("frozen", "auto"), ("frozen", "sklearn")])
+def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode, builder):
+    """Exact DP is the oracle, for scikit-learn's trees and the compiled builder's
+    (weighted rows: the dataset's sample weights)."""
     m = TabularMDP(n_states=15, n_actions=3, horizon=None, gamma=0.9, seed=3)
     ds, w = full_support_dataset(m)
     f = FittedQIteration(gamma=0.9, regressor="extra_trees", regressor_params={"n_estimators": 10, "n_jobs": 1},
                          feature_map=OneHotEncoder(sparse_output=False), action_input="onehot", n_iterations=150,
-                         tol=1e-7, mode=mode)
+                         tol=1e-7, mode=mode, tree_builder=builder)
     f.fit(ds, sample_weight=w)
+    if mode == "frozen":
+        assert {b["builder"] for b in structure_builds(f.history_)} == {"compiled" if builder == "auto" else "scikit-learn"}
     sol = dp.value_iteration_discounted(m.P, m.C, 0.9)
     np.testing.assert_array_equal(f.policy_.act(np.arange(15.0)[:, None], return_index=True), sol.policy)
     np.testing.assert_allclose(_q_table(f.q_function_, 15), sol.Q, atol=1e-5)

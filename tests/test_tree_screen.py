@@ -187,9 +187,11 @@ def test_structure_builds_reads_histories_from_before_the_screen():
     h = pd.DataFrame({"iteration": [1, 2, 3, 4], "structure": [1, 1, 2, 3],
                       "structure_trees": [np.nan, np.nan, 10, 50], "structure_screen": [np.nan, np.nan, 0.001, np.nan],
                       "structure_on_constant": [True, True, False, np.nan]})
-    assert structure_builds(h) == [{"iteration": 1, "trees": None, "screen": None, "constant": True},
-                                   {"iteration": 3, "trees": 10, "screen": 0.001, "constant": False},
-                                   {"iteration": 4, "trees": 50, "screen": None, "constant": False}]
+    assert structure_builds(h) == [{"iteration": 1, "trees": None, "screen": None, "constant": True, "builder": None},
+                                   {"iteration": 3, "trees": 10, "screen": 0.001, "constant": False, "builder": None},
+                                   {"iteration": 4, "trees": 50, "screen": None, "constant": False, "builder": None}]
+    h["structure_builder"] = [None, None, "scikit-learn", "compiled"]  # recorded since the compiled builder
+    assert [b["builder"] for b in structure_builds(h)] == [None, "scikit-learn", "compiled"]
 
 
 @pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": 1}, {"screen_trees": True}, {"screen_trees": "10"},

@@ -218,6 +218,19 @@ class FittedQIteration(BaseEstimator):
         (e.g. 275 / 465 / 228 against 347 / 464 / 349). The bound damps an early
         structure's error in the values, not in the later structures grown on the targets
         it produced.
+    tree_builder : {"auto", "sklearn"}
+        Who grows the frozen mode's structures. ``"auto"`` (default): the compiled
+        extra-trees builder (:mod:`offline_adp.extra_trees`, numba) wherever the regressor
+        is a scikit-learn ``ExtraTreesRegressor`` with settings it implements (the default
+        regressor's are); scikit-learn otherwise. It is the same algorithm (Geurts et al.
+        2006) with the same settings, not the same random draws, so a fit differs from the
+        ``"sklearn"`` one as two seeds do. It grows a car-on-the-hill structure (56k rows,
+        50 trees) at about half of scikit-learn's CPU and returns each training row's
+        leaf, so those rows, and the next-state queries that repeat them, are not looked
+        up again (docs/fqi-modes.md). Its trees are bit-for-bit reproducible on one machine
+        (resume is exact); another CPU or numba version may vectorise its sums
+        differently and cut a near-tie the other way. ``refit`` always uses the
+        regressor as given.
     infeasible_cost : float or None
         The chapter's ``c^-``.
     target_noise, next_state_noise : float
@@ -253,8 +266,9 @@ class FittedQIteration(BaseEstimator):
         One row per iteration: ``iteration, step, sup_dq, mean_dq, max_abs_q,
         bellman_residual, greedy_changed, start_value, target_std, wall_time, cpu_time``,
         for a frozen fit ``structure`` (builds so far), ``structure_trees`` (trees in the
-        current structure) and ``structure_screen`` (its build's screen value, see
-        ``screen_trees``), and ``verdict`` on the last row.
+        current structure), ``structure_screen`` (its build's screen value, see
+        ``screen_trees``) and ``structure_builder`` (who grew it, see ``tree_builder``),
+        and ``verdict`` on the last row.
     verdict_ : str
         ``"converged"``, ``"still changing"``, ``"diverging"`` or ``"completed"`` (finite).
     verdict_message_ : str
@@ -497,18 +511,20 @@ class FittedQIteration(BaseEstimator):
 
 def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
     """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen",
-    "constant"}`` per build, in order (``screen``: the build's screen value, None when not
-    screened; ``constant``: a build on constant targets, one-leaf trees; ``trees`` None in
-    rows written before trees were recorded); an empty list for the other modes."""
+    "constant", "builder"}`` per build, in order (``screen``: the build's screen value, None
+    when not screened; ``constant``: a build on constant targets, one-leaf trees; ``builder``:
+    ``"compiled"`` or ``"scikit-learn"``, None for a constant build; ``trees`` and ``builder``
+    None in rows written before they were recorded); an empty list for the other modes."""
     if not len(history) or "structure_trees" not in history:
         return []
     built = history["structure"].diff().fillna(1).to_numpy() != 0
-    cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant"]
+    cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant", "structure_builder"]
     rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
     return [{"iteration": int(r["iteration"]),
              "trees": None if _isna(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
              "screen": None if _isna(r.get("structure_screen")) else float(r["structure_screen"]),
-             "constant": not _isna(r.get("structure_on_constant")) and bool(r["structure_on_constant"])} for r in rows]
+             "constant": not _isna(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
+             "builder": r["structure_builder"] if isinstance(r.get("structure_builder"), str) else None} for r in rows]
 
 
 def _isna(v: Any) -> bool:
