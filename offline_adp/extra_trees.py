@@ -210,9 +210,9 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
     if (w < 0).any():
         raise ValueError("sample_weight must be >= 0")
     trees = range(params.n_estimators) if trees is None else trees
-    base = np.empty((n, d + 3))  # rows: x (float32 values), y, w, original index
+    base = np.empty((n, d + 2))  # rows: x (float32 values), y, original index (and w, below)
     base[:, :d] = X32
-    base[:, d], base[:, d + 1], base[:, d + 2] = y, w, np.arange(n)
+    base[:, d], base[:, d + 1] = y, np.arange(n)
 
     def one(t: int) -> GrownTree:
         seed, rng = tree_seeds(params.random_state, t)
@@ -220,8 +220,13 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
         if params.bootstrap:
             weight = w * np.bincount(rng.integers(0, n, params.n_bootstrap), minlength=n)
         keep = np.flatnonzero(weight > 0)
-        R = base[keep] if len(keep) < n else base.copy()
-        R[:, d + 1] = weight[keep]
+        weighted = bool((weight[keep] != 1.0).any())
+        if weighted:  # a weight column; without one, each row is a column narrower to move
+            R = np.empty((len(keep), d + 3))
+            R[:, :d + 2] = base[keep]
+            R[:, d + 2] = weight[keep]
+        else:
+            R = base[keep] if len(keep) < n else base.copy()
         size = max(2 * len(keep) - 1, 1)
         dt = node_dtype()
         nodes = np.zeros(size, dt)
@@ -229,7 +234,6 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
         cols = np.array([dt.fields[k][1] // 8 for k in _NODE_INTS + _NODE_FLOATS], np.int64)
         value = np.empty(size)
         train_leaf = np.full(n, -1, np.int32)
-        weighted = bool((weight[keep] != 1.0).any())
         count = _grow(R, d, weighted, params.max_features, params.min_samples_split, params.min_samples_leaf,
                       params.max_depth, seed, ints, floats, cols, value, train_leaf)
         tree = GrownTree(nodes[:count], value[:count], train_leaf)
@@ -288,7 +292,7 @@ def _left_sums4(R: Any, d: int, lo: int, hi: int, f0: int, f1: int, f2: int, f3:
     s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0; w0 = 0.0; w1 = 0.0; w2 = 0.0; w3 = 0.0  # noqa: E702
     q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
     for i in range(lo, hi):
-        wi = R[i, d + 1]; wy = wi * R[i, d]; wyy = wy * R[i, d]  # noqa: E702
+        wi = R[i, d + 2]; wy = wi * R[i, d]; wyy = wy * R[i, d]  # noqa: E702
         c = R[i, f0] <= t0; s0 += wy if c else 0.0; w0 += wi if c else 0.0; q0 += wyy if c else 0.0; n0 += c  # noqa: E702
         c = R[i, f1] <= t1; s1 += wy if c else 0.0; w1 += wi if c else 0.0; q1 += wyy if c else 0.0; n1 += c  # noqa: E702
         c = R[i, f2] <= t2; s2 += wy if c else 0.0; w2 += wi if c else 0.0; q2 += wyy if c else 0.0; n2 += c  # noqa: E702
@@ -324,8 +328,8 @@ _left_sums4 = _kernel(_left_sums4, inline="always", fastmath=_FAST)
 
 def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min_leaf: int, max_depth: int,
           seed: int, ints: Any, floats: Any, cols: Any, value: Any, train_leaf: Any) -> int:
-    """Grow one tree depth-first on the rows of ``R`` (x_0..x_{d-1}, y, w, original index;
-    reordered in place so that each node's rows are contiguous) into the node records
+    """Grow one tree depth-first on the rows of ``R`` (x_0..x_{d-1}, y, original index, and
+    w when ``weighted``; reordered in place so that each node's rows are contiguous) into the node records
     (seen as 8-byte integers ``ints`` and floats ``floats``; ``cols``: the slots of
     left_child, right_child, feature, n_node_samples, threshold, impurity,
     weighted_n_node_samples) and ``value``; returns the node count. Node 0 is the root."""
@@ -346,8 +350,9 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
     sums = np.empty((n + 2, 3))  # sum w y, sum w, sum w y^2 of the node's rows
     s = 0.0; W = 0.0; q = 0.0  # noqa: E702
     for i in range(n):
-        wy = R[i, d + 1] * R[i, d]
-        s += wy; W += R[i, d + 1]; q += wy * R[i, d]  # noqa: E702
+        wi = R[i, d + 2] if weighted else 1.0
+        wy = wi * R[i, d]
+        s += wy; W += wi; q += wy * R[i, d]  # noqa: E702
     stack[0, 0] = 0; stack[0, 1] = 0; stack[0, 2] = n; stack[0, 3] = 0  # noqa: E702
     sums[0, 0] = s; sums[0, 1] = W; sums[0, 2] = q  # noqa: E702
     top = 1
@@ -388,7 +393,7 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                 first = lo if R[lo, f] <= t else lo + 1
                 cand[0] = f
                 cut[0] = t
-                wl[0] = R[first, d + 1]
+                wl[0] = R[first, d + 2] if weighted else 1.0
                 sl[0] = wl[0] * R[first, d]
                 ql[0] = sl[0] * R[first, d]
                 nl[0] = 1
@@ -479,9 +484,8 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
             continue
         ints[node, c_feat] = -2; floats[node, c_thr] = -2.0; ints[node, c_left] = -1; ints[node, c_right] = -1  # noqa: E702
         for i in range(lo, hi):
-            train_leaf[np.int64(R[i, d + 2])] = node
+            train_leaf[np.int64(R[i, d + 1])] = node
     return count
 
 
 _grow = _kernel(_grow, cache=True, nogil=True, fastmath=_FAST)
-

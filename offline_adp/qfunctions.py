@@ -163,12 +163,12 @@ class TreeEnsemble:
         left, right = np.empty(total, np.int64), np.empty(total, np.int64)
         feature, threshold, value = np.empty(total, np.int64), np.empty(total), np.empty(total)
         for t, o, k in zip(trees, offs, sizes, strict=True):  # one copy of each field, into place
-            left[o:o + k], right[o:o + k] = t.children_left, t.children_right
+            lt, rt = left[o:o + k], right[o:o + k]
+            lt[:], rt[:] = t.children_left, t.children_right
             feature[o:o + k], threshold[o:o + k], value[o:o + k] = t.feature, t.threshold, t.value[:, 0, 0]
-        shift = np.repeat(offs, sizes)  # child ids are local to their tree: make them global
-        inner = left >= 0
-        left[inner] += shift[inner]
-        right[inner] += shift[inner]
+            inner = lt >= 0  # child ids are local to their tree: make them global (tree by tree, in cache)
+            np.add(lt, o, out=lt, where=inner)
+            np.add(rt, o, out=rt, where=inner)
         return cls(left=left, right=right, feature=feature, threshold=threshold, value=value, roots=offs)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
