@@ -9,27 +9,43 @@ or the targets are constant: weighted variance <= machine epsilon), as follows::
 
     draw features in random order (without replacement); for each, until
     max_features were drawn and at least one was not constant:
-        skip it if constant on the node (max - min <= 1e-7)
+        skip it if constant on the node (max <= min + 1e-7, in float32)
         cut  t_f ~ Uniform[min_f, max_f)          (t_f = min_f if the draw lands on max_f)
         score(f) = S_L^2 / W_L + S_R^2 / W_R       (S: sum of w y, W: sum of w on each side;
                                                     the variance reduction up to a constant)
     split on the feature of highest score (a side with fewer than min_samples_leaf rows
     disqualifies a cut; equal scores, common in nodes of two or three rows, go to one of
-    them uniformly at random, as scikit-learn's random feature order does); the node's
-    value is the weighted mean of y. When every feature is drawn (max_features >= d, the
-    default), the cuts are drawn in feature order: the same distribution without a
-    shuffle per node.
+    them uniformly at random, which a random feature order gives in exact arithmetic);
+    the node's value is the weighted mean of y. When every feature is drawn
+    (max_features >= d, the default), the cuts are drawn in feature order: the same
+    distribution without a shuffle per node. A node's sums are computed afresh from its
+    rows, as scikit-learn does.
 
 Rows with weight 0 are left out (a bootstrap sample is the rows' draw counts as
 weights, as in scikit-learn). Inputs are compared as float32, as scikit-learn does, so
 a tree reads the same inputs the same way in either implementation.
 
+Where it differs from scikit-learn 1.9, knowingly:
+
+- scikit-learn also makes a node a leaf when the split's *computed* impurity decrease is
+  negative (``improvement + EPSILON < min_impurity_decrease``, even at 0). That only
+  happens through rounding, on targets equal up to ~1e-6 at |y| >~ 1: exactly the ties the
+  frozen learner breaks with a tiny jitter so that such nodes split. There scikit-learn
+  stops at random points (1 to 290 leaves for 2000 rows of 2 + N(0, 2.4e-6)) and this
+  builder splits on, as Algorithm 1 says (nearly one row per leaf).
+- Ties between equal scores: scikit-learn computes the right side as total minus left,
+  so exactly tied splits often differ in the last bit there and it takes the same
+  feature every time; this builder chooses uniformly.
+- Its sums are vectorised (fast-math), so on another CPU or numba version a near-tie
+  may go the other way; on one machine the trees are bit-for-bit reproducible.
+
 Why a second implementation: the frozen-structure mode of fitted Q-iteration
 (:class:`offline_adp.learners.FrozenTreesLearner`) spends most of its time growing
-structures, and this builder grows the same trees (the same algorithm and defaults; not
-the same random draws) at about a third of scikit-learn's CPU on car-on-the-hill's
-56k rows (``benchmarks/tree_builder.py``). The statistical equivalence is tested against
-scikit-learn (``tests/test_extra_trees.py``). Everything else (refit, any other
+structures, and this builder grows them at 0.41-0.48 of scikit-learn's CPU on
+car-on-the-hill's 56k rows (``benchmarks/tree_builder.py``, 50 trees, one thread), and
+returns each training row's leaf, so no training row is looked up again. Its trees
+are tested node by node against the algorithm's definition and statistically against
+scikit-learn's (``tests/test_extra_trees.py``). Everything else (refit, any other
 regressor or setting) uses scikit-learn.
 
 The kernel is compiled by numba on first use (a few seconds, cached on disk after).
@@ -38,14 +54,13 @@ The kernel is compiled by numba on first use (a few seconds, cached on disk afte
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-#: scikit-learn's constants: a feature is constant on a node when max - min <= this
+#: scikit-learn's constants: a feature is constant on a node when max <= min + this (float32)
 FEATURE_THRESHOLD = 1e-7
 _EPSILON = float(np.finfo(np.float64).eps)  # a node is pure when its variance is <= this
 
@@ -139,14 +154,21 @@ def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | 
     ``ExtraTreesRegressor``, or one with a setting the builder does not implement
     (criterion other than squared error, ``max_leaf_nodes``, ``min_impurity_decrease``,
     ``min_weight_fraction_leaf``, ``ccp_alpha``, ``monotonic_cst``, ``oob_score``)."""
+    from joblib import effective_n_jobs
     from sklearn.ensemble import ExtraTreesRegressor
 
     if type(regressor) is not ExtraTreesRegressor:
         return None
     p = regressor.get_params()
     for key, default in _UNSUPPORTED_DEFAULTS.items():
-        if key in p and p[key] != default and not (default == 0.0 and p[key] == 0):
+        if key not in p:
+            continue
+        v = p[key]
+        same = v is None if default is None else (isinstance(v, str | bool | int | float) and v == default)
+        if not same:  # an array (monotonic_cst) or any other value: scikit-learn's own builder
             return None
+    if p.get("max_samples") is not None and not p.get("bootstrap"):  # scikit-learn refuses it: let it say so
+        return None
     seed = p.get("random_state")
     if not isinstance(seed, int | np.integer):  # None or a RandomState: scikit-learn's own draws
         return None
@@ -169,8 +191,7 @@ def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | 
     depth = p.get("max_depth")
     ms = p.get("max_samples")
     n_boot = n_rows if ms is None else (int(ms) if isinstance(ms, int | np.integer) else max(1, round(float(ms) * n_rows)))
-    jobs = p.get("n_jobs") or 1
-    jobs = max(1, (os.cpu_count() or 1) + 1 + int(jobs)) if jobs < 0 else int(jobs)
+    jobs = max(1, int(effective_n_jobs(p.get("n_jobs"))))  # scikit-learn's own resolution (affinity, cgroups)
     return TreeParams(n_estimators=int(p["n_estimators"]), max_features=max(1, min(k, n_features)),
                       min_samples_split=max(2, mss), min_samples_leaf=max(1, msl),
                       max_depth=2**31 - 1 if depth is None else int(depth), bootstrap=bool(p.get("bootstrap")),
@@ -285,42 +306,45 @@ def _minmax4(R: Any, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int) -> An
 
 
 def _left_sums4(R: Any, d: int, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int,
-                t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, ql: Any, nl: Any) -> None:
+                t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, nl: Any) -> None:
     """For four (column, cut) pairs, over rows [lo, hi) with ``x <= cut``: sum of w y,
-    sum of w, sum of w y^2 and the row count, in one pass, into entries j..j+3 of
-    ``sl``, ``wl``, ``ql`` and ``nl``."""
+    sum of w and the row count, in one pass, into entries j..j+3 of ``sl``, ``wl``, ``nl``."""
     s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0; w0 = 0.0; w1 = 0.0; w2 = 0.0; w3 = 0.0  # noqa: E702
-    q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
+    n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
     for i in range(lo, hi):
-        wi = R[i, d + 2]; wy = wi * R[i, d]; wyy = wy * R[i, d]  # noqa: E702
-        c = R[i, f0] <= t0; s0 += wy if c else 0.0; w0 += wi if c else 0.0; q0 += wyy if c else 0.0; n0 += c  # noqa: E702
-        c = R[i, f1] <= t1; s1 += wy if c else 0.0; w1 += wi if c else 0.0; q1 += wyy if c else 0.0; n1 += c  # noqa: E702
-        c = R[i, f2] <= t2; s2 += wy if c else 0.0; w2 += wi if c else 0.0; q2 += wyy if c else 0.0; n2 += c  # noqa: E702
-        c = R[i, f3] <= t3; s3 += wy if c else 0.0; w3 += wi if c else 0.0; q3 += wyy if c else 0.0; n3 += c  # noqa: E702
+        wi = R[i, d + 2]; wy = wi * R[i, d]  # noqa: E702
+        c = R[i, f0] <= t0; s0 += wy if c else 0.0; w0 += wi if c else 0.0; n0 += c  # noqa: E702
+        c = R[i, f1] <= t1; s1 += wy if c else 0.0; w1 += wi if c else 0.0; n1 += c  # noqa: E702
+        c = R[i, f2] <= t2; s2 += wy if c else 0.0; w2 += wi if c else 0.0; n2 += c  # noqa: E702
+        c = R[i, f3] <= t3; s3 += wy if c else 0.0; w3 += wi if c else 0.0; n3 += c  # noqa: E702
     sl[j] = s0; sl[j + 1] = s1; sl[j + 2] = s2; sl[j + 3] = s3  # noqa: E702
     wl[j] = w0; wl[j + 1] = w1; wl[j + 2] = w2; wl[j + 3] = w3  # noqa: E702
-    ql[j] = q0; ql[j + 1] = q1; ql[j + 2] = q2; ql[j + 3] = q3  # noqa: E702
     nl[j] = n0; nl[j + 1] = n1; nl[j + 2] = n2; nl[j + 3] = n3  # noqa: E702
 
 
 def _left_sums4_unweighted(R: Any, d: int, lo: int, hi: int, f0: int, f1: int, f2: int, f3: int,
-                           t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, ql: Any,
-                           nl: Any) -> None:
+                           t0: float, t1: float, t2: float, t3: float, j: int, sl: Any, wl: Any, nl: Any) -> None:
     """:func:`_left_sums4` when every weight is 1 (sum of w = the row count)."""
-    s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0; q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0  # noqa: E702
+    s0 = 0.0; s1 = 0.0; s2 = 0.0; s3 = 0.0  # noqa: E702
     n0 = 0; n1 = 0; n2 = 0; n3 = 0  # noqa: E702
     for i in range(lo, hi):
-        yi = R[i, d]; yy = yi * yi  # noqa: E702
-        c = R[i, f0] <= t0; s0 += yi if c else 0.0; q0 += yy if c else 0.0; n0 += c  # noqa: E702
-        c = R[i, f1] <= t1; s1 += yi if c else 0.0; q1 += yy if c else 0.0; n1 += c  # noqa: E702
-        c = R[i, f2] <= t2; s2 += yi if c else 0.0; q2 += yy if c else 0.0; n2 += c  # noqa: E702
-        c = R[i, f3] <= t3; s3 += yi if c else 0.0; q3 += yy if c else 0.0; n3 += c  # noqa: E702
+        yi = R[i, d]
+        c = R[i, f0] <= t0; s0 += yi if c else 0.0; n0 += c  # noqa: E702
+        c = R[i, f1] <= t1; s1 += yi if c else 0.0; n1 += c  # noqa: E702
+        c = R[i, f2] <= t2; s2 += yi if c else 0.0; n2 += c  # noqa: E702
+        c = R[i, f3] <= t3; s3 += yi if c else 0.0; n3 += c  # noqa: E702
     sl[j] = s0; sl[j + 1] = s1; sl[j + 2] = s2; sl[j + 3] = s3  # noqa: E702
-    ql[j] = q0; ql[j + 1] = q1; ql[j + 2] = q2; ql[j + 3] = q3  # noqa: E702
     nl[j] = n0; nl[j + 1] = n1; nl[j + 2] = n2; nl[j + 3] = n3  # noqa: E702
     wl[j] = n0; wl[j + 1] = n1; wl[j + 2] = n2; wl[j + 3] = n3  # noqa: E702
 
 
+def _varies(a: float, b: float) -> bool:
+    """Whether a feature taking values ``a`` and ``b`` is not constant: max > min + 1e-7,
+    evaluated in float32 as scikit-learn does (FEATURE_THRESHOLD is a float32 there)."""
+    return np.float32(max(a, b)) > np.float32(min(a, b)) + np.float32(1e-7)
+
+
+_varies = _kernel(_varies, inline="always")
 _minmax4 = _kernel(_minmax4, inline="always", fastmath=_FAST)
 _left_sums4_unweighted = _kernel(_left_sums4_unweighted, inline="always", fastmath=_FAST)
 _left_sums4 = _kernel(_left_sums4, inline="always", fastmath=_FAST)
@@ -344,24 +368,25 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
     lo_x = np.empty(d)
     hi_x = np.empty(d)
     order = np.arange(d)
-    sl = np.empty(4 * blocks); wl = np.empty(4 * blocks); ql = np.empty(4 * blocks)  # noqa: E702
+    sl = np.empty(4 * blocks); wl = np.empty(4 * blocks)  # noqa: E702
     nl = np.empty(4 * blocks, np.int64)
     stack = np.empty((n + 2, 4), np.int64)  # node, lo, hi, depth (depth-first: at most depth + 1 entries)
-    sums = np.empty((n + 2, 3))  # sum w y, sum w, sum w y^2 of the node's rows
-    s = 0.0; W = 0.0; q = 0.0  # noqa: E702
-    for i in range(n):
-        wi = R[i, d + 2] if weighted else 1.0
-        wy = wi * R[i, d]
-        s += wy; W += wi; q += wy * R[i, d]  # noqa: E702
     stack[0, 0] = 0; stack[0, 1] = 0; stack[0, 2] = n; stack[0, 3] = 0  # noqa: E702
-    sums[0, 0] = s; sums[0, 1] = W; sums[0, 2] = q  # noqa: E702
     top = 1
     count = 1
     while top > 0:
         top -= 1
         node = stack[top, 0]; lo = stack[top, 1]; hi = stack[top, 2]; depth = stack[top, 3]  # noqa: E702
-        s = sums[top, 0]; W = sums[top, 1]; q = sums[top, 2]  # noqa: E702
         m = hi - lo
+        s = 0.0; W = 0.0; q = 0.0  # noqa: E702  # the node's sums afresh, as scikit-learn (no drift from the root)
+        if weighted:
+            for i in range(lo, hi):
+                wy = R[i, d + 2] * R[i, d]
+                s += wy; W += R[i, d + 2]; q += wy * R[i, d]  # noqa: E702
+        else:
+            for i in range(lo, hi):
+                s += R[i, d]; q += R[i, d] * R[i, d]  # noqa: E702
+            W = float(m)
         mean = s / W if W > 0 else 0.0
         value[node] = mean
         var = q / W - mean * mean if W > 0 else 0.0
@@ -375,12 +400,12 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
             # features uniformly (the tie-break below), at a uniform cut
             differ = 0
             for f in range(d):
-                differ += abs(R[lo, f] - R[lo + 1, f]) > 1e-7
+                differ += _varies(R[lo, f], R[lo + 1, f])
             if differ > 0:
                 pick = min(int(np.random.random() * differ), differ - 1)
                 f = 0
                 for g in range(d):
-                    if abs(R[lo, g] - R[lo + 1, g]) > 1e-7:
+                    if _varies(R[lo, g], R[lo + 1, g]):
                         if pick == 0:
                             f = g
                             break
@@ -395,7 +420,6 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                 cut[0] = t
                 wl[0] = R[first, d + 2] if weighted else 1.0
                 sl[0] = wl[0] * R[first, d]
-                ql[0] = sl[0] * R[first, d]
                 nl[0] = 1
                 best = 0
         elif m >= min_split and m >= 2 * min_leaf and depth < max_depth and var > 2.220446049250313e-16:
@@ -419,7 +443,7 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                     r_ = j + min(int(np.random.random() * (d - j)), d - j - 1)
                     f = order[r_]; order[r_] = order[j]; order[j] = f  # noqa: E702
                 visited += 1
-                if hi_x[f] <= lo_x[f] + 1e-7:
+                if np.float32(hi_x[f]) <= np.float32(lo_x[f]) + np.float32(1e-7):  # in float32, as scikit-learn
                     constants += 1
                     continue
                 t = lo_x[f] + (hi_x[f] - lo_x[f]) * np.random.random()
@@ -436,10 +460,10 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
                     j = 4 * b
                     if weighted:
                         _left_sums4(R, d, lo, hi, cand[j], cand[j + 1], cand[j + 2], cand[j + 3],
-                                    cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, ql, nl)
+                                    cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, nl)
                     else:
                         _left_sums4_unweighted(R, d, lo, hi, cand[j], cand[j + 1], cand[j + 2], cand[j + 3],
-                                               cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, ql, nl)
+                                               cut[j], cut[j + 1], cut[j + 2], cut[j + 3], j, sl, wl, nl)
                 score = -1.0  # a score is >= 0
                 ties = 0
                 for k in range(found):
@@ -476,10 +500,8 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
             count += 2
             ints[node, c_feat] = f; floats[node, c_thr] = t; ints[node, c_left] = a; ints[node, c_right] = b_  # noqa: E702
             stack[top, 0] = b_; stack[top, 1] = mid; stack[top, 2] = hi; stack[top, 3] = depth + 1  # noqa: E702
-            sums[top, 0] = s - sl[best]; sums[top, 1] = W - wl[best]; sums[top, 2] = q - ql[best]  # noqa: E702
             top += 1
             stack[top, 0] = a; stack[top, 1] = lo; stack[top, 2] = mid; stack[top, 3] = depth + 1  # noqa: E702
-            sums[top, 0] = sl[best]; sums[top, 1] = wl[best]; sums[top, 2] = ql[best]  # noqa: E702
             top += 1
             continue
         ints[node, c_feat] = -2; floats[node, c_thr] = -2.0; ints[node, c_left] = -1; ints[node, c_right] = -1  # noqa: E702

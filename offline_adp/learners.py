@@ -287,8 +287,11 @@ class FrozenTreesLearner(Learner):
     one cost per step: LEARN on constant targets is that constant, represented by one-leaf
     trees, and says nothing about where to split). A build grows the ensemble on that
     iteration's targets (plus a tiny jitter, std ``1e-6 * (1 + std(y))``, only when the
-    targets have ties, so that tied nodes still split; without ties a build on all rows
-    is exactly the refit step) -- each tree on a bootstrap sample of ``max_samples`` of
+    targets have ties, so that tied nodes still split (scikit-learn's trees do not always:
+    see :mod:`offline_adp.extra_trees`); without ties a build on all rows by scikit-learn,
+    ``builder="sklearn"``, is exactly the refit step; the default compiled
+    builder, :mod:`offline_adp.extra_trees`, grows the same algorithm's trees from other
+    random draws) -- each tree on a bootstrap sample of ``max_samples`` of
     the rows if given -- and looks up the leaf of every training and query input once
     (training rows that continue the previous row reuse the next-state lookups). Leaves
     are then *honest*: each leaf's value is the weighted mean target over **all** training

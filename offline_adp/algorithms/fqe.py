@@ -58,7 +58,7 @@ class FittedQEvaluation(FittedQIteration):
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
-                 structure_max_samples: float | list[float | None] | None = None) -> None:
+                 structure_max_samples: float | list[float | None] | None = None, tree_builder: str = "auto") -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
@@ -68,7 +68,8 @@ class FittedQEvaluation(FittedQIteration):
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
                          n_structures=n_structures, structure_max_samples=structure_max_samples,
                          screen_trees=None,  # the screen is about a greedy backup's min
-                         early_build_trees=None)  # every build grows the whole forest
+                         early_build_trees=None,  # every build grows the whole forest
+                         tree_builder=tree_builder)
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
                  *, deferred: bool = False):

@@ -224,13 +224,14 @@ class FittedQIteration(BaseEstimator):
         is a scikit-learn ``ExtraTreesRegressor`` with settings it implements (the default
         regressor's are); scikit-learn otherwise. It is the same algorithm (Geurts et al.
         2006) with the same settings, not the same random draws, so a fit differs from the
-        ``"sklearn"`` one as two seeds do. It grows a car-on-the-hill structure (56k rows,
-        50 trees) at about half of scikit-learn's CPU and returns each training row's
-        leaf, so those rows, and the next-state queries that repeat them, are not looked
-        up again (docs/fqi-modes.md). Its trees are bit-for-bit reproducible on one machine
-        (resume is exact); another CPU or numba version may vectorise its sums
-        differently and cut a near-tie the other way. ``refit`` always uses the
-        regressor as given.
+        ``"sklearn"`` one as two seeds do, with one exception: on targets tied up to the
+        learner's tie-breaking jitter scikit-learn stops splitting at random points (a
+        rounding effect) where this builder splits on (see :mod:`offline_adp.extra_trees`).
+        It grows a car-on-the-hill structure (56k rows, 50 trees) at 0.41-0.48 of
+        scikit-learn's CPU (``benchmarks/tree_builder.py``) and returns each training
+        row's leaf, so those rows, and the next-state queries that repeat them, are not
+        looked up again (docs/fqi-modes.md). Its trees are bit-for-bit reproducible on
+        one machine (resume is exact). ``refit`` always uses the regressor as given.
     infeasible_cost : float or None
         The chapter's ``c^-``.
     target_noise, next_state_noise : float
