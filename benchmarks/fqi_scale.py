@@ -44,6 +44,7 @@ CHILD = textwrap.dedent(
     del x, obs, nxt
     cfg = {
         "default": {},
+        "sklearn_builder": dict(tree_builder="sklearn"),  # the default with scikit-learn growing the structures
         "warm_start": dict(mode="warm_start", regressor="lightgbm", trees_per_iteration=10),
         "frozen": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20}),
         "frozen_sub": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20},

@@ -54,6 +54,7 @@ The kernel is compiled by numba on first use (a few seconds, cached on disk afte
 from __future__ import annotations
 
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -121,11 +122,11 @@ class GrownTree:
     """One tree: its node records (:func:`node_dtype`; local node ids, leaves have
     ``left_child == -1`` and ``feature == -2``), each node's value (the weighted mean of
     its rows' targets) and the leaf of each training row (int32; -1: a row with weight 0,
-    not in the tree)."""
+    not in the tree; None when not recorded)."""
 
     nodes: np.ndarray
     value: np.ndarray
-    train_leaf: np.ndarray
+    train_leaf: np.ndarray | None
 
     @property
     def left(self) -> np.ndarray:
@@ -208,62 +209,88 @@ def tree_seeds(random_state: int, t: int) -> tuple[int, np.random.Generator]:
 
 
 def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, params: TreeParams,
-               trees: range | None = None, finish: Any = None) -> list[Any]:
+               trees: range | None = None, finish: Any = None, record_leaves: bool = True) -> list[Any]:
     """Grow trees ``trees`` (default: all ``params.n_estimators``) of the forest on ``(X, y)``.
 
     ``X`` is read as float32 (as scikit-learn does), ``y`` and the weights as float64;
     all three must be finite (ValueError otherwise). Trees are grown in ``params.n_jobs``
     threads (the kernel releases the GIL); the result does not depend on the threads.
-    ``finish(tree)``, if given, is applied to each tree in its thread and its result
-    returned instead (so a tree's full-size buffers are freed as soon as it is grown).
+    ``finish(tree)``, if given, is applied to each tree (in the calling thread) and its
+    result returned instead; it must copy what it keeps (the tree's arrays are the thread's
+    buffers, reused for its next tree). ``record_leaves=False``: no ``train_leaf``
+    (None), and no (n,) array per thread for it.
     """
     X32 = np.ascontiguousarray(X, dtype=np.float32)
     y = np.asarray(y, dtype=np.float64).ravel()
     n, d = X32.shape
     if len(y) != n:
         raise ValueError(f"X has {n} rows, y has {len(y)}")
-    w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64).ravel()
-    if len(w) != n:
+    w = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64).ravel()
+    if w is not None and len(w) != n:
         raise ValueError(f"X has {n} rows, sample_weight has {len(w)}")
     for name, a in (("X", X32), ("y", y), ("sample_weight", w)):
-        if not np.isfinite(a).all():
+        if a is not None and not np.isfinite(a).all():
             raise ValueError(f"the extra-trees builder needs finite {name}")
-    if (w < 0).any():
+    if w is not None and (w < 0).any():
         raise ValueError("sample_weight must be >= 0")
+    every = w is None or bool((w > 0).all())
+    record = bool(record_leaves)
     trees = range(params.n_estimators) if trees is None else trees
-    base = np.empty((n, d + 2))  # rows: x (float32 values), y, original index (and w, below)
-    base[:, :d] = X32
-    base[:, d], base[:, d + 1] = y, np.arange(n)
+    dt = node_dtype()
+    cols = np.array([dt.fields[k][1] // 8 for k in _NODE_INTS + _NODE_FLOATS], np.int64)
+    local = threading.local()  # each thread's buffers, reused tree after tree (no repeated
+    # large allocations: they would leave the allocator's per-thread arenas holding memory)
+
+    most = min(n, params.n_bootstrap) if params.bootstrap else n  # rows a tree can hold
+
+    def buffers(rows: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        if getattr(local, "rows", -1) < rows or getattr(local, "width", -1) != width:
+            cap = max(rows, most)
+            size = max(2 * cap - 1, 1)
+            local.R, local.nodes = np.empty((cap, width)), np.zeros(size, dt)
+            local.value, local.train_leaf = np.empty(size), np.empty(n if record else 1, np.int32)
+            local.rows, local.width = cap, width
+        return local.R[:rows], local.nodes, local.value, local.train_leaf  # full width: C-contiguous
 
     def one(t: int) -> GrownTree:
         seed, rng = tree_seeds(params.random_state, t)
-        weight = w
+        keep, wk = None, None  # the rows in the tree (None: all) and their weights (None: all 1)
         if params.bootstrap:
-            weight = w * np.bincount(rng.integers(0, n, params.n_bootstrap), minlength=n)
-        keep = np.flatnonzero(weight > 0)
-        weighted = bool((weight[keep] != 1.0).any())
-        if weighted:  # a weight column; without one, each row is a column narrower to move
-            R = np.empty((len(keep), d + 3))
-            R[:, :d + 2] = base[keep]
-            R[:, d + 2] = weight[keep]
+            counts = np.bincount(rng.integers(0, n, params.n_bootstrap), minlength=n)
+            keep = np.flatnonzero(counts if w is None else counts * (w > 0))
+            wk = counts[keep].astype(np.float64) if w is None else counts[keep] * w[keep]
+        elif w is not None:
+            keep = np.flatnonzero(w > 0) if not every else None
+            wk = w if keep is None else w[keep]
+        rows = n if keep is None else len(keep)
+        weighted = wk is not None and bool((wk != 1.0).any())
+        width = d + 3 if weighted else d + 2  # x, y, original index (, w): one column less to move without w
+        R, nodes, value, train_leaf = buffers(rows, width)
+        if keep is None:
+            R[:, :d], R[:, d], R[:, d + 1] = X32, y, np.arange(n)
         else:
-            R = base[keep] if len(keep) < n else base.copy()
-        size = max(2 * len(keep) - 1, 1)
-        dt = node_dtype()
-        nodes = np.zeros(size, dt)
-        ints, floats = nodes.view(np.int64).reshape(size, -1), nodes.view(np.float64).reshape(size, -1)
-        cols = np.array([dt.fields[k][1] // 8 for k in _NODE_INTS + _NODE_FLOATS], np.int64)
-        value = np.empty(size)
-        train_leaf = np.full(n, -1, np.int32)
+            R[:, :d], R[:, d], R[:, d + 1] = X32[keep], y[keep], keep
+        if weighted:
+            R[:, d + 2] = wk
+        size = max(2 * rows - 1, 1)
+        node_view = nodes[:size]
+        ints, floats = node_view.view(np.int64).reshape(size, -1), node_view.view(np.float64).reshape(size, -1)
+        train_leaf.fill(-1)
         count = _grow(R, d, weighted, params.max_features, params.min_samples_split, params.min_samples_leaf,
-                      params.max_depth, seed, ints, floats, cols, value, train_leaf)
-        tree = GrownTree(nodes[:count], value[:count], train_leaf)
-        return finish(tree) if finish is not None else GrownTree(tree.nodes.copy(), tree.value.copy(), train_leaf)
+                      params.max_depth, seed, ints, floats, cols, value, train_leaf, record)
+        tree = GrownTree(nodes[:count], value[:count], train_leaf if record else None)
+        if threads:  # the buffers are this thread's for its next tree: hand out copies
+            return GrownTree(tree.nodes.copy(), tree.value.copy(), train_leaf.copy() if record else None)
+        return finish(tree) if finish is not None else GrownTree(tree.nodes.copy(), tree.value.copy(),
+                                                                    train_leaf.copy() if record else None)
 
-    if params.n_jobs <= 1 or len(trees) <= 1:
+    threads = params.n_jobs > 1 and len(trees) > 1
+    if not threads:
         return [one(t) for t in trees]
     with ThreadPoolExecutor(max_workers=min(params.n_jobs, len(trees))) as pool:
-        return list(pool.map(one, trees))
+        # finish in this thread: what it keeps (scikit-learn trees) is allocated by the
+        # caller's thread, not left in the worker threads' memory arenas
+        return [finish(t) if finish is not None else t for t in pool.map(one, trees)]
 
 
 # ----------------------------------------------------------------------------- the kernel
@@ -351,7 +378,7 @@ _left_sums4 = _kernel(_left_sums4, inline="always", fastmath=_FAST)
 
 
 def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min_leaf: int, max_depth: int,
-          seed: int, ints: Any, floats: Any, cols: Any, value: Any, train_leaf: Any) -> int:
+          seed: int, ints: Any, floats: Any, cols: Any, value: Any, train_leaf: Any, record: bool) -> int:
     """Grow one tree depth-first on the rows of ``R`` (x_0..x_{d-1}, y, original index, and
     w when ``weighted``; reordered in place so that each node's rows are contiguous) into the node records
     (seen as 8-byte integers ``ints`` and floats ``floats``; ``cols``: the slots of
@@ -505,8 +532,9 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
             top += 1
             continue
         ints[node, c_feat] = -2; floats[node, c_thr] = -2.0; ints[node, c_left] = -1; ints[node, c_right] = -1  # noqa: E702
-        for i in range(lo, hi):
-            train_leaf[np.int64(R[i, d + 1])] = node
+        if record:
+            for i in range(lo, hi):
+                train_leaf[np.int64(R[i, d + 1])] = node
     return count
 
 

@@ -439,11 +439,12 @@ class FrozenTreesLearner(Learner):
         rows' leaves (None unless every row is in the tree)."""
         d = X.shape[1]
 
-        def finish(t: extra_trees.GrownTree) -> tuple[Any, np.ndarray | None]:
-            leaf = t.train_leaf if int(t.train_leaf.min(initial=0)) >= 0 else None
+        def finish(t: extra_trees.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
+            leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
             return sklearn_tree_from_records(t.nodes, t.value, d), leaf
 
-        return extra_trees.grow_trees(X, y, self.weights, native, trees, finish=finish)
+        every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
+        return extra_trees.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
 
     def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
         """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
@@ -498,9 +499,11 @@ class FrozenTreesLearner(Learner):
         """The structure as arrays, exported from the forest on first use (then the forest,
         whose node arrays are as large again, is dropped)."""
         if self.ensemble is None:
-            ens = TreeEnsemble.from_sklearn(self._forest)
-            ens._forest = None  # type: ignore[attr-defined]  # later lookups use trees rebuilt from the arrays
-            ens.n_features_in_ = int(self._forest.n_features_in_)  # type: ignore[attr-defined]
+            forest, self._forest = self._forest, None
+            trees = [e.tree_ for e in forest.estimators_]
+            forest.estimators_ = []  # ours (a clone): each tree is freed as soon as it is copied
+            ens = TreeEnsemble._from_trees(trees, consume=True)
+            ens.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
             self._set_ensemble(ens)
         return self.ensemble
 

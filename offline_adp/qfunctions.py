@@ -156,19 +156,25 @@ class TreeEnsemble:
         return out
 
     @classmethod
-    def _from_trees(cls, trees: list[Any]) -> TreeEnsemble:
+    def _from_trees(cls, trees: list[Any], consume: bool = False) -> TreeEnsemble:
+        """``consume``: drop each tree from ``trees`` once copied (the caller's list), so that
+        the trees' memory and the arrays' are not both held at their peak."""
         sizes = np.array([t.node_count for t in trees], dtype=np.int64)
         offs = np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64)
         total = int(sizes.sum())
         left, right = np.empty(total, np.int64), np.empty(total, np.int64)
         feature, threshold, value = np.empty(total, np.int64), np.empty(total), np.empty(total)
-        for t, o, k in zip(trees, offs, sizes, strict=True):  # one copy of each field, into place
+        for i, (o, k) in enumerate(zip(offs, sizes, strict=True)):  # one copy of each field, into place
+            t = trees[i]
+            if consume:
+                trees[i] = None
             lt, rt = left[o:o + k], right[o:o + k]
             lt[:], rt[:] = t.children_left, t.children_right
             feature[o:o + k], threshold[o:o + k], value[o:o + k] = t.feature, t.threshold, t.value[:, 0, 0]
             inner = lt >= 0  # child ids are local to their tree: make them global (tree by tree, in cache)
             np.add(lt, o, out=lt, where=inner)
             np.add(rt, o, out=rt, where=inner)
+            del t
         return cls(left=left, right=right, feature=feature, threshold=threshold, value=value, roots=offs)
 
     def apply(self, X: np.ndarray) -> np.ndarray:
