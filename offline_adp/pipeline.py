@@ -512,9 +512,14 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
         with rd.subdirectory(rd.MODEL) as tmp:
             save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
                                                 "policy": "greedy (argmin_a Q)", "verdict": est.verdict_,
-                                                "verdict_message": est.verdict_message_})
+                                                "verdict_message": est.verdict_message_,
+                                                "unplaced_iterations": est.unplaced_iterations_})
             pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
-        verdict = {"verdict": est.verdict_, "verdict_message": est.verdict_message_}
+        # iterations whose row blocks trained away from their workers (a lost worker): same Q rule, more traffic
+        verdict = {"verdict": est.verdict_, "verdict_message": est.verdict_message_,
+                   "unplaced_iterations": est.unplaced_iterations_}
         rd.write_json(rd.STATUS, {**status, "status": "completed", "iterations": len(est.history_), **verdict})
+    if est.unplaced_iterations_:
+        say(f"[fit] iterations {est.unplaced_iterations_} trained with rows away from their workers (a worker was lost)")
     say(f"[fit] {est.verdict_message_}")
     return {"iterations": len(est.history_), "engine": "dask", **verdict}
