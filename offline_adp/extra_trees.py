@@ -279,10 +279,11 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
         count = _grow(R, d, weighted, params.max_features, params.min_samples_split, params.min_samples_leaf,
                       params.max_depth, seed, ints, floats, cols, value, train_leaf, record)
         tree = GrownTree(nodes[:count], value[:count], train_leaf if record else None)
-        if threads:  # the buffers are this thread's for its next tree: hand out copies
-            return GrownTree(tree.nodes.copy(), tree.value.copy(), train_leaf.copy() if record else None)
-        return finish(tree) if finish is not None else GrownTree(tree.nodes.copy(), tree.value.copy(),
-                                                                    train_leaf.copy() if record else None)
+        if finish is not None and not threads:  # finish copies what it keeps
+            return finish(tree)
+        # the buffers are this thread's for its next tree: hand out copies (finish, if any,
+        # then runs in the calling thread)
+        return GrownTree(tree.nodes.copy(), tree.value.copy(), train_leaf.copy() if record else None)
 
     threads = params.n_jobs > 1 and len(trees) > 1
     if not threads:
