@@ -1,39 +1,47 @@
 # Two commands for a fresh machine with Python 3.11: `make demo` and `make test`.
-# Both create .venv on first use and reinstall only when pyproject.toml changes.
-# `make demo` runs pipelines/driving.toml; a second run reuses every stage.
+# Both create .venv on first use from the committed lock (requirements/lock.txt: exact
+# versions and hashes) and reinstall only when the lock or pyproject.toml changes, so a
+# fresh clone runs exactly the versions CI tested. `make demo` runs pipelines/driving.toml;
+# a second run reuses every stage.
+#
+# `make lock` refreshes the lock on purpose (newest releases within pyproject.toml's
+# ranges); `make test-latest` runs the suite against the newest releases without touching
+# the lock, in .venv-latest, so drift is found before it reaches CI.
 PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin
 DEMO   := demo_out
 
-.PHONY: demo test test-fast bench lint clean
+.PHONY: demo test test-fast test-latest lock bench lint clean
+
+LOCK   := requirements/lock.txt
+UV     := uv==0.13.9
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
 
-$(VENV)/.installed: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e .
+# One environment for the demo and the tests: the lock holds the library, every extra the
+# README's commands use (dask, onnx, minari) and the test tools.
+$(VENV)/.installed: $(LOCK) pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -q --require-hashes --no-deps -r $(LOCK)
+	$(BIN)/python -m pip install -q --no-deps --no-build-isolation -e .
+	$(BIN)/python -m pip check
 	touch $@
-
-$(VENV)/.installed-dev: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install -q -e ".[dev]"
-	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
 	@echo "== the driving case study: MCAP logs -> dataset -> FQI -> simulator + off-policy evaluation -> report"
 	$(BIN)/offline-adp run pipelines/driving.toml --runs $(DEMO)/runs
 
-test: $(VENV)/.installed-dev
+test: $(VENV)/.installed
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q -n 2
 
 # The unit layer only (no slow or end-to-end tests): under 2 minutes on 2 cores.
-test-fast: $(VENV)/.installed-dev
+test-fast: $(VENV)/.installed
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q -n 2 -m "not slow and not integration"
 
-bench: $(VENV)/.installed-dev
+bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/ingest_parquet.py
 	$(BIN)/python benchmarks/ingest_mcap.py
 	$(BIN)/python benchmarks/fqi_scale.py
@@ -42,9 +50,24 @@ bench: $(VENV)/.installed-dev
 	$(BIN)/python benchmarks/evaluation.py
 	$(BIN)/python benchmarks/dask_scale.py
 
-lint: $(VENV)/.installed-dev
+# The suite against the newest releases pyproject.toml allows (not in CI; the lock stays).
+test-latest:
+	$(PYTHON) -m venv .venv-latest
+	.venv-latest/bin/python -m pip install -q --upgrade --upgrade-strategy eager -e ".[dev]"
+	.venv-latest/bin/lint-imports
+	.venv-latest/bin/python -m pytest -q -n 2
+
+# Refresh the lock on purpose: newest releases within pyproject.toml's ranges, with hashes.
+lock:
+	$(PYTHON) -m venv .venv-lock
+	.venv-lock/bin/python -m pip install -q $(UV)
+	.venv-lock/bin/uv pip compile pyproject.toml requirements/build.in --extra dev \
+	    --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
+	    --generate-hashes --no-header --upgrade -o $(LOCK)
+
+lint: $(VENV)/.installed
 	$(BIN)/ruff check offline_adp tests benchmarks
 	$(BIN)/lint-imports
 
 clean:
-	rm -rf $(VENV) $(DEMO) .pytest_cache
+	rm -rf $(VENV) .venv-latest .venv-lock $(DEMO) .pytest_cache

@@ -36,8 +36,9 @@ Where it differs from scikit-learn 1.9, knowingly:
 - Ties between equal scores: scikit-learn computes the right side as total minus left,
   so exactly tied splits often differ in the last bit there and it takes the same
   feature every time; this builder chooses uniformly.
-- Its sums are vectorised (fast-math), so on another CPU or numba version a near-tie
-  may go the other way; on one machine the trees are bit-for-bit reproducible.
+- Its sums are taken in row order in IEEE double precision, with no reordering or fused
+  multiply-add, so the trees are bit-for-bit the same on any x86-64 CPU for the same data,
+  settings and seed (``docs/fqi-modes.md``, "What is reproducible").
 
 Why a second implementation: the frozen-structure mode of fitted Q-iteration
 (:class:`offline_adp.learners.FrozenTreesLearner`) spends most of its time growing
@@ -65,9 +66,14 @@ import numpy as np
 FEATURE_THRESHOLD = 1e-7
 _EPSILON = float(np.finfo(np.float64).eps)  # a node is pure when its variance is <= this
 
-# fast-math lets the compiler vectorise the scans (reassociated sums, min/max without NaN
-# semantics): the kernel uses no NaN or infinity, and its inputs are checked finite first
-_FAST = True
+# Floating-point flags of the kernels. Only the two that cannot change a finite result:
+# "no NaN" and "no infinity" (the kernel's inputs are checked finite first), which let the
+# compiler use the CPU's plain min/max. Never "reassoc", "contract", "arcp", "afn" or
+# "nsz": with those the compiler may reorder sums or fuse a*b+c into one rounding
+# depending on the CPU it compiles for (FMA or not, vector width), and the same data and
+# seed would grow different trees on another machine (tests/test_reproducible.py checks
+# a fit compiled for the host CPU against one compiled for a generic x86-64).
+_FAST = {"nnan", "ninf"}
 
 
 @dataclass(frozen=True)
