@@ -86,3 +86,22 @@ def test_same_seed_same_bits_in_one_process():
     h = [hashlib.sha256(b"".join(np.asarray(g.threshold).tobytes() + np.asarray(g.value).tobytes()
                                  for g in extra_trees.grow_trees(X, y, None, p))).hexdigest() for _ in range(2)]
     assert h[0] == h[1]
+
+
+@pytest.mark.parametrize("mode", ["auto", "refit"])
+def test_the_fit_does_not_depend_on_the_number_of_threads(mode):
+    import warnings
+
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.simulate import simulate
+
+    ds = simulate("car_on_hill", 10, 40, seed=4, horizon=50)
+    obs = ds.arrays().obs
+    q = []
+    for jobs in (1, 2):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            f = FittedQIteration(gamma=0.95, n_iterations=6, random_state=1, mode=mode,
+                                 regressor_params={"n_jobs": jobs, "n_estimators": 12}).fit(ds)
+        q.append(f.q_function_.values(obs))
+    np.testing.assert_array_equal(q[0], q[1])
