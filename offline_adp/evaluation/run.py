@@ -137,6 +137,12 @@ def evaluate_run(
         sim_name = None
     problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
     note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
+    from offline_adp.envs import recorded_problem_options
+
+    if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
+        note = ((note + "; ") if note else "") + (
+            f"the dataset does not record the options its {sim_name!r} problem was made with "
+            "(meta/info.json provenance.problem_options): the rollouts use the default problem")
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
                                                             "transitions": len(ds), "episodes": len(ds.episode_ids),
