@@ -224,6 +224,10 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
                        "ess_fraction": float(worst["ess_fraction"].min())},
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
+                       "eps_method": (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
+                                      "the policy's advantage deficit measured on the held-out fold's states")
+                       if res.eps_folds else "in sample (FQE fitted on all the data; 0 for a policy greedy in it)",
+                       "eps_in_sample": None if res.eps_in_sample is None else res.eps_in_sample.tolist(),
                        "references": res.bounds},
         "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
                                   else res.pooled[0].w if thin and res.pooled is not None else res.ratios.w, res.gamma),
