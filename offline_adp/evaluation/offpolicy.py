@@ -208,6 +208,17 @@ def residual_advantage(qv: np.ndarray, probs: np.ndarray, step: np.ndarray, gamm
 PSDP_EPS_FOLDS = 2
 
 
+def episode_groups(ds: TransitionDataset, em: ope.EpisodeMatrix) -> np.ndarray | None:
+    """Each episode's ``source`` label (the behaviour component that logged it), ordered as
+    ``em``'s episodes; ``None`` when the dataset has no ``source`` column."""
+    if "source" not in ds.table.column_names:
+        return None
+    src = np.asarray(ds.table.column("source").to_numpy(zero_copy_only=False)).astype(str)
+    out = np.empty(em.n_episodes, dtype=object)
+    out[em.row_episode[::-1]] = src[::-1]  # the first row of each episode wins
+    return out.astype(str)
+
+
 def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
                                 gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
                                 seed: int = 0) -> np.ndarray:
@@ -425,14 +436,18 @@ def off_policy(
         fq.interval = (fq.interval[0] - est_def.tail_bound, fq.interval[1] + est_def.tail_bound)
         fq.interval_method += f", widened by the truncation bound {est_def.tail_bound:.3g}"
     say("importance sampling")
-    estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed))
+    groups = episode_groups(ds, em)
+    estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed,
+                                                       groups=groups))
     qv = fqe.q_function_.values(a.obs, a.step)
     estimates.update(ope.doubly_robust_estimates(em, a.cost, rho, qv[np.arange(len(a)), a.action],
-                                                 (target * qv).sum(axis=1), gamma, n_boot=n_boot, level=level, seed=seed))
+                                                 (target * qv).sum(axis=1), gamma, n_boot=n_boot, level=level, seed=seed,
+                                                 groups=groups))
     say("density ratios")
     ratios = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho, regressor=ratio_regressor,
                                        regressor_params=ratio_params, horizon=T)
-    estimates["mis"] = ope.marginalised_is_estimate(em, a.cost, rho, ratios.w, gamma, n_boot=n_boot, level=level, seed=seed)
+    estimates["mis"] = ope.marginalised_is_estimate(em, a.cost, rho, ratios.w, gamma, n_boot=n_boot, level=level, seed=seed,
+                                                    groups=groups)
     ope.flag_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     eps_in_sample = residual_advantage(qv, target, a.step, gamma, T)
