@@ -13,7 +13,7 @@ import pytest
 from offline_adp import dp
 from offline_adp.algorithms.psdp import state_samples
 from offline_adp.envs.tabular import TabularMDP
-from offline_adp.evaluation import ope, shift
+from offline_adp.evaluation import shift
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from offline_adp.simulate import collect

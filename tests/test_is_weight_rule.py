@@ -95,7 +95,7 @@ def test_labelled_intervals_cover_over_seeds():
     for pib, pi, n in cases:
         J = truth(pi)
         for seed in range(30):
-            for k, r in _is_family(pib, pi, n, seed).items():
+            for r in _is_family(pib, pi, n, seed).values():
                 if r.level is None:
                     withheld += 1
                     assert np.isnan(r.interval).all() and r.interval_method.startswith("none: ")
