@@ -157,11 +157,17 @@ def _make_fqe(p: dict[str, Any]) -> Any:
     return FQE.estimator_class()(**p.pop("fqe")) if p.get("fqe") is not None else p.pop("fqe", None)
 
 
-def _simulator(p: dict[str, Any]) -> Any:
-    from offline_adp.envs import make_problem
+def _simulator(p: dict[str, Any], ds: Any = None) -> Any:
+    """The configured simulator: ``problem_options`` when given, else the options the
+    dataset's own problem was made with (:func:`offline_adp.envs.problem_for_dataset`)."""
+    from offline_adp.envs import make_problem, problem_for_dataset
 
-    name, options = p.pop("simulator", None), p.pop("problem_options", None) or {}
-    return make_problem(name, **options) if name is not None else None
+    name, options = p.pop("simulator", None), p.pop("problem_options", None)
+    if name is None:
+        return None
+    if options is None and ds is not None:
+        return problem_for_dataset(name, ds.info)
+    return make_problem(name, **(options or {}))
 
 
 def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
@@ -178,13 +184,13 @@ def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 
 def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     fqe = _make_fqe(p)
-    return entry.estimator_class()(fqe=fqe, model=_simulator(p), **p).fit(ds)
+    return entry.estimator_class()(fqe=fqe, model=_simulator(p, ds), **p).fit(ds)
 
 
 def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     from offline_adp.features import drop_features
 
-    sim = _simulator(p)
+    sim = _simulator(p, ds)
     if sim is None:
         raise SpecError('psdp needs a simulator (a reference problem): simulator = "path_tracking" in [psdp]')
     source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)

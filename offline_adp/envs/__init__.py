@@ -43,6 +43,56 @@ def make_problem(name: str, **kwargs: Any) -> ReferenceProblem:
         raise UnknownNameError(f"problem {name!r}: bad options {sorted(kwargs)} ({exc})") from None
 
 
+def recorded_problem_options(info: Any) -> dict[str, Any] | None:
+    """The constructor options a dataset's reference problem was made with, from its
+    provenance (``provenance.problem_options``, written by ``simulate`` and
+    :meth:`ReferenceProblem.dataset_info`; for a concatenation, ``provenance.parts``).
+
+    Returns the options (``{}``: the defaults), or ``None`` when the dataset names no
+    problem or its provenance does not record them (datasets written before the options
+    were recorded). Raises :class:`~offline_adp.errors.ArtifactError` naming
+    ``provenance.problem_options`` when they are recorded as unknown (options that are not
+    JSON) or the concatenated parts disagree: no simulator can reproduce that system.
+    """
+    from offline_adp.errors import ArtifactError
+
+    prov = dict(getattr(info, "provenance", None) or {})
+    problem = getattr(info, "problem", None)
+    if not problem:
+        return None
+    if "problem_options" in prov:
+        found = [prov["problem_options"]]
+    else:
+        found = [p["problem_options"] for p in prov.get("parts", []) or [] if isinstance(p, dict) and "problem_options" in p]
+        if not found:
+            return None
+    for opts in found:
+        if not isinstance(opts, dict):
+            raise ArtifactError(
+                f"dataset of problem {problem!r}: provenance.problem_options is {opts!r}, i.e. the options it was made "
+                "with are unknown, so no simulator can roll out the same system; evaluate with --simulator none")
+    if any(o != found[0] for o in found[1:]):
+        raise ArtifactError(
+            f"dataset of problem {problem!r}: its parts were made with different provenance.problem_options "
+            f"({found}); no single simulator reproduces them; evaluate with --simulator none")
+    return dict(found[0])
+
+
+def problem_for_dataset(name: str, info: Any) -> ReferenceProblem:
+    """The reference problem ``name`` as the dataset ``info`` recorded it.
+
+    When ``name`` is the dataset's own problem (``info.problem``), it is constructed with
+    the options the data was made with (:func:`recorded_problem_options`); otherwise (a
+    different problem, or none recorded) with its defaults. Every simulator of
+    ``evaluate``, ``compare`` and the pipeline is built here, so a dataset simulated with
+    ``--problem-options '{"seed": 3}'`` is rolled out in seed 3's system.
+    """
+    if name != getattr(info, "problem", None):
+        return make_problem(name)
+    opts = recorded_problem_options(info)
+    return make_problem(name, **(opts or {}))
+
+
 _LAZY = {"ProblemEnv": "offline_adp.envs.base:ProblemEnv", "ReferenceProblem": "offline_adp.envs.base:ReferenceProblem",
          **{v.split(":")[1]: v for v in _REGISTRY.values()}}
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
+import json
 from typing import Any
 
 import gymnasium as gym
@@ -34,6 +37,50 @@ class ReferenceProblem:
     #: The two features the report's policy, value and coverage maps span (None: the first two).
     map_features: tuple[str, str] | None = None
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Record the constructor options of every instance (:attr:`problem_options`).
+
+        The outermost ``__init__`` of a subclass is wrapped so the keywords it was called
+        with (positional ones by name) are kept; :meth:`dataset_info` writes them into the
+        dataset's provenance and every simulator built for the dataset
+        (:func:`offline_adp.envs.problem_for_dataset`) is constructed with them, so
+        evaluation rolls out the system the data came from, not the default one.
+        """
+        super().__init_subclass__(**kwargs)
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            return
+        sig = inspect.signature(init)
+
+        @functools.wraps(init)
+        def recording_init(self: Any, *args: Any, **kw: Any) -> None:
+            if "_problem_options" not in self.__dict__:  # the outermost constructor records
+                try:
+                    bound = sig.bind(self, *args, **kw)
+                    opts: dict[str, Any] | None = {}
+                    for name, value in list(bound.arguments.items())[1:]:
+                        kind = sig.parameters[name].kind
+                        if kind is inspect.Parameter.VAR_POSITIONAL:
+                            opts = None if value else opts  # positional extras cannot be replayed by name
+                        elif kind is inspect.Parameter.VAR_KEYWORD:
+                            opts = None if opts is None else {**opts, **value}
+                        elif opts is not None:
+                            opts[name] = value
+                    json.dumps(opts)  # only JSON options can be recorded and replayed
+                except (TypeError, ValueError):
+                    opts = None
+                self.__dict__["_problem_options"] = opts
+            init(self, *args, **kw)
+
+        cls.__init__ = recording_init  # type: ignore[method-assign]
+
+    @property
+    def problem_options(self) -> dict[str, Any] | None:
+        """The constructor options this instance was made with (``{}``: the defaults);
+        ``None`` when they cannot be recorded (not JSON)."""
+        opts = self.__dict__.get("_problem_options", {})
+        return None if opts is None else dict(opts)
+
     @property
     def feature_names(self) -> list[str]:
         return [f.name for f in self.features]
@@ -49,6 +96,8 @@ class ReferenceProblem:
     def dataset_info(self, **provenance: Any) -> DatasetInfo:
         """Metadata for data logged on this problem."""
         assert isinstance(self, ResetModel)
+        provenance = {**provenance}
+        provenance.setdefault("problem_options", self.problem_options)
         return DatasetInfo(
             features=self.features,
             action_table=self.action_table,

@@ -162,12 +162,12 @@ def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
         return None
     if name.startswith(PREFIX):
         return GymResetModel(name[len(PREFIX):], info)
-    from offline_adp.envs import PROBLEM_NAMES, make_problem
+    from offline_adp.envs import PROBLEM_NAMES, problem_for_dataset
 
     if name not in PROBLEM_NAMES:
         raise OfflineADPError(f"unknown simulator {name!r}; known: {list(PROBLEM_NAMES)}, "
                               "gym:ENV_ID (a registered gymnasium environment) or 'none'")
-    return make_problem(name)
+    return problem_for_dataset(name, info)  # the dataset's own problem with the options it was made with
 
 
 def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: int = 8,

@@ -53,6 +53,10 @@ class OffPolicyResult:
     pooled: tuple[shift.DensityRatios, dict[str, Any]] | None = None
     behaviour_value: dict[str, Any] | None = None
     per_step_counts: np.ndarray | None = None
+    #: eps_t measured with the FQE fitted on all the data (0 for a policy greedy in it): for reference only.
+    eps_in_sample: np.ndarray | None = None
+    #: Folds of the cross-fitted ``eps`` (0: measured in sample).
+    eps_folds: int = 0
 
 
 def evaluation_horizon(ds: TransitionDataset, horizon: int | None = None) -> tuple[int, float, int | None]:
@@ -200,6 +204,60 @@ def residual_advantage(qv: np.ndarray, probs: np.ndarray, step: np.ndarray, gamm
     return eps
 
 
+#: Folds of the cross-fitted eps_t (:func:`crossfit_residual_advantage`).
+PSDP_EPS_FOLDS = 2
+
+
+def episode_groups(ds: TransitionDataset, em: ope.EpisodeMatrix) -> np.ndarray | None:
+    """Each episode's ``source`` label (the behaviour component that logged it), ordered as
+    ``em``'s episodes; ``None`` when the dataset has no ``source`` column."""
+    if "source" not in ds.table.column_names:
+        return None
+    src = np.asarray(ds.table.column("source").to_numpy(zero_copy_only=False)).astype(str)
+    out = np.empty(em.n_episodes, dtype=object)
+    out[em.row_episode[::-1]] = src[::-1]  # the first row of each episode wins
+    return out.astype(str)
+
+
+def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
+                                gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
+                                seed: int = 0) -> np.ndarray:
+    """``eps_t`` of :func:`residual_advantage` measured out of sample, by cross-fitting.
+
+    The episodes are split at random into ``folds`` folds; for each fold, FQE of
+    ``policy`` (``fqe_params``, the evaluation's settings) is fitted on the other folds and
+    the policy's advantage deficit ``sum_a pi(a|x) Q^pi_t(x, a) - min_a Q^pi_t(x, a)`` is
+    measured at the held-out fold's step-t states; ``eps_t`` is ``gamma^t`` times its mean
+    over all held-out rows (every row is held out once). Measured with the FQE fitted on
+    the same data, the deficit of a policy greedy in a Q fitted on that data (FQI's) is 0
+    by construction, and so was the bound (Bagnell et al. 2003, Theorem 2, needs eps_t of
+    the policy's true Q^pi_t on mu_t; an estimate fitted on other episodes is not tuned to
+    the policy). ``n_episodes_index`` is each row's episode index (0 .. N-1).
+    """
+    a = ds.arrays()
+    n_ep = int(n_episodes_index.max()) + 1
+    k = int(max(2, min(folds, n_ep)))
+    fold_of = np.random.default_rng(seed).permutation(n_ep) % k
+    row_fold = fold_of[n_episodes_index]
+    gap = np.zeros(len(a))
+    for f in range(k):
+        held = row_fold == f
+        train = np.flatnonzero(~held)
+        fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **fqe_params)
+        fqe.fit(ds.take(train))
+        if fqe_params.get("mode") == "frozen" and fqe_T is None and not fqe_params.get("validation_fraction"):
+            fqe.settle()  # as the estimate's own FQE
+        qv = fqe.q_function_.values(a.obs[held], a.step[held])
+        probs = policy.probabilities(a.obs[held], a.step[held])
+        gap[held] = (probs * qv).sum(axis=1) - qv.min(axis=1)
+    eps = np.zeros(T)
+    for t in range(T):
+        m = a.step == t
+        if m.any():
+            eps[t] = gamma**t * float(gap[m].mean())
+    return eps
+
+
 def psdp_bound(eps: np.ndarray, ratio_ucb: np.ndarray, pooled_ucb: float | None = None) -> dict[str, float]:
     """PSDP's performance bound (Bagnell et al. 2003, Theorem 2) as a plug-in estimate.
 
@@ -305,6 +363,7 @@ def off_policy(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
+    psdp_folds: int = PSDP_EPS_FOLDS,
 ) -> OffPolicyResult:
     """Evaluate ``policy`` from the dataset alone.
 
@@ -315,8 +374,9 @@ def off_policy(
 
     Steps: behaviour probabilities (logged or a classifier) and support violations;
     FQE with a trajectory bootstrap; IS, WIS, PDIS, WPDIS, DR, WDR; per-step density
-    ratios by the recursion and MIS from them; diagnostics; eps_t from the FQE
-    Q-functions and the PSDP bound for each reference policy (``self`` always; others
+    ratios by the recursion and MIS from them; diagnostics; eps_t cross-fitted over
+    ``psdp_folds`` folds of episodes (:func:`crossfit_residual_advantage`; 0: from the
+    FQE fitted on all the data, which is 0 for FQI's greedy policy) and the PSDP bound for each reference policy (``self`` always; others
     from ``reference_policies``). With ``policy_states`` (pi's states per step from a
     simulator) the classifier ratios are added. ``task_map`` runs the FQE bootstrap
     replicates (default: here; see :mod:`offline_adp.parallel`).
@@ -376,17 +436,26 @@ def off_policy(
         fq.interval = (fq.interval[0] - est_def.tail_bound, fq.interval[1] + est_def.tail_bound)
         fq.interval_method += f", widened by the truncation bound {est_def.tail_bound:.3g}"
     say("importance sampling")
-    estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed))
+    groups = episode_groups(ds, em)
+    estimates.update(ope.importance_sampling_estimates(em, a.cost, rho, gamma, n_boot=n_boot, level=level, seed=seed,
+                                                       groups=groups))
     qv = fqe.q_function_.values(a.obs, a.step)
     estimates.update(ope.doubly_robust_estimates(em, a.cost, rho, qv[np.arange(len(a)), a.action],
-                                                 (target * qv).sum(axis=1), gamma, n_boot=n_boot, level=level, seed=seed))
+                                                 (target * qv).sum(axis=1), gamma, n_boot=n_boot, level=level, seed=seed,
+                                                 groups=groups))
     say("density ratios")
     ratios = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho, regressor=ratio_regressor,
                                        regressor_params=ratio_params, horizon=T)
-    estimates["mis"] = ope.marginalised_is_estimate(em, a.cost, rho, ratios.w, gamma, n_boot=n_boot, level=level, seed=seed)
+    estimates["mis"] = ope.marginalised_is_estimate(em, a.cost, rho, ratios.w, gamma, n_boot=n_boot, level=level, seed=seed,
+                                                    groups=groups)
     ope.flag_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
-    eps = residual_advantage(qv, target, a.step, gamma, T)
+    eps_in_sample = residual_advantage(qv, target, a.step, gamma, T)
+    if psdp_folds:
+        say("PSDP eps, cross-fitted")
+        eps = crossfit_residual_advantage(ds, policy, params, fqe_T, gamma, T, em.row_episode, folds=psdp_folds, seed=seed)
+    else:
+        eps = eps_in_sample
     lo_c, hi_c = float(a.cost.min()), float(a.cost.max())
     if a.terminated.any() or not em.mask.all():  # episodes that stop early add 0 from then on
         lo_c, hi_c = min(lo_c, 0.0), max(hi_c, 0.0)
@@ -401,6 +470,7 @@ def off_policy(
                                      "trajectory estimators cannot see past the logged horizon")
                 r.comparable = False
     res = OffPolicyResult(gamma, T, beh, estimates, ratios, diag, support, eps, fqe, estimand=est_def,
+                          eps_in_sample=eps_in_sample, eps_folds=int(psdp_folds or 0),
                           behaviour_value=behaviour_value(em, a.cost, gamma, level),
                           per_step_counts=shift.per_step_counts(a.step, T))
     if _stationary_on(policy, a.obs, T):

@@ -63,6 +63,7 @@ class OPEResult:
     plugin_estimate: float | None = None  #: the uncorrected estimate, when ``estimate`` is bias-corrected
     comparable: bool = True
     degenerate: bool = False
+    weight_diagnostics: dict[str, Any] | None = None  #: the weights' shape (:func:`weight_diagnostics`)
 
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
@@ -72,6 +73,8 @@ class OPEResult:
             d["percentile_interval"] = list(self.percentile_interval)
         if self.plugin_estimate is not None:
             d["plugin_estimate"] = self.plugin_estimate
+        if self.weight_diagnostics is not None:
+            d["weight_diagnostics"] = dict(self.weight_diagnostics)
         return d
 
 
@@ -118,9 +121,13 @@ def _bootstrap(fn: Callable[[np.ndarray], float], n: int, n_boot: int, level: fl
 
 def importance_sampling_estimates(
     em: EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, gamma: float, *, n_boot: int = 200, level: float = 0.95,
-    seed: int = 0,
+    seed: int = 0, groups: np.ndarray | None = None,
 ) -> dict[str, OPEResult]:
-    """IS, WIS, PDIS and WPDIS (formulas in the module docstring)."""
+    """IS, WIS, PDIS and WPDIS (formulas in the module docstring).
+
+    ``groups`` (a label per episode, e.g. the behaviour component that logged it) lets the
+    interval rule (:func:`interval_unreliable`) see weight carried by a subset of them.
+    """
     C = em.lay(cost)
     R = np.cumprod(em.lay(rho, fill=1.0), axis=1)  # after the end: ratio 1, cost 0
     disc = gamma ** np.arange(em.horizon)
@@ -145,15 +152,16 @@ def importance_sampling_estimates(
     full = np.arange(em.n_episodes)
     step_ess = min(_ess(R[:, t]) for t in range(em.horizon))
     out = {}
-    for name, fn, ess in (("is", is_, _ess(RT)), ("wis", wis, _ess(RT)), ("pdis", pdis, step_ess), ("wpdis", wpdis, step_ess)):
+    for name, fn, ess, W in (("is", is_, _ess(RT), RT), ("wis", wis, _ess(RT), RT), ("pdis", pdis, step_ess, R),
+                             ("wpdis", wpdis, step_ess, R)):
         out[name] = OPEResult(name, fn(full), _bootstrap(fn, em.n_episodes, n_boot, level, rng), ess, level)
-        _warn_degenerate(out[name], em.n_episodes)
+        _judge_weights(out[name], W, groups)
     return out
 
 
 def doubly_robust_estimates(
     em: EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, q_logged: np.ndarray, v_obs: np.ndarray, gamma: float, *,
-    n_boot: int = 200, level: float = 0.95, seed: int = 0,
+    n_boot: int = 200, level: float = 0.95, seed: int = 0, groups: np.ndarray | None = None,
 ) -> dict[str, OPEResult]:
     """DR (Jiang & Li 2016) and weighted DR (Thomas & Brunskill 2016).
 
@@ -185,29 +193,156 @@ def doubly_robust_estimates(
     out = {name: OPEResult(name, fn(full), _bootstrap(fn, em.n_episodes, n_boot, level, rng), ess, level)
            for name, fn in (("dr", dr), ("wdr", wdr))}
     for r in out.values():
-        _warn_degenerate(r, em.n_episodes)
+        _judge_weights(r, R, groups)
     return out
 
 
-#: Importance-weighted bootstrap intervals are withheld below this effective sample size
-#: (episodes). Measured on tabular problems (T = 10, 30 seeds): percentile intervals labelled
-#: 95% covered 60-90% at ESS ~ 9, 87-93% at ESS ~ 45, 3-67% at ESS ~ 2.
-MIN_ESS_FOR_INTERVAL = 100.0
+#: An IS-family interval is withheld below this effective sample size (episodes): too few
+#: for bootstrap percentiles at all (measured on tabular problems, T = 10, 30 seeds: intervals
+#: labelled 95% covered 3-67% at ESS ~ 2, 60-90% at ESS ~ 9, 87-93% at ESS ~ 45).
+MIN_ESS = 30.0
+#: ... or below this fraction of the episodes (ESS/n): the weights are degenerate.
+MIN_ESS_FRACTION = 0.01
+#: ... or when one episode holds more than this share of the total weight.
+MAX_WEIGHT_SHARE = 0.1
+#: ... or when the generalized Pareto shape of the weights' upper tail exceeds this
+#: (Vehtari, Simpson, Gelman, Yao & Gabry, Pareto smoothed importance sampling: k > 0.7,
+#: the variance is effectively infinite and the estimate's error is not normal).
+MAX_PARETO_K = 0.7
+#: ... or when the weight mean is this far (and 3 standard errors) from 1: E[w] = 1 for
+#: correct propensities, so a mean well below 1 says the weight pi puts on trajectories the
+#: logs (almost) never show is missing, and an unnormalised estimate is biased by that factor.
+MAX_MEAN_WEIGHT_ERROR = 0.2
+#: ... or when episode groups (behaviour components, the data's ``source``) holding at most
+#: this fraction of the episodes carry all but 1% of the weight.
+MAX_SUBSET_FRACTION = 0.9
 
 
-def _warn_degenerate(r: OPEResult, n: int) -> None:
-    """Degenerate weights: say so, and withhold an interval that would not cover as labelled."""
-    if r.ess is None:
-        return
-    if r.ess < 0.01 * n:
+def _gpd_shape(x: np.ndarray) -> float:
+    """Shape ``k`` of a generalized Pareto fit to exceedances ``x`` (ascending, > 0) by
+    Zhang & Stephens (2009)'s empirical Bayes estimate, with the weakly informative prior
+    towards 0.5 that Pareto smoothed importance sampling uses (Vehtari et al. 2015, 2024)."""
+    n = len(x)
+    m = 30 + int(np.sqrt(n))
+    bs = 1.0 / x[-1] + (1.0 - np.sqrt(m / (np.arange(1, m + 1) - 0.5))) / (3.0 * x[int(n / 4 + 0.5) - 1])
+    ks = np.log1p(-bs[:, None] * x).mean(axis=1)
+    L = n * (np.log(-bs / ks) - ks - 1.0)
+    w = 1.0 / np.exp(L[None, :] - L[:, None]).sum(axis=1)
+    keep = w >= 10 * np.finfo(float).eps
+    w, bs = w[keep] / w[keep].sum(), bs[keep]
+    b = float(np.sum(bs * w))
+    k = float(np.mean(np.log1p(-b * x)))  # the shape (k > 0: heavy tail)
+    return (k * n + 10 * 0.5) / (n + 10)
+
+
+def pareto_k(w: np.ndarray) -> float:
+    """PSIS diagnostic: the generalized Pareto shape of the largest ``M = min(n/5, 3 sqrt(n))``
+    weights above the next one (Vehtari et al.); ``nan`` when the tail is flat (fewer than 5
+    distinct exceedances: no heavy tail to fit), ``inf`` when fewer than 5 weights are positive."""
+    w = np.sort(np.asarray(w, dtype=np.float64))
+    pos = w[w > 0]
+    if len(pos) < 5:
+        return float("inf")
+    M = int(np.ceil(min(0.2 * len(w), 3 * np.sqrt(len(w)))))
+    if M < 5 or M >= len(w):
+        return float("nan")
+    cut = w[-M - 1]
+    x = w[-M:] - cut
+    x = x[x > 1e-12 * max(w[-1], 1e-300)]
+    if len(x) < 5 or np.ptp(x) <= 1e-12 * x[-1]:
+        return float("nan")
+    return _gpd_shape(x)
+
+
+def weight_diagnostics(W: np.ndarray, groups: np.ndarray | None = None) -> dict[str, Any]:
+    """Shape of importance weights, worst over columns (steps).
+
+    ``W`` is (n episodes,) or (n, T) (the cumulative weights ``R_t`` of every step).
+    Per column: ESS ``(sum w)^2 / sum w^2``, ESS/n, the largest weight's share of the total,
+    the Pareto ``k`` of the upper tail (:func:`pareto_k`), the mean weight and its standard
+    error, and with ``groups`` (a label per episode) each group's share of the weight. The
+    worst column is reported for each (lowest ESS, largest share and k, mean farthest from 1,
+    most concentrated groups).
+    """
+    W = np.asarray(W, dtype=np.float64)
+    W = W[:, None] if W.ndim == 1 else W
+    n = W.shape[0]
+    out: dict[str, Any] = {"n": n, "ess": np.inf, "max_share": 0.0, "pareto_k": float("nan"), "mean": 1.0,
+                           "mean_se": 0.0, "carrying_fraction": 1.0, "carrying_groups": None}
+    for j in range(W.shape[1]):
+        w = W[:, j]
+        tot = float(w.sum())
+        out["ess"] = min(out["ess"], _ess(w))
+        out["max_share"] = max(out["max_share"], float(w.max() / tot) if tot > 0 else 1.0)
+        k = pareto_k(w)
+        if np.isfinite(k) or np.isinf(k):
+            out["pareto_k"] = k if not np.isfinite(out["pareto_k"]) else max(out["pareto_k"], k)
+        m, se = float(w.mean()), float(w.std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
+        if abs(m - 1.0) > abs(out["mean"] - 1.0):
+            out["mean"], out["mean_se"] = m, se
+        if groups is not None and tot > 0:
+            labels = np.unique(groups)
+            share = {g: float(w[groups == g].sum() / tot) for g in labels}
+            carrying = [g for g in labels if share[g] >= 0.01]
+            frac = float(np.isin(groups, carrying).mean())
+            if frac < out["carrying_fraction"]:
+                out["carrying_fraction"], out["carrying_groups"] = frac, {str(g): share[g] for g in carrying}
+    out["ess_fraction"] = out["ess"] / n if n else 0.0
+    return out
+
+
+def interval_unreliable(d: dict[str, Any], *, normalised: bool) -> list[str]:
+    """Reasons, in words, why a bootstrap interval of an IS-family estimate would not cover as
+    labelled (empty: it may be given). The rule looks at the weights' shape, not a count: ESS
+    below :data:`MIN_ESS` or :data:`MIN_ESS_FRACTION` of the episodes; one episode with more than
+    :data:`MAX_WEIGHT_SHARE` of the weight; a heavy upper tail (Pareto k > :data:`MAX_PARETO_K`);
+    for unnormalised estimators (IS, PDIS, DR, MIS) a mean weight far from 1; and weight carried by
+    a subset of the episode groups (e.g. only one behaviour component's episodes)."""
+    n, why = d["n"], []
+    if d["ess"] < MIN_ESS or d["ess_fraction"] < MIN_ESS_FRACTION:
+        why.append(f"effective sample size {d['ess']:.1f} of {n} episodes (below {MIN_ESS:g}, or "
+                   f"{MIN_ESS_FRACTION:.0%} of the episodes)")
+    if d["max_share"] > MAX_WEIGHT_SHARE:
+        why.append(f"one episode holds {d['max_share']:.0%} of the total weight")
+    k = d["pareto_k"]
+    if np.isfinite(k) and k > MAX_PARETO_K or np.isinf(k):
+        why.append(f"the weights' upper tail is heavy (Pareto k {k:.2f} > {MAX_PARETO_K})")
+    err = abs(d["mean"] - 1.0)
+    if err > MAX_MEAN_WEIGHT_ERROR and err > 3 * d["mean_se"]:
+        why.append(f"the weights average {d['mean']:.3g}, not 1 (standard error {d['mean_se']:.2g}): the trajectories "
+                   "the policy would take are missing from the logs, and the estimate is scaled down by their absent "
+                   "weight")
+    if d["carrying_groups"] is not None and d["carrying_fraction"] <= MAX_SUBSET_FRACTION:
+        groups = ", ".join(f"{g!r} ({s:.0%} of the weight)" for g, s in d["carrying_groups"].items())
+        why.append(f"only the episodes of {groups}, {d['carrying_fraction']:.0%} of the episodes, carry weight: the "
+                   "estimate speaks only for those episodes and their start states")
+    return why
+
+
+#: Estimators whose weights are normalised (their scale cancels).
+NORMALISED = ("wis", "wpdis", "wdr")
+
+
+def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None) -> None:
+    """Degenerate weights and intervals that would not cover as labelled: say so and withhold.
+
+    ``r.ess`` is the worst step's ESS; ``r.weight_diagnostics`` keeps the shape measured.
+    """
+    d = weight_diagnostics(W, groups)
+    r.weight_diagnostics = {k: v for k, v in d.items() if k != "n"}
+    n = d["n"]
+    if r.ess is not None and r.ess < MIN_ESS_FRACTION * n:
         r.degenerate = True
         r.warnings.append(f"effective sample size {r.ess:.1f} of {n} episodes: the weights are degenerate")
-    if r.ess < MIN_ESS_FOR_INTERVAL and np.all(np.isfinite(r.interval)):
+    why = interval_unreliable(d, normalised=r.name in NORMALISED)
+    if why and np.all(np.isfinite(r.interval)):
         r.percentile_interval = r.interval
         r.interval = (float("nan"), float("nan"))
         r.level = None
-        r.interval_method = (f"none: effective sample size {r.ess:.1f} < {MIN_ESS_FOR_INTERVAL:g} episodes, so a bootstrap "
-                             "interval would not cover as labelled (its raw percentiles are kept as percentile_interval)")
+        r.interval_method = ("none: " + "; ".join(why) + ", so a bootstrap interval would not cover as labelled "
+                             "(its raw percentiles are kept as percentile_interval)")
+        if not r.degenerate:
+            r.warnings.append("no interval: " + "; ".join(why))
 
 
 def check_interval(r: OPEResult) -> None:
@@ -220,7 +355,7 @@ def check_interval(r: OPEResult) -> None:
 
 def marginalised_is_estimate(
     em: EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, w_state: np.ndarray, gamma: float, *, n_boot: int = 200,
-    level: float = 0.95, seed: int = 0,
+    level: float = 0.95, seed: int = 0, groups: np.ndarray | None = None,
 ) -> OPEResult:
     """Marginalised IS with state density ratios ``w_state`` (one per row, its own step)."""
     Y = em.lay(w_state * rho * cost)
@@ -234,7 +369,7 @@ def marginalised_is_estimate(
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
     res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
-    _warn_degenerate(res, em.n_episodes)
+    _judge_weights(res, Wt, groups)
     return res
 
 

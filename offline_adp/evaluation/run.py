@@ -137,6 +137,12 @@ def evaluate_run(
         sim_name = None
     problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
     note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
+    from offline_adp.envs import recorded_problem_options
+
+    if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
+        note = ((note + "; ") if note else "") + (
+            f"the dataset does not record the options its {sim_name!r} problem was made with "
+            "(meta/info.json provenance.problem_options): the rollouts use the default problem")
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
                                                             "transitions": len(ds), "episodes": len(ds.episode_ids),
@@ -218,6 +224,10 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
                        "ess_fraction": float(worst["ess_fraction"].min())},
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
+                       "eps_method": (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
+                                      "the policy's advantage deficit measured on the held-out fold's states")
+                       if res.eps_folds else "in sample (FQE fitted on all the data; 0 for a policy greedy in it)",
+                       "eps_in_sample": None if res.eps_in_sample is None else res.eps_in_sample.tolist(),
                        "references": res.bounds},
         "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
                                   else res.pooled[0].w if thin and res.pooled is not None else res.ratios.w, res.gamma),

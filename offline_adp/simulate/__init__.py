@@ -87,7 +87,7 @@ def simulate(
     prov = {
         "generator": "offline-adp simulate",
         "problem": prob.name,
-        "problem_options": problem_options or {},
+        "problem_options": dict(problem_options or {}) if isinstance(problem, str) else prob.problem_options,
         "seed": seed,
         "n_demonstrations": n_demonstrations,
         "n_exploration": n_exploration,
