@@ -327,7 +327,7 @@ def test_a_rosbag2_bag_directory_is_one_recording_in_metadata_order(tmp_path):
         ingest_mcap([bag], spec(episodes=ev))
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
                                        "  relative_file_paths:\n    - x.db3\n")  # SQLite: read by rosbags, named
-    with pytest.raises(IngestError, match="rosbag2_2026_11_22: cannot read as a ROS bag"):
+    with pytest.raises(IngestError, match=r"rosbag2_2026_11_22/metadata.yaml: relative_file_paths\[0\] = 'x.db3'.*missing"):
         ingest_mcap([bag], spec(episodes=ev))
     with pytest.raises(IngestError, match="no file matches"):
         ingest_mcap([str(tmp_path / "nothing*")], spec())

@@ -17,11 +17,14 @@ SUFFIXES = (".bag", ".db3")
 
 def is_rosbags_input(path: Path) -> bool:
     """A ROS 1 ``.bag`` file, a ``.db3`` file, or a rosbag2 directory stored as SQLite."""
+    import os
+
     if path.suffix in SUFFIXES:
         return True
-    if path.is_dir() and (path / "metadata.yaml").is_file():
-        text = (path / "metadata.yaml").read_text(errors="replace")
-        return "storage_identifier: sqlite3" in text
+    if path.is_dir() and os.path.lexists(path / "metadata.yaml"):
+        from offline_adp.ingest.mcap.bagmeta import read_bag_metadata
+
+        return read_bag_metadata(path).storage == "sqlite3"
     return False
 
 
@@ -34,6 +37,10 @@ def read_rosbags(path: Path, topics: set[str], report: dict[str, Any]) -> Iterat
     except ImportError as exc:  # pragma: no cover
         raise IngestError(f"{path}: reading .bag/.db3 needs the rosbags package (pip install rosbags)") from exc
     src = path.parent if path.suffix == ".db3" else path
+    if src.is_dir():  # the bag's metadata.yaml is checked before rosbags reads it and the files it lists
+        from offline_adp.ingest.mcap.bagmeta import read_bag_metadata
+
+        read_bag_metadata(src)
     report.setdefault("messages", 0)
     report.setdefault("lost_chunks", [])
     skipped = report.setdefault("skipped", {})
