@@ -243,5 +243,190 @@ def test_a_yaml_alias_bomb_is_refused_with_bounded_memory(tmp_path):
     print(f"peak RSS growth reading the alias bomb: {int(growth_kb)} kB")
     assert int(growth_kb) < 20_000, growth_kb  # kB: the expanded document would need gigabytes
     assert len(errors) == 3
+    # the control: what the old reader did with the parsed list (str() of each entry) exhausts
+    # 300 MB more address space, so the bound above is what refusing aliases buys
+    control = textwrap.dedent(f"""
+        import resource, yaml
+        import psutil
+        rel = yaml.safe_load({text!r})["rosbag2_bagfile_information"]["relative_file_paths"]
+        cap = psutil.Process().memory_info().vms + 300 * 2**20
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+        try:
+            [str(x) for x in rel]
+            print("expanded")
+        except MemoryError:
+            print("MemoryError")
+    """)
+    out = subprocess.run([sys.executable, "-c", control], capture_output=True, text=True, timeout=120, env=env)
+    assert out.stdout.strip() == "MemoryError", (out.stdout, out.stderr[-500:])
     for e in errors:
         assert "metadata.yaml: not valid bag metadata (YAML alias *a0" in e and "not allowed" in e, e
+
+
+# ---------------------------------------------------------------- mcap-info on every input ingest reads
+def _write_ros1(path: Path, msgs, compression=None, chunk_threshold=1 << 20) -> Path:
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    w = Writer(path)
+    w.chunk_threshold = chunk_threshold
+    if compression:
+        w.set_compression(getattr(Writer.CompressionFormat, compression))
+    with w:
+        conns = {}
+        for topic, typ, t, msg in msgs:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, typ, typestore=store)
+            w.write(conns[topic], t, store.serialize_ros1(msg, typ))
+    return path
+
+
+def _ros1_store():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS1_NOETIC)
+
+
+def test_mcap_info_describes_every_input_ingest_reads(tmp_path, capsys):
+    from offline_adp.cli import main
+    from offline_adp.ingest.mcap import mcap_info
+
+    split = _split_bag(tmp_path, 30)
+    inputs = {"sqlite bag": split, "sqlite part": split / "split_1.db3",
+              "mcap bag": _write_bag(tmp_path / "mcap_bag", _messages(_store()), "mcap"),
+              "ros1 bag": _write_ros1(tmp_path / "run.bag", _messages(_ros1_store(), ros1=True), "LZ4", 500)}
+    for what, path in inputs.items():
+        ingest_mcap([path], SPEC)  # ingest reads it ...
+        info = mcap_info(path)  # ... so mcap-info describes it: every message, per topic, with its fields
+        assert info["messages"] == 2 * N, what
+        assert {t: v["messages"] for t, v in info["topics"].items()} == {"/state": N, "/cmd_vel": N}, what
+        assert info["topics"]["/state"]["schema"] == "geometry_msgs/msg/PointStamped"
+        assert "point.x" in info["topics"]["/state"]["fields"] and info["topics"]["/state"]["rate_hz"] == 10.0
+        assert "linear.x" in info["topics"]["/cmd_vel"]["fields"] and "damage" not in info
+    # the CLI: a glob over both parts and the directory describe the bag once
+    assert main(["mcap-info", str(split / "split_0.db3"), str(split / "split_1.db3"), str(split)]) == 0
+    out = capsys.readouterr().out
+    assert out.count(f"{split}: profile ros2") == 1 and " 40 msgs" in out
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(split / "split_0.db3", lone / "split_0.db3")
+    with pytest.raises(IngestError, match=r"split_0\.db3: a rosbag2 SQLite part without its bag's metadata\.yaml "
+                                          r"\(.*lone/metadata\.yaml is missing"):
+        mcap_info(lone / "split_0.db3")
+    assert main(["mcap-info", str(lone / "split_0.db3")]) == 2
+    err = capsys.readouterr().err
+    assert "metadata.yaml is missing" in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+# ---------------------------------------------------------------- a ROS 1 bag cut short
+GAP_SPEC = {"clock": {"topic": "/state", "time": "header.stamp"}, "episodes": {"gap": 1.0},
+            "streams": [{"topic": "/state", "time": "header.stamp", "fields": {"x": "point.x"}, "max_age": 0.001}],
+            "action": {"topic": "/cmd_vel", "fields": {"v": "linear.x", "w": "angular.z"}, "max_age": 0.01,
+                       "vectors": [[v, w] for v in (0.0, 0.2, 0.4) for w in (-0.5, 0.0, 0.5)]},
+            "cost": {"terms": [{"field": "action.v", "op": "square"}]}}
+
+
+def _episodes_messages(store, n_eps=6, steps=15):
+    """``n_eps`` runs of ``steps`` states at 10 Hz (and commands 3 ms later), 3 s apart:
+    with episodes.gap = 1 s, one episode each."""
+    one = _messages(store, ros1=True)[: 2 * steps]
+    out = []
+    for e in range(n_eps):
+        for topic, typ, t, msg in one:
+            shift = e * (steps * 100_000_000 + 3_000_000_000)
+            if topic == "/state":
+                st_ = msg.header.stamp
+                ns = st_.sec * 10**9 + st_.nanosec + shift
+                msg = type(msg)(header=type(msg.header)(seq=msg.header.seq, stamp=type(st_)(sec=ns // 10**9, nanosec=ns % 10**9),
+                                                        frame_id="map"), point=type(msg.point)(x=float(e * 100) + msg.point.x, y=0.0, z=0.0))
+            out.append((topic, typ, t + shift, msg))
+    return out
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frac=st.floats(0.15, 0.999), compression=st.sampled_from([None, "BZ2", "LZ4"]),
+       threshold=st.sampled_from([300, 1000, 4000]))
+@pytest.mark.parametrize("pinned", [0.6])
+def test_a_ros1_bag_cut_short_keeps_every_episode_that_ended_before_the_cut(tmp_path_factory, pinned, frac, compression,
+                                                                           threshold):
+    from rosbags.rosbag1 import Reader
+
+    from offline_adp.ingest.mcap import parse_mcap_spec
+
+    spec = parse_mcap_spec(GAP_SPEC)
+    root = tmp_path_factory.mktemp("cut")
+    whole = _write_ros1(root / "whole.bag", _episodes_messages(_ros1_store()), compression, threshold)
+    ref, _ = ingest_mcap([whole], spec)
+    assert ref.n_episodes == 6 and len(ref) == 6 * 14  # ground truth by construction
+    data = whole.read_bytes()
+    for f in (frac, pinned):
+        cut_at = int(len(data) * f)
+        cut = root / f"cut_{f}.bag"
+        cut.write_bytes(data[:cut_at])
+        with Reader(whole) as r:  # rosbags' index of the whole bag: the chunks wholly before the cut
+            done = [ci.end_time - 1 for ci in r.chunk_infos if r.chunks[ci.pos].datapos + r.chunks[ci.pos].datasize <= cut_at]
+            last_t = max(done, default=-1)  # every message up to this time is recovered, none after
+            all_t = sorted(t for _, t, _ in r.messages())
+        recovered = [t for t in all_t if t <= last_t]
+        t_ns = ref.table.column("t_ns").to_numpy()
+        ep = ref.table.column("episode_id").to_numpy(zero_copy_only=False)
+        ids = list(dict.fromkeys(ep))
+        # an episode ended before the cut when a later message (its successor's) was recovered
+        expected = [i for i in ids if recovered and recovered[-1] > t_ns[ep == i].max() + 1_000_000_000]
+        if f == pinned:  # the issue's case: a 60% cut holds some complete episodes, not all
+            assert 0 < len(expected) < 6, expected
+        with pytest.raises(Exception) as no_read:  # rosbags' own reader cannot open it (its index is gone)
+            Reader(cut).open()
+        assert type(no_read.value).__module__.startswith("rosbags")
+        if not expected:
+            with pytest.raises(IngestError, match="no episode|no decodable messages"):  # nothing complete
+                ingest_mcap([cut], spec, on_error="quarantine")
+            continue
+        with pytest.warns(UserWarning, match=r"cut_.*\.bag.*cut at offset"):
+            ds, s = ingest_mcap([cut], spec, on_error="fail")  # a file merely cut short is kept
+        assert ds.n_episodes == len(expected), (f, expected)
+        rows = np.isin(ep, expected)
+        a, b = ds.arrays(), ref.arrays()
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name)[rows], err_msg=name)
+        np.testing.assert_array_equal(ds.table.column("t_ns").to_numpy(), t_ns[rows])
+        assert s["doctor"]["ok"]
+
+
+# ---------------------------------------------------------------- a spec topic absent from the file
+def _with_reward(store, ks, ros1=False):
+    F64 = store.types["std_msgs/msg/Float64"]
+    out = _messages(store, ros1=ros1)
+    out += [("/cartpole/reward", "std_msgs/msg/Float64", t + MS_, F64(data=1.0))
+            for topic, _, t, _ in list(out) if topic == "/state" and (t - out[0][2]) // 100_000_000 in ks]
+    return sorted(out, key=lambda m: m[2])
+
+
+MS_ = 1_000_000
+REWARD_SPEC = {**GAP_SPEC, "episodes": {},
+               "streams": GAP_SPEC["streams"] + [{"topic": "/cartpole/reward", "fields": {"r": "data"}, "max_age": 0.2,
+                                                  "role": "aux"}]}
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "mcap", "ros1"])
+def test_a_spec_topic_absent_from_the_file_is_named_as_such(tmp_path, kind):
+    from offline_adp.ingest.mcap import parse_mcap_spec
+
+    spec = parse_mcap_spec(REWARD_SPEC)
+    write = {"sqlite": lambda p, m: _write_bag(p, m, "sqlite3"), "mcap": lambda p, m: _write_bag(p, m, "mcap"),
+             "ros1": lambda p, m: _write_ros1(p.with_suffix(".bag"), m)}[kind]
+    store = _ros1_store() if kind == "ros1" else _store()
+    absent = write(tmp_path / "absent", _messages(store, ros1=kind == "ros1"))
+    for on_error in ("fail", "quarantine"):
+        with pytest.raises(IngestError) as err:
+            ingest_mcap([absent], spec, on_error=on_error)
+        msg = str(err.value)
+        assert "topic '/cartpole/reward' of the spec is not in the file" in msg and str(absent) in msg, msg
+        assert "['/cmd_vel', '/state']" in msg and "max_age" not in msg, msg
+    late = write(tmp_path / "late", _with_reward(store, range(20, 40), ros1=kind == "ros1"))  # there, but late
+    with pytest.raises(IngestError, match=r"no /cartpole/reward message within max_age"):
+        ingest_mcap([late], spec)
+    full = write(tmp_path / "full", _with_reward(store, range(40), ros1=kind == "ros1"))  # there throughout
+    ds, s = ingest_mcap([full], spec)
+    assert len(ds) == N - 1 and s["messages_used"]["/cartpole/reward"] == N
