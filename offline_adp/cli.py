@@ -144,12 +144,11 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
 
 
 def cmd_mcap_info(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
     from offline_adp.ingest.mcap import mcap_info
-    from offline_adp.ingest.mcap.sources import bag_files
+    from offline_adp.ingest.mcap.info import info_inputs
 
-    for path in [p for f in args.files for p in (bag_files(Path(f)) if Path(f).is_dir() else [f])]:
+    for path in info_inputs(args.files):
         info = mcap_info(path)
         if args.json:
             print(json.dumps(info, indent=2, default=str))

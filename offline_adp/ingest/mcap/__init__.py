@@ -9,6 +9,9 @@ One job per module:
 - ``spec``: the ingestion spec (TOML) as frozen dataclasses, checked on load;
 - ``sources``: inputs -> recordings (globs, split recordings, rosbag2 bag directories);
 - ``rosbags_source``: ROS 1 ``.bag`` and rosbag2 SQLite bags through ``rosbags``;
+- ``bagmeta``: a bag's ``metadata.yaml`` as untrusted input (size cap, no YAML aliases,
+  files confined to the bag, each once);
+- ``ros1scan``: record scan of a ROS 1 bag without its index (a bag cut short);
 - ``records``: the typed records passed between the parts;
 - ``align``: one stream's values at the step times;
 - ``assembler``: the streaming assembler (epochs from the file order, watermark,

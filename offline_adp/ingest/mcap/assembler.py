@@ -217,6 +217,36 @@ class _Recording(EpisodeSegmenter):
                     self.n_since = 0
                     self._flush()
 
+    def _check_topic_present(self, topic: str, step: str) -> None:
+        """Raise, naming the files and the topics they hold, when ``topic`` has no message
+        in any file of the recording (read again, on this error path only)."""
+        from offline_adp.ingest.mcap.rosbags_source import raw_messages
+
+        present: dict[str, int] = {}
+        for path in self.files:
+            report: dict[str, Any] = {}
+            try:
+                if is_rosbags_input(path):
+                    for _ in raw_messages(path, set(), report):
+                        pass
+                    counts = {bt.topic: n for bt, n in report.get("bag_topics", {}).items()}
+                    if not any(counts.values()):  # no index counts: the scan's skipped counts
+                        counts = dict(report.get("skipped", {}))
+                else:
+                    with open(path, "rb") as f:
+                        for _ in scan_records(f, set(), report):
+                            pass
+                    counts = dict(report.get("skipped", {}))
+            except (IngestError, OSError):
+                return  # unreadable now: the caller's error stands
+            for t, n in counts.items():
+                present[t] = present.get(t, 0) + n
+        if present.get(topic, 0) == 0:
+            names = ", ".join(map(str, self.files))
+            there = sorted(t for t, n in present.items() if n)
+            raise IngestError(f"{names}: topic {topic!r} of the spec is not in the file (no message on it; the "
+                              f"topics with messages are {there}); {step}")
+
     def _add(self, msg: Message, file_index: int) -> None:
         self._add_fields(msg.topic, msg.log_time, msg.publish_time, msg.data, file_index)
 
@@ -489,6 +519,10 @@ class _Recording(EpisodeSegmenter):
                 elif k != "action":
                     if not (good | damaged).all():
                         j = int(np.flatnonzero(~(good | damaged))[0])
+                        step = (f"step at t = {times[j] / 1e9:.6f} s (log_time {int(lts[j])}) has no value for "
+                                f"{name!r} (use missing = 'fill' or 'drop_step')")
+                        if self.used[s.topic] == 0:  # nothing on it so far: is it in the file at all?
+                            self._check_topic_present(s.topic, step)
                         raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
                                           f"(log_time {int(lts[j])}): no "
                                           f"{s.topic} message within max_age = {s.max_age} s for {name!r} (use missing = "

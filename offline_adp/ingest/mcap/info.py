@@ -93,12 +93,19 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
     value (``field_info``) from the first decodable message. A channel whose schema no
     decoder can parse is listed with the reason; the rest of the file is described.
 
+    Every input ``ingest`` reads is described: a ROS 1 ``.bag``, a rosbag2 bag directory
+    (SQLite or MCAP storage) or one of its ``.db3`` parts (the bag it belongs to) are read
+    with rosbags (:func:`rosbag_info`); a ROS 1 bag cut short is scanned record by record.
+
     Raises
     ------
     IngestError
-        Only when the file cannot be read as MCAP at all (missing, or not MCAP).
+        Only when the file cannot be read at all (missing, not MCAP or a ROS bag, a
+        ``.db3`` part without its bag's ``metadata.yaml``, a refused ``metadata.yaml``).
     """
     path = Path(path)
+    if path.is_dir() or path.suffix in (".bag", ".db3"):
+        return rosbag_info(path)
     if not path.is_file():
         raise IngestError(f"{path}: no such file")
     report: dict[str, Any] = {}
@@ -153,6 +160,94 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
     if report.get("empty"):
         info["damage"] = "empty file (0 bytes)"
     elif (text := damage_text(path, report)):
+        info["damage"] = text
+    return info
+
+
+def info_inputs(files: list[str | PathLike[str]]) -> list[Path]:
+    """What ``mcap-info FILES`` describes, in order, each once: MCAP files; an MCAP bag
+    directory part by part (each part's damage shown); a ROS 1 bag; a SQLite bag (its
+    directory, or any of its ``.db3`` parts) as the bag."""
+    from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input
+    from offline_adp.ingest.mcap.sources import bag_files, rosbag2_directory
+
+    out: list[Path] = []
+    seen: set[Path] = set()
+    for f in files:
+        p = Path(f)
+        bag = rosbag2_directory(p) if p.suffix == ".db3" or p.is_dir() else None
+        items = [p] if bag is None else [bag] if is_rosbags_input(bag) else bag_files(bag)
+        for q in items:
+            if q.resolve() not in seen:
+                seen.add(q.resolve())
+                out.append(q)
+    return out
+
+
+def rosbag_info(path: str | PathLike[str]) -> dict[str, Any]:
+    """:func:`mcap_info` of a ROS bag: a ROS 1 ``.bag``, a rosbag2 bag directory, or a
+    ``.db3`` part (its bag, which its ``metadata.yaml`` must list). Same keys; per topic
+    the message type as ``schema`` and the serialization as ``encoding``; ``profile`` is
+    ``ros1`` or ``ros2``, ``library`` the storage, ``indexed`` whether the reader had the
+    bag's index (a ROS 1 bag without it is scanned, its damage shown)."""
+    from offline_adp.ingest.mcap.rosbags_source import BagTopic, raw_messages
+    from offline_adp.ingest.mcap.sources import rosbag2_directory
+
+    path = Path(path)
+    bag = rosbag2_directory(path) if path.suffix == ".db3" or path.is_dir() else path
+    assert bag is not None
+    if not bag.exists():
+        raise IngestError(f"{path}: no such file")
+    storage = "rosbag1"
+    if bag.is_dir():
+        import os
+
+        from offline_adp.ingest.mcap.bagmeta import read_bag_metadata
+
+        if not os.path.lexists(bag / "metadata.yaml"):
+            from offline_adp.ingest.mcap.sources import bag_files
+
+            files = bag_files(bag)  # *.mcap parts without metadata: described one by one (mcap_info)
+            raise IngestError(f"{bag}: a directory of {len(files)} MCAP file(s) without metadata.yaml; describe each "
+                              f"part (offline-adp mcap-info {bag}/*.mcap)")
+        storage = read_bag_metadata(bag).storage or "mcap"
+    report: dict[str, Any] = {}
+    topics: dict[BagTopic, _Topic] = {}
+    lo = hi = None
+    for bt, t, raw, deserialize in raw_messages(bag, None, report):
+        tp = topics.get(bt)
+        if tp is None:
+            tp = topics[bt] = _Topic()
+        tp.add(t)
+        lo = t if lo is None else min(lo, t)
+        hi = t if hi is None else max(hi, t)
+        if tp.first_fields is None and tp.error is None:
+            try:
+                tp.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
+                                   for p, v in field_values(deserialize(raw, bt.msgtype))]
+            except Exception as exc:  # noqa: BLE001 - a message its type store cannot read
+                tp.error = f"first message not decodable ({type(exc).__name__}: {exc})"
+    out_topics: dict[str, Any] = {}
+    for bt in report.get("bag_topics", {}):
+        tp = topics.get(bt, _Topic())
+        entry = {"schema": bt.msgtype, "encoding": bt.encoding, "messages": tp.n, **tp.rate(),
+                 "fields": [x["path"] for x in tp.first_fields] if tp.first_fields else None,
+                 "field_info": tp.first_fields}
+        if tp.error:
+            entry["status"] = "not decodable: " + tp.error
+        key = bt.topic if bt.topic not in out_topics else f"{bt.topic} ({bt.msgtype})"
+        out_topics[key] = entry
+    scanned = "ros1_connections" in report
+    info: dict[str, Any] = {"file": str(bag), "profile": "ros1" if storage == "rosbag1" else "ros2",
+                            "library": f"{storage} (read with rosbags)" + (", record scan" if scanned else ""),
+                            "summary": not scanned, "compression": sorted(report.get("compression", set())),
+                            "topics": out_topics, "scanned": scanned, "messages": report.get("messages", 0),
+                            "indexed": not scanned}
+    if lo is not None:
+        info["time_range_ns"] = [lo, hi]
+    if report.get("empty"):
+        info["damage"] = "empty file (0 bytes)"
+    elif (text := damage_text(bag, report)):
         info["damage"] = text
     return info
 

@@ -17,32 +17,15 @@ def bag_files(directory: Path) -> list[Path]:
     ``metadata.yaml`` and ``NAME_0.mcap``, ``NAME_1.mcap`` ...), in the order
     ``metadata.yaml`` gives (``relative_file_paths``); without it, the ``*.mcap`` files in
     part order."""
-    meta = directory / "metadata.yaml"
-    if meta.is_file():
-        text = meta.read_text(errors="replace")
-        try:
-            import yaml
+    import os
 
-            info = (yaml.safe_load(text) or {}).get("rosbag2_bagfile_information", {})
-            rel = [str(x) for x in info.get("relative_file_paths") or []]
-            storage = str(info.get("storage_identifier", ""))
-        except ImportError:  # pragma: no cover - a plain reading of the two keys
-            block = re.search(r"relative_file_paths:\s*\n((?:\s*-\s*.+\n?)+)", text)
-            rel = re.findall(r"-\s*(\S+)", block.group(1)) if block else []
-            m = re.search(r"storage_identifier:\s*(\S+)", text)
-            storage = m.group(1) if m else ""
-        except Exception as exc:  # noqa: BLE001 - yaml errors of several types
-            raise IngestError(f"{meta}: cannot read the bag's metadata ({type(exc).__name__}: {exc})") from None
-        if storage and storage != "mcap":
-            raise IngestError(f"{directory}: a rosbag2 bag stored as {storage!r}, not MCAP or SQLite (convert it "
-                              "with `ros2 bag convert`, or record with --storage mcap)")
-        if not rel:
-            raise IngestError(f"{meta}: lists no files (relative_file_paths)")
-        files = [directory / r for r in rel]
-        missing = [str(f) for f in files if not f.is_file()]
-        if missing:
-            raise IngestError(f"{directory}: metadata.yaml lists {missing}, which are missing")
-        return files
+    if os.path.lexists(directory / "metadata.yaml"):
+        from offline_adp.ingest.mcap.bagmeta import read_bag_metadata
+
+        meta = read_bag_metadata(directory)
+        if meta.storage == "sqlite3":
+            raise IngestError(f"{directory}: a rosbag2 SQLite bag (read through rosbags), not MCAP files")
+        return list(meta.files)
     found = sorted(directory.glob("*.mcap"), key=lambda p: (re.sub(r"_\d+$", "", p.stem),
                                                            int(m.group(1)) if (m := re.search(r"_(\d+)$", p.stem)) else 0))
     if not found:
@@ -72,17 +55,47 @@ def resolve_sources(files: Sequence[str | PathLike[str]], spec: McapSpec) -> lis
             raise IngestError(f"{p}: no file matches")
         for h in hits:
             path = Path(h)
-            if path.is_dir():  # a rosbag2 bag: one recording
+            bag = rosbag2_directory(path)
+            if bag is not None:  # a rosbag2 bag (its directory or one of its parts): one recording, read once
+                key = ("bag", str(bag.resolve()))
+                if key in groups:
+                    continue
                 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input
 
-                groups[("bag", str(path))] = [(0, path)] if is_rosbags_input(path) else list(enumerate(bag_files(path)))
+                groups[key] = [(0, bag)] if is_rosbags_input(bag) else list(enumerate(bag_files(bag)))
                 continue
             if not path.is_file():
                 raise IngestError(f"{h}: no such file")
-            if path in seen:
+            if path.resolve() in seen:
                 continue
-            seen.add(path)
+            seen.add(path.resolve())
             m = re.fullmatch(r"(.*)_(\d+)\.mcap", path.name) if spec.split_recordings else None
             key = (str(path.parent), m.group(1)) if m else (str(path),)
             groups.setdefault(key, []).append((int(m.group(2)) if m else 0, path))
     return [[p for _, p in sorted(g)] for g in groups.values()]
+
+
+def rosbag2_directory(path: Path) -> Path | None:
+    """The rosbag2 bag a path stands for: a directory, or a SQLite part (``.db3``) of a
+    bag, whose ``metadata.yaml`` must list it (a part is never read on its own: the bag
+    is, once, however many of its parts are given). None for anything else."""
+    import os
+
+    if path.is_dir():
+        return path
+    if path.suffix != ".db3":
+        return None
+    if not path.is_file():
+        raise IngestError(f"{path}: no such file")
+    bag = path.parent
+    if not os.path.lexists(bag / "metadata.yaml"):
+        raise IngestError(f"{path}: a rosbag2 SQLite part without its bag's metadata.yaml ({bag / 'metadata.yaml'} is "
+                          "missing; the rosbags reader needs it to read the part: copy the bag's metadata.yaml "
+                          "next to it, or run `ros2 bag reindex` on the directory)")
+    from offline_adp.ingest.mcap.bagmeta import read_bag_metadata
+
+    meta = read_bag_metadata(bag)
+    real = path.resolve()
+    if not any(f.resolve() == real for f in meta.files):
+        raise IngestError(f"{path}: not listed in {bag / 'metadata.yaml'} (relative_file_paths = {list(meta.entries)[:10]})")
+    return bag
