@@ -87,6 +87,9 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
     )
     print(res.report.to_text())
     s = res.summary()
+    from offline_adp.data.validate import refuse_all_quarantined
+
+    refuse_all_quarantined(args.out, s)
     print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
     if s["quarantined_rows"]:
         print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to {args.out}/quarantine/ with a reason per row")
@@ -114,6 +117,9 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
+    from offline_adp.data.validate import refuse_all_quarantined
+
+    refuse_all_quarantined(args.out, s)
     print(f"doctor: {'OK' if s['doctor']['ok'] else s['doctor']}")
     rows = [("file", "used", "skipped", "recovered")]
     for f in s["files"]:

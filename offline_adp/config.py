@@ -139,7 +139,7 @@ def read_config_bytes(path: str | PathLike[str], what: str = "configuration",
         raise SpecError(f"{p}: is a directory, expected a {what} file") from None
     except OSError as e:
         raise SpecError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
-    with os.fdopen(fd, "rb") as f:
+    try:
         st = os.fstat(fd)
         if stat.S_ISDIR(st.st_mode):
             raise SpecError(f"{p}: is a directory, expected a {what} file")
@@ -148,6 +148,10 @@ def read_config_bytes(path: str | PathLike[str], what: str = "configuration",
         if st.st_size > cap:
             raise SpecError(f"{p}: {st.st_size} bytes, more than a {what} file can be ({cap} bytes); "
                             "is this the right file?")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as f:
         try:
             raw = f.read(cap + 1)
         except OSError as e:

@@ -400,6 +400,8 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
 
 
 def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str, Any]:
+    from offline_adp.data.validate import refuse_all_quarantined
+
     data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
     RunDirectory(run).remove("dataset")
     if "builtin" in data:
@@ -429,11 +431,13 @@ def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str,
         from offline_adp.ingest.parquet import ingest_parquet
 
         res = ingest_parquet(data["inputs"], _load_spec(data, cfg["file"]), run / "dataset", on_error=data.get("on_error"))
+        refuse_all_quarantined(run / "dataset", res.summary())
         return res.summary()
     from offline_adp.ingest.mcap import ingest_mcap
 
     spec = _load_spec(data, cfg["file"])
     ds, summary = ingest_mcap(data["inputs"], spec, out=run / "dataset", on_error=data.get("on_error"))
+    refuse_all_quarantined(run / "dataset", summary)
     return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
 
 

@@ -217,18 +217,25 @@ def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, cl
         raise OfflineADPError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _new_sibling(target, "tmp")
+    trash = None
     try:
         yield tmp
         if target.exists() or target.is_symlink():
             trash = _new_sibling(target, "old")
             os.replace(target, trash / "old")
-            os.replace(tmp, target)
-            _remove(trash)
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                os.replace(trash / "old", target)  # the previous version back in place
+                raise
         else:
             os.replace(tmp, target)
     except BaseException:
         _remove(tmp)
         raise
+    finally:  # the set-aside previous version, once the target is whole again (new or restored)
+        if trash is not None and (target.exists() or not (trash / "old").exists()):
+            _remove(trash)
 
 
 def write_text_nofollow(path: str | PathLike[str], text: str) -> None:

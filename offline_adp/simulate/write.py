@@ -33,6 +33,8 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
 
         if out.suffix == "":
             out = out / f"{ds.info.problem}.{fmt}"
+        if out.is_dir():
+            raise OfflineADPError(f"{out} is a directory; name the {fmt} file to write (or a folder without a suffix)")
         if out.exists() and not overwrite:
             raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
         return list(write_raw(ds, out, fmt=fmt))
