@@ -132,6 +132,8 @@ COMMANDS = {
     "convert-lerobot": lambda i, out: ["convert", i["ds"], "--to", "lerobot", "--out", out],
     "schema": lambda i, out: ["schema", "--write", out],
 }
+#: file outputs checked before any work (not in COMMANDS: annotating needs an MCAP-fitted run)
+FILE_ONLY = {"annotate": lambda i, out: ["annotate", i["run"], "--log", i["dir"] / "log.mcap", "--out", f"{out}.mcap"]}
 
 
 @pytest.mark.parametrize("kind", ["erofs", "enospc", "notadir"])
@@ -179,10 +181,10 @@ def test_evaluate_and_report_into_a_failing_run_directory(tmp_path, capsys, monk
     assert _leftovers(tmp_path) == []
 
 
-@pytest.mark.parametrize("command", ["export", "convert-d4rl", "compare", "simulate-parquet"])
+@pytest.mark.parametrize("command", ["export", "convert-d4rl", "compare", "simulate-parquet", "annotate"])
 def test_file_output_naming_an_existing_directory(tmp_path, capsys, inputs, command):
     out = tmp_path / "adir"
-    argv = COMMANDS[command](inputs, str(out))
+    argv = {**COMMANDS, **FILE_ONLY}[command](inputs, str(out))
     target = Path(argv[argv.index("--out" if "--out" in argv else "--json") + 1])
     target.mkdir()
     (target / "keep.txt").write_text("keep")
