@@ -80,7 +80,12 @@ def _spec_for(run_dataset: Path | None, spec: Any) -> Any:
     from offline_adp.ingest.mcap import load_mcap_spec
 
     if spec is not None:
-        return spec if not isinstance(spec, str | PathLike) else load_mcap_spec(spec)
+        if not isinstance(spec, str | PathLike):
+            return spec
+        from offline_adp.config import read_config_bytes
+
+        read_config_bytes(spec, "MCAP ingestion spec")  # a regular file of bounded size, before the loader reads it
+        return load_mcap_spec(spec)
     raw = None
     if run_dataset is not None:
         from offline_adp.data.io import read_info
@@ -151,6 +156,8 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
     from offline_adp.ingest.mcap import ingest_mcap
 
     out = Path(out)
+    if out.is_dir() and not out.is_symlink():
+        raise OfflineADPError(f"--out {out} is a directory; name the annotated MCAP file to write")
     if out.exists() and not overwrite:
         raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
     if Path(out).resolve() == Path(log_file).resolve():
@@ -228,10 +235,14 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                     w.add_message(chans[name], int(t_ns[i]), json.dumps(m).encode(), int(t_ns[i]), i)
             w.finish()
         os.replace(tmp, out)
-    except Exception as exc:
-        tmp.unlink(missing_ok=True)
-        if isinstance(exc, OfflineADPError):
+    except BaseException as exc:
+        tmp.unlink(missing_ok=True)  # whatever failed (full disk, Ctrl-C), no temporary is left
+        if isinstance(exc, OfflineADPError) or not isinstance(exc, Exception):
             raise
+        if isinstance(exc, OSError) and (exc.filename is None or Path(exc.filename) != Path(log_file)):
+            from offline_adp.errors import WriteError, os_error_message
+
+            raise WriteError(os_error_message(exc, out)) from None
         raise IngestError(f"{log_file}: cannot copy the log's messages ({type(exc).__name__}: {exc})") from exc
     summary = {"out": str(out), "messages_copied": n_copied, "steps": int(len(t_ns)),
                "agreement": float(np.mean(v["policy_index"] == v["logged_index"])) if len(t_ns) else None,

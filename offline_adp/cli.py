@@ -87,6 +87,9 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
     )
     print(res.report.to_text())
     s = res.summary()
+    from offline_adp.data.validate import refuse_all_quarantined
+
+    refuse_all_quarantined(args.out, s)
     print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
     if s["quarantined_rows"]:
         print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to {args.out}/quarantine/ with a reason per row")
@@ -96,8 +99,10 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
 
 
 def cmd_ingest_mcap(args: argparse.Namespace) -> int:
+    from offline_adp.config import read_config_bytes
     from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, resolve_sources
 
+    read_config_bytes(args.spec, "ingestion spec")  # a regular file of bounded size, before the loader reads it
     spec = load_mcap_spec(args.spec)
     n_rec = len(resolve_sources(args.inputs, spec))
     bar = None
@@ -112,6 +117,9 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
+    from offline_adp.data.validate import refuse_all_quarantined
+
+    refuse_all_quarantined(args.out, s)
     print(f"doctor: {'OK' if s['doctor']['ok'] else s['doctor']}")
     rows = [("file", "used", "skipped", "recovered")]
     for f in s["files"]:
@@ -349,10 +357,24 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- export / annotate / convert
 def cmd_export(args: argparse.Namespace) -> int:
+    from offline_adp.data.io import locked_directory
     from offline_adp.deploy import export_run
 
-    print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
+    _file_output(args.out, "--out", "an ONNX file")
+    with locked_directory(args.out, what="file"):  # the exporter's temporary: removed on failure (main)
+        print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
     return 0
+
+
+def _file_output(path: str, flag: str, what: str) -> None:
+    """A command's output that must be a file: an existing directory there is an error."""
+    from pathlib import Path
+
+    from offline_adp.errors import WriteError
+
+    p = Path(path)
+    if p.is_dir() and not p.is_symlink():
+        raise WriteError(f"{flag} {p} is a directory; name {what} to write (e.g. {p / 'out'})")
 
 
 def cmd_annotate(args: argparse.Namespace) -> int:
@@ -368,6 +390,8 @@ def cmd_annotate(args: argparse.Namespace) -> int:
 def cmd_convert(args: argparse.Namespace) -> int:
     from offline_adp.formats import convert
 
+    if args.to_format == "d4rl":
+        _file_output(args.out, "--out", "a .npz file")
     print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format, overwrite=args.overwrite))
     return 0
 
@@ -683,7 +707,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         from offline_adp.progress import apply_logging_options
 
         apply_logging_options(args)
-        return int(args.func(args))
+        with _cleaning_outputs(args):
+            return int(args.func(args))
     except OfflineADPError as exc:
         if args.traceback:
             raise
@@ -697,6 +722,37 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except MemoryError:
+        if args.traceback:
+            raise
+        print(f"offline-adp {args.command}: error: out of memory; use smaller settings (episodes, bootstrap "
+              "replicates, horizon) or a machine with more memory", file=sys.stderr)
+        return 2
+    except OSError as exc:  # read-only location, full disk, a file or folder in the way: one line, exit 2
+        if args.traceback:
+            raise
+        from offline_adp.errors import os_error_message
+
+        print(f"offline-adp {args.command}: error: {os_error_message(exc, _output_of(args))}", file=sys.stderr)
+        return 2
+
+
+def _output_of(args: argparse.Namespace) -> str | None:
+    """The path a command writes (for an OSError that names none)."""
+    for name in ("out", "json", "run", "write"):
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            return value
+    return None
+
+
+def _cleaning_outputs(args: argparse.Namespace):
+    """Whatever fails, no temporary of the command's output files is left behind (the
+    writers clean their own; this catches those of writers that do not)."""
+    from offline_adp.data.io import removing_new_temporaries
+
+    outs = [getattr(args, n, None) for n in ("out", "json")]
+    return removing_new_temporaries(*[o for o in outs if isinstance(o, str)])
 
 
 if __name__ == "__main__":

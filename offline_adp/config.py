@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import os
 import tomllib
 import types
 import typing
@@ -111,6 +112,55 @@ def _takes_bool(annotation: Any) -> bool:
     return False
 
 
+#: The largest configuration file (TOML/JSON spec, pipeline, fit config) read: far above
+#: any real one, so ``/dev/zero`` or a log named by mistake fails at once instead of filling memory.
+MAX_CONFIG_BYTES = 4 << 20
+
+
+def read_config_bytes(path: str | PathLike[str], what: str = "configuration",
+                      max_bytes: int | None = None) -> bytes:
+    """The bytes of a configuration file: the one reader of every TOML/JSON/YAML file a
+    user writes (pipeline files, fit configs, ingestion specs).
+
+    Only a regular file is read (a directory, FIFO, device such as ``/dev/zero`` or socket
+    is refused without blocking), and at most ``max_bytes`` (default
+    :data:`MAX_CONFIG_BYTES`); anything else is a :class:`~offline_adp.errors.SpecError`
+    naming the file.
+    """
+    import stat
+
+    p = Path(path)
+    cap = MAX_CONFIG_BYTES if max_bytes is None else max_bytes
+    try:
+        fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise SpecError(f"{p}: no such {what} file") from None
+    except IsADirectoryError:
+        raise SpecError(f"{p}: is a directory, expected a {what} file") from None
+    except OSError as e:
+        raise SpecError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
+    try:
+        st = os.fstat(fd)
+        if stat.S_ISDIR(st.st_mode):
+            raise SpecError(f"{p}: is a directory, expected a {what} file")
+        if not stat.S_ISREG(st.st_mode):
+            raise SpecError(f"{p}: not a regular file (a device, pipe or socket); expected a {what} file")
+        if st.st_size > cap:
+            raise SpecError(f"{p}: {st.st_size} bytes, more than a {what} file can be ({cap} bytes); "
+                            "is this the right file?")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as f:
+        try:
+            raw = f.read(cap + 1)
+        except OSError as e:
+            raise SpecError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
+    if len(raw) > cap:  # grew while being read
+        raise SpecError(f"{p}: more than {cap} bytes, more than a {what} file can be; is this the right file?")
+    return raw
+
+
 def load_toml(path: str | PathLike[str], what: str = "configuration") -> dict[str, Any]:
     """Read a TOML file into a dict, or raise a SpecError naming the file and the fault.
 
@@ -122,14 +172,7 @@ def load_toml(path: str | PathLike[str], what: str = "configuration") -> dict[st
         What the file is, for the message (``"pipeline"``, ``"ingestion spec"``...).
     """
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except FileNotFoundError:
-        raise SpecError(f"{p}: no such {what} file") from None
-    except IsADirectoryError:
-        raise SpecError(f"{p}: is a directory, expected a {what} file (TOML)") from None
-    except OSError as e:
-        raise SpecError(f"{p}: cannot read the {what} file ({e.strerror or e})") from None
+    raw = read_config_bytes(p, what)
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:

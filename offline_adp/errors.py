@@ -49,6 +49,11 @@ class InvalidArgumentError(OfflineADPError, ValueError):
     are not a JSON object...); the message names the argument and what is allowed."""
 
 
+class WriteError(OfflineADPError):
+    """An output location cannot be written: read-only, full, a directory where a file is
+    expected or a file where a directory is expected; the message names the path."""
+
+
 class LockedError(OfflineADPError):
     """Another process holds the lock of a dataset or run directory we are asked to write."""
 
@@ -83,3 +88,35 @@ class DivergenceWarning(RuntimeWarning):
 class ClusterWarning(RuntimeWarning):
     """A Dask fit went on in a degraded way (e.g. on fewer workers than it started with),
     so its result may differ from an undisturbed fit's."""
+
+
+#: What an ``OSError`` of a write means, by errno name (the rest: the system's text).
+_OS_ERROR_REASONS = {
+    "EROFS": "read-only file system",
+    "ENOSPC": "no space left on the device",
+    "EDQUOT": "disk quota exceeded",
+    "EACCES": "permission denied",
+    "EPERM": "operation not permitted",
+    "ENOTDIR": "a file is in the way where a directory is expected",
+    "EISDIR": "is a directory, expected a file",
+    "EEXIST": "already exists",
+    "ENOTEMPTY": "is a non-empty directory",
+    "ELOOP": "is a symbolic link (refused)",
+    "ENAMETOOLONG": "file name too long",
+    "EFBIG": "file too large",
+}
+
+
+def os_error_message(exc: OSError, path: object = None) -> str:
+    """One line for an ``OSError``: the path at fault (the error's own file name, else
+    ``path``), what it means and what to do; never a traceback."""
+    import errno as _errno
+
+    name = _errno.errorcode.get(exc.errno or -1, "")
+    where = exc.filename if exc.filename is not None else path
+    reason = _OS_ERROR_REASONS.get(name) or exc.strerror or str(exc) or type(exc).__name__
+    detail = f" [{name}]" if name else ""
+    other = f" -> {exc.filename2}" if getattr(exc, "filename2", None) else ""
+    head = f"{where}{other}: " if where is not None else ""
+    return f"{head}{reason}{detail}; check the location (free space, permissions, files or folders in the way) " \
+           "or write somewhere else"

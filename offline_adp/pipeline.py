@@ -61,16 +61,22 @@ from pathlib import Path
 from typing import Any, Literal
 
 import pandas as pd
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
-from offline_adp.config import ConfigModel, load_toml, validate_config
+from offline_adp.config import ConfigModel, load_toml, read_config_bytes, validate_config
 from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 
+#: Upper bounds of the evaluate settings: far above any useful value, so a typo (1e13)
+#: is an error naming the key instead of an allocation of terabytes.
+MAX_EPISODES = 10_000_000
+MAX_REPLICATES = 1_000_000
+#: Address schemes of Dask's comm backends (distributed.comm.registry).
+DASK_SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
 STAGES = ("data", "validate", "fit", "evaluate", "report")
 #: Datasets built by a documented example rather than logged or simulated.
 BUILTIN = {"gridworld_lattice": "offline_adp.examples.gridworld_divergence:dataset"}
@@ -85,6 +91,20 @@ class EngineSection(ConfigModel):
     n_workers: int | None = Field(None, ge=1)
     threads_per_worker: int | None = Field(None, ge=1)
     memory_limit: str | None = None
+
+    @field_validator("address")
+    @classmethod
+    def _dask_address(cls, value: str | None) -> str | None:
+        """A Dask scheduler address: ``SCHEME://HOST:PORT`` with a scheme Dask speaks, or ``HOST:PORT``."""
+        if value is None:
+            return value
+        scheme, sep, rest = value.partition("://")
+        if sep and scheme not in DASK_SCHEMES:
+            raise ValueError(f"unknown address scheme {scheme!r}: a Dask scheduler address is "
+                             f"{'|'.join(DASK_SCHEMES)}://HOST:PORT (e.g. tcp://10.0.0.5:8786)")
+        if not (rest if sep else value).strip() or any(c.isspace() for c in value):
+            raise ValueError("expected a Dask scheduler address such as tcp://10.0.0.5:8786")
+        return value
 
 
 class DataSection(ConfigModel):
@@ -129,10 +149,10 @@ class EvaluateSection(ConfigModel):
     """``[evaluate]``: rollouts, off-policy estimates, shift diagnostics."""
 
     simulator: str | None = None
-    episodes: int = Field(500, ge=1)
-    bootstrap: int = Field(200, ge=0)
+    episodes: int = Field(500, ge=1, le=MAX_EPISODES)
+    bootstrap: int = Field(200, ge=0, le=MAX_REPLICATES)
     fqe_bootstrap: int | None = Field(
-        FQE_BOOTSTRAP_DEFAULT, ge=0, description="FQE bootstrap replicates; omitted: as `offline-adp evaluate` (200 "
+        FQE_BOOTSTRAP_DEFAULT, ge=0, le=MAX_REPLICATES, description="FQE bootstrap replicates; omitted: as `offline-adp evaluate` (200 "
         "when replicates are cheap, else 50); 0: no interval")
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
@@ -235,6 +255,8 @@ def _load_spec(data: dict[str, Any], p: str | PathLike[str]) -> Any:
     with paths inside it relative to the pipeline file ``p``. The one loader of the
     check (:func:`load_pipeline`) and of the data stage, so both read the same spec."""
     spec, p = data["spec"], Path(p)
+    if isinstance(spec, str):  # a regular file of bounded size, before any loader reads it
+        read_config_bytes(spec, "ingestion spec")
     if data["format"] == "parquet":
         from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
 
@@ -378,6 +400,8 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
 
 
 def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str, Any]:
+    from offline_adp.data.validate import refuse_all_quarantined
+
     data = cfg["data"]  # every writer below is atomic (temporary directory, then rename)
     RunDirectory(run).remove("dataset")
     if "builtin" in data:
@@ -407,11 +431,13 @@ def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str,
         from offline_adp.ingest.parquet import ingest_parquet
 
         res = ingest_parquet(data["inputs"], _load_spec(data, cfg["file"]), run / "dataset", on_error=data.get("on_error"))
+        refuse_all_quarantined(run / "dataset", res.summary())
         return res.summary()
     from offline_adp.ingest.mcap import ingest_mcap
 
     spec = _load_spec(data, cfg["file"])
     ds, summary = ingest_mcap(data["inputs"], spec, out=run / "dataset", on_error=data.get("on_error"))
+    refuse_all_quarantined(run / "dataset", summary)
     return {"transitions": len(ds), "episodes": len(ds.episode_ids)}
 
 

@@ -36,11 +36,13 @@ def schemas() -> dict[str, dict[str, Any]]:
 
 def write_schemas(directory: str | Path = SCHEMA_DIR) -> list[Path]:
     """Write every schema as ``NAME.schema.json`` into ``directory``; returns the paths."""
+    from offline_adp.data.io import atomic_write_text
+
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
     out = []
-    for name, schema in schemas().items():
+    for name, schema in schemas().items():  # each file atomically: a failed write leaves the previous one
         p = d / f"{name}.schema.json"
-        p.write_text(json.dumps(schema, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        atomic_write_text(p, json.dumps(schema, indent=2, sort_keys=True) + "\n", what="schema file")
         out.append(p)
     return out

@@ -117,8 +117,8 @@ def test_atomic_write_leaves_nothing_on_crash(tmp_path, small_pt, monkeypatch):
     monkeypatch.setattr(dio.pq, "write_table", failing)
     with pytest.raises(OSError):
         small_pt.save(tmp_path / "ds", rows_per_part=100)
-    # no half-written dataset, no temp dir left (only the lock file, see data.io.locked_directory)
-    assert [p.name for p in tmp_path.iterdir()] == [".ds.lock"]
+    # no half-written dataset, no temp dir left, no lock file (removed on release, see data.io.locked_directory)
+    assert [p.name for p in tmp_path.iterdir()] == []
 
 
 def test_overwrite_is_atomic_and_explicit(tmp_path, small_pt):
@@ -128,7 +128,7 @@ def test_overwrite_is_atomic_and_explicit(tmp_path, small_pt):
     half = small_pt.select_episodes(small_pt.episode_ids[:3])
     half.save(tmp_path / "ds", overwrite=True)
     assert len(TransitionDataset.load(tmp_path / "ds")) == len(half)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".ds.lock", "ds"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
 
 def test_load_errors(tmp_path, small_pt):

@@ -61,7 +61,7 @@ def test_two_concurrent_ingests_one_wins_and_its_output_is_intact(tmp_path, raw_
     back = read_dataset(out)
     assert back.fingerprint() == ds.fingerprint()
     assert validate_directory(out).ok
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".ds.lock", "ds"]  # no temporaries left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # no temporaries or lock file left
 
 
 def test_lock_is_reentrant_in_one_process_and_exclusive_across_processes(tmp_path):
@@ -91,7 +91,7 @@ def test_stale_temporaries_of_killed_writes_are_removed(tmp_path, small_pt):
     (tmp_path / ".ds.tmp-linked00").symlink_to(outside)
     small_pt.save(tmp_path / "ds")
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == [".ds.lock", ".other.tmp-12345678", "ds", "outside"]
+    assert names == [".other.tmp-12345678", "ds", "outside"]
     assert (outside / "keep.txt").read_text() == "keep"  # the link was removed, not followed
 
 

@@ -65,18 +65,23 @@ def lock_path(target: str | PathLike[str]) -> Path:
 
 @contextlib.contextmanager
 def locked_directory(target: str | PathLike[str], *, what: str = "directory") -> Iterator[Path]:
-    """Hold the exclusive write lock of ``target`` (a dataset or run directory) for the block.
+    """Hold the exclusive write lock of ``target`` (a dataset or run directory, or an
+    output file) for the block.
 
-    The lock is an OS file lock (:mod:`filelock`) on ``.NAME.lock`` next to ``target``,
-    released when the block ends or the process dies (no stale locks after ``kill -9``).
-    Re-entrant within one process (an ingest holding the lock can call
-    :func:`write_dataset`). A second process gets a :class:`LockedError` at once,
-    rather than waiting or silently replacing the first one's output.
+    The lock is an OS file lock (``flock``, the lock :mod:`filelock` takes) on
+    ``.NAME.lock`` next to ``target``, released when the block ends or the process dies
+    (no stale locks after ``kill -9``). Re-entrant within one process (an ingest holding
+    the lock can call :func:`write_dataset`). A second process gets a :class:`LockedError`
+    at once, rather than waiting or silently replacing the first one's output.
+
+    The lock file is removed when the lock is released. That is safe only because the
+    holder unlinks it *before* unlocking and every taker checks, once it holds the lock,
+    that the file it locked is still the one at the path (else it retries on the new
+    one): the race filelock warns of (two processes each holding a lock on a different
+    inode) cannot happen. A lock file a killed process left is simply taken over.
 
     Yields the lock file's path.
     """
-    from filelock import FileLock, Timeout
-
     lp = lock_path(target)
     key = str(lp)
     with _HELD_GUARD:
@@ -84,15 +89,15 @@ def locked_directory(target: str | PathLike[str], *, what: str = "directory") ->
         if held is not None:
             held[1] += 1
     if held is None:
-        lp.parent.mkdir(parents=True, exist_ok=True)
-        lock = FileLock(lp, timeout=0)
         try:
-            lock.acquire()
-        except Timeout:
-            raise LockedError(f"{target}: another process is writing this {what} (lock {lp} is held); "
-                              "wait for it to finish or write somewhere else") from None
+            lp.parent.mkdir(parents=True, exist_ok=True)
+            handle = _acquire(lp, target, what)
+        except OSError as exc:
+            from offline_adp.errors import WriteError, os_error_message
+
+            raise WriteError(f"cannot lock {target} for writing: {os_error_message(exc, lp)}") from None
         with _HELD_GUARD:
-            _HELD[key] = held = [lock, 1]
+            _HELD[key] = held = [handle, 1]
     try:
         yield lp
     finally:
@@ -102,7 +107,57 @@ def locked_directory(target: str | PathLike[str], *, what: str = "directory") ->
             if last:
                 del _HELD[key]
         if last:
-            held[0].release()
+            _release(lp, held[0])
+
+
+def _acquire(lp: Path, target: str | PathLike[str], what: str) -> Any:
+    """Take the lock on ``lp`` without waiting (see :func:`locked_directory`)."""
+    def locked() -> LockedError:
+        return LockedError(f"{target}: another process is writing this {what} (lock {lp} is held); "
+                           "wait for it to finish or write somewhere else")
+
+    try:
+        import fcntl
+    except ImportError:  # no flock (Windows): filelock's lock; its file stays
+        from filelock import FileLock, Timeout
+
+        lock = FileLock(lp, timeout=0)
+        try:
+            lock.acquire()
+        except Timeout:
+            raise locked() from None
+        return lock
+    for _ in range(100):
+        fd = os.open(lp, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise locked() from None
+        except BaseException:
+            os.close(fd)
+            raise
+        try:  # the holder before us may have removed (unlinked) the file we locked
+            current = os.stat(lp, follow_symlinks=False)
+        except FileNotFoundError:
+            current = None
+        if current is not None and os.path.samestat(os.fstat(fd), current):
+            return fd
+        os.close(fd)  # a removed lock file: take the new one
+    raise locked()
+
+
+def _release(lp: Path, handle: Any) -> None:
+    """Remove the lock file while still holding it, then unlock (see :func:`locked_directory`)."""
+    if not isinstance(handle, int):
+        handle.release()
+        return
+    try:
+        with contextlib.suppress(OSError):  # a read-only parent: the file stays, harmlessly
+            if os.path.samestat(os.fstat(handle), os.stat(lp, follow_symlinks=False)):
+                os.unlink(lp)
+    finally:
+        os.close(handle)  # closing the descriptor releases the flock
 
 
 def _remove(path: Path) -> None:
@@ -162,18 +217,25 @@ def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, cl
         raise OfflineADPError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _new_sibling(target, "tmp")
+    trash = None
     try:
         yield tmp
         if target.exists() or target.is_symlink():
             trash = _new_sibling(target, "old")
             os.replace(target, trash / "old")
-            os.replace(tmp, target)
-            _remove(trash)
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                os.replace(trash / "old", target)  # the previous version back in place
+                raise
         else:
             os.replace(tmp, target)
     except BaseException:
         _remove(tmp)
         raise
+    finally:  # the set-aside previous version, once the target is whole again (new or restored)
+        if trash is not None and (target.exists() or not (trash / "old").exists()):
+            _remove(trash)
 
 
 def write_text_nofollow(path: str | PathLike[str], text: str) -> None:
@@ -188,6 +250,66 @@ def write_text_nofollow(path: str | PathLike[str], text: str) -> None:
         raise OfflineADPError(f"{path}: cannot write ({exc.strerror})") from None
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(text)
+
+
+@contextlib.contextmanager
+def atomic_file(target: str | PathLike[str], *, what: str = "file", lock: bool = True) -> Iterator[Path]:
+    """Yield a temporary path next to ``target``; on success rename it to ``target``.
+
+    The one helper for output *files* (a compare's JSON, a raw table, ...): the temporary
+    (``.NAME.tmp-XXXXXXXX``) is removed whatever happens, so a failed write (full disk,
+    read-only folder, Ctrl-C) leaves ``target`` as it was. A ``target`` that is a
+    directory is refused before anything is written; a symbolic link at ``target`` is
+    replaced, not followed. With ``lock``, the write holds :func:`locked_directory` on
+    ``target`` (a second writer fails at once).
+    """
+    from offline_adp.errors import WriteError
+
+    target = Path(target)
+    if target.is_dir() and not target.is_symlink():
+        raise WriteError(f"{target} is a directory; expected a {what} path (name a file, e.g. {target / 'out'}"
+                         f"{target.suffix or ''})")
+    with locked_directory(target, what=what) if lock else contextlib.nullcontext():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.parent / f".{target.name}.tmp-{secrets.token_hex(4)}"
+        try:
+            yield tmp
+            os.replace(tmp, target)
+        finally:
+            if tmp.exists() or tmp.is_symlink():
+                _remove(tmp)
+
+
+def atomic_write_text(target: str | PathLike[str], text: str, *, what: str = "file") -> Path:
+    """Write ``text`` to ``target`` through :func:`atomic_file`."""
+    with atomic_file(target, what=what) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(target)
+
+
+@contextlib.contextmanager
+def removing_new_temporaries(*targets: str | PathLike[str] | None) -> Iterator[None]:
+    """On failure inside the block, remove the temporaries (``.NAME.tmp*``) that appeared
+    next to each of ``targets`` during it: what a writer that does not clean up after
+    itself (a converter, an exporter) left. Temporaries there before the block are kept."""
+    paths = [Path(t) for t in targets if t is not None]
+
+    def temporaries() -> set[Path]:
+        found: set[Path] = set()
+        for t in paths:
+            with contextlib.suppress(OSError):
+                if t.parent.is_dir():
+                    found.update(t.parent.glob(glob.escape(f".{t.name}.tmp") + "*"))
+        return found
+
+    before = temporaries()
+    try:
+        yield
+    except BaseException:
+        for p in temporaries() - before:
+            with contextlib.suppress(OSError):
+                _remove(p)
+        raise
 
 
 def write_json(path: Path, obj: Any) -> None:

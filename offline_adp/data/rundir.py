@@ -28,7 +28,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-from offline_adp.errors import ArtifactError, OfflineADPError
+from offline_adp.errors import ArtifactError, OfflineADPError, WriteError
 
 #: What a run or pipeline name may be: no path separators, no glob characters.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
@@ -110,10 +110,15 @@ class RunDirectory:
         tmp = target.parent / f".{target.name}.tmp"
         if tmp.is_symlink() or tmp.exists():
             tmp.unlink()
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o666)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, target)
+        if target.is_dir() and not target.is_symlink():
+            raise WriteError(f"{target} is a directory, expected a file; remove it")
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o666)
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+            os.replace(tmp, target)
+        finally:  # a failed write (full disk, Ctrl-C) leaves the previous file and no temporary
+            tmp.unlink(missing_ok=True)
         return target
 
     def write_json(self, name: str, obj: Any) -> Path:
@@ -151,8 +156,13 @@ class RunDirectory:
         tmp = target.parent / f".{target.name}.tmp"
         if tmp.is_symlink() or tmp.exists():
             tmp.unlink()
-        shutil.copyfile(src, tmp, follow_symlinks=True)
-        os.replace(tmp, target)
+        if target.is_dir() and not target.is_symlink():
+            raise WriteError(f"{target} is a directory, expected a file; remove it")
+        try:
+            shutil.copyfile(src, tmp, follow_symlinks=True)
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
         return target
 
     def remove(self, name: str) -> None:

@@ -30,10 +30,11 @@ partly replaced directory gets wrong. These findings name the metadata file and 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -438,3 +439,16 @@ def split_quarantine(ds: TransitionDataset, report: ValidationReport) -> tuple[T
     rejected = rejected.append_column("reason", pa.array(reasons[row_bad], pa.string()))
     clean = TransitionDataset(ds.table.filter(pa.array(~row_bad)), ds.info)
     return clean, rejected
+
+
+def refuse_all_quarantined(out: str | PathLike[str], summary: Mapping[str, Any]) -> None:
+    """An ingestion whose every episode was quarantined is a failure, not an empty success:
+    an :class:`~offline_adp.errors.IngestError` naming the quarantine (exit 2 on the CLI).
+    ``summary`` is an ingestion's summary (``episodes``, ``quarantined_rows``, ...)."""
+    if not summary.get("episodes") and summary.get("quarantined_rows"):
+        from offline_adp.errors import IngestError
+
+        n = summary.get("quarantined_episodes")
+        raise IngestError(f"{out}: every episode was quarantined ({f'{n} episodes, ' if n else ''}"
+                          f"{summary['quarantined_rows']} rows), no transitions are left; see {out}/quarantine/ "
+                          "for a reason per row")

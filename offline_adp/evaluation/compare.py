@@ -191,15 +191,16 @@ def cli(args: Any) -> int:
         if not args.quiet:
             print(f"  {msg}", file=sys.stderr, flush=True)
 
+    if args.json and Path(args.json).is_dir():  # before the work, not after it
+        raise OfflineADPError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
     res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
                        force=args.force, evaluate_params={"n_episodes": args.episodes}, progress=say)
     for line in compare_lines(res):
         print(line)
     if args.json:
+        from offline_adp.data.io import atomic_write_text
         from offline_adp.evaluation.run import _finite
 
-        tmp = Path(args.json).with_suffix(".tmp")
-        tmp.write_text(json.dumps(_finite(res), indent=1, default=float, allow_nan=False))
-        tmp.replace(args.json)
+        atomic_write_text(args.json, json.dumps(_finite(res), indent=1, default=float, allow_nan=False), what="comparison")
         print(args.json)
     return 0

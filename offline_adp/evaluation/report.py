@@ -393,8 +393,10 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     cls = problem_class(problem) if problem in PROBLEM_NAMES else None  # problem-specific: the ReferenceProblem's hooks
     axes = getattr(cls, "map_features", None) or (tuple(features[:2]) if len(features) >= 2 else None)
     from offline_adp.data.io import atomic_directory
+    from offline_adp.data.rundir import RunDirectory
 
-    with atomic_directory(run / "report", overwrite=True) as tmp:
+    # a writer of the run directory: under its lock (a concurrent evaluate or report fails at once)
+    with RunDirectory(run).lock(), atomic_directory(run / "report", overwrite=True) as tmp:
         _build(run, m, ratios, features, axes, units, actions, problem, tmp)
     return run / "report" / "report.html"
 

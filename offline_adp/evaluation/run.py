@@ -28,7 +28,7 @@ import pyarrow.parquet as pq
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
-from offline_adp.data.rundir import read_json_file
+from offline_adp.data.rundir import RunDirectory, read_json_file
 from offline_adp.errors import DatasetNotFoundError, OfflineADPError
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
@@ -129,68 +129,98 @@ def evaluate_run(
     ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
     if not (ds_path / "meta" / "info.json").exists():
         raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")
-    t0 = time.perf_counter()
-    ds = read_dataset(ds_path)
-    policy = load_policy(run / "model")
-    sim_name = simulator if simulator is not None else ds.info.problem
-    if sim_name in ("none", ""):
-        sim_name = None
-    problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
-    note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
-    from offline_adp.envs import recorded_problem_options
+    # the one writer of RUN/evaluation at a time: a second evaluate (or a fit of the same run)
+    # gets LockedError at once (exit 2), instead of silently replacing the other's results
+    with RunDirectory(run).lock():
+        t0 = time.perf_counter()
+        ds = read_dataset(ds_path)
+        policy = load_policy(run / "model")
+        _check_same_actions(run, info, policy, ds, ds_path)
+        sim_name = simulator if simulator is not None else ds.info.problem
+        if sim_name in ("none", ""):
+            sim_name = None
+        problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
+        note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
+        from offline_adp.envs import recorded_problem_options
 
-    if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
-        note = ((note + "; ") if note else "") + (
-            f"the dataset does not record the options its {sim_name!r} problem was made with "
-            "(meta/info.json provenance.problem_options): the rollouts use the default problem")
-    rng = np.random.default_rng(seed)
-    metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
-                                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
-                                                            "sources": ds.source_counts()},
-                               "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
-    if note:
-        metrics["simulator_note"] = note
-        metrics["warnings"].append(note)
-    states = demo_states = None
-    refs = {}
-    T = None
-    if problem is not None:
-        from offline_adp.evaluation.offpolicy import evaluation_horizon
+        if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
+            note = ((note + "; ") if note else "") + (
+                f"the dataset does not record the options its {sim_name!r} problem was made with "
+                "(meta/info.json provenance.problem_options): the rollouts use the default problem")
+        rng = np.random.default_rng(seed)
+        metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
+                                                                "transitions": len(ds), "episodes": len(ds.episode_ids),
+                                                                "sources": ds.source_counts()},
+                                   "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
+        if note:
+            metrics["simulator_note"] = note
+            metrics["warnings"].append(note)
+        states = demo_states = None
+        refs = {}
+        T = None
+        if problem is not None:
+            from offline_adp.evaluation.offpolicy import evaluation_horizon
 
-        T, gamma, _ = evaluation_horizon(ds, horizon)
-        say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
-        x0 = problem.initial_states(n_episodes, rng)
-        demonstrator = problem.demonstrator()  # None for a gymnasium environment
-        pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
-        ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
-        pol, demo = ro["policy"], ro.get("demonstrator")
-        metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
-                              "horizon": T, "policy": _rollout_block(pol, problem)}
-        if demo is None:
-            metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
-        else:
-            metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
-            refs["demonstrator"] = demonstrator
-        states, demo_states = pol.states, (demo.states if demo is not None else None)
-        named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
-        if named:
-            metrics["named"] = named
-    res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                     policy_states=states, horizon=horizon, estimand=estimand, seed=seed, progress=say,
-                     task_map=task_map)
-    metrics.update(_offpolicy_block(res, ds))
-    if "rollout" in metrics:
-        truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
-        metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
-            f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
-        for name, r in res.estimates.items():
-            metrics["ope"][name]["rollout_error"] = r.estimate - truth
-    from offline_adp.evaluation.summary import headline
+            T, gamma, _ = evaluation_horizon(ds, horizon)
+            say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
+            x0 = problem.initial_states(n_episodes, rng)
+            demonstrator = problem.demonstrator()  # None for a gymnasium environment
+            pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
+            ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
+            pol, demo = ro["policy"], ro.get("demonstrator")
+            metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
+                                  "horizon": T, "policy": _rollout_block(pol, problem)}
+            if demo is None:
+                metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
+            else:
+                metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
+                refs["demonstrator"] = demonstrator
+            states, demo_states = pol.states, (demo.states if demo is not None else None)
+            named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
+            if named:
+                metrics["named"] = named
+        res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
+                         policy_states=states, horizon=horizon, estimand=estimand, seed=seed, progress=say,
+                         task_map=task_map)
+        metrics.update(_offpolicy_block(res, ds))
+        if "rollout" in metrics:
+            truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+            metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
+                f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
+            for name, r in res.estimates.items():
+                metrics["ope"][name]["rollout_error"] = r.estimate - truth
+        from offline_adp.evaluation.summary import headline
 
-    metrics["headline"] = headline(_finite(metrics), run)
-    say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
-    _write(run, metrics, res, ds, states, demo_states)
-    return metrics
+        metrics["headline"] = headline(_finite(metrics), run)
+        say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
+        _write(run, metrics, res, ds, states, demo_states)
+        return metrics
+
+
+def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
+    """The policy must command the dataset's actions and read its features: else an error
+    naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
+    values = ds.info.action_table.values.ravel().tolist()
+    if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
+        raise OfflineADPError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
+                              f"(action table {values}); evaluate or compare runs on data with the action table "
+                              "they were fitted on")
+    own = info.get("dataset")
+    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
+        return
+    if Path(own).resolve() == ds_path.resolve():
+        return
+    from offline_adp.data.info import DatasetInfo
+    from offline_adp.data.io import read_info
+
+    fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
+    theirs = fitted.action_table.values
+    if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
+        raise OfflineADPError(f"{run}: fitted on {own} with the action table {theirs.ravel().tolist()}, but the dataset "
+                              f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
+    if list(fitted.feature_names) != list(ds.feature_names):
+        raise OfflineADPError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
+                              f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
 
 
 def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, Any]:

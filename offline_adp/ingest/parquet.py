@@ -260,6 +260,9 @@ def ingest_tables(
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
         raise IngestError(_type_conflict(tables, metas) or f"input files have incompatible column types: {exc}") from None
     names_of = np.array([m["path"] for m in metas], dtype=object)
+    if table.num_rows == 0:  # e.g. a CSV with a header and no rows
+        raise IngestError(f"{', '.join(str(m['path']) for m in metas)}: no rows (only a header, or empty tables); "
+                          "nothing to ingest")
 
     # episodes may not span files (they would silently merge)
     ep_file = None if len(paths) == 1 else pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")}).group_by("e").aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])

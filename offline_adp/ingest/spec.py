@@ -25,7 +25,13 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator
 
-from offline_adp.config import ConfigModel, json_schema, load_toml, validate_config
+from offline_adp.config import (
+    ConfigModel,
+    json_schema,
+    load_toml,
+    read_config_bytes,
+    validate_config,
+)
 from offline_adp.errors import SpecError
 
 TIME_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
@@ -340,7 +346,8 @@ def load_parquet_spec(path: str | PathLike[str]) -> ParquetSpec:
     """Read and check a TOML spec file (see :func:`parse_parquet_spec`)."""
     path = Path(path)
     data = load_toml(path, "ingestion spec")
-    return parse_parquet_spec(data, text=path.read_bytes().decode("utf-8"), where=str(path))
+    text = read_config_bytes(path, "ingestion spec").decode("utf-8", errors="replace")
+    return parse_parquet_spec(data, text=text, where=str(path))
 
 
 __all__ = ["ParquetSpec", "ParquetSpecModel", "EpisodeSpec", "ObservationSpec", "ActionSpec", "parse_parquet_spec",

@@ -21,6 +21,7 @@ log a cost): they are recomputed at ingestion from cross-track error and command
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Iterator
 from os import PathLike
@@ -163,6 +164,7 @@ def write_mcap(
         from offline_adp.envs.path_tracking import PathTracking
 
         problem = PathTracking()
+    done = False
     try:
         for ep_id, source, e in _episodes(ds):
             if source not in sinks:
@@ -173,14 +175,21 @@ def write_mcap(
                 _write_vehicle_episode(sink, problem, ep_id, source, e, rng)
             else:
                 _write_generic_episode(sink, ds, ep_id, source, e)
-    finally:
         for s in sinks.values():
             s.close()
-    paths = []
-    for source, tmp in tmp_paths.items():
-        final = out / f"{source}.mcap"
-        tmp.replace(final)
-        paths.append(final)
+        paths = []
+        for source, tmp in tmp_paths.items():
+            final = out / f"{source}.mcap"
+            tmp.replace(final)
+            paths.append(final)
+        done = True
+    finally:
+        if not done:  # a failed write (full disk, read-only folder): no temporary left behind
+            for s in sinks.values():
+                with contextlib.suppress(OSError):
+                    s.f.close()
+            for tmp in tmp_paths.values():
+                tmp.unlink(missing_ok=True)
     return sorted(paths)
 
 

@@ -100,15 +100,15 @@ column = "behavior_prob"
 
 def write_raw(ds: TransitionDataset, path: str | PathLike[str], fmt: str = "parquet") -> tuple[Path, Path]:
     """Write the raw table (``.parquet`` or ``.csv``) and ``<stem>.spec.toml`` next to it."""
+    from offline_adp.data.io import atomic_file, atomic_write_text
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     table, spec = raw_table(ds)
-    tmp = path.with_name(f".{path.name}.tmp")
-    if fmt == "csv":
-        pacsv.write_csv(table, tmp)
-    else:
-        pq.write_table(table, tmp, compression="zstd")
-    tmp.replace(path)
+    with atomic_file(path, what="table") as tmp:  # temporary removed whatever happens
+        if fmt == "csv":
+            pacsv.write_csv(table, tmp)
+        else:
+            pq.write_table(table, tmp, compression="zstd")
     spec_path = path.with_name(path.name.split(".")[0] + ".spec.toml")
-    spec_path.write_text(spec)
+    atomic_write_text(spec_path, spec, what="spec")
     return path, spec_path

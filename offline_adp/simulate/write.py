@@ -33,11 +33,18 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
 
         if out.suffix == "":
             out = out / f"{ds.info.problem}.{fmt}"
+        if out.is_dir():
+            raise OfflineADPError(f"{out} is a directory; name the {fmt} file to write (or a folder without a suffix)")
         if out.exists() and not overwrite:
             raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
         return list(write_raw(ds, out, fmt=fmt))
     from offline_adp.simulate.mcap_writer import write_mcap
 
+    if out.exists() and not out.is_dir():
+        raise OfflineADPError(f"{out} is a file; MCAP recordings are written into a folder (name one)")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise OfflineADPError(f"{out} is not empty; pass --overwrite to write into it")
-    return list(write_mcap(ds, out, encoding=fmt.split("-")[1], seed=seed))
+    from offline_adp.data.io import locked_directory
+
+    with locked_directory(out, what="MCAP folder"):
+        return list(write_mcap(ds, out, encoding=fmt.split("-")[1], seed=seed))
