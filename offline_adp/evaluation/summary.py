@@ -172,30 +172,37 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
             "fit convergence unknown"}
 
 
+def _side(lo: float, hi: float, b: float) -> str:
+    return "better" if hi < b else "worse" if lo > b else "indistinguishable"
+
+
+_SIDE_WORDS = {"better": "better than", "worse": "worse than", "indistinguishable": "not distinguishable from"}
+
+
+def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[str]:
+    """Other reliable estimators whose interval does not overlap the best one's."""
+    lo, hi = best["interval"]
+    return [f"{e['name'].upper()} {e['estimate']:.4g} [{e['interval'][0]:.4g}, {e['interval'][1]:.4g}]"
+            for e in ranking if e["tier"] == 0 and e is not best and (e["interval"][1] < lo or e["interval"][0] > hi)]
+
+
 def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
-    """Better or worse than the behaviour (with what confidence), support, convergence."""
+    """Better or worse than the behaviour, only when the evidence behind it holds.
+
+    The logs alone say "better" or "worse" only when the most reliable estimator has a
+    95% interval on one side of the behaviour's logged cost *and* nothing in the same
+    evaluation undermines it: the policy did not leave the data's support (actions the
+    data rarely took, or, with a simulator, states the data does not cover), the fit
+    converged, and no other reliable estimator's interval disagrees. Otherwise the
+    performance clause reads "cannot tell from these logs" and names the reasons
+    (an off-policy interval assumes the value model holds where the policy goes; past the
+    data's support it extrapolates, and on continuous problems it did so by 20-50%,
+    docs/evaluation.md). Where a simulator's rollouts measured the same estimand, the
+    verdict is theirs (the truth), and an off-policy side that disagrees is said so.
+    ``performance`` is the side that was claimed, or ``"unknown"``.
+    """
     best = next((e for e in ranking if e["tier"] == 0), None)
     beh = m.get("behaviour_value")
-    if best is None:
-        top = next((e for e in ranking if e["tier"] == 1), None)
-        perf = ("cannot say whether the policy is better than the behaviour: "
-                + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
-                   if top else "no estimator is reliable here"))
-        side = "unknown"
-    elif beh is None:
-        perf, side = f"best estimate {best['estimate']:.4g} (no behaviour baseline)", "unknown"
-    else:
-        lo, hi = best["interval"]
-        b = beh["mean"]
-        if hi < b:
-            side, conf = "better", "its 95% interval lies below the behaviour's logged cost"
-        elif lo > b:
-            side, conf = "worse", "its 95% interval lies above the behaviour's logged cost"
-        else:
-            side, conf = "indistinguishable", "its 95% interval contains the behaviour's logged cost"
-        perf = (f"{'better than' if side == 'better' else 'worse than' if side == 'worse' else 'not distinguishable from'}"
-                f" the behaviour: {best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g} "
-                f"({conf})")
     sv = m.get("behaviour", {}).get("support_violations", {}).get("fraction")
     left = []
     if _finite(sv) and sv > SUPPORT_FRACTION:
@@ -209,6 +216,50 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     support = ("LEFT the data's support: " + "; ".join(left)) if left else (
         "stays within the data's support" if shift.get("enough_data") else
         "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else ""))
+    side, perf = "unknown", ""
+    if best is None:
+        top = next((e for e in ranking if e["tier"] == 1), None)
+        perf = ("cannot tell from these logs whether the policy is better than the behaviour: "
+                + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
+                   if top else "no estimator is reliable here"))
+    elif beh is None:
+        perf = f"best estimate {best['estimate']:.4g} (no behaviour baseline)"
+    else:
+        lo, hi = best["interval"]
+        b = beh["mean"]
+        ope_side = _side(lo, hi, b)
+        claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
+        doubts = []
+        if left:
+            doubts.append("the policy left the data's support, where the value model extrapolates")
+        elif not shift.get("enough_data"):
+            doubts.append("the logs cannot show whether the policy stays within their support")
+        if conv.get("verdict") not in ("converged", "finite horizon"):
+            doubts.append("the fit did not converge" if conv.get("verdict") in ("not converged", "diverged")
+                          else "the fit's convergence is unknown")
+        dis = _disagreeing(best, ranking)
+        if dis:
+            doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
+        if ope_side == "indistinguishable" or not doubts:
+            side = ope_side
+            conf = {"better": "its 95% interval lies below the behaviour's logged cost",
+                    "worse": "its 95% interval lies above the behaviour's logged cost",
+                    "indistinguishable": "its 95% interval contains the behaviour's logged cost"}[ope_side]
+            perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
+        else:
+            perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
+                    f"say {ope_side}, but " + "; ".join(doubts))
+        ro = m.get("rollout", {}).get("policy")
+        if ro and _finite(ro.get("mean_discounted_cost")) and ro.get("interval"):
+            r_lo, r_hi = ro["interval"]
+            truth_side = _side(r_lo, r_hi, b)
+            truth = (f"{_SIDE_WORDS[truth_side]} the behaviour in the simulator: rollouts "
+                     f"{ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs logged {b:.4g}")
+            if side in ("better", "worse") and truth_side != side:
+                truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+            elif side == "unknown":
+                truth += f" (from the logs alone: {perf})"
+            side, perf = truth_side, truth
     ct = conv["text"][:1].upper() + conv["text"][1:]
     return {"performance": side, "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
 
