@@ -352,7 +352,8 @@ def cmd_report(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from offline_adp.deploy import export_run
 
-    print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
+    print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset, overwrite=args.overwrite,
+                     input_dtype=args.input_dtype))
     return 0
 
 
@@ -631,6 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", default="onnx", choices=["onnx"])
     ex.add_argument("--out", required=True, help="file to write")
     ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
+    ex.add_argument("--input-dtype", default="float64", choices=["float64", "float32"],
+                    help="element type of the `observation` input (float32: what robot stacks usually publish)")
+    ex.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     ex.set_defaults(func=cmd_export)
 
     an = sub.add_parser(
