@@ -77,8 +77,10 @@ def _fail(where: str, member: str, message: str) -> ArtifactError:
 
 
 # ----------------------------------------------------------------------------- npz
-def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
-    """Check an ``.npz`` file's members without loading them.
+def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
+              name_pattern: re.Pattern[str] = MEMBER_NAME) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """Check an ``.npz`` file's members without loading them (``name_pattern``: the
+    member names allowed, by default our artifact keys).
 
     Returns
     -------
@@ -109,7 +111,7 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) 
             raise ArtifactError(f"{where}: {len(infos)} members, at most {MAX_MEMBERS} allowed")
         for zi in infos:
             name = zi.filename
-            if not MEMBER_NAME.match(name):
+            if not name_pattern.match(name):
                 raise _fail(where, repr(name), "member name is not an artifact array key")
             key = name[:-4]
             if key in out:
