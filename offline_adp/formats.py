@@ -541,6 +541,41 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
     return path
 
 
+def _minari_dir(source: Any) -> Path:
+    """The ``data/`` directory of a local Minari dataset (a path or an id; never downloaded)."""
+    p = Path(source)
+    cands = [p / "data", p] if p.exists() else []
+    if not cands:
+        try:
+            from minari.storage.datasets_root_dir import get_dataset_path
+
+            q = get_dataset_path(str(source))
+        except Exception as exc:  # minari's own id parsing: a malformed id
+            raise IngestError(f"{source}: not a Minari dataset id or path ({type(exc).__name__}: {str(exc)[:200]})") from None
+        cands = [q / "data"] if q.exists() else []
+    data_dir = next((c for c in cands if (c / "metadata.json").is_file()), None)
+    if data_dir is None:
+        raise IngestError(f"{source}: no local Minari dataset there (looked for metadata.json; datasets path "
+                          f"{os.environ.get('MINARI_DATASETS_PATH', '~/.minari/datasets')}); nothing is downloaded")
+    meta = data_dir / "metadata.json"
+    if meta.stat().st_size > 64 << 20:
+        raise IngestError(f"{meta}: {meta.stat().st_size} bytes is too large for Minari metadata")
+    try:
+        m = json.loads(meta.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise IngestError(f"{meta}: not valid JSON ({type(exc).__name__}: {str(exc)[:200]})") from None
+    if not isinstance(m, dict):
+        raise IngestError(f"{meta}: a JSON object is required, found {type(m).__name__}")
+    return data_dir
+
+
+def _space_kind(space: Any, where: str, what: str) -> str:
+    name = type(space).__name__
+    if name not in ("Box", "Discrete"):
+        raise IngestError(f"{where}: {what} space {name} is not supported (Box or Discrete)")
+    return name
+
+
 def from_minari(source: Any, info: DatasetInfo | None = None, *, feature_names: list[str] | None = None,
                 action_table: ActionTable | None = None) -> TransitionDataset:
     """A dataset from a local Minari dataset: a ``MinariDataset``, a dataset directory
@@ -548,62 +583,113 @@ def from_minari(source: Any, info: DatasetInfo | None = None, *, feature_names: 
 
     Metadata: ``info``, else the ``offline_adp`` entry of the dataset's metadata, else
     ``feature_names`` and ``action_table`` (default: ``Discrete(n)`` actions are indices
-    with values ``0..n-1``; ``Box`` actions are matched to the distinct action rows).
+    with values ``0..n-1``; ``Box`` actions are continuous commands: the distinct rows
+    when there are at most :data:`MAX_EXACT_ACTIONS`, else binned, with the exact
+    commands in ``action_value.<dim>`` columns).
+
+    The directory is untrusted: missing or unreadable files, spaces we cannot store,
+    episodes of the wrong shapes, non-boolean flags and out-of-range steps are an
+    :class:`IngestError` naming the dataset and episode; the result passes the ingestion
+    doctor (findings name the episode and step).
     """
     minari = _minari()
     if isinstance(source, minari.MinariDataset):
         mds, where = source, "minari dataset"
     else:
-        p = Path(source)
-        cands = [p / "data", p] if p.exists() else []
-        if not cands:
-            from minari.storage.datasets_root_dir import get_dataset_path
+        data_dir = _minari_dir(source)
+        where = str(source)
+        try:
+            mds = minari.MinariDataset(data_dir)
+        except Exception as exc:  # minari raises whatever its parsers raise on a damaged directory
+            raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: {str(exc)[:300]})") from None
+    try:
+        return _read_minari(mds, where, info, feature_names, action_table)
+    except OfflineADPError:
+        raise
+    except Exception as exc:  # a damaged episode file, a wrong type deep inside minari / pyarrow
+        raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: {str(exc)[:300]})") from None
 
-            q = get_dataset_path(str(source))
-            cands = [q / "data"] if q.exists() else []
-        data_dir = next((c for c in cands if (c / "metadata.json").exists()), None)
-        if data_dir is None:
-            raise IngestError(f"{source}: no local Minari dataset there (looked for metadata.json; datasets path "
-                              f"{os.environ.get('MINARI_DATASETS_PATH', '~/.minari/datasets')}); nothing is downloaded")
-        mds, where = minari.MinariDataset(data_dir), str(source)
+
+def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: list[str] | None,
+                 action_table: ActionTable | None) -> TransitionDataset:
     meta = mds.storage.metadata
+    if not isinstance(meta, dict):
+        raise IngestError(f"{where}: metadata is not a JSON object")
     if info is None and "offline_adp" in meta:
+        if not isinstance(meta["offline_adp"], dict):
+            raise IngestError(f"{where}: metadata offline_adp: a JSON object is required")
         info = DatasetInfo.from_dict(meta["offline_adp"], where=f"{where}: metadata offline_adp")
-    aspace = mds.action_space
-    discrete = type(aspace).__name__ == "Discrete"
-    eps = list(mds.iterate_episodes())
-    if info is None:
-        if action_table is None:
-            if discrete:
-                action_table = ActionTable.from_values(np.arange(int(aspace.n), dtype=float))
-            else:
-                action_table = _table_from_values(np.vstack([np.asarray(e.actions).reshape(len(e.rewards), -1) for e in eps]))
-        d = int(np.prod(mds.observation_space.shape))
-        info = _default_info(d, action_table, feature_names, meta.get("dataset_id", "minari"))
-    cols: dict[str, list[Any]] = {k: [] for k in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src", "bp", "t")}
-    for e in eps:
-        T = len(e.rewards)
-        o = np.asarray(e.observations, np.float64).reshape(T + 1, -1)
-        inf = e.infos or {}
+    akind = _space_kind(mds.action_space, where, "action")
+    _space_kind(mds.observation_space, where, "observation")
+    discrete = akind == "Discrete"
+    d = int(np.prod(mds.observation_space.shape))
+    k = 1 if discrete else int(np.prod(mds.action_space.shape))
+    cols: dict[str, list[Any]] = {c: [] for c in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src", "bp", "t",
+                                                   "e", "row")}
+    names: list[str] = []
+    n_ep = 0
+    for e in mds.iterate_episodes():
+        ew = f"{where} episode {e.id}"
+        rew = _numeric(e.rewards, ew, "rewards")
+        T = len(rew)
+        if rew.shape != (T,):
+            raise IngestError(f"{ew}: rewards: shape {rew.shape} where (T,) is required")
+        o = _numeric(e.observations, ew, "observations")
+        if o.shape[0] != T + 1 or o.size != (T + 1) * d:
+            raise IngestError(f"{ew}: observations: shape {o.shape} where ({T + 1}, {d}) is required (T + 1 for {T} steps)")
+        o = _finite(o.reshape(T + 1, d), ew, "observations")
+        a = _numeric(e.actions, ew, "actions")
+        if a.shape[0] != T or a.size != T * k:
+            raise IngestError(f"{ew}: actions: shape {a.shape} where ({T}{'' if discrete else f', {k}'}) is required")
+        inf = e.infos if isinstance(e.infos, dict) else {}
         cols["ep"].append(np.asarray(inf["episode_id"][:T]).astype(str) if "episode_id" in inf else np.full(T, f"minari-{e.id:06d}"))
-        cols["step"].append(np.asarray(inf["step"][:T], np.int64) if "step" in inf else np.arange(T))
+        cols["step"].append(_integers(np.asarray(inf["step"])[:T], ew, "infos/step", T, 0, _INT32_MAX,
+                                      "steps are stored as int32 from 0") if "step" in inf else np.arange(T))
         cols["obs"].append(o[:-1])
         cols["next"].append(o[1:])
-        a = np.asarray(e.actions)
-        cols["act"].append(a.astype(np.int64).reshape(T) if discrete else _action_indices(a.reshape(T, -1), info.action_table, where))
-        cols["rew"].append(np.asarray(e.rewards, np.float64))
-        cols["term"].append(np.asarray(e.terminations, bool))
-        cols["trunc"].append(np.asarray(e.truncations, bool))
+        cols["act"].append(a.reshape(T, k))
+        cols["rew"].append(_finite(rew, ew, "rewards"))
+        cols["term"].append(_flags(e.terminations, ew, "terminations", T))
+        cols["trunc"].append(_flags(e.truncations, ew, "truncations", T))
         cols["src"].append(np.asarray(inf["source"][:T]).astype(str) if "source" in inf else np.full(T, "unknown"))
         cols["bp"].append(np.asarray(inf["behavior_prob"][:T], np.float64) if "behavior_prob" in inf else np.full(T, np.nan))
         if "t_ns" in inf:
-            cols["t"].append(np.asarray(inf["t_ns"][:T], np.int64))
-    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+            cols["t"].append(_integers(np.asarray(inf["t_ns"])[:T], ew, "infos/t_ns", T, -(2**63) + 1, 2**63 - 1024,
+                                       "int64 nanoseconds"))
+        cols["e"].append(np.full(T, n_ep, np.int64))
+        cols["row"].append(np.arange(T))
+        names.append(ew)
+        n_ep += 1
+    if not n_ep:
+        raise IngestError(f"{where}: no episodes")
+    cat = {c: np.concatenate(v) if v else np.zeros(0) for c, v in cols.items()}
+    acts = cat["act"]
+    extra: dict[str, Any] = {}
+    if discrete:
+        n_act = int(mds.action_space.n)
+        action = _integers(acts.reshape(-1), where, "actions", len(acts), 0, n_act - 1, f"Discrete({n_act}) indices")
+        if info is None:
+            table = action_table or ActionTable.from_values(np.arange(n_act, dtype=float))
+    elif info is not None or action_table is not None:
+        vals = _finite(acts, where, "actions")
+        action = _action_indices(vals, (info.action_table if info is not None else action_table), where)  # type: ignore[union-attr]
+        table = action_table  # type: ignore[assignment]
+    else:
+        action, table, extra = _encode_actions(_finite(acts, where, "actions"), where)
+    if info is None:
+        info = _default_info(d, table, feature_names, str(meta.get("dataset_id", "minari")))
+    if len(info.features) != d:
+        raise IngestError(f"{where}: observations have {d} components, the metadata names {len(info.features)} features")
+    if discrete and info.n_actions < int(mds.action_space.n):
+        bad = action >= info.n_actions
+        if bad.any():
+            raise IngestError(f"{where}: actions: index {int(action[bad][0])} outside the {info.n_actions}-action table")
     bp = cat["bp"] if len(cat["bp"]) and not np.isnan(cat["bp"]).all() else None
-    return TransitionDataset.from_arrays(
-        info, episode_id=cat["ep"], step=cat["step"], obs=cat["obs"], action=cat["act"], cost=-cat["rew"],
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=cat["ep"], step=cat["step"], obs=cat["obs"], action=action, cost=-cat["rew"],
         next_obs=cat["next"], terminated=cat["term"], truncated=cat["trunc"], source=cat["src"], behavior_prob=bp,
-        t_ns=cat["t"] if len(cols["t"]) == len(eps) and eps else None)
+        t_ns=cat["t"] if len(cols["t"]) == n_ep else None, extra={**extra, **_provenance(names, cat["e"], cat["row"])})
+    return _require_doctor(ds, where)
 
 
 # ----------------------------------------------------------------------------- LeRobot
