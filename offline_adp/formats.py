@@ -406,6 +406,9 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
         info = _default_info(obs.shape[1], table, feature_names, name)
     if len(info.features) != obs.shape[1]:
         raise IngestError(f"{where}: observations have {obs.shape[1]} columns, the metadata names {len(info.features)} features")
+    if not extra and info.action_table.kind == "binned" and act_vals.shape[1] == len(info.action_table.dims):
+        # binned commands: the logged values are the exact commands (what to_d4rl writes)
+        extra = {ACTION_VALUE + dname: np.ascontiguousarray(act_vals[:, j]) for j, dname in enumerate(info.action_table.dims)}
     if "infos/action_index" in arrays:
         action = _integers(arrays["infos/action_index"], where, "infos/action_index", n, 0, info.n_actions - 1,
                            f"indices into the {info.n_actions}-action table")
@@ -662,6 +665,11 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         n_ep += 1
     if not n_ep:
         raise IngestError(f"{where}: no episodes")
+    n_steps = sum(len(r) for r in cols["rew"])
+    for key, found in (("total_episodes", n_ep), ("total_steps", n_steps)):
+        declared = meta.get(key)
+        if declared is not None and declared != found:
+            raise IngestError(f"{where}: metadata {key} = {declared!r} but {found} were read (a missing or damaged episode file)")
     cat = {c: np.concatenate(v) if v else np.zeros(0) for c, v in cols.items()}
     acts = cat["act"]
     extra: dict[str, Any] = {}
