@@ -67,6 +67,7 @@ class _Graph:
         self.nodes: list[Any] = []
         self.inits: list[Any] = []
         self.k = 0
+        self.memo: dict[Any, str] = {}  # shared sub-graphs (inputs every step's rule reads)
 
     def name(self, stem: str) -> str:
         self.k += 1
@@ -215,7 +216,10 @@ def _regressor(g: _Graph, model: Any, X: str) -> str:
 def _float32_roundtrip(g: _Graph, X: str) -> str:
     from onnx import TensorProto
 
-    return g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
+    key = ("f32", X)
+    if key not in g.memo:
+        g.memo[key] = g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
+    return g.memo[key]
 
 
 # ----------------------------------------------------------------------------- Q and policies
@@ -259,12 +263,16 @@ def _all_pairs(g: _Graph, phi: str, action_features: np.ndarray) -> str:
     """Joint inputs for every action, action-major: row ``a * N + i`` is ``[phi(x_i), f(a)]``."""
     af = np.asarray(action_features, dtype=np.float64)
     A, k = af.shape
+    key = ("pairs", phi, af.shape, af.tobytes())
+    if key in g.memo:  # every step of a time-indexed Q reads the same pairs: built once
+        return g.memo[key]
     n = g.op("Slice", [g.op("Shape", [phi]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
     tiled = g.op("Tile", [phi, g.const(np.array([A, 1], np.int64))], "tiled")
     shape = g.op("Concat", [g.const(np.array([A], np.int64)), n, g.const(np.array([k], np.int64))], "shape", axis=0)
     acts = g.op("Expand", [g.const(af.reshape(A, 1, k), "action_features"), shape], "acts")
     acts = g.op("Reshape", [acts, g.const(np.array([-1, k], np.int64))], "acts2")
-    return g.op("Concat", [tiled, acts], "pairs", axis=1)
+    g.memo[key] = g.op("Concat", [tiled, acts], "pairs", axis=1)
+    return g.memo[key]
 
 
 def _policy(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:

@@ -271,3 +271,41 @@ def test_onnx_accepts_float32_with_the_same_actions(run, tmp_path):
     assert inputs["observation"]["columns"] == list(pi.signature.feature_names)
     with pytest.raises(Exception, match="(?i)type"):  # the float64 model still refuses float32 (documented)
         s64.run(None, {"observation": X})
+
+
+# ----------------------------------------------------------------------------- finite-horizon ONNX size
+def test_finite_horizon_onnx_is_proportional_to_the_model(tmp_path):
+    """An 8-step export is about 8 one-step models (each step has its own forest), no
+    more; the inputs every step reads (joint pairs, float32 rounding) are built once; and
+    onnxruntime's memory to load it stays proportional to the file."""
+    pytest.importorskip("onnxruntime")
+    import onnx
+
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.artifacts import save_q
+    from offline_adp.onnx_export import save_onnx
+    from offline_adp.qfunctions import TreeEnsemble
+    from offline_adp.simulate import simulate
+
+    ds = simulate("path_tracking", 4, 16, seed=3, horizon=40)
+    size, nodes, npz = {}, {}, {}
+    for T in (1, 8):
+        f = FittedQIteration(horizon=T, regressor="extra_trees", regressor_params={"n_estimators": 10}).fit(ds)
+        nodes[T] = sum(len(TreeEnsemble.from_sklearn(q.models[0]).left) for q in f.q_function_.qs)
+        out = save_onnx(f.policy_, tmp_path / f"p{T}.onnx")
+        save_q(f.q_function_, tmp_path / f"q{T}")
+        size[T], npz[T] = out.stat().st_size, (tmp_path / f"q{T}" / "q.npz").stat().st_size
+    ratio, model_ratio = size[8] / size[1], nodes[8] / nodes[1]
+    print(f"\nONNX 1 step {size[1]} B, 8 steps {size[8]} B (x{ratio:.2f}; tree nodes x{model_ratio:.2f}); "
+          f"q.npz {npz[1]} / {npz[8]} B")
+    assert ratio <= 1.1 * model_ratio
+    assert size[8] <= npz[8]  # the export is no bigger than the stored model
+    g = onnx.load(str(tmp_path / "p8.onnx")).graph
+    assert sum(n.op_type == "Tile" for n in g.node) == 1  # the joint (x, a) pairs: once for all 8 steps
+    assert sum(n.op_type == "TreeEnsemble" for n in g.node) == 8
+    code = ("import psutil, onnxruntime as ort, sys\np = psutil.Process(); b = p.memory_info().rss\n"
+            "s = ort.InferenceSession(sys.argv[1], providers=['CPUExecutionProvider'])\nprint(p.memory_info().rss - b)")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "p8.onnx")], capture_output=True, text=True, timeout=300)
+    grown = int(r.stdout.split()[-1])
+    print(f"onnxruntime load: +{grown / 1e6:.1f} MB for a {size[8] / 1e6:.2f} MB model")
+    assert grown < 30 * size[8] + (64 << 20)
