@@ -224,8 +224,25 @@ def test_deflate_bomb_is_refused_before_reading_with_bounded_memory(tmp_path):
     f = _deflate_bomb(tmp_path / "bomb.npz", 6_000_000)  # declares ~1.1 GB (as float64: more)
     assert f.stat().st_size < 3_000_000
     r, peak = _peak_cli("convert", str(f), "--from", "d4rl", "--out", str(tmp_path / "out"))
-    _one_line_error(r, "bomb.npz", "declares")
+    _one_line_error(r, "bomb.npz", "observations", "declare", "refusing to read")
     assert peak < PEAK_LIMIT_MB, peak
+
+
+def test_compressed_real_sized_file_with_sparse_flags_converts(tmp_path):
+    """savez_compressed of 200,000 rows: the flag arrays compress far beyond 64x (runs of
+    false), the file as a whole does not; it converts and equals its arrays."""
+    rng = np.random.default_rng(3)
+    n, length = 200_000, 1000
+    o = rng.normal(size=(n, 4)).astype(np.float32)
+    a = {"observations": o, "actions": rng.integers(0, 3, (n, 1)).astype(np.float32),
+         "rewards": rng.normal(size=n).astype(np.float32), "terminals": np.zeros(n, bool),
+         "timeouts": (np.arange(n) % length) == length - 1}
+    f = tmp_path / "c.npz"
+    np.savez_compressed(f, **a)
+    ds = from_d4rl(f)
+    keep = ~a["timeouts"]
+    assert ds.n_episodes == n // length and len(ds) == int(keep.sum())
+    np.testing.assert_array_equal(ds.arrays().obs, o[keep].astype(np.float64))
 
 
 def test_declared_bytes_are_capped_whatever_the_file_size(tmp_path):
