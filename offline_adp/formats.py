@@ -801,6 +801,10 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
         raise OfflineADPError("reading the LeRobot layout is not supported (export only)")
     readers = {"dataset": read_dataset, "d4rl": from_d4rl, "minari": from_minari}
     ds = readers[from_format](source)
+    if from_format == "dataset":  # d4rl / minari readers run the doctor themselves
+        from offline_adp.data.validate import require_usable
+
+        require_usable(ds, source)
     if to_format == "dataset":
         ds.save(out, overwrite=overwrite)
         return Path(out)

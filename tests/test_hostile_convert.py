@@ -459,3 +459,21 @@ def test_crafted_minari_directories_are_one_clear_error(tmp_path, kind):
     r = _cli("convert", str(root), "--from", "minari", "--out", str(tmp_path / "out"))
     _one_line_error(r, needle)
     assert not (tmp_path / "out").exists()
+
+
+def test_convert_from_a_dataset_directory_runs_the_doctor(tmp_path):
+    """A hand-edited dataset directory (a NaN cost) is not exported: the finding names the
+    part file and row."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    ds = from_d4rl(_episodes())
+    ds.save(tmp_path / "ds")
+    part = tmp_path / "ds" / "data" / "part-00000.parquet"
+    t = pq.read_table(part)
+    cost = t.column("cost").to_numpy().copy()
+    cost[7] = np.nan
+    pq.write_table(t.set_column(t.schema.get_field_index("cost"), "cost", pa.array(cost)), part)
+    r = _cli("convert", str(tmp_path / "ds"), "--to", "d4rl", "--out", str(tmp_path / "x.npz"))
+    _one_line_error(r, "part-00000.parquet", "row 7", "cost")
+    assert not (tmp_path / "x.npz").exists()
