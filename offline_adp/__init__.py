@@ -23,7 +23,8 @@ _LAZY: dict[str, tuple[str, str]] = {
     "TraceData": ("offline_adp.access", "TraceData"),
     "FittedQEvaluation": ("offline_adp.algorithms.fqe", "FittedQEvaluation"),
     "FittedQIteration": ("offline_adp.algorithms.fqi", "FittedQIteration"),
-    "load_policy": ("offline_adp.artifacts", "load_policy"),
+    "load_policy": ("offline_adp.deploy", "load_policy"),
+    "load_index_policy": ("offline_adp.artifacts", "load_index_policy"),
     "load_q": ("offline_adp.artifacts", "load_q"),
     "save_policy": ("offline_adp.artifacts", "save_policy"),
     "save_q": ("offline_adp.artifacts", "save_q"),
@@ -73,6 +74,7 @@ __all__ = [
     "evaluate_run",
     "ingest_mcap",
     "load_mcap_spec",
+    "load_index_policy",
     "load_policy",
     "load_q",
     "off_policy",
@@ -139,11 +141,12 @@ if TYPE_CHECKING:  # static type checkers and IDEs see the real imports
     )
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.algorithms.fqi import FittedQIteration
-    from offline_adp.artifacts import load_policy, load_q, save_policy, save_q
+    from offline_adp.artifacts import load_index_policy, load_q, save_policy, save_q
     from offline_adp.data.dataset import TransitionArrays, TransitionDataset
     from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
     from offline_adp.data.io import read_dataset, write_dataset
     from offline_adp.data.validate import ValidationReport, validate, validate_directory
+    from offline_adp.deploy import load_policy
     from offline_adp.envs import make_problem
     from offline_adp.envs.car_on_hill import score as car_on_hill_score
     from offline_adp.evaluation.offpolicy import off_policy

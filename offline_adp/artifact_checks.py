@@ -55,6 +55,11 @@ ZIP_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, Not
               OverflowError, KeyError, TypeError, SyntaxError, tokenize.TokenError)
 #: Most nodes / leaves / features a single tree or model may declare.
 MAX_NODES = 1 << 31
+#: Widest input a saved model may declare (features plus action features).
+MAX_WIDTH = 1_000_000
+#: Most float64 entries a loader may allocate to probe a model (actions x rows x width):
+#: a declared width is checked against this before any array is built from it.
+MAX_PROBE_ENTRIES = 20_000_000
 
 
 def plain_dtype(dtype: np.dtype) -> bool:
@@ -72,8 +77,10 @@ def _fail(where: str, member: str, message: str) -> ArtifactError:
 
 
 # ----------------------------------------------------------------------------- npz
-def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
-    """Check an ``.npz`` file's members without loading them.
+def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
+              name_pattern: re.Pattern[str] = MEMBER_NAME) -> dict[str, tuple[np.dtype, tuple[int, ...]]]:
+    """Check an ``.npz`` file's members without loading them (``name_pattern``: the
+    member names allowed, by default our artifact keys).
 
     Returns
     -------
@@ -104,7 +111,7 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION) 
             raise ArtifactError(f"{where}: {len(infos)} members, at most {MAX_MEMBERS} allowed")
         for zi in infos:
             name = zi.filename
-            if not MEMBER_NAME.match(name):
+            if not name_pattern.match(name):
                 raise _fail(where, repr(name), "member name is not an artifact array key")
             key = name[:-4]
             if key in out:
@@ -234,8 +241,10 @@ def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | No
         raise _fail(where, prefix + "feature", f"split feature {int(f.max())} is implausibly large")
     if not np.all(np.isfinite(out["threshold"][inner])):
         raise _fail(where, prefix + "threshold", "non-finite split threshold")
-    if np.any(np.isnan(out["value"][~inner])):
-        raise _fail(where, prefix + "value", "NaN leaf value")
+    bad = ~np.isfinite(out["value"][~inner])
+    if bad.any():
+        j = int(np.flatnonzero(~inner)[np.flatnonzero(bad)[0]])
+        raise _fail(where, prefix + "value", f"node {j}: leaf value {float(out['value'][j])!r} is not finite")
     return out
 
 
@@ -362,4 +371,4 @@ def check_int(value: Any, where: str, member: str, lo: int = 0, hi: int = MAX_NO
     return value
 
 
-__all__ = ["check_npz", "check_tree_arrays", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]
+__all__ = ["MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]

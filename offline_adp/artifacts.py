@@ -206,7 +206,7 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
         if not isinstance(key, str):
             raise ArtifactError(f"{where}: {kind} entry without an array key")
         width = spec.get("n_features")
-        width = None if width is None else C.check_int(width, where, f"{key}.n_features", 1)
+        width = None if width is None else C.check_int(width, where, f"{key}.n_features", 1, C.MAX_WIDTH)
         ens = TreeEnsemble(**C.check_tree_arrays(arrays, f"{key}.", where, width))
         ens.n_features_in_ = width  # type: ignore[attr-defined]
         if kind == "tree_ensemble":
@@ -355,6 +355,10 @@ def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFu
     if d is not None:
         if d < 1:
             raise ArtifactError(f"{where}: models read {d + k} inputs, fewer than the {k} action features")
+        if 2 * n_actions * (d + k) > C.MAX_PROBE_ENTRIES:
+            raise ArtifactError(f"{where}: models declare {d + k} inputs for {n_actions} actions "
+                                f"({2 * n_actions * (d + k)} values per 2 states, at most {C.MAX_PROBE_ENTRIES}): "
+                                "out of proportion, not a model we wrote")
         try:
             v = np.asarray(q.values(np.zeros((2, d))))
         except ArtifactError:
@@ -568,11 +572,24 @@ def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, An
     _write(directory, "policy", {"policy": _export_policy(policy, arrays, "p")}, arrays, extra)
 
 
-def load_policy(directory: str | PathLike[str]) -> Any:
-    """Read a policy written by :func:`save_policy` (or the greedy policy of a saved Q)."""
+def load_index_policy(directory: str | PathLike[str]) -> Any:
+    """Read a policy written by :func:`save_policy` (or the greedy policy of a saved Q)
+    *without* a signature: it knows no feature names nor action values, so its ``act``
+    takes arrays in the fitted column order and returns action **indices**.
+
+    This is what algorithms use (``act_index``). To deploy a policy, use
+    :func:`offline_adp.load_policy` (:func:`offline_adp.deploy.load_policy`), which
+    attaches the run's signature: ``act`` then returns action values and checks the
+    observation's names and width.
+    """
     d = Path(directory)
     if not (d / "policy.json").exists() and (d / "q.json").exists():
         from offline_adp.policies import GreedyPolicy
 
         return GreedyPolicy(load_q(d)[0])
     return _read(d, "policy", "policy", _import_policy, "policy")[0]
+
+
+#: The library-internal loader (no signature; ``act`` returns indices), kept under its
+#: old name for the evaluation and registry modules; see :func:`load_index_policy`.
+load_policy = load_index_policy

@@ -362,7 +362,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     _file_output(args.out, "--out", "an ONNX file")
     with locked_directory(args.out, what="file"):  # the exporter's temporary: removed on failure (main)
-        print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset))
+        print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset, overwrite=args.overwrite,
+                         input_dtype=args.input_dtype))
     return 0
 
 
@@ -654,6 +655,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", default="onnx", choices=["onnx"])
     ex.add_argument("--out", required=True, help="file to write")
     ex.add_argument("--dataset", default=None, help="dataset for the feature names (default: the run's)")
+    ex.add_argument("--input-dtype", default="float64", choices=["float64", "float32"],
+                    help="element type of the `observation` input (float32: what robot stacks usually publish)")
+    ex.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     ex.set_defaults(func=cmd_export)
 
     an = sub.add_parser(

@@ -51,9 +51,41 @@ def run_dataset(run_dir: str | PathLike[str], dataset: str | PathLike[str] | Non
                                "pass --dataset DIR")
 
 
+def load_policy(path: str | PathLike[str], dataset: str | PathLike[str] | None = None) -> Any:
+    """A saved policy, with the run's signature when the run has one (``offline_adp.load_policy``).
+
+    ``path`` is a run directory or its ``model/`` directory. When a signature is found
+    (``model/signature.json``, or the ``meta/info.json`` of the dataset named by the
+    run's ``run.json`` or by ``dataset``), ``act`` returns action *values* and refuses
+    observations of the wrong names or width (:class:`~offline_adp.errors.SchemaError`),
+    as :func:`load_run_policy`. A bare model directory with neither gives the policy
+    without a signature (a warning says so): its ``act`` takes arrays and returns action
+    indices, as :func:`offline_adp.artifacts.load_index_policy` always does.
+    """
+    import warnings
+
+    p = Path(path)
+    model = _model_dir(p)
+    try:
+        return load_run_policy(p, dataset)
+    except DatasetNotFoundError:
+        if dataset is not None or _names_dataset(model, p):
+            raise
+    from offline_adp.artifacts import load_index_policy
+
+    warnings.warn(f"{model}: no signature.json and no run.json naming a dataset: the policy has no signature, so "
+                  "act() takes arrays in the fitted column order and returns action indices", UserWarning, stacklevel=2)
+    return load_index_policy(model)
+
+
+def _names_dataset(model: Path, run: Path) -> bool:
+    """Whether a run.json next to the model names a dataset."""
+    return any((d / "run.json").exists() for d in (model.parent, run, run / "fit"))
+
+
 def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] | None = None) -> Any:
     """The policy of a run directory with its signature attached (see module docstring)."""
-    from offline_adp.artifacts import load_policy
+    from offline_adp.artifacts import load_index_policy as load_policy
     from offline_adp.data.info import DatasetInfo
     from offline_adp.policies import PolicySignature
 
@@ -74,8 +106,14 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
 
 
 def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str = "onnx",
-               dataset: str | PathLike[str] | None = None) -> Path:
-    """Export a run's policy (``offline-adp export``); ``fmt`` is one of :data:`EXPORT_FORMATS`."""
+               dataset: str | PathLike[str] | None = None, *, overwrite: bool = False,
+               input_dtype: str = "float64") -> Path:
+    """Export a run's policy (``offline-adp export``); ``fmt`` is one of :data:`EXPORT_FORMATS`.
+
+    An existing ``out`` is replaced only with ``overwrite=True`` (``--overwrite``);
+    ``input_dtype`` is the observation input's type (``float64`` or ``float32``)."""
+    if Path(out).exists() and not overwrite:
+        raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
     if fmt not in EXPORT_FORMATS:
         from offline_adp.errors import UnknownNameError
 
@@ -83,4 +121,4 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
     from offline_adp.onnx_export import save_onnx
 
     policy = load_run_policy(run_dir, dataset)
-    return save_onnx(policy, out)
+    return save_onnx(policy, out, input_dtype=input_dtype)

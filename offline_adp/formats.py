@@ -57,6 +57,29 @@ META_KEY = "metadata/offline_adp"
 
 
 # ----------------------------------------------------------------------------- helpers
+#: Bound on the bytes an imported file's arrays may declare, per byte of file (after
+#: decompression, every element counted as at least 8 bytes: the float64 we convert to).
+MAX_EXPANSION = 64
+#: Absolute bound on the declared bytes of an imported file's arrays.
+MAX_DECLARED_BYTES = 16 << 30
+#: Actions with at most this many distinct value rows become an exact (discrete) action
+#: table; more distinct rows are continuous commands and are binned (see :func:`_encode_actions`).
+MAX_EXACT_ACTIONS = 256
+#: Quantile bins per action component for continuous commands (product table capped at
+#: :data:`MAX_BINNED_ACTIONS` cells).
+ACTION_BINS = 16
+MAX_BINNED_ACTIONS = 4096
+#: Prefix of the extra columns that keep continuous commands exactly (``action_value.<dim>``).
+ACTION_VALUE = "action_value."
+_INT32_MAX = int(np.iinfo(np.int32).max)
+
+
+def _short(items: Any, k: int = 8) -> str:
+    """At most ``k`` items of a list for a message (never thousands)."""
+    items = list(items)
+    return repr(items) if len(items) <= k else f"[{', '.join(repr(x) for x in items[:k])}, ... ({len(items)} in all)]"
+
+
 def _columns(ds: TransitionDataset) -> dict[str, Any]:
     a = ds.arrays()
     out = {"obs": a.obs, "next_obs": a.next_obs, "action": a.action.astype(np.int64), "cost": a.cost,
@@ -67,19 +90,101 @@ def _columns(ds: TransitionDataset) -> dict[str, Any]:
     return out
 
 
+def _action_values(ds: TransitionDataset) -> np.ndarray:
+    """The logged command of each row: the exact ``action_value.*`` columns of continuous
+    commands when present, else the action table's values."""
+    dims = ds.info.action_table.dims
+    cols = [ACTION_VALUE + d for d in dims]
+    if all(c in ds.table.column_names for c in cols):
+        return np.column_stack([ds.column(c).astype(np.float64) for c in cols])
+    return ds.info.action_table.values[ds.arrays().action]
+
+
+def _numeric(x: Any, where: str, field: str, *, n: int | None = None) -> np.ndarray:
+    """A numeric (int/float/bool) array with ``n`` rows, else IngestError naming the field."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "biuf":
+        raise IngestError(f"{where}: {field}: dtype {a.dtype} where numbers are required")
+    if a.ndim == 0 or (n is not None and len(a) != n):
+        raise IngestError(f"{where}: {field}: shape {a.shape} where {n} rows are required")
+    return a
+
+
+def _finite(a: np.ndarray, where: str, field: str) -> np.ndarray:
+    """Float64 copy of ``a``; NaN or infinity is an IngestError naming the field and row."""
+    v = np.asarray(a, dtype=np.float64)
+    bad = ~np.isfinite(v)
+    if bad.any():
+        i = int(np.argmax(bad.reshape(len(v), -1).any(axis=1)))
+        raise IngestError(f"{where}: {field}: row {i}: value {v[i].tolist() if v.ndim > 1 else float(v[i])!r} is NaN or "
+                          f"infinite ({int(bad.reshape(len(v), -1).any(axis=1).sum())} rows); the format stores finite values")
+    return v
+
+
+def _flags(x: Any, where: str, field: str, n: int) -> np.ndarray:
+    """Boolean flags: bool, or numbers that are exactly 0 or 1 (anything else, NaN or 0.5,
+    is an IngestError naming the field and row: it is not a flag)."""
+    a = _numeric(x, where, field, n=n)
+    if a.ndim != 1:
+        if a.ndim == 2 and a.shape[1] == 1:
+            a = a[:, 0]
+        else:
+            raise IngestError(f"{where}: {field}: shape {a.shape} where ({n},) flags are required")
+    if a.dtype.kind == "b":
+        return a.astype(bool)
+    bad = ~((a == 0) | (a == 1))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise IngestError(f"{where}: {field}: row {i}: value {a[i].item()!r} is not a boolean flag (0/1, true/false); "
+                          f"{int(bad.sum())} such rows")
+    return a == 1
+
+
+def _integers(x: Any, where: str, field: str, n: int, lo: int, hi: int, what: str) -> np.ndarray:
+    """Whole numbers in [lo, hi] as int64 (a float must be integral; nothing wraps)."""
+    a = _numeric(x, where, field, n=n)
+    if a.ndim != 1:
+        raise IngestError(f"{where}: {field}: shape {a.shape} where ({n},) is required")
+    if a.dtype.kind == "f":
+        bad = ~np.isfinite(a) | (a != np.round(a)) | (a < lo) | (a > hi)
+    elif a.dtype.kind == "u":
+        bad = a > np.uint64(hi)
+    else:
+        bad = (a.astype(np.int64) < lo) | (a.astype(np.int64) > hi) if a.dtype.kind != "b" else np.zeros(n, bool)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise IngestError(f"{where}: {field}: row {i}: value {a[i].item()!r} is not a whole number in [{lo}, {hi}] "
+                          f"({what}); {int(bad.sum())} such rows")
+    return a.astype(np.int64)
+
+
+def _unique_rows(vals: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(distinct rows, inverse) if there are at most ``limit`` distinct rows, else None."""
+    uniq, inv = np.unique(vals, axis=0, return_inverse=True)
+    return (uniq, inv.reshape(-1)) if len(uniq) <= limit else None
+
+
 def _action_indices(values: np.ndarray, table: ActionTable, where: str) -> np.ndarray:
-    """Index of each action value row in the table (exact match), else IngestError."""
+    """Index of each action value row in the table (exact match), else IngestError.
+    Memory: one comparison of the distinct rows against the table, in blocks."""
     vals = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
     tv = table.values
     if vals.shape[1] != tv.shape[1]:
         raise IngestError(f"{where}: actions have {vals.shape[1]} components, the action table {tv.shape[1]} {list(table.dims)}")
-    eq = (vals[:, None, :] == tv[None, :, :]).all(axis=2)
-    found = eq.any(axis=1)
-    if not found.all():
-        i = int(np.flatnonzero(~found)[0])
-        raise IngestError(f"{where}: row {i}: action {vals[i].tolist()} is not in the action table {tv.tolist()} "
-                          f"({int((~found).sum())} rows); pass action_table=, or bin continuous actions with an ingestion spec")
-    return eq.argmax(axis=1)
+    uniq, inv = np.unique(vals, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    pos = np.full(len(uniq), -1, np.int64)
+    block = max(1, (1 << 24) // max(1, len(tv) * tv.shape[1]))
+    for s in range(0, len(uniq), block):
+        eq = (uniq[s:s + block, None, :] == tv[None, :, :]).all(axis=2)
+        pos[s:s + block] = np.where(eq.any(axis=1), eq.argmax(axis=1), -1)
+    idx = pos[inv] if len(vals) else np.zeros(0, np.int64)
+    if (idx < 0).any():
+        i = int(np.argmax(idx < 0))
+        raise IngestError(f"{where}: actions: row {i}: action {vals[i].tolist()} is not in the action table "
+                          f"{_short(tv.tolist())} ({int((idx < 0).sum())} rows); pass action_table=, or bin continuous "
+                          "actions with an ingestion spec")
+    return idx
 
 
 def _default_info(d: int, table: ActionTable, feature_names: list[str] | None, name: str) -> DatasetInfo:
@@ -89,11 +194,131 @@ def _default_info(d: int, table: ActionTable, feature_names: list[str] | None, n
     return DatasetInfo(features=tuple(Feature(n) for n in names), action_table=table, name=name)
 
 
-def _table_from_values(values: np.ndarray) -> ActionTable:
-    vals = np.unique(np.asarray(values, np.float64).reshape(len(values), -1), axis=0)
-    dims = ("a",) if vals.shape[1] == 1 else tuple(f"a{j}" for j in range(vals.shape[1]))
-    return ActionTable.from_values(vals, dims=dims)
+def _dims(k: int) -> tuple[str, ...]:
+    return ("a",) if k == 1 else tuple(f"a{j}" for j in range(k))
 
+
+def _table_from_values(values: np.ndarray) -> ActionTable:
+    """An exact action table of the distinct value rows (names unique: shortest repr)."""
+    vals = np.unique(np.asarray(values, np.float64).reshape(len(values), -1), axis=0)
+    dims = _dims(vals.shape[1])
+    names = [",".join(f"{d}={float(x)!r}" for d, x in zip(dims, row, strict=True)) for row in vals]
+    return ActionTable.from_values(vals, dims=dims, names=names)
+
+
+def _binned(vals: np.ndarray, where: str) -> tuple[np.ndarray, ActionTable]:
+    """Continuous commands -> (indices, binned action table): each component in quantile
+    bins (at most :data:`ACTION_BINS`, the product at most :data:`MAX_BINNED_ACTIONS`
+    cells), index row-major over the components, each cell's value the mean command in
+    it (its centre when empty), as the ingestion spec bins continuous actions."""
+    n, k = vals.shape
+    nb = max(2, min(ACTION_BINS, int(np.floor(MAX_BINNED_ACTIONS ** (1.0 / k) + 1e-9))))
+    if nb ** k > MAX_BINNED_ACTIONS:
+        raise IngestError(f"{where}: actions: {k} continuous components cannot be binned into at most "
+                          f"{MAX_BINNED_ACTIONS} actions; pass action_table=")
+    per = []
+    for j in range(k):
+        col = vals[:, j]
+        edges = np.unique(np.quantile(col, np.linspace(0, 1, nb + 1)))
+        if len(edges) < 2:
+            edges = np.array([col.min() - 0.5, col.max() + 0.5])
+        m = len(edges) - 1
+        per.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, m - 1), (edges[:-1] + edges[1:]) / 2, edges))
+    shape = tuple(len(c) for _, c, _ in per)
+    idx = np.ravel_multi_index(tuple(i for i, _, _ in per), shape) if n else np.zeros(0, np.int64)
+    cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
+    centre = np.column_stack([per[j][1][cells[:, j]] for j in range(k)])
+    counts = np.bincount(idx, minlength=len(cells))
+    value = centre.copy()
+    for j in range(k):
+        sums = np.bincount(idx, weights=vals[:, j], minlength=len(cells))
+        value[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
+    dims = _dims(k)
+    names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
+    from offline_adp.data.info import Action
+
+    table = ActionTable(actions=tuple(Action(nm, tuple(float(x) for x in v)) for nm, v in zip(names, value, strict=True)),
+                        dims=dims, kind="binned", bin_edges=tuple(float(e) for e in per[0][2]) if k == 1 else None)
+    return idx.astype(np.int64), table
+
+
+def _encode_actions(vals: np.ndarray, where: str, continuous: bool | None = None
+                    ) -> tuple[np.ndarray, ActionTable, dict[str, np.ndarray]]:
+    """Action values (n, k) without a given table -> (indices, table, extra columns).
+
+    At most :data:`MAX_EXACT_ACTIONS` distinct rows (and not ``continuous=True``): an
+    exact discrete table of those rows. Otherwise continuous commands: binned
+    (:func:`_binned`) and kept exactly in ``action_value.<dim>`` float64 columns."""
+    vals = np.asarray(vals, np.float64).reshape(len(vals), -1)
+    few = None if continuous else _unique_rows(vals, MAX_EXACT_ACTIONS)
+    if few is not None and len(few[0]):
+        uniq, inv = few
+        table = _table_from_values(uniq)
+        return inv.astype(np.int64), table, {}
+    if not len(vals):
+        raise IngestError(f"{where}: no transitions")
+    idx, table = _binned(vals, where)
+    extra = {ACTION_VALUE + d: np.ascontiguousarray(vals[:, j]) for j, d in enumerate(table.dims)}
+    log.info("%s: continuous actions: %d distinct commands binned into %d actions; exact commands kept in %s",
+             where, len(np.unique(vals, axis=0)), len(table), list(extra))
+    return idx, table, extra
+
+
+def _require_doctor(ds: TransitionDataset, where: str) -> TransitionDataset:
+    """The ingestion doctor on a converted dataset built with ``src_file``/``src_row``
+    columns (the source file, or file and episode, and the row in it); any finding is a
+    ValidationError naming them, the column and why. Returns ``ds`` without those columns."""
+    from offline_adp.data.validate import validate
+    from offline_adp.errors import ValidationError
+
+    if len(ds) == 0:
+        raise IngestError(f"{where}: no transitions to convert")
+    report = validate(ds)  # names src_file/src_row of each finding
+    if not report.ok:
+        f = report.findings.iloc[0]
+        counts = ", ".join(f"{k} {v}" for k, v in report.counts().items())
+        raise ValidationError(f"{where}: the converted dataset fails the doctor ({counts}); first: {f['file']}: row "
+                              f"{f['row']} (episode {f['episode_id']}, step {f['step']}) column {f['column']!r}: "
+                              f"{f['message']}", report)
+    return TransitionDataset(ds.table.drop_columns(["src_file", "src_row"]), ds.info)
+
+
+def _provenance(files: list[str], file_index: np.ndarray, rows: np.ndarray) -> dict[str, Any]:
+    import pyarrow as pa
+
+    return {"src_file": pa.DictionaryArray.from_arrays(pa.array(np.asarray(file_index, np.int32)), pa.array(files)),
+            "src_row": pa.array(np.asarray(rows, np.int64))}
+
+
+def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray]:
+    """The arrays of an untrusted ``.npz``: member names, dtypes and declared sizes checked
+    against the file size and ``max_bytes`` before anything is read (no pickle)."""
+    import re
+
+    from offline_adp import artifact_checks as C
+
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        # per member: deflate's own limit (~1032x; long runs of false flags compress that
+        # well); the total is bounded below against the file size
+        members = C.check_npz(p, max_expansion=1100, name_pattern=re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*\.npy$"))
+    except FileNotFoundError:
+        raise IngestError(f"{p}: no such file") from None
+    except OfflineADPError as exc:
+        raise IngestError(f"{exc} (not a D4RL .npz we can read safely)") from None
+    total = 0
+    for key, (dtype, shape) in members.items():
+        count = int(np.prod(shape, dtype=object))
+        total += count * max(8, dtype.itemsize)
+        if total > min(max_bytes, MAX_EXPANSION * max(size, 1) + (1 << 20)):
+            raise IngestError(f"{p}: {key}: arrays declare {total} bytes (as float64) in a {size}-byte file "
+                              f"(at most {MAX_EXPANSION}x the file size and {max_bytes} bytes); refusing to read")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except C.ZIP_ERRORS as exc:
+        raise IngestError(f"{p}: not a readable .npz of D4RL arrays ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 # ----------------------------------------------------------------------------- D4RL
 def to_d4rl(ds: TransitionDataset) -> dict[str, np.ndarray]:
@@ -102,7 +327,7 @@ def to_d4rl(ds: TransitionDataset) -> dict[str, np.ndarray]:
     out = {
         "observations": c["obs"],
         "next_observations": c["next_obs"],
-        "actions": ds.info.action_table.values[c["action"]],
+        "actions": _action_values(ds),
         "rewards": -c["cost"],
         "terminals": c["terminated"],
         "timeouts": c["truncated"],
@@ -132,72 +357,120 @@ def save_d4rl(ds: TransitionDataset, path: str | PathLike[str]) -> Path:
 
 def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo | None = None, *,
               feature_names: list[str] | None = None, action_table: ActionTable | None = None,
-              name: str = "d4rl") -> TransitionDataset:
+              name: str = "d4rl", max_bytes: int = MAX_DECLARED_BYTES) -> TransitionDataset:
     """A dataset from D4RL-style arrays (a mapping or an ``.npz`` file).
 
     Metadata comes from ``info``, else the arrays' ``metadata/offline_adp``, else
     ``feature_names`` (default ``x0, x1, ...``) and ``action_table`` (default: the
-    distinct action rows). Actions are matched exactly to the action table unless
+    distinct action rows when there are at most :data:`MAX_EXACT_ACTIONS`, else the
+    continuous commands binned, with the exact commands kept in ``action_value.<dim>``
+    columns). Actions are matched exactly to the action table unless
     ``infos/action_index`` is given.
+
+    The file is untrusted: declared array sizes are checked against the file size and
+    ``max_bytes`` before reading; flags must be booleans (0/1), steps and indices whole
+    numbers in range, values finite; the result passes the ingestion doctor. Anything
+    else is an :class:`IngestError` / :class:`ValidationError` naming the file, the
+    array and the row.
     """
     where = str(data) if isinstance(data, str | PathLike) else name
-    if isinstance(data, str | PathLike):
-        try:
-            with np.load(data, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise IngestError(f"{data}: not a readable .npz of D4RL arrays ({exc})") from exc
-    else:
-        arrays = dict(data)
+    arrays = _load_npz(data, max_bytes) if isinstance(data, str | PathLike) else dict(data)
     missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in arrays]
     if missing:
-        raise IngestError(f"{where}: missing D4RL arrays {missing}; found {sorted(arrays)}")
-    obs = np.asarray(arrays["observations"], np.float64)
-    obs = obs.reshape(len(obs), -1)
-    n = len(obs)
-    for k in ("actions", "rewards", "terminals", "timeouts", "next_observations"):
-        if k in arrays and len(arrays[k]) != n:
-            raise IngestError(f"{where}: {k} has {len(arrays[k])} rows, observations {n}")
+        raise IngestError(f"{where}: missing D4RL arrays {missing}; found {_short(sorted(arrays))}")
+    obs_raw = _numeric(arrays["observations"], where, "observations")
+    n = len(obs_raw)
+    obs = _finite(obs_raw, where, "observations").reshape(n, -1)
+    if obs.shape[1] == 0:
+        raise IngestError(f"{where}: observations: shape {obs_raw.shape} has no feature columns")
+    act_vals = _finite(_numeric(arrays["actions"], where, "actions", n=n), where, "actions").reshape(n, -1)
+    rewards = _numeric(arrays["rewards"], where, "rewards", n=n)
+    if rewards.size != n:
+        raise IngestError(f"{where}: rewards: shape {rewards.shape} where ({n},) is required")
+    rewards = _finite(rewards.reshape(n), where, "rewards")
+    term = _flags(arrays["terminals"], where, "terminals", n)
+    tout = _flags(arrays["timeouts"], where, "timeouts", n) if "timeouts" in arrays else np.zeros(n, bool)
     if info is None and META_KEY in arrays:
-        info = DatasetInfo.from_dict(json.loads(str(arrays[META_KEY])), where=f"{where}:{META_KEY}")
+        meta = np.asarray(arrays[META_KEY])
+        if meta.dtype.kind != "U" or meta.size != 1:
+            raise IngestError(f"{where}: {META_KEY}: a JSON string is required, found {meta.dtype} {meta.shape}")
+        try:
+            info = DatasetInfo.from_dict(json.loads(str(meta.reshape(()))), where=f"{where}:{META_KEY}")
+        except (json.JSONDecodeError, RecursionError, TypeError, AttributeError) as exc:
+            raise IngestError(f"{where}: {META_KEY}: not a dataset info.json ({type(exc).__name__}: {str(exc)[:200]})") from None
+    extra: dict[str, np.ndarray] = {}
+    idx0: np.ndarray | None = None
     if info is None:
-        table = action_table or _table_from_values(np.asarray(arrays["actions"]))
+        if action_table is not None:
+            table = action_table
+        else:
+            idx0, table, extra = _encode_actions(act_vals, where)
         info = _default_info(obs.shape[1], table, feature_names, name)
+    if len(info.features) != obs.shape[1]:
+        raise IngestError(f"{where}: observations have {obs.shape[1]} columns, the metadata names {len(info.features)} features")
+    if not extra and info.action_table.kind == "binned" and act_vals.shape[1] == len(info.action_table.dims):
+        # binned commands: the logged values are the exact commands (what to_d4rl writes)
+        extra = {ACTION_VALUE + dname: np.ascontiguousarray(act_vals[:, j]) for j, dname in enumerate(info.action_table.dims)}
     if "infos/action_index" in arrays:
-        action = np.asarray(arrays["infos/action_index"], np.int64)
+        action = _integers(arrays["infos/action_index"], where, "infos/action_index", n, 0, info.n_actions - 1,
+                           f"indices into the {info.n_actions}-action table")
+    elif idx0 is not None:
+        action = idx0
     else:
-        action = _action_indices(np.asarray(arrays["actions"]), info.action_table, where)
-    term = np.asarray(arrays["terminals"]).astype(bool)
-    tout = np.asarray(arrays.get("timeouts", np.zeros(n, bool))).astype(bool)
+        action = _action_indices(act_vals, info.action_table, where)
     if "infos/episode_id" in arrays:
-        ep = np.asarray(arrays["infos/episode_id"]).astype(str)
+        ep_raw = np.asarray(arrays["infos/episode_id"])
+        if ep_raw.dtype.kind not in "Uiu" or ep_raw.shape != (n,):
+            raise IngestError(f"{where}: infos/episode_id: {ep_raw.dtype} {ep_raw.shape} where ({n},) strings or integers are required")
+        ep = ep_raw.astype(str)
         new_ep = np.r_[True, ep[1:] != ep[:-1]] if n else np.zeros(0, bool)
     else:
         new_ep = np.r_[True, (term | tout)[:-1]] if n else np.zeros(0, bool)
         ep = np.char.add(f"{name}-", np.char.zfill((np.cumsum(new_ep) - 1).astype(str), 6))
-    step = np.asarray(arrays["infos/step"], np.int64) if "infos/step" in arrays else \
-        np.arange(n) - np.flatnonzero(new_ep)[np.cumsum(new_ep) - 1]
+    if "infos/step" in arrays:
+        step = _integers(arrays["infos/step"], where, "infos/step", n, 0, _INT32_MAX, "steps are stored as int32 from 0")
+    else:
+        step = np.arange(n) - np.flatnonzero(new_ep)[np.cumsum(new_ep) - 1] if n else np.zeros(0, np.int64)
+    last = np.r_[new_ep[1:], True] if n else np.zeros(0, bool)
     keep = np.ones(n, bool)
     if "next_observations" in arrays:
-        next_obs = np.asarray(arrays["next_observations"], np.float64).reshape(n, -1)
+        nxt = _numeric(arrays["next_observations"], where, "next_observations", n=n)
+        next_obs = _finite(nxt, where, "next_observations").reshape(n, -1)
+        if next_obs.shape != obs.shape:
+            raise IngestError(f"{where}: next_observations: shape {nxt.shape}, observations {obs_raw.shape}")
     else:  # the next row of the same episode; an episode's last row has no successor
-        last = np.r_[new_ep[1:], True]
         next_obs = np.vstack([obs[1:], obs[-1:]]) if n else obs
         keep = ~last | term
         next_obs = np.where(last[:, None], obs, next_obs)  # terminal rows: next state unused (no bootstrap)
         if (~keep).any():
             log.info("%s: dropped %d last rows of episodes without a next observation", where, int((~keep).sum()))
-    src = np.asarray(arrays["infos/source"]).astype(str) if "infos/source" in arrays else "unknown"
-    bp = np.asarray(arrays["infos/behavior_prob"], np.float64) if "infos/behavior_prob" in arrays else None
-    t_ns = np.asarray(arrays["infos/t_ns"], np.int64) if "infos/t_ns" in arrays else None
+    # an episode's last kept row ends it: terminated if logged so, else truncated (cut: a
+    # time limit, the end of the file, or its successor-less last row dropped above)
+    kept = np.flatnonzero(keep)
+    ep_k = ep[kept]
+    end = np.r_[ep_k[1:] != ep_k[:-1], True] if len(kept) else np.zeros(0, bool)
+    tout = tout.copy()
+    tout[kept[end & ~term[kept]]] = True
+    src = "unknown"
+    if "infos/source" in arrays:
+        s_raw = np.asarray(arrays["infos/source"])
+        if s_raw.dtype.kind not in "Uiu" or s_raw.shape != (n,):
+            raise IngestError(f"{where}: infos/source: {s_raw.dtype} {s_raw.shape} where ({n},) strings are required")
+        src = s_raw.astype(str)
+    bp = _numeric(arrays["infos/behavior_prob"], where, "infos/behavior_prob", n=n).astype(np.float64) \
+        if "infos/behavior_prob" in arrays else None
+    t_ns = _integers(arrays["infos/t_ns"], where, "infos/t_ns", n, -(2**63) + 1, 2**63 - 1024, "int64 nanoseconds") \
+        if "infos/t_ns" in arrays else None
 
     def sel(x: Any) -> Any:
         return x if x is None or isinstance(x, str) else x[keep]
 
-    return TransitionDataset.from_arrays(
-        info, episode_id=ep[keep], step=step[keep], obs=obs[keep], action=action[keep],
-        cost=-np.asarray(arrays["rewards"], np.float64)[keep], next_obs=next_obs[keep], terminated=term[keep],
-        truncated=tout[keep], source=sel(src), behavior_prob=sel(bp), t_ns=sel(t_ns))
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=ep[keep], step=step[keep], obs=obs[keep], action=action[keep], cost=-rewards[keep],
+        next_obs=next_obs[keep], terminated=term[keep], truncated=tout[keep], source=sel(src), behavior_prob=sel(bp),
+        t_ns=sel(t_ns), extra={**{k: v[keep] for k, v in extra.items()},
+                               **_provenance([where], np.zeros(len(kept), np.int64), kept)})
+    return _require_doctor(ds, where)
 
 
 # ----------------------------------------------------------------------------- Minari
@@ -273,6 +546,41 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
     return path
 
 
+def _minari_dir(source: Any) -> Path:
+    """The ``data/`` directory of a local Minari dataset (a path or an id; never downloaded)."""
+    p = Path(source)
+    cands = [p / "data", p] if p.exists() else []
+    if not cands:
+        try:
+            from minari.storage.datasets_root_dir import get_dataset_path
+
+            q = get_dataset_path(str(source))
+        except Exception as exc:  # minari's own id parsing: a malformed id
+            raise IngestError(f"{source}: not a Minari dataset id or path ({type(exc).__name__}: {str(exc)[:200]})") from None
+        cands = [q / "data"] if q.exists() else []
+    data_dir = next((c for c in cands if (c / "metadata.json").is_file()), None)
+    if data_dir is None:
+        raise IngestError(f"{source}: no local Minari dataset there (looked for metadata.json; datasets path "
+                          f"{os.environ.get('MINARI_DATASETS_PATH', '~/.minari/datasets')}); nothing is downloaded")
+    meta = data_dir / "metadata.json"
+    if meta.stat().st_size > 64 << 20:
+        raise IngestError(f"{meta}: {meta.stat().st_size} bytes is too large for Minari metadata")
+    try:
+        m = json.loads(meta.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise IngestError(f"{meta}: not valid JSON ({type(exc).__name__}: {str(exc)[:200]})") from None
+    if not isinstance(m, dict):
+        raise IngestError(f"{meta}: a JSON object is required, found {type(m).__name__}")
+    return data_dir
+
+
+def _space_kind(space: Any, where: str, what: str) -> str:
+    name = type(space).__name__
+    if name not in ("Box", "Discrete"):
+        raise IngestError(f"{where}: {what} space {name} is not supported (Box or Discrete)")
+    return name
+
+
 def from_minari(source: Any, info: DatasetInfo | None = None, *, feature_names: list[str] | None = None,
                 action_table: ActionTable | None = None) -> TransitionDataset:
     """A dataset from a local Minari dataset: a ``MinariDataset``, a dataset directory
@@ -280,62 +588,118 @@ def from_minari(source: Any, info: DatasetInfo | None = None, *, feature_names: 
 
     Metadata: ``info``, else the ``offline_adp`` entry of the dataset's metadata, else
     ``feature_names`` and ``action_table`` (default: ``Discrete(n)`` actions are indices
-    with values ``0..n-1``; ``Box`` actions are matched to the distinct action rows).
+    with values ``0..n-1``; ``Box`` actions are continuous commands: the distinct rows
+    when there are at most :data:`MAX_EXACT_ACTIONS`, else binned, with the exact
+    commands in ``action_value.<dim>`` columns).
+
+    The directory is untrusted: missing or unreadable files, spaces we cannot store,
+    episodes of the wrong shapes, non-boolean flags and out-of-range steps are an
+    :class:`IngestError` naming the dataset and episode; the result passes the ingestion
+    doctor (findings name the episode and step).
     """
     minari = _minari()
     if isinstance(source, minari.MinariDataset):
         mds, where = source, "minari dataset"
     else:
-        p = Path(source)
-        cands = [p / "data", p] if p.exists() else []
-        if not cands:
-            from minari.storage.datasets_root_dir import get_dataset_path
+        data_dir = _minari_dir(source)
+        where = str(source)
+        try:
+            mds = minari.MinariDataset(data_dir)
+        except Exception as exc:  # minari raises whatever its parsers raise on a damaged directory
+            raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: {str(exc)[:300]})") from None
+    try:
+        return _read_minari(mds, where, info, feature_names, action_table)
+    except OfflineADPError:
+        raise
+    except Exception as exc:  # a damaged episode file, a wrong type deep inside minari / pyarrow
+        raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: {str(exc)[:300]})") from None
 
-            q = get_dataset_path(str(source))
-            cands = [q / "data"] if q.exists() else []
-        data_dir = next((c for c in cands if (c / "metadata.json").exists()), None)
-        if data_dir is None:
-            raise IngestError(f"{source}: no local Minari dataset there (looked for metadata.json; datasets path "
-                              f"{os.environ.get('MINARI_DATASETS_PATH', '~/.minari/datasets')}); nothing is downloaded")
-        mds, where = minari.MinariDataset(data_dir), str(source)
+
+def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: list[str] | None,
+                 action_table: ActionTable | None) -> TransitionDataset:
     meta = mds.storage.metadata
+    if not isinstance(meta, dict):
+        raise IngestError(f"{where}: metadata is not a JSON object")
     if info is None and "offline_adp" in meta:
+        if not isinstance(meta["offline_adp"], dict):
+            raise IngestError(f"{where}: metadata offline_adp: a JSON object is required")
         info = DatasetInfo.from_dict(meta["offline_adp"], where=f"{where}: metadata offline_adp")
-    aspace = mds.action_space
-    discrete = type(aspace).__name__ == "Discrete"
-    eps = list(mds.iterate_episodes())
-    if info is None:
-        if action_table is None:
-            if discrete:
-                action_table = ActionTable.from_values(np.arange(int(aspace.n), dtype=float))
-            else:
-                action_table = _table_from_values(np.vstack([np.asarray(e.actions).reshape(len(e.rewards), -1) for e in eps]))
-        d = int(np.prod(mds.observation_space.shape))
-        info = _default_info(d, action_table, feature_names, meta.get("dataset_id", "minari"))
-    cols: dict[str, list[Any]] = {k: [] for k in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src", "bp", "t")}
-    for e in eps:
-        T = len(e.rewards)
-        o = np.asarray(e.observations, np.float64).reshape(T + 1, -1)
-        inf = e.infos or {}
+    akind = _space_kind(mds.action_space, where, "action")
+    _space_kind(mds.observation_space, where, "observation")
+    discrete = akind == "Discrete"
+    d = int(np.prod(mds.observation_space.shape))
+    k = 1 if discrete else int(np.prod(mds.action_space.shape))
+    cols: dict[str, list[Any]] = {c: [] for c in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src", "bp", "t",
+                                                   "e", "row")}
+    names: list[str] = []
+    n_ep = 0
+    for e in mds.iterate_episodes():
+        ew = f"{where} episode {e.id}"
+        rew = _numeric(e.rewards, ew, "rewards")
+        T = len(rew)
+        if rew.shape != (T,):
+            raise IngestError(f"{ew}: rewards: shape {rew.shape} where (T,) is required")
+        o = _numeric(e.observations, ew, "observations")
+        if o.shape[0] != T + 1 or o.size != (T + 1) * d:
+            raise IngestError(f"{ew}: observations: shape {o.shape} where ({T + 1}, {d}) is required (T + 1 for {T} steps)")
+        o = _finite(o.reshape(T + 1, d), ew, "observations")
+        a = _numeric(e.actions, ew, "actions")
+        if a.shape[0] != T or a.size != T * k:
+            raise IngestError(f"{ew}: actions: shape {a.shape} where ({T}{'' if discrete else f', {k}'}) is required")
+        inf = e.infos if isinstance(e.infos, dict) else {}
         cols["ep"].append(np.asarray(inf["episode_id"][:T]).astype(str) if "episode_id" in inf else np.full(T, f"minari-{e.id:06d}"))
-        cols["step"].append(np.asarray(inf["step"][:T], np.int64) if "step" in inf else np.arange(T))
+        cols["step"].append(_integers(np.asarray(inf["step"])[:T], ew, "infos/step", T, 0, _INT32_MAX,
+                                      "steps are stored as int32 from 0") if "step" in inf else np.arange(T))
         cols["obs"].append(o[:-1])
         cols["next"].append(o[1:])
-        a = np.asarray(e.actions)
-        cols["act"].append(a.astype(np.int64).reshape(T) if discrete else _action_indices(a.reshape(T, -1), info.action_table, where))
-        cols["rew"].append(np.asarray(e.rewards, np.float64))
-        cols["term"].append(np.asarray(e.terminations, bool))
-        cols["trunc"].append(np.asarray(e.truncations, bool))
+        cols["act"].append(a.reshape(T, k))
+        cols["rew"].append(_finite(rew, ew, "rewards"))
+        cols["term"].append(_flags(e.terminations, ew, "terminations", T))
+        cols["trunc"].append(_flags(e.truncations, ew, "truncations", T))
         cols["src"].append(np.asarray(inf["source"][:T]).astype(str) if "source" in inf else np.full(T, "unknown"))
         cols["bp"].append(np.asarray(inf["behavior_prob"][:T], np.float64) if "behavior_prob" in inf else np.full(T, np.nan))
         if "t_ns" in inf:
-            cols["t"].append(np.asarray(inf["t_ns"][:T], np.int64))
-    cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+            cols["t"].append(_integers(np.asarray(inf["t_ns"])[:T], ew, "infos/t_ns", T, -(2**63) + 1, 2**63 - 1024,
+                                       "int64 nanoseconds"))
+        cols["e"].append(np.full(T, n_ep, np.int64))
+        cols["row"].append(np.arange(T))
+        names.append(ew)
+        n_ep += 1
+    if not n_ep:
+        raise IngestError(f"{where}: no episodes")
+    n_steps = sum(len(r) for r in cols["rew"])
+    for key, found in (("total_episodes", n_ep), ("total_steps", n_steps)):
+        declared = meta.get(key)
+        if declared is not None and declared != found:
+            raise IngestError(f"{where}: metadata {key} = {declared!r} but {found} were read (a missing or damaged episode file)")
+    cat = {c: np.concatenate(v) if v else np.zeros(0) for c, v in cols.items()}
+    acts = cat["act"]
+    extra: dict[str, Any] = {}
+    if discrete:
+        n_act = int(mds.action_space.n)
+        action = _integers(acts.reshape(-1), where, "actions", len(acts), 0, n_act - 1, f"Discrete({n_act}) indices")
+        if info is None:
+            table = action_table or ActionTable.from_values(np.arange(n_act, dtype=float))
+    elif info is not None or action_table is not None:
+        vals = _finite(acts, where, "actions")
+        action = _action_indices(vals, (info.action_table if info is not None else action_table), where)  # type: ignore[union-attr]
+        table = action_table  # type: ignore[assignment]
+    else:
+        action, table, extra = _encode_actions(_finite(acts, where, "actions"), where)
+    if info is None:
+        info = _default_info(d, table, feature_names, str(meta.get("dataset_id", "minari")))
+    if len(info.features) != d:
+        raise IngestError(f"{where}: observations have {d} components, the metadata names {len(info.features)} features")
+    if discrete and info.n_actions < int(mds.action_space.n):
+        bad = action >= info.n_actions
+        if bad.any():
+            raise IngestError(f"{where}: actions: index {int(action[bad][0])} outside the {info.n_actions}-action table")
     bp = cat["bp"] if len(cat["bp"]) and not np.isnan(cat["bp"]).all() else None
-    return TransitionDataset.from_arrays(
-        info, episode_id=cat["ep"], step=cat["step"], obs=cat["obs"], action=cat["act"], cost=-cat["rew"],
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=cat["ep"], step=cat["step"], obs=cat["obs"], action=action, cost=-cat["rew"],
         next_obs=cat["next"], terminated=cat["term"], truncated=cat["trunc"], source=cat["src"], behavior_prob=bp,
-        t_ns=cat["t"] if len(cols["t"]) == len(eps) and eps else None)
+        t_ns=cat["t"] if len(cols["t"]) == n_ep else None, extra={**extra, **_provenance(names, cat["e"], cat["row"])})
+    return _require_doctor(ds, where)
 
 
 # ----------------------------------------------------------------------------- LeRobot
@@ -437,6 +801,10 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
         raise OfflineADPError("reading the LeRobot layout is not supported (export only)")
     readers = {"dataset": read_dataset, "d4rl": from_d4rl, "minari": from_minari}
     ds = readers[from_format](source)
+    if from_format == "dataset":  # d4rl / minari readers run the doctor themselves
+        from offline_adp.data.validate import require_usable
+
+        require_usable(ds, source)
     if to_format == "dataset":
         ds.save(out, overwrite=overwrite)
         return Path(out)

@@ -67,6 +67,7 @@ class _Graph:
         self.nodes: list[Any] = []
         self.inits: list[Any] = []
         self.k = 0
+        self.memo: dict[Any, str] = {}  # shared sub-graphs (inputs every step's rule reads)
 
     def name(self, stem: str) -> str:
         self.k += 1
@@ -215,7 +216,10 @@ def _regressor(g: _Graph, model: Any, X: str) -> str:
 def _float32_roundtrip(g: _Graph, X: str) -> str:
     from onnx import TensorProto
 
-    return g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
+    key = ("f32", X)
+    if key not in g.memo:
+        g.memo[key] = g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
+    return g.memo[key]
 
 
 # ----------------------------------------------------------------------------- Q and policies
@@ -259,12 +263,16 @@ def _all_pairs(g: _Graph, phi: str, action_features: np.ndarray) -> str:
     """Joint inputs for every action, action-major: row ``a * N + i`` is ``[phi(x_i), f(a)]``."""
     af = np.asarray(action_features, dtype=np.float64)
     A, k = af.shape
+    key = ("pairs", phi, af.shape, af.tobytes())
+    if key in g.memo:  # every step of a time-indexed Q reads the same pairs: built once
+        return g.memo[key]
     n = g.op("Slice", [g.op("Shape", [phi]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
     tiled = g.op("Tile", [phi, g.const(np.array([A, 1], np.int64))], "tiled")
     shape = g.op("Concat", [g.const(np.array([A], np.int64)), n, g.const(np.array([k], np.int64))], "shape", axis=0)
     acts = g.op("Expand", [g.const(af.reshape(A, 1, k), "action_features"), shape], "acts")
     acts = g.op("Reshape", [acts, g.const(np.array([-1, k], np.int64))], "acts2")
-    return g.op("Concat", [tiled, acts], "pairs", axis=1)
+    g.memo[key] = g.op("Concat", [tiled, acts], "pairs", axis=1)
+    return g.memo[key]
 
 
 def _policy(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
@@ -327,7 +335,11 @@ def _steps(pi: Any) -> list[Any] | None:
 
 
 # ----------------------------------------------------------------------------- public API
-def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_policy") -> Any:
+INPUT_DTYPES = ("float64", "float32")
+
+
+def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_policy", *,
+                   input_dtype: str = "float64") -> Any:
     """The ONNX model (``onnx.ModelProto``) of a deterministic policy; see the module docstring.
 
     Parameters
@@ -337,6 +349,11 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
         Feature names/units and action table (default: ``policy.signature``).
     name : str
         Graph name.
+    input_dtype : {"float64", "float32"}
+        Element type of the ``observation`` input. ``float32`` (what robot stacks
+        usually publish) is cast to double inside the graph, so the same double
+        computation follows (exact for scikit-learn forests, which round their input to
+        float32 anyway; LightGBM then sees the float32 value).
 
     Raises
     ------
@@ -354,17 +371,25 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     if sig is None:
         raise ExportError("the policy has no signature (feature names and action table); export a run directory, "
                           "or pass signature=PolicySignature.from_info(dataset.info)")
+    if input_dtype not in INPUT_DTYPES:
+        raise ExportError(f"input_dtype {input_dtype!r}: expected one of {list(INPUT_DTYPES)}")
     d, values = len(sig.feature_names), sig.action_table.values
     if values.shape[0] != policy.n_actions:
         raise ExportError(f"the signature's action table has {values.shape[0]} actions, the policy {policy.n_actions}")
     g = _Graph()
-    X = "observation"
-    inputs = [helper.make_tensor_value_info(X, TensorProto.DOUBLE, ["N", d])]
+    cols = ", ".join(sig.feature_names)
+    obs_doc = f"observations, one row each, columns in this order: {cols}"
+    if input_dtype == "float32":
+        inputs = [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["N", d], doc_string=obs_doc)]
+        X = g.op("Cast", ["observation"], "observation_f64", to=TensorProto.DOUBLE)
+    else:
+        inputs = [helper.make_tensor_value_info("observation", TensorProto.DOUBLE, ["N", d], doc_string=obs_doc)]
+        X = "observation"
     steps = _steps(policy)
     if steps is None:
         index, q = _policy(g, policy, X)
     else:
-        inputs.append(helper.make_tensor_value_info("t", TensorProto.INT64, ["N"]))
+        inputs.append(helper.make_tensor_value_info("t", TensorProto.INT64, ["N"], doc_string="time step of each row (int64)"))
         T = len(steps)
         outs = [_policy(g, s, X) for s in steps]
         tc = g.op("Max", [g.op("Min", ["t", g.const(np.array(T - 1, np.int64))]), g.const(np.array(0, np.int64))], "tc")
@@ -404,15 +429,17 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
         "time_indexed": json.dumps(steps is not None),
         "n_steps": json.dumps(len(steps) if steps is not None else None),
         "offline_adp_version": __version__,
+        "inputs": json.dumps({"observation": {"dtype": input_dtype, "shape": ["N", d], "columns": list(sig.feature_names)},
+                              **({"t": {"dtype": "int64", "shape": ["N"]}} if steps is not None else {})}),
     }
     helper.set_model_props(model, meta)
     onnx.checker.check_model(model)
     return model
 
 
-def save_onnx(policy: Any, path: str | PathLike[str], signature: Any = None) -> Path:
+def save_onnx(policy: Any, path: str | PathLike[str], signature: Any = None, *, input_dtype: str = "float64") -> Path:
     """Write ``policy`` as an ONNX model to ``path`` (atomically); see :func:`policy_to_onnx`."""
-    model = policy_to_onnx(policy, signature)
+    model = policy_to_onnx(policy, signature, input_dtype=input_dtype)
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")

@@ -69,7 +69,9 @@ class ActionTable:
                 )
         names = [a.name for a in self.actions]
         if len(set(names)) != len(names):
-            raise SchemaError(f"action names must be unique, got {names}")
+            seen: set[str] = set()
+            dup = sorted({x for x in names if x in seen or seen.add(x)})  # type: ignore[func-returns-value]
+            raise SchemaError(f"action names must be unique; {len(dup)} repeated, e.g. {dup[:5]} ({len(names)} actions)")
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -168,7 +170,9 @@ class DatasetInfo:
             raise SchemaError("a dataset needs at least one observation feature")
         names = [f.name for f in self.features]
         if len(set(names)) != len(names):
-            raise SchemaError(f"feature names must be unique, got {names}")
+            seen: set[str] = set()
+            dup = sorted({x for x in names if x in seen or seen.add(x)})  # type: ignore[func-returns-value]
+            raise SchemaError(f"feature names must be unique; {len(dup)} repeated, e.g. {dup[:5]} ({len(names)} features)")
         if self.propensity_source not in PROPENSITY_SOURCES:
             raise SchemaError(
                 f"propensity_source must be one of {list(PROPENSITY_SOURCES)}, got {self.propensity_source!r}"
