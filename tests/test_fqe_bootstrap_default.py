@@ -56,3 +56,10 @@ def test_an_explicit_pipeline_fqe_bootstrap_is_passed_through(tmp_path, captured
     with pytest.raises(_Called):
         pipeline._evaluate_stage(pipeline.load_pipeline(cfg_file), tmp_path / "run", lambda _m: None)
     assert captured[0]["n_boot_fqe"] == 7
+
+
+def test_an_explicit_replicate_count_is_honoured_even_when_replicates_are_cheap():
+    # `--set evaluate.fqe_bootstrap=2` used to run 200 (raised to the floor when cheap)
+    assert fqe_replicates(2, cheap=True) == 2
+    assert fqe_replicates(7, cheap=False) == 7
+    assert fqe_replicates(0, cheap=True) == 0

@@ -152,14 +152,13 @@ CHEAP_REGRESSORS = ("tabular", "linear")
 
 
 def fqe_replicates(requested: int | None, cheap: bool) -> int:
-    """FQE bootstrap replicates to run: ``requested`` raised to :data:`FQE_REPLICATE_FLOOR`
-    when replicates are cheap; ``None`` means the floor when cheap, else
+    """FQE bootstrap replicates to run: ``requested`` as given (a user's setting is never
+    overridden; below :data:`FQE_REPLICATE_ROUGH` the interval is called rough);
+    ``None`` means :data:`FQE_REPLICATE_FLOOR` when replicates are cheap, else
     :data:`FQE_REPLICATE_ROUGH`; 0 means no interval."""
     if requested is None:
         return FQE_REPLICATE_FLOOR if cheap else FQE_REPLICATE_ROUGH
-    if requested <= 0:
-        return 0
-    return max(int(requested), FQE_REPLICATE_FLOOR) if cheap else int(requested)
+    return max(int(requested), 0)  # an explicit request is honoured (fewer than ROUGH: the interval says so)
 
 
 def _stationary_on(policy: Policy, obs: np.ndarray, T: int) -> bool:
