@@ -412,18 +412,24 @@ def _grow(R: Any, d: int, weighted: bool, max_features: int, min_split: int, min
         top -= 1
         node = stack[top, 0]; lo = stack[top, 1]; hi = stack[top, 2]; depth = stack[top, 3]  # noqa: E702
         m = hi - lo
-        s = 0.0; W = 0.0; q = 0.0  # noqa: E702  # the node's sums afresh, as scikit-learn (no drift from the root)
+        # the node's sums afresh, as scikit-learn (no drift from the root); the variance from
+        # sums of y - y_first (sp, qp): E[y^2] - mean^2 on raw y cancels catastrophically when
+        # the targets are nearly equal (two rows 2.0000022 and 2.0000023: variance 1.6e-15,
+        # computed as 0 or 2e-15 depending on rounding), and the purity stop reads it
+        y0 = R[lo, d]
+        s = 0.0; W = 0.0; sp = 0.0; qp = 0.0  # noqa: E702
         if weighted:
             for i in range(lo, hi):
-                wy = R[i, d + 2] * R[i, d]
-                s += wy; W += R[i, d + 2]; q += wy * R[i, d]  # noqa: E702
+                wi = R[i, d + 2]; dy = R[i, d] - y0  # noqa: E702
+                s += wi * R[i, d]; W += wi; sp += wi * dy; qp += (wi * dy) * dy  # noqa: E702
         else:
             for i in range(lo, hi):
-                s += R[i, d]; q += R[i, d] * R[i, d]  # noqa: E702
+                dy = R[i, d] - y0
+                s += R[i, d]; sp += dy; qp += dy * dy  # noqa: E702
             W = float(m)
         mean = s / W if W > 0 else 0.0
         value[node] = mean
-        var = q / W - mean * mean if W > 0 else 0.0
+        var = qp / W - (sp / W) * (sp / W) if W > 0 else 0.0
         ints[node, c_n] = m
         floats[node, c_w] = W
         floats[node, c_imp] = max(var, 0.0)

@@ -44,7 +44,11 @@ def _peak_cli(*args: str, timeout: int = 300) -> tuple[subprocess.CompletedProce
             f"sys.argv = ['offline-adp', *{list(args)!r}]\n"
             "try:\n    runpy.run_module('offline_adp', run_name='__main__')\n"
             "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
-            "sys.stderr.write('PEAK_KB=%d\\n' % resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+            # VmHWM: this process's own peak. ru_maxrss is not: Linux carries the parent's
+            # high-water mark across fork/exec, so a large pytest worker would count here
+            "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
+            "kb = int(hwm[0].split()[1]) if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+            "sys.stderr.write('PEAK_KB=%d\\n' % kb)\n"
             "sys.exit(code)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=timeout)

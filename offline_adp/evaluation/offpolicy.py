@@ -411,7 +411,11 @@ def off_policy(
     cheap = conditional or params.get("regressor") in CHEAP_REGRESSORS
     n_reps = fqe_replicates(n_boot_fqe, cheap)
     counts = ope.bootstrap_counts(em.n_episodes, n_reps, seed)
-    on_done = lambda b: say(f"FQE bootstrap {b + 1}/{n_reps}")  # noqa: E731
+    quarters = {max(1, (n_reps * q) // 4) for q in (1, 2, 3, 4)}  # four progress lines, not one per replicate
+
+    def on_done(b: int) -> None:
+        if b + 1 in quarters:
+            say(f"FQE bootstrap {b + 1}/{n_reps}")
     run = task_map or local_map
     if _tabular_fast(params, fqe_T) and n_reps:
         reps = list(tabular_fqe_replicates(a.obs, a.action, a.cost, a.next_obs, a.terminated, start, policy,
