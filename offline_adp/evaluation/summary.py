@@ -234,9 +234,13 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
             doubts.append("the policy left the data's support, where the value model extrapolates")
         elif not shift.get("enough_data"):
             doubts.append("the logs cannot show whether the policy stays within their support")
-        if conv.get("verdict") not in ("converged", "finite horizon"):
-            doubts.append("the fit did not converge" if conv.get("verdict") in ("not converged", "diverged")
-                          else "the fit's convergence is unknown")
+        cv = conv.get("verdict")
+        if cv in ("still changing", "not converged"):
+            doubts.append("the fit did not converge")
+        elif cv in ("diverging", "diverged"):
+            doubts.append("the fit diverged")
+        elif cv not in ("converged", "finite horizon", "completed"):
+            doubts.append("the fit's convergence is unknown")
         dis = _disagreeing(best, ranking)
         if dis:
             doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
