@@ -232,6 +232,11 @@ class EpsilonPolicy(Policy):
     def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return (1.0 - self.epsilon) * self.base.probabilities(obs, t) + self.epsilon / self.n_actions
 
+    @property
+    def time_varying(self) -> bool | None:
+        """As its base policy's (None: unknown)."""
+        return getattr(self.base, "time_varying", None)
+
 
 class TabularPolicy(Policy):
     """Policy over a finite state space given as a table; obs are ``[[s]]`` indices.
@@ -277,6 +282,13 @@ class GreedyPolicy(DeterministicPolicy):
     def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return np.argmin(self.q.values(np.asarray(obs), t), axis=1).astype(np.int32)  # type: ignore[attr-defined]
 
+    @property
+    def time_varying(self) -> bool:
+        """Greedy in a time-indexed Q (one per step) changes with t; in one Q it does not."""
+        from offline_adp.qfunctions import TimeIndexedQ
+
+        return isinstance(self.q, TimeIndexedQ)
+
 
 class MixturePolicy(Policy):
     """``sum_k w_k pi_k``: at each time step a component is drawn with probability
@@ -296,6 +308,12 @@ class MixturePolicy(Policy):
     def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return sum(w * c.probabilities(obs, t) for w, c in zip(self.weights, self.components, strict=True) if w > 0)
 
+    @property
+    def time_varying(self) -> bool | None:
+        """True if a component changes with t, False if none does, None if unknown."""
+        flags = [getattr(c, "time_varying", None) for c in self.components]
+        return True if any(f is True for f in flags) else False if all(f is False for f in flags) else None
+
     def mix(self, other: Policy, alpha: float) -> MixturePolicy:
         """``alpha * other + (1 - alpha) * self`` (flattened)."""
         return MixturePolicy([*self.components, other], [*((1 - alpha) * self.weights), alpha])
@@ -312,6 +330,23 @@ class NonStationaryPolicy(Policy):
         from offline_adp.qfunctions import per_step
 
         return per_step(obs, t, len(self.steps), self.n_actions, lambda k, x: self.steps[k].probabilities(x, k))
+
+
+def is_stationary(policy: Policy, obs: np.ndarray, horizon: int | None) -> bool:
+    """Whether ``policy`` gives the same action probabilities at every step t < ``horizon``.
+
+    A policy's own ``time_varying`` (True/False) decides; where it is unknown (None or
+    absent: a function of ``(obs, t)``), the probabilities on (up to 2,000 of) ``obs`` at
+    steps 0, 1, T/2 and T-1 are compared. With no horizon, a policy is stationary unless it
+    says it varies."""
+    declared = getattr(policy, "time_varying", None)
+    if declared is not None or horizon is None:
+        return declared is not True
+    x = np.asarray(obs, dtype=np.float64)[:2000]
+    if not len(x):
+        return True
+    p0 = policy.probabilities(x, 0)
+    return all(np.array_equal(policy.probabilities(x, t), p0) for t in sorted({1, horizon // 2, horizon - 1}) if 0 < t)
 
 
 def apply_feature_map(feature_map: Any, obs: np.ndarray) -> np.ndarray:

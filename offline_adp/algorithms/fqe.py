@@ -33,7 +33,7 @@ import numpy as np
 from offline_adp.algorithms.fqi import FittedQIteration, run_fitted_q
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import Policy
+from offline_adp.policies import Policy, is_stationary
 from offline_adp.qfunctions import QFunction
 
 
@@ -90,7 +90,9 @@ class FittedQEvaluation(FittedQIteration):
         sets = {"next": data.train.next_obs, "start": data.start_obs}
         if data.valid is not None:
             sets["valid_next"] = data.valid.next_obs
-        stationary = not getattr(self.policy, "time_varying", getattr(self, "horizon_", self.horizon) is not None)
+        # a stationary policy's probabilities at the query sets are computed once, not once per
+        # step: a finite-horizon FQE of a greedy policy re-ran the policy's whole model T times
+        stationary = is_stationary(self.policy, data.train.next_obs, getattr(self, "horizon_", self.horizon))
         return PolicyBackup(self.policy, sets, stationary)
 
     def settle(self, tol: float | None = None, max_iterations: int = 10_000) -> int:
