@@ -52,3 +52,34 @@ def test_annotations_carry_the_annotated_messages_log_time_exactly(tmp_path):
         assert m.log_time == clock[t]  # exactly the annotated message's log_time
         delays.append(clock[t] - t)
     assert min(delays) > 0  # the test could fail: stamps and log times do differ in this log
+
+
+# --------------------------------------------------------------------------- LeRobot episodes_stats
+def test_lerobot_episodes_stats_are_numpys_on_each_episodes_source_arrays(tmp_path):
+    from offline_adp.formats import to_lerobot
+
+    ds = simulate("path_tracking", 3, 2, seed=7, horizon=15)
+    root = to_lerobot(ds, tmp_path / "lr")
+    lines = (root / "meta" / "episodes_stats.jsonl").read_text().splitlines()
+    a = ds.arrays()
+    ids = ds.episode_ids
+    meta = [json.loads(x) for x in (root / "meta" / "episodes.jsonl").read_text().splitlines()]
+    assert len(lines) == len(meta) == ds.n_episodes
+    feats = json.loads((root / "meta" / "info.json").read_text())["features"]
+    for line, m in zip(lines, meta, strict=True):
+        rec = json.loads(line)
+        assert rec["episode_index"] == m["episode_index"]
+        rows = a.episode == list(ids).index(m["episode_id"])  # the episode's rows in the source dataset
+        src = {"observation.state": a.obs[rows], "next.observation.state": a.next_obs[rows],
+               "action": ds.info.action_table.values[a.action[rows]], "action_index": a.action[rows],
+               "next.reward": -a.cost[rows], "next.done": a.terminated[rows], "next.truncated": a.truncated[rows],
+               "frame_index": np.arange(rows.sum())}
+        assert set(rec["stats"]) == set(feats)
+        for name, x in src.items():
+            x = np.asarray(x, np.float64).reshape(int(rows.sum()), -1)
+            st = rec["stats"][name]
+            assert st["count"] == [int(rows.sum())]
+            np.testing.assert_array_equal(st["min"], x.min(axis=0))
+            np.testing.assert_array_equal(st["max"], x.max(axis=0))
+            np.testing.assert_allclose(st["mean"], x.mean(axis=0), rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(st["std"], x.std(axis=0), rtol=1e-9, atol=1e-12)
