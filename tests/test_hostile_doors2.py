@@ -83,3 +83,51 @@ def test_lerobot_episodes_stats_are_numpys_on_each_episodes_source_arrays(tmp_pa
             np.testing.assert_array_equal(st["max"], x.max(axis=0))
             np.testing.assert_allclose(st["mean"], x.mean(axis=0), rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(st["std"], x.std(axis=0), rtol=1e-9, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- fingerprint
+def _with(table, name, values):
+    import pyarrow as pa
+
+    return table.set_column(table.column_names.index(name), name, pa.array(values, table.schema.field(name).type))
+
+
+def test_fingerprint_depends_on_the_values_only(tmp_path):
+    """The same content stored in different parts, row groups and chunks has one fingerprint;
+    changing one value (even by 1 ns of a timestamp, where a null makes the column
+    nullable) changes it."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.data.io import read_dataset, write_dataset
+
+    ds = simulate("path_tracking", 5, 0, seed=11, horizon=12)
+    t = ds.table
+    t_ns = t.column("t_ns").to_pylist()
+    t_ns[3] = None  # a nullable timestamp column (epoch-scale values, beyond float64's integer range)
+    t = _with(t, "t_ns", t_ns)
+    base = TransitionDataset(t, ds.info)
+    fp = base.fingerprint()
+    # the same rows, in other pieces: written as parts of other sizes, row groups, concatenated slices
+    for rows in (7, 25, 10_000):
+        assert read_dataset(write_dataset(base, tmp_path / f"d{rows}", rows_per_part=rows)).fingerprint() == fp
+    for k in (1, 5, 13):
+        pieces = pa.concat_tables([t.slice(i, k) for i in range(0, t.num_rows, k)])
+        assert pieces.column("obs.e").num_chunks > 1
+        assert TransitionDataset(pieces, ds.info).fingerprint() == fp
+        pq.write_table(t, tmp_path / f"rg{k}.parquet", row_group_size=k)
+        assert TransitionDataset(pq.read_table(tmp_path / f"rg{k}.parquet"), ds.info).fingerprint() == fp
+    # the source column stored as plain strings or as a dictionary with another value order
+    plain = t.set_column(t.column_names.index("source"), "source", t.column("source").cast(pa.string()))
+    assert TransitionDataset(plain, ds.info).fingerprint() == fp
+    # one value changed: a different fingerprint
+    changed = list(t_ns)
+    changed[7] += 1  # one nanosecond
+    assert TransitionDataset(_with(t, "t_ns", changed), ds.info).fingerprint() != fp
+    e = t.column("obs.e").to_numpy().copy()
+    e[5] = np.nextafter(e[5], np.inf)
+    assert TransitionDataset(_with(t, "obs.e", e), ds.info).fingerprint() != fp
+    moved = list(t_ns)
+    moved[3], moved[4] = moved[4], None  # the null moved to another row
+    assert TransitionDataset(_with(t, "t_ns", moved), ds.info).fingerprint() != fp
