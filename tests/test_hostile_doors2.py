@@ -131,3 +131,29 @@ def test_fingerprint_depends_on_the_values_only(tmp_path):
     moved = list(t_ns)
     moved[3], moved[4] = moved[4], None  # the null moved to another row
     assert TransitionDataset(_with(t, "t_ns", moved), ds.info).fingerprint() != fp
+
+
+# --------------------------------------------------------------------------- ONNX input documentation
+def test_onnx_input_names_its_features_and_units_in_the_graph(tmp_path):
+    """A consumer reading only the graph (onnx's own loader, no metadata) sees each input
+    column's feature name and unit, in column order; the metadata is kept."""
+    onnx = pytest.importorskip("onnx")
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.onnx_export import save_onnx
+
+    ds = simulate("path_tracking", 2, 2, seed=5, horizon=10)
+    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1}, n_iterations=2,
+                         gamma=0.9).fit(ds)
+    path = save_onnx(f.policy_, tmp_path / "p.onnx")
+    model = onnx.load(str(path))
+    (obs,) = [i for i in model.graph.input if i.name == "observation"]
+    names, units = ds.info.feature_names, [ft.unit for ft in ds.info.features]
+    assert any(units), "no feature has a unit: the test would prove nothing"
+    cols = obs.doc_string.split(": ", 1)[1].split(", ")
+    assert cols == [f"{n} [{u}]" if u else n for n, u in zip(names, units, strict=True)]
+    (act,) = [o for o in model.graph.output if o.name == "action"]
+    at = ds.info.action_table
+    assert act.doc_string.split(": ", 1)[1].split(", ") == [f"{n} [{u}]" if u else n
+                                                              for n, u in zip(at.dims, at.units, strict=True)]
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert json.loads(meta["feature_names"]) == list(names) and json.loads(meta["feature_units"]) == units
