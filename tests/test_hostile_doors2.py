@@ -157,3 +157,105 @@ def test_onnx_input_names_its_features_and_units_in_the_graph(tmp_path):
                                                               for n, u in zip(at.dims, at.units, strict=True)]
     meta = {p.key: p.value for p in model.metadata_props}
     assert json.loads(meta["feature_names"]) == list(names) and json.loads(meta["feature_units"]) == units
+
+
+# --------------------------------------------------------------------------- damaged MCAP chunks
+def _chunks(path):
+    """Ground truth from the intact file: per chunk record, its byte range and the log
+    times of its messages (all topics)."""
+    import struct
+    from io import BytesIO
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
+
+    data = path.read_bytes()
+    pos, out = 8, []
+    while pos + 9 <= len(data):
+        opcode, length = struct.unpack("<BQ", data[pos:pos + 9])
+        if opcode == 0x06:
+            chunk = Chunk.read(ReadDataStream(BytesIO(data[pos + 9:pos + 9 + length])))
+            out.append((pos, pos + 9 + length, [r.log_time for r in breakup_chunk(chunk) if isinstance(r, Message)]))
+        if opcode == 0x0F:
+            break
+        pos += 9 + length
+    return out
+
+
+def _episode_spans(path):
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        ev = [(m.log_time, json.loads(m.data)) for _, _, m in make_reader(fh).iter_messages(topics=["/episode/event"])]
+    starts = {e["episode_id"]: t for t, e in ev if e["event"] == "start"}
+    ends = {e["episode_id"]: t for t, e in ev if e["event"] == "end"}
+    return {ep: (starts[ep], ends[ep]) for ep in starts}
+
+
+def _corrupt_chunk_holding_whole_episodes(tmp_path, seed):
+    pytest.importorskip("mcap")
+    from offline_adp.simulate.mcap_writer import write_mcap
+
+    ds = simulate("path_tracking", 24, 0, seed=seed, horizon=4)  # short episodes: several in one chunk
+    (f,) = write_mcap(ds, tmp_path / "logs", encoding="json", chunk_size=24 * 1024)
+    spans = _episode_spans(f)
+    chunks = _chunks(f)
+    held = [{ep for ep, (a, b) in spans.items() if any(a <= t <= b for t in ts)} for _, _, ts in chunks]
+    whole = [{ep for ep, (a, b) in spans.items() if min(ts) <= a and b <= max(ts)} for _, _, ts in chunks]
+    k = max(range(1, len(chunks) - 1), key=lambda i: len(whole[i]))  # an inner chunk, most whole episodes
+    assert len(whole[k]) >= 2, "no chunk holds whole episodes: the test would prove nothing"
+    assert held[k] - whole[k], "the chunk should also cut into a neighbouring episode"
+    lo, hi, _ = chunks[k]
+    data = bytearray(f.read_bytes())
+    data[(lo + hi) // 2] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    return ds, bad, held[k]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_lost_chunk_counts_every_episode_it_held_even_wholly_inside_it(tmp_path, seed):
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    ds, bad, held = _corrupt_chunk_holding_whole_episodes(tmp_path, seed)
+    with pytest.warns(UserWarning, match="lost 1 corrupt chunk"):
+        part, summary = ingest_mcap([bad], SPEC, tmp_path / "q", on_error="quarantine")
+    assert summary["episodes_lost_to_damage"] == len(held)
+    assert set(part.episode_ids) == set(ds.episode_ids) - held  # exactly the others are kept
+
+
+def test_a_lost_chunk_without_message_index_is_said_to_be_uncounted(tmp_path):
+    """Without the message-index records after a chunk nothing tells how many episodes a
+    lost chunk held wholly: the count is then a lower bound, and the summary says so."""
+    from mcap.reader import make_reader
+    from mcap.writer import IndexType, Writer
+
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    ds, indexed, held = _corrupt_chunk_holding_whole_episodes(tmp_path, 1)
+    src = tmp_path / "logs" / next(p.name for p in (tmp_path / "logs").iterdir())
+    plain = tmp_path / "plain.mcap"
+    with open(src, "rb") as fin, open(plain, "wb") as fout:  # the same messages, chunked, no index records
+        w = Writer(fout, index_types=IndexType.NONE, chunk_size=24 * 1024)
+        w.start()
+        sch_ids, ch_ids = {}, {}
+        for sch, ch, m in make_reader(fin).iter_messages(log_time_order=False):
+            if sch.id not in sch_ids:
+                sch_ids[sch.id] = w.register_schema(sch.name, sch.encoding, sch.data)
+            if ch.id not in ch_ids:
+                ch_ids[ch.id] = w.register_channel(ch.topic, ch.message_encoding, sch_ids[sch.id])
+            w.add_message(ch_ids[ch.id], m.log_time, m.data, m.publish_time)
+        w.finish()
+    chunks = _chunks(plain)
+    lo, hi, _ = chunks[len(chunks) // 2]
+    data = bytearray(plain.read_bytes())
+    data[(lo + hi) // 2] ^= 0xFF
+    plain.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="lost 1 corrupt chunk"):
+        part, summary = ingest_mcap([plain], SPEC, tmp_path / "q2", on_error="quarantine")
+    assert summary["lost_chunks_uncounted"] == 1
+    lost = set(ds.episode_ids) - set(part.episode_ids)
+    assert 1 <= summary["episodes_lost_to_damage"] <= len(lost)
+    _, summary = ingest_mcap([indexed], SPEC, tmp_path / "q3", on_error="quarantine")
+    assert summary["lost_chunks_uncounted"] == 0 and summary["episodes_lost_to_damage"] == len(held)
