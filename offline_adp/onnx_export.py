@@ -408,7 +408,8 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     g.nodes.append(helper.make_node("Cast", [index], ["action_index"], to=TensorProto.INT64))
     g.nodes.append(helper.make_node("Gather", [g.const(values, "action_values"), "action_index"], ["action"], axis=0))
     at_ = sig.action_table
-    act_cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(at_.dims, at_.units, strict=True))
+    a_units = [*at_.units, *[""] * (len(at_.dims) - len(at_.units))]  # a table may carry no units
+    act_cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(at_.dims, a_units[:len(at_.dims)], strict=True))
     outputs = [helper.make_tensor_value_info("action", TensorProto.DOUBLE, ["N", values.shape[1]],
                                              doc_string=f"action values, one row each, columns (name [unit]): {act_cols}"),
                helper.make_tensor_value_info("action_index", TensorProto.INT64, ["N"])]
