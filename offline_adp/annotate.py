@@ -4,7 +4,8 @@ The log is ingested with the run's MCAP ingestion spec (the spec stored in the r
 dataset provenance, or ``spec=``), which gives the logged steps with their log times
 (``t_ns``). At each step the run's policy is evaluated and four JSON topics (with JSON
 schemas, so Foxglove plots them on the log's timeline) are added next to every message
-of the log, stamped with the step's time:
+of the log, stamped with the log time of the message that made the step (its
+``src_log_time``, integer nanoseconds, exactly; ``t_ns`` is the step's header stamp):
 
 ``/offline_adp/action``
     the policy's action (value and index) vs the logged one, and whether they agree;
@@ -185,6 +186,9 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
         fit_ds = read_dataset(ds_path)
     v = annotate_steps(policy, log_ds, fit_ds)
     t_ns = log_ds.column("t_ns").astype(np.int64)
+    # the annotated message's own log_time (integer ns), not the step's header stamp (t_ns),
+    # which the transport delay puts before it
+    stamp = log_ds.column("src_log_time").astype(np.int64) if "src_log_time" in log_ds.table.column_names else t_ns
     ep = log_ds.column("episode_id").astype(str)
     step = log_ds.column("step").astype(np.int64)
     values = sig.action_table.values
@@ -232,7 +236,7 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                                 "threshold": THRESHOLD},
                 }
                 for name, m in msgs.items():
-                    w.add_message(chans[name], int(t_ns[i]), json.dumps(m).encode(), int(t_ns[i]), i)
+                    w.add_message(chans[name], int(stamp[i]), json.dumps(m).encode(), int(stamp[i]), i)
             w.finish()
         os.replace(tmp, out)
     except BaseException as exc:

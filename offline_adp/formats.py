@@ -27,7 +27,8 @@ Minari (:func:`to_minari`, :func:`from_minari`)
     downloaded: reading takes a local dataset (id, path or ``MinariDataset``).
 LeRobot layout (:func:`to_lerobot`)
     ``meta/info.json`` (codebase v2.1 layout: features with names and shapes, fps,
-    path templates), ``meta/episodes.jsonl``, ``meta/tasks.jsonl`` and
+    path templates), ``meta/episodes.jsonl``, ``meta/episodes_stats.jsonl`` (per episode
+    and feature: min, max, mean, std, count), ``meta/tasks.jsonl`` and
     ``data/chunk-000/episode_000000.parquet`` with one frame per transition:
     ``observation.state``, ``action`` (values), ``action_index``, ``next.reward``,
     ``next.done`` (terminated), ``next.truncated``, ``next.observation.state``,
@@ -769,6 +770,11 @@ def to_lerobot(ds: TransitionDataset, root: str | PathLike[str], *, fps: float |
             lines.append(json.dumps({"episode_index": k, "tasks": [task], "length": int(hi - lo),
                                      "episode_id": str(c["episode_id"][lo]), "source": str(c["source"][lo])}))
         (meta / "episodes.jsonl").write_text("\n".join(lines) + ("\n" if lines else ""))
+        frames = {"observation.state": c["obs"], "action": values, "action_index": c["action"],
+                  "next.observation.state": c["next_obs"], "next.reward": -c["cost"], "next.done": c["terminated"],
+                  "next.truncated": c["truncated"], "timestamp": timestamp.astype(np.float32), "frame_index": frame,
+                  "episode_index": ep_index, "index": np.arange(n), "task_index": np.zeros(n, np.int64)}
+        (meta / "episodes_stats.jsonl").write_text(_episodes_stats(frames, bounds))
         (meta / "tasks.jsonl").write_text(json.dumps({"task_index": 0, "task": task}) + "\n")
         n_ep = len(bounds) - 1
         info = {"codebase_version": "v2.1", "robot_type": robot_type, "total_episodes": n_ep, "total_frames": n,
@@ -779,6 +785,31 @@ def to_lerobot(ds: TransitionDataset, root: str | PathLike[str], *, fps: float |
         (meta / "info.json").write_text(json.dumps(info, indent=1))
     log.info("wrote LeRobot-layout dataset %s: %d episodes, %d frames", root, n_ep, n)
     return Path(root)
+
+
+def _episodes_stats(frames: dict[str, np.ndarray], bounds: np.ndarray) -> str:
+    """``meta/episodes_stats.jsonl`` of LeRobot v2.1: per episode, per feature, ``min``,
+    ``max``, ``mean``, ``std`` (population) per component and ``count`` (frames), from
+    the frames as written (a scalar feature has one component), all episodes at once."""
+    starts = bounds[:-1]
+    n_ep = len(starts)
+    if n_ep == 0:
+        return ""
+    lengths = np.diff(bounds).astype(np.int64)
+    ep = np.repeat(np.arange(n_ep), lengths)
+    stats: dict[str, dict[str, np.ndarray]] = {}
+    for name, x in frames.items():
+        a = np.asarray(x, dtype=np.float64).reshape(len(x), -1)
+        mean = np.add.reduceat(a, starts, axis=0) / lengths[:, None]
+        var = np.add.reduceat((a - mean[ep]) ** 2, starts, axis=0) / lengths[:, None]
+        stats[name] = {"min": np.minimum.reduceat(a, starts, axis=0), "max": np.maximum.reduceat(a, starts, axis=0),
+                       "mean": mean, "std": np.sqrt(var)}
+    lines = []
+    for k in range(n_ep):  # one line per episode (the output's size)
+        per = {name: {**{s: v[k].tolist() for s, v in st.items()}, "count": [int(lengths[k])]}
+               for name, st in stats.items()}
+        lines.append(json.dumps({"episode_index": k, "stats": per}))
+    return "\n".join(lines) + "\n"
 
 
 # ----------------------------------------------------------------------------- CLI entry

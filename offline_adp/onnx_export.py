@@ -3,7 +3,8 @@
 The exported model has
 
 - input ``observation``: double ``(N, d)``, columns in the order of the policy's
-  feature names (recorded with their units in the model metadata), and for
+  feature names (named with their units in the input's ``doc_string``, as ``name [unit]``
+  in column order, and in the model metadata), and for
   time-indexed policies ``t``: int64 ``(N,)`` (steps ``>= T`` use the last step's rule,
   negative steps the first);
 - outputs ``action`` (double ``(N, k)``, the action table's value vector), ``action_index``
@@ -377,8 +378,8 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     if values.shape[0] != policy.n_actions:
         raise ExportError(f"the signature's action table has {values.shape[0]} actions, the policy {policy.n_actions}")
     g = _Graph()
-    cols = ", ".join(sig.feature_names)
-    obs_doc = f"observations, one row each, columns in this order: {cols}"
+    cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(sig.feature_names, sig.feature_units, strict=True))
+    obs_doc = f"observations, one row each, columns in this order (name [unit]): {cols}"
     if input_dtype == "float32":
         inputs = [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["N", d], doc_string=obs_doc)]
         X = g.op("Cast", ["observation"], "observation_f64", to=TensorProto.DOUBLE)
@@ -406,7 +407,11 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
             q = g.op("Reshape", [g.op("GatherElements", [qs, idx3], axis=1), g.const(np.array([-1, A], np.int64))], "q")
     g.nodes.append(helper.make_node("Cast", [index], ["action_index"], to=TensorProto.INT64))
     g.nodes.append(helper.make_node("Gather", [g.const(values, "action_values"), "action_index"], ["action"], axis=0))
-    outputs = [helper.make_tensor_value_info("action", TensorProto.DOUBLE, ["N", values.shape[1]]),
+    at_ = sig.action_table
+    a_units = [*at_.units, *[""] * (len(at_.dims) - len(at_.units))]  # a table may carry no units
+    act_cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(at_.dims, a_units[:len(at_.dims)], strict=True))
+    outputs = [helper.make_tensor_value_info("action", TensorProto.DOUBLE, ["N", values.shape[1]],
+                                             doc_string=f"action values, one row each, columns (name [unit]): {act_cols}"),
                helper.make_tensor_value_info("action_index", TensorProto.INT64, ["N"])]
     if q is not None:
         g.nodes.append(helper.make_node("Identity", [q], ["q_values"]))

@@ -387,34 +387,51 @@ class TransitionDataset:
     def fingerprint(self) -> str:
         """sha256 of the content (columns and metadata that define the data), hex.
 
-        Independent of chunking and of provenance (extra columns such as ``src_file``
-        and the ``provenance`` metadata are left out): two datasets with the same rows,
-        features and action table have the same fingerprint.
+        Depends on the values only: independent of chunking, of Arrow buffer layout and of
+        provenance (extra columns such as ``src_file`` and the ``provenance`` metadata are
+        left out): two datasets with the same rows, features and action table have the same
+        fingerprint. Each column is hashed canonically (:func:`_hash_column`): its name, its
+        null mask, and its values with nulls zeroed (integers as int64, never through
+        float; floats with every NaN one NaN and -0.0 as 0.0; booleans as bytes; strings
+        length-prefixed UTF-8).
         """
         h = hashlib.sha256()
+        h.update(b"offline_adp fingerprint v2\x00")
         h.update(repr((self.info.feature_names, self.info.action_table.to_dict())).encode())
         known = set(_column_order(self.info))
         for name in sorted(c for c in self.table.column_names if c in known):
-            col = self.table.column(name)
-            h.update(name.encode())
-            if name == S.EPISODE_ID:
-                codes, ids = self._episode_codes()
-                h.update(codes.tobytes())
-                h.update("\x00".join(map(str, ids)).encode())
-            elif pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
-                if pa.types.is_dictionary(col.type):
-                    col = col.cast(col.type.value_type)
-                enc = encode_strings(col)
-                h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
-                h.update("\x00".join(map(str, enc.dictionary.to_pylist())).encode())
-            else:
-                arr = col.to_numpy()
-                if arr.dtype.kind == "f":
-                    arr = arr + 0.0  # -0.0 and 0.0 are the same value
-                if col.null_count:
-                    h.update(np.asarray(pc.is_null(col)).tobytes())
-                h.update(np.ascontiguousarray(arr).tobytes())
+            _hash_column(h, name, self.table.column(name))
         return h.hexdigest()
+
+
+def _hash_column(h: Any, name: str, col: pa.ChunkedArray) -> None:
+    """Feed one column's content into ``h``, the same for any chunking of the same values."""
+    n = len(col)
+    name_b = name.encode()
+    h.update(len(name_b).to_bytes(8, "little") + name_b + n.to_bytes(8, "little"))
+    if pa.types.is_dictionary(col.type):
+        col = col.cast(col.type.value_type)
+    nulls = np.asarray(pc.is_null(col), dtype=bool) if col.null_count else np.zeros(n, bool)
+    h.update(np.packbits(nulls).tobytes())
+    if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+        enc = encode_strings(col.cast(pa.large_string()).fill_null(""))
+        words = [w.encode() for w in enc.dictionary.to_pylist()]  # one per distinct value
+        h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
+        h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
+        return
+    if pa.types.is_boolean(col.type):
+        h.update(np.asarray(col.fill_null(False).to_numpy(), dtype=np.uint8).tobytes())
+        return
+    if pa.types.is_integer(col.type):
+        h.update(np.asarray(col.fill_null(0).to_numpy(), dtype=np.int64).tobytes())
+        return
+    if pa.types.is_floating(col.type):
+        arr = np.asarray(col.fill_null(0.0).to_numpy(), dtype=np.float64) + 0.0  # -0.0 and 0.0 are the same value
+        arr[np.isnan(arr)] = np.nan  # one NaN whatever its payload
+        h.update(arr.tobytes())
+        return
+    h.update(str(col.type).encode())  # any other type: its values in Python form
+    h.update(repr(col.to_pylist()).encode())
 
 
 def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.DictionaryArray | None, bool]:

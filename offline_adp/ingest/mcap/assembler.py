@@ -116,12 +116,14 @@ class _Recording(EpisodeSegmenter):
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
                       "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
-                      "episode_splits": 0,
+                      "episode_splits": 0, "lost_chunks_uncounted": 0,
                       "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
         self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
         self.n_lost_seen = 0
+        # episode events in file order: their kind ("start", "end"), None for one lost in a damaged chunk
+        self.event_kinds: list[str | None] = []
         obs = spec.obs_names
         aux = spec.aux_names
         self.col = {n: ("obs", obs.index(n)) for n in obs} | {n: ("aux", aux.index(n)) for n in aux}
@@ -157,6 +159,7 @@ class _Recording(EpisodeSegmenter):
             if not ep.reason and (lost := self._episode_damaged(ep)):
                 ep.reason = lost
                 self.stats["episodes_lost_to_damage"] += 1
+        self.stats["episodes_lost_to_damage"] += self._episodes_never_seen()
         missing = [t for t, n in self.used.items() if n == 0 and t != self.spec.episode_topic]
         return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing)
 
@@ -257,6 +260,8 @@ class _Recording(EpisodeSegmenter):
             if k == "events":
                 t = int(log_time)
                 values = [get_path(dec, p) for p in self.spec.episode_fields.values()]
+                fields = list(self.spec.episode_fields)
+                self.event_kinds.append(str(values[fields.index("event_field")]) if "event_field" in fields else "start")
             else:
                 which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
                 t = times.get(which)
@@ -362,12 +367,44 @@ class _Recording(EpisodeSegmenter):
         clock message; see ``_resolve_losses``)."""
         lost = report.get("lost_chunks", [])
         for c in lost[self.n_lost_seen:]:
+            self._count_lost_events(report, c)
             ce = self.epoch[self.clock_key]
             c["_ce"] = ce
             a, b = float(c.get("start_ns", -np.inf)), float(c.get("end_ns", np.inf))
             c["_epochs"] = [(ce, a, b), (ce + 1, a, b)]  # until the next clock message says more
             self.pending_losses.append(c)
         self.n_lost_seen = len(lost)
+
+    def _count_lost_events(self, report: dict[str, Any], c: dict[str, Any]) -> None:
+        """Add the episode events a lost chunk held (from the message-index records that
+        follow it, see ``scan._index_of_lost_chunk``) to :attr:`event_kinds` as unknown
+        (None), in file order; a chunk without a usable index is counted as uncounted."""
+        if not self.spec.episode_topic:
+            return
+        index = c.get("_index")
+        chans = report.get("channels", {})
+        ids = [i for i, ch in chans.items() if ch.topic == self.spec.episode_topic]
+        if index is None or c.get("_index_damaged") or not ids and any(i not in chans for i in index):
+            self.stats["lost_chunks_uncounted"] += 1  # episodes_lost_to_damage is then a lower bound
+            return
+        times = sorted(t for i in ids for t in index.get(i, ()))
+        self.event_kinds += [None] * len(times)
+
+    def _episodes_never_seen(self) -> int:
+        """Episodes whose start event was lost to damage: no step of theirs was assembled
+        (they are in no episode), so only the events can tell. A lost event's kind is read
+        from the alternation of starts and ends (after a start, an end; else a start);
+        without an event field every event is a start."""
+        if "event_field" not in self.spec.episode_fields:
+            return sum(k is None for k in self.event_kinds)
+        n, prev = 0, None
+        for k in self.event_kinds:  # one entry per episode event (the episodes' count, not the rows')
+            if k is None:
+                k = "end" if prev == "start" else "start"
+                n += k == "start"
+            if k in ("start", "end"):
+                prev = k
+        return n
 
     def _resolve_losses(self, ce_after: int) -> None:
         """The epochs a lost chunk may have held: every epoch from the one the clock was in

@@ -84,7 +84,16 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
                     skipped[ch.topic] = skipped.get(ch.topic, 0) + 1
 
     parsers = {Opcode.SCHEMA: Schema.read, Opcode.CHANNEL: Channel.read}
+    lost = report["lost_chunks"]
+    indexed: dict[str, Any] | None = None  # the lost chunk whose message-index records may follow
+    n_lost, prev_op = 0, None
     while True:
+        # message-index records directly after a lost chunk say what it held (its messages' log times)
+        if len(lost) > n_lost:
+            indexed = lost[-1] if prev_op == Opcode.CHUNK else None
+        elif prev_op != Opcode.MESSAGE_INDEX:
+            indexed = None
+        n_lost = len(lost)
         offset = f.tell()
         head = f.read(9)
         if len(head) < 9:
@@ -96,6 +105,7 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
                               messages_lost=0)
             return
         opcode, length = struct.unpack("<BQ", head)
+        prev_op = opcode
         if opcode == Opcode.DATA_END or opcode == Opcode.FOOTER:
             report["data_end"] = True
             return
@@ -151,6 +161,28 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
                 yield from wanted([parsers[opcode](stream)])
             except Exception as exc:  # noqa: BLE001
                 report["lost_chunks"].append({"offset": offset, "error": f"{type(exc).__name__}: {exc}"})
+        elif opcode == Opcode.MESSAGE_INDEX and indexed is not None:
+            _index_of_lost_chunk(indexed, body)
+
+
+def _index_of_lost_chunk(chunk: dict[str, Any], body: bytes) -> None:
+    """Add one message-index record (a channel's messages in the chunk: log time, offset)
+    to ``chunk["_index"]`` (channel id -> log times). These uncompressed records follow the
+    chunk in an indexed file, so they survive damage to its compressed data; a malformed
+    one is ignored (``chunk["_index_damaged"]``)."""
+    import struct
+
+    try:
+        channel_id, n = struct.unpack_from("<HI", body, 0)
+        if n % 16 or 6 + n > len(body):
+            raise ValueError("bad records length")
+        import numpy as np
+
+        times = np.frombuffer(body, dtype="<u8", count=n // 8, offset=6)[0::2].astype(np.int64)
+    except Exception:  # noqa: BLE001 - a damaged index only makes the accounting unknown
+        chunk["_index_damaged"] = True
+        return
+    chunk.setdefault("_index", {}).setdefault(int(channel_id), []).extend(times.tolist())
 
 
 def damage_text(path: Path, report: dict[str, Any]) -> str | None:
