@@ -204,3 +204,29 @@ def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
                       *fqe._fit_state[1:])  # the guard, not a division by 1 - gamma
     with pytest.raises(ValueError, match="gamma < 1"):
         fqe.settle()
+
+
+def test_a_stationary_policys_probabilities_are_computed_once_per_query_set_in_a_finite_horizon_fqe(small_pt):
+    """A 200-step FQE of a greedy policy re-ran the policy's model at every step (MountainCar:
+    50 bootstrap refits x 200 steps x a 50-tree forest on 50k states)."""
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.policies import FunctionPolicy, GreedyPolicy, is_stationary
+
+    q = FittedQIteration(n_iterations=2, regressor_params={"n_estimators": 3}).fit(small_pt).q_function_
+    calls = {"n": 0}
+
+    class Counting:
+        n_actions = q.n_actions
+
+        def values(self, obs, t=0):
+            calls["n"] += 1
+            return q.values(obs, t)
+
+    pol = GreedyPolicy(Counting())
+    assert pol.time_varying is False
+    FittedQEvaluation(policy=pol, horizon=12, regressor_params={"n_estimators": 3}).fit(small_pt)
+    assert calls["n"] <= 3  # once per query set (next states, start states), not 12 times each
+    undeclared = FunctionPolicy(lambda x, t: np.zeros(len(x), int), small_pt.n_actions)
+    assert is_stationary(undeclared, small_pt.arrays().obs, 12)
+    varying = FunctionPolicy(lambda x, t: np.full(len(x), int(np.max(t)) % 2), small_pt.n_actions)
+    assert not is_stationary(varying, small_pt.arrays().obs, 12)
