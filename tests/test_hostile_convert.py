@@ -481,3 +481,43 @@ def test_convert_from_a_dataset_directory_runs_the_doctor(tmp_path):
     r = _cli("convert", str(tmp_path / "ds"), "--to", "d4rl", "--out", str(tmp_path / "x.npz"))
     _one_line_error(r, "part-00000.parquet", "row 7", "cost")
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_a_minari_datacollector_dataset_with_continuous_actions_imports_equal_to_the_source(tmp_path):
+    """The issue's Done-when: a Box-action dataset made with minari's own DataCollector
+    (Pendulum-v1, random torques) converts and equals the source arrays."""
+    import gymnasium as gym
+    from minari import DataCollector
+
+    pytest.importorskip("jax")  # DataCollector's episode buffers need it (minari[create])
+    env = DataCollector(gym.make("Pendulum-v1", max_episode_steps=30), record_infos=False, data_format="arrow")
+    for s in range(3):
+        env.reset(seed=s)
+        env.action_space.seed(s)
+        done = False
+        while not done:
+            _, _, te, tr, _ = env.step(env.action_space.sample())
+            done = te or tr
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mds = env.create_dataset("test/collected-v0", algorithm_name="random", author="t",
+                                 author_email="t@example.org", code_permalink="https://example.org",
+                                 description="pendulum, random torques")
+    src = list(mds.iterate_episodes())
+    out = tmp_path / "ds"
+    r = _cli("convert", "test/collected-v0", "--from", "minari", "--out", str(out),
+             env_extra={"MINARI_DATASETS_PATH": os.environ["MINARI_DATASETS_PATH"]})
+    assert r.returncode == 0, r.stderr
+    from offline_adp.data.io import read_dataset
+
+    ds = read_dataset(out)
+    x = ds.arrays()
+    assert validate(ds).ok and ds.n_episodes == 3 and len(ds) == 90
+    np.testing.assert_array_equal(x.obs, np.vstack([e.observations[:-1] for e in src]).astype(np.float64))
+    np.testing.assert_array_equal(x.next_obs, np.vstack([e.observations[1:] for e in src]).astype(np.float64))
+    np.testing.assert_array_equal(x.cost, -np.concatenate([e.rewards for e in src]))
+    acts = np.vstack([e.actions for e in src]).astype(np.float64)
+    table = ds.info.action_table
+    np.testing.assert_array_equal(table.values[x.action], acts)  # 90 distinct torques: an exact table
