@@ -318,7 +318,9 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
                         "interval as unreliable)" if outside else "")
                      + (f" (bias-corrected by the bootstrap; plug-in {_f(b['plugin_estimate'])})"
                         if b.get("plugin_estimate") is not None else "")
-                     + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
+                     + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others)
+                     + ("; the policy left the data's support, where the value model extrapolates: this interval "
+                        "is not a 95% interval there" if h["verdict"].get("support_left") else ""))
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         lines.append(f"off-policy: {top['name'].upper()} {_f(top['estimate'])} (no interval: {top['reason']})" if top
