@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
 import pytest
 
 from offline_adp.evaluation.summary import rank_estimators, verdict
@@ -68,3 +69,13 @@ def test_with_rollouts_the_verdict_is_the_truths(truth, side):
     assert "in the simulator" in v["text"]
     if side == "worse":  # the min_samples_leaf = 50 case: FQE said better, the truth is worse
         assert "contradicted" in v["text"]
+
+
+def test_equal_up_to_rounding_is_not_a_side():
+    # MountainCar: a policy that never reaches the goal costs sum_{t<200} 0.99^t = 86.602 exactly
+    # as the behaviour does; summed in another order the two differ in the last bit
+    b = float(np.sum(0.99 ** np.arange(200)))
+    m = {**BASE, "behaviour_value": {"mean": b},
+         "ope": {"fqe": {"estimate": b * (1 - 1e-15), "interval": [b * (1 - 1e-15), b * (1 - 1e-15)], "level": 0.95}},
+         "rollout": {"policy": {"mean_discounted_cost": b * (1 + 1e-15), "interval": [b * (1 + 1e-15)] * 2}}}
+    assert _v(m)["performance"] == "indistinguishable"

@@ -173,7 +173,11 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
 
 
 def _side(lo: float, hi: float, b: float) -> str:
-    return "better" if hi < b else "worse" if lo > b else "indistinguishable"
+    """Which side of the behaviour's cost ``b`` an interval lies on; equal up to rounding
+    (e.g. every MountainCar policy that never reaches the goal: 86.602 against 86.602 summed
+    in another order) is not a side."""
+    tol = 1e-9 * max(1.0, abs(b))
+    return "better" if hi < b - tol else "worse" if lo > b + tol else "indistinguishable"
 
 
 _SIDE_WORDS = {"better": "better than", "worse": "worse than", "indistinguishable": "not distinguishable from"}
@@ -312,7 +316,8 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
     if b is not None:
         lo, hi = b["interval"]
-        outside = lo is not None and hi is not None and not lo <= b["estimate"] <= hi
+        tol = 1e-9 * max(1.0, abs(b["estimate"]))
+        outside = lo is not None and hi is not None and not lo - tol <= b["estimate"] <= hi + tol
         lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(lo)}, {_f(hi)}]"
                      + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
                         "interval as unreliable)" if outside else "")
