@@ -262,35 +262,38 @@ def _ours(w: warnings.WarningMessage) -> bool:
 class CapturedWarnings:
     """Python warnings captured during a command (:func:`capturing_warnings`): the
     package's own are reported once each, every other library's (scikit-learn,
-    LightGBM, numpy, ...) summarised in one line."""
+    LightGBM, numpy, ...) counted and summarised in one line (memory stays bounded
+    however many are raised)."""
 
     def __init__(self) -> None:
-        self.records: list[warnings.WarningMessage] = []
+        self.own: list[str] = []
+        self.n_library = 0
+        self.first_library: warnings.WarningMessage | None = None
+        self._kinds: set[tuple[str, str]] = set()
 
-    @property
-    def library(self) -> list[warnings.WarningMessage]:
-        return [w for w in self.records if not _ours(w)]
-
-    @property
-    def own(self) -> list[warnings.WarningMessage]:
-        return [w for w in self.records if _ours(w)]
+    def add(self, w: warnings.WarningMessage) -> None:
+        if _ours(w):
+            cat = w.category.__name__
+            text = str(w.message) if cat == "UserWarning" else f"{cat}: {w.message}"
+            if text not in self.own:
+                self.own.append(text)
+            return
+        self.n_library += 1
+        if self.first_library is None:
+            self.first_library = w
+        if len(self._kinds) < 10_000:
+            self._kinds.add((w.category.__name__, str(w.message)[:500]))
 
     def summary_lines(self) -> list[str]:
         """One line per distinct warning of the package, then ``N library warnings (first: ...)``."""
-        lines, seen = [], set()
-        for w in self.own:
-            cat = w.category.__name__
-            text = str(w.message) if cat == "UserWarning" else f"{cat}: {w.message}"
-            if text not in seen:
-                seen.add(text)
-                lines.append(text)
-        lib = self.library
-        if lib:
-            first = lib[0]
-            kinds = len({(w.category, str(w.message)) for w in lib})
+        lines = list(self.own)
+        first = self.first_library
+        if first is not None:
+            n = self.n_library
             where = str(first.filename).replace("\\", "/").rsplit("/", 1)[-1]
-            lines.append(f"{len(lib)} library warning{'s' if len(lib) != 1 else ''} ({kinds} distinct; first: "
-                         f"{first.category.__name__} from {where}:{first.lineno}: {str(first.message).splitlines()[0][:200]})")
+            msg = (str(first.message).splitlines() or [""])[0][:200]
+            lines.append(f"{n} library warning{'s' if n != 1 else ''} ({len(self._kinds)} distinct; first: "
+                         f"{first.category.__name__} from {where}:{first.lineno}: {msg})")
         return lines
 
     def report(self, logger: logging.Logger | None = None) -> None:
@@ -306,11 +309,15 @@ class capturing_warnings:  # noqa: N801 - used as a context manager, like warnin
     :meth:`CapturedWarnings.report` at the end of the command."""
 
     def __enter__(self) -> CapturedWarnings:
-        self._cm = warnings.catch_warnings(record=True)
-        records = self._cm.__enter__()
+        self._cm = warnings.catch_warnings()  # restores the filters and showwarning on exit
+        self._cm.__enter__()
         warnings.simplefilter("always")
         self.captured = CapturedWarnings()
-        self.captured.records = records  # type: ignore[assignment]
+
+        def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+            self.captured.add(warnings.WarningMessage(message, category, filename, lineno, file, line))
+
+        warnings.showwarning = show
         return self.captured
 
     def __exit__(self, *exc: Any) -> None:
