@@ -13,6 +13,11 @@ from collections.abc import Sequence
 
 from offline_adp._version import __version__
 from offline_adp.errors import OfflineADPError
+from offline_adp.progress import CLI_LOGGER, get_logger, is_terminal
+
+#: The command line's own lines (progress, summaries): INFO records shown by default,
+#: hidden by -q or --log-level WARNING (see offline_adp.progress.apply_logging_options).
+log = get_logger(CLI_LOGGER)
 
 FORMATS = ("dataset", "parquet", "csv", "mcap-json", "mcap-ros2")
 #: The algorithm registry's names (offline_adp.algorithms.registry; a test keeps them equal).
@@ -20,8 +25,9 @@ ALGORITHM_NAMES = ("fqi", "fqe", "api", "cpi", "psdp")
 
 
 def _progress(quiet: bool):
-    """A step-progress callback: a tqdm bar on stderr unless quiet."""
-    if quiet:
+    """A step-progress callback: a tqdm bar on stderr when it is a terminal, unless quiet
+    (in a log file the command's summary line says what was done)."""
+    if quiet or not is_terminal():
         return None, lambda: None
     from tqdm import tqdm
 
@@ -48,8 +54,9 @@ def _positive_int(text: str) -> int:
 
 
 def _say(args: argparse.Namespace, msg: str) -> None:
+    """A progress or summary line on stderr (an INFO record of the CLI logger: -q hides it)."""
     if not getattr(args, "quiet", False):
-        print(msg, file=sys.stderr)
+        log.info("%s", msg)
 
 
 # ---------------------------------------------------------------------------- simulate
@@ -83,7 +90,7 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
         args.out,
         on_error=args.on_error,
         overwrite=args.overwrite,
-        progress=None if args.quiet else (lambda m: print(f"  {m}", file=sys.stderr)),
+        progress=None if args.quiet else (lambda m: log.info("  %s", m)),
     )
     print(res.report.to_text())
     s = res.summary()
@@ -106,7 +113,7 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     spec = load_mcap_spec(args.spec)
     n_rec = len(resolve_sources(args.inputs, spec))
     bar = None
-    if not args.quiet and n_rec > 1:
+    if not args.quiet and n_rec > 1 and is_terminal():
         from tqdm import tqdm
 
         bar = tqdm(total=n_rec, unit="recording", desc="ingest mcap", file=sys.stderr)
@@ -208,15 +215,23 @@ def cmd_fit(args: argparse.Namespace) -> int:
     entry = get_algorithm(args.algorithm)
     caveat = getattr(entry.estimator_class(), "mode_caveat", None)
     if caveat is not None and caveat(params.get("mode")):
-        print(f"warning: {caveat(params.get('mode'))}", file=sys.stderr)
+        log.warning("%s", caveat(params.get("mode")))
     bar = None
-    if not args.quiet and entry.resumable:
+    total = params.get("horizon") or params.get("n_iterations", 50)
+    if not args.quiet and entry.resumable and is_terminal():
         from tqdm import tqdm
 
-        total = params.get("horizon") or params.get("n_iterations", 50)
         bar = tqdm(total=total, desc=f"fit {args.algorithm}", unit="it", file=sys.stderr)
+    quarters = {max(1, (int(total) * q) // 4) for q in (1, 2, 3, 4)} if total else set()
 
     def on_iteration(row: dict) -> None:
+        it = row.get("iteration")
+        log.debug("fit %s iteration %s: sup|dQ| %.4g, Bellman residual %.4g, start value %.4g, %.2f s", args.algorithm, it,
+                  *(float(row.get(k) if row.get(k) is not None else float("nan"))
+                    for k in ("sup_dq", "bellman_residual", "start_value", "wall_time")))
+        if bar is None and it in quarters:  # in a log: four lines, not one per iteration
+            log.info("fit %s: iteration %s/%s, sup|dQ| %.4g", args.algorithm, it, total,
+                     float(row.get("sup_dq") if row.get("sup_dq") is not None else float("nan")))
         if bar is not None:
             if bar.n == 0 and row["iteration"] > 1:
                 bar.update(row["iteration"] - 1)  # resumed
@@ -279,8 +294,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from offline_adp.evaluation.summary import summary_lines
 
     def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"  {msg}", file=sys.stderr, flush=True)
+        log.info("  %s", msg)
 
     from offline_adp.algorithms.registry import get_algorithm
     from offline_adp.config import parse_json_object
@@ -301,8 +315,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from offline_adp.pipeline import run_pipeline
 
     def say(msg: str) -> None:
-        if not args.quiet:
-            print(msg, file=sys.stderr, flush=True)
+        log.info("%s", msg)
 
     overrides = {}
     for item in args.set or []:
@@ -552,7 +565,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
-    e.add_argument("--horizon", type=_positive_int, default=None, help="cap the evaluation horizon (default: the data's)")
+    e.add_argument("--horizon", type=_positive_int, default=None, help="the evaluation horizon (default: the data's longest episode; with --simulator gym:ENV_ID the environment's "
+                   "own time limit, e.g. 500 for CartPole-v1)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)
@@ -707,6 +721,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from offline_adp.progress import capturing_warnings
+
+    with capturing_warnings() as caught:
+        try:
+            return _run(args)
+        finally:
+            caught.report(log)  # the package's warnings once each; the libraries' in one line
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the parsed command; our errors as one line and exit status 2."""
     try:
         from offline_adp.progress import apply_logging_options
 

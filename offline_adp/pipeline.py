@@ -467,9 +467,15 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     elif target.path.exists():
         RunDirectory(run).remove("fit")
 
+    total = params.get("horizon") or params.get("n_iterations")
+    # four progress lines a log can hold (every 10th iteration when the count is not known)
+    shown = {max(1, (int(total) * q) // 4) for q in (1, 2, 3, 4)} if isinstance(total, int) and total > 0 else None
+
     def on_iteration(row: dict[str, Any]) -> None:
-        if row.get("iteration", 0) % 10 == 0:
-            say(f"[fit] iteration {row['iteration']}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
+        k = row.get("iteration", 0)
+        if (k in shown) if shown is not None else k % 10 == 0:
+            of = f"/{total}" if shown is not None else ""
+            say(f"[fit] iteration {k}{of}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
     est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration)
     hist = getattr(est, "history_", None)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import warnings
 from collections.abc import Mapping
 from types import TracebackType
 from typing import Any
@@ -67,7 +68,7 @@ def configure_logging(level: int = logging.WARNING, stream: Any = None) -> loggi
         if getattr(h, "_oadp_cli", False):
             log.removeHandler(h)
     handler = logging.StreamHandler(stream) if stream is not None else _StderrHandler()
-    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    handler.setFormatter(CliFormatter())
     handler._oadp_cli = True  # type: ignore[attr-defined]
     log.addHandler(handler)
     log.setLevel(level)
@@ -213,4 +214,111 @@ def apply_logging_options(args: Any) -> int:
     args.quiet = quiet
     level = resolve_level(verbose, quiet, level_name)
     configure_logging(level)
+    # the command's own progress and summary lines (INFO of the CLI logger) show by default;
+    # -q or an explicit --log-level above INFO hides them, -v/-vv/--log-level DEBUG add the library's
+    logging.getLogger(CLI_LOGGER).setLevel(logging.INFO if level > logging.INFO and not quiet and not level_name
+                                           else logging.NOTSET)
     return level
+
+
+# ----------------------------------------------------------------------------- CLI output
+#: The logger of the command line's own lines (progress, summaries, the warnings summary).
+CLI_LOGGER = PACKAGE + ".cli"
+
+
+def is_terminal(stream: Any = None) -> bool:
+    """Whether ``stream`` (default: ``sys.stderr`` now) is a terminal: progress bars are
+    drawn only there; a log file or a CI capture gets a few summary lines instead."""
+    stream = sys.stderr if stream is None else stream
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+class CliFormatter(logging.Formatter):
+    """The command line's own records (:data:`CLI_LOGGER` and its children) as plain lines
+    (INFO: the message; other levels: ``level: message``); every other record as
+    ``LEVEL name: message``."""
+
+    def __init__(self) -> None:
+        super().__init__("%(levelname)s %(name)s: %(message)s")
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.name == CLI_LOGGER or record.name.startswith(CLI_LOGGER + "."):
+            msg = record.getMessage()
+            return msg if record.levelno == logging.INFO else f"{record.levelname.lower()}: {msg}"
+        return super().format(record)
+
+
+def _ours(w: warnings.WarningMessage) -> bool:
+    """A warning of this package (its category is ours, or it was raised from our code)."""
+    import os
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    return getattr(w.category, "__module__", "").startswith(PACKAGE) or os.path.abspath(str(w.filename)).startswith(here + os.sep)
+
+
+class CapturedWarnings:
+    """Python warnings captured during a command (:func:`capturing_warnings`): the
+    package's own are reported once each, every other library's (scikit-learn,
+    LightGBM, numpy, ...) counted and summarised in one line (memory stays bounded
+    however many are raised)."""
+
+    def __init__(self) -> None:
+        self.own: list[str] = []
+        self.n_library = 0
+        self.first_library: warnings.WarningMessage | None = None
+        self._kinds: set[tuple[str, str]] = set()
+
+    def add(self, w: warnings.WarningMessage) -> None:
+        if _ours(w):
+            cat = w.category.__name__
+            text = str(w.message) if cat == "UserWarning" else f"{cat}: {w.message}"
+            if text not in self.own:
+                self.own.append(text)
+            return
+        self.n_library += 1
+        if self.first_library is None:
+            self.first_library = w
+        if len(self._kinds) < 10_000:
+            self._kinds.add((w.category.__name__, str(w.message)[:500]))
+
+    def summary_lines(self) -> list[str]:
+        """One line per distinct warning of the package, then ``N library warnings (first: ...)``."""
+        lines = list(self.own)
+        first = self.first_library
+        if first is not None:
+            n = self.n_library
+            where = str(first.filename).replace("\\", "/").rsplit("/", 1)[-1]
+            msg = (str(first.message).splitlines() or [""])[0][:200]
+            lines.append(f"{n} library warning{'s' if n != 1 else ''} ({len(self._kinds)} distinct; first: "
+                         f"{first.category.__name__} from {where}:{first.lineno}: {msg})")
+        return lines
+
+    def report(self, logger: logging.Logger | None = None) -> None:
+        """Log :meth:`summary_lines` as WARNING records of the command-line logger."""
+        log = logger or logging.getLogger(CLI_LOGGER)
+        for line in self.summary_lines():
+            log.warning("%s", line)
+
+
+class capturing_warnings:  # noqa: N801 - used as a context manager, like warnings.catch_warnings
+    """Capture every Python warning raised in this process while the block runs (each
+    occurrence counted, none printed) into a :class:`CapturedWarnings`; report them with
+    :meth:`CapturedWarnings.report` at the end of the command."""
+
+    def __enter__(self) -> CapturedWarnings:
+        self._cm = warnings.catch_warnings()  # restores the filters and showwarning on exit
+        self._cm.__enter__()
+        warnings.simplefilter("always")
+        self.captured = CapturedWarnings()
+
+        def show(message: Any, category: Any, filename: str, lineno: int, file: Any = None, line: Any = None) -> None:
+            self.captured.add(warnings.WarningMessage(message, category, filename, lineno, file, line))
+
+        warnings.showwarning = show
+        return self.captured
+
+    def __exit__(self, *exc: Any) -> None:
+        self._cm.__exit__(*exc)

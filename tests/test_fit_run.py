@@ -120,8 +120,10 @@ def test_fit_cli_names_the_mode_that_ran_and_warns_only_for_warm_start(tmp_path,
     assert json.loads((tmp_path / "a" / "run.json").read_text())["mode"] == "frozen"
     warm = _cfg(tmp_path, "fqi", 'n_iterations = 2\nmode = "warm_start"\nregressor = "lightgbm"\n'
                                  '[fqi.regressor_params]\nn_estimators = 5\n')
-    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "b"), "--config", str(warm), "-q"]) == 0
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "b"), "--config", str(warm)]) == 0
     assert "warning: mode = 'warm_start' did not hold the refit score" in capsys.readouterr().err
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "c"), "--config", str(warm), "-q"]) == 0
+    assert capsys.readouterr().err == ""  # -q: errors only
 
 
 @pytest.mark.parametrize("value", ['"bogus"', "2.5", "[0.5, 0.0]"])

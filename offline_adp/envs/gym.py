@@ -13,8 +13,12 @@ simulator``, Python :func:`resolve_simulator`) rolls a fitted policy out in
   Pendulum's torque) the table holds ``d`` numbers per action, each within the box's bounds
   -- typically the bins' representative commands of a log ingested with
   ``type = "continuous"``.
-- **Costs** are ``-reward``; ``terminated`` ends an episode (absorbing). The environment's
-  own time limit is not applied: the rollout's horizon is the evaluation's ``T``.
+- **Costs** are ``-reward``; ``terminated`` ends an episode (absorbing). The rollout's
+  horizon is the evaluation's ``T``, which for a gymnasium simulator is the environment's
+  registered time limit (``max_episode_steps``, :attr:`GymResetModel.horizon`, e.g. 500 for
+  CartPole-v1) unless ``--horizon`` sets another; the loop applies it (the stepped
+  environment is unwrapped, so gymnasium's own truncation does not cut it short).
+- **Start states** are ``env.reset()`` draws, not the data's start states; the estimand says so.
 
 A gymnasium environment can be reset and stepped, not teleported: :meth:`GymResetModel.step`
 accepts only states that it produced itself (from :meth:`~GymResetModel.initial_states` or

@@ -185,11 +185,10 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
 
 def cli(args: Any) -> int:
     """``offline-adp compare`` (arguments parsed in :mod:`offline_adp.cli`)."""
-    import sys
+    import logging
 
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"  {msg}", file=sys.stderr, flush=True)
+    def say(msg: str) -> None:  # an INFO record of the CLI logger: -q hides it
+        logging.getLogger("offline_adp.cli").info("  %s", msg)
 
     if args.json and Path(args.json).is_dir():  # before the work, not after it
         raise OfflineADPError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")

@@ -89,8 +89,9 @@ TAIL_NEGLIGIBLE = 0.01
 class Estimand:
     """The one quantity every estimator and the rollout truth estimate.
 
-    ``J(pi) = E[ sum_{t < T} gamma^t c_t ]`` from the data's start distribution
-    (``form="finite"``, the default), or the infinite-horizon discounted value
+    ``J(pi) = E[ sum_{t < T} gamma^t c_t ]`` from the start distribution ``start`` (the
+    data's start states unless a simulator's own reset names it, e.g. ``env.reset()`` of a
+    gymnasium environment) (``form="finite"``, the default), or the infinite-horizon discounted value
     ``E[ sum_t gamma^t c_t ]`` (``form="infinite"``, which only FQE can estimate from
     T-step logs; the trajectory estimators then say they cannot).
 
@@ -98,6 +99,11 @@ class Estimand:
     or ``stationary`` (one discounted Q; used for the finite estimand only when the
     policy is stationary on the data and ``gamma^T <= TAIL_NEGLIGIBLE``, with the
     truncation bound ``tail_bound`` added to its interval).
+
+    ``target_horizon``: the estimand's horizon when it exceeds the logged one ``horizon``
+    (a gymnasium simulator's own time limit, e.g. 500 steps of CartPole over 83-step
+    random-play logs). The trajectory estimators still see only ``horizon`` steps and say
+    so (``comparable=False``), as for the infinite-horizon value.
     """
 
     horizon: int
@@ -107,6 +113,18 @@ class Estimand:
     tail_bound: float = 0.0
     reason: str = ""
     possible_range: tuple[float, float] | None = None
+    target_horizon: int | None = None
+    start: str = "the data's start states"
+
+    @property
+    def value_horizon(self) -> int:
+        """The estimand's horizon (``target_horizon`` when set, else the logged ``horizon``)."""
+        return self.target_horizon if self.target_horizon is not None else self.horizon
+
+    @property
+    def beyond_logs(self) -> bool:
+        """Whether the estimand's horizon exceeds the logged horizon the estimators see."""
+        return self.target_horizon is not None and self.target_horizon > self.horizon
 
     @property
     def fqe_horizon(self) -> int | None:
@@ -114,12 +132,14 @@ class Estimand:
 
     def describe(self) -> str:
         if self.form == "infinite":
-            return f"expected discounted cost sum_t {self.gamma:g}^t c_t over an infinite horizon from the data's start states"
+            return f"expected discounted cost sum_t {self.gamma:g}^t c_t over an infinite horizon from {self.start}"
         disc = "" if self.gamma >= 1.0 else f"{self.gamma:g}^t "
-        return f"expected cost sum_{{t<{self.horizon}}} {disc}c_t over {self.horizon} steps from the data's start states"
+        T = self.value_horizon
+        return f"expected cost sum_{{t<{T}}} {disc}c_t over {T} steps from {self.start}"
 
     def as_dict(self) -> dict[str, Any]:
-        return {"quantity": self.describe(), "form": self.form, "horizon": self.horizon, "gamma": self.gamma,
+        return {"quantity": self.describe(), "form": self.form, "horizon": self.value_horizon,
+                "logged_horizon": self.horizon, "start": self.start, "gamma": self.gamma,
                 "fqe_form": self.fqe_form, "fqe_truncation_bound": self.tail_bound, "reason": self.reason,
                 "possible_range": None if self.possible_range is None else list(self.possible_range)}
 
@@ -170,17 +190,35 @@ def _stationary_on(policy: Policy, obs: np.ndarray, T: int) -> bool:
     return all(np.allclose(policy.probabilities(x, t), p0) for t in sorted({1, T // 2, T - 1}) if 0 < t < T)
 
 
-def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None = None, form: str = "finite") -> Estimand:
-    """The quantity :func:`off_policy` estimates (see :class:`Estimand`)."""
+def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None = None, form: str = "finite", *,
+                     target_horizon: int | None = None, start: str | None = None) -> Estimand:
+    """The quantity :func:`off_policy` estimates (see :class:`Estimand`).
+
+    ``target_horizon``: the horizon of the value asked for when it is not the logged one
+    (a simulator's rollout horizon); ``start``: its start distribution when it is not the
+    data's start states (e.g. ``"env.reset() of gym:CartPole-v1"``)."""
     if form not in ("finite", "infinite"):
         raise OfflineADPError(f"estimand must be 'finite' or 'infinite', got {form!r}")
     T, gamma, _ = evaluation_horizon(ds, horizon)
     a = ds.arrays()
+    where = {"start": start} if start else {}
     if form == "infinite":
         if not gamma < 1.0:
             raise OfflineADPError("the infinite-horizon value needs gamma < 1 (the dataset's gamma is 1)")
-        return Estimand(T, gamma, "infinite", "stationary", 0.0, "asked for the infinite-horizon value")
+        return Estimand(T, gamma, "infinite", "stationary", 0.0, "asked for the infinite-horizon value", **where)
     c_max = float(np.abs(a.cost).max()) if len(a.cost) else 0.0
+    if target_horizon is not None and int(target_horizon) > T:
+        H = int(target_horizon)
+        if gamma < 1.0 and gamma**H <= TAIL_NEGLIGIBLE and _stationary_on(policy, a.obs, T):
+            tail = gamma**H * c_max / (1.0 - gamma)
+            return Estimand(T, gamma, "finite", "stationary", tail,
+                            f"the {H}-step value asked for exceeds the {T} logged steps; gamma^{H} = {gamma**H:.2g}: the "
+                            f"stationary discounted FQE differs from it by at most gamma^{H} max|c| / (1 - gamma) = "
+                            f"{tail:.3g}, added to its interval; the trajectory estimators see only {T} steps",
+                            target_horizon=H, **where)
+        return Estimand(T, gamma, "finite", "time-indexed", 0.0,
+                        f"the {H}-step value asked for exceeds the {T} logged steps: no estimator of these logs sees "
+                        f"past step {T} (time-indexed FQE over the {T} logged steps)", target_horizon=H, **where)
     if gamma < 1.0 and gamma**T <= TAIL_NEGLIGIBLE and _stationary_on(policy, a.obs, T):
         tail = gamma**T * c_max / (1.0 - gamma)
         return Estimand(T, gamma, "finite", "stationary", tail,
@@ -188,7 +226,8 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
                         f"most gamma^T max|c| / (1 - gamma) = {tail:.3g}, added to its interval")
     why = "the policy changes with t" if gamma < 1.0 and gamma**T <= TAIL_NEGLIGIBLE else (
         "undiscounted" if gamma >= 1.0 else f"gamma^T = {gamma**T:.2g} is not negligible")
-    return Estimand(T, gamma, "finite", "time-indexed", 0.0, f"time-indexed FQE over the {T} logged steps ({why})")
+    return Estimand(T, gamma, "finite", "time-indexed", 0.0, f"time-indexed FQE over the {T} logged steps ({why})",
+                    target_horizon=int(target_horizon) if target_horizon is not None else None, **where)
 
 
 def residual_advantage(qv: np.ndarray, probs: np.ndarray, step: np.ndarray, gamma: float, T: int) -> np.ndarray:
@@ -373,6 +412,8 @@ def off_policy(
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
     psdp_folds: int = PSDP_EPS_FOLDS,
+    target_horizon: int | None = None,
+    start: str | None = None,
 ) -> OffPolicyResult:
     """Evaluate ``policy`` from the dataset alone.
 
@@ -388,11 +429,14 @@ def off_policy(
     FQE fitted on all the data, which is 0 for FQI's greedy policy) and the PSDP bound for each reference policy (``self`` always; others
     from ``reference_policies``). With ``policy_states`` (pi's states per step from a
     simulator) the classifier ratios are added. ``task_map`` runs the FQE bootstrap
-    replicates (default: here; see :mod:`offline_adp.parallel`).
+    replicates (default: here; see :mod:`offline_adp.parallel`). ``target_horizon`` and
+    ``start``: the estimand's horizon and start distribution when they are a simulator's
+    (see :func:`declare_estimand`); estimators that cannot see that far say so
+    (``comparable=False`` and a warning), as for the infinite-horizon value.
     """
     say = progress or (lambda _msg: None)
     a = ds.arrays()
-    est_def = declare_estimand(ds, policy, horizon, estimand)
+    est_def = declare_estimand(ds, policy, horizon, estimand, target_horizon=target_horizon, start=start)
     T, gamma = est_def.horizon, est_def.gamma
     say("behaviour policy")
     beh = estimate_behaviour(a.obs, a.action, ds.n_actions, a.behavior_prob, classifier=behaviour_classifier, clip=clip)
@@ -473,9 +517,23 @@ def off_policy(
     if a.terminated.any() or not em.mask.all():  # episodes that stop early add 0 from then on
         lo_c, hi_c = min(lo_c, 0.0), max(hi_c, 0.0)
     span = float(np.sum(gamma ** np.arange(T))) if est_def.form == "finite" else 1.0 / (1.0 - gamma)
-    est_def.possible_range = (lo_c * span, hi_c * span)
-    for r in estimates.values():
-        clip_to_range(r, est_def.possible_range)
+    logged_range = (lo_c * span, hi_c * span)
+    est_def.possible_range = logged_range
+    beyond = est_def.beyond_logs
+    H = est_def.value_horizon
+    if beyond:  # the estimand's own range; estimates of the T logged steps keep theirs
+        span_h = float(np.sum(gamma ** np.arange(H)))
+        est_def.possible_range = (min(lo_c, 0.0) * span_h, max(hi_c, 0.0) * span_h)  # the logs end before H
+    for name, r in estimates.items():
+        sees_h = not beyond or (name == "fqe" and est_def.fqe_form == "stationary")
+        clip_to_range(r, est_def.possible_range if sees_h else logged_range)
+    if beyond:
+        for name, r in estimates.items():
+            if name == "fqe" and est_def.fqe_form == "stationary":
+                continue
+            r.warnings.insert(0, f"estimates the {T}-step value, not the {H}-step value asked for: the logs' episodes "
+                                 f"end by step {T} and no estimator of them sees past it")
+            r.comparable = False
     if est_def.form == "infinite":
         for name, r in estimates.items():
             if name != "fqe":

@@ -112,7 +112,10 @@ def evaluate_run(
     same result).
 
     ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
-    capped by the dataset's horizon). ``estimand`` is ``"finite"`` (the T-step value the
+    capped by the dataset's horizon). With a gymnasium simulator (``gym:ENV_ID``) T is the
+    environment's own horizon instead (its registered ``max_episode_steps`` unless
+    ``horizon`` is given), the rollouts start from ``env.reset()`` and the estimand says so;
+    estimators that see only the shorter logged horizon are marked ``comparable=False``. ``estimand`` is ``"finite"`` (the T-step value the
     rollouts measure) or ``"infinite"`` (FQE only; see
     :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
     default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
@@ -158,10 +161,22 @@ def evaluate_run(
         states = demo_states = None
         refs = {}
         T = None
+        ope_horizon, target, start = horizon, None, None
+        from offline_adp.envs.gym import GymResetModel
+
+        if isinstance(problem, GymResetModel):
+            # the environment's own horizon: its registered time limit unless --horizon says otherwise;
+            # rollouts start from env.reset(), and the off-policy estimators target the same value
+            from offline_adp.evaluation.offpolicy import evaluation_horizon
+
+            target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
+            ope_horizon, start = target, f"env.reset() of {sim_name}"
         if problem is not None:
             from offline_adp.evaluation.offpolicy import evaluation_horizon
 
             T, gamma, _ = evaluation_horizon(ds, horizon)
+            if target is not None:
+                T = target
             say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
             x0 = problem.initial_states(n_episodes, rng)
             demonstrator = problem.demonstrator()  # None for a gymnasium environment
@@ -180,8 +195,8 @@ def evaluate_run(
             if named:
                 metrics["named"] = named
         res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                         policy_states=states, horizon=horizon, estimand=estimand, seed=seed, progress=say,
-                         task_map=task_map)
+                         policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
+                         task_map=task_map, target_horizon=target, start=start)
         metrics.update(_offpolicy_block(res, ds))
         if "rollout" in metrics:
             truth = metrics["rollout"]["policy"]["mean_discounted_cost"]

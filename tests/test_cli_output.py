@@ -1,0 +1,138 @@
+"""Output a CI log can hold: no progress bars off a terminal, a few lines per stage, library
+warnings summarised once at the end, -q / --log-level honoured by every command."""
+
+from __future__ import annotations
+
+import functools
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+
+from offline_adp.cli import main
+from tests.test_pipeline import SMALL
+
+ROOT = Path(__file__).resolve().parents[1]
+NOISE = "X does not have valid feature names, but ExtraTreesRegressor was fitted with feature names"
+
+
+def _noisy(monkeypatch, module, name, n=300):
+    """Make ``module.name`` raise ``n`` UserWarnings from outside the package first (as
+    scikit-learn does on every predict of a model fitted on a DataFrame)."""
+    original = getattr(module, name)
+
+    @functools.wraps(original)
+    def wrapper(*args, **kwargs):
+        for _ in range(n):
+            warnings.warn(NOISE, UserWarning, stacklevel=1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, wrapper)
+
+
+def _lines(cap) -> list[str]:
+    return [ln for ln in (cap.out + cap.err).splitlines() if ln.strip()]
+
+
+def _summary(err: str) -> list[str]:
+    return [ln for ln in err.splitlines() if "library warnings" in ln]
+
+
+@pytest.mark.integration
+def test_run_pipeline_in_a_log_is_short_and_summarises_library_warnings(tmp_path, capfd, monkeypatch):
+    from offline_adp.evaluation import offpolicy
+
+    _noisy(monkeypatch, offpolicy, "estimate_behaviour")
+    sets = [f"{k}={json.dumps(v)}" for k, v in SMALL["driving"].items()]
+    argv = ["run", str(ROOT / "pipelines" / "driving.toml"), "--out", str(tmp_path / "run")]
+    for s in sets:
+        argv += ["--set", s]
+    assert main(argv) == 0
+    cap = capfd.readouterr()
+    lines = _lines(cap)
+    assert len(lines) < 60, "\n".join(lines)
+    assert "\r" not in cap.err and "it/s" not in cap.err  # no progress bar off a terminal
+    assert any(ln.startswith("[fit]") for ln in lines) and any(ln.startswith("[evaluate]") for ln in lines)
+    summary = _summary(cap.err)
+    assert len(summary) == 1 and NOISE in summary[0], cap.err
+    assert int(summary[0].split("warning: ", 1)[1].split()[0]) >= 300
+    assert NOISE not in cap.err.replace(summary[0], "")  # not printed one by one
+
+    # -q: only errors on stderr (the results on stdout stay)
+    assert main([*argv, "--from", "evaluate", "-q"]) == 0
+    assert capfd.readouterr().err == ""
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory, small_pt):
+    root = tmp_path_factory.mktemp("out")
+    small_pt.save(root / "ds")
+    for k in (2, 5):
+        (root / f"fqi{k}.toml").write_text(f'[fqi]\nmode = "frozen"\nn_iterations = {k}\n'
+                                           "[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
+        assert main(["fit", str(root / "ds"), "--config", str(root / f"fqi{k}.toml"), "--out", str(root / f"fqi{k}"),
+                     "-q"]) == 0
+    return root
+
+
+@pytest.mark.integration
+def test_compare_with_a_simulator_in_a_log_is_short(two_runs, capfd, monkeypatch):
+    from offline_adp.evaluation import offpolicy, run
+
+    monkeypatch.setattr(run, "evaluate_run", functools.partial(run.evaluate_run, n_boot=20, n_boot_fqe=4))  # small
+    _noisy(monkeypatch, offpolicy, "estimate_behaviour")
+    capfd.readouterr()
+    runs = [str(two_runs / "fqi2"), str(two_runs / "fqi5")]
+    assert main(["compare", *runs, "--simulator", "path_tracking", "--episodes", "20", "--force"]) == 0
+    cap = capfd.readouterr()
+    lines = _lines(cap)
+    assert len(lines) < 60, "\n".join(lines)
+    assert "Spearman" in cap.out and "evaluating" in cap.err
+    summary = _summary(cap.err)
+    assert len(summary) == 1 and int(summary[0].split("warning: ", 1)[1].split()[0]) >= 600  # both evaluations'
+    assert main(["compare", *runs, "--simulator", "path_tracking", "--episodes", "20", "-q"]) == 0
+    assert capfd.readouterr().err == ""
+
+
+def test_fit_log_levels(two_runs, capfd):
+    cfg, ds = str(two_runs / "fqi2.toml"), str(two_runs / "ds")
+    capfd.readouterr()
+    assert main(["fit", ds, "--config", cfg, "--out", str(two_runs / "f-debug"), "--log-level", "DEBUG"]) == 0
+    err = capfd.readouterr().err
+    assert "debug: fit fqi iteration 1: sup|dQ|" in err and "debug: fit fqi iteration 2:" in err
+    assert main(["fit", ds, "--config", cfg, "--out", str(two_runs / "f-default")]) == 0
+    cap = capfd.readouterr()
+    assert "debug:" not in cap.err and "fit fqi: iteration 2/2" in cap.err and "verdict: " in cap.out
+    assert main(["fit", ds, "--config", cfg, "--out", str(two_runs / "f-quiet"), "-q"]) == 0
+    cap = capfd.readouterr()
+    assert cap.err == "" and "verdict: " in cap.out
+    assert main(["fit", ds, "--config", cfg, "--out", str(two_runs / "f-warn"), "--log-level", "WARNING"]) == 0
+    assert "fit fqi: iteration" not in capfd.readouterr().err
+
+
+def test_a_failing_command_still_reports_its_warnings_and_the_error(tmp_path, capfd, monkeypatch):
+    import offline_adp.cli as cli
+
+    def boom(args):
+        warnings.warn("a library complaint", RuntimeWarning, stacklevel=1)
+        from offline_adp.errors import OfflineADPError
+
+        raise OfflineADPError("no such thing")
+
+    monkeypatch.setattr(cli, "cmd_inspect", boom)
+    parser = cli.build_parser
+    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), boom))
+    assert main(["inspect", str(tmp_path)]) == 2
+    err = capfd.readouterr().err
+    assert "error: no such thing" in err and "1 library warning (1 distinct; first: RuntimeWarning" in err
+    assert main(["inspect", str(tmp_path), "-q"]) == 2
+    err = capfd.readouterr().err
+    assert "error: no such thing" in err and "library warning" not in err
+
+
+def _with_func(parser, func):
+    for a in parser._subparsers._group_actions[0].choices.values():
+        if a.prog.endswith(" inspect"):
+            a.set_defaults(func=func)
+    return parser
