@@ -55,7 +55,7 @@ from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
 #: gamma^T < 0.01 so the evaluation takes the stationary FQE with its cheap structure-conditional
 #: bootstrap (offpolicy.TAIL_NEGLIGIBLE); a shorter T refits FQE per replicate (minutes per candidate).
 SIZES = {
-    "tiny": {"path_tracking": (10, 10, 60, None), "car_on_hill": (0, 60, 60, None), "cartpole": (0, 30, 40, 60)},
+    "tiny": {"path_tracking": (10, 10, 40, None), "car_on_hill": (0, 60, 40, None), "cartpole": (0, 30, 40, 100)},
     "small": {"path_tracking": (30, 30, 200, None), "car_on_hill": (0, 200, 200, None), "cartpole": (0, 60, 200, 100)},
     "medium": {"path_tracking": (60, 60, 300, None), "car_on_hill": (0, 400, 300, None), "cartpole": (0, 100, 300, 100)},
     "full": {"path_tracking": (100, 100, 500, None), "car_on_hill": (0, 1000, 500, None), "cartpole": (0, 200, 500, 100)},
