@@ -125,12 +125,8 @@ def logs_and_problem(problem: str, size: str, seed: int) -> tuple[Any, Any, dict
         return ds, prob.model, {"exploration": prob.exploration(), "heuristic": prob.heuristic()}
     ds = simulate(problem, n_demo, n_expl, seed=seed, horizon=H)
     prob = make_problem(problem, **({"horizon": H} if H is not None else {}))
-    fixed = {"exploration": prob.exploration()}
-    if n_demo:
-        fixed["demonstrator"] = prob.demonstrator()
-    else:  # car_on_hill logs exploration only (as its pipeline); the demonstrator is still a candidate
-        fixed["demonstrator"] = prob.demonstrator()
-    return ds, prob, fixed
+    # car_on_hill logs exploration only (as its pipeline); its demonstrator is still a candidate
+    return ds, prob, {"demonstrator": prob.demonstrator(), "exploration": prob.exploration()}
 
 
 def _side(lo: float, hi: float, b: float) -> str:
