@@ -235,7 +235,8 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
         elif not shift.get("enough_data"):
             doubts.append("the logs cannot show whether the policy stays within their support")
         if conv.get("verdict") not in ("converged", "finite horizon"):
-            doubts.append("the fit did not converge" if conv.get("verdict") in ("not converged", "diverged")
+            doubts.append("the fit diverged" if conv.get("verdict") in ("diverged", "diverging")
+                          else "the fit did not converge" if conv.get("verdict") in ("not converged", "still changing")
                           else "the fit's convergence is unknown")
         dis = _disagreeing(best, ranking)
         if dis:
