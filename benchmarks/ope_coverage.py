@@ -251,6 +251,9 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                   "contradicted_with_simulator": count("verdict", "contradicted"),
                   "contradicted_logs_only": count("verdict_logs_only", "contradicted"),
                   "unconfirmed_logs_only": count("verdict_logs_only", "unconfirmed"),
+                  # "not distinguishable" from the logs while the rollouts put the policy on one side
+                  "missed_logs_only": sum(r["verdict_logs_only"]["performance"] == "indistinguishable"
+                                          and r["truth_side"] in ("better", "worse") for r in rs),
                   "claims_logs_only": sum(r["verdict_logs_only"]["performance"] in ("better", "worse") for r in rs)}
     return out
 
@@ -261,13 +264,14 @@ def _fmt(x: Any) -> str:
 
 def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     lines = ["| problem | candidates | labelled share | headline coverage | per-estimator coverage (covered/labelled) "
-             "| contradicted (sim) | contradicted (logs only) | logs-only claims (unconfirmed) |", "|" + "---|" * 8]
+             "| contradicted (sim) | contradicted (logs only) | logs-only claims (unconfirmed) | logs-only 'not distinguishable', "
+             "truth one-sided |", "|" + "---|" * 9]
     for p, s in summary.items():
         per = ", ".join(f"{k.upper()} {v['covered']}/{v['labelled']}" for k, v in s["per_estimator"].items() if v["labelled"])
         lines.append(f"| {p} | {s['candidates']} | {_fmt(s['labelled_share'])} | {_fmt(s['headline_coverage'])} "
                      f"({s['headline_covered']}/{s['headline_labelled']}) | {per or 'none'} | "
                      f"{s['contradicted_with_simulator']} | {s['contradicted_logs_only']} | "
-                     f"{s['claims_logs_only']} ({s['unconfirmed_logs_only']}) |")
+                     f"{s['claims_logs_only']} ({s['unconfirmed_logs_only']}) | {s['missed_logs_only']} |")
     lines += ["", "| problem | seed | candidate | truth [95%] | behaviour logged | headline estimate [interval] | covers "
               "| verdict (sim) | verdict (logs only) |", "|" + "---|" * 9]
     for r in rows:
@@ -298,9 +302,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--candidates", nargs="+", default=None, help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole)")
     ap.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates of the IS family")
     ap.add_argument("--json", type=Path, default=None, help="write every row and the summary here")
+    ap.add_argument("--rows-from", type=Path, nargs="+", default=None,
+                    help="re-summarise the rows of earlier --json outputs instead of running")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    out = run_suite(args.problems, args.seeds, args.size, args.candidates, args.bootstrap)
+    if args.rows_from:
+        rows = [r for f in args.rows_from for r in json.loads(f.read_text())["rows"]]
+        out = {"size": None, "problems": list(dict.fromkeys(r["problem"] for r in rows)), "rows": rows,
+               "summary": summarise(rows), "estimator_names": ESTIMATOR_NAMES}
+    else:
+        out = run_suite(args.problems, args.seeds, args.size, args.candidates, args.bootstrap)
     print()
     print(table(out["summary"], out["rows"]))
     print(f"\n{time.perf_counter() - t0:.0f} s")
