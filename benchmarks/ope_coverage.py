@@ -129,6 +129,24 @@ def logs_and_problem(problem: str, size: str, seed: int) -> tuple[Any, Any, dict
     return ds, prob, {"demonstrator": prob.demonstrator(), "exploration": prob.exploration()}
 
 
+def _covers(iv: list[float] | None, truth: float) -> bool | None:
+    """Does the interval hold the truth (up to float rounding: a clipped bound equals the
+    possible range's end, which deterministic rollouts reach exactly)?"""
+    if iv is None:
+        return None
+    tol = 1e-9 * max(1.0, abs(truth))
+    return bool(iv[0] - tol <= truth <= iv[1] + tol)
+
+
+def _recover(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Recompute the coverage flags of stored rows (rows from older outputs)."""
+    for r in rows:
+        for e in r["estimators"].values():
+            e["covers"] = _covers(e["interval"], r["truth"])
+        r["headline_covers"] = None if r["headline"] is None else r["estimators"][r["headline"]]["covers"]
+    return rows
+
+
 def _side(lo: float, hi: float, b: float) -> str:
     return "better" if hi < b else "worse" if lo > b else "indistinguishable"
 
@@ -202,7 +220,7 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                 iv = e["interval"]
                 ests[e["name"]] = {"estimate": e["estimate"], "interval": iv, "tier": e["tier"],
                                    "labelled_95": e["tier"] == 0 and e.get("level") == 0.95,
-                                   "covers": None if iv is None else bool(iv[0] <= truth <= iv[1])}
+                                   "covers": _covers(iv, truth)}
             best = h["best"]
             row = {"problem": problem, "seed": seed, "candidate": name, "truth": truth, "truth_interval": [t_lo, t_hi],
                    "behaviour_logged": b, "truth_side": truth_side,
@@ -307,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if args.rows_from:
-        rows = [r for f in args.rows_from for r in json.loads(f.read_text())["rows"]]
+        rows = _recover([r for f in args.rows_from for r in json.loads(f.read_text())["rows"]])
         out = {"size": None, "problems": list(dict.fromkeys(r["problem"] for r in rows)), "rows": rows,
                "summary": summarise(rows), "estimator_names": ESTIMATOR_NAMES}
     else:
