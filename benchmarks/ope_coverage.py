@@ -259,7 +259,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                     c[0] += int(bool(e["covers"]))
                     c[1] += 1
         head = [r for r in rs if r["headline"] is not None and r["estimators"][r["headline"]]["labelled_95"]]
-        count = lambda key, what: sum(r[key]["check"] == what for r in rs)  # noqa: E731
+        count = lambda key, what, rs=rs: sum(r[key]["check"] == what for r in rs)  # noqa: E731
         out[p] = {"candidates": len(rs),
                   "labelled_share": len(head) / len(rs) if rs else None,
                   "headline_coverage": (sum(bool(r["headline_covers"]) for r in head) / len(head)) if head else None,
