@@ -150,66 +150,98 @@ def evaluate_run(
             note = ((note + "; ") if note else "") + (
                 f"the dataset does not record the options its {sim_name!r} problem was made with "
                 "(meta/info.json provenance.problem_options): the rollouts use the default problem")
-        rng = np.random.default_rng(seed)
-        metrics: dict[str, Any] = {"dataset": {"path": str(ds_path), "fingerprint": ds.fingerprint(),
-                                                                "transitions": len(ds), "episodes": len(ds.episode_ids),
-                                                                "sources": ds.source_counts()},
-                                   "algorithm": info.get("algorithm"), "simulator": sim_name, "seed": seed, "warnings": []}
-        if note:
-            metrics["simulator_note"] = note
-            metrics["warnings"].append(note)
-        states = demo_states = None
-        refs = {}
-        T = None
-        ope_horizon, target, start = horizon, None, None
-        from offline_adp.envs.gym import GymResetModel
-
-        if isinstance(problem, GymResetModel):
-            # the environment's own horizon: its registered time limit unless --horizon says otherwise;
-            # rollouts start from env.reset(), and the off-policy estimators target the same value
-            from offline_adp.evaluation.offpolicy import evaluation_horizon
-
-            target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
-            ope_horizon, start = target, f"env.reset() of {sim_name}"
-        if problem is not None:
-            from offline_adp.evaluation.offpolicy import evaluation_horizon
-
-            T, gamma, _ = evaluation_horizon(ds, horizon)
-            if target is not None:
-                T = target
-            say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
-            x0 = problem.initial_states(n_episodes, rng)
-            demonstrator = problem.demonstrator()  # None for a gymnasium environment
-            pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
-            ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
-            pol, demo = ro["policy"], ro.get("demonstrator")
-            metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
-                                  "horizon": T, "policy": _rollout_block(pol, problem)}
-            if demo is None:
-                metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
-            else:
-                metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
-                refs["demonstrator"] = demonstrator
-            states, demo_states = pol.states, (demo.states if demo is not None else None)
-            named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
-            if named:
-                metrics["named"] = named
-        res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                         policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
-                         task_map=task_map, target_horizon=target, start=start)
-        metrics.update(_offpolicy_block(res, ds))
-        if "rollout" in metrics:
-            truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
-            metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
-                f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
-            for name, r in res.estimates.items():
-                metrics["ope"][name]["rollout_error"] = r.estimate - truth
-        from offline_adp.evaluation.summary import headline
-
-        metrics["headline"] = headline(_finite(metrics), run)
+        metrics, res, states, demo_states = evaluation_metrics(
+            ds, policy, problem, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
+            n_episodes=n_episodes, n_boot=n_boot, n_boot_fqe=n_boot_fqe, fqe_params=fqe_params, horizon=horizon,
+            estimand=estimand, seed=seed, progress=say, task_map=task_map, run_dir=run)
         say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
         _write(run, metrics, res, ds, states, demo_states)
         return metrics
+
+
+def evaluation_metrics(
+    ds: TransitionDataset,
+    policy: Any,
+    problem: Any,
+    *,
+    sim_name: str | None = None,
+    ds_path: str | PathLike[str] | None = None,
+    algorithm: str | None = None,
+    note: str | None = None,
+    n_episodes: int = 500,
+    n_boot: int = 200,
+    n_boot_fqe: int | None = FQE_BOOTSTRAP_DEFAULT,
+    fqe_params: dict[str, Any] | None = None,
+    horizon: int | None = None,
+    estimand: str = "finite",
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+    task_map: TaskMap | None = None,
+    run_dir: str | PathLike[str] | None = None,
+) -> tuple[dict[str, Any], OffPolicyResult, list[np.ndarray] | None, list[np.ndarray] | None]:
+    """The metrics of :func:`evaluate_run` for ``policy`` on ``ds`` without a run directory:
+    ``(metrics, off-policy result, pi's rollout states, the demonstrator's)``. ``problem``
+    None: logs only. ``run_dir`` is read for the fit's convergence in the headline (None:
+    unknown). Used by ``evaluate_run`` and by ``benchmarks/ope_coverage.py``."""
+    say = progress or (lambda _m: None)
+    rng = np.random.default_rng(seed)
+    metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),
+                                           "transitions": len(ds), "episodes": len(ds.episode_ids),
+                                           "sources": ds.source_counts()},
+                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": []}
+    if note:
+        metrics["simulator_note"] = note
+        metrics["warnings"].append(note)
+    states = demo_states = None
+    refs = {}
+    T = None
+    ope_horizon, target, start = horizon, None, None
+    from offline_adp.envs.gym import GymResetModel
+
+    if isinstance(problem, GymResetModel):
+        # the environment's own horizon: its registered time limit unless --horizon says otherwise;
+        # rollouts start from env.reset(), and the off-policy estimators target the same value
+        from offline_adp.evaluation.offpolicy import evaluation_horizon
+
+        target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
+        ope_horizon, start = target, f"env.reset() of {sim_name}"
+    if problem is not None:
+        from offline_adp.evaluation.offpolicy import evaluation_horizon
+
+        T, gamma, _ = evaluation_horizon(ds, horizon)
+        if target is not None:
+            T = target
+        say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
+        x0 = problem.initial_states(n_episodes, rng)
+        demonstrator = problem.demonstrator()  # None for a gymnasium environment
+        pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
+        ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
+        pol, demo = ro["policy"], ro.get("demonstrator")
+        metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
+                              "horizon": T, "policy": _rollout_block(pol, problem)}
+        if demo is None:
+            metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
+        else:
+            metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
+            refs["demonstrator"] = demonstrator
+        states, demo_states = pol.states, (demo.states if demo is not None else None)
+        named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
+        if named:
+            metrics["named"] = named
+    res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
+                     policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
+                     task_map=task_map, target_horizon=target, start=start)
+    metrics.update(_offpolicy_block(res, ds))
+    if "rollout" in metrics:
+        truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+        metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
+            f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
+        for name, r in res.estimates.items():
+            metrics["ope"][name]["rollout_error"] = r.estimate - truth
+    from offline_adp.evaluation.summary import headline
+
+    metrics["headline"] = headline(_finite(metrics), run_dir)
+    return metrics, res, states, demo_states
 
 
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:

@@ -253,6 +253,10 @@ def ratios_by_classifier(
         here = np.flatnonzero(step == t)
         if not len(here) or not len(xp):
             continue
+        if min(len(here), len(xp)) < 2:  # the 2-fold cross-fit needs two of each; e.g. one rollout still alive
+            warnings.append(f"step {t}: {len(here)} data and {len(xp)} policy states: too few for a classifier, "
+                            "ratio left at 1")
+            continue
         X = np.vstack([obs[here], xp])
         y = np.r_[np.zeros(len(here)), np.ones(len(xp))]
         p = np.empty(len(y))

@@ -1,0 +1,342 @@
+"""Coverage suite: do the intervals labelled 95% cover the simulator's truth, and is any verdict contradicted?
+
+For each problem and data seed: simulate logs, fit a set of candidates of varied quality
+(FQI with varied settings, including poor ones, plus the behaviour's own components:
+the problem's demonstrator and exploration policies), and for each candidate
+
+- the **truth**: Monte-Carlo rollouts of the same estimand (the T-step discounted cost from
+  the problem's initial states, T and gamma as :func:`off_policy` declares them);
+- the **evaluation exactly as a user sees it**: the metrics of ``offline-adp evaluate``
+  (:func:`offline_adp.evaluation.run.evaluation_metrics`, the same builder as
+  :func:`evaluate_run`) and their headline (:func:`offline_adp.evaluation.summary.headline`);
+- per estimator: estimate, interval, whether it is labelled 95% (tier 0 "reliable" in
+  :func:`rank_estimators`) and whether it covers the truth;
+- the verdict with the simulator (the rollouts decide) and the **logs-only** verdict (the
+  same metrics without ``rollout`` and the classifier shift diagnostic, which need a
+  simulator; the off-policy estimates themselves do not depend on the simulator), each
+  checked against the truth: *contradicted* when it claims better (worse) while the
+  rollouts' 95% interval lies above (below) the behaviour's logged cost.
+
+The fit's convergence enters the verdict (from ``run.json``): each FQI candidate gets a
+run directory with its own fit verdict; the fixed policies (demonstrator, exploration)
+are recorded as ``converged`` ("a fixed policy, not fitted").
+
+Report per problem: coverage of every labelled interval (per estimator, and pooled over
+the headline estimator), the share of candidates whose headline has a labelled interval,
+and the verdicts contradicted (with and without the simulator).
+
+    python benchmarks/ope_coverage.py --problems path_tracking --seeds 1 --size small --json cov.json
+    python benchmarks/ope_coverage.py --problems path_tracking car_on_hill cartpole --seeds 1 2 --size full
+
+Sizes: ``tiny`` (the CI test), ``small``, ``medium``, ``full`` (path_tracking 100+100 logged
+episodes as ``offline-adp simulate path_tracking``, 500 truth rollouts). The gymnasium task
+(``cartpole``: CartPole-v1 through :class:`offline_adp.envs.gym.GymResetModel`, uniformly
+random logged actions, horizon 100) has no demonstrator; its candidates are the FQI fits,
+the logging policy and a hand-written balancing heuristic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.evaluation.run import _finite, evaluation_metrics
+from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
+
+#: (demonstration episodes, exploration episodes, truth rollouts, horizon cap or None). Horizons keep
+#: gamma^T < 0.01 so the evaluation takes the stationary FQE with its cheap structure-conditional
+#: bootstrap (offpolicy.TAIL_NEGLIGIBLE); a shorter T refits FQE per replicate (minutes per candidate).
+SIZES = {
+    "tiny": {"path_tracking": (10, 10, 40, None), "car_on_hill": (0, 60, 40, None), "cartpole": (0, 30, 40, 100)},
+    "small": {"path_tracking": (30, 30, 200, None), "car_on_hill": (0, 200, 200, None), "cartpole": (0, 60, 200, 100)},
+    "medium": {"path_tracking": (60, 60, 300, None), "car_on_hill": (0, 400, 300, None), "cartpole": (0, 100, 300, 100)},
+    "full": {"path_tracking": (100, 100, 500, None), "car_on_hill": (0, 1000, 500, None), "cartpole": (0, 200, 500, 100)},
+}
+#: FQI settings as the problem's pipeline uses them (pipelines/driving.toml, car_on_hill.toml)
+FIT = {"path_tracking": {"gamma": 0.95, "infeasible_cost": 50.0, "tol": 1e-3},
+       "car_on_hill": {"gamma": 0.95, "tol": 1e-3},
+       "cartpole": {"gamma": 0.95, "tol": 1e-3}}
+#: candidate name -> FQI settings on top of FIT (None: a fixed policy of the problem)
+CANDIDATES: dict[str, dict[str, Any] | None] = {
+    "fqi": {},
+    "fqi_5it": {"n_iterations": 5},
+    "fqi_1it": {"n_iterations": 1},
+    "fqi_leaf50": {"regressor_params": {"min_samples_leaf": 50}},
+    "fqi_linear": {"regressor": "linear"},
+    "fqi_knn": {"regressor": "knn"},
+    "demonstrator": None,
+    "exploration": None,
+}
+
+
+class _CartPole:
+    """CartPole-v1 as a logging problem: the gymnasium reset model plus what ``collect`` needs."""
+
+    name = "gym:CartPole-v1"
+
+    def __init__(self, horizon: int) -> None:
+        from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+        from offline_adp.envs.gym import GymResetModel
+
+        self.info = DatasetInfo(features=tuple(Feature(n) for n in ("cart_x", "cart_v", "pole", "pole_rate")),
+                                action_table=ActionTable.from_values([0.0, 1.0]), gamma=0.95, horizon=horizon)
+        self.model = GymResetModel("CartPole-v1", self.info)
+        self.horizon = horizon
+
+    def dataset_info(self, **_: Any) -> Any:
+        return self.info
+
+    def initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return self.model.initial_states(n, rng)
+
+    def step(self, states: np.ndarray, actions: np.ndarray, rng: np.random.Generator) -> Any:
+        return self.model.step(states, actions, rng)
+
+    def exploration(self) -> Any:
+        from offline_adp.policies import UniformPolicy
+
+        return UniformPolicy(2)
+
+    def heuristic(self) -> Any:
+        from offline_adp.policies import FunctionPolicy
+
+        return FunctionPolicy(lambda x, t=0: (np.asarray(x)[:, 2] + 0.5 * np.asarray(x)[:, 3] > 0).astype(np.int64), 2)
+
+
+def logs_and_problem(problem: str, size: str, seed: int) -> tuple[Any, Any, dict[str, Any]]:
+    """(dataset, simulator, fixed policies) for one problem and data seed."""
+    from offline_adp.envs import make_problem
+    from offline_adp.simulate import simulate
+
+    n_demo, n_expl, _, H = SIZES[size][problem]
+    if problem == "cartpole":
+        from offline_adp.rollout import collect
+
+        prob = _CartPole(H)
+        ds = collect(prob, prob.exploration(), n_expl, np.random.default_rng(seed), horizon=H, source="exploration")
+        return ds, prob.model, {"exploration": prob.exploration(), "heuristic": prob.heuristic()}
+    ds = simulate(problem, n_demo, n_expl, seed=seed, horizon=H)
+    prob = make_problem(problem, **({"horizon": H} if H is not None else {}))
+    # car_on_hill logs exploration only (as its pipeline); its demonstrator is still a candidate
+    return ds, prob, {"demonstrator": prob.demonstrator(), "exploration": prob.exploration()}
+
+
+def _covers(iv: list[float] | None, truth: float) -> bool | None:
+    """Does the interval hold the truth (up to float rounding: a clipped bound equals the
+    possible range's end, which deterministic rollouts reach exactly)?"""
+    if iv is None:
+        return None
+    tol = 1e-9 * max(1.0, abs(truth))
+    return bool(iv[0] - tol <= truth <= iv[1] + tol)
+
+
+def _recover(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Recompute the coverage flags of stored rows (rows from older outputs)."""
+    for r in rows:
+        for e in r["estimators"].values():
+            e["covers"] = _covers(e["interval"], r["truth"])
+        r["headline_covers"] = None if r["headline"] is None else r["estimators"][r["headline"]]["covers"]
+    return rows
+
+
+def _side(lo: float, hi: float, b: float) -> str:
+    return "better" if hi < b else "worse" if lo > b else "indistinguishable"
+
+
+def _check(performance: str, truth_side: str) -> str:
+    """'contradicted' (claimed the opposite side of the truth), 'unconfirmed' (claimed a side,
+    the truth cannot tell), 'agrees', or 'no claim'."""
+    if performance not in ("better", "worse"):
+        return "no claim" if performance != truth_side else "agrees"
+    if truth_side == performance:
+        return "agrees"
+    return "unconfirmed" if truth_side == "indistinguishable" else "contradicted"
+
+
+def _logs_only(m: dict[str, Any]) -> dict[str, Any]:
+    """The metrics a user without a simulator gets: no rollouts, no classifier ratios, no
+    reference-policy ratios (the off-policy estimates do not depend on them)."""
+    out = {k: v for k, v in m.items() if k not in ("rollout", "named", "headline")}
+    out["shift"] = {k: v for k, v in m["shift"].items() if k == "recursion"}
+    out["ope"] = {k: {kk: vv for kk, vv in v.items() if kk != "rollout_error"} for k, v in m["ope"].items()}
+    return out
+
+
+def _run_dir(tmp: Path, name: str, est: Any | None) -> Path:
+    """A run directory holding only what the headline reads: the fit's convergence verdict."""
+    d = tmp / name
+    (d / "model").mkdir(parents=True, exist_ok=True)
+    if est is None:
+        info = {"verdict": "converged", "verdict_message": "a fixed policy, not fitted"}
+    else:
+        info = {"verdict": getattr(est, "verdict_", None), "verdict_message": getattr(est, "verdict_message_", None)}
+    (d / "run.json").write_text(json.dumps(info))
+    (d / "config.json").write_text(json.dumps({"params": {"tol": getattr(est, "tol", None)}}))
+    return d
+
+
+def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str] | None = None,
+                        n_boot: int = 200, say: Any = print) -> list[dict[str, Any]]:
+    """One row per candidate (see the module docstring)."""
+    ds, sim, fixed = logs_and_problem(problem, size, seed)
+    n_truth = SIZES[size][problem][2]
+    names = list(candidates or [c for c in CANDIDATES if CANDIDATES[c] is not None or c in fixed])
+    if problem == "cartpole" and candidates is None:
+        names = [c for c in names if c != "demonstrator"] + ["heuristic"]
+    say(f"{problem} seed {seed}: {len(ds)} transitions, {len(ds.episode_ids)} episodes; candidates {names}")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in names:
+            t0 = time.perf_counter()
+            spec = CANDIDATES.get(name)
+            est = None
+            if spec is None:
+                policy = fixed[name]
+            else:
+                params = {**FIT[problem], **spec}
+                est = FittedQIteration(random_state=seed, **params).fit(ds)
+                policy = est.policy_
+            run = _run_dir(Path(tmp), name, est)
+            m, _res, _s, _d = evaluation_metrics(ds, policy, sim, sim_name=problem, n_episodes=n_truth, n_boot=n_boot,
+                                                 n_boot_fqe=None, seed=seed, run_dir=run)
+            m = _finite(m)
+            h = m["headline"]
+            lo_only = _logs_only(m)
+            h_logs = headline(lo_only, run)
+            ro = m["rollout"]["policy"]
+            truth, (t_lo, t_hi) = ro["mean_discounted_cost"], ro["interval"]
+            b = m["behaviour_value"]["mean"] if m.get("behaviour_value") else None
+            truth_side = _side(t_lo, t_hi, b) if b is not None else "unknown"
+            ests = {}
+            for e in h["ranking"]:
+                iv = e["interval"]
+                ests[e["name"]] = {"estimate": e["estimate"], "interval": iv, "tier": e["tier"],
+                                   "labelled_95": e["tier"] == 0 and e.get("level") == 0.95,
+                                   "covers": _covers(iv, truth)}
+            best = h["best"]
+            row = {"problem": problem, "seed": seed, "candidate": name, "truth": truth, "truth_interval": [t_lo, t_hi],
+                   "behaviour_logged": b, "truth_side": truth_side,
+                   "fit_verdict": None if est is None else est.verdict_,
+                   "headline": None if best is None else best["name"],
+                   "headline_estimate": None if best is None else best["estimate"],
+                   "headline_interval": None if best is None else best["interval"],
+                   "headline_covers": None if best is None else ests[best["name"]]["covers"],
+                   "estimators": ests,
+                   "verdict": {"performance": h["verdict"]["performance"], "text": h["verdict"]["text"],
+                               "check": _check(h["verdict"]["performance"], truth_side)},
+                   "verdict_logs_only": {"performance": h_logs["verdict"]["performance"], "text": h_logs["verdict"]["text"],
+                                         "check": _check(h_logs["verdict"]["performance"], truth_side)},
+                   "seconds": time.perf_counter() - t0}
+            rows.append(row)
+            say(f"  {name:13s} truth {truth:9.4g} [{t_lo:.4g}, {t_hi:.4g}]  headline "
+                + (f"{best['name'].upper()} {best['estimate']:.4g} [{best['interval'][0]:.4g}, {best['interval'][1]:.4g}] "
+                   f"{'covers' if row['headline_covers'] else 'MISSES'}" if best else "none labelled")
+                + f"  verdict {row['verdict']['performance']} ({row['verdict']['check']}), logs-only "
+                  f"{row['verdict_logs_only']['performance']} ({row['verdict_logs_only']['check']})  "
+                  f"{row['seconds']:.0f} s")
+    return rows
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per problem: coverage of labelled intervals (per estimator; pooled over the headline
+    estimator), share of candidates with a labelled headline, verdict checks."""
+    out: dict[str, Any] = {}
+    for p in dict.fromkeys(r["problem"] for r in rows):
+        rs = [r for r in rows if r["problem"] == p]
+        per: dict[str, list[int]] = {}
+        for r in rs:
+            for name, e in r["estimators"].items():
+                c = per.setdefault(name, [0, 0])
+                if e["labelled_95"]:
+                    c[0] += int(bool(e["covers"]))
+                    c[1] += 1
+        head = [r for r in rs if r["headline"] is not None and r["estimators"][r["headline"]]["labelled_95"]]
+        count = lambda key, what, rs=rs: sum(r[key]["check"] == what for r in rs)  # noqa: E731
+        out[p] = {"candidates": len(rs),
+                  "labelled_share": len(head) / len(rs) if rs else None,
+                  "headline_coverage": (sum(bool(r["headline_covers"]) for r in head) / len(head)) if head else None,
+                  "headline_covered": sum(bool(r["headline_covers"]) for r in head), "headline_labelled": len(head),
+                  "per_estimator": {k: {"covered": v[0], "labelled": v[1], "coverage": v[0] / v[1] if v[1] else None}
+                                    for k, v in per.items()},
+                  "contradicted_with_simulator": count("verdict", "contradicted"),
+                  "contradicted_logs_only": count("verdict_logs_only", "contradicted"),
+                  "unconfirmed_logs_only": count("verdict_logs_only", "unconfirmed"),
+                  # "not distinguishable" from the logs while the rollouts put the policy on one side
+                  "missed_logs_only": sum(r["verdict_logs_only"]["performance"] == "indistinguishable"
+                                          and r["truth_side"] in ("better", "worse") for r in rs),
+                  "claims_logs_only": sum(r["verdict_logs_only"]["performance"] in ("better", "worse") for r in rs)}
+    return out
+
+
+def _fmt(x: Any) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
+
+
+def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    lines = ["| problem | candidates | labelled share | headline coverage | per-estimator coverage (covered/labelled) "
+             "| contradicted (sim) | contradicted (logs only) | logs-only claims (unconfirmed) | logs-only 'not distinguishable', "
+             "truth one-sided |", "|" + "---|" * 9]
+    for p, s in summary.items():
+        per = ", ".join(f"{k.upper()} {v['covered']}/{v['labelled']}" for k, v in s["per_estimator"].items() if v["labelled"])
+        lines.append(f"| {p} | {s['candidates']} | {_fmt(s['labelled_share'])} | {_fmt(s['headline_coverage'])} "
+                     f"({s['headline_covered']}/{s['headline_labelled']}) | {per or 'none'} | "
+                     f"{s['contradicted_with_simulator']} | {s['contradicted_logs_only']} | "
+                     f"{s['claims_logs_only']} ({s['unconfirmed_logs_only']}) | {s['missed_logs_only']} |")
+    lines += ["", "| problem | seed | candidate | truth [95%] | behaviour logged | headline estimate [interval] | covers "
+              "| verdict (sim) | verdict (logs only) |", "|" + "---|" * 9]
+    for r in rows:
+        iv = r["headline_interval"]
+        est = (f"{r['headline'].upper()} {r['headline_estimate']:.3g} [{iv[0]:.3g}, {iv[1]:.3g}]" if r["headline"]
+               else "none labelled")
+        lines.append(f"| {r['problem']} | {r['seed']} | {r['candidate']} | {r['truth']:.3g} "
+                     f"[{r['truth_interval'][0]:.3g}, {r['truth_interval'][1]:.3g}] | {r['behaviour_logged']:.3g} | {est} | "
+                     f"{'-' if r['headline_covers'] is None else 'yes' if r['headline_covers'] else 'NO'} | "
+                     f"{r['verdict']['performance']} ({r['verdict']['check']}) | "
+                     f"{r['verdict_logs_only']['performance']} ({r['verdict_logs_only']['check']}) |")
+    return "\n".join(lines)
+
+
+def run_suite(problems: list[str], seeds: list[int], size: str, candidates: list[str] | None = None,
+              n_boot: int = 200, say: Any = print) -> dict[str, Any]:
+    rows = [r for p in problems for s in seeds for r in evaluate_candidates(p, size, s, candidates, n_boot, say)]
+    return {"size": size, "problems": problems, "seeds": seeds, "summary": summarise(rows), "rows": rows,
+            "estimator_names": ESTIMATOR_NAMES}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--problems", nargs="+", default=["path_tracking", "car_on_hill", "cartpole"],
+                    choices=["path_tracking", "car_on_hill", "cartpole"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[1])
+    ap.add_argument("--size", choices=list(SIZES), default="small")
+    ap.add_argument("--candidates", nargs="+", default=None, help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole)")
+    ap.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates of the IS family")
+    ap.add_argument("--json", type=Path, default=None, help="write every row and the summary here")
+    ap.add_argument("--rows-from", type=Path, nargs="+", default=None,
+                    help="re-summarise the rows of earlier --json outputs instead of running")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    if args.rows_from:
+        rows = _recover([r for f in args.rows_from for r in json.loads(f.read_text())["rows"]])
+        out = {"size": None, "problems": list(dict.fromkeys(r["problem"] for r in rows)), "rows": rows,
+               "summary": summarise(rows), "estimator_names": ESTIMATOR_NAMES}
+    else:
+        out = run_suite(args.problems, args.seeds, args.size, args.candidates, args.bootstrap)
+    print()
+    print(table(out["summary"], out["rows"]))
+    print(f"\n{time.perf_counter() - t0:.0f} s")
+    if args.json:
+        args.json.write_text(json.dumps(_finite(out), indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
