@@ -4,6 +4,7 @@ fingerprint, damaged MCAP chunks) claim, checked against ground truth known by c
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -259,3 +260,20 @@ def test_a_lost_chunk_without_message_index_is_said_to_be_uncounted(tmp_path):
     assert 1 <= summary["episodes_lost_to_damage"] <= len(lost)
     _, summary = ingest_mcap([indexed], SPEC, tmp_path / "q3", on_error="quarantine")
     assert summary["lost_chunks_uncounted"] == 0 and summary["episodes_lost_to_damage"] == len(held)
+
+
+@pytest.mark.parametrize("kind", ["dev_zero", "directory", "huge", "binary"])
+def test_load_mcap_spec_reads_only_a_bounded_regular_text_file(tmp_path, kind):
+    from offline_adp.errors import SpecError
+    from offline_adp.ingest.mcap.spec import load_mcap_spec
+
+    target = {"dev_zero": "/dev/zero", "directory": str(tmp_path)}.get(kind)
+    if kind == "huge":
+        target = str(tmp_path / "huge.toml")
+        with open(target, "wb") as f:
+            f.truncate(64 * 2**20)
+    if kind == "binary":
+        target = str(tmp_path / "bin.toml")
+        Path(target).write_bytes(b"\xff\xfe\x00bad")
+    with pytest.raises(SpecError, match=re.escape(str(Path(target).name)) if kind != "dev_zero" else "zero"):
+        load_mcap_spec(target)

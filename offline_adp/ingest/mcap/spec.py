@@ -274,9 +274,17 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
 
 
 def load_mcap_spec(path: str | PathLike[str]) -> McapSpec:
+    """Read and check an MCAP ingestion spec (a regular file of bounded size, read by the
+    one configuration reader, :func:`offline_adp.config.read_config_bytes`)."""
+    from offline_adp.config import read_config_bytes
+
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = read_config_bytes(path, "ingestion spec")
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise SpecError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         return parse_mcap_spec(tomllib.loads(text), text, str(path), base_dir=str(path.parent))
     except FileNotFoundError:
         raise SpecError(f"{path}: no such spec file") from None
