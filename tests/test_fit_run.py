@@ -35,9 +35,13 @@ def _checkpoint_iteration(run) -> int:
 
 
 def test_killed_fit_resumes_to_the_uninterrupted_result(tmp_path, pt_dir):
-    ref = fit_run(pt_dir, tmp_path / "ref", params=PARAMS)
+    # refit: every iteration grows its trees, so the kill lands inside the run even when this
+    # process is starved of CPU (frozen iterations between builds take milliseconds: on a loaded
+    # machine the fit reached its 25th checkpoint before the kill; frozen resume: test_fqi_resume)
+    ref = fit_run(pt_dir, tmp_path / "ref", params={**PARAMS, "mode": "refit"})
     cfg = tmp_path / "fqi.toml"
-    cfg.write_text('[fqi]\nn_iterations = 25\nrandom_state = 3\n[fqi.regressor_params]\nn_estimators = 30\nn_jobs = 1\n')
+    cfg.write_text('[fqi]\nn_iterations = 25\nmode = "refit"\nrandom_state = 3\n'
+                   '[fqi.regressor_params]\nn_estimators = 30\nn_jobs = 1\n')
     run = tmp_path / "run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "offline_adp", "fit", str(pt_dir), "--config", str(cfg), "--out", str(run), "-q"], env=env)

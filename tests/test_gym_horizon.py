@@ -90,3 +90,24 @@ def test_horizon_flag_overrides_the_time_limit(cartpole_run):
     assert p["mean_discounted_cost"] == pytest.approx(-(1 - 0.99**20) / (1 - 0.99), rel=1e-9)
     assert m["estimand"]["horizon"] == 20 and "over 20 steps from env.reset()" in m["estimand"]["quantity"]
     assert all(o["comparable"] is not False for o in m["ope"].values())  # 20 <= the logged horizon: all see it
+
+
+def test_a_stationary_fqe_past_the_horizons_range_by_less_than_its_truncation_bound_is_usable():
+    """A policy that balances forever: the stationary FQE reads about the infinite-horizon
+    value (-1 / (1 - 0.99) = -100), below the 500-step floor (-99.34) by less than the
+    truncation bound; it is reported at the floor and ranks as usable, not "outside the
+    possible range". Farther out than the bound, it is left as it is (and not usable)."""
+    from offline_adp.evaluation import ope
+    from offline_adp.evaluation.offpolicy import Estimand, stationary_onto_range
+    from offline_adp.evaluation.summary import rank_estimators
+
+    gamma, H = 0.99, 500
+    floor = -float(np.sum(gamma ** np.arange(H)))
+    est = Estimand(H, gamma, "finite", "stationary", gamma**H / (1 - gamma), "t", (floor, 0.0))
+    for value, moved in ((-99.89, True), (floor - 2 * est.tail_bound, False)):
+        r = ope.OPEResult("fqe", value, (value - 0.5, -99.2), 100.0, 0.95)
+        stationary_onto_range(r, est)
+        assert (r.estimate == floor) is moved
+        m = {"estimand": {"possible_range": [floor, 0.0]},
+             "ope": {"fqe": {"estimate": r.estimate, "interval": [floor, -99.2], "level": 0.95}}}
+        assert (rank_estimators(m)[0]["tier"] == 0) is moved

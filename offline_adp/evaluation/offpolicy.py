@@ -155,6 +155,23 @@ def clip_to_range(r: ope.OPEResult, rng: tuple[float, float]) -> None:
         r.interval_method += f"; clipped to the possible range [{rng[0]:.4g}, {rng[1]:.4g}]"
 
 
+def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> None:
+    """The stationary FQE estimates the infinite-horizon value, within ``tail_bound`` of the
+    T-step one. Past the T-step range by no more than that, the estimate is moved onto the
+    range's edge (a policy that balances CartPole forever reads -99.89 against a 500-step
+    floor of -99.34), with a warning, instead of being called impossible."""
+    if not (est_def.fqe_form == "stationary" and est_def.tail_bound > 0 and est_def.possible_range
+            and np.isfinite(fq.estimate)):
+        return
+    lo_r, hi_r = est_def.possible_range
+    near = min(max(fq.estimate, lo_r), hi_r)
+    if near != fq.estimate and abs(near - fq.estimate) <= est_def.tail_bound + 1e-9 * max(1.0, abs(near)):
+        fq.warnings.append(f"the stationary estimate {fq.estimate:.4g} lies past the {est_def.horizon}-step range by "
+                           f"less than the truncation bound {est_def.tail_bound:.3g}: reported at the range's edge "
+                           f"{near:.4g}")
+        fq.estimate = near
+
+
 def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level: float = 0.95) -> dict[str, Any]:
     """The logged behaviour's own value of the estimand: mean over episodes of
     ``sum_{t<T} gamma^t c_t`` with a normal-approximation interval."""
@@ -527,6 +544,7 @@ def off_policy(
     for name, r in estimates.items():
         sees_h = not beyond or (name == "fqe" and est_def.fqe_form == "stationary")
         clip_to_range(r, est_def.possible_range if sees_h else logged_range)
+    stationary_onto_range(estimates["fqe"], est_def)
     if beyond:
         for name, r in estimates.items():
             if name == "fqe" and est_def.fqe_form == "stationary":
