@@ -1,4 +1,4 @@
-"""Helpers shared by the fuzz tests."""
+"""Helpers shared by the fuzz and hostile-input tests."""
 
 from __future__ import annotations
 
@@ -26,3 +26,27 @@ def edit_json_path(doc: Any, path: tuple, value: Any, delete: bool) -> None:
         del parent[path[-1]]
     else:
         parent[path[-1]] = value
+
+
+def peak_cli(*args: str, timeout: int = 300) -> tuple[Any, float]:
+    """Run the CLI in a child process; returns (the CompletedProcess, the child's own peak
+    RSS in MB). The peak is the child's VmHWM: ``ru_maxrss`` is not its own, since Linux
+    carries the parent's high-water mark across fork/exec (a large pytest worker counted)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import resource, runpy, sys\n"
+            f"sys.argv = ['offline-adp', *{list(args)!r}]\n"
+            "try:\n    runpy.run_module('offline_adp', run_name='__main__')\n"
+            "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
+            "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
+            "kb = int(hwm[0].split()[1]) if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+            "sys.stderr.write('PEAK_KB=%d\\n' % kb)\n"
+            "sys.exit(code)\n")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=timeout)
+    peak = [ln for ln in r.stderr.splitlines() if ln.startswith("PEAK_KB=")]
+    assert peak, r.stderr[-2000:]
+    return r, int(peak[-1].split("=")[1]) / 1024

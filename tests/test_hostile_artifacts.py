@@ -20,6 +20,7 @@ import pytest
 import offline_adp
 from offline_adp.artifacts import load_index_policy, load_q
 from offline_adp.errors import ArtifactError, OfflineADPError, SchemaError
+from tests.fuzz_util import peak_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 PEAK_LIMIT_MB = 500
@@ -31,23 +32,7 @@ def _cli(*args: str, cwd: Path | None = None, timeout: int = 300) -> subprocess.
                           cwd=cwd, timeout=timeout)
 
 
-def _peak_cli(*args: str, timeout: int = 300) -> tuple[subprocess.CompletedProcess, float]:
-    """Run the CLI in a child process; returns (result, the child's peak RSS in MB)."""
-    code = ("import resource, runpy, sys\n"
-            f"sys.argv = ['offline-adp', *{list(args)!r}]\n"
-            "try:\n    runpy.run_module('offline_adp', run_name='__main__')\n"
-            "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
-            # VmHWM: this process's own peak. ru_maxrss is not: Linux carries the parent's
-            # high-water mark across fork/exec, so a large pytest worker would count here
-            "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
-            "kb = int(hwm[0].split()[1]) if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
-            "sys.stderr.write('PEAK_KB=%d\\n' % kb)\n"
-            "sys.exit(code)\n")
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=timeout)
-    peak = [ln for ln in r.stderr.splitlines() if ln.startswith("PEAK_KB=")]
-    assert peak, r.stderr[-2000:]
-    return r, int(peak[-1].split("=")[1]) / 1024
+_peak_cli = peak_cli
 
 
 def _one_clear_line(r: subprocess.CompletedProcess, *needles: str) -> str:

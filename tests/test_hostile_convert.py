@@ -22,6 +22,7 @@ from offline_adp.data.info import Action, ActionTable
 from offline_adp.data.validate import validate
 from offline_adp.errors import IngestError, OfflineADPError, SchemaError
 from offline_adp.formats import ACTION_VALUE, from_d4rl, from_minari, save_d4rl, to_d4rl
+from tests.fuzz_util import peak_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 PEAK_LIMIT_MB = 500
@@ -38,23 +39,7 @@ def _cli(*args: str, timeout: int = 300, env_extra: dict | None = None) -> subpr
                           timeout=timeout)
 
 
-def _peak_cli(*args: str, timeout: int = 300) -> tuple[subprocess.CompletedProcess, float]:
-    """The CLI in a child process; returns (result, its peak RSS in MB)."""
-    code = ("import resource, runpy, sys\n"
-            f"sys.argv = ['offline-adp', *{list(args)!r}]\n"
-            "try:\n    runpy.run_module('offline_adp', run_name='__main__')\n"
-            "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
-            # VmHWM: this process's own peak. ru_maxrss is not: Linux carries the parent's
-            # high-water mark across fork/exec, so a large pytest worker would count here
-            "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM:')]\n"
-            "kb = int(hwm[0].split()[1]) if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
-            "sys.stderr.write('PEAK_KB=%d\\n' % kb)\n"
-            "sys.exit(code)\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=timeout)
-    peak = [ln for ln in r.stderr.splitlines() if ln.startswith("PEAK_KB=")]
-    assert peak, r.stderr[-2000:]
-    return r, int(peak[-1].split("=")[1]) / 1024
+_peak_cli = peak_cli
 
 
 def _one_line_error(r: subprocess.CompletedProcess, *needles: str) -> str:
