@@ -79,3 +79,14 @@ def test_equal_up_to_rounding_is_not_a_side():
          "ope": {"fqe": {"estimate": b * (1 - 1e-15), "interval": [b * (1 - 1e-15), b * (1 - 1e-15)], "level": 0.95}},
          "rollout": {"policy": {"mean_discounted_cost": b * (1 + 1e-15), "interval": [b * (1 + 1e-15)] * 2}}}
     assert _v(m)["performance"] == "indistinguishable"
+
+
+def test_the_report_colour_follows_the_weakest_clause():
+    from offline_adp.evaluation.report import verdict_colour
+
+    conv, stale = {"verdict": "converged"}, {"verdict": "still changing"}
+    assert verdict_colour({"performance": "better", "support_left": False}, conv) == "good"
+    assert verdict_colour({"performance": "better", "support_left": True}, conv) == "meh"
+    assert verdict_colour({"performance": "better", "support_left": False}, stale) == "meh"
+    assert verdict_colour({"performance": "unknown", "support_left": False}, conv) == "meh"
+    assert verdict_colour({"performance": "worse", "support_left": True}, stale) == "bad"

@@ -424,9 +424,22 @@ def _build(run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[st
     (tmp / "report.html").write_text(_html(m, h, figs, _title(run, m), csv))
 
 
+def verdict_colour(v: dict[str, Any], conv: dict[str, Any]) -> str:
+    """The verdict box's colour follows the weakest of its clauses: green ("good") only for
+    a policy better than the behaviour that stayed within the data's support and whose fit
+    converged; red ("bad") for worse; amber ("meh") for everything in between, so a doubt
+    in the same sentence is never painted green."""
+    if v.get("performance") == "worse":
+        return "bad"
+    ok = conv.get("verdict") in ("converged", "finite horizon", "completed")
+    if v.get("performance") == "better" and not v.get("support_left") and ok:
+        return "good"
+    return "meh"
+
+
 def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
     v, b, sh, cv = h["verdict"], h["best"], h["shift"], h["convergence"]
-    cls = {"better": "good", "worse": "bad"}.get(v["performance"], "meh")
+    cls = verdict_colour(v, cv)
     text = v["text"][:1].upper() + v["text"][1:]
     rows = [f"<p class='verdict {cls}'>{html.escape(text)}</p>", "<table class='kv'>"]
 
