@@ -736,8 +736,7 @@ def _run(args: argparse.Namespace) -> int:
         from offline_adp.progress import apply_logging_options
 
         apply_logging_options(args)
-        with _cleaning_outputs(args):
-            return int(args.func(args))
+        return int(args.func(args))
     except OfflineADPError as exc:
         if args.traceback:
             raise
@@ -773,15 +772,6 @@ def _output_of(args: argparse.Namespace) -> str | None:
         if isinstance(value, str):
             return value
     return None
-
-
-def _cleaning_outputs(args: argparse.Namespace):
-    """Whatever fails, no temporary of the command's output files is left behind (the
-    writers clean their own; this catches those of writers that do not)."""
-    from offline_adp.data.io import removing_new_temporaries
-
-    outs = [getattr(args, n, None) for n in ("out", "json")]
-    return removing_new_temporaries(*[o for o in outs if isinstance(o, str)])
 
 
 if __name__ == "__main__":

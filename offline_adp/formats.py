@@ -49,6 +49,7 @@ import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.data.io import atomic_file
 from offline_adp.errors import IngestError, OfflineADPError
 from offline_adp.progress import get_logger
 
@@ -348,10 +349,8 @@ def to_d4rl(ds: TransitionDataset) -> dict[str, np.ndarray]:
 def save_d4rl(ds: TransitionDataset, path: str | PathLike[str]) -> Path:
     """Write :func:`to_d4rl` arrays to an ``.npz`` file (atomically; loads without pickle)."""
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp.npz")
-    np.savez(tmp, **to_d4rl(ds))
-    os.replace(tmp, out)
+    with atomic_file(out, what="D4RL file") as tmp, open(tmp, "wb") as f:  # a handle: np.savez adds no suffix
+        np.savez(f, **to_d4rl(ds))
     log.info("wrote %s: %d transitions (D4RL arrays)", out, len(ds))
     return out
 

@@ -37,13 +37,13 @@ whose Q-values tie to that precision.
 from __future__ import annotations
 
 import json
-import os
 from os import PathLike
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from offline_adp.data.io import atomic_file
 from offline_adp.errors import OfflineADPError
 from offline_adp.progress import get_logger
 
@@ -446,10 +446,8 @@ def save_onnx(policy: Any, path: str | PathLike[str], signature: Any = None, *, 
     """Write ``policy`` as an ONNX model to ``path`` (atomically); see :func:`policy_to_onnx`."""
     model = policy_to_onnx(policy, signature, input_dtype=input_dtype)
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_bytes(model.SerializeToString())
-    os.replace(tmp, out)
+    with atomic_file(out, what="ONNX file") as tmp:  # the temporary removed whatever happens
+        tmp.write_bytes(model.SerializeToString())
     log.info("wrote %s (%d nodes, %.1f kB)", out, len(model.graph.node), out.stat().st_size / 1e3)
     return out
 

@@ -211,7 +211,7 @@ def test_raw_os_errors_elsewhere_are_one_line_naming_the_path(capsys, monkeypatc
 
 def test_temporaries_of_writers_that_do_not_clean_up_are_removed(tmp_path, capsys, monkeypatch, inputs):
     """``convert --to d4rl`` and ``export`` write ``.NAME.tmp*`` then rename: a failed
-    rename used to leave the temporary."""
+    rename used to leave the temporary (both now write through ``atomic_file``)."""
     real = os.replace
 
     def failing(src, dst, *a, **k):

@@ -287,31 +287,6 @@ def atomic_write_text(target: str | PathLike[str], text: str, *, what: str = "fi
     return Path(target)
 
 
-@contextlib.contextmanager
-def removing_new_temporaries(*targets: str | PathLike[str] | None) -> Iterator[None]:
-    """On failure inside the block, remove the temporaries (``.NAME.tmp*``) that appeared
-    next to each of ``targets`` during it: what a writer that does not clean up after
-    itself (a converter, an exporter) left. Temporaries there before the block are kept."""
-    paths = [Path(t) for t in targets if t is not None]
-
-    def temporaries() -> set[Path]:
-        found: set[Path] = set()
-        for t in paths:
-            with contextlib.suppress(OSError):
-                if t.parent.is_dir():
-                    found.update(t.parent.glob(glob.escape(f".{t.name}.tmp") + "*"))
-        return found
-
-    before = temporaries()
-    try:
-        yield
-    except BaseException:
-        for p in temporaries() - before:
-            with contextlib.suppress(OSError):
-                _remove(p)
-        raise
-
-
 def write_json(path: Path, obj: Any) -> None:
     from offline_adp.data.info import _json_default
 
