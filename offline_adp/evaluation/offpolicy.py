@@ -24,7 +24,7 @@ from offline_adp.evaluation.behaviour import (
     support_violations,
 )
 from offline_adp.parallel import TaskMap, local_map
-from offline_adp.policies import Policy
+from offline_adp.policies import Policy, is_stationary
 
 #: FQE settings for evaluation: the frozen-structure fast path keeps bootstrap refits cheap.
 #: Ernst's extra-trees defaults matter: larger leaves average Q over actions and bias FQE
@@ -199,12 +199,9 @@ def fqe_replicates(requested: int | None, cheap: bool) -> int:
 
 
 def _stationary_on(policy: Policy, obs: np.ndarray, T: int) -> bool:
-    """Whether ``policy`` gives the same probabilities at every step on (a sample of) the data's states."""
-    if getattr(policy, "time_varying", False):
-        return False
-    x = obs[: min(len(obs), 2000)]
-    p0 = policy.probabilities(x, 0)
-    return all(np.allclose(policy.probabilities(x, t), p0) for t in sorted({1, T // 2, T - 1}) if 0 < t < T)
+    """Whether ``policy`` gives the same probabilities at every step t < T on the data's
+    states (:func:`offline_adp.policies.is_stationary`: declared, else probed)."""
+    return is_stationary(policy, obs, T)
 
 
 def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None = None, form: str = "finite", *,
@@ -393,7 +390,7 @@ def tabular_fqe_replicates(obs: np.ndarray, action: np.ndarray, cost: np.ndarray
     boot = gamma * (1.0 - terminated.astype(np.float64))
     Q = np.zeros((len(W), K * A))  # Q_T = 0
     next_idx = nsid[:, None] * A + np.arange(A)[None, :]  # (n, A)
-    stationary = getattr(policy, "time_varying", True) is False  # then pi(. | x', t) is computed once
+    stationary = is_stationary(policy, next_obs, horizon)  # then pi(. | x', t) is computed once
     pi_once = policy.probabilities(next_obs, 1) if stationary else None
     for t in range(horizon - 1, -1, -1):
         pi_next = pi_once if stationary else policy.probabilities(next_obs, t + 1)
