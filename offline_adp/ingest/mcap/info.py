@@ -155,13 +155,7 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
                             "summary": _has_summary(path), "compression": sorted(report.get("compression", set())),
                             "topics": out_topics, "scanned": True, "messages": report.get("messages", 0)}
     info["indexed"] = info["summary"]
-    if lo is not None:
-        info["time_range_ns"] = [lo, hi]
-    if report.get("empty"):
-        info["damage"] = "empty file (0 bytes)"
-    elif (text := damage_text(path, report)):
-        info["damage"] = text
-    return info
+    return _with_range_and_damage(info, path, report, lo, hi)
 
 
 def info_inputs(files: list[str | PathLike[str]]) -> list[Path]:
@@ -243,11 +237,18 @@ def rosbag_info(path: str | PathLike[str]) -> dict[str, Any]:
                             "summary": not scanned, "compression": sorted(report.get("compression", set())),
                             "topics": out_topics, "scanned": scanned, "messages": report.get("messages", 0),
                             "indexed": not scanned}
+    return _with_range_and_damage(info, bag, report, lo, hi)
+
+
+def _with_range_and_damage(info: dict[str, Any], path: Path, report: dict[str, Any], lo: int | None,
+                           hi: int | None) -> dict[str, Any]:
+    """``info`` with the time range of what was read and the one-line damage report, if any
+    (the end of every description, an MCAP file's or a bag's)."""
     if lo is not None:
         info["time_range_ns"] = [lo, hi]
     if report.get("empty"):
         info["damage"] = "empty file (0 bytes)"
-    elif (text := damage_text(bag, report)):
+    elif (text := damage_text(path, report)):
         info["damage"] = text
     return info
 
