@@ -103,3 +103,15 @@ def test_labelled_intervals_cover_over_seeds():
                     hits.append(r.interval[0] <= J <= r.interval[1])
     assert withheld > 0 and len(hits) >= 30
     assert np.mean(hits) >= 0.85, (np.mean(hits), len(hits))
+
+
+def test_a_mean_weight_far_from_1_withholds_only_unnormalised_intervals():
+    """WIS, WPDIS and WDR divide by the weights' sum: their scale cancels, so a mean weight of
+    0.5 says nothing against them (it did withhold them: the flag was ignored)."""
+    from offline_adp.evaluation.ope import interval_unreliable, weight_diagnostics
+
+    rng = np.random.default_rng(0)
+    w = 0.5 * rng.uniform(0.8, 1.2, 400)  # well shaped, scaled to mean 0.5
+    d = weight_diagnostics(w[:, None])
+    assert interval_unreliable(d, normalised=True) == []
+    assert any("average" in r for r in interval_unreliable(d, normalised=False))

@@ -308,7 +308,7 @@ def interval_unreliable(d: dict[str, Any], *, normalised: bool) -> list[str]:
     if np.isfinite(k) and k > MAX_PARETO_K or np.isinf(k):
         why.append(f"the weights' upper tail is heavy (Pareto k {k:.2f} > {MAX_PARETO_K})")
     err = abs(d["mean"] - 1.0)
-    if err > MAX_MEAN_WEIGHT_ERROR and err > 3 * d["mean_se"]:
+    if not normalised and err > MAX_MEAN_WEIGHT_ERROR and err > 3 * d["mean_se"]:  # a scale normalising cancels
         why.append(f"the weights average {d['mean']:.3g}, not 1 (standard error {d['mean_se']:.2g}): the trajectories "
                    "the policy would take are missing from the logs, and the estimate is scaled down by their absent "
                    "weight")
