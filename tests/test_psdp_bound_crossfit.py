@@ -46,3 +46,25 @@ def test_in_sample_option_still_available():
     ds, pi, ref, _ = _case(0, n=100)
     res = off_policy(ds, pi, fqe_params=TABULAR_FQE, ratio_regressor="tabular", n_boot=0, n_boot_fqe=0, psdp_folds=0)
     assert res.eps_folds == 0 and np.array_equal(res.eps, res.eps_in_sample)
+
+
+def test_a_fold_that_cannot_be_fitted_is_our_error_not_a_traceback(monkeypatch):
+    """per_action FQE on a fold that lacks a rare action raised a bare ValueError through the
+    CLI; the cross-fit says which fold, and off_policy then reports eps as not measured."""
+    import numpy as np
+
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.envs import make_problem
+    from offline_adp.evaluation import offpolicy
+    from offline_adp.simulate import simulate
+
+    ds = simulate("tabular", 10, 10, seed=0)
+    pol = make_problem("tabular").demonstrator()
+
+    def fail(self, dataset, *a, **k):
+        raise ValueError("action 2 never occurs in the data")
+
+    monkeypatch.setattr(FittedQEvaluation, "fit", fail)
+    ep = np.unique(np.asarray(ds.arrays().episode), return_inverse=True)[1]
+    with pytest.raises(offpolicy.CrossFitError, match="fold 1 of 2: action 2 never occurs"):
+        offpolicy.crossfit_residual_advantage(ds, pol, {"regressor": "tabular"}, None, 0.9, 5, ep, folds=2)

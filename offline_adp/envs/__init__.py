@@ -39,7 +39,7 @@ def make_problem(name: str, **kwargs: Any) -> ReferenceProblem:
     cls = problem_class(name)
     try:
         return cls(**kwargs)
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:  # unknown keys, or values the problem refuses (n_states = -3)
         raise UnknownNameError(f"problem {name!r}: bad options {sorted(kwargs)} ({exc})") from None
 
 
@@ -56,7 +56,13 @@ def recorded_problem_options(info: Any) -> dict[str, Any] | None:
     """
     from offline_adp.errors import ArtifactError
 
-    prov = dict(getattr(info, "provenance", None) or {})
+    from offline_adp.errors import ArtifactError as _Bad
+
+    prov = getattr(info, "provenance", None) or {}
+    if not isinstance(prov, dict) or not isinstance(prov.get("parts", []) or [], list):
+        raise _Bad("meta/info.json: provenance must be an object (with parts, if any, a list); "
+                   f"found {type(prov).__name__}")
+    prov = dict(prov)
     problem = getattr(info, "problem", None)
     if not problem:
         return None

@@ -55,6 +55,7 @@ class OffPolicyResult:
     per_step_counts: np.ndarray | None = None
     #: eps_t measured with the FQE fitted on all the data (0 for a policy greedy in it): for reference only.
     eps_in_sample: np.ndarray | None = None
+    eps_note: str | None = None  #: why eps could not be measured out of sample (then NaN)
     #: Folds of the cross-fitted ``eps`` (0: measured in sample).
     eps_folds: int = 0
 
@@ -271,6 +272,10 @@ def episode_groups(ds: TransitionDataset, em: ope.EpisodeMatrix) -> np.ndarray |
     return out.astype(str)
 
 
+class CrossFitError(ValueError):
+    """A held-out fold of the PSDP epsilon could not be fitted."""
+
+
 def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
                                 gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
                                 seed: int = 0) -> np.ndarray:
@@ -296,7 +301,10 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
         held = row_fold == f
         train = np.flatnonzero(~held)
         fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **fqe_params)
-        fqe.fit(ds.take(train))
+        try:
+            fqe.fit(ds.take(train))
+        except ValueError as exc:  # a fold the settings cannot fit on (per_action: an action it lacks)
+            raise CrossFitError(f"fold {f + 1} of {k}: {exc}") from None
         if fqe_params.get("mode") == "frozen" and fqe_T is None and not fqe_params.get("validation_fraction"):
             fqe.settle()  # as the estimate's own FQE
         qv = fqe.q_function_.values(a.obs[held], a.step[held])
@@ -522,9 +530,14 @@ def off_policy(
     ope.flag_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     eps_in_sample = residual_advantage(qv, target, a.step, gamma, T)
+    eps_note = None
     if psdp_folds:
         say("PSDP eps, cross-fitted")
-        eps = crossfit_residual_advantage(ds, policy, params, fqe_T, gamma, T, em.row_episode, folds=psdp_folds, seed=seed)
+        try:
+            eps = crossfit_residual_advantage(ds, policy, params, fqe_T, gamma, T, em.row_episode, folds=psdp_folds,
+                                              seed=seed)
+        except CrossFitError as exc:  # no out-of-sample eps: the bound is unknown (the in-sample one is 0 by construction)
+            eps, eps_note = np.full(T, np.nan), f"not measured: {exc}"
     else:
         eps = eps_in_sample
     lo_c, hi_c = float(a.cost.min()), float(a.cost.max())
@@ -556,7 +569,7 @@ def off_policy(
                                      "trajectory estimators cannot see past the logged horizon")
                 r.comparable = False
     res = OffPolicyResult(gamma, T, beh, estimates, ratios, diag, support, eps, fqe, estimand=est_def,
-                          eps_in_sample=eps_in_sample, eps_folds=int(psdp_folds or 0),
+                          eps_in_sample=eps_in_sample, eps_folds=int(psdp_folds or 0), eps_note=eps_note,
                           behaviour_value=behaviour_value(em, a.cost, gamma, level),
                           per_step_counts=shift.per_step_counts(a.step, T))
     if _stationary_on(policy, a.obs, T):

@@ -301,7 +301,7 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
                        "ess_fraction": float(worst["ess_fraction"].min())},
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
-                       "eps_method": (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
+                       "eps_method": res.eps_note or (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
                                       "the policy's advantage deficit measured on the held-out fold's states")
                        if res.eps_folds else "in sample (FQE fitted on all the data; 0 for a policy greedy in it)",
                        "eps_in_sample": None if res.eps_in_sample is None else res.eps_in_sample.tolist(),
