@@ -55,7 +55,6 @@ def recorded_problem_options(info: Any) -> dict[str, Any] | None:
     JSON) or the concatenated parts disagree: no simulator can reproduce that system.
     """
     from offline_adp.errors import ArtifactError
-
     from offline_adp.errors import ArtifactError as _Bad
 
     prov = getattr(info, "provenance", None) or {}
