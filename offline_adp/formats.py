@@ -380,6 +380,8 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
         raise IngestError(f"{where}: missing D4RL arrays {missing}; found {_short(sorted(arrays))}")
     obs_raw = _numeric(arrays["observations"], where, "observations")
     n = len(obs_raw)
+    if n == 0:
+        raise IngestError(f"{where}: observations: no transitions (shape {obs_raw.shape})")
     obs = _finite(obs_raw, where, "observations").reshape(n, -1)
     if obs.shape[1] == 0:
         raise IngestError(f"{where}: observations: shape {obs_raw.shape} has no feature columns")
@@ -459,6 +461,8 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
         src = s_raw.astype(str)
     bp = _numeric(arrays["infos/behavior_prob"], where, "infos/behavior_prob", n=n).astype(np.float64) \
         if "infos/behavior_prob" in arrays else None
+    if bp is not None and bp.shape != (n,):
+        raise IngestError(f"{where}: infos/behavior_prob: shape {bp.shape} where ({n},) is required")
     t_ns = _integers(arrays["infos/t_ns"], where, "infos/t_ns", n, -(2**63) + 1, 2**63 - 1024, "int64 nanoseconds") \
         if "infos/t_ns" in arrays else None
 

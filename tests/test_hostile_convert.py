@@ -506,3 +506,17 @@ def test_a_minari_datacollector_dataset_with_continuous_actions_imports_equal_to
     acts = np.vstack([e.actions for e in src]).astype(np.float64)
     table = ds.info.action_table
     np.testing.assert_array_equal(table.values[x.action], acts)  # 90 distinct torques: an exact table
+
+
+@pytest.mark.parametrize("kind", ["empty", "behavior_prob_2d"])
+def test_empty_or_misshapen_d4rl_arrays_are_one_clear_error(tmp_path, kind):
+    arrays = _episodes()
+    n = len(arrays["observations"])
+    if kind == "empty":
+        arrays = {k: v[:0] for k, v in arrays.items()}
+    else:
+        arrays["infos/behavior_prob"] = np.full((n, 2), 0.5)
+    f = tmp_path / "bad.npz"
+    np.savez(f, **arrays)
+    r = _cli("convert", str(f), "--from", "d4rl", "--out", str(tmp_path / "out"))
+    _one_line_error(r, "bad.npz", "no transitions" if kind == "empty" else "infos/behavior_prob")

@@ -72,7 +72,7 @@ def raw_messages(path: Path, topics: set[str] | None, report: dict[str, Any]
         reader = AnyReader([src], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except Exception as exc:  # noqa: BLE001 - rosbags raises many types for unreadable bags
-        if not type(exc).__module__.startswith("rosbags"):
+        if not _unreadable(exc):
             raise
         if path.suffix == ".bag" and path.is_file() and _ros1_magic(path):  # no usable index: scan the records
             yield from _scan_ros1_bag(path, topics, report)
@@ -98,11 +98,22 @@ def raw_messages(path: Path, topics: set[str] | None, report: dict[str, Any]
     except IngestError:
         raise
     except Exception as exc:  # noqa: BLE001
-        if type(exc).__module__.startswith("rosbags"):
+        if _unreadable(exc):
             raise IngestError(f"{path}: cannot read as a ROS bag ({type(exc).__name__}: {exc})") from None
         raise
     finally:
         reader.close()
+
+
+def _unreadable(exc: Exception) -> bool:
+    """An error that says the bag's bytes are damaged, not that our code is wrong: rosbags'
+    own, and what its readers let through from a corrupt file (a damaged SQLite database,
+    undecodable text, a short struct)."""
+    import sqlite3
+    import struct
+
+    return (type(exc).__module__.startswith("rosbags")
+            or isinstance(exc, sqlite3.Error | UnicodeDecodeError | struct.error | EOFError))
 
 
 def _ros1_magic(path: Path) -> bool:
