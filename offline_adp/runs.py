@@ -178,7 +178,7 @@ def fit_run(
                 raise OfflineADPError(f"{rd.path}: --resume with different parameters than the run was started with "
                                       f"({saved['params']})")
             params = saved["params"]
-            if rd.read_json(rd.STATUS).get("dataset_fingerprint") != ds.fingerprint():
+            if not ds.matches_fingerprint(rd.read_json(rd.STATUS).get("dataset_fingerprint")):
                 raise OfflineADPError(f"{rd.path}: the dataset changed since the run started (fingerprint differs); "
                                       "start a new run")
         elif any(rd.exists(n) for n in (rd.CONFIG, rd.STATUS, rd.MODEL)):

@@ -277,3 +277,22 @@ def test_load_mcap_spec_reads_only_a_bounded_regular_text_file(tmp_path, kind):
         Path(target).write_bytes(b"\xff\xfe\x00bad")
     with pytest.raises(SpecError, match=re.escape(str(Path(target).name)) if kind != "dev_zero" else "zero"):
         load_mcap_spec(target)
+
+
+def test_a_dataset_written_with_the_previous_fingerprint_still_validates(tmp_path):
+    """The fingerprint's definition changed; a dataset (or run) that stored the previous one
+    is recognised, not reported as changed; anything else still is."""
+    from offline_adp.data.io import read_dataset, write_dataset
+    from offline_adp.data.validate import validate_directory
+
+    ds = simulate("path_tracking", 2, 1, seed=3, horizon=12)
+    out = write_dataset(ds, tmp_path / "d")
+    info_file = out / "meta" / "info.json"
+    back = read_dataset(out)
+    assert back.legacy_fingerprint() != back.fingerprint()
+    for stored, ok in ((back.legacy_fingerprint(), True), ("0" * 64, False)):
+        info = json.loads(info_file.read_text())
+        info["fingerprint"] = stored
+        info_file.write_text(json.dumps(info))
+        checks = set(validate_directory(out).findings["check"]) if len(validate_directory(out).findings) else set()
+        assert ("fingerprint_mismatch" not in checks) is ok

@@ -404,6 +404,41 @@ class TransitionDataset:
         return h.hexdigest()
 
 
+    def matches_fingerprint(self, stored: Any) -> bool:
+        """Whether a stored fingerprint is this data's: the current one, or, for what was
+        written before the current definition (2026-11-25), :meth:`legacy_fingerprint`, so
+        existing datasets and runs stay valid."""
+        return stored == self.fingerprint() or stored == self.legacy_fingerprint()
+
+    def legacy_fingerprint(self) -> str:
+        """The fingerprint as defined until 2026-11-25 (integers hashed as stored, strings
+        joined), kept only to recognise fingerprints stored then (:meth:`matches_fingerprint`)."""
+        h = hashlib.sha256()
+        h.update(repr((self.info.feature_names, self.info.action_table.to_dict())).encode())
+        known = set(_column_order(self.info))
+        for name in sorted(c for c in self.table.column_names if c in known):
+            col = self.table.column(name)
+            h.update(name.encode())
+            if name == S.EPISODE_ID:
+                codes, ids = self._episode_codes()
+                h.update(codes.tobytes())
+                h.update("\x00".join(map(str, ids)).encode())
+            elif pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+                if pa.types.is_dictionary(col.type):
+                    col = col.cast(col.type.value_type)
+                enc = encode_strings(col)
+                h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
+                h.update("\x00".join(map(str, enc.dictionary.to_pylist())).encode())
+            else:
+                arr = col.to_numpy()
+                if arr.dtype.kind == "f":
+                    arr = arr + 0.0
+                if col.null_count:
+                    h.update(np.asarray(pc.is_null(col)).tobytes())
+                h.update(np.ascontiguousarray(arr).tobytes())
+        return h.hexdigest()
+
+
 def _hash_column(h: Any, name: str, col: pa.ChunkedArray) -> None:
     """Feed one column's content into ``h``, the same for any chunking of the same values."""
     n = len(col)

@@ -368,7 +368,7 @@ def _metadata_findings(path: Path, ds: TransitionDataset, raw: dict, origin: Row
     for key, actual in (("n_transitions", len(ds)), ("n_episodes", ds.n_episodes)):
         if key in raw and raw[key] != actual:
             add("info_stale", info_file, key, f"info.json says {raw[key]!r}, the data has {actual}")
-    if "fingerprint" in raw and raw["fingerprint"] != ds.fingerprint():
+    if "fingerprint" in raw and not ds.matches_fingerprint(raw["fingerprint"]):
         add("fingerprint_mismatch", info_file, "fingerprint",
             "the data's fingerprint differs from info.json's: the parts were changed after writing")
     ep_path = path / S.EPISODES_FILE
