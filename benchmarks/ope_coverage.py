@@ -50,6 +50,7 @@ import numpy as np
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.evaluation.run import _finite, evaluation_metrics
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
+from offline_adp.evaluation.summary import side_of_behaviour as _side
 
 #: (demonstration episodes, exploration episodes, truth rollouts, horizon cap or None). Horizons keep
 #: gamma^T < 0.01 so the evaluation takes the stationary FQE with its cheap structure-conditional
@@ -147,10 +148,6 @@ def _recover(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def _side(lo: float, hi: float, b: float) -> str:
-    return "better" if hi < b else "worse" if lo > b else "indistinguishable"
-
-
 def _check(performance: str, truth_side: str) -> str:
     """'contradicted' (claimed the opposite side of the truth), 'unconfirmed' (claimed a side,
     the truth cannot tell), 'agrees', or 'no claim'."""
@@ -187,7 +184,7 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                         n_boot: int = 200, say: Any = print) -> list[dict[str, Any]]:
     """One row per candidate (see the module docstring)."""
     ds, sim, fixed = logs_and_problem(problem, size, seed)
-    n_truth = SIZES[size][problem][2]
+    n_truth, H = SIZES[size][problem][2], SIZES[size][problem][3]
     names = list(candidates or [c for c in CANDIDATES if CANDIDATES[c] is not None or c in fixed])
     if problem == "cartpole" and candidates is None:
         names = [c for c in names if c != "demonstrator"] + ["heuristic"]
@@ -205,8 +202,10 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                 est = FittedQIteration(random_state=seed, **params).fit(ds)
                 policy = est.policy_
             run = _run_dir(Path(tmp), name, est)
+            # the horizon the logs were made with (a gym simulator would otherwise roll out to its own
+            # time limit, 500 steps for CartPole, while the documented estimand is H steps)
             m, _res, _s, _d = evaluation_metrics(ds, policy, sim, sim_name=problem, n_episodes=n_truth, n_boot=n_boot,
-                                                 n_boot_fqe=None, seed=seed, run_dir=run)
+                                                 n_boot_fqe=None, horizon=H, seed=seed, run_dir=run)
             m = _finite(m)
             h = m["headline"]
             lo_only = _logs_only(m)

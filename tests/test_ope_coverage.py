@@ -51,6 +51,8 @@ def test_coverage_suite_tiny(tmp_path):
         assert v["coverage"] is None or 0.0 <= v["coverage"] <= 1.0
         assert 0 <= v["covered"] <= v["labelled"] <= len(cands)
     assert s["contradicted_with_simulator"] == 0
+    # what a user without a simulator sees may not be contradicted either (the logs-only rule)
+    assert s["contradicted_logs_only"] == 0, [r["verdict_logs_only"]["text"] for r in rows]
     assert 0 <= s["contradicted_logs_only"] <= s["claims_logs_only"] <= len(cands)
     # the report and its JSON
     table = oc.table(summary, rows)

@@ -431,7 +431,9 @@ def verdict_colour(v: dict[str, Any], conv: dict[str, Any]) -> str:
     in the same sentence is never painted green."""
     if v.get("performance") == "worse":
         return "bad"
-    ok = conv.get("verdict") in ("converged", "finite horizon", "completed")
+    from offline_adp.evaluation.summary import FIT_SETTLED
+
+    ok = conv.get("verdict") in FIT_SETTLED
     if v.get("performance") == "better" and not v.get("support_left") and ok:
         return "good"
     return "meh"

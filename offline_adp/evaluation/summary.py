@@ -120,6 +120,10 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
     return {"method": "none", "ess_fraction": None, "text": "no shift diagnostic", "enough_data": False}
 
 
+#: Fit verdicts that raise no doubt about the policy's values (converged, backward induction,
+#: an algorithm without a convergence notion that ran to completion).
+FIT_SETTLED = ("converged", "finite horizon", "completed")
+
 #: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.verdict`,
 #: stored in ``run.json`` as ``verdict`` and ``verdict_message``).
 _FIT_VERDICT_WORDS = {"converged": "fit converged", "still changing": "fit did NOT converge",
@@ -172,7 +176,7 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
             "fit convergence unknown"}
 
 
-def _side(lo: float, hi: float, b: float) -> str:
+def side_of_behaviour(lo: float, hi: float, b: float) -> str:
     """Which side of the behaviour's cost ``b`` an interval lies on; equal up to rounding
     (e.g. every MountainCar policy that never reaches the goal: 86.602 against 86.602 summed
     in another order) is not a side."""
@@ -231,7 +235,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     else:
         lo, hi = best["interval"]
         b = beh["mean"]
-        ope_side = _side(lo, hi, b)
+        ope_side = side_of_behaviour(lo, hi, b)
         claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
         doubts = []
         if left:
@@ -243,7 +247,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
             doubts.append("the fit did not converge")
         elif cv in ("diverging", "diverged"):
             doubts.append("the fit diverged")
-        elif cv not in ("converged", "finite horizon", "completed"):
+        elif cv not in FIT_SETTLED:
             doubts.append("the fit's convergence is unknown")
         dis = _disagreeing(best, ranking)
         if dis:
@@ -260,7 +264,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
         ro = m.get("rollout", {}).get("policy")
         if ro and _finite(ro.get("mean_discounted_cost")) and ro.get("interval"):
             r_lo, r_hi = ro["interval"]
-            truth_side = _side(r_lo, r_hi, b)
+            truth_side = side_of_behaviour(r_lo, r_hi, b)
             truth = (f"{_SIDE_WORDS[truth_side]} the behaviour in the simulator: rollouts "
                      f"{ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs logged {b:.4g}")
             if side in ("better", "worse") and truth_side != side:
