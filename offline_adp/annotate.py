@@ -83,10 +83,7 @@ def _spec_for(run_dataset: Path | None, spec: Any) -> Any:
     if spec is not None:
         if not isinstance(spec, str | PathLike):
             return spec
-        from offline_adp.config import read_config_bytes
-
-        read_config_bytes(spec, "MCAP ingestion spec")  # a regular file of bounded size, before the loader reads it
-        return load_mcap_spec(spec)
+        return load_mcap_spec(spec)  # a regular file of bounded size (it reads through read_config_bytes)
     raw = None
     if run_dataset is not None:
         from offline_adp.data.io import read_info

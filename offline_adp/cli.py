@@ -106,11 +106,9 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
 
 
 def cmd_ingest_mcap(args: argparse.Namespace) -> int:
-    from offline_adp.config import read_config_bytes
     from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, resolve_sources
 
-    read_config_bytes(args.spec, "ingestion spec")  # a regular file of bounded size, before the loader reads it
-    spec = load_mcap_spec(args.spec)
+    spec = load_mcap_spec(args.spec)  # a regular file of bounded size (read through read_config_bytes)
     n_rec = len(resolve_sources(args.inputs, spec))
     bar = None
     if not args.quiet and n_rec > 1 and is_terminal():

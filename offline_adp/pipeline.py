@@ -64,7 +64,7 @@ import pandas as pd
 from pydantic import Field, field_validator, model_validator
 
 from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
-from offline_adp.config import ConfigModel, load_toml, read_config_bytes, validate_config
+from offline_adp.config import ConfigModel, load_toml, validate_config
 from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
@@ -254,9 +254,7 @@ def _load_spec(data: dict[str, Any], p: str | PathLike[str]) -> Any:
     paths inside it are relative to that file), an inline ``[data.spec]`` table is parsed
     with paths inside it relative to the pipeline file ``p``. The one loader of the
     check (:func:`load_pipeline`) and of the data stage, so both read the same spec."""
-    spec, p = data["spec"], Path(p)
-    if isinstance(spec, str):  # a regular file of bounded size, before any loader reads it
-        read_config_bytes(spec, "ingestion spec")
+    spec, p = data["spec"], Path(p)  # both loaders read a spec file through read_config_bytes (bounded, regular)
     if data["format"] == "parquet":
         from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec
 

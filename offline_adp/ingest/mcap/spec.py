@@ -286,7 +286,5 @@ def load_mcap_spec(path: str | PathLike[str]) -> McapSpec:
         except UnicodeDecodeError as exc:
             raise SpecError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         return parse_mcap_spec(tomllib.loads(text), text, str(path), base_dir=str(path.parent))
-    except FileNotFoundError:
-        raise SpecError(f"{path}: no such spec file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{path}: not valid TOML ({exc})") from exc
