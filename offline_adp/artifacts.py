@@ -589,7 +589,3 @@ def load_index_policy(directory: str | PathLike[str]) -> Any:
         return GreedyPolicy(load_q(d)[0])
     return _read(d, "policy", "policy", _import_policy, "policy")[0]
 
-
-#: The library-internal loader (no signature; ``act`` returns indices), kept under its
-#: old name for the evaluation and registry modules; see :func:`load_index_policy`.
-load_policy = load_index_policy

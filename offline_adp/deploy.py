@@ -85,13 +85,13 @@ def _names_dataset(model: Path, run: Path) -> bool:
 
 def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] | None = None) -> Any:
     """The policy of a run directory with its signature attached (see module docstring)."""
-    from offline_adp.artifacts import load_index_policy as load_policy
+    from offline_adp.artifacts import load_index_policy
     from offline_adp.data.info import DatasetInfo
     from offline_adp.policies import PolicySignature
 
     run = Path(run_dir)
     model = _model_dir(run)
-    policy = load_policy(model)
+    policy = load_index_policy(model)
     if (model / "signature.json").exists() and dataset is None:
         policy.signature = PolicySignature.from_dict(read_json_file(model / "signature.json"),
                                                      where=str(model / "signature.json"))

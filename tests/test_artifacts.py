@@ -54,7 +54,7 @@ def test_loading_refuses_unknown_classes(tmp_path, small_pt):
 
 
 def test_other_versions_warn_for_q_functions_and_policies(tmp_path, small_pt):
-    from offline_adp.artifacts import load_policy, save_policy
+    from offline_adp.artifacts import load_index_policy, save_policy
     from offline_adp.errors import FormatVersionWarning
 
     f = FittedQIteration(regressor="tabular", n_iterations=1).fit(small_pt)
@@ -67,4 +67,4 @@ def test_other_versions_warn_for_q_functions_and_policies(tmp_path, small_pt):
     with pytest.warns(FormatVersionWarning, match="scikit-learn"):
         load_q(tmp_path / "q")
     with pytest.warns(FormatVersionWarning, match="scikit-learn"):
-        load_policy(tmp_path / "p")
+        load_index_policy(tmp_path / "p")

@@ -90,7 +90,7 @@ def test_fit_cli_errors(tmp_path, pt_dir, capsys):
 
 
 def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
-    from offline_adp.artifacts import load_policy
+    from offline_adp.artifacts import load_index_policy
 
     fqi_run = tmp_path / "fqi"
     assert main(["fit", str(pt_dir), "--out", str(fqi_run), "-q", "--config", str(_cfg(tmp_path, "fqi", "n_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n"))]) == 0
@@ -105,7 +105,7 @@ def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
     for alg, body in cfgs.items():
         out = tmp_path / alg
         assert main(["fit", str(pt_dir), "--algorithm", alg, "--config", str(_cfg(tmp_path, alg, body)), "--out", str(out), "-q"]) == 0, alg
-        pi = load_policy(out / "model")
+        pi = load_index_policy(out / "model")
         assert pi.act(obs, 0, np.random.default_rng(0), return_index=True).shape == (len(obs),)
         assert json.loads((out / "run.json").read_text())["status"] == "completed"
 

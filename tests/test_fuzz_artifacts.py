@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from sklearn.preprocessing import StandardScaler
 
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
-from offline_adp.artifacts import load_policy, load_q
+from offline_adp.artifacts import load_index_policy, load_q
 from offline_adp.errors import ArtifactError
 from tests.fuzz_util import edit_json_path, json_paths
 
@@ -258,7 +258,7 @@ def test_policy_artifacts_fuzzed_by_bytes(tmp_path, small_pt):
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                p = load_policy(d)
+                p = load_index_policy(d)
                 p.probabilities(np.zeros((2, 1), np.int64), 0)
         except ArtifactError:
             pass

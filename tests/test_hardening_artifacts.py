@@ -179,7 +179,7 @@ def test_lightgbm_text_checked_against_features(tmp_path, small_pt):
 
 def test_policy_artifact_of_a_run_is_checked_the_same_way(tree_run, tmp_path):
     """`evaluate` loads RUN/model/policy.json (a greedy policy holding the Q arrays)."""
-    from offline_adp.artifacts import load_policy, save_policy
+    from offline_adp.artifacts import load_index_policy, save_policy
     from offline_adp.policies import GreedyPolicy
 
     src, obs = tree_run
@@ -191,7 +191,7 @@ def test_policy_artifact_of_a_run_is_checked_the_same_way(tree_run, tmp_path):
     arrs[key][0] = -7
     np.savez(tmp_path / "model" / "policy.npz", **arrs)
     with pytest.raises(ArtifactError, match=r"policy\.\{json,npz\}: .*feature: negative split feature -7"):
-        load_policy(tmp_path / "model")
+        load_index_policy(tmp_path / "model")
 
 
 @pytest.mark.integration

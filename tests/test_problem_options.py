@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from offline_adp import dp
-from offline_adp.artifacts import load_policy
+from offline_adp.artifacts import load_index_policy
 from offline_adp.cli import main
 from offline_adp.data.io import read_dataset
 from offline_adp.envs import make_problem, problem_for_dataset, recorded_problem_options
@@ -37,7 +37,7 @@ def test_cli_evaluate_rolls_out_the_simulated_seed(tmp_path, capsys):
     m = json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())
     ro = m["rollout"]["policy"]
     se = (ro["interval"][1] - ro["interval"][0]) / (2 * 1.96)
-    policy = load_policy(tmp_path / "run" / "model")
+    policy = load_index_policy(tmp_path / "run" / "model")
     truth = _exact_value(TabularMDP(**opts), policy, 6)
     other = _exact_value(TabularMDP(**{**opts, "seed": 0}), policy, 6)
     assert abs(ro["mean_discounted_cost"] - truth) < 4 * se, (ro, truth)

@@ -171,11 +171,11 @@ def _simulator(p: dict[str, Any], ds: Any = None) -> Any:
 
 
 def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
-    from offline_adp.artifacts import load_policy
+    from offline_adp.artifacts import load_index_policy
 
     if p.get("policy") is None:
         raise SpecError('fqe needs the policy to evaluate: policy = "RUN_DIR/model" in [fqe]')
-    return entry.estimator_class()(policy=load_policy(p.pop("policy")), **p).fit(ds)
+    return entry.estimator_class()(policy=load_index_policy(p.pop("policy")), **p).fit(ds)
 
 
 def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:

@@ -111,14 +111,14 @@ def _maps(figs: _Figures, run: Path, ratios: pd.DataFrame, features: list[str], 
           action_label: str = "action") -> None:
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    from offline_adp.artifacts import load_policy, load_q
+    from offline_adp.artifacts import load_index_policy, load_q
 
     plt = _plt()
     gx, gy, obs = _grid(ratios, features, axes)
     mask = _support_mask(ratios, axes, gx, gy)
     sliced = len(features) > 2
     note = " (other features at their data medians)" if sliced else ""
-    policy = load_policy(run / "model")
+    policy = load_index_policy(run / "model")
     acts = policy.act_index(obs, 0, np.random.default_rng(0))
     n_act = len(action_values)
     base = plt.get_cmap("RdBu_r" if n_act > 2 else "coolwarm")

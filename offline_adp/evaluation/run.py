@@ -120,7 +120,7 @@ def evaluate_run(
     :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
     default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
     """
-    from offline_adp.artifacts import load_policy
+    from offline_adp.artifacts import load_index_policy
     from offline_adp.envs import PROBLEM_NAMES
     from offline_adp.envs.gym import resolve_simulator
 
@@ -137,7 +137,7 @@ def evaluate_run(
     with RunDirectory(run).lock():
         t0 = time.perf_counter()
         ds = read_dataset(ds_path)
-        policy = load_policy(run / "model")
+        policy = load_index_policy(run / "model")
         _check_same_actions(run, info, policy, ds, ds_path)
         sim_name = simulator if simulator is not None else ds.info.problem
         if sim_name in ("none", ""):
