@@ -39,8 +39,12 @@ def make_problem(name: str, **kwargs: Any) -> ReferenceProblem:
     cls = problem_class(name)
     try:
         return cls(**kwargs)
-    except (TypeError, ValueError) as exc:  # unknown keys, or values the problem refuses (n_states = -3)
+    except TypeError as exc:  # unknown keys
         raise UnknownNameError(f"problem {name!r}: bad options {sorted(kwargs)} ({exc})") from None
+    except (ValueError, OverflowError) as exc:  # values the problem refuses (n_states = -3)
+        from offline_adp.errors import InvalidArgumentError
+
+        raise InvalidArgumentError(f"problem {name!r}: options {kwargs} rejected ({exc})") from None
 
 
 def recorded_problem_options(info: Any) -> dict[str, Any] | None:
