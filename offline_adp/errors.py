@@ -77,6 +77,32 @@ class UnknownNameError(OfflineADPError, KeyError):
         return str(self.args[0]) if self.args else ""
 
 
+class ExportError(OfflineADPError):
+    """A policy (or a part of it) cannot be expressed in the export format (ONNX, LeRobot...)."""
+
+
+class MissingExtraError(OfflineADPError, ImportError):
+    """An optional dependency is not installed; the message names the extra to install."""
+
+
+class ClusterError(OfflineADPError):
+    """The Dask cluster cannot be reached, has no workers, or was lost during a fit."""
+
+
+class RunDirectoryError(OfflineADPError):
+    """A path is not the run directory a command needs (no model, already holds a run,
+    or a resume that does not match the run it would continue)."""
+
+
+class IncompatibleError(OfflineADPError):
+    """Two things that must agree do not: a policy and a dataset (actions, features), a
+    simulator and a dataset, or candidates evaluated against different estimands."""
+
+
+class OutputExistsError(WriteError):
+    """The output path already exists (or is the input); pass ``--overwrite`` or write elsewhere."""
+
+
 class FormatVersionWarning(UserWarning):
     """A dataset or artifact was written by a different format or package version."""
 

@@ -44,17 +44,13 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.io import atomic_file
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import ExportError  # re-exported: offline_adp.onnx_export.ExportError
 from offline_adp.progress import get_logger
 
 log = get_logger(__name__)
 
 OPSET = 17
 ML_OPSET = 5
-
-
-class ExportError(OfflineADPError):
-    """A policy (or a part of it) cannot be expressed in the export format."""
 
 
 # ----------------------------------------------------------------------------- graph builder
