@@ -236,6 +236,7 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
+    entry.check_complete(fit["params"], str(p), "fit.params")
     evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None
     if evaluate is not None and evaluate.get("fqe_params"):
         evaluate["fqe_params"] = get_algorithm("fqe").check_params(evaluate["fqe_params"], str(p), "evaluate.fqe_params")

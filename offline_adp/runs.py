@@ -157,7 +157,9 @@ def fit_run(
     The fitted estimator.
     """
     entry = get_algorithm(algorithm)
-    params = entry.check_params(dict(params or {}), "parameters")
+    params = entry.check_params(dict(params or {}), "parameters")  # before anything is written
+    if not resume:
+        entry.check_complete(params)
     rd = RunDirectory(out)
     if resume and not entry.resumable:
         raise OfflineADPError(f"--resume is for {resumable_algorithms()} runs; "

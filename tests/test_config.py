@@ -31,7 +31,7 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD.replace('name = "p"', 'name = "/tmp/x"'), r"name: String should match pattern"),
     (GOOD.replace('algorithm = "fqi"', 'algorithm = "fqx"'), r"fit.algorithm: expected one of 'fqi', 'fqe', 'api', 'cpi'"),
     (GOOD + "[fit.params]\nn_iteratons = 3\n", r"fit.params.n_iteratons: unknown key \(did you mean 'n_iterations'\?\)"),
-    (GOOD + '[fit.params]\nmode = "fast"\n', r"\[fit.params\] mode must be one of"),
+    (GOOD + '[fit.params]\nmode = "fast"\n', r"fit.params.mode must be a str among"),
     (GOOD + '[fit.params]\nn_iterations = "ten"\n', r"fit.params.n_iterations: Input should be a valid integer"),
     (GOOD + '[evaluate]\nsimulator = "path_trackin"\n', r"simulator = 'path_trackin': known simulators are"),
     (GOOD + "[evaluate]\nepisodes = 0\n", r"evaluate.episodes: Input should be greater than or equal to 1"),
@@ -96,7 +96,7 @@ def test_non_utf8_and_bad_toml_name_the_file(tmp_path):
 def test_fit_config_errors_leave_nothing_behind(tmp_path, small_pt):
     ds = tmp_path / "ds"
     small_pt.save(ds)
-    for body, match in (('mode = "fast"\n', "mode must be one of"), ('n_iterations = "ten"\n', "valid integer"),
+    for body, match in (('mode = "fast"\n', "mode must be a str among"), ('n_iterations = "ten"\n', "valid integer"),
                         ("gama = 0.9\n", "did you mean 'gamma'")):
         cfg = tmp_path / "fqi.toml"
         cfg.write_text("[fqi]\n" + body)

@@ -15,13 +15,15 @@ greedily, repeat::
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
-from sklearn.base import BaseEstimator, clone
+from sklearn.base import clone
+from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.algorithms.params import NON_NEGATIVE_INT, POSITIVE_INT, SEED, CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import GreedyPolicy, Policy, UniformPolicy, attach_signature
 
@@ -31,7 +33,7 @@ def _greedy_actions(policy: Policy, obs: np.ndarray, horizon: int | None) -> np.
     return np.stack([policy.probabilities(obs, t).argmax(axis=1) for t in steps])
 
 
-class ApproximatePolicyIteration(BaseEstimator):
+class ApproximatePolicyIteration(CheckedEstimator):
     """Approximate policy iteration with FQE as the evaluation step.
 
     Parameters
@@ -39,13 +41,15 @@ class ApproximatePolicyIteration(BaseEstimator):
     fqe : FittedQEvaluation
         Prototype of the evaluator (cloned each iteration with the current policy).
     n_iterations : int
-        Budget of improvement steps.
+        Budget of improvement steps (>= 1).
     initial_policy : Policy, optional
         ``pi_0``; uniformly random by default.
     model : ResetModel, optional
         If given, ``episodes_per_iteration`` episodes of each new policy are added.
     episodes_per_iteration : int
+        (>= 0).
     random_state : int
+        Seeds the collection of new episodes (>= 0).
 
     Attributes
     ----------
@@ -57,6 +61,15 @@ class ApproximatePolicyIteration(BaseEstimator):
         changed.
     """
 
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "fqe": [FittedQEvaluation, None],
+        "n_iterations": [POSITIVE_INT],
+        "initial_policy": [HasMethods(["probabilities"]), None],
+        "model": [HasMethods(["initial_states", "step"]), None],
+        "episodes_per_iteration": [NON_NEGATIVE_INT],
+        "random_state": [SEED],
+    }
+
     def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, initial_policy: Policy | None = None,
                  model: Any = None, episodes_per_iteration: int = 0, random_state: int = 0) -> None:
         self.fqe = fqe
@@ -67,6 +80,8 @@ class ApproximatePolicyIteration(BaseEstimator):
         self.random_state = random_state
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ApproximatePolicyIteration:
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
         proto = self.fqe if self.fqe is not None else FittedQEvaluation()
         pi: Policy = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
         rng = np.random.default_rng(self.random_state)

@@ -24,13 +24,22 @@ numbers: every rollout estimate uses the same seed), the estimated cost never in
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
-from sklearn.base import BaseEstimator, clone
+from sklearn.base import clone
+from sklearn.utils._param_validation import HasMethods, StrOptions
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.algorithms.params import (
+    FRACTION,
+    NON_NEGATIVE_INT,
+    POSITIVE_INT,
+    SEED,
+    CheckedEstimator,
+    invalid_parameter,
+)
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import (
     GreedyPolicy,
@@ -55,7 +64,7 @@ def effective_horizon(gamma: float, horizon: int | None) -> float:
     return h
 
 
-class ConservativePolicyIteration(BaseEstimator):
+class ConservativePolicyIteration(CheckedEstimator):
     """Conservative policy iteration with a line search (or the Kakade-Langford step).
 
     Parameters
@@ -63,15 +72,18 @@ class ConservativePolicyIteration(BaseEstimator):
     fqe : FittedQEvaluation
         Prototype for ``Q^{pi_k}`` (and for the off-policy estimates without a model).
     n_iterations : int
+        Improvement steps (>= 0; 0 returns the initial policy).
     step_rule : {"line_search", "kakade_langford"}
     step_sizes : sequence of float
-        Line-search grid (0 is always added).
+        Line-search grid, each in [0, 1] (0 is always added).
     model : ResetModel, optional
         Rollout estimates when given (``n_eval_episodes`` episodes, fixed seed), else
         FQE estimates from the logs.
     n_eval_episodes : int
+        (>= 1).
     initial_policy : Policy, optional
     random_state : int
+        The rollout estimates' seed (>= 0).
 
     Attributes
     ----------
@@ -80,6 +92,24 @@ class ConservativePolicyIteration(BaseEstimator):
     simulator_steps_ : int
         Transitions simulated by the rollout estimates (0 with FQE estimates).
     """
+
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "fqe": [FittedQEvaluation, None],
+        "n_iterations": [NON_NEGATIVE_INT],
+        "step_rule": [StrOptions({"line_search", "kakade_langford"})],
+        "step_sizes": [list, tuple, np.ndarray],
+        "model": [HasMethods(["initial_states", "step"]), None],
+        "n_eval_episodes": [POSITIVE_INT],
+        "initial_policy": [HasMethods(["probabilities"]), None],
+        "random_state": [SEED],
+    }
+
+    def _check_param_combinations(self) -> None:
+        """Every line-search step size in [0, 1] (see :mod:`~offline_adp.algorithms.params`)."""
+        super()._check_param_combinations()
+        sizes = list(np.ravel(np.asarray(self.step_sizes, dtype=object)))
+        if not all(FRACTION.is_satisfied_by(a) and not isinstance(a, bool) for a in sizes):
+            raise invalid_parameter(self, "step_sizes", "a sequence of step sizes in [0, 1]", self.step_sizes)
 
     def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, step_rule: str = "line_search",
                  step_sizes: tuple[float, ...] = DEFAULT_STEPS, model: Any = None, n_eval_episodes: int = 500,
@@ -105,8 +135,8 @@ class ConservativePolicyIteration(BaseEstimator):
         return self.fqe if self.fqe is not None else FittedQEvaluation()
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ConservativePolicyIteration:
-        if self.step_rule not in ("line_search", "kakade_langford"):
-            raise ValueError(f"step_rule must be 'line_search' or 'kakade_langford', got {self.step_rule!r}")
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
         self.simulator_steps_ = 0
         pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
         pi = MixturePolicy([pi0], [1.0])

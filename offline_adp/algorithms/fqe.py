@@ -26,9 +26,10 @@ the backup at step t using ``pi(. | x', t+1)`` (time-varying policies honoured).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
+from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqi import FittedQIteration, run_fitted_q
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
@@ -38,7 +39,41 @@ from offline_adp.qfunctions import QFunction
 
 
 class FittedQEvaluation(FittedQIteration):
-    """Fitted Q evaluation of ``policy`` (all other parameters as FittedQIteration).
+    """Fitted Q evaluation of ``policy``.
+
+    Parameters
+    ----------
+    policy : Policy
+        The policy to evaluate (deterministic or stochastic, stationary or time-varying);
+        required by ``fit``.
+    horizon, gamma, regressor, regressor_params, action_encoding, action_input, feature_map, \
+n_iterations, tol, trees_per_iteration, infeasible_cost, target_noise, next_state_noise, \
+validation_fraction, on_divergence, patience, divergence_slack, initial_q, random_state, tree_builder
+        As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s, with the same
+        defaults and allowed values (``tests/test_estimator_checks.py`` holds them
+        equal); the loop backs up ``sum_a' pi(a' | x') Q(x', a')`` instead of the minimum.
+    mode : {"refit", "auto", "frozen", "warm_start"}, default "refit"
+        As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``).
+    n_structures : int or None, default 4
+        As FittedQIteration's; **the default differs** (FittedQIteration: None, one build
+        per 12.5 iterations).
+    structure_max_samples : float, list of (float or None), "auto" or None, default None
+        As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``, a
+        bootstrap of 131,072 rows beyond that many; None: the regressor's own sampling,
+        all rows for the default extra-trees).
+
+    Why these three differ: they are FittedQIteration's defaults from before its
+    ``mode="auto"``. FittedQIteration moved to ``mode="auto"`` with one build per 12.5
+    iterations and to ``structure_max_samples="auto"`` on the evidence of
+    ``benchmarks/fqi_suite.py`` (docs/fqi-modes.md), which scores the greedy policies
+    FQI returns, not policy evaluations; FQE's were not moved with them, so an FQE
+    estimate did not change. The evaluation reports choose their own settings
+    (:data:`offline_adp.evaluation.offpolicy.DEFAULT_FQE`: ``mode="frozen"``).
+
+    FittedQIteration's ``screen_trees`` and ``early_build_trees`` are not parameters here
+    (always None: every frozen build grows the whole forest). The screen bounds the bias
+    of a greedy backup's minimum over actions, and FQE's backup takes no minimum
+    (docs/fqi-modes.md); the early builds were measured on FQI only.
 
     Attributes
     ----------
@@ -50,6 +85,11 @@ class FittedQEvaluation(FittedQIteration):
         ``mean over start states of sum_a pi(a | x_0, 0) Q^pi(x_0, a)``: the estimated
         expected cost of pi from the data's start distribution.
     """
+
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        **{k: v for k, v in FittedQIteration._parameter_constraints.items() if k not in ("screen_trees", "early_build_trees")},
+        "policy": [HasMethods(["probabilities"]), None],
+    }
 
     def __init__(self, policy: Policy | None = None, horizon: int | None = None, gamma: float | None = None,
                  regressor: Any = "extra_trees", regressor_params: dict | None = None, action_encoding: str = "joint",

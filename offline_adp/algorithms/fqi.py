@@ -34,14 +34,24 @@ import time
 import warnings
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from numbers import Integral, Real
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
-from sklearn.base import BaseEstimator
+from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
 from offline_adp.algorithms.fqi_data import Backup, GreedyBackup, Prepared, prepare
 from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, verdict
+from offline_adp.algorithms.params import (
+    GAMMA,
+    NON_NEGATIVE,
+    POSITIVE_INT,
+    SEED,
+    CheckedEstimator,
+    check_learner,
+    invalid_parameter,
+)
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import DivergenceWarning, NotFittedError
@@ -56,7 +66,7 @@ from offline_adp.learners import (
 )
 from offline_adp.policies import GreedyPolicy, attach_signature
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
-from offline_adp.regressors import make_regressor
+from offline_adp.regressors import REGRESSORS, make_regressor
 
 #: default frozen schedule: structures per iteration (8 over 100 iterations), measured in benchmarks/fqi_suite.py
 STRUCTURES_PER_ITERATION = 0.08
@@ -109,7 +119,7 @@ def fitted_q_loop(data: Prepared, learner: Learner, backup: Backup, iterations: 
 
 
 # ----------------------------------------------------------------------------- the estimator
-class FittedQIteration(BaseEstimator):
+class FittedQIteration(CheckedEstimator):
     """Fitted Q-iteration with a pluggable regressor (LEARN).
 
     Parameters
@@ -278,6 +288,37 @@ class FittedQIteration(BaseEstimator):
         What the monitor saw, when ``diverged_``.
     """
 
+    #: scikit-learn's declaration of the values above, checked by ``_validate_params()`` at
+    #: the start of every fit and by the configuration layer before a run
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "horizon": [POSITIVE_INT, None],
+        "gamma": [GAMMA, None],
+        "regressor": [StrOptions(set(REGRESSORS)), HasMethods(["fit", "predict"])],
+        "regressor_params": [dict, None],
+        "action_encoding": [StrOptions({"joint", "per_action"})],
+        "action_input": [StrOptions({"value", "onehot"})],
+        "feature_map": [HasMethods(["fit", "transform"]), None],
+        "n_iterations": [POSITIVE_INT],
+        "tol": [NON_NEGATIVE, None],
+        "mode": [StrOptions(set(MODES))],
+        "trees_per_iteration": [POSITIVE_INT],
+        "infeasible_cost": [Interval(Real, None, None, closed="neither"), None],
+        "target_noise": [NON_NEGATIVE],
+        "next_state_noise": [NON_NEGATIVE],
+        "validation_fraction": [Interval(Real, 0, 1, closed="left")],
+        "on_divergence": [StrOptions({"warn", "stop", "ignore"})],
+        "patience": [Interval(Integral, 2, None, closed="left")],
+        "divergence_slack": [NON_NEGATIVE],
+        "initial_q": [HasMethods(["values"]), None],
+        "random_state": [SEED],
+        "n_structures": [POSITIVE_INT, None],
+        "structure_max_samples": [StrOptions({"auto"}), Interval(Real, 0, 1, closed="right"), list, tuple, None],
+        "screen_trees": [Interval(Integral, 2, None, closed="left"), None],  # a spread needs two trees
+        "screen_tol": [NON_NEGATIVE],
+        "early_build_trees": [POSITIVE_INT, None],
+        "tree_builder": [StrOptions({"auto", "sklearn"})],
+    }
+
     def __init__(
         self,
         horizon: int | None = None,
@@ -400,37 +441,22 @@ class FittedQIteration(BaseEstimator):
                     "compare with a mode = 'refit' run on your data")
         return None
 
-    def _validate_params(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.action_encoding not in ("joint", "per_action"):
-            raise ValueError(f"action_encoding must be 'joint' or 'per_action', got {self.action_encoding!r}")
-        if self.action_input not in ("value", "onehot"):
-            raise ValueError(f"action_input must be 'value' or 'onehot', got {self.action_input!r}")
-        if self.horizon is not None and (not isinstance(self.horizon, int | np.integer) or self.horizon <= 0):
-            raise ValueError(f"horizon must be a positive integer or None, got {self.horizon!r}")
-        if self.on_divergence not in ("stop", "warn", "ignore"):
-            raise ValueError(f"on_divergence must be 'stop', 'warn' or 'ignore', got {self.on_divergence!r}")
+    def _check_param_combinations(self) -> None:
+        """What ``_parameter_constraints`` cannot say (see :mod:`~offline_adp.algorithms.params`):
+        next-state noise needs the refit loop, a list of structure fractions holds fractions,
+        and the regressor takes ``regressor_params``."""
+        super()._check_param_combinations()
         if self.next_state_noise and self.mode not in ("refit", "auto"):
-            raise ValueError("next_state_noise needs mode='refit' (the other modes precompute next-state inputs)")
-        if not (isinstance(self.structure_max_samples, str) and self.structure_max_samples == "auto"):
-            check_structure_fractions(self.structure_max_samples)
-        if self.early_build_trees is not None and (isinstance(self.early_build_trees, bool)
-                                                   or not isinstance(self.early_build_trees, int | np.integer)
-                                                   or self.early_build_trees < 1):
-            raise ValueError(f"early_build_trees must be an integer >= 1 or None, got {self.early_build_trees!r}")
-        if self.tree_builder not in ("auto", "sklearn"):
-            raise ValueError(f"tree_builder must be 'auto' or 'sklearn', got {self.tree_builder!r}")
-        if self.screen_trees is not None and (isinstance(self.screen_trees, bool)
-                                              or not isinstance(self.screen_trees, int | np.integer)
-                                              or self.screen_trees < 2):
-            raise ValueError(f"screen_trees must be an integer >= 2 (a spread needs two trees) or None, "
-                             f"got {self.screen_trees!r}")
-        if (isinstance(self.screen_tol, bool) or not isinstance(self.screen_tol, int | float | np.floating)
-                or not np.isfinite(self.screen_tol) or self.screen_tol < 0):
-            raise ValueError(f"screen_tol must be a finite number >= 0, got {self.screen_tol!r}")
-        if (self.n_structures is not None and int(self.n_structures) < 1) or int(self.patience) < 2:
-            raise ValueError(f"n_structures must be >= 1 and patience >= 2, got {self.n_structures}, {self.patience}")
+            raise invalid_parameter(self, "next_state_noise", "0 unless mode='refit' (the other modes precompute "
+                                    f"next-state inputs; mode={self.mode!r})", self.next_state_noise)
+        if isinstance(self.structure_max_samples, list | tuple):
+            try:
+                check_structure_fractions(list(self.structure_max_samples))
+            except ValueError:
+                raise invalid_parameter(self, "structure_max_samples", "'auto', a fraction in (0, 1], None, or a list "
+                                        "of fractions in (0, 1] or None", self.structure_max_samples) from None
+        check_learner(self, f"the regressor {self.regressor!r}", "regressor_params", make_regressor, self.regressor,
+                      self.regressor_params)
 
     def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> Prepared:
         q0 = 0.0
@@ -541,7 +567,8 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
     sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and
     ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN).
     ``deferred``: an infinite-horizon ``Q_k`` becomes ``est.q_function_`` at the end only."""
-    est._validate_params()
+    est._validate_params()  # scikit-learn's, on _parameter_constraints
+    est._check_param_combinations()
     data = (prepare or est._prepare)(dataset, sample_weight)
     learner = (make_learner or est._learner)(data)
     backup = make_backup(data)

@@ -16,20 +16,21 @@ policies"::
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
-from sklearn.base import BaseEstimator, clone
+from sklearn.base import clone
 
 from offline_adp.access import ResetModel, require
 from offline_adp.algorithms.fqi import FittedQIteration
+from offline_adp.algorithms.params import FRACTION, POSITIVE_INT, SEED, CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import EpsilonPolicy, UniformPolicy
 from offline_adp.rollout import rollout
 
 
-class IteratedFQI(BaseEstimator):
+class IteratedFQI(CheckedEstimator):
     """Fitted Q-iteration with data collection between rounds.
 
     Parameters
@@ -55,6 +56,16 @@ class IteratedFQI(BaseEstimator):
     history_ : DataFrame with ``round, n_transitions, value, value_low, value_high, fit_seconds``
     """
 
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "fqi": [FittedQIteration, None],
+        "n_rounds": [POSITIVE_INT],
+        "episodes_per_round": [POSITIVE_INT],
+        "epsilon": [FRACTION],
+        "n_eval_episodes": [POSITIVE_INT],
+        "horizon": [POSITIVE_INT, None],
+        "random_state": [SEED],
+    }
+
     def __init__(self, fqi: FittedQIteration | None = None, n_rounds: int = 5, episodes_per_round: int = 50,
                  epsilon: float = 0.1, n_eval_episodes: int = 200, horizon: int | None = None, random_state: int = 0) -> None:
         self.fqi = fqi
@@ -66,6 +77,8 @@ class IteratedFQI(BaseEstimator):
         self.random_state = random_state
 
     def fit(self, model: ResetModel, dataset: TransitionDataset | None = None) -> IteratedFQI:
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
         require(model, ResetModel)
         rng = np.random.default_rng(self.random_state)
         proto = self.fqi if self.fqi is not None else FittedQIteration()

@@ -35,11 +35,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
-from sklearn.base import BaseEstimator, clone
+from sklearn.base import clone
+from sklearn.utils._param_validation import HasMethods, StrOptions
 
 from offline_adp import dp
 from offline_adp.access import (
@@ -49,6 +50,14 @@ from offline_adp.access import (
     Simulator,
     StepResult,
     require,
+)
+from offline_adp.algorithms.params import (
+    GAMMA,
+    NON_NEGATIVE_INT,
+    POSITIVE_INT,
+    SEED,
+    CheckedEstimator,
+    check_learner,
 )
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import (
@@ -60,13 +69,13 @@ from offline_adp.policies import (
     attach_signature,
 )
 from offline_adp.qfunctions import QEncoder, RegressorQ
-from offline_adp.regressors import make_classifier, make_regressor
+from offline_adp.regressors import CLASSIFIERS, REGRESSORS, make_classifier, make_regressor
 from offline_adp.rollout import rollout, run_episodes, state_samples
 
 Baseline = TransitionDataset | Policy | list | Callable[[int, int, np.random.Generator], np.ndarray]
 
 
-class PSDP(BaseEstimator):
+class PSDP(CheckedEstimator):
     """Policy search by dynamic programming (Algorithm 14).
 
     Parameters
@@ -108,6 +117,21 @@ class PSDP(BaseEstimator):
         Simulator transitions used.
     """
 
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "horizon": [POSITIVE_INT, None],
+        "n_samples": [POSITIVE_INT],
+        "n_rollouts": [POSITIVE_INT],
+        "learner": [StrOptions({"classification", "regression"})],
+        "classifier": [StrOptions(set(CLASSIFIERS)), HasMethods(["fit", "predict"])],
+        "regressor": [StrOptions(set(REGRESSORS)), HasMethods(["fit", "predict"])],
+        "learner_params": [dict, None],
+        "feature_map": [HasMethods(["transform"]), callable, None],
+        "q_estimator": [StrOptions({"rollout", "exact"})],
+        "gamma": [GAMMA, None],
+        "n_holdout": [NON_NEGATIVE_INT, None],
+        "random_state": [SEED],
+    }
+
     def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5, learner: str = "classification",
                  classifier: Any = "extra_trees", regressor: Any = "extra_trees", learner_params: dict | None = None,
                  feature_map: Any = None, q_estimator: str = "rollout", gamma: float | None = None,
@@ -125,10 +149,20 @@ class PSDP(BaseEstimator):
         self.n_holdout = n_holdout
         self.random_state = random_state
 
+    def _check_param_combinations(self) -> None:
+        """The learner in use takes ``learner_params`` (see :mod:`~offline_adp.algorithms.params`)."""
+        super()._check_param_combinations()
+        if self.learner == "regression":
+            check_learner(self, f"the regressor {self.regressor!r}", "learner_params", make_regressor, self.regressor,
+                          self.learner_params)
+        else:
+            check_learner(self, f"the classifier {self.classifier!r}", "learner_params", make_classifier,
+                          self.classifier, self.learner_params)
+
     # ------------------------------------------------------------------ algorithm 14
     def fit(self, model: ResetModel, baseline: Baseline) -> PSDP:
-        if self.learner not in ("classification", "regression"):
-            raise ValueError(f"learner must be 'classification' or 'regression', got {self.learner!r}")
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
         require(model, ResetModel if isinstance(baseline, Policy) else GenerativeModel)
         if self.q_estimator == "exact":
             require(model, FullModel)
@@ -265,7 +299,7 @@ def psdp_bound(eps: np.ndarray, mu_ref: np.ndarray, mu: np.ndarray) -> float:
     return float(np.sum(np.asarray(eps) * ratio))
 
 
-class IteratedPSDP(BaseEstimator):
+class IteratedPSDP(CheckedEstimator):
     """Iterated PSDP (Algorithms 15, 16): PSDP on the state distribution of the current
     policy, kept only while the value improves; never worse than the start.
 
@@ -273,12 +307,21 @@ class IteratedPSDP(BaseEstimator):
     ----------
     psdp : PSDP
     n_rounds : int
+        Rounds at most (>= 0; 0 returns the start policy).
     n_eval_episodes : int
         Rollouts for the value estimates (fixed seed: common random numbers), unless
         ``exact_values`` on a full model.
     exact_values : bool
     random_state : int
     """
+
+    _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
+        "psdp": [PSDP, None],
+        "n_rounds": [NON_NEGATIVE_INT],
+        "n_eval_episodes": [POSITIVE_INT],
+        "exact_values": ["boolean"],
+        "random_state": [SEED],
+    }
 
     def __init__(self, psdp: PSDP | None = None, n_rounds: int = 5, n_eval_episodes: int = 500, exact_values: bool = False,
                  random_state: int = 0) -> None:
@@ -297,6 +340,8 @@ class IteratedPSDP(BaseEstimator):
         return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T, gamma=gamma).mean
 
     def fit(self, model: ResetModel, start_policy: Policy) -> IteratedPSDP:
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
         proto = self.psdp if self.psdp is not None else PSDP()
         T = proto.horizon if proto.horizon is not None else model.horizon
         gamma = proto.gamma if proto.gamma is not None else model.gamma

@@ -9,15 +9,18 @@ Each entry's *configuration model* (the keys a TOML ``[NAME]`` table or a pipeli
 so it cannot drift from the code: the estimator's parameters with their annotated types,
 minus those that take Python objects (regressor instances, policies, models), plus the
 entry's *extra keys* (a policy to evaluate by path, a simulator by name, a nested
-``fqe`` table). Values are then checked by the estimator's own ``_validate_params``
-(the scikit-learn place for it) before anything runs, so ``mode = "fast"`` fails at
-load time naming the file and key.
+``fqe`` table). Values are then checked as scikit-learn checks its estimators': the
+estimator's ``_parameter_constraints`` by scikit-learn's ``_validate_params()``, then its
+``_check_param_combinations()`` hook (:mod:`offline_adp.algorithms.params`), the two
+calls its ``fit`` starts with. That happens before anything runs or is written, so
+``mode = "fast"`` fails at load time, one line naming the file, section and key.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import re
 import types
 import typing
 from collections.abc import Callable
@@ -26,6 +29,7 @@ from functools import cache
 from typing import Any
 
 from pydantic import create_model
+from sklearn.utils._param_validation import InvalidParameterError
 
 from offline_adp.config import ConfigModel, validate_config
 from offline_adp.errors import SpecError, UnknownNameError
@@ -58,6 +62,9 @@ class AlgorithmEntry:
         Configuration keys besides the estimator's parameters: name -> (type, default).
     exclude : tuple of str
         Constructor parameters that take Python objects and have no configuration form.
+    required : dict
+        Keys a run cannot do without (an extra key whose default is None): name -> what to
+        write, for the message (:meth:`check_complete`).
     """
 
     name: str
@@ -71,6 +78,7 @@ class AlgorithmEntry:
     fit_with: Callable[[AlgorithmEntry, dict[str, Any], Any], Any] | None = None
     #: The Dask engine has a distributed version (``engines/dask.py``), used with LightGBM.
     dask: bool = False
+    required: dict[str, str] = field(default_factory=dict)
 
     def build_and_fit(self, params: dict[str, Any], dataset: Any) -> Any:
         """Construct the estimator from checked ``params`` (extra keys resolved: a policy
@@ -85,6 +93,15 @@ class AlgorithmEntry:
         """The pydantic model of this algorithm's configuration table."""
         return _params_model(self.name)
 
+    def check_complete(self, params: dict[str, Any] | None, source: str = "", section: str | None = None) -> None:
+        """SpecError unless ``params`` hold every key a run needs (``required``). Separate
+        from :meth:`check_params`, which also checks tables that are completed later (an
+        ``[api.fqe]`` table gets its policy at every iteration)."""
+        for key, what in self.required.items():
+            if (params or {}).get(key) is None:
+                where = f"{source}: " if source else ""
+                raise SpecError(f"{where}{self.name} needs {what}: {key} = {_EXAMPLES[key]} in [{section or self.name}]")
+
     def check_params(self, params: dict[str, Any] | None, source: str = "", section: str | None = None) -> dict[str, Any]:
         """Validate ``params`` (types, then the estimator's value checks); returns them
         with relative paths left as given and numbers as validated (a whole float for an
@@ -94,13 +111,11 @@ class AlgorithmEntry:
         fqe = FQE.check_params(given["fqe"], source, f"{section or self.name}.fqe") if "fqe" in given else None
         est_params = {k: v for k, v in given.items() if k not in self.extra}
         est = self.estimator_class()(**est_params)
-        # the estimator's own value checks (scikit-learn's place for them), when it has any
-        if any("_validate_params" in vars(c) for c in type(est).__mro__ if c.__module__.startswith("offline_adp")):
-            try:
-                est._validate_params()
-            except (ValueError, TypeError) as exc:
-                where = f"{source}: " if source else ""
-                raise SpecError(f"{where}[{section or self.name}] {exc}") from None
+        try:  # the checks ``fit`` starts with (scikit-learn's, then the estimator's cross-parameter hook)
+            est._validate_params()
+            est._check_param_combinations()
+        except InvalidParameterError as exc:
+            raise SpecError(parameter_error(exc, source, section or self.name)) from None
         out = dict(params or {})
         for k, v in given.items():  # numbers as validated (``2.0`` for an integer field runs as 2)
             if k in out and isinstance(v, int | float) and not isinstance(v, bool) and type(out[k]) is not type(v):
@@ -108,6 +123,15 @@ class AlgorithmEntry:
         if fqe is not None and isinstance(out.get("fqe"), dict):
             out["fqe"] = {**out["fqe"], **{k: v for k, v in fqe.items() if k in out["fqe"]}}
         return out
+
+
+def parameter_error(exc: InvalidParameterError, source: str, section: str) -> str:
+    """scikit-learn's ``The 'key' parameter of Class must be ... Got ... instead.`` as one
+    line naming the file, section and key: ``FILE: section.key must be ... Got ... instead.``"""
+    text = " ".join(str(exc).split())
+    m = re.match(r"The '(\w+)' parameter of \w+ (.*)", text)
+    where = f"{source}: " if source else ""
+    return f"{where}{section}.{m.group(1)} {m.group(2)}" if m else f"{where}[{section}] {text}"
 
 
 def _config_type(annotation: Any) -> Any | None:
@@ -173,8 +197,7 @@ def _simulator(p: dict[str, Any], ds: Any = None) -> Any:
 def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     from offline_adp.artifacts import load_index_policy
 
-    if p.get("policy") is None:
-        raise SpecError('fqe needs the policy to evaluate: policy = "RUN_DIR/model" in [fqe]')
+    entry.check_complete(p)
     return entry.estimator_class()(policy=load_index_policy(p.pop("policy")), **p).fit(ds)
 
 
@@ -190,14 +213,15 @@ def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     from offline_adp.features import drop_features
 
+    entry.check_complete(p)
     sim = _simulator(p, ds)
-    if sim is None:
-        raise SpecError('psdp needs a simulator (a reference problem): simulator = "path_tracking" in [psdp]')
     source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)
     baseline = ds.filter_source(source) if source else ds
     fmap = drop_features(ds.feature_names, drop) if drop else None
     return entry.estimator_class()(feature_map=fmap, **p).fit(sim, baseline)
 
+
+_EXAMPLES = {"policy": '"RUN_DIR/model"', "simulator": '"path_tracking"'}
 
 FQI = AlgorithmEntry(
     "fqi", "offline_adp.algorithms.fqi:FittedQIteration", "trace data",
@@ -208,6 +232,7 @@ FQE = AlgorithmEntry(
     "fqe", "offline_adp.algorithms.fqe:FittedQEvaluation", "trace data",
     "fitted Q evaluation of a saved policy (Algorithms 12, 13)",
     extra={"policy": (str | None, None)}, exclude=("policy", "feature_map", "initial_q"), fit_with=_fit_fqe,
+    required={"policy": "the policy to evaluate"},
 )
 API = AlgorithmEntry(
     "api", "offline_adp.algorithms.api:ApproximatePolicyIteration", "trace data",
@@ -226,7 +251,7 @@ PSDP = AlgorithmEntry(
     "policy search by dynamic programming (Algorithm 14)",
     extra={"simulator": (str | None, None), "problem_options": (dict[str, Any] | None, None),
            "baseline_source": (str | None, None), "drop_features": (list[str] | None, None)},
-    exclude=("feature_map",), fit_with=_fit_psdp,
+    exclude=("feature_map",), fit_with=_fit_psdp, required={"simulator": "a simulator (a reference problem)"},
 )
 
 #: name -> entry, in the order ``--help`` lists them.
