@@ -33,3 +33,43 @@ def test_algorithms_follow_sklearn_conventions(name):
     params = est.get_params(deep=False)
     assert set(params) == set(clone(est).get_params(deep=False))
     assert not any(k.endswith("_") for k in vars(est)), "no fitted attributes before fit"
+
+
+def _all_algorithm_classes():
+    from offline_adp.algorithms.iterated_fqi import IteratedFQI
+    from offline_adp.algorithms.psdp import IteratedPSDP
+
+    return [ALGORITHMS[n].estimator_class() for n in ALGORITHMS] + [IteratedFQI, IteratedPSDP]
+
+
+@pytest.mark.parametrize("cls", _all_algorithm_classes(), ids=lambda c: c.__name__)
+def test_every_parameter_is_declared_and_checked_by_sklearn(cls):
+    """One declaration per parameter (``_parameter_constraints``), checked by scikit-learn's
+    own ``BaseEstimator._validate_params``: no class of ours redefines it."""
+    from sklearn.base import BaseEstimator
+    from sklearn.utils._param_validation import InvalidParameterError
+
+    est = cls()
+    assert set(est._parameter_constraints) == set(est.get_params(deep=False))
+    assert type(est)._validate_params is BaseEstimator._validate_params
+    est._validate_params()
+    est._check_param_combinations()  # the defaults pass
+    name = next(k for k, c in est._parameter_constraints.items() if "random_state" == k or any(
+        getattr(x, "left", None) is not None for x in c))
+    with pytest.raises(InvalidParameterError, match=f"'{name}' parameter of {cls.__name__}"):
+        clone(est).set_params(**{name: -1})._validate_params()
+
+
+def test_fqe_defaults_are_fqis_except_those_its_docstring_names():
+    """FittedQEvaluation's docstring: its parameters are FittedQIteration's, with the same
+    defaults, except ``mode``, ``n_structures`` and ``structure_max_samples`` (and without
+    the screen and early builds)."""
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.algorithms.fqi import FittedQIteration
+
+    fqi, fqe = FittedQIteration().get_params(deep=False), FittedQEvaluation().get_params(deep=False)
+    assert set(fqi) - set(fqe) == {"screen_trees", "screen_tol", "early_build_trees"} and set(fqe) - set(fqi) == {"policy"}
+    differ = {k for k in fqe if k in fqi and fqe[k] != fqi[k]}
+    assert differ == {"mode", "n_structures", "structure_max_samples"}
+    doc = FittedQEvaluation.__doc__
+    assert all(f"{k} : " in doc for k in differ) and doc.count("**the default differs**") == len(differ)

@@ -134,7 +134,7 @@ def test_history_columns_and_validation_residual(small_pt):
 
 
 def test_bad_parameters_are_reported():
-    from offline_adp.errors import NotFittedError, UnknownNameError
+    from offline_adp.errors import NotFittedError
 
     with pytest.raises(NotFittedError):
         FittedQIteration().predict(np.zeros((1, 1)))

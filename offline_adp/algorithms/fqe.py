@@ -70,7 +70,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
     estimate did not change. The evaluation reports choose their own settings
     (:data:`offline_adp.evaluation.offpolicy.DEFAULT_FQE`: ``mode="frozen"``).
 
-    FittedQIteration's ``screen_trees`` and ``early_build_trees`` are not parameters here
+    FittedQIteration's ``screen_trees``, ``screen_tol`` and ``early_build_trees`` are not parameters here
     (always None: every frozen build grows the whole forest). The screen bounds the bias
     of a greedy backup's minimum over actions, and FQE's backup takes no minimum
     (docs/fqi-modes.md); the early builds were measured on FQI only.
@@ -87,7 +87,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
     """
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
-        **{k: v for k, v in FittedQIteration._parameter_constraints.items() if k not in ("screen_trees", "early_build_trees")},
+        **{k: v for k, v in FittedQIteration._parameter_constraints.items() if k not in ("screen_trees", "screen_tol", "early_build_trees")},
         "policy": [HasMethods(["probabilities"]), None],
     }
 
@@ -98,7 +98,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
-                 structure_max_samples: float | list[float | None] | None = None, tree_builder: str = "auto") -> None:
+                 structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto") -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
