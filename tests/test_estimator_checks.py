@@ -4,7 +4,9 @@ The chapter's algorithms (FittedQIteration, FQE, API, CPI, PSDP) are scikit-lear
 (hyper-parameters in ``__init__``, fitted attributes with ``_``, ``get_params`` /
 ``clone``), but ``fit`` takes a TransitionDataset or an access model rather than
 ``(X, y)``, so ``check_estimator`` does not apply to them; their conventions are checked
-below with ``clone`` and ``get_params`` instead.
+below with ``clone`` and ``get_params`` instead, and their parameter declarations
+(``_parameter_constraints``, one per parameter, checked by scikit-learn's own
+``_validate_params``) with scikit-learn's validation.
 
 The only skips are scikit-learn's array-API checks, which run only when the
 ``SCIPY_ARRAY_API`` environment variable is set (our estimators take NumPy arrays).
