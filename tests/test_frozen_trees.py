@@ -99,7 +99,7 @@ def test_a_list_gives_each_scheduled_build_its_row_fraction():
     f = FittedQIteration(gamma=0.9, n_iterations=4, mode="frozen", n_structures=2, structure_max_samples=[0.3, 1.0],
                          regressor_params=TREES).fit(ds)
     learner = f.fit_state_.learner
-    assert [learner.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
+    assert [learner.schedule.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
     assert len(learner.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)  # the last: grown on every row
     with pytest.raises(ValueError, match="max_samples"):
         FittedQIteration(mode="frozen", structure_max_samples=[0.5, 1.5], regressor_params=TREES).fit(ds)
@@ -127,10 +127,10 @@ def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
     ds = _continuous(400)
     kw = dict(gamma=0.9, n_iterations=2, mode="frozen", n_structures=1, regressor_params=TREES)
     full = FittedQIteration(**kw).fit(ds).fit_state_.learner
-    assert full.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
+    assert full.schedule.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
     monkeypatch.setattr(fqi, "STRUCTURE_ROWS", 100)
     capped = FittedQIteration(**kw).fit(ds).fit_state_.learner
-    assert capped.fraction(1) == pytest.approx(100 / 400)
+    assert capped.schedule.fraction(1) == pytest.approx(100 / 400)
     # a bootstrap of 100 rows: at most 100 distinct samples, so fewer than 2 * 100 nodes a tree
     assert len(capped.ensemble.value) < TREES["n_estimators"] * 2 * 100
     # ... while every training row still reads a leaf averaged over all rows in it
