@@ -140,12 +140,12 @@ def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
 def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
     """``fit`` exports the frozen structure once, at the end; ``fit_iter`` sets ``q_function_``
     after every iteration (a caller may read it in between). Both end on the same Q."""
-    from offline_adp import learn as learners
+    from offline_adp import learn
 
     ds = _continuous()
     calls = []
-    original = learners.FrozenTreesLearner.snapshot
-    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    original = learn.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learn.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
     params = dict(gamma=0.9, n_iterations=6, mode="frozen", n_structures=2, regressor_params=TREES, random_state=1)
     a = FittedQIteration(**params).fit(ds)
     assert len(calls) == 1
@@ -162,14 +162,14 @@ def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
 
 def test_fqe_fit_also_builds_its_result_once(monkeypatch):
     """FQE runs the same loop: ``fit`` defers, ``fit_iter`` does not, same Q."""
-    from offline_adp import learn as learners
+    from offline_adp import learn
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.policies import UniformPolicy
 
     ds = _continuous()
     calls = []
-    original = learners.FrozenTreesLearner.snapshot
-    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    original = learn.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learn.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
     params = dict(policy=UniformPolicy(2), gamma=0.9, n_iterations=5, mode="frozen", n_structures=2,
                   regressor_params=TREES, random_state=2)
     a = FittedQEvaluation(**params).fit(ds)
