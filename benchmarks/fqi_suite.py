@@ -32,11 +32,11 @@ import warnings
 
 import numpy as np
 
-from offline_adp import extra_trees
 from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import DivergenceWarning
+from offline_adp.trees import builder as extra_trees
 
 GYM = {"CartPole-v1": 100, "Acrobot-v1": 100, "MountainCar-v0": 200}  # iterations (MountainCar: goal info travels far)
 MODES = {

@@ -93,7 +93,8 @@ def worker(src: str, dst: str) -> None:
 
 def run_mushroom(python: str, arrays: dict, gamma: float, iterations: int, trees: int, seed: int) -> dict | None:
     """Fit mushroom-rl's FQI in its venv; its Q (costs: minus its reward Q) as a TreeQ."""
-    from offline_adp.qfunctions import QEncoder, TreeEnsemble, TreeQ
+    from offline_adp.qfunctions import QEncoder, TreeQ
+    from offline_adp.trees import TreeEnsemble
 
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"

@@ -19,9 +19,9 @@ import warnings
 import numpy as np
 from sklearn.ensemble import ExtraTreesRegressor
 
-from offline_adp import extra_trees
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.simulate import simulate
+from offline_adp.trees import builder as extra_trees
 
 
 def car_targets(seed: int) -> tuple[np.ndarray, np.ndarray]:

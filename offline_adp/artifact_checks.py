@@ -13,7 +13,7 @@ vectorised numpy before those libraries see it:
   uncompressed member, which is what we write) or by :data:`MAX_EXPANSION` times its
   compressed size, and in total by :data:`MAX_EXPANSION` times the file size - so a
   1 MB file can never ask for gigabytes.
-- :func:`check_tree_arrays` - a :class:`~offline_adp.qfunctions.TreeEnsemble` as
+- :func:`check_tree_arrays` - a :class:`~offline_adp.trees.ensemble.TreeEnsemble` as
   arrays: 1-D, equal lengths, integer/float dtypes; roots strictly increasing from 0;
   every child inside its own tree and after its parent (this is how scikit-learn numbers
   nodes, and it rules out cycles); every non-root node reached exactly once (so all
@@ -201,7 +201,7 @@ def _tree_structure(left: np.ndarray, right: np.ndarray, roots: np.ndarray, wher
 
 
 def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None) -> dict[str, np.ndarray]:
-    """Check the arrays of a :class:`~offline_adp.qfunctions.TreeEnsemble` stored under ``prefix``.
+    """Check the arrays of a :class:`~offline_adp.trees.ensemble.TreeEnsemble` stored under ``prefix``.
 
     Parameters
     ----------

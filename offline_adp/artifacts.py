@@ -22,15 +22,15 @@ import numpy as np
 from offline_adp import artifact_checks as C
 from offline_adp._version import __version__
 from offline_adp.errors import ArtifactError, FormatVersionWarning
-from offline_adp.learners import BoostedSumQ
 from offline_adp.qfunctions import (
+    BoostedSumQ,
     QEncoder,
     QFunction,
     RegressorQ,
     TimeIndexedQ,
-    TreeEnsemble,
     TreeQ,
 )
+from offline_adp.trees import TreeEnsemble
 
 ARTIFACT_VERSION = "1"
 

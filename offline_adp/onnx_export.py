@@ -16,7 +16,7 @@ Metadata (``model.metadata_props``): ``feature_names``, ``feature_units``,
 ``policy_kind``, ``time_indexed``, ``n_steps``, ``offline_adp_version``.
 
 What can be expressed: greedy policies over Q-functions made of scikit-learn forests
-(extra trees, random forests, also as saved :class:`~offline_adp.qfunctions.TreeEnsemble`
+(extra trees, random forests, also as saved :class:`~offline_adp.trees.ensemble.TreeEnsemble`
 arrays) or LightGBM boosters (including the warm-start sum of boosters), with joint
 (``[phi(x), action features]``) or per-action encodings and a column-selection feature
 map; time-indexed Q-functions (finite-horizon FQI, FQE) and PSDP's time-indexed
@@ -197,7 +197,7 @@ def _booster_of(model: Any) -> Any | None:
 
 def _regressor(g: _Graph, model: Any, X: str) -> str:
     """``model.predict(X)`` as a node: (N, 1) double."""
-    from offline_adp.qfunctions import TreeEnsemble
+    from offline_adp.trees import TreeEnsemble
 
     booster = _booster_of(model)
     if booster is not None:
@@ -233,8 +233,7 @@ def _phi(g: _Graph, fmap: Any, X: str) -> str:
 
 def _q_values(g: _Graph, q: Any, X: str) -> str:
     """Q-values (N, n_actions) of a stationary Q-function."""
-    from offline_adp.learners import BoostedSumQ
-    from offline_adp.qfunctions import RegressorQ, TreeQ
+    from offline_adp.qfunctions import BoostedSumQ, RegressorQ, TreeQ
 
     if not isinstance(q, RegressorQ | TreeQ | BoostedSumQ):
         raise ExportError(f"cannot export a {type(q).__name__} Q-function to ONNX")
@@ -296,7 +295,7 @@ def _refusal(pi: Any) -> str:
 def _classifier_policy(g: _Graph, pi: Any, X: str) -> str:
     from onnx import TensorProto
 
-    from offline_adp.qfunctions import TreeEnsemble
+    from offline_adp.trees import TreeEnsemble
 
     one = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
     if pi.constant is not None:

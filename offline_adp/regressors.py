@@ -116,23 +116,14 @@ def _extra_trees(**kw: Any) -> BaseEstimator:
     from sklearn.ensemble import ExtraTreesRegressor
 
     params = {"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0}
-    return _predict_on_one_thread(ExtraTreesRegressor(**{**params, **kw}), kw)
+    return ExtraTreesRegressor(**{**params, **kw})
 
 
 def _random_forest(**kw: Any) -> BaseEstimator:
     from sklearn.ensemble import RandomForestRegressor
 
     params = {"n_estimators": 50, "min_samples_split": 2, "max_features": 1.0, "n_jobs": -1, "random_state": 0}
-    return _predict_on_one_thread(RandomForestRegressor(**{**params, **kw}), kw)
-
-
-def _predict_on_one_thread(forest: BaseEstimator, kw: dict[str, Any]) -> BaseEstimator:
-    """Forests fit on all cores by default; unless ``n_jobs`` was given, the refit learner
-    predicts with them on one thread (threaded ``apply`` cost 4-10% more CPU here, on a loaded
-    2-core machine, for no result change). A mark on this prototype only: clones do not carry it."""
-    if "n_jobs" not in kw:
-        forest._oadp_predict_jobs = 1  # type: ignore[attr-defined]
-    return forest
+    return RandomForestRegressor(**{**params, **kw})
 
 
 def _lightgbm(**kw: Any) -> BaseEstimator:
@@ -194,6 +185,20 @@ def make_regressor(spec: str | BaseEstimator, **params: Any) -> BaseEstimator:
         return factory(**params)
     except TypeError as exc:
         raise UnknownNameError(f"regressor {spec!r}: bad parameters {sorted(params)} ({exc})") from None
+
+
+#: registry forests that fit on all cores but predict on one thread unless ``n_jobs`` is given
+_PREDICT_ON_ONE_THREAD = ("extra_trees", "random_forest")
+
+
+def predict_n_jobs(spec: str | BaseEstimator, params: dict[str, Any] | None = None) -> int | None:
+    """The ``n_jobs`` the refit learner predicts with for a regressor made by
+    :func:`make_regressor` (None: as fitted). Registry forests fit on all cores by default;
+    unless ``n_jobs`` was given they predict on one thread (threaded ``apply`` cost a few
+    percent more CPU on a loaded machine, for no result change)."""
+    if isinstance(spec, str) and spec in _PREDICT_ON_ONE_THREAD and "n_jobs" not in (params or {}):
+        return 1
+    return None
 
 
 class TabularClassifier(ClassifierMixin, BaseEstimator):

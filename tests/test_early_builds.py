@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
-from offline_adp.learners import build_weight
+from offline_adp.learn import build_weight
 from offline_adp.simulate import simulate
 
 

@@ -1,4 +1,4 @@
-"""The compiled extra-trees builder (offline_adp.extra_trees) against its definition and
+"""The compiled extra-trees builder (offline_adp.trees.builder) against its definition and
 against scikit-learn, a second implementation of the same algorithm.
 
 - Every tree it grows satisfies Geurts et al.'s Algorithm 1, checked node by node from the
@@ -20,8 +20,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
 
-from offline_adp import extra_trees
-from offline_adp.qfunctions import sklearn_tree
+from offline_adp.trees import builder as extra_trees
+from offline_adp.trees.sklearn import sklearn_tree
 
 pytestmark = pytest.mark.skipif(not extra_trees.available(), reason="numba is not installed")
 

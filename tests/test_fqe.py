@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from offline_adp import dp
 from offline_adp.algorithms.fqe import FittedQEvaluation
+from offline_adp.algorithms.fqe_bootstrap import leaf_operator, query_operators
 from offline_adp.envs import TabularMDP
 from offline_adp.errors import DivergenceWarning
 from offline_adp.examples import two_state
@@ -82,14 +85,16 @@ def test_settle_reaches_the_structures_fixed_point_by_a_linear_solve(small_pt):
 
     fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=20,
                             regressor_params={"n_estimators": 5}).fit(small_pt)
-    d, learner, backup = fqe._fit_state
+    fit = fqe.fit_state_
+    d, learner, backup = fit.data, fit.learner, fit.backup
     n, A = d.n, d.n_actions
     pi = backup.probabilities("next", 0)
     P = sparse.csr_matrix((pi.T.reshape(-1), (np.tile(np.arange(n), A), np.arange(A * n))), shape=(n, A * n))
     boot = sparse.diags(np.where(d.train.no_boot, 0.0, 0.9))
-    op = (learner.M @ boot @ P @ learner.A["next"]).tocsc()
-    v = spsolve((sparse.identity(op.shape[0], format="csc") - op), learner.M @ d.train.cost)
-    q0 = (learner.A["start"] @ v).reshape(A, -1).T
+    M, ops = leaf_operator(learner), query_operators(learner)
+    op = (M @ boot @ P @ ops["next"]).tocsc()
+    v = spsolve((sparse.identity(op.shape[0], format="csc") - op), M @ d.train.cost)
+    q0 = (ops["start"] @ v).reshape(A, -1).T
     exact = float((backup.probabilities("start", 0) * q0).sum(axis=1).mean())
     before = fqe.value_
     assert abs(before - exact) > 1e-3 * (1 + abs(exact))  # 5 sweeps on the last structure: not there yet
@@ -110,10 +115,11 @@ def _reweighted_fixed_point_oracle(fqe, w):
     from scipy import sparse
     from scipy.sparse.linalg import spsolve
 
-    d, learner, backup = fqe._fit_state
+    fit = fqe.fit_state_
+    d, learner, backup = fit.data, fit.learner, fit.backup
     n, A, L = d.n, d.n_actions, len(learner.leaf_ids)
     m = learner.pos["train"].shape[0]
-    comp = learner._compact.reshape(m, n)
+    comp = learner.pos["train"]
     wsum = np.zeros(L)
     for t in range(m):
         np.add.at(wsum, comp[t], w)
@@ -162,7 +168,7 @@ def test_reweighted_replicate_equals_an_independent_linear_solve(small_pt, polic
         w = rng.poisson(0.7, len(small_pt)).astype(float)  # ~half the rows out: empty leaves
         exact = _reweighted_fixed_point_oracle(fqe, w)
         assert fqe.reweighted_value(w, tol=1e-12) == pytest.approx(exact, rel=1e-8, abs=1e-10)
-        scale = 1 + np.max(np.abs(fqe._fit_state[1].leaf_values))
+        scale = 1 + np.max(np.abs(fqe.fit_state_.learner.leaf_values))
         assert abs(fqe.reweighted_value(w, rtol=REPLICATE_RTOL) - exact) <= 2 * REPLICATE_RTOL * scale
 
 
@@ -184,8 +190,7 @@ def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
 
 def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
     """Unfitted, wrong weight length, undiscounted: a clear error, not a traceback or a silent answer."""
-    from sklearn.exceptions import NotFittedError
-
+    from offline_adp.errors import NotFittedError
     from offline_adp.policies import UniformPolicy
 
     pi = UniformPolicy(small_pt.n_actions)
@@ -200,8 +205,9 @@ def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
             fqe.reweighted_value(np.ones(len(small_pt)), rtol=bad)
     with pytest.raises(TypeError, match="TransitionDataset"):
         FittedQEvaluation(policy=pi).fit("not a dataset")
-    fqe._fit_state = (fqe._fit_state[0].__class__(**{**fqe._fit_state[0].__dict__, "gamma": 1.0}),
-                      *fqe._fit_state[1:])  # the guard, not a division by 1 - gamma
+    fit = fqe.fit_state_
+    gamma_one = fit.data.__class__(**{**fit.data.__dict__, "gamma": 1.0})
+    fqe.fit_state_ = dataclasses.replace(fit, data=gamma_one)  # the guard, not a division by 1 - gamma
     with pytest.raises(ValueError, match="gamma < 1"):
         fqe.settle()
 

@@ -58,12 +58,12 @@ def test_subsampled_structures_average_every_training_row_in_a_leaf(pt, weighted
     w = np.random.default_rng(0).uniform(0.2, 2.0, len(pt)) if weighted else None
     f = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", structure_max_samples=0.3, regressor_params=TREES,
                          random_state=1).fit(pt, sample_weight=w)
-    learner = f._fit_state[1]
+    learner = f.fit_state_.learner
     model = learner._structure_model(1)
     assert model.bootstrap and model.max_samples == 0.3
     ens = learner.ensemble
     full = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params=TREES, random_state=1).fit(pt)
-    assert len(ens.value) < 0.5 * len(full._fit_state[1].ensemble.value)  # trees grown on ~30% of the rows
+    assert len(ens.value) < 0.5 * len(full.fit_state_.learner.ensemble.value)  # trees grown on ~30% of the rows
     enc = learner.encoder
     X = enc.pairs(a.obs, a.action)
     y = a.cost  # iteration 1: the targets are the costs
@@ -87,7 +87,7 @@ def test_constant_targets_give_the_constant_without_a_forest():
     ds = _continuous(cost=np.ones(300))
     obs = ds.arrays().obs
     f = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params=TREES).fit(ds)
-    assert not hasattr(f._fit_state[1].ensemble, "_forest")
+    assert not hasattr(f.fit_state_.learner.ensemble, "_forest")
     np.testing.assert_allclose(f.predict(obs), np.ones((len(obs), 2)), rtol=1e-12)
     f2 = FittedQIteration(gamma=0.9, n_iterations=3, mode="frozen", n_structures=1, regressor_params=TREES).fit(ds)
     assert list(f2.history_["structure"]) == [1, 2, 3]  # targets stay constant (1 + 0.9 * 1, ...): a one-leaf "build" each time
@@ -98,8 +98,8 @@ def test_a_list_gives_each_scheduled_build_its_row_fraction():
     ds = _continuous()
     f = FittedQIteration(gamma=0.9, n_iterations=4, mode="frozen", n_structures=2, structure_max_samples=[0.3, 1.0],
                          regressor_params=TREES).fit(ds)
-    learner = f._fit_state[1]
-    assert [learner.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
+    learner = f.fit_state_.learner
+    assert [learner.schedule.fraction(k) for k in (1, 2, 3, 4)] == [0.3, 0.3, 1.0, 1.0]  # builds at 1 and 3
     assert len(learner.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)  # the last: grown on every row
     with pytest.raises(ValueError, match="max_samples"):
         FittedQIteration(mode="frozen", structure_max_samples=[0.5, 1.5], regressor_params=TREES).fit(ds)
@@ -126,11 +126,11 @@ def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
 
     ds = _continuous(400)
     kw = dict(gamma=0.9, n_iterations=2, mode="frozen", n_structures=1, regressor_params=TREES)
-    full = FittedQIteration(**kw).fit(ds)._fit_state[1]
-    assert full.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
+    full = FittedQIteration(**kw).fit(ds).fit_state_.learner
+    assert full.schedule.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
     monkeypatch.setattr(fqi, "STRUCTURE_ROWS", 100)
-    capped = FittedQIteration(**kw).fit(ds)._fit_state[1]
-    assert capped.fraction(1) == pytest.approx(100 / 400)
+    capped = FittedQIteration(**kw).fit(ds).fit_state_.learner
+    assert capped.schedule.fraction(1) == pytest.approx(100 / 400)
     # a bootstrap of 100 rows: at most 100 distinct samples, so fewer than 2 * 100 nodes a tree
     assert len(capped.ensemble.value) < TREES["n_estimators"] * 2 * 100
     # ... while every training row still reads a leaf averaged over all rows in it
@@ -140,12 +140,12 @@ def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
 def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
     """``fit`` exports the frozen structure once, at the end; ``fit_iter`` sets ``q_function_``
     after every iteration (a caller may read it in between). Both end on the same Q."""
-    from offline_adp import learners
+    from offline_adp import learn
 
     ds = _continuous()
     calls = []
-    original = learners.FrozenTreesLearner.snapshot
-    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    original = learn.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learn.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
     params = dict(gamma=0.9, n_iterations=6, mode="frozen", n_structures=2, regressor_params=TREES, random_state=1)
     a = FittedQIteration(**params).fit(ds)
     assert len(calls) == 1
@@ -162,14 +162,14 @@ def test_fit_builds_the_result_once_and_fit_iter_keeps_it_current(monkeypatch):
 
 def test_fqe_fit_also_builds_its_result_once(monkeypatch):
     """FQE runs the same loop: ``fit`` defers, ``fit_iter`` does not, same Q."""
-    from offline_adp import learners
+    from offline_adp import learn
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.policies import UniformPolicy
 
     ds = _continuous()
     calls = []
-    original = learners.FrozenTreesLearner.snapshot
-    monkeypatch.setattr(learners.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
+    original = learn.FrozenTreesLearner.snapshot
+    monkeypatch.setattr(learn.FrozenTreesLearner, "snapshot", lambda self: calls.append(1) or original(self))
     params = dict(policy=UniformPolicy(2), gamma=0.9, n_iterations=5, mode="frozen", n_structures=2,
                   regressor_params=TREES, random_state=2)
     a = FittedQEvaluation(**params).fit(ds)

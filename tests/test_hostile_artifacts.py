@@ -273,8 +273,8 @@ def test_finite_horizon_onnx_is_proportional_to_the_model(tmp_path):
     from offline_adp.algorithms.fqi import FittedQIteration
     from offline_adp.artifacts import save_q
     from offline_adp.onnx_export import save_onnx
-    from offline_adp.qfunctions import TreeEnsemble
     from offline_adp.simulate import simulate
+    from offline_adp.trees import TreeEnsemble
 
     ds = simulate("path_tracking", 4, 16, seed=3, horizon=40)
     size, nodes, npz = {}, {}, {}

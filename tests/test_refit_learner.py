@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.learners import RefitLearner, _row_sources
+from offline_adp.learn import LearnSpec, RefitLearner
+from offline_adp.learn.refit import _row_sources
 from offline_adp.qfunctions import QEncoder
 from offline_adp.regressors import make_regressor
 
@@ -45,7 +46,7 @@ def test_derived_queries_equal_direct_predictions_on_shuffled_rows(encoding):
     start = x[:, 0]
     enc = QEncoder(3, np.array([[-1.0], [0.0], [1.0]]), per_action=encoding == "per_action")
     reg = make_regressor("extra_trees", n_estimators=5, n_jobs=1)
-    lr = RefitLearner(reg, enc, phi, actions, {"next": (phi_next, None), "start": (start, None)}, None, 0)
+    lr = RefitLearner(LearnSpec(reg, enc, phi, actions, {"next": (phi_next, None), "start": (start, None)}))
     assert len(lr.queries["extra"][0]) == n_ep  # only the episode starts are predicted besides the next states
     y = rng.normal(size=len(phi))
     lr.fit(y, 1)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from offline_adp import extra_trees
+from offline_adp.trees import builder as extra_trees
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not extra_trees.available(), reason="numba is not installed")]
@@ -31,7 +31,7 @@ _FIT = textwrap.dedent("""
     import numpy as np
     from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
     from offline_adp.simulate import simulate
-    from offline_adp import extra_trees
+    from offline_adp.trees import builder as extra_trees
 
     ds = simulate("car_on_hill", 20, 80, seed=3, horizon=60)
     with warnings.catch_warnings():

@@ -17,13 +17,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from offline_adp import TransitionDataset, extra_trees
+from offline_adp import TransitionDataset
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
-from offline_adp.learners import greedy_min_bias
-from offline_adp.qfunctions import sklearn_tree
+from offline_adp.learn import greedy_min_bias
 from offline_adp.regressors import make_regressor
+from offline_adp.trees import builder as extra_trees
+from offline_adp.trees.sklearn import sklearn_tree
 
 
 def _walk(n: int = 240, seed: int = 0, n_actions: int = 3) -> TransitionDataset:

@@ -16,7 +16,7 @@ Per-sample weights (``fit(..., sample_weight=w)``) make LEARN a weighted regress
 *on-policy weighting* (``w_i`` = expected time pi spends in ``x_i``, see
 :func:`on_policy_weights`) is the chapter's remedy for the divergence of linear
 evaluation (the two-state example, :mod:`offline_adp.examples.two_state`).
-It is the loop of :func:`~offline_adp.algorithms.fqi.fitted_q_loop` with the policy's
+It is the loop of :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop` with the policy's
 backup (:class:`~offline_adp.algorithms.fqi_data.PolicyBackup`); everything else
 (learners, monitor, modes, resume) is shared with
 :class:`~offline_adp.algorithms.fqi.FittedQIteration`. A finite horizon ``T`` works with
@@ -31,9 +31,18 @@ from typing import Any, ClassVar
 import numpy as np
 from sklearn.utils._param_validation import HasMethods
 
-from offline_adp.algorithms.fqi import FittedQIteration, run_fitted_q
+from offline_adp.algorithms.fqe_bootstrap import (
+    fixed_point,
+    leaf_operator,
+    query_operators,
+    reweighted_operators,
+)
+from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
+from offline_adp.algorithms.fqi_loop import FitState, run_fitted_q
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import NotFittedError
+from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import Policy, is_stationary
 from offline_adp.qfunctions import QFunction
 
@@ -150,9 +159,10 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
         :meth:`reweighted_value` computes for other weights, so bootstrap replicates are
         centred on it. Returns the number of sweeps run (also in ``settled_iterations_``).
         """
-        self._check_conditional()
-        d, learner, _backup = self._fit_state
-        v, sweeps = self._fixed_point(learner.M, self._query_operators(), learner.leaf_values, tol, max_iterations)
+        fit = self._check_conditional()
+        d, learner = fit.data, fit.learner
+        v, sweeps = fixed_point(d, fit.backup, leaf_operator(learner), self._query_operators(), learner.leaf_values, tol,
+                                max_iterations)
         learner.leaf_values = v
         self.q_function_ = learner.snapshot()
         self.settled_iterations_ = sweeps
@@ -174,15 +184,15 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
         all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
         training rows (no ``validation_fraction``).
         """
-        self._check_conditional()
+        fit = self._check_conditional()
         if not rtol > 0:
             raise ValueError(f"rtol must be > 0, got {rtol!r}")
-        d, learner, backup = self._fit_state
+        d, learner, backup = fit.data, fit.learner, fit.backup
         w = np.asarray(sample_weight, dtype=np.float64)
         if w.shape != (d.n,):
             raise ValueError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
-        M, ops = learner.reweighted_operators(w, base=self._query_operators())
-        v, _ = self._fixed_point(M, ops, learner.leaf_values, tol, n_iterations or 10_000, rtol)
+        M, ops = reweighted_operators(learner, w, base=self._query_operators())
+        v, _ = fixed_point(d, backup, M, ops, learner.leaf_values, tol, n_iterations or 10_000, rtol)
         q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
         v0 = (backup.probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
@@ -191,55 +201,23 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
     def _query_operators(self) -> dict[str, Any]:
         """The fitted structure's next-state and start-state operators, built once per fit
         (every replicate reweights the same ones)."""
-        learner = self._fit_state[1]
+        learner = self.fit_state_.learner
         cached = self.__dict__.get("_ops_cache")
         if cached is None or cached[0] is not learner:
-            cached = (learner, learner.query_operators(("next", "start")))
+            cached = (learner, query_operators(learner, ("next", "start")))
             self.__dict__["_ops_cache"] = cached
         return cached[1]
 
-    def _check_conditional(self) -> None:
-        from sklearn.exceptions import NotFittedError
-
-        from offline_adp.learners import FrozenTreesLearner
-
-        if not hasattr(self, "_fit_state"):
+    def _check_conditional(self) -> FitState:
+        """The fit's :class:`~offline_adp.algorithms.fqi_loop.FitState`, if it is one the
+        structure-conditional methods apply to."""
+        fit = getattr(self, "fit_state_", None)
+        if fit is None:
             raise NotFittedError("this FittedQEvaluation is not fitted in this process (fit it first)")
-        d, learner, _backup = self._fit_state
-        if (not isinstance(learner, FrozenTreesLearner) or self.horizon_ is not None or d.valid is not None
-                or d.gamma >= 1.0):
+        if (not isinstance(fit.learner, FrozenTreesLearner) or self.horizon_ is not None or fit.data.valid is not None
+                or fit.data.gamma >= 1.0):
             raise ValueError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
-
-    def _fixed_point(self, M: Any, ops: dict[str, Any], v: np.ndarray, tol: float | None,
-                     max_iterations: int, rtol: float = 1e-7) -> tuple[np.ndarray, int]:
-        """Iterate the leaf-averaging backup from ``v`` (a gamma-contraction) to ``tol``.
-
-        The policy's expectation over next actions is folded into one operator first,
-        ``P = sum_a diag(pi(a|x')) A_next[a]`` (rows of actions the policy never takes
-        left out), so a sweep is two sparse products; for a deterministic policy ``P`` has
-        ``1/A`` of ``A_next``'s entries."""
-        from scipy import sparse
-
-        d, _learner, backup = self._fit_state
-        n, A = d.n, d.n_actions
-        pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
-        i, a = np.nonzero(pi_next > 0)
-        pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
-        P = (pick @ ops["next"]).tocsr()  # V(x'_i) = sum_a pi(a|x'_i) Q(x'_i, a) as one operator on the leaf values
-        v = np.asarray(v, dtype=np.float64).copy()
-        if not len(v):
-            return v, 1
-        diff = np.empty_like(v)
-        for sweep in range(1, max_iterations + 1):
-            v_new = M @ d.targets(P @ v)  # the loop's own targets (c^- clamp included)
-            np.subtract(v_new, v, out=diff)
-            change = max(float(diff.max()), -float(diff.min()))
-            v = v_new
-            # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
-            bound = change * d.gamma / (1.0 - d.gamma)
-            if bound <= (tol if tol is not None else rtol * (1.0 + max(float(v.max()), -float(v.min())))):
-                return v, sweep
-        return v, max_iterations
+        return fit
 
     def _result_policy(self, q: QFunction) -> Any:
         return self.policy

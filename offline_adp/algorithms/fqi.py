@@ -19,21 +19,19 @@ dynamics are stationary)::
         Q_t = LEARN({((x_i, a_i), y_i)})
 
 Fitted Q *evaluation* (Algorithms 12/13, :mod:`offline_adp.algorithms.fqe`) is the same
-loop, :func:`fitted_q_loop`, with another backup (the policy's expectation instead of the
+loop, :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`, with another backup (the policy's expectation instead of the
 minimum, :mod:`offline_adp.algorithms.fqi_data`). ``terminated`` transitions (goal or
 failure) are nailed to their cost; ``truncated`` ones bootstrap from ``next_obs``. With
 ``infeasible_cost = c^-`` every target is clamped to at most ``c^-`` and transitions
-costing ``>= c^-`` do not bootstrap. See :mod:`offline_adp.learners` for the three ways
+costing ``>= c^-`` do not bootstrap. See :mod:`offline_adp.learn` for the three ways
 of doing LEARN (``mode``). Around the loop, not in it: the divergence monitor and verdict
 (:mod:`~offline_adp.algorithms.fqi_monitor`), the history, resume, and save/load.
 """
 
 from __future__ import annotations
 
-import time
 import warnings
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from numbers import Integral, Real
 from typing import Any, ClassVar
 
@@ -41,8 +39,8 @@ import numpy as np
 import pandas as pd
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
-from offline_adp.algorithms.fqi_data import Backup, GreedyBackup, Prepared, prepare
-from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, verdict
+from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare
+from offline_adp.algorithms.fqi_loop import run_fitted_q
 from offline_adp.algorithms.params import (
     GAMMA,
     NON_NEGATIVE,
@@ -54,11 +52,13 @@ from offline_adp.algorithms.params import (
 )
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
-from offline_adp.errors import DivergenceWarning, NotFittedError
-from offline_adp.learners import (
+from offline_adp.errors import NotFittedError
+from offline_adp.learn import (
     EarlyBuilds,
+    FrozenSchedule,
     FrozenTreesLearner,
     Learner,
+    LearnSpec,
     LightGBMWarmStartLearner,
     RefitLearner,
     TreeScreen,
@@ -66,56 +66,13 @@ from offline_adp.learners import (
 )
 from offline_adp.policies import GreedyPolicy, attach_signature
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
-from offline_adp.regressors import REGRESSORS, make_regressor
+from offline_adp.regressors import REGRESSORS, make_regressor, predict_n_jobs
 
-#: default frozen schedule: structures per iteration (8 over 100 iterations), measured in benchmarks/fqi_suite.py
+#: default frozen schedule: structures per iteration (8 over 100 iterations; docs/fqi-modes.md)
 STRUCTURES_PER_ITERATION = 0.08
 #: ``structure_max_samples="auto"``: a frozen structure is grown on at most this many rows (bootstrap)
 STRUCTURE_ROWS = 131_072
 MODES = ("auto", "refit", "frozen", "warm_start")
-
-
-# ----------------------------------------------------------------------------- the loop
-@dataclass(frozen=True)
-class Noise:
-    """Optional smoothing; iteration k's draws depend on ``(random_state, k)`` only."""
-
-    random_state: int = 0
-    target: float = 0.0  #: std of Gaussian noise added to the targets
-    next_state: float = 0.0  #: std (in feature std units) of noise added to x'
-
-    def targets(self, k: int, n: int) -> np.ndarray | float:
-        return np.random.default_rng([self.random_state, k, 17]).normal(0.0, self.target, n) if self.target else 0.0
-
-    def next_obs(self, k: int, data: Prepared) -> np.ndarray:
-        x = data.train.next_obs
-        return x + np.random.default_rng([self.random_state, k, 23]).normal(0.0, self.next_state, x.shape) * data.obs_std
-
-
-@dataclass(frozen=True)
-class Iterate:
-    """What one pass of the loop produced (the learner holds Q_k itself)."""
-
-    k: int  #: iteration, 1-based
-    t: int | None  #: the step fitted (finite horizon), else None
-    q_next_old: np.ndarray  #: Q_{k-1}(x'_i, .)
-    q_next: np.ndarray  #: Q_k(x'_i, .)
-
-
-def fitted_q_loop(data: Prepared, learner: Learner, backup: Backup, iterations: Iterable[tuple[int, int | None]],
-                  q_next: np.ndarray, noise: Noise = Noise()) -> Iterator[Iterate]:
-    """Algorithms 10-13: Bellman targets from the previous Q, then LEARN. One iteration per
-    ``(k, t)`` of ``iterations`` (``t = T - k`` for a finite horizon, else ``None``);
-    ``q_next`` is ``Q_{k-1}(x'_i, a')`` for every next state and action."""
-    for k, t in iterations:
-        if noise.next_state and k > 1:  # Q_{k-1} at perturbed next states (smoothing)
-            q_next = learner.snapshot().values(noise.next_obs(k, data))
-        y = data.targets(backup(q_next, "next", t))  # y_i = c_i + gamma (1 - term_i) V_{k-1}(x'_i)
-        y = y + noise.targets(k, len(y))
-        learner.fit(y, k)  # Q_k = LEARN({((x_i, a_i), y_i)})
-        q_new = learner.predict("next")  # Q_k(x'_i, a') for all a': one batched call
-        yield Iterate(k, t, q_next, q_new)
-        q_next = q_new
 
 
 # ----------------------------------------------------------------------------- the estimator
@@ -136,11 +93,8 @@ class FittedQIteration(CheckedEstimator):
         Parameters for a registry name.
     action_encoding : {"joint", "per_action"}
         One model on ``[phi(x), action]`` or one model per action on ``phi(x)``
-        (Ernst et al.'s and mushroom-rl's design). Measured with refit extra-trees
-        (``benchmarks/fqi_suite.py --quick``, paired over unselected data seeds):
-        ``joint`` scored far better on CartPole-v1 (331 vs 151, all 5 seeds), the same on
-        Acrobot-v1, and slightly worse on car-on-the-hill (0.193 vs 0.220, 7 of 9 seeds);
-        ``per_action`` fits ~20% less CPU. The frozen and warm-start modes need ``joint``.
+        (Ernst et al.'s and mushroom-rl's design); how they compare: docs/fqi-modes.md.
+        The frozen and warm-start modes need ``joint``.
     action_input : {"value", "onehot"}
         What a joint model sees of the action: its value vector from the action table
         (Ernst et al.'s choice) or a one-hot code.
@@ -161,18 +115,14 @@ class FittedQIteration(CheckedEstimator):
         evenly spaced iterations (and again after any build on constant targets), and the
         iterations in between only re-average leaf values (Ernst et al. 2005, section 4.3).
         Between builds it converges towards the fixed point of the averager its structure
-        defines, which is only as good as the structure, so the number of builds matters:
-        with 4 builds over 100 iterations CartPole-v1 scored 452 +- 57 against refit's
-        496 +- 7, with 8 (the default, one per 12.5 iterations) 498 +- 3 at 0.10 of
-        refit's CPU (``benchmarks/fqi_suite.py``, 50k transitions, 50 trees, 3 learner
-        seeds). On the whole suite it scored as well as refit or better on every problem
-        at 0.07-0.11 of its CPU (docs/fqi-modes.md).
+        defines, which is only as good as the structure, so the number of builds matters
+        (the default, one per 12.5 iterations, and its score and CPU against refit:
+        docs/fqi-modes.md).
         ``warm_start``: LightGBM, ``trees_per_iteration`` new trees per iteration boosted
         from the previous Q (joint encoding; with a non-LightGBM regressor it uses LightGBM
         with 63 leaves and learning rate 0.3, and says so in a warning). Boosting a few
         trees per iteration is a partial LEARN; it did not hold the refit score on any
-        problem of the suite (e.g. car-on-the-hill 0.10 vs 0.20, CartPole 141 vs 441 in
-        the quick suite), and the CLI warns.
+        problem we measured (docs/fqi-modes.md), and the CLI warns.
     trees_per_iteration : int
         For ``warm_start``.
     n_structures : int or None
@@ -184,8 +134,8 @@ class FittedQIteration(CheckedEstimator):
         fraction of the rows (``bootstrap=True, max_samples=...``); its leaves are then
         averaged over *all* training rows falling in them. Builds are cheaper and the
         forest smaller (about ``2 * fraction * n`` nodes a fully grown tree, instead of
-        ``2n``), but each leaf averages ~``1 / fraction`` rows: coarser (1/8 of the rows
-        for every build lost Acrobot and path tracking at 10k transitions). A list gives
+        ``2n``), but each leaf averages ~``1 / fraction`` rows: coarser (docs/fqi-modes.md).
+        A list gives
         one fraction per scheduled build (``1.0``: all rows). ``"auto"`` (default): all
         rows up to 131,072, a bootstrap of 131,072 rows beyond (so 1M transitions fit in
         memory and time); ``None``: the regressor's own.
@@ -195,17 +145,12 @@ class FittedQIteration(CheckedEstimator):
         ``n_estimators``, scikit-learn's warm start: the same trees a one-shot fit grows)
         only when the smaller forest would bias the greedy targets: the expected shortfall
         of ``min_a' Q(x', a')`` below the full forest's from Monte Carlo noise between the
-        best action and the others (:func:`~offline_adp.learners.greedy_min_bias`, summed
+        best action and the others (:func:`~offline_adp.learn.schedule.greedy_min_bias`, summed
         over the other actions), averaged over the next states, carried through the
         horizon ``1 / (1 - gamma)``, above ``screen_tol * std(y)``. No screen with
         ``screen_tol = 0``, ``gamma >= 1``, one action, or ``n_estimators <= screen_trees``.
         **Not the default because it did not hold everywhere** (docs/fqi-modes.md):
-        with ``screen_trees=10`` car-on-the-hill (gamma 0.95) kept 10 trees in 34 of 36
-        builds over 9 data seeds and scored as refit (+0.004 +- 0.013 paired) at 0.027 of
-        its CPU, but CartPole-v1 at gamma 0.95 kept 10 trees in its last three builds at
-        screen values like car-on-the-hill's (0.002-0.003) and scored 136 / 318 / 346
-        against 296 / 366 / 431 unscreened (learner seeds 0-2). Compare with an
-        unscreened fit before relying on it.
+        compare with an unscreened fit before relying on it.
     screen_tol : float
         The screen's threshold, a fraction of the targets' standard deviation (>= 0; 0
         grows the whole forest at every build).
@@ -216,29 +161,24 @@ class FittedQIteration(CheckedEstimator):
         Fitted Q-iteration's last iterate carries the error of iteration ``j``'s LEARN
         step by ``gamma^(K - j)`` (the chapter's bound on approximate value iteration), so
         a structure serving iterations ``s .. e`` weighs ``sum_{j=s..e} gamma^(K - j)``
-        (:func:`~offline_adp.learners.build_weight`). The last build always grows the
+        (:func:`~offline_adp.learn.schedule.build_weight`). The last build always grows the
         whole forest (unless the screen keeps fewer), and ``tol`` never stops a fit before
         it; the weights assume all K iterations run, so a fit that ``tol`` stops early has
         damped its early builds' error less. No effect with a finite horizon, where every
         iterate is the policy at one step.
-        **Not the default because it did not hold everywhere** (docs/fqi-modes.md): with
-        ``early_build_trees=10`` CartPole-v1, Acrobot-v1 and MountainCar-v0 at gamma 0.99
-        (100-200 iterations) scored as with whole builds at 0.46-0.76 of the CPU, but
-        CartPole-v1 at gamma 0.95 and 50 iterations lost on two of three data seeds
-        (e.g. 275 / 465 / 228 against 347 / 464 / 349). The bound damps an early
-        structure's error in the values, not in the later structures grown on the targets
-        it produced.
+        **Not the default because it did not hold everywhere** (docs/fqi-modes.md): the
+        bound damps an early structure's error in the values, not in the later structures
+        grown on the targets it produced.
     tree_builder : {"auto", "sklearn"}
         Who grows the frozen mode's structures. ``"auto"`` (default): the compiled
-        extra-trees builder (:mod:`offline_adp.extra_trees`, numba) wherever the regressor
+        extra-trees builder (:mod:`offline_adp.trees.builder`, numba) wherever the regressor
         is a scikit-learn ``ExtraTreesRegressor`` with settings it implements (the default
         regressor's are); scikit-learn otherwise. It is the same algorithm (Geurts et al.
         2006) with the same settings, not the same random draws, so a fit differs from the
         ``"sklearn"`` one as two seeds do, with one exception: on targets tied up to the
         learner's tie-breaking jitter scikit-learn stops splitting at random points (a
-        rounding effect) where this builder splits on (see :mod:`offline_adp.extra_trees`).
-        It grows a car-on-the-hill structure (56k rows, 50 trees) at 0.41-0.48 of
-        scikit-learn's CPU (``benchmarks/tree_builder.py``) and returns each training
+        rounding effect) where this builder splits on (see :mod:`offline_adp.trees.builder`).
+        It grows structures in less CPU than scikit-learn and returns each training
         row's leaf, so those rows, and the next-state queries that repeat them, are not
         looked up again (docs/fqi-modes.md). Its trees are bit-for-bit reproducible on
         one machine (resume is exact). ``refit`` always uses the regressor as given.
@@ -435,9 +375,9 @@ class FittedQIteration(CheckedEstimator):
     @staticmethod
     def mode_caveat(mode: str | None) -> str | None:
         """What a user should know before trusting ``mode`` (None: nothing): the fast paths
-        did not hold the refit score on every problem of ``benchmarks/fqi_suite.py``."""
+        did not hold the refit score on every problem we measured (docs/fqi-modes.md)."""
         if mode == "warm_start":
-            return (f"mode = {mode!r} did not hold the refit score on any problem of benchmarks/fqi_suite.py; "
+            return (f"mode = {mode!r} did not hold the refit score on any problem we measured (docs/fqi-modes.md); "
                     "compare with a mode = 'refit' run on your data")
         return None
 
@@ -511,7 +451,8 @@ class FittedQIteration(CheckedEstimator):
         if data.valid is not None:
             queries["valid"] = (data.valid.phi, data.valid.actions)
             queries["valid_next"] = (data.valid.phi_next, None)
-        args = (reg, data.encoder, data.train.phi, data.train.actions, queries, data.weights, self.random_state)
+        spec = LearnSpec(regressor=reg, encoder=data.encoder, phi=data.train.phi, actions=data.train.actions,
+                         queries=queries, weights=data.weights, seed=self.random_state)
         if self.mode_ == "frozen":
             screen = None if self.screen_trees is None else TreeScreen(int(self.screen_trees), float(self.screen_tol),
                                                                        data.gamma, ~data.train.no_boot)
@@ -519,14 +460,15 @@ class FittedQIteration(CheckedEstimator):
             finite = getattr(self, "horizon_", self.horizon) is not None
             early = (None if self.early_build_trees is None or finite
                      else EarlyBuilds(int(self.early_build_trees), data.gamma, int(self.n_iterations)))
-            return FrozenTreesLearner(*args, restructure_at=self._schedule(), max_samples=self._structure_fraction(data.n, reg),
-                                      screen=screen, early=early, builder=self.tree_builder)
+            return FrozenTreesLearner(spec, FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
+                                                           max_samples=self._structure_fraction(data.n, reg),
+                                                           builder=self.tree_builder))
         if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
                               "(LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
-            return LightGBMWarmStartLearner(*args, trees_per_iteration=self.trees_per_iteration)
-        return RefitLearner(*args)
+            return LightGBMWarmStartLearner(spec, trees_per_iteration=self.trees_per_iteration)
+        return RefitLearner(spec, predict_jobs=predict_n_jobs(self.regressor, self.regressor_params))
 
     def _result_policy(self, q: QFunction) -> Any:
         return GreedyPolicy(q)
@@ -556,137 +498,6 @@ def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
 
 def _isna(v: Any) -> bool:
     return v is None or (isinstance(v, float) and np.isnan(v))
-
-
-# ----------------------------------------------------------------------------- bookkeeping around the loop
-def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weight: np.ndarray | None,
-                 resume: dict[str, Any] | None, make_backup: Any, prepare: Any = None,
-                 make_learner: Any = None, *, deferred: bool = False) -> Iterator[dict[str, Any]]:
-    """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
-    the fitted attributes of ``est`` up to date (FQI and FQE alike). ``prepare(dataset,
-    sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and
-    ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN).
-    ``deferred``: an infinite-horizon ``Q_k`` becomes ``est.q_function_`` at the end only."""
-    est._validate_params()  # scikit-learn's, on _parameter_constraints
-    est._check_param_combinations()
-    data = (prepare or est._prepare)(dataset, sample_weight)
-    learner = (make_learner or est._learner)(data)
-    backup = make_backup(data)
-    finite = est.horizon_ is not None
-    total = est.horizon_ if finite else est.n_iterations
-    monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=est.divergence_slack,
-                                window=est.patience, finite=finite)
-    est._fit_state = (data, learner, backup)  # kept for structure-conditional re-weighting (not saved)
-    rows: list[dict[str, Any]] = []
-    est.__dict__["_history_rows"], est.__dict__["_history_frame"] = rows, None
-    est.diverged_, est.divergence_message_ = False, None
-    est.q_function_ = None
-    qs: list[QFunction] = []
-    n = data.n
-    if est.initial_q is not None:  # Q_0 (or the terminal Q_T)
-        q_next = est.initial_q.values(data.train.next_obs, est.horizon_ or 0)
-        q_train = est.initial_q.values(data.obs, 0)[np.arange(n), data.train.actions]
-    else:
-        q_next, q_train = np.zeros((n, data.n_actions)), np.zeros(n)
-    if resume is not None and resume["history"]:
-        rows.extend(dict(r) for r in resume["history"])
-        qs = list(resume["q"]) if finite else []
-        learner.restore(resume["q"][-1] if finite else resume["q"], len(rows), rows)
-        q_next, q_train = learner.predict("next"), learner.predict("train")
-        for j in range(1, len(rows) + 1):  # replay the monitor silently
-            msg = None if (est.on_divergence == "ignore" or est.diverged_) else monitor.check(rows[:j])
-            if msg:
-                est.diverged_, est.divergence_message_ = True, msg
-        _set_result(est, learner, qs)
-    done = len(rows)
-    if not _finished(est, rows, total):
-        iterations = ((k, (est.horizon_ - k) if finite else None) for k in range(done + 1, total + 1))
-        t0, c0 = time.perf_counter(), time.process_time()  # an iteration's clocks run from here to its row
-        for it in fitted_q_loop(data, learner, backup, iterations, q_next, Noise(est.random_state, est.target_noise, est.next_state_noise)):
-            q_train_new = learner.predict("train")
-            rows.append(_diagnostics(data, learner, backup, it, q_train, q_train_new, t0, c0))
-            est.__dict__["_history_dirty"] = True
-            q_train = q_train_new
-            if finite:
-                qs.append(learner.snapshot())
-            if finite or not deferred:
-                _set_result(est, learner, qs)
-            if not (est.on_divergence == "ignore" or est.diverged_):
-                msg = monitor.check(rows)
-                if msg:
-                    est.diverged_, est.divergence_message_ = True, msg
-                    action = "stopping (on_divergence='stop')" if est.on_divergence == "stop" else "continuing (on_divergence='warn')"
-                    warnings.warn(f"{type(est).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
-            yield rows[-1]
-            if _finished(est, rows, total):
-                break
-            t0, c0 = time.perf_counter(), time.process_time()
-    if rows and deferred:
-        _set_result(est, learner, qs)
-    conv = _converged(est, rows)
-    est.verdict_, est.verdict_message_ = verdict(rows, tol=est.tol, finite=finite, divergence=est.divergence_message_,
-                                                 converged=conv, window=est.patience)
-    est.converged_ = conv
-    if rows:
-        rows[-1]["verdict"] = est.verdict_
-        est.__dict__["_history_dirty"] = True
-
-
-def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:
-    """``sup|dQ| < tol`` on an iteration that did not rebuild a structure, after the last
-    scheduled build (a pure function of the history, so a resumed fit decides the same)."""
-    if est.tol is None or est.horizon_ is not None or len(rows) < 2:
-        return False
-    last, prev = rows[-1], rows[-2]
-    if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule()) or last.get("structure_on_constant")):
-        return False
-    return last["sup_dq"] < est.tol and last.get("structure") == prev.get("structure")
-
-
-def _finished(est: FittedQIteration, rows: list[dict[str, Any]], total: int) -> bool:
-    if not rows:
-        return False
-    return (len(rows) >= total or _converged(est, rows)
-            or (est.diverged_ and est.on_divergence == "stop"))
-
-
-def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, q_prev_train: np.ndarray,
-                 q_train: np.ndarray, t0: float, c0: float) -> dict[str, Any]:
-    dq = np.abs(q_train - q_prev_train)
-    boot = ~data.train.no_boot
-    changed = (it.q_next.argmin(axis=1) != it.q_next_old.argmin(axis=1))[boot]
-    if data.valid is not None:
-        v = data.valid
-        target = v.cost + data.gamma * np.where(v.no_boot, 0.0, backup(learner.predict("valid_next"), "valid_next", it.t))
-        resid = float(np.sqrt(np.mean((learner.predict("valid") - target) ** 2)))
-    else:  # on the training data, against Q_k's own targets
-        resid = float(np.sqrt(np.mean((q_train - data.targets(backup(it.q_next, "next", it.t))) ** 2)))
-    return {
-        "iteration": it.k,
-        "step": it.t,
-        "sup_dq": float(dq.max()),
-        "mean_dq": float(dq.mean()),
-        "max_abs_q": float(np.abs(q_train).max()),
-        "bellman_residual": resid,
-        "greedy_changed": float(changed.mean()) if len(changed) else 0.0,
-        "start_value": float(backup(learner.predict("start"), "start", -1 if it.t is None else it.t - 1).mean()),
-        "wall_time": time.perf_counter() - t0,
-        "cpu_time": time.process_time() - c0,
-        "structure": None,
-        **learner.state(),
-    }
-
-
-def _set_result(est: FittedQIteration, learner: Learner, qs: list[QFunction]) -> None:
-    if est.horizon_ is not None:
-        if not qs:
-            return
-        est.q_functions_ = list(reversed(qs))  # index t = 0..T-1
-        est.q_function_ = TimeIndexedQ(est.q_functions_) if len(est.q_functions_) == est.horizon_ else None
-    else:
-        est.q_function_ = learner.snapshot()
-    if est.q_function_ is not None:
-        est.policy_ = est._result_policy(est.q_function_)
 
 
 # ----------------------------------------------------------------------------- save / load

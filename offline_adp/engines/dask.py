@@ -3,7 +3,7 @@ FQE with LightGBM trained by ``lightgbm.dask``, and task maps for evaluation.
 Single-process stays the default.
 
 :class:`DistributedFQI` is not a second fitted-Q loop: it runs the package's loop
-(:func:`~offline_adp.algorithms.fqi.run_fitted_q`) with the data prepared here (the
+(:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q`) with the data prepared here (the
 dataset's rows as blocks on the workers, the per-transition vectors on the client) and a
 learner whose fit and predictions run on the cluster (:class:`DaskLearner`). What scales:
 the regression (data-parallel LightGBM) and the predictions over every block; the
@@ -30,8 +30,8 @@ import numpy as np
 import pandas as pd
 
 from offline_adp.errors import ClusterWarning, OfflineADPError
-from offline_adp.learners import BoostedSumQ, Learner, LightGBMWarmStartLearner
-from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
+from offline_adp.learn import Learner, LearnSpec, LightGBMWarmStartLearner
+from offline_adp.qfunctions import BoostedSumQ, QFunction, RegressorQ, predict_model
 
 
 def _one_line(exc: BaseException, limit: int = 400) -> str:
@@ -126,8 +126,8 @@ class DistributedFQI:
     cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
 
     It is the package's one fitted-Q loop
-    (:func:`~offline_adp.algorithms.fqi.run_fitted_q` and
-    :func:`~offline_adp.algorithms.fqi.fitted_q_loop`) run for :meth:`estimator`, the
+    (:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` and
+    :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`) run for :meth:`estimator`, the
     in-process estimator with the same parameters, with two parts supplied from here: the
     prepared data and the learner (:class:`DaskLearner`). Per iteration::
 
@@ -239,8 +239,8 @@ class DistributedFQI:
 
     def _fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any,
              checkpoint_dir: str | PathLike[str] | None) -> DistributedFQI:
-        from offline_adp.algorithms.fqi import run_fitted_q
         from offline_adp.algorithms.fqi_data import GreedyBackup
+        from offline_adp.algorithms.fqi_loop import run_fitted_q
 
         est = self.estimator()
         engine = _DaskEngine(client, est, self)
@@ -258,7 +258,7 @@ class DistributedFQI:
                     on_iteration(row["iteration"])
         finally:
             engine.release()
-        est.__dict__.pop("_fit_state", None)  # holds the cluster-side learner
+        est.__dict__.pop("fit_state_", None)  # holds the cluster-side learner
         self.estimator_ = est
         self.gamma_, self.q_function_, self.history_ = est.gamma_, est.q_function_, est.history_
         self.verdict_, self.verdict_message_ = est.verdict_, est.verdict_message_
@@ -287,7 +287,7 @@ def _write_checkpoint(ck: Path, est: Any, rows: list[dict[str, Any]]) -> None:
 
 
 def _read_checkpoint(ck: Path) -> dict[str, Any] | None:
-    """``{"q", "history"}`` for :func:`~offline_adp.algorithms.fqi.run_fitted_q`'s resume, or None."""
+    """``{"q", "history"}`` for :func:`~offline_adp.algorithms.fqi_loop.run_fitted_q`'s resume, or None."""
     from offline_adp.artifacts import load_q
     from offline_adp.qfunctions import TimeIndexedQ
 
@@ -303,7 +303,7 @@ def _read_checkpoint(ck: Path) -> dict[str, Any] | None:
 
 
 class _DaskEngine:
-    """The two parts :func:`~offline_adp.algorithms.fqi.run_fitted_q` takes from the Dask
+    """The two parts :func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` takes from the Dask
     engine: the prepared data (vectors on the client, inputs on the workers) and the learner."""
 
     def __init__(self, client: Any, est: Any, cfg: DistributedFQI) -> None:
@@ -562,7 +562,7 @@ class DaskLearner(Learner):
     predictions of the training, next and start sets computed block by block on the
     workers and gathered. ``warm_start``: each iteration boosts ``trees_per_iteration``
     trees on the residual from the previous Q, with the sums cached on the client (as
-    :class:`~offline_adp.learners.LightGBMWarmStartLearner`, with its parameters).
+    :class:`~offline_adp.learn.warm_start.LightGBMWarmStartLearner`, with its parameters).
     Iteration ``k``'s trees are seeded with ``seed + k``.
     """
 
@@ -571,7 +571,7 @@ class DaskLearner(Learner):
     def __init__(self, client: Any, blocks: _Blocks, regressor: Any, encoder: Any, actions: np.ndarray, seed: int, *,
                  warm_start: bool = False, trees_per_iteration: int = 10, time_out: int = 2, retries: int = 2,
                  start_obs: np.ndarray | None = None) -> None:
-        super().__init__(regressor, encoder, None, actions, {}, None, seed)  # type: ignore[arg-type]
+        super().__init__(LearnSpec(regressor, encoder, None, actions, {}, None, seed))  # type: ignore[arg-type]
         self.client, self.blocks, self.warm_start, self.trees_per_iteration = client, blocks, warm_start, trees_per_iteration
         self.time_out, self.retries, self.retried = time_out, retries, 0
         self.unplaced: list[int] = []  # iterations trained with a block away from its worker

@@ -41,10 +41,10 @@ Where it differs from scikit-learn 1.9, knowingly:
   settings and seed (``docs/fqi-modes.md``, "What is reproducible").
 
 Why a second implementation: the frozen-structure mode of fitted Q-iteration
-(:class:`offline_adp.learners.FrozenTreesLearner`) spends most of its time growing
-structures, and this builder grows them at 0.41-0.48 of scikit-learn's CPU on
-car-on-the-hill's 56k rows (``benchmarks/tree_builder.py``, 50 trees, one thread), and
-returns each training row's leaf, so no training row is looked up again. Its trees
+(:class:`offline_adp.learn.frozen.FrozenTreesLearner`) spends most of its time growing
+structures, and this builder grows them in less CPU than scikit-learn (measurements in
+docs/fqi-modes.md) and returns each training row's leaf, so no training row is looked
+up again. Its trees
 are tested node by node against the algorithm's definition and statistically against
 scikit-learn's (``tests/test_extra_trees.py``). Everything else (refit, any other
 regressor or setting) uses scikit-learn.

@@ -1,0 +1,362 @@
+"""The frozen-structure LEARN step: a tree ensemble's structure built on a schedule,
+leaf values re-averaged every iteration (Ernst, Geurts & Wehenkel 2005, section 4.3)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from sklearn.base import clone
+
+from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
+from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
+from offline_adp.qfunctions import QFunction, TreeQ
+from offline_adp.trees import builder as compiled
+from offline_adp.trees.ensemble import (
+    TreeEnsemble,
+    compiled_per_tree_leaves,
+    constant_ensemble,
+    ensemble_per_tree_leaves,
+    tree_mean,
+)
+from offline_adp.trees.sklearn import sklearn_tree_from_records, sklearn_trees_known
+
+
+class FrozenTreesLearner(Learner):
+    """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
+
+    Ernst, Geurts & Wehenkel (2005), "Tree-based batch mode reinforcement learning",
+    JMLR 6, section 4.3: with the tree structure frozen, fitted Q-iteration is a kernel
+    averager and converges. Update rule, with the structure built at iteration ``s``::
+
+        structure_s = LEARN({((x_i, a_i), y_s,i)})         (at s in restructure_at)
+        v_k = M @ y_k              M[leaf, i] = w_i / (sum of w of the training rows in the leaf)
+        Q_k(query) = mean over trees of v_k[leaf of the query in that tree]
+
+    The structure is (re)built at the iterations in ``restructure_at`` (and at the next
+    iteration whenever the targets were constant, e.g. the first targets of a problem with
+    one cost per step: LEARN on constant targets is that constant, represented by one-leaf
+    trees, and says nothing about where to split). A build grows the ensemble on that
+    iteration's targets (plus a tiny jitter, std ``1e-6 * (1 + std(y))``, only when the
+    targets have ties, so that tied nodes still split (scikit-learn's trees do not always:
+    see :mod:`offline_adp.trees.builder`); without ties a build on all rows by scikit-learn,
+    ``builder="sklearn"``, is exactly the refit step; the default compiled
+    builder, :mod:`offline_adp.trees.builder`, grows the same algorithm's trees from other
+    random draws) -- each tree on a bootstrap sample of ``max_samples`` of
+    the rows if given -- and looks up the leaf of every training and query input once
+    (training rows that continue the previous row reuse the next-state lookups). Leaves
+    are then *honest*: each leaf's value is the weighted mean target over **all** training
+    rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
+    dropped after the lookups (the arrays of :class:`~offline_adp.trees.ensemble.TreeEnsemble`
+    remain). With a ``screen`` (:class:`~offline_adp.learn.schedule.TreeScreen`; opt-in, ``FittedQIteration(screen_trees=...)``) a build
+    first grows ``screen.trees`` trees and grows the rest of the forest (scikit-learn's warm
+    start: the same trees a one-shot fit grows) only when the greedy targets would be
+    measurably biased by the smaller forest (:func:`~offline_adp.learn.schedule.greedy_min_bias`, carried through
+    ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
+    (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
+    (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
+    An iteration is one bincount per tree over the tree-major (trees, n) leaf
+    matrix and one gather per tree (each within that tree's leaves, so cache-sized): no
+    tree fitting, no traversal.
+    With a fixed structure the update is a gamma-contraction, so it converges -- to the
+    fixed point of *that* averager, which is only as good as the structure: a structure
+    fitted to early targets cannot represent what later targets need.
+
+    How the number of builds and their row fractions trade score against CPU:
+    docs/fqi-modes.md.
+    """
+
+    def __init__(self, spec: LearnSpec, schedule: FrozenSchedule | None = None) -> None:
+        super().__init__(spec)
+        self.schedule = schedule = FrozenSchedule() if schedule is None else schedule
+        self.builder = schedule.builder
+        self.grown_by: str | None = None  # who grew the last build: "compiled", "scikit-learn" (None: constant)
+        if self.encoder.per_action:
+            raise ValueError("the frozen-structure mode needs action_encoding='joint'")
+        self.restructure_at = schedule.builds
+        self.max_samples = schedule.max_samples
+        self.screen = schedule.screen
+        self.early = schedule.early
+        self.screen_value: float | None = None  # the last build's screen (None: not screened)
+        self._pending = True  # no structure yet
+        self.structures = 0
+        self.built_on_constant = False
+        phi_next = self.queries["next"][0] if "next" in self.queries else None
+        same = np.zeros(len(self.phi), bool)
+        if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
+            same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
+        self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
+        self._cache: dict[str, np.ndarray] = {}
+
+    def _structure_model(self, k: int) -> Any:
+        model = seeded(clone(self.regressor), self.seed + k)
+        f = self.schedule.fraction(k)
+        if f is not None and f < 1.0:
+            if "max_samples" not in model.get_params():
+                raise ValueError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
+                                 f"not {type(model).__name__}")
+            model.set_params(bootstrap=True, max_samples=float(f))
+        return model
+
+    def _build(self, y: np.ndarray, k: int) -> None:
+        X = self.encoder.pairs(self.phi, self.actions)
+        self.structures += 1
+        self.built_on_constant = bool(np.ptp(y) == 0.0)
+        self.screen_value = None
+        if self.built_on_constant:  # LEARN on constant targets is that constant: one leaf per tree
+            self.grown_by = None
+            self._set_ensemble(constant_ensemble(float(y[0]), int(self.regressor.get_params().get("n_estimators", 1))))
+            self.ensemble.n_features_in_ = int(X.shape[1])  # type: ignore[attr-defined]
+            self._operators(self._ensemble_per_tree(self.ensemble))
+            return
+        grow = y
+        if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
+            grow = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+        model = self._structure_model(k)
+        params = model.get_params()
+        full = int(params.get("n_estimators") or 0)
+        e = self.early
+        early = (e is not None and e.gamma < 1.0 and 0 < e.trees < full
+                 and build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio)
+        if early:  # its error is damped before the end: the forest's first trees only, unscreened
+            model.set_params(n_estimators=e.trees)
+        s = self.screen
+        screen = (not early and s is not None and s.tol > 0 and s.gamma < 1.0 and self.encoder.n_actions > 1
+                  and "warm_start" in params and full > s.trees)
+        native = (compiled.native_params(model, len(X), X.shape[1])
+                  if self.builder == "auto" and compiled.available() and sklearn_trees_known() else None)
+        self.grown_by = "compiled" if native is not None else "scikit-learn"
+        if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
+            first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
+            self._adopt_grown(self._grow(X, grow, native, range(first)), X.shape[1])
+            if screen:
+                assert s is not None
+                self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
+                if not self.screen_value <= s.tol:
+                    self._adopt_grown(self._grow(X, grow, native, range(s.trees, full)), X.shape[1], start=s.trees)
+            return
+        if not screen:
+            self._adopt(fit_model(model, X, grow, self.weights))
+            return
+        assert s is not None
+        model.set_params(n_estimators=s.trees, warm_start=True)  # its trees are the full forest's first ones
+        self._adopt(fit_model(model, X, grow, self.weights))
+        self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
+        if not self.screen_value <= s.tol:  # the greedy targets need the whole forest (NaN: to be safe)
+            model.set_params(n_estimators=full)
+            self._adopt(fit_model(model, X, grow, self.weights), start=s.trees)
+
+    def _adopt(self, forest: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
+        """Take ``forest`` as the structure: look up every training and query input in it
+        (from tree ``start`` on: the earlier trees' lookups are held, see :meth:`_operators`)."""
+        if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
+            raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
+        # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
+        # (snapshot: a checkpoint, the end of the fit), not at every build
+        sizes = np.array([e.tree_.node_count for e in forest.estimators_], dtype=np.int64)
+        self.ensemble, self._forest = None, forest
+        self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
+        trees = [e.tree_ for e in forest.estimators_]
+        if train_leaves is not None:  # local ids -> global
+            train_leaves = [leaf.astype(np.int64) + int(r) for leaf, r in zip(train_leaves, self._roots[start:], strict=True)]
+        self._operators(compiled_per_tree_leaves(trees[start:], self._roots[start:]), start=start,
+                        train_leaves=train_leaves)
+
+    def _grow(self, X: np.ndarray, y: np.ndarray, native: compiled.TreeParams,
+              trees: range) -> list[tuple[Any, np.ndarray | None]]:
+        """Trees ``trees`` from the compiled builder, each as a scikit-learn ``Tree`` (made
+        in the builder's thread, so its full-size buffers go at once) and its training
+        rows' leaves (None unless every row is in the tree)."""
+        d = X.shape[1]
+
+        def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
+            leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
+            return sklearn_tree_from_records(t.nodes, t.value, d), leaf
+
+        every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
+        return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
+
+    def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
+        """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
+        scikit-learn ``Tree`` objects set from their records (its compiled lookups, and the
+        export), with each training row's leaf where every row is in the tree.
+        ``start > 0``: they follow the ``start`` trees held, as a screened build grows
+        its forest."""
+        held = self._forest.estimators_[:start] if start else []
+        new = [SimpleNamespace(tree_=tree) for tree, _ in trees]
+        # every training row in every tree (no bootstrap, no zero weight): its leaf is known
+        known = all(leaf is not None for _, leaf in trees)
+        self._adopt(SimpleNamespace(estimators_=held + new, n_features_in_=int(n_features)), start=start,
+                    train_leaves=[leaf for _, leaf in trees] if known else None)
+
+    def _screen_bias(self, y: np.ndarray, full: int) -> float:
+        """:func:`~offline_adp.learn.schedule.screen_bias` of the current (screen's) trees."""
+        assert self.screen is not None
+        means = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum
+        return screen_bias(self.screen, self.pos["next"], means, self.encoder.n_actions, self._w, y, full)
+
+    def _set_ensemble(self, ensemble: TreeEnsemble) -> None:
+        self.ensemble, self._forest = ensemble, None
+        self._roots, self._n_nodes = np.asarray(ensemble.roots), len(ensemble.value)
+
+    def _exported(self) -> TreeEnsemble:
+        """The structure as arrays, exported from the forest on first use (then the forest,
+        whose node arrays are as large again, is dropped)."""
+        if self.ensemble is None:
+            forest, self._forest = self._forest, None
+            trees = [e.tree_ for e in forest.estimators_]
+            forest.estimators_ = []  # ours (a clone): each tree is freed as soon as it is copied
+            ens = TreeEnsemble.from_trees(trees, consume=True)
+            ens.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
+            self._set_ensemble(ens)
+        return self.ensemble
+
+    def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
+        """The training leaf matrix, the leaf weights and the query operators (leaf positions),
+        tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
+        every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
+        take their leaves from the next-state lookup (a third of the lookups with two
+        actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
+        held: one tree's lookups at a time. ``start > 0``: the first ``start`` trees are
+        those whose lookups are held already (a screened build growing its forest); their
+        positions are kept and ``tree_leaves`` yields the later trees only.
+
+        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, global
+        ids): every training row's leaf is known, so nothing is looked up for the training
+        rows, and the next-state queries they repeat are not looked up either: half of them
+        with two actions."""
+        n, m = len(self.phi), len(self._roots)
+        names = [q for q in self.queries if q != "train"]
+        inputs = {q: self._joint(*self.queries[q]) for q in names}
+        reuse = self.reuse if len(self.reuse) and "next" in inputs else np.zeros(0, np.int64)
+        rest = np.ones(n, bool)
+        rest[reuse] = False
+        from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
+        looked = None  # the next-state queries looked up (the others are training rows' leaves)
+        if train_leaves is not None and len(reuse):
+            looked = np.ones(len(inputs["next"]), bool)
+            looked[from_next] = False
+            inputs = {**inputs, "next": inputs["next"][looked]}
+        gens = {q: tree_leaves(inputs[q]) for q in names}
+        if rest.any() and train_leaves is None:
+            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
+        if looked is not None:
+            inputs["next"] = np.empty((len(looked), 0))  # only its length is read below
+        ends = np.r_[self._roots[1:], self._n_nodes]
+        held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
+        self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
+        train = np.empty((m, n), np.int32)
+        ids, bounds = [], [0]
+        if start:  # the same trees, the same compact leaves; "no training leaf" is re-marked below
+            for q, p in [*self.pos.items(), ("train", train)]:
+                p[:start] = held[q][:start]
+                p[:start][p[:start] == len(held_ids)] = -1
+            ids, bounds = [held_ids], [int(b) for b in held_bounds[:start + 1]]
+            del held
+        for t in range(start, m):
+            raw = {q: next(g) for q, g in gens.items()}
+            root, lo = int(self._roots[t]), bounds[-1]
+            if train_leaves is not None:
+                leaf = train_leaves[t - start]
+                if looked is not None:
+                    full = np.empty(len(looked), np.int64)
+                    full[looked] = raw["next"]
+                    full[from_next] = leaf[reuse]
+                    raw["next"] = full
+            else:
+                leaf = np.empty(n, np.int64)
+                leaf[rest] = raw.pop("", None) if rest.any() else 0
+                if len(reuse):
+                    leaf[reuse] = raw["next"][from_next]
+            used = np.zeros(int(ends[t]) - root, bool)
+            used[leaf - root] = True
+            local = np.flatnonzero(used)  # this tree's leaves holding training samples
+            lookup = np.full(len(used), -1, np.int32)
+            lookup[local] = lo + np.arange(len(local), dtype=np.int32)
+            train[t] = lookup[leaf - root]
+            for q in names:
+                self.pos[q][t] = lookup[raw[q] - root]  # -1: a leaf without training samples
+            ids.append(local + root)
+            bounds.append(lo + len(local))
+        self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        L = len(self.leaf_ids)
+        for q in names:  # a leaf without training weight reads value L (0)
+            p = self.pos[q]
+            p[p < 0] = L
+        for q, p in [*self.pos.items(), ("train", train)]:  # _tree_mean gathers with mode="clip": keep them in range
+            if p.size and (int(p.min()) < 0 or int(p.max()) > L):
+                raise RuntimeError(f"frozen structure: leaf positions of {q!r} outside [0, {L}]")
+        self._bounds, self._m = np.asarray(bounds), m
+        self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
+        self.pos["train"] = train  # every training leaf holds its own sample
+        self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
+        self._rest = None  # tree-major positions of the training rows that are not reused (cached)
+
+    def _ensemble_per_tree(self, ens: TreeEnsemble) -> Any:
+        """The per-tree leaf lookup of a structure held as arrays (a restored checkpoint, the
+        constant-target structure), checked against our inputs' width first."""
+        return ensemble_per_tree_leaves(ens, self.encoder.pairs(self.phi[:1], self.actions[:1]))
+
+    def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
+        """``sum of v_i`` over the training rows in each leaf (compact index)."""
+        pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
+        for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
+            out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
+        return out
+
+    def fit(self, y: np.ndarray, k: int) -> None:
+        if self._pending or k in self.restructure_at:
+            self._build(y, k)
+        self._pending = self.built_on_constant  # constant targets say nothing about where to split
+        y = np.asarray(y, dtype=np.float64)
+        self.leaf_values = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum  # leaf means of y_k
+        self._cache = {}
+
+    def state(self) -> dict[str, Any]:
+        return {"structure": self.structures, "structure_on_constant": self.built_on_constant,
+                "structure_trees": int(self._m), "structure_screen": self.screen_value,
+                "structure_builder": self.grown_by}
+
+    def predict(self, name: str) -> np.ndarray:
+        if name in self._cache:
+            return self._cache[name]
+        phi, actions = self.queries[name]
+        values = self._cache.get("")  # leaf values and a 0 for "no training leaf", once per iteration
+        if values is None:
+            values = self._cache[""] = np.r_[self.leaf_values, 0.0]
+        if name == "train" and len(self.reuse) and "next" in self.pos:  # the same leaves: the same numbers
+            v = np.empty(len(phi))
+            rest = np.ones(len(phi), bool)
+            rest[self.reuse] = False
+            if self._rest is None:
+                self._rest = np.ascontiguousarray(self.pos[name][:, rest])
+            v[rest] = tree_mean(values, self._rest)
+            v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
+        else:
+            v = tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
+        self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
+        return self._cache[name]
+
+    def snapshot(self) -> QFunction:
+        ens = self._exported()
+        value = ens.value.copy()
+        value[self.leaf_ids] = self.leaf_values
+        return TreeQ([ens.with_values(value)], self.encoder)
+
+    def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
+        """The saved ``Q_k`` carries its structure: recompute the leaves of the training and
+        query inputs with it (the same leaves the structure's forest gave) and read the
+        leaf values back."""
+        self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
+        self._operators(self._ensemble_per_tree(self.ensemble))
+        self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
+        self._cache = {}
+        last = (rows or [{}])[-1]
+        self.structures = int(last.get("structure") or 1)
+        self.built_on_constant = bool(last.get("structure_on_constant") or False)
+        screened = last.get("structure_screen")
+        self.screen_value = None if screened is None or screened != screened else float(screened)  # NaN: none
+        by = last.get("structure_builder")
+        self.grown_by = by if isinstance(by, str) else None
+        self._pending = self.built_on_constant
