@@ -26,7 +26,12 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.rundir import read_json_file
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import (
+    IncompatibleError,
+    InvalidArgumentError,
+    RunDirectoryError,
+    WriteError,
+)
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
 
 
@@ -78,19 +83,19 @@ def compare_runs(
     say = progress or (lambda _m: None)
     runs = [Path(r) for r in run_dirs]
     if len(runs) < 2:
-        raise OfflineADPError("compare needs at least two run directories")
+        raise InvalidArgumentError("compare needs at least two run directories")
     if estimator is not None and estimator not in ESTIMATOR_NAMES:
-        raise OfflineADPError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
+        raise InvalidArgumentError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
     for r in runs:
         if not (r / "model").is_dir():
-            raise OfflineADPError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+            raise RunDirectoryError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
     if dataset is None:
         paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
         if "" in paths:
-            raise OfflineADPError("a run does not name its dataset; pass --dataset DIR")
+            raise RunDirectoryError("a run does not name its dataset; pass --dataset DIR")
         fps = {_fingerprint(p) for p in paths}
         if len(fps) > 1:
-            raise OfflineADPError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
+            raise IncompatibleError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
                                   "one with --dataset DIR")
         dataset = sorted(paths)[0]
     ds_path = str(Path(dataset).resolve())
@@ -108,7 +113,7 @@ def compare_runs(
         metrics.append(m)
     estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
     if len(estimands) > 1:
-        raise OfflineADPError("the candidates' evaluations target different quantities (horizon or discount differ); "
+        raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "
                               "re-run with the same --horizon, or pass force")
     rankings = [rank_estimators(m) for m in metrics]
     if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
@@ -191,7 +196,7 @@ def cli(args: Any) -> int:
         logging.getLogger("offline_adp.cli").info("  %s", msg)
 
     if args.json and Path(args.json).is_dir():  # before the work, not after it
-        raise OfflineADPError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
+        raise WriteError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
     res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
                        force=args.force, evaluate_params={"n_episodes": args.episodes}, progress=say)
     for line in compare_lines(res):

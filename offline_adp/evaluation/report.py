@@ -19,7 +19,7 @@ import pandas as pd
 from offline_adp.data.io import read_info
 from offline_adp.data.rundir import read_json_file, read_table_file
 from offline_adp.envs import PROBLEM_NAMES, problem_class
-from offline_adp.errors import ArtifactError, OfflineADPError
+from offline_adp.errors import ArtifactError, RunDirectoryError
 
 UNITS = {"e": "m", "e_psi": "rad", "p": "", "v": "m/s", "s": "m", "delta": "rad", "kappa": "1/m"}
 
@@ -366,7 +366,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     run = Path(run_dir)
     ev = run / "evaluation"
     if not (ev / "metrics.json").exists():
-        raise OfflineADPError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
+        raise RunDirectoryError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
     m = read_json_file(ev / "metrics.json")
     ratios = read_table_file(ev / "ratios.parquet")
     features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier", "w_pooled")]
