@@ -32,7 +32,7 @@ import numpy as np
 #: The default tail fraction of CVaR: the worst 10% of episodes.
 CVAR_ALPHA = 0.1
 #: Levels of the stored quantile function (enough to draw the distribution).
-QUANTILE_LEVELS = tuple(np.round(np.linspace(0.0, 1.0, 21), 2).tolist())
+QUANTILE_LEVELS = tuple(np.round(np.linspace(0.0, 1.0, 41), 3).tolist())
 
 
 def _prepare(costs: Any, weights: Any | None) -> tuple[np.ndarray, np.ndarray]:
