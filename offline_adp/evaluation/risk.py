@@ -88,6 +88,7 @@ def weighted_quantiles(costs: Any, levels: Any, weights: Any | None = None) -> n
     """The (lower) quantile function of the weighted empirical distribution: for each level
     ``u``, the smallest cost ``c`` with ``F(c) >= u`` (``u = 0``: the minimum)."""
     c, w = _prepare(costs, weights)
+    c, w = c[w > 0], w[w > 0]  # an episode of weight 0 is not in the distribution
     order = np.argsort(c, kind="stable")
     c, cum = c[order], np.cumsum(w[order])
     u = np.asarray(levels, dtype=np.float64)
@@ -109,7 +110,7 @@ def distribution_summary(costs: Any, *, weights: Any | None = None, alpha: float
     q = weighted_quantiles(c, QUANTILE_LEVELS, w)
     med, q90 = weighted_quantiles(c, [0.5, 0.9], w)
     return {"mean": float(np.sum(w * c)), "cvar": cvar(c, alpha, w), "alpha": float(alpha), "median": float(med),
-            "q90": float(q90), "min": float(c.min()), "max": float(c.max()), "n_episodes": int(len(c)),
+            "q90": float(q90), "min": float(q[0]), "max": float(q[-1]), "n_episodes": int(len(c)),
             "ess": float(1.0 / np.sum(w**2)), "quantiles": {"levels": list(QUANTILE_LEVELS), "values": q.tolist()},
             "source": source, "method": method}
 
