@@ -10,7 +10,12 @@ from offline_adp.envs.tabular import TabularMDP
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import ope, shift
 from offline_adp.evaluation.offpolicy import logged_cost_distributions
-from offline_adp.evaluation.risk import cvar, distribution_summary, weighted_policy_distribution, weighted_quantiles
+from offline_adp.evaluation.risk import (
+    cvar,
+    distribution_summary,
+    weighted_policy_distribution,
+    weighted_quantiles,
+)
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from offline_adp.simulate import collect
 
@@ -61,7 +66,7 @@ OPT = MDP.optimal().policy
 def exact_cost_distribution(pi) -> tuple[np.ndarray, np.ndarray]:
     """Every trajectory's probability and cost under ``pi``, enumerated (atoms of G)."""
     table = shift.policy_table(pi, MDP.n_states, T)  # (T, S, A)
-    S, A = MDP.n_states, MDP.n_actions
+    S = MDP.n_states
     prob, cost, state = MDP.initial_distribution.copy(), np.zeros(S), np.arange(S)
     for t in range(T):
         p = prob[:, None, None] * table[t][state][:, :, None] * MDP.P[:, state, :].transpose(1, 0, 2)  # (n, A, S)
