@@ -119,6 +119,8 @@ def test_weighted_distribution_says_it_cannot_tell_when_the_weights_are_degenera
     out = weighted_policy_distribution(G, W)
     assert out["usable"] is False and "effective sample size" in out["reason"]
     assert "cvar" not in out
+    out = weighted_policy_distribution(G, np.zeros(1000))
+    assert out["usable"] is False and "every importance weight is 0" in out["reason"]
     out = weighted_policy_distribution(G, np.ones(1000), comparable=False)
     assert out["usable"] is False and "past the logged episodes" in out["reason"]
     ok = weighted_policy_distribution(G, np.ones(1000))

@@ -20,7 +20,7 @@ Where the distributions come from (:func:`cost_distributions`):
   the distribution whose mean is WIS), only where the weight diagnostics
   (:func:`~offline_adp.evaluation.ope.weight_diagnostics`,
   :func:`~offline_adp.evaluation.ope.interval_unreliable`) say the weights are usable;
-  otherwise it is ``None`` with the reason ("cannot tell from these logs").
+  otherwise ``{"usable": False, "reason": ...}`` ("cannot tell from these logs").
 """
 
 from __future__ import annotations
@@ -129,12 +129,15 @@ def weighted_policy_distribution(G: np.ndarray, W: np.ndarray, *, alpha: float =
     if not comparable:
         return {"usable": False, "reason": "the estimand reaches past the logged episodes: the logged costs do not "
                 "hold it", "source": "logs (importance-weighted)"}
+    if not np.isfinite(W).all() or W.sum() <= 0:
+        return {"usable": False, "reason": "every importance weight is 0: no logged episode takes only actions the "
+                "policy could take", "ess": 0.0, "source": "logs (importance-weighted)"}
     d = ope.weight_diagnostics(W, groups)
     why = ope.interval_unreliable(d, normalised=True)
     if d["ess_fraction"] < ope.MIN_ESS_FRACTION and not why:
         why = [f"effective sample size {d['ess']:.1f} of {d['n']} episodes: the weights are degenerate"]
-    if why or not np.isfinite(W).all() or W.sum() <= 0:
-        return {"usable": False, "reason": "; ".join(why) or "no positive weight", "ess": float(d["ess"]),
+    if why:
+        return {"usable": False, "reason": "; ".join(why), "ess": float(d["ess"]),
                 "source": "logs (importance-weighted)"}
     out = distribution_summary(G, weights=W, alpha=alpha, source="logs (importance-weighted)",
                                method="logged episode costs weighted by the per-episode importance weights "
