@@ -137,8 +137,7 @@ def test_compare_report_shows_what_the_comparison_says(tmp_path):
         assert base64.b64decode(data)[:8] == b"\x89PNG\r\n\x1a\n"
     assert page.index("1. good") < page.index("2. doubt") < page.index("3. bad")
     assert "<b>good</b>: 3" in page and "9 [8.5, 9.5] over 40 episodes" in page and "Spearman 1.00" in page
-    colour = dict(re.findall(r"<span class='verdict (good|meh|bad)'>(\w+) verdict</span>", page)[i][::-1]
-                  for i in range(3))
+    colour = {name.lower(): cls for cls, name in re.findall(r"<div class='verdict (good|meh|bad)'>(\w+) verdict</div>", page)}
     assert colour == {"good": "good", "doubt": "meh", "bad": "bad"}
     assert "cannot tell from these logs: effective sample size 1.2" in page and "LEFT the data" in page
     assert "CVaR_0.1 (simulator)" in page and "None" not in re.sub(r"<img[^>]*>", "", page)

@@ -175,14 +175,14 @@ def compare_html(res: dict[str, Any], figs: Figures) -> str:
         colour = verdict_colour({"performance": c.get("performance"), "support_left": c.get("support_left")},
                                 {"verdict": c.get("fit_verdict")})
         rows.append({**c, "support": "LEFT the data's support" if c.get("support_left") else "within the data's support",
-                     "verdict_html": f"<span class='verdict {colour}'>{html.escape(c.get('verdict') or '')}</span>"})
+                     "verdict_html": f"<div class='verdict {colour}'>{html.escape((c.get('verdict') or '')[:1].upper() + (c.get('verdict') or '')[1:])}</div>"})
     cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval", "reliability"] + \
         (["truth", "truth_interval"] if any(c["truth"] is not None for c in cands) else []) + ["support", "shift"]
     parts += ["<h2>Ranking</h2>", table_html(rows, cols, "ope", labels=LABELS)]
     parts.append("<h2>Verdict and fit per candidate</h2>")
     for r in rows:
-        parts.append(f"<p><b>{html.escape(_label(r))}</b> ({html.escape(r['run'])}): {r['verdict_html']}<br>"
-                     f"<small>{html.escape(r.get('convergence') or '')}</small></p>")
+        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(r['run'])})</small></h3>{r['verdict_html']}"
+                     f"<p><small>{html.escape(r.get('convergence') or '')}</small></p>")
     risk = _risk_rows(res)
     alpha = next((c["cost_distribution"]["alpha"] for c in cands if c.get("cost_distribution")), 0.1)
     if any(len(r) > 1 for r in risk):
