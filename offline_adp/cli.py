@@ -624,7 +624,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate every run's policy on one dataset (reusing matching evaluations) and rank them by the "
         "most reliable off-policy estimate, with intervals, shift and convergence verdicts; with a simulator, score "
         "the ranking against the rollout truth (Spearman, Kendall, regret of the top pick).",
-        epilog="example:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json",
+        epilog="examples:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json   # + compare.html\n"
+        "  offline-adp compare runs/fqi-a runs/fqi-b --report cmp/report.html",
     )
     cp.add_argument("runs", nargs="+", help="run directories (at least two)")
     cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
@@ -633,6 +634,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--episodes", type=_positive_int, default=300, help="rollout episodes per candidate (default 300)")
     cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
     cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
+    cp.add_argument("--report", default=None, metavar="FILE", help="HTML report to write (default: next to --json with "
+                    ".html, else compare.html in the runs' common parent directory, e.g. runs/compare.html)")
     cp.add_argument("--quiet", "-q", action="store_true")
 
     def cmd_compare(args: argparse.Namespace) -> int:

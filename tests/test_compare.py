@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import base64
 import json
+import re
 
 import numpy as np
 import pytest
 
 from offline_adp.cli import main
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import InvalidArgumentError, RunDirectoryError
 from offline_adp.evaluation.compare import compare_runs, selection_scores
+from offline_adp.evaluation.compare_report import write_compare_report
 
 
 def test_selection_scores_known_answers():
@@ -60,23 +63,81 @@ def test_compare_ranks_candidates_with_simulator_truth(candidates, capsys):
     assert "Spearman" in out and "regret of the top pick" in out
     assert json.loads(out_json.read_text())["selection"]["spearman"] == pytest.approx(sel["spearman"])
     assert np.isfinite(sel["kendall"])
+    # ... and writes its HTML report next to the JSON: the ranking figure, every candidate, the truth
+    page = (root / "cmp.html").read_text()
+    assert str(root / "cmp.html") in out
+    assert re.search(r'<figure id="ranking"><img alt="ranking" src="data:image/png;base64,', page)
+    assert all(x["name"] in page for x in c) and "simulator truth" in page and "Spearman" in page
+    assert "CVaR_0.1" in page  # each candidate's cost distribution (the rollouts') beside its mean
+    for x in json.loads(out_json.read_text())["candidates"]:
+        ro = x["cost_distribution"]["rollouts"]
+        assert ro["cvar"] >= ro["mean"] and ro["mean"] == pytest.approx(x["truth"])
 
 
 def test_compare_needs_two_runs_on_the_same_logs(candidates, tmp_path):
     _, runs = candidates
-    with pytest.raises(OfflineADPError, match="at least two"):
+    with pytest.raises(InvalidArgumentError, match="at least two"):
         compare_runs(runs[:1])
-    with pytest.raises(OfflineADPError, match="not a run directory"):
+    with pytest.raises(RunDirectoryError, match="not a run directory"):
         compare_runs([runs[0], tmp_path])
     assert main(["compare", str(runs[0]), str(tmp_path)]) == 2
 
 
 def test_compare_refuses_an_unknown_estimator_before_any_work(tmp_path):
-    from offline_adp.errors import OfflineADPError
     from offline_adp.evaluation.compare import compare_runs
 
     runs = [tmp_path / "a", tmp_path / "b"]
     for r in runs:
         (r / "model").mkdir(parents=True)
-    with pytest.raises(OfflineADPError, match="unknown estimator 'fqee'"):
+    with pytest.raises(InvalidArgumentError, match="unknown estimator 'fqee'"):
         compare_runs(runs, estimator="fqee")
+
+
+def test_report_path_defaults(tmp_path):
+    from offline_adp.evaluation.compare import report_path
+
+    runs = [tmp_path / "runs" / "a", tmp_path / "runs" / "b"]
+    assert report_path(runs, None, "x/y.html") == tmp_path.__class__("x/y.html")
+    assert report_path(runs, str(tmp_path / "c.json"), None) == tmp_path / "c.html"
+    assert report_path(runs, str(tmp_path / "c.html"), None) == tmp_path / "c.html.html"  # never the JSON itself
+    assert report_path(runs, None, None) == (tmp_path / "runs").resolve() / "compare.html"
+
+
+def _dist(mean, cvar):
+    return {"mean": mean, "cvar": cvar, "alpha": 0.1, "n_episodes": 50, "ess": 50.0, "median": mean, "q90": cvar,
+            "min": 0.0, "max": cvar + 1, "quantiles": {"levels": [0.0, 0.5, 0.9, 1.0], "values": [0.0, mean, cvar, cvar + 1]}}
+
+
+def _candidate(name, rank, est, iv, truth, left, performance, fit, logs):
+    return {"run": f"/r/{name}", "name": name, "algorithm": "fqi", "estimator": "fqe", "estimate": est, "interval": iv,
+            "reliability": "reliable", "shift": "classifier ratios (simulator): ...", "support_left": left,
+            "convergence": f"fit {fit}", "truth": truth, "truth_interval": [truth - 0.1, truth + 0.1],
+            "verdict": f"{name} verdict", "performance": performance, "fit_verdict": fit, "rank": rank,
+            "cost_distribution": {"alpha": 0.1, "rollouts": _dist(truth, truth + 2), "logs": logs}}
+
+
+def test_compare_report_shows_what_the_comparison_says(tmp_path):
+    """The HTML writer on a known comparison: candidates in rank order, the behaviour's cost,
+    the truth, the verdict colour of each (weakest clause), the CVaR, and 'cannot tell'."""
+    res = {"dataset": {"path": "/d", "fingerprint": "f"}, "estimator": "fqe", "estimand": "expected cost",
+           "method": "ranked", "behaviour": {"mean": 9.0, "interval": [8.5, 9.5], "episodes": 40,
+                                              "cost_distribution": _dist(9.0, 14.0)},
+           "candidates": [
+               _candidate("good", 1, 3.0, [2.5, 3.5], 3.1, False, "better", "converged", {**_dist(3.0, 4.0), "usable": True}),
+               _candidate("doubt", 2, 4.0, [3.0, 5.0], 4.2, True, "better", "converged",
+                          {"usable": False, "reason": "effective sample size 1.2 of 40 episodes"}),
+               _candidate("bad", 3, 12.0, [11.0, 13.0], 12.5, False, "worse", "still changing", None)],
+           "selection": {"spearman": 1.0, "kendall": 1.0, "regret_top1": 0.0, "relative_regret_top1": 0.0,
+                         "top_pick_is_best": True, "n_candidates": 3, "method": "rollouts"}}
+    out = write_compare_report(res, tmp_path / "cmp.html")
+    page = out.read_text()
+    figs = re.findall(r'<figure id="([a-z_]+)"><img alt="[a-z_]+" src="data:image/png;base64,([A-Za-z0-9+/=]+)"', page)
+    assert {n for n, _ in figs} == {"ranking", "cost_distribution"}
+    for _, data in figs:
+        assert base64.b64decode(data)[:8] == b"\x89PNG\r\n\x1a\n"
+    assert page.index("1. good") < page.index("2. doubt") < page.index("3. bad")
+    assert "<b>good</b>: 3" in page and "9 [8.5, 9.5] over 40 episodes" in page and "Spearman 1.00" in page
+    colour = {name.lower(): cls for cls, name in re.findall(r"<div class='verdict (good|meh|bad)'>(\w+) verdict</div>", page)}
+    assert colour == {"good": "good", "doubt": "meh", "bad": "bad"}
+    assert "cannot tell from these logs: effective sample size 1.2" in page and "LEFT the data" in page
+    assert "CVaR_0.1 (simulator)" in page and "None" not in re.sub(r"<img[^>]*>", "", page)

@@ -26,7 +26,12 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.rundir import read_json_file
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import (
+    IncompatibleError,
+    InvalidArgumentError,
+    RunDirectoryError,
+    WriteError,
+)
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
 
 
@@ -78,19 +83,19 @@ def compare_runs(
     say = progress or (lambda _m: None)
     runs = [Path(r) for r in run_dirs]
     if len(runs) < 2:
-        raise OfflineADPError("compare needs at least two run directories")
+        raise InvalidArgumentError("compare needs at least two run directories")
     if estimator is not None and estimator not in ESTIMATOR_NAMES:
-        raise OfflineADPError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
+        raise InvalidArgumentError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
     for r in runs:
         if not (r / "model").is_dir():
-            raise OfflineADPError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+            raise RunDirectoryError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
     if dataset is None:
         paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
         if "" in paths:
-            raise OfflineADPError("a run does not name its dataset; pass --dataset DIR")
+            raise RunDirectoryError("a run does not name its dataset; pass --dataset DIR")
         fps = {_fingerprint(p) for p in paths}
         if len(fps) > 1:
-            raise OfflineADPError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
+            raise IncompatibleError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
                                   "one with --dataset DIR")
         dataset = sorted(paths)[0]
     ds_path = str(Path(dataset).resolve())
@@ -108,7 +113,7 @@ def compare_runs(
         metrics.append(m)
     estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
     if len(estimands) > 1:
-        raise OfflineADPError("the candidates' evaluations target different quantities (horizon or discount differ); "
+        raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "
                               "re-run with the same --horizon, or pass force")
     rankings = [rank_estimators(m) for m in metrics]
     if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
@@ -129,13 +134,20 @@ def compare_runs(
                      "estimate": pick["estimate"] if pick else None, "interval": pick["interval"] if pick else None,
                      "reliability": pick["tier_label"] if pick else "no reliable estimate",
                      "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
-                     "convergence": h["convergence"]["text"], "truth": truth})
+                     "convergence": h["convergence"]["text"], "truth": truth,
+                     "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
+                     "verdict": h["verdict"].get("text"), "performance": h["verdict"].get("performance"),
+                     "fit_verdict": h["convergence"].get("verdict"), "cost_distribution": _risk(m)})
     usable = [x for x in rows if x["estimate"] is not None and np.isfinite(x["estimate"])]
     rest = [x for x in rows if x not in usable]
     usable.sort(key=lambda x: x["estimate"])
     for i, x in enumerate(usable + rest):
         x["rank"] = i + 1 if x in usable else None
-    out: dict[str, Any] = {"dataset": {"path": ds_path, "fingerprint": fp}, "estimator": estimator or "mixed",
+    bv = metrics[0].get("behaviour_value") or {}
+    beh = {"mean": bv.get("mean"), "interval": bv.get("interval"), "episodes": bv.get("episodes"),
+           "cost_distribution": (metrics[0].get("cost_distribution") or {}).get("behaviour_logged")}
+    out: dict[str, Any] = {"dataset": {"path": ds_path, "fingerprint": fp}, "behaviour": beh,
+                           "estimator": estimator or "mixed",
                            "estimand": metrics[0].get("estimand", {}).get("quantity"), "candidates": usable + rest,
                            "method": "candidates ranked by their off-policy estimate of the declared estimand "
                                      "(lower cost first)"}
@@ -144,6 +156,15 @@ def compare_runs(
     if len(usable) >= 2 and all(x["truth"] is not None for x in usable):
         out["selection"] = selection_scores([x["estimate"] for x in usable], [x["truth"] for x in usable])
     return out
+
+
+def _risk(m: dict[str, Any]) -> dict[str, Any] | None:
+    """A candidate's episode-cost distributions from its metrics: the simulator's (measured)
+    and the logs' (importance-weighted, or why it cannot tell)."""
+    cd = m.get("cost_distribution")
+    if not cd:
+        return None
+    return {"alpha": cd.get("alpha"), "rollouts": cd.get("policy_rollouts"), "logs": cd.get("policy_logs")}
 
 
 def selection_scores(estimated: Sequence[float], truth: Sequence[float]) -> dict[str, Any]:
@@ -191,15 +212,40 @@ def cli(args: Any) -> int:
         logging.getLogger("offline_adp.cli").info("  %s", msg)
 
     if args.json and Path(args.json).is_dir():  # before the work, not after it
-        raise OfflineADPError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
+        raise WriteError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
+    report = report_path(args.runs, args.json, getattr(args, "report", None))
+    if report.is_dir():
+        raise WriteError(f"--report {report} is a directory; name a file to write (e.g. {report / 'compare.html'})")
     res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
                        force=args.force, evaluate_params={"n_episodes": args.episodes}, progress=say)
     for line in compare_lines(res):
         print(line)
+    from offline_adp.evaluation.run import _finite
+
     if args.json:
         from offline_adp.data.io import atomic_write_text
-        from offline_adp.evaluation.run import _finite
 
         atomic_write_text(args.json, json.dumps(_finite(res), indent=1, default=float, allow_nan=False), what="comparison")
         print(args.json)
+    from offline_adp.evaluation.compare_report import write_compare_report
+
+    print(write_compare_report(_finite(res), report))
     return 0
+
+
+def report_path(runs: Sequence[str | PathLike[str]], json_path: str | None, report: str | None) -> Path:
+    """Where ``compare`` writes its HTML report: ``report`` when given; else next to the
+    ``--json`` file (its name with ``.html``); else ``compare.html`` in the run directories'
+    common parent (the current directory when they share none)."""
+    if report:
+        return Path(report)
+    if json_path:
+        p = Path(json_path)
+        return p.with_suffix(".html") if p.suffix != ".html" else p.with_name(p.name + ".html")
+    import os
+
+    try:
+        parent = Path(os.path.commonpath([str(Path(r).resolve().parent) for r in runs]))
+    except ValueError:  # different drives
+        parent = Path(".")
+    return (parent if parent != Path(parent.anchor) else Path(".")) / "compare.html"

@@ -16,8 +16,8 @@ import pandas as pd
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
-from offline_adp.errors import OfflineADPError
-from offline_adp.evaluation import ope, shift
+from offline_adp.errors import IncompatibleError, InvalidArgumentError
+from offline_adp.evaluation import ope, risk, shift
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,
@@ -58,6 +58,9 @@ class OffPolicyResult:
     eps_note: str | None = None  #: why eps could not be measured out of sample (then NaN)
     #: Folds of the cross-fitted ``eps`` (0: measured in sample).
     eps_folds: int = 0
+    #: Episode-cost distributions from the logs (:mod:`offline_adp.evaluation.risk`): the behaviour's
+    #: logged one (``behaviour_logged``) and the policy's importance-weighted one (``policy_logs``).
+    cost_distribution: dict[str, Any] | None = None
 
 
 def evaluation_horizon(ds: TransitionDataset, horizon: int | None = None) -> tuple[int, float, int | None]:
@@ -185,6 +188,20 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
             "episodes": int(len(G)), "method": "mean logged discounted cost over the data's episodes"}
 
 
+def logged_cost_distributions(em: ope.EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, gamma: float,
+                              groups: np.ndarray | None = None, *, comparable: bool = True,
+                              alpha: float = risk.CVAR_ALPHA) -> dict[str, Any]:
+    """Episode-cost distributions the logs give (:mod:`offline_adp.evaluation.risk`): the
+    behaviour's (its logged ``sum_{t<T} gamma^t c_t`` per episode) and the policy's, the same
+    costs weighted by ``prod_t rho_t`` where those weights are usable (else why not)."""
+    G = em.lay(cost) @ (gamma ** np.arange(em.horizon))
+    W = np.cumprod(em.lay(rho, fill=1.0), axis=1)[:, -1]
+    return {"alpha": alpha,
+            "behaviour_logged": risk.distribution_summary(G, alpha=alpha, source="logs",
+                                                          method="the logged episodes' discounted costs"),
+            "policy_logs": risk.weighted_policy_distribution(G, W, alpha=alpha, groups=groups, comparable=comparable)}
+
+
 #: Regressors whose FQE refits are cheap enough for the full replicate floor.
 CHEAP_REGRESSORS = ("tabular", "linear")
 
@@ -213,13 +230,13 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
     (a simulator's rollout horizon); ``start``: its start distribution when it is not the
     data's start states (e.g. ``"env.reset() of gym:CartPole-v1"``)."""
     if form not in ("finite", "infinite"):
-        raise OfflineADPError(f"estimand must be 'finite' or 'infinite', got {form!r}")
+        raise InvalidArgumentError(f"estimand must be 'finite' or 'infinite', got {form!r}")
     T, gamma, _ = evaluation_horizon(ds, horizon)
     a = ds.arrays()
     where = {"start": start} if start else {}
     if form == "infinite":
         if not gamma < 1.0:
-            raise OfflineADPError("the infinite-horizon value needs gamma < 1 (the dataset's gamma is 1)")
+            raise IncompatibleError("the infinite-horizon value needs gamma < 1 (the dataset's gamma is 1)")
         return Estimand(T, gamma, "infinite", "stationary", 0.0, "asked for the infinite-horizon value", **where)
     c_max = float(np.abs(a.cost).max()) if len(a.cost) else 0.0
     if target_horizon is not None and int(target_horizon) > T:
@@ -332,6 +349,21 @@ def psdp_bound(eps: np.ndarray, ratio_ucb: np.ndarray, pooled_ucb: float | None 
     if pooled_ucb is not None:
         out["averaged"] = times(np.array([len(eps) * np.mean(eps)]), np.array([pooled_ucb]))
     return out
+
+
+def _bound_entry(eps: np.ndarray, diag: pd.DataFrame, pooled_ucb: float, T: int) -> dict[str, Any]:
+    """One reference policy's PSDP bound with the pieces it multiplies, as the report shows
+    them: ``sum_t eps_t``, the per-step ratio upper bounds (their max and the step), the
+    pooled one, and the ratio recursion's own coverage reading (optimistic where steps have
+    few states: its regressions shrink the ratios towards 1)."""
+    ucb = diag["sup_ucb"].to_numpy()[:T]
+    e = np.asarray(eps, dtype=np.float64)
+    worst = int(np.argmax(ucb)) if len(ucb) else 0
+    return {**psdp_bound(eps, ucb, pooled_ucb), "eps_sum": float(np.sum(e)) if np.isfinite(e).all() else None,
+            "ratio_ucb_max": float(ucb.max()) if len(ucb) else None,
+            "ratio_ucb_step": int(diag["step"].to_numpy()[worst]) if len(ucb) else None,
+            "pooled_ratio_ucb": float(pooled_ucb), "poorly_covered_mass": float(diag["poorly_covered_mass"].max()),
+            "method": "recursion"}
 
 
 def _start_value(fqe: FittedQEvaluation, x0: np.ndarray, pi_x0: np.ndarray, w0: np.ndarray | None) -> float:
@@ -571,15 +603,15 @@ def off_policy(
     res = OffPolicyResult(gamma, T, beh, estimates, ratios, diag, support, eps, fqe, estimand=est_def,
                           eps_in_sample=eps_in_sample, eps_folds=int(psdp_folds or 0), eps_note=eps_note,
                           behaviour_value=behaviour_value(em, a.cost, gamma, level),
-                          per_step_counts=shift.per_step_counts(a.step, T))
+                          per_step_counts=shift.per_step_counts(a.step, T),
+                          cost_distribution=logged_cost_distributions(em, a.cost, rho, gamma, groups,
+                                                                      comparable=not beyond and est_def.form == "finite"))
     if _stationary_on(policy, a.obs, T):
         say("pooled density ratios")
         pooled = shift.ratios_pooled(a.obs, a.next_obs, a.step, rho, regressor=ratio_regressor,
                                      regressor_params=ratio_params, horizon=T)
         res.pooled = (pooled, shift.pooled_summary(pooled))
-    res.bounds["self"] = {**psdp_bound(eps, diag["sup_ucb"].to_numpy()[:T],
-                                       shift.pooled_ratio_ucb(ratios, a.obs, k=k_support, seed=seed)),
-                          "poorly_covered_mass": float(diag["poorly_covered_mass"].max()), "method": "recursion"}
+    res.bounds["self"] = _bound_entry(eps, diag, shift.pooled_ratio_ucb(ratios, a.obs, k=k_support, seed=seed), T)
     for name, ref in (reference_policies or {}).items():
         say(f"reference policy {name}")
         rho_ref = ref.probabilities(a.obs, a.step)[np.arange(len(a)), a.action] / beh.logged_prob
@@ -587,8 +619,7 @@ def off_policy(
                                       regressor_params=ratio_params, horizon=T)
         d = shift.diagnostics(r, a.obs, k=k_support, seed=seed)
         res.extra_ratios[name] = (r, d)
-        res.bounds[name] = {**psdp_bound(eps, d["sup_ucb"].to_numpy()[:T], shift.pooled_ratio_ucb(r, a.obs, k=k_support, seed=seed)),
-                            "poorly_covered_mass": float(d["poorly_covered_mass"].max()), "method": "recursion"}
+        res.bounds[name] = _bound_entry(eps, d, shift.pooled_ratio_ucb(r, a.obs, k=k_support, seed=seed), T)
     if policy_states is not None:
         say("classifier density ratios")
         r = shift.ratios_by_classifier(a.obs, a.step, policy_states[:T], seed=seed)

@@ -29,7 +29,7 @@ import pyarrow.parquet as pq
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.data.rundir import RunDirectory, read_json_file
-from offline_adp.errors import DatasetNotFoundError, OfflineADPError
+from offline_adp.errors import DatasetNotFoundError, IncompatibleError, RunDirectoryError
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.parallel import TaskMap
@@ -127,7 +127,7 @@ def evaluate_run(
     say = progress or (lambda _m: None)
     run = Path(run_dir)
     if not (run / "model").is_dir():
-        raise OfflineADPError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
+        raise RunDirectoryError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
     info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
     ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
     if not (ds_path / "meta" / "info.json").exists():
@@ -232,6 +232,15 @@ def evaluation_metrics(
                      policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
                      task_map=task_map, target_horizon=target, start=start)
     metrics.update(_offpolicy_block(res, ds))
+    if problem is not None:  # the rollouts' per-episode costs: the measured distributions
+        from offline_adp.evaluation.risk import distribution_summary
+
+        cd = metrics["cost_distribution"]
+        how = f"per-episode discounted costs of the {sim_name} rollouts"
+        cd["policy_rollouts"] = distribution_summary(pol.discounted_cost, alpha=cd["alpha"], source="simulator", method=how)
+        if demo is not None:
+            cd["demonstrator_rollouts"] = distribution_summary(demo.discounted_cost, alpha=cd["alpha"],
+                                                               source="simulator", method=how)
     if "rollout" in metrics:
         truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
         metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
@@ -249,7 +258,7 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
     values = ds.info.action_table.values.ravel().tolist()
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
-        raise OfflineADPError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
+        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
                               f"(action table {values}); evaluate or compare runs on data with the action table "
                               "they were fitted on")
     own = info.get("dataset")
@@ -263,10 +272,10 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
     theirs = fitted.action_table.values
     if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
-        raise OfflineADPError(f"{run}: fitted on {own} with the action table {theirs.ravel().tolist()}, but the dataset "
+        raise IncompatibleError(f"{run}: fitted on {own} with the action table {theirs.ravel().tolist()}, but the dataset "
                               f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
     if list(fitted.feature_names) != list(ds.feature_names):
-        raise OfflineADPError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
+        raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
                               f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
 
 
@@ -308,6 +317,9 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
                        "references": res.bounds},
         "per_source": _per_source(ds, res.extra_ratios["classifier"][0].w if "classifier" in res.extra_ratios
                                   else res.pooled[0].w if thin and res.pooled is not None else res.ratios.w, res.gamma),
+        "cost_distribution": {"definition": "CVaR_alpha: the mean of the worst (highest-cost) alpha fraction of "
+                                            "episode costs, each episode's cost its sum_{t<T} gamma^t c_t",
+                              **(res.cost_distribution or {})},
         "per_source_ratio_method": "classifier" if "classifier" in res.extra_ratios else
         "pooled" if thin and res.pooled is not None else "recursion",
     }

@@ -1,0 +1,214 @@
+"""The HTML report of ``offline-adp compare``: one self-contained page (figures embedded).
+
+It shows what :func:`offline_adp.evaluation.compare.compare_runs` returns: the ranking with
+every candidate's interval (a figure, the behaviour's logged cost as the reference line,
+the simulator truth where one exists), the candidates' episode-cost distributions with
+their CVaR, and per candidate its shift diagnostic, support, fit and verdict. The page's
+style, tables and figure embedding are :mod:`offline_adp.evaluation.report`'s.
+"""
+
+from __future__ import annotations
+
+import html
+import tempfile
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.evaluation.report import (
+    DIST_COLOURS,
+    Figures,
+    details_html,
+    distribution_figure,
+    figure_html,
+    page,
+    pyplot,
+    table_html,
+    verdict_colour,
+)
+
+#: Column labels of the comparison's tables.
+LABELS = {"name": "candidate", "algorithm": "algorithm", "estimator": "ranked by", "truth": "simulator truth",
+          "truth_interval": "truth 95% interval", "reliability": "reliability", "support": "support",
+          "shift": "shift diagnostic", "convergence": "fit", "verdict": "verdict", "mean": "mean",
+          "cvar": "CVaR", "source": "distribution from", "note": "note"}
+
+
+def _label(c: dict[str, Any]) -> str:
+    return f"{c['rank'] if c.get('rank') else '-'}. {c['name']}"
+
+
+def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
+    """One row per candidate (best first): estimate and interval; the truth (with its
+    interval) where a simulator ran; the behaviour's logged cost as a reference line."""
+    plt = pyplot()
+    cands = res["candidates"]
+    beh = (res.get("behaviour") or {}).get("mean")
+    pts = [v for c in cands for v in ([c["estimate"]] + list(c["interval"] or []) + [c["truth"]]
+                                      + list(c.get("truth_interval") or [])) if v is not None and np.isfinite(v)]
+    if beh is not None:
+        pts.append(beh)
+    if not pts:
+        return
+    lo, hi = min(pts), max(pts)
+    pad = 0.08 * (hi - lo) if hi > lo else 1.0
+    fig, ax = plt.subplots(figsize=(9, 0.6 * len(cands) + 2.0))
+    y = np.arange(len(cands))[::-1]
+    seen: set[str] = set()
+
+    def lab(s: str) -> str | None:
+        if s in seen:
+            return None
+        seen.add(s)
+        return s
+
+    for yi, c in zip(y, cands, strict=True):
+        left = bool(c.get("support_left"))
+        col = "#d62728" if left else "#1f77b4"
+        if c["interval"]:
+            ax.plot(c["interval"], [yi, yi], color=col, lw=3, alpha=0.8, solid_capstyle="butt",
+                    label=lab("estimate, 95% interval (left the data's support)" if left else "estimate, 95% interval"))
+        if c["estimate"] is not None and np.isfinite(c["estimate"]):
+            ax.plot([c["estimate"]], [yi], "o", color=col, ms=7, label=None if c["interval"] else lab("estimate, no interval"))
+        if c["truth"] is not None:
+            ti = c.get("truth_interval")
+            if ti:
+                ax.plot(ti, [yi - 0.25, yi - 0.25], color="k", lw=1.2)
+            ax.plot([c["truth"]], [yi - 0.25], "kx", ms=7, label=lab("simulator truth (95% interval)"))
+    if beh is not None:
+        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    ax.set_yticks(y, [_label(c) for c in cands], fontsize=9)
+    ax.set_ylim(-0.7, len(cands) - 0.4)
+    ax.set_xlim(lo - pad, hi + pad)
+    ax.set_xlabel(f"{res.get('estimand') or 'expected discounted cost'} (lower is better)", fontsize=9)
+    ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (best first)", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.grid(axis="x", alpha=0.3)
+    figs.save(fig, "ranking", "The candidates ranked by their off-policy estimate (top: lowest estimated cost) with its "
+              "95% interval; red: the candidate left the data's support (its interval is not a 95% interval there); "
+              "black crosses: the simulator truth where a simulator was used; dash-dotted: the behaviour's logged "
+              "cost.")
+
+
+def _distributions(figs: Figures, res: dict[str, Any]) -> None:
+    """The candidates' episode-cost distributions (simulator where measured, else the logs'
+    importance-weighted one where usable) and the behaviour's logged one."""
+    dists: dict[str, tuple[str, dict[str, Any], str]] = {}
+    for i, c in enumerate(res["candidates"]):
+        cd = c.get("cost_distribution") or {}
+        for key, how in (("rollouts", "simulator"), ("logs", "logs, weighted")):
+            d = cd.get(key)
+            if isinstance(d, dict) and d.get("usable", True) and "quantiles" in d:
+                dists[c["run"]] = (f"{c['name']} ({how})", d, f"C{i % 10}")
+                break
+    b = (res.get("behaviour") or {}).get("cost_distribution")
+    if isinstance(b, dict) and "quantiles" in b:
+        dists["behaviour"] = ("behaviour (logged)", b, DIST_COLOURS["behaviour_logged"])
+    if len(dists) > (1 if "behaviour" in dists else 0):
+        distribution_figure(figs, dists, "episode cost (the estimand per episode)", name="cost_distribution")
+
+
+def _risk_rows(res: dict[str, Any]) -> list[dict[str, Any]]:
+    rows = []
+    for c in res["candidates"]:
+        cd = c.get("cost_distribution") or {}
+        row: dict[str, Any] = {"name": _label(c)}
+        ro, lg = cd.get("rollouts"), cd.get("logs")
+        if isinstance(ro, dict):
+            row.update(sim_mean=ro["mean"], sim_cvar=ro["cvar"])
+        if isinstance(lg, dict) and lg.get("usable"):
+            row.update(logs_mean=lg["mean"], logs_cvar=lg["cvar"])
+        elif isinstance(lg, dict):
+            row["logs_note"] = "cannot tell from these logs: " + lg.get("reason", "")
+        elif not cd:
+            row["logs_note"] = "no distribution in this evaluation (re-run with --force)"
+        rows.append(row)
+    b = (res.get("behaviour") or {}).get("cost_distribution")
+    if isinstance(b, dict):
+        rows.append({"name": "behaviour (logged)", "logs_mean": b["mean"], "logs_cvar": b["cvar"],
+                     "logs_note": f"the {b['n_episodes']} logged episodes themselves"})
+    return rows
+
+
+def compare_html(res: dict[str, Any], figs: Figures) -> str:
+    """The comparison page for ``res`` (from :func:`~offline_adp.evaluation.compare.compare_runs`)
+    with the figures already saved in ``figs``."""
+    cands = res["candidates"]
+    sel = res.get("selection")
+    beh = res.get("behaviour") or {}
+    parts = ["<h1>Comparison of candidate policies</h1>",
+             f"<p class='sub'>{len(cands)} candidates on {html.escape(res['dataset']['path'])}, ranked by "
+             f"{html.escape(res['estimator'].upper())}: {html.escape(res.get('method', ''))}. Estimand: "
+             f"{html.escape(str(res.get('estimand')))}. Costs are minimised: lower is better.</p>"]
+    box = ["<section class='summary'><h2>Summary</h2><table class='kv'>"]
+
+    def kv(k: str, v: str) -> None:
+        box.append(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>")
+
+    top = next((c for c in cands if c.get("rank") == 1), None)
+    if top is not None:
+        iv = top["interval"]
+        kv("Top pick", f"<b>{html.escape(top['name'])}</b>: {top['estimate']:.4g}"
+           + (f" [{iv[0]:.4g}, {iv[1]:.4g}]" if iv else " (no interval)")
+           + (" &mdash; <b>it left the data's support</b>: its estimate is an extrapolation" if top.get("support_left")
+              else ""))
+    if beh.get("mean") is not None:
+        kv("Behaviour (logged)", f"{beh['mean']:.4g}" + (f" [{beh['interval'][0]:.4g}, {beh['interval'][1]:.4g}]"
+                                                         if beh.get("interval") else "")
+           + (f" over {beh['episodes']} episodes" if beh.get("episodes") else ""))
+    if sel:
+        kv("Against the simulator", f"Spearman {sel['spearman']:.2f}, Kendall {sel['kendall']:.2f}; regret of the top "
+           f"pick {sel['regret_top1']:.4g} ({sel['relative_regret_top1']:.0%} of the candidates' spread); "
+           + ("the top pick is the best candidate" if sel["top_pick_is_best"] else "<b>the top pick is not the best "
+              "candidate</b>"))
+    else:
+        kv("Against the simulator", "no simulator truth for every candidate: the ranking is not scored")
+    if res.get("note"):
+        kv("Note", html.escape(res["note"]))
+    box.append("</table></section>")
+    parts += box
+    parts += ["<h2>Figures</h2>", *figure_html(figs, folder=None)]
+    rows = []
+    for c in cands:
+        colour = verdict_colour({"performance": c.get("performance"), "support_left": c.get("support_left")},
+                                {"verdict": c.get("fit_verdict")})
+        rows.append({**c, "support": "LEFT the data's support" if c.get("support_left") else "within the data's support",
+                     "verdict_html": f"<div class='verdict {colour}'>{html.escape((c.get('verdict') or '')[:1].upper() + (c.get('verdict') or '')[1:])}</div>"})
+    cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval", "reliability"] + \
+        (["truth", "truth_interval"] if any(c["truth"] is not None for c in cands) else []) + ["support", "shift"]
+    parts += ["<h2>Ranking</h2>", table_html(rows, cols, "ope", labels=LABELS)]
+    parts.append("<h2>Verdict and fit per candidate</h2>")
+    for r in rows:
+        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(r['run'])})</small></h3>{r['verdict_html']}"
+                     f"<p><small>{html.escape(r.get('convergence') or '')}</small></p>")
+    risk = _risk_rows(res)
+    alpha = next((c["cost_distribution"]["alpha"] for c in cands if c.get("cost_distribution")), 0.1)
+    if any(len(r) > 1 for r in risk):
+        labels = {"sim_mean": "mean (simulator)", "sim_cvar": f"CVaR_{alpha:g} (simulator)", "logs_mean": "mean (logs)",
+                  "logs_cvar": f"CVaR_{alpha:g} (logs)", "logs_note": "logs: how", "name": "candidate"}
+        parts += ["<h2>Cost distribution and CVaR</h2>",
+                  f"<p>CVaR_{alpha:g}: the mean of the worst {alpha:.0%} of episode costs. Simulator: the rollouts' "
+                  "episodes. Logs: the logged episodes re-weighted by the candidate's importance weights, only where "
+                  "those weights are usable.</p>",
+                  table_html(risk, ["name", "sim_mean", "sim_cvar", "logs_mean", "logs_cvar", "logs_note"],
+                             labels=labels)]
+    if sel:
+        parts.append(details_html("Selection scores (how they are computed)",
+                                  f"<p>{html.escape(sel.get('method', ''))}. Spearman's rho and Kendall's tau between "
+                                  "the estimated and the true costs (1: the same order); regret of the top pick: its "
+                                  "true cost minus the best candidate's.</p>"))
+    return page("compare: " + ", ".join(c["name"] for c in cands), parts)
+
+
+def write_compare_report(res: dict[str, Any], path: str | PathLike[str]) -> Path:
+    """Write the comparison ``res`` as one self-contained HTML file at ``path`` (atomically)."""
+    from offline_adp.data.io import atomic_write_text
+
+    with tempfile.TemporaryDirectory(prefix="offline-adp-compare-") as tmp:
+        figs = Figures(Path(tmp))
+        _ranking_figure(figs, res)
+        _distributions(figs, res)
+        text = compare_html(res, figs)
+    return atomic_write_text(path, text, what="comparison report")
