@@ -56,7 +56,7 @@ class FittedQEvaluation(FittedQIteration):
         The policy to evaluate (deterministic or stochastic, stationary or time-varying);
         required by ``fit``.
     horizon, gamma, regressor, regressor_params, action_encoding, action_input, feature_map, \
-n_iterations, tol, trees_per_iteration, infeasible_cost, target_noise, next_state_noise, \
+n_iterations, tol, rtol, trees_per_iteration, infeasible_cost, target_noise, next_state_noise, \
 validation_fraction, on_divergence, patience, divergence_slack, initial_q, random_state, tree_builder
         As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s, with the same
         defaults and allowed values (``tests/test_estimator_checks.py`` holds them
@@ -102,7 +102,8 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
 
     def __init__(self, policy: Policy | None = None, horizon: int | None = None, gamma: float | None = None,
                  regressor: Any = "extra_trees", regressor_params: dict | None = None, action_encoding: str = "joint",
-                 action_input: str = "value", feature_map: Any = None, n_iterations: int = 50, tol: float | None = None,
+                 action_input: str = "value", feature_map: Any = None, n_iterations: int | str = "auto", tol: float | None = None,
+                 rtol: float = 0.01,
                  mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
@@ -111,7 +112,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
-                         n_iterations=n_iterations, tol=tol, mode=mode, trees_per_iteration=trees_per_iteration,
+                         n_iterations=n_iterations, tol=tol, rtol=rtol, mode=mode, trees_per_iteration=trees_per_iteration,
                          infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,

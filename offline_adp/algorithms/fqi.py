@@ -41,6 +41,7 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
 from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare
 from offline_adp.algorithms.fqi_loop import run_fitted_q
+from offline_adp.algorithms.fqi_monitor import auto_iterations
 from offline_adp.algorithms.params import (
     GAMMA,
     NON_NEGATIVE,
@@ -100,12 +101,21 @@ class FittedQIteration(CheckedEstimator):
         (Ernst et al.'s choice) or a one-hot code.
     feature_map : transformer, optional
         ``phi``, fitted on the dataset's observations before LEARN.
-    n_iterations : int
+    n_iterations : int or "auto"
         K for the infinite horizon (ignored for finite horizons); every mode runs K
-        iterations at most.
-    tol : float or None
-        Stop early when ``sup_i |Q_k - Q_{k-1}|`` on the data falls below ``tol`` (not on
-        an iteration that rebuilt a tree structure, nor before the last scheduled one).
+        iterations at most. ``"auto"`` (default): chosen by the discount
+        (:func:`~offline_adp.algorithms.fqi_monitor.auto_iterations`): the builds span the
+        ``K_b = ceil(log 0.05 / log gamma)`` iterations that damp the initial error to 5%
+        (59 at gamma 0.95, 299 at 0.99), then a frozen fit goes on in its final structure
+        until it has converged (below), up to ``4 K_b`` in all.
+    tol, rtol : float or None, float
+        When a fit has converged, and stops early (never before the last scheduled
+        build, nor on an iteration that rebuilt a structure). In the frozen mode: when
+        ``gamma / (1 - gamma) * sup|Q_k - Q_{k-1}|`` over the data's pairs (how far the
+        values can still be from the final structure's fixed point, at any input; see
+        :mod:`~offline_adp.algorithms.fqi_monitor`) is at most ``tol`` if given, else
+        ``rtol * max|Q_k|`` (default 0.01: 1% of the values' scale). In the refit and warm-start modes no such bound holds: the fit stops when
+        ``sup|Q_k - Q_{k-1}| < tol`` and otherwise runs all K (``rtol`` is not used).
     mode : {"auto", "refit", "frozen", "warm_start"}
         ``auto`` (default): ``frozen`` where it applies (a discounted fit, a bagged
         scikit-learn tree ensemble such as the default extra-trees, the joint action
@@ -238,8 +248,9 @@ class FittedQIteration(CheckedEstimator):
         "action_encoding": [StrOptions({"joint", "per_action"})],
         "action_input": [StrOptions({"value", "onehot"})],
         "feature_map": [HasMethods(["fit", "transform"]), None],
-        "n_iterations": [POSITIVE_INT],
+        "n_iterations": [POSITIVE_INT, StrOptions({"auto"})],
         "tol": [NON_NEGATIVE, None],
+        "rtol": [NON_NEGATIVE],
         "mode": [StrOptions(set(MODES))],
         "trees_per_iteration": [POSITIVE_INT],
         "infeasible_cost": [Interval(Real, None, None, closed="neither"), None],
@@ -268,8 +279,9 @@ class FittedQIteration(CheckedEstimator):
         action_encoding: str = "joint",
         action_input: str = "value",
         feature_map: Any = None,
-        n_iterations: int = 50,
+        n_iterations: int | str = "auto",
         tol: float | None = None,
+        rtol: float = 0.01,
         mode: str = "auto",
         trees_per_iteration: int = 10,
         infeasible_cost: float | None = None,
@@ -297,6 +309,7 @@ class FittedQIteration(CheckedEstimator):
         self.feature_map = feature_map
         self.n_iterations = n_iterations
         self.tol = tol
+        self.rtol = rtol
         self.mode = mode
         self.trees_per_iteration = trees_per_iteration
         self.infeasible_cost = infeasible_cost
@@ -414,11 +427,21 @@ class FittedQIteration(CheckedEstimator):
         self._encoder = data.encoder
         return data
 
+    def iteration_plan(self) -> tuple[int, int]:
+        """``(K_b, K_max)`` of a fit: the iterations the frozen builds are spread over, and
+        the most it runs (``n_iterations`` for both when it is a number; for ``"auto"``
+        :func:`~offline_adp.algorithms.fqi_monitor.auto_iterations` of the fit's gamma and
+        mode). Needs the fit's ``gamma_`` (set at the start of ``fit``)."""
+        if self.n_iterations != "auto":
+            return int(self.n_iterations), int(self.n_iterations)
+        return auto_iterations(self.gamma_, getattr(self, "mode_", None) == "frozen")
+
     def _schedule(self) -> tuple[int, ...]:
         """Iterations at which ``mode="frozen"`` builds a structure: ``n_structures`` evenly
-        spaced over the K iterations, by default one per 12.5 (``round(0.08 K)``, at least 2)."""
+        spaced over the K_b iterations (:meth:`iteration_plan`), by default one per 12.5
+        (``round(0.08 K_b)``, at least 2)."""
         T = getattr(self, "horizon_", self.horizon)
-        K = T if T is not None else self.n_iterations
+        K = T if T is not None else self.iteration_plan()[0]
         S = max(2, round(STRUCTURES_PER_ITERATION * K)) if self.n_structures is None else int(self.n_structures)
         S = max(1, min(S, K))
         return tuple(sorted({1 + (j * K) // S for j in range(S)}))
@@ -459,7 +482,7 @@ class FittedQIteration(CheckedEstimator):
             # a finite horizon's every iterate is the policy at one step: no build's error is damped
             finite = getattr(self, "horizon_", self.horizon) is not None
             early = (None if self.early_build_trees is None or finite
-                     else EarlyBuilds(int(self.early_build_trees), data.gamma, int(self.n_iterations)))
+                     else EarlyBuilds(int(self.early_build_trees), data.gamma, self.iteration_plan()[0]))
             return FrozenTreesLearner(spec, FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
                                                            max_samples=self._structure_fraction(data.n, reg),
                                                            builder=self.tree_builder))

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from offline_adp.algorithms.fqi_data import Backup, Prepared
-from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, verdict
+from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, distance_bound, verdict
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import DivergenceWarning
 from offline_adp.learn import Learner
@@ -93,7 +93,7 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
     learner = (make_learner or est._learner)(data)
     backup = make_backup(data)
     finite = est.horizon_ is not None
-    total = est.horizon_ if finite else est.n_iterations
+    total = est.horizon_ if finite else est.iteration_plan()[1]
     monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=est.divergence_slack,
                                 window=est.patience, finite=finite)
     est.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
@@ -144,23 +144,47 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
     if rows and deferred:
         _set_result(est, learner, qs)
     conv = _converged(est, rows)
-    est.verdict_, est.verdict_message_ = verdict(rows, tol=est.tol, finite=finite, divergence=est.divergence_message_,
-                                                 converged=conv, window=est.patience)
+    frozen = _bounded(est)
+    est.verdict_, est.verdict_message_ = verdict(
+        rows, finite=finite, divergence=est.divergence_message_, converged=conv, gamma=data.gamma,
+        tolerance=_tolerance(est, rows[-1]) if rows else None, frozen=frozen, window=est.patience,
+        capped=est.n_iterations == "auto" and len(rows) >= total and not conv)
     est.converged_ = conv
     if rows:
         rows[-1]["verdict"] = est.verdict_
         est.__dict__["_history_dirty"] = True
 
 
+def _bounded(est: FittedQIteration) -> bool:
+    """Whether the contraction bound decides convergence: a frozen structure and gamma < 1."""
+    return getattr(est, "mode_", est.mode) == "frozen" and est.gamma_ < 1
+
+
+def _tolerance(est: FittedQIteration, last: dict[str, Any]) -> float | None:
+    """What the convergence test compares with (:mod:`~offline_adp.algorithms.fqi_monitor`):
+    frozen with gamma < 1: ``tol`` if given, else ``rtol max|Q_k|``, for the distance bound;
+    else ``tol``."""
+    if not _bounded(est) or est.tol is not None:
+        return est.tol
+    return float(est.rtol) * float(last["max_abs_q"])
+
+
 def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:
-    """``sup|dQ| < tol`` on an iteration that did not rebuild a structure, after the last
-    scheduled build (a pure function of the history, so a resumed fit decides the same)."""
-    if est.tol is None or est.horizon_ is not None or len(rows) < 2:
+    """Converged at the last row (:mod:`~offline_adp.algorithms.fqi_monitor`): frozen, the
+    distance bound ``gamma/(1-gamma) sup|dQ|`` within :func:`_tolerance`, after the last
+    scheduled build, on an iteration that did not rebuild; other modes ``sup|dQ| < tol``.
+    A pure function of the history, so a resumed fit decides the same."""
+    if est.horizon_ is not None or len(rows) < 2:
         return False
     last, prev = rows[-1], rows[-2]
-    if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule()) or last.get("structure_on_constant")):
+    if last.get("structure") != prev.get("structure"):
         return False
-    return last["sup_dq"] < est.tol and last.get("structure") == prev.get("structure")
+    if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule())
+                                                        or last.get("structure_on_constant")):
+        return False
+    if not _bounded(est):
+        return est.tol is not None and last["sup_dq"] < est.tol
+    return distance_bound(last["sup_dq"], est.gamma_) <= _tolerance(est, last)
 
 
 def _finished(est: FittedQIteration, rows: list[dict[str, Any]], total: int) -> bool:
@@ -174,6 +198,10 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
                  q_train: np.ndarray, t0: float, c0: float) -> dict[str, Any]:
     dq = np.abs(q_train - q_prev_train)
     boot = ~data.train.no_boot
+    # sup|dQ| over the data's pairs: the training pairs and every next-state pair the targets
+    # read (the contraction's sup norm; fqi_monitor)
+    d_next = np.abs(it.q_next[boot] - it.q_next_old[boot])
+    sup_dq = max(float(dq.max()) if len(dq) else 0.0, float(d_next.max()) if d_next.size else 0.0)
     changed = (it.q_next.argmin(axis=1) != it.q_next_old.argmin(axis=1))[boot]
     if data.valid is not None:
         v = data.valid
@@ -184,7 +212,7 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
     return {
         "iteration": it.k,
         "step": it.t,
-        "sup_dq": float(dq.max()),
+        "sup_dq": sup_dq,
         "mean_dq": float(dq.mean()),
         "max_abs_q": float(np.abs(q_train).max()),
         "bellman_residual": resid,

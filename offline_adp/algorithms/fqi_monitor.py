@@ -20,18 +20,67 @@ is never by itself a reason to flag a fit. The monitor flags only what is unambi
    paths) do not accelerate, and geometric divergence ``M_k ~ r^k`` with ``r^W >= 1.5``
    does.
 
-The verdict at the end of every fit is one of ``converged`` (``sup|dQ| < tol``),
-``still changing`` (last ``sup|dQ|`` and its trend over the last iterations),
-``diverging`` (what the monitor saw) or ``completed`` (finite horizon: exact backward
-recursion, nothing to converge).
+The verdict at the end of every fit is one of ``converged``, ``still changing`` (how far
+the values may still be from the fixed point, and the trend of ``sup|dQ|``), ``diverging``
+(what the monitor saw) or ``completed`` (finite horizon: exact backward recursion, nothing
+to converge).
+
+**When a fit has converged** (a frozen tree structure: ``mode="frozen"``, the default's).
+Between two builds the structure is fixed and one iteration is
+``Q_k(z) = sum_i alpha_i(z) (c_i + gamma V_{k-1}(x'_i))`` with convex weights
+``alpha_i(z)`` (leaf averages, then the average over trees) and ``V`` the minimum (FQI) or
+the policy's expectation (FQE) over ``Q(x'_i, .)``: a sup-norm ``gamma``-contraction. With
+``e_k = sup |Q_k - Q_{k-1}|`` over the data's pairs (training pairs and every next-state
+pair), ``e_{k+1} <= gamma e_k``, so at *every* input ``z`` the last iterate is within
+
+    ``gamma / (1 - gamma) * e_k``
+
+of the fixed point of the final structure's averager. The fit has converged when that
+bound is at most ``tol`` (if given, else ``rtol * max|Q_k|``), on an iteration that did not rebuild the
+structure, after the last scheduled build. A structure rebuild starts a new contraction
+(``sup|dQ|`` jumps), which is why the verdict never reads across one. The refit and
+warm-start modes change the function class every iteration, so no such bound holds
+there (nor with ``gamma = 1``): they converge only by ``tol`` on ``e_k`` itself, and
+otherwise say "still changing".
+
+``n_iterations="auto"`` (:func:`auto_iterations`): ``K_b`` iterations carry the builds, the
+number after which the contraction has damped the initial error (``max|c| / (1 - gamma)
++ max|Q_0|``) to ``gamma^K_b <= 0.05`` of itself; a frozen fit then goes on in its final
+structure until the bound above holds, up to ``4 K_b`` iterations in all (the verdict
+says so when it stops at that cap).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+#: ``n_iterations="auto"``: the builds span the K_b iterations with ``gamma^K_b <= AUTO_FORGET``
+AUTO_FORGET = 0.05
+#: ... and a frozen fit may go on in its final structure up to ``AUTO_CAP * K_b`` iterations in all
+AUTO_CAP = 4
+#: K_b when ``gamma = 1`` (no contraction to count on), and the largest K_b
+AUTO_UNDISCOUNTED, AUTO_MAX_BUILD = 100, 1000
+
+
+def auto_iterations(gamma: float, settles: bool) -> tuple[int, int]:
+    """``(K_b, K_max)`` for ``n_iterations="auto"`` (see the module docstring): ``K_b =
+    ceil(log 0.05 / log gamma)`` (at most 1000; 100 for ``gamma = 1``), ``K_max = 4 K_b``
+    when the fit can settle in a fixed structure (``settles``: the frozen mode), else ``K_b``."""
+    g = float(gamma)
+    K = AUTO_UNDISCOUNTED if g >= 1 else min(AUTO_MAX_BUILD, max(1, math.ceil(math.log(AUTO_FORGET) / math.log(g))))
+    return K, (AUTO_CAP * K if settles else K)
+
+
+def distance_bound(sup_dq: float, gamma: float) -> float:
+    """``gamma / (1 - gamma) * sup_dq``: how far a contraction's iterate can still be from
+    its fixed point (``inf`` for ``gamma = 1`` unless nothing changed)."""
+    if gamma >= 1:
+        return 0.0 if sup_dq == 0 else float("inf")
+    return float(gamma) / (1.0 - float(gamma)) * float(sup_dq)
 
 
 @dataclass
@@ -80,9 +129,12 @@ def trend(values: list[float]) -> str:
     return "decreasing" if slope < -0.01 else ("increasing" if slope > 0.01 else "flat")
 
 
-def verdict(rows: list[dict[str, Any]], *, tol: float | None, finite: bool, divergence: str | None,
-            converged: bool, window: int = 10) -> tuple[str, str]:
-    """``(verdict, message)`` for a finished fit (see the module docstring)."""
+def verdict(rows: list[dict[str, Any]], *, finite: bool, divergence: str | None, converged: bool,
+            gamma: float, tolerance: float | None, frozen: bool, capped: bool = False,
+            window: int = 10) -> tuple[str, str]:
+    """``(verdict, message)`` for a finished fit (see the module docstring). ``tolerance``:
+    what the distance bound (frozen) or ``sup|dQ|`` (other modes) had to reach (None: no
+    criterion); ``capped``: the fit stopped at ``n_iterations="auto"``'s cap."""
     if not rows:
         return "still changing", "no iterations ran"
     last = rows[-1]
@@ -90,10 +142,23 @@ def verdict(rows: list[dict[str, Any]], *, tol: float | None, finite: bool, dive
         return "diverging", divergence
     if finite:
         return "completed", f"finite horizon: {len(rows)} backward steps (exact recursion, no fixed point to reach)"
-    sd = last["sup_dq"]
+    sd, k = last["sup_dq"], last["iteration"]
+    if frozen:
+        bound = distance_bound(sd, gamma)
+        where = (f"within {bound:.3g} of the final tree structure's fixed point (gamma/(1-gamma) x sup|dQ| = "
+                 f"{sd:.3g}; max|Q| = {last['max_abs_q']:.4g})")
+        if converged:
+            return "converged", f"after {k} iterations the values are {where} <= tolerance {tolerance:.3g}"
+        tr = trend([r["sup_dq"] for r in rows[-window:]])
+        why = ("stopped at n_iterations='auto''s cap; " if capped else "")
+        need = f" > tolerance {tolerance:.3g}" if tolerance is not None else ""
+        return "still changing", (f"{why}after {k} iterations the values are only known to be {where}{need}; "
+                                  f"sup|dQ| {tr} over the last {min(window, len(rows))} (more iterations would settle it)")
     rel = sd / max(last["max_abs_q"], 1e-300)
     if converged:
-        return "converged", f"sup|dQ| = {sd:.3g} < tol = {tol:g} at iteration {last['iteration']}"
+        return "converged", f"sup|dQ| = {sd:.3g} < tol = {tolerance:g} at iteration {k}"
     tr = trend([r["sup_dq"] for r in rows[-window:]])
-    return "still changing", (f"after {last['iteration']} iterations sup|dQ| = {sd:.3g} ({rel:.2%} of max|Q| = "
-                              f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))}")
+    return "still changing", (f"after {k} iterations sup|dQ| = {sd:.3g} ({rel:.2%} of max|Q| = "
+                              f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))} (this mode "
+                              "refits the function class every iteration: no contraction bound; set tol to stop on "
+                              "sup|dQ|)")

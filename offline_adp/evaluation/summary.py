@@ -147,8 +147,6 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
         msg = info.get("verdict_message")
         words = _FIT_VERDICT_WORDS.get(stored, f"fit: {stored}")
         text = f"{words}: {msg}" if isinstance(msg, str) and msg else words
-        if stored == "still changing" and isinstance(tol, int | float):
-            text += f"; tol = {tol:g}"
         if stored == "diverging":
             text += "; its policy and values are not to be trusted"
         return {"verdict": stored, "text": text, "source": "run.json"}
