@@ -7,7 +7,7 @@ import json
 import sys
 
 from offline_adp.cli._common import log
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import InvalidArgumentError, UnknownNameError
 from offline_adp.progress import is_terminal
 
 
@@ -126,7 +126,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     for item in args.set or []:
         key, _, value = item.partition("=")
         if not _:
-            raise OfflineADPError(f"--set {item!r}: expected KEY=VALUE, e.g. data.exploration=20")
+            raise InvalidArgumentError(f"--set {item!r}: expected KEY=VALUE, e.g. data.exploration=20")
         try:
             overrides[key] = json.loads(value)
         except json.JSONDecodeError:
@@ -160,7 +160,7 @@ def cmd_schema(args: argparse.Namespace) -> int:
         return 0
     all_ = schemas()
     if args.kind not in all_:
-        raise OfflineADPError(f"schema {args.kind!r}: known kinds are {sorted(all_)}")
+        raise UnknownNameError(f"schema {args.kind!r}: known kinds are {sorted(all_)}")
     print(json.dumps(all_[args.kind], indent=2, sort_keys=True))
     return 0
 

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import InvalidArgumentError, OutputExistsError
 from offline_adp.formats.common import ACTION_VALUE, META_KEY, _action_indices
 from offline_adp.formats.d4rl import from_d4rl, save_d4rl, to_d4rl
 from offline_adp.formats.lerobot import to_lerobot
@@ -66,7 +66,7 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
         if f not in FORMATS:
             raise UnknownNameError(f"unknown dataset format {f!r}; known: {list(FORMATS)}")
     if from_format == "lerobot":
-        raise OfflineADPError("reading the LeRobot layout is not supported (export only)")
+        raise InvalidArgumentError("reading the LeRobot layout is not supported (export only)")
     readers = {"dataset": read_dataset, "d4rl": from_d4rl, "minari": from_minari}
     ds = readers[from_format](source)
     if from_format == "dataset":  # d4rl / minari readers run the doctor themselves
@@ -78,7 +78,7 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
         return Path(out)
     if to_format == "d4rl":
         if Path(out).exists() and not overwrite:
-            raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+            raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
         return save_d4rl(ds, out)
     if to_format == "minari":
         return to_minari(ds, out)

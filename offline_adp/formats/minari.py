@@ -13,7 +13,13 @@ import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo
-from offline_adp.errors import IngestError, OfflineADPError
+from offline_adp.errors import (
+    ExportError,
+    IngestError,
+    MissingExtraError,
+    OfflineADPError,
+    WriteError,
+)
 from offline_adp.formats.common import (
     _INT32_MAX,
     _action_indices,
@@ -37,7 +43,7 @@ def _minari() -> Any:
     try:
         import minari
     except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise OfflineADPError("Minari support needs the minari package: pip install 'offline-adp[minari]'") from exc
+        raise MissingExtraError("Minari support needs the minari package: pip install 'offline-adp[minari]'") from exc
     return minari
 
 
@@ -57,8 +63,8 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
     gap = np.flatnonzero(inner[:-1] & (c["next_obs"][:-1] != c["obs"][1:]).any(axis=1)) if len(ds) > 1 else []
     if len(gap):
         i = int(gap[0])
-        raise OfflineADPError(f"episode {c['episode_id'][i]!r} step {c['step'][i]}: next_obs differs from the next step's obs; "
-                              "Minari episodes are observation sequences and need contiguous episodes")
+        raise ExportError(f"episode {c['episode_id'][i]!r} step {c['step'][i]}: next_obs differs from the next step's obs; "
+                          "Minari episodes are observation sequences and need contiguous episodes")
     buffers = []
     nan = np.full(1, np.nan)
     for k, (lo, hi) in enumerate(zip(first, last + 1, strict=True)):
@@ -90,7 +96,7 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
         out.storage.update_metadata({"offline_adp": json.loads(ds.info.to_json())})
         path = Path(out.storage.data_path).parent
     except ValueError as exc:  # e.g. the id exists already
-        raise OfflineADPError(f"minari dataset {dataset_id!r}: {exc}") from exc
+        raise WriteError(f"minari dataset {dataset_id!r}: {exc}") from exc
     finally:
         if datasets_path is not None:
             if old is None:
