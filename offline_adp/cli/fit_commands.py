@@ -81,7 +81,7 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
             lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
                          f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"
                          + (f", grown by {' and '.join(by)}" if by else "")
-                         + (f" ({caveat}: lost score on CartPole at gamma 0.95; compare with a fit that grows every"
+                         + (f" ({caveat}: can cost score; compare with a fit that grows every"
                             " forest whole, docs/fqi-modes.md)" if caveat else ""))
     else:
         lines = [f"fitted {algorithm}: {n} history rows"]

@@ -174,7 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
     e.add_argument("--horizon", type=_positive_int, default=None, help="the evaluation horizon (default: the data's longest episode; with --simulator gym:ENV_ID the environment's "
-                   "own time limit, e.g. 500 for CartPole-v1)")
+                   "own time limit)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)
