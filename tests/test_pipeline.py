@@ -46,8 +46,9 @@ def test_every_shipped_pipeline_runs(name, tmp_path):
         assert (run / "figures" / "convergence.png").exists()
 
 
-#: The driving pipeline at plumbing size: what reuse is tested on (stages, not numbers).
-TINY = {"fit.params.n_iterations": 2, "fit.params.regressor_params": {"n_estimators": 3}, "evaluate.episodes": 4,
+#: The driving pipeline at plumbing size (one log, 100 episodes; a few trees, iterations and
+#: rollouts): what reuse is tested on (stages, not numbers).
+TINY = {"data.inputs": ["../data/driving/exploration.mcap"], "fit.params.n_iterations": 2, "fit.params.regressor_params": {"n_estimators": 3}, "evaluate.episodes": 4,
         "evaluate.bootstrap": 0, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 5,
         "evaluate.fqe_params": {"n_iterations": 2, "regressor_params": {"n_estimators": 3}}}
 
