@@ -34,7 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.errors import IngestError, OfflineADPError
+from offline_adp.errors import (
+    IncompatibleError,
+    IngestError,
+    OfflineADPError,
+    OutputExistsError,
+    SpecError,
+    WriteError,
+)
 from offline_adp.progress import get_logger
 
 log = get_logger(__name__)
@@ -91,12 +98,12 @@ def _spec_for(run_dataset: Path | None, spec: Any) -> Any:
         info = read_info(run_dataset)
         raw = (info.get("provenance") or {}).get("spec")
     if not raw:
-        raise OfflineADPError("the run's dataset does not record an MCAP ingestion spec (it was not ingested from MCAP); "
-                              "pass --spec FILE.toml")
+        raise SpecError("the run's dataset does not record an MCAP ingestion spec (it was not ingested from MCAP); "
+                        "pass --spec FILE.toml")
     try:  # the spec as the run's dataset recorded it
         from offline_adp.ingest.mcap import parse_mcap_spec
     except ImportError as exc:  # pragma: no cover - depends on the ingestion module's layout
-        raise OfflineADPError("cannot rebuild the run's MCAP spec here; pass --spec FILE.toml") from exc
+        raise SpecError("cannot rebuild the run's MCAP spec here; pass --spec FILE.toml") from exc
     return parse_mcap_spec(raw, where=f"{run_dataset}/meta/info.json provenance.spec", base_dir=str(run_dataset))
 
 
@@ -155,11 +162,11 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
 
     out = Path(out)
     if out.is_dir() and not out.is_symlink():
-        raise OfflineADPError(f"--out {out} is a directory; name the annotated MCAP file to write")
+        raise WriteError(f"--out {out} is a directory; name the annotated MCAP file to write")
     if out.exists() and not overwrite:
-        raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+        raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if Path(out).resolve() == Path(log_file).resolve():
-        raise OfflineADPError(f"--out {out} is the input log; write the annotated copy elsewhere")
+        raise OutputExistsError(f"--out {out} is the input log; write the annotated copy elsewhere")
     policy = load_run_policy(run_dir, dataset)
     try:
         ds_path: Path | None = run_dataset(run_dir, dataset)
@@ -171,11 +178,11 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
         raise IngestError(f"{log_file}: the ingested steps have no log times (t_ns)")
     sig = policy.signature
     if log_ds.feature_names != list(sig.feature_names):
-        raise OfflineADPError(f"{log_file}: the spec gives features {log_ds.feature_names}, the policy reads "
-                              f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested with (--spec)")
+        raise IncompatibleError(f"{log_file}: the spec gives features {log_ds.feature_names}, the policy reads "
+                                f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested with (--spec)")
     if not np.array_equal(log_ds.info.action_table.values, sig.action_table.values):
-        raise OfflineADPError(f"{log_file}: the spec's action table {log_ds.info.action_table.values.ravel().tolist()} "
-                              f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
+        raise IncompatibleError(f"{log_file}: the spec's action table {log_ds.info.action_table.values.ravel().tolist()} "
+                                f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
     fit_ds = None
     if ds_path is not None:
         from offline_adp.data.io import read_dataset
@@ -241,7 +248,7 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
         if isinstance(exc, OfflineADPError) or not isinstance(exc, Exception):
             raise
         if isinstance(exc, OSError) and (exc.filename is None or Path(exc.filename) != Path(log_file)):
-            from offline_adp.errors import WriteError, os_error_message
+            from offline_adp.errors import os_error_message
 
             raise WriteError(os_error_message(exc, out)) from None
         raise IngestError(f"{log_file}: cannot copy the log's messages ({type(exc).__name__}: {exc})") from exc

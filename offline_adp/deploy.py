@@ -15,7 +15,12 @@ from typing import Any
 
 from offline_adp.data.io import read_info
 from offline_adp.data.rundir import read_json_file
-from offline_adp.errors import DatasetNotFoundError, OfflineADPError
+from offline_adp.errors import (
+    DatasetNotFoundError,
+    IncompatibleError,
+    OutputExistsError,
+    RunDirectoryError,
+)
 from offline_adp.progress import get_logger
 
 log = get_logger(__name__)
@@ -27,7 +32,7 @@ def _model_dir(run: Path) -> Path:
     for cand in (run, run / "model", run / "fit" / "model"):
         if (cand / "policy.json").exists() or (cand / "q.json").exists():
             return cand
-    raise OfflineADPError(f"{run}: not a run directory (no model/ with policy.json or q.json); fit one with `offline-adp fit`")
+    raise RunDirectoryError(f"{run}: not a run directory (no model/ with policy.json or q.json); fit one with `offline-adp fit`")
 
 
 def run_dataset(run_dir: str | PathLike[str], dataset: str | PathLike[str] | None = None) -> Path:
@@ -100,8 +105,8 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
         info = DatasetInfo.from_dict(read_info(ds), where=str(ds / "meta" / "info.json"))
         policy.signature = PolicySignature.from_info(info)
     if len(policy.signature.action_table) != policy.n_actions:
-        raise OfflineADPError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "
-                              f"{len(policy.signature.action_table)}; pass the right --dataset")
+        raise IncompatibleError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "
+                                f"{len(policy.signature.action_table)}; pass the right --dataset")
     return policy
 
 
@@ -113,7 +118,7 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
     An existing ``out`` is replaced only with ``overwrite=True`` (``--overwrite``);
     ``input_dtype`` is the observation input's type (``float64`` or ``float32``)."""
     if Path(out).exists() and not overwrite:
-        raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+        raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if fmt not in EXPORT_FORMATS:
         from offline_adp.errors import UnknownNameError
 

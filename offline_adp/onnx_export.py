@@ -184,27 +184,42 @@ def _lightgbm_arrays(boosters: list[Any]) -> dict[str, np.ndarray]:
     return out
 
 
+#: The LightGBM booster of a model, by the model's class name (artifacts' ``_Booster`` is a
+#: loaded one; by name because this module does not import artifacts, a sibling layer).
+_BOOSTERS: dict[str, Any] = {
+    "Booster": lambda m: m,
+    "_Booster": lambda m: m.booster,
+    "LGBMRegressor": lambda m: m.booster_,
+}
+
+
 def _booster_of(model: Any) -> Any | None:
-    name = type(model).__name__
-    if name == "Booster":
+    get = _BOOSTERS.get(type(model).__name__)
+    return None if get is None else get(model)
+
+
+def _is_forest(model: Any, classifier: bool) -> bool:
+    """A fitted scikit-learn forest (regressor, or classifier if ``classifier``)."""
+    return (hasattr(model, "estimators_") and hasattr(model.estimators_[0], "tree_")
+            and hasattr(model, "classes_") == classifier)
+
+
+def _ensemble_of(model: Any) -> Any | None:
+    """The :class:`TreeEnsemble` of a regressor: itself, a scikit-learn forest's arrays, or None."""
+    from offline_adp.trees import TreeEnsemble
+
+    if isinstance(model, TreeEnsemble):
         return model
-    if name == "_Booster":  # a loaded artifact
-        return model.booster
-    if name in ("LGBMRegressor",):
-        return model.booster_
-    return None
+    return TreeEnsemble.from_sklearn(model) if _is_forest(model, classifier=False) else None
 
 
 def _regressor(g: _Graph, model: Any, X: str) -> str:
     """``model.predict(X)`` as a node: (N, 1) double."""
-    from offline_adp.trees import TreeEnsemble
-
     booster = _booster_of(model)
     if booster is not None:
         return _tree_node(g, X, _lightgbm_arrays([booster]), "SUM")
-    if isinstance(model, TreeEnsemble) or (hasattr(model, "estimators_") and hasattr(model.estimators_[0], "tree_")
-                                          and not hasattr(model, "classes_")):
-        ens = model if isinstance(model, TreeEnsemble) else TreeEnsemble.from_sklearn(model)
+    ens = _ensemble_of(model)
+    if ens is not None:
         return _tree_node(g, _float32_roundtrip(g, X), _ensemble_arrays(ens), "AVERAGE")
     raise ExportError(f"cannot export a {type(model).__name__} regressor to ONNX; supported: scikit-learn forests "
                       "(extra_trees, random_forest), LightGBM")
@@ -231,28 +246,48 @@ def _phi(g: _Graph, fmap: Any, X: str) -> str:
                       "(drop_features)")
 
 
+# Each exportable class registers its graph builder; a part is found by its class's MRO,
+# never by an isinstance chain (the classes import lazily, see _register).
+#: Q-function class -> ``build(g, q, phi) -> (N, n_actions) Q-values``.
+_Q_EXPORTERS: dict[type, Any] = {}
+#: Policy class -> ``build(g, pi, X) -> (action index (N,), Q-values or None)``.
+_RULE_EXPORTERS: dict[type, Any] = {}
+#: Policy class -> ``steps(pi) -> its per-step rules, or None when it is stationary``.
+_STEP_RULES: dict[type, Any] = {}
+
+
+def _lookup(table: dict[type, Any], obj: Any) -> Any | None:
+    _register()
+    return next((table[c] for c in type(obj).__mro__ if c in table), None)
+
+
 def _q_values(g: _Graph, q: Any, X: str) -> str:
     """Q-values (N, n_actions) of a stationary Q-function."""
-    from offline_adp.qfunctions import BoostedSumQ, RegressorQ, TreeQ
-
-    if not isinstance(q, RegressorQ | TreeQ | BoostedSumQ):
+    build = _lookup(_Q_EXPORTERS, q)
+    if build is None:
         raise ExportError(f"cannot export a {type(q).__name__} Q-function to ONNX")
+    return build(g, q, _phi(g, q.encoder.feature_map, X))
+
+
+def _action_major(g: _Graph, flat: str, n_actions: int) -> str:
+    """Action-major rows (a * N + i) -> (N, A)."""
+    return g.op("Transpose", [g.op("Reshape", [flat, g.const(np.array([n_actions, -1], np.int64))])], "q", perm=[1, 0])
+
+
+def _boosted_sum_q(g: _Graph, q: Any, phi: str) -> str:
     enc = q.encoder
-    phi = _phi(g, enc.feature_map, X)
-    A = enc.n_actions
-    if isinstance(q, BoostedSumQ):
-        boosters = [_booster_of(b) for b in q.boosters]
-        if any(b is None for b in boosters):
-            raise ExportError("cannot export a BoostedSumQ whose boosters are not LightGBM models")
-        pairs = _all_pairs(g, phi, enc.action_features)
-        flat = _tree_node(g, pairs, _lightgbm_arrays(boosters), "SUM")
-    elif enc.per_action:
-        cols = [_regressor(g, m, phi) for m in q.models]
-        return g.op("Concat", cols, "q", axis=1)
-    else:
-        flat = _regressor(g, q.models[0], _all_pairs(g, phi, enc.action_features))
-    # action-major rows (a * N + i) -> (N, A)
-    return g.op("Transpose", [g.op("Reshape", [flat, g.const(np.array([A, -1], np.int64))])], "q", perm=[1, 0])
+    boosters = [_booster_of(b) for b in q.boosters]
+    if any(b is None for b in boosters):
+        raise ExportError("cannot export a BoostedSumQ whose boosters are not LightGBM models")
+    pairs = _all_pairs(g, phi, enc.action_features)
+    return _action_major(g, _tree_node(g, pairs, _lightgbm_arrays(boosters), "SUM"), enc.n_actions)
+
+
+def _regressor_q(g: _Graph, q: Any, phi: str) -> str:
+    enc = q.encoder
+    if enc.per_action:
+        return g.op("Concat", [_regressor(g, m, phi) for m in q.models], "q", axis=1)
+    return _action_major(g, _regressor(g, q.models[0], _all_pairs(g, phi, enc.action_features)), enc.n_actions)
 
 
 def _all_pairs(g: _Graph, phi: str, action_features: np.ndarray) -> str:
@@ -273,14 +308,15 @@ def _all_pairs(g: _Graph, phi: str, action_features: np.ndarray) -> str:
 
 def _policy(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
     """(action index (N,) int64, Q-values (N, A) or None) of a stationary rule."""
-    from offline_adp.policies import GreedyPolicy
+    build = _lookup(_RULE_EXPORTERS, pi)
+    if build is None:
+        raise ExportError(_refusal(pi))
+    return build(g, pi, X)
 
-    if isinstance(pi, GreedyPolicy):
-        q = _q_values(g, pi.q, X)
-        return g.op("ArgMin", [q], "index", axis=1, keepdims=0, select_last_index=0), q
-    if type(pi).__name__ == "ClassifierPolicy":
-        return _classifier_policy(g, pi, X), None
-    raise ExportError(_refusal(pi))
+
+def _greedy_rule(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
+    q = _q_values(g, pi.q, X)
+    return g.op("ArgMin", [q], "index", axis=1, keepdims=0, select_last_index=0), q
 
 
 def _refusal(pi: Any) -> str:
@@ -295,21 +331,16 @@ def _refusal(pi: Any) -> str:
 def _classifier_policy(g: _Graph, pi: Any, X: str) -> str:
     from onnx import TensorProto
 
-    from offline_adp.trees import TreeEnsemble
 
     one = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
     if pi.constant is not None:
         return g.op("Expand", [g.const(np.array(pi.constant, np.int64)), one], "index")
     clf = pi.classifier
-    if type(clf).__name__ == "_TreeClassifier":  # a loaded artifact
-        ens, cv, classes = clf.ensemble, np.asarray(clf.class_values), np.asarray(clf.classes_)
-    elif hasattr(clf, "classes_") and hasattr(clf, "estimators_") and hasattr(clf.estimators_[0], "tree_"):
-        ens = TreeEnsemble.from_sklearn(clf)
-        probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
-        cv, classes = probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300), np.asarray(clf.classes_)
-    else:
+    forest = _forest_classifier(clf)
+    if forest is None:
         raise ExportError(f"cannot export a {type(clf).__name__} classifier to ONNX; supported: scikit-learn forest "
                           "classifiers (PSDP's classifier='extra_trees')")
+    ens, cv, classes = forest
     phi = _float32_roundtrip(g, _phi(g, pi.feature_map, X))
     proba = g.op("Concat", [_tree_node(g, phi, _ensemble_arrays(ens, cv[:, c]), "AVERAGE") for c in range(cv.shape[1])],
                  "proba", axis=1)
@@ -318,16 +349,46 @@ def _classifier_policy(g: _Graph, pi: Any, X: str) -> str:
     return g.op("Cast", [idx], "index64", to=TensorProto.INT64)
 
 
+def _forest_classifier(clf: Any) -> tuple[Any, np.ndarray, np.ndarray] | None:
+    """(TreeEnsemble, leaf class fractions, classes) of a forest classifier (a loaded
+    artifact's ``_TreeClassifier``, by name: a sibling layer; or a scikit-learn forest), else None."""
+    from offline_adp.trees import TreeEnsemble
+
+    if type(clf).__name__ == "_TreeClassifier":
+        return clf.ensemble, np.asarray(clf.class_values), np.asarray(clf.classes_)
+    if not _is_forest(clf, classifier=True):
+        return None
+    probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
+    return (TreeEnsemble.from_sklearn(clf), probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300),
+            np.asarray(clf.classes_))
+
+
 def _steps(pi: Any) -> list[Any] | None:
     """The per-step rules of a time-indexed policy, or None if stationary."""
-    from offline_adp.policies import GreedyPolicy, NonStationaryPolicy
+    steps = _lookup(_STEP_RULES, pi)
+    return None if steps is None else steps(pi)
+
+
+def _greedy_steps(pi: Any) -> list[Any] | None:
+    """A greedy policy over a time-indexed Q: one greedy rule per step's Q."""
+    from offline_adp.policies import GreedyPolicy
     from offline_adp.qfunctions import TimeIndexedQ
 
-    if isinstance(pi, NonStationaryPolicy):
-        return list(pi.steps)
-    if isinstance(pi, GreedyPolicy) and isinstance(pi.q, TimeIndexedQ):
-        return [GreedyPolicy(q) for q in pi.q.qs]
-    return None
+    return [GreedyPolicy(q) for q in pi.q.qs] if isinstance(pi.q, TimeIndexedQ) else None
+
+
+def _register() -> None:
+    """Register the package's exportable classes (once; imported lazily to keep this module light)."""
+    if _Q_EXPORTERS:
+        return
+    from offline_adp.qfunctions import BoostedSumQ
+    from offline_adp.policies import ClassifierPolicy, GreedyPolicy, NonStationaryPolicy
+    from offline_adp.qfunctions import RegressorQ, TreeQ
+
+    _Q_EXPORTERS.update({RegressorQ: _regressor_q, TreeQ: _regressor_q, BoostedSumQ: _boosted_sum_q})
+    _RULE_EXPORTERS.update({GreedyPolicy: _greedy_rule,
+                            ClassifierPolicy: lambda g, pi, X: (_classifier_policy(g, pi, X), None)})
+    _STEP_RULES.update({NonStationaryPolicy: lambda pi: list(pi.steps), GreedyPolicy: _greedy_steps})
 
 
 # ----------------------------------------------------------------------------- public API

@@ -142,7 +142,7 @@ def test_fit_cli_reports_each_frozen_build_and_its_tree_count(tmp_path, pt_dir, 
     body = "n_iterations = 3\nn_structures = 2\nscreen_trees = 2\nscreen_tol = 1e-12\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n"
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body))]) == 0
     out = capsys.readouterr().out
-    assert "tree structures: 2 built (iterations 1, 2), trees 5/5, grown by compiled (the screen: lost score on CartPole" in out  # tol tiny: every build grows all 5
+    assert "tree structures: 2 built (iterations 1, 2), trees 5/5, grown by compiled (the screen: can cost score;" in out  # tol tiny: every build grows all 5
     builds = json.loads((tmp_path / "a" / "run.json").read_text())["structure_builds"]
     assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 5), (2, 5)] and all(b["screen"] > 0 for b in builds)
 
@@ -152,7 +152,7 @@ def test_fit_cli_reports_early_builds_with_their_caveat(tmp_path, pt_dir, capsys
             "[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body))]) == 0
     out = capsys.readouterr().out
-    assert "tree structures: 3 built (iterations 1, 3, 5), trees 2/2/5, grown by compiled (early builds: lost score on CartPole" in out
+    assert "tree structures: 3 built (iterations 1, 3, 5), trees 2/2/5, grown by compiled (early builds: can cost score;" in out
     builds = json.loads((tmp_path / "a" / "run.json").read_text())["structure_builds"]
     assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 2), (3, 2), (5, 5)]
     # at gamma 0.99 no build is early: the line carries no caveat

@@ -46,7 +46,6 @@ _FIT = {
     "knn": dict(regressor="knn", feature_map=StandardScaler()),
     "mlp": dict(regressor="mlp", regressor_params={"max_iter": 5, "hidden_layer_sizes": (4,)}),
 }
-COUNTS: dict[str, int] = {}
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +73,6 @@ def _copy(src: Path, dst: Path) -> Path:
 def _check(d: Path, obs: np.ndarray, ref: np.ndarray, unchanged: bool, tag: str) -> str:
     """Load + predict; returns "rejected" or "loaded"; any other outcome fails the test."""
     out = _outcome(d, obs, ref, unchanged)
-    COUNTS[f"{tag}: {out}"] = COUNTS.get(f"{tag}: {out}", 0) + 1
     return out
 
 
@@ -232,12 +230,6 @@ def test_fuzz_bytes(saved, tmp_path, kind, target, edits, cut):
         raw = raw[: edits[0][0] % len(raw)]
     (d / target).write_bytes(bytes(raw))
     _check(d, obs, ref, bytes(raw) == (src / target).read_bytes(), "raw bytes")
-
-
-def test_report_counts(capsys):
-    """Prints how many mutated artifacts each strategy tried (for the issue note)."""
-    with capsys.disabled():
-        print(f"\nartifact fuzz: {COUNTS} (nightly={NIGHTLY})")
 
 
 def test_policy_artifacts_fuzzed_by_bytes(tmp_path, small_pt):

@@ -34,7 +34,6 @@ from tests.fuzz_util import edit_json_path, json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 2000 if NIGHTLY else 30
-COUNTS: dict[str, int] = {}
 SETTINGS = settings(max_examples=N, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 BASE = {"kind": "transitions", "episode": {"id": "ep", "step": "k", "time": "t", "time_unit": "s"},
@@ -128,9 +127,7 @@ def test_fuzz_tables(tmp_path, df, fmt, on_error, kind, use_time):
             res = ingest_parquet([src], parse_parquet_spec(spec), d / "out", on_error=on_error)
     except OfflineADPError as exc:
         assert str(exc)
-        COUNTS["tables: refused"] = COUNTS.get("tables: refused", 0) + 1
         return
-    COUNTS["tables: ingested"] = COUNTS.get("tables: ingested", 0) + 1
     back = read_dataset(d / "out")
     rep = validate_directory(d / "out")
     assert rep.ok, rep.to_text()
@@ -171,10 +168,8 @@ def test_fuzz_spec_mappings(edits):
             table[key] = value
     try:
         parse_parquet_spec(spec, where="fuzz.toml")
-        COUNTS["spec mappings: accepted"] = COUNTS.get("spec mappings: accepted", 0) + 1
     except OfflineADPError as exc:
         assert str(exc).startswith("fuzz.toml")
-        COUNTS["spec mappings: refused"] = COUNTS.get("spec mappings: refused", 0) + 1
 
 
 SPEC_TEXT = b'kind = "steps"\n[episode]\nid = "ep"\nstep = "k"\n[observations]\ncolumns = ["x"]\n[action]\ncolumn = "a"\n[cost]\ncolumn = "c"\n[csv]\ndelimiter = ","\n'
@@ -192,10 +187,8 @@ def test_fuzz_spec_bytes(tmp_path, edits):
     p.write_bytes(bytes(raw))
     try:
         load_parquet_spec(p)
-        COUNTS["spec bytes: accepted"] = COUNTS.get("spec bytes: accepted", 0) + 1
     except OfflineADPError as exc:
         assert "spec.toml" in str(exc)
-        COUNTS["spec bytes: refused"] = COUNTS.get("spec bytes: refused", 0) + 1
 
 
 @pytest.fixture(scope="module")
@@ -240,14 +233,8 @@ def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, pa
             warnings.simplefilter("ignore")
             validate_directory(d)
             read_dataset(d).arrays()
-        COUNTS["dataset dirs: read"] = COUNTS.get("dataset dirs: read", 0) + 1
     except OfflineADPError:
-        COUNTS["dataset dirs: refused"] = COUNTS.get("dataset dirs: refused", 0) + 1
-
-
-def test_report_counts(capsys):
-    with capsys.disabled():
-        print(f"\ningest fuzz: {COUNTS} (nightly={NIGHTLY})")
+        pass  # refused with one of our errors: fine
 
 
 @pytest.mark.parametrize("delimiter", [";", "\t", "|"])

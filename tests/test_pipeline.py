@@ -46,8 +46,15 @@ def test_every_shipped_pipeline_runs(name, tmp_path):
         assert (run / "figures" / "convergence.png").exists()
 
 
+#: The driving pipeline at plumbing size (one log, 100 episodes; a few trees, iterations and
+#: rollouts): what reuse is tested on (stages, not numbers).
+TINY = {"data.inputs": ["../data/driving/exploration.mcap"], "fit.params.n_iterations": 2, "fit.params.regressor_params": {"n_estimators": 3}, "evaluate.episodes": 4,
+        "evaluate.bootstrap": 0, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 5,
+        "evaluate.fqe_params": {"n_iterations": 2, "regressor_params": {"n_estimators": 3}}}
+
+
 def test_second_run_reuses_every_stage_and_metrics_are_identical(tmp_path):
-    over = SMALL["driving"]
+    over = TINY
     run = run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over)
     first = (run / "metrics.json").read_bytes()
     again = run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over)
@@ -56,7 +63,7 @@ def test_second_run_reuses_every_stage_and_metrics_are_identical(tmp_path):
     assert all(s["reused"] for s in man["stages"].values()) and man["runs"] == 2
     assert (run / "metrics.json").read_bytes() == first
     # a changed setting recomputes that stage and everything after it, nothing before
-    over2 = {**over, "evaluate.episodes": 41}
+    over2 = {**over, "evaluate.episodes": over["evaluate.episodes"] + 1}
     run_pipeline(PIPELINES / "driving.toml", runs_root=tmp_path, say=quiet, overrides=over2)
     st = json.loads((run / "manifest.json").read_text())["stages"]
     assert st["data"]["reused"] and st["fit"]["reused"] and not st["evaluate"]["reused"] and not st["report"]["reused"]

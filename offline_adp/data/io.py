@@ -37,8 +37,9 @@ from offline_adp.errors import (
     DatasetNotFoundError,
     FormatVersionWarning,
     LockedError,
-    OfflineADPError,
+    OutputExistsError,
     SchemaError,
+    WriteError,
 )
 
 DEFAULT_ROWS_PER_PART = 500_000
@@ -93,7 +94,7 @@ def locked_directory(target: str | PathLike[str], *, what: str = "directory") ->
             lp.parent.mkdir(parents=True, exist_ok=True)
             handle = _acquire(lp, target, what)
         except OSError as exc:
-            from offline_adp.errors import WriteError, os_error_message
+            from offline_adp.errors import os_error_message
 
             raise WriteError(f"cannot lock {target} for writing: {os_error_message(exc, lp)}") from None
         with _HELD_GUARD:
@@ -178,7 +179,7 @@ def _new_sibling(target: Path, tag: str) -> Path:
             return p
         except FileExistsError:
             continue
-    raise OfflineADPError(f"{target.parent}: cannot create a temporary directory for {target.name}")
+    raise WriteError(f"{target.parent}: cannot create a temporary directory for {target.name}")
 
 
 def clean_stale_temporaries(target: str | PathLike[str]) -> list[Path]:
@@ -214,7 +215,7 @@ def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, cl
     if clean_stale:
         clean_stale_temporaries(target)
     if (target.exists() or target.is_symlink()) and not overwrite:
-        raise OfflineADPError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+        raise OutputExistsError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = _new_sibling(target, "tmp")
     trash = None
@@ -246,8 +247,8 @@ def write_text_nofollow(path: str | PathLike[str], text: str) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
     except OSError as exc:
         if path.is_symlink():
-            raise OfflineADPError(f"{path} is a symbolic link; refusing to write through it") from None
-        raise OfflineADPError(f"{path}: cannot write ({exc.strerror})") from None
+            raise WriteError(f"{path} is a symbolic link; refusing to write through it") from None
+        raise WriteError(f"{path}: cannot write ({exc.strerror})") from None
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(text)
 
@@ -263,8 +264,6 @@ def atomic_file(target: str | PathLike[str], *, what: str = "file", lock: bool =
     replaced, not followed. With ``lock``, the write holds :func:`locked_directory` on
     ``target`` (a second writer fails at once).
     """
-    from offline_adp.errors import WriteError
-
     target = Path(target)
     if target.is_dir() and not target.is_symlink():
         raise WriteError(f"{target} is a directory; expected a {what} path (name a file, e.g. {target / 'out'}"

@@ -28,7 +28,13 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
-from offline_adp.errors import ArtifactError, OfflineADPError, WriteError
+from offline_adp.errors import (
+    ArtifactError,
+    InvalidArgumentError,
+    OfflineADPError,
+    RunDirectoryError,
+    WriteError,
+)
 
 #: What a run or pipeline name may be: no path separators, no glob characters.
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
@@ -37,8 +43,8 @@ NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
 def check_name(name: str, what: str = "name") -> str:
     """A pipeline/run name usable as one path component (letters, digits, ``._-``)."""
     if not isinstance(name, str) or not re.match(NAME_PATTERN, name) or name in (".", ".."):
-        raise OfflineADPError(f"{what} {name!r} is not allowed: use letters, digits, '.', '_' and '-' "
-                              "(no path separators or glob characters), starting with a letter or digit")
+        raise InvalidArgumentError(f"{what} {name!r} is not allowed: use letters, digits, '.', '_' and '-' "
+                                   "(no path separators or glob characters), starting with a letter or digit")
     return name
 
 
@@ -72,7 +78,7 @@ class RunDirectory:
         from offline_adp.data.io import locked_directory
 
         if self.path.is_symlink():
-            raise OfflineADPError(f"{self.path} is a symbolic link; give the real directory as the run directory")
+            raise RunDirectoryError(f"{self.path} is a symbolic link; give the real directory as the run directory")
         with locked_directory(self.path, what="run directory"):
             self.path.mkdir(parents=True, exist_ok=True)
             self.clean_stale_temporaries()
@@ -96,7 +102,7 @@ class RunDirectory:
         """``RUN/name``, refusing names that would leave the directory."""
         p = self.path / name
         if Path(name).is_absolute() or ".." in Path(name).parts:
-            raise OfflineADPError(f"{name!r}: not a file name inside {self.path}")
+            raise InvalidArgumentError(f"{name!r}: not a file name inside {self.path}")
         return p
 
     def exists(self, name: str) -> bool:

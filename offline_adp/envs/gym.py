@@ -36,7 +36,12 @@ import numpy as np
 
 from offline_adp.access import ResetModel, StepResult
 from offline_adp.data.info import DatasetInfo
-from offline_adp.errors import AccessModelError, OfflineADPError, UnknownNameError
+from offline_adp.errors import (
+    AccessModelError,
+    IncompatibleError,
+    InvalidArgumentError,
+    UnknownNameError,
+)
 
 PREFIX = "gym:"
 
@@ -68,12 +73,12 @@ class GymResetModel(ResetModel):
         spec = probe.spec
         probe.close()
         if not isinstance(obs_space, gymnasium.spaces.Box) or len(obs_space.shape) != 1:
-            raise OfflineADPError(f"simulator {self.name!r}: observations must be a 1-D Box, got {obs_space}")
+            raise IncompatibleError(f"simulator {self.name!r}: observations must be a 1-D Box, got {obs_space}")
         width = int(obs_space.shape[0])
         names = [f.name for f in info.features]
         if len(names) != width:
-            raise OfflineADPError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
-                                  f"{len(names)} features {names}; they are matched by declared order")
+            raise IncompatibleError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
+                                    f"{len(names)} features {names}; they are matched by declared order")
         self.env_actions = _env_actions(self.name, act_space, np.asarray(info.action_table.values, dtype=np.float64))
         self.n_actions, self.obs_dim = len(self.env_actions), width
         self.gamma = float(gamma if gamma is not None else (info.gamma if info.gamma is not None else 1.0))
@@ -131,32 +136,32 @@ def _env_actions(name: str, space: Any, values: np.ndarray) -> list[Any]:
 
     if isinstance(space, gymnasium.spaces.Discrete):
         if values.ndim != 2 or values.shape[1] != 1:
-            raise OfflineADPError(f"simulator {name!r}: the action table must hold one number per action "
-                                  f"(the environment's action), got shape {values.shape}")
+            raise IncompatibleError(f"simulator {name!r}: the action table must hold one number per action "
+                                    f"(the environment's action), got shape {values.shape}")
         lo, n = int(space.start), int(space.n)
         bad = [float(v) for v in values[:, 0] if not np.isfinite(v) or v != round(v) or not lo <= v < lo + n]
         if bad:
-            raise OfflineADPError(f"simulator {name!r}: action values {bad} are not actions of {space} "
-                                  f"(the action table's values are passed to the environment)")
+            raise IncompatibleError(f"simulator {name!r}: action values {bad} are not actions of {space} "
+                                    f"(the action table's values are passed to the environment)")
         return [int(v) for v in values[:, 0]]
     if isinstance(space, gymnasium.spaces.Box) and len(space.shape) == 1:
         d = int(space.shape[0])
         if values.ndim != 2 or values.shape[1] != d:
-            raise OfflineADPError(f"simulator {name!r}: its actions are vectors of {d} numbers ({space}); the action "
-                                  f"table's values have shape {values.shape}, one row of {d} per action is needed")
+            raise IncompatibleError(f"simulator {name!r}: its actions are vectors of {d} numbers ({space}); the action "
+                                    f"table's values have shape {values.shape}, one row of {d} per action is needed")
         low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
         with np.errstate(invalid="ignore"):  # each side its own slack (float32 bounds, rounded commands)
             inside = (values >= low - 1e-6 * (1.0 + np.abs(low))) & (values <= high + 1e-6 * (1.0 + np.abs(high)))
         outside = np.flatnonzero(~inside.all(axis=1))  # NaN is never inside
         if len(outside):
-            raise OfflineADPError(f"simulator {name!r}: action(s) {outside.tolist()} with values "
-                                  f"{values[outside].tolist()} are outside the action box [{low.tolist()}, {high.tolist()}]")
+            raise IncompatibleError(f"simulator {name!r}: action(s) {outside.tolist()} with values "
+                                    f"{values[outside].tolist()} are outside the action box [{low.tolist()}, {high.tolist()}]")
         if np.issubdtype(space.dtype, np.integer) and not (values == np.round(values)).all():
             rows = np.flatnonzero((values != np.round(values)).any(axis=1))
-            raise OfflineADPError(f"simulator {name!r}: its action box holds integers ({space}); action(s) "
-                                  f"{rows.tolist()} have values {values[rows].tolist()}")
+            raise IncompatibleError(f"simulator {name!r}: its action box holds integers ({space}); action(s) "
+                                    f"{rows.tolist()} have values {values[rows].tolist()}")
         return list(np.clip(values, low, high).astype(space.dtype))
-    raise OfflineADPError(f"simulator {name!r}: actions must be Discrete or a 1-D Box, got {space}")
+    raise IncompatibleError(f"simulator {name!r}: actions must be Discrete or a 1-D Box, got {space}")
 
 
 def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
@@ -169,8 +174,8 @@ def resolve_simulator(name: str | None, info: DatasetInfo) -> Any:
     from offline_adp.envs import PROBLEM_NAMES, problem_for_dataset
 
     if name not in PROBLEM_NAMES:
-        raise OfflineADPError(f"unknown simulator {name!r}; known: {list(PROBLEM_NAMES)}, "
-                              "gym:ENV_ID (a registered gymnasium environment) or 'none'")
+        raise UnknownNameError(f"unknown simulator {name!r}; known: {list(PROBLEM_NAMES)}, "
+                               "gym:ENV_ID (a registered gymnasium environment) or 'none'")
     return problem_for_dataset(name, info)  # the dataset's own problem with the options it was made with
 
 
@@ -198,8 +203,8 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
     elif isinstance(space, gymnasium.spaces.Box) and len(space.shape) == 1:
         low, high = np.asarray(space.low, np.float64), np.asarray(space.high, np.float64)
         if not (np.isfinite(low).all() and np.isfinite(high).all()):
-            raise OfflineADPError(f"record_random_log({env_id!r}): the action box {space} is unbounded; "
-                                  "uniformly random actions need finite bounds")
+            raise InvalidArgumentError(f"record_random_log({env_id!r}): the action box {space} is unbounded; "
+                                       "uniformly random actions need finite bounds")
 
         if np.issubdtype(space.dtype, np.integer):
             def draw() -> Any:
@@ -208,7 +213,7 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
             def draw() -> Any:
                 return rng.uniform(low, high).astype(space.dtype)
     else:
-        raise OfflineADPError(f"record_random_log({env_id!r}): actions must be Discrete or a 1-D Box, got {space}")
+        raise InvalidArgumentError(f"record_random_log({env_id!r}): actions must be Discrete or a 1-D Box, got {space}")
     cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs", "terminated", "truncated")}
     ep = 0
     while len(cols["step"]) < n_transitions:

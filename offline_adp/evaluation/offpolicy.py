@@ -105,8 +105,8 @@ class Estimand:
     truncation bound ``tail_bound`` added to its interval).
 
     ``target_horizon``: the estimand's horizon when it exceeds the logged one ``horizon``
-    (a gymnasium simulator's own time limit, e.g. 500 steps of CartPole over 83-step
-    random-play logs). The trajectory estimators still see only ``horizon`` steps and say
+    (a gymnasium simulator's own time limit, e.g. 500 steps over 83-step random-play
+    logs). The trajectory estimators still see only ``horizon`` steps and say
     so (``comparable=False``), as for the infinite-horizon value.
     """
 
@@ -162,8 +162,8 @@ def clip_to_range(r: ope.OPEResult, rng: tuple[float, float]) -> None:
 def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> None:
     """The stationary FQE estimates the infinite-horizon value, within ``tail_bound`` of the
     T-step one. Past the T-step range by no more than that, the estimate is moved onto the
-    range's edge (a policy that balances CartPole forever reads -99.89 against a 500-step
-    floor of -99.34), with a warning, instead of being called impossible."""
+    range's edge (e.g. a policy that never ends an episode early reads -99.89 against a
+    500-step floor of -99.34), with a warning, instead of being called impossible."""
     if not (est_def.fqe_form == "stationary" and est_def.tail_bound > 0 and est_def.possible_range
             and np.isfinite(fq.estimate)):
         return
@@ -228,7 +228,7 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
 
     ``target_horizon``: the horizon of the value asked for when it is not the logged one
     (a simulator's rollout horizon); ``start``: its start distribution when it is not the
-    data's start states (e.g. ``"env.reset() of gym:CartPole-v1"``)."""
+    data's start states (e.g. ``"env.reset() of gym:ENV_ID"``)."""
     if form not in ("finite", "infinite"):
         raise InvalidArgumentError(f"estimand must be 'finite' or 'infinite', got {form!r}")
     T, gamma, _ = evaluation_horizon(ds, horizon)
@@ -391,7 +391,7 @@ def _refit_replicate(w: np.ndarray, *, ds: TransitionDataset, params: dict[str, 
     del fqe
     # a fitted estimator sits in reference cycles (its learner and backups point back at it),
     # which only the cyclic collector frees, and its arrays do not trigger that collector: a
-    # T-step replicate holds T Q-functions (CartPole, 79 steps of 20 trees on 50k rows: ~1 GB),
+    # T-step replicate holds T Q-functions (e.g. 79 steps of 20 trees on 50k rows: ~1 GB),
     # and 50 replicates piled up to 19.8 GB before one ran
     gc.collect()
     return value

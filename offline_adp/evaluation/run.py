@@ -182,7 +182,7 @@ def evaluation_metrics(
     """The metrics of :func:`evaluate_run` for ``policy`` on ``ds`` without a run directory:
     ``(metrics, off-policy result, pi's rollout states, the demonstrator's)``. ``problem``
     None: logs only. ``run_dir`` is read for the fit's convergence in the headline (None:
-    unknown). Used by ``evaluate_run`` and by ``benchmarks/ope_coverage.py``."""
+    unknown). Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
     say = progress or (lambda _m: None)
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),

@@ -31,7 +31,7 @@ import numpy as np
 
 from offline_adp.data import schema as S
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import OfflineADPError
+from offline_adp.errors import InvalidArgumentError
 
 HEADER_DEFS = """================================================================================
 MSG: std_msgs/Header
@@ -147,13 +147,13 @@ def write_mcap(
         Bytes per (zstd) chunk before compression.
     """
     if encoding not in ("json", "ros2"):
-        raise OfflineADPError(f"MCAP encoding must be 'json' or 'ros2', got {encoding!r}")
+        raise InvalidArgumentError(f"MCAP encoding must be 'json' or 'ros2', got {encoding!r}")
     if layout == "auto":
         from offline_adp.envs import PROBLEM_NAMES, problem_class
 
         layout = problem_class(ds.info.problem).mcap_layout if ds.info.problem in PROBLEM_NAMES else "generic"
     if encoding == "ros2" and layout != "vehicle":
-        raise OfflineADPError("ROS 2 encoding is written for the vehicle layout (path_tracking data) only")
+        raise InvalidArgumentError("ROS 2 encoding is written for the vehicle layout (path_tracking data) only")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)

@@ -6,7 +6,12 @@ from os import PathLike
 from pathlib import Path
 
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import OfflineADPError, ValidationError
+from offline_adp.errors import (
+    OutputExistsError,
+    UnknownNameError,
+    ValidationError,
+    WriteError,
+)
 
 #: ``--format`` choices: a dataset directory, a raw table, or MCAP recordings.
 FORMATS = ("dataset", "parquet", "csv", "mcap-json", "mcap-ros2")
@@ -19,7 +24,7 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
     (``mcap-json``/``mcap-ros2`` into the folder ``out``); returns the written paths."""
     out = Path(out)
     if fmt not in FORMATS:
-        raise OfflineADPError(f"format {fmt!r}: expected one of {list(FORMATS)}")
+        raise UnknownNameError(f"format {fmt!r}: expected one of {list(FORMATS)}")
     if fmt == "dataset":
         from offline_adp.data.validate import validate
 
@@ -34,16 +39,16 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
         if out.suffix == "":
             out = out / f"{ds.info.problem}.{fmt}"
         if out.is_dir():
-            raise OfflineADPError(f"{out} is a directory; name the {fmt} file to write (or a folder without a suffix)")
+            raise WriteError(f"{out} is a directory; name the {fmt} file to write (or a folder without a suffix)")
         if out.exists() and not overwrite:
-            raise OfflineADPError(f"{out} already exists; pass --overwrite to replace it")
+            raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
         return list(write_raw(ds, out, fmt=fmt))
     from offline_adp.simulate.mcap_writer import write_mcap
 
     if out.exists() and not out.is_dir():
-        raise OfflineADPError(f"{out} is a file; MCAP recordings are written into a folder (name one)")
+        raise WriteError(f"{out} is a file; MCAP recordings are written into a folder (name one)")
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise OfflineADPError(f"{out} is not empty; pass --overwrite to write into it")
+        raise OutputExistsError(f"{out} is not empty; pass --overwrite to write into it")
     from offline_adp.data.io import locked_directory
 
     with locked_directory(out, what="MCAP folder"):

@@ -14,6 +14,7 @@ One job per module:
 - ``ros1scan``: record scan of a ROS 1 bag without its index (a bag cut short);
 - ``records``: the typed records passed between the parts;
 - ``align``: one stream's values at the step times;
+- ``buffers``: one stream's messages in one epoch, sorted on demand, pruned behind the watermark;
 - ``assembler``: the streaming assembler (epochs from the file order, watermark,
   bounded buffers, steps); ``assemble`` runs it on in-memory messages;
 - ``episodes``: cutting steps into episodes (events, gaps, conditions, drops);

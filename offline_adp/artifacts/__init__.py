@@ -1,0 +1,411 @@
+"""Saving and loading fitted Q-functions without executing code from the files.
+
+Everything is JSON, ``.npz`` arrays (loaded with ``allow_pickle=False``) or LightGBM's
+text model format. scikit-learn forests are exported to :class:`TreeEnsemble` arrays;
+other scikit-learn estimators go through an explicit allow-list: their constructor
+parameters (JSON) and fitted array attributes are stored, and loading rebuilds the
+estimator from the allow-listed class and sets those attributes. Anything else raises
+:class:`ArtifactError` naming the type, rather than falling back to pickle. The estimators'
+part is :mod:`offline_adp.artifacts.estimators`; Q-functions and policies are saved here,
+each kind through a registry (:func:`register_q_kind`, :func:`register_policy_kind`).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp import artifact_checks as C
+from offline_adp._version import __version__
+from offline_adp.artifacts.estimators import (
+    ALLOWED,
+    _Booster,
+    _export_estimator,
+    _guard,
+    _import_estimator,
+    _width,
+)
+from offline_adp.errors import ArtifactError, FormatVersionWarning
+from offline_adp.qfunctions import (
+    BoostedSumQ,
+    QEncoder,
+    QFunction,
+    RegressorQ,
+    TimeIndexedQ,
+    TreeQ,
+)
+from offline_adp.trees import TreeEnsemble
+
+__all__ = ["ALLOWED", "ARTIFACT_VERSION", "load_index_policy", "load_q", "register_policy_kind", "register_q_kind",
+           "save_policy", "save_q", "versions"]
+
+ARTIFACT_VERSION = "1"
+
+
+def versions() -> dict[str, str]:
+    """Versions of the package and the libraries whose models we store."""
+    import lightgbm
+    import sklearn
+
+    return {"offline_adp": __version__, "numpy": np.__version__, "scikit-learn": sklearn.__version__, "lightgbm": lightgbm.__version__}
+
+
+# ----------------------------------------------------------------------------- Q-functions
+# Each Q-function kind registers how it is written and read, as policies do below: ``kind``
+# in q.json names the reader; the writer is found by the Q-function's class (its MRO).
+_Q_WRITERS: dict[type, tuple[str, Any]] = {}
+_Q_READERS: dict[str, Any] = {}
+
+
+def register_q_kind(kind: str, cls: type, write: Any, read: Any) -> None:
+    """Make Q-functions of class ``cls`` savable as ``kind``: ``write(q, arrays, key) ->
+    dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> QFunction``
+    (checking every field before use; ``ArtifactError`` naming ``where``)."""
+    _Q_WRITERS[cls] = (kind, write)
+    _Q_READERS[kind] = read
+
+
+def _export_q(q: QFunction, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    for cls in type(q).__mro__:
+        if cls in _Q_WRITERS:
+            kind, write = _Q_WRITERS[cls]
+            return {"kind": kind, **write(q, arrays, key)}
+    raise ArtifactError(f"cannot save a {type(q).__name__}")
+
+
+def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFunction:
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: Q-function entry is not a JSON object")
+    read = _Q_READERS.get(spec.get("kind"))  # type: ignore[arg-type]
+    if read is None:
+        raise ArtifactError(f"{where}: unknown Q-function kind {spec.get('kind')!r}; known: {sorted(_Q_READERS)}")
+    return read(spec, arrays, where)
+
+
+def _write_time_indexed(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    return {"qs": [_export_q(x, arrays, f"{key}.t{t}") for t, x in enumerate(q.qs)]}
+
+
+def _read_time_indexed(spec: dict[str, Any], arrays: Any, where: str) -> QFunction:
+    qs = spec.get("qs")
+    if not isinstance(qs, list) or not qs:
+        raise ArtifactError(f"{where}: time_indexed Q needs a non-empty 'qs' list")
+    out = TimeIndexedQ([_import_q(x, arrays, where) for x in qs])
+    if len({q.n_actions for q in out.qs}) != 1:
+        raise ArtifactError(f"{where}: time_indexed Q mixes action counts")
+    return out
+
+
+def _write_encoder(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    enc = q.encoder
+    arrays[f"{key}.action_features"] = enc.action_features
+    return {
+        "n_actions": enc.n_actions,
+        "per_action": enc.per_action,
+        "action_features": f"{key}.action_features",
+        "feature_map": None if enc.feature_map is None else _export_estimator(enc.feature_map, arrays, f"{key}.phi"),
+    }
+
+
+def _write_boosted_sum(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    return {"encoder": _write_encoder(q, arrays, key), "boosters": [
+        b.model_to_string() if hasattr(b, "model_to_string") else b.booster.model_to_string() for b in q.boosters]}
+
+
+def _write_regressor(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    e = _write_encoder(q, arrays, key)
+    return {"encoder": e, "models": [_export_estimator(m, arrays, f"{key}.m{i}") for i, m in enumerate(q.models)]}
+
+
+def _read_boosted_sum(spec: dict[str, Any], arrays: Any, where: str) -> QFunction:
+    def build(enc: QEncoder) -> tuple[QFunction, list[int | None]]:
+        b = spec.get("boosters")
+        if not isinstance(b, list) or not b or enc.per_action:
+            raise ArtifactError(f"{where}: boosted_sum Q needs a non-empty 'boosters' list and a joint encoder")
+        q = BoostedSumQ([_Booster(m, where, f"booster {i}") for i, m in enumerate(b)], enc)
+        return q, [x.booster.num_feature() for x in q.boosters]
+
+    return _read_encoded(spec, arrays, where, build)
+
+
+def _read_regressor(spec: dict[str, Any], arrays: Any, where: str) -> QFunction:
+    def build(enc: QEncoder) -> tuple[QFunction, list[int | None]]:
+        models = spec.get("models")
+        n = enc.n_actions if enc.per_action else 1
+        if not isinstance(models, list) or len(models) != n:
+            raise ArtifactError(f"{where}: regressor Q needs {n} model(s)")
+        q = RegressorQ([_guard(_import_estimator(m, arrays, where), where, f"model {i}") for i, m in enumerate(models)], enc)
+        return q, [_model_width(m) for m in q.models]
+
+    return _read_encoded(spec, arrays, where, build)
+
+
+def _read_encoded(spec: dict[str, Any], arrays: Any, where: str, build: Any) -> QFunction:
+    """A Q-function over an encoder (``spec["encoder"]``): the encoder checked and built,
+    ``build(encoder) -> (q, model input widths)``, then the widths checked against the
+    encoder's and one probe prediction."""
+    e = spec.get("encoder")
+    if not isinstance(e, dict):
+        raise ArtifactError(f"{where}: Q-function entry without an 'encoder' object")
+    n_actions = C.check_int(e.get("n_actions"), where, "encoder.n_actions", 1, 1_000_000)
+    af = C.array(arrays, e.get("action_features"), where, kinds="biuf", ndim=2)
+    if af.shape[0] != n_actions or not np.all(np.isfinite(af)):
+        raise ArtifactError(f"{where}: {e.get('action_features')}: shape {af.shape} (or non-finite) for {n_actions} actions")
+    per_action = e.get("per_action")
+    if not isinstance(per_action, bool):
+        raise ArtifactError(f"{where}: encoder.per_action must be true or false")
+    fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where, "feature_map")
+    q, widths = build(QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap))
+    # the models' input width agrees with the encoder's; then one probe prediction
+    k = 0 if per_action else af.shape[1]
+    known = {w for w in widths if w is not None}
+    if len(known) > 1:
+        raise ArtifactError(f"{where}: the models read different input widths {sorted(known)}")
+    d = _width(fmap) if fmap is not None else (known.pop() - k if known else None)
+    if d is not None:
+        if d < 1:
+            raise ArtifactError(f"{where}: models read {d + k} inputs, fewer than the {k} action features")
+        if 2 * n_actions * (d + k) > C.MAX_PROBE_ENTRIES:
+            raise ArtifactError(f"{where}: models declare {d + k} inputs for {n_actions} actions "
+                                f"({2 * n_actions * (d + k)} values per 2 states, at most {C.MAX_PROBE_ENTRIES}): "
+                                "out of proportion, not a model we wrote")
+        try:
+            v = np.asarray(q.values(np.zeros((2, d))))
+        except ArtifactError:
+            raise
+        except Exception as exc:
+            raise ArtifactError(f"{where}: the Q-function cannot predict ({type(exc).__name__}: {exc})") from None
+        if v.shape != (2, n_actions):
+            raise ArtifactError(f"{where}: the Q-function predicts shape {v.shape}, expected (2, {n_actions})")
+    return q
+
+
+register_q_kind("time_indexed", TimeIndexedQ, _write_time_indexed, _read_time_indexed)
+register_q_kind("boosted_sum", BoostedSumQ, _write_boosted_sum, _read_boosted_sum)
+register_q_kind("regressor", RegressorQ, _write_regressor, _read_regressor)
+register_q_kind("regressor", TreeQ, _write_regressor, _read_regressor)  # read back as a RegressorQ over a TreeEnsemble
+
+
+def _model_width(m: Any) -> int | None:
+    """The input width of a loaded model: its own ``input_width()`` (boosters, forest
+    classifiers), else the ``n_features_in_`` it declares."""
+    m = getattr(m, "_oadp_inner", m)
+    width = getattr(m, "input_width", None)
+    return width() if width is not None else _width(m)
+
+
+def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], arrays: dict[str, np.ndarray],
+           extra: dict[str, Any] | None) -> None:
+    """``<stem>.json`` (payload, versions, extra) + ``<stem>.npz`` (arrays) in ``directory``."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    np.savez(d / f"{stem}.npz", **arrays)
+    spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), **payload, **(extra or {})}
+    (d / f"{stem}.json").write_text(json.dumps(spec, indent=1))
+
+
+def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:
+    """Read what :func:`_write` wrote (arrays without pickle, every member checked before
+    use, see :mod:`offline_adp.artifact_checks`); warns on other versions."""
+    d = Path(directory)
+    jpath, npath = d / f"{stem}.json", d / f"{stem}.npz"
+    try:
+        if jpath.stat().st_size > 1 << 30:
+            raise ArtifactError(f"{jpath}: {jpath.stat().st_size} bytes is too large for an artifact description")
+        spec = json.loads(jpath.read_bytes().decode("utf-8"))
+        C.check_npz(npath)
+        arrays = np.load(npath, allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise ArtifactError(f"{d}: no saved {what} ({exc.filename} missing)") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise ArtifactError(f"{jpath}: unreadable {what} description ({type(exc).__name__}: {exc})") from None
+    except C.ZIP_ERRORS as exc:
+        raise ArtifactError(f"{npath}: unreadable {what} arrays ({exc})") from None
+    if not isinstance(spec, dict) or key not in spec:
+        raise ArtifactError(f"{jpath}: no {key!r} entry (not a saved {what})")
+    vs = spec.get("versions", {})
+    now = versions()
+    diff = {k: (v, now.get(k)) for k, v in vs.items() if now.get(k) != v} if isinstance(vs, dict) else {}
+    if diff:
+        warnings.warn(f"{d}: written with other versions {diff} (saved, current)", FormatVersionWarning, stacklevel=3)
+    where = f"{jpath.parent / stem}.{{json,npz}}"
+    with arrays:
+        try:
+            return build(spec[key], arrays, where), spec
+        except (ArtifactError, FormatVersionWarning):
+            raise
+        except (*C.ZIP_ERRORS, IndexError, AttributeError, RecursionError, MemoryError) as exc:
+            raise ArtifactError(f"{where}: malformed {what} ({type(exc).__name__}: {exc})") from None
+
+
+def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
+    """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``)."""
+    arrays: dict[str, np.ndarray] = {}
+    _write(directory, "q", {"q": _export_q(q, arrays, "q")}, arrays, extra)
+
+
+def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
+    """Read a Q-function written by :func:`save_q`; returns it and the JSON metadata.
+
+    Warns (``FormatVersionWarning``) when the package or library versions differ.
+    """
+    return _read(directory, "q", "q", _import_q, "Q-function")
+
+
+# ----------------------------------------------------------------------------- policies
+# Each policy kind registers how it is written and read: ``kind`` in policy.json names the
+# reader; the writer is found by the policy's class (its MRO), never by an isinstance chain.
+_POLICY_WRITERS: dict[type, tuple[str, Any]] = {}
+_POLICY_READERS: dict[str, Any] = {}
+
+
+def register_policy_kind(kind: str, cls: type, write: Any, read: Any) -> None:
+    """Make policies of class ``cls`` savable as ``kind``: ``write(pi, arrays, key) ->
+    dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> policy``
+    (checking every field before use; ``ArtifactError`` naming ``where``)."""
+    _POLICY_WRITERS[cls] = (kind, write)
+    _POLICY_READERS[kind] = read
+
+
+def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    _register_policies()
+    for cls in type(pi).__mro__:
+        if cls in _POLICY_WRITERS:
+            kind, write = _POLICY_WRITERS[cls]
+            return {"kind": kind, **write(pi, arrays, key)}
+    raise ArtifactError(f"cannot save a {type(pi).__name__} policy safely")
+
+
+def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
+    _register_policies()
+    if not isinstance(spec, dict):
+        raise ArtifactError(f"{where}: policy entry is not a JSON object")
+    read = _POLICY_READERS.get(spec.get("kind"))  # type: ignore[arg-type]
+    if read is None:
+        raise ArtifactError(f"{where}: unknown policy kind {spec.get('kind')!r}; known: {sorted(_POLICY_READERS)}")
+    return read(spec, arrays, where)
+
+
+def _write_tabular(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    arrays[f"{key}.table"] = pi.table
+    return {"table": f"{key}.table"}
+
+
+def _read_tabular(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import TabularPolicy
+
+    table = C.array(arrays, spec.get("table"), where, kinds="biuf")  # type: ignore[arg-type]
+    if table.ndim not in (2, 3) or 0 in table.shape or not np.all(np.isfinite(table)) or np.any(table < 0):
+        raise ArtifactError(f"{where}: {spec.get('table')}: a policy table needs finite probabilities >= 0 of shape "
+                            f"(states, actions) or (steps, states, actions), got {table.shape}")
+    return TabularPolicy(table)
+
+
+def _read_parts(spec: dict[str, Any], arrays: Any, where: str, field: str, kind: str) -> list[Any]:
+    parts = spec.get(field)
+    if not isinstance(parts, list) or not parts:
+        raise ArtifactError(f"{where}: {kind} policy needs a non-empty list of policies")
+    pols = [_import_policy(c, arrays, where) for c in parts]
+    if len({p.n_actions for p in pols}) != 1:
+        raise ArtifactError(f"{where}: {kind} policy mixes action counts")
+    return pols
+
+
+def _read_mixture(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import MixturePolicy
+
+    pols = _read_parts(spec, arrays, where, "components", "mixture")
+    w = spec.get("weights")
+    if not isinstance(w, list) or len(w) != len(pols) or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in w):
+        raise ArtifactError(f"{where}: mixture needs one numeric weight per component")
+    try:
+        return MixturePolicy(pols, w)
+    except ValueError as exc:
+        raise ArtifactError(f"{where}: {exc}") from None
+
+
+def _write_classifier(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    fmap = None if pi.feature_map is None else _export_estimator(pi.feature_map, arrays, f"{key}.phi")
+    clf = None if pi.classifier is None else _export_estimator(pi.classifier, arrays, f"{key}.clf")
+    return {"n_actions": pi.n_actions, "constant": pi.constant, "classifier": clf, "feature_map": fmap}
+
+
+def _read_classifier(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import ClassifierPolicy
+
+    n_actions = C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000)
+    constant = spec.get("constant")
+    if constant is not None:
+        C.check_int(constant, where, "constant", 0, n_actions - 1)
+    clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
+    if clf is None and constant is None:
+        raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
+    classes = getattr(clf, "classes_", None)
+    if classes is not None:
+        c = np.asarray(classes)
+        if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
+            raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
+    fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
+    return ClassifierPolicy(clf, n_actions, constant, fmap)
+
+
+def _register_policies() -> None:
+    """Register the package's policy kinds (once; policies import lazily to keep this module light)."""
+    if _POLICY_READERS:
+        return
+    from offline_adp.policies import (
+        ClassifierPolicy,
+        GreedyPolicy,
+        MixturePolicy,
+        NonStationaryPolicy,
+        TabularPolicy,
+        UniformPolicy,
+    )
+
+    register_policy_kind("greedy", GreedyPolicy, lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")},
+                         lambda spec, arrays, where: GreedyPolicy(_import_q(spec.get("q"), arrays, where)))  # type: ignore[arg-type]
+    register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {"n_actions": pi.n_actions},
+                         lambda spec, arrays, where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
+                                                                               1_000_000)))
+    register_policy_kind("tabular", TabularPolicy, _write_tabular, _read_tabular)
+    register_policy_kind("mixture", MixturePolicy,
+                         lambda pi, arrays, key: {"weights": pi.weights.tolist(), "components": [
+                             _export_policy(c, arrays, f"{key}.c{i}") for i, c in enumerate(pi.components)]},
+                         _read_mixture)
+    register_policy_kind("non_stationary", NonStationaryPolicy,
+                         lambda pi, arrays, key: {"steps": [_export_policy(c, arrays, f"{key}.t{i}")
+                                                            for i, c in enumerate(pi.steps)]},
+                         lambda spec, arrays, where: NonStationaryPolicy(
+                             _read_parts(spec, arrays, where, "steps", "non_stationary")))
+    register_policy_kind("classifier", ClassifierPolicy, _write_classifier, _read_classifier)
+
+
+def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
+    """Write a policy (greedy, uniform, tabular, mixture, non-stationary, classifier) as
+    ``policy.json`` + ``policy.npz``."""
+    arrays: dict[str, np.ndarray] = {}
+    _write(directory, "policy", {"policy": _export_policy(policy, arrays, "p")}, arrays, extra)
+
+
+def load_index_policy(directory: str | PathLike[str]) -> Any:
+    """Read a policy written by :func:`save_policy` (or the greedy policy of a saved Q)
+    *without* a signature: it knows no feature names nor action values, so its ``act``
+    takes arrays in the fitted column order and returns action **indices**.
+
+    This is what algorithms use (``act_index``). To deploy a policy, use
+    :func:`offline_adp.load_policy` (:func:`offline_adp.deploy.load_policy`), which
+    attaches the run's signature: ``act`` then returns action values and checks the
+    observation's names and width.
+    """
+    d = Path(directory)
+    if not (d / "policy.json").exists() and (d / "q.json").exists():
+        from offline_adp.policies import GreedyPolicy
+
+        return GreedyPolicy(load_q(d)[0])
+    return _read(d, "policy", "policy", _import_policy, "policy")[0]
+

@@ -1,0 +1,102 @@
+"""``offline-adp``: a thin command line over the library's functions.
+
+Every subcommand's ``--help`` ends with an example. Errors of our own types print one
+clear message (no traceback) and exit with status 2; ``--traceback`` shows the stack.
+
+The parser is :mod:`offline_adp.cli.parser`; the commands are in
+:mod:`~offline_adp.cli.data_commands` (simulate, ingest, mcap-info, validate, inspect),
+:mod:`~offline_adp.cli.fit_commands` (fit, evaluate, run, schema, report) and
+:mod:`~offline_adp.cli.export_commands` (export, annotate, convert).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, log
+from offline_adp.cli.data_commands import (
+    cmd_ingest_mcap,
+    cmd_ingest_parquet,
+    cmd_inspect,
+    cmd_mcap_info,
+    cmd_simulate,
+    cmd_validate,
+)
+from offline_adp.cli.export_commands import cmd_annotate, cmd_convert, cmd_export
+from offline_adp.cli.fit_commands import (
+    cmd_evaluate,
+    cmd_fit,
+    cmd_report,
+    cmd_run,
+    cmd_schema,
+    fit_summary_lines,
+)
+from offline_adp.cli.parser import build_parser
+from offline_adp.errors import OfflineADPError
+
+__all__ = [
+    "ALGORITHM_NAMES", "FORMATS", "build_parser", "cmd_annotate", "cmd_convert", "cmd_evaluate", "cmd_export",
+    "cmd_fit", "cmd_ingest_mcap", "cmd_ingest_parquet", "cmd_inspect", "cmd_mcap_info", "cmd_report", "cmd_run",
+    "cmd_schema", "cmd_simulate", "cmd_validate", "fit_summary_lines", "log", "main",
+]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    from offline_adp.progress import capturing_warnings
+
+    with capturing_warnings() as caught:
+        try:
+            return _run(args)
+        finally:
+            caught.report(log)  # the package's warnings once each; the libraries' in one line
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the parsed command; our errors as one line and exit status 2."""
+    try:
+        from offline_adp.progress import apply_logging_options
+
+        apply_logging_options(args)
+        return int(args.func(args))
+    except OfflineADPError as exc:
+        if args.traceback:
+            raise
+        print(f"offline-adp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into `head` and the like
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except MemoryError:
+        if args.traceback:
+            raise
+        print(f"offline-adp {args.command}: error: out of memory; use smaller settings (episodes, bootstrap "
+              "replicates, horizon) or a machine with more memory", file=sys.stderr)
+        return 2
+    except OSError as exc:  # read-only location, full disk, a file or folder in the way: one line, exit 2
+        if args.traceback:
+            raise
+        from offline_adp.errors import os_error_message
+
+        print(f"offline-adp {args.command}: error: {os_error_message(exc, _output_of(args))}", file=sys.stderr)
+        return 2
+
+
+def _output_of(args: argparse.Namespace) -> str | None:
+    """The path a command writes (for an OSError that names none)."""
+    for name in ("out", "json", "run", "write"):
+        value = getattr(args, name, None)
+        if isinstance(value, str):
+            return value
+    return None

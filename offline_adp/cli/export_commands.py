@@ -1,0 +1,38 @@
+"""Output commands: ``export`` (ONNX), ``annotate`` (MCAP), ``convert`` (dataset formats)."""
+
+from __future__ import annotations
+
+import argparse
+
+from offline_adp.cli._common import _file_output, _say
+
+
+# ---------------------------------------------------------------------------- export / annotate / convert
+def cmd_export(args: argparse.Namespace) -> int:
+    from offline_adp.data.io import locked_directory
+    from offline_adp.deploy import export_run
+
+    _file_output(args.out, "--out", "an ONNX file")
+    with locked_directory(args.out, what="file"):  # the exporter's temporary: removed on failure (main)
+        print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset, overwrite=args.overwrite,
+                         input_dtype=args.input_dtype))
+    return 0
+
+
+def cmd_annotate(args: argparse.Namespace) -> int:
+    from offline_adp.annotate import annotate_mcap
+
+    s = annotate_mcap(args.run, args.log, args.out, spec=args.spec, dataset=args.dataset, overwrite=args.overwrite)
+    _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); policy agrees with the log "
+         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics {', '.join(s['topics'])}")
+    print(s["out"])
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from offline_adp.formats import convert
+
+    if args.to_format == "d4rl":
+        _file_output(args.out, "--out", "a .npz file")
+    print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format, overwrite=args.overwrite))
+    return 0
