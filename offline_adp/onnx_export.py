@@ -381,9 +381,8 @@ def _register() -> None:
     """Register the package's exportable classes (once; imported lazily to keep this module light)."""
     if _Q_EXPORTERS:
         return
-    from offline_adp.qfunctions import BoostedSumQ
     from offline_adp.policies import ClassifierPolicy, GreedyPolicy, NonStationaryPolicy
-    from offline_adp.qfunctions import RegressorQ, TreeQ
+    from offline_adp.qfunctions import BoostedSumQ, RegressorQ, TreeQ
 
     _Q_EXPORTERS.update({RegressorQ: _regressor_q, TreeQ: _regressor_q, BoostedSumQ: _boosted_sum_q})
     _RULE_EXPORTERS.update({GreedyPolicy: _greedy_rule,

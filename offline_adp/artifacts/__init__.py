@@ -39,7 +39,6 @@ from offline_adp.qfunctions import (
     TimeIndexedQ,
     TreeQ,
 )
-from offline_adp.trees import TreeEnsemble
 
 __all__ = ["ALLOWED", "ARTIFACT_VERSION", "load_index_policy", "load_q", "register_policy_kind", "register_q_kind",
            "save_policy", "save_q", "versions"]
