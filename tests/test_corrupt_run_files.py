@@ -121,8 +121,8 @@ def _damage_history(hist, damage):
     h = pd.read_csv(hist)
     if damage == "text in a number column":
         h["bellman_residual"] = h["bellman_residual"].astype(object)
-        h.loc[1, "bellman_residual"] = "n/a"
-        msg = "checkpoint/history.csv: column 'bellman_residual' must hold numbers, found 'n/a' (row 2)"
+        h.loc[1, "bellman_residual"] = "oops"
+        msg = "checkpoint/history.csv: column 'bellman_residual' must hold numbers, found 'oops' (row 2)"
     elif damage == "missing column":
         h = h.drop(columns=["sup_dq"])
         msg = "checkpoint/history.csv: no column ['sup_dq']"
