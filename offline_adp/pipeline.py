@@ -60,7 +60,6 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, Literal
 
-import pandas as pd
 from pydantic import Field, field_validator, model_validator
 
 from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
@@ -449,20 +448,24 @@ def _validate_stage(run: Path) -> dict[str, Any]:
 
 
 def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
+    """The fit into ``fit/`` by the run writer (:func:`offline_adp.runs.fit_run`), on the
+    Dask cluster for FQI with LightGBM when there is a client (:func:`_fit_dask`): the same
+    run directory, checkpoints and resume either way."""
     from offline_adp.runs import fit_run
 
     fit = cfg["fit"]
     entry = get_algorithm(fit["algorithm"])
-    if client is not None and entry.dask and fit.get("params", {}).get("regressor") == "lightgbm":
-        return _fit_dask(cfg, run, say, client)
     params = dict(fit.get("params", {}))
+    engine = _fit_dask(params, client) if client is not None and entry.dask and params.get("regressor") == "lightgbm" \
+        else None
     if "random_state" in entry.params_model().model_fields:
         params.setdefault("random_state", cfg["seed"])
     target = RunDirectory(run / "fit")
     resume = entry.resumable and target.exists("checkpoint") and target.exists(target.CONFIG) \
         and target.read_json(target.CONFIG).get("params") == params
+    on = " (Dask)" if engine is not None else ""
     if resume:
-        say("[fit] resuming from the last checkpointed iteration")
+        say(f"[fit] resuming from the last checkpointed iteration{on}")
     elif target.path.exists():
         RunDirectory(run).remove("fit")
 
@@ -474,11 +477,21 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
         k = row.get("iteration", 0)
         if (k in shown) if shown is not None else k % 10 == 0:
             of = f"/{total}" if shown is not None else ""
-            say(f"[fit] iteration {k}{of}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
+            say(f"[fit] iteration {k}{of}{on}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
-    est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration)
+    est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration,
+                  engine=engine)
     hist = getattr(est, "history_", None)
-    return {"iterations": 0 if hist is None else len(hist), "diverged": bool(getattr(est, "diverged_", False))}
+    out = {"iterations": 0 if hist is None else len(hist), "diverged": bool(getattr(est, "diverged_", False))}
+    if engine is None:
+        return out
+    # iterations whose row blocks trained away from their workers (a lost worker): same Q rule, more traffic
+    unplaced = engine.unplaced_iterations_
+    if unplaced:
+        say(f"[fit] iterations {unplaced} trained with rows away from their workers (a worker was lost)")
+    say(f"[fit] {est.verdict_message_}")
+    return {**out, "engine": "dask", "verdict": est.verdict_, "verdict_message": est.verdict_message_,
+            "unplaced_iterations": unplaced}
 
 
 def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
@@ -508,15 +521,11 @@ def _report_stage(run: Path) -> dict[str, Any]:
     return {"report": str(run / "report.html")}
 
 
-def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any) -> dict[str, Any]:
-    """FQI with LightGBM on the Dask cluster (``DistributedFQI``), into the same fit run
-    directory layout as a local fit; resumes from ``fit/checkpoint`` after a lost cluster."""
-    from offline_adp.artifacts import save_q, versions
-    from offline_adp.data.io import read_dataset
-    from offline_adp.data.validate import require_usable
-    from offline_adp.engines.dask import DistributedFQI
+def _fit_dask(params: dict[str, Any], client: Any) -> Any:
+    """The Dask engine for an FQI fit with LightGBM (``DaskFit``: the regression
+    data-parallel on the cluster), after checking that it can honour ``params``."""
+    from offline_adp.engines.dask import DaskFit
 
-    params = dict(cfg["fit"].get("params", {}))
     allowed = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state", "mode", "trees_per_iteration"}
     bad = sorted(set(params) - allowed)
     if bad:
@@ -525,32 +534,4 @@ def _fit_dask(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client
     if params.get("mode", "auto") not in ("auto", "refit", "warm_start"):  # 'auto' is refit on the Dask engine
         raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine (use 'refit' or "
                         "'warm_start', or the local engine)")
-    ds = read_dataset(run / "dataset")
-    require_usable(ds, run / "dataset")  # empty or failing the doctor: one error before any cluster work
-    est = DistributedFQI(gamma=params.get("gamma"), n_iterations=params.get("n_iterations", 50), lgbm_params=params.get("regressor_params"),
-                         random_state=params.get("random_state", cfg["seed"]), warm_start=params.get("mode") == "warm_start",
-                         trees_per_iteration=params.get("trees_per_iteration", 10))
-    with RunDirectory(run / "fit").lock() as rd:
-        resuming = (rd.path / "checkpoint" / "q.json").exists()
-        if resuming:
-            say("[fit] resuming from the last checkpointed iteration (Dask)")
-        rd.write_json(rd.CONFIG, {"algorithm": "fqi", "engine": "dask", "params": params})
-        status = {"dataset": str(run / "dataset"), "dataset_fingerprint": ds.fingerprint(), "algorithm": "fqi",
-                  "engine": "dask", "versions": versions(), "status": "running"}
-        rd.write_json(rd.STATUS, status)
-        est.fit(client, run / "dataset", checkpoint_dir=rd.path / "checkpoint",
-                on_iteration=lambda k: say(f"[fit] iteration {k} (Dask)") if k % 10 == 0 else None)
-        with rd.subdirectory(rd.MODEL) as tmp:
-            save_q(est.q_function_, tmp, extra={"algorithm": "fqi", "engine": "dask", "dataset_fingerprint": ds.fingerprint(),
-                                                "policy": "greedy (argmin_a Q)", "verdict": est.verdict_,
-                                                "verdict_message": est.verdict_message_,
-                                                "unplaced_iterations": est.unplaced_iterations_})
-            pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
-        # iterations whose row blocks trained away from their workers (a lost worker): same Q rule, more traffic
-        verdict = {"verdict": est.verdict_, "verdict_message": est.verdict_message_,
-                   "unplaced_iterations": est.unplaced_iterations_}
-        rd.write_json(rd.STATUS, {**status, "status": "completed", "iterations": len(est.history_), **verdict})
-    if est.unplaced_iterations_:
-        say(f"[fit] iterations {est.unplaced_iterations_} trained with rows away from their workers (a worker was lost)")
-    say(f"[fit] {est.verdict_message_}")
-    return {"iterations": len(est.history_), "engine": "dask", **verdict}
+    return DaskFit(client)

@@ -25,14 +25,14 @@ from typing import Any
 
 import pandas as pd
 
+from offline_adp.algorithms.checkpoint import read_checkpoint, write_checkpoint
 from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resumable_algorithms
-from offline_adp.artifacts import load_q, save_policy, save_q, versions
+from offline_adp.artifacts import save_policy, save_q, versions
 from offline_adp.config import load_toml
 from offline_adp.data.io import read_dataset
-from offline_adp.data.rundir import RunDirectory, read_table_file
+from offline_adp.data.rundir import RunDirectory
 from offline_adp.data.validate import require_usable
-from offline_adp.errors import OfflineADPError
-from offline_adp.qfunctions import TimeIndexedQ
+from offline_adp.errors import InvalidArgumentError, RunDirectoryError
 
 
 def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, Any]:
@@ -52,39 +52,38 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
 
 
 def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> None:
-    q: Any = est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))
-    with RunDirectory(run).subdirectory(RunDirectory.CHECKPOINT) as tmp:
-        save_q(q, tmp, extra={"iteration": len(rows)})
-        pd.DataFrame(rows).to_csv(tmp / "history.csv", index=False)
+    write_checkpoint(run / RunDirectory.CHECKPOINT, est, rows)
 
 
 def _read_checkpoint(run: Path) -> dict[str, Any] | None:
-    ck = run / RunDirectory.CHECKPOINT
-    if not (ck / "q.json").exists():
-        return None
-    q, _ = load_q(ck)
-    hist = read_table_file(ck / "history.csv")  # corrupt or missing: ArtifactError naming it
-    rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
-    # finite horizons are stored as Q_{T-1}, Q_{T-2}, ... (the order they were fitted)
-    return {"q": list(q.qs) if isinstance(q, TimeIndexedQ) else q, "history": rows}
+    return read_checkpoint(run / RunDirectory.CHECKPOINT)  # damaged: ArtifactError naming the file
 
 
 def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every: int,
-             on_iteration: Callable[[dict[str, Any]], None] | None) -> None:
-    """Run a resumable algorithm's ``fit_iter``, checkpointing every ``checkpoint_every`` iterations."""
+             on_iteration: Callable[[dict[str, Any]], None] | None, engine: Any = None,
+             dataset_dir: str | PathLike[str] | None = None) -> None:
+    """Run a resumable algorithm's ``fit_iter`` (in process, or ``engine.fit_iter`` on the
+    engine's workers from ``dataset_dir``), checkpointing every ``checkpoint_every`` iterations."""
     state = _read_checkpoint(rd.path) if resume else None
     rows: list[dict[str, Any]] = list(state["history"]) if state else []
     written, last_write, write_cost = len(rows), time.perf_counter(), 0.0
-    for row in est.fit_iter(ds, resume=state):
-        rows.append(row)
-        # every mode checkpoints; when writing costs more than a tenth of the iterations since
-        # the last write (a frozen structure is large, its iterations cheap), less often
-        if len(rows) % checkpoint_every == 0 and time.perf_counter() - last_write >= 10 * write_cost:
-            w0 = time.perf_counter()
-            _write_checkpoint(rd.path, est, rows)
-            written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
-        if on_iteration:
-            on_iteration(row)
+    iterations = est.fit_iter(ds, resume=state) if engine is None else \
+        engine.fit_iter(est, dataset_dir, state, checkpoint_dir=rd.file(rd.CHECKPOINT))
+    try:
+        for row in iterations:
+            rows.append(row)
+            # every mode checkpoints; when writing costs more than a tenth of the iterations since
+            # the last write (a frozen structure is large, its iterations cheap), less often
+            if len(rows) % checkpoint_every == 0 and time.perf_counter() - last_write >= 10 * write_cost:
+                w0 = time.perf_counter()
+                _write_checkpoint(rd.path, est, rows)
+                written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
+            if on_iteration:
+                on_iteration(row)
+    finally:  # an engine releases its workers' data now, not when the generator is collected
+        close = getattr(iterations, "close", None)
+        if close is not None:
+            close()
     if written != len(rows):  # the last iteration is always checkpointed before model/ is written
         _write_checkpoint(rd.path, est, rows)
 
@@ -102,9 +101,10 @@ def _save_model(entry: AlgorithmEntry, est: Any, rd: RunDirectory, fingerprint: 
         pd.DataFrame(est.history_).to_csv(tmp / "history.csv", index=False)
 
 
-def _summary(est: Any) -> dict[str, Any]:
-    """Numbers for run.json: the value estimate, iterations, the fit's convergence verdict."""
-    out: dict[str, Any] = {}
+def _summary(est: Any, engine: Any = None) -> dict[str, Any]:
+    """Numbers for run.json: the value estimate, iterations, the fit's convergence verdict
+    (and the engine's own, e.g. the Dask iterations trained with rows away from their workers)."""
+    out: dict[str, Any] = {} if engine is None else dict(engine.summary())
     hist = getattr(est, "history_", None)
     if hist is not None:
         out["iterations"] = len(hist)
@@ -132,6 +132,7 @@ def fit_run(
     resume: bool = False,
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
     checkpoint_every: int = 1,
+    engine: Any = None,
 ) -> Any:
     """Fit ``algorithm`` on a dataset directory into a run directory (see module docstring).
 
@@ -151,6 +152,10 @@ def fit_run(
         Called with each iteration's history row (resumable algorithms).
     checkpoint_every : int
         Checkpoint every this many iterations.
+    engine : optional
+        Where a resumable algorithm's iterations run: None, in this process; an engine
+        such as :class:`offline_adp.engines.dask.DaskFit` (FQI/FQE with LightGBM on a Dask
+        cluster). The run directory is the same either way (``run.json`` names the engine).
 
     Returns
     -------
@@ -162,39 +167,43 @@ def fit_run(
         entry.check_complete(params)
     rd = RunDirectory(out)
     if resume and not entry.resumable:
-        raise OfflineADPError(f"--resume is for {resumable_algorithms()} runs; "
-                              f"{algorithm} runs as a whole")
+        raise InvalidArgumentError(f"--resume is for {resumable_algorithms()} runs; "
+                                   f"{algorithm} runs as a whole")
     if resume and not rd.path.exists():
-        raise OfflineADPError(f"{rd.path} does not exist: nothing to resume")
+        raise RunDirectoryError(f"{rd.path} does not exist: nothing to resume")
     ds = read_dataset(dataset)
     require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
     with rd.lock():
         if resume:
             if not rd.exists(rd.CONFIG):
-                raise OfflineADPError(f"{rd.path} has no {rd.CONFIG}: it is not a fit run directory that can be resumed "
-                                      "(start it without --resume, or choose another --out)")
+                raise RunDirectoryError(f"{rd.path} has no {rd.CONFIG}: it is not a fit run directory that can be "
+                                        "resumed (start it without --resume, or choose another --out)")
             saved = rd.read_json(rd.CONFIG)
             if saved.get("algorithm") != algorithm:
-                raise OfflineADPError(f"{rd.path}: the run was started with algorithm {saved.get('algorithm')!r}, not {algorithm!r}")
+                raise RunDirectoryError(f"{rd.path}: the run was started with algorithm {saved.get('algorithm')!r}, not {algorithm!r}")
             if params and params != saved["params"]:
-                raise OfflineADPError(f"{rd.path}: --resume with different parameters than the run was started with "
-                                      f"({saved['params']})")
+                raise RunDirectoryError(f"{rd.path}: --resume with different parameters than the run was started "
+                                        f"with ({saved['params']})")
             params = saved["params"]
             if not ds.matches_fingerprint(rd.read_json(rd.STATUS).get("dataset_fingerprint")):
-                raise OfflineADPError(f"{rd.path}: the dataset changed since the run started (fingerprint differs); "
-                                      "start a new run")
+                raise RunDirectoryError(f"{rd.path}: the dataset changed since the run started (fingerprint "
+                                        "differs); start a new run")
         elif any(rd.exists(n) for n in (rd.CONFIG, rd.STATUS, rd.MODEL)):
-            raise OfflineADPError(f"{rd.path} already holds a run; use --resume to continue it or choose another --out")
+            raise RunDirectoryError(f"{rd.path} already holds a run; use --resume to continue it or choose another --out")
         else:
             rd.write_json(rd.CONFIG, {"algorithm": algorithm, "params": params})
         status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm,
                                   "access": entry.access, "versions": versions(), "status": "running"}
+        if engine is not None:
+            status["engine"] = engine.name
         rd.write_json(rd.STATUS, status)
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             if entry.resumable:
                 est = entry.estimator_class()(**params)
-                _iterate(rd, est, ds, resume, checkpoint_every, on_iteration)
+                _iterate(rd, est, ds, resume, checkpoint_every, on_iteration, engine, dataset)
+            elif engine is not None:
+                raise InvalidArgumentError(f"{algorithm} runs in process only (engines run {resumable_algorithms()})")
             else:
                 est = entry.build_and_fit(params, ds)
         except BaseException as exc:
@@ -204,6 +213,6 @@ def fit_run(
             raise
         _save_model(entry, est, rd, ds.fingerprint())
         status.update(status="completed", fit_seconds=time.perf_counter() - wall, fit_cpu_seconds=time.process_time() - cpu,
-                      **_summary(est))
+                      **_summary(est, engine))
         rd.write_json(rd.STATUS, status)
     return est

@@ -111,24 +111,49 @@ def test_readers_name_the_file(tmp_path):
         rd.read_json(rd.STATUS)
 
 
-def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys):
+def _damage_history(hist, damage):
+    """Rewrite a checkpoint's history.csv as ``damage`` says; the message the reader gives."""
+    import pandas as pd
+
+    if damage == "unparsable":
+        hist.write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
+        return "checkpoint/history.csv: not a readable CSV table"
+    h = pd.read_csv(hist)
+    if damage == "text in a number column":
+        h["bellman_residual"] = h["bellman_residual"].astype(object)
+        h.loc[1, "bellman_residual"] = "oops"
+        msg = "checkpoint/history.csv: column 'bellman_residual' must hold numbers, found 'oops' (row 2)"
+    elif damage == "missing column":
+        h = h.drop(columns=["sup_dq"])
+        msg = "checkpoint/history.csv: no column ['sup_dq']"
+    elif damage == "iterations out of order":
+        h["iteration"] = h["iteration"][::-1].to_numpy()
+        msg = "checkpoint/history.csv: column 'iteration' must count 1, 2, ..., 3"
+    else:  # a row fewer than the Q-function's iterations
+        h = h.iloc[:-1]
+        msg = "checkpoint/history.csv: 2 history rows, but"
+    h.to_csv(hist, index=False)
+    return msg
+
+
+@pytest.mark.parametrize("damage", ["unparsable", "text in a number column", "missing column", "iterations out of order",
+                                    "rows not the checkpoint's"])
+def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys, damage):
+    """The checkpoint codec (one for local and Dask fits) reads history.csv with checks:
+    whatever is wrong with it, ``--resume`` is one line naming the file, exit 2."""
     from offline_adp.runs import fit_run
     from offline_adp.simulate import simulate
 
     simulate("gridworld", 3, 3, seed=3, horizon=30).save(tmp_path / "ds")
-    params = {"n_iterations": 6, "regressor_params": {"n_estimators": 5}}
-
-    def interrupt(row):
-        if row["iteration"] == 3:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        fit_run(tmp_path / "ds", tmp_path / "run", params=params, on_iteration=interrupt)
+    params = {"n_iterations": 3, "regressor_params": {"n_estimators": 5}}
+    fit_run(tmp_path / "ds", tmp_path / "run", params=params)
+    shutil.rmtree(tmp_path / "run" / "model")  # killed after the last checkpoint (iteration 3), before model/
     hist = tmp_path / "run" / "checkpoint" / "history.csv"
     assert hist.is_file()
-    hist.write_bytes(b'iteration,sup_dq\n1,"unterminated\n')
-    _one_line_error(capsys, ["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--resume", "--quiet"],
-                    "checkpoint/history.csv")
+    msg = _damage_history(hist, damage)
+    line = _one_line_error(capsys, ["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--resume", "--quiet"],
+                           "checkpoint/history.csv")
+    assert msg in line, line
 
 
 def test_export_with_a_corrupt_run_json_exits_2(evaluated, tmp_path, capsys):

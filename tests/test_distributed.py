@@ -311,8 +311,9 @@ def test_pipeline_fit_on_dask_with_lightgbm(tmp_path):
     assert st["fit"]["verdict"] == "still changing"  # 3 iterations, no tol: the in-process verdict rule
     q_meta = json.loads((run / "fit" / "model" / "q.json").read_text())
     assert q_meta["verdict"] == "still changing"
-    # every block trained on its own worker: recorded as such, in the manifest and beside the model
-    assert st["fit"]["unplaced_iterations"] == [] and q_meta["unplaced_iterations"] == []
+    # every block trained on its own worker: recorded as such, in the manifest and in the run's run.json
+    status = json.loads((run / "fit" / "run.json").read_text())
+    assert st["fit"]["unplaced_iterations"] == [] and status["unplaced_iterations"] == [] and status["engine"] == "dask"
     assert (run / "report.html").exists()
 
 
@@ -429,3 +430,79 @@ def test_distributed_warm_start_agrees_with_local_warm_start_and_resumes(client,
         client, path, checkpoint_dir=ck, on_iteration=seen.append)
     assert seen == [4, 5, 6]
     np.testing.assert_array_equal(resumed.q_function_.values(x), qd)
+
+
+def _files(run):
+    return sorted(str(p.relative_to(run)) for p in run.rglob("*"))
+
+
+def test_a_dask_fit_writes_the_run_directory_of_a_local_fit_and_resumes_in_it(one_worker, tmp_path):
+    """One run writer: ``fit_run`` on the Dask engine writes the files a local fit writes
+    (config.json, run.json, checkpoint/, model/), its model loads as the local one and, on
+    one worker, equals it (the oracle: the same loop, seeds and trees); interrupted after
+    2 iterations, ``--resume`` continues from its checkpoint to that Q."""
+    from offline_adp.algorithms.fqi import load_fqi
+    from offline_adp.engines.dask import DaskFit
+    from offline_adp.runs import fit_run
+
+    simulate("car_on_hill", 0, 40, seed=7, horizon=60).save(tmp_path / "ds")
+    params = {"regressor": "lightgbm", "regressor_params": {"n_estimators": 10, "num_leaves": 7, "n_jobs": 1},
+              "n_iterations": 4, "mode": "refit", "random_state": 2}
+    fit_run(tmp_path / "ds", tmp_path / "local", params=params)
+    fit_run(tmp_path / "ds", tmp_path / "dask", params=params, engine=DaskFit(one_worker))
+    assert _files(tmp_path / "dask") == _files(tmp_path / "local")
+    import json
+
+    status = {n: json.loads((tmp_path / n / "run.json").read_text()) for n in ("local", "dask")}
+    assert status["dask"]["engine"] == "dask" and status["dask"]["unplaced_iterations"] == []
+    assert set(status["local"]) <= set(status["dask"]) and status["dask"]["status"] == "completed"
+    assert (tmp_path / "dask" / "config.json").read_text() == (tmp_path / "local" / "config.json").read_text()
+    local, dist = load_fqi(tmp_path / "local" / "model"), load_fqi(tmp_path / "dask" / "model")
+    x = simulate("car_on_hill", 0, 5, seed=8, horizon=20).arrays().obs
+    np.testing.assert_array_equal(dist.q_function_.values(x), local.q_function_.values(x))
+    assert dist.verdict_ == local.verdict_ and len(dist.history_) == 4
+
+    def stop_at_2(row):
+        if row["iteration"] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_run(tmp_path / "ds", tmp_path / "cut", params=params, engine=DaskFit(one_worker), on_iteration=stop_at_2)
+    assert json.loads((tmp_path / "cut" / "run.json").read_text())["status"] == "interrupted"
+    seen: list[int] = []
+    fit_run(tmp_path / "ds", tmp_path / "cut", params=params, engine=DaskFit(one_worker), resume=True,
+            on_iteration=lambda r: seen.append(r["iteration"]))
+    assert seen == [3, 4]
+    resumed = load_fqi(tmp_path / "cut" / "model")
+    np.testing.assert_array_equal(resumed.q_function_.values(x), local.q_function_.values(x))
+
+
+@pytest.mark.parametrize("damage", ["text in a number column", "missing column", "rows not the checkpoint's"])
+def test_a_damaged_dask_checkpoint_is_one_error_naming_the_file(one_worker, tmp_path, damage):
+    """The Dask engine reads its checkpoint with the run writer's checked codec: a damaged
+    history.csv is an ArtifactError naming it (exit 2 on the CLI), before any cluster work."""
+    from offline_adp.errors import ArtifactError
+
+    simulate("car_on_hill", 0, 20, seed=9, horizon=30).save(tmp_path / "ds")
+    kw = {"gamma": 0.95, "lgbm_params": {"n_estimators": 5, "num_leaves": 7}}
+    ck = tmp_path / "ck"
+    DistributedFQI(n_iterations=2, **kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=ck)
+    hist = ck / "history.csv"
+    lines = hist.read_text().splitlines()
+    head = lines[0].split(",")
+    if damage == "text in a number column":
+        j = head.index("sup_dq")
+        cells = lines[2].split(",")
+        cells[j] = "oops"
+        lines[2] = ",".join(cells)
+        match = r"history.csv: column 'sup_dq' must hold numbers, found 'oops'"
+    elif damage == "missing column":
+        j = head.index("mean_dq")
+        lines = [",".join(c for i, c in enumerate(line.split(",")) if i != j) for line in lines]
+        match = r"history.csv: no column \['mean_dq'\]"
+    else:
+        lines = lines[:2]
+        match = r"history.csv: 1 history rows, but .*q.json was written after iteration 2"
+    hist.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ArtifactError, match=match):
+        DistributedFQI(n_iterations=3, **kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=ck)

@@ -76,7 +76,7 @@ class AlgorithmEntry:
     extra: dict[str, tuple[Any, Any]] = field(default_factory=dict)
     exclude: tuple[str, ...] = ()
     fit_with: Callable[[AlgorithmEntry, dict[str, Any], Any], Any] | None = None
-    #: The Dask engine has a distributed version (``engines/dask.py``), used with LightGBM.
+    #: The Dask engine has a distributed version (``engines/dask/``), used with LightGBM.
     dask: bool = False
     required: dict[str, str] = field(default_factory=dict)
 

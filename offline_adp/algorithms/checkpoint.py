@@ -1,0 +1,129 @@
+"""The one checkpoint codec of fitted-Q runs (local and Dask fits alike).
+
+A checkpoint directory holds the last completed iteration of a resumable fit::
+
+    CHECKPOINT/q.json, q.npz    Q_k (finite horizon: Q_{T-1}, ..., Q_{T-k} as a TimeIndexedQ)
+                                and ``"iteration": k`` (:func:`offline_adp.artifacts.save_q`)
+    CHECKPOINT/history.csv      the k history rows (one per iteration, in order)
+
+:func:`write_checkpoint` replaces the directory as a whole (a temporary directory renamed
+over it, a planted symbolic link replaced, never followed), so a crash leaves the
+previous checkpoint. :func:`read_checkpoint` reads an untrusted directory: the Q-function
+through the checked artifact reader, the history through the checked table reader, then
+its size, columns, types and agreement with the Q-function; anything else is an
+:class:`~offline_adp.errors.ArtifactError` naming the file. The run writer
+(:mod:`offline_adp.runs`) and the Dask engine (:mod:`offline_adp.engines.dask`) both use
+these two functions.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from offline_adp.errors import ArtifactError
+
+HISTORY = "history.csv"
+#: The largest history file read back (a row is ~200 bytes: millions of iterations).
+MAX_HISTORY_BYTES = 256 << 20
+#: Columns every fitted-Q history row has, all numbers (``step``: empty for infinite horizons).
+NUMERIC_COLUMNS = ("iteration", "step", "sup_dq", "mean_dq", "max_abs_q", "bellman_residual", "greedy_changed",
+                   "start_value")
+
+
+def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]]) -> None:
+    """Write the fitted-Q estimator ``est``'s current Q and the history ``rows`` as the
+    checkpoint ``directory``, replacing it atomically.
+
+    Parameters
+    ----------
+    directory : path-like
+        The checkpoint directory (e.g. ``RUN/checkpoint``).
+    est : FittedQIteration or FittedQEvaluation
+        Mid-fit: ``q_function_`` (infinite horizon) or ``q_functions_`` (finite) set.
+    rows : list of dict
+        The history rows of the completed iterations.
+    """
+    from offline_adp.artifacts import save_q
+    from offline_adp.data.rundir import RunDirectory
+    from offline_adp.qfunctions import TimeIndexedQ
+
+    d = Path(directory)
+    q: Any = est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))
+    with RunDirectory(d.parent).subdirectory(d.name) as tmp:
+        save_q(q, tmp, extra={"iteration": len(rows)})
+        pd.DataFrame(rows).to_csv(tmp / HISTORY, index=False)
+
+
+def read_checkpoint(directory: str | PathLike[str]) -> dict[str, Any] | None:
+    """The checkpoint in ``directory`` as ``{"q", "history"}`` for
+    :func:`~offline_adp.algorithms.fqi.run_fitted_q`'s ``resume`` (finite horizons: ``q``
+    is the list Q_{T-1}, Q_{T-2}, ... in the order they were fitted), or None when there
+    is none (no ``q.json``).
+
+    Raises
+    ------
+    ArtifactError
+        A member is missing, unreadable, too large, lacks a column, holds text in a number
+        column, or disagrees with the Q-function (iterations not 1..k, k Q-functions for a
+        finite horizon); the message names the file.
+    """
+    from offline_adp.artifacts import load_q
+    from offline_adp.qfunctions import TimeIndexedQ
+
+    d = Path(directory)
+    if not (d / "q.json").exists():
+        return None
+    q, meta = load_q(d)
+    hist = _read_history(d / HISTORY)
+    n = len(hist)
+    where = d / HISTORY
+    saved = meta.get("iteration")
+    if saved is not None and saved != n:
+        raise ArtifactError(f"{where}: {n} history rows, but {d / 'q.json'} was written after iteration {saved}; "
+                            f"the checkpoint is inconsistent: remove {d} to start the fit again")
+    if isinstance(q, TimeIndexedQ) and len(q.qs) != n:
+        raise ArtifactError(f"{where}: {n} history rows for {len(q.qs)} per-step Q-functions in {d / 'q.json'}; "
+                            f"remove {d} to start the fit again")
+    rows = [{k: (None if pd.isna(v) else v) for k, v in r.items()} for r in hist.to_dict("records")]
+    return {"q": list(q.qs) if isinstance(q, TimeIndexedQ) else q, "history": rows}
+
+
+def _read_history(path: Path) -> pd.DataFrame:
+    """``history.csv`` read with checks: size, the number columns, iterations 1..k."""
+    from offline_adp.data.rundir import read_table_file
+
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise ArtifactError(f"{path}: missing (the checkpoint is incomplete: remove {path.parent} to start the fit "
+                            "again)") from None
+    except OSError as exc:
+        raise ArtifactError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not path.is_file() or path.is_symlink():
+        raise ArtifactError(f"{path}: not a regular file this fit wrote; remove {path.parent} to start the fit again")
+    if size > MAX_HISTORY_BYTES:
+        raise ArtifactError(f"{path}: {size} bytes, more than a history can be ({MAX_HISTORY_BYTES}); "
+                            f"remove {path.parent} to start the fit again")
+    hist = read_table_file(path)  # unparsable: ArtifactError naming it
+    missing = [c for c in NUMERIC_COLUMNS if c not in hist.columns]
+    if missing:
+        raise ArtifactError(f"{path}: no column {missing} (found {list(hist.columns)[:12]}); a checkpoint of another "
+                            f"version or a damaged file: remove {path.parent} to start the fit again")
+    for c in NUMERIC_COLUMNS if len(hist) else ():
+        col = hist[c]
+        if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
+            bad = col[pd.to_numeric(col, errors="coerce").isna() & col.notna()]
+            shown = repr(bad.iloc[0]) if len(bad) else f"dtype {col.dtype}"
+            raise ArtifactError(f"{path}: column {c!r} must hold numbers, found {shown}"
+                                f"{f' (row {int(bad.index[0]) + 1})' if len(bad) else ''}; "
+                                f"remove {path.parent} to start the fit again")
+    it = hist["iteration"].to_numpy()
+    if not np.array_equal(it, np.arange(1, len(hist) + 1)):
+        raise ArtifactError(f"{path}: column 'iteration' must count 1, 2, ..., {len(hist)}; found "
+                            f"{it[:8].tolist()}{'...' if len(it) > 8 else ''}; remove {path.parent} to start the fit again")
+    return hist

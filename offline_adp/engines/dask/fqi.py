@@ -1,0 +1,316 @@
+"""Fitted Q-iteration and evaluation on the cluster.
+
+:class:`DistributedFQI` is not a second fitted-Q loop: it runs the package's loop
+(:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q`) with the data prepared here (the
+dataset's rows as blocks on the workers, the per-transition vectors on the client) and a
+learner whose fit and predictions run on the cluster
+(:class:`~offline_adp.engines.dask.learner.DaskLearner`). :class:`DaskFit` is the same
+engine for the run writer (:func:`offline_adp.runs.fit_run` with ``engine=``), so a Dask
+fit's run directory is written, checkpointed and resumed by the same code as a local one's.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from os import PathLike
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.engines.dask.blocks import _Blocks, _chunk_plan
+from offline_adp.engines.dask.cluster import _one_line, flat_columns
+from offline_adp.engines.dask.learner import DaskLearner
+from offline_adp.errors import (
+    ClusterError,
+    ClusterWarning,
+    DatasetNotFoundError,
+    IngestError,
+    InvalidArgumentError,
+)
+
+
+class DistributedFQI:
+    """Fitted Q-iteration (Algorithm 11, or 10 for a dataset whose hints make it finite
+    horizon; with ``policy``, fitted Q evaluation, Algorithms 13/12) with LEARN on a Dask
+    cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
+
+    It is the package's one fitted-Q loop
+    (:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` and
+    :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`) run for :meth:`estimator`, the
+    in-process estimator with the same parameters, with two parts supplied from here: the
+    prepared data and the learner (:class:`DaskLearner`). Per iteration::
+
+        y_i = c_i + gamma (1 - term_i) min_a' Q_{k-1}(x'_i, a')    (client: numpy, O(n))
+        Q_k = LEARN({((x_i, a_i), y_i)})                            (workers: lightgbm.dask)
+        Q_k(x'_i, a'), Q_k(x_i, a_i), Q_k(x_0, a)                  (workers, per block)
+
+    The regression inputs stay on the workers, block ``i`` of the dataset's rows on the
+    ``i``-th worker (sorted addresses, modulo their number): LightGBM's data-parallel
+    result depends on which rows each worker holds, so this placement is restored before
+    every training (after a worker was lost and restarted, the fit continues to the same
+    Q). The client holds the per-transition vectors the loop reads (cost, flags, actions,
+    ``Q(x', .)``: ``8 (n_actions + 3)`` bytes per transition; next states too for FQE).
+    With one worker the result equals :meth:`estimator`'s in-process fit (LightGBM with
+    one thread); with several, LightGBM's data-parallel training gives a close, not an
+    equal, Q (its histogram bins come from each worker's rows).
+
+    ``warm_start=True`` is the in-process ``mode="warm_start"``: each iteration adds
+    ``trees_per_iteration`` trees fitted to the residual ``y_k - Q_{k-1}(x_i, a_i)``;
+    the cached predictions live on the client, only the new trees are evaluated on the
+    workers. History, divergence monitor and verdict are the in-process ones.
+
+    Parameters
+    ----------
+    gamma : float, optional
+        Default: the dataset's hint, else 0.95 (:func:`offline_adp.data.discount.resolve_discount`).
+    n_iterations : int
+    lgbm_params : dict
+        LightGBM parameters (on top of the ``lightgbm`` registry entry's); ``n_jobs`` is
+        ignored on the cluster (a worker uses its own threads).
+    time_out : int
+        Minutes LightGBM's Dask network setup may wait (so nothing hangs for hours).
+    retries : int
+        Times an iteration whose LightGBM training lost a worker (or found its rows on
+        other workers than their blocks') is retried; the last try trains wherever the
+        rows are (the Q may then differ from an undisturbed fit's).
+    worker_wait_s : float
+        Seconds to wait for a lost worker to be back before an iteration trains on the
+        workers there are (that iteration is then listed in ``unplaced_iterations_``).
+        After one such wait the fit does not wait again until the number of workers
+        changes. Workers that join never add LightGBM ranks: the blocks stay on as many
+        workers as the fit started with.
+    random_state : int
+        Iteration k's trees are seeded with ``random_state + k``.
+    policy : Policy, optional
+        Evaluate this policy (FQE backup) instead of the greedy one.
+    warm_start : bool
+        Boost each Q from the previous one (see above).
+    trees_per_iteration : int
+        New trees per iteration with ``warm_start``.
+
+    Attributes
+    ----------
+    q_function_, history_, verdict_, verdict_message_, diverged_, divergence_message_, gamma_
+        As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s.
+    value_ : float
+        With ``policy``: the estimated expected cost from the data's start states.
+    estimator_ : FittedQIteration
+        The in-process estimator the loop ran for (holds the same attributes).
+    retried_ : int
+        Trainings retried (a lost worker, rows not in their places).
+    unplaced_iterations_ : list of int
+        Iterations trained with some block away from its worker (fewer workers than at
+        the start after ``worker_wait_s``, or the last retry): their Q may differ from an
+        undisturbed fit's. A :class:`~offline_adp.errors.ClusterWarning` names them.
+    """
+
+    def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
+                 time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None,
+                 warm_start: bool = False, trees_per_iteration: int = 10, worker_wait_s: float = 60.0) -> None:
+        self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
+        self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
+        self.worker_wait_s = worker_wait_s
+        self.warm_start, self.trees_per_iteration = warm_start, trees_per_iteration
+
+    def estimator(self) -> Any:
+        """The in-process estimator with these parameters (the loop this engine runs)."""
+        from offline_adp.algorithms.fqe import FittedQEvaluation
+        from offline_adp.algorithms.fqi import FittedQIteration
+
+        common = {"gamma": self.gamma, "regressor": "lightgbm", "regressor_params": self.lgbm_params,
+                  "n_iterations": self.n_iterations, "mode": "warm_start" if self.warm_start else "refit",
+                  "trees_per_iteration": self.trees_per_iteration, "random_state": self.random_state}
+        return FittedQEvaluation(policy=self.policy, **common) if self.policy is not None else FittedQIteration(**common)
+
+    def fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any = None,
+            checkpoint_dir: str | PathLike[str] | None = None) -> DistributedFQI:
+        """Fit on a dataset directory; ``on_iteration(k)`` is called after iteration k.
+
+        Tasks lost with a worker are recomputed by Dask; a LightGBM training that fails
+        because a worker vanished mid-way is retried (``retries`` times) from the same Q,
+        with the rows back in their places. With ``checkpoint_dir`` the Q and history of
+        every completed iteration are written there (atomically, by the run writer's codec
+        :mod:`offline_adp.algorithms.checkpoint`) and a later ``fit`` continues from them,
+        e.g. after the scheduler was lost, to the Q of an uninterrupted fit.
+
+        Raises
+        ------
+        ClusterError
+            The cluster was lost (or had no worker) during the fit; the message names the
+            checkpoint to continue from.
+        ArtifactError
+            ``checkpoint_dir`` holds a damaged checkpoint (the message names the file).
+        """
+        from offline_adp.algorithms.checkpoint import read_checkpoint, write_checkpoint
+
+        engine = DaskFit(client, time_out=self.time_out, retries=self.retries, worker_wait_s=self.worker_wait_s)
+        est = self.estimator()
+        ck = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        resume = read_checkpoint(ck) if ck is not None else None
+        rows: list[dict[str, Any]] = list(resume["history"]) if resume else []
+        for row in engine.fit_iter(est, dataset_dir, resume, checkpoint_dir=ck):
+            rows.append(row)
+            if ck is not None:
+                write_checkpoint(ck, est, rows)
+            if on_iteration is not None:
+                on_iteration(row["iteration"])
+        self.estimator_ = est
+        self.gamma_, self.q_function_, self.history_ = est.gamma_, est.q_function_, est.history_
+        self.verdict_, self.verdict_message_ = est.verdict_, est.verdict_message_
+        self.diverged_, self.divergence_message_ = est.diverged_, est.divergence_message_
+        self.retried_ = engine.retried_
+        self.unplaced_iterations_ = engine.unplaced_iterations_
+        if self.policy is not None and self.q_function_ is not None:
+            self.value_ = est.value_
+        return self
+
+
+class DaskFit:
+    """The Dask engine of the run writer (:func:`offline_adp.runs.fit_run`'s ``engine``):
+    runs a fitted-Q estimator's iterations (FQI or FQE; ``mode`` ``"refit"``, ``"auto"``
+    (refit) or ``"warm_start"``; LightGBM) on the cluster: the loop of its ``fit_iter``.
+
+    Parameters
+    ----------
+    client : distributed.Client
+        The cluster's client.
+    time_out, retries, worker_wait_s
+        As :class:`DistributedFQI`'s.
+
+    Attributes
+    ----------
+    retried_ : int
+        Trainings retried in the last fit.
+    unplaced_iterations_ : list of int
+        Iterations of the last fit trained with rows away from their workers.
+    """
+
+    name = "dask"
+
+    def __init__(self, client: Any, *, time_out: int = 2, retries: int = 2, worker_wait_s: float = 60.0) -> None:
+        w = worker_wait_s
+        if isinstance(w, bool) or not isinstance(w, int | float) or not 0 <= w < float("inf"):
+            raise InvalidArgumentError(f"worker_wait_s must be a number of seconds >= 0, got {w!r}")
+        self.client, self.time_out, self.retries, self.worker_wait_s = client, time_out, retries, worker_wait_s
+        self.retried_, self.unplaced_iterations_ = 0, []
+
+    def fit_iter(self, est: Any, dataset_dir: str | PathLike[str], resume: dict[str, Any] | None = None, *,
+                 checkpoint_dir: str | PathLike[str] | None = None) -> Iterator[dict[str, Any]]:
+        """Fit ``est`` (a ``FittedQIteration`` or ``FittedQEvaluation``) on the dataset
+        directory on the cluster, yielding each iteration's history row as ``est.fit_iter``
+        does; ``resume`` is a checkpoint
+        (:func:`~offline_adp.algorithms.checkpoint.read_checkpoint`). ``checkpoint_dir`` is
+        only named in the error of a lost cluster. ``est`` ends fitted (FQE: with ``value_``)."""
+        from offline_adp.algorithms.fqe import FittedQEvaluation
+        from offline_adp.algorithms.fqi_data import GreedyBackup
+        from offline_adp.algorithms.fqi_loop import run_fitted_q
+
+        fqe = isinstance(est, FittedQEvaluation)
+        engine = _DaskEngine(self.client, est, self, fqe=fqe)
+        backup = est._backup if fqe else (lambda data: GreedyBackup())
+        try:
+            with self.client.as_current():  # every compute goes to this client, even when others exist
+                yield from run_fitted_q(est, dataset_dir, None, resume, backup, prepare=engine.prepare,
+                                        make_learner=engine.learner)
+        except Exception as exc:  # CommClosedError is an OSError; a lost scheduler cancels the futures too
+            if not isinstance(exc, OSError | TimeoutError) and self.client.status == "running":
+                raise
+            where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
+            raise ClusterError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: "
+                               f"{_one_line(exc)}){where}") from exc
+        finally:
+            engine.release()
+            est.__dict__.pop("fit_state_", None)  # holds the cluster-side learner
+            self.retried_, self.unplaced_iterations_ = engine.retried, engine.unplaced
+        if self.unplaced_iterations_:
+            warnings.warn(f"iterations {self.unplaced_iterations_} trained with rows away from their workers (a worker "
+                          f"lost and not back within worker_wait_s = {self.worker_wait_s} s, or the last retry): the Q "
+                          "may differ from an undisturbed fit's", ClusterWarning, stacklevel=2)
+        if fqe and est.q_function_ is not None:
+            x0 = engine.data.start_obs
+            est.value_ = float((est.policy.probabilities(x0, 0) * est.q_function_.values(x0, 0)).sum(axis=1).mean())
+
+    def summary(self) -> dict[str, Any]:
+        """What the run writer adds to ``run.json`` for a fit on this engine."""
+        return {"engine": self.name, "retried": self.retried_, "unplaced_iterations": list(self.unplaced_iterations_)}
+
+
+class _DaskEngine:
+    """The two parts :func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` takes from the Dask
+    engine: the prepared data (vectors on the client, inputs on the workers) and the learner."""
+
+    def __init__(self, client: Any, est: Any, cfg: DaskFit, fqe: bool = False) -> None:
+        self.client, self.est, self.cfg, self.fqe = client, est, cfg, fqe
+        self.blocks: _Blocks | None = None
+        self.learner_: DaskLearner | None = None
+
+    @property
+    def retried(self) -> int:
+        return 0 if self.learner_ is None else self.learner_.retried
+
+    @property
+    def unplaced(self) -> list[int]:
+        return [] if self.learner_ is None else list(self.learner_.unplaced)
+
+    def prepare(self, dataset_dir: str | PathLike[str], sample_weight: Any = None) -> Any:
+        from offline_adp.algorithms.fqi_data import Prepared, Samples, value_bound
+        from offline_adp.data.discount import resolve_discount
+        from offline_adp.data.info import DatasetInfo
+        from offline_adp.data.io import part_files, read_info
+        from offline_adp.qfunctions import QEncoder
+
+        path = Path(dataset_dir)
+        info = DatasetInfo.from_dict(read_info(path), where=str(path / "meta" / "info.json"))
+        parts = [str(p) for p in part_files(path)]
+        if not parts:
+            raise DatasetNotFoundError(f"{path}: no data parts (part-*.parquet); is it a dataset directory?")
+        af = np.asarray(info.action_table.values, dtype=np.float64)
+        cols = flat_columns(info)
+        n_workers = len(self.client.scheduler_info()["workers"])
+        plan = _chunk_plan(parts, n_workers)
+        if not plan:
+            raise IngestError(f"{path}: the dataset is empty (no rows in its parts)")
+        self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers,
+                              wait_s=self.cfg.worker_wait_s)
+        v = self.blocks.gather(("cost", "terminated", "action", "step"))
+        cost, term, step = v["cost"], v["terminated"], v["step"]
+        est = self.est
+        disc = resolve_discount(info, est.gamma, est.horizon, terminates=bool(term.any()))
+        est.gamma_, est.horizon_ = disc.gamma, disc.horizon
+        if disc.horizon is None and not disc.gamma < 1.0 and not term.any():
+            raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {disc.gamma}) unless episodes "
+                             "terminate (a shortest-path problem); give a horizon instead")
+        bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon)
+        start = step == 0
+        start_obs = self.blocks.gather(("start",))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
+        next_obs = self.blocks.gather(("next",))["next"] if self.fqe else None  # FQE's backup
+        est._encoder = enc = QEncoder(len(af), af)
+        actions = v["action"].astype(np.int64)
+        # phi, next inputs and observations stay on the workers (self.blocks): None here
+        train = Samples(phi=None, actions=actions, cost=cost, no_boot=term, phi_next=None, next_obs=next_obs)  # type: ignore[arg-type]
+        self.data = Prepared(train=train, valid=None, weights=None, gamma=disc.gamma, n_actions=len(af), encoder=enc,
+                             obs=None, obs_std=None, start_phi=None, start_obs=start_obs,  # type: ignore[arg-type]
+                             start_rows=np.flatnonzero(start) if start.any() else np.zeros(1, np.int64),
+                             bound=bound, bound_text=text)
+        return self.data
+
+    def learner(self, data: Any) -> DaskLearner:
+        from offline_adp.regressors import make_regressor
+
+        est, cfg = self.est, self.cfg
+        if est.mode == "frozen":
+            raise InvalidArgumentError("the Dask engine runs mode 'refit' or 'warm_start'; mode = 'frozen' runs in process")
+        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # 'auto': refit on the workers
+        reg = make_regressor(est.regressor, **(est.regressor_params or {}))
+        assert self.blocks is not None
+        self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
+                                    warm_start=est.mode == "warm_start", trees_per_iteration=est.trees_per_iteration,
+                                    time_out=cfg.time_out, retries=cfg.retries, start_obs=data.start_obs)
+        return self.learner_
+
+    def release(self) -> None:
+        if self.blocks is not None:
+            self.blocks.release()
+
