@@ -69,6 +69,7 @@ from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
+from offline_adp.progress import log_milestone
 
 #: Upper bounds of the evaluate settings: far above any useful value, so a typo (1e13)
 #: is an error naming the key instead of an allocation of terabytes.
@@ -470,13 +471,11 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
         RunDirectory(run).remove("fit")
 
     total = params.get("horizon") or params.get("n_iterations")
-    # four progress lines a log can hold (every 10th iteration when the count is not known)
-    shown = {max(1, (int(total) * q) // 4) for q in (1, 2, 3, 4)} if isinstance(total, int) and total > 0 else None
 
-    def on_iteration(row: dict[str, Any]) -> None:
+    def on_iteration(row: dict[str, Any]) -> None:  # a few progress lines a log can hold
         k = row.get("iteration", 0)
-        if (k in shown) if shown is not None else k % 10 == 0:
-            of = f"/{total}" if shown is not None else ""
+        if log_milestone(k, total):
+            of = f"/{total}" if isinstance(total, int) else ""
             say(f"[fit] iteration {k}{of}{on}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
     est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration,

@@ -160,11 +160,22 @@ def _has_handler(logger: logging.Logger) -> bool:
     return False
 
 
+def log_milestone(k: int, total: Any) -> bool:
+    """Whether iteration ``k`` of a fit gets a progress line in a log (not a terminal): the
+    quarters of ``total`` when it is a known count, else (``n_iterations="auto"``: the fit
+    decides when it is done) iterations 1, 10, 20, 40, 80, ... (a handful of lines however
+    long the fit runs)."""
+    if isinstance(total, int) and not isinstance(total, bool) and total > 0:
+        return k in {max(1, (total * q) // 4) for q in (1, 2, 3, 4)}
+    return k == 1 or (k >= 10 and k % 10 == 0 and ((k // 10) & (k // 10 - 1)) == 0)
+
+
 def fit_progress(est: Any, verbose: bool = False, show_progress: bool = False) -> Progress:
     """A :class:`Progress` for an iterative estimator's ``fit`` (FQI, FQE): the total is
     ``horizon``, else ``n_iterations``, and the
     shown fields are the usual convergence diagnostics."""
     total = getattr(est, "horizon", None) or getattr(est, "n_iterations", 0) or None
+    total = total if isinstance(total, int) else None  # "auto": the fit decides
     name = type(est).__name__
     return Progress(total, name, show_progress=show_progress, verbose=verbose,
                     fields=("iteration", "sup_dq", "bellman_residual", "start_value", "wall_time"),

@@ -8,7 +8,7 @@ import sys
 
 from offline_adp.cli._common import log
 from offline_adp.errors import InvalidArgumentError, UnknownNameError
-from offline_adp.progress import is_terminal
+from offline_adp.progress import is_terminal, log_milestone
 
 
 # ---------------------------------------------------------------------------- fit
@@ -22,20 +22,20 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if caveat is not None and caveat(params.get("mode")):
         log.warning("%s", caveat(params.get("mode")))
     bar = None
-    total = params.get("horizon") or params.get("n_iterations", 50)
+    total = params.get("horizon") or params.get("n_iterations")
+    total = total if isinstance(total, int) else None  # "auto" (the default): the fit decides when it is done
     if not args.quiet and entry.resumable and is_terminal():
         from tqdm import tqdm
 
         bar = tqdm(total=total, desc=f"fit {args.algorithm}", unit="it", file=sys.stderr)
-    quarters = {max(1, (int(total) * q) // 4) for q in (1, 2, 3, 4)} if total else set()
 
     def on_iteration(row: dict) -> None:
         it = row.get("iteration")
         log.debug("fit %s iteration %s: sup|dQ| %.4g, Bellman residual %.4g, start value %.4g, %.2f s", args.algorithm, it,
                   *(float(row.get(k) if row.get(k) is not None else float("nan"))
                     for k in ("sup_dq", "bellman_residual", "start_value", "wall_time")))
-        if bar is None and it in quarters:  # in a log: four lines, not one per iteration
-            log.info("fit %s: iteration %s/%s, sup|dQ| %.4g", args.algorithm, it, total,
+        if bar is None and log_milestone(it, total):  # in a log: a few lines, not one per iteration
+            log.info("fit %s: iteration %s%s, sup|dQ| %.4g", args.algorithm, it, f"/{total}" if total else "",
                      float(row.get("sup_dq") if row.get("sup_dq") is not None else float("nan")))
         if bar is not None:
             if bar.n == 0 and row["iteration"] > 1:
