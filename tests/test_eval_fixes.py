@@ -12,7 +12,7 @@ from offline_adp.algorithms.cpi import ConservativePolicyIteration, effective_ho
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.psdp import PSDP, psdp_bound
 from offline_adp.envs import TabularMDP
-from offline_adp.evaluation.offpolicy import psdp_bound as plugin_bound
+from offline_adp.evaluation.psdp_eps import psdp_bound as plugin_bound
 from offline_adp.policies import UniformPolicy
 from tests.test_fqi import full_support_dataset
 

@@ -9,7 +9,7 @@ import pytest
 from offline_adp import dp
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.envs.tabular import TabularMDP
-from offline_adp.evaluation import shift
+from offline_adp.evaluation import psdp_eps, shift
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from offline_adp.simulate import collect
@@ -55,7 +55,6 @@ def test_a_fold_that_cannot_be_fitted_is_our_error_not_a_traceback(monkeypatch):
 
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.envs import make_problem
-    from offline_adp.evaluation import offpolicy
     from offline_adp.simulate import simulate
 
     ds = simulate("tabular", 10, 10, seed=0)
@@ -66,5 +65,5 @@ def test_a_fold_that_cannot_be_fitted_is_our_error_not_a_traceback(monkeypatch):
 
     monkeypatch.setattr(FittedQEvaluation, "fit", fail)
     ep = np.unique(np.asarray(ds.arrays().episode), return_inverse=True)[1]
-    with pytest.raises(offpolicy.CrossFitError, match="fold 1 of 2: action 2 never occurs"):
-        offpolicy.crossfit_residual_advantage(ds, pol, {"regressor": "tabular"}, None, 0.9, 5, ep, folds=2)
+    with pytest.raises(psdp_eps.CrossFitError, match="fold 1 of 2: action 2 never occurs"):
+        psdp_eps.crossfit_residual_advantage(ds, pol, {"regressor": "tabular"}, None, 0.9, 5, ep, folds=2)

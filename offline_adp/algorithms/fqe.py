@@ -74,7 +74,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
     Why these three differ: they are FittedQIteration's defaults from before its
     ``mode="auto"``. FittedQIteration moved to ``mode="auto"`` with one build per 12.5
     iterations and to ``structure_max_samples="auto"`` on the evidence of
-    ``benchmarks/fqi_suite.py`` (docs/fqi-modes.md), which scores the greedy policies
+    the FQI benchmark suite (docs/fqi-modes.md), which scores the greedy policies
     FQI returns, not policy evaluations; FQE's were not moved with them, so an FQE
     estimate did not change. The evaluation reports choose their own settings
     (:data:`offline_adp.evaluation.offpolicy.DEFAULT_FQE`: ``mode="frozen"``).

@@ -17,14 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.evaluation.figures import DIST_COLOURS, Figures, distribution_figure, pyplot
 from offline_adp.evaluation.report import (
-    DIST_COLOURS,
-    Figures,
     details_html,
-    distribution_figure,
     figure_html,
     page,
-    pyplot,
     table_html,
     verdict_colour,
 )
