@@ -354,7 +354,17 @@ class TransitionDataset:
 
     def source_counts(self) -> dict[str, int]:
         """Number of transitions per ``source`` label."""
-        vc = pc.value_counts(self.table.column(S.SOURCE).cast(pa.string()))
+        col = self.table.column(S.SOURCE)
+        if pa.types.is_dictionary(col.type) and len(col) and not col.null_count:  # count codes, not strings
+            col = col.unify_dictionaries()
+            words = col.chunk(0).dictionary.cast(pa.string())
+            vc = pc.value_counts(pa.chunked_array([c.indices for c in col.chunks]))
+            counts: dict[str, int] = {}
+            for code, count in zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True):
+                word = str(words[code].as_py())
+                counts[word] = counts.get(word, 0) + int(count)  # a dictionary may repeat a word
+            return counts
+        vc = pc.value_counts(col.cast(pa.string()))
         return {str(v["values"]): int(v["counts"]) for v in vc.to_pylist()}
 
     # ------------------------------------------------------------------ summaries
@@ -457,13 +467,16 @@ def _hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.nda
     is_dict = pa.types.is_dictionary(col.type)
     is_str = is_dict or pa.types.is_string(col.type) or pa.types.is_large_string(col.type)
     if is_str and not col.null_count and n:
-        if encoding is None:
-            encoding = _first_appearance_encoding(col)
-        codes, words_arr = encoding
+        codes, mapping, words_arr = (*encoding[:1], None, encoding[1]) if encoding is not None else _first_appearance_encoding(col)
         h.update(bytes((n + 7) // 8))  # the packed null mask: no nulls
         words = [str(w).encode() for w in words_arr]  # one per distinct value
         h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
-        h.update(np.ascontiguousarray(codes, dtype=np.int64))
+        if mapping is None and codes.dtype == np.int64:
+            h.update(np.ascontiguousarray(codes))
+            return
+        for lo in range(0, n, _HASH_BLOCK):  # codes as int64, block by block
+            block = codes[lo:lo + _HASH_BLOCK]
+            h.update(mapping[block] if mapping is not None else block.astype(np.int64))
         return
     if is_dict:
         col = col.cast(col.type.value_type)
@@ -500,22 +513,23 @@ def _hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.nda
                     h.update(b)
 
 
-def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray]:
-    """Codes (int64, first-appearance order) and distinct values of a string or
-    dictionary column without nulls: what ``encode_strings`` of its strings gives. A
-    dictionary column is re-encoded through its (integer) indices, never materialising
-    its strings."""
+def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """What ``encode_strings`` of a string or dictionary column without nulls gives, as
+    ``(indices, mapping, words)``: the codes (first-appearance order) are
+    ``mapping[indices]`` (``indices`` when ``mapping`` is None), ``words`` the distinct
+    values. A dictionary column is re-encoded through its integer indices, never
+    materialising its strings or a second column of codes."""
     if not pa.types.is_dictionary(col.type):
         enc = encode_strings(col)
-        return enc.indices.to_numpy(zero_copy_only=False), np.asarray(enc.dictionary.to_pylist(), dtype=object)
+        return enc.indices.to_numpy(zero_copy_only=False), None, np.asarray(enc.dictionary.to_pylist(), dtype=object)
     col = col.unify_dictionaries()
     chunks = [c for c in col.chunks if len(c)]
     dictionary = chunks[0].dictionary
     by_index = pc.dictionary_encode(pa.chunked_array([c.indices for c in chunks]).combine_chunks())
     values = dictionary.take(by_index.dictionary)  # per distinct index, in first-appearance order
     by_value = pc.dictionary_encode(values.cast(pa.large_string()))  # indices with equal values merge
-    codes = by_value.indices.to_numpy(zero_copy_only=False).astype(np.int64)[by_index.indices.to_numpy(zero_copy_only=False)]
-    return codes, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
+    mapping = by_value.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+    return by_index.indices.to_numpy(zero_copy_only=False), mapping, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
 
 
 def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.DictionaryArray | None, bool]:

@@ -80,7 +80,8 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
             table = pacsv.read_csv(path, read_options=opts, parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
             available = table.column_names
         else:
-            available = pq.read_schema(path).names
+            schema = pq.read_schema(path)
+            available = schema.names
             table = None
     except FileNotFoundError:
         raise IngestError(f"{path}: no such file") from None
@@ -93,7 +94,11 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
         try:
             # column by column, without pre-buffering: only one column's compressed pages
             # are in memory besides the decoded table (read_table holds them all)
-            pf = pq.ParquetFile(path, pre_buffer=False)
+            # the source label column arrives dictionary-encoded: its strings are never
+            # materialised (they are few distinct labels over many rows)
+            src = spec.source_column
+            as_dict = [src] if src and src in available and pa.types.is_string(schema.field(src).type) else None
+            pf = pq.ParquetFile(path, pre_buffer=False, read_dictionary=as_dict)
             table = pa.table({c: pf.read(columns=[c], use_threads=False).column(0) for c in dict.fromkeys(cols)})
         except (OSError, pa.ArrowInvalid) as exc:
             raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
@@ -466,7 +471,11 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     cols[S.TERMINATED] = pa.array(term, mask=term_null) if term_null.any() else term
     cols[S.TRUNCATED] = pa.array(trunc, mask=trunc_null) if trunc_null.any() else trunc
     if spec.source_column:
-        cols[S.SOURCE] = encode_strings(table.column(spec.source_column).cast(pa.string()))
+        src = table.column(spec.source_column)
+        if pa.types.is_dictionary(src.type):  # read as such: one dictionary for every chunk
+            cols[S.SOURCE] = src.cast(pa.dictionary(pa.int32(), pa.string())).unify_dictionaries().combine_chunks()
+        else:
+            cols[S.SOURCE] = encode_strings(src.cast(pa.string()))
     else:
         cols[S.SOURCE] = pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([spec.source_value]))
     if spec.propensity_column:
