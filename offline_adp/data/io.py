@@ -357,20 +357,21 @@ def write_dataset(
         # Arrow releases the GIL while encoding: parts are written in parallel threads
         # the fingerprint and statistics are computed while the parts are written
         with ThreadPoolExecutor(max_workers=(os.cpu_count() or 1) + 1) as pool:
-            fingerprint = pool.submit(ds.fingerprint)
-            stats = pool.submit(dataset_stats, ds)
             for fut in [pool.submit(write_part, k, lo, hi) for k, (lo, hi) in enumerate(bounds)]:
                 fut.result()
+        # after the parts, one after the other: their temporaries never add up with the writers'
+        summary = (ds.fingerprint(), dataset_stats(ds))
         info = ds.info.to_dict()
         info["n_transitions"] = len(ds)
         info["n_episodes"] = ds.n_episodes
-        info["fingerprint"] = fingerprint.result()
+        fingerprint, stats = summary
+        info["fingerprint"] = fingerprint
         info["columns"] = {f.name: str(f.type) for f in ds.table.schema}
         if extra_meta:
             info.update(extra_meta)
         write_json(tmp / S.INFO_FILE, info)
         pq.write_table(pa.Table.from_pandas(ep, preserve_index=False), tmp / S.EPISODES_FILE)
-        write_json(tmp / S.STATS_FILE, stats.result())
+        write_json(tmp / S.STATS_FILE, stats)
         if quarantine is not None and quarantine.num_rows:
             (tmp / S.QUARANTINE_DIR).mkdir()
             pq.write_table(quarantine, tmp / S.QUARANTINE_DIR / S.PART_TEMPLATE.format(0), compression=S.PARQUET_COMPRESSION)

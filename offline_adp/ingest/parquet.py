@@ -94,11 +94,13 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
         try:
             # column by column, without pre-buffering: only one column's compressed pages
             # are in memory besides the decoded table (read_table holds them all)
-            # the source label column arrives dictionary-encoded: its strings are never
-            # materialised (they are few distinct labels over many rows)
-            src = spec.source_column
-            as_dict = [src] if src and src in available and pa.types.is_string(schema.field(src).type) else None
-            pf = pq.ParquetFile(path, pre_buffer=False, read_dictionary=as_dict)
+            # string columns of few distinct values arrive dictionary-encoded: the source
+            # labels stay so (their strings are never materialised); the episode ids are
+            # cast to strings once, at their exact size (decoding them as strings directly
+            # grows buffers that peak at about 3x the column)
+            as_dict = [c for c in dict.fromkeys((spec.episode.id, spec.source_column))
+                       if c and c in available and pa.types.is_string(schema.field(c).type)] or None
+            pf = pq.ParquetFile(path, pre_buffer=False, buffer_size=1 << 20, read_dictionary=as_dict)
             table = pa.table({c: pf.read(columns=[c], use_threads=False).column(0) for c in dict.fromkeys(cols)})
         except (OSError, pa.ArrowInvalid) as exc:
             raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
@@ -341,6 +343,14 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
             )
             # unify id column type across files
             t = t.set_column(0, spec.episode.id, t.column(spec.episode.id).cast(pa.string()))
+            src = spec.source_column
+            if src and src != spec.episode.id:  # text labels: dictionary<int32, string> in every file
+                j = t.column_names.index(src)
+                c = t.column(j)
+                if pa.types.is_dictionary(c.type) and pa.types.is_string(c.type.value_type):
+                    pass
+                elif pa.types.is_string(c.type) or pa.types.is_large_string(c.type):
+                    t = t.set_column(j, src, pc.dictionary_encode(c.cast(pa.string())))
             tables.append(t)
             metas.append({"path": str(p), "sha256": None, "rows": t.num_rows})
             del t
@@ -481,7 +491,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     if spec.propensity_column:
         # a non-number names its file and row; a missing value stays null (the doctor's business)
         cols[S.BEHAVIOR_PROB] = _f64(table, spec.propensity_column, file_of, keep_nulls=True)
-    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32)), pa.array(names_of.astype(str).tolist()))
+    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32, copy=False)), pa.array(names_of.astype(str).tolist()))
     cols["src_row"] = table.column("__row")
     # chunked columns stay chunked: the output shares the input's buffers where it can
     out = pa.table(cols)
