@@ -74,7 +74,8 @@ CHILD = textwrap.dedent(
     c0, w0 = time.process_time(), time.perf_counter()
     f.fit(ds)
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    # VmHWM: this process's own peak (ru_maxrss carries over exec from the forked parent)
+    peak = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:")) / 2**20
     it = f.history_["wall_time"].to_numpy()
     del ds
 
