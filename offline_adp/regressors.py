@@ -10,7 +10,8 @@ name                prototype
                     all features considered at each split (``max_features=1.0``);
                     fitted on all cores, predicting on one unless ``n_jobs`` is given
 ``random_forest``   50 bootstrapped trees, ``min_samples_split=2``, all features
-``lightgbm``        ``LGBMRegressor`` (100 trees, 31 leaves, learning rate 0.1)
+``lightgbm``        ``LGBMRegressor`` (100 trees, 31 leaves, learning rate 0.1), one
+                    thread unless ``n_jobs`` is given (see ``LIGHTGBM_DEFAULT_THREADS``)
 ``knn``             5 nearest neighbours, distance-weighted
 ``ridge``           polynomial features (degree 2) + ridge (alpha 1e-8): quadratic regression
 ``linear``          ordinary least squares
@@ -126,10 +127,25 @@ def _random_forest(**kw: Any) -> BaseEstimator:
     return RandomForestRegressor(**{**params, **kw})
 
 
+#: LightGBM's default thread count. One thread: FQI fits many small boosters (one per
+#: iteration, on at most a few million rows), where LightGBM's OpenMP threads cost more than
+#: they give, and on a machine that is also running other work they spin-wait at every
+#: parallel region for a core that is busy elsewhere: a car-on-the-hill fit with ``n_jobs=-1``
+#: burned more than 190 CPU-s without finishing on a loaded 2-core machine that ``n_jobs=1``
+#: fitted in 14 CPU-s (``benchmarks/lightgbm_threads.py``). The OpenMP wait policy
+#: (``OMP_WAIT_POLICY=passive``) would stop the spinning, but it is read once, when the
+#: OpenMP runtime loads (often already done by numpy/scikit-learn before this module is
+#: imported), so a library cannot set it reliably; a user can, in the environment, before
+#: starting Python, and then pass ``regressor_params = {n_jobs = <physical cores>}`` for
+#: large fits on an otherwise idle machine.
+LIGHTGBM_DEFAULT_THREADS = 1
+
+
 def _lightgbm(**kw: Any) -> BaseEstimator:
     from lightgbm import LGBMRegressor
 
-    params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, "random_state": 0, "n_jobs": -1}
+    params = {"n_estimators": 100, "num_leaves": 31, "learning_rate": 0.1, "verbose": -1, "random_state": 0,
+              "n_jobs": LIGHTGBM_DEFAULT_THREADS}
     return LGBMRegressor(**{**params, **kw})
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pyarrow as pa
+import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
 
@@ -228,3 +229,62 @@ def test_spec_values_are_checked_naming_the_key(edit, match):
             "action": {"column": "a"}, "cost": {"column": "c"}}
     with pytest.raises(SpecError, match=match):
         parse_parquet_spec({**base, **edit}, where="my.toml")
+
+
+def test_csv_and_parquet_inputs_with_text_sources_and_row_groups_mix(tmp_path):
+    # the Parquet file in small row groups (chunked columns), the other half as CSV: the
+    # source labels arrive dictionary-encoded from one and as text from the other
+    ds = simulate("path_tracking", 6, 6, seed=3, horizon=30)
+    table, _ = __import__("offline_adp.simulate.raw", fromlist=["raw_table"]).raw_table(ds)
+    _, spec = write_raw(ds, tmp_path / "all.parquet")
+    df = table.to_pandas()
+    demo, expl = df[df.source == "demonstration"], df[df.source == "exploration"]
+    pq.write_table(pa.Table.from_pandas(demo, preserve_index=False), tmp_path / "demo.parquet", row_group_size=37)
+    pacsv.write_csv(pa.Table.from_pandas(expl, preserve_index=False), tmp_path / "expl.csv")
+    back = ingest_parquet([tmp_path / "demo.parquet", tmp_path / "expl.csv"], spec, tmp_path / "ds").dataset
+    assert back.fingerprint() == ds.fingerprint()
+    assert back.source_counts() == ds.source_counts() == {"demonstration": len(demo), "exploration": len(expl)}
+    assert read_dataset(tmp_path / "ds").fingerprint() == ds.fingerprint()
+
+
+def test_fingerprint_of_dictionary_sources_is_that_of_their_strings():
+    from offline_adp.data.dataset import TransitionDataset
+
+    ds = simulate("car_on_hill", 3, 3, seed=4, horizon=20)
+    words = ds.column(S.SOURCE)  # plain strings: the ground truth
+    n = len(words)
+    # the same labels as a chunked dictionary column whose chunks have different
+    # dictionaries, one of them repeating a word
+    k = n // 2
+    first = pa.DictionaryArray.from_arrays(pa.array(np.where(words[:k] == "demonstration", 0, 2).astype(np.int32)),
+                                           pa.array(["demonstration", "unused", "exploration"]))
+    second = pa.DictionaryArray.from_arrays(pa.array(np.where(words[k:] == "demonstration", 1, 0).astype(np.int32)),
+                                            pa.array(["exploration", "demonstration", "exploration"]))
+    t = ds.table.set_column(ds.table.column_names.index(S.SOURCE), S.SOURCE, pa.chunked_array([first, second]))
+    as_dict = TransitionDataset(t, ds.info)
+    as_text = TransitionDataset(ds.table.set_column(ds.table.column_names.index(S.SOURCE), S.SOURCE,
+                                                    pa.array(words.astype(str), pa.string())), ds.info)
+    assert as_dict.fingerprint() == as_text.fingerprint() == ds.fingerprint()
+    assert as_dict.source_counts() == ds.source_counts()
+
+
+@pytest.mark.parametrize("cut", [1, 3, 4, 5])
+def test_sorted_encoding_across_chunks_is_the_hashed_encoding(cut):
+    from offline_adp.data.dataset import encode_strings, sorted_encoding
+
+    ids = ["a", "a", "b", "b", "b", "c"]
+    order = np.array([0, 1, 0, 1, 2, 0])
+    chunked = pa.chunked_array([pa.array(ids[:cut]), pa.array(ids[cut:])])
+    enc = sorted_encoding(chunked, order)
+    truth = encode_strings(pa.array(ids))
+    assert enc.dictionary.to_pylist() == truth.dictionary.to_pylist() == ["a", "b", "c"]
+    np.testing.assert_array_equal(enc.indices.to_numpy(), truth.indices.to_numpy())
+    # a decrease of the id, or of the order within an id, wherever it falls, is "not sorted"
+    bad_ids = ids[:cut] + ["0"] + ids[cut:]  # "0" < "a": a decrease at the chunk boundary
+    assert sorted_encoding(pa.chunked_array([pa.array(bad_ids[:cut]), pa.array(bad_ids[cut:])]),
+                           np.r_[order[:cut], 5, order[cut:]]) is None
+    assert sorted_encoding(pa.chunked_array([pa.array(bad_ids[:cut + 1]), pa.array(bad_ids[cut + 1:])]),
+                           np.r_[order[:cut], 5, order[cut:]]) is None  # and inside a chunk
+    bad_order = order.copy()
+    bad_order[4] = 0
+    assert sorted_encoding(chunked, bad_order) is None

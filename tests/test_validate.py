@@ -176,3 +176,26 @@ def test_validate_directory_names_part_files(tmp_path):
     rep = validate_directory(tmp_path / "d")
     h = rep.findings.iloc[0]
     assert h["file"].endswith("part-00001.parquet") and h["row"] == 2 and h["check"] == "action_out_of_range"
+
+
+def test_continuity_tolerance_is_numpys_isclose():
+    # the doctor's blockwise continuity check flags exactly the rows np.isclose rejects
+    from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+    from offline_adp.data.validate import _BLOCK
+
+    rng = np.random.default_rng(0)
+    n = 2 * _BLOCK + 17  # crosses block boundaries
+    obs = rng.normal(scale=1e3, size=n)
+    nxt = np.r_[obs[1:], 0.0]
+    off = rng.random(n) < 0.01
+    nxt[off] += rng.choice([1e-12, 1e-8, 1e-4, 1.0], size=off.sum()) * rng.choice([1.0, 1e3], size=off.sum())
+    nxt[rng.random(n) < 0.001] = np.inf
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable.from_values([0.0]))
+    ds = TransitionDataset.from_arrays(info, episode_id=np.zeros(n).astype(int).astype(str), step=np.arange(n), obs=obs,
+                                       action=np.zeros(n, int), cost=np.zeros(n), next_obs=nxt,
+                                       terminated=np.zeros(n, bool), truncated=np.arange(n) == n - 1)
+    f = validate(ds).findings
+    got = np.sort(f.loc[f["check"] == "next_obs_mismatch", "row"].to_numpy())
+    truth = np.flatnonzero(~np.isclose(nxt[:-1], obs[1:], atol=1e-9, rtol=1e-7) & np.isfinite(nxt[:-1]))
+    np.testing.assert_array_equal(got, truth)
+    assert len(truth) > 10

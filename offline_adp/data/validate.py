@@ -63,6 +63,7 @@ CHECKS: tuple[str, ...] = (
 #: Largest magnitude of an observation or cost the doctor accepts: squared errors of larger
 #: values overflow float64 (1.8e308) in every regressor, so a fit could only produce inf/NaN.
 MAX_ABS_VALUE = 1e150
+_BLOCK = 1 << 16  # rows per block of the element-wise checks (their temporaries stay small)
 FINDING_COLUMNS = ["check", "file", "row", S.EPISODE_ID, S.STEP, "column", "message"]
 
 
@@ -213,9 +214,13 @@ def validate(
 
     # steps contiguous from 0
     starts = np.flatnonzero(first)
-    expected = np.arange(n) - np.repeat(starts, np.diff(np.r_[starts, n]))
-    bad = step != expected
-    add("step_not_contiguous", bad, S.STEP, _messages(bad, lambda i: f"expected step {expected[i]}, found {step[i]}"))
+    # expected step of row i: i minus the first row of its episode (rows are in episode order)
+    bad = np.zeros(n, bool)
+    for lo in range(0, n, _BLOCK):
+        hi = min(lo + _BLOCK, n)
+        bad[lo:hi] = step[lo:hi] != np.arange(lo, hi) - starts[ep_codes[lo:hi]]
+    add("step_not_contiguous", bad, S.STEP,
+        _messages(bad, lambda i: f"expected step {i - starts[ep_codes[i]]}, found {step[i]}"))
 
     term = _bool(t, S.TERMINATED)
     trunc = _bool(t, S.TRUNCATED)
@@ -223,15 +228,31 @@ def validate(
     add("flag_not_last", (term | trunc) & ~last, S.TERMINATED, "episode flagged as ended before its last row")
     add("end_unflagged", last & ~term & ~trunc, "terminated,truncated", "last row of the episode is neither terminated nor truncated")
 
-    # continuity next_obs(t) == obs(t+1) within episodes
+    # continuity next_obs(t) == obs(t+1) within episodes: np.isclose's rule
+    # |x - y| <= atol + rtol * |y| on rows where both are finite, without its temporaries
     inner = ~last
     for oc, nc in zip(ds.obs_columns, ds.next_obs_columns, strict=True):
         o = t.column(oc).to_numpy(zero_copy_only=False)
         x = t.column(nc).to_numpy(zero_copy_only=False)
         if n > 1:
-            nxt = np.r_[o[1:], np.nan]
-            mis = inner & ~np.isclose(x, nxt, atol=atol, rtol=rtol) & np.isfinite(x) & np.isfinite(nxt)
-            if mis.any():
+            xs, ys = x[:-1], o[1:]
+            mis_head = np.zeros(n - 1, bool)
+            with np.errstate(invalid="ignore", over="ignore"):
+                for lo in range(0, n - 1, _BLOCK):  # temporaries the size of a block
+                    xb, yb = xs[lo:lo + _BLOCK], ys[lo:lo + _BLOCK]
+                    tol = np.abs(yb)
+                    tol *= rtol
+                    tol += atol
+                    diff = np.subtract(xb, yb)
+                    np.abs(diff, out=diff)
+                    m = ~(diff <= tol)
+                    m &= np.isfinite(xb)
+                    m &= np.isfinite(yb)
+                    mis_head[lo:lo + _BLOCK] = m
+            mis_head &= inner[:-1]
+            if mis_head.any():
+                mis = np.r_[mis_head, False]
+                nxt = np.r_[ys, np.nan]
                 add(
                     "next_obs_mismatch",
                     mis,
@@ -240,9 +261,17 @@ def validate(
                 )
 
     for c in (*ds.obs_columns, S.COST, *ds.next_obs_columns):
-        v = t.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
-        add("non_finite", ~np.isfinite(v) & ~np.asarray(pc.is_null(t.column(c))), c, "value is NaN or infinite")
-        add("value_out_of_range", np.isfinite(v) & (np.abs(v) > MAX_ABS_VALUE), c,
+        col = t.column(c)
+        v = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+        finite = np.isfinite(v)
+        if not finite.all():
+            add("non_finite", ~finite & ~np.asarray(pc.is_null(col)) if col.null_count else ~finite, c, "value is NaN or infinite")
+        big = np.zeros(n, bool)
+        with np.errstate(invalid="ignore"):
+            for lo in range(0, n, _BLOCK):  # NaN compares False; inf is non_finite, not out of range
+                big[lo:lo + _BLOCK] = np.abs(v[lo:lo + _BLOCK]) > MAX_ABS_VALUE
+        big &= finite
+        add("value_out_of_range", big, c,
             f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column")
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)

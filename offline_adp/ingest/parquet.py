@@ -80,7 +80,8 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
             table = pacsv.read_csv(path, read_options=opts, parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
             available = table.column_names
         else:
-            available = pq.read_schema(path).names
+            schema = pq.read_schema(path)
+            available = schema.names
             table = None
     except FileNotFoundError:
         raise IngestError(f"{path}: no such file") from None
@@ -91,7 +92,16 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
         raise IngestError(f"{path}: spec needs columns {missing} that the file does not have; it has {available}")
     if table is None:
         try:
-            table = pq.read_table(path, columns=cols)
+            # column by column, without pre-buffering: only one column's compressed pages
+            # are in memory besides the decoded table (read_table holds them all)
+            # string columns of few distinct values arrive dictionary-encoded: the source
+            # labels stay so (their strings are never materialised); the episode ids are
+            # cast to strings once, at their exact size (decoding them as strings directly
+            # grows buffers that peak at about 3x the column)
+            as_dict = [c for c in dict.fromkeys((spec.episode.id, spec.source_column))
+                       if c and c in available and pa.types.is_string(schema.field(c).type)] or None
+            pf = pq.ParquetFile(path, pre_buffer=False, buffer_size=1 << 20, read_dictionary=as_dict)
+            table = pa.table({c: pf.read(columns=[c], use_threads=False).column(0) for c in dict.fromkeys(cols)})
         except (OSError, pa.ArrowInvalid) as exc:
             raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
     table = table.select(cols)
@@ -148,6 +158,21 @@ def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], s
     return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
 
 
+def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *, keep_nulls: bool = False) -> pa.ChunkedArray:
+    """A numeric column as float64 in Arrow, without a copy when it already is float64:
+    what :func:`_np` gives for ``np.float64`` (nulls -> NaN, reported by the doctor; with
+    ``keep_nulls`` they stay null), without the conversion to numpy."""
+    c = table.column(col)
+    numeric = pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type) or pa.types.is_boolean(c.type)
+    if not numeric:
+        return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of), mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
+    if c.type != pa.float64():
+        c = c.cast(pa.float64(), safe=False)  # as numpy's astype: large integers round
+    if c.null_count and not keep_nulls:
+        c = c.fill_null(np.nan)
+    return c
+
+
 def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray]:
     """A bool flag column and its null mask (a null flag is kept null: the doctor reports
     it, it never silently becomes False)."""
@@ -167,9 +192,16 @@ def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarra
     return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool), null
 
 
-def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
-    """The step column minus ``base`` as int64: integral, within int32 (what the format stores)."""
+def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray], str]) -> np.ndarray | pa.ChunkedArray:
+    """The step column minus ``base``: integral, within int32 (what the format stores); an
+    int32 Arrow column (no copy when it already is one from 0) or an int64 array."""
     c = table.column(col)
+    if pa.types.is_integer(c.type) and not c.null_count and len(c):
+        mm = pc.min_max(c).as_py()
+        if mm["min"] - base >= 0 and mm["max"] - base <= np.iinfo(np.int32).max:  # else: the error below
+            if base:
+                c = pc.subtract(c.cast(pa.int64()), base)
+            return c.cast(pa.int32())
     v = _np(table, col, np.float64 if not pa.types.is_integer(c.type) else np.int64, file_of)
     if v.dtype.kind == "f":
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
@@ -187,20 +219,37 @@ def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray],
     return step
 
 
-def _times_ns(table: pa.Table, col: str, unit: str, file_of: Callable[[np.ndarray], str]) -> pa.Array:
+def _times_ns(table: pa.Table, col: str, unit: str, file_of: Callable[[np.ndarray], str]) -> pa.Array | pa.ChunkedArray:
     """Times in int64 nanoseconds; a time that is missing, not finite or beyond int64 stays
     null (the doctor reports it as a missing value of ``t_ns`` naming file and row)."""
     tv = table.column(col)
     try:
         if pa.types.is_timestamp(tv.type):
-            return tv.cast(pa.timestamp("ns")).cast(pa.int64()).combine_chunks()
+            return tv.cast(pa.timestamp("ns")).cast(pa.int64())
         if pa.types.is_integer(tv.type):
-            return pc.multiply_checked(tv.cast(pa.int64()), TIME_UNITS[unit]).combine_chunks()
+            tv = tv.cast(pa.int64())
+            return tv if TIME_UNITS[unit] == 1 else pc.multiply_checked(tv, TIME_UNITS[unit])
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
         raise IngestError(f"{file_of(np.array([0]))}: column {col!r}: times do not fit int64 nanoseconds ({exc})") from None
     x = _np(table, col, np.float64, file_of) * TIME_UNITS[unit]
     ok = np.isfinite(x) & (np.abs(x) < 2.0**63 - 1024)
     return pa.array(np.where(ok, np.round(np.where(ok, x, 0.0)), 0).astype(np.int64), mask=~ok)
+
+
+_ACTION_BLOCK = 1 << 17
+
+
+def _blockwise(mapper: Callable[..., tuple[np.ndarray, Any]], raw: np.ndarray, spec: Any) -> tuple[np.ndarray, Any]:
+    """``mapper(raw, spec)`` block by block when the action table does not depend on the
+    data (discrete actions with given values): the same result, with the mapper's
+    temporaries the size of a block instead of the column."""
+    if mapper is not map_discrete or spec.values is None or len(raw) <= _ACTION_BLOCK:
+        return mapper(raw, spec)
+    out = np.empty(len(raw), np.int32)
+    atable = None
+    for lo in range(0, len(raw), _ACTION_BLOCK):
+        out[lo:lo + _ACTION_BLOCK], atable = mapper(raw[lo:lo + _ACTION_BLOCK], spec)
+    return out, atable
 
 
 def _type_conflict(tables: list[pa.Table], metas: list[dict[str, Any]]) -> str | None:
@@ -234,6 +283,49 @@ def ingest_tables(
     paths = [Path(p) for p in inputs]
     if not paths:
         raise IngestError("no input files given")
+    # every intermediate of the mapping (and the input's columns the dataset does not
+    # share) is freed when _map returns, before validation and writing
+    out, atable, dropped, metas, names = _map(paths, spec, progress)
+    units = dict(spec.observations.units)
+    info = DatasetInfo(
+        features=tuple(Feature(nm, units.get(nm, "")) for nm in names),
+        action_table=atable,
+        gamma=spec.gamma,
+        horizon=spec.horizon,
+        propensity_source="logged" if spec.propensity_column else "unknown",
+        provenance={
+            "inputs": metas,
+            "spec": spec.raw,
+            "spec_sha256": spec.sha256,
+            "package_version": __version__,
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "generator": "offline-adp ingest parquet",
+        },
+        name=spec.name,
+    )
+    ds = TransitionDataset(out, info)
+    if progress:
+        progress("validating")
+    report = validate(ds)  # names src_file/src_row of each finding
+    result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
+    if not report.ok:
+        if on_error == "fail":
+            raise ValidationError(
+                report.to_text() + "\nFix the input, or re-run with --on-error quarantine to set bad episodes aside.",
+                report,
+            )
+        clean, rejected = split_quarantine(ds, report)
+        result.dataset = clean
+        result.quarantine = rejected
+        result.quarantined_rows = rejected.num_rows
+        result.quarantined_episodes = int(len(report.bad_episodes))
+    return result
+
+
+def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] | None
+         ) -> tuple[pa.Table, Any, int, list[dict[str, Any]], list[str]]:
+    """Read the inputs and map them through the spec: the dataset's table (sorted by
+    episode and step), action table, dropped last rows, input metadata, feature names."""
     tables, metas = [], []
     # input hashes (provenance) are computed in a thread while the tables are read
     with ThreadPoolExecutor(max_workers=1) as hasher:
@@ -251,8 +343,17 @@ def ingest_tables(
             )
             # unify id column type across files
             t = t.set_column(0, spec.episode.id, t.column(spec.episode.id).cast(pa.string()))
+            src = spec.source_column
+            if src and src != spec.episode.id:  # text labels: dictionary<int32, string> in every file
+                j = t.column_names.index(src)
+                c = t.column(j)
+                if pa.types.is_dictionary(c.type) and pa.types.is_string(c.type.value_type):
+                    pass
+                elif pa.types.is_string(c.type) or pa.types.is_large_string(c.type):
+                    t = t.set_column(j, src, pc.dictionary_encode(c.cast(pa.string())))
             tables.append(t)
             metas.append({"path": str(p), "sha256": None, "rows": t.num_rows})
+            del t
         for m, h in zip(metas, hashes, strict=True):
             m["sha256"] = h.result() if h is not None else None
     try:
@@ -292,7 +393,7 @@ def ingest_tables(
     file_of.rows = rows  # type: ignore[attr-defined]  # row in its file, for _where
 
     ep_ids = table.column(spec.episode.id)
-    codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+    codes = enc.indices.to_numpy(zero_copy_only=False)  # int32: a view
     first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
     last = np.r_[codes[1:] != codes[:-1], True] if n else np.zeros(0, bool)
     starts = np.flatnonzero(first)
@@ -307,9 +408,10 @@ def ingest_tables(
         cum = np.cumsum(new_val) - 1
         step = cum - np.repeat(cum[starts], lens)
 
-    obs = [_np(table, c, np.float64, file_of) for c in spec.observations.columns]
+    # float64 columns stay the input's Arrow buffers (no copy); steps tables shift in numpy
+    obs: list[Any] = [_f64(table, c, file_of) for c in spec.observations.columns]
     has_next = bool(spec.observations.next_columns)
-    nxt_given = [_np(table, c, np.float64, file_of) for c in spec.observations.next_columns] if has_next else None
+    nxt_given: list[Any] | None = [_f64(table, c, file_of) for c in spec.observations.next_columns] if has_next else None
 
     term, term_null = _flag(table, spec.terminated_column, n, file_of)
     trunc_col, trunc_null = _flag(table, spec.truncated_column, n, file_of)
@@ -324,6 +426,9 @@ def ingest_tables(
     else:
         end_term = last & term
         nxt = []
+        obs = [o.to_numpy() for o in obs]
+        if nxt_given is not None:
+            nxt_given = [x.to_numpy() for x in nxt_given]
         for j, o in enumerate(obs):
             x = np.empty_like(o)
             x[:-1] = o[1:]
@@ -345,15 +450,26 @@ def ingest_tables(
             trunc[prev[same]] = True  # the previous row becomes the episode's truncated end
 
     # actions from the rows that stay (a dropped row must not shape the bins)
-    action = np.full(n, -1, np.int32)
+    all_kept = bool(keep.all())
     if spec.action.type == "discrete":
-        action[keep], atable = map_discrete(table.column(spec.action.column).to_numpy(zero_copy_only=False)[keep], spec.action)
+        raw_action = table.column(spec.action.column).to_numpy(zero_copy_only=False)
+        mapper = map_discrete
     else:
-        action[keep], atable = bin_continuous(_np(table, spec.action.column, np.float64, file_of)[keep], spec.action)
-    cost = _np(table, spec.cost_column, np.float64, file_of) if spec.cost_column else -_np(table, spec.reward_column, np.float64, file_of)  # type: ignore[arg-type]
+        raw_action = _np(table, spec.action.column, np.float64, file_of)
+        mapper = bin_continuous
+    if all_kept:
+        action, atable = _blockwise(mapper, raw_action, spec.action)
+    else:
+        action = np.full(n, -1, np.int32)
+        action[keep], atable = mapper(raw_action[keep], spec.action)
+    del raw_action
+    if spec.cost_column:
+        cost = _f64(table, spec.cost_column, file_of)
+    else:
+        cost = pc.negate(_f64(table, spec.reward_column, file_of))  # type: ignore[arg-type]
 
     names = list(spec.observations.names or spec.observations.columns)
-    cols: dict[str, Any] = {S.EPISODE_ID: ep_ids, S.STEP: step.astype(np.int32)}
+    cols: dict[str, Any] = {S.EPISODE_ID: ep_ids, S.STEP: step.astype(np.int32) if isinstance(step, np.ndarray) else step}
     if spec.episode.time:
         cols[S.T_NS] = _times_ns(table, spec.episode.time, spec.episode.time_unit, file_of)
     for j, nm in enumerate(names):
@@ -365,53 +481,24 @@ def ingest_tables(
     cols[S.TERMINATED] = pa.array(term, mask=term_null) if term_null.any() else term
     cols[S.TRUNCATED] = pa.array(trunc, mask=trunc_null) if trunc_null.any() else trunc
     if spec.source_column:
-        cols[S.SOURCE] = encode_strings(table.column(spec.source_column).cast(pa.string()))
+        src = table.column(spec.source_column)
+        if pa.types.is_dictionary(src.type):  # read as such: one dictionary for every chunk
+            cols[S.SOURCE] = src.cast(pa.dictionary(pa.int32(), pa.string())).unify_dictionaries().combine_chunks()
+        else:
+            cols[S.SOURCE] = encode_strings(src.cast(pa.string()))
     else:
         cols[S.SOURCE] = pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([spec.source_value]))
     if spec.propensity_column:
-        prop = _np(table, spec.propensity_column, np.float64, file_of)  # a non-number names its file and row
-        cols[S.BEHAVIOR_PROB] = pa.array(prop, mask=np.asarray(pc.is_null(table.column(spec.propensity_column))))
-    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32)), pa.array(names_of.astype(str).tolist()))
-    cols["src_row"] = rows
-    out = pa.table({k: (v.combine_chunks() if isinstance(v, pa.ChunkedArray) else v) for k, v in cols.items()})
-    del cols, table, tables, obs, nxt  # the input's unshared columns can go before validation and writing
-    if not keep.all():
+        # a non-number names its file and row; a missing value stays null (the doctor's business)
+        cols[S.BEHAVIOR_PROB] = _f64(table, spec.propensity_column, file_of, keep_nulls=True)
+    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32, copy=False)), pa.array(names_of.astype(str).tolist()))
+    cols["src_row"] = table.column("__row")
+    # chunked columns stay chunked: the output shares the input's buffers where it can
+    out = pa.table(cols)
+    if not all_kept:
         out = out.filter(pa.array(keep))
+    return out, atable, dropped, metas, names
 
-    units = dict(spec.observations.units)
-    info = DatasetInfo(
-        features=tuple(Feature(nm, units.get(nm, "")) for nm in names),
-        action_table=atable,
-        gamma=spec.gamma,
-        horizon=spec.horizon,
-        propensity_source="logged" if spec.propensity_column else "unknown",
-        provenance={
-            "inputs": metas,
-            "spec": spec.raw,
-            "spec_sha256": spec.sha256,
-            "package_version": __version__,
-            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            "generator": "offline-adp ingest parquet",
-        },
-        name=spec.name,
-    )
-    ds = TransitionDataset(out, info)
-    if progress:
-        progress("validating")
-    report = validate(ds)  # names src_file/src_row of each finding
-    result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
-    if not report.ok:
-        if on_error == "fail":
-            raise ValidationError(
-                report.to_text() + "\nFix the input, or re-run with --on-error quarantine to set bad episodes aside.",
-                report,
-            )
-        clean, rejected = split_quarantine(ds, report)
-        result.dataset = clean
-        result.quarantine = rejected
-        result.quarantined_rows = rejected.num_rows
-        result.quarantined_episodes = int(len(report.bad_episodes))
-    return result
 
 
 def ingest_parquet(
