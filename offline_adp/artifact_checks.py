@@ -19,6 +19,11 @@ vectorised numpy before those libraries see it:
   nodes, and it rules out cycles); every non-root node reached exactly once (so all
   nodes are reachable from the root and the structure is a tree); leaves have no
   children; split features ``>= 0`` and below the declared width; thresholds finite.
+- :func:`check_compact_tree_arrays` - the same ensemble in the compact layout of
+  artifact format 2 (leaf flags in depth-first order, split features and thresholds,
+  leaf values or a value table and codes): the flags must be full binary trees in
+  depth-first order at the roots (then the children they give are in range), one
+  feature and threshold per split, one value per leaf, every code inside its table.
 - :func:`check_lightgbm_text` - LightGBM model text, parsed by us first (the same rules
   per tree: array lengths against ``num_leaves``, children after parents and in range,
   each node reached once, split features within ``max_feature_idx``, no categorical or
