@@ -19,6 +19,11 @@ vectorised numpy before those libraries see it:
   nodes, and it rules out cycles); every non-root node reached exactly once (so all
   nodes are reachable from the root and the structure is a tree); leaves have no
   children; split features ``>= 0`` and below the declared width; thresholds finite.
+- :func:`check_compact_tree_arrays` - the same ensemble in the compact layout of
+  artifact format 2 (leaf flags in depth-first order, split features and thresholds,
+  leaf values or a value table and codes): the flags must be full binary trees in
+  depth-first order at the roots (then the children they give are in range), one
+  feature and threshold per split, one value per leaf, every code inside its table.
 - :func:`check_lightgbm_text` - LightGBM model text, parsed by us first (the same rules
   per tree: array lengths against ``num_leaves``, children after parents and in range,
   each node reached once, split features within ``max_feature_idx``, no categorical or
@@ -200,8 +205,87 @@ def _tree_structure(left: np.ndarray, right: np.ndarray, roots: np.ndarray, wher
         raise _fail(where, member + "left", f"node {j} is reached {int(reached[j])} times (a tree reaches every node exactly once)")
 
 
-def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None) -> dict[str, np.ndarray]:
+def check_leaf_values(arrays: Any, prefix: str, where: str) -> np.ndarray:
+    """The compact layout's leaf values: ``value``, or ``value_table`` indexed by
+    ``value_code`` (codes checked against the table before use); all finite."""
+    if prefix + "value" in _members(arrays) or prefix + "value_table" not in _members(arrays):
+        v = array(arrays, prefix + "value", where, kinds="f", ndim=1).astype(np.float64)
+        bad = ~np.isfinite(v)
+        if bad.any():
+            j = int(np.flatnonzero(bad)[0])
+            raise _fail(where, prefix + "value", f"leaf {j}: value {float(v[j])!r} is not finite")
+        return v
+    table = array(arrays, prefix + "value_table", where, kinds="f", ndim=1).astype(np.float64)
+    code = array(arrays, prefix + "value_code", where, kinds="u", ndim=1)
+    if not np.all(np.isfinite(table)):
+        raise _fail(where, prefix + "value_table", "a leaf value is not finite")
+    if len(code) and int(code.max()) >= len(table):
+        raise _fail(where, prefix + "value_code", f"code {int(code.max())} outside the {len(table)}-entry value table")
+    return table[code]
+
+
+def _members(arrays: Any) -> Any:
+    files = getattr(arrays, "files", None)  # an opened .npz lists its members without reading them
+    return set(files) if files is not None else arrays
+
+
+def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None,
+                              structure_prefix: str | None = None) -> dict[str, np.ndarray]:
+    """Check a tree ensemble stored in the compact layout
+    (:meth:`~offline_adp.trees.ensemble.TreeEnsemble.to_arrays`): the leaf flags, cut at
+    the roots, must each be a full binary tree in depth-first order (then the children
+    they give are inside their tree and after their parent, every node reached once);
+    one feature and threshold per split, one value per leaf; as :func:`check_tree_arrays`
+    for the rest. ``structure_prefix``: where the structure is stored when another
+    ensemble's (shared structure), else ``prefix``. Returns the per-node arrays."""
+    from offline_adp.trees.ensemble import expand_compact, preorder_valid
+
+    sp = prefix if structure_prefix is None else structure_prefix
+    bits = array(arrays, sp + "leaf_bits", where, kinds="u", ndim=1)
+    roots = array(arrays, sp + "roots", where, kinds="iu", ndim=1).astype(np.int64)
+    feature = array(arrays, sp + "feature", where, kinds="iu", ndim=1)
+    threshold = array(arrays, sp + "threshold", where, kinds="f", ndim=1)
+    if len(threshold) != len(feature):
+        raise _fail(where, sp + "threshold", f"{len(threshold)} thresholds for {len(feature)} split features")
+    values = check_leaf_values(arrays, prefix, where)
+    n = len(feature) + len(values)
+    if bits.dtype != np.uint8 or len(bits) != (n + 7) // 8:
+        raise _fail(where, sp + "leaf_bits", f"{len(bits)} {bits.dtype} entries where {n} nodes "
+                                              f"({len(feature)} splits, {len(values)} leaves) need {(n + 7) // 8} bytes")
+    if n == 0 or n >= MAX_NODES:
+        raise _fail(where, sp + "leaf_bits", f"{n} nodes")
+    flags = np.unpackbits(bits)
+    if flags[n:].any():
+        raise _fail(where, sp + "leaf_bits", "padding bits after the last node are set")
+    is_leaf = flags[:n].astype(bool)
+    if int(is_leaf.sum()) != len(values):
+        raise _fail(where, sp + "leaf_bits", f"{int(is_leaf.sum())} leaves flagged, {len(values)} leaf values stored")
+    if len(roots) == 0 or len(roots) > n or roots[0] != 0 or np.any(np.diff(roots) <= 0) or roots[-1] >= n:
+        raise _fail(where, sp + "roots", "tree roots must start at 0 and increase strictly within the nodes")
+    if not preorder_valid(is_leaf, roots):
+        raise _fail(where, sp + "leaf_bits", "the leaf flags are not binary trees in depth-first order at these roots")
+    if len(feature):
+        top = int(feature.max())
+        if feature.dtype.kind == "i" and int(feature.min()) < 0:
+            raise _fail(where, sp + "feature", f"negative split feature {int(feature.min())}")
+        if n_features is not None and top >= n_features:
+            raise _fail(where, sp + "feature", f"split feature {top} outside the declared width {n_features}")
+        if top >= MAX_NODES:
+            raise _fail(where, sp + "feature", f"split feature {top} is implausibly large")
+    if not np.all(np.isfinite(threshold)):
+        raise _fail(where, sp + "threshold", "non-finite split threshold")
+    out = expand_compact(is_leaf, roots, feature.astype(np.int64), threshold.astype(np.float64), values)
+    _tree_structure(out["left"], out["right"], out["roots"], where, sp)  # by construction; checked all the same
+    return out
+
+
+def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None,
+                      structure_prefix: str | None = None) -> dict[str, np.ndarray]:
     """Check the arrays of a :class:`~offline_adp.trees.ensemble.TreeEnsemble` stored under ``prefix``.
+
+    Either layout: the compact one (``leaf_bits`` present,
+    :func:`check_compact_tree_arrays`) or per-node arrays (artifact version 1), checked
+    here.
 
     Parameters
     ----------
@@ -219,6 +303,8 @@ def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | No
     dict
         The arrays, converted to the dtypes :class:`TreeEnsemble` uses.
     """
+    if (structure_prefix or prefix) + "leaf_bits" in _members(arrays):
+        return check_compact_tree_arrays(arrays, prefix, where, n_features, structure_prefix)
     a = {k: array(arrays, prefix + k, where, kinds="iu" if k in ("left", "right", "feature", "roots") else "f", ndim=1)
          for k in ("left", "right", "feature", "threshold", "value", "roots")}
     n = len(a["left"])
@@ -371,4 +457,4 @@ def check_int(value: Any, where: str, member: str, lo: int = 0, hi: int = MAX_NO
     return value
 
 
-__all__ = ["MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]
+__all__ = ["MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]

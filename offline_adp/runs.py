@@ -25,7 +25,7 @@ from typing import Any
 
 import pandas as pd
 
-from offline_adp.algorithms.checkpoint import read_checkpoint, write_checkpoint
+from offline_adp.algorithms.checkpoint import read_checkpoint, share_with_model, write_checkpoint
 from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resumable_algorithms
 from offline_adp.artifacts import save_policy, save_q, versions
 from offline_adp.config import load_toml
@@ -212,6 +212,8 @@ def fit_run(
             rd.write_json(rd.STATUS, status)
             raise
         _save_model(entry, est, rd, ds.fingerprint())
+        if entry.resumable:  # the finished checkpoint shares the model's arrays (one copy on disk)
+            share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)
         status.update(status="completed", fit_seconds=time.perf_counter() - wall, fit_cpu_seconds=time.process_time() - cpu,
                       **_summary(est, engine))
         rd.write_json(rd.STATUS, status)

@@ -50,3 +50,22 @@ def peak_cli(*args: str, timeout: int = 300) -> tuple[Any, float]:
     peak = [ln for ln in r.stderr.splitlines() if ln.startswith("PEAK_KB=")]
     assert peak, r.stderr[-2000:]
     return r, int(peak[-1].split("=")[1]) / 1024
+
+
+#: Members of a tree ensemble in the compact layout (:meth:`TreeEnsemble.to_arrays`).
+COMPACT_MEMBERS = ("roots", "leaf_bits", "feature", "threshold", "value", "value_table", "value_code")
+
+
+def node_layout(arrays: dict[str, Any]) -> dict[str, Any]:
+    """Rewrite, in place, every tree ensemble stored in the compact layout as per-node
+    arrays (``left, right, feature, threshold, value, roots``: artifact format 1, which
+    the loader still reads), so that crafted edits can target one node's child, feature
+    or value. Returns ``arrays``."""
+    from offline_adp.trees import TreeEnsemble
+
+    for p in [k[:-len("leaf_bits")] for k in arrays if k.endswith(".leaf_bits")]:
+        ens = TreeEnsemble.from_arrays(arrays, p)
+        for k in [k for k in arrays if k.startswith(p) and k[len(p):] in COMPACT_MEMBERS]:
+            del arrays[k]
+        arrays.update(ens.to_arrays(p, layout="nodes"))
+    return arrays

@@ -19,6 +19,7 @@ import pytest
 from offline_adp.algorithms.fqi import FittedQIteration, save_fqi
 from offline_adp.artifacts import load_q
 from offline_adp.errors import ArtifactError
+from tests.fuzz_util import node_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,8 +37,8 @@ def _edit_npz(src: Path, dst: Path, key: str, fn) -> Path:
     import shutil
 
     shutil.copytree(src, dst)
-    with np.load(src / "q.npz") as z:
-        arrs = {k: z[k].copy() for k in z.files}
+    with np.load(src / "q.npz") as z:  # per node (format 1, still read): the edits target one node
+        arrs = node_layout({k: z[k].copy() for k in z.files})
     arrs[key] = fn(arrs[key], arrs)
     np.savez(dst / "q.npz", **arrs)
     return dst
@@ -146,7 +147,7 @@ def test_npz_header_lying_about_its_size(tree_run, tmp_path):
 
     shutil.copytree(src, d)
     with np.load(src / "q.npz") as z:
-        arrs = {k: z[k] for k in z.files}
+        arrs = node_layout({k: z[k] for k in z.files})
     with zipfile.ZipFile(d / "q.npz", "w") as zf:
         for k, v in arrs.items():
             b = io.BytesIO()
@@ -186,7 +187,7 @@ def test_policy_artifact_of_a_run_is_checked_the_same_way(tree_run, tmp_path):
     q, _ = load_q(src)
     save_policy(GreedyPolicy(q), tmp_path / "model")
     with np.load(tmp_path / "model" / "policy.npz") as z:
-        arrs = {k: z[k].copy() for k in z.files}
+        arrs = node_layout({k: z[k].copy() for k in z.files})
     key = next(k for k in arrs if k.endswith(".feature"))
     arrs[key][0] = -7
     np.savez(tmp_path / "model" / "policy.npz", **arrs)

@@ -20,7 +20,7 @@ import pytest
 import offline_adp
 from offline_adp.artifacts import load_index_policy, load_q
 from offline_adp.errors import ArtifactError, OfflineADPError, SchemaError
-from tests.fuzz_util import peak_cli
+from tests.fuzz_util import node_layout, peak_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 PEAK_LIMIT_MB = 500
@@ -68,8 +68,10 @@ def _copy_run(run: Path, dest: Path) -> Path:
 
 
 def _edit_npz(model: Path, edit) -> None:
+    """Edit the model's arrays, rewritten per node (artifact format 1, still read: the
+    edits target one node; the compact layout's own checks: test_compact_artifacts.py)."""
     with np.load(model / "q.npz", allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
+        arrays = node_layout({k: z[k] for k in z.files})
     edit(arrays)
     np.savez(model / "q.npz", **arrays)
 
@@ -136,7 +138,7 @@ def test_crafted_npz_is_one_clear_error(run, tmp_path, kind):
 def test_inf_leaf_value_is_refused_with_node(run, tmp_path):
     bad = _copy_run(run, tmp_path / "bad")
     with np.load(run / "model" / "q.npz") as z:
-        leaf = int(np.flatnonzero(z["q.m0.left"] < 0)[2])
+        leaf = int(np.flatnonzero(node_layout({k: z[k] for k in z.files})["q.m0.left"] < 0)[2])
     _edit_npz(bad / "model", _inf_leaf)
     with pytest.raises(ArtifactError, match=f"node {leaf}: leaf value inf is not finite"):
         load_q(bad / "model")
@@ -277,10 +279,12 @@ def test_finite_horizon_onnx_is_proportional_to_the_model(tmp_path):
     from offline_adp.trees import TreeEnsemble
 
     ds = simulate("path_tracking", 4, 16, seed=3, horizon=40)
-    size, nodes, npz = {}, {}, {}
+    size, nodes, npz, per_node = {}, {}, {}, {}
     for T in (1, 8):
         f = FittedQIteration(horizon=T, regressor="extra_trees", regressor_params={"n_estimators": 10}).fit(ds)
-        nodes[T] = sum(len(TreeEnsemble.from_sklearn(q.models[0]).left) for q in f.q_function_.qs)
+        ens = [TreeEnsemble.from_sklearn(q.models[0]) for q in f.q_function_.qs]
+        nodes[T] = sum(len(e.left) for e in ens)
+        per_node[T] = sum(a.nbytes for e in ens for a in e.to_arrays(layout="nodes").values())  # artifact format 1
         out = save_onnx(f.policy_, tmp_path / f"p{T}.onnx")
         save_q(f.q_function_, tmp_path / f"q{T}")
         size[T], npz[T] = out.stat().st_size, (tmp_path / f"q{T}" / "q.npz").stat().st_size
@@ -288,7 +292,8 @@ def test_finite_horizon_onnx_is_proportional_to_the_model(tmp_path):
     print(f"\nONNX 1 step {size[1]} B, 8 steps {size[8]} B (x{ratio:.2f}; tree nodes x{model_ratio:.2f}); "
           f"q.npz {npz[1]} / {npz[8]} B")
     assert ratio <= 1.1 * model_ratio
-    assert size[8] <= npz[8]  # the export is no bigger than the stored model
+    assert size[8] <= per_node[8]  # the export is no bigger than the model's per-node arrays
+    assert npz[8] < per_node[8] / 3  # which the compact q.npz is much smaller than
     g = onnx.load(str(tmp_path / "p8.onnx")).graph
     assert sum(n.op_type == "Tile" for n in g.node) == 1  # the joint (x, a) pairs: once for all 8 steps
     assert sum(n.op_type == "TreeEnsemble" for n in g.node) == 8

@@ -8,7 +8,11 @@ A checkpoint directory holds the last completed iteration of a resumable fit::
 
 :func:`write_checkpoint` replaces the directory as a whole (a temporary directory renamed
 over it, a planted symbolic link replaced, never followed), so a crash leaves the
-previous checkpoint. :func:`read_checkpoint` reads an untrusted directory: the Q-function
+previous checkpoint. Once the run's ``model/`` is written, :func:`share_with_model`
+makes the checkpoint's ``q.npz`` a hard link to the model's when the two hold the same
+arrays (an infinite-horizon fit saves one Q in both): a finished run keeps one copy on
+disk, and the checkpoint still reads on its own (resume; ``model/`` removed or replaced).
+:func:`read_checkpoint` reads an untrusted directory: the Q-function
 through the checked artifact reader, the history through the checked table reader, then
 its size, columns, types and agreement with the Q-function; anything else is an
 :class:`~offline_adp.errors.ArtifactError` naming the file. The run writer
@@ -18,6 +22,8 @@ these two functions.
 
 from __future__ import annotations
 
+import os
+import zipfile
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -57,6 +63,30 @@ def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[s
     with RunDirectory(d.parent).subdirectory(d.name) as tmp:
         save_q(q, tmp, extra={"iteration": len(rows)})
         pd.DataFrame(rows).to_csv(tmp / HISTORY, index=False)
+
+
+def share_with_model(directory: str | PathLike[str], model: str | PathLike[str]) -> bool:
+    """Replace the checkpoint's ``q.npz`` (in ``directory``) by a hard link to
+    ``model/q.npz`` when both hold the same members (names, sizes and CRC-32 of every
+    array, from the zip directories): one copy on disk instead of two. Atomic (a link made
+    aside, renamed over); where links are not possible, or the arrays differ (a finite
+    horizon stores its steps in the other order), the copy stays. Returns whether linked."""
+    c, m = Path(directory) / "q.npz", Path(model) / "q.npz"
+    try:
+        if c.is_symlink() or not c.is_file() or not m.is_file() or _members(c) != _members(m):
+            return False
+        tmp = c.with_name("q.npz.link")
+        tmp.unlink(missing_ok=True)
+        os.link(m, tmp)
+        os.replace(tmp, c)
+        return True
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
+def _members(path: Path) -> list[tuple[str, int, int]]:
+    with zipfile.ZipFile(path) as zf:
+        return sorted((i.filename, i.file_size, i.CRC) for i in zf.infolist())
 
 
 def read_checkpoint(directory: str | PathLike[str]) -> dict[str, Any] | None:

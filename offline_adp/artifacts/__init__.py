@@ -24,6 +24,7 @@ from offline_adp import artifact_checks as C
 from offline_adp._version import __version__
 from offline_adp.artifacts.estimators import (
     ALLOWED,
+    Arrays,
     _Booster,
     _export_estimator,
     _guard,
@@ -43,7 +44,12 @@ from offline_adp.qfunctions import (
 __all__ = ["ALLOWED", "ARTIFACT_VERSION", "load_index_policy", "load_q", "register_policy_kind", "register_q_kind",
            "save_policy", "save_q", "versions"]
 
-ARTIFACT_VERSION = "1"
+#: The artifact format written: "2" stores tree ensembles in the compact layout
+#: (:meth:`~offline_adp.trees.ensemble.TreeEnsemble.to_arrays`) in a compressed ``.npz``;
+#: "1" (per-node arrays) is still read.
+ARTIFACT_VERSION = "2"
+#: The artifact formats this version reads.
+READABLE_VERSIONS = ("1", "2")
 
 
 def versions() -> dict[str, str]:
@@ -203,7 +209,7 @@ def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], a
     """``<stem>.json`` (payload, versions, extra) + ``<stem>.npz`` (arrays) in ``directory``."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    np.savez(d / f"{stem}.npz", **arrays)
+    np.savez_compressed(d / f"{stem}.npz", **arrays)
     spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), **payload, **(extra or {})}
     (d / f"{stem}.json").write_text(json.dumps(spec, indent=1))
 
@@ -227,6 +233,10 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
         raise ArtifactError(f"{npath}: unreadable {what} arrays ({exc})") from None
     if not isinstance(spec, dict) or key not in spec:
         raise ArtifactError(f"{jpath}: no {key!r} entry (not a saved {what})")
+    fmt = spec.get("artifact_version", "1")
+    if fmt not in READABLE_VERSIONS:
+        raise ArtifactError(f"{jpath}: artifact format {fmt!r}, this offline_adp {__version__} reads formats "
+                            f"{', '.join(READABLE_VERSIONS)}: written by a newer version? (upgrade offline_adp to read it)")
     vs = spec.get("versions", {})
     now = versions()
     diff = {k: (v, now.get(k)) for k, v in vs.items() if now.get(k) != v} if isinstance(vs, dict) else {}
@@ -244,7 +254,7 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
 
 def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
     """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``)."""
-    arrays: dict[str, np.ndarray] = {}
+    arrays = Arrays()
     _write(directory, "q", {"q": _export_q(q, arrays, "q")}, arrays, extra)
 
 
@@ -387,7 +397,7 @@ def _register_policies() -> None:
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
     """Write a policy (greedy, uniform, tabular, mixture, non-stationary, classifier) as
     ``policy.json`` + ``policy.npz``."""
-    arrays: dict[str, np.ndarray] = {}
+    arrays = Arrays()
     _write(directory, "policy", {"policy": _export_policy(policy, arrays, "p")}, arrays, extra)
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import json
 import warnings
+import weakref
 from typing import Any
 
 import numpy as np
@@ -52,11 +53,9 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
         arrays[f"{key}.classes"] = np.asarray(est.classes_)
         return {"kind": "tree_classifier", "key": key}
     if hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
-        arrays.update(TreeEnsemble.from_sklearn(est).to_arrays(f"{key}."))
-        return {"kind": "tree_ensemble", "key": key, "n_features": _width(est)}
+        return _export_ensemble(TreeEnsemble.from_sklearn(est), arrays, key, _width(est))
     if isinstance(est, TreeEnsemble):
-        arrays.update(est.to_arrays(f"{key}."))
-        return {"kind": "tree_ensemble", "key": key, "n_features": _width(getattr(est, "_forest", None) or est)}
+        return _export_ensemble(est, arrays, key, _width(getattr(est, "_forest", None) or est))
     booster = getattr(est, "booster_", None) if name == "LGBMRegressor" else (est if name == "Booster" else None)
     if booster is not None:
         return {"kind": "lightgbm", "model": booster.model_to_string()}
@@ -90,6 +89,32 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
                 arrays[f"{key}.{k}.{i}"] = np.asarray(x.tolist())
             attrs[k] = {"arrays": [f"{key}.{k}.{i}" for i in range(len(v))]}
     return {"kind": "sklearn", "class": name, "params": params, "attrs": attrs}
+
+
+class Arrays(dict):
+    """The arrays of one artifact being written, and the tree structures already among
+    them (``structures``: id of the child array -> (that array, its key)), so that
+    ensembles sharing one structure (:meth:`TreeEnsemble.with_values`, e.g. a
+    finite-horizon fit's per-step Q-functions) store it once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.structures: dict[int, tuple[np.ndarray, str]] = {}
+
+
+def _export_ensemble(ens: TreeEnsemble, arrays: dict[str, np.ndarray], key: str, width: int | None) -> dict[str, Any]:
+    """A tree ensemble in the compact layout; its structure written once per artifact."""
+    spec: dict[str, Any] = {"kind": "tree_ensemble", "key": key, "n_features": width}
+    seen = getattr(arrays, "structures", None)
+    if seen is not None and id(ens.left) in seen and seen[id(ens.left)][0] is ens.left:
+        arrays.update(ens.to_arrays(f"{key}.", structure=False))
+        spec["structure"] = seen[id(ens.left)][1]
+        return spec
+    a = ens.to_arrays(f"{key}.")
+    arrays.update(a)
+    if seen is not None and f"{key}.leaf_bits" in a:
+        seen[id(ens.left)] = (ens.left, key)
+    return spec
 
 
 def _width(est: Any) -> int | None:
@@ -174,6 +199,30 @@ class _TreeClassifier:
         return self.classes_[self.predict_proba(X).argmax(axis=1)]
 
 
+#: Structures checked while one artifact is read (by the opened file), for ensembles that share them.
+_CHECKED: weakref.WeakKeyDictionary[Any, dict[tuple[str, int | None], TreeEnsemble]] = weakref.WeakKeyDictionary()
+
+
+def _shared_structure(arrays: Any, key: str, structure: str, width: int | None, where: str) -> TreeEnsemble:
+    """Ensemble ``key``'s leaf values on the structure stored under ``structure`` (checked
+    once per file; the ensembles made from it share its compiled lookup)."""
+    try:
+        cache = _CHECKED.setdefault(arrays, {})
+    except TypeError:  # not weakly referable (an in-memory dict): no cache
+        cache = {}
+    base = cache.get((structure, width))
+    if base is None:
+        base = cache[(structure, width)] = TreeEnsemble(**C.check_compact_tree_arrays(arrays, f"{structure}.", where, width))
+    values = C.check_leaf_values(arrays, f"{key}.", where)
+    leaves = base.left < 0
+    if len(values) != int(leaves.sum()):
+        raise ArtifactError(f"{where}: {key}.value: {len(values)} leaf values for the {int(leaves.sum())} leaves of "
+                            f"structure {structure}")
+    full = np.zeros(len(base.left))
+    full[leaves] = values
+    return base.with_values(full)
+
+
 def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
     """Rebuild an estimator from its JSON ``spec`` and checked arrays (see
     :mod:`offline_adp.artifact_checks`); anything malformed is an :class:`ArtifactError`."""
@@ -186,7 +235,11 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
             raise ArtifactError(f"{where}: {kind} entry without an array key")
         width = spec.get("n_features")
         width = None if width is None else C.check_int(width, where, f"{key}.n_features", 1, C.MAX_WIDTH)
-        ens = TreeEnsemble(**C.check_tree_arrays(arrays, f"{key}.", where, width))
+        shared = spec.get("structure")
+        if shared is not None and (kind != "tree_ensemble" or not isinstance(shared, str)):
+            raise ArtifactError(f"{where}: {key}.structure: a tree ensemble's shared structure is named by its key")
+        ens = _shared_structure(arrays, key, shared, width, where) if shared is not None else \
+            TreeEnsemble(**C.check_tree_arrays(arrays, f"{key}.", where, width))
         ens.n_features_in_ = width  # type: ignore[attr-defined]
         if kind == "tree_ensemble":
             return ens

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from offline_adp.cli._common import log
 from offline_adp.errors import InvalidArgumentError, UnknownNameError
@@ -49,14 +50,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
     finally:
         if bar is not None:
             bar.close()
-    for line in fit_summary_lines(est, args.algorithm):
+    for line in fit_summary_lines(est, args.algorithm, Path(args.out) / "model"):
         print(line)
     print(f"{args.out}/model")
     return 0
 
 
-def fit_summary_lines(est: object, algorithm: str) -> list[str]:
-    """What ``fit`` prints: the last iteration's numbers, and the convergence verdict when there is one."""
+def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None) -> list[str]:
+    """What ``fit`` prints: the last iteration's numbers, the convergence verdict when there
+    is one, and the size of the model's arrays in ``model_dir`` (``q.npz``, ``policy.npz``)."""
     import pandas as pd
 
     hist = getattr(est, "history_", None)
@@ -91,6 +93,9 @@ def fit_summary_lines(est: object, algorithm: str) -> list[str]:
     if verdict is not None:
         msg = getattr(est, "verdict_message_", "")
         lines.append(f"verdict: {verdict}" + (f" ({msg})" if msg else ""))
+    for f in ("q.npz", "policy.npz") if model_dir is not None else ():
+        if (Path(model_dir) / f).is_file():
+            lines.append(f"model: {Path(model_dir) / f} {(Path(model_dir) / f).stat().st_size / 1e6:.1f} MB")
     return lines
 
 

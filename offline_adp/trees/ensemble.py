@@ -145,21 +145,183 @@ class TreeEnsemble:
                 setattr(out, k, getattr(self, k))
         return out
 
-    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
-        """The arrays to store: node indices as int32 when they fit (a fully grown forest
-        on 50k samples has ~5M nodes: 26 instead of 40 bytes a node)."""
-        out = {prefix + k: getattr(self, k) for k in ("threshold", "value")}
-        small = len(self.left) < 2**31 - 1
-        for k in ("left", "right", "roots"):
-            a = np.asarray(getattr(self, k))
-            out[prefix + k] = a.astype(np.int32) if small else a
-        f = np.asarray(self.feature)
-        out[prefix + "feature"] = f.astype(np.int16) if len(f) == 0 or f.max() < 2**15 - 1 else f
+    def to_arrays(self, prefix: str = "", layout: str = "compact", structure: bool = True) -> dict[str, np.ndarray]:
+        """The arrays to store, in one of two layouts (both read by the artifact loader).
+
+        ``"compact"`` stores what a prediction reads, about 3-6 bytes a node instead of
+        26, with each tree's nodes renumbered depth-first, left subtree first (the
+        leaves reached and the predictions are the same; only the node ids change):
+        ``roots``; ``leaf_bits`` (the leaf flags in that order, ``np.packbits``: they
+        give every child, :func:`preorder_children`); the split nodes' ``feature`` (the
+        smallest unsigned type) and ``threshold`` as float32, each rounded down to a
+        float32 (inputs are compared as float32 with ``x <= threshold``: the largest
+        float32 not above the double threshold sends every float32 the same way, so the
+        leaves reached are the same bit for bit); the leaves' values in float64, as
+        ``value`` or, when fewer distinct values than leaves makes it smaller,
+        ``value_table`` (the distinct values) and ``value_code`` (each leaf's index into
+        it). ``structure=False`` writes only the leaf values (an ensemble sharing
+        another's structure, :meth:`with_values`).
+
+        ``"nodes"``: per-node ``left, right, feature, threshold, value, roots`` (node
+        indices as int32 when they fit), the format of artifact version 1.
+        """
+        if layout == "nodes":
+            out = {prefix + k: np.asarray(getattr(self, k)) for k in ("threshold", "value")}
+            small = len(self.left) < 2**31 - 1
+            for k in ("left", "right", "roots"):
+                a = np.asarray(getattr(self, k))
+                out[prefix + k] = a.astype(np.int32) if small else a
+            f = np.asarray(self.feature)
+            out[prefix + "feature"] = f.astype(np.int16) if len(f) == 0 or f.max() < 2**15 - 1 else f
+            return out
+        if layout != "compact":
+            raise ValueError(f"unknown tree layout {layout!r}")
+        left, right, roots = (np.asarray(a, dtype=np.int64) for a in (self.left, self.right, self.roots))
+        pos = preorder_positions(left, right, roots)
+        if len(pos) == 0 or np.bincount(pos, minlength=len(pos)).max() != 1 or not np.array_equal(pos[roots], roots):
+            return self.to_arrays(prefix, "nodes")  # not trees each spanning its range: stored node by node
+
+        def renumbered(a: np.ndarray) -> np.ndarray:
+            out = np.empty_like(a)
+            out[pos] = a
+            return out
+
+        is_leaf = renumbered(left < 0)
+        out = _leaf_value_arrays(renumbered(np.asarray(self.value, dtype=np.float64))[is_leaf], prefix)
+        if not structure:
+            return out
+        inner = ~is_leaf
+        out[prefix + "roots"] = roots.astype(np.int32) if len(is_leaf) < 2**31 - 1 else roots.astype(np.int64)
+        out[prefix + "leaf_bits"] = np.packbits(is_leaf)
+        f = renumbered(np.asarray(self.feature))[inner]
+        top = int(f.max()) if len(f) else 0
+        out[prefix + "feature"] = f.astype(next(t for t in (np.uint8, np.uint16, np.uint32, np.int64)
+                                                if top <= np.iinfo(t).max))
+        t = renumbered(np.asarray(self.threshold, dtype=np.float64))[inner]
+        t32 = float32_floor(t)
+        out[prefix + "threshold"] = t32 if np.all(np.isfinite(t32) == np.isfinite(t)) else t
         return out
 
     @classmethod
-    def from_arrays(cls, arrays: Any, prefix: str = "") -> TreeEnsemble:
-        return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})
+    def from_arrays(cls, arrays: Any, prefix: str = "", structure_prefix: str | None = None) -> TreeEnsemble:
+        """Rebuild from trusted arrays of either layout (:meth:`to_arrays`); untrusted files
+        go through :func:`offline_adp.artifact_checks.check_tree_arrays`."""
+        sp = prefix if structure_prefix is None else structure_prefix
+        if sp + "leaf_bits" not in arrays:
+            return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})
+        values = leaf_values_of(arrays, prefix)
+        feature, threshold = np.asarray(arrays[sp + "feature"]), np.asarray(arrays[sp + "threshold"])
+        n = len(feature) + len(values)
+        is_leaf = np.unpackbits(np.asarray(arrays[sp + "leaf_bits"]), count=n).astype(bool)
+        return cls(**expand_compact(is_leaf, np.asarray(arrays[sp + "roots"]), feature, threshold, values))
+
+
+def preorder_positions(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """Each node's index when every tree is numbered depth-first, left subtree first,
+    within the tree's own range (trusted trees: each reaches exactly its range). One
+    vectorised pass per tree level: depths top-down, subtree sizes bottom-up, positions
+    top-down (a left child follows its parent, a right child follows the left subtree)."""
+    levels = []
+    frontier = np.asarray(roots, dtype=np.int64)
+    while len(frontier):
+        levels.append(frontier)
+        inner = frontier[left[frontier] >= 0]
+        frontier = np.concatenate([left[inner], right[inner]])
+    size = np.ones(len(left), np.int64)
+    for lev in reversed(levels):
+        inner = lev[left[lev] >= 0]
+        size[inner] += size[left[inner]] + size[right[inner]]
+    pos = np.empty(len(left), np.int64)
+    pos[roots] = roots
+    for lev in levels:
+        inner = lev[left[lev] >= 0]
+        pos[left[inner]] = pos[inner] + 1
+        pos[right[inner]] = pos[inner] + 1 + size[left[inner]]
+    return pos
+
+
+def float32_floor(t: np.ndarray) -> np.ndarray:
+    """The largest float32 not above each double in ``t``: for every float32 ``x``,
+    ``x <= t`` exactly when ``x <= float32_floor(t)`` (NaN stays NaN)."""
+    with np.errstate(over="ignore"):
+        t32 = np.asarray(t, dtype=np.float64).astype(np.float32)
+    up = t32.astype(np.float64) > t
+    t32[up] = np.nextafter(t32[up], np.float32(-np.inf))
+    return t32
+
+
+def _leaf_value_arrays(values: np.ndarray, prefix: str) -> dict[str, np.ndarray]:
+    """Leaf values as ``value``, or as ``value_table`` + ``value_code`` when that is smaller
+    (values compared by their bits: -0.0 and 0.0 stay apart, every NaN kept as it was)."""
+    bits = values.view(np.uint64)
+    table_bits, code = np.unique(bits, return_inverse=True)
+    k = len(table_bits)
+    ctype = next(t for t in (np.uint8, np.uint16, np.uint32, np.uint64) if k - 1 <= np.iinfo(t).max)
+    if k * 8 + len(values) * np.dtype(ctype).itemsize >= len(values) * 8:
+        return {prefix + "value": values}
+    return {prefix + "value_table": table_bits.view(np.float64), prefix + "value_code": code.reshape(-1).astype(ctype)}
+
+
+def leaf_values_of(arrays: Any, prefix: str) -> np.ndarray:
+    """The leaf values stored by :func:`_leaf_value_arrays` (trusted arrays)."""
+    if prefix + "value" in arrays:
+        return np.asarray(arrays[prefix + "value"], dtype=np.float64)
+    return np.asarray(arrays[prefix + "value_table"], dtype=np.float64)[np.asarray(arrays[prefix + "value_code"])]
+
+
+def preorder_valid(is_leaf: np.ndarray, roots: np.ndarray) -> bool:
+    """Whether the leaf flags ``is_leaf``, cut at ``roots`` (strictly increasing from 0),
+    are each a full binary tree's nodes in depth-first order: within a tree, counting +1 a
+    leaf and -1 a split, every proper prefix sums to at most 0 and the whole tree to 1."""
+    n = len(is_leaf)
+    if n == 0 or len(roots) == 0 or roots[0] != 0 or np.any(np.diff(roots) <= 0) or roots[-1] >= n:
+        return False
+    c = np.cumsum(np.where(is_leaf, 1, -1), dtype=np.int64)
+    base = np.r_[0, c[roots[1:] - 1]]  # the sum before each tree
+    rel = c - np.repeat(base, np.diff(np.r_[roots, n]))
+    last = np.r_[roots[1:] - 1, n - 1]
+    ok = rel <= 0
+    ok[last] = rel[last] == 1
+    return bool(ok.all())
+
+
+def preorder_children(is_leaf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Global child indices of trees numbered depth-first (leaf flags that pass
+    :func:`preorder_valid`): a split's left child is the next node, its right child the
+    node after its left subtree, which ends where the running count (+1 a leaf, -1 a
+    split) first exceeds its value at the split by one. Leaves get -1."""
+    n = len(is_leaf)
+    c = np.cumsum(np.where(is_leaf, 1, -1), dtype=np.int64)
+    inner = np.flatnonzero(~is_leaf)
+    # positions sorted by (count, position), searched for the first position after j with
+    # count c_j + 1; the counts span about the trees' depth plus their number, so a stable
+    # sort of them as int16 (a radix sort) orders the positions (keys below 2**64 for n < 2**31)
+    lo = int(c.min())
+    span = int(c.max()) - lo
+    order = np.argsort((c - lo).astype(np.int16) if span < 2**15 else c, kind="stable")
+    m = np.uint64(n + 1)
+    key = (c[order] - lo).astype(np.uint64) * m + order.astype(np.uint64)
+    hit = key[np.searchsorted(key, (c[inner] + 1 - lo).astype(np.uint64) * m + (inner + 1).astype(np.uint64))]
+    left = np.full(n, -1, np.int64)
+    right = np.full(n, -1, np.int64)
+    left[inner] = inner + 1
+    right[inner] = (hit % m).astype(np.int64) + 1
+    return left, right
+
+
+def expand_compact(is_leaf: np.ndarray, roots: np.ndarray, feature: np.ndarray, threshold: np.ndarray,
+                   values: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-node arrays (:class:`TreeEnsemble`'s fields) from the compact layout: leaves get
+    feature -2 and threshold -2.0 (scikit-learn's marks), splits value 0.0 (never read)."""
+    n = len(is_leaf)
+    left, right = preorder_children(is_leaf)
+    f = np.full(n, -2, np.int64)
+    f[~is_leaf] = feature
+    t = np.full(n, -2.0)
+    t[~is_leaf] = threshold
+    v = np.zeros(n)
+    v[is_leaf] = values
+    return {"left": left, "right": right, "feature": f, "threshold": t, "value": v, "roots": np.asarray(roots, np.int64)}
 
 
 def constant_ensemble(value: float, n_trees: int) -> TreeEnsemble:
