@@ -270,7 +270,7 @@ def test_fingerprint_of_dictionary_sources_is_that_of_their_strings():
 
 @pytest.mark.parametrize("cut", [1, 3, 4, 5])
 def test_sorted_encoding_across_chunks_is_the_hashed_encoding(cut):
-    from offline_adp.data.dataset import encode_strings, sorted_encoding
+    from offline_adp.data.columns import encode_strings, sorted_encoding
 
     ids = ["a", "a", "b", "b", "b", "c"]
     order = np.array([0, 1, 0, 1, 2, 0])

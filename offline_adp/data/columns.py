@@ -1,0 +1,156 @@
+"""Column encodings of a dataset table (episode ids as dictionary codes, without a hash
+where the ids arrive sorted) and the block-wise hashing behind its fingerprint; used by
+:class:`offline_adp.data.dataset.TransitionDataset` and the Parquet ingestion."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+
+def encode_strings(col: pa.Array | pa.ChunkedArray) -> pa.DictionaryArray:
+    """Dictionary-encode a string column into one array whose codes follow first appearance.
+
+    Chunks are combined first: encoding chunk by chunk would give each chunk its own
+    dictionary and codes that disagree across chunks.
+    """
+    if isinstance(col, pa.ChunkedArray):
+        col = col.combine_chunks()
+    return pc.dictionary_encode(col)
+
+
+_HASH_BLOCK = 1 << 16  # values per conversion block: temporaries stay in cache, never a column copy
+
+
+def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+    """Feed one column's content into ``h``, the same for any chunking of the same values.
+
+    ``encoding`` (codes in first-appearance order, distinct values) may be given for a
+    string column without nulls whose encoding is already known (the episode ids). The
+    bytes fed are exactly those of the definition in :meth:`TransitionDataset.fingerprint`;
+    they are produced chunk by chunk and block by block, without copying whole columns.
+    """
+    n = len(col)
+    name_b = name.encode()
+    h.update(len(name_b).to_bytes(8, "little") + name_b + n.to_bytes(8, "little"))
+    is_dict = pa.types.is_dictionary(col.type)
+    is_str = is_dict or pa.types.is_string(col.type) or pa.types.is_large_string(col.type)
+    if is_str and not col.null_count and n:
+        codes, mapping, words_arr = (*encoding[:1], None, encoding[1]) if encoding is not None else _first_appearance_encoding(col)
+        h.update(bytes((n + 7) // 8))  # the packed null mask: no nulls
+        words = [str(w).encode() for w in words_arr]  # one per distinct value
+        h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
+        if mapping is None and codes.dtype == np.int64:
+            h.update(np.ascontiguousarray(codes))
+            return
+        for lo in range(0, n, _HASH_BLOCK):  # codes as int64, block by block
+            block = codes[lo:lo + _HASH_BLOCK]
+            h.update(mapping[block] if mapping is not None else block.astype(np.int64))
+        return
+    if is_dict:
+        col = col.cast(col.type.value_type)
+    nulls = np.asarray(pc.is_null(col), dtype=bool) if col.null_count else np.zeros(n, bool)
+    h.update(np.packbits(nulls).tobytes())
+    if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
+        enc = encode_strings(col.cast(pa.large_string()).fill_null(""))
+        words = [w.encode() for w in enc.dictionary.to_pylist()]  # one per distinct value
+        h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
+        h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
+        return
+    kind = ("b" if pa.types.is_boolean(col.type) else "i" if pa.types.is_integer(col.type)
+            else "f" if pa.types.is_floating(col.type) else None)
+    if kind is None:
+        h.update(str(col.type).encode())  # any other type: its values in Python form
+        h.update(repr(col.to_pylist()).encode())
+        return
+    if col.null_count:
+        col = col.fill_null(False if kind == "b" else 0 if kind == "i" else 0.0)
+    for chunk in col.chunks:
+        arr = chunk.to_numpy(zero_copy_only=False)  # no nulls left: a view, except booleans (unpacked)
+        if kind == "b":
+            h.update(np.ascontiguousarray(arr, dtype=bool).view(np.uint8))
+        elif kind == "i" and arr.dtype == np.int64:
+            h.update(np.ascontiguousarray(arr))
+        else:
+            for lo in range(0, len(arr), _HASH_BLOCK):
+                block = arr[lo:lo + _HASH_BLOCK]
+                if kind == "i":
+                    h.update(block.astype(np.int64))
+                else:
+                    b = np.asarray(block, dtype=np.float64) + 0.0  # -0.0 and 0.0 are the same value
+                    b[np.isnan(b)] = np.nan  # one NaN whatever its payload
+                    h.update(b)
+
+
+def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """What ``encode_strings`` of a string or dictionary column without nulls gives, as
+    ``(indices, mapping, words)``: the codes (first-appearance order) are
+    ``mapping[indices]`` (``indices`` when ``mapping`` is None), ``words`` the distinct
+    values. A dictionary column is re-encoded through its integer indices, never
+    materialising its strings or a second column of codes."""
+    if not pa.types.is_dictionary(col.type):
+        enc = encode_strings(col)
+        return enc.indices.to_numpy(zero_copy_only=False), None, np.asarray(enc.dictionary.to_pylist(), dtype=object)
+    col = col.unify_dictionaries()
+    chunks = [c for c in col.chunks if len(c)]
+    dictionary = chunks[0].dictionary
+    by_index = pc.dictionary_encode(pa.chunked_array([c.indices for c in chunks]).combine_chunks())
+    values = dictionary.take(by_index.dictionary)  # per distinct index, in first-appearance order
+    by_value = pc.dictionary_encode(values.cast(pa.large_string()))  # indices with equal values merge
+    mapping = by_value.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+    return by_index.indices.to_numpy(zero_copy_only=False), mapping, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
+
+
+def sorted_encoding(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.DictionaryArray | None:
+    """The encoding of ``ids`` if rows are already ordered by (id, order), else None.
+
+    Checked without sorting or hashing: each id is compared with the next (chunk by
+    chunk, no copy); ids in order make first-appearance order lexical order, so the
+    codes are the running count of id changes and the dictionary the id at each change.
+    Then ``order`` must not decrease within an id.
+    """
+    chunked = ids if isinstance(ids, pa.ChunkedArray) else pa.chunked_array([ids])
+    n = len(chunked)
+    if n == 0 or chunked.null_count:
+        return _sorted_encoding_hashed(ids, order)
+    changes = []
+    prev: pa.Scalar | None = None
+    for c in chunked.chunks:
+        if not len(c):
+            continue
+        if prev is not None:
+            a, b = prev.as_py(), c[0].as_py()
+            if (b.encode() if isinstance(b, str) else b) < (a.encode() if isinstance(a, str) else a):
+                return None
+            changes.append(np.array([a != b]))
+        if len(c) > 1:
+            head, tail = c.slice(0, len(c) - 1), c.slice(1)
+            if pc.any(pc.less(tail, head)).as_py():
+                return None
+            changes.append(np.asarray(pc.not_equal(tail, head).to_numpy(zero_copy_only=False), dtype=bool))
+        prev = c[len(c) - 1]
+    first = np.concatenate([np.ones(1, bool), *changes])
+    del changes
+    if (~first[1:] & (order[1:] < order[:-1])).any():
+        return None
+    dictionary = chunked.take(pa.array(np.flatnonzero(first))).combine_chunks()
+    if pa.types.is_large_string(dictionary.type):
+        dictionary = dictionary.cast(pa.string())
+    codes = np.cumsum(first, dtype=np.int32)
+    codes -= 1
+    return pa.DictionaryArray.from_arrays(pa.array(codes), dictionary)
+
+
+def _sorted_encoding_hashed(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.DictionaryArray | None:
+    enc = encode_strings(ids)
+    dictionary = enc.dictionary
+    if len(dictionary) > 1 and not bool(pc.all(pc.less(dictionary[:-1], dictionary[1:])).as_py()):
+        return None
+    codes = enc.indices.to_numpy(zero_copy_only=False)
+    if (codes[1:] < codes[:-1]).any():
+        return None
+    same = codes[1:] == codes[:-1]
+    return None if (same & (order[1:] < order[:-1])).any() else enc
