@@ -120,7 +120,6 @@ def test_a_failing_command_still_reports_its_warnings_and_the_error(tmp_path, ca
 
         raise OfflineADPError("no such thing")
 
-    monkeypatch.setattr(cli, "cmd_inspect", boom)
     parser = cli.build_parser
     monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), boom))
     assert main(["inspect", str(tmp_path)]) == 2

@@ -32,7 +32,7 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD.replace('algorithm = "fqi"', 'algorithm = "fqx"'), r"fit.algorithm: expected one of 'fqi', 'fqe', 'api', 'cpi'"),
     (GOOD + "[fit.params]\nn_iteratons = 3\n", r"fit.params.n_iteratons: unknown key \(did you mean 'n_iterations'\?\)"),
     (GOOD + '[fit.params]\nmode = "fast"\n', r"fit.params.mode must be a str among"),
-    (GOOD + '[fit.params]\nn_iterations = "ten"\n', r"fit.params.n_iterations: Input should be a valid integer"),
+    (GOOD + '[fit.params]\nn_iterations = "ten"\n', r"fit.params.n_iterations must be an int in the range \[1, inf\) or a str among \{'auto'\}"),
     (GOOD + '[evaluate]\nsimulator = "path_trackin"\n', r"simulator = 'path_trackin': known simulators are"),
     (GOOD + "[evaluate]\nepisodes = 0\n", r"evaluate.episodes: Input should be greater than or equal to 1"),
     (GOOD.replace('simulate = "tabular"', 'simulate = "tabulr"'), r"simulate = 'tabulr': known problems"),

@@ -60,36 +60,59 @@ def versions() -> dict[str, str]:
     return {"offline_adp": __version__, "numpy": np.__version__, "scikit-learn": sklearn.__version__, "lightgbm": lightgbm.__version__}
 
 
+# ----------------------------------------------------------------------------- kinds
+class _Kinds:
+    """A registry of savable kinds (Q-functions, policies): ``kind`` in the JSON names the
+    reader; the writer is found by the object's class (its MRO), never by an isinstance chain."""
+
+    def __init__(self, what: str, load: Any = None) -> None:
+        self.what, self.load = what, load  # load(): registers the package's kinds on first use
+        self.writers: dict[type, tuple[str, Any]] = {}
+        self.readers: dict[str, Any] = {}
+
+    def register(self, kind: str, cls: type, write: Any, read: Any) -> None:
+        self.writers[cls] = (kind, write)
+        self.readers[kind] = read
+
+    def _ready(self) -> None:
+        if self.load is not None and not self.readers:
+            self.load()
+
+    def export(self, obj: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+        self._ready()
+        for cls in type(obj).__mro__:
+            if cls in self.writers:
+                kind, write = self.writers[cls]
+                return {"kind": kind, **write(obj, arrays, key)}
+        raise ArtifactError(f"cannot save a {type(obj).__name__} {self.what} safely")
+
+    def read(self, spec: Any, arrays: Any, where: str) -> Any:
+        self._ready()
+        if not isinstance(spec, dict):
+            raise ArtifactError(f"{where}: {self.what} entry is not a JSON object")
+        read = self.readers.get(spec.get("kind"))  # type: ignore[arg-type]
+        if read is None:
+            raise ArtifactError(f"{where}: unknown {self.what} kind {spec.get('kind')!r}; known: {sorted(self.readers)}")
+        return read(spec, arrays, where)
+
+
 # ----------------------------------------------------------------------------- Q-functions
-# Each Q-function kind registers how it is written and read, as policies do below: ``kind``
-# in q.json names the reader; the writer is found by the Q-function's class (its MRO).
-_Q_WRITERS: dict[type, tuple[str, Any]] = {}
-_Q_READERS: dict[str, Any] = {}
+_Q_KINDS = _Kinds("Q-function")
 
 
 def register_q_kind(kind: str, cls: type, write: Any, read: Any) -> None:
     """Make Q-functions of class ``cls`` savable as ``kind``: ``write(q, arrays, key) ->
     dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> QFunction``
     (checking every field before use; ``ArtifactError`` naming ``where``)."""
-    _Q_WRITERS[cls] = (kind, write)
-    _Q_READERS[kind] = read
+    _Q_KINDS.register(kind, cls, write, read)
 
 
 def _export_q(q: QFunction, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    for cls in type(q).__mro__:
-        if cls in _Q_WRITERS:
-            kind, write = _Q_WRITERS[cls]
-            return {"kind": kind, **write(q, arrays, key)}
-    raise ArtifactError(f"cannot save a {type(q).__name__}")
+    return _Q_KINDS.export(q, arrays, key)
 
 
 def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFunction:
-    if not isinstance(spec, dict):
-        raise ArtifactError(f"{where}: Q-function entry is not a JSON object")
-    read = _Q_READERS.get(spec.get("kind"))  # type: ignore[arg-type]
-    if read is None:
-        raise ArtifactError(f"{where}: unknown Q-function kind {spec.get('kind')!r}; known: {sorted(_Q_READERS)}")
-    return read(spec, arrays, where)
+    return _Q_KINDS.read(spec, arrays, where)
 
 
 def _write_time_indexed(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
@@ -267,37 +290,19 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- policies
-# Each policy kind registers how it is written and read: ``kind`` in policy.json names the
-# reader; the writer is found by the policy's class (its MRO), never by an isinstance chain.
-_POLICY_WRITERS: dict[type, tuple[str, Any]] = {}
-_POLICY_READERS: dict[str, Any] = {}
-
-
 def register_policy_kind(kind: str, cls: type, write: Any, read: Any) -> None:
     """Make policies of class ``cls`` savable as ``kind``: ``write(pi, arrays, key) ->
     dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> policy``
     (checking every field before use; ``ArtifactError`` naming ``where``)."""
-    _POLICY_WRITERS[cls] = (kind, write)
-    _POLICY_READERS[kind] = read
+    _POLICY_KINDS.register(kind, cls, write, read)
 
 
 def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    _register_policies()
-    for cls in type(pi).__mro__:
-        if cls in _POLICY_WRITERS:
-            kind, write = _POLICY_WRITERS[cls]
-            return {"kind": kind, **write(pi, arrays, key)}
-    raise ArtifactError(f"cannot save a {type(pi).__name__} policy safely")
+    return _POLICY_KINDS.export(pi, arrays, key)
 
 
 def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
-    _register_policies()
-    if not isinstance(spec, dict):
-        raise ArtifactError(f"{where}: policy entry is not a JSON object")
-    read = _POLICY_READERS.get(spec.get("kind"))  # type: ignore[arg-type]
-    if read is None:
-        raise ArtifactError(f"{where}: unknown policy kind {spec.get('kind')!r}; known: {sorted(_POLICY_READERS)}")
-    return read(spec, arrays, where)
+    return _POLICY_KINDS.read(spec, arrays, where)
 
 
 def _write_tabular(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
@@ -364,9 +369,7 @@ def _read_classifier(spec: dict[str, Any], arrays: Any, where: str) -> Any:
 
 
 def _register_policies() -> None:
-    """Register the package's policy kinds (once; policies import lazily to keep this module light)."""
-    if _POLICY_READERS:
-        return
+    """Register the package's policy kinds (on first use: policies import lazily to keep this module light)."""
     from offline_adp.policies import (
         ClassifierPolicy,
         GreedyPolicy,
@@ -392,6 +395,9 @@ def _register_policies() -> None:
                          lambda spec, arrays, where: NonStationaryPolicy(
                              _read_parts(spec, arrays, where, "steps", "non_stationary")))
     register_policy_kind("classifier", ClassifierPolicy, _write_classifier, _read_classifier)
+
+
+_POLICY_KINDS = _Kinds("policy", load=_register_policies)
 
 
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:

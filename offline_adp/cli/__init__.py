@@ -16,31 +16,10 @@ import sys
 from collections.abc import Sequence
 
 from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, log
-from offline_adp.cli.data_commands import (
-    cmd_ingest_mcap,
-    cmd_ingest_parquet,
-    cmd_inspect,
-    cmd_mcap_info,
-    cmd_simulate,
-    cmd_validate,
-)
-from offline_adp.cli.export_commands import cmd_annotate, cmd_convert, cmd_export
-from offline_adp.cli.fit_commands import (
-    cmd_evaluate,
-    cmd_fit,
-    cmd_report,
-    cmd_run,
-    cmd_schema,
-    fit_summary_lines,
-)
-from offline_adp.cli.parser import build_parser
+from offline_adp.cli.parser import build_parser  # the commands: offline_adp.cli.*_commands
 from offline_adp.errors import OfflineADPError
 
-__all__ = [
-    "ALGORITHM_NAMES", "FORMATS", "build_parser", "cmd_annotate", "cmd_convert", "cmd_evaluate", "cmd_export",
-    "cmd_fit", "cmd_ingest_mcap", "cmd_ingest_parquet", "cmd_inspect", "cmd_mcap_info", "cmd_report", "cmd_run",
-    "cmd_schema", "cmd_simulate", "cmd_validate", "fit_summary_lines", "log", "main",
-]
+__all__ = ["ALGORITHM_NAMES", "FORMATS", "build_parser", "log", "main"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
