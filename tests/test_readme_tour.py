@@ -5,9 +5,11 @@ a fresh directory laid out like the repository's root after ``make demo``: ``.ve
 (``offline-adp`` and ``python`` from the interpreter running the tests, with this
 checkout's package first on the path) and ``data/specs`` (the repository's specs). A
 ``sh`` block runs in bash with ``-e`` (a failing command fails the block); a ``python``
-block runs in the same interpreter. Each block must succeed; the outputs the tour names
-must exist afterwards. So a renamed option, a changed default or a broken command breaks
-this test instead of the README.
+block runs in the same interpreter. Each block must succeed and print on stdout exactly
+the lines its ``#| `` comments show (when it has any: the fit is deterministic for a
+seed), and the outputs the tour names must exist afterwards. So a renamed option, a
+changed default, a changed number or a broken command breaks this test instead of the
+README.
 """
 
 from __future__ import annotations
@@ -66,6 +68,9 @@ def test_the_tour_runs_as_written(tmp_path):
         cmd = ["bash", "-e", "-c", code] if lang == "sh" else [sys.executable, "-c", code]
         done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, f"tour block {i} ({lang}) failed:\n{code}\n--- stdout\n{done.stdout}\n--- stderr\n{done.stderr}"
+        expected = [line[3:] for line in code.splitlines() if line.startswith("#| ")]
+        if expected:
+            assert done.stdout.splitlines() == expected, f"tour block {i} printed other lines than its #| comments"
     for path in ("data/pt/meta/info.json", "data/pt-mcap/meta/info.json", "runs/pt-fqi/model/history.csv",
                  "runs/pt-fqi/evaluation/metrics.json", "runs/pt-fqi/report/report.html", "policy.onnx",
                  "annotated.mcap", "pt.npz", "data/pt-from-d4rl/meta/info.json",
