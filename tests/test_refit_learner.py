@@ -57,20 +57,26 @@ def test_derived_queries_equal_direct_predictions_on_shuffled_rows(encoding):
 
 
 def test_history_is_measured_on_the_training_pairs(small_pt):
-    """sup_dq / max_abs_q in the history are those of Q_k on the training pairs (computed
-    here independently from each iteration's saved Q)."""
+    """sup_dq in the history is sup |Q_k - Q_{k-1}| over the training pairs and every
+    next-state pair a target reads (the contraction's sup norm, fqi_monitor), max_abs_q
+    max |Q_k| on the training pairs (computed here independently from each iteration's
+    saved Q)."""
     qs = []
     f = FittedQIteration(gamma=0.9, mode="refit", n_iterations=4, regressor_params={"n_estimators": 5, "n_jobs": 1})
     for _ in f.fit_iter(small_pt):
         qs.append(f.q_function_)
     a = small_pt.arrays()
+    boot = ~a.terminated.astype(bool)
     vals = [q.values(a.obs)[np.arange(len(a.obs)), a.action] for q in qs]
-    prev = np.zeros(len(a.obs))
-    for k, v in enumerate(vals):
+    nxt = [q.values(a.next_obs)[boot] for q in qs]
+    prev, prev_next = np.zeros(len(a.obs)), np.zeros_like(nxt[0])
+    for k, (v, w) in enumerate(zip(vals, nxt, strict=True)):
         row = f.history_.iloc[k]
-        assert row["sup_dq"] == pytest.approx(np.abs(v - prev).max(), rel=1e-12, abs=1e-12)
+        want = max(np.abs(v - prev).max(), np.abs(w - prev_next).max())
+        assert row["sup_dq"] == pytest.approx(want, rel=1e-12, abs=1e-12)
+        assert row["sup_dq"] >= np.abs(v - prev).max()  # never below the training pairs' own change
         assert row["max_abs_q"] == pytest.approx(np.abs(v).max(), rel=1e-12)
-        prev = v
+        prev, prev_next = v, w
 
 
 @pytest.mark.parametrize(("params", "jobs"), [({}, 1), ({"n_jobs": 2}, 2)])
