@@ -13,6 +13,7 @@ from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
+from offline_adp.trees.averaging import leaf_sums, resolve_n_jobs, thread_map
 from offline_adp.trees.ensemble import (
     TreeEnsemble,
     compiled_per_tree_leaves,
@@ -88,6 +89,10 @@ class FrozenTreesLearner(Learner):
             same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
         self._cache: dict[str, np.ndarray] = {}
+        params = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
+        # threads of the lookups and of every iteration's averaging: the regressor's n_jobs
+        # (-1, the extra_trees default: every core); the numbers do not depend on it
+        self.n_jobs = resolve_n_jobs(params.get("n_jobs"))
 
     def _structure_model(self, k: int) -> Any:
         model = seeded(clone(self.regressor), self.seed + k)
@@ -158,8 +163,6 @@ class FrozenTreesLearner(Learner):
         self.ensemble, self._forest = None, forest
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
         trees = [e.tree_ for e in forest.estimators_]
-        if train_leaves is not None:  # local ids -> global
-            train_leaves = [leaf.astype(np.int64) + int(r) for leaf, r in zip(train_leaves, self._roots[start:], strict=True)]
         self._operators(compiled_per_tree_leaves(trees[start:], self._roots[start:]), start=start,
                         train_leaves=train_leaves)
 
@@ -214,16 +217,19 @@ class FrozenTreesLearner(Learner):
 
     def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
         """The training leaf matrix, the leaf weights and the query operators (leaf positions),
-        tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
-        every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
+        tree by tree: ``tree_leaves(X)`` returns ``leaves(t)``, the global leaf id of every
+        row of ``X`` in tree ``t``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
         take their leaves from the next-state lookup (a third of the lookups with two
         actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
-        held: one tree's lookups at a time. ``start > 0``: the first ``start`` trees are
+        held: one tree's lookups at a time per thread. The trees are looked up in
+        ``n_jobs`` threads, each tree's positions local to it (its own compact leaves,
+        numbered in node order), then shifted by the leaves of the trees before it: the
+        same numbers for any thread count. ``start > 0``: the first ``start`` trees are
         those whose lookups are held already (a screened build growing its forest); their
-        positions are kept and ``tree_leaves`` yields the later trees only.
+        positions are kept and ``tree_leaves`` looks up the later trees only.
 
-        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, global
-        ids): every training row's leaf is known, so nothing is looked up for the training
+        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, local
+        node ids): every training row's leaf is known, so nothing is looked up for the training
         rows, and the next-state queries they repeat are not looked up either: half of them
         with two actions."""
         n, m = len(self.phi), len(self._roots)
@@ -238,56 +244,79 @@ class FrozenTreesLearner(Learner):
             looked = np.ones(len(inputs["next"]), bool)
             looked[from_next] = False
             inputs = {**inputs, "next": inputs["next"][looked]}
-        gens = {q: tree_leaves(inputs[q]) for q in names}
+        lookups = {q: tree_leaves(inputs[q]) for q in names}
         if rest.any() and train_leaves is None:
-            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
-        if looked is not None:
-            inputs["next"] = np.empty((len(looked), 0))  # only its length is read below
+            lookups[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
+        sizes = {q: (len(looked) if q == "next" and looked is not None else len(inputs[q])) for q in names}
+        del inputs
         ends = np.r_[self._roots[1:], self._n_nodes]
         held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
-        self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
+        self.pos: dict[str, np.ndarray] = {}  # the previous structure's positions go before the new ones are made
+        self.pos = {q: np.empty((m, sizes[q]), np.int32) for q in names}
         train = np.empty((m, n), np.int32)
-        ids, bounds = [], [0]
-        if start:  # the same trees, the same compact leaves; "no training leaf" is re-marked below
+        if start:  # the same trees, the same compact leaves (re-marked for the new leaf count below)
             for q, p in [*self.pos.items(), ("train", train)]:
                 p[:start] = held[q][:start]
-                p[:start][p[:start] == len(held_ids)] = -1
-            ids, bounds = [held_ids], [int(b) for b in held_bounds[:start + 1]]
             del held
-        for t in range(start, m):
-            raw = {q: next(g) for q, g in gens.items()}
-            root, lo = int(self._roots[t]), bounds[-1]
+
+        def one(t: int) -> np.ndarray:
+            """Tree t's positions, local to its compact leaves (-1: a leaf without training
+            rows), written into its rows; returns its leaves' global node ids."""
+            raw = {q: f(t - start) for q, f in lookups.items()}
+            root = int(self._roots[t])
             if train_leaves is not None:
                 leaf = train_leaves[t - start]
                 if looked is not None:
                     full = np.empty(len(looked), np.int64)
                     full[looked] = raw["next"]
-                    full[from_next] = leaf[reuse]
+                    full[from_next] = leaf[reuse] + root
                     raw["next"] = full
+                leaf_local = leaf
             else:
                 leaf = np.empty(n, np.int64)
                 leaf[rest] = raw.pop("", None) if rest.any() else 0
                 if len(reuse):
                     leaf[reuse] = raw["next"][from_next]
+                leaf_local = leaf - root
             used = np.zeros(int(ends[t]) - root, bool)
-            used[leaf - root] = True
+            used[leaf_local] = True
             local = np.flatnonzero(used)  # this tree's leaves holding training samples
             lookup = np.full(len(used), -1, np.int32)
-            lookup[local] = lo + np.arange(len(local), dtype=np.int32)
-            train[t] = lookup[leaf - root]
+            lookup[local] = np.arange(len(local), dtype=np.int32)
+            train[t] = lookup[leaf_local]
             for q in names:
-                self.pos[q][t] = lookup[raw[q] - root]  # -1: a leaf without training samples
-            ids.append(local + root)
-            bounds.append(lo + len(local))
+                r = raw.pop(q)
+                r -= root
+                self.pos[q][t] = lookup[r]
+            return local + root
+
+        new_ids = thread_map(one, range(start, m), self.n_jobs)
+        ids = ([held_ids] if start else []) + new_ids
+        bounds = np.r_[np.asarray(held_bounds[:start + 1], np.int64) if start else np.zeros(1, np.int64),
+                       (int(held_bounds[start]) if start else 0) + np.cumsum([len(i) for i in new_ids], dtype=np.int64)]
         self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
         L = len(self.leaf_ids)
-        for q in names:  # a leaf without training weight reads value L (0)
-            p = self.pos[q]
-            p[p < 0] = L
-        for q, p in [*self.pos.items(), ("train", train)]:  # _tree_mean gathers with mode="clip": keep them in range
+        old_L = len(held_ids) if start else None
+
+        def shift(t: int) -> None:
+            """Tree t's positions from local to global compact leaves; a leaf without
+            training weight reads value L (0)."""
+            lo = int(bounds[t])
+            for q, p in [*self.pos.items(), ("train", train)]:
+                row = p[t]
+                if t < start:  # held: already global; "no training leaf" was the old L
+                    if q != "train":
+                        row[row == old_L] = L
+                    continue
+                row += lo
+                if q != "train":
+                    row[row < lo] = L
+
+        thread_map(shift, range(m), self.n_jobs)
+        for q, p in [*self.pos.items(), ("train", train)]:  # the gathers skip bounds checks: keep them in range
             if p.size and (int(p.min()) < 0 or int(p.max()) > L):
                 raise RuntimeError(f"frozen structure: leaf positions of {q!r} outside [0, {L}]")
-        self._bounds, self._m = np.asarray(bounds), m
+        self._bounds, self._m = bounds, m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         self.pos["train"] = train  # every training leaf holds its own sample
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
@@ -299,11 +328,9 @@ class FrozenTreesLearner(Learner):
         return ensemble_per_tree_leaves(ens, self.encoder.pairs(self.phi[:1], self.actions[:1]))
 
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
-        """``sum of v_i`` over the training rows in each leaf (compact index)."""
-        pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
-        for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
-            out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
-        return out
+        """``sum of v_i`` over the training rows in each leaf (compact index), trees in
+        ``n_jobs`` threads (rows summed in order: the same numbers for any count)."""
+        return leaf_sums(self.pos["train"], self._bounds, v, self.n_jobs)
 
     def fit(self, y: np.ndarray, k: int) -> None:
         if self._pending or k in self.restructure_at:
@@ -331,10 +358,10 @@ class FrozenTreesLearner(Learner):
             rest[self.reuse] = False
             if self._rest is None:
                 self._rest = np.ascontiguousarray(self.pos[name][:, rest])
-            v[rest] = tree_mean(values, self._rest)
+            v[rest] = tree_mean(values, self._rest, self.n_jobs)
             v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
         else:
-            v = tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
+            v = tree_mean(values, self.pos[name], self.n_jobs)  # mean over trees of the reached leaves
         self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
         return self._cache[name]
 
