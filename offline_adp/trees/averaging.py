@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-#: queries per chunk of :func:`tree_mean` (its (chunk,) accumulator stays in cache)
+#: fewest queries per thread of :func:`tree_mean`
 MEAN_CHUNK = 16_384
 
 
@@ -133,12 +133,12 @@ def tree_mean(values: np.ndarray, pos: np.ndarray, n_jobs: int = 1) -> np.ndarra
         return out / m
     out = np.empty(nq)
     values = np.ascontiguousarray(values, dtype=np.float64)
-    chunks = [(a, min(a + MEAN_CHUNK, nq)) for a in range(0, nq, MEAN_CHUNK)]
-    groups = [chunks[a:b] for a, b in _split(len(chunks), n_jobs)]
+    # one contiguous range of queries per thread, each tree's gathers over the whole range
+    # (within that tree's leaves: they stay in cache across the range)
+    ranges = _split(nq, n_jobs, MEAN_CHUNK)
 
-    def run(group: list[tuple[int, int]]) -> None:
-        for a, b in group:
-            _mean_kernel(values, pos, a, b, out)
+    def run(r: tuple[int, int]) -> None:
+        _mean_kernel(values, pos, r[0], r[1], out)
 
-    thread_map(run, groups, n_jobs)
+    thread_map(run, ranges, n_jobs)
     return out
