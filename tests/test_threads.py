@@ -79,3 +79,31 @@ def test_default_regressor_uses_every_core(ds):
     from offline_adp.regressors import make_regressor
 
     assert averaging.resolve_n_jobs(make_regressor("extra_trees").get_params()["n_jobs"]) == effective_n_jobs(-1)
+
+
+@pytest.mark.skipif(not extra_trees.available(), reason="numba is not installed")
+def test_compact_tree_reaches_scikit_learns_leaves():
+    """The frozen learner's trees (CompactTree: float32-floored thresholds, 32 bytes a node)
+    reach the leaf scikit-learn's ``Tree.apply`` reaches on the same node records, inputs
+    equal to a threshold included, and export the same arrays."""
+    from offline_adp.trees.sklearn import sklearn_tree_from_records, tree_arrays
+
+    rng = np.random.default_rng(2)
+    n, d = 3000, 3
+    X = rng.normal(size=(n, d))
+    X[:, 2] = np.round(X[:, 2], 1)  # repeated values: cuts between close float32 values
+    y = X[:, 0] - X[:, 2] + 0.1 * rng.normal(size=n)
+    params = extra_trees.TreeParams(3, d, 2, 1, 2**31 - 1, False, n, 0, 1)
+    pairs = extra_trees.grow_trees(X, y, None, params, finish=lambda t: (
+        extra_trees.CompactTree(t), sklearn_tree_from_records(t.nodes.copy(), t.value.copy(), d)))
+    for compact, tree in pairs:
+        inner = tree.feature >= 0
+        at = np.tile(np.float32(X[:50]), (2, 1))  # rows that sit exactly on cuts, and just above
+        at[:50, 0] = np.float32(tree.threshold[inner][:50].mean())
+        Q = np.ascontiguousarray(np.r_[np.float32(X), np.float32(rng.normal(size=(2000, d))) * 3, at], dtype=np.float32)
+        on = np.repeat(Q[:1], int(inner.sum()), axis=0)
+        on[np.arange(len(on)), tree.feature[inner]] = np.float32(tree.threshold[inner])  # may round above the cut
+        Q = np.ascontiguousarray(np.r_[Q, on])
+        assert np.array_equal(compact.apply(Q), tree.apply(Q))
+        ours, theirs = tree_arrays([compact]), tree_arrays([tree])
+        assert all(np.array_equal(ours[k], theirs[k]) for k in theirs)

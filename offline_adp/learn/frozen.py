@@ -21,7 +21,7 @@ from offline_adp.trees.ensemble import (
     ensemble_per_tree_leaves,
     tree_mean,
 )
-from offline_adp.trees.sklearn import sklearn_tree_from_records, sklearn_trees_known
+from offline_adp.trees.sklearn import sklearn_trees_known
 
 
 class FrozenTreesLearner(Learner):
@@ -176,21 +176,19 @@ class FrozenTreesLearner(Learner):
 
     def _grow(self, X: np.ndarray, y: np.ndarray, native: compiled.TreeParams,
               trees: range) -> list[tuple[Any, np.ndarray | None]]:
-        """Trees ``trees`` from the compiled builder, each as a scikit-learn ``Tree`` (made
-        in the builder's thread, so its full-size buffers go at once) and its training
-        rows' leaves (None unless every row is in the tree)."""
-        d = X.shape[1]
-
+        """Trees ``trees`` from the compiled builder, each as a
+        :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node, made in the calling
+        thread) and its training rows' leaves (None unless every row is in the tree)."""
         def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
             leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
-            return sklearn_tree_from_records(t.nodes, t.value, d), leaf
+            return compiled.CompactTree(t), leaf
 
         every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
         return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
 
     def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
         """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
-        scikit-learn ``Tree`` objects set from their records (its compiled lookups, and the
+        :class:`~offline_adp.trees.builder.CompactTree` (their compiled lookups, and the
         export), with each training row's leaf where every row is in the tree.
         ``start > 0``: they follow the ``start`` trees held, as a screened build grows
         its forest."""
