@@ -181,7 +181,7 @@ class FrozenTreesLearner(Learner):
         thread) and its training rows' leaves (None unless every row is in the tree)."""
         def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
             leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
-            return compiled.CompactTree(t), leaf
+            return compiled.CompactTree.from_grown(t), leaf
 
         every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
         return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)

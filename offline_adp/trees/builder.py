@@ -161,16 +161,25 @@ class CompactTree:
     :func:`~offline_adp.trees.sklearn.tree_arrays` reads one (``node_count``,
     ``children_left``, ``children_right``, ``feature``, ``threshold``, ``value``)."""
 
-    def __init__(self, tree: GrownTree) -> None:
-        n = len(tree.nodes)
-        thr = np.array(tree.threshold, dtype=np.float64)
+    def __init__(self, left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold: np.ndarray,
+                 value: np.ndarray) -> None:
+        """From one tree's arrays (local node ids; leaves: children -1), copied."""
+        n = len(left)
+        if n >= 2**31 - 1:
+            raise ValueError(f"a tree of {n} nodes does not fit int32 node ids")
+        thr = np.array(threshold, dtype=np.float64)
         t32 = thr.astype(np.float32)
         above = t32.astype(np.float64) > thr
         t32[above] = np.nextafter(t32[above], np.float32(-np.inf))
         pk = np.empty((n, 4), np.int32)
-        pk[:, 0], pk[:, 1], pk[:, 2] = tree.left, tree.right, tree.feature
+        pk[:, 0], pk[:, 1], pk[:, 2] = left, right, feature
         pk[:, 3] = t32.view(np.int32)
-        self.packed, self.thresholds, self.values = pk, thr, np.array(tree.value, dtype=np.float64)
+        self.packed, self.thresholds, self.values = pk, thr, np.array(value, dtype=np.float64)
+
+    @classmethod
+    def from_grown(cls, tree: GrownTree) -> CompactTree:
+        """From the builder's node records (copied: the builder reuses its buffers)."""
+        return cls(tree.left, tree.right, tree.feature, tree.threshold, tree.value)
 
     @property
     def node_count(self) -> int:

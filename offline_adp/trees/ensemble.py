@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import ArtifactError
-from offline_adp.trees import averaging
+from offline_adp.trees import averaging, builder
 from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree, tree_arrays
 
 #: rows per chunk of a whole-ensemble leaf lookup (bounded temporaries)
@@ -102,8 +102,10 @@ class TreeEnsemble:
             raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
 
     def compiled_trees(self) -> list[Any] | None:
-        """scikit-learn ``Tree`` objects rebuilt from our arrays (plain numbers, no code
-        from any file), for its compiled ``apply``; None if this scikit-learn's tree state
+        """Compiled per-tree lookups rebuilt from our arrays (plain numbers, no code from any
+        file): :class:`~offline_adp.trees.builder.CompactTree` where numba is installed (the
+        leaves scikit-learn's ``apply`` reaches, in 32 bytes a node), else scikit-learn
+        ``Tree`` objects for its compiled ``apply``; None if this scikit-learn's tree state
         layout is not the one we know (then the numpy traversal is used)."""
         cached = getattr(self, "_trees", False)
         if cached is not False:
@@ -115,8 +117,15 @@ class TreeEnsemble:
         trees: list[Any] | None = []
         bounds = np.r_[self.roots, len(self.left)]
         n_features = int(max(self.feature.max(), 0)) + 1
+        compact = builder.available()  # 32 bytes a node and a lookup in threads (scikit-learn's: 72)
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             leaf = self.left[lo:hi] < 0
+            if compact:
+                trees.append(builder.CompactTree(np.where(leaf, -1, self.left[lo:hi] - lo),
+                                                 np.where(leaf, -1, self.right[lo:hi] - lo),
+                                                 np.where(leaf, -2, self.feature[lo:hi]),
+                                                 np.where(leaf, -2.0, self.threshold[lo:hi]), self.value[lo:hi]))
+                continue
             t = sklearn_tree(np.where(leaf, -1, self.left[lo:hi] - lo), np.where(leaf, -1, self.right[lo:hi] - lo),
                              np.where(leaf, -2, self.feature[lo:hi]), np.where(leaf, -2.0, self.threshold[lo:hi]),
                              self.value[lo:hi], n_features)
