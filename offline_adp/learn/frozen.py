@@ -333,6 +333,11 @@ class FrozenTreesLearner(Learner):
         constant-target structure), checked against our inputs' width first."""
         return ensemble_per_tree_leaves(ens, self.encoder.pairs(self.phi[:1], self.actions[:1]))
 
+    def leaf_weight_sums(self, v: np.ndarray) -> np.ndarray:
+        """``sum of v_i`` over the training rows in each leaf (compact index, as
+        ``leaf_ids``); the same numbers as ``np.bincount`` over each tree's leaves."""
+        return self._leaf_sums(np.asarray(v, dtype=np.float64))
+
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
         """``sum of v_i`` over the training rows in each leaf (compact index), trees in
         ``n_jobs`` threads (rows summed in order: the same numbers for any count)."""
