@@ -57,9 +57,14 @@ class FrozenTreesLearner(Learner):
     ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
     (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
     (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
-    An iteration is one bincount per tree over the tree-major (trees, n) leaf
-    matrix and one gather per tree (each within that tree's leaves, so cache-sized): no
-    tree fitting, no traversal.
+    An iteration is one leaf sum per tree over the tree-major (trees, n) int32 leaf
+    matrix and one gather per tree and query (each within that tree's leaves, so
+    cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run in
+    ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each
+    tree's work independent and every sum in one fixed order, so the Q-values are the
+    same to the last bit for any thread count (:mod:`offline_adp.trees.averaging`). A
+    build drops the previous structure first, and the compiled builder's trees are held
+    as :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node).
     With a fixed structure the update is a gamma-contraction, so it converges -- to the
     fixed point of *that* averager, which is only as good as the structure: a structure
     fitted to early targets cannot represent what later targets need.
