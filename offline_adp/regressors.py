@@ -8,7 +8,9 @@ name                prototype
 ==================  ===========================================================
 ``extra_trees``     Ernst et al. (2005) defaults: 50 trees, ``min_samples_split=2``,
                     all features considered at each split (``max_features=1.0``);
-                    fitted on all cores, predicting on one unless ``n_jobs`` is given
+                    fitted on all cores (``n_jobs=-1``; the frozen mode's
+                    lookups and averaging too, with the same numbers for any
+                    count), the refit mode predicting on one unless ``n_jobs`` is given
 ``random_forest``   50 bootstrapped trees, ``min_samples_split=2``, all features
 ``lightgbm``        ``LGBMRegressor`` (100 trees, 31 leaves, learning rate 0.1), one
                     thread unless ``n_jobs`` is given (see ``LIGHTGBM_DEFAULT_THREADS``)

@@ -20,29 +20,44 @@ from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
 from offline_adp.learn import FrozenTreesLearner
 
 
+def _averaging_matrix(pos: np.ndarray, w: np.ndarray, wsum: np.ndarray, L: int) -> Any:
+    """``M[leaf, i] = w_i / wsum[leaf]`` (0 where ``wsum`` is 0) as CSR, built column by
+    column (row ``i``'s ``m`` leaves are ``pos[:, i]``) with no tree-major (m * n) index
+    temporaries: the data, its int32 leaf indices, then one conversion."""
+    m, n = pos.shape
+    idx = np.ascontiguousarray(pos.T)  # (n, m): column i's entries, tree order
+    data = wsum[idx]
+    np.divide(w[:, None], data, out=data, where=data > 0)  # a leaf without weight keeps its 0
+    M = sparse.csc_matrix((data.reshape(-1), idx.reshape(-1), np.arange(0, n * m + 1, m, dtype=np.int64)),
+                          shape=(L, n))
+    del data, idx
+    return M.tocsr()
+
+
 def leaf_operator(learner: FrozenTreesLearner) -> Any:
     """The leaf-averaging operator as a sparse (leaves, n) matrix:
     ``M[leaf, i] = w_i / (sum of w in the leaf)``, so ``leaf_values = M @ y``."""
-    m, n = learner.pos["train"].shape
-    w = np.ones(n) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
-    flat = learner.pos["train"].reshape(-1)  # tree-major: entry t * n + i
-    wsum = np.bincount(flat, weights=np.tile(w, m), minlength=len(learner.leaf_ids))
-    return sparse.csr_matrix((np.tile(w, m) / wsum[flat], (flat, np.tile(np.arange(n), m))),
-                             shape=(len(learner.leaf_ids), n))
+    pos = learner.pos["train"]
+    w = np.ones(pos.shape[1]) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
+    return _averaging_matrix(pos, w, learner.leaf_weight_sums(w), len(learner.leaf_ids))
 
 
 def query_operators(learner: FrozenTreesLearner, names: tuple[str, ...] | None = None) -> dict[str, Any]:
     """The query operators ``A[q, leaf] = 1 / n_trees`` as sparse matrices, for the query
-    sets ``names`` (default: all, ``"train"`` included)."""
+    sets ``names`` (default: all, ``"train"`` included); built row by row (query ``j``'s
+    leaves are ``pos[:, j]``, those with training rows), int32 indices."""
     L, out = len(learner.leaf_ids), {}
     for name, pos in learner.pos.items():
         if names is not None and name not in names:
             continue
         m, nq = pos.shape
-        flat = pos.reshape(-1)  # tree-major
-        hit = flat < L
-        qrows = np.tile(np.arange(nq, dtype=np.int64), m)[hit]
-        out[name] = sparse.csr_matrix((np.full(int(hit.sum()), 1.0 / m), (qrows, flat[hit])), shape=(nq, L))
+        idx = np.ascontiguousarray(pos.T)  # (nq, m), tree order (increasing leaf ids) in each row
+        hit = idx < L
+        indptr = np.zeros(nq + 1, np.int64)
+        np.cumsum(hit.sum(axis=1), out=indptr[1:])
+        indices = idx[hit]
+        del idx, hit
+        out[name] = sparse.csr_matrix((np.full(len(indices), 1.0 / m), indices, indptr), shape=(nq, L))
     return out
 
 
@@ -54,14 +69,10 @@ def reweighted_operators(learner: FrozenTreesLearner, weights: np.ndarray,
     with none left keeps its original row). ``base``: the unweighted query operators
     to reweight (default: all of :func:`query_operators`, built here), so that many
     replicates build them once."""
-    m, n = learner.pos["train"].shape
     L = len(learner.leaf_ids)
-    compact = learner.pos["train"].reshape(-1)  # flat tree-major
-    rows = np.tile(np.arange(n), m)
-    w = np.asarray(weights, dtype=np.float64)[rows]
-    wsum = np.bincount(compact, weights=w, minlength=L)
-    vals = w / np.where(wsum[compact] > 0, wsum[compact], 1.0)
-    M = sparse.csr_matrix((vals, (compact, rows)), shape=(L, n))
+    w = np.asarray(weights, dtype=np.float64)
+    wsum = learner.leaf_weight_sums(w)
+    M = _averaging_matrix(learner.pos["train"], w, wsum, L)
     keep = wsum > 0
     A = {}
     for name, op in (query_operators(learner) if base is None else base).items():  # entry by entry, on op's sparsity

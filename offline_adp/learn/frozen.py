@@ -13,6 +13,7 @@ from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
+from offline_adp.trees.averaging import leaf_sums, resolve_n_jobs, thread_map
 from offline_adp.trees.ensemble import (
     TreeEnsemble,
     compiled_per_tree_leaves,
@@ -20,7 +21,7 @@ from offline_adp.trees.ensemble import (
     ensemble_per_tree_leaves,
     tree_mean,
 )
-from offline_adp.trees.sklearn import sklearn_tree_from_records, sklearn_trees_known
+from offline_adp.trees.sklearn import sklearn_trees_known
 
 
 class FrozenTreesLearner(Learner):
@@ -56,9 +57,14 @@ class FrozenTreesLearner(Learner):
     ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
     (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
     (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
-    An iteration is one bincount per tree over the tree-major (trees, n) leaf
-    matrix and one gather per tree (each within that tree's leaves, so cache-sized): no
-    tree fitting, no traversal.
+    An iteration is one leaf sum per tree over the tree-major (trees, n) int32 leaf
+    matrix and one gather per tree and query (each within that tree's leaves, so
+    cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run in
+    ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each
+    tree's work independent and every sum in one fixed order, so the Q-values are the
+    same to the last bit for any thread count (:mod:`offline_adp.trees.averaging`). A
+    build drops the previous structure first, and the compiled builder's trees are held
+    as :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node).
     With a fixed structure the update is a gamma-contraction, so it converges -- to the
     fixed point of *that* averager, which is only as good as the structure: a structure
     fitted to early targets cannot represent what later targets need.
@@ -88,6 +94,10 @@ class FrozenTreesLearner(Learner):
             same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
         self._cache: dict[str, np.ndarray] = {}
+        params = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
+        # threads of the lookups and of every iteration's averaging: the regressor's n_jobs
+        # (-1, the extra_trees default: every core); the numbers do not depend on it
+        self.n_jobs = resolve_n_jobs(params.get("n_jobs"))
 
     def _structure_model(self, k: int) -> Any:
         model = seeded(clone(self.regressor), self.seed + k)
@@ -99,7 +109,15 @@ class FrozenTreesLearner(Learner):
             model.set_params(bootstrap=True, max_samples=float(f))
         return model
 
+    def _release(self) -> None:
+        """Drop the current structure (its forest or arrays, leaf positions and caches)
+        before the next one is grown: the two are never held together (a forest of fully
+        grown trees on 131,072 rows is ~0.7 GB)."""
+        self.ensemble, self._forest = None, None
+        self.pos, self._rest, self._cache = {}, None, {}
+
     def _build(self, y: np.ndarray, k: int) -> None:
+        self._release()
         X = self.encoder.pairs(self.phi, self.actions)
         self.structures += 1
         self.built_on_constant = bool(np.ptp(y) == 0.0)
@@ -158,28 +176,24 @@ class FrozenTreesLearner(Learner):
         self.ensemble, self._forest = None, forest
         self._roots, self._n_nodes = np.r_[0, np.cumsum(sizes)[:-1]], int(sizes.sum())
         trees = [e.tree_ for e in forest.estimators_]
-        if train_leaves is not None:  # local ids -> global
-            train_leaves = [leaf.astype(np.int64) + int(r) for leaf, r in zip(train_leaves, self._roots[start:], strict=True)]
         self._operators(compiled_per_tree_leaves(trees[start:], self._roots[start:]), start=start,
                         train_leaves=train_leaves)
 
     def _grow(self, X: np.ndarray, y: np.ndarray, native: compiled.TreeParams,
               trees: range) -> list[tuple[Any, np.ndarray | None]]:
-        """Trees ``trees`` from the compiled builder, each as a scikit-learn ``Tree`` (made
-        in the builder's thread, so its full-size buffers go at once) and its training
-        rows' leaves (None unless every row is in the tree)."""
-        d = X.shape[1]
-
+        """Trees ``trees`` from the compiled builder, each as a
+        :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node, made in the calling
+        thread) and its training rows' leaves (None unless every row is in the tree)."""
         def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
             leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
-            return sklearn_tree_from_records(t.nodes, t.value, d), leaf
+            return compiled.CompactTree.from_grown(t), leaf
 
         every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
         return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
 
     def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
         """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
-        scikit-learn ``Tree`` objects set from their records (its compiled lookups, and the
+        :class:`~offline_adp.trees.builder.CompactTree` (their compiled lookups, and the
         export), with each training row's leaf where every row is in the tree.
         ``start > 0``: they follow the ``start`` trees held, as a screened build grows
         its forest."""
@@ -214,16 +228,19 @@ class FrozenTreesLearner(Learner):
 
     def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
         """The training leaf matrix, the leaf weights and the query operators (leaf positions),
-        tree by tree: ``tree_leaves(X)`` yields, for each tree in order, the global leaf id of
-        every row of ``X``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
+        tree by tree: ``tree_leaves(X)`` returns ``leaves(t)``, the global leaf id of every
+        row of ``X`` in tree ``t``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
         take their leaves from the next-state lookup (a third of the lookups with two
         actions). Everything is tree-major int32 and no (rows, trees) int64 matrix is ever
-        held: one tree's lookups at a time. ``start > 0``: the first ``start`` trees are
+        held: one tree's lookups at a time per thread. The trees are looked up in
+        ``n_jobs`` threads, each tree's positions local to it (its own compact leaves,
+        numbered in node order), then shifted by the leaves of the trees before it: the
+        same numbers for any thread count. ``start > 0``: the first ``start`` trees are
         those whose lookups are held already (a screened build growing its forest); their
-        positions are kept and ``tree_leaves`` yields the later trees only.
+        positions are kept and ``tree_leaves`` looks up the later trees only.
 
-        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, global
-        ids): every training row's leaf is known, so nothing is looked up for the training
+        ``train_leaves`` (the compiled builder's, one array per tree from ``start`` on, local
+        node ids): every training row's leaf is known, so nothing is looked up for the training
         rows, and the next-state queries they repeat are not looked up either: half of them
         with two actions."""
         n, m = len(self.phi), len(self._roots)
@@ -238,56 +255,79 @@ class FrozenTreesLearner(Learner):
             looked = np.ones(len(inputs["next"]), bool)
             looked[from_next] = False
             inputs = {**inputs, "next": inputs["next"][looked]}
-        gens = {q: tree_leaves(inputs[q]) for q in names}
+        lookups = {q: tree_leaves(inputs[q]) for q in names}
         if rest.any() and train_leaves is None:
-            gens[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
-        if looked is not None:
-            inputs["next"] = np.empty((len(looked), 0))  # only its length is read below
+            lookups[""] = tree_leaves(self.encoder.pairs(self.phi[rest], self.actions[rest]))
+        sizes = {q: (len(looked) if q == "next" and looked is not None else len(inputs[q])) for q in names}
+        del inputs
         ends = np.r_[self._roots[1:], self._n_nodes]
         held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
-        self.pos: dict[str, np.ndarray] = {q: np.empty((m, len(inputs[q])), np.int32) for q in names}
+        self.pos: dict[str, np.ndarray] = {}  # the previous structure's positions go before the new ones are made
+        self.pos = {q: np.empty((m, sizes[q]), np.int32) for q in names}
         train = np.empty((m, n), np.int32)
-        ids, bounds = [], [0]
-        if start:  # the same trees, the same compact leaves; "no training leaf" is re-marked below
+        if start:  # the same trees, the same compact leaves (re-marked for the new leaf count below)
             for q, p in [*self.pos.items(), ("train", train)]:
                 p[:start] = held[q][:start]
-                p[:start][p[:start] == len(held_ids)] = -1
-            ids, bounds = [held_ids], [int(b) for b in held_bounds[:start + 1]]
             del held
-        for t in range(start, m):
-            raw = {q: next(g) for q, g in gens.items()}
-            root, lo = int(self._roots[t]), bounds[-1]
+
+        def one(t: int) -> np.ndarray:
+            """Tree t's positions, local to its compact leaves (-1: a leaf without training
+            rows), written into its rows; returns its leaves' global node ids."""
+            raw = {q: f(t - start) for q, f in lookups.items()}
+            root = int(self._roots[t])
             if train_leaves is not None:
                 leaf = train_leaves[t - start]
                 if looked is not None:
                     full = np.empty(len(looked), np.int64)
                     full[looked] = raw["next"]
-                    full[from_next] = leaf[reuse]
+                    full[from_next] = leaf[reuse] + root
                     raw["next"] = full
+                leaf_local = leaf
             else:
                 leaf = np.empty(n, np.int64)
                 leaf[rest] = raw.pop("", None) if rest.any() else 0
                 if len(reuse):
                     leaf[reuse] = raw["next"][from_next]
+                leaf_local = leaf - root
             used = np.zeros(int(ends[t]) - root, bool)
-            used[leaf - root] = True
+            used[leaf_local] = True
             local = np.flatnonzero(used)  # this tree's leaves holding training samples
             lookup = np.full(len(used), -1, np.int32)
-            lookup[local] = lo + np.arange(len(local), dtype=np.int32)
-            train[t] = lookup[leaf - root]
+            lookup[local] = np.arange(len(local), dtype=np.int32)
+            train[t] = lookup[leaf_local]
             for q in names:
-                self.pos[q][t] = lookup[raw[q] - root]  # -1: a leaf without training samples
-            ids.append(local + root)
-            bounds.append(lo + len(local))
+                r = raw.pop(q)
+                r -= root
+                self.pos[q][t] = lookup[r]
+            return local + root
+
+        new_ids = thread_map(one, range(start, m), self.n_jobs)
+        ids = ([held_ids] if start else []) + new_ids
+        bounds = np.r_[np.asarray(held_bounds[:start + 1], np.int64) if start else np.zeros(1, np.int64),
+                       (int(held_bounds[start]) if start else 0) + np.cumsum([len(i) for i in new_ids], dtype=np.int64)]
         self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
         L = len(self.leaf_ids)
-        for q in names:  # a leaf without training weight reads value L (0)
-            p = self.pos[q]
-            p[p < 0] = L
-        for q, p in [*self.pos.items(), ("train", train)]:  # _tree_mean gathers with mode="clip": keep them in range
+        old_L = len(held_ids) if start else None
+
+        def shift(t: int) -> None:
+            """Tree t's positions from local to global compact leaves; a leaf without
+            training weight reads value L (0)."""
+            lo = int(bounds[t])
+            for q, p in [*self.pos.items(), ("train", train)]:
+                row = p[t]
+                if t < start:  # held: already global; "no training leaf" was the old L
+                    if q != "train":
+                        row[row == old_L] = L
+                    continue
+                row += lo
+                if q != "train":
+                    row[row < lo] = L
+
+        thread_map(shift, range(m), self.n_jobs)
+        for q, p in [*self.pos.items(), ("train", train)]:  # the gathers skip bounds checks: keep them in range
             if p.size and (int(p.min()) < 0 or int(p.max()) > L):
                 raise RuntimeError(f"frozen structure: leaf positions of {q!r} outside [0, {L}]")
-        self._bounds, self._m = np.asarray(bounds), m
+        self._bounds, self._m = bounds, m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
         self.pos["train"] = train  # every training leaf holds its own sample
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
@@ -298,12 +338,15 @@ class FrozenTreesLearner(Learner):
         constant-target structure), checked against our inputs' width first."""
         return ensemble_per_tree_leaves(ens, self.encoder.pairs(self.phi[:1], self.actions[:1]))
 
+    def leaf_weight_sums(self, v: np.ndarray) -> np.ndarray:
+        """``sum of v_i`` over the training rows in each leaf (compact index, as
+        ``leaf_ids``); the same numbers as ``np.bincount`` over each tree's leaves."""
+        return self._leaf_sums(np.asarray(v, dtype=np.float64))
+
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
-        """``sum of v_i`` over the training rows in each leaf (compact index)."""
-        pos, out = self.pos["train"], np.empty(len(self.leaf_ids))
-        for t, (lo, hi) in enumerate(zip(self._bounds[:-1], self._bounds[1:], strict=True)):
-            out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
-        return out
+        """``sum of v_i`` over the training rows in each leaf (compact index), trees in
+        ``n_jobs`` threads (rows summed in order: the same numbers for any count)."""
+        return leaf_sums(self.pos["train"], self._bounds, v, self.n_jobs)
 
     def fit(self, y: np.ndarray, k: int) -> None:
         if self._pending or k in self.restructure_at:
@@ -331,10 +374,10 @@ class FrozenTreesLearner(Learner):
             rest[self.reuse] = False
             if self._rest is None:
                 self._rest = np.ascontiguousarray(self.pos[name][:, rest])
-            v[rest] = tree_mean(values, self._rest)
+            v[rest] = tree_mean(values, self._rest, self.n_jobs)
             v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
         else:
-            v = tree_mean(values, self.pos[name])  # mean over trees of the reached leaves
+            v = tree_mean(values, self.pos[name], self.n_jobs)  # mean over trees of the reached leaves
         self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
         return self._cache[name]
 

@@ -5,8 +5,8 @@ builder's trees, :mod:`offline_adp.trees.builder`). With its structure fixed,
 re-estimating leaf values from new targets is a kernel averager
 (:class:`~offline_adp.learn.frozen.FrozenTreesLearner`), the frozen-structure fast path
 of Ernst et al. (2005). The leaf lookups here come in two shapes: whole-ensemble
-(``(rows, trees)``, :meth:`TreeEnsemble.apply`) and per tree (generators yielding one
-tree's leaves at a time, :func:`per_tree_leaves`, :func:`compiled_per_tree_leaves`), so
+(``(rows, trees)``, :meth:`TreeEnsemble.apply`) and per tree (one tree's leaves at a
+time, from any thread, :func:`per_tree_leaves`, :func:`compiled_per_tree_leaves`), so
 that no ``(rows, trees)`` matrix is held for large query sets.
 """
 
@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import ArtifactError
+from offline_adp.trees import averaging, builder
 from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree, tree_arrays
 
 #: rows per chunk of a whole-ensemble leaf lookup (bounded temporaries)
@@ -101,8 +102,10 @@ class TreeEnsemble:
             raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
 
     def compiled_trees(self) -> list[Any] | None:
-        """scikit-learn ``Tree`` objects rebuilt from our arrays (plain numbers, no code
-        from any file), for its compiled ``apply``; None if this scikit-learn's tree state
+        """Compiled per-tree lookups rebuilt from our arrays (plain numbers, no code from any
+        file): :class:`~offline_adp.trees.builder.CompactTree` where numba is installed (the
+        leaves scikit-learn's ``apply`` reaches, in 32 bytes a node), else scikit-learn
+        ``Tree`` objects for its compiled ``apply``; None if this scikit-learn's tree state
         layout is not the one we know (then the numpy traversal is used)."""
         cached = getattr(self, "_trees", False)
         if cached is not False:
@@ -114,8 +117,15 @@ class TreeEnsemble:
         trees: list[Any] | None = []
         bounds = np.r_[self.roots, len(self.left)]
         n_features = int(max(self.feature.max(), 0)) + 1
+        compact = builder.available()  # 32 bytes a node and a lookup in threads (scikit-learn's: 72)
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             leaf = self.left[lo:hi] < 0
+            if compact:
+                trees.append(builder.CompactTree(np.where(leaf, -1, self.left[lo:hi] - lo),
+                                                 np.where(leaf, -1, self.right[lo:hi] - lo),
+                                                 np.where(leaf, -2, self.feature[lo:hi]),
+                                                 np.where(leaf, -2.0, self.threshold[lo:hi]), self.value[lo:hi]))
+                continue
             t = sklearn_tree(np.where(leaf, -1, self.left[lo:hi] - lo), np.where(leaf, -1, self.right[lo:hi] - lo),
                              np.where(leaf, -2, self.feature[lo:hi]), np.where(leaf, -2.0, self.threshold[lo:hi]),
                              self.value[lo:hi], n_features)
@@ -341,15 +351,11 @@ def ensemble_predict(values: np.ndarray, leaves: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(values[leaves]).mean(axis=1)
 
 
-def tree_mean(values: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """``values[pos].mean(axis=0)`` for tree-major ``pos`` (m, nq), one gather per tree (each
-    within that tree's leaf range), no (m, nq) float temporary. Every position must be in
-    range: the gathers skip numpy's bounds check."""
-    out, tmp = np.zeros(pos.shape[1]), np.empty(pos.shape[1])
-    for row in pos:  # "clip" skips numpy's buffered bounds check (~2x)
-        values.take(row, out=tmp, mode="clip")
-        out += tmp
-    return out / len(pos)
+def tree_mean(values: np.ndarray, pos: np.ndarray, n_jobs: int = 1) -> np.ndarray:
+    """``values[pos].mean(axis=0)`` for tree-major ``pos`` (m, nq), in ``n_jobs`` threads
+    (:func:`offline_adp.trees.averaging.tree_mean`; the same numbers for any count).
+    Every position must be in range: nothing is checked."""
+    return averaging.tree_mean(values, pos, n_jobs)
 
 
 def chunked_leaves(leaves_of: Any, X: np.ndarray, chunk: int = LOOKUP_CHUNK) -> np.ndarray:
@@ -365,33 +371,40 @@ def chunked_leaves(leaves_of: Any, X: np.ndarray, chunk: int = LOOKUP_CHUNK) -> 
 
 
 def per_tree_leaves(leaves_of: Any) -> Any:
-    """A per-tree lookup ``gen(X)`` (yields, tree by tree, the global leaf id of every row
-    of ``X`` as int64) from a whole-ensemble lookup ``leaves_of(X) -> (len(X), n_trees)``."""
-    def gen(X: np.ndarray) -> Any:
+    """A per-tree lookup ``prepare(X)`` from a whole-ensemble lookup ``leaves_of(X) ->
+    (len(X), n_trees)``: ``prepare(X)`` returns ``leaves(t)``, the global leaf id of every
+    row of ``X`` in tree ``t`` (int64), safe to call from several threads."""
+    def prepare(X: np.ndarray) -> Any:
         full = chunked_leaves(leaves_of, X)
-        for t in range(full.shape[1]):
-            yield np.asarray(full[:, t], dtype=np.int64)
-    return gen
+        return lambda t: np.array(full[:, t], dtype=np.int64)  # a copy: the caller may change it
+    return prepare
 
 
 def compiled_per_tree_leaves(trees: list[Any], roots: np.ndarray) -> Any:
     """A per-tree lookup (as :func:`per_tree_leaves`) for compiled scikit-learn ``Tree``
-    objects: each tree's ``apply`` on float32 inputs, one tree at a time (no (rows, trees)
+    objects: ``prepare(X)`` looks ``X`` up in the first tree; ``leaves(t)`` is tree ``t``'s
+    ``apply`` on float32 inputs (scikit-learn releases the GIL in it: trees can be looked up
+    in threads, each independent of the others), one tree at a time (no (rows, trees)
     matrix); ``roots``: each tree's first global node id."""
-    def gen(X: np.ndarray) -> Any:
+    def prepare(X: np.ndarray) -> Any:
         X32 = np.ascontiguousarray(X, dtype=np.float32)
         first = np.asarray(trees[0].apply(X32), dtype=np.int64)
-        yield first + int(roots[0])
         # rows in the order of their leaf in the first tree (depth-first ids): neighbours
         # in space descend the other trees together, so their nodes stay in cache
         # (less CPU on large lookups into deep trees; docs/fqi-modes.md)
-        order = np.argsort(first, kind="stable")
-        Xs = np.ascontiguousarray(X32[order])
-        out = np.empty(len(X32), np.int64)
-        for tree, root in zip(trees[1:], roots[1:], strict=True):
-            out[order] = tree.apply(Xs)
-            yield out + int(root)
-    return gen
+        order = np.argsort(first, kind="stable") if len(trees) > 1 else None
+        Xs = np.ascontiguousarray(X32[order]) if order is not None else None
+        del X32
+
+        def leaves(t: int) -> np.ndarray:
+            if t == 0:
+                return first + int(roots[0])
+            out = np.empty(len(first), np.int64)
+            out[order] = trees[t].apply(Xs)
+            out += int(roots[t])
+            return out
+        return leaves
+    return prepare
 
 
 def ensemble_per_tree_leaves(ens: TreeEnsemble, probe: np.ndarray) -> Any:
