@@ -61,6 +61,11 @@ ZIP_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, Not
 #: Most nodes / leaves / features a single tree or model may declare.
 MAX_NODES = 1 << 31
 #: Widest input a saved model may declare (features plus action features).
+#: Most tree nodes a compact-layout file may declare per byte of file (``leaf_bits``: one bit a
+#: node). Expanding a node for lookups takes ~140 bytes, so 2 nodes a byte keeps a crafted
+#: file's allocations within ~300x its size; our files hold ~0.3 nodes a byte (a CartPole-v1
+#: fit: 5.0M nodes in 15.1 MB).
+MAX_NODES_PER_FILE_BYTE = 2
 MAX_WIDTH = 1_000_000
 #: Most float64 entries a loader may allocate to probe a model (actions x rows x width):
 #: a declared width is checked against this before any array is built from it.
@@ -227,6 +232,17 @@ def check_leaf_values(arrays: Any, prefix: str, where: str) -> np.ndarray:
 def _members(arrays: Any) -> Any:
     files = getattr(arrays, "files", None)  # an opened .npz lists its members without reading them
     return set(files) if files is not None else arrays
+
+
+def check_node_budget(members: dict[str, tuple[np.dtype, tuple[int, ...]]], file_size: int, where: str) -> None:
+    """Refuse a file whose compact tree structures (``*leaf_bits`` members, one bit a node)
+    declare more than :data:`MAX_NODES_PER_FILE_BYTE` nodes per byte of the file (plus a
+    small floor), before anything is expanded: deflate lets a small file declare millions
+    of nodes that each cost ~140 bytes to look up."""
+    nodes = sum(8 * int(np.prod(shape)) for key, (_, shape) in members.items() if key.endswith("leaf_bits"))
+    if nodes > MAX_NODES_PER_FILE_BYTE * file_size + 65_536:
+        raise ArtifactError(f"{where}: declares {nodes} tree nodes in a file of {file_size} bytes, more than "
+                            f"{MAX_NODES_PER_FILE_BYTE} a byte: out of proportion (a crafted or damaged file)")
 
 
 def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None,
@@ -457,4 +473,4 @@ def check_int(value: Any, where: str, member: str, lo: int = 0, hi: int = MAX_NO
     return value
 
 
-__all__ = ["MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]
+__all__ = ["MAX_NODES_PER_FILE_BYTE", "check_node_budget", "MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]

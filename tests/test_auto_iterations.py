@@ -67,3 +67,19 @@ def test_refit_mode_never_claims_the_contraction_bound(coh):
     est = FittedQIteration(gamma=0.9, mode="refit", regressor_params={"n_estimators": 5}).fit(coh)
     assert len(est.history_) == auto_iterations(0.9, settles=False)[0]  # no settling phase without a fixed structure
     assert est.verdict_ == "still changing" and "no contraction bound" in est.verdict_message_
+
+
+def test_target_noise_has_no_fixed_point_so_no_bound_is_claimed(coh):
+    est = FittedQIteration(gamma=0.9, target_noise=0.1, regressor_params={"n_estimators": 5}).fit(coh)
+    assert est.mode_ == "frozen" and est.iteration_plan() == auto_iterations(0.9, settles=False)
+    assert est.verdict_ == "still changing" and "no contraction bound" in est.verdict_message_
+
+
+@pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf")])
+def test_sample_weights_must_be_averaging_weights(coh, bad):
+    w = np.ones(len(coh))
+    w[7] = bad
+    with pytest.raises(ValueError, match="sample_weight must be finite numbers >= 0.*row 7"):
+        FittedQIteration(gamma=0.9, n_iterations=2, regressor_params={"n_estimators": 5}).fit(coh, sample_weight=w)
+    with pytest.raises(ValueError, match="not all 0"):
+        FittedQIteration(gamma=0.9, n_iterations=2).fit(coh, sample_weight=np.zeros(len(coh)))

@@ -126,6 +126,17 @@ def _damage_history(hist, damage):
     elif damage == "missing column":
         h = h.drop(columns=["sup_dq"])
         msg = "checkpoint/history.csv: no column ['sup_dq']"
+    elif damage == "text in the structure record":  # a column resume parses (the frozen mode's builds)
+        h["structure"] = h["structure"].astype(object)
+        h.loc[2, "structure"] = "abc"
+        msg = "checkpoint/history.csv: column 'structure' must hold numbers, found 'abc' (row 3)"
+    elif damage == "no number where the verdict reads one":
+        h.loc[2, "sup_dq"] = float("nan")
+        msg = "checkpoint/history.csv: column 'sup_dq' must hold finite numbers"
+    elif damage == "a build count that is not one":
+        h["structure"] = h["structure"].astype(float)
+        h.loc[2, "structure"] = 0.5
+        msg = "checkpoint/history.csv: column 'structure' must count builds 1, 2, ..."
     elif damage == "iterations out of order":
         h["iteration"] = h["iteration"][::-1].to_numpy()
         msg = "checkpoint/history.csv: column 'iteration' must count 1, 2, ..., 3"
@@ -137,7 +148,8 @@ def _damage_history(hist, damage):
 
 
 @pytest.mark.parametrize("damage", ["unparsable", "text in a number column", "missing column", "iterations out of order",
-                                    "rows not the checkpoint's"])
+                                    "rows not the checkpoint's", "text in the structure record",
+                                    "no number where the verdict reads one", "a build count that is not one"])
 def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys, damage):
     """The checkpoint codec (one for local and Dask fits) reads history.csv with checks:
     whatever is wrong with it, ``--resume`` is one line naming the file, exit 2."""

@@ -39,6 +39,10 @@ MAX_HISTORY_BYTES = 256 << 20
 #: Columns every fitted-Q history row has, all numbers (``step``: empty for infinite horizons).
 NUMERIC_COLUMNS = ("iteration", "step", "sup_dq", "mean_dq", "max_abs_q", "bellman_residual", "greedy_changed",
                    "start_value")
+#: number columns a resume reads when present (the frozen mode's structure record); empty allowed
+OPTIONAL_NUMERIC_COLUMNS = ("structure", "structure_trees", "structure_screen")
+#: columns the convergence verdict and the divergence monitor read: finite numbers on every row
+FINITE_COLUMNS = ("sup_dq", "max_abs_q")
 
 
 def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]]) -> None:
@@ -144,13 +148,23 @@ def _read_history(path: Path) -> pd.DataFrame:
     if missing:
         raise ArtifactError(f"{path}: no column {missing} (found {list(hist.columns)[:12]}); a checkpoint of another "
                             f"version or a damaged file: remove {path.parent} to start the fit again")
-    for c in NUMERIC_COLUMNS if len(hist) else ():
+    for c in (*NUMERIC_COLUMNS, *(c for c in OPTIONAL_NUMERIC_COLUMNS if c in hist.columns)) if len(hist) else ():
         col = hist[c]
         if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
             bad = col[pd.to_numeric(col, errors="coerce").isna() & col.notna()]
             shown = repr(bad.iloc[0]) if len(bad) else f"dtype {col.dtype}"
             raise ArtifactError(f"{path}: column {c!r} must hold numbers, found {shown}"
                                 f"{f' (row {int(bad.index[0]) + 1})' if len(bad) else ''}; "
+                                f"remove {path.parent} to start the fit again")
+    for c in FINITE_COLUMNS if len(hist) else ():
+        bad = ~np.isfinite(hist[c].to_numpy(dtype=np.float64))
+        if bad.any():
+            raise ArtifactError(f"{path}: column {c!r} must hold finite numbers, found {hist[c].iloc[int(bad.argmax())]!r} "
+                                f"(row {int(bad.argmax()) + 1}); remove {path.parent} to start the fit again")
+    if "structure" in hist.columns and len(hist):
+        v = hist["structure"].dropna().to_numpy(dtype=np.float64)
+        if len(v) and ((v != np.round(v)) | (v < 1) | (v > 10**9)).any():
+            raise ArtifactError(f"{path}: column 'structure' must count builds 1, 2, ...; found {v[:8].tolist()}; "
                                 f"remove {path.parent} to start the fit again")
     it = hist["iteration"].to_numpy()
     if not np.array_equal(it, np.arange(1, len(hist) + 1)):

@@ -434,7 +434,8 @@ class FittedQIteration(CheckedEstimator):
         mode). Needs the fit's ``gamma_`` (set at the start of ``fit``)."""
         if self.n_iterations != "auto":
             return int(self.n_iterations), int(self.n_iterations)
-        return auto_iterations(self.gamma_, getattr(self, "mode_", None) == "frozen")
+        settles = getattr(self, "mode_", None) == "frozen" and not self.target_noise  # a fixed point to reach
+        return auto_iterations(self.gamma_, settles)
 
     def _schedule(self) -> tuple[int, ...]:
         """Iterations at which ``mode="frozen"`` builds a structure: ``n_structures`` evenly

@@ -102,6 +102,11 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     w_all = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
     if w_all is not None and w_all.shape != (len(ds),):
         raise ValueError(f"sample_weight has shape {w_all.shape}, expected ({len(ds)},)")
+    if w_all is not None and not (np.isfinite(w_all).all() and (w_all >= 0).all() and w_all.sum() > 0):
+        bad = np.flatnonzero(~np.isfinite(w_all) | (w_all < 0))
+        where = f"row {int(bad[0])}: {w_all[bad[0]]!r}" if len(bad) else "all rows 0"
+        raise ValueError(f"sample_weight must be finite numbers >= 0, not all 0 (the Bellman backup averages with "
+                         f"them); {where}")
     tr = np.ones(len(ds), bool)
     if validation_fraction:
         rng = np.random.default_rng(random_state)

@@ -156,8 +156,9 @@ def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weigh
 
 
 def _bounded(est: FittedQIteration) -> bool:
-    """Whether the contraction bound decides convergence: a frozen structure and gamma < 1."""
-    return getattr(est, "mode_", est.mode) == "frozen" and est.gamma_ < 1
+    """Whether the contraction bound decides convergence: a frozen structure, gamma < 1 and
+    no target noise (fresh noise every iteration: no fixed point to be near)."""
+    return getattr(est, "mode_", est.mode) == "frozen" and est.gamma_ < 1 and not est.target_noise
 
 
 def _tolerance(est: FittedQIteration, last: dict[str, Any]) -> float | None:

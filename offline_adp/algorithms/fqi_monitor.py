@@ -40,7 +40,7 @@ bound is at most ``tol`` (if given, else ``rtol * max|Q_k|``), on an iteration t
 structure, after the last scheduled build. A structure rebuild starts a new contraction
 (``sup|dQ|`` jumps), which is why the verdict never reads across one. The refit and
 warm-start modes change the function class every iteration, so no such bound holds
-there (nor with ``gamma = 1``): they converge only by ``tol`` on ``e_k`` itself, and
+there (nor with ``gamma = 1`` or target noise): they converge only by ``tol`` on ``e_k`` itself, and
 otherwise say "still changing".
 
 ``n_iterations="auto"`` (:func:`auto_iterations`): ``K_b`` iterations carry the builds, the
@@ -159,6 +159,6 @@ def verdict(rows: list[dict[str, Any]], *, finite: bool, divergence: str | None,
         return "converged", f"sup|dQ| = {sd:.3g} < tol = {tolerance:g} at iteration {k}"
     tr = trend([r["sup_dq"] for r in rows[-window:]])
     return "still changing", (f"after {k} iterations sup|dQ| = {sd:.3g} ({rel:.2%} of max|Q| = "
-                              f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))} (this mode "
-                              "refits the function class every iteration: no contraction bound; set tol to stop on "
-                              "sup|dQ|)")
+                              f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))} (no contraction "
+                              "bound here: the function class changes every iteration (refit, warm start), or gamma = 1, "
+                              "or target noise; set tol to stop on sup|dQ|)")

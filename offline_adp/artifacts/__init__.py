@@ -246,7 +246,7 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
         if jpath.stat().st_size > 1 << 30:
             raise ArtifactError(f"{jpath}: {jpath.stat().st_size} bytes is too large for an artifact description")
         spec = json.loads(jpath.read_bytes().decode("utf-8"))
-        C.check_npz(npath)
+        C.check_node_budget(C.check_npz(npath), npath.stat().st_size, str(npath))
         arrays = np.load(npath, allow_pickle=False)
     except FileNotFoundError as exc:
         raise ArtifactError(f"{d}: no saved {what} ({exc.filename} missing)") from exc
