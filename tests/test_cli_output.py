@@ -4,14 +4,12 @@ warnings summarised once at the end, -q / --log-level honoured by every command.
 from __future__ import annotations
 
 import functools
-import json
 import warnings
 from pathlib import Path
 
 import pytest
 
 from offline_adp.cli import main
-from tests.test_pipeline import SMALL
 
 ROOT = Path(__file__).resolve().parents[1]
 NOISE = "X does not have valid feature names, but ExtraTreesRegressor was fitted with feature names"
@@ -39,29 +37,7 @@ def _summary(err: str) -> list[str]:
     return [ln for ln in err.splitlines() if "library warnings" in ln]
 
 
-@pytest.mark.integration
-def test_run_pipeline_in_a_log_is_short_and_summarises_library_warnings(tmp_path, capfd, monkeypatch):
-    from offline_adp.evaluation import offpolicy
-
-    _noisy(monkeypatch, offpolicy, "estimate_behaviour")
-    sets = [f"{k}={json.dumps(v)}" for k, v in SMALL["driving"].items()]
-    argv = ["run", str(ROOT / "pipelines" / "driving.toml"), "--out", str(tmp_path / "run")]
-    for s in sets:
-        argv += ["--set", s]
-    assert main(argv) == 0
-    cap = capfd.readouterr()
-    lines = _lines(cap)
-    assert len(lines) < 60, "\n".join(lines)
-    assert "\r" not in cap.err and "it/s" not in cap.err  # no progress bar off a terminal
-    assert any(ln.startswith("[fit]") for ln in lines) and any(ln.startswith("[evaluate]") for ln in lines)
-    summary = _summary(cap.err)
-    assert len(summary) == 1 and NOISE in summary[0], cap.err
-    assert int(summary[0].split("warning: ", 1)[1].split()[0]) >= 300
-    assert NOISE not in cap.err.replace(summary[0], "")  # not printed one by one
-
-    # -q: only errors on stderr (the results on stdout stay)
-    assert main([*argv, "--from", "evaluate", "-q"]) == 0
-    assert capfd.readouterr().err == ""
+# `run` of the demo pipeline in a log (< 60 lines, warnings summarised, -q): tests/test_readme_demo.py
 
 
 @pytest.fixture(scope="module")

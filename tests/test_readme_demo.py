@@ -46,7 +46,28 @@ def test_readme_block_has_the_demo_headlines():
     assert block[-1].endswith("report.html")
 
 
-def test_the_demo_prints_the_readme_block(tmp_path, capsys):
-    assert main(["run", str(ROOT / "pipelines" / "driving.toml"), "--runs", str(tmp_path / "runs")]) == 0
-    printed = capsys.readouterr().out.strip("\n").splitlines()
+def test_the_demo_prints_the_readme_block(tmp_path, capfd, monkeypatch):
+    """Also what `make demo > log 2>&1` holds (issue #34): fewer than 60 lines, no progress
+    bar off a terminal, a line per stage, and library warnings (here 300 extra ones, as
+    scikit-learn gives on every predict of a model fitted on a DataFrame) summarised once."""
+    from offline_adp.evaluation import offpolicy
+    from tests.test_cli_output import NOISE, _lines, _noisy, _summary
+
+    _noisy(monkeypatch, offpolicy, "estimate_behaviour")  # warnings only: the results are the same
+    argv = ["run", str(ROOT / "pipelines" / "driving.toml"), "--runs", str(tmp_path / "runs")]
+    assert main(argv) == 0
+    cap = capfd.readouterr()
+    printed = cap.out.strip("\n").splitlines()
     assert normalise(printed) == normalise(readme_block())
+    lines = _lines(cap)
+    assert len(lines) < 60, "\n".join(lines)
+    assert "\r" not in cap.err and "it/s" not in cap.err
+    assert any(ln.startswith("[fit]") for ln in lines) and any(ln.startswith("[evaluate]") for ln in lines)
+    summary = _summary(cap.err)
+    assert len(summary) == 1 and NOISE in summary[0], cap.err
+    assert int(summary[0].split("warning: ", 1)[1].split()[0]) >= 300
+    assert NOISE not in cap.err.replace(summary[0], "")  # not printed one by one
+    # -q: only errors on stderr (the results on stdout stay)
+    assert main([*argv, "--from", "report", "-q"]) == 0
+    cap = capfd.readouterr()
+    assert cap.err == "" and cap.out.strip()
