@@ -34,7 +34,7 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -n 2 --dist worksteal
+	$(BIN)/python -m pytest -q -n 2
 
 # The unit layer only (no slow or end-to-end tests): under 2 minutes on 2 cores.
 test-fast: $(VENV)/.installed
