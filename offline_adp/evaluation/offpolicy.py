@@ -347,12 +347,15 @@ def tabular_fqe_replicates(obs: np.ndarray, action: np.ndarray, cost: np.ndarray
     den = (onehot.T @ W.T).T  # (B, K*A)
     boot = gamma * (1.0 - terminated.astype(np.float64))
     Q = np.zeros((len(W), K * A))  # Q_T = 0
-    next_idx = nsid[:, None] * A + np.arange(A)[None, :]  # (n, A)
+    # V_{t+1}(x') once per distinct state (K of them), then read at every row's next state
     stationary = is_stationary(policy, next_obs, horizon)  # then pi(. | x', t) is computed once
-    pi_once = policy.probabilities(next_obs, 1) if stationary else None
+    pi_once = policy.probabilities(codes, 1) if stationary else None
     for t in range(horizon - 1, -1, -1):
-        pi_next = pi_once if stationary else policy.probabilities(next_obs, t + 1)
-        v_next = (pi_next[None] * Q[:, next_idx]).sum(axis=2) if t < horizon - 1 else 0.0
+        if t < horizon - 1:
+            pi_codes = pi_once if stationary else policy.probabilities(codes, t + 1)  # (K, A)
+            v_next = (pi_codes[None] * Q.reshape(len(W), K, A)).sum(axis=2)[:, nsid]  # (B, n)
+        else:
+            v_next = 0.0
         Y = cost[None, :] + boot[None, :] * v_next
         num = (onehot.T @ (W * Y).T).T
         Q = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
