@@ -63,7 +63,7 @@ MAX_NODES = 1 << 31
 #: Widest input a saved model may declare (features plus action features).
 #: Most tree nodes a compact-layout file may declare per byte of file (``leaf_bits``: one bit a
 #: node). Expanding a node for lookups takes ~140 bytes, so 2 nodes a byte keeps a crafted
-#: file's allocations within ~300x its size; our files hold ~0.3 nodes a byte (a CartPole-v1
+#: file's allocations within ~300x its size; our files hold ~0.3 nodes a byte (a gymnasium
 #: fit: 5.0M nodes in 15.1 MB).
 MAX_NODES_PER_FILE_BYTE = 2
 MAX_WIDTH = 1_000_000

@@ -134,7 +134,7 @@ def _random_forest(**kw: Any) -> BaseEstimator:
 #: they give, and on a machine that is also running other work they spin-wait at every
 #: parallel region for a core that is busy elsewhere: a car-on-the-hill fit with ``n_jobs=-1``
 #: burned more than 190 CPU-s without finishing on a loaded 2-core machine that ``n_jobs=1``
-#: fitted in 14 CPU-s (``benchmarks/lightgbm_threads.py``). The OpenMP wait policy
+#: fitted in 14 CPU-s (docs/scaling.md, "LightGBM threads"). The OpenMP wait policy
 #: (``OMP_WAIT_POLICY=passive``) would stop the spinning, but it is read once, when the
 #: OpenMP runtime loads (often already done by numpy/scikit-learn before this module is
 #: imported), so a library cannot set it reliably; a user can, in the environment, before

@@ -18,6 +18,7 @@ from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.simulate import simulate
 from offline_adp.trees import averaging
 from offline_adp.trees import builder as extra_trees
+from offline_adp.trees.compact import CompactTree
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +96,7 @@ def test_compact_tree_reaches_scikit_learns_leaves():
     y = X[:, 0] - X[:, 2] + 0.1 * rng.normal(size=n)
     params = extra_trees.TreeParams(3, d, 2, 1, 2**31 - 1, False, n, 0, 1)
     pairs = extra_trees.grow_trees(X, y, None, params, finish=lambda t: (
-        extra_trees.CompactTree.from_grown(t), sklearn_tree_from_records(t.nodes.copy(), t.value.copy(), d)))
+        CompactTree.from_grown(t), sklearn_tree_from_records(t.nodes.copy(), t.value.copy(), d)))
     for compact, tree in pairs:
         inner = tree.feature >= 0
         at = np.tile(np.float32(X[:50]), (2, 1))  # rows that sit exactly on cuts, and just above

@@ -384,7 +384,7 @@ def write_dataset(
 
 _DICTIONARY_COLUMNS = (S.STEP, S.ACTION, S.TERMINATED, S.TRUNCATED)
 #: zstd's fastest standard-range level: 10% less CPU than level 1 on logged floats, files
-#: 0.3% larger (benchmarks/ingest_parquet.py); any zstd reader reads either
+#: 0.3% larger (docs/scaling.md); any zstd reader reads either
 _PART_ZSTD_LEVEL = -1
 
 

@@ -14,6 +14,7 @@ from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
 from offline_adp.trees.averaging import leaf_sums, resolve_n_jobs, thread_map
+from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import (
     TreeEnsemble,
     compiled_per_tree_leaves,
@@ -64,7 +65,7 @@ class FrozenTreesLearner(Learner):
     tree's work independent and every sum in one fixed order, so the Q-values are the
     same to the last bit for any thread count (:mod:`offline_adp.trees.averaging`). A
     build drops the previous structure first, and the compiled builder's trees are held
-    as :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node).
+    as :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node).
     With a fixed structure the update is a gamma-contraction, so it converges -- to the
     fixed point of *that* averager, which is only as good as the structure: a structure
     fitted to early targets cannot represent what later targets need.
@@ -182,18 +183,18 @@ class FrozenTreesLearner(Learner):
     def _grow(self, X: np.ndarray, y: np.ndarray, native: compiled.TreeParams,
               trees: range) -> list[tuple[Any, np.ndarray | None]]:
         """Trees ``trees`` from the compiled builder, each as a
-        :class:`~offline_adp.trees.builder.CompactTree` (32 bytes a node, made in the calling
+        :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node, made in the calling
         thread) and its training rows' leaves (None unless every row is in the tree)."""
         def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
             leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
-            return compiled.CompactTree.from_grown(t), leaf
+            return CompactTree.from_grown(t), leaf
 
         every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
         return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
 
     def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:
         """As :meth:`_adopt`, for trees from the compiled builder (:meth:`_grow`): held as
-        :class:`~offline_adp.trees.builder.CompactTree` (their compiled lookups, and the
+        :class:`~offline_adp.trees.compact.CompactTree` (their compiled lookups, and the
         export), with each training row's leaf where every row is in the tree.
         ``start > 0``: they follow the ``start`` trees held, as a screened build grows
         its forest."""

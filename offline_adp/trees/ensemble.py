@@ -19,6 +19,7 @@ import numpy as np
 
 from offline_adp.errors import ArtifactError
 from offline_adp.trees import averaging, builder
+from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree, tree_arrays
 
 #: rows per chunk of a whole-ensemble leaf lookup (bounded temporaries)
@@ -103,7 +104,7 @@ class TreeEnsemble:
 
     def compiled_trees(self) -> list[Any] | None:
         """Compiled per-tree lookups rebuilt from our arrays (plain numbers, no code from any
-        file): :class:`~offline_adp.trees.builder.CompactTree` where numba is installed (the
+        file): :class:`~offline_adp.trees.compact.CompactTree` where numba is installed (the
         leaves scikit-learn's ``apply`` reaches, in 32 bytes a node), else scikit-learn
         ``Tree`` objects for its compiled ``apply``; None if this scikit-learn's tree state
         layout is not the one we know (then the numpy traversal is used)."""
@@ -121,7 +122,7 @@ class TreeEnsemble:
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             leaf = self.left[lo:hi] < 0
             if compact:
-                trees.append(builder.CompactTree(np.where(leaf, -1, self.left[lo:hi] - lo),
+                trees.append(CompactTree(np.where(leaf, -1, self.left[lo:hi] - lo),
                                                  np.where(leaf, -1, self.right[lo:hi] - lo),
                                                  np.where(leaf, -2, self.feature[lo:hi]),
                                                  np.where(leaf, -2.0, self.threshold[lo:hi]), self.value[lo:hi]))
