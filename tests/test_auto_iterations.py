@@ -83,3 +83,10 @@ def test_sample_weights_must_be_averaging_weights(coh, bad):
         FittedQIteration(gamma=0.9, n_iterations=2, regressor_params={"n_estimators": 5}).fit(coh, sample_weight=w)
     with pytest.raises(ValueError, match="not all 0"):
         FittedQIteration(gamma=0.9, n_iterations=2).fit(coh, sample_weight=np.zeros(len(coh)))
+
+
+def test_bad_sample_weights_are_our_error_type(coh):
+    from offline_adp.errors import InvalidArgumentError
+
+    with pytest.raises(InvalidArgumentError, match="sample_weight"):
+        FittedQIteration(gamma=0.9, n_iterations=2).fit(coh, sample_weight=-np.ones(len(coh)))

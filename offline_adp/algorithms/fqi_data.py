@@ -21,6 +21,7 @@ import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.qfunctions import QEncoder
 
 
@@ -105,7 +106,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     if w_all is not None and not (np.isfinite(w_all).all() and (w_all >= 0).all() and w_all.sum() > 0):
         bad = np.flatnonzero(~np.isfinite(w_all) | (w_all < 0))
         where = f"row {int(bad[0])}: {w_all[bad[0]]!r}" if len(bad) else "all rows 0"
-        raise ValueError(f"sample_weight must be finite numbers >= 0, not all 0 (the Bellman backup averages with "
+        raise InvalidArgumentError(f"sample_weight must be finite numbers >= 0, not all 0 (the Bellman backup averages with "
                          f"them); {where}")
     tr = np.ones(len(ds), bool)
     if validation_fraction:

@@ -201,8 +201,8 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
     boot = ~data.train.no_boot
     # sup|dQ| over the data's pairs: the training pairs and every next-state pair the targets
     # read (the contraction's sup norm; fqi_monitor)
-    d_next = np.abs(it.q_next[boot] - it.q_next_old[boot])
-    sup_dq = max(float(dq.max()) if len(dq) else 0.0, float(d_next.max()) if d_next.size else 0.0)
+    d_next = np.abs(it.q_next - it.q_next_old).max(axis=1, initial=0.0)[boot]  # per row, over actions
+    sup_dq = max(float(dq.max()) if len(dq) else 0.0, float(d_next.max()) if len(d_next) else 0.0)
     changed = (it.q_next.argmin(axis=1) != it.q_next_old.argmin(axis=1))[boot]
     if data.valid is not None:
         v = data.valid
