@@ -17,7 +17,6 @@ one thread and of the plain numpy reference (used where numba is missing).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -39,14 +38,6 @@ def resolve_n_jobs(n_jobs: Any) -> int:
         return max(1, int(effective_n_jobs(int(n_jobs))))
     except (TypeError, ValueError):
         return 1
-
-
-def default_n_jobs() -> int:
-    """Every core this process may run on (its CPU affinity)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def thread_map(fn: Callable[[Any], Any], items: Iterable[Any], n_jobs: int) -> list[Any]:

@@ -163,8 +163,9 @@ def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | 
     ``ExtraTreesRegressor``, or one with a setting the builder does not implement
     (criterion other than squared error, ``max_leaf_nodes``, ``min_impurity_decrease``,
     ``min_weight_fraction_leaf``, ``ccp_alpha``, ``monotonic_cst``, ``oob_score``)."""
-    from joblib import effective_n_jobs
     from sklearn.ensemble import ExtraTreesRegressor
+
+    from offline_adp.trees.averaging import resolve_n_jobs
 
     if type(regressor) is not ExtraTreesRegressor:
         return None
@@ -200,7 +201,7 @@ def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | 
     depth = p.get("max_depth")
     ms = p.get("max_samples")
     n_boot = n_rows if ms is None else (int(ms) if isinstance(ms, int | np.integer) else max(1, round(float(ms) * n_rows)))
-    jobs = max(1, int(effective_n_jobs(p.get("n_jobs"))))  # scikit-learn's own resolution (affinity, cgroups)
+    jobs = resolve_n_jobs(p.get("n_jobs"))  # scikit-learn's own resolution (affinity, cgroups)
     return TreeParams(n_estimators=int(p["n_estimators"]), max_features=max(1, min(k, n_features)),
                       min_samples_split=max(2, mss), min_samples_leaf=max(1, msl),
                       max_depth=2**31 - 1 if depth is None else int(depth), bootstrap=bool(p.get("bootstrap")),
