@@ -21,25 +21,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fqi_suite import gym_dataset  # noqa: E402
+from fqi_suite import gym_dataset, gym_returns  # noqa: E402
 
 from offline_adp.algorithms.fqi import FittedQIteration  # noqa: E402
-
-
-def score(env_id: str, policy, n: int = 20) -> tuple[float, float]:
-    import gymnasium
-
-    rets = []
-    for i in range(n):
-        env = gymnasium.make(env_id)
-        obs, _ = env.reset(seed=10_000 + i)
-        total, done = 0.0, False
-        while not done:
-            a = int(policy.act_index(np.asarray(obs, float)[None, :], 0)[0])
-            obs, r, term, trunc, _ = env.step(a)
-            total, done = total + r, term or trunc
-        rets.append(total)
-    return float(np.mean(rets)), float(np.std(rets, ddof=1) / np.sqrt(n))
 
 
 def main() -> None:
@@ -53,7 +37,8 @@ def main() -> None:
             c0 = time.process_time()
             est = FittedQIteration(random_state=args.seed, **kw).fit(ds)
             cpu = time.process_time() - c0
-            m, se = score(env, est.policy_)
+            r = gym_returns(env, est.policy_)
+            m, se = float(r.mean()), float(r.std(ddof=1) / np.sqrt(len(r)))
             print(json.dumps({"env": env, "n_iterations": label, "score": round(m, 1), "se": round(se, 1),
                               "cpu_s": round(cpu, 1), "iterations": len(est.history_), "verdict": est.verdict_}),
                   flush=True)

@@ -75,6 +75,11 @@ def gym_dataset(env_id: str, n: int, seed: int) -> TransitionDataset:
 
 def gym_score(env_id: str, policy, n_episodes: int = 20) -> float:
     """Mean return of ``policy`` over episodes seeded 10_000 + i, all stepped together."""
+    return float(gym_returns(env_id, policy, n_episodes).mean())
+
+
+def gym_returns(env_id: str, policy, n_episodes: int = 20) -> np.ndarray:
+    """The return of each of ``n_episodes`` episodes seeded 10_000 + i, all stepped together."""
     import gymnasium
 
     envs = [gymnasium.make(env_id) for _ in range(n_episodes)]
@@ -89,7 +94,7 @@ def gym_score(env_id: str, policy, n_episodes: int = 20) -> float:
             obs[i], ret[i] = o, ret[i] + r
             alive[i] = not (term or trunc)
         t += 1
-    return float(ret.mean())
+    return ret
 
 
 def problem(name: str, n: int, data_seed: int, quick: bool):
