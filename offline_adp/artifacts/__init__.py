@@ -71,6 +71,9 @@ class _Kinds:
         self.readers: dict[str, Any] = {}
 
     def register(self, kind: str, cls: type, write: Any, read: Any) -> None:
+        """Make objects of class ``cls`` savable as ``kind``: ``write(obj, arrays, key) ->
+        dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> object``
+        (checking every field before use; ``ArtifactError`` naming ``where``)."""
         self.writers[cls] = (kind, write)
         self.readers[kind] = read
 
@@ -86,7 +89,7 @@ class _Kinds:
                 return {"kind": kind, **write(obj, arrays, key)}
         raise ArtifactError(f"cannot save a {type(obj).__name__} {self.what} safely")
 
-    def read(self, spec: Any, arrays: Any, where: str) -> Any:
+    def read(self, spec: Any, arrays: Any, where: str = "<memory>") -> Any:
         self._ready()
         if not isinstance(spec, dict):
             raise ArtifactError(f"{where}: {self.what} entry is not a JSON object")
@@ -100,19 +103,9 @@ class _Kinds:
 _Q_KINDS = _Kinds("Q-function")
 
 
-def register_q_kind(kind: str, cls: type, write: Any, read: Any) -> None:
-    """Make Q-functions of class ``cls`` savable as ``kind``: ``write(q, arrays, key) ->
-    dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> QFunction``
-    (checking every field before use; ``ArtifactError`` naming ``where``)."""
-    _Q_KINDS.register(kind, cls, write, read)
-
-
-def _export_q(q: QFunction, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    return _Q_KINDS.export(q, arrays, key)
-
-
-def _import_q(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> QFunction:
-    return _Q_KINDS.read(spec, arrays, where)
+#: ``register_q_kind(kind, cls, write, read)``: see :meth:`_Kinds.register`
+register_q_kind = _Q_KINDS.register
+_export_q, _import_q = _Q_KINDS.export, _Q_KINDS.read
 
 
 def _write_time_indexed(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
@@ -290,21 +283,6 @@ def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- policies
-def register_policy_kind(kind: str, cls: type, write: Any, read: Any) -> None:
-    """Make policies of class ``cls`` savable as ``kind``: ``write(pi, arrays, key) ->
-    dict`` (JSON fields besides ``kind``) and ``read(spec, arrays, where) -> policy``
-    (checking every field before use; ``ArtifactError`` naming ``where``)."""
-    _POLICY_KINDS.register(kind, cls, write, read)
-
-
-def _export_policy(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
-    return _POLICY_KINDS.export(pi, arrays, key)
-
-
-def _import_policy(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
-    return _POLICY_KINDS.read(spec, arrays, where)
-
-
 def _write_tabular(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
     arrays[f"{key}.table"] = pi.table
     return {"table": f"{key}.table"}
@@ -398,6 +376,9 @@ def _register_policies() -> None:
 
 
 _POLICY_KINDS = _Kinds("policy", load=_register_policies)
+#: ``register_policy_kind(kind, cls, write, read)``: see :meth:`_Kinds.register`
+register_policy_kind = _POLICY_KINDS.register
+_export_policy, _import_policy = _POLICY_KINDS.export, _POLICY_KINDS.read
 
 
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
