@@ -80,6 +80,10 @@ def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every
                 written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
             if on_iteration:
                 on_iteration(row)
+    except KeyboardInterrupt:  # Ctrl-C: keep every finished iteration (the pacing may have skipped the last)
+        if written != len(rows):
+            _write_checkpoint(rd.path, est, rows)
+        raise
     finally:  # an engine releases its workers' data now, not when the generator is collected
         close = getattr(iterations, "close", None)
         if close is not None:
