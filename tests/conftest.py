@@ -31,11 +31,24 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 INTEGRATION_MODULES = {"test_pipeline", "test_cli", "test_fit_run", "test_distributed", "test_notebooks", "test_report",
                        "test_concurrency"}
 
+#: Files holding a test of about a minute or more (2026-11-26, `pytest -n 2 --durations`):
+#: started first. Only the order depends on this list.
+LONGEST_MODULES = {"test_ope_coverage", "test_readme_demo", "test_readme_tour", "test_distributed"}
+
 
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.module.__name__.rsplit(".", 1)[-1] in INTEGRATION_MODULES:
             item.add_marker(pytest.mark.integration)
+    # Long tests first: `make test` runs on two xdist workers, which take tests in this
+    # order, so a minute-long test started last would leave one worker idle while the
+    # other finishes it. A stable sort: within each group the files keep their order.
+    def rank(item: pytest.Item) -> int:
+        if item.module.__name__.rsplit(".", 1)[-1] in LONGEST_MODULES:
+            return 0
+        return 1 if item.get_closest_marker("slow") else 2 if item.get_closest_marker("integration") else 3
+
+    items.sort(key=rank)
 
 
 @pytest.fixture(scope="session")

@@ -75,15 +75,14 @@ CASES = _cases()
 RETRY = {name: next(c for c in CASES if c[0] == name) for name in ALGORITHMS}
 
 
-def _fast(name: str, fields: dict[str, Any], runs: Path) -> dict[str, Any]:
+def _fast(name: str, fields: dict[str, Any], policy: Path) -> dict[str, Any]:
     """Settings that make a fit of ``name`` quick on the tiny dataset (derived from the
     configuration model's fields, not listed per algorithm), plus the keys a run needs."""
     trees = {"n_estimators": 2, "n_jobs": 1}
     caps = {"n_iterations": 1, "horizon": 2, "n_samples": 8, "n_rollouts": 1, "n_eval_episodes": 2,
             "regressor_params": trees, "learner_params": trees, "fqe": {"n_iterations": 1, "regressor_params": trees}}
-    # what a run needs: a saved policy (from the first algorithm whose artifact is a policy
-    # with its Q-function: registry order puts fqi first) and a simulator for the dataset's problem
-    needs = {"policy": str(runs / "retry-fqi" / "model"), "simulator": "tabular"}
+    # what a run needs: a saved policy (the fixture's) and a simulator for the dataset's problem
+    needs = {"policy": str(policy), "simulator": "tabular"}
     out = {k: v for k, v in caps.items() if k in fields}
     out.update({k: needs[k] for k in ALGORITHMS[name].required})
     return out
@@ -94,6 +93,17 @@ def dataset(tmp_path_factory) -> Path:
     ds = tmp_path_factory.mktemp("data") / "ds"
     assert main(["simulate", "tabular", "--out", str(ds), "--demonstrations", "2", "--exploration", "2", "-q"]) == 0
     return ds
+
+
+@pytest.fixture(scope="module")
+def policy(tmp_path_factory, dataset) -> Path:
+    """A saved FQI policy for the algorithms that evaluate or improve one (made here, not
+    by another test: under xdist the tests of this module may run in any order and process)."""
+    out = tmp_path_factory.mktemp("policy") / "run"
+    fields = ALGORITHMS["fqi"].params_model().model_fields
+    cfg = _write(out.parent / "fqi.toml", "fqi", _fast("fqi", fields, out / "model"))
+    assert main(["fit", str(dataset), "--algorithm", "fqi", "--config", str(cfg), "--out", str(out), "-q"]) == 0
+    return out / "model"
 
 
 def _write(path: Path, name: str, params: dict[str, Any]) -> Path:
@@ -109,12 +119,12 @@ def test_every_constrained_parameter_has_a_case():
 
 
 @pytest.mark.parametrize(("name", "key", "value"), CASES, ids=[f"{n}.{k}" for n, k, _ in CASES])
-def test_bad_value_exits_2_in_one_line_and_writes_nothing(tmp_path_factory, dataset, capsys, name, key, value):
+def test_bad_value_exits_2_in_one_line_and_writes_nothing(tmp_path_factory, dataset, policy, capsys, name, key, value):
     runs = tmp_path_factory.getbasetemp() / "retries"
     runs.mkdir(exist_ok=True)
     tmp = tmp_path_factory.mktemp(f"{name}-{key}")
     fields = ALGORITHMS[name].params_model().model_fields
-    fast = _fast(name, fields, runs)
+    fast = _fast(name, fields, policy)
     out = (runs / f"retry-{name}") if RETRY[name] == (name, key, value) else tmp / "run"
     cfg = _write(tmp / "bad.toml", name, {**fast, key: value})
     capsys.readouterr()
