@@ -21,6 +21,7 @@ import numpy as np
 
 from offline_adp.engines.dask.blocks import _Blocks, _chunk_plan
 from offline_adp.engines.dask.cluster import _one_line, flat_columns
+from offline_adp.engines.dask.frozen import DaskFrozenLearner
 from offline_adp.engines.dask.learner import DaskLearner
 from offline_adp.errors import (
     ClusterError,
@@ -244,15 +245,15 @@ class _DaskEngine:
     def __init__(self, client: Any, est: Any, cfg: DaskFit, fqe: bool = False) -> None:
         self.client, self.est, self.cfg, self.fqe = client, est, cfg, fqe
         self.blocks: _Blocks | None = None
-        self.learner_: DaskLearner | None = None
+        self.learner_: DaskLearner | DaskFrozenLearner | None = None
 
     @property
     def retried(self) -> int:
-        return 0 if self.learner_ is None else self.learner_.retried
+        return getattr(self.learner_, "retried", 0)
 
     @property
     def unplaced(self) -> list[int]:
-        return [] if self.learner_ is None else list(self.learner_.unplaced)
+        return list(getattr(self.learner_, "unplaced", []))
 
     def prepare(self, dataset_dir: str | PathLike[str], sample_weight: Any = None) -> Any:
         from offline_adp.algorithms.fqi_data import Prepared, Samples, value_bound
@@ -296,21 +297,29 @@ class _DaskEngine:
                              bound=bound, bound_text=text)
         return self.data
 
-    def learner(self, data: Any) -> DaskLearner:
+    def learner(self, data: Any) -> DaskLearner | DaskFrozenLearner:
         from offline_adp.regressors import make_regressor
 
         est, cfg = self.est, self.cfg
-        if est.mode == "frozen":
-            raise InvalidArgumentError("the Dask engine runs mode 'refit' or 'warm_start'; mode = 'frozen' runs in process")
-        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # 'auto': refit on the workers
         reg = make_regressor(est.regressor, **(est.regressor_params or {}))
         assert self.blocks is not None
+        if est.mode != "warm_start" and est.resolved_mode(reg) == "frozen":  # the default: frozen extra-trees
+            est.mode_ = "frozen"
+            self.learner_ = DaskFrozenLearner(self.client, self.blocks, reg, data.encoder, data.train.actions,
+                                              est.random_state, est._frozen_schedule(data, reg), start_obs=data.start_obs)
+            return self.learner_
+        if not type(reg).__name__.startswith("LGBM") and est.mode != "warm_start":
+            raise InvalidArgumentError(f"the Dask engine fits {type(reg).__name__} in mode 'frozen' (or 'auto' resolving "
+                                       f"to it) only, not {est.mode!r}; use the local engine")
+        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # LightGBM 'auto': refit on the workers
         self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
                                     warm_start=est.mode == "warm_start", trees_per_iteration=est.trees_per_iteration,
                                     time_out=cfg.time_out, retries=cfg.retries, start_obs=data.start_obs)
         return self.learner_
 
     def release(self) -> None:
+        if isinstance(self.learner_, DaskFrozenLearner):
+            self.learner_.release()
         if self.blocks is not None:
             self.blocks.release()
 
