@@ -14,9 +14,11 @@ Per structure (a build, a constant-target structure or a restored checkpoint):
   (the compact index of the in-process learner) and sends the numbering back, and every
   segment turns its positions into compact ones and sums its rows' weights per leaf.
 
-Per iteration: each segment sums its rows' targets per leaf
-(:func:`~offline_adp.trees.averaging.leaf_sums`, the in-process kernel); the client adds
-the segments' sums in row order, divides by the weights and broadcasts the leaf values;
+Per iteration: the targets are scattered from the client to the segments; the leaf sums
+of ``y`` (and once per structure of the weights) are taken segment after segment, each on
+its worker continuing the sums of the segments before it in row order (the first one with
+:func:`~offline_adp.trees.averaging.leaf_sums`, the in-process kernel), so every leaf's
+sum is the in-process one bit for bit; the client divides and broadcasts the leaf values;
 each segment takes the mean over trees at its queries
 (:func:`~offline_adp.trees.averaging.tree_mean`), gathered in row order. The client holds
 the per-transition vectors and one float per leaf, never a (trees, rows) matrix; the
@@ -41,7 +43,8 @@ from offline_adp.learn.frozen import FrozenBuilds
 from offline_adp.learn.schedule import FrozenSchedule
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
-from offline_adp.trees.averaging import leaf_sums, thread_map, tree_mean
+from offline_adp.trees.averaging import _split, leaf_sums, thread_map, tree_mean
+from offline_adp.trees.builder import _kernel
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import TreeEnsemble, compiled_per_tree_leaves
 
@@ -120,24 +123,40 @@ def _used(state: dict[str, Any]) -> np.ndarray:
 
 def _compact(state: dict[str, Any], node_map: np.ndarray, bounds: np.ndarray) -> dict[str, Any]:
     """The segment's positions in the compact leaf index (``node_map``: a node's compact
-    leaf, ``L`` -- the value 0 -- for a leaf without training rows), and its rows' count
-    per leaf. The positions are remapped in place (the lookup's state is released)."""
+    leaf, ``L`` -- the value 0 -- for a leaf without training rows), remapped in place
+    (the lookup's state is released)."""
     pos = state["pos"]
     for p in pos.values():
         for t in range(len(p)):  # one tree's temporary at a time
             p[t] = node_map[p[t]]
-    out = {"pos": pos, "bounds": bounds, "n": state["n"], "n_actions": state["n_actions"]}
-    out["wsum"] = leaf_sums(pos["train"], bounds, np.ones(state["n"]), _threads())
+    return {"pos": pos, "bounds": bounds, "n": state["n"], "n_actions": state["n_actions"]}
+
+
+def _carry_sums(pos: Any, v: Any, t0: int, t1: int, out: Any) -> None:
+    """``out[pos[t, i]] += v[i]`` for trees ``t0..t1-1``, rows in order: the sums of
+    :func:`~offline_adp.trees.averaging.leaf_sums` continued from ``out``."""
+    n = pos.shape[1]
+    for t in range(t0, t1):
+        for i in range(n):
+            out[pos[t, i]] += v[i]
+
+
+_carry_sums = _kernel(_carry_sums, cache=True, nogil=True, boundscheck=False)
+
+
+def _sums(state: dict[str, Any], v: np.ndarray | None, carry: np.ndarray | None) -> np.ndarray:
+    """``sum of v_i`` per compact leaf over the rows of every segment up to this one, in
+    row order: the in-process kernel on the first segment, then each next segment adds
+    its rows to the sums so far (``carry``), so every leaf's sum is the in-process one,
+    bit for bit, however the rows are split. ``v`` None: the rows' count (the weights)."""
+    pos, bounds = state["pos"]["train"], state["bounds"]
+    v = np.ones(state["n"]) if v is None else np.ascontiguousarray(v, dtype=np.float64)
+    j = _threads()
+    if carry is None:
+        return leaf_sums(pos, bounds, v, j)
+    out = np.array(carry, dtype=np.float64)
+    thread_map(lambda r: _carry_sums(pos, v, r[0], r[1], out), _split(len(pos), j), j)
     return out
-
-
-def _wsum(state: dict[str, Any]) -> np.ndarray:
-    return state["wsum"]
-
-
-def _sums(state: dict[str, Any], y: np.ndarray) -> np.ndarray:
-    """The segment's ``sum of y_i`` per compact leaf (its rows in order)."""
-    return leaf_sums(state["pos"]["train"], state["bounds"], y, _threads())
 
 
 def _means(state: dict[str, Any], values: np.ndarray) -> dict[str, np.ndarray]:
@@ -159,12 +178,12 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
     builder and its seeds) are the in-process learner's own (:class:`FrozenBuilds`); the
     trees are grown from the same rows with the same seeds, so the structure is the
     in-process one for any number of workers, and so are the leaf positions. Every leaf
-    sum is taken in row order within a segment (consecutive blocks on one worker) and the
-    segments' sums are added in row order: with one segment (one worker) the Q-values,
-    the history and the saved model equal the in-process fit's bit for bit; with several,
-    a leaf's sum of targets is added in another grouping, a rounding difference (about
-    1e-16 relative per leaf) that the loop carries on; the result does not depend on the
-    run (same data, parameters and number of workers: the same Q bit for bit).
+    sum is taken in row order, segment after segment (consecutive blocks on one worker),
+    and each query's mean over trees in tree order: the Q-values, the history and the
+    saved model equal the in-process fit's **bit for bit, on one worker or several** (and
+    so two runs give the same Q). The price: the leaf sums of an iteration run one segment
+    after another (a pass over the segment's (trees, rows) positions each, a few percent
+    of an iteration), not in parallel.
 
     Not on the cluster: ``screen_trees`` (the screen reads every next state's per-tree
     values: refused) and sample weights (the Dask engine has none).
@@ -269,16 +288,17 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
         self._states = [client.submit(_compact, s, m_f, self._bounds, workers=[w], allow_other_workers=True,
                                       pure=False) for s, (_, w, _, _) in zip(looked, self.segments, strict=True)]
         del looked  # the lookups' futures: their positions live on in the compact states
-        self._wsum = self._reduce(client.gather([client.submit(_wsum, s, pure=False) for s in self._states]))
+        self._wsum = self._leaf_sums(None)
         self._m = len(sizes)
 
-    @staticmethod
-    def _reduce(parts: list[np.ndarray]) -> np.ndarray:
-        """The segments' leaf sums added in row order (one segment: its sums as they are)."""
-        total = parts[0]
-        for p in parts[1:]:
-            total = total + p
-        return total
+    def _leaf_sums(self, y: np.ndarray | None) -> np.ndarray:
+        """``sum of y_i`` (None: of 1) over the training rows in each compact leaf, summed
+        segment after segment on their workers (each continues the previous one's sums)."""
+        client, carry = self.client, None
+        for s, (_, w, lo, hi) in zip(self._states, self.segments, strict=True):
+            v = None if y is None else client.scatter(y[lo:hi], workers=[w], hash=False)
+            carry = client.submit(_sums, s, v, carry, workers=[w], allow_other_workers=True, pure=False)
+        return np.asarray(carry.result(), dtype=np.float64)  # type: ignore[union-attr]
 
     # ------------------------------------------------------------------ the Learner interface
     def fit(self, y: np.ndarray, k: int) -> None:
@@ -286,10 +306,7 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
         if self._builds_at(k):
             self._build(y, k)
         self._built()
-        sums = [self.client.submit(_sums, s, self.client.scatter(y[lo:hi], workers=[w], hash=False),
-                                   workers=[w], allow_other_workers=True, pure=False)
-                for s, (_, w, lo, hi) in zip(self._states, self.segments, strict=True)]
-        self.leaf_values = self._reduce(self.client.gather(sums)) / self._wsum  # leaf means of y_k
+        self.leaf_values = self._leaf_sums(y) / self._wsum  # leaf means of y_k
         self._cache = {}
 
     def predict(self, name: str) -> np.ndarray:
