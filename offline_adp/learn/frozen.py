@@ -122,6 +122,14 @@ class FrozenBuilds:
                 "structure_trees": int(self._m), "structure_screen": self.screen_value,
                 "structure_builder": self.grown_by}
 
+    def snapshot(self) -> QFunction:
+        """The current Q: the structure (``_exported()``) with the leaf values of this iteration
+        (a leaf without training rows keeps the value it was grown with)."""
+        ens = self._exported()  # type: ignore[attr-defined]
+        value = ens.value.copy()
+        value[self.leaf_ids] = self.leaf_values  # type: ignore[attr-defined]
+        return TreeQ([ens.with_values(value)], self.encoder)
+
     def _restore_builds(self, rows: list[dict[str, Any]] | None) -> None:
         """The build bookkeeping of a resumed fit, from its history rows."""
         last = (rows or [{}])[-1]
@@ -445,12 +453,6 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             v = tree_mean(values, self.pos[name], self.n_jobs)  # mean over trees of the reached leaves
         self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
         return self._cache[name]
-
-    def snapshot(self) -> QFunction:
-        ens = self._exported()
-        value = ens.value.copy()
-        value[self.leaf_ids] = self.leaf_values
-        return TreeQ([ens.with_values(value)], self.encoder)
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
         """The saved ``Q_k`` carries its structure: recompute the leaves of the training and

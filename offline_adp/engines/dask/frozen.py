@@ -41,7 +41,7 @@ from offline_adp.learn import Learner, LearnSpec
 from offline_adp.learn.base import fit_model
 from offline_adp.learn.frozen import FrozenBuilds
 from offline_adp.learn.schedule import FrozenSchedule
-from offline_adp.qfunctions import QFunction, TreeQ
+from offline_adp.qfunctions import QFunction
 from offline_adp.trees import builder as compiled
 from offline_adp.trees.averaging import _split, leaf_sums, thread_map, tree_mean
 from offline_adp.trees.builder import _kernel
@@ -327,12 +327,6 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
             ens.n_features_in_ = int(self.n_features)  # type: ignore[attr-defined]
             self.ensemble = ens
         return self.ensemble
-
-    def snapshot(self) -> QFunction:
-        ens = self._exported()
-        value = ens.value.copy()
-        value[self.leaf_ids] = self.leaf_values
-        return TreeQ([ens.with_values(value)], self.encoder)
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
         """The saved ``Q_k`` carries its structure: its trees go to the workers, the leaves
