@@ -169,3 +169,21 @@ def test_pipeline_fits_the_default_config_on_the_cluster(tmp_path):
     for m in (a, b):
         m["dataset"].pop("path")
     assert a == b
+
+
+def test_frozen_fqe_on_one_worker_equals_local(one, data):
+    """``DaskFit`` runs a frozen FQE (the evaluation's default FQE mode) with the same
+    learner: Q and the value estimate are the local fit's."""
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.policies import UniformPolicy
+
+    ds, path = data
+    kw = {"policy": UniformPolicy(ds.n_actions), "gamma": 0.9, "mode": "frozen", "n_iterations": 6,
+          "regressor_params": PARAMS, "random_state": 2}
+    local = FittedQEvaluation(**kw).fit(ds)
+    est = FittedQEvaluation(**kw)
+    for _ in DaskFit(one).fit_iter(est, path):
+        pass
+    x = _queries(ds)
+    np.testing.assert_array_equal(est.q_function_.values(x), local.q_function_.values(x))
+    assert est.value_ == local.value_

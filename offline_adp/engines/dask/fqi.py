@@ -187,8 +187,11 @@ class DistributedFQI:
 
 class DaskFit:
     """The Dask engine of the run writer (:func:`offline_adp.runs.fit_run`'s ``engine``):
-    runs a fitted-Q estimator's iterations (FQI or FQE; ``mode`` ``"refit"``, ``"auto"``
-    (refit) or ``"warm_start"``; LightGBM) on the cluster: the loop of its ``fit_iter``.
+    runs a fitted-Q estimator's iterations (FQI or FQE) on the cluster: the loop of its
+    ``fit_iter``. LightGBM (``mode`` ``"refit"``, ``"auto"`` (refit) or ``"warm_start"``),
+    or frozen extra-trees (``mode="frozen"``, or ``"auto"`` where it resolves to frozen:
+    the default ``FittedQIteration()``; :class:`DaskFrozenLearner`, the local fit's Q bit
+    for bit). Other regressors and modes are refused (InvalidArgumentError).
 
     Parameters
     ----------
