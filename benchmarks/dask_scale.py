@@ -11,14 +11,26 @@ and nanny process), the Dask/local wall ratio (target < 1.2), the workers' peak 
 the refit mode (``--iterations``, default 3) and the warm-start mode (10 new trees per
 iteration from cached predictions, ``--warm-iterations``, default 5).
 
-    python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start] [--no-local]
-                                    [--data uniform|episodes]
+The default mode (``--modes frozen``: ``FittedQIteration()``, frozen extra-trees,
+``n_iterations="auto"``) is run whole, each run in a child process: locally, then on a
+LocalCluster of 1, 2 and 4 workers x 1 thread (``--workers``). Reported per run: wall and
+CPU seconds of the fit (CPU of every process: client, scheduler, workers, nannies), peak
+RSS of each process (the client's: the child's), the iterations, the car-on-the-hill
+score of the greedy policy (Ernst et al.'s 289-state grid) and a hash of Q on that grid
+(equal hashes: the same Q bit for bit).
+
+    python benchmarks/dask_scale.py [--sizes 1000000 4000000] [--modes refit warm_start frozen] [--no-local]
+                                    [--data uniform|episodes] [--workers 1 2 4]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -71,10 +83,51 @@ def tree_cpu() -> float:
     return total
 
 
+def frozen_child(path: str, workers: int) -> None:
+    """One default-mode fit (``workers`` 0: in this process), its numbers as a JSON line."""
+    from offline_adp.engines.dask import DaskFit
+    from offline_adp.envs.car_on_hill import score, score_grid
+
+    est = FittedQIteration(gamma=0.95, regressor_params={"n_jobs": 1})  # the default fit, one thread a process
+    t0, c0 = time.perf_counter(), tree_cpu()
+    if workers == 0:
+        est.fit(read_dataset(path))
+        rss = {}
+    else:
+        with dask_client(EngineConfig(kind="dask", n_workers=workers, threads_per_worker=1,
+                                      memory_limit="10GiB")) as client:
+            for _ in DaskFit(client).fit_iter(est, path):
+                pass
+            wall, cpu = time.perf_counter() - t0, tree_cpu() - c0  # before the workers go
+            rss = client.run(peak_rss_mb)
+    if workers == 0:
+        wall, cpu = time.perf_counter() - t0, tree_cpu() - c0
+    q = est.q_function_.values(score_grid())
+    print(json.dumps({"wall": wall, "cpu": cpu, "client_rss": peak_rss_mb(), "worker_rss": sorted(rss.values()),
+                      "iterations": len(est.history_), "score": score(est.policy_),
+                      "q_hash": hashlib.sha256(q.tobytes()).hexdigest()[:10]}), flush=True)
+
+
+def frozen(n: int, path: Path, workers: list[int], local: bool) -> None:
+    for w in ([0] if local else []) + workers:
+        out = subprocess.run([sys.executable, __file__, "--child", str(path), str(w)], capture_output=True, text=True,
+                             check=True).stdout.strip().splitlines()[-1]
+        r = json.loads(out)
+        where = "local" if w == 0 else f"dask x{w}"
+        print(f"{n:12d} {'frozen':>10s} {where:>8s} wall {r['wall']:7.1f} s  cpu {r['cpu']:7.1f} s  "
+              f"it {r['iterations']:3d}  score {r['score']:.4f}  Q {r['q_hash']}  peak RSS MB: client "
+              f"{r['client_rss']:.0f}" + (", workers " + ", ".join(f"{v:.0f}" for v in r["worker_rss"]) if w else ""),
+              flush=True)
+
+
 def main() -> None:
+    if len(sys.argv) == 4 and sys.argv[1] == "--child":
+        frozen_child(sys.argv[2], int(sys.argv[3]))
+        return
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[1_000_000, 4_000_000])
-    ap.add_argument("--modes", nargs="+", default=["refit", "warm_start"], choices=["refit", "warm_start"])
+    ap.add_argument("--modes", nargs="+", default=["refit", "warm_start"], choices=["refit", "warm_start", "frozen"])
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4], help="cluster sizes of the frozen mode")
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--warm-iterations", type=int, default=5)
     ap.add_argument("--no-local", action="store_true", help="time the Dask side only")
@@ -87,16 +140,21 @@ def main() -> None:
         for n in args.sizes:
             path = Path(tmp) / f"coh{n}"
             (make if args.data == "uniform" else make_episodes)(n, path)
+            if "frozen" in args.modes:
+                frozen(n, path, args.workers, not args.no_local)
+            lgbm = [m for m in args.modes if m != "frozen"]
+            if not lgbm:
+                continue
             ds = read_dataset(path)
-            local = {mode: (float("nan"), float("nan")) for mode in args.modes}
-            for mode in [] if args.no_local else args.modes:
+            local = {mode: (float("nan"), float("nan")) for mode in lgbm}
+            for mode in [] if args.no_local else lgbm:
                 n_it = args.iterations if mode == "refit" else args.warm_iterations
                 est = FittedQIteration(gamma=0.95, regressor="lightgbm", regressor_params=PARAMS, n_iterations=n_it,
                                        mode=mode, trees_per_iteration=10).fit(ds)
                 h = est.history_.iloc[1:]  # iterations 2..: targets need a prediction
                 local[mode] = (float(h["wall_time"].mean()), float(h["cpu_time"].mean()))
             del ds
-            for mode in args.modes:
+            for mode in lgbm:
                 n_it = args.iterations if mode == "refit" else args.warm_iterations
                 with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="10GiB")) as client:
                     marks: list[tuple[float, float]] = []

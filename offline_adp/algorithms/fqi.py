@@ -478,21 +478,24 @@ class FittedQIteration(CheckedEstimator):
         spec = LearnSpec(regressor=reg, encoder=data.encoder, phi=data.train.phi, actions=data.train.actions,
                          queries=queries, weights=data.weights, seed=self.random_state)
         if self.mode_ == "frozen":
-            screen = None if self.screen_trees is None else TreeScreen(int(self.screen_trees), float(self.screen_tol),
-                                                                       data.gamma, ~data.train.no_boot)
-            # a finite horizon's every iterate is the policy at one step: no build's error is damped
-            finite = getattr(self, "horizon_", self.horizon) is not None
-            early = (None if self.early_build_trees is None or finite
-                     else EarlyBuilds(int(self.early_build_trees), data.gamma, self.iteration_plan()[0]))
-            return FrozenTreesLearner(spec, FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
-                                                           max_samples=self._structure_fraction(data.n, reg),
-                                                           builder=self.tree_builder))
+            return FrozenTreesLearner(spec, self._frozen_schedule(data, reg))
         if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
                 warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
                               "(LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
             return LightGBMWarmStartLearner(spec, trees_per_iteration=self.trees_per_iteration)
         return RefitLearner(spec, predict_jobs=predict_n_jobs(self.regressor, self.regressor_params))
+
+    def _frozen_schedule(self, data: Prepared, reg: Any) -> FrozenSchedule:
+        """The builds of ``mode="frozen"`` on ``data`` (also the Dask engine's)."""
+        screen = None if self.screen_trees is None else TreeScreen(int(self.screen_trees), float(self.screen_tol),
+                                                                   data.gamma, ~data.train.no_boot)
+        # a finite horizon's every iterate is the policy at one step: no build's error is damped
+        finite = getattr(self, "horizon_", self.horizon) is not None
+        early = (None if self.early_build_trees is None or finite
+                 else EarlyBuilds(int(self.early_build_trees), data.gamma, self.iteration_plan()[0]))
+        return FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
+                              max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)
 
     def _result_policy(self, q: QFunction) -> Any:
         return GreedyPolicy(q)

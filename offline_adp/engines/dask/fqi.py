@@ -21,6 +21,7 @@ import numpy as np
 
 from offline_adp.engines.dask.blocks import _Blocks, _chunk_plan
 from offline_adp.engines.dask.cluster import _one_line, flat_columns
+from offline_adp.engines.dask.frozen import DaskFrozenLearner
 from offline_adp.engines.dask.learner import DaskLearner
 from offline_adp.errors import (
     ClusterError,
@@ -56,6 +57,14 @@ class DistributedFQI:
     one thread); with several, LightGBM's data-parallel training gives a close, not an
     equal, Q (its histogram bins come from each worker's rows).
 
+    ``regressor="extra_trees"`` (with ``regressor_params``) runs the in-process default
+    mode instead, frozen extra-trees structures
+    (:class:`~offline_adp.engines.dask.frozen.DaskFrozenLearner`: trees grown on the
+    workers, leaf values re-averaged from per-block leaf sums; ``n_iterations="auto"``
+    and the in-process build schedule). On one worker its Q equals the in-process
+    ``FittedQIteration()`` fit's bit for bit; on several it is reproducible and equal up
+    to the rounding of the leaf sums' grouping.
+
     ``warm_start=True`` is the in-process ``mode="warm_start"``: each iteration adds
     ``trees_per_iteration`` trees fitted to the residual ``y_k - Q_{k-1}(x_i, a_i)``;
     the cached predictions live on the client, only the new trees are evaluated on the
@@ -69,6 +78,10 @@ class DistributedFQI:
     lgbm_params : dict
         LightGBM parameters (on top of the ``lightgbm`` registry entry's); ``n_jobs`` is
         ignored on the cluster (a worker uses its own threads).
+    regressor : {"lightgbm", "extra_trees"}
+        LightGBM (refit or warm start) or the default frozen extra-trees mode.
+    regressor_params : dict, optional
+        The extra-trees parameters (``regressor="extra_trees"``).
     time_out : int
         Minutes LightGBM's Dask network setup may wait (so nothing hangs for hours).
     retries : int
@@ -108,8 +121,10 @@ class DistributedFQI:
 
     def __init__(self, gamma: float | None = None, n_iterations: int = 10, lgbm_params: dict | None = None,
                  time_out: int = 2, retries: int = 2, random_state: int = 0, policy: Any = None,
-                 warm_start: bool = False, trees_per_iteration: int = 10, worker_wait_s: float = 60.0) -> None:
+                 warm_start: bool = False, trees_per_iteration: int = 10, worker_wait_s: float = 60.0,
+                 regressor: str = "lightgbm", regressor_params: dict | None = None) -> None:
         self.gamma, self.n_iterations, self.lgbm_params = gamma, n_iterations, lgbm_params
+        self.regressor, self.regressor_params = regressor, regressor_params
         self.time_out, self.retries, self.random_state, self.policy = time_out, retries, random_state, policy
         self.worker_wait_s = worker_wait_s
         self.warm_start, self.trees_per_iteration = warm_start, trees_per_iteration
@@ -119,8 +134,11 @@ class DistributedFQI:
         from offline_adp.algorithms.fqe import FittedQEvaluation
         from offline_adp.algorithms.fqi import FittedQIteration
 
-        common = {"gamma": self.gamma, "regressor": "lightgbm", "regressor_params": self.lgbm_params,
-                  "n_iterations": self.n_iterations, "mode": "warm_start" if self.warm_start else "refit",
+        lgbm = self.regressor == "lightgbm"
+        common = {"gamma": self.gamma, "regressor": self.regressor,
+                  "regressor_params": self.lgbm_params if lgbm else self.regressor_params,
+                  "n_iterations": self.n_iterations,
+                  "mode": "warm_start" if self.warm_start else "refit" if lgbm else "auto",
                   "trees_per_iteration": self.trees_per_iteration, "random_state": self.random_state}
         return FittedQEvaluation(policy=self.policy, **common) if self.policy is not None else FittedQIteration(**common)
 
@@ -169,8 +187,11 @@ class DistributedFQI:
 
 class DaskFit:
     """The Dask engine of the run writer (:func:`offline_adp.runs.fit_run`'s ``engine``):
-    runs a fitted-Q estimator's iterations (FQI or FQE; ``mode`` ``"refit"``, ``"auto"``
-    (refit) or ``"warm_start"``; LightGBM) on the cluster: the loop of its ``fit_iter``.
+    runs a fitted-Q estimator's iterations (FQI or FQE) on the cluster: the loop of its
+    ``fit_iter``. LightGBM (``mode`` ``"refit"``, ``"auto"`` (refit) or ``"warm_start"``),
+    or frozen extra-trees (``mode="frozen"``, or ``"auto"`` where it resolves to frozen:
+    the default ``FittedQIteration()``; :class:`DaskFrozenLearner`, the local fit's Q bit
+    for bit). Other regressors and modes are refused (InvalidArgumentError).
 
     Parameters
     ----------
@@ -244,15 +265,15 @@ class _DaskEngine:
     def __init__(self, client: Any, est: Any, cfg: DaskFit, fqe: bool = False) -> None:
         self.client, self.est, self.cfg, self.fqe = client, est, cfg, fqe
         self.blocks: _Blocks | None = None
-        self.learner_: DaskLearner | None = None
+        self.learner_: DaskLearner | DaskFrozenLearner | None = None
 
     @property
     def retried(self) -> int:
-        return 0 if self.learner_ is None else self.learner_.retried
+        return getattr(self.learner_, "retried", 0)
 
     @property
     def unplaced(self) -> list[int]:
-        return [] if self.learner_ is None else list(self.learner_.unplaced)
+        return list(getattr(self.learner_, "unplaced", []))
 
     def prepare(self, dataset_dir: str | PathLike[str], sample_weight: Any = None) -> Any:
         from offline_adp.algorithms.fqi_data import Prepared, Samples, value_bound
@@ -282,35 +303,46 @@ class _DaskEngine:
         if disc.horizon is None and not disc.gamma < 1.0 and not term.any():
             raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {disc.gamma}) unless episodes "
                              "terminate (a shortest-path problem); give a horizon instead")
-        bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon)
+        c_inf = getattr(est, "infeasible_cost", None)  # the chapter's c^-: no bootstrap from a row that reached it, targets clamped
+        no_boot = term if c_inf is None else term | (cost >= c_inf)
+        bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon, c_inf,
+                                  getattr(est, "target_noise", 0.0))
         start = step == 0
         start_obs = self.blocks.gather(("start",))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
         next_obs = self.blocks.gather(("next",))["next"] if self.fqe else None  # FQE's backup
         est._encoder = enc = QEncoder(len(af), af)
         actions = v["action"].astype(np.int64)
         # phi, next inputs and observations stay on the workers (self.blocks): None here
-        train = Samples(phi=None, actions=actions, cost=cost, no_boot=term, phi_next=None, next_obs=next_obs)  # type: ignore[arg-type]
+        train = Samples(phi=None, actions=actions, cost=cost, no_boot=no_boot, phi_next=None, next_obs=next_obs)  # type: ignore[arg-type]
         self.data = Prepared(train=train, valid=None, weights=None, gamma=disc.gamma, n_actions=len(af), encoder=enc,
                              obs=None, obs_std=None, start_phi=None, start_obs=start_obs,  # type: ignore[arg-type]
                              start_rows=np.flatnonzero(start) if start.any() else np.zeros(1, np.int64),
-                             bound=bound, bound_text=text)
+                             bound=bound, bound_text=text, infeasible_cost=c_inf)
         return self.data
 
-    def learner(self, data: Any) -> DaskLearner:
+    def learner(self, data: Any) -> DaskLearner | DaskFrozenLearner:
         from offline_adp.regressors import make_regressor
 
         est, cfg = self.est, self.cfg
-        if est.mode == "frozen":
-            raise InvalidArgumentError("the Dask engine runs mode 'refit' or 'warm_start'; mode = 'frozen' runs in process")
-        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # 'auto': refit on the workers
         reg = make_regressor(est.regressor, **(est.regressor_params or {}))
         assert self.blocks is not None
+        if est.mode != "warm_start" and est.resolved_mode(reg) == "frozen":  # the default: frozen extra-trees
+            est.mode_ = "frozen"
+            self.learner_ = DaskFrozenLearner(self.client, self.blocks, reg, data.encoder, data.train.actions,
+                                              est.random_state, est._frozen_schedule(data, reg), start_obs=data.start_obs)
+            return self.learner_
+        if not type(reg).__name__.startswith("LGBM") and est.mode != "warm_start":
+            raise InvalidArgumentError(f"the Dask engine fits {type(reg).__name__} in mode 'frozen' (or 'auto' resolving "
+                                       f"to it) only, not {est.mode!r}; use the local engine")
+        est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # LightGBM 'auto': refit on the workers
         self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
                                     warm_start=est.mode == "warm_start", trees_per_iteration=est.trees_per_iteration,
                                     time_out=cfg.time_out, retries=cfg.retries, start_obs=data.start_obs)
         return self.learner_
 
     def release(self) -> None:
+        if isinstance(self.learner_, DaskFrozenLearner):
+            self.learner_.release()
         if self.blocks is not None:
             self.blocks.release()
 
