@@ -149,28 +149,6 @@ def test_screen_is_refused_and_refit_extra_trees_too(one, data):
         _dask_fit(one, path, mode="refit")
 
 
-def test_pipeline_fits_the_default_config_on_the_cluster(tmp_path):
-    """``run --engine dask`` with the default fit (frozen extra-trees): the fit stage runs on
-    the cluster (run.json and the manifest say dask) and the metrics equal the local run's."""
-    from offline_adp.pipeline import run_pipeline
-    from tests.test_pipeline import PIPELINES, SMALL, quiet
-
-    small = {**SMALL["car_on_hill"], "data.exploration": 30, "fit.params.n_iterations": 6, "evaluate.episodes": 10,
-             "evaluate.bootstrap": 5, "evaluate.horizon": 10, "evaluate.fqe_params": {"n_iterations": 3},
-             "fit.params.regressor_params": {"n_estimators": 8}}
-    local = run_pipeline(PIPELINES / "car_on_hill.toml", out=tmp_path / "local", say=quiet, overrides=small)
-    lines: list[str] = []
-    dist = run_pipeline(PIPELINES / "car_on_hill.toml", out=tmp_path / "dask", say=lines.append, overrides=small,
-                        engine={"kind": "dask", "n_workers": 2, "threads_per_worker": 1, "memory_limit": "2GiB"})
-    st = json.loads((dist / "manifest.json").read_text())["stages"]
-    assert st["fit"]["engine"] == "dask" and json.loads((dist / "fit" / "run.json").read_text())["engine"] == "dask"
-    assert not any("client process" in s for s in lines)
-    a, b = (json.loads((r / "metrics.json").read_text()) for r in (local, dist))
-    for m in (a, b):
-        m["dataset"].pop("path")
-    assert a == b
-
-
 def test_frozen_fqe_on_one_worker_equals_local(one, data):
     """``DaskFit`` runs a frozen FQE (the evaluation's default FQE mode) with the same
     learner: Q and the value estimate are the local fit's."""

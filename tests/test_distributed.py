@@ -242,18 +242,24 @@ def test_distributed_ingestion_of_four_files_equals_local(client, tmp_path):
 
 
 def test_pipeline_with_dask_engine_matches_local(tmp_path):
-    """`run --engine dask`: the data stage runs per file on the workers; the metrics equal the local run's."""
+    """`run --engine dask`: the data stage runs per file on the workers, the default fit
+    (frozen extra-trees) on the cluster (run.json and the manifest say dask); the metrics
+    equal the local run's."""
     import json
 
     from offline_adp.pipeline import run_pipeline
     from tests.test_pipeline import PIPELINES, SMALL, quiet
 
     small = {**SMALL["driving"], "evaluate.episodes": 10, "evaluate.bootstrap": 10, "evaluate.horizon": 10,
-             "fit.params.n_iterations": 5}  # the data stage is what runs on Dask here; the rest only has to agree
+             "fit.params.n_iterations": 5}
     local = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "local", say=quiet, overrides=small)
-    dist = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "dask", say=quiet, overrides=small,
+    lines: list[str] = []
+    dist = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "dask", say=lines.append, overrides=small,
                         engine={"kind": "dask", "n_workers": 2, "threads_per_worker": 1, "memory_limit": "2GiB"})
-    assert json.loads((dist / "manifest.json").read_text())["stages"]["data"]["engine"] == "dask"
+    stages = json.loads((dist / "manifest.json").read_text())["stages"]
+    assert stages["data"]["engine"] == "dask" and stages["fit"]["engine"] == "dask"
+    assert json.loads((dist / "fit" / "run.json").read_text())["engine"] == "dask"
+    assert not any("client process" in s for s in lines)
     a, b = (json.loads((r / "metrics.json").read_text()) for r in (local, dist))
     for m in (a, b):
         m["dataset"].pop("path")
