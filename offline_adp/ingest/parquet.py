@@ -305,6 +305,7 @@ def ingest_tables(
         name=spec.name,
     )
     ds = TransitionDataset(out, info, _sorted_ids=enc)  # sorted by _map: not checked again
+    del out, enc  # the dataset holds what it needs (its table, int64 codes)
     if progress:
         progress("validating")
     report = validate(ds)  # names src_file/src_row of each finding
