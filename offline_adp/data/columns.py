@@ -68,6 +68,7 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         return
     if col.null_count:
         col = col.fill_null(False if kind == "b" else 0 if kind == "i" else 0.0)
+    buf = np.empty(min(n, _HASH_BLOCK), np.int64 if kind == "i" else np.float64)  # reused by every block
     for chunk in col.chunks:
         arr = chunk.to_numpy(zero_copy_only=False)  # no nulls left: a view, except booleans (unpacked)
         if kind == "b":
@@ -77,12 +78,16 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         else:
             for lo in range(0, len(arr), _HASH_BLOCK):
                 block = arr[lo:lo + _HASH_BLOCK]
+                b = buf[:len(block)]
                 if kind == "i":
-                    h.update(block.astype(np.int64))
+                    np.copyto(b, block, casting="unsafe")  # as astype(np.int64)
                 else:
-                    b = np.asarray(block, dtype=np.float64) + 0.0  # -0.0 and 0.0 are the same value
-                    b[np.isnan(b)] = np.nan  # one NaN whatever its payload
-                    h.update(b)
+                    np.add(block, 0.0, out=b, casting="unsafe")  # -0.0 and 0.0 are the same value
+                    with np.errstate(invalid="ignore", over="ignore"):
+                        some_nan = np.isnan(np.add.reduce(b))  # a NaN (or inf - inf) in the block
+                    if some_nan:
+                        b[np.isnan(b)] = np.nan  # one NaN whatever its payload
+                h.update(b)
 
 
 def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -128,19 +133,22 @@ def sorted_encoding(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.Di
             changes.append(np.array([a != b]))
         if len(c) > 1:
             head, tail = c.slice(0, len(c) - 1), c.slice(1)
-            if pc.any(pc.less(tail, head)).as_py():
+            change = np.asarray(pc.not_equal(tail, head).to_numpy(zero_copy_only=False), dtype=bool)
+            at = pa.array(np.flatnonzero(change))  # ids out of order differ: compared only where they change
+            if len(at) and pc.any(pc.less(tail.take(at), head.take(at))).as_py():
                 return None
-            changes.append(np.asarray(pc.not_equal(tail, head).to_numpy(zero_copy_only=False), dtype=bool))
+            changes.append(change)
         prev = c[len(c) - 1]
     first = np.concatenate([np.ones(1, bool), *changes])
     del changes
-    if (~first[1:] & (order[1:] < order[:-1])).any():
+    starts = np.flatnonzero(first)
+    # order decreases only where an id starts (rows where it decreases are few: compare there)
+    if not first[np.flatnonzero(order[1:] < order[:-1]) + 1].all():
         return None
-    dictionary = chunked.take(pa.array(np.flatnonzero(first))).combine_chunks()
+    dictionary = chunked.take(pa.array(starts)).combine_chunks()
     if pa.types.is_large_string(dictionary.type):
         dictionary = dictionary.cast(pa.string())
-    codes = np.cumsum(first, dtype=np.int32)
-    codes -= 1
+    codes = np.repeat(np.arange(len(starts), dtype=np.int32), np.diff(np.r_[starts, n]))  # cumsum over bools is slower
     return pa.DictionaryArray.from_arrays(pa.array(codes), dictionary)
 
 

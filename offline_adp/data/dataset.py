@@ -94,9 +94,9 @@ class TransitionDataset:
         If a required column is missing or cannot be cast to its type.
     """
 
-    def __init__(self, table: pa.Table, info: DatasetInfo) -> None:
+    def __init__(self, table: pa.Table, info: DatasetInfo, *, _sorted_ids: pa.DictionaryArray | None = None) -> None:
         self.info = info
-        self.table, enc, self.was_sorted = _canonical(table, info)
+        self.table, enc, self.was_sorted = _canonical(table, info, _sorted_ids)
         self._codes: np.ndarray | None = None
         self._episode_ids: np.ndarray | None = None
         if enc is not None:  # the sortedness check already encoded the ids in order
@@ -448,11 +448,15 @@ class TransitionDataset:
 
 
 
-def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.DictionaryArray | None, bool]:
+def _canonical(table: pa.Table, info: DatasetInfo, sorted_ids: pa.DictionaryArray | None = None
+               ) -> tuple[pa.Table, pa.DictionaryArray | None, bool]:
     """Check required columns, cast to canonical types and sort by (episode_id, step).
 
     Returns the table, the episode-id encoding when it is already valid for the returned
-    table (rows were in order), and whether the rows were in order.
+    table (rows were in order), and whether the rows were in order. ``sorted_ids`` (for a
+    caller that has already sorted the rows, e.g. the Parquet ingestion) is that encoding,
+    computed by :func:`~offline_adp.data.columns.sorted_encoding` or after a sort: the
+    order is then not checked a second time.
     """
     names = table.column_names
     feature_cols = [S.obs_column(f) for f in info.feature_names] + [S.next_obs_column(f) for f in info.feature_names]
@@ -484,6 +488,8 @@ def _canonical(table: pa.Table, info: DatasetInfo) -> tuple[pa.Table, pa.Diction
         raise SchemaError(f"row {i}: episode_id is missing (null) in {ids.null_count} rows; every row needs an episode id")
     if not table.num_rows:
         return table, None, True
+    if sorted_ids is not None and len(sorted_ids) == table.num_rows:
+        return table, sorted_ids, True
     enc = _sorted_encoding(table)
     if enc is None:
         idx = pc.sort_indices(table, sort_keys=[(S.EPISODE_ID, "ascending"), (S.STEP, "ascending")])

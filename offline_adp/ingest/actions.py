@@ -38,10 +38,8 @@ def map_discrete(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") ->
         tv = table_vals.astype(np.float64)
         x = raw.astype(np.float64, copy=False)
         tol = 1e-9 * np.maximum(1.0, np.abs(tv))
-        idx = np.full(len(x), -1, np.int64)
-        if len(tv) <= 32:  # one vectorised comparison per action
-            for k in range(len(tv)):
-                idx[np.abs(x - tv[k]) <= tol[k]] = k
+        if len(tv) <= 32:  # one vectorised comparison per action (the last match wins)
+            idx = _match_each(x, tv, tol)
         else:  # nearest table value by binary search, then the tolerance check
             order = np.argsort(tv)
             pos = np.searchsorted(tv[order], x)
@@ -68,7 +66,28 @@ def map_discrete(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") ->
         dims=dims,
         units=(spec.unit,) * len(dims) if spec.unit else (),
     )
-    return idx.astype(np.int32), table
+    return idx.astype(np.int32, copy=False), table
+
+
+_MATCH_BLOCK = 1 << 14  # values per block of _match_each: its buffers stay in cache
+
+
+def _match_each(x: np.ndarray, tv: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    """Per value of ``x``, the last ``k`` with ``|x - tv[k]| <= tol[k]`` (else -1), int32:
+    block by block in place, no temporary the size of ``x``."""
+    idx = np.full(len(x), -1, np.int32)
+    d = np.empty(min(len(x), _MATCH_BLOCK))
+    hit = np.empty(len(d), bool)
+    for lo in range(0, len(x), _MATCH_BLOCK):
+        xb = x[lo:lo + _MATCH_BLOCK]
+        n = len(xb)
+        out, db, hb = idx[lo:lo + n], d[:n], hit[:n]
+        for k in range(len(tv)):
+            np.subtract(xb, tv[k], out=db)
+            np.abs(db, out=db)
+            np.less_equal(db, tol[k], out=hb)
+            np.copyto(out, k, where=hb)
+    return idx
 
 
 def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") -> tuple[np.ndarray, ActionTable]:

@@ -286,7 +286,7 @@ def ingest_tables(
         raise IngestError("no input files given")
     # every intermediate of the mapping (and the input's columns the dataset does not
     # share) is freed when _map returns, before validation and writing
-    out, atable, dropped, metas, names = _map(paths, spec, progress)
+    out, atable, dropped, metas, names, enc = _map(paths, spec, progress)
     units = dict(spec.observations.units)
     info = DatasetInfo(
         features=tuple(Feature(nm, units.get(nm, "")) for nm in names),
@@ -304,7 +304,8 @@ def ingest_tables(
         },
         name=spec.name,
     )
-    ds = TransitionDataset(out, info)
+    ds = TransitionDataset(out, info, _sorted_ids=enc)  # sorted by _map: not checked again
+    del out, enc  # the dataset holds what it needs (its table, int64 codes)
     if progress:
         progress("validating")
     report = validate(ds)  # names src_file/src_row of each finding
@@ -324,9 +325,10 @@ def ingest_tables(
 
 
 def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] | None
-         ) -> tuple[pa.Table, Any, int, list[dict[str, Any]], list[str]]:
+         ) -> tuple[pa.Table, Any, int, list[dict[str, Any]], list[str], pa.DictionaryArray | None]:
     """Read the inputs and map them through the spec: the dataset's table (sorted by
-    episode and step), action table, dropped last rows, input metadata, feature names."""
+    episode and step), action table, dropped last rows, input metadata, feature names, and
+    the episode ids' encoding for the table's rows (None when rows were dropped)."""
     tables, metas = [], []
     # input hashes (provenance) are computed in a thread while the tables are read
     with ThreadPoolExecutor(max_workers=1) as hasher:
@@ -498,7 +500,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     out = pa.table(cols)
     if not all_kept:
         out = out.filter(pa.array(keep))
-    return out, atable, dropped, metas, names
+    return out, atable, dropped, metas, names, enc if all_kept else None
 
 
 

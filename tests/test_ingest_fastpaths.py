@@ -1,0 +1,128 @@
+"""The ingestion's fast paths give what their plain definitions give.
+
+Discrete action matching, the doctor's continuity and range checks, the statistics' mean
+and std, and the sortedness check each take a shortcut on the common case (values equal,
+clean columns, sorted ids); these tests hold them to the rule they shortcut.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from offline_adp.data.columns import sorted_encoding
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
+from offline_adp.data.io import _mean_std
+from offline_adp.data.validate import MAX_ABS_VALUE, validate
+from offline_adp.ingest.actions import _match_each
+
+
+def _last_match(x: np.ndarray, tv: np.ndarray, tol: np.ndarray) -> np.ndarray:
+    idx = np.full(len(x), -1, np.int64)
+    for k in range(len(tv)):
+        idx[np.abs(x - tv[k]) <= tol[k]] = k
+    return idx
+
+
+@pytest.mark.parametrize("n", [0, 1, 5, (1 << 14) + 3, 100_000])
+def test_match_each_is_the_last_match_within_tolerance(n: int) -> None:
+    rng = np.random.default_rng(n)
+    tv = np.array([-1.0, 0.0, 1.0, 1.0 + 5e-10, 3e9])  # two values within each other's tolerance
+    tol = 1e-9 * np.maximum(1.0, np.abs(tv))
+    x = rng.choice(tv, n) + rng.choice([0.0, 2e-10, -8e-10, 2e-9, 0.5], n)
+    if n > 3:
+        x[:3] = [np.nan, np.inf, -np.inf]
+    with np.errstate(invalid="ignore"):
+        got = _match_each(x, tv, tol)
+        want = _last_match(x, tv, tol)
+    assert got.dtype == np.int32
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 127, 1000, 65_537])
+def test_mean_std_are_numpys_bit_for_bit(n: int) -> None:
+    rng = np.random.default_rng(n)
+    for x in (rng.normal(size=n) * 1e6 + 3, rng.random(n), np.cumsum(rng.normal(size=n)), np.full(n, 0.1)):
+        mean, std = _mean_std(x, np.empty(n))
+        assert mean == float(x.mean()) and std == float(x.std())
+
+
+def _dataset(obs: np.ndarray, nxt: np.ndarray, ep_len: int) -> TransitionDataset:
+    n = len(obs)
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable((Action("a", (0.0,)),)))
+    ep = np.arange(n) // ep_len
+    return TransitionDataset.from_arrays(
+        info, episode_id=np.char.add("e", np.char.zfill(ep.astype(str), 6)), step=np.arange(n) % ep_len,  # in row order
+        obs=obs, action=np.zeros(n, np.int32), cost=np.zeros(n), next_obs=nxt,
+        terminated=np.zeros(n, bool), truncated=(np.arange(n) % ep_len) == ep_len - 1)
+
+
+def test_doctor_continuity_and_range_checks_follow_their_rules() -> None:
+    rng = np.random.default_rng(0)
+    ep_len, n_ep = 50, 3000  # 150k rows: several blocks, dense and sparse blocks of differences
+    n = ep_len * n_ep
+    walk = rng.normal(size=n + 1).cumsum()
+    obs, nxt = walk[:-1].copy(), walk[1:].copy()
+    k = rng.choice(n - 1, 400, replace=False)
+    nxt[k[:100]] += 1e-3  # beyond tolerance
+    nxt[k[100:200]] *= 1 + 1e-9  # within rtol
+    obs[k[200:220]] = np.nan
+    nxt[k[220:240]] = np.inf
+    obs[k[240:250]] = MAX_ABS_VALUE * 10
+    nxt[70_000:80_000] += 1e-12 * (1 + np.abs(nxt[70_000:80_000]))  # a block where many rows differ (within tolerance)
+    nxt[90_000:100_000] += 1.0  # ... and many beyond it
+    ds = _dataset(obs, nxt, ep_len)
+    f = validate(ds).findings
+    last = (np.arange(n) % ep_len) == ep_len - 1
+    x, y = nxt[:-1], obs[1:]
+    with np.errstate(invalid="ignore", over="ignore"):
+        close = np.abs(x - y) <= 1e-9 + 1e-7 * np.abs(y)
+    mismatch = np.r_[~close & np.isfinite(x) & np.isfinite(y) & ~last[:-1], False]
+    got = np.sort(f.loc[f["check"] == "next_obs_mismatch", "row"].to_numpy())
+    np.testing.assert_array_equal(got, np.flatnonzero(mismatch))
+    for col, v in (("obs.x", obs), ("next_obs.x", nxt)):
+        sel = f["column"] == col
+        np.testing.assert_array_equal(np.sort(f.loc[sel & (f["check"] == "non_finite"), "row"].to_numpy()),
+                                      np.flatnonzero(~np.isfinite(v)))
+        with np.errstate(invalid="ignore"):
+            big = np.isfinite(v) & (np.abs(v) > MAX_ABS_VALUE)
+        np.testing.assert_array_equal(np.sort(f.loc[sel & (f["check"] == "value_out_of_range"), "row"].to_numpy()),
+                                      np.flatnonzero(big))
+
+
+def test_clean_dataset_has_no_findings() -> None:
+    walk = np.random.default_rng(1).normal(size=10_001).cumsum()
+    assert validate(_dataset(walk[:-1], walk[1:], 100)).ok
+
+
+def _expected_encoding(ids: list[str], order: np.ndarray) -> tuple[list[int], list[str]] | None:
+    key = [(s.encode(), o) for s, o in zip(ids, order, strict=True)]
+    if any(b < a for a, b in zip(key, key[1:], strict=False)):
+        return None
+    words = list(dict.fromkeys(ids))
+    return [words.index(s) for s in ids], words
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_sorted_encoding_is_none_unless_rows_are_in_id_then_order(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 60))
+    ids = sorted(rng.choice(["a", "b", "ba", "c", "é", "z"], n).tolist(), key=str.encode)
+    order = np.concatenate([np.arange(c) for c in np.unique(ids, return_counts=True)[1][np.argsort(
+        [s.encode() for s in np.unique(ids)])]]).astype(np.int64)
+    if seed % 3 == 1 and n > 1:  # ids out of order
+        i = int(rng.integers(0, n - 1))
+        ids[i], ids[i + 1] = ids[i + 1], ids[i]
+    if seed % 3 == 2 and n > 1:  # order decreasing somewhere
+        order = order[::-1].copy()
+    split = int(rng.integers(0, n + 1))
+    col = pa.chunked_array([pa.array(ids[:split], pa.string()), pa.array(ids[split:], pa.string())])
+    enc = sorted_encoding(col, order)
+    want = _expected_encoding(ids, order)
+    if want is None:
+        assert enc is None
+    else:
+        assert enc is not None
+        assert enc.indices.to_pylist() == want[0] and enc.dictionary.to_pylist() == want[1]
