@@ -457,7 +457,7 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     fit = cfg["fit"]
     entry = get_algorithm(fit["algorithm"])
     params = dict(fit.get("params", {}))
-    engine = _fit_dask(params, client, say) if client is not None and entry.dask else None
+    engine = _fit_dask(entry, params, run / "dataset", client, say) if client is not None and entry.dask else None
     if "random_state" in entry.params_model().model_fields:
         params.setdefault("random_state", cfg["seed"])
     target = RunDirectory(run / "fit")
@@ -519,34 +519,16 @@ def _report_stage(run: Path) -> dict[str, Any]:
     return {"report": str(run / "report.html")}
 
 
-#: FQI parameters the Dask engine honours (the loop's own, and the data it prepares)
-DASK_FIT_PARAMS = {"regressor", "regressor_params", "gamma", "n_iterations", "random_state", "mode", "trees_per_iteration",
-                   "tol", "rtol", "infeasible_cost", "target_noise", "on_divergence", "patience", "divergence_slack"}
-#: ... and those of the frozen extra-trees mode (its build schedule)
-DASK_FROZEN_PARAMS = {"n_structures", "structure_max_samples", "tree_builder", "early_build_trees"}
-
-
-def _fit_dask(params: dict[str, Any], client: Any, say: Callable[[str], None]) -> Any:
-    """The Dask engine for an FQI fit (``DaskFit``) after checking that it can honour
-    ``params``: LightGBM (the regression data-parallel on the cluster; other parameters
-    are an error) or the default frozen extra-trees mode (trees grown and leaves averaged
-    on the workers; a fit with parameters the engine does not take runs in this process,
-    as before, and says so). None: the local engine."""
+def _fit_dask(entry: Any, params: dict[str, Any], dataset: Path, client: Any, say: Callable[[str], None]) -> Any:
+    """The Dask engine (``DaskFit``) for a fit it can run as the local fit would
+    (:func:`offline_adp.engines.dask.fqi.unsupported`: LightGBM, or the default frozen
+    extra-trees mode, with every parameter it does not read at its default); otherwise
+    None, the local engine, and a line saying why."""
     from offline_adp.engines.dask import DaskFit
+    from offline_adp.engines.dask.fqi import unsupported
 
-    if params.get("regressor") == "lightgbm":
-        bad = sorted(set(params) - DASK_FIT_PARAMS)
-        if bad:
-            raise SpecError(f"[fit.params] {bad} are not supported by the Dask engine's FQI (supported: "
-                            f"{sorted(DASK_FIT_PARAMS)}); use the local engine")
-        if params.get("mode", "auto") not in ("auto", "refit", "warm_start"):  # 'auto' is refit with LightGBM
-            raise SpecError(f"[fit.params] mode = {params['mode']!r} is not available on the Dask engine with LightGBM "
-                            "(use 'refit' or 'warm_start', or the local engine)")
+    why = unsupported(entry.estimator_class()(**params), dataset)
+    if why is None:
         return DaskFit(client)
-    bad = sorted(set(params) - DASK_FIT_PARAMS - DASK_FROZEN_PARAMS)
-    frozen = params.get("regressor", "extra_trees") == "extra_trees" and params.get("mode", "auto") in ("auto", "frozen")
-    if frozen and not bad:
-        return DaskFit(client)
-    why = f"parameters {bad}" if bad else "regressor/mode other than frozen extra-trees or LightGBM"
-    say(f"[fit] runs in the client process ({why}: not on the Dask engine)")
+    say(f"[fit] runs in the client process ({why})")
     return None

@@ -177,6 +177,10 @@ def fit_run(
         raise RunDirectoryError(f"{rd.path} does not exist: nothing to resume")
     ds = read_dataset(dataset)
     require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
+    why = engine.unsupported(entry.estimator_class()(**params), dataset) \
+        if engine is not None and entry.resumable and hasattr(engine, "unsupported") else None
+    if why is not None:  # before anything is written
+        raise InvalidArgumentError(f"the {engine.name} engine cannot run this fit ({why}); use the local engine")
     with rd.lock():
         if resume:
             if not rd.exists(rd.CONFIG):

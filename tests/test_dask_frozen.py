@@ -149,6 +149,39 @@ def test_screen_is_refused_and_refit_extra_trees_too(one, data):
         _dask_fit(one, path, mode="refit")
 
 
+@pytest.mark.parametrize("kw", [{"action_input": "onehot"}, {"validation_fraction": 0.25},
+                                {"regressor": "lightgbm", "mode": "frozen"}, {"horizon": 5}])
+def test_what_the_engine_would_not_honour_is_refused_before_anything_is_written(one, data, tmp_path, kw):
+    """A parameter the engine does not read (its data preparation has no one-hot inputs,
+    no validation split), LightGBM in the frozen mode, or trees under a finite horizon
+    (refit): one InvalidArgumentError before the run directory exists, never a silently
+    different fit."""
+    from offline_adp.errors import InvalidArgumentError
+
+    _, path = data
+    with pytest.raises(InvalidArgumentError, match="Dask engine cannot run"):
+        _dask_fit(one, path, **kw)
+    out = tmp_path / "run"
+    with pytest.raises(InvalidArgumentError, match="dask engine cannot run"):
+        fit_run(path, out, algorithm="fqi", params={**KW, **kw}, engine=DaskFit(one))
+    assert not out.exists()
+
+
+def test_the_pipeline_fits_a_finite_horizon_dataset_locally_and_says_so(one, tmp_path):
+    """The dataset's own hints (gamma 1 and a horizon) make the default mode refit, which
+    the engine does not run: the pipeline's fit stage takes the local engine, with a line."""
+    from offline_adp.algorithms.registry import get_algorithm
+    from offline_adp.pipeline import _fit_dask
+
+    path = tmp_path / "ds"
+    simulate("tabular", 4, 4, seed=0).save(path)
+    assert read_dataset(path).info.horizon is not None
+    lines: list[str] = []
+    assert _fit_dask(get_algorithm("fqi"), {}, path, one, lines.append) is None
+    assert len(lines) == 1 and "client process" in lines[0] and "refit" in lines[0]
+    assert isinstance(_fit_dask(get_algorithm("fqi"), {"gamma": 0.9}, path, one, lines.append), DaskFit)
+
+
 def test_frozen_fqe_on_one_worker_equals_local(one, data):
     """``DaskFit`` runs a frozen FQE (the evaluation's default FQE mode) with the same
     learner: Q and the value estimate are the local fit's."""

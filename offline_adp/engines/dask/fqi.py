@@ -11,6 +11,7 @@ fit's run directory is written, checkpointed and resumed by the same code as a l
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from collections.abc import Iterator
 from os import PathLike
@@ -62,8 +63,8 @@ class DistributedFQI:
     (:class:`~offline_adp.engines.dask.frozen.DaskFrozenLearner`: trees grown on the
     workers, leaf values re-averaged from per-block leaf sums; ``n_iterations="auto"``
     and the in-process build schedule). On one worker its Q equals the in-process
-    ``FittedQIteration()`` fit's bit for bit; on several it is reproducible and equal up
-    to the rounding of the leaf sums' grouping.
+    ``FittedQIteration()`` fit's bit for bit, on one worker or several (the leaf sums are
+    taken in row order, segment after segment).
 
     ``warm_start=True`` is the in-process ``mode="warm_start"``: each iteration adds
     ``trees_per_iteration`` trees fitted to the residual ``y_k - Q_{k-1}(x_i, a_i)``;
@@ -185,13 +186,73 @@ class DistributedFQI:
         return self
 
 
+#: Estimator parameters the Dask engine honours; any other must keep its default value
+HONOURED = frozenset({"regressor", "regressor_params", "gamma", "horizon", "n_iterations", "random_state", "mode",
+                      "trees_per_iteration", "tol", "rtol", "infeasible_cost", "target_noise", "on_divergence",
+                      "patience", "divergence_slack", "policy"})
+#: ... and in the frozen extra-trees mode, its build schedule
+HONOURED_FROZEN = frozenset({"n_structures", "structure_max_samples", "tree_builder", "early_build_trees"})
+
+
+def unsupported(est: Any, dataset_dir: str | PathLike[str] | None = None) -> str | None:
+    """Why the Dask engine cannot fit ``est`` (a ``FittedQIteration`` or
+    ``FittedQEvaluation``) on ``dataset_dir`` as the local fit would, or None when it can:
+    LightGBM in ``refit``/``warm_start`` (``auto``: refit), or extra-trees / random
+    forests in the frozen mode (``frozen``, or ``auto`` where it resolves to frozen for this
+    dataset's discount: a finite horizon resolves to ``refit``), with every parameter the
+    engine does not read at its default."""
+    import inspect
+
+    from offline_adp.data.discount import resolve_discount
+    from offline_adp.data.info import DatasetInfo
+    from offline_adp.data.io import read_info
+    from offline_adp.regressors import make_regressor
+
+    defaults = {k: p.default for k, p in inspect.signature(type(est).__init__).parameters.items()
+                if p.default is not inspect.Parameter.empty}
+    reg = make_regressor(est.regressor, **(est.regressor_params or {}))
+    lightgbm = type(reg).__name__.startswith("LGBM")
+    honoured = HONOURED if lightgbm else HONOURED | HONOURED_FROZEN
+    changed = sorted(k for k, v in est.get_params(deep=False).items()
+                     if k not in honoured and k in defaults and not _same(v, defaults[k]))
+    if changed:
+        return f"parameters {changed} are not read by the Dask engine"
+    if lightgbm:
+        return None if est.mode in ("auto", "refit", "warm_start") else f"mode {est.mode!r} with LightGBM"
+    if est.mode == "warm_start":
+        return f"warm start with {type(reg).__name__}"
+    horizon = est.horizon
+    if horizon is None and dataset_dir is not None:  # the dataset's hints may make the fit finite-horizon
+        with contextlib.suppress(Exception):  # a bad info.json is the fit's own error to give
+            info = DatasetInfo.from_dict(read_info(Path(dataset_dir)))
+            horizon = resolve_discount(info, est.gamma, None).horizon
+    mode = est.resolved_mode(reg) if horizon is None else est.mode
+    if est.mode == "auto" and horizon is not None:
+        mode = "refit"
+    if mode != "frozen":
+        return f"{type(reg).__name__} in mode {mode!r} (the engine fits trees in the frozen mode only)"
+    from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
+
+    if not isinstance(reg, ExtraTreesRegressor | RandomForestRegressor):
+        return f"the frozen mode with {type(reg).__name__} (it needs extra-trees or a random forest)"
+    return None
+
+
+def _same(a: Any, b: Any) -> bool:
+    try:
+        return bool(a == b) or (a is None and b == {}) or (a == {} and b is None)
+    except Exception:  # arrays and the like: only identity counts as unchanged
+        return a is b
+
+
 class DaskFit:
     """The Dask engine of the run writer (:func:`offline_adp.runs.fit_run`'s ``engine``):
     runs a fitted-Q estimator's iterations (FQI or FQE) on the cluster: the loop of its
     ``fit_iter``. LightGBM (``mode`` ``"refit"``, ``"auto"`` (refit) or ``"warm_start"``),
     or frozen extra-trees (``mode="frozen"``, or ``"auto"`` where it resolves to frozen:
     the default ``FittedQIteration()``; :class:`DaskFrozenLearner`, the local fit's Q bit
-    for bit). Other regressors and modes are refused (InvalidArgumentError).
+    for bit). Other regressors, modes and parameters are refused before anything runs
+    (:func:`unsupported`; InvalidArgumentError).
 
     Parameters
     ----------
@@ -228,6 +289,9 @@ class DaskFit:
         from offline_adp.algorithms.fqi_data import GreedyBackup
         from offline_adp.algorithms.fqi_loop import run_fitted_q
 
+        why = unsupported(est, dataset_dir)
+        if why is not None:
+            raise InvalidArgumentError(f"the Dask engine cannot run this fit ({why}); use the local engine")
         fqe = isinstance(est, FittedQEvaluation)
         engine = _DaskEngine(self.client, est, self, fqe=fqe)
         backup = est._backup if fqe else (lambda data: GreedyBackup())
@@ -236,9 +300,16 @@ class DaskFit:
                 yield from run_fitted_q(est, dataset_dir, None, resume, backup, prepare=engine.prepare,
                                         make_learner=engine.learner)
         except Exception as exc:  # CommClosedError is an OSError; a lost scheduler cancels the futures too
+            from distributed.client import FutureCancelledError
+
+            where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
+            if isinstance(engine.learner_, DaskFrozenLearner) and self.client.status == "running" \
+                    and isinstance(exc, KeyError | FutureCancelledError | ClusterError):
+                # the frozen mode's leaf positions live on their workers: a worker gone takes them
+                raise ClusterError(f"a worker holding rows of the frozen-structure fit was lost "
+                                   f"({type(exc).__name__}: {_one_line(exc)}){where}") from exc
             if not isinstance(exc, OSError | TimeoutError) and self.client.status == "running":
                 raise
-            where = f"; re-run to continue from the checkpoint in {checkpoint_dir}" if checkpoint_dir else ""
             raise ClusterError(f"lost the Dask cluster during fitted Q-iteration ({type(exc).__name__}: "
                                f"{_one_line(exc)}){where}") from exc
         finally:
@@ -252,6 +323,11 @@ class DaskFit:
         if fqe and est.q_function_ is not None:
             x0 = engine.data.start_obs
             est.value_ = float((est.policy.probabilities(x0, 0) * est.q_function_.values(x0, 0)).sum(axis=1).mean())
+
+    @staticmethod
+    def unsupported(est: Any, dataset_dir: str | PathLike[str] | None = None) -> str | None:
+        """Why this engine cannot run ``est`` on ``dataset_dir`` (:func:`unsupported`), or None."""
+        return unsupported(est, dataset_dir)
 
     def summary(self) -> dict[str, Any]:
         """What the run writer adds to ``run.json`` for a fit on this engine."""

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.engines.dask.blocks import _Blocks, _count_starts
-from offline_adp.errors import InvalidArgumentError
+from offline_adp.errors import ClusterError, InvalidArgumentError
 from offline_adp.learn import Learner, LearnSpec
 from offline_adp.learn.base import fit_model
 from offline_adp.learn.frozen import FrozenBuilds
@@ -275,7 +275,7 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
             looked.append(client.submit(_lookup, blocks, self._trees, roots, self.encoder, extra if j == 0 else None,
                                         n_nodes, workers=[w], allow_other_workers=True, pure=False))
         used = np.zeros(n_nodes, bool)
-        for bits in client.gather([client.submit(_used, s, workers=[w], pure=False)
+        for bits in client.gather([client.submit(_used, s, workers=[w], allow_other_workers=True, pure=False)
                                    for s, (_, w, _, _) in zip(looked, self.segments, strict=True)]):
             used |= np.unpackbits(bits, count=n_nodes).astype(bool)
         self.leaf_ids = np.flatnonzero(used)  # tree by tree, in node order: the in-process compact index
@@ -301,7 +301,15 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
         return np.asarray(carry.result(), dtype=np.float64)  # type: ignore[union-attr]
 
     # ------------------------------------------------------------------ the Learner interface
+    def _check_workers(self) -> None:
+        """The segments' workers are still there (their leaf positions live nowhere else)."""
+        alive = set(self.client.scheduler_info(n_workers=-1)["workers"]) if self._states else set()
+        gone = sorted({w for _, w, _, _ in self.segments} - alive) if self._states else []
+        if gone:
+            raise ClusterError(f"workers {gone} holding the frozen structure's leaf positions are gone")
+
     def fit(self, y: np.ndarray, k: int) -> None:
+        self._check_workers()
         y = np.asarray(y, dtype=np.float64)
         if self._builds_at(k):
             self._build(y, k)
