@@ -32,10 +32,12 @@ import numpy as np
 from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqe_bootstrap import (
+    bounded_value,
     fixed_point,
     leaf_operator,
     query_operators,
     reweighted_operators,
+    support_operators,
 )
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
@@ -198,6 +200,25 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
         v0 = (backup.probabilities("start", 0) * q0).sum(axis=1)
         w0 = w[d.start_rows]
         return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+
+    def support_bounds(self, lower: float, upper: float, min_tree_share: float = 1e-9,
+                       radius: float | None = None) -> dict[str, float]:
+        """Start values of the fitted structure's *per-action read* with every pair the logs
+        cannot read valued ``lower`` and then ``upper``
+        (:func:`~offline_adp.algorithms.fqe_bootstrap.support_operators`; ``mode="frozen"``,
+        discounted only): ``{"lower", "upper", "unsupported_next", "unsupported_start"}``, the
+        last two the policy's mean probability mass on unsupported pairs at the next and the
+        start states. With ``lower`` and ``upper`` bounds on any Q value (e.g. from the
+        cost's range), the two values bracket what the same leaves say about the policy once
+        other actions' rows no longer stand in for its own."""
+        fit = self._check_conditional()
+        d = fit.data
+        P, u, P0, u0 = support_operators(d, fit.backup, fit.learner, self._query_operators(), min_tree_share,
+                                       radius)
+        return {"lower": bounded_value(d, P, u, P0, u0, float(lower)),
+                "upper": bounded_value(d, P, u, P0, u0, float(upper)),
+                "unsupported_next": float(u.mean()) if len(u) else 0.0,
+                "unsupported_start": float(u0.mean()) if len(u0) else 0.0}
 
     def _query_operators(self) -> dict[str, Any]:
         """The fitted structure's next-state and start-state operators, built once per fit

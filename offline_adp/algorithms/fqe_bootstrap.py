@@ -115,3 +115,103 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
         if bound <= (tol if tol is not None else rtol * (1.0 + max(float(v.max()), -float(v.min())))):
             return v, sweep
     return v, max_iterations
+
+
+def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any],
+                      min_tree_share: float = 1e-9, radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
+    """The *per-action read* of the fitted forest at the pairs the backup queries, and
+    what it cannot read.
+
+    ``Q(x, a)`` of the joint (x, a) forest averages, over trees, the leaf ``x`` and ``a``
+    reach, whatever actions that leaf's rows took (with Ernst's leaves of one or two rows,
+    a leaf reached by ``(x', a)`` holds a row of ``a`` in ~60% of the trees on the driving
+    logs): the value of another action's rows stands in for ``a``'s. The per-action read
+    averages, per query, only the trees whose reached leaf holds rows of the queried
+    action (each such leaf read as the mean over those rows); a query where fewer than
+    ``min_tree_share`` of the trees have one is *unsupported*: the logs hold no row of
+    that action near that state, and its value is left open.
+
+    Returns ``(P, u, P0, u0)``: ``V(x'_i) = (P y)_i + u_i B`` over the training rows'
+    targets ``y`` with the unsupported part valued ``B`` (``u_i`` = the policy's
+    probability mass on unsupported actions at ``x'_i``); ``P0, u0`` the same at the start
+    states. ``P`` and ``P0`` are sparse (n, n) and (n_start, n).
+
+    ``radius``: a row of the queried action counts only when its state lies within this
+    distance of the queried state (Euclidean, in units of each feature's standard
+    deviation): a leaf of one row may span a large part of the state space where the data
+    is thin, and a row far away says little about the queried state."""
+    n, A = data.n, data.n_actions
+    acts = np.asarray(data.train.actions)
+    w = np.ones(n) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
+    L = len(learner.leaf_ids)
+    pos = learner.pos["train"]
+    pi = {"next": np.asarray(backup.probabilities("next", 0), dtype=np.float64),
+          "start": np.asarray(backup.probabilities("start", 0), dtype=np.float64)}
+    nq = {"next": n, "start": len(data.start_obs)}
+    P = {k: sparse.csr_matrix((nq[k], n)) for k in pi}
+    u = {k: np.zeros(nq[k]) for k in pi}
+    queried = {"next": data.train.next_obs, "start": data.start_obs}
+    scale = np.where(data.obs_std > 0, data.obs_std, 1.0)
+    for b in range(A):
+        wb = np.where(acts == b, w, 0.0)
+        sb = learner.leaf_weight_sums(wb)
+        Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
+        has = (sb > 0).astype(np.float64)
+        for k in pi:
+            Ab = ops[k][b * nq[k]:(b + 1) * nq[k]]
+            if radius is None:
+                K = Ab @ Mb
+                f = Ab @ has  # share of trees whose reached leaf holds a row of b
+            else:  # only the rows of b near the queried state count
+                K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
+                d = np.sqrt(np.sum(((queried[k][K.row] - data.obs[K.col]) / scale) ** 2, axis=1))
+                near = d <= radius
+                K = sparse.csr_matrix((K.data[near], (K.row[near], K.col[near])), shape=K.shape)
+                f = np.asarray(K.sum(axis=1)).reshape(-1)
+            ok = f >= min_tree_share
+            r = np.where(ok, 1.0 / np.where(ok, f, 1.0), 0.0) * pi[k][:, b]
+            if np.any(r > 0):
+                P[k] = P[k] + sparse.diags(r) @ K
+            u[k] += np.where(ok, 0.0, pi[k][:, b])
+    return P["next"].tocsr(), u["next"], P["start"].tocsr(), u["start"]
+
+
+def bounded_value(data: Prepared, P: Any, u: np.ndarray, P0: Any, u0: np.ndarray, B: float,
+                  start_weights: np.ndarray | None = None, rtol: float = 1e-6, max_iterations: int = 10_000) -> float:
+    """The start value of the fixed point ``y = targets(P y + u B)`` (see
+    :func:`support_operators`): the per-action read with every unsupported pair valued
+    ``B``; ``start_weights`` weight the start states (default: equal)."""
+    y = data.targets(u * B)
+    for _ in range(max_iterations):
+        y_new = data.targets(P @ y + u * B)
+        change = float(np.max(np.abs(y_new - y))) if len(y) else 0.0
+        y = y_new
+        if change * data.gamma / (1.0 - data.gamma) <= rtol * (1.0 + float(np.max(np.abs(y), initial=0.0))):
+            break
+    v0 = P0 @ y + u0 * B
+    if start_weights is None:
+        return float(v0.mean())
+    w0 = np.asarray(start_weights, dtype=np.float64)
+    return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+
+
+def support_radius(obs: np.ndarray, actions: np.ndarray, obs_std: np.ndarray, quantile: float = 0.99,
+                   max_rows: int = 20_000, seed: int = 0) -> float:
+    """The data's own spacing: the ``quantile`` of the distance from a logged state to the
+    nearest other logged state of the same action (Euclidean in units of each feature's
+    standard deviation; at most ``max_rows`` rows per action, drawn at random). A queried
+    state farther than this from every row of the queried action lies where the logs are
+    sparser than at 99% of their own rows (:func:`support_operators`' ``radius``)."""
+    from sklearn.neighbors import NearestNeighbors
+
+    scale = np.where(obs_std > 0, obs_std, 1.0)
+    rng = np.random.default_rng(seed)
+    dists = []
+    for b in np.unique(actions):
+        X = obs[actions == b] / scale
+        if len(X) > max_rows:
+            X = X[rng.choice(len(X), max_rows, replace=False)]
+        if len(X) >= 2:
+            d, _ = NearestNeighbors(n_neighbors=2).fit(X).kneighbors(X)
+            dists.append(d[:, 1])
+    return float(np.quantile(np.concatenate(dists), quantile)) if dists else float("inf")

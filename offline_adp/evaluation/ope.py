@@ -64,6 +64,8 @@ class OPEResult:
     comparable: bool = True
     degenerate: bool = False
     weight_diagnostics: dict[str, Any] | None = None  #: the weights' shape (:func:`weight_diagnostics`)
+    #: FQE only: the support bounds the interval was widened to (``offpolicy.fqe_support_bounds``).
+    support_bounds: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
@@ -75,6 +77,8 @@ class OPEResult:
             d["plugin_estimate"] = self.plugin_estimate
         if self.weight_diagnostics is not None:
             d["weight_diagnostics"] = dict(self.weight_diagnostics)
+        if self.support_bounds is not None:
+            d["support_bounds"] = dict(self.support_bounds)
         return d
 
 
