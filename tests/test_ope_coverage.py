@@ -24,7 +24,7 @@ def _suite():
 @pytest.mark.slow
 def test_coverage_suite_tiny(tmp_path):
     oc = _suite()
-    cands = ["fqi_1it", "demonstrator", "exploration"]
+    cands = ["fqi_1it", "demonstrator"]  # a fitted candidate and one of the behaviour's components
     out = oc.run_suite(["path_tracking"], [1], "tiny", cands, n_boot=20, say=lambda _m: None)  # the suite's plumbing
     rows, summary = out["rows"], out["summary"]
     assert [r["candidate"] for r in rows] == cands
