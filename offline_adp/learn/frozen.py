@@ -237,6 +237,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         grown trees on 131,072 rows is ~0.7 GB)."""
         self.ensemble, self._forest = None, None
         self._pos, self._rest, self._cache = {}, None, {}
+        self.leaf_ids = self.leaf_values = self._wsum = None  # type: ignore[assignment]
         release_freed()  # the freed structure's pages go back to the system before the next is grown
 
     @property
