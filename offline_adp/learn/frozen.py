@@ -15,7 +15,14 @@ from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
-from offline_adp.trees.averaging import gather_positions, leaf_sums, leaf_sums_reuse, release_freed, resolve_n_jobs, thread_map
+from offline_adp.trees.averaging import (
+    gather_positions,
+    leaf_sums,
+    leaf_sums_reuse,
+    release_freed,
+    resolve_n_jobs,
+    thread_map,
+)
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import (
     TreeEnsemble,
@@ -225,6 +232,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         self._pos: dict[str, np.ndarray] = {}  # the query sets' leaf positions (tree-major int32)
         self._rest: np.ndarray | None = None  # the training rows' positions, at the rows not reused
         self._src = np.full(len(self.phi), -1, np.int64)  # training row i's column of pos["next"] (-1: in _rest)
+        self._values: np.ndarray | None = None  # leaf_values' buffer, with a 0 after them
         self._cache: dict[str, np.ndarray] = {}
         params = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
         # threads of the lookups and of every iteration's averaging: the regressor's n_jobs
@@ -237,7 +245,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         grown trees on 131,072 rows is ~0.7 GB)."""
         self.ensemble, self._forest = None, None
         self._pos, self._rest, self._cache = {}, None, {}
-        self.leaf_ids = self.leaf_values = self._wsum = None  # type: ignore[assignment]
+        self.leaf_ids = self.leaf_values = self._wsum = self._values = None  # type: ignore[assignment]
         release_freed()  # the freed structure's pages go back to the system before the next is grown
 
     @property
@@ -266,7 +274,11 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         grow, model, full, screen, native, s = plan.grow, plan.model, plan.full, plan.screen, plan.native, self.screen
         if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
             first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
-            self._adopt_grown(self._grow(X, grow, native, range(first)), X.shape[1])
+            n_features, grown = X.shape[1], self._grow(X, grow, native, range(first))
+            if not screen:
+                del X  # not held through the lookups
+            self._adopt_grown(grown, n_features)
+            del grown
             if screen:
                 assert s is not None
                 self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
@@ -429,7 +441,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         ids = ([held_ids] if start else []) + new_ids
         bounds = np.r_[np.asarray(held_bounds[:start + 1], np.int64) if start else np.zeros(1, np.int64),
                        (int(held_bounds[start]) if start else 0) + np.cumsum([len(i) for i in new_ids], dtype=np.int64)]
-        self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        joined = np.concatenate(ids)
+        self.leaf_ids = joined.astype(np.int32) if self._n_nodes < 2**31 else joined  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        del joined
         L = len(self.leaf_ids)
         old_L = len(held_ids) if start else None
 
@@ -482,8 +496,14 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             self._build(y, k)
         self._built()
         y = np.asarray(y, dtype=np.float64)
-        self.leaf_values = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum  # leaf means of y_k
-        self._cache = {}
+        self._cache, self.leaf_values, self._values = {}, None, None  # type: ignore[assignment]  # the last ones go first
+        sums = self._leaf_sums(y if self._w is None else self._w * y)
+        # the leaf means of y_k and a 0 after them (what a query reads for "no training leaf")
+        self._values = np.empty(len(sums) + 1)
+        np.divide(sums, self._wsum, out=self._values[:-1])
+        self._values[-1] = 0.0
+        del sums
+        self.leaf_values = self._values[:-1]
 
     def predict(self, name: str) -> np.ndarray:
         if name in self._cache:
@@ -491,7 +511,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         phi, actions = self.queries[name]
         values = self._cache.get("")  # leaf values and a 0 for "no training leaf", once per iteration
         if values is None:
-            values = self._cache[""] = np.r_[self.leaf_values, 0.0]
+            own = self._values is not None and self.leaf_values is not None and self.leaf_values.base is self._values
+            values = self._cache[""] = self._values if own else np.r_[self.leaf_values, 0.0]
         if name == "train" and self._rest is not None and self._rest.shape[1] < len(phi):  # the same leaves: the same numbers
             v = np.empty(len(phi))
             rest = self._src < 0
