@@ -203,8 +203,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
     (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
     (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
-    An iteration is one leaf sum per tree over the tree-major (trees, n) int32 leaf
-    matrix and one gather per tree and query (each within that tree's leaves, so
+    An iteration is one leaf sum per tree over the training rows' tree-major int32 leaf
+    positions (not held for the rows that continue the previous row: those are read from
+    the next-state queries' positions, in the same row order, so the sums are the same)
+    and one gather per tree and query (each within that tree's leaves, so
     cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run in
     ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each
     tree's work independent and every sum in one fixed order, so the Q-values are the
@@ -358,7 +360,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         return self.ensemble
 
     def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
-        """The training leaf matrix, the leaf weights and the query operators (leaf positions),
+        """The training rows' leaf positions (only those of the rows not reused: ``_rest``, with
+        ``_src`` saying which column of ``pos["next"]`` the others read), the leaf weights and
+        the query operators (leaf positions),
         tree by tree: ``tree_leaves(X)`` returns ``leaves(t)``, the global leaf id of every
         row of ``X`` in tree ``t``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
         take their leaves from the next-state lookup (a third of the lookups with two
