@@ -68,6 +68,13 @@ class Prepared:
         return y if self.infeasible_cost is None else np.minimum(y, self.infeasible_cost)
 
 
+def _read_only(v: np.ndarray) -> np.ndarray:
+    """A read-only view of ``v`` (the dataset's own arrays are shared, never written)."""
+    out = v.view()
+    out.flags.writeable = False
+    return out
+
+
 def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: float | None = None,
                 target_noise: float = 0.0, initial_q_abs: float = 0.0) -> tuple[float, str]:
     """The monitor's bound on ``|Q|`` from ``max |c|`` (and how it was computed)."""
@@ -129,6 +136,9 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     phi_obs, phi_next = enc.phi(a.obs), enc.phi(a.next_obs)
 
     def samples(rows: np.ndarray) -> Samples:
+        if rows.all():  # every row: read-only views, not copies (the dataset's arrays at 1M rows: ~0.1 GB)
+            return Samples(*(_read_only(v) for v in (phi_obs, a.action.astype(np.int64, copy=False), a.cost, no_boot,
+                                                     phi_next, a.next_obs)))
         return Samples(phi_obs[rows], a.action[rows].astype(np.int64), a.cost[rows], no_boot[rows], phi_next[rows],
                        a.next_obs[rows])
 
@@ -136,7 +146,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs)
     return Prepared(
         train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
-        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=len(at), encoder=enc, obs=a.obs[tr],
+        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=len(at), encoder=enc, obs=_read_only(a.obs) if tr.all() else a.obs[tr],
         obs_std=a.obs.std(axis=0) + 1e-12,
         start_phi=phi_obs[start] if start.any() else phi_obs[tr][:1],
         start_obs=a.obs[start] if start.any() else a.obs[tr][:1],

@@ -3,6 +3,7 @@ leaf values re-averaged every iteration (Ernst, Geurts & Wehenkel 2005, section 
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any
@@ -14,7 +15,14 @@ from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
-from offline_adp.trees.averaging import leaf_sums, resolve_n_jobs, thread_map
+from offline_adp.trees.averaging import (
+    gather_positions,
+    leaf_sums,
+    leaf_sums_reuse,
+    release_freed,
+    resolve_n_jobs,
+    thread_map,
+)
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import (
     TreeEnsemble,
@@ -36,6 +44,26 @@ class BuildPlan:
     full: int  #: the regressor's tree count
     screen: bool  #: grow ``screen.trees`` trees first and the rest only when the screen says so
     native: compiled.TreeParams | None  #: the compiled builder's settings (None: scikit-learn's builder)
+
+
+class LeafPositions(Mapping[str, np.ndarray]):
+    """The tree-major compact leaf positions of every query set and of the training rows
+    (``"train"``, (trees, n) int32), as :attr:`FrozenTreesLearner.pos` shows them. The
+    training rows' positions are not held: most are a next-state query's
+    (:attr:`FrozenTreesLearner.reuse`), so ``pos["train"]`` is made on each access."""
+
+    def __init__(self, queries: dict[str, np.ndarray], train: Any) -> None:
+        self._queries, self._train = queries, train
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self._train() if name == "train" else self._queries[name]
+
+    def __iter__(self) -> Iterator[str]:
+        yield from self._queries
+        yield "train"
+
+    def __len__(self) -> int:
+        return len(self._queries) + 1
 
 
 class FrozenBuilds:
@@ -175,8 +203,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
     (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
     (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
-    An iteration is one leaf sum per tree over the tree-major (trees, n) int32 leaf
-    matrix and one gather per tree and query (each within that tree's leaves, so
+    An iteration is one leaf sum per tree over the training rows' tree-major int32 leaf
+    positions (not held for the rows that continue the previous row: those are read from
+    the next-state queries' positions, in the same row order, so the sums are the same)
+    and one gather per tree and query (each within that tree's leaves, so
     cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run in
     ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each
     tree's work independent and every sum in one fixed order, so the Q-values are the
@@ -201,6 +231,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
             same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
+        self._pos: dict[str, np.ndarray] = {}  # the query sets' leaf positions (tree-major int32)
+        self._rest: np.ndarray | None = None  # the training rows' positions, at the rows not reused
+        self._src = np.full(len(self.phi), -1, np.int64)  # training row i's column of pos["next"] (-1: in _rest)
+        self._values: np.ndarray | None = None  # leaf_values' buffer, with a 0 after them
         self._cache: dict[str, np.ndarray] = {}
         params = self.regressor.get_params() if hasattr(self.regressor, "get_params") else {}
         # threads of the lookups and of every iteration's averaging: the regressor's n_jobs
@@ -212,7 +246,24 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         before the next one is grown: the two are never held together (a forest of fully
         grown trees on 131,072 rows is ~0.7 GB)."""
         self.ensemble, self._forest = None, None
-        self.pos, self._rest, self._cache = {}, None, {}
+        self._pos, self._rest, self._cache = {}, None, {}
+        self.leaf_ids = self.leaf_values = self._wsum = self._values = None  # type: ignore[assignment]
+        release_freed()  # the freed structure's pages go back to the system before the next is grown
+
+    @property
+    def pos(self) -> Mapping[str, np.ndarray]:
+        """Tree-major compact leaf positions (trees, queries) of every query set and of the
+        training rows (``"train"``, made on access: :class:`LeafPositions`); position
+        ``len(leaf_ids)`` is a leaf without training rows."""
+        if self._rest is None:
+            return {}
+        return LeafPositions(self._pos, self._train_positions)
+
+    def _train_positions(self) -> np.ndarray:
+        assert self._rest is not None
+        if not (self._src >= 0).any():
+            return self._rest.copy()
+        return gather_positions(self._pos["next"], self._src, self._rest)
 
     def _build(self, y: np.ndarray, k: int) -> None:
         self._release()
@@ -225,7 +276,11 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         grow, model, full, screen, native, s = plan.grow, plan.model, plan.full, plan.screen, plan.native, self.screen
         if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
             first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
-            self._adopt_grown(self._grow(X, grow, native, range(first)), X.shape[1])
+            n_features, grown = X.shape[1], self._grow(X, grow, native, range(first))
+            if not screen:
+                del X  # not held through the lookups
+            self._adopt_grown(grown, n_features)
+            del grown
             if screen:
                 assert s is not None
                 self.screen_value = self._screen_bias(np.asarray(y, dtype=np.float64), full)
@@ -286,7 +341,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """:func:`~offline_adp.learn.schedule.screen_bias` of the current (screen's) trees."""
         assert self.screen is not None
         means = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum
-        return screen_bias(self.screen, self.pos["next"], means, self.encoder.n_actions, self._w, y, full)
+        return screen_bias(self.screen, self._pos["next"], means, self.encoder.n_actions, self._w, y, full)
 
     def _set_ensemble(self, ensemble: TreeEnsemble) -> None:
         self.ensemble, self._forest = ensemble, None
@@ -305,7 +360,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         return self.ensemble
 
     def _operators(self, tree_leaves: Any, start: int = 0, train_leaves: list[np.ndarray] | None = None) -> None:
-        """The training leaf matrix, the leaf weights and the query operators (leaf positions),
+        """The training rows' leaf positions (only those of the rows not reused: ``_rest``, with
+        ``_src`` saying which column of ``pos["next"]`` the others read), the leaf weights and
+        the query operators (leaf positions),
         tree by tree: ``tree_leaves(X)`` returns ``leaves(t)``, the global leaf id of every
         row of ``X`` in tree ``t``. Training rows that continue the previous row (``x_i == x'_{i-1}``)
         take their leaves from the next-state lookup (a third of the lookups with two
@@ -339,14 +396,19 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         sizes = {q: (len(looked) if q == "next" and looked is not None else len(inputs[q])) for q in names}
         del inputs
         ends = np.r_[self._roots[1:], self._n_nodes]
-        held, held_bounds, held_ids = (self.pos, self._bounds, self.leaf_ids) if start else ({}, None, None)
-        self.pos: dict[str, np.ndarray] = {}  # the previous structure's positions go before the new ones are made
-        self.pos = {q: np.empty((m, sizes[q]), np.int32) for q in names}
-        train = np.empty((m, n), np.int32)
+        held, held_rest, held_bounds, held_ids = ((self._pos, self._rest, self._bounds, self.leaf_ids) if start
+                                                  else ({}, None, None, None))
+        self._pos, self._rest = {}, None  # the previous structure's positions go before the new ones are made
+        self._pos = {q: np.empty((m, sizes[q]), np.int32) for q in names}
+        all_rest = bool(rest.all())
+        # the training rows' positions: only those of the rows not reused are held (the
+        # others are their next-state query's, read from pos["next"] by the leaf sums)
+        train = np.empty((m, int(rest.sum())), np.int32)
         if start:  # the same trees, the same compact leaves (re-marked for the new leaf count below)
-            for q, p in [*self.pos.items(), ("train", train)]:
-                p[:start] = held[q][:start]
-            del held
+            assert held_rest is not None
+            for q, p in [*self._pos.items(), ("train", train)]:
+                p[:start] = (held_rest if q == "train" else held[q])[:start]
+            del held, held_rest
 
         def one(t: int) -> np.ndarray:
             """Tree t's positions, local to its compact leaves (-1: a leaf without training
@@ -372,18 +434,20 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             local = np.flatnonzero(used)  # this tree's leaves holding training samples
             lookup = np.full(len(used), -1, np.int32)
             lookup[local] = np.arange(len(local), dtype=np.int32)
-            train[t] = lookup[leaf_local]
+            train[t] = lookup[leaf_local if all_rest else leaf_local[rest]]
             for q in names:
                 r = raw.pop(q)
                 r -= root
-                self.pos[q][t] = lookup[r]
+                self._pos[q][t] = lookup[r]
             return local + root
 
         new_ids = thread_map(one, range(start, m), self.n_jobs)
         ids = ([held_ids] if start else []) + new_ids
         bounds = np.r_[np.asarray(held_bounds[:start + 1], np.int64) if start else np.zeros(1, np.int64),
                        (int(held_bounds[start]) if start else 0) + np.cumsum([len(i) for i in new_ids], dtype=np.int64)]
-        self.leaf_ids = np.concatenate(ids)  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        joined = np.concatenate(ids)
+        self.leaf_ids = joined.astype(np.int32) if self._n_nodes < 2**31 else joined  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        del joined
         L = len(self.leaf_ids)
         old_L = len(held_ids) if start else None
 
@@ -391,7 +455,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             """Tree t's positions from local to global compact leaves; a leaf without
             training weight reads value L (0)."""
             lo = int(bounds[t])
-            for q, p in [*self.pos.items(), ("train", train)]:
+            for q, p in [*self._pos.items(), ("train", train)]:
                 row = p[t]
                 if t < start:  # held: already global; "no training leaf" was the old L
                     if q != "train":
@@ -402,14 +466,16 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
                     row[row < lo] = L
 
         thread_map(shift, range(m), self.n_jobs)
-        for q, p in [*self.pos.items(), ("train", train)]:  # the gathers skip bounds checks: keep them in range
+        for q, p in [*self._pos.items(), ("train", train)]:  # the gathers skip bounds checks: keep them in range
             if p.size and (int(p.min()) < 0 or int(p.max()) > L):
                 raise RuntimeError(f"frozen structure: leaf positions of {q!r} outside [0, {L}]")
         self._bounds, self._m = bounds, m
         self._w = None if self.weights is None else np.asarray(self.weights, dtype=np.float64)
-        self.pos["train"] = train  # every training leaf holds its own sample
+        self._src = np.full(n, -1, np.int64)
+        self._src[reuse] = from_next
+        self._rest = train  # every training leaf holds its own sample
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
-        self._rest = None  # tree-major positions of the training rows that are not reused (cached)
+        release_freed()  # the lookups' temporaries
 
     def _ensemble_per_tree(self, ens: TreeEnsemble) -> Any:
         """The per-tree leaf lookup of a structure held as arrays (a restored checkpoint, the
@@ -424,15 +490,24 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
         """``sum of v_i`` over the training rows in each leaf (compact index), trees in
         ``n_jobs`` threads (rows summed in order: the same numbers for any count)."""
-        return leaf_sums(self.pos["train"], self._bounds, v, self.n_jobs)
+        assert self._rest is not None
+        if self._rest.shape[1] == len(self._src):  # no row reused
+            return leaf_sums(self._rest, self._bounds, v, self.n_jobs)
+        return leaf_sums_reuse(self._pos["next"], self._src, self._rest, self._bounds, v, self.n_jobs)
 
     def fit(self, y: np.ndarray, k: int) -> None:
         if self._builds_at(k):
             self._build(y, k)
         self._built()
         y = np.asarray(y, dtype=np.float64)
-        self.leaf_values = self._leaf_sums(y if self._w is None else self._w * y) / self._wsum  # leaf means of y_k
-        self._cache = {}
+        self._cache, self.leaf_values, self._values = {}, None, None  # type: ignore[assignment]  # the last ones go first
+        sums = self._leaf_sums(y if self._w is None else self._w * y)
+        # the leaf means of y_k and a 0 after them (what a query reads for "no training leaf")
+        self._values = np.empty(len(sums) + 1)
+        np.divide(sums, self._wsum, out=self._values[:-1])
+        self._values[-1] = 0.0
+        del sums
+        self.leaf_values = self._values[:-1]
 
     def predict(self, name: str) -> np.ndarray:
         if name in self._cache:
@@ -440,17 +515,17 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         phi, actions = self.queries[name]
         values = self._cache.get("")  # leaf values and a 0 for "no training leaf", once per iteration
         if values is None:
-            values = self._cache[""] = np.r_[self.leaf_values, 0.0]
-        if name == "train" and len(self.reuse) and "next" in self.pos:  # the same leaves: the same numbers
+            own = self._values is not None and self.leaf_values is not None and self.leaf_values.base is self._values
+            values = self._cache[""] = self._values if own else np.r_[self.leaf_values, 0.0]
+        if name == "train" and self._rest is not None and self._rest.shape[1] < len(phi):  # the same leaves: the same numbers
             v = np.empty(len(phi))
-            rest = np.ones(len(phi), bool)
-            rest[self.reuse] = False
-            if self._rest is None:
-                self._rest = np.ascontiguousarray(self.pos[name][:, rest])
+            rest = self._src < 0
             v[rest] = tree_mean(values, self._rest, self.n_jobs)
             v[self.reuse] = self.predict("next")[self.reuse - 1, self.actions[self.reuse]]
+        elif name == "train" and self._rest is not None:
+            v = tree_mean(values, self._rest, self.n_jobs)
         else:
-            v = tree_mean(values, self.pos[name], self.n_jobs)  # mean over trees of the reached leaves
+            v = tree_mean(values, self._pos[name], self.n_jobs)  # mean over trees of the reached leaves
         self._cache[name] = v if actions is not None else v.reshape(self.encoder.n_actions, len(phi)).T
         return self._cache[name]
 

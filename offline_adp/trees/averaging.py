@@ -50,6 +50,26 @@ def thread_map(fn: Callable[[Any], Any], items: Iterable[Any], n_jobs: int) -> l
         return list(pool.map(fn, items))
 
 
+def _libc_trim() -> Any:
+    try:
+        import ctypes
+
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+
+
+_TRIM = _libc_trim()
+
+
+def release_freed() -> None:
+    """Return the C heap's free pages to the system (glibc's ``malloc_trim``; nothing
+    elsewhere): the large temporaries freed by a structure's lookups would otherwise stay
+    in the process's arenas, and each build would add to the peak of the next."""
+    if _TRIM is not None:
+        _TRIM(0)
+
+
 def _split(n: int, parts: int, least: int = 1) -> list[tuple[int, int]]:
     """``[0, n)`` as at most ``parts`` contiguous ranges of at least ``least`` items."""
     parts = max(1, min(parts, n // max(least, 1) or 1))
@@ -75,6 +95,23 @@ def _sums_kernel(pos: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any) -> N
             out[pos[t, i]] += v[i]
 
 
+def _sums_reuse_kernel(nxt: Any, src: Any, rest: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any) -> None:
+    """:func:`_sums_kernel` with row ``i``'s position read from ``nxt[t, src[i]]`` where
+    ``src[i] >= 0`` and from the next column of ``rest[t]`` otherwise (rows in order)."""
+    n = len(src)
+    for t in range(t0, t1):
+        for k in range(bounds[t], bounds[t + 1]):
+            out[k] = 0.0
+        j = 0
+        for i in range(n):
+            s = src[i]
+            if s >= 0:
+                out[nxt[t, s]] += v[i]
+            else:
+                out[rest[t, j]] += v[i]
+                j += 1
+
+
 def _mean_kernel(values: Any, pos: Any, j0: int, j1: int, out: Any) -> None:
     """``out[j] = (((0 + values[pos[0, j]]) + values[pos[1, j]]) + ...) / m`` for queries
     ``j0..j1-1`` (tree order, as a running numpy sum)."""
@@ -89,6 +126,7 @@ def _mean_kernel(values: Any, pos: Any, j0: int, j1: int, out: Any) -> None:
 
 if numba is not None:
     _sums_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_sums_kernel)
+    _sums_reuse_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_sums_reuse_kernel)
     _mean_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_mean_kernel)
 
 
@@ -107,6 +145,33 @@ def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 
             out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
         return out
     thread_map(lambda r: _sums_kernel(pos, bounds, v, r[0], r[1], out), _split(m, n_jobs), n_jobs)
+    return out
+
+
+def gather_positions(nxt: np.ndarray, src: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """The (m, len(src)) positions :func:`leaf_sums_reuse` reads: column ``i`` is
+    ``nxt[:, src[i]]`` where ``src[i] >= 0``, else the next column of ``rest``."""
+    out = np.empty((rest.shape[0], len(src)), dtype=rest.dtype)
+    reused = src >= 0
+    out[:, reused] = nxt[:, src[reused]]
+    out[:, ~reused] = rest
+    return out
+
+
+def leaf_sums_reuse(nxt: np.ndarray, src: np.ndarray, rest: np.ndarray, bounds: np.ndarray, v: np.ndarray,
+                    n_jobs: int = 1) -> np.ndarray:
+    """:func:`leaf_sums` of the positions :func:`gather_positions` would make, without
+    making them: row ``i``'s position in tree ``t`` is ``nxt[t, src[i]]`` where ``src[i] >= 0``
+    (a training row whose leaves are those of a next-state query), else the next column of
+    ``rest[t]`` (m, rows with ``src < 0``). Rows summed in order: bit-for-bit the same sums."""
+    m = rest.shape[0]
+    bounds = np.asarray(bounds, dtype=np.int64)
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    src = np.ascontiguousarray(src, dtype=np.int64)
+    if numba is None:
+        return leaf_sums(gather_positions(nxt, src, rest), bounds, v, 1)
+    out = np.empty(int(bounds[-1]))
+    thread_map(lambda r: _sums_reuse_kernel(nxt, src, rest, bounds, v, r[0], r[1], out), _split(m, n_jobs), n_jobs)
     return out
 
 

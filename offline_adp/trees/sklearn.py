@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.trees.averaging import release_freed
+
 #: what a tree state layout we do not know raises while we set it
 _LAYOUT_ERRORS = (ImportError, AttributeError, KeyError, TypeError, ValueError)
 
@@ -105,6 +107,8 @@ def tree_arrays(trees: list[Any], consume: bool = False) -> dict[str, np.ndarray
         np.add(lt, o, out=lt, where=inner)
         np.add(rt, o, out=rt, where=inner)
         del t
+        if consume and i % 8 == 7:  # the copied trees' pages back to the system as the arrays fill
+            release_freed()
     return {"left": left, "right": right, "feature": feature, "threshold": threshold, "value": value, "roots": offs}
 
 
