@@ -181,3 +181,22 @@ def test_fqe_fit_also_builds_its_result_once(monkeypatch):
     assert len(calls) == 5
     X = ds.arrays().obs
     np.testing.assert_array_equal(a.q_function_.values(X), b.q_function_.values(X))
+
+
+def test_training_positions_held_or_read_through_the_next_state_positions_give_the_same_fit(pt, monkeypatch):
+    """Small structures hold the whole (trees, rows) training-position matrix; above
+    ``TRAIN_POSITIONS_HELD`` bytes the leaf sums read the reused rows' leaves from the
+    next-state positions instead (the memory of a 1M-row fit). Same rows, same order: the
+    same Q-values bit for bit, and the same training positions on access."""
+    import offline_adp.learn.frozen as frozen
+
+    kw = {"gamma": 0.9, "n_iterations": 8, "regressor_params": {"n_estimators": 10}, "random_state": 1,
+          "n_structures": 2}
+    held = FittedQIteration(**kw).fit(pt)
+    assert held.fit_state_.learner._train is not None
+    monkeypatch.setattr(frozen, "TRAIN_POSITIONS_HELD", 0)
+    read = FittedQIteration(**kw).fit(pt)
+    assert read.fit_state_.learner._train is None and len(read.fit_state_.learner.reuse) > 0
+    x = pt.arrays().obs
+    np.testing.assert_array_equal(held.q_function_.values(x), read.q_function_.values(x))
+    np.testing.assert_array_equal(held.fit_state_.learner.pos["train"], read.fit_state_.learner.pos["train"])

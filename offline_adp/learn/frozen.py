@@ -66,6 +66,11 @@ class LeafPositions(Mapping[str, np.ndarray]):
         return len(self._queries) + 1
 
 
+#: Bytes of a (trees, rows) int32 training-position matrix a frozen structure holds whole
+#: (beyond this size the leaf sums read the reused rows' leaves from the next-state positions)
+TRAIN_POSITIONS_HELD = 64 * 2**20
+
+
 class FrozenBuilds:
     """When a frozen-structure LEARN step builds and what each build grows (jitter, row
     fraction, early and screened builds, the builder), and the per-iteration facts it
@@ -233,6 +238,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
         self._pos: dict[str, np.ndarray] = {}  # the query sets' leaf positions (tree-major int32)
         self._rest: np.ndarray | None = None  # the training rows' positions, at the rows not reused
+        self._train: np.ndarray | None = None  # all of them, held where small (TRAIN_POSITIONS_HELD)
         self._src = np.full(len(self.phi), -1, np.int64)  # training row i's column of pos["next"] (-1: in _rest)
         self._values: np.ndarray | None = None  # leaf_values' buffer, with a 0 after them
         self._cache: dict[str, np.ndarray] = {}
@@ -246,7 +252,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         before the next one is grown: the two are never held together (a forest of fully
         grown trees on 131,072 rows is ~0.7 GB)."""
         self.ensemble, self._forest = None, None
-        self._pos, self._rest, self._cache = {}, None, {}
+        self._pos, self._rest, self._cache, self._train = {}, None, {}, None
         self.leaf_ids = self.leaf_values = self._wsum = self._values = None  # type: ignore[assignment]
         release_freed()  # the freed structure's pages go back to the system before the next is grown
 
@@ -261,6 +267,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
 
     def _train_positions(self) -> np.ndarray:
         assert self._rest is not None
+        if self._train is not None:
+            return self._train
         if not (self._src >= 0).any():
             return self._rest.copy()
         return gather_positions(self._pos["next"], self._src, self._rest)
@@ -474,6 +482,12 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         self._src = np.full(n, -1, np.int64)
         self._src[reuse] = from_next
         self._rest = train  # every training leaf holds its own sample
+        # the whole (trees, rows) training matrix where it is small: the leaf sums then read it
+        # in order (~1.3x faster than through pos["next"]; the same sums bit for bit); above
+        # TRAIN_POSITIONS_HELD bytes the memory matters more (1M rows x 50 trees: 0.19 GiB)
+        self._train = None
+        if len(reuse) and m * n * 4 <= TRAIN_POSITIONS_HELD:
+            self._train = gather_positions(self._pos["next"], self._src, self._rest)
         self._wsum = self._leaf_sums(np.ones(n) if self._w is None else self._w)
         release_freed()  # the lookups' temporaries
 
@@ -491,8 +505,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """``sum of v_i`` over the training rows in each leaf (compact index), trees in
         ``n_jobs`` threads (rows summed in order: the same numbers for any count)."""
         assert self._rest is not None
-        if self._rest.shape[1] == len(self._src):  # no row reused
-            return leaf_sums(self._rest, self._bounds, v, self.n_jobs)
+        if self._train is not None or self._rest.shape[1] == len(self._src):  # held, or no row reused
+            return leaf_sums(self._rest if self._train is None else self._train, self._bounds, v, self.n_jobs)
         return leaf_sums_reuse(self._pos["next"], self._src, self._rest, self._bounds, v, self.n_jobs)
 
     def fit(self, y: np.ndarray, k: int) -> None:
