@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-import psutil
+from dask_scale import tree_cpu  # this directory is on the path when the script runs
 
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
@@ -62,17 +62,6 @@ def peak_gib() -> float:
     return next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:")) / 2**20
 
 
-def cpu_tree() -> float:
-    me = psutil.Process()
-    total = sum(me.cpu_times()[:2])
-    for p in me.children(recursive=True):
-        try:
-            total += sum(p.cpu_times()[:2])
-        except psutil.NoSuchProcess:
-            pass
-    return total
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rows", type=int, default=10_000_000)
@@ -85,14 +74,14 @@ def main() -> None:
         print(f"data: {args.data} written in {time.perf_counter() - t:.0f} s", flush=True)
     n_it = "auto" if args.iterations == "auto" else int(args.iterations)
     est = FittedQIteration(gamma=0.95, n_iterations=n_it, regressor_params={"n_jobs": 1})
-    t0, c0 = time.perf_counter(), cpu_tree()
+    t0, c0 = time.perf_counter(), tree_cpu()
     with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="8GiB")) as client:
         for row in DaskFit(client).fit_iter(est, args.data):
             w = client.run(peak_gib)
             print(f"it {row['iteration']:3d}  {time.perf_counter() - t0:7.1f} s  structure {row.get('structure')}  "
                   f"sup_dq {row['sup_dq']:.4g}  peak RSS GiB: client {peak_gib():.2f}, workers "
                   + ", ".join(f"{v:.2f}" for v in sorted(w.values())), flush=True)
-        wall, cpu = time.perf_counter() - t0, cpu_tree() - c0
+        wall, cpu = time.perf_counter() - t0, tree_cpu() - c0
         workers = sorted(client.run(peak_gib).values())
     print(json.dumps({"wall_s": wall, "cpu_s": cpu,
                       "iterations": len(est.history_), "mode": est.mode_, "client_peak_gib": peak_gib(),
