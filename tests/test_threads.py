@@ -108,3 +108,25 @@ def test_compact_tree_reaches_scikit_learns_leaves():
         assert np.array_equal(compact.apply(Q), tree.apply(Q))
         ours, theirs = tree_arrays([compact]), tree_arrays([tree])
         assert all(np.array_equal(ours[k], theirs[k]) for k in theirs)
+
+
+@pytest.mark.parametrize("n_jobs", [1, 3])
+def test_leaf_sums_continued_block_after_block_are_the_sums_over_all_rows(n_jobs):
+    """``carry``: sums taken over rows [0, k) then continued over [k, n) are the sums over
+    all n rows bit for bit (rows added in order), for any split and thread count; the same
+    with numpy's unbuffered np.add.at as the reference."""
+    from offline_adp.trees.averaging import leaf_sums
+
+    rng = np.random.default_rng(7)
+    m, n, leaves = 5, 2_000, 37
+    bounds = np.arange(m + 1, dtype=np.int64) * leaves
+    pos = (rng.integers(0, leaves, (m, n)) + bounds[:-1, None]).astype(np.int32)
+    v = rng.normal(size=n) * 10.0 ** rng.integers(-6, 6, n)  # magnitudes that make the order matter
+    whole = leaf_sums(pos, bounds, v, n_jobs)
+    for k in (1, 700, 1999):
+        first = leaf_sums(pos[:, :k], bounds, v[:k], n_jobs)
+        np.testing.assert_array_equal(leaf_sums(pos[:, k:], bounds, v[k:], n_jobs, carry=first), whole)
+    ref = np.zeros(int(bounds[-1]))
+    for t in range(m):
+        np.add.at(ref, pos[t], v)
+    np.testing.assert_array_equal(whole, ref)

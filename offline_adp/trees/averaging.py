@@ -84,13 +84,15 @@ except ImportError:  # pragma: no cover - numba is a dependency
     numba = None
 
 
-def _sums_kernel(pos: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any) -> None:
+def _sums_kernel(pos: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any, zero: bool) -> None:
     """``out[bounds[t] + k] = sum of v_i over i with pos[t, i] == bounds[t] + k`` for trees
-    ``t0..t1-1``, rows in order (``np.bincount``'s order)."""
+    ``t0..t1-1``, rows in order (``np.bincount``'s order); ``zero=False``: added to what
+    ``out`` holds (the sums continued over more rows)."""
     n = pos.shape[1]
     for t in range(t0, t1):
-        for k in range(bounds[t], bounds[t + 1]):
-            out[k] = 0.0
+        if zero:
+            for k in range(bounds[t], bounds[t + 1]):
+                out[k] = 0.0
         for i in range(n):
             out[pos[t, i]] += v[i]
 
@@ -130,21 +132,28 @@ if numba is not None:
     _mean_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_mean_kernel)
 
 
-def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 1) -> np.ndarray:
+def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 1,
+              carry: np.ndarray | None = None) -> np.ndarray:
     """``sum of v_i`` over the rows in each leaf, for tree-major compact leaf positions
     ``pos`` (m, n) (tree ``t``'s leaves are ``[bounds[t], bounds[t + 1])``, every position
     in its tree's range); trees split over ``n_jobs`` threads. Bit-for-bit
-    ``np.bincount(pos[t] - bounds[t], weights=v)`` per tree."""
+    ``np.bincount(pos[t] - bounds[t], weights=v)`` per tree. ``carry``: sums over earlier
+    rows, continued by these rows in order (so sums taken block after block are the sums
+    over all the rows, bit for bit; the Dask engine's segments)."""
     m = pos.shape[0]
     bounds = np.asarray(bounds, dtype=np.int64)
-    out = np.empty(int(bounds[-1]))
+    out = np.empty(int(bounds[-1])) if carry is None else np.array(carry, dtype=np.float64)
     v = np.ascontiguousarray(v, dtype=np.float64)
     if numba is None:
         for t in range(m):
             lo, hi = int(bounds[t]), int(bounds[t + 1])
-            out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
+            if carry is None:
+                out[lo:hi] = np.bincount(pos[t] - lo, weights=v, minlength=hi - lo)
+            else:  # in row order, continuing the carried sums (np.add.at is unbuffered, in order)
+                np.add.at(out, pos[t], v)
         return out
-    thread_map(lambda r: _sums_kernel(pos, bounds, v, r[0], r[1], out), _split(m, n_jobs), n_jobs)
+    zero = carry is None
+    thread_map(lambda r: _sums_kernel(pos, bounds, v, r[0], r[1], out, zero), _split(m, n_jobs), n_jobs)
     return out
 
 

@@ -43,8 +43,7 @@ from offline_adp.learn.frozen import FrozenBuilds
 from offline_adp.learn.schedule import FrozenSchedule
 from offline_adp.qfunctions import QFunction
 from offline_adp.trees import builder as compiled
-from offline_adp.trees.averaging import _split, leaf_sums, thread_map, tree_mean
-from offline_adp.trees.builder import _kernel
+from offline_adp.trees.averaging import leaf_sums, thread_map, tree_mean
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import TreeEnsemble, compiled_per_tree_leaves
 
@@ -132,18 +131,6 @@ def _compact(state: dict[str, Any], node_map: np.ndarray, bounds: np.ndarray) ->
     return {"pos": pos, "bounds": bounds, "n": state["n"], "n_actions": state["n_actions"]}
 
 
-def _carry_sums(pos: Any, v: Any, t0: int, t1: int, out: Any) -> None:
-    """``out[pos[t, i]] += v[i]`` for trees ``t0..t1-1``, rows in order: the sums of
-    :func:`~offline_adp.trees.averaging.leaf_sums` continued from ``out``."""
-    n = pos.shape[1]
-    for t in range(t0, t1):
-        for i in range(n):
-            out[pos[t, i]] += v[i]
-
-
-_carry_sums = _kernel(_carry_sums, cache=True, nogil=True, boundscheck=False)
-
-
 def _sums(state: dict[str, Any], v: np.ndarray | None, carry: np.ndarray | None) -> np.ndarray:
     """``sum of v_i`` per compact leaf over the rows of every segment up to this one, in
     row order: the in-process kernel on the first segment, then each next segment adds
@@ -151,12 +138,7 @@ def _sums(state: dict[str, Any], v: np.ndarray | None, carry: np.ndarray | None)
     bit for bit, however the rows are split. ``v`` None: the rows' count (the weights)."""
     pos, bounds = state["pos"]["train"], state["bounds"]
     v = np.ones(state["n"]) if v is None else np.ascontiguousarray(v, dtype=np.float64)
-    j = _threads()
-    if carry is None:
-        return leaf_sums(pos, bounds, v, j)
-    out = np.array(carry, dtype=np.float64)
-    thread_map(lambda r: _carry_sums(pos, v, r[0], r[1], out), _split(len(pos), j), j)
-    return out
+    return leaf_sums(pos, bounds, v, _threads(), carry=carry)
 
 
 def _means(state: dict[str, Any], values: np.ndarray) -> dict[str, np.ndarray]:
