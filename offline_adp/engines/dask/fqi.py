@@ -30,6 +30,7 @@ from offline_adp.errors import (
     DatasetNotFoundError,
     IngestError,
     InvalidArgumentError,
+    OfflineADPError,
 )
 
 
@@ -223,12 +224,12 @@ def unsupported(est: Any, dataset_dir: str | PathLike[str] | None = None) -> str
         return f"warm start with {type(reg).__name__}"
     horizon = est.horizon
     if horizon is None and dataset_dir is not None:  # the dataset's hints may make the fit finite-horizon
-        with contextlib.suppress(Exception):  # a bad info.json is the fit's own error to give
+        with contextlib.suppress(OfflineADPError, OSError, ValueError):  # a bad info.json: the fit's own error
             info = DatasetInfo.from_dict(read_info(Path(dataset_dir)))
             horizon = resolve_discount(info, est.gamma, None).horizon
-    mode = est.resolved_mode(reg) if horizon is None else est.mode
-    if est.mode == "auto" and horizon is not None:
-        mode = "refit"
+    mode = est.mode
+    if mode == "auto":  # as resolved_mode, with the dataset's horizon: finite means refit
+        mode = "refit" if horizon is not None else est.resolved_mode(reg)
     if mode != "frozen":
         return f"{type(reg).__name__} in mode {mode!r} (the engine fits trees in the frozen mode only)"
     from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
