@@ -117,6 +117,10 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
     return v, max_iterations
 
 
+#: entries of the per-action read whose state distances are computed at once (bounded memory)
+_DIST_CHUNK = 1 << 20
+
+
 def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any],
                       min_tree_share: float = 1e-9, radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
     """The *per-action read* of the fitted forest at the pairs the backup queries, and
@@ -164,8 +168,11 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
                 f = Ab @ has  # share of trees whose reached leaf holds a row of b
             else:  # only the rows of b near the queried state count
                 K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
-                d = np.sqrt(np.sum(((queried[k][K.row] - data.obs[K.col]) / scale) ** 2, axis=1))
-                near = d <= radius
+                near = np.empty(K.nnz, bool)
+                for c0 in range(0, K.nnz, _DIST_CHUNK):  # (entries, features) temporaries a chunk at a time
+                    r_, c_ = K.row[c0:c0 + _DIST_CHUNK], K.col[c0:c0 + _DIST_CHUNK]
+                    near[c0:c0 + _DIST_CHUNK] = np.sqrt(np.sum(((queried[k][r_] - data.obs[c_]) / scale) ** 2,
+                                                               axis=1)) <= radius
                 K = sparse.csr_matrix((K.data[near], (K.row[near], K.col[near])), shape=K.shape)
                 f = np.asarray(K.sum(axis=1)).reshape(-1)
             ok = f >= min_tree_share
