@@ -23,6 +23,7 @@ from offline_adp.evaluation.behaviour import (
     estimate_behaviour,
     support_violations,
 )
+from offline_adp.evaluation.model_rollouts import N_PARTICLES, model_rollouts, widen_fqe
 from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, CrossFitError: also reached from here
     PSDP_EPS_FOLDS,
     CrossFitError,
@@ -31,7 +32,7 @@ from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, Cr
     episode_groups,
     residual_advantage,
 )
-from offline_adp.evaluation.support_bounds import fqe_support_bounds
+from offline_adp.evaluation.support_bounds import fqe_support_bounds, q_value_range
 from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy, is_stationary
 
@@ -390,6 +391,7 @@ def off_policy(
     psdp_folds: int = PSDP_EPS_FOLDS,
     target_horizon: int | None = None,
     start: str | None = None,
+    model_particles: int = N_PARTICLES,
 ) -> OffPolicyResult:
     """Evaluate ``policy`` from the dataset alone.
 
@@ -404,7 +406,9 @@ def off_policy(
     ``psdp_folds`` folds of episodes (:func:`crossfit_residual_advantage`; 0: from the
     FQE fitted on all the data, which is 0 for FQI's greedy policy) and the PSDP bound for each reference policy (``self`` always; others
     from ``reference_policies``). With ``policy_states`` (pi's states per step from a
-    simulator) the classifier ratios are added. ``task_map`` runs the FQE bootstrap
+    simulator) the classifier ratios are added. ``model_particles``: particles of the model
+    rollouts FQE's interval is widened to (:mod:`~offline_adp.evaluation.model_rollouts`;
+    0: none), for the finite-horizon estimand within the logged horizon. ``task_map`` runs the FQE bootstrap
     replicates (default: here; see :mod:`offline_adp.parallel`). ``target_horizon`` and
     ``start``: the estimand's horizon and start distribution when they are a simulator's
     (see :func:`declare_estimand`); estimators that cannot see that far say so
@@ -476,6 +480,10 @@ def off_policy(
                 fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
                                    "row of that action near the state: the interval is widened to what those pairs "
                                    f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
+    if model_particles and est_def.form == "finite" and not est_def.beyond_logs:
+        say("model rollouts")
+        widen_fqe(fq, model_rollouts(ds, policy, T, gamma, q_value_range(a.cost, a.terminated, gamma), n=model_particles,
+                                     level=level, seed=seed))
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
                            f"(use at least {FQE_REPLICATE_ROUGH}; {FQE_REPLICATE_FLOOR} for stable ones)")

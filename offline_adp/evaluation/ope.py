@@ -66,6 +66,8 @@ class OPEResult:
     weight_diagnostics: dict[str, Any] | None = None  #: the weights' shape (:func:`weight_diagnostics`)
     #: FQE only: the support bounds the interval was widened to (``offpolicy.fqe_support_bounds``).
     support_bounds: dict[str, Any] | None = None
+    #: FQE only: the model rollouts the interval was widened to (``model_rollouts.widen_fqe``).
+    model_rollouts: dict[str, Any] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
@@ -79,6 +81,8 @@ class OPEResult:
             d["weight_diagnostics"] = dict(self.weight_diagnostics)
         if self.support_bounds is not None:
             d["support_bounds"] = dict(self.support_bounds)
+        if self.model_rollouts is not None:
+            d["model_rollouts"] = dict(self.model_rollouts)
         return d
 
 

@@ -1,0 +1,117 @@
+"""Model rollouts of the logs (docs/evaluation.md, section 2, "Model rollouts").
+
+A lane-keeping system with a known simulator: the lateral offset ``x`` drifts outward
+on its own (``x' = 1.03 x + 0.05 a + noise``, actions {-1, 0, +1}), each step costs
+``|x'| + 0.01 a^2``, and leaving the lane (``|x'| > 1``) ends the episode at cost 5. The
+logs come from a stabilising driver (10% random commands) and from uniformly random
+commands, which drift out and fail (as path_tracking's exploration does). The truth is
+Monte-Carlo rollouts of the simulator itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from offline_adp.access import ResetModel, StepResult
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.evaluation.model_rollouts import LoggedDynamics, model_rollout_value, widen_fqe
+from offline_adp.evaluation.offpolicy import off_policy
+from offline_adp.evaluation.ope import OPEResult
+from offline_adp.evaluation.support_bounds import q_value_range
+from offline_adp.policies import EpsilonPolicy, FunctionPolicy, Policy, UniformPolicy
+from offline_adp.rollout import collect, rollout
+
+GAMMA, T = 0.95, 100
+
+
+class Lane(ResetModel):
+    n_actions, obs_dim, gamma, horizon, name = 3, 1, GAMMA, T, "lane"
+
+    def dataset_info(self, **_: object) -> DatasetInfo:
+        return DatasetInfo(features=(Feature("x", "m"),), action_table=ActionTable.from_values([-1.0, 0.0, 1.0]),
+                           gamma=GAMMA, horizon=T)
+
+    def initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return rng.uniform(-0.3, 0.3, (n, 1))
+
+    def step(self, states: np.ndarray, actions: np.ndarray, rng: np.random.Generator) -> StepResult:
+        u = np.asarray(actions, dtype=np.float64) - 1.0
+        nxt = 1.03 * states[:, 0] + 0.05 * u + rng.normal(0.0, 0.01, len(states))
+        out = np.abs(nxt) > 1.0
+        return StepResult(nxt[:, None], np.where(out, 5.0, np.abs(nxt) + 0.01 * u**2), out)
+
+
+def _policy(rule) -> FunctionPolicy:
+    return FunctionPolicy(lambda x, t=0: rule(np.asarray(x)[:, 0]).astype(np.int64), 3)
+
+
+STABILISE = _policy(lambda x: np.where(x > 0.02, 0, np.where(x < -0.02, 2, 1)))
+PUSH = _policy(lambda x: np.full(len(x), 2))  # steers out of the lane
+COAST = _policy(lambda x: np.ones(len(x)))  # no steering: the open-loop drift
+
+
+def _truth(policy: Policy, seed: int = 5) -> float:
+    return rollout(Lane(), policy, 4000, np.random.default_rng(seed), horizon=T, gamma=GAMMA).mean
+
+
+@pytest.fixture(scope="module")
+def logs() -> TransitionDataset:
+    demo = collect(Lane(), EpsilonPolicy(STABILISE, 0.1), 60, np.random.default_rng(0), horizon=T, source="demo")
+    explore = collect(Lane(), UniformPolicy(3), 30, np.random.default_rng(1), horizon=T, source="explore",
+                      episode_prefix="x")
+    return TransitionDataset.concat([demo, explore])
+
+
+@pytest.fixture(scope="module")
+def model(logs) -> LoggedDynamics:
+    return LoggedDynamics(random_state=0).fit(logs)
+
+
+def _value_range(ds: TransitionDataset) -> tuple[float, float]:
+    a = ds.arrays()
+    return q_value_range(a.cost, a.terminated, GAMMA)
+
+
+POLICIES = {"exploration": UniformPolicy(3), "behaviour": EpsilonPolicy(STABILISE, 0.1), "stabilise": STABILISE,
+            "coast": COAST, "push": PUSH}
+
+
+@pytest.mark.parametrize("name", list(POLICIES))
+def test_the_models_reading_follows_the_simulator(logs, model, name):
+    """Within 15% of the simulator's value, for policies that stay (stabilise) and that
+    drift out and fail (coast, push); the bounds hold the reading."""
+    truth = _truth(POLICIES[name])
+    mr = model_rollout_value(model, POLICIES[name], T, GAMMA, _value_range(logs), n=2000, seed=1)
+    assert mr["estimate"] == pytest.approx(truth, rel=0.15)
+    assert mr["interval"][0] <= mr["estimate"] <= mr["interval"][1]
+
+
+def test_a_drifting_policy_leaves_the_data_and_one_that_stays_does_not(logs, model):
+    vr = _value_range(logs)
+    push = model_rollout_value(model, PUSH, T, GAMMA, vr, n=2000, seed=1)
+    stay = model_rollout_value(model, STABILISE, T, GAMMA, vr, n=2000, seed=1)
+    assert push["exit_share"] > 0.9 and push["exit_mass"] > 10 * max(stay["exit_mass"], 1e-3)
+    assert push["upper"] - push["lower"] > 5 * (stay["upper"] - stay["lower"])  # what leaves the data is not read as known
+    assert stay["exit_mass"] < 0.01 and stay["upper"] - stay["lower"] < 0.05 * stay["estimate"]
+
+
+@pytest.mark.parametrize("name", ["coast", "push"])
+def test_off_policy_widens_fqe_to_hold_both_readings_and_the_truth(logs, name):
+    truth = _truth(POLICIES[name])
+    res = off_policy(logs, POLICIES[name], n_boot=20, psdp_folds=0, seed=0)
+    fq = res.estimates["fqe"]
+    mr = fq.model_rollouts
+    assert mr is not None and fq.level == 0.95
+    assert fq.interval[0] <= mr["interval"][0] and mr["interval"][1] <= fq.interval[1]
+    assert fq.interval[0] <= truth <= fq.interval[1]
+    assert "model rollouts" in fq.interval_method
+    assert any("drives where the logs do not go" in w for w in fq.warnings) == (mr["exit_mass"] >= 0.05)
+    assert "model_rollouts" in fq.as_dict()
+
+
+def test_widen_fqe_keeps_an_interval_it_cannot_read():
+    fq = OPEResult("fqe", 1.0, (float("nan"), float("nan")), None)
+    widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.0, "exit_share": 0.0})
+    assert np.isnan(fq.interval[0]) and fq.model_rollouts is not None
