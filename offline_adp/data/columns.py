@@ -90,6 +90,9 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
                 h.update(b)
 
 
+_FEW_LABELS = 64  # a dictionary this small is re-encoded by first positions, not hashing
+
+
 def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """What ``encode_strings`` of a string or dictionary column without nulls gives, as
     ``(indices, mapping, words)``: the codes (first-appearance order) are
@@ -102,6 +105,17 @@ def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.nda
     col = col.unify_dictionaries()
     chunks = [c for c in col.chunks if len(c)]
     dictionary = chunks[0].dictionary
+    if len(dictionary) <= _FEW_LABELS:  # e.g. source labels: no hash table over the rows
+        indices = pa.chunked_array([c.indices for c in chunks]).combine_chunks()
+        arr = indices.to_numpy(zero_copy_only=False)
+        present = np.flatnonzero(np.bincount(arr, minlength=len(dictionary)))
+        # where each index first occurs (a scan that stops there; once per index used)
+        first = [pc.index(indices, pa.scalar(int(i), indices.type)).as_py() for i in present]
+        order = present[np.argsort(first)]  # the indices used, in first-appearance order
+        by_value = pc.dictionary_encode(dictionary.take(pa.array(order)).cast(pa.large_string()))
+        mapping = np.zeros(len(dictionary), np.int64)
+        mapping[order] = by_value.indices.to_numpy(zero_copy_only=False)
+        return arr, mapping, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
     by_index = pc.dictionary_encode(pa.chunked_array([c.indices for c in chunks]).combine_chunks())
     values = dictionary.take(by_index.dictionary)  # per distinct index, in first-appearance order
     by_value = pc.dictionary_encode(values.cast(pa.large_string()))  # indices with equal values merge
