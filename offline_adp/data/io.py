@@ -301,15 +301,21 @@ def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
     buf = np.empty(0)
     for c in [*ds.obs_columns, S.COST, *ds.next_obs_columns]:
         x = ds.table.column(c).to_numpy()
-        ok = np.isfinite(x)
-        finite = x if ok.all() else x[ok]  # a copy only when something is not finite
-        del ok
+        with np.errstate(over="ignore", invalid="ignore"):  # the check below decides
+            total = np.add.reduce(x) if len(x) else np.nan
+        if np.isfinite(total):  # a NaN or an infinity would make the sum NaN or infinite
+            finite = x
+        else:
+            ok = np.isfinite(x)
+            finite = x if ok.all() else x[ok]  # a copy only when something is not finite
+            del ok
+            total = None
         if not len(finite):
             stats["columns"][c] = {"non_finite": int(len(x))}
             continue
         if len(buf) < len(finite):
             buf = np.empty(len(finite))
-        mean, std = _mean_std(finite, buf[:len(finite)])
+        mean, std = _mean_std(finite, buf[:len(finite)], total)
         stats["columns"][c] = {
             "mean": mean,
             "std": std,
@@ -318,7 +324,10 @@ def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
             "non_finite": int(len(x) - len(finite)),
         }
     a = ds.table.column(S.ACTION).to_numpy()
-    counts = np.bincount(a[(a >= 0) & (a < ds.n_actions)], minlength=ds.n_actions)
+    if ds.n_actions <= 16:  # one vectorised comparison per action: no index copy, no filtered copy
+        counts = [np.count_nonzero(a == k) for k in range(ds.n_actions)]
+    else:
+        counts = np.bincount(a[(a >= 0) & (a < ds.n_actions)], minlength=ds.n_actions)
     stats["action_counts"] = {name: int(n) for name, n in zip(ds.info.action_table.names, counts, strict=True)}
     stats["source_counts"] = ds.source_counts()
     # counted in Arrow (bit-packed): no unpacking to numpy booleans
@@ -334,12 +343,13 @@ def _count_true(col: pa.ChunkedArray) -> int:
     return int(pc.sum(col).as_py() or 0)
 
 
-def _mean_std(x: np.ndarray, buf: np.ndarray) -> tuple[float, float]:
+def _mean_std(x: np.ndarray, buf: np.ndarray, total: float | None = None) -> tuple[float, float]:
     """``x.mean()`` and ``x.std()`` of a 1-D float64 array, bit for bit (numpy's own steps:
     the pairwise sum over n, then the sum of squared deviations), with the deviations in
-    ``buf`` (reused across columns) instead of a fresh array per call, and one sum for both."""
+    ``buf`` (reused across columns) instead of a fresh array per call, and one sum for both
+    (``total``, ``np.add.reduce(x)``, when the caller has it)."""
     n = len(x)
-    mean = np.add.reduce(x) / n
+    mean = (np.add.reduce(x) if total is None else total) / n
     np.subtract(x, mean, out=buf)
     np.multiply(buf, buf, out=buf)
     return float(mean), float(np.sqrt(np.add.reduce(buf) / n))
