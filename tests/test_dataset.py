@@ -36,7 +36,11 @@ def test_save_load_round_trip(tmp_path, small_pt):
     stats = json.loads((tmp_path / "ds" / S.STATS_FILE).read_text())
     assert sum(stats["action_counts"].values()) == len(small_pt)
     meta = pq.ParquetFile(next((tmp_path / "ds" / "data").glob("part-*.parquet"))).metadata
-    assert meta.row_group(0).column(0).compression == "ZSTD"
+    assert meta.row_group(0).column(0).compression == "LZ4"  # LZ4_RAW
+    # columns without nulls are stored required (no definition levels); the dataset read
+    # back declares its columns nullable, as any dataset's
+    assert not pq.read_schema(next((tmp_path / "ds" / "data").glob("part-*.parquet"))).field(S.COST).nullable
+    assert back.table.schema.field(S.COST).nullable
 
 
 def test_parts_hold_whole_episodes(tmp_path, small_pt):

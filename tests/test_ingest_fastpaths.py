@@ -126,3 +126,31 @@ def test_sorted_encoding_is_none_unless_rows_are_in_id_then_order(seed: int) -> 
     else:
         assert enc is not None
         assert enc.indices.to_pylist() == want[0] and enc.dictionary.to_pylist() == want[1]
+
+
+def test_dataset_stats_are_the_plain_statistics_of_the_finite_values() -> None:
+    """``stats.json``'s shortcut (no finiteness pass when a column's sum is finite, actions
+    counted by comparison) against numpy over each column's finite values."""
+    from offline_adp.data.io import dataset_stats
+
+    rng = np.random.default_rng(3)
+    n, ep_len = 4000, 40
+    obs = rng.normal(size=(n, 1)) * 1e3
+    nxt = rng.normal(size=(n, 1))
+    obs[7, 0], obs[100, 0] = np.nan, np.inf  # not finite: left out, counted
+    nxt[:, 0] = 1e308  # finite values whose sum overflows
+    ds = _dataset(obs, nxt, ep_len)
+    action = rng.integers(0, 3, n).astype(np.int32)
+    info = ds.info.replace(action_table=ActionTable(tuple(Action(f"a{k}", (float(k),)) for k in range(3))))
+    ds = TransitionDataset(ds.table.set_column(ds.table.column_names.index("action"), "action", pa.array(action)), info)
+    stats = dataset_stats(ds)
+    for name, x in (("obs.x", obs[:, 0]), ("next_obs.x", nxt[:, 0]), ("cost", np.zeros(n))):
+        f = x[np.isfinite(x)]
+        with np.errstate(over="ignore", invalid="ignore"):
+            want = {"mean": float(f.mean()), "std": float(f.std()), "min": float(f.min()), "max": float(f.max()),
+                    "non_finite": int(n - len(f))}
+        got = stats["columns"][name]
+        assert got.keys() == want.keys()
+        for k, v in want.items():
+            assert got[k] == v or (np.isnan(got[k]) and np.isnan(v)), (name, k)
+    assert stats["action_counts"] == {f"a{k}": int((action == k).sum()) for k in range(3)}

@@ -288,3 +288,30 @@ def test_sorted_encoding_across_chunks_is_the_hashed_encoding(cut):
     bad_order = order.copy()
     bad_order[4] = 0
     assert sorted_encoding(chunked, bad_order) is None
+
+
+def test_parts_share_one_schema_when_a_column_has_nulls_in_one_part_only(tmp_path):
+    """Columns without nulls are written as required; a column with a null anywhere is
+    optional in every part, so readers of single parts (Dask) see one schema, and the
+    values (nulls included) read back as written."""
+    from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.data.io import part_files, write_dataset
+
+    ds = simulate("car_on_hill", 4, 4, seed=3, horizon=25)
+    t = ds.table
+    bp = t.column(S.BEHAVIOR_PROB).to_pylist()
+    bp[len(bp) - 2] = None  # in the last part only
+    t = t.set_column(t.column_names.index(S.BEHAVIOR_PROB), S.BEHAVIOR_PROB, pa.array(bp, pa.float64()))
+    with_null = TransitionDataset(t, ds.info)
+    out = write_dataset(with_null, tmp_path / "d", rows_per_part=30)
+    parts = part_files(out)
+    assert len(parts) > 2
+    schemas = [pq.read_schema(p) for p in parts]
+    assert all(s.equals(schemas[0]) for s in schemas)
+    assert schemas[0].field(S.BEHAVIOR_PROB).nullable and not schemas[0].field(S.COST).nullable
+    assert pq.read_table(parts[0]).column(S.BEHAVIOR_PROB).null_count == 0
+    back = read_dataset(out)
+    assert back.table.column(S.BEHAVIOR_PROB).to_pylist() == bp
+    for name in t.column_names:
+        assert back.table.column(name).to_pylist() == with_null.table.column(name).to_pylist(), name
+    assert back.fingerprint() == with_null.fingerprint()

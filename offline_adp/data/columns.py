@@ -25,13 +25,22 @@ def encode_strings(col: pa.Array | pa.ChunkedArray) -> pa.DictionaryArray:
 _HASH_BLOCK = 1 << 16  # values per conversion block: temporaries stay in cache, never a column copy
 
 
-def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+#: integer types whose every value is an int32: hashed as int32 by :func:`hash_column`
+#: (``narrow``), others as int64
+_NARROW_INTS = (pa.int8(), pa.int16(), pa.int32(), pa.uint8(), pa.uint16())
+
+
+def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndarray, np.ndarray] | None = None,
+                *, narrow: bool = True) -> None:
     """Feed one column's content into ``h``, the same for any chunking of the same values.
 
     ``encoding`` (codes in first-appearance order, distinct values) may be given for a
     string column without nulls whose encoding is already known (the episode ids). The
     bytes fed are exactly those of the definition in :meth:`TransitionDataset.fingerprint`;
     they are produced chunk by chunk and block by block, without copying whole columns.
+    With ``narrow`` (fingerprint v3), string codes are fed as int32 (as int64 only past
+    2**31 - 1 distinct values) and integers of a type whose values all fit int32 (int8 to
+    int32, uint8, uint16) as int32; without it (v2), both as int64.
     """
     n = len(col)
     name_b = name.encode()
@@ -43,12 +52,15 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         h.update(bytes((n + 7) // 8))  # the packed null mask: no nulls
         words = [str(w).encode() for w in words_arr]  # one per distinct value
         h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
-        if mapping is None and codes.dtype == np.int64:
+        code_type = np.int32 if narrow and len(words) <= np.iinfo(np.int32).max else np.int64
+        if mapping is not None and mapping.dtype != code_type:
+            mapping = mapping.astype(code_type)
+        if mapping is None and codes.dtype == code_type:
             h.update(np.ascontiguousarray(codes))
             return
-        for lo in range(0, n, _HASH_BLOCK):  # codes as int64, block by block
+        for lo in range(0, n, _HASH_BLOCK):  # codes as int32 (v2: int64), block by block
             block = codes[lo:lo + _HASH_BLOCK]
-            h.update(mapping[block] if mapping is not None else block.astype(np.int64))
+            h.update(mapping[block] if mapping is not None else block.astype(code_type))
         return
     if is_dict:
         col = col.cast(col.type.value_type)
@@ -58,7 +70,8 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         enc = encode_strings(col.cast(pa.large_string()).fill_null(""))
         words = [w.encode() for w in enc.dictionary.to_pylist()]  # one per distinct value
         h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
-        h.update(enc.indices.to_numpy(zero_copy_only=False).astype(np.int64).tobytes())
+        code_type = np.int32 if narrow and len(words) <= np.iinfo(np.int32).max else np.int64
+        h.update(enc.indices.to_numpy(zero_copy_only=False).astype(code_type).tobytes())
         return
     kind = ("b" if pa.types.is_boolean(col.type) else "i" if pa.types.is_integer(col.type)
             else "f" if pa.types.is_floating(col.type) else None)
@@ -68,19 +81,20 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         return
     if col.null_count:
         col = col.fill_null(False if kind == "b" else 0 if kind == "i" else 0.0)
-    buf = np.empty(min(n, _HASH_BLOCK), np.int64 if kind == "i" else np.float64)  # reused by every block
+    int_type = np.int32 if narrow and col.type in _NARROW_INTS else np.int64
+    buf = np.empty(min(n, _HASH_BLOCK), int_type if kind == "i" else np.float64)  # reused by every block
     for chunk in col.chunks:
         arr = chunk.to_numpy(zero_copy_only=False)  # no nulls left: a view, except booleans (unpacked)
         if kind == "b":
             h.update(np.ascontiguousarray(arr, dtype=bool).view(np.uint8))
-        elif kind == "i" and arr.dtype == np.int64:
+        elif kind == "i" and arr.dtype == int_type:
             h.update(np.ascontiguousarray(arr))
         else:
             for lo in range(0, len(arr), _HASH_BLOCK):
                 block = arr[lo:lo + _HASH_BLOCK]
                 b = buf[:len(block)]
                 if kind == "i":
-                    np.copyto(b, block, casting="unsafe")  # as astype(np.int64)
+                    np.copyto(b, block, casting="unsafe")  # as astype(int_type): exact
                 else:
                     np.add(block, 0.0, out=b, casting="unsafe")  # -0.0 and 0.0 are the same value
                     with np.errstate(invalid="ignore", over="ignore"):
@@ -88,6 +102,9 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
                     if some_nan:
                         b[np.isnan(b)] = np.nan  # one NaN whatever its payload
                 h.update(b)
+
+
+_FEW_LABELS = 64  # a dictionary this small is re-encoded by first positions, not hashing
 
 
 def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
@@ -102,6 +119,17 @@ def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.nda
     col = col.unify_dictionaries()
     chunks = [c for c in col.chunks if len(c)]
     dictionary = chunks[0].dictionary
+    if len(dictionary) <= _FEW_LABELS:  # e.g. source labels: no hash table over the rows
+        indices = pa.chunked_array([c.indices for c in chunks]).combine_chunks()
+        arr = indices.to_numpy(zero_copy_only=False)
+        present = np.flatnonzero(np.bincount(arr, minlength=len(dictionary)))
+        # where each index first occurs (a scan that stops there; once per index used)
+        first = [pc.index(indices, pa.scalar(int(i), indices.type)).as_py() for i in present]
+        order = present[np.argsort(first)]  # the indices used, in first-appearance order
+        by_value = pc.dictionary_encode(dictionary.take(pa.array(order)).cast(pa.large_string()))
+        mapping = np.zeros(len(dictionary), np.int64)
+        mapping[order] = by_value.indices.to_numpy(zero_copy_only=False)
+        return arr, mapping, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
     by_index = pc.dictionary_encode(pa.chunked_array([c.indices for c in chunks]).combine_chunks())
     values = dictionary.take(by_index.dictionary)  # per distinct index, in first-appearance order
     by_value = pc.dictionary_encode(values.cast(pa.large_string()))  # indices with equal values merge

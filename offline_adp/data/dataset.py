@@ -392,26 +392,38 @@ class TransitionDataset:
         Depends on the values only: independent of chunking, of Arrow buffer layout and of
         provenance (extra columns such as ``src_file`` and the ``provenance`` metadata are
         left out): two datasets with the same rows, features and action table have the same
-        fingerprint. Each column is hashed canonically (:func:`_hash_column`): its name, its
-        null mask, and its values with nulls zeroed (integers as int64, never through
-        float; floats with every NaN one NaN and -0.0 as 0.0; booleans as bytes; strings
-        length-prefixed UTF-8).
+        fingerprint. Each column is hashed canonically
+        (:func:`~offline_adp.data.columns.hash_column`): its name, its null mask, and its
+        values with nulls zeroed (integers exactly, never through float: as int32 when
+        their type holds only int32 values, else int64; floats with every NaN one NaN and
+        -0.0 as 0.0; booleans as bytes; strings as their distinct values, length-prefixed
+        UTF-8, and int32 codes in first-appearance order).
+
+        This is definition v3 (2026-11-26); :meth:`matches_fingerprint` also recognises
+        the fingerprints written under the earlier definitions.
         """
+        return self._fingerprint(3)
+
+    def _fingerprint(self, version: int) -> str:
+        """Fingerprint definition v3 (int32 codes and narrow integers) or v2 (2026-11-25
+        to 2026-11-26: codes and every integer as int64); the same bytes otherwise."""
         h = hashlib.sha256()
-        h.update(b"offline_adp fingerprint v2\x00")
+        h.update(f"offline_adp fingerprint v{version}\x00".encode())
         h.update(repr((self.info.feature_names, self.info.action_table.to_dict())).encode())
         known = set(_column_order(self.info))
         for name in sorted(c for c in self.table.column_names if c in known):
             enc = self._episode_codes() if name == S.EPISODE_ID and len(self) else None
-            hash_column(h, name, self.table.column(name), enc)
+            hash_column(h, name, self.table.column(name), enc, narrow=version >= 3)
         return h.hexdigest()
 
-
     def matches_fingerprint(self, stored: Any) -> bool:
-        """Whether a stored fingerprint is this data's: the current one, or, for what was
-        written before the current definition (2026-11-25), :meth:`legacy_fingerprint`, so
-        existing datasets and runs stay valid."""
-        return stored == self.fingerprint() or stored == self.legacy_fingerprint()
+        """Whether a stored fingerprint is this data's: the current one (v3), or, for what
+        was written under an earlier definition, v2 (2026-11-25 to 2026-11-26) or
+        :meth:`legacy_fingerprint` (before 2026-11-25), so existing datasets and runs stay
+        valid. The older definitions are computed only when the current one differs."""
+        if not isinstance(stored, str):
+            return False
+        return stored == self.fingerprint() or stored == self._fingerprint(2) or stored == self.legacy_fingerprint()
 
     def legacy_fingerprint(self) -> str:
         """The fingerprint as defined until 2026-11-25 (integers hashed as stored, strings
