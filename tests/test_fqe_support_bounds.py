@@ -63,8 +63,9 @@ def test_an_unlogged_action_widens_the_interval_to_hold_the_truth(logs):
 
 def test_a_policy_the_logs_cover_keeps_a_tight_interval(logs):
     # "always 0" is logged at every state: nothing is unsupported, the bounds are the estimate itself
+    # (the support bounds alone: the model rollouts' own widening is tests/test_model_rollouts.py's)
     truth = N_FAR * float(np.sum(GAMMA ** np.arange(T))) / (N_EPISODES + N_FAR)
-    res = off_policy(logs, _always(0), n_boot=20, psdp_folds=0, seed=0)
+    res = off_policy(logs, _always(0), n_boot=20, psdp_folds=0, seed=0, model_particles=0)
     fq = res.estimates["fqe"]
     sb = fq.support_bounds
     assert sb["unsupported_next"] == 0.0 and sb["unsupported_start"] == 0.0

@@ -16,10 +16,14 @@ import pytest
 from offline_adp.access import ResetModel, StepResult
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
-from offline_adp.evaluation.model_rollouts import LoggedDynamics, model_rollout_value, widen_fqe
+from offline_adp.evaluation.model_rollouts import (
+    LoggedDynamics,
+    model_rollout_value,
+    remainder_range,
+    widen_fqe,
+)
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.evaluation.ope import OPEResult
-from offline_adp.evaluation.support_bounds import q_value_range
 from offline_adp.policies import EpsilonPolicy, FunctionPolicy, Policy, UniformPolicy
 from offline_adp.rollout import collect, rollout
 
@@ -71,7 +75,7 @@ def model(logs) -> LoggedDynamics:
 
 def _value_range(ds: TransitionDataset) -> tuple[float, float]:
     a = ds.arrays()
-    return q_value_range(a.cost, a.terminated, GAMMA)
+    return remainder_range(a.cost, a.terminated, GAMMA, T)
 
 
 POLICIES = {"exploration": UniformPolicy(3), "behaviour": EpsilonPolicy(STABILISE, 0.1), "stabilise": STABILISE,
@@ -115,3 +119,22 @@ def test_widen_fqe_keeps_an_interval_it_cannot_read():
     fq = OPEResult("fqe", 1.0, (float("nan"), float("nan")), None)
     widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.0, "exit_share": 0.0})
     assert np.isnan(fq.interval[0]) and fq.model_rollouts is not None
+
+
+@pytest.mark.parametrize("gamma", [0.9, 1.0])
+def test_remainder_range_holds_every_path(gamma):
+    """Every path of at most H steps (non-terminal costs from the logged ones, at most one
+    terminating cost, then 0), enumerated, lies within the range."""
+    rng = np.random.default_rng(3)
+    cost = np.r_[rng.uniform(-1.0, 2.0, 20), [7.0, -3.0]]
+    term = np.r_[np.zeros(20, bool), [True, True]]
+    H = 6
+    lo, hi = remainder_range(cost, term, gamma, H)
+    c, k = cost[~term], cost[term]
+    for steps in range(H + 1):
+        disc = gamma ** np.arange(steps)
+        for tail in (None, *k):
+            for pick in (c.min(), c.max()):
+                v = pick * disc.sum() + (0.0 if tail is None or steps == H else gamma**steps * tail)
+                assert lo - 1e-9 <= v <= hi + 1e-9
+    assert hi >= 7.0 and lo <= -3.0

@@ -25,8 +25,7 @@ The rollout (:func:`model_rollout_value`) starts ``n`` particles at logged start
 particle's survival probability: ``V = mean_i sum_t gamma^t S_it c_it``, the estimate.
 When a particle first reaches a state not in the data, at step ``t``, the model's reading
 from there on is an extrapolation; the **bounds** value that rest at the ends of the value
-range the logged costs allow (``[V_lo, V_hi]``, :func:`support_bounds.q_value_range` with 0
-for episodes that end), so ``lower = mean_i (sum_{t < t_i} gamma^t S_it c_it + gamma^{t_i}
+range the logged costs allow for the steps left (``[V_lo, V_hi]``, :func:`remainder_range`), so ``lower = mean_i (sum_{t < t_i} gamma^t S_it c_it + gamma^{t_i}
 S_{it_i} V_lo)`` and likewise ``upper``. The interval adds the particles' Monte-Carlo error
 (normal, at ``level``). It is a bound on the policy's value *if the model is right where the
 data is*; it contains neither the model's error there nor the logs' sampling noise, which
@@ -122,6 +121,32 @@ class LoggedDynamics:
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0)), dist <= self.radius_
 
 
+def remainder_range(cost: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> tuple[float, float]:
+    """Bounds on the discounted cost of at most ``horizon`` more steps if unseen costs lie
+    in the logged ranges: non-terminal costs in ``[c_lo, c_hi]``, terminating ones in
+    ``[k_lo, k_hi]``, and 0 once an episode ends. A path of k non-terminal steps then a
+    terminating one is worth at most ``g(k) = c_hi S_k + gamma^k k_hi`` (``S_k = sum_{j<k}
+    gamma^j``), monotone in k (``g(k+1) - g(k) = gamma^k (c_hi - (1 - gamma) k_hi)``), so the
+    upper end is ``max(0, c_hi S_T, g(0), g(T - 1))``; the lower end likewise. Any gamma,
+    1 included."""
+    cost = np.asarray(cost, dtype=np.float64)
+    term = np.asarray(terminated, dtype=bool)
+
+    def S(k: int) -> float:
+        return float(np.sum(gamma ** np.arange(k)))
+
+    lo, hi = 0.0, 0.0
+    c, k = cost[~term], cost[term]
+    c_lo, c_hi = (float(c.min()), float(c.max())) if len(c) else (0.0, 0.0)
+    if len(c):
+        lo, hi = min(lo, c_lo * S(horizon)), max(hi, c_hi * S(horizon))
+    if len(k):
+        last = max(horizon - 1, 0)
+        hi = max(hi, float(k.max()), c_hi * S(last) + gamma**last * float(k.max()))
+        lo = min(lo, float(k.min()), c_lo * S(last) + gamma**last * float(k.min()))
+    return lo, hi
+
+
 def _2d(y: np.ndarray, width: int) -> np.ndarray:
     """scikit-learn returns one output as a vector; always (n, width)."""
     return np.asarray(y, dtype=np.float64).reshape(len(y), width)
@@ -147,7 +172,7 @@ def model_rollout_value(model: LoggedDynamics, policy: Policy, horizon: int, gam
     kept = np.zeros(n)  # cost accrued while in the data
     lo_tail, hi_tail = np.zeros(n), np.zeros(n)
     exit_mass = np.zeros(n)
-    v_lo, v_hi = min(value_range[0], 0.0), max(value_range[1], 0.0)
+    v_lo, v_hi = value_range
     for t in range(horizon):
         if not alive.any():
             break

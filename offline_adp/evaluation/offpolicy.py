@@ -23,7 +23,12 @@ from offline_adp.evaluation.behaviour import (
     estimate_behaviour,
     support_violations,
 )
-from offline_adp.evaluation.model_rollouts import N_PARTICLES, model_rollouts, widen_fqe
+from offline_adp.evaluation.model_rollouts import (
+    N_PARTICLES,
+    model_rollouts,
+    remainder_range,
+    widen_fqe,
+)
 from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, CrossFitError: also reached from here
     PSDP_EPS_FOLDS,
     CrossFitError,
@@ -32,7 +37,7 @@ from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, Cr
     episode_groups,
     residual_advantage,
 )
-from offline_adp.evaluation.support_bounds import fqe_support_bounds, q_value_range
+from offline_adp.evaluation.support_bounds import fqe_support_bounds
 from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy, is_stationary
 
@@ -482,8 +487,8 @@ def off_policy(
                                    f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
     if model_particles and est_def.form == "finite" and not est_def.beyond_logs:
         say("model rollouts")
-        widen_fqe(fq, model_rollouts(ds, policy, T, gamma, q_value_range(a.cost, a.terminated, gamma), n=model_particles,
-                                     level=level, seed=seed))
+        widen_fqe(fq, model_rollouts(ds, policy, T, gamma, remainder_range(a.cost, a.terminated, gamma, T),
+                                     n=model_particles, level=level, seed=seed))
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
                            f"(use at least {FQE_REPLICATE_ROUGH}; {FQE_REPLICATE_FLOOR} for stable ones)")
