@@ -42,6 +42,9 @@ def test_a_side_is_claimed_only_when_nothing_undermines_it():
         "diverging": dict(m=BASE, conv={"verdict": "diverging", "text": "fit DIVERGED"}),
         "unknown fit": dict(m=BASE, conv={"verdict": "unknown", "text": "fit convergence unknown"}),
     }
+    drift = copy.deepcopy(BASE)
+    drift["ope"]["fqe"]["model_rollouts"] = {"exit_mass": 0.3, "exit_share": 0.9}
+    doubts["drifts (model rollouts)"] = dict(m=drift)
     dis = copy.deepcopy(BASE)
     dis["ope"]["wdr"] = {"estimate": 14.0, "interval": [12.5, 15.5], "level": 0.95}
     doubts["disagreement"] = dict(m=dis)
@@ -50,6 +53,15 @@ def test_a_side_is_claimed_only_when_nothing_undermines_it():
         assert v["performance"] == "unknown", name
         assert v["text"].startswith("cannot tell from these logs"), name
         assert "would say better" in v["text"], name
+
+
+def test_model_rollouts_that_stay_in_the_data_do_not_undermine_a_side():
+    m = copy.deepcopy(BASE)
+    m["ope"]["fqe"]["model_rollouts"] = {"exit_mass": 0.02, "exit_share": 0.3}
+    assert _v(m)["performance"] == "better"
+    m["ope"]["fqe"]["model_rollouts"]["exit_mass"] = 0.3
+    v = _v(m)
+    assert v["support_left"] and "model rollouts of the logs" in v["text"]
 
 
 def test_an_interval_containing_the_behaviour_is_said_as_such_even_with_doubts():
