@@ -51,6 +51,7 @@ from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.evaluation.run import _finite, evaluation_metrics
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
 from offline_adp.evaluation.summary import side_of_behaviour as _side
+from offline_adp.policies import EpsilonPolicy
 
 #: (demonstration episodes, exploration episodes, truth rollouts, horizon cap or None). Horizons keep
 #: gamma^T < 0.01 so the evaluation takes the stationary FQE with its cheap structure-conditional
@@ -75,6 +76,17 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
     "fqi_knn": {"regressor": "knn"},
     "demonstrator": None,
     "exploration": None,
+}
+#: a second set, never used to choose a rule (``--set holdout``): other learners and settings, an
+#: epsilon-mixed fit, and (path_tracking) drivers with other gains than the logged demonstrator's
+HOLDOUT: dict[str, dict[str, Any] | None] = {
+    "fqi_seed7": {"random_state": 7},
+    "fqi_lightgbm": {"regressor": "lightgbm"},
+    "fqi_leaf20": {"regressor_params": {"min_samples_leaf": 20}},
+    "fqi_3it": {"n_iterations": 3},
+    "fqi_eps30": {"epsilon": 0.3},
+    "sluggish": None,
+    "sharp": None,
 }
 
 
@@ -127,7 +139,10 @@ def logs_and_problem(problem: str, size: str, seed: int) -> tuple[Any, Any, dict
     ds = simulate(problem, n_demo, n_expl, seed=seed, horizon=H)
     prob = make_problem(problem, **({"horizon": H} if H is not None else {}))
     # car_on_hill logs exploration only (as its pipeline); its demonstrator is still a candidate
-    return ds, prob, {"demonstrator": prob.demonstrator(), "exploration": prob.exploration()}
+    fixed = {"demonstrator": prob.demonstrator(), "exploration": prob.exploration()}
+    if problem == "path_tracking":  # drivers the logs never saw: a lazier and a sharper Stanley gain
+        fixed.update(sluggish=prob.demonstrator(gain=0.5, epsilon=0.0), sharp=prob.demonstrator(gain=4.0, epsilon=0.0))
+    return ds, prob, fixed
 
 
 def _covers(iv: list[float] | None, truth: float) -> bool | None:
@@ -186,21 +201,25 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
     ds, sim, fixed = logs_and_problem(problem, size, seed)
     n_truth, H = SIZES[size][problem][2], SIZES[size][problem][3]
     names = list(candidates or [c for c in CANDIDATES if CANDIDATES[c] is not None or c in fixed])
-    if problem == "cartpole" and candidates is None:
+    if candidates == ["holdout"]:
+        names = [c for c in HOLDOUT if HOLDOUT[c] is not None or c in fixed]
+    if problem == "cartpole" and candidates is None:  # (the holdout set's fits apply to every problem)
         names = [c for c in names if c != "demonstrator"] + ["heuristic"]
     say(f"{problem} seed {seed}: {len(ds)} transitions, {len(ds.episode_ids)} episodes; candidates {names}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             t0 = time.perf_counter()
-            spec = CANDIDATES.get(name)
+            spec = CANDIDATES.get(name, HOLDOUT.get(name))
             est = None
             if spec is None:
                 policy = fixed[name]
             else:
-                params = {**FIT[problem], **spec}
-                est = FittedQIteration(random_state=seed, **params).fit(ds)
-                policy = est.policy_
+                spec = dict(spec)
+                eps = spec.pop("epsilon", None)
+                params = {"random_state": seed, **FIT[problem], **spec}
+                est = FittedQIteration(**params).fit(ds)
+                policy = est.policy_ if eps is None else EpsilonPolicy(est.policy_, eps)
             run = _run_dir(Path(tmp), name, est)
             # the horizon the logs were made with (a gym simulator would otherwise roll out to its own
             # time limit, 500 steps for CartPole, while the documented estimand is H steps)
@@ -316,7 +335,8 @@ def main(argv: list[str] | None = None) -> int:
                     choices=["path_tracking", "car_on_hill", "cartpole"])
     ap.add_argument("--seeds", nargs="+", type=int, default=[1])
     ap.add_argument("--size", choices=list(SIZES), default="small")
-    ap.add_argument("--candidates", nargs="+", default=None, help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole)")
+    ap.add_argument("--candidates", nargs="+", default=None, help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole), or 'holdout' for the "
+                         f"second set {list(HOLDOUT)}")
     ap.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates of the IS family")
     ap.add_argument("--json", type=Path, default=None, help="write every row and the summary here")
     ap.add_argument("--rows-from", type=Path, nargs="+", default=None,
