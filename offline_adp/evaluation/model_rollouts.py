@@ -104,7 +104,11 @@ class LoggedDynamics:
         probe = z if len(z) <= 20_000 else z[rng.choice(len(z), 20_000, replace=False)]
         d, _ = self.tree_.query(probe, k=2)
         self.radius_ = float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
-        self.start_states_ = a.obs[a.step == 0]
+        first = a.step == 0
+        if not first.any():  # episodes logged from a later step on: their first rows
+            first = np.zeros(len(a.step), bool)
+            first[np.unique(a.episode, return_index=True)[1]] = True
+        self.start_states_ = a.obs[first]
         return self
 
     def _features(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
