@@ -413,7 +413,7 @@ def off_policy(
     from ``reference_policies``). With ``policy_states`` (pi's states per step from a
     simulator) the classifier ratios are added. ``model_particles``: particles of the model
     rollouts FQE's interval is widened to (:mod:`~offline_adp.evaluation.model_rollouts`;
-    0: none), for the finite-horizon estimand within the logged horizon. ``task_map`` runs the FQE bootstrap
+    0: none), for the finite-horizon estimand (past the logged horizon too). ``task_map`` runs the FQE bootstrap
     replicates (default: here; see :mod:`offline_adp.parallel`). ``target_horizon`` and
     ``start``: the estimand's horizon and start distribution when they are a simulator's
     (see :func:`declare_estimand`); estimators that cannot see that far say so
@@ -485,9 +485,10 @@ def off_policy(
                 fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
                                    "row of that action near the state: the interval is widened to what those pairs "
                                    f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
-    if model_particles and est_def.form == "finite" and not est_def.beyond_logs:
+    if model_particles and est_def.form == "finite":  # the model is stationary: it also sees past the logs
         say("model rollouts")
-        widen_fqe(fq, model_rollouts(ds, policy, T, gamma, remainder_range(a.cost, a.terminated, gamma, T),
+        H_m = est_def.value_horizon
+        widen_fqe(fq, model_rollouts(ds, policy, H_m, gamma, remainder_range(a.cost, a.terminated, gamma, H_m),
                                      n=model_particles, level=level, seed=seed))
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
