@@ -173,15 +173,19 @@ def _tolerance(est: FittedQIteration, last: dict[str, Any]) -> float | None:
 def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:
     """Converged at the last row (:mod:`~offline_adp.algorithms.fqi_monitor`): frozen, the
     distance bound ``gamma/(1-gamma) sup|dQ|`` within :func:`_tolerance`, after the last
-    scheduled build, on an iteration that did not rebuild; other modes ``sup|dQ| < tol``.
+    scheduled build, on an iteration that did not rebuild (or rebuilt one-leaf trees on
+    constant targets, as the one before did: they stay constant); other modes ``sup|dQ| < tol``.
     A pure function of the history, so a resumed fit decides the same."""
     if est.horizon_ is not None or len(rows) < 2:
         return False
     last, prev = rows[-1], rows[-2]
-    if last.get("structure") != prev.get("structure"):
+    # targets constant at two iterations in a row (every row's cost alike, no terminal): they stay
+    # constant, one-leaf trees are exact, and rebuilding them each iteration changes nothing
+    constant = bool(last.get("structure_on_constant")) and bool(prev.get("structure_on_constant"))
+    if last.get("structure") != prev.get("structure") and not constant:
         return False
     if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule())
-                                                        or last.get("structure_on_constant")):
+                                                        or (last.get("structure_on_constant") and not constant)):
         return False
     if not _bounded(est):
         return est.tol is not None and last["sup_dq"] < est.tol

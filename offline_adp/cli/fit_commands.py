@@ -80,8 +80,12 @@ def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None
                              for b in builds))  # an unscreened build grew fewer trees than another
             caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")
             by = sorted({b["builder"] for b in builds if b["builder"]})
-            lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(str(b['iteration']) for b in builds)}), "
-                         f"trees {'/'.join('const' if b['constant'] else str(b['trees'] or '?') for b in builds)}"
+            its = [str(b["iteration"]) for b in builds]
+            trees = ["const" if b["constant"] else str(b["trees"] or "?") for b in builds]
+            if len(builds) > 12:  # the first and last few; the history holds every build
+                its, trees = its[:6] + ["..."] + its[-3:], trees[:6] + ["..."] + trees[-3:]
+            lines.append(f"tree structures: {len(builds)} built (iterations {', '.join(its)}), "
+                         f"trees {'/'.join(trees)}"
                          + (f", grown by {' and '.join(by)}" if by else "")
                          + (f" ({caveat}: can cost score; compare with a fit that grows every"
                             " forest whole, docs/fqi-modes.md)" if caveat else ""))
