@@ -1,6 +1,6 @@
 """Model rollouts of the logs: a second, model-based reading of a policy's value whose
 errors are not FQE's, and a logs-only measure of how far the policy drives from the data
-(docs/evaluation.md, section 2, "Model rollouts").
+(docs/evaluation.md, section 2, "Model rollouts"). Access model: trace data only.
 
 FQE values a policy through its logged next states: a query ``(x', pi(x'))`` is answered
 by the rows whose states the regression puts near ``x'``. Where the policy drifts (a
@@ -9,12 +9,13 @@ dense, and the drift never shows: on the driving problem FQE read a policy that 
 road in 95% of its episodes at 8.3 against a truth of 19.6. A model of the *increments*
 ``x' - x`` does not snap back to the data: rolled out, its states drift as the policy's do.
 
-The model (:class:`LoggedDynamics`), fitted on the logged transitions only (access model:
-trace data):
+The model (:class:`LoggedDynamics`), fitted on the logged transitions:
 
-- increments ``(x' - x) / sd = L(x, a) + R(x, a)``: a ridge regression ``L`` (the part of
-  the dynamics that is linear in the state and the action's value, extrapolated as such)
-  plus extra-trees ``R`` on its residuals (Geurts et al. 2006; what is not linear);
+- increments ``(x' - x) / sd = L(x, a) + R(x, a) + e``: a ridge regression ``L`` (the part
+  of the dynamics linear in the state and the action, extrapolated as such; the action
+  enters as its value and one-hot) plus extra-trees ``R`` on its residuals (Geurts et al.
+  2006), and noise ``e`` drawn from the out-of-fold residuals of ``L + R`` (two folds of
+  episodes; they hold the model's own error too, so the noise is if anything too large);
 - cost and termination ``(c, P[terminal]) = G(x, a, x')``: extra-trees on the state, the
   action and the next state (costs and failures usually depend on where the step lands);
 - support: a state is *in the data* when a logged state lies within the 99.9% quantile of
@@ -22,16 +23,16 @@ trace data):
 
 The rollout (:func:`model_rollout_value`) starts ``n`` particles at logged start states
 (resampled), acts with the policy, steps the model, and weighs each step's cost by the
-particle's survival probability: ``V = mean_i sum_t gamma^t S_it c_it``, the estimate.
-When a particle first reaches a state not in the data, at step ``t``, the model's reading
-from there on is an extrapolation; the **bounds** value that rest at the ends of the value
-range the logged costs allow for the steps left (``[V_lo, V_hi]``, :func:`remainder_range`), so ``lower = mean_i (sum_{t < t_i} gamma^t S_it c_it + gamma^{t_i}
-S_{it_i} V_lo)`` and likewise ``upper``. The interval adds the particles' Monte-Carlo error
-(normal, at ``level``). It is a bound on the policy's value *if the model is right where the
-data is*; it contains neither the model's error there nor the logs' sampling noise, which
-is why :func:`offpolicy.off_policy` takes the hull of it and FQE's interval rather than
-either alone. The discounted mass that leaves the data (``exit_mass``) is the logs-only
-measure of drift.
+survival probability: ``V = mean_i sum_t w_it c_it`` with ``w_it = gamma^t S_it``, the
+estimate. When particle i is first at a state not in the data, at step ``tau_i``, the
+model's reading from there on is an extrapolation; the **bounds** value the remaining
+``L = H - tau_i`` steps at the ends of what the logged costs allow for ``L`` steps
+(:func:`remainder_ranges`): ``lower = mean_i (sum_{t < tau_i} w_it c_it + w_{i tau_i}
+lo(L))``, likewise ``upper``. Their interval adds the particles' Monte-Carlo error (normal,
+at ``level``). They hold the value *as far as the model is right where the data is*,
+which is why :func:`offpolicy.off_policy` takes the hull of them and FQE's interval rather
+than either alone. ``exit_mass``, the share of the discounted survival mass
+``sum_t w_it`` that lies at or after ``tau_i``, is the logs-only measure of drift.
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ from typing import Any
 import numpy as np
 
 from offline_adp.access import StepResult
-from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.dataset import TransitionArrays, TransitionDataset
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.policies import Policy
 
 #: A state is in the data when a logged state is at most this quantile of the logged states'
@@ -54,6 +56,9 @@ SUPPORT_QUANTILE = 0.999
 #: rows the model is fitted on at most (a uniform sample above it), and particles per rollout
 MAX_FIT_ROWS = 200_000
 N_PARTICLES = 1000
+#: model states are kept within the logged range widened by this many standard deviations
+#: (a linear part that extrapolates an unstable system would otherwise overflow)
+CLIP_SD = 3.0
 
 
 @dataclass
@@ -68,87 +73,145 @@ class LoggedDynamics:
         Rows per leaf of the trees.
     ridge_alpha : float
         L2 penalty of the linear part (features standardised).
+    noise : bool
+        Draw each step's noise from the out-of-fold residuals (else the mean increment).
     random_state : int
+        Seed of the trees, the fold split and the row sample.
+
+    Attributes
+    ----------
+    sd_ : ndarray
+        Feature standard deviations (1 where constant).
+    radius_ : float
+        In-the-data distance (:data:`SUPPORT_QUANTILE` of the nearest-neighbour distances).
+    residuals_ : ndarray
+        Out-of-fold residuals of the increments, in standard deviations.
+    start_states_ : ndarray
+        The logged states at step 0.
     """
 
     n_estimators: int = 20
     min_samples_leaf: int = 3
     ridge_alpha: float = 1e-3
+    noise: bool = True
     random_state: int = 0
 
-    def fit(self, ds: TransitionDataset) -> LoggedDynamics:
-        """Fit on every transition of ``ds`` (at most :data:`MAX_FIT_ROWS`, sampled)."""
+    def fit(self, ds: TransitionDataset, arrays: TransitionArrays | None = None) -> LoggedDynamics:
+        """Fit on the transitions of ``ds`` (at most :data:`MAX_FIT_ROWS`, sampled);
+        ``arrays``: ``ds.arrays()`` when the caller has them."""
         from scipy.spatial import cKDTree
-        from sklearn.ensemble import ExtraTreesRegressor
-        from sklearn.linear_model import Ridge
 
-        a = ds.arrays()
+        a = arrays if arrays is not None else ds.arrays()
         rng = np.random.default_rng(self.random_state)
         rows = np.arange(len(a.cost)) if len(a.cost) <= MAX_FIT_ROWS else \
             np.sort(rng.choice(len(a.cost), MAX_FIT_ROWS, replace=False))
         obs, nxt = a.obs[rows], a.next_obs[rows]
-        self.sd_ = np.where(obs.std(axis=0) > 0, obs.std(axis=0), 1.0)
+        sd = obs.std(axis=0)
+        self.sd_ = np.where(sd > 0, sd, 1.0)
+        both = np.vstack([obs, nxt])
+        self.low_, self.high_ = both.min(axis=0) - CLIP_SD * self.sd_, both.max(axis=0) + CLIP_SD * self.sd_
         values = np.asarray(ds.info.action_table.values, dtype=np.float64).reshape(ds.n_actions, -1)
         vsd = values.std(axis=0)
-        self.action_features_ = values / np.where(vsd > 0, vsd, 1.0)
+        self.action_features_ = np.hstack([values / np.where(vsd > 0, vsd, 1.0), np.eye(ds.n_actions)])
         F = self._features(obs, a.action[rows])
         dx = (nxt - obs) / self.sd_
-        trees = {"n_estimators": self.n_estimators, "min_samples_leaf": self.min_samples_leaf, "max_features": 1.0,
-                 "random_state": self.random_state, "n_jobs": 1}
-        self.linear_ = Ridge(alpha=self.ridge_alpha).fit(F, dx)
-        self.residual_ = ExtraTreesRegressor(**trees).fit(F, dx - _2d(self.linear_.predict(F), dx.shape[1]))
+        self.linear_, self.residual_ = self._increments(F, dx)
+        self.residuals_ = np.zeros((0, dx.shape[1]))
+        if self.noise:  # out-of-fold residuals, folds of whole episodes
+            fold = np.random.default_rng([self.random_state, 1]).integers(0, 2, int(a.episode.max()) + 1)[a.episode[rows]]
+            res = []
+            for k in (0, 1):
+                if (fold == k).all() or (fold != k).all():
+                    continue
+                lin, tree = self._increments(F[fold != k], dx[fold != k])
+                Fk = F[fold == k]
+                res.append(dx[fold == k] - _2d(lin.predict(Fk), dx.shape[1]) - _2d(tree.predict(Fk), dx.shape[1]))
+            self.residuals_ = np.vstack(res) if res else self.residuals_
         G = np.column_stack([F, nxt / self.sd_])
-        self.outcome_ = ExtraTreesRegressor(**trees).fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
+        self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
         probe = z if len(z) <= 20_000 else z[rng.choice(len(z), 20_000, replace=False)]
-        d, _ = self.tree_.query(probe, k=2)
-        self.radius_ = float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
-        first = a.step == 0
-        if not first.any():  # episodes logged from a later step on: their first rows
-            first = np.zeros(len(a.step), bool)
-            first[np.unique(a.episode, return_index=True)[1]] = True
-        self.start_states_ = a.obs[first]
+        d, _ = self.tree_.query(probe, k=min(2, len(z)))
+        self.radius_ = float(np.quantile(d[:, -1], SUPPORT_QUANTILE)) if len(z) > 1 else 0.0
+        self.start_states_ = a.obs[a.step == 0]
         return self
+
+    def _trees(self) -> Any:
+        from sklearn.ensemble import ExtraTreesRegressor
+
+        return ExtraTreesRegressor(n_estimators=self.n_estimators, min_samples_leaf=self.min_samples_leaf,
+                                   max_features=1.0, random_state=self.random_state, n_jobs=1)
+
+    def _increments(self, F: np.ndarray, dx: np.ndarray) -> tuple[Any, Any]:
+        from sklearn.linear_model import Ridge
+
+        lin = Ridge(alpha=self.ridge_alpha).fit(F, dx)
+        rest = dx - _2d(lin.predict(F), dx.shape[1])
+        return lin, self._trees().fit(F, rest[:, 0] if rest.shape[1] == 1 else rest)
 
     def _features(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
         return np.column_stack([obs / self.sd_, self.action_features_[np.asarray(action, dtype=np.int64)]])
 
-    def step(self, states: np.ndarray, actions: np.ndarray) -> tuple[StepResult, np.ndarray]:
+    def step(self, states: np.ndarray, actions: np.ndarray,
+             rng: np.random.Generator | None = None) -> tuple[StepResult, np.ndarray]:
         """One model step: (next states, expected cost, termination probability as
         ``terminated``), and whether each *current* state is in the data."""
         F = self._features(states, actions)
         d = states.shape[1]
-        nxt = states + (_2d(self.linear_.predict(F), d) + _2d(self.residual_.predict(F), d)) * self.sd_
+        inc = _2d(self.linear_.predict(F), d) + _2d(self.residual_.predict(F), d)
+        if rng is not None and len(self.residuals_):
+            inc = inc + self.residuals_[rng.integers(0, len(self.residuals_), len(states))]
+        nxt = np.clip(states + inc * self.sd_, self.low_, self.high_)
         out = _2d(self.outcome_.predict(np.column_stack([F, nxt / self.sd_])), 2)
         dist, _ = self.tree_.query(states / self.sd_)
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0)), dist <= self.radius_
 
 
-def remainder_range(cost: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> tuple[float, float]:
-    """Bounds on the discounted cost of at most ``horizon`` more steps if unseen costs lie
-    in the logged ranges: non-terminal costs in ``[c_lo, c_hi]``, terminating ones in
-    ``[k_lo, k_hi]``, and 0 once an episode ends. A path of k non-terminal steps then a
-    terminating one is worth at most ``g(k) = c_hi S_k + gamma^k k_hi`` (``S_k = sum_{j<k}
-    gamma^j``), monotone in k (``g(k+1) - g(k) = gamma^k (c_hi - (1 - gamma) k_hi)``), so the
-    upper end is ``max(0, c_hi S_T, g(0), g(T - 1))``; the lower end likewise. Any gamma,
-    1 included."""
+def remainder_ranges(cost: np.ndarray, terminated: np.ndarray, gamma: float,
+                     horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)``, arrays over ``L = 0 .. horizon``: the exact range of the discounted cost
+    of ``L`` more steps (0 for ``L = 0``) when non-terminal costs lie in ``[c_lo, c_hi]``
+    and terminating ones in ``[k_lo, k_hi]`` (the logged ranges). A path of k non-terminal
+    steps then a terminating one is worth at most ``g(k) = c_hi S_k + gamma^k k_hi``
+    (``S_k = sum_{j<k} gamma^j``), monotone in k (``g(k+1) - g(k) = gamma^k (c_hi - (1 -
+    gamma) k_hi)``), so ``hi(L) = max(c_hi S_L, g(0), g(L - 1))`` (the terminating terms only
+    when the logs hold a terminating step); ``lo(L)`` likewise; each end is some path's value.
+    Any gamma, 1 included.
+
+    Parameters
+    ----------
+    cost, terminated : ndarray
+        The logged costs and terminal flags.
+    gamma : float
+    horizon : int
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (horizon + 1,)
+    """
     cost = np.asarray(cost, dtype=np.float64)
     term = np.asarray(terminated, dtype=bool)
-
-    def S(k: int) -> float:
-        return float(np.sum(gamma ** np.arange(k)))
-
-    lo, hi = 0.0, 0.0
+    L = np.arange(horizon + 1)
+    g = float(gamma) ** np.arange(horizon + 1, dtype=np.float64)
+    S = np.r_[0.0, np.cumsum(g[:-1])]  # S[L] = sum_{j<L} gamma^j
     c, k = cost[~term], cost[term]
-    c_lo, c_hi = (float(c.min()), float(c.max())) if len(c) else (0.0, 0.0)
+    lo, hi = np.full(horizon + 1, np.inf), np.full(horizon + 1, -np.inf)
     if len(c):
-        lo, hi = min(lo, c_lo * S(horizon)), max(hi, c_hi * S(horizon))
+        lo, hi = float(c.min()) * S, float(c.max()) * S
     if len(k):
-        last = max(horizon - 1, 0)
-        hi = max(hi, float(k.max()), c_hi * S(last) + gamma**last * float(k.max()))
-        lo = min(lo, float(k.min()), c_lo * S(last) + gamma**last * float(k.min()))
+        last = np.maximum(L - 1, 0)
+        c_lo, c_hi = (float(c.min()), float(c.max())) if len(c) else (0.0, 0.0)
+        lo = np.minimum(lo, np.minimum(float(k.min()), c_lo * S[last] + g[last] * float(k.min())))
+        hi = np.maximum(hi, np.maximum(float(k.max()), c_hi * S[last] + g[last] * float(k.max())))
+    lo[0], hi[0] = 0.0, 0.0
     return lo, hi
+
+
+def remainder_range(cost: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> tuple[float, float]:
+    """The widest of :func:`remainder_ranges` over 1 .. ``horizon`` steps."""
+    lo, hi = remainder_ranges(cost, terminated, gamma, horizon)
+    return float(lo[1:].min()), float(hi[1:].max())
 
 
 def _2d(y: np.ndarray, width: int) -> np.ndarray:
@@ -156,66 +219,100 @@ def _2d(y: np.ndarray, width: int) -> np.ndarray:
     return np.asarray(y, dtype=np.float64).reshape(len(y), width)
 
 
-def model_rollout_value(model: LoggedDynamics, policy: Policy, horizon: int, gamma: float,
-                        value_range: tuple[float, float], *, n: int = N_PARTICLES, level: float = 0.95,
+def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
+                        ranges: tuple[np.ndarray, np.ndarray], *, n: int = N_PARTICLES, level: float = 0.95,
                         seed: int = 0) -> dict[str, Any]:
-    """The policy's ``horizon``-step discounted cost under ``model``, with the bounds that
-    value each particle's remainder at the ends of ``value_range`` once it leaves the data
-    (module docstring). Returns ``estimate``, ``lower``, ``upper`` (bounds' means),
-    ``interval`` (with the particles' Monte-Carlo error at ``level``), ``exit_mass`` (mean
-    discounted survival weight at leaving the data), ``exit_share`` (share of particles
-    that leave), ``n_particles``, ``radius``."""
+    """The policy's ``horizon``-step discounted cost under ``model`` and its bounds (module
+    docstring).
+
+    Parameters
+    ----------
+    model : LoggedDynamics
+        Or any object with ``start_states_``, ``radius_`` and ``step(states, actions, rng)``.
+    policy : Policy
+    horizon : int
+    gamma : float
+    ranges : (ndarray, ndarray)
+        ``lo[L], hi[L]`` for ``L = 0 .. horizon`` remaining steps (:func:`remainder_ranges`).
+    n : int
+        Particles.
+    level : float
+        Level of the Monte-Carlo interval around the bounds.
+    seed : int
+
+    Returns
+    -------
+    dict
+        ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
+        (share of the discounted survival mass at or after leaving the data), ``exit_share``
+        (share of particles that leave while alive), ``n_particles``, ``radius``.
+    """
     from scipy.stats import norm
 
+    if n < 2 or horizon < 1 or not 0 < level < 1:
+        raise InvalidArgumentError(f"model rollouts need at least 2 particles, a horizon >= 1 and a level in (0, 1); "
+                                   f"got n={n}, horizon={horizon}, level={level}")
+    lo_r, hi_r = (np.asarray(r, dtype=np.float64) for r in ranges)
     rng = np.random.default_rng([seed, 7])
     starts = model.start_states_
     x = starts[rng.integers(0, len(starts), n)].astype(np.float64)
     alive = np.ones(n)
     inside = np.ones(n, bool)
-    value = np.zeros(n)
-    kept = np.zeros(n)  # cost accrued while in the data
+    value, kept, mass, mass_out = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     lo_tail, hi_tail = np.zeros(n), np.zeros(n)
-    exit_mass = np.zeros(n)
-    v_lo, v_hi = value_range
+    left_alive = np.zeros(n, bool)
     for t in range(horizon):
         if not alive.any():
             break
         act = policy.act_index(x, t, rng)
-        r, in_data = model.step(x, act)
-        left = inside & ~in_data
+        r, in_data = model.step(x, act, rng)
         w = alive * gamma**t
-        lo_tail[left] = w[left] * v_lo
-        hi_tail[left] = w[left] * v_hi
-        exit_mass[left] = w[left]
+        left = inside & ~in_data
+        lo_tail[left] = w[left] * lo_r[horizon - t]
+        hi_tail[left] = w[left] * hi_r[horizon - t]
+        left_alive |= left & (w > 0)
         inside &= in_data
         value += w * r.costs
         kept += np.where(inside, w * r.costs, 0.0)
+        mass += w
+        mass_out += np.where(inside, 0.0, w)
         alive = alive * (1.0 - r.terminated)
         x = r.next_states
     lower, upper = kept + lo_tail, kept + hi_tail
     z = float(norm.ppf(0.5 + level / 2))
+
     def se(v: np.ndarray) -> float:
-        return float(v.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0
+        return float(v.std(ddof=1) / np.sqrt(n))
 
     return {"estimate": float(value.mean()), "lower": float(lower.mean()), "upper": float(upper.mean()),
             "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))],
-            "exit_mass": float(exit_mass.mean()), "exit_share": float(np.mean(~inside)), "n_particles": int(n),
-            "radius": model.radius_, "support_quantile": SUPPORT_QUANTILE}
+            "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
+            "exit_share": float(left_alive.mean()), "n_particles": int(n), "radius": float(model.radius_),
+            "support_quantile": SUPPORT_QUANTILE}
 
 
-def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float,
-                   value_range: tuple[float, float], *, n: int = N_PARTICLES, level: float = 0.95,
-                   seed: int = 0) -> dict[str, Any]:
+def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float, *, n: int = N_PARTICLES,
+                   level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None) -> dict[str, Any]:
     """Fit :class:`LoggedDynamics` on ``ds`` and roll ``policy`` out in it
-    (:func:`model_rollout_value`); adds ``cpu_seconds`` and ``method``."""
+    (:func:`model_rollout_value`) with the logged costs' :func:`remainder_ranges`; adds
+    ``cpu_seconds`` and ``method``. ``{"skipped": reason}`` where it does not apply: no
+    episode logged from step 0, or states on a lattice (repeated exactly: the support
+    radius is 0, and a regression's next state is never exactly on the lattice)."""
     t0 = time.process_time()
-    model = LoggedDynamics(random_state=seed).fit(ds)
-    out = model_rollout_value(model, policy, horizon, gamma, value_range, n=n, level=level, seed=seed)
-    return {**out, "value_range": [float(value_range[0]), float(value_range[1])],
-            "cpu_seconds": time.process_time() - t0,
-            "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals; "
-                      "cost and termination: extra-trees on state, action, next state), each particle's remainder "
-                      "valued at the cost range's ends once it leaves the logged states"}
+    a = arrays if arrays is not None else ds.arrays()
+    if not (a.step == 0).any():
+        return {"skipped": "no episode is logged from step 0: no start states to roll out from"}
+    model = LoggedDynamics(random_state=seed).fit(ds, a)
+    if model.radius_ <= 0:
+        return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it; "
+                           "FQE reads such logs without extrapolating between states"}
+    out = model_rollout_value(model, policy, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
+                              n=n, level=level, seed=seed)
+    return {**out, "cpu_seconds": time.process_time() - t0,
+            "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
+                      "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
+                      "each particle's remaining steps valued at the ends of the logged costs' range once it leaves "
+                      "the logged states"}
 
 
 def widen_fqe(fq: Any, mr: dict[str, Any]) -> None:
@@ -223,6 +320,8 @@ def widen_fqe(fq: Any, mr: dict[str, Any]) -> None:
     rollouts' interval, and say where the two readings part: the interval then holds
     the value if either reading is right, and a verdict drawn from it needs both."""
     fq.model_rollouts = mr
+    if "skipped" in mr:
+        return
     lo_m, hi_m = mr["interval"]
     if not (np.all(np.isfinite(fq.interval)) and np.isfinite(lo_m) and np.isfinite(hi_m)):
         return
@@ -235,4 +334,4 @@ def widen_fqe(fq: Any, mr: dict[str, Any]) -> None:
                            f"[{lo_i:.4g}, {hi_i:.4g}]: the two readings disagree and the interval holds both")
     if mr["exit_mass"] >= 0.05:
         fq.warnings.append(f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} of its discounted "
-                           f"model-rollout mass ({mr['exit_share']:.0%} of the rollouts) leaves the logged states")
+                           f"model-rollout mass ({mr['exit_share']:.0%} of the rollouts) lies past the logged states")

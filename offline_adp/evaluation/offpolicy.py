@@ -23,12 +23,7 @@ from offline_adp.evaluation.behaviour import (
     estimate_behaviour,
     support_violations,
 )
-from offline_adp.evaluation.model_rollouts import (
-    N_PARTICLES,
-    model_rollouts,
-    remainder_range,
-    widen_fqe,
-)
+from offline_adp.evaluation.model_rollouts import N_PARTICLES, model_rollouts, widen_fqe
 from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, CrossFitError: also reached from here
     PSDP_EPS_FOLDS,
     CrossFitError,
@@ -485,11 +480,14 @@ def off_policy(
                 fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
                                    "row of that action near the state: the interval is widened to what those pairs "
                                    f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
-    if model_particles and est_def.form == "finite":  # the model is stationary: it also sees past the logs
+    if model_particles < 0:
+        raise InvalidArgumentError(f"model_particles must be >= 0 (0: no model rollouts), got {model_particles}")
+    # the model is stationary, so it also reads past the logged horizon; hulled with FQE only where
+    # FQE's interval is of the same quantity (a time-indexed FQE past the logs reads the T-step value)
+    if model_particles and est_def.form == "finite" and (not est_def.beyond_logs or est_def.fqe_form == "stationary"):
         say("model rollouts")
-        H_m = est_def.value_horizon
-        widen_fqe(fq, model_rollouts(ds, policy, H_m, gamma, remainder_range(a.cost, a.terminated, gamma, H_m),
-                                     n=model_particles, level=level, seed=seed))
+        widen_fqe(fq, model_rollouts(ds, policy, est_def.value_horizon, gamma, n=model_particles, level=level,
+                                     seed=seed, arrays=a))
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
                            f"(use at least {FQE_REPLICATE_ROUGH}; {FQE_REPLICATE_FLOOR} for stable ones)")
