@@ -98,7 +98,8 @@ class LoggedDynamics:
 
     def fit(self, ds: TransitionDataset, arrays: TransitionArrays | None = None) -> LoggedDynamics:
         """Fit on the transitions of ``ds`` (at most :data:`MAX_FIT_ROWS`, sampled);
-        ``arrays``: ``ds.arrays()`` when the caller has them."""
+        ``arrays``: ``ds.arrays()`` when the caller has them. States on a lattice
+        (``radius_ == 0``) stop after the support radius: there is nothing to roll out."""
         from scipy.spatial import cKDTree
 
         a = arrays if arrays is not None else ds.arrays()
@@ -108,6 +109,14 @@ class LoggedDynamics:
         obs, nxt = a.obs[rows], a.next_obs[rows]
         sd = obs.std(axis=0)
         self.sd_ = np.where(sd > 0, sd, 1.0)
+        self.start_states_ = a.obs[a.step == 0]
+        z = obs / self.sd_
+        self.tree_ = cKDTree(z)
+        probe = z if len(z) <= 20_000 else z[rng.choice(len(z), 20_000, replace=False)]
+        d, _ = self.tree_.query(probe, k=min(2, len(z)))
+        self.radius_ = float(np.quantile(d[:, -1], SUPPORT_QUANTILE)) if len(z) > 1 else 0.0
+        if self.radius_ <= 0:  # a lattice: nothing to roll out (model_rollouts skips), nothing more to fit
+            return self
         both = np.vstack([obs, nxt])
         self.low_, self.high_ = both.min(axis=0) - CLIP_SD * self.sd_, both.max(axis=0) + CLIP_SD * self.sd_
         values = np.asarray(ds.info.action_table.values, dtype=np.float64).reshape(ds.n_actions, -1)
@@ -129,12 +138,6 @@ class LoggedDynamics:
             self.residuals_ = np.vstack(res) if res else self.residuals_
         G = np.column_stack([F, nxt / self.sd_])
         self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
-        z = obs / self.sd_
-        self.tree_ = cKDTree(z)
-        probe = z if len(z) <= 20_000 else z[rng.choice(len(z), 20_000, replace=False)]
-        d, _ = self.tree_.query(probe, k=min(2, len(z)))
-        self.radius_ = float(np.quantile(d[:, -1], SUPPORT_QUANTILE)) if len(z) > 1 else 0.0
-        self.start_states_ = a.obs[a.step == 0]
         return self
 
     def _trees(self) -> Any:
