@@ -18,6 +18,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation.model_rollouts import (
+    EXIT_FRACTION,
     LoggedDynamics,
     model_rollout_value,
     model_rollouts,
@@ -99,7 +100,7 @@ def test_a_drifting_policy_leaves_the_data_and_one_that_stays_does_not(logs, mod
     vr = _value_range(logs)
     push = model_rollout_value(model, PUSH, T, GAMMA, vr, n=2000, seed=1)
     stay = model_rollout_value(model, STABILISE, T, GAMMA, vr, n=2000, seed=1)
-    assert push["exit_share"] > 0.9 and push["exit_mass"] > stay["exit_mass"]
+    assert push["exit_share"] > stay["exit_share"] and push["exit_mass"] > stay["exit_mass"]
     assert push["upper"] - push["lower"] > 5 * (stay["upper"] - stay["lower"])  # what leaves the data is not read as known
     assert stay["exit_mass"] < 0.01 and stay["upper"] - stay["lower"] < 0.05 * stay["estimate"]
 
@@ -114,8 +115,50 @@ def test_off_policy_widens_fqe_to_hold_both_readings_and_the_truth(logs, name):
     assert fq.interval[0] <= mr["interval"][0] and mr["interval"][1] <= fq.interval[1]
     assert fq.interval[0] <= truth <= fq.interval[1]
     assert "model rollouts" in fq.interval_method
-    assert any("drives where the logs do not go" in w for w in fq.warnings) == (mr["exit_mass"] >= 0.05)
+    assert any("drives where the logs do not go" in w for w in fq.warnings) == (mr["exit_mass"] >= EXIT_FRACTION)
     assert "model_rollouts" in fq.as_dict()
+
+
+def test_a_discrete_coordinate_beside_continuous_ones_stays_on_its_levels():
+    """A mode flag in {0, 1} that flips now and then: the model's next flag is a logged
+    level, so the logging policy itself does not look as if it left the data."""
+    class Mode(Lane):
+        obs_dim = 2
+
+        def dataset_info(self, **_: object) -> DatasetInfo:
+            return DatasetInfo(features=(Feature("x", "m"), Feature("mode")), gamma=GAMMA, horizon=T,
+                               action_table=ActionTable.from_values([-1.0, 0.0, 1.0]))
+
+        def initial_states(self, n, rng):
+            return np.column_stack([rng.uniform(-0.3, 0.3, n), rng.integers(0, 2, n)]).astype(np.float64)
+
+        def step(self, states, actions, rng):
+            r = super().step(states[:, :1], actions, rng)
+            mode = np.where(rng.random(len(states)) < 0.1, 1.0 - states[:, 1], states[:, 1])
+            x = r.next_states[:, 0] + 0.01 * (2 * mode - 1)
+            return StepResult(np.column_stack([x, mode]), r.costs, r.terminated)
+
+    beh = EpsilonPolicy(STABILISE, 0.1)
+    ds = collect(Mode(), beh, 60, np.random.default_rng(0), horizon=T)
+    model = LoggedDynamics(random_state=0).fit(ds)
+    assert 1 in model.levels_ and 0 not in model.levels_
+    mr = model_rollouts(ds, beh, T, GAMMA, n=500, seed=1)
+    assert mr["exit_mass"] < EXIT_FRACTION
+
+
+def test_noise_is_drawn_from_held_out_rows_however_few_the_episodes(logs):
+    a = logs.arrays()
+    one = logs.take(a.episode == 0)
+    four = logs.take(a.episode < 4)
+    assert "halves" in LoggedDynamics(random_state=0).fit(one).noise_source_
+    m = LoggedDynamics(random_state=0).fit(four)
+    assert "two folds" in m.noise_source_ and len(m.residuals_) == len(four)
+
+
+def test_the_drift_warning_does_not_need_fqes_interval():
+    fq = OPEResult("fqe", 1.0, (float("nan"), float("nan")), None)
+    widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.6, "exit_share": 0.9})
+    assert any("drives where the logs do not go" in w for w in fq.warnings)
 
 
 def test_widen_fqe_keeps_an_interval_it_cannot_read():
@@ -169,7 +212,7 @@ def test_the_bounds_bookkeeping_against_a_hand_computed_path():
     assert out["lower"] == pytest.approx(known + w[2] * lo_r[H - 2])
     assert out["upper"] == pytest.approx(known + w[2] * hi_r[H - 2])
     assert out["exit_mass"] == pytest.approx(w[2:].sum() / w.sum())
-    assert out["exit_share"] == 1.0
+    assert out["exit_share"] == pytest.approx(0.5**2)  # the survival when it leaves
     assert out["interval"] == [pytest.approx(out["lower"]), pytest.approx(out["upper"])]  # identical particles
 
 

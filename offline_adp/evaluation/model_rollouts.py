@@ -59,6 +59,12 @@ N_PARTICLES = 1000
 #: model states are kept within the logged range widened by this many standard deviations
 #: (a linear part that extrapolates an unstable system would otherwise overflow)
 CLIP_SD = 3.0
+#: a state coordinate with at most this many distinct logged values is discrete: predicted next
+#: values are snapped to the nearest logged one
+MAX_LEVELS = 20
+#: the exit mass from which a warning says the policy drives where the logs do not go (and the
+#: headline judges it left the data's support: ``summary.MODEL_EXIT_FRACTION``)
+EXIT_FRACTION = 0.1
 
 
 @dataclass
@@ -118,6 +124,10 @@ class LoggedDynamics:
         if self.radius_ <= 0:  # a lattice: nothing to roll out (model_rollouts skips), nothing more to fit
             return self
         both = np.vstack([obs, nxt])
+        # coordinates with few logged values (a mode flag, a count): predictions snapped to them,
+        # or every fractional prediction would lie off the data
+        self.levels_ = {j: u for j in range(both.shape[1])
+                        if len(u := np.unique(both[:, j])) <= MAX_LEVELS}
         self.low_, self.high_ = both.min(axis=0) - CLIP_SD * self.sd_, both.max(axis=0) + CLIP_SD * self.sd_
         values = np.asarray(ds.info.action_table.values, dtype=np.float64).reshape(ds.n_actions, -1)
         vsd = values.std(axis=0)
@@ -126,8 +136,19 @@ class LoggedDynamics:
         dx = (nxt - obs) / self.sd_
         self.linear_, self.residual_ = self._increments(F, dx)
         self.residuals_ = np.zeros((0, dx.shape[1]))
-        if self.noise:  # out-of-fold residuals, folds of whole episodes
-            fold = np.random.default_rng([self.random_state, 1]).integers(0, 2, int(a.episode.max()) + 1)[a.episode[rows]]
+        self.noise_source_ = "none (noise=False)"
+        if self.noise:  # out-of-fold residuals: two balanced folds of whole episodes (one episode: its halves)
+            ep = a.episode[rows]
+            eps = np.unique(ep)
+            if len(eps) >= 2:
+                fold_of = np.zeros(int(ep.max()) + 1, np.int64)
+                fold_of[np.random.default_rng([self.random_state, 1]).permutation(eps)] = np.arange(len(eps)) % 2
+                fold = fold_of[ep]
+                self.noise_source_ = "out-of-fold residuals (two folds of episodes)"
+            else:
+                st = a.step[rows]
+                fold = (st > np.median(st)).astype(np.int64)
+                self.noise_source_ = "out-of-fold residuals (one episode: its two halves in time)"
             res = []
             for k in (0, 1):
                 if (fold == k).all() or (fold != k).all():
@@ -136,6 +157,8 @@ class LoggedDynamics:
                 Fk = F[fold == k]
                 res.append(dx[fold == k] - _2d(lin.predict(Fk), dx.shape[1]) - _2d(tree.predict(Fk), dx.shape[1]))
             self.residuals_ = np.vstack(res) if res else self.residuals_
+            if not res:
+                self.noise_source_ = "none (too few rows to hold any out)"
         G = np.column_stack([F, nxt / self.sd_])
         self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
         return self
@@ -166,6 +189,11 @@ class LoggedDynamics:
         if rng is not None and len(self.residuals_):
             inc = inc + self.residuals_[rng.integers(0, len(self.residuals_), len(states))]
         nxt = np.clip(states + inc * self.sd_, self.low_, self.high_)
+        for j, u in self.levels_.items():  # nearest logged level
+            i = np.clip(np.searchsorted(u, nxt[:, j]), 1, max(len(u) - 1, 1))
+            lower = u[np.maximum(i - 1, 0)]
+            upper = u[np.minimum(i, len(u) - 1)]
+            nxt[:, j] = np.where(np.abs(nxt[:, j] - lower) <= np.abs(upper - nxt[:, j]), lower, upper)
         out = _2d(self.outcome_.predict(np.column_stack([F, nxt / self.sd_])), 2)
         dist, _ = self.tree_.query(states / self.sd_)
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0)), dist <= self.radius_
@@ -248,7 +276,8 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     dict
         ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
         (share of the discounted survival mass at or after leaving the data), ``exit_share``
-        (share of particles that leave while alive), ``n_particles``, ``radius``.
+        (the expected share of episodes that leave the data before they end: the mean
+        survival probability at leaving), ``n_particles``, ``radius``.
     """
     from scipy.stats import norm
 
@@ -256,6 +285,9 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         raise InvalidArgumentError(f"model rollouts need at least 2 particles, a horizon >= 1 and a level in (0, 1); "
                                    f"got n={n}, horizon={horizon}, level={level}")
     lo_r, hi_r = (np.asarray(r, dtype=np.float64) for r in ranges)
+    if lo_r.shape != (horizon + 1,) or hi_r.shape != (horizon + 1,):
+        raise InvalidArgumentError(f"ranges must be two arrays over 0 .. {horizon} remaining steps "
+                                   f"(remainder_ranges), got shapes {lo_r.shape} and {hi_r.shape}")
     rng = np.random.default_rng([seed, 7])
     starts = model.start_states_
     x = starts[rng.integers(0, len(starts), n)].astype(np.float64)
@@ -263,7 +295,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     inside = np.ones(n, bool)
     value, kept, mass, mass_out = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     lo_tail, hi_tail = np.zeros(n), np.zeros(n)
-    left_alive = np.zeros(n, bool)
+    alive_at_exit = np.zeros(n)
     for t in range(horizon):
         if not alive.any():
             break
@@ -273,7 +305,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         left = inside & ~in_data
         lo_tail[left] = w[left] * lo_r[horizon - t]
         hi_tail[left] = w[left] * hi_r[horizon - t]
-        left_alive |= left & (w > 0)
+        alive_at_exit[left] = alive[left]
         inside &= in_data
         value += w * r.costs
         kept += np.where(inside, w * r.costs, 0.0)
@@ -290,7 +322,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     return {"estimate": float(value.mean()), "lower": float(lower.mean()), "upper": float(upper.mean()),
             "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))],
             "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
-            "exit_share": float(left_alive.mean()), "n_particles": int(n), "radius": float(model.radius_),
+            "exit_share": float(alive_at_exit.mean()), "n_particles": int(n), "radius": float(model.radius_),
             "support_quantile": SUPPORT_QUANTILE}
 
 
@@ -311,22 +343,28 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                            "FQE reads such logs without extrapolating between states"}
     out = model_rollout_value(model, policy, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
                               n=n, level=level, seed=seed)
-    return {**out, "cpu_seconds": time.process_time() - t0,
+    return {**out, "noise": model.noise_source_, "cpu_seconds": time.process_time() - t0,
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
                       "each particle's remaining steps valued at the ends of the logged costs' range once it leaves "
                       "the logged states"}
 
 
-def widen_fqe(fq: Any, mr: dict[str, Any]) -> None:
+def widen_fqe(fq: Any, mr: dict[str, Any], hull: bool = True) -> None:
     """Widen FQE's interval (an ``ope.OPEResult``) to the hull of it and the model
     rollouts' interval, and say where the two readings part: the interval then holds
-    the value if either reading is right, and a verdict drawn from it needs both."""
+    the value if either reading is right, and a verdict drawn from it needs both.
+    ``hull=False``: record the rollouts and their drift warning only (FQE's interval is of
+    another quantity)."""
     fq.model_rollouts = mr
     if "skipped" in mr:
         return
+    if mr["exit_mass"] >= EXIT_FRACTION:
+        fq.warnings.append(f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} of its discounted "
+                           f"model-rollout mass lies past the logged states (an expected {mr['exit_share']:.0%} of "
+                           "its episodes get there)")
     lo_m, hi_m = mr["interval"]
-    if not (np.all(np.isfinite(fq.interval)) and np.isfinite(lo_m) and np.isfinite(hi_m)):
+    if not (hull and np.all(np.isfinite(fq.interval)) and np.isfinite(lo_m) and np.isfinite(hi_m)):
         return
     lo_i, hi_i = fq.interval
     fq.interval = (min(lo_i, lo_m), max(hi_i, hi_m))
@@ -335,6 +373,3 @@ def widen_fqe(fq: Any, mr: dict[str, Any]) -> None:
     if not lo_i <= mr["estimate"] <= hi_i:
         fq.warnings.append(f"model rollouts of the logs read {mr['estimate']:.4g}, outside FQE's interval "
                            f"[{lo_i:.4g}, {hi_i:.4g}]: the two readings disagree and the interval holds both")
-    if mr["exit_mass"] >= 0.05:
-        fq.warnings.append(f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} of its discounted "
-                           f"model-rollout mass ({mr['exit_share']:.0%} of the rollouts) lies past the logged states")

@@ -484,10 +484,11 @@ def off_policy(
         raise InvalidArgumentError(f"model_particles must be >= 0 (0: no model rollouts), got {model_particles}")
     # the model is stationary, so it also reads past the logged horizon; hulled with FQE only where
     # FQE's interval is of the same quantity (a time-indexed FQE past the logs reads the T-step value)
-    if model_particles and est_def.form == "finite" and (not est_def.beyond_logs or est_def.fqe_form == "stationary"):
+    if model_particles and est_def.form == "finite":
         say("model rollouts")
         widen_fqe(fq, model_rollouts(ds, policy, est_def.value_horizon, gamma, n=model_particles, level=level,
-                                     seed=seed, arrays=a))
+                                     seed=seed, arrays=a),
+                  hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
                            f"(use at least {FQE_REPLICATE_ROUGH}; {FQE_REPLICATE_FLOOR} for stable ones)")

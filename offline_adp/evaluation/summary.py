@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 
 from offline_adp.data.rundir import read_json_file, read_table_file
+from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 
 #: Human names of the estimators.
 ESTIMATOR_NAMES = {
@@ -43,7 +44,7 @@ SUPPORT_FRACTION = 0.05
 #: discounted survival mass in the model rollouts (``evaluation.model_rollouts``) lies past the
 #: logged states; measured on path_tracking (medium, seed 1): 0.03 for the demonstrator, 0.07 for
 #: the default fit, 0.13-0.51 for candidates that leave the road in most episodes
-MODEL_EXIT_FRACTION = 0.1
+MODEL_EXIT_FRACTION = EXIT_FRACTION
 
 
 def _finite(x: Any) -> bool:
