@@ -249,7 +249,7 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                    "headline_covers": None if best is None else ests[best["name"]]["covers"],
                    "estimators": ests,
                    "model_rollouts": {k: (m["ope"]["fqe"].get("model_rollouts") or {}).get(k)
-                                      for k in ("estimate", "interval", "exit_mass", "exit_share")},
+                                      for k in ("estimate", "interval", "exit_mass", "exit_share", "skipped")},
                    "verdict": {"performance": h["verdict"]["performance"], "text": h["verdict"]["text"],
                                "check": _check(h["verdict"]["performance"], truth_side)},
                    "verdict_logs_only": {"performance": h_logs["verdict"]["performance"], "text": h_logs["verdict"]["text"],
