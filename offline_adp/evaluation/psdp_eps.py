@@ -51,8 +51,10 @@ class CrossFitError(ValueError):
 
 def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
                                 gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
-                                seed: int = 0) -> np.ndarray:
+                                seed: int = 0, return_q: bool = False) -> Any:
     """``eps_t`` of :func:`residual_advantage` measured out of sample, by cross-fitting.
+    With ``return_q``: ``(eps, q)``, ``q`` (n, n_actions) each row's Q-values from the FQE
+    fitted without its episode (the cross-fitted Q the DR estimators use).
 
     The episodes are split at random into ``folds`` folds; for each fold, FQE of
     ``policy`` (``fqe_params``, the evaluation's settings) is fitted on the other folds and
@@ -70,6 +72,7 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
     fold_of = np.random.default_rng(seed).permutation(n_ep) % k
     row_fold = fold_of[n_episodes_index]
     gap = np.zeros(len(a))
+    q_out = np.zeros((len(a), ds.n_actions)) if return_q else None
     for f in range(k):
         held = row_fold == f
         train = np.flatnonzero(~held)
@@ -83,12 +86,14 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
         qv = fqe.q_function_.values(a.obs[held], a.step[held])
         probs = policy.probabilities(a.obs[held], a.step[held])
         gap[held] = (probs * qv).sum(axis=1) - qv.min(axis=1)
+        if q_out is not None:
+            q_out[held] = qv
     eps = np.zeros(T)
     for t in range(T):
         m = a.step == t
         if m.any():
             eps[t] = gamma**t * float(gap[m].mean())
-    return eps
+    return (eps, q_out) if return_q else eps
 
 
 def psdp_bound(eps: np.ndarray, ratio_ucb: np.ndarray, pooled_ucb: float | None = None) -> dict[str, float]:
