@@ -328,8 +328,11 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
                                                       "replicates are shifted, treat the interval as unreliable")
         corrected = (f"; bias-corrected by the bootstrap (plug-in estimate {b['plugin_estimate']:.4g}, its replicates "
                      "shifted away from it)" if b.get("plugin_estimate") is not None else "")
+        mr = (m.get("ope", {}).get(b["name"]) or {}).get("model_rollouts") or {}
+        model = (f"; model rollouts of the logs read {mr['estimate']:.4g} (a second reading the interval holds)"
+                 if isinstance(mr.get("estimate"), (int, float)) and np.isfinite(mr["estimate"]) else "")
         kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (95%), "
-           f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}")
+           f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}{model}")
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "

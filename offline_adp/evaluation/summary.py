@@ -337,6 +337,7 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
                         "interval as unreliable)" if outside else "")
                      + (f" (bias-corrected by the bootstrap; plug-in {_f(b['plugin_estimate'])})"
                         if b.get("plugin_estimate") is not None else "")
+                     + _model_reading(m, b)
                      + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others)
                      + ("; the policy left the data's support, where the value model extrapolates: this interval "
                         "is not a 95% interval there" if h["verdict"].get("support_left") else ""))
@@ -352,3 +353,11 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     if h["n_warnings"]:
         lines.append(f"{h['n_warnings']} warnings (metrics.json, report)")
     return lines
+
+
+def _model_reading(m: dict[str, Any], best: dict[str, Any]) -> str:
+    """', model rollouts of the logs read X' after FQE's estimate, where they ran: a second
+    reading (``evaluation.model_rollouts``) that FQE's interval holds; where a policy drifts
+    from the data it is usually the nearer one (docs/evaluation.md)."""
+    mr = (m.get("ope", {}).get(best["name"]) or {}).get("model_rollouts") or {}
+    return f", model rollouts of the logs read {_f(mr['estimate'])}" if _finite(mr.get("estimate")) else ""
