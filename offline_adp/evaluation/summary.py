@@ -357,7 +357,7 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
 
 def _model_reading(m: dict[str, Any], best: dict[str, Any]) -> str:
     """', model rollouts of the logs read X' after FQE's estimate, where they ran: a second
-    reading (``evaluation.model_rollouts``) that FQE's interval holds; where a policy drifts
-    from the data it is usually the nearer one (docs/evaluation.md)."""
+    reading (``evaluation.model_rollouts``) that FQE's interval holds; on path_tracking and
+    CartPole it was the nearer one, on car_on_hill often not (docs/evaluation.md)."""
     mr = (m.get("ope", {}).get(best["name"]) or {}).get("model_rollouts") or {}
     return f", model rollouts of the logs read {_f(mr['estimate'])}" if _finite(mr.get("estimate")) else ""
