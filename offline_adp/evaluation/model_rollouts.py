@@ -37,7 +37,6 @@ than either alone. ``exit_mass``, the share of the discounted survival mass
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -330,10 +329,9 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                    level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None) -> dict[str, Any]:
     """Fit :class:`LoggedDynamics` on ``ds`` and roll ``policy`` out in it
     (:func:`model_rollout_value`) with the logged costs' :func:`remainder_ranges`; adds
-    ``cpu_seconds`` and ``method``. ``{"skipped": reason}`` where it does not apply: no
+    ``noise`` and ``method``. ``{"skipped": reason}`` where it does not apply: no
     episode logged from step 0, or states on a lattice (repeated exactly: the support
     radius is 0, and a regression's next state is never exactly on the lattice)."""
-    t0 = time.process_time()
     a = arrays if arrays is not None else ds.arrays()
     if not (a.step == 0).any():
         return {"skipped": "no episode is logged from step 0: no start states to roll out from"}
@@ -343,7 +341,7 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                            "FQE reads such logs without extrapolating between states"}
     out = model_rollout_value(model, policy, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
                               n=n, level=level, seed=seed)
-    return {**out, "noise": model.noise_source_, "cpu_seconds": time.process_time() - t0,
+    return {**out, "noise": model.noise_source_,  # no timings: metrics.json is deterministic
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
                       "each particle's remaining steps valued at the ends of the logged costs' range once it leaves "

@@ -43,18 +43,14 @@ def fqe_support_bounds(fqe: FittedQEvaluation, ds: TransitionDataset, seed: int 
     with every pair the logs hold no such row for valued at the lowest and then the highest
     value the cost range allows (:func:`q_value_range`). The FQE interval is widened to
     contain both."""
-    import time
-
     from offline_adp.algorithms.fqe_bootstrap import support_radius
 
-    t0 = time.process_time()
     d = fqe.fit_state_.data
     a = ds.arrays()
     radius = support_radius(d.obs, np.asarray(d.train.actions), d.obs_std, SUPPORT_RADIUS_QUANTILE, seed=seed)
     lo_q, hi_q = q_value_range(a.cost, a.terminated, d.gamma, getattr(fqe, "infeasible_cost", None))
     sb = fqe.support_bounds(lo_q, hi_q, radius=radius)
     return {**sb, "value_range": [lo_q, hi_q], "radius": radius, "radius_quantile": SUPPORT_RADIUS_QUANTILE,
-            "cpu_seconds": time.process_time() - t0,
             "method": "per-action read of the fitted trees (rows of the queried action within the data's own "
                       f"{SUPPORT_RADIUS_QUANTILE:.0%} nearest-neighbour spacing of the queried state), unsupported "
                       "pairs valued at the ends of the cost's value range"}
