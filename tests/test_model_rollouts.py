@@ -223,6 +223,10 @@ def test_states_on_a_lattice_are_left_to_fqe(logs):
         action=a.action, cost=a.cost, next_obs=np.round(a.next_obs, 1), terminated=a.terminated,
         truncated=a.truncated)
     assert "skipped" in model_rollouts(grid, STABILISE, T, GAMMA)
+    lattice = LoggedDynamics(random_state=0).fit(grid)
+    assert lattice.radius_ == 0
+    with pytest.raises(InvalidArgumentError, match="not fitted"):
+        lattice.step(grid.arrays().obs[:2], np.zeros(2, np.int64))
 
 
 def test_off_policy_refuses_a_negative_particle_count(logs):

@@ -182,6 +182,9 @@ class LoggedDynamics:
              rng: np.random.Generator | None = None) -> tuple[StepResult, np.ndarray]:
         """One model step: (next states, expected cost, termination probability as
         ``terminated``), and whether each *current* state is in the data."""
+        if not hasattr(self, "linear_"):
+            raise InvalidArgumentError("LoggedDynamics.step: the model was not fitted (call fit; on states that repeat "
+                                       "exactly, a lattice with radius_ == 0, fit stops before the regressions)")
         F = self._features(states, actions)
         d = states.shape[1]
         inc = _2d(self.linear_.predict(F), d) + _2d(self.residual_.predict(F), d)
