@@ -414,6 +414,8 @@ def off_policy(
     (see :func:`declare_estimand`); estimators that cannot see that far say so
     (``comparable=False`` and a warning), as for the infinite-horizon value.
     """
+    if model_particles < 0:
+        raise InvalidArgumentError(f"model_particles must be >= 0 (0: no model rollouts), got {model_particles}")
     say = progress or (lambda _msg: None)
     a = ds.arrays()
     est_def = declare_estimand(ds, policy, horizon, estimand, target_horizon=target_horizon, start=start)
@@ -480,8 +482,6 @@ def off_policy(
                 fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
                                    "row of that action near the state: the interval is widened to what those pairs "
                                    f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
-    if model_particles < 0:
-        raise InvalidArgumentError(f"model_particles must be >= 0 (0: no model rollouts), got {model_particles}")
     # the model is stationary, so it also reads past the logged horizon; hulled with FQE only where
     # FQE's interval is of the same quantity (a time-indexed FQE past the logs reads the T-step value)
     if model_particles and est_def.form == "finite":
