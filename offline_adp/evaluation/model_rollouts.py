@@ -241,12 +241,6 @@ def remainder_ranges(cost: np.ndarray, terminated: np.ndarray, gamma: float,
     return lo, hi
 
 
-def remainder_range(cost: np.ndarray, terminated: np.ndarray, gamma: float, horizon: int) -> tuple[float, float]:
-    """The widest of :func:`remainder_ranges` over 1 .. ``horizon`` steps."""
-    lo, hi = remainder_ranges(cost, terminated, gamma, horizon)
-    return float(lo[1:].min()), float(hi[1:].max())
-
-
 def _2d(y: np.ndarray, width: int) -> np.ndarray:
     """scikit-learn returns one output as a vector; always (n, width)."""
     return np.asarray(y, dtype=np.float64).reshape(len(y), width)
