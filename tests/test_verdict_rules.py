@@ -102,3 +102,27 @@ def test_the_report_colour_follows_the_weakest_clause():
     assert verdict_colour({"performance": "better", "support_left": False}, stale) == "meh"
     assert verdict_colour({"performance": "unknown", "support_left": False}, conv) == "meh"
     assert verdict_colour({"performance": "worse", "support_left": True}, stale) == "bad"
+
+
+def test_thin_logs_show_support_through_actions_and_model_rollouts():
+    """Too few states per step for a shift estimate: the logs still show support when the
+    candidate's actions at the logged states and the model rollouts were both measured and
+    stay in the data; either missing, or either leaving, keeps "cannot tell"."""
+    thin = {"method": "none", "enough_data": False}
+    m = copy.deepcopy(BASE)
+    m["ope"]["fqe"]["model_rollouts"] = {"exit_mass": 0.03, "exit_share": 0.4}
+    v = _v(m, shift=thin)
+    assert v["performance"] == "better" and "as far as the logs show" in v["text"] and not v["support_left"]
+    skipped = copy.deepcopy(m)
+    skipped["ope"]["fqe"]["model_rollouts"] = {"skipped": "a lattice"}
+    no_actions = copy.deepcopy(m)
+    no_actions["behaviour"] = {}
+    drift = copy.deepcopy(m)
+    drift["ope"]["fqe"]["model_rollouts"]["exit_mass"] = 0.2
+    rare = copy.deepcopy(m)
+    rare["behaviour"] = {"support_violations": {"fraction": 0.3}}
+    for name, mm in {"no model rollouts": skipped, "no action check": no_actions, "drifts": drift,
+                     "rare actions": rare}.items():
+        v = _v(mm, shift=thin)
+        assert v["performance"] == "unknown" and "would say better" in v["text"], name
+        assert "as far as the logs show" not in v["text"], name

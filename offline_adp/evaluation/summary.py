@@ -206,7 +206,9 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     evaluation undermines it: the policy did not leave the data's support (actions the
     data rarely took; states the model rollouts of the logs reach and no logged state is
     near, more than :data:`MODEL_EXIT_FRACTION` of the discounted mass; or, with a
-    simulator, states the data does not cover), the fit
+    simulator, states the data does not cover), the logs can show it (a per-step shift
+    estimate, or, where the logs are too thin per step for one, both the candidate's
+    actions at the logged states and the model rollouts' exit mass measured), the fit
     converged, and no other reliable estimator's interval disagrees. Otherwise the
     performance clause reads "cannot tell from these logs" and names the reasons
     (an off-policy interval assumes the value model holds where the policy goes; past the
@@ -231,9 +233,19 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     if _finite(mr.get("exit_mass")) and mr["exit_mass"] > MODEL_EXIT_FRACTION:
         left.append(f"{mr['exit_mass']:.0%} of its discounted mass in model rollouts of the logs reaches states no "
                     "logged state is near")
-    support = ("LEFT the data's support: " + "; ".join(left)) if left else (
-        "stays within the data's support" if shift.get("enough_data") else
-        "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else ""))
+    # from the logs alone, when the per-step shift is too thin to estimate: the candidate's actions
+    # at the logged states (measured) and where the model rollouts of the logs drive it (ran)
+    logs_show = not left and _finite(sv) and _finite(mr.get("exit_mass"))
+    if left:
+        support = "LEFT the data's support: " + "; ".join(left)
+    elif shift.get("enough_data"):
+        support = "stays within the data's support"
+    elif logs_show:
+        support = (f"stays within the data's support as far as the logs show (actions the data rarely took at "
+                   f"{sv:.1%} of the data's states; {mr['exit_mass']:.1%} of the discounted mass of model rollouts of the "
+                   "logs past the logged states)")
+    else:
+        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else "")
     side, perf = "unknown", ""
     if best is None:
         top = next((e for e in ranking if e["tier"] == 1), None)
@@ -250,7 +262,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
         doubts = []
         if left:
             doubts.append("the policy left the data's support, where the value model extrapolates")
-        elif not shift.get("enough_data"):
+        elif not (shift.get("enough_data") or logs_show):
             doubts.append("the logs cannot show whether the policy stays within their support")
         cv = conv.get("verdict")
         if cv in ("still changing", "not converged"):
