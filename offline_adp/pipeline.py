@@ -68,13 +68,14 @@ from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
-from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT, MODEL_PARTICLES_DEFAULT
 from offline_adp.progress import log_milestone
 
 #: Upper bounds of the evaluate settings: far above any useful value, so a typo (1e13)
 #: is an error naming the key instead of an allocation of terabytes.
 MAX_EPISODES = 10_000_000
 MAX_REPLICATES = 1_000_000
+MAX_PARTICLES = 1_000_000
 #: Address schemes of Dask's comm backends (distributed.comm.registry).
 DASK_SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
 STAGES = ("data", "validate", "fit", "evaluate", "report")
@@ -156,10 +157,14 @@ class EvaluateSection(ConfigModel):
         "when replicates are cheap, else 50); 0: no interval")
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
+    model_particles: int = Field(MODEL_PARTICLES_DEFAULT, ge=0, le=MAX_PARTICLES, description="particles of the model "
+                                 "rollouts of the logs (as `offline-adp evaluate --model-particles`); 0: none")
 
     @model_validator(mode="after")
     def _known_simulator(self) -> EvaluateSection:
         check_simulator_name(self.simulator)
+        if self.model_particles == 1:
+            raise ValueError("model_particles: 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two)")
         return self
 
 
@@ -504,7 +509,7 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
     m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
                      n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", FQE_BOOTSTRAP_DEFAULT), fqe_params=ev.get("fqe_params"),
                      horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
-                     task_map=task_map)
+                     task_map=task_map, model_particles=ev.get("model_particles", MODEL_PARTICLES_DEFAULT))
     RunDirectory(run).copy_in(run / "fit" / "evaluation" / "metrics.json", "metrics.json")
     return {"fqe": m["ope"]["fqe"]["estimate"]}
 

@@ -227,9 +227,10 @@ def test_states_on_a_lattice_are_left_to_fqe(logs):
         lattice.step(grid.arrays().obs[:2], np.zeros(2, np.int64))
 
 
-def test_off_policy_refuses_a_negative_particle_count(logs):
+@pytest.mark.parametrize("count", [-1, 1])
+def test_off_policy_refuses_a_particle_count_without_an_interval(logs, count):
     with pytest.raises(InvalidArgumentError, match="model_particles"):
-        off_policy(logs, STABILISE, model_particles=-1)
+        off_policy(logs, STABILISE, model_particles=count)
 
 
 def test_a_noisy_system_is_read_with_its_noise():

@@ -34,6 +34,17 @@ def _progress(quiet: bool):
     return on_step, bar.close
 
 
+def _particle_count(text: str) -> int:
+    """argparse type: 0 (none) or an integer >= 2 (a Monte-Carlo interval needs two)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 0 or an integer >= 2, got {text!r}") from None
+    if value < 0 or value == 1:
+        raise argparse.ArgumentTypeError(f"expected 0 (no model rollouts) or an integer >= 2, got {value}")
+    return value
+
+
 def _positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (a usage error, exit 2, otherwise)."""
     try:

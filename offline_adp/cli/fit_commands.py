@@ -117,7 +117,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if args.fqe_params else None
     m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
                      n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, horizon=args.horizon,
-                     estimand=args.estimand, seed=args.seed, progress=say)
+                     estimand=args.estimand, seed=args.seed, progress=say, model_particles=args.model_particles)
     for line in summary_lines(m):
         print(line)
     print(f"{args.run}/evaluation/metrics.json")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from offline_adp._version import __version__
-from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, _positive_int
+from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, _particle_count, _positive_int
 from offline_adp.cli.data_commands import (
     cmd_ingest_mcap,
     cmd_ingest_parquet,
@@ -170,6 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     e.add_argument("--fqe-bootstrap", type=int, default=FQE_BOOTSTRAP_DEFAULT,
                    help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
+    from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
+
+    e.add_argument("--model-particles", type=_particle_count, default=MODEL_PARTICLES_DEFAULT,
+                   help=f"particles of the model rollouts of the logs, a second reading of the value and a logs-only "
+                   f"drift measure (default {MODEL_PARTICLES_DEFAULT}; 0: none)")
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')

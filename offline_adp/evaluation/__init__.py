@@ -13,3 +13,7 @@ from __future__ import annotations
 #: :func:`offline_adp.evaluation.offpolicy.fqe_replicates`: the floor (200) when
 #: replicates are cheap, else 50.
 FQE_BOOTSTRAP_DEFAULT: int | None = None
+#: Particles of the model rollouts of the logs (``model_rollouts.N_PARTICLES``), the one
+#: default of ``offline-adp evaluate --model-particles``, ``[evaluate] model_particles`` and
+#: :func:`offline_adp.evaluation.run.evaluate_run`; 0 turns them off.
+MODEL_PARTICLES_DEFAULT: int = 1000

@@ -45,6 +45,7 @@ import numpy as np
 from offline_adp.access import StepResult
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.errors import InvalidArgumentError
+from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
 from offline_adp.policies import Policy
 
 #: A state is in the data when a logged state is at most this quantile of the logged states'
@@ -54,7 +55,7 @@ from offline_adp.policies import Policy
 SUPPORT_QUANTILE = 0.999
 #: rows the model is fitted on at most (a uniform sample above it), and particles per rollout
 MAX_FIT_ROWS = 200_000
-N_PARTICLES = 1000
+N_PARTICLES = MODEL_PARTICLES_DEFAULT
 #: model states are kept within the logged range widened by this many standard deviations
 #: (a linear part that extrapolates an unstable system would otherwise overflow)
 CLIP_SD = 3.0

@@ -414,8 +414,8 @@ def off_policy(
     (see :func:`declare_estimand`); estimators that cannot see that far say so
     (``comparable=False`` and a warning), as for the infinite-horizon value.
     """
-    if model_particles < 0:
-        raise InvalidArgumentError(f"model_particles must be >= 0 (0: no model rollouts), got {model_particles}")
+    if model_particles < 0 or model_particles == 1:
+        raise InvalidArgumentError(f"model_particles must be 0 (no model rollouts) or >= 2, got {model_particles}")
     say = progress or (lambda _msg: None)
     a = ds.arrays()
     est_def = declare_estimand(ds, policy, horizon, estimand, target_horizon=target_horizon, start=start)

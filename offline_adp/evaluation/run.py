@@ -30,7 +30,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.io import read_dataset
 from offline_adp.data.rundir import RunDirectory, read_json_file
 from offline_adp.errors import DatasetNotFoundError, IncompatibleError, RunDirectoryError
-from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
+from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT, MODEL_PARTICLES_DEFAULT
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
@@ -104,6 +104,7 @@ def evaluate_run(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
+    model_particles: int = MODEL_PARTICLES_DEFAULT,
 ) -> dict[str, Any]:
     """Evaluate the policy of a run directory (see the module docstring); returns the metrics.
 
@@ -119,6 +120,8 @@ def evaluate_run(
     rollouts measure) or ``"infinite"`` (FQE only; see
     :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
     default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
+    ``model_particles``: particles of the model rollouts of the logs (0: none; see
+    :mod:`offline_adp.evaluation.model_rollouts`).
     """
     from offline_adp.artifacts import load_index_policy
     from offline_adp.envs import PROBLEM_NAMES
@@ -153,7 +156,7 @@ def evaluate_run(
         metrics, res, states, demo_states = evaluation_metrics(
             ds, policy, problem, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
             n_episodes=n_episodes, n_boot=n_boot, n_boot_fqe=n_boot_fqe, fqe_params=fqe_params, horizon=horizon,
-            estimand=estimand, seed=seed, progress=say, task_map=task_map, run_dir=run)
+            estimand=estimand, seed=seed, progress=say, task_map=task_map, run_dir=run, model_particles=model_particles)
         say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
         _write(run, metrics, res, ds, states, demo_states)
         return metrics
@@ -177,6 +180,7 @@ def evaluation_metrics(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
+    model_particles: int = MODEL_PARTICLES_DEFAULT,
     run_dir: str | PathLike[str] | None = None,
 ) -> tuple[dict[str, Any], OffPolicyResult, list[np.ndarray] | None, list[np.ndarray] | None]:
     """The metrics of :func:`evaluate_run` for ``policy`` on ``ds`` without a run directory:
@@ -230,7 +234,7 @@ def evaluation_metrics(
             metrics["named"] = named
     res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
                      policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
-                     task_map=task_map, target_horizon=target, start=start)
+                     task_map=task_map, target_horizon=target, start=start, model_particles=model_particles)
     metrics.update(_offpolicy_block(res, ds))
     if problem is not None:  # the rollouts' per-episode costs: the measured distributions
         from offline_adp.evaluation.risk import distribution_summary

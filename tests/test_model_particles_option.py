@@ -1,0 +1,65 @@
+"""``offline-adp evaluate --model-particles`` and a pipeline's ``[evaluate] model_particles``
+reach the evaluation with one shared default, explicit counts pass through, and a count
+that cannot give a Monte-Carlo interval (1, negative) is refused before anything runs."""
+
+from __future__ import annotations
+
+import pytest
+
+from offline_adp import pipeline
+from offline_adp.cli import main
+from offline_adp.errors import OfflineADPError
+from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
+from offline_adp.evaluation import run as evaluation_run
+from offline_adp.evaluation.model_rollouts import N_PARTICLES
+
+
+class _Called(Exception):
+    pass
+
+
+@pytest.fixture
+def captured(monkeypatch):
+    seen: list[dict] = []
+
+    def fake_evaluate_run(run_dir, **kw):
+        seen.append(kw)
+        raise _Called
+
+    monkeypatch.setattr(evaluation_run, "evaluate_run", fake_evaluate_run)
+    return seen
+
+
+def _pipeline(tmp_path, evaluate: str) -> dict:
+    f = tmp_path / "p.toml"
+    f.write_text('[data]\nsimulate = "gridworld"\n[fit]\n[evaluate]\n' + evaluate)
+    return pipeline.load_pipeline(f)
+
+
+def test_the_default_is_shared_and_explicit_counts_pass_through(tmp_path, captured):
+    (tmp_path / "run" / "model").mkdir(parents=True)
+    for cfg in (_pipeline(tmp_path, "episodes = 5\n"), _pipeline(tmp_path, "model_particles = 0\n"),
+                _pipeline(tmp_path, "model_particles = 64\n")):
+        with pytest.raises(_Called):
+            pipeline._evaluate_stage(cfg, tmp_path / "run", lambda _m: None)
+    for extra in ([], ["--model-particles", "0"], ["--model-particles", "64"]):
+        with pytest.raises(_Called):
+            main(["evaluate", str(tmp_path / "run"), "--quiet", *extra])
+    got = [kw["model_particles"] for kw in captured]
+    assert got == [MODEL_PARTICLES_DEFAULT, 0, 64] * 2
+    assert MODEL_PARTICLES_DEFAULT == N_PARTICLES
+
+
+@pytest.mark.parametrize("count", ["1", "-3", "many"])
+def test_the_cli_refuses_a_count_without_an_interval(tmp_path, captured, capsys, count):
+    (tmp_path / "run" / "model").mkdir(parents=True)
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", str(tmp_path / "run"), "--model-particles", count])
+    assert e.value.code == 2 and "--model-particles" in capsys.readouterr().err
+    assert not captured
+
+
+@pytest.mark.parametrize("count", [1, -3])
+def test_a_pipeline_refuses_a_count_without_an_interval(tmp_path, count):
+    with pytest.raises(OfflineADPError, match="model_particles"):
+        _pipeline(tmp_path, f"model_particles = {count}\n")
