@@ -19,6 +19,7 @@ from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation.model_rollouts import (
     EXIT_FRACTION,
+    SUPPORT_QUANTILE,
     LoggedDynamics,
     model_rollout_value,
     model_rollouts,
@@ -107,7 +108,7 @@ def test_a_drifting_policy_leaves_the_data_and_one_that_stays_does_not(logs, mod
 @pytest.mark.parametrize("name", ["coast", "push"])
 def test_off_policy_widens_fqe_to_hold_both_readings_and_the_truth(logs, name):
     truth = _truth(POLICIES[name])
-    res = off_policy(logs, POLICIES[name], n_boot=20, psdp_folds=0, seed=0)
+    res = off_policy(logs, POLICIES[name], n_boot=20, n_boot_fqe=40, psdp_folds=0, seed=0)
     fq = res.estimates["fqe"]
     mr = fq.model_rollouts
     assert mr is not None and fq.level == 0.95
@@ -196,7 +197,10 @@ class _Stub:
     radius_ = 1.0
 
     def step(self, x, a, rng=None):
-        return StepResult(x + 1.0, 1.0 + x[:, 0], np.full(len(x), 0.5)), x[:, 0] < 2
+        return StepResult(x + 1.0, 1.0 + x[:, 0], np.full(len(x), 0.5))
+
+    def in_data(self, x):
+        return x[:, 0] < 2
 
 
 def test_the_bounds_bookkeeping_against_a_hand_computed_path():
@@ -250,3 +254,66 @@ def test_a_noisy_system_is_read_with_its_noise():
     assert mr["estimate"] == pytest.approx(truth, rel=0.15)
 
 
+
+
+@pytest.mark.parametrize("d, scale", [(1, 1.0), (3, 1.5), (8, 1.2), (17, 1.1)])
+def test_the_fast_support_check_equals_an_exact_nearest_neighbour_search(d, scale):
+    """``in_data`` settles most states with an approximate search; it must answer exactly
+    what an exact nearest-neighbour search against the radius answers (states near the
+    data, far from it, and on the border alike)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(d)
+    X = rng.standard_normal((3000, d)) * rng.uniform(0.5, 2.0, d)
+    model = LoggedDynamics()
+    model.sd_ = X.std(axis=0)
+    model.tree_ = cKDTree(X / model.sd_)
+    dist, _ = model.tree_.query(X / model.sd_, k=2)
+    model.radius_ = float(np.quantile(dist[:, 1], SUPPORT_QUANTILE))
+    Q = np.vstack([X[:300] + 0.3 * rng.standard_normal((300, d)) * model.sd_,
+                   rng.standard_normal((700, d)) * scale * model.sd_])
+    exact, _ = cKDTree(X / model.sd_).query(Q / model.sd_)
+    got = model.in_data(Q)
+    assert np.array_equal(got, exact <= model.radius_)
+    assert 0 < got.sum() < len(Q)  # both answers occur
+
+
+def _linear_log(d: int, n_ep: int, seed: int, H: int = 100) -> TransitionDataset:
+    """Episodes of a stable linear system in d dimensions under uniformly random actions
+    (consecutive states close, as in any logged trajectory)."""
+    rng = np.random.default_rng(seed)
+    B = np.random.default_rng(99).standard_normal(d)
+    x = rng.standard_normal((n_ep, d))
+    obs, nxt, act = [], [], []
+    for _ in range(H):
+        a = rng.integers(0, 3, n_ep)
+        y = 0.9 * x + 0.1 * np.outer(a - 1.0, B) + 0.3 * rng.standard_normal((n_ep, d))
+        obs, nxt, act = obs + [x], nxt + [y], act + [a]
+        x = y
+    o, n2 = np.stack(obs, 1).reshape(-1, d), np.stack(nxt, 1).reshape(-1, d)
+    step = np.tile(np.arange(H), n_ep)
+    info = DatasetInfo(features=tuple(Feature(f"x{j}") for j in range(d)), gamma=GAMMA, horizon=H,
+                       action_table=ActionTable.from_values([-1.0, 0.0, 1.0]))
+    return TransitionDataset.from_arrays(
+        info, episode_id=np.char.zfill(np.repeat(np.arange(n_ep), H).astype(str), 5), step=step, obs=o,
+        action=np.stack(act, 1).ravel(), cost=np.linalg.norm(n2, axis=1), next_obs=n2,
+        terminated=np.zeros(len(step), bool), truncated=step == H - 1)
+
+
+@pytest.mark.parametrize("d", [2, 12])
+def test_fresh_episodes_of_the_logging_policy_are_in_the_data(d):
+    """The radius is set on distances to *other* episodes: new episodes of the policy that
+    wrote the logs lie outside about as often as the quantile says (here < 1%), in few
+    dimensions and in many. Measured against own-episode neighbours (the rule before), 12
+    dimensions put ~10x more of them outside."""
+    ds = _linear_log(d, 200, seed=0)
+    model = LoggedDynamics(random_state=0).fit(ds)
+    fresh = _linear_log(d, 100, seed=1).arrays().obs
+    outside = 1.0 - model.in_data(fresh).mean()
+    assert outside < 0.01
+    z = ds.arrays().obs / model.sd_
+    own, _ = model.tree_.query(z[::7], k=2)  # the rule before: nearest other row, its own episode included
+    before = float(np.quantile(own[:, 1], SUPPORT_QUANTILE))
+    dist, _ = model.tree_.query(fresh / model.sd_)
+    if d >= 12:
+        assert (dist > before).mean() > 5 * max(outside, 1e-3)
