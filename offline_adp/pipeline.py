@@ -158,7 +158,8 @@ class EvaluateSection(ConfigModel):
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
     model_particles: int = Field(MODEL_PARTICLES_DEFAULT, ge=0, le=MAX_PARTICLES, description="particles of the model "
-                                 "rollouts of the logs (as `offline-adp evaluate --model-particles`); 0: none")
+                                 "rollouts of the logs (as `offline-adp evaluate --model-particles`); 0: none; not 1",
+                                 json_schema_extra={"not": {"const": 1}})
 
     @model_validator(mode="after")
     def _known_simulator(self) -> EvaluateSection:

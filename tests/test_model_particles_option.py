@@ -63,3 +63,19 @@ def test_the_cli_refuses_a_count_without_an_interval(tmp_path, captured, capsys,
 def test_a_pipeline_refuses_a_count_without_an_interval(tmp_path, count):
     with pytest.raises(OfflineADPError, match="model_particles"):
         _pipeline(tmp_path, f"model_particles = {count}\n")
+
+
+def test_compare_reuses_an_evaluation_only_with_the_same_model_rollouts():
+    from offline_adp.evaluation.compare import _same_model_rollouts
+
+    def m(mr, form="finite"):
+        return {"estimand": {"form": form}, "ope": {"fqe": {} if mr is None else {"model_rollouts": mr}}}
+
+    ran = m({"estimate": 1.0, "n_particles": 1000})
+    off = m({"skipped": "model_particles=0: model rollouts turned off"})
+    lattice = m({"skipped": "the logged states repeat exactly (a lattice)"})
+    assert _same_model_rollouts(ran, 1000) and not _same_model_rollouts(ran, 200) and not _same_model_rollouts(ran, 0)
+    assert _same_model_rollouts(off, 0) and not _same_model_rollouts(off, 1000)
+    assert _same_model_rollouts(lattice, 1000) and _same_model_rollouts(lattice, 0) is False
+    assert not _same_model_rollouts(m(None), 1000)  # made before the model rollouts existed
+    assert _same_model_rollouts(m(None, form="infinite"), 1000)  # that estimand runs none

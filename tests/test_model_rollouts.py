@@ -317,3 +317,44 @@ def test_fresh_episodes_of_the_logging_policy_are_in_the_data(d):
     dist, _ = model.tree_.query(fresh / model.sd_)
     if d >= 12:
         assert (dist > before).mean() > 5 * max(outside, 1e-3)
+
+
+def test_one_episode_that_went_elsewhere_does_not_set_the_radius():
+    """The radius is the median over folds of each fold's quantile: one logged episode that
+    drifted where no other went (all its states in one fold) leaves it about where it was
+    (review: the pooled quantile went from 1.5 to 6.7 sd, and a drifting policy's exit
+    mass from 0.19 to 0)."""
+    ds = _linear_log(4, 200, seed=0)
+    a = ds.arrays()
+    base = LoggedDynamics(random_state=0).fit(ds).radius_
+    obs, nxt = a.obs.copy(), a.next_obs.copy()
+    odd = (a.episode == 7) & (a.step >= 50)
+    drift = 0.3 * (a.step[odd] - 49.0)
+    obs[odd, 0] += drift
+    nxt[odd, 0] += drift + 0.3
+    odd_ds = TransitionDataset.from_arrays(ds.info, episode_id=ds.episode_ids[a.episode], step=a.step, obs=obs,
+                                           action=a.action, cost=a.cost, next_obs=nxt, terminated=a.terminated,
+                                           truncated=a.truncated)
+    with_odd = LoggedDynamics(random_state=0).fit(odd_ds)
+    assert with_odd.radius_ < 1.3 * base
+
+
+@pytest.mark.parametrize("n_ep", [1, 3])
+def test_too_few_episodes_for_folds_take_the_stricter_rule(n_ep):
+    ds = _linear_log(3, n_ep, seed=0)
+    model = LoggedDynamics(random_state=0).fit(ds)
+    z = ds.arrays().obs / model.sd_
+    own, _ = model.tree_.query(z, k=2)
+    assert model.radius_ == pytest.approx(np.quantile(own[:, 1], SUPPORT_QUANTILE))
+
+
+def test_the_support_check_on_a_lattice_is_exact(logs):
+    model = LoggedDynamics(random_state=0).fit(logs)
+    model.radius_ = 0.0
+    x = logs.arrays().obs[:5]
+    assert model.in_data(x).all() and not model.in_data(x + 1e-3).any()
+
+
+def test_turned_off_model_rollouts_are_said(logs):
+    res = off_policy(logs, STABILISE, n_boot=5, n_boot_fqe=0, psdp_folds=0, model_particles=0)
+    assert res.estimates["fqe"].model_rollouts == {"skipped": "model_particles=0: model rollouts turned off"}

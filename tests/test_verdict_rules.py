@@ -110,7 +110,7 @@ def test_thin_logs_show_support_through_actions_and_model_rollouts():
     stay in the data; either missing, or either leaving, keeps "cannot tell"."""
     thin = {"method": "none", "enough_data": False}
     m = copy.deepcopy(BASE)
-    m["ope"]["fqe"]["model_rollouts"] = {"exit_mass": 0.03, "exit_share": 0.4}
+    m["ope"]["fqe"]["model_rollouts"] = {"exit_mass": 0.03, "exit_share": 0.4, "n_particles": 1000}
     v = _v(m, shift=thin)
     assert v["performance"] == "better" and "as far as the logs show" in v["text"] and not v["support_left"]
     skipped = copy.deepcopy(m)
@@ -121,8 +121,12 @@ def test_thin_logs_show_support_through_actions_and_model_rollouts():
     drift["ope"]["fqe"]["model_rollouts"]["exit_mass"] = 0.2
     rare = copy.deepcopy(m)
     rare["behaviour"] = {"support_violations": {"fraction": 0.3}}
+    few = copy.deepcopy(m)  # 5 particles: an exit mass of 0.18 reads <= 0.1 by chance
+    few["ope"]["fqe"]["model_rollouts"]["n_particles"] = 5
+    edge = copy.deepcopy(m)  # the warning's threshold is "left", here too
+    edge["ope"]["fqe"]["model_rollouts"]["exit_mass"] = 0.1
     for name, mm in {"no model rollouts": skipped, "no action check": no_actions, "drifts": drift,
-                     "rare actions": rare}.items():
+                     "rare actions": rare, "few particles": few, "exit mass at the threshold": edge}.items():
         v = _v(mm, shift=thin)
         assert v["performance"] == "unknown" and "would say better" in v["text"], name
         assert "as far as the logs show" not in v["text"], name

@@ -174,7 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     e.add_argument("--model-particles", type=_particle_count, default=MODEL_PARTICLES_DEFAULT,
                    help=f"particles of the model rollouts of the logs, a second reading of the value and a logs-only "
-                   f"drift measure (default {MODEL_PARTICLES_DEFAULT}; 0: none)")
+                   f"drift measure (default {MODEL_PARTICLES_DEFAULT}; 0: none; below 200 they do not count as showing "
+                   "that the policy stays in the data)")
     e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
                    help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
     e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
@@ -247,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--simulator", default=None, help="as for evaluate: a reference problem or 'none'")
     cp.add_argument("--estimator", default=None, help="rank by this estimator (default: the most reliable for all)")
     cp.add_argument("--episodes", type=_positive_int, default=300, help="rollout episodes per candidate (default 300)")
+    cp.add_argument("--model-particles", type=_particle_count, default=MODEL_PARTICLES_DEFAULT,
+                    help=f"as for evaluate (default {MODEL_PARTICLES_DEFAULT}); an evaluation made with another count is "
+                    "redone")
     cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
     cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
     cp.add_argument("--report", default=None, metavar="FILE", help="HTML report to write (default: next to --json with "

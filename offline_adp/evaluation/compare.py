@@ -32,6 +32,7 @@ from offline_adp.errors import (
     RunDirectoryError,
     WriteError,
 )
+from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
 
 
@@ -49,6 +50,22 @@ def _fingerprint(path: str) -> str:
     from offline_adp.data.io import read_dataset
 
     return read_dataset(path).fingerprint()
+
+
+def _same_model_rollouts(m: dict[str, Any], particles: int) -> bool:
+    """Was the stored evaluation made with ``particles`` model-rollout particles? (Their bounds
+    widen FQE's interval and can show support: candidates evaluated with other counts are not
+    comparable.) Rollouts skipped for the logs' sake (a lattice, no start states) match any
+    count; an evaluation of the infinite-horizon estimand runs none; one made before the model
+    rollouts existed matches none."""
+    fqe = (m.get("ope") or {}).get("fqe") or {}
+    mr = fqe.get("model_rollouts")
+    if mr is None:
+        return (m.get("estimand") or {}).get("form") == "infinite"
+    if "skipped" in mr:
+        turned_off = str(mr["skipped"]).startswith("model_particles=0")
+        return turned_off == (particles == 0)
+    return mr.get("n_particles") == particles
 
 
 def compare_runs(
@@ -104,7 +121,8 @@ def compare_runs(
     for r in runs:
         m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
         same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
-                and (simulator is None or (m.get("simulator") or "none") == simulator))
+                and (simulator is None or (m.get("simulator") or "none") == simulator)
+                and _same_model_rollouts(m, (evaluate_params or {}).get("model_particles", MODEL_PARTICLES_DEFAULT)))
         if force or not same:
             say(f"evaluating {r}")
             m = json.loads(json.dumps(evaluate_run(r, dataset=ds_path, simulator=simulator, progress=say,
@@ -217,7 +235,8 @@ def cli(args: Any) -> int:
     if report.is_dir():
         raise WriteError(f"--report {report} is a directory; name a file to write (e.g. {report / 'compare.html'})")
     res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
-                       force=args.force, evaluate_params={"n_episodes": args.episodes}, progress=say)
+                       force=args.force, evaluate_params={"n_episodes": args.episodes,
+                                                          "model_particles": args.model_particles}, progress=say)
     for line in compare_lines(res):
         print(line)
     from offline_adp.evaluation.run import _finite

@@ -125,7 +125,7 @@ class LoggedDynamics:
         self.start_states_ = a.obs[a.step == 0]
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
-        self.radius_ = _support_radius(z, a.episode[rows], a.step[rows], rng)
+        self.radius_ = _support_radius(z, a.episode[rows], rng)
         if self.radius_ <= 0:  # a lattice: nothing to roll out (model_rollouts skips), nothing more to fit
             return self
         both = np.vstack([obs, nxt])
@@ -191,6 +191,8 @@ class LoggedDynamics:
         in, past ``(1 + eps)`` times it is out; only those in between get an exact search.
         In 17 dimensions over 200k rows that is ~10x faster for states near the data."""
         z = np.asarray(states, dtype=np.float64) / self.sd_
+        if self.radius_ <= 0:  # a lattice: only the logged states themselves
+            return self.tree_.query(z)[0] <= 0.0
         eps = _NN_EPS
         approx, _ = self.tree_.query(z, eps=eps, distance_upper_bound=self.radius_ * (1.0 + eps))
         inside = approx <= self.radius_
@@ -221,16 +223,22 @@ class LoggedDynamics:
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
 
 
-def _support_radius(z: np.ndarray, episode: np.ndarray, step: np.ndarray, rng: np.random.Generator) -> float:
+def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator) -> float:
     """The in-the-data distance: the :data:`SUPPORT_QUANTILE` of the distance from a logged
     state to the nearest state of *other* episodes (:data:`RADIUS_FOLDS` folds of whole
-    episodes; one episode: its two halves in time). A new trajectory, a particle's or a
+    episodes). A new trajectory, a particle's or a
     policy's, has no logged episode of its own, so a state's distance to its own episode's
     neighbours (one step apart, close) is not what it will see: with them, 44% of the states
     of fresh episodes of the logging policy itself fell outside in 17 dimensions (0.2% with
-    other episodes only), 0.3% in 4 (0.1%; ``benchmarks/model_rollouts_dims.py``). The
-    reference is the other folds, 1 - 1/RADIUS_FOLDS of the rows: the distance is larger
-    than to all rows by about (1 - 1/RADIUS_FOLDS)^(-1/d), 6% in 4 dimensions. 0 on a
+    other episodes only), 0.45% in 4 (0.06%; a linear system, ``tests/test_model_rollouts.py``).
+    The reference is the other folds, 1 - 1/RADIUS_FOLDS of the rows: the distance is
+    larger than to all rows by about (1 - 1/RADIUS_FOLDS)^(-1/d), 6% in 4 dimensions.
+
+    The quantile is taken per fold and the median over folds kept: one episode that went
+    where no other did supplies the most isolated states, all in one fold, and would
+    otherwise set the radius (review: 1.5 sd became 6.7 sd with one such episode among 200).
+    With fewer than RADIUS_FOLDS episodes there are no folds of several episodes to stand
+    for a new one: the stricter rule, the nearest other state of any episode. 0 on a
     lattice: when at least SUPPORT_QUANTILE of the states repeat exactly."""
     from scipy.spatial import cKDTree
 
@@ -239,24 +247,22 @@ def _support_radius(z: np.ndarray, episode: np.ndarray, step: np.ndarray, rng: n
     _, inverse, counts = np.unique(z, axis=0, return_inverse=True, return_counts=True)
     if (counts[inverse.ravel()] > 1).mean() >= SUPPORT_QUANTILE:
         return 0.0
-    eps = np.unique(episode)
-    if len(eps) >= 2:
-        k = min(RADIUS_FOLDS, len(eps))
-        fold_of = np.zeros(int(eps.max()) + 1, np.int64)
-        fold_of[rng.permutation(eps)] = np.arange(len(eps)) % k
-        fold = fold_of[episode]
-    else:
-        k, fold = 2, (step > np.median(step)).astype(np.int64)
     share = min(1.0, MAX_RADIUS_PROBES / len(z))
-    dist = []
-    for f in range(k):
+    eps = np.unique(episode)
+    if len(eps) < RADIUS_FOLDS:
+        probe = z if share >= 1.0 else z[rng.random(len(z)) < share]
+        d, _ = cKDTree(z).query(probe, k=2)
+        return float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
+    fold_of = np.zeros(int(eps.max()) + 1, np.int64)
+    fold_of[rng.permutation(eps)] = np.arange(len(eps)) % RADIUS_FOLDS
+    fold = fold_of[episode]
+    per_fold = []
+    for f in range(RADIUS_FOLDS):
         held = np.flatnonzero(fold == f)
-        if len(held) == 0 or len(held) == len(z):
-            continue
         probe = held if share >= 1.0 else held[rng.random(len(held)) < share]
-        dist.append(cKDTree(z[fold != f]).query(z[probe])[0])
-    d = np.concatenate(dist) if dist else np.zeros(0)
-    return float(np.quantile(d, SUPPORT_QUANTILE)) if len(d) else 0.0
+        if len(probe):
+            per_fold.append(float(np.quantile(cKDTree(z[fold != f]).query(z[probe])[0], SUPPORT_QUANTILE)))
+    return float(np.median(per_fold))
 
 
 def remainder_ranges(cost: np.ndarray, terminated: np.ndarray, gamma: float,

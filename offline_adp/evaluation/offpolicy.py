@@ -489,6 +489,8 @@ def off_policy(
         widen_fqe(fq, model_rollouts(ds, policy, est_def.value_horizon, gamma, n=model_particles, level=level,
                                      seed=seed, arrays=a),
                   hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
+    elif est_def.form == "finite":  # said, so metrics.json tells "turned off" from "not yet a feature"
+        fq.model_rollouts = {"skipped": "model_particles=0: model rollouts turned off"}
     if 0 < n_reps < FQE_REPLICATE_ROUGH:
         fq.warnings.append(f"only {n_reps} bootstrap refits: the interval's percentiles are rough "
                            f"(use at least {FQE_REPLICATE_ROUGH}; {FQE_REPLICATE_FLOOR} for stable ones)")
