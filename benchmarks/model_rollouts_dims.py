@@ -6,8 +6,9 @@ noise``, 3 actions, uniformly random; ``--rows`` transitions in 200-step episode
 rollouts of two policies (the logging one, which stays, and one that pushes one way and
 drifts out) are timed with
 
-- ``exact``: an exact nearest-neighbour search (the check before 2026-11-26, which also
-  searched for every particle at every step, dead or already out);
+- ``exact``: an exact nearest-neighbour search (the check before 2026-11-26 was exact too,
+  and searched for every particle at every step, dead or already out; here both arms
+  search only the particles still in the data and alive, so the gain of that is not timed);
 - ``fast``: :meth:`LoggedDynamics.in_data` (approximate search, exact only where it cannot
   tell) on the particles still in the data and alive.
 
