@@ -199,7 +199,7 @@ class _Stub:
     def step(self, x, a, rng=None):
         return StepResult(x + 1.0, 1.0 + x[:, 0], np.full(len(x), 0.5))
 
-    def in_data(self, x):
+    def in_data(self, x, radius=None):
         return x[:, 0] < 2
 
 
@@ -358,3 +358,21 @@ def test_the_support_check_on_a_lattice_is_exact(logs):
 def test_turned_off_model_rollouts_are_said(logs):
     res = off_policy(logs, STABILISE, n_boot=5, n_boot_fqe=0, psdp_folds=0, model_particles=0)
     assert res.estimates["fqe"].model_rollouts == {"skipped": "model_particles=0: model rollouts turned off"}
+
+
+class _TwoRadii(_Stub):
+    radius_ = 10.0  # the support judgement: the path never leaves it
+    trust_radius_ = 2.0  # the bounds: they stop reading the model at x = 2
+
+    def in_data(self, x, radius=None):
+        return x[:, 0] < (self.radius_ if radius is None else radius)
+
+
+def test_the_bounds_stop_trusting_at_the_trust_radius_and_the_exit_mass_at_the_support_radius():
+    H, g = 5, 0.8
+    lo_r, hi_r = -np.arange(H + 1, dtype=float), 10.0 * np.arange(H + 1)
+    out = model_rollout_value(_TwoRadii(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)
+    same = model_rollout_value(_Stub(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)  # one radius, 2: leaves at x = 2
+    assert (out["lower"], out["upper"]) == (pytest.approx(same["lower"]), pytest.approx(same["upper"]))
+    assert out["exit_mass"] == 0.0 and out["exit_share"] == 0.0 and same["exit_mass"] > 0
+    assert out["trust_radius"] == 2.0 and out["radius"] == 10.0

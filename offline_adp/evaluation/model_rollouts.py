@@ -96,7 +96,12 @@ class LoggedDynamics:
         Feature standard deviations (1 where constant).
     radius_ : float
         In-the-data distance (:data:`SUPPORT_QUANTILE` of the distances to other episodes'
-        nearest states, :func:`_support_radius`).
+        nearest states, :func:`_support_radius`): where the support judgement (exit mass)
+        says a state lies past the data.
+    trust_radius_ : float
+        The distance within which the bounds take the model's reading as known: the
+        :data:`SUPPORT_QUANTILE` of the logged states' distances to their nearest other
+        logged state, own episode included (the data's own spacing; at most ``radius_``).
     residuals_ : ndarray
         Out-of-fold residuals of the increments, in standard deviations.
     start_states_ : ndarray
@@ -126,6 +131,7 @@ class LoggedDynamics:
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
         self.radius_ = _support_radius(z, a.episode[rows], rng)
+        self.trust_radius_ = min(self.radius_, _spacing_radius(z, rng))
         if self.radius_ <= 0:  # a lattice: nothing to roll out (model_rollouts skips), nothing more to fit
             return self
         both = np.vstack([obs, nxt])
@@ -184,22 +190,23 @@ class LoggedDynamics:
     def _features(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
         return np.column_stack([obs / self.sd_, self.action_features_[np.asarray(action, dtype=np.int64)]])
 
-    def in_data(self, states: np.ndarray) -> np.ndarray:
-        """Whether each state has a logged state within ``radius_`` (feature standard
-        deviations), exactly. An approximate nearest-neighbour search (``eps``: its distance
-        is at most ``1 + eps`` times the true one) settles most states: within the radius is
+    def in_data(self, states: np.ndarray, radius: float | None = None) -> np.ndarray:
+        """Whether each state has a logged state within ``radius`` (default ``radius_``;
+        feature standard deviations), exactly. An approximate nearest-neighbour search
+        (``eps``: its distance is at most ``1 + eps`` times the true one) settles most states: within the radius is
         in, past ``(1 + eps)`` times it is out; only those in between get an exact search.
         In 17 dimensions over 200k rows that is ~10x faster for states near the data."""
         z = np.asarray(states, dtype=np.float64) / self.sd_
-        if self.radius_ <= 0:  # a lattice: only the logged states themselves
+        r = self.radius_ if radius is None else float(radius)
+        if r <= 0:  # a lattice: only the logged states themselves
             return self.tree_.query(z)[0] <= 0.0
         eps = _NN_EPS
-        approx, _ = self.tree_.query(z, eps=eps, distance_upper_bound=self.radius_ * (1.0 + eps))
-        inside = approx <= self.radius_
+        approx, _ = self.tree_.query(z, eps=eps, distance_upper_bound=r * (1.0 + eps))
+        inside = approx <= r
         unsure = ~inside & np.isfinite(approx)
         if unsure.any():
             exact, _ = self.tree_.query(z[unsure])
-            inside[unsure] = exact <= self.radius_
+            inside[unsure] = exact <= r
         return inside
 
     def step(self, states: np.ndarray, actions: np.ndarray, rng: np.random.Generator | None = None) -> StepResult:
@@ -221,6 +228,20 @@ class LoggedDynamics:
             nxt[:, j] = np.where(np.abs(nxt[:, j] - lower) <= np.abs(upper - nxt[:, j]), lower, upper)
         out = _2d(self.outcome_.predict(np.column_stack([F, nxt / self.sd_])), 2)
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
+
+
+def _spacing_radius(z: np.ndarray, rng: np.random.Generator) -> float:
+    """The :data:`SUPPORT_QUANTILE` of the logged states' distances to their nearest other
+    logged state (own episode included): the data's own spacing, the trust radius of the
+    bounds (``LoggedDynamics.trust_radius_``)."""
+    from scipy.spatial import cKDTree
+
+    if len(z) < 2:
+        return 0.0
+    share = min(1.0, MAX_RADIUS_PROBES / len(z))
+    probe = z if share >= 1.0 else z[rng.random(len(z)) < share]
+    d, _ = cKDTree(z).query(probe, k=2)
+    return float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
 
 
 def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator) -> float:
@@ -251,9 +272,7 @@ def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator
     share = min(1.0, MAX_RADIUS_PROBES / len(z))
     eps = np.unique(episode)
     if len(eps) < RADIUS_FOLDS:
-        probe = z if share >= 1.0 else z[rng.random(len(z)) < share]
-        d, _ = cKDTree(z).query(probe, k=2)
-        return float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
+        return _spacing_radius(z, rng)
     fold_of = np.zeros(int(eps.max()) + 1, np.int64)
     fold_of[rng.permutation(eps)] = np.arange(len(eps)) % RADIUS_FOLDS
     fold = fold_of[episode]
@@ -320,8 +339,9 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     Parameters
     ----------
     model : LoggedDynamics
-        Or any object with ``start_states_``, ``radius_``, ``step(states, actions, rng)``
-        (a ``StepResult``) and ``in_data(states)`` (bool per state).
+        Or any object with ``start_states_``, ``radius_`` (and optionally
+        ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a
+        ``StepResult``) and ``in_data(states, radius)`` (bool per state).
     policy : Policy
     horizon : int
     gamma : float
@@ -354,28 +374,36 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     starts = model.start_states_
     x = starts[rng.integers(0, len(starts), n)].astype(np.float64)
     alive = np.ones(n)
-    inside = np.ones(n, bool)
+    inside, trusted = np.ones(n, bool), np.ones(n, bool)
     value, kept, mass, mass_out = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     lo_tail, hi_tail = np.zeros(n), np.zeros(n)
     alive_at_exit = np.zeros(n)
+    trust = min(float(getattr(model, "trust_radius_", model.radius_)), float(model.radius_))
+
+    def within(mask: np.ndarray, radius: float) -> np.ndarray:
+        """Only particles still within and alive need the (costly) check."""
+        out = np.zeros(n, bool)
+        check = mask & (alive > 0)
+        if check.any():
+            out[check] = model.in_data(x[check], radius)
+        return out
+
     for t in range(horizon):
         if not alive.any():
             break
         act = policy.act_index(x, t, rng)
-        # only particles still in the data and alive need the (costly) support check
-        check = inside & (alive > 0)
-        in_data = np.zeros(n, bool)
-        if check.any():
-            in_data[check] = model.in_data(x[check])
+        in_data, in_trust = within(inside, model.radius_), within(trusted, trust)
         r = model.step(x, act, rng)
         w = alive * gamma**t
         left = inside & ~in_data
-        lo_tail[left] = w[left] * lo_r[horizon - t]
-        hi_tail[left] = w[left] * hi_r[horizon - t]
         alive_at_exit[left] = alive[left]
         inside &= in_data
+        untrusted = trusted & ~in_trust  # the bounds stop reading the model here
+        lo_tail[untrusted] = w[untrusted] * lo_r[horizon - t]
+        hi_tail[untrusted] = w[untrusted] * hi_r[horizon - t]
+        trusted &= in_trust
         value += w * r.costs
-        kept += np.where(inside, w * r.costs, 0.0)
+        kept += np.where(trusted, w * r.costs, 0.0)
         mass += w
         mass_out += np.where(inside, 0.0, w)
         alive = alive * (1.0 - r.terminated)
@@ -390,7 +418,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
             "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))],
             "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
             "exit_share": float(alive_at_exit.mean()), "n_particles": int(n), "radius": float(model.radius_),
-            "support_quantile": SUPPORT_QUANTILE}
+            "trust_radius": trust, "support_quantile": SUPPORT_QUANTILE}
 
 
 def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float, *, n: int = N_PARTICLES,
