@@ -77,9 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         ranges = remainder_ranges(a.cost, a.terminated, 0.95, 200)
         fast_check = model.in_data
 
-        def exact(states, m=model):  # type: ignore[no-untyped-def]
+        def exact(states, radius=None, m=model):  # type: ignore[no-untyped-def]
+            r = m.radius_ if radius is None else radius
             dist, _ = m.tree_.query(np.asarray(states) / m.sd_)
-            return dist <= m.radius_
+            return dist <= r
 
         push = FunctionPolicy(lambda x, t=0: np.full(len(x), 2, np.int64), 3, name="push")
         for name, pol in (("logging", UniformPolicy(3)), ("push", push)):

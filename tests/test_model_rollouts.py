@@ -372,7 +372,35 @@ def test_the_bounds_stop_trusting_at_the_trust_radius_and_the_exit_mass_at_the_s
     H, g = 5, 0.8
     lo_r, hi_r = -np.arange(H + 1, dtype=float), 10.0 * np.arange(H + 1)
     out = model_rollout_value(_TwoRadii(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)
-    same = model_rollout_value(_Stub(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)  # one radius, 2: leaves at x = 2
+    same = model_rollout_value(_Stub(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)  # one rule for both: out at x = 2
     assert (out["lower"], out["upper"]) == (pytest.approx(same["lower"]), pytest.approx(same["upper"]))
     assert out["exit_mass"] == 0.0 and out["exit_share"] == 0.0 and same["exit_mass"] > 0
     assert out["trust_radius"] == 2.0 and out["radius"] == 10.0
+
+
+class _LeavesBoth(_TwoRadii):
+    radius_ = 4.0  # leaves the support later, at x = 4
+
+
+def test_leaving_trust_then_support_sets_the_tails_once_and_the_exit_at_the_support():
+    H, g = 6, 0.8
+    lo_r, hi_r = -np.arange(H + 1, dtype=float), 10.0 * np.arange(H + 1)
+    out = model_rollout_value(_LeavesBoth(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)
+    w = (g * 0.5) ** np.arange(H)
+    cost = 1.0 + np.arange(H)
+    known = w[0] * cost[0] + w[1] * cost[1]  # trusted at x = 0, 1; the tails from step 2 on, set once
+    assert out["lower"] == pytest.approx(known + w[2] * lo_r[H - 2])
+    assert out["upper"] == pytest.approx(known + w[2] * hi_r[H - 2])
+    assert out["exit_mass"] == pytest.approx(w[4:].sum() / w.sum())  # out of the support at x = 4
+    assert out["exit_share"] == pytest.approx(0.5**4)
+
+
+def test_the_trust_radius_is_the_data_own_spacing():
+    """The bounds' radius is the rule they were validated with: the 99.9% quantile of each
+    logged state's distance to its nearest other logged state (own episode included)."""
+    ds = _linear_log(3, 40, seed=2)
+    model = LoggedDynamics(random_state=0).fit(ds)
+    z = ds.arrays().obs / model.sd_
+    own, _ = model.tree_.query(z, k=2)
+    assert model.trust_radius_ == pytest.approx(min(model.radius_, np.quantile(own[:, 1], SUPPORT_QUANTILE)))
+    assert model.trust_radius_ < model.radius_

@@ -65,7 +65,8 @@ def _same_model_rollouts(m: dict[str, Any], particles: int) -> bool:
     if "skipped" in mr:
         turned_off = str(mr["skipped"]).startswith("model_particles=0")
         return turned_off == (particles == 0)
-    return mr.get("n_particles") == particles
+    # evaluations made before the bounds had their own (trust) radius are redone
+    return mr.get("n_particles") == particles and "trust_radius" in mr
 
 
 def compare_runs(

@@ -20,20 +20,29 @@ The model (:class:`LoggedDynamics`), fitted on the logged transitions:
   action and the next state (costs and failures usually depend on where the step lands);
 - support: a state is *in the data* when a logged state lies within the 99.9% quantile of
   the logged states' nearest-neighbour distances to *other* episodes (features in standard
-  deviations; a new trajectory has no logged episode of its own, :func:`_support_radius`).
+  deviations; a new trajectory has no logged episode of its own, :func:`_support_radius`);
+  it is *trusted* when one lies within the data's own spacing, the same quantile of the
+  distances to the nearest other logged state, own episode included (``trust_radius_``,
+  at most the support radius).
 
 The rollout (:func:`model_rollout_value`) starts ``n`` particles at logged start states
 (resampled), acts with the policy, steps the model, and weighs each step's cost by the
 survival probability: ``V = mean_i sum_t w_it c_it`` with ``w_it = gamma^t S_it``, the
-estimate. When particle i is first at a state not in the data, at step ``tau_i``, the
-model's reading from there on is an extrapolation; the **bounds** value the remaining
+estimate. When particle i is first at a state not trusted, at step ``tau_i``, the
+model's reading from there on is taken as unknown; the **bounds** value the remaining
 ``L = H - tau_i`` steps at the ends of what the logged costs allow for ``L`` steps
 (:func:`remainder_ranges`): ``lower = mean_i (sum_{t < tau_i} w_it c_it + w_{i tau_i}
 lo(L))``, likewise ``upper``. Their interval adds the particles' Monte-Carlo error (normal,
 at ``level``). They hold the value *as far as the model is right where the data is*,
 which is why :func:`offpolicy.off_policy` takes the hull of them and FQE's interval rather
 than either alone. ``exit_mass``, the share of the discounted survival mass
-``sum_t w_it`` that lies at or after ``tau_i``, is the logs-only measure of drift.
+``sum_t w_it`` that lies at or after ``sigma_i >= tau_i``, the step particle i is first at
+a state not in the data, is the logs-only measure of drift (and ``exit_share`` the mean
+survival at ``sigma_i``). Two radii because they answer two questions: whether a policy's
+states are ones a new episode of the data could reach (calibrated: fresh episodes of the
+logging policy fall outside about 0.1% of the time), and where the model's reading is
+close enough to the data to be taken as known (the bounds were validated with the stricter
+one; with the support radius they missed, docs/evaluation.md).
 """
 
 from __future__ import annotations
@@ -49,8 +58,9 @@ from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
 from offline_adp.policies import Policy
 
-#: A state is in the data when a logged state is at most this quantile of the logged states'
-#: own nearest-neighbour distances away (in feature standard deviations). 0.99 flags 1% of
+#: A state is in the data (trusted) when a logged state is at most this quantile of the logged
+#: states' distances to other episodes (to any other logged state) away, in feature standard
+#: deviations. With the own-neighbour distances, 0.99 flagged 1% of
 #: the logged states themselves at every step, and over a 200-step rollout nearly every
 #: particle of a policy the logs cover (measured on path_tracking: 89% of the default fit's).
 SUPPORT_QUANTILE = 0.999
@@ -130,8 +140,9 @@ class LoggedDynamics:
         self.start_states_ = a.obs[a.step == 0]
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
-        self.radius_ = _support_radius(z, a.episode[rows], rng)
-        self.trust_radius_ = min(self.radius_, _spacing_radius(z, rng))
+        spacing = _spacing_radius(z, self.tree_, rng)  # first: the draws of the rule before
+        self.radius_ = _support_radius(z, a.episode[rows], spacing, rng)
+        self.trust_radius_ = min(self.radius_, spacing)
         if self.radius_ <= 0:  # a lattice: nothing to roll out (model_rollouts skips), nothing more to fit
             return self
         both = np.vstack([obs, nxt])
@@ -230,21 +241,19 @@ class LoggedDynamics:
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
 
 
-def _spacing_radius(z: np.ndarray, rng: np.random.Generator) -> float:
+def _spacing_radius(z: np.ndarray, tree: Any, rng: np.random.Generator) -> float:
     """The :data:`SUPPORT_QUANTILE` of the logged states' distances to their nearest other
-    logged state (own episode included): the data's own spacing, the trust radius of the
-    bounds (``LoggedDynamics.trust_radius_``)."""
-    from scipy.spatial import cKDTree
-
+    logged state (own episode included; ``tree`` holds ``z``): the data's own spacing, the
+    trust radius of the bounds (``LoggedDynamics.trust_radius_``). At most
+    :data:`MAX_RADIUS_PROBES` states probed (a uniform sample, as the rule before)."""
     if len(z) < 2:
         return 0.0
-    share = min(1.0, MAX_RADIUS_PROBES / len(z))
-    probe = z if share >= 1.0 else z[rng.random(len(z)) < share]
-    d, _ = cKDTree(z).query(probe, k=2)
+    probe = z if len(z) <= MAX_RADIUS_PROBES else z[rng.choice(len(z), MAX_RADIUS_PROBES, replace=False)]
+    d, _ = tree.query(probe, k=2)
     return float(np.quantile(d[:, 1], SUPPORT_QUANTILE))
 
 
-def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator) -> float:
+def _support_radius(z: np.ndarray, episode: np.ndarray, spacing: float, rng: np.random.Generator) -> float:
     """The in-the-data distance: the :data:`SUPPORT_QUANTILE` of the distance from a logged
     state to the nearest state of *other* episodes (:data:`RADIUS_FOLDS` folds of whole
     episodes). A new trajectory, a particle's or a policy's, has no logged episode of its
@@ -260,7 +269,8 @@ def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator
     where no other did supplies the most isolated states, all in one fold, and would
     otherwise set the radius (review: 1.5 sd became 6.7 sd with one such episode among 200).
     With fewer than RADIUS_FOLDS episodes there are no folds of several episodes to stand
-    for a new one: the stricter rule, the nearest other state of any episode. 0 on a
+    for a new one: ``spacing``, the stricter rule (the nearest other state of any episode,
+    :func:`_spacing_radius`). 0 on a
     lattice: when at least SUPPORT_QUANTILE of the states repeat exactly."""
     from scipy.spatial import cKDTree
 
@@ -272,7 +282,7 @@ def _support_radius(z: np.ndarray, episode: np.ndarray, rng: np.random.Generator
     share = min(1.0, MAX_RADIUS_PROBES / len(z))
     eps = np.unique(episode)
     if len(eps) < RADIUS_FOLDS:
-        return _spacing_radius(z, rng)
+        return spacing
     fold_of = np.zeros(int(eps.max()) + 1, np.int64)
     fold_of[rng.permutation(eps)] = np.arange(len(eps)) % RADIUS_FOLDS
     fold = fold_of[episode]
@@ -359,7 +369,8 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
         (share of the discounted survival mass at or after leaving the data), ``exit_share``
         (the expected share of episodes that leave the data before they end: the mean
-        survival probability at leaving), ``n_particles``, ``radius``.
+        survival probability at leaving), ``n_particles``, ``radius`` (support),
+        ``trust_radius`` (the bounds') and ``support_quantile``.
     """
     from scipy.stats import norm
 
@@ -440,8 +451,8 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
     return {**out, "noise": model.noise_source_,  # no timings: metrics.json is deterministic
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
-                      "each particle's remaining steps valued at the ends of the logged costs' range once it leaves "
-                      "the logged states"}
+                      "each particle's remaining steps valued at the ends of the logged costs' range once it is "
+                      "farther from the logged states than they are from each other"}
 
 
 def widen_fqe(fq: Any, mr: dict[str, Any], hull: bool = True) -> None:
