@@ -57,3 +57,23 @@ def small_pt():
     from offline_adp.simulate import simulate
 
     return simulate("path_tracking", 8, 8, seed=11, horizon=60)
+
+
+class EvaluateRunCalled(Exception):
+    """Raised by the ``captured_evaluate_run`` fixture's stand-in for ``evaluate_run``."""
+
+
+@pytest.fixture
+def captured_evaluate_run(monkeypatch):
+    """Replace ``evaluation.run.evaluate_run`` with a stand-in that records its keyword
+    arguments and raises :class:`EvaluateRunCalled` (what the CLI and a pipeline pass)."""
+    from offline_adp.evaluation import run as evaluation_run
+
+    seen: list[dict] = []
+
+    def fake_evaluate_run(run_dir, **kw):
+        seen.append(kw)
+        raise EvaluateRunCalled
+
+    monkeypatch.setattr(evaluation_run, "evaluate_run", fake_evaluate_run)
+    return seen

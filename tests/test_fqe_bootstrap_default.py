@@ -9,28 +9,17 @@ import pytest
 from offline_adp import pipeline
 from offline_adp.cli import main
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
-from offline_adp.evaluation import run as evaluation_run
 from offline_adp.evaluation.offpolicy import (
     FQE_REPLICATE_FLOOR,
     FQE_REPLICATE_ROUGH,
     fqe_replicates,
 )
-
-
-class _Called(Exception):
-    pass
+from tests.conftest import EvaluateRunCalled
 
 
 @pytest.fixture
-def captured(monkeypatch):
-    seen: list[dict] = []
-
-    def fake_evaluate_run(run_dir, **kw):
-        seen.append(kw)
-        raise _Called
-
-    monkeypatch.setattr(evaluation_run, "evaluate_run", fake_evaluate_run)
-    return seen
+def captured(captured_evaluate_run):
+    return captured_evaluate_run
 
 
 def test_pipeline_and_cli_default_fqe_bootstrap_agree(tmp_path, captured):
@@ -38,10 +27,10 @@ def test_pipeline_and_cli_default_fqe_bootstrap_agree(tmp_path, captured):
     cfg_file.write_text('[data]\nsimulate = "gridworld"\n[fit]\n[evaluate]\nepisodes = 5\n')
     cfg = pipeline.load_pipeline(cfg_file)
     assert "fqe_bootstrap" not in cfg["evaluate"]
-    with pytest.raises(_Called):
+    with pytest.raises(EvaluateRunCalled):
         pipeline._evaluate_stage(cfg, tmp_path / "run", lambda _m: None)
     (tmp_path / "run" / "model").mkdir(parents=True)
-    with pytest.raises(_Called):
+    with pytest.raises(EvaluateRunCalled):
         main(["evaluate", str(tmp_path / "run"), "--quiet"])
     from_pipeline, from_cli = (kw["n_boot_fqe"] for kw in captured)
     assert from_pipeline == from_cli == FQE_BOOTSTRAP_DEFAULT
@@ -53,7 +42,7 @@ def test_pipeline_and_cli_default_fqe_bootstrap_agree(tmp_path, captured):
 def test_an_explicit_pipeline_fqe_bootstrap_is_passed_through(tmp_path, captured):
     cfg_file = tmp_path / "p.toml"
     cfg_file.write_text('[data]\nsimulate = "gridworld"\n[fit]\n[evaluate]\nfqe_bootstrap = 7\n')
-    with pytest.raises(_Called):
+    with pytest.raises(EvaluateRunCalled):
         pipeline._evaluate_stage(pipeline.load_pipeline(cfg_file), tmp_path / "run", lambda _m: None)
     assert captured[0]["n_boot_fqe"] == 7
 

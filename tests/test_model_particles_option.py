@@ -10,24 +10,13 @@ from offline_adp import pipeline
 from offline_adp.cli import main
 from offline_adp.errors import OfflineADPError
 from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
-from offline_adp.evaluation import run as evaluation_run
 from offline_adp.evaluation.model_rollouts import N_PARTICLES
-
-
-class _Called(Exception):
-    pass
+from tests.conftest import EvaluateRunCalled
 
 
 @pytest.fixture
-def captured(monkeypatch):
-    seen: list[dict] = []
-
-    def fake_evaluate_run(run_dir, **kw):
-        seen.append(kw)
-        raise _Called
-
-    monkeypatch.setattr(evaluation_run, "evaluate_run", fake_evaluate_run)
-    return seen
+def captured(captured_evaluate_run):
+    return captured_evaluate_run
 
 
 def _pipeline(tmp_path, evaluate: str) -> dict:
@@ -40,10 +29,10 @@ def test_the_default_is_shared_and_explicit_counts_pass_through(tmp_path, captur
     (tmp_path / "run" / "model").mkdir(parents=True)
     for cfg in (_pipeline(tmp_path, "episodes = 5\n"), _pipeline(tmp_path, "model_particles = 0\n"),
                 _pipeline(tmp_path, "model_particles = 64\n")):
-        with pytest.raises(_Called):
+        with pytest.raises(EvaluateRunCalled):
             pipeline._evaluate_stage(cfg, tmp_path / "run", lambda _m: None)
     for extra in ([], ["--model-particles", "0"], ["--model-particles", "64"]):
-        with pytest.raises(_Called):
+        with pytest.raises(EvaluateRunCalled):
             main(["evaluate", str(tmp_path / "run"), "--quiet", *extra])
     got = [kw["model_particles"] for kw in captured]
     assert got == [MODEL_PARTICLES_DEFAULT, 0, 64] * 2
