@@ -68,7 +68,11 @@ from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
-from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT, MODEL_PARTICLES_DEFAULT
+from offline_adp.evaluation import (
+    FQE_BOOTSTRAP_DEFAULT,
+    MODEL_PARTICLES_DEFAULT,
+    particle_count_error,
+)
 from offline_adp.progress import log_milestone
 
 #: Upper bounds of the evaluate settings: far above any useful value, so a typo (1e13)
@@ -164,8 +168,9 @@ class EvaluateSection(ConfigModel):
     @model_validator(mode="after")
     def _known_simulator(self) -> EvaluateSection:
         check_simulator_name(self.simulator)
-        if self.model_particles == 1:
-            raise ValueError("model_particles: 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two)")
+        why = particle_count_error(self.model_particles)
+        if why:
+            raise ValueError(why)
         return self
 
 

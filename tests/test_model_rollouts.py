@@ -404,3 +404,11 @@ def test_the_trust_radius_is_the_data_own_spacing():
     own, _ = model.tree_.query(z, k=2)
     assert model.trust_radius_ == pytest.approx(min(model.radius_, np.quantile(own[:, 1], SUPPORT_QUANTILE)))
     assert model.trust_radius_ < model.radius_
+
+
+def test_widen_is_a_hull_that_says_so_and_leaves_what_it_cannot_read():
+    r = OPEResult("fqe", 5.0, (4.0, 6.0), None, 0.95)
+    assert r.widen(3.0, 5.5, "widened to X") == (4.0, 6.0)
+    assert r.interval == (3.0, 6.0) and r.interval_method.endswith("; widened to X")
+    assert r.widen(float("nan"), 9.0, "never") is None and r.interval == (3.0, 6.0)
+    assert "never" not in r.interval_method

@@ -36,12 +36,15 @@ def _progress(quiet: bool):
 
 def _particle_count(text: str) -> int:
     """argparse type: 0 (none) or an integer >= 2 (a Monte-Carlo interval needs two)."""
+    from offline_adp.evaluation import particle_count_error
+
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected 0 or an integer >= 2, got {text!r}") from None
-    if value < 0 or value == 1:
-        raise argparse.ArgumentTypeError(f"expected 0 (no model rollouts) or an integer >= 2, got {value}")
+    why = particle_count_error(value)
+    if why:
+        raise argparse.ArgumentTypeError(why)
     return value
 
 

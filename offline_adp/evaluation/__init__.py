@@ -1,8 +1,8 @@
 """Evaluation of a fitted policy: rollouts, off-policy estimates, shift diagnostics,
 report and comparison (see ``docs/evaluation.md``).
 
-Only plain constants live here, so the CLI's parser and the pipeline file's model can
-share them without importing numpy.
+Only plain constants (and a check of one of them) live here, so the CLI's parser and the
+pipeline file's model can share them without importing numpy.
 """
 
 from __future__ import annotations
@@ -17,3 +17,12 @@ FQE_BOOTSTRAP_DEFAULT: int | None = None
 #: default of ``offline-adp evaluate --model-particles``, ``[evaluate] model_particles`` and
 #: :func:`offline_adp.evaluation.run.evaluate_run`; 0 turns them off.
 MODEL_PARTICLES_DEFAULT: int = 1000
+
+
+def particle_count_error(n: int) -> str | None:
+    """Why ``n`` is not a model-rollout particle count (None: it is): 0 turns them off, and
+    their Monte-Carlo interval needs at least 2. The one check of the CLI, a pipeline's
+    ``[evaluate]``, ``evaluation_metrics`` and ``off_policy``."""
+    if n < 0 or n == 1:
+        return f"model_particles must be 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two), got {n}"
+    return None

@@ -163,9 +163,7 @@ class LoggedDynamics:
             ep = a.episode[rows]
             eps = np.unique(ep)
             if len(eps) >= 2:
-                fold_of = np.zeros(int(ep.max()) + 1, np.int64)
-                fold_of[np.random.default_rng([self.random_state, 1]).permutation(eps)] = np.arange(len(eps)) % 2
-                fold = fold_of[ep]
+                fold = _episode_folds(ep, eps, 2, np.random.default_rng([self.random_state, 1]))
                 self.noise_source_ = "out-of-fold residuals (two folds of episodes)"
             else:
                 st = a.step[rows]
@@ -241,6 +239,14 @@ class LoggedDynamics:
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
 
 
+def _episode_folds(episode: np.ndarray, episodes: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """Each row's fold: ``k`` balanced folds of whole episodes in random order (``episodes``
+    the distinct codes of ``episode``)."""
+    fold_of = np.zeros(int(episodes.max()) + 1, np.int64)
+    fold_of[rng.permutation(episodes)] = np.arange(len(episodes)) % k
+    return fold_of[episode]
+
+
 def _spacing_radius(z: np.ndarray, tree: Any, rng: np.random.Generator) -> float:
     """The :data:`SUPPORT_QUANTILE` of the logged states' distances to their nearest other
     logged state (own episode included; ``tree`` holds ``z``): the data's own spacing, the
@@ -283,9 +289,7 @@ def _support_radius(z: np.ndarray, episode: np.ndarray, spacing: float, rng: np.
     eps = np.unique(episode)
     if len(eps) < RADIUS_FOLDS:
         return spacing
-    fold_of = np.zeros(int(eps.max()) + 1, np.int64)
-    fold_of[rng.permutation(eps)] = np.arange(len(eps)) % RADIUS_FOLDS
-    fold = fold_of[episode]
+    fold = _episode_folds(episode, eps, RADIUS_FOLDS, rng)
     per_fold = []
     for f in range(RADIUS_FOLDS):
         held = np.flatnonzero(fold == f)
@@ -469,12 +473,12 @@ def widen_fqe(fq: Any, mr: dict[str, Any], hull: bool = True) -> None:
                            f"model-rollout mass lies past the logged states (an expected {mr['exit_share']:.0%} of "
                            "its episodes get there)")
     lo_m, hi_m = mr["interval"]
-    if not (hull and np.all(np.isfinite(fq.interval)) and np.isfinite(lo_m) and np.isfinite(hi_m)):
+    before = fq.widen(lo_m, hi_m, f"widened to the model rollouts' bounds [{lo_m:.4g}, {hi_m:.4g}] (a model of the "
+                      "logged increments rolled out, valued at the cost range's ends where it leaves the data)") \
+        if hull else None
+    if before is None:
         return
-    lo_i, hi_i = fq.interval
-    fq.interval = (min(lo_i, lo_m), max(hi_i, hi_m))
-    fq.interval_method += (f"; widened to the model rollouts' bounds [{lo_m:.4g}, {hi_m:.4g}] (a model of the logged "
-                           "increments rolled out, valued at the cost range's ends where it leaves the data)")
+    lo_i, hi_i = before
     if not lo_i <= mr["estimate"] <= hi_i:
         fq.warnings.append(f"model rollouts of the logs read {mr['estimate']:.4g}, outside FQE's interval "
                            f"[{lo_i:.4g}, {hi_i:.4g}]: the two readings disagree and the interval holds both")

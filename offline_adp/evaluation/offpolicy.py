@@ -17,7 +17,7 @@ from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import IncompatibleError, InvalidArgumentError
-from offline_adp.evaluation import ope, risk, shift
+from offline_adp.evaluation import ope, particle_count_error, risk, shift
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,
@@ -414,8 +414,8 @@ def off_policy(
     (see :func:`declare_estimand`); estimators that cannot see that far say so
     (``comparable=False`` and a warning), as for the infinite-horizon value.
     """
-    if model_particles < 0 or model_particles == 1:
-        raise InvalidArgumentError(f"model_particles must be 0 (no model rollouts) or >= 2, got {model_particles}")
+    if why := particle_count_error(model_particles):
+        raise InvalidArgumentError(why)
     say = progress or (lambda _msg: None)
     a = ds.arrays()
     est_def = declare_estimand(ds, policy, horizon, estimand, target_horizon=target_horizon, start=start)
@@ -472,16 +472,13 @@ def off_policy(
         say("FQE support bounds")
         sb = fqe_support_bounds(fqe, ds, seed)
         fq.support_bounds = sb
-        if np.all(np.isfinite(fq.interval)) and np.isfinite(sb["lower"]) and np.isfinite(sb["upper"]):
-            lo_i, hi_i = fq.interval
-            fq.interval = (min(lo_i, sb["lower"]), max(hi_i, sb["upper"]))
-            fq.interval_method += (f"; widened to the support bounds [{sb['lower']:.4g}, {sb['upper']:.4g}] (the "
-                                   "value with the pairs the logs hold no row of the queried action near valued at the "
-                                   "cost range's ends; not a bound on the trees' smoothing within an action)")
-            if sb["unsupported_next"] > 0:
-                fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
-                                   "row of that action near the state: the interval is widened to what those pairs "
-                                   f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
+        widened = fq.widen(sb["lower"], sb["upper"], f"widened to the support bounds [{sb['lower']:.4g}, "
+                           f"{sb['upper']:.4g}] (the value with the pairs the logs hold no row of the queried action "
+                           "near valued at the cost range's ends; not a bound on the trees' smoothing within an action)")
+        if widened is not None and sb["unsupported_next"] > 0:
+            fq.warnings.append(f"{sb['unsupported_next']:.1%} of the policy's next-state action mass has no logged "
+                               "row of that action near the state: the interval is widened to what those pairs "
+                               f"could be worth ([{sb['lower']:.4g}, {sb['upper']:.4g}])")
     # the model is stationary, so it also reads past the logged horizon; hulled with FQE only where
     # FQE's interval is of the same quantity (a time-indexed FQE past the logs reads the T-step value)
     if model_particles and est_def.form == "finite":

@@ -69,6 +69,16 @@ class OPEResult:
     #: FQE only: the model rollouts the interval was widened to (``model_rollouts.widen_fqe``).
     model_rollouts: dict[str, Any] | None = None
 
+    def widen(self, lo: float, hi: float, why: str) -> tuple[float, float] | None:
+        """Widen the interval to the hull of it and ``[lo, hi]`` and append ``why`` to its
+        method; the interval before, or None (nothing done) when either is not finite."""
+        if not (np.all(np.isfinite(self.interval)) and np.isfinite(lo) and np.isfinite(hi)):
+            return None
+        before = (float(self.interval[0]), float(self.interval[1]))
+        self.interval = (min(before[0], lo), max(before[1], hi))
+        self.interval_method += "; " + why
+        return before
+
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
              "level": self.level, "ess": self.ess, "warnings": list(self.warnings), "degenerate": self.degenerate,

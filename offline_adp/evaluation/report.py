@@ -311,6 +311,8 @@ def risk_text(cd: dict[str, Any]) -> str:
 
 
 def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
+    from offline_adp.evaluation.summary import model_reading
+
     v, b, sh, cv = h["verdict"], h["best"], h["shift"], h["convergence"]
     cls = verdict_colour(v, cv)
     text = v["text"][:1].upper() + v["text"][1:]
@@ -328,9 +330,8 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
                                                       "replicates are shifted, treat the interval as unreliable")
         corrected = (f"; bias-corrected by the bootstrap (plug-in estimate {b['plugin_estimate']:.4g}, its replicates "
                      "shifted away from it)" if b.get("plugin_estimate") is not None else "")
-        mr = (m.get("ope", {}).get(b["name"]) or {}).get("model_rollouts") or {}
-        model = (f"; model rollouts of the logs read {mr['estimate']:.4g} (a second reading the interval holds)"
-                 if isinstance(mr.get("estimate"), (int, float)) and np.isfinite(mr["estimate"]) else "")
+        x = model_reading(m, b["name"])
+        model = "" if x is None else f"; model rollouts of the logs read {x:.4g} (a second reading the interval holds)"
         kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (95%), "
            f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}{model}")
     else:

@@ -35,7 +35,11 @@ from offline_adp.errors import (
     InvalidArgumentError,
     RunDirectoryError,
 )
-from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT, MODEL_PARTICLES_DEFAULT
+from offline_adp.evaluation import (
+    FQE_BOOTSTRAP_DEFAULT,
+    MODEL_PARTICLES_DEFAULT,
+    particle_count_error,
+)
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
@@ -192,8 +196,8 @@ def evaluation_metrics(
     ``(metrics, off-policy result, pi's rollout states, the demonstrator's)``. ``problem``
     None: logs only. ``run_dir`` is read for the fit's convergence in the headline (None:
     unknown). Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
-    if model_particles < 0 or model_particles == 1:  # before the rollouts and fits, not inside off_policy
-        raise InvalidArgumentError(f"model_particles must be 0 (no model rollouts) or >= 2, got {model_particles}")
+    if why := particle_count_error(model_particles):  # before the rollouts and fits, not inside off_policy
+        raise InvalidArgumentError(why)
     say = progress or (lambda _m: None)
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),

@@ -371,9 +371,16 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
     return lines
 
 
+def model_reading(m: dict[str, Any], name: str) -> float | None:
+    """The model rollouts' reading of the value beside estimator ``name``'s, where they ran
+    (None otherwise): a second reading (``evaluation.model_rollouts``) that FQE's interval
+    holds; on path_tracking and CartPole it was the nearer one, on car_on_hill often not
+    (docs/evaluation.md). The summary line and the report print it."""
+    mr = (m.get("ope", {}).get(name) or {}).get("model_rollouts") or {}
+    return float(mr["estimate"]) if _finite(mr.get("estimate")) else None
+
+
 def _model_reading(m: dict[str, Any], best: dict[str, Any]) -> str:
-    """', model rollouts of the logs read X' after FQE's estimate, where they ran: a second
-    reading (``evaluation.model_rollouts``) that FQE's interval holds; on path_tracking and
-    CartPole it was the nearer one, on car_on_hill often not (docs/evaluation.md)."""
-    mr = (m.get("ope", {}).get(best["name"]) or {}).get("model_rollouts") or {}
-    return f", model rollouts of the logs read {_f(mr['estimate'])}" if _finite(mr.get("estimate")) else ""
+    """', model rollouts of the logs read X' after the best estimate, where they ran."""
+    x = model_reading(m, best["name"])
+    return "" if x is None else f", model rollouts of the logs read {_f(x)}"
