@@ -70,6 +70,7 @@ from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
 from offline_adp.evaluation import (
     FQE_BOOTSTRAP_DEFAULT,
+    MAX_MODEL_PARTICLES,
     MODEL_PARTICLES_DEFAULT,
     particle_count_error,
 )
@@ -79,7 +80,6 @@ from offline_adp.progress import log_milestone
 #: is an error naming the key instead of an allocation of terabytes.
 MAX_EPISODES = 10_000_000
 MAX_REPLICATES = 1_000_000
-MAX_PARTICLES = 1_000_000
 #: Address schemes of Dask's comm backends (distributed.comm.registry).
 DASK_SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
 STAGES = ("data", "validate", "fit", "evaluate", "report")
@@ -161,7 +161,7 @@ class EvaluateSection(ConfigModel):
         "when replicates are cheap, else 50); 0: no interval")
     fqe_params: dict[str, Any] | None = None
     horizon: int | None = Field(None, ge=1)
-    model_particles: int = Field(MODEL_PARTICLES_DEFAULT, ge=0, le=MAX_PARTICLES, description="particles of the model "
+    model_particles: int = Field(MODEL_PARTICLES_DEFAULT, ge=0, le=MAX_MODEL_PARTICLES, description="particles of the model "
                                  "rollouts of the logs (as `offline-adp evaluate --model-particles`); 0: none; not 1",
                                  json_schema_extra={"not": {"const": 1}})
 

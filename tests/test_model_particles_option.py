@@ -39,7 +39,7 @@ def test_the_default_is_shared_and_explicit_counts_pass_through(tmp_path, captur
     assert MODEL_PARTICLES_DEFAULT == N_PARTICLES
 
 
-@pytest.mark.parametrize("count", ["1", "-3", "many"])
+@pytest.mark.parametrize("count", ["1", "-3", "many", "1000000000000"])
 def test_the_cli_refuses_a_count_without_an_interval(tmp_path, captured, capsys, count):
     (tmp_path / "run" / "model").mkdir(parents=True)
     with pytest.raises(SystemExit) as e:
@@ -48,7 +48,7 @@ def test_the_cli_refuses_a_count_without_an_interval(tmp_path, captured, capsys,
     assert not captured
 
 
-@pytest.mark.parametrize("count", [1, -3])
+@pytest.mark.parametrize("count", [1, -3, 10**12])
 def test_a_pipeline_refuses_a_count_without_an_interval(tmp_path, count):
     with pytest.raises(OfflineADPError, match="model_particles"):
         _pipeline(tmp_path, f"model_particles = {count}\n")

@@ -17,12 +17,17 @@ FQE_BOOTSTRAP_DEFAULT: int | None = None
 #: default of ``offline-adp evaluate --model-particles``, ``[evaluate] model_particles`` and
 #: :func:`offline_adp.evaluation.run.evaluate_run`; 0 turns them off.
 MODEL_PARTICLES_DEFAULT: int = 1000
+#: ... and at most this many: far above any useful count, so a typo (1e12) is an error naming
+#: the setting instead of an allocation that fails half-way through an evaluation
+MAX_MODEL_PARTICLES: int = 1_000_000
 
 
 def particle_count_error(n: int) -> str | None:
-    """Why ``n`` is not a model-rollout particle count (None: it is): 0 turns them off, and
-    their Monte-Carlo interval needs at least 2. The one check of the CLI, a pipeline's
+    """Why ``n`` is not a model-rollout particle count (None: it is): 0 turns them off,
+    their Monte-Carlo interval needs at least 2, and at most :data:`MAX_MODEL_PARTICLES`. The one check of the CLI, a pipeline's
     ``[evaluate]``, ``evaluation_metrics`` and ``off_policy``."""
     if n < 0 or n == 1:
         return f"model_particles must be 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two), got {n}"
+    if n > MAX_MODEL_PARTICLES:
+        return f"model_particles must be at most {MAX_MODEL_PARTICLES:,}, got {n:,}"
     return None
