@@ -287,6 +287,14 @@ class TransitionDataset:
             ),
         )
 
+    def commands(self) -> np.ndarray | None:
+        """The exact command of every row, ``(n, n_dims)`` float64, from the
+        ``action_value.<dim>`` columns; ``None`` when the dataset does not carry them all."""
+        cols = self.info.action_table.command_columns
+        if not all(c in self.table.column_names for c in cols):
+            return None
+        return self._matrix(cols, np.float64)
+
     def to_pandas(self) -> pd.DataFrame:
         """The table as a DataFrame (``source`` as a categorical)."""
         return self.table.to_pandas()
@@ -510,12 +518,14 @@ def _canonical(table: pa.Table, info: DatasetInfo, sorted_ids: pa.DictionaryArra
 
 
 def _column_order(info: DatasetInfo) -> list[str]:
+    commands = info.action_table.command_columns if info.action_table.continuous else []
     return [
         S.EPISODE_ID,
         S.STEP,
         S.T_NS,
         *[S.obs_column(f) for f in info.feature_names],
         S.ACTION,
+        *commands,
         S.COST,
         *[S.next_obs_column(f) for f in info.feature_names],
         S.TERMINATED,

@@ -12,6 +12,11 @@ import numpy as np
 from offline_adp.data.schema import FORMAT_VERSION, PROPENSITY_SOURCES
 from offline_adp.errors import SchemaError
 
+#: Action table kinds (:class:`ActionTable`).
+ACTION_KINDS = ("discrete", "binned", "continuous")
+#: Prefix of the columns that keep each row's exact command (``action_value.<dim>``).
+ACTION_VALUE_PREFIX = "action_value."
+
 
 @dataclass(frozen=True)
 class Feature:
@@ -40,14 +45,20 @@ class ActionTable:
         Entry ``i`` is action index ``i``.
     dims : tuple of str
         Names of the components of each action's value vector (e.g. ``("steering",)``).
-    kind : {"discrete", "binned"}
-        ``"binned"`` when a continuous command was quantised at ingestion; then
-        ``bin_edges`` holds the edges (one dimension) and each value is the bin's
-        representative command.
+    kind : {"discrete", "binned", "continuous"}
+        ``"binned"`` when a continuous command was quantised at ingestion (the explicit
+        choice); then ``bin_edges`` holds the edges (one dimension) and each value is the
+        bin's representative command. ``"continuous"``: the exact command of every row is
+        stored in the ``action_value.<dim>`` columns and is what algorithms learn from;
+        the ``action`` column then holds a coarse bin of each command (its entry's value is
+        the bin's representative), kept for the discrete views (counts, behaviour models).
     units : tuple of str
         Unit of each value component.
     bin_edges : tuple of float, optional
         Bin edges (length ``n_actions + 1``) for binned one-dimensional commands.
+    low, high : tuple of float, optional
+        Bounds of each command component (continuous and binned commands): declared in
+        the ingestion spec, else the logged range. Commands outside are refused by the doctor.
     """
 
     actions: tuple[Action, ...]
@@ -55,12 +66,19 @@ class ActionTable:
     kind: str = "discrete"
     units: tuple[str, ...] = ()
     bin_edges: tuple[float, ...] | None = None
+    low: tuple[float, ...] | None = None
+    high: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.actions:
             raise SchemaError("action table is empty: declare at least one action")
-        if self.kind not in ("discrete", "binned"):
-            raise SchemaError(f"action table kind must be 'discrete' or 'binned', got {self.kind!r}")
+        if self.kind not in ACTION_KINDS:
+            raise SchemaError(f"action table kind must be one of {list(ACTION_KINDS)}, got {self.kind!r}")
+        for key, b in (("low", self.low), ("high", self.high)):
+            if b is not None and (len(b) != len(self.dims) or not all(np.isfinite(x) for x in b)):
+                raise SchemaError(f"action table {key}: {list(b)} must hold one finite number per dim {list(self.dims)}")
+        if self.low is not None and self.high is not None and any(lo > hi for lo, hi in zip(self.low, self.high)):
+            raise SchemaError(f"action table bounds: low {list(self.low)} exceeds high {list(self.high)}")
         for i, a in enumerate(self.actions):
             if len(a.value) != len(self.dims):
                 raise SchemaError(
@@ -112,14 +130,38 @@ class ActionTable:
         }
         if self.bin_edges is not None:
             d["bin_edges"] = list(self.bin_edges)
+        if self.low is not None:
+            d["low"] = list(self.low)
+        if self.high is not None:
+            d["high"] = list(self.high)
         return d
+
+    @property
+    def continuous(self) -> bool:
+        """Whether the exact commands (``action_value.<dim>`` columns) are the actions."""
+        return self.kind == "continuous"
+
+    @property
+    def command_columns(self) -> list[str]:
+        """The columns holding the exact command of each row, one per dim."""
+        return [ACTION_VALUE_PREFIX + d for d in self.dims]
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(low, high)`` per component as float64 (``-inf``/``inf`` where not declared)."""
+        k = len(self.dims)
+        lo = np.full(k, -np.inf) if self.low is None else np.asarray(self.low, np.float64)
+        hi = np.full(k, np.inf) if self.high is None else np.asarray(self.high, np.float64)
+        return lo, hi
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str = "action_table") -> ActionTable:
         try:
             actions = tuple(Action(str(a["name"]), tuple(float(v) for v in a["value"])) for a in d["actions"])
             edges = d.get("bin_edges")
+            low, high = d.get("low"), d.get("high")
             return cls(
+                low=None if low is None else tuple(float(v) for v in low),
+                high=None if high is None else tuple(float(v) for v in high),
                 actions=actions,
                 dims=tuple(d.get("dims", ("a",))),
                 kind=d.get("kind", "discrete"),

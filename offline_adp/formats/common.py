@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.data.info import ACTION_VALUE_PREFIX, ActionTable, DatasetInfo, Feature
 from offline_adp.errors import IngestError, OfflineADPError
 from offline_adp.progress import get_logger
 
@@ -32,7 +32,7 @@ MAX_EXACT_ACTIONS = 256
 ACTION_BINS = 16
 MAX_BINNED_ACTIONS = 4096
 #: Prefix of the extra columns that keep continuous commands exactly (``action_value.<dim>``).
-ACTION_VALUE = "action_value."
+ACTION_VALUE = ACTION_VALUE_PREFIX
 _INT32_MAX = int(np.iinfo(np.int32).max)
 
 
