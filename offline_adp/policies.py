@@ -290,6 +290,92 @@ class GreedyPolicy(DeterministicPolicy):
         return isinstance(self.q, TimeIndexedQ)
 
 
+class CommandPolicy(DeterministicPolicy):
+    """A deterministic policy over continuous commands: :meth:`commands` returns one command
+    vector per row, ``(n, m)``, within the action table's bounds. ``act`` returns those
+    commands; the discrete view (``actions``, ``probabilities``, ``act_index``), which
+    binned consumers read, is the action-table entry whose representative command is
+    nearest (in units of each component's bound range, else of the entries' spread)."""
+
+    continuous = True
+
+    @abstractmethod
+    def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        """The command per row, shape (n, m) float64."""
+
+    @property
+    def n_actions(self) -> int:  # type: ignore[override]
+        return len(self._table())
+
+    def _table(self) -> ActionTable:
+        if self.signature is None:
+            raise SchemaError("a continuous policy's discrete view needs its action table; attach a signature "
+                              "(policy.signature = PolicySignature.from_info(dataset.info))")
+        return self.signature.action_table
+
+    def clip(self, u: np.ndarray) -> np.ndarray:
+        """``u`` within the action table's bounds (where the policy has a signature)."""
+        if self.signature is None:
+            return u
+        lo, hi = self.signature.action_table.bounds()
+        return np.clip(u, lo, hi)
+
+    def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        return nearest_entry(self._table(), self.commands(obs, t))
+
+    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *, return_index: bool = False) -> Any:
+        """The command for each observation (see :meth:`Policy.act`): ``(n, m)``, or ``(n,)``
+        for a one-component command; a single observation drops the leading axis.
+        ``return_index``: the nearest action-table entry instead."""
+        sig = self.signature
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        if return_index:
+            idx = self.actions(X, t)
+            return int(idx[0]) if single else idx
+        u = self.commands(X, t)
+        if u.shape[1] == 1:
+            u = u[:, 0]
+        return u[0] if single else u
+
+
+def nearest_entry(table: ActionTable, u: np.ndarray) -> np.ndarray:
+    """The index of the table entry whose value is nearest each command ``u`` (n, m), each
+    component scaled by its bound range (else by the entries' spread)."""
+    vals = table.values
+    lo, hi = table.bounds()
+    span = np.where(np.isfinite(hi - lo) & (hi > lo), hi - lo, np.ptp(vals, axis=0))
+    span = np.where(span > 0, span, 1.0)
+    d = (((np.asarray(u, np.float64)[:, None, :] - vals[None, :, :]) / span) ** 2).sum(axis=2)
+    return np.argmin(d, axis=1).astype(np.int32)
+
+
+class GreedyCommandPolicy(CommandPolicy):
+    """``pi(x, t) = argmin_{u in C(x)} Q(x, u, t)`` over the candidate commands ``C(x)`` of
+    ``x`` (:class:`~offline_adp.qfunctions.NeighbourCommands`: commands logged at the
+    nearest logged states), so it never commands what the logs did not try near ``x``.
+    Ties go to the nearest neighbour's command."""
+
+    def __init__(self, q: Any) -> None:
+        from offline_adp.qfunctions import command_encoder
+
+        enc = command_encoder(q)
+        if enc is None:
+            raise SchemaError("GreedyCommandPolicy needs a Q-function over continuous commands (a CommandEncoder)")
+        self.q, self.encoder = q, enc
+
+    def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float64)
+        cand = self.encoder.commands(self.encoder.phi(obs))
+        j = np.argmin(self.q.values(obs, t), axis=1)
+        return self.clip(cand[np.arange(len(obs)), j])
+
+    @property
+    def time_varying(self) -> bool:
+        from offline_adp.qfunctions import TimeIndexedQ
+
+        return isinstance(self.q, TimeIndexedQ)
+
+
 class MixturePolicy(Policy):
     """``sum_k w_k pi_k``: at each time step a component is drawn with probability
     ``w_k`` and acts (so the action probabilities are the weighted sum). Conservative

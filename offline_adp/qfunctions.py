@@ -17,8 +17,8 @@ batched call. Representations:
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -57,6 +57,8 @@ class QEncoder:
     action_features: np.ndarray
     per_action: bool = False
     feature_map: Any = None
+    #: whether the "actions" are per-state candidate commands (:class:`CommandEncoder`)
+    continuous: ClassVar[bool] = False
 
     def phi(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
@@ -70,6 +72,99 @@ class QEncoder:
         """Joint inputs for every action, action-major: row ``a * n + i`` is (x_i, a)."""
         n = len(phi)
         return np.hstack([np.tile(phi, (self.n_actions, 1)), np.repeat(self.action_features, n, axis=0)])
+
+
+@dataclass(eq=False)
+class NeighbourCommands:
+    """The candidate commands ``C(x)`` of a state: the commands logged at the ``k`` logged
+    states nearest to ``phi(x)`` (Euclidean distance after scaling each feature by its
+    logged standard deviation). In the spirit of batch-constrained Q-learning (Fujimoto,
+    Meger & Precup 2019), every candidate is a command that was logged in the data's
+    neighbourhood of ``x``: a minimum over ``C(x)`` never reaches a command the logs did
+    not try near ``x``.
+
+    Parameters
+    ----------
+    points : ndarray (N, d)
+        The logged states' ``phi``, already scaled (``(phi - center) / scale``).
+    commands : ndarray (N, m)
+        The command logged at each of them.
+    center, scale : ndarray (d,)
+    k : int
+        Candidates per state (at most ``N``).
+    """
+
+    points: np.ndarray
+    commands: np.ndarray
+    center: np.ndarray
+    scale: np.ndarray
+    k: int
+    _tree: Any = field(default=None, repr=False)
+
+    @classmethod
+    def from_data(cls, phi: np.ndarray, commands: np.ndarray, k: int) -> NeighbourCommands:
+        """The candidate set of a dataset's logged states ``phi`` and commands."""
+        phi = np.asarray(phi, np.float64)
+        center, scale = phi.mean(axis=0), phi.std(axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        cmd = np.ascontiguousarray(np.asarray(commands, np.float64).reshape(len(phi), -1))
+        return cls(np.ascontiguousarray((phi - center) / scale), cmd, center, scale, int(min(k, len(phi))))
+
+    @property
+    def n_dims(self) -> int:
+        return int(self.commands.shape[1])
+
+    def neighbours(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(distances, rows)`` of the ``k`` nearest logged states, each ``(n, k)``
+        (scaled units; rows in order of distance, ties by row)."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+        q = (np.asarray(phi, np.float64) - self.center) / self.scale
+        if len(q) == 0:
+            return np.zeros((0, self.k)), np.zeros((0, self.k), np.int64)
+        dist, rows = self._tree.query(q, k=self.k)
+        return dist.reshape(len(q), self.k), rows.reshape(len(q), self.k).astype(np.int64)
+
+    def __call__(self, phi: np.ndarray) -> np.ndarray:
+        """``C(x)`` for each row of ``phi``: ``(n, k, m)`` commands."""
+        return self.commands[self.neighbours(phi)[1]]
+
+
+@dataclass(eq=False)
+class CommandEncoder(QEncoder):
+    """A joint encoder over continuous commands: the regression input of ``(x, u)`` is
+    ``[phi(x), u]`` with ``u`` the command itself, and "all actions" of a state are its
+    ``k`` candidate commands (:class:`NeighbourCommands`), so ``values`` has one column per
+    candidate slot (``n_actions = k``) and the slot that minimises it names the command."""
+
+    candidates: NeighbourCommands | None = None
+    continuous: ClassVar[bool] = True
+
+    def pairs(self, phi: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """``[phi(x_i), u_i]`` for commands ``u`` of shape (n, m)."""
+        u = np.asarray(actions, dtype=np.float64).reshape(len(phi), -1)
+        return np.hstack([phi, u])
+
+    def commands(self, phi: np.ndarray) -> np.ndarray:
+        """The candidate commands of each row, ``(n, k, m)``."""
+        assert self.candidates is not None
+        return self.candidates(phi)
+
+    def all_pairs(self, phi: np.ndarray) -> np.ndarray:
+        """Every candidate of every row, slot-major: row ``j * n + i`` is ``(x_i, C_j(x_i))``."""
+        n = len(phi)
+        cand = self.commands(phi)
+        return np.hstack([np.tile(phi, (self.n_actions, 1)), cand.transpose(1, 0, 2).reshape(self.n_actions * n, -1)])
+
+
+def command_encoder(q: Any) -> CommandEncoder | None:
+    """The :class:`CommandEncoder` of a Q-function (or of a time-indexed Q's steps), else None."""
+    enc = getattr(q, "encoder", None)
+    if enc is None and hasattr(q, "qs"):
+        enc = getattr(q.qs[0], "encoder", None)
+    return enc if isinstance(enc, CommandEncoder) else None
 
 
 def predict_model(model: Any, X: np.ndarray, leaf_values: np.ndarray | None = None) -> np.ndarray:

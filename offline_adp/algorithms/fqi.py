@@ -18,6 +18,25 @@ dynamics are stationary)::
         y_i = c_i + gamma * (1 - terminated_i) * min_a' Q_{t+1}(x'_i, a')
         Q_t = LEARN({((x_i, a_i), y_i)})
 
+Continuous commands (``commands="continuous"``; the default on a dataset whose action
+table is ``continuous``): ``Q(x, u)`` takes the exact logged command ``u`` as input, and the
+minimum over ``a'`` runs over the candidate set ``C(x')`` of the next state, the commands
+logged at the ``n_candidates`` logged states nearest to ``x'``
+(:class:`~offline_adp.qfunctions.NeighbourCommands`; batch-constrained, as in Fujimoto et
+al. 2019)::
+
+    y_i = c_i + gamma * (1 - terminated_i) * min_{u' in C(x'_i)} Q_{k-1}(x'_i, u')
+    Q_k = LEARN({((x_i, u_i), y_i)})
+
+and the greedy policy is ``argmin_{u in C(x)} Q(x, u)``. What it guarantees: neither the
+backup nor the policy ever uses a command that was not logged at one of the
+``n_candidates`` logged states nearest to the state in question, so the minimum cannot
+run to a command where Q was never fitted (the chapter's warning about the min over
+actions); the price is that a command between logged ones is not chosen unless it was
+logged nearby. With a fixed ``C(x')`` per next state the backup is still a
+gamma-contraction for a fixed tree structure (an averager; the frozen mode's
+convergence statement holds unchanged).
+
 Fitted Q *evaluation* (Algorithms 12/13, :mod:`offline_adp.algorithms.fqe`) is the same
 loop, :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`, with another backup (the policy's expectation instead of the
 minimum, :mod:`offline_adp.algorithms.fqi_data`). ``terminated`` transitions (goal or
@@ -65,8 +84,8 @@ from offline_adp.learn import (
     TreeScreen,
     check_structure_fractions,
 )
-from offline_adp.policies import GreedyPolicy, attach_signature
-from offline_adp.qfunctions import QFunction, TimeIndexedQ
+from offline_adp.policies import GreedyCommandPolicy, GreedyPolicy, attach_signature
+from offline_adp.qfunctions import QFunction, TimeIndexedQ, command_encoder
 from offline_adp.regressors import REGRESSORS, make_regressor, predict_n_jobs
 
 #: default frozen schedule: structures per iteration (8 over 100 iterations; docs/fqi-modes.md)
@@ -215,12 +234,24 @@ class FittedQIteration(CheckedEstimator):
         default. The value bound grows by ``max |Q_0|``.
     random_state : int
         Seeds the split and, as ``random_state + k``, the regressor at iteration k.
+    commands : {"auto", "continuous", "binned"}
+        What an action is. ``"continuous"``: the exact command vector of each row (the
+        dataset's ``action_value.<dim>`` columns), minimised over each state's candidate
+        commands (module docstring); ``"binned"``: the action table's entries (bins of a
+        continuous command, or a discrete table); ``"auto"`` (default): continuous where
+        the dataset's action table is ``continuous``, else the table.
+    n_candidates : int
+        Continuous commands: the candidate set of a state is the commands logged at its
+        ``n_candidates`` nearest logged states (default 16).
 
     Attributes
     ----------
     q_function_ : QFunction
         ``Q`` (infinite horizon) or a :class:`TimeIndexedQ` over ``Q_0..Q_{T-1}``.
-    policy_ : GreedyPolicy
+    policy_ : GreedyPolicy or GreedyCommandPolicy
+        The latter for continuous commands: ``act`` returns command vectors.
+    commands_ : str
+        ``"continuous"`` or ``"binned"``: what the fit's actions were.
     mode_ : str
         The mode that ran (``mode`` with ``"auto"`` resolved).
     history_ : pandas.DataFrame
@@ -268,6 +299,8 @@ class FittedQIteration(CheckedEstimator):
         "screen_tol": [NON_NEGATIVE],
         "early_build_trees": [POSITIVE_INT, None],
         "tree_builder": [StrOptions({"auto", "sklearn"})],
+        "commands": [StrOptions({"auto", "continuous", "binned"})],
+        "n_candidates": [Interval(Integral, 1, 4096, closed="both")],
     }
 
     def __init__(
@@ -299,6 +332,8 @@ class FittedQIteration(CheckedEstimator):
         screen_tol: float = 0.005,
         early_build_trees: int | None = None,
         tree_builder: str = "auto",
+        commands: str = "auto",
+        n_candidates: int = 16,
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -327,6 +362,8 @@ class FittedQIteration(CheckedEstimator):
         self.screen_tol = screen_tol
         self.early_build_trees = early_build_trees
         self.tree_builder = tree_builder
+        self.commands = commands
+        self.n_candidates = n_candidates
 
     # ------------------------------------------------------------------ public API
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
@@ -419,11 +456,13 @@ class FittedQIteration(CheckedEstimator):
         disc = resolve_discount(ds.info, self.gamma, self.horizon,  # the package's one rule
                                 terminates=bool(len(ds)) and bool(ds.arrays().terminated.any()))
         self.gamma_, self.horizon_ = disc.gamma, disc.horizon
+        self.commands_ = resolve_commands(self, ds)
         data = prepare(ds, gamma=self.gamma_, horizon=self.horizon_, sample_weight=sample_weight,
                        validation_fraction=self.validation_fraction, random_state=self.random_state,
                        feature_map=self.feature_map, action_input=self.action_input,
                        action_encoding=self.action_encoding, infeasible_cost=self.infeasible_cost,
-                       target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__)
+                       target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__,
+                       n_candidates=self.n_candidates if self.commands_ == "continuous" else None)
         self._encoder = data.encoder
         return data
 
@@ -498,11 +537,22 @@ class FittedQIteration(CheckedEstimator):
                               max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)
 
     def _result_policy(self, q: QFunction) -> Any:
-        return GreedyPolicy(q)
+        return GreedyCommandPolicy(q) if command_encoder(q) is not None else GreedyPolicy(q)
 
     def _check_fitted(self) -> None:
         if getattr(self, "q_function_", None) is None:
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(dataset) first")
+
+
+def resolve_commands(est: Any, ds: TransitionDataset) -> str:
+    """``est.commands`` with ``"auto"`` resolved on ``ds`` (continuous where its action table
+    is); continuous commands refuse an ``initial_q`` (a Q over the table's entries)."""
+    at = ds.info.action_table
+    out = ("continuous" if at.continuous else "binned") if est.commands == "auto" else est.commands
+    if out == "continuous" and getattr(est, "initial_q", None) is not None:
+        raise invalid_parameter(est, "initial_q", "None with continuous commands (a Q over the action table's "
+                                "entries cannot start a Q over commands)", est.initial_q)
+    return out
 
 
 def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
@@ -566,7 +616,7 @@ def load_fqi(directory: Any) -> FittedQIteration:
     est.q_functions_ = list(q.qs) if isinstance(q, TimeIndexedQ) else None
     est.horizon_ = len(q.qs) if isinstance(q, TimeIndexedQ) else None
     est.gamma_ = meta.get("gamma", est.gamma)
-    est.policy_ = GreedyPolicy(q)
+    est.policy_ = est._result_policy(q)
     est.history_ = pd.read_csv(d / "history.csv")
     est.verdict_, est.verdict_message_ = meta.get("verdict"), meta.get("verdict_message")
     est.diverged_ = est.verdict_ == "diverging"

@@ -22,7 +22,7 @@ import numpy as np
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import InvalidArgumentError
-from offline_adp.qfunctions import QEncoder
+from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, QEncoder
 
 
 @dataclass(frozen=True)
@@ -30,7 +30,7 @@ class Samples:
     """One set of transitions as the loop needs them."""
 
     phi: np.ndarray  #: phi(x_i), (n, d)
-    actions: np.ndarray  #: a_i, (n,) int
+    actions: np.ndarray  #: a_i, (n,) int; continuous commands: u_i, (n, m) float
     cost: np.ndarray  #: c_i
     no_boot: np.ndarray  #: terminated (or infeasible): no bootstrap
     phi_next: np.ndarray  #: phi(x'_i)
@@ -96,8 +96,10 @@ def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: flo
 def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
-            initial_q_abs: float, who: str) -> Prepared:
-    """Validate the dataset and build the loop's inputs (see the module docstring)."""
+            initial_q_abs: float, who: str, n_candidates: int | None = None) -> Prepared:
+    """Validate the dataset and build the loop's inputs (see the module docstring).
+    ``n_candidates``: learn over the dataset's exact continuous commands, the minimum over
+    each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`)."""
     if not isinstance(ds, TransitionDataset):
         raise TypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
@@ -129,30 +131,54 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         fmap = clone(feature_map).fit(a.obs[tr])
     at = ds.info.action_table
     af = at.values if action_input == "value" else np.eye(len(at))
-    enc = QEncoder(len(at), af, per_action=action_encoding == "per_action", feature_map=fmap)
+    enc: QEncoder = QEncoder(len(at), af, per_action=action_encoding == "per_action", feature_map=fmap)
     no_boot = a.terminated.copy()
     if infeasible_cost is not None:
         no_boot |= a.cost >= infeasible_cost
     phi_obs, phi_next = enc.phi(a.obs), enc.phi(a.next_obs)
+    actions: np.ndarray = a.action.astype(np.int64, copy=False)
+    if n_candidates is not None:  # continuous commands: u_i itself, and C(x') from the training rows
+        actions = logged_commands(ds, who)
+        if action_encoding == "per_action":
+            raise InvalidArgumentError(f"{who}: continuous commands need action_encoding='joint' (a model per "
+                                       "command cannot exist)")
+        cands = NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates)
+        enc = CommandEncoder(cands.k, np.zeros((cands.k, actions.shape[1])), feature_map=fmap, candidates=cands)
 
     def samples(rows: np.ndarray) -> Samples:
         if rows.all():  # every row: read-only views, not copies (the dataset's arrays at 1M rows: ~0.1 GB)
-            return Samples(*(_read_only(v) for v in (phi_obs, a.action.astype(np.int64, copy=False), a.cost, no_boot,
-                                                     phi_next, a.next_obs)))
-        return Samples(phi_obs[rows], a.action[rows].astype(np.int64), a.cost[rows], no_boot[rows], phi_next[rows],
-                       a.next_obs[rows])
+            return Samples(*(_read_only(v) for v in (phi_obs, actions, a.cost, no_boot, phi_next, a.next_obs)))
+        return Samples(phi_obs[rows], actions[rows], a.cost[rows], no_boot[rows], phi_next[rows], a.next_obs[rows])
 
     start = (a.step == 0) & tr
     bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs)
     return Prepared(
         train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
-        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=len(at), encoder=enc, obs=_read_only(a.obs) if tr.all() else a.obs[tr],
+        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=enc.n_actions, encoder=enc, obs=_read_only(a.obs) if tr.all() else a.obs[tr],
         obs_std=a.obs.std(axis=0) + 1e-12,
         start_phi=phi_obs[start] if start.any() else phi_obs[tr][:1],
         start_obs=a.obs[start] if start.any() else a.obs[tr][:1],
         start_rows=np.flatnonzero(start[tr]) if start.any() else np.zeros(1, np.int64),
         bound=float(bound), bound_text=text, infeasible_cost=infeasible_cost, q0_abs=float(initial_q_abs),
     )
+
+
+def logged_commands(ds: TransitionDataset, who: str) -> np.ndarray:
+    """The exact command of every row, ``(n, m)``, checked finite; an error naming the
+    dataset's action table when it does not carry them."""
+    u = ds.commands()
+    at = ds.info.action_table
+    if u is None:
+        raise InvalidArgumentError(
+            f"{who}: continuous commands need the exact command of each row (columns {at.command_columns}); this "
+            f"dataset's action table is {at.kind!r} without them. Ingest the commands with type = 'continuous' and "
+            "no bins, or fit with commands='binned'")
+    bad = ~np.isfinite(u)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise InvalidArgumentError(f"{who}: row {int(i)} column {at.command_columns[j]!r}: command is not finite "
+                                   f"({u[i, j]!r}); run `offline-adp validate` on the dataset")
+    return u
 
 
 class Backup(Protocol):

@@ -70,7 +70,10 @@ class Learner:
     def __init__(self, spec: LearnSpec) -> None:
         self.spec = spec
         self.regressor, self.encoder = spec.regressor, spec.encoder
-        self.phi, self.actions = spec.phi, np.asarray(spec.actions, dtype=np.int64)
+        # continuous commands (a CommandEncoder): each pair's command vector, else action indices
+        self.phi = spec.phi
+        self.actions = (np.asarray(spec.actions, dtype=np.float64) if spec.encoder.continuous
+                        else np.asarray(spec.actions, dtype=np.int64))
         self.weights, self.seed = spec.weights, spec.seed
         self.queries: dict[str, Query] = {"train": (self.phi, self.actions), **spec.queries}
 

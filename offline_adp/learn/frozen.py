@@ -233,7 +233,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         self._init_builds(schedule)
         phi_next = self.queries["next"][0] if "next" in self.queries else None
         same = np.zeros(len(self.phi), bool)
-        if phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape:
+        # (with continuous commands a next state's candidates need not hold the next row's command)
+        if (phi_next is not None and len(self.phi) > 1 and phi_next.shape == self.phi.shape
+                and not self.encoder.continuous):
             same[1:] = (self.phi[1:] == phi_next[:-1]).all(axis=1)
         self.reuse = np.flatnonzero(same)  # training row i's input is next-query row i - 1's (with a_i)
         self._pos: dict[str, np.ndarray] = {}  # the query sets' leaf positions (tree-major int32)

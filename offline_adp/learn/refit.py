@@ -39,7 +39,7 @@ class RefitLearner(Learner):
             return
         base = self.queries["next"][0]
         derived = [n for n in self._DERIVED if n in self.queries and self.queries[n][0].shape[1:] == base.shape[1:]]
-        if not derived:
+        if not derived or self.encoder.continuous:  # a state's candidates need not hold its logged command
             return
         idx, extra = _row_sources(base, [self.queries[n][0] for n in derived])
         self._source = dict(zip(derived, idx, strict=True))
