@@ -376,6 +376,14 @@ class GreedyCommandPolicy(CommandPolicy):
         return isinstance(self.q, TimeIndexedQ)
 
 
+def greedy_policy(q: Any) -> DeterministicPolicy:
+    """The greedy policy of ``q``: :class:`GreedyCommandPolicy` over continuous commands,
+    else :class:`GreedyPolicy`."""
+    from offline_adp.qfunctions import command_encoder
+
+    return GreedyCommandPolicy(q) if command_encoder(q) is not None else GreedyPolicy(q)
+
+
 class MixturePolicy(Policy):
     """``sum_k w_k pi_k``: at each time step a component is drawn with probability
     ``w_k`` and acts (so the action probabilities are the weighted sum). Conservative

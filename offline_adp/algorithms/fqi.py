@@ -84,8 +84,8 @@ from offline_adp.learn import (
     TreeScreen,
     check_structure_fractions,
 )
-from offline_adp.policies import GreedyCommandPolicy, GreedyPolicy, attach_signature
-from offline_adp.qfunctions import QFunction, TimeIndexedQ, command_encoder
+from offline_adp.policies import attach_signature, greedy_policy
+from offline_adp.qfunctions import QFunction, TimeIndexedQ
 from offline_adp.regressors import REGRESSORS, make_regressor, predict_n_jobs
 
 #: default frozen schedule: structures per iteration (8 over 100 iterations; docs/fqi-modes.md)
@@ -537,7 +537,7 @@ class FittedQIteration(CheckedEstimator):
                               max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)
 
     def _result_policy(self, q: QFunction) -> Any:
-        return GreedyCommandPolicy(q) if command_encoder(q) is not None else GreedyPolicy(q)
+        return greedy_policy(q)
 
     def _check_fitted(self) -> None:
         if getattr(self, "q_function_", None) is None:

@@ -34,6 +34,8 @@ from offline_adp.artifacts.estimators import (
 from offline_adp.errors import ArtifactError, FormatVersionWarning
 from offline_adp.qfunctions import (
     BoostedSumQ,
+    CommandEncoder,
+    NeighbourCommands,
     QEncoder,
     QFunction,
     RegressorQ,
@@ -125,12 +127,40 @@ def _read_time_indexed(spec: dict[str, Any], arrays: Any, where: str) -> QFuncti
 def _write_encoder(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
     enc = q.encoder
     arrays[f"{key}.action_features"] = enc.action_features
-    return {
+    out = {
         "n_actions": enc.n_actions,
         "per_action": enc.per_action,
         "action_features": f"{key}.action_features",
         "feature_map": None if enc.feature_map is None else _export_estimator(enc.feature_map, arrays, f"{key}.phi"),
     }
+    if isinstance(enc, CommandEncoder):  # continuous commands: the candidate set's logged states and commands
+        c = enc.candidates
+        assert c is not None
+        for name in ("points", "commands", "center", "scale"):
+            arrays[f"{key}.candidates.{name}"] = getattr(c, name)
+        out["candidates"] = {"kind": "neighbour_commands", "k": c.k,
+                             **{name: f"{key}.candidates.{name}" for name in ("points", "commands", "center", "scale")}}
+    return out
+
+
+def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int, n_dims: int) -> NeighbourCommands:
+    """A :class:`NeighbourCommands` from an encoder entry, every array checked (shapes agree,
+    finite, positive scales, ``k`` = the encoder's candidate slots <= the logged states)."""
+    c = e.get("candidates")
+    if not isinstance(c, dict) or c.get("kind") != "neighbour_commands":
+        raise ArtifactError(f"{where}: encoder.candidates must be a neighbour_commands entry")
+    got = {name: np.asarray(C.array(arrays, c.get(name), where, kinds="f", ndim=2 if name in ("points", "commands") else 1),
+                            dtype=np.float64) for name in ("points", "commands", "center", "scale")}
+    pts, cmd, center, scale = got["points"], got["commands"], got["center"], got["scale"]
+    k = C.check_int(c.get("k"), where, "encoder.candidates.k", 1, 4096)
+    if (len(pts) != len(cmd) or len(pts) < k or k != n_actions or cmd.shape[1] != n_dims
+            or center.shape != (pts.shape[1],) or scale.shape != center.shape):
+        raise ArtifactError(f"{where}: encoder.candidates: shapes points {pts.shape}, commands {cmd.shape}, center "
+                            f"{center.shape}, scale {scale.shape} with k={k} do not agree with {n_actions} slots of "
+                            f"{n_dims}-component commands")
+    if not all(np.isfinite(v).all() for v in got.values()) or not (scale > 0).all():
+        raise ArtifactError(f"{where}: encoder.candidates: non-finite values or a scale <= 0")
+    return NeighbourCommands(pts, cmd, center, scale, k)
 
 
 def _write_boosted_sum(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
@@ -181,7 +211,14 @@ def _read_encoded(spec: dict[str, Any], arrays: Any, where: str, build: Any) -> 
     if not isinstance(per_action, bool):
         raise ArtifactError(f"{where}: encoder.per_action must be true or false")
     fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where, "feature_map")
-    q, widths = build(QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap))
+    if e.get("candidates") is None:
+        enc = QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap)
+    else:
+        if per_action:
+            raise ArtifactError(f"{where}: an encoder over continuous commands cannot be per action")
+        enc = CommandEncoder(n_actions, np.asarray(af, dtype=np.float64), False, fmap,
+                             candidates=_read_candidates(e, arrays, where, n_actions, af.shape[1]))
+    q, widths = build(enc)
     # the models' input width agrees with the encoder's; then one probe prediction
     k = 0 if per_action else af.shape[1]
     known = {w for w in widths if w is not None}
@@ -346,10 +383,21 @@ def _read_classifier(spec: dict[str, Any], arrays: Any, where: str) -> Any:
     return ClassifierPolicy(clf, n_actions, constant, fmap)
 
 
+def _read_greedy_command(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    from offline_adp.policies import GreedyCommandPolicy
+    from offline_adp.qfunctions import command_encoder
+
+    q = _import_q(spec.get("q"), arrays, where)
+    if command_encoder(q) is None:
+        raise ArtifactError(f"{where}: a greedy_command policy needs a Q-function over continuous commands")
+    return GreedyCommandPolicy(q)
+
+
 def _register_policies() -> None:
     """Register the package's policy kinds (on first use: policies import lazily to keep this module light)."""
     from offline_adp.policies import (
         ClassifierPolicy,
+        GreedyCommandPolicy,
         GreedyPolicy,
         MixturePolicy,
         NonStationaryPolicy,
@@ -359,6 +407,8 @@ def _register_policies() -> None:
 
     register_policy_kind("greedy", GreedyPolicy, lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")},
                          lambda spec, arrays, where: GreedyPolicy(_import_q(spec.get("q"), arrays, where)))  # type: ignore[arg-type]
+    register_policy_kind("greedy_command", GreedyCommandPolicy,
+                         lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")}, _read_greedy_command)
     register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {"n_actions": pi.n_actions},
                          lambda spec, arrays, where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
                                                                                1_000_000)))
@@ -400,8 +450,8 @@ def load_index_policy(directory: str | PathLike[str]) -> Any:
     """
     d = Path(directory)
     if not (d / "policy.json").exists() and (d / "q.json").exists():
-        from offline_adp.policies import GreedyPolicy
+        from offline_adp.policies import greedy_policy
 
-        return GreedyPolicy(load_q(d)[0])
+        return greedy_policy(load_q(d)[0])
     return _read(d, "policy", "policy", _import_policy, "policy")[0]
 
