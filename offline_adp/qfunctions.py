@@ -132,6 +132,21 @@ class NeighbourCommands:
         return self.commands[self.neighbours(phi)[1]]
 
 
+class PolicyCommands:
+    """The one candidate command of a state under a deterministic continuous policy,
+    ``C(x) = {pi(x)}``: fitted Q *evaluation* over commands backs up ``Q(x', pi(x'))``.
+    Reads observations, so the encoder it serves has no feature map."""
+
+    k = 1
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+
+    def __call__(self, phi: np.ndarray) -> np.ndarray:
+        u = np.asarray(self.policy.commands(np.asarray(phi, np.float64), 0), dtype=np.float64)
+        return u.reshape(len(phi), 1, -1)
+
+
 @dataclass(eq=False)
 class CommandEncoder(QEncoder):
     """A joint encoder over continuous commands: the regression input of ``(x, u)`` is
@@ -139,7 +154,7 @@ class CommandEncoder(QEncoder):
     ``k`` candidate commands (:class:`NeighbourCommands`), so ``values`` has one column per
     candidate slot (``n_actions = k``) and the slot that minimises it names the command."""
 
-    candidates: NeighbourCommands | None = None
+    candidates: NeighbourCommands | PolicyCommands | None = None
     continuous: ClassVar[bool] = True
 
     def pairs(self, phi: np.ndarray, actions: np.ndarray) -> np.ndarray:

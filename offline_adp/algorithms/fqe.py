@@ -40,13 +40,32 @@ from offline_adp.algorithms.fqe_bootstrap import (
     support_operators,
 )
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
+from offline_adp.algorithms.fqi_data import GreedyBackup, PolicyBackup, Prepared
 from offline_adp.algorithms.fqi_loop import FitState, run_fitted_q
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import NotFittedError
+from offline_adp.errors import InvalidArgumentError, NotFittedError
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import Policy, is_stationary
-from offline_adp.qfunctions import QFunction
+from offline_adp.qfunctions import PolicyCommands, QFunction
+
+
+def check_command_policy(est: Any, dataset: TransitionDataset) -> None:
+    """A continuous policy can be evaluated on ``dataset``: it carries exact commands of
+    the policy's width, and the policy is stationary (its command does not depend on t)."""
+    if est.commands == "binned":
+        raise InvalidArgumentError(f"{type(est).__name__}: the policy commands continuous values; "
+                                   "commands='binned' cannot evaluate it (use 'auto' or 'continuous')")
+    u = dataset.commands()
+    if u is None:
+        raise InvalidArgumentError(f"{type(est).__name__}: the policy commands continuous values, the dataset "
+                                   f"carries no exact commands ({dataset.info.action_table.command_columns})")
+    if getattr(est.policy, "time_varying", False):
+        raise InvalidArgumentError(f"{type(est).__name__}: a time-varying continuous policy cannot be evaluated yet "
+                                   "(its command would depend on the step)")
+    probe = np.asarray(est.policy.commands(dataset.arrays().obs[:1], 0))
+    if probe.shape != (1, u.shape[1]):
+        raise InvalidArgumentError(f"{type(est).__name__}: the policy's commands have shape {probe.shape[1:]}, the "
+                                   f"dataset's {u.shape[1]} components {list(dataset.info.action_table.dims)}")
 
 
 class FittedQEvaluation(FittedQIteration):
@@ -59,10 +78,14 @@ class FittedQEvaluation(FittedQIteration):
         required by ``fit``.
     horizon, gamma, regressor, regressor_params, action_encoding, action_input, feature_map, \
 n_iterations, tol, rtol, trees_per_iteration, infeasible_cost, target_noise, next_state_noise, \
-validation_fraction, on_divergence, patience, divergence_slack, initial_q, random_state, tree_builder
+validation_fraction, on_divergence, patience, divergence_slack, initial_q, random_state, tree_builder, \
+commands, n_candidates
         As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s, with the same
         defaults and allowed values (``tests/test_estimator_checks.py`` holds them
         equal); the loop backs up ``sum_a' pi(a' | x') Q(x', a')`` instead of the minimum.
+        A deterministic continuous policy (``policy.commands``) on a dataset of exact
+        commands is evaluated over commands (``commands="auto"``): ``Q(x, u)`` on the
+        logged commands, the backup ``Q(x', pi(x'))``; ``n_candidates`` is not used.
     mode : {"refit", "auto", "frozen", "warm_start"}, default "refit"
         As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``).
     n_structures : int or None, default 4
@@ -110,7 +133,8 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
-                 structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto") -> None:
+                 structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto",
+                 commands: str = "auto", n_candidates: int = 16) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
@@ -121,7 +145,7 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
                          n_structures=n_structures, structure_max_samples=structure_max_samples,
                          screen_trees=None,  # the screen is about a greedy backup's min
                          early_build_trees=None,  # every build grows the whole forest
-                         tree_builder=tree_builder)
+                         tree_builder=tree_builder, commands=commands, n_candidates=n_candidates)
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
                  *, deferred: bool = False):
@@ -130,15 +154,28 @@ validation_fraction, on_divergence, patience, divergence_slack, initial_q, rando
             raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
         if not isinstance(dataset, TransitionDataset):
             raise TypeError(f"FittedQEvaluation.fit needs a TransitionDataset, got {type(dataset).__name__}")
-        if self.policy.n_actions != dataset.n_actions:
+        continuous = getattr(self.policy, "continuous", False)
+        if continuous:
+            check_command_policy(self, dataset)
+        elif self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
         yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup, deferred=deferred)
         a = dataset.arrays()
         start = a.step == 0
         x0 = a.obs[start] if start.any() else a.obs[:1]
-        self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
+        if getattr(self, "commands_", None) == "continuous":  # Q(x0, pi(x0)): the one candidate
+            self.value_ = float(self.q_function_.values(x0, 0)[:, 0].mean())
+        else:
+            self.value_ = float((self.policy.probabilities(x0, 0) * self.q_function_.values(x0, 0)).sum(axis=1).mean())
 
-    def _backup(self, data: Prepared) -> PolicyBackup:
+    def _policy_commands(self) -> Any:
+        """Over continuous commands the backup's candidate is the policy's command,
+        ``V(x') = Q(x', pi(x'))`` (Algorithm 13 for a deterministic continuous policy)."""
+        return PolicyCommands(self.policy) if getattr(self.policy, "continuous", False) else None
+
+    def _backup(self, data: Prepared) -> Any:
+        if data.encoder.continuous:  # one candidate per state, the policy's command: the min is its value
+            return GreedyBackup()
         sets = {"next": data.train.next_obs, "start": data.start_obs}
         if data.valid is not None:
             sets["valid_next"] = data.valid.next_obs

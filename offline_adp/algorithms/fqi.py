@@ -462,9 +462,15 @@ class FittedQIteration(CheckedEstimator):
                        feature_map=self.feature_map, action_input=self.action_input,
                        action_encoding=self.action_encoding, infeasible_cost=self.infeasible_cost,
                        target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__,
-                       n_candidates=self.n_candidates if self.commands_ == "continuous" else None)
+                       n_candidates=self.n_candidates if self.commands_ == "continuous" else None,
+                       policy_commands=self._policy_commands())
         self._encoder = data.encoder
         return data
+
+    def _policy_commands(self) -> Any:
+        """The candidate set of an evaluation over continuous commands (FQE: the policy's
+        command); None: the commands logged at the nearest logged states."""
+        return None
 
     def iteration_plan(self) -> tuple[int, int]:
         """``(K_b, K_max)`` of a fit: the iterations the frozen builds are spread over, and
@@ -546,9 +552,12 @@ class FittedQIteration(CheckedEstimator):
 
 def resolve_commands(est: Any, ds: TransitionDataset) -> str:
     """``est.commands`` with ``"auto"`` resolved on ``ds`` (continuous where its action table
-    is); continuous commands refuse an ``initial_q`` (a Q over the table's entries)."""
+    is; for an evaluation, where the policy commands continuous values); continuous
+    commands refuse an ``initial_q`` (a Q over the table's entries)."""
     at = ds.info.action_table
-    out = ("continuous" if at.continuous else "binned") if est.commands == "auto" else est.commands
+    policy = getattr(est, "policy", None)  # an evaluation: what the policy commands decides
+    auto = getattr(policy, "continuous", False) if policy is not None else at.continuous
+    out = ("continuous" if auto else "binned") if est.commands == "auto" else est.commands
     if out == "continuous" and getattr(est, "initial_q", None) is not None:
         raise invalid_parameter(est, "initial_q", "None with continuous commands (a Q over the action table's "
                                 "entries cannot start a Q over commands)", est.initial_q)

@@ -22,7 +22,7 @@ import numpy as np
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import InvalidArgumentError
-from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, QEncoder
+from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, PolicyCommands, QEncoder
 
 
 @dataclass(frozen=True)
@@ -96,10 +96,12 @@ def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: flo
 def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
-            initial_q_abs: float, who: str, n_candidates: int | None = None) -> Prepared:
+            initial_q_abs: float, who: str, n_candidates: int | None = None,
+            policy_commands: PolicyCommands | None = None) -> Prepared:
     """Validate the dataset and build the loop's inputs (see the module docstring).
     ``n_candidates``: learn over the dataset's exact continuous commands, the minimum over
-    each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`)."""
+    each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`), or,
+    for an evaluation, the policy's own command (``policy_commands``)."""
     if not isinstance(ds, TransitionDataset):
         raise TypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
@@ -142,7 +144,11 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         if action_encoding == "per_action":
             raise InvalidArgumentError(f"{who}: continuous commands need action_encoding='joint' (a model per "
                                        "command cannot exist)")
-        cands = NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates)
+        cands = (NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates) if policy_commands is None
+                 else policy_commands)
+        if policy_commands is not None and fmap is not None:
+            raise InvalidArgumentError(f"{who}: evaluating a continuous policy reads the states themselves; "
+                                       "feature_map must be None")
         enc = CommandEncoder(cands.k, np.zeros((cands.k, actions.shape[1])), feature_map=fmap, candidates=cands)
 
     def samples(rows: np.ndarray) -> Samples:
