@@ -376,6 +376,18 @@ class GreedyCommandPolicy(CommandPolicy):
         return isinstance(self.q, TimeIndexedQ)
 
 
+class NearestCommandPolicy(CommandPolicy):
+    """The command logged at the nearest logged state (a one-nearest-neighbour clone of the
+    behaviour): approximate policy iteration's default start over continuous commands."""
+
+    def __init__(self, candidates: Any) -> None:
+        self.candidates = candidates  # a NeighbourCommands (its k ignored: the nearest one)
+
+    def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        rows = self.candidates.neighbours(np.asarray(obs, np.float64))[1][:, 0]
+        return self.clip(self.candidates.commands[rows])
+
+
 def greedy_policy(q: Any) -> DeterministicPolicy:
     """The greedy policy of ``q``: :class:`GreedyCommandPolicy` over continuous commands,
     else :class:`GreedyPolicy`."""

@@ -174,6 +174,24 @@ class CommandEncoder(QEncoder):
         return np.hstack([np.tile(phi, (self.n_actions, 1)), cand.transpose(1, 0, 2).reshape(self.n_actions * n, -1)])
 
 
+def with_candidates(q: Any, candidates: NeighbourCommands | PolicyCommands) -> Any:
+    """``q`` (a Q-function over continuous commands, or a time-indexed one) reading another
+    candidate set: the same models, ``values`` over ``candidates`` (e.g. the greedy
+    improvement of an evaluation, whose own candidate is the evaluated policy's command)."""
+    import copy
+
+    if hasattr(q, "qs"):
+        return TimeIndexedQ([with_candidates(x, candidates) for x in q.qs])
+    enc = command_encoder(q)
+    if enc is None:
+        raise TypeError(f"{type(q).__name__} is not a Q-function over continuous commands")
+    out = copy.copy(q)
+    out.encoder = CommandEncoder(candidates.k, np.zeros((candidates.k, enc.action_features.shape[1])),
+                                 feature_map=enc.feature_map, candidates=candidates)
+    out.n_actions = candidates.k
+    return out
+
+
 def command_encoder(q: Any) -> CommandEncoder | None:
     """The :class:`CommandEncoder` of a Q-function (or of a time-indexed Q's steps), else None."""
     enc = getattr(q, "encoder", None)

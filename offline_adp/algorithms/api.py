@@ -10,6 +10,13 @@ greedily, repeat::
         pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)        # greedy improvement
         stop if pi_{k+1} = pi_k on every state of D, or after the budget
         (optional) D = D + episodes of pi_{k+1}
+
+Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
+``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
+the improvement minimises over ``C(x)``, the commands logged at the evaluator's
+``n_candidates`` nearest logged states (as FittedQIteration's backup), so no policy ever
+commands what the logs did not try near ``x``; ``pi_0`` is the command logged at the
+nearest logged state, and "changed" counts states whose command vector changed.
 """
 
 from __future__ import annotations
@@ -23,14 +30,45 @@ from sklearn.base import clone
 from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
-from offline_adp.algorithms.params import NON_NEGATIVE_INT, POSITIVE_INT, SEED, CheckedEstimator
+from offline_adp.algorithms.fqi_data import logged_commands
+from offline_adp.algorithms.params import (
+    NON_NEGATIVE_INT,
+    POSITIVE_INT,
+    SEED,
+    CheckedEstimator,
+    invalid_parameter,
+)
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.policies import GreedyPolicy, Policy, UniformPolicy, attach_signature
+from offline_adp.policies import (
+    GreedyCommandPolicy,
+    GreedyPolicy,
+    NearestCommandPolicy,
+    Policy,
+    UniformPolicy,
+    attach_signature,
+)
+from offline_adp.qfunctions import NeighbourCommands, with_candidates
 
 
 def _greedy_actions(policy: Policy, obs: np.ndarray, horizon: int | None) -> np.ndarray:
     steps = range(horizon) if horizon else [0]
+    if getattr(policy, "continuous", False):  # the commands themselves
+        return np.stack([policy.commands(obs, t) for t in steps])  # type: ignore[attr-defined]
     return np.stack([policy.probabilities(obs, t).argmax(axis=1) for t in steps])
+
+
+def _continuous(proto: FittedQEvaluation, dataset: TransitionDataset) -> bool:
+    """Whether the iteration runs over continuous commands: the evaluator's ``commands``,
+    with ``"auto"`` resolved by the dataset's action table."""
+    return proto.commands == "continuous" or (proto.commands == "auto" and dataset.info.action_table.continuous)
+
+
+def _improve(q: Any, candidates: Any) -> Policy:
+    """``pi_{k+1} = argmin_a Q^{pi_k}(x, a)``; over continuous commands the minimum runs over
+    the commands logged at the nearest logged states (FittedQIteration's candidate set)."""
+    if candidates is None:
+        return GreedyPolicy(q)
+    return GreedyCommandPolicy(with_candidates(q, candidates))
 
 
 class ApproximatePolicyIteration(CheckedEstimator):
@@ -83,7 +121,17 @@ class ApproximatePolicyIteration(CheckedEstimator):
         self._validate_params()  # scikit-learn's, on _parameter_constraints
         self._check_param_combinations()
         proto = self.fqe if self.fqe is not None else FittedQEvaluation()
-        pi: Policy = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
+        cands = None
+        if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states
+            cands = NeighbourCommands.from_data(dataset.arrays().obs, logged_commands(dataset, type(self).__name__),
+                                                proto.n_candidates)
+            if proto.feature_map is not None:
+                raise invalid_parameter(self, "fqe", "an evaluator without feature_map over continuous commands",
+                                        proto)
+        start = UniformPolicy(dataset.n_actions) if cands is None else NearestCommandPolicy(cands)
+        pi: Policy = self.initial_policy if self.initial_policy is not None else start
+        if cands is not None:
+            attach_signature(pi, dataset)
         rng = np.random.default_rng(self.random_state)
         data, w = dataset, sample_weight
         rows: list[dict[str, Any]] = []
@@ -91,10 +139,12 @@ class ApproximatePolicyIteration(CheckedEstimator):
         for k in range(self.n_iterations):
             t0 = time.perf_counter()
             fqe = clone(proto).set_params(policy=pi).fit(data, sample_weight=w)  # Q^{pi_k}
-            improved = GreedyPolicy(fqe.q_function_)  # pi_{k+1} = argmin_a Q^{pi_k}
+            improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
+            attach_signature(improved, dataset)
             states = np.vstack([data.arrays().obs, data.arrays().next_obs])
             actions = _greedy_actions(improved, states, proto.horizon)
-            changed = 1.0 if prev_actions is None or prev_actions.shape != actions.shape else float((actions != prev_actions).mean())
+            same = actions == prev_actions if prev_actions is not None and prev_actions.shape == actions.shape else None
+            changed = 1.0 if same is None else float(1.0 - (same.all(axis=-1) if cands is not None else same).mean())
             rows.append({"iteration": k, "value": fqe.value_, "changed": changed, "n_transitions": len(data),
                          "fit_seconds": time.perf_counter() - t0})
             self.q_function_, self.policy_, self.fqe_ = fqe.q_function_, improved, fqe

@@ -39,6 +39,7 @@ from offline_adp.algorithms.params import (
     SEED,
     CheckedEstimator,
     invalid_parameter,
+    refuse_continuous,
 )
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.policies import (
@@ -138,6 +139,7 @@ class ConservativePolicyIteration(CheckedEstimator):
         self._validate_params()  # scikit-learn's, on _parameter_constraints
         self._check_param_combinations()
         self.simulator_steps_ = 0
+        refuse_continuous(type(self).__name__, dataset)
         pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
         pi = MixturePolicy([pi0], [1.0])
         value = self._estimate(pi, dataset, sample_weight)

@@ -28,6 +28,8 @@ import numpy as np
 from sklearn.base import BaseEstimator
 from sklearn.utils._param_validation import Interval, InvalidParameterError
 
+from offline_adp.errors import IncompatibleError
+
 __all__ = ["CheckedEstimator", "InvalidParameterError", "invalid_parameter", "check_learner",
            "POSITIVE_INT", "NON_NEGATIVE_INT", "SEED", "FRACTION", "NON_NEGATIVE", "GAMMA"]
 
@@ -89,3 +91,15 @@ def check_learner(est: Any, name: str, params_name: str, make: Any, spec: Any, p
         except InvalidParameterError as exc:
             inner = re.sub(r"^The ('\w+') parameter of (\w+) (.*)\. Got .*$", r"\2's \1 \3", " ".join(str(exc).split()))
             raise invalid_parameter(est, params_name, f"parameters {name} accepts ({inner})", params) from None
+
+
+def refuse_continuous(name: str, ds: Any) -> None:
+    """CPI and PSDP learn over the action table's entries (mixtures of policies, classifiers
+    over actions): a dataset of continuous commands is refused rather than fitted on its
+    bins behind the user's back."""
+    at = getattr(getattr(ds, "info", None), "action_table", None)
+    if at is not None and at.continuous:
+        raise IncompatibleError(
+            f"{name} learns over a finite action table and does not take continuous commands ({list(at.dims)} in this "
+            "dataset); fit 'fqi' or 'api' (both learn over the exact commands), or ingest the commands with bins "
+            "(type = 'continuous' with n_bins or edges) to run it over the bins")

@@ -31,6 +31,7 @@ from typing import Any
 from pydantic import create_model
 from sklearn.utils._param_validation import InvalidParameterError
 
+from offline_adp.algorithms.params import refuse_continuous
 from offline_adp.config import ConfigModel, validate_config
 from offline_adp.errors import SpecError, UnknownNameError
 
@@ -206,6 +207,7 @@ def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 
 
 def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    refuse_continuous("cpi", ds)
     fqe = _make_fqe(p)
     return entry.estimator_class()(fqe=fqe, model=_simulator(p, ds), **p).fit(ds)
 
@@ -214,6 +216,7 @@ def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     from offline_adp.features import drop_features
 
     entry.check_complete(p)
+    refuse_continuous("psdp", ds)
     sim = _simulator(p, ds)
     source, drop = p.pop("baseline_source", None), p.pop("drop_features", None)
     baseline = ds.filter_source(source) if source else ds
