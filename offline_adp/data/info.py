@@ -77,7 +77,7 @@ class ActionTable:
         for key, b in (("low", self.low), ("high", self.high)):
             if b is not None and (len(b) != len(self.dims) or not all(np.isfinite(x) for x in b)):
                 raise SchemaError(f"action table {key}: {list(b)} must hold one finite number per dim {list(self.dims)}")
-        if self.low is not None and self.high is not None and any(lo > hi for lo, hi in zip(self.low, self.high)):
+        if self.low is not None and self.high is not None and any(lo > hi for lo, hi in zip(self.low, self.high, strict=True)):
             raise SchemaError(f"action table bounds: low {list(self.low)} exceeds high {list(self.high)}")
         for i, a in enumerate(self.actions):
             if len(a.value) != len(self.dims):
