@@ -515,7 +515,10 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         if aspec.type_declared:
             raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds lists (a command vector per row): "
                               "set action.type = 'continuous' (discrete actions are one label per row)")
-        aspec = replace(aspec, type="continuous")
+        aspec = replace(aspec, type="continuous", components=aspec.names, names=None)  # names: its components
+    elif aspec.type == "discrete" and (aspec.low is not None or aspec.high is not None or aspec.units is not None):
+        raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds one label per row: action.low/high/"
+                          "units are only for continuous commands (type = 'continuous')")
     commands: dict[str, Any] = {}
     widths = np.full(n, -1, np.int64)
     if aspec.type == "discrete":

@@ -343,7 +343,7 @@ def _action(a: ActionModel, w: str) -> ActionSpec:
             raise SpecError(f"{w}.names: {len(components)} names for {len(act.columns)} columns {list(act.columns)}")
     if act.units is not None and act.unit:
         raise SpecError(f"{w}: give either 'unit' (one for every component) or 'units' (one per component)")
-    if act.type == "discrete":
+    if a.type == "discrete" or vectors is not None:  # undeclared: a list column is a continuous command
         for key in ("low", "high", "units"):
             if getattr(a, key) is not None:
                 raise SpecError(f"{w}.{key}: only for continuous commands (type = 'continuous')")

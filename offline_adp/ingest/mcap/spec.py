@@ -244,7 +244,7 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
         if not isinstance(act_fields, dict) or not act_fields:
             raise SpecError(f"{where}.action.fields: map each component name to a field path, e.g. "
                             "{ v = 'linear.x', w = 'angular.z' }")
-    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS} | {"fields": act_fields},
+    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS - {"units"}} | {"fields": act_fields},
                          f"{where}.action", fields_required=False)
     action_bins: dict[str, Any] = {}
     if len(act_fields) == 1:
