@@ -39,7 +39,12 @@ from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import locked_directory, sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, ValidationError
-from offline_adp.ingest.actions import bin_continuous, command_actions, command_columns, map_discrete
+from offline_adp.ingest.actions import (
+    bin_continuous,
+    command_actions,
+    command_columns,
+    map_discrete,
+)
 from offline_adp.ingest.spec import TIME_UNITS, ActionSpec, ParquetSpec, load_parquet_spec
 
 

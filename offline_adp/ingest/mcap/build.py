@@ -16,7 +16,12 @@ from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import sha256_file, write_dataset
 from offline_adp.data.validate import split_quarantine, validate
 from offline_adp.errors import IngestError, SpecError, ValidationError
-from offline_adp.ingest.actions import bin_continuous, command_actions, command_columns, map_discrete
+from offline_adp.ingest.actions import (
+    bin_continuous,
+    command_actions,
+    command_columns,
+    map_discrete,
+)
 from offline_adp.ingest.mcap.assembler import _Recording
 from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
 from offline_adp.ingest.mcap.sources import resolve_sources
