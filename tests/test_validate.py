@@ -84,8 +84,39 @@ def test_each_defect_class_is_reported_with_file_row_column(check):
     assert check in rep.to_text() and "logs/bad.parquet: row" in rep.to_text()
 
 
+CONTINUOUS = DatasetInfo(features=(Feature("x"),), action_table=ActionTable(
+    actions=ActionTable.from_values([0.0, 1.0]).actions, dims=("u",), kind="continuous", low=(-1.0,), high=(1.0,)))
+#: checks of the exact commands (a continuous action table): (mutation, expected column)
+COMMAND_DEFECTS = {
+    "command_out_of_bounds": (lambda r: r[2].update({"action_value.u": 1.5}), "action_value.u"),
+    "command_width": (lambda r: [x.pop("action_value.u") for x in r], "action_value.u"),
+    "non_finite": (lambda r: r[2].update({"action_value.u": float("nan")}), "action_value.u"),
+}
+
+
+@pytest.mark.parametrize("check", sorted(COMMAND_DEFECTS))
+def test_each_command_defect_is_reported_with_file_row_column(check):
+    rows = _good()
+    for r in rows:
+        r["action_value.u"] = 0.25 * r[S.ACTION]
+    mutate, column = COMMAND_DEFECTS[check]
+    ds = TransitionDataset(pa.Table.from_pylist(rows), CONTINUOUS)
+    assert validate(ds).ok
+    mutate(rows if check == "command_width" else rows[4:8])
+    ds = TransitionDataset(pa.Table.from_pylist(rows), CONTINUOUS)
+    origin = RowOrigin(["logs/bad.parquet"], np.zeros(len(ds), int), np.arange(len(ds)) + 100)
+    rep = validate(ds, origin=origin)
+    hits = rep.findings[rep.findings["check"] == check]
+    assert len(hits) and set(hits["column"]) == {column}, rep.to_text()
+    assert hits.iloc[0]["file"] == "logs/bad.parquet"
+    if check != "command_width":  # a missing column: every episode (its first row)
+        assert set(rep.bad_episodes) == {"e1"} and hits.iloc[0]["row"] == 106, rep.to_text()
+    else:
+        assert set(rep.bad_episodes) == {"e0", "e1", "e2"}
+
+
 def test_every_check_is_covered_by_a_test():
-    assert set(DEFECTS) | DIRECTORY_CHECKS == set(CHECKS)
+    assert set(DEFECTS) | DIRECTORY_CHECKS | set(COMMAND_DEFECTS) == set(CHECKS)
 
 
 def test_terminated_and_truncated_on_one_row_is_terminated_and_counted():

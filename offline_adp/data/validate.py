@@ -15,6 +15,11 @@ Rules (check codes in brackets):
   [``value_out_of_range``]; no nulls in required columns, nor in
   ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
 - actions inside the action table [``action_out_of_range``];
+- continuous commands (an action table of kind ``"continuous"``, or ``action_value.<dim>``
+  columns kept next to binned actions): every component has its float column
+  [``command_width``; also an ingested list of the wrong length], is finite
+  [``non_finite``] and lies within the table's ``low``/``high`` (tolerance
+  :data:`COMMAND_BOUND_RTOL`) [``command_out_of_bounds``];
 - propensities in (0, 1] [``propensity_out_of_range``];
 - timestamps non-decreasing within an episode [``time_decreasing``].
 
@@ -53,6 +58,8 @@ CHECKS: tuple[str, ...] = (
     "non_finite",
     "value_out_of_range",
     "action_out_of_range",
+    "command_width",
+    "command_out_of_bounds",
     "propensity_out_of_range",
     "time_decreasing",
     "info_stale",
@@ -63,6 +70,9 @@ CHECKS: tuple[str, ...] = (
 #: Largest magnitude of an observation or cost the doctor accepts: squared errors of larger
 #: values overflow float64 (1.8e308) in every regressor, so a fit could only produce inf/NaN.
 MAX_ABS_VALUE = 1e150
+#: Relative tolerance of the command bounds (``max(1, |bound|)`` times this): round-off of a
+#: command written at its bound is not a finding.
+COMMAND_BOUND_RTOL = 1e-9
 _BLOCK = 1 << 16  # rows per block of the element-wise checks (their temporaries stay small)
 FINDING_COLUMNS = ["check", "file", "row", S.EPISODE_ID, S.STEP, "column", "message"]
 
@@ -169,6 +179,7 @@ def validate(
     origin: RowOrigin | None = None,
     atol: float = 1e-9,
     rtol: float = 1e-7,
+    extra: Sequence[tuple[str, np.ndarray, str, Any]] = (),
 ) -> ValidationReport:
     """Run every check on a dataset.
 
@@ -180,6 +191,10 @@ def validate(
         ``src_file``/``src_row`` columns, or ``"<memory>"`` and the dataset row index.
     atol, rtol : float
         Tolerance of the ``next_obs`` / ``obs`` continuity check.
+    extra : sequence of (check, mask, column, message)
+        Findings the ingestion made on the input that the table cannot show (a command list
+        of the wrong width: ``command_width``), one mask over the rows each; the command
+        checks skip those rows (their command is missing because of that finding).
     """
     t = ds.table
     n = t.num_rows
@@ -300,6 +315,12 @@ def validate(
         f"action index outside the action table [0, {ds.n_actions})",
     )
 
+    skip = np.zeros(n, bool)
+    for check, mask, column, message in extra:
+        add(check, mask, column, message)
+        skip |= mask
+    _check_commands(ds, add, first, skip)
+
     if S.BEHAVIOR_PROB in t.column_names:
         p = t.column(S.BEHAVIOR_PROB).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
         add(
@@ -327,6 +348,39 @@ def validate(
     f["check"] = f["check"].astype(str)
     return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both,
                             row_label=origin.label)
+
+
+def _check_commands(ds: TransitionDataset, add: Any, first: np.ndarray, skip: np.ndarray) -> None:
+    """The command checks (see the module docstring) on a dataset whose action table is
+    continuous or that carries ``action_value.<dim>`` columns; ``skip``: rows already
+    flagged for their command."""
+    t = ds.table
+    at = ds.info.action_table
+    cols = at.command_columns
+    present = [c in t.column_names for c in cols]
+    if not (at.continuous or any(present)):
+        return
+    lo, hi = at.bounds()
+    for j, c in enumerate(cols):
+        if not present[j] or not pa.types.is_floating(t.column(c).type):
+            what = "missing" if not present[j] else f"of type {t.column(c).type}, not float"
+            add("command_width", first, c,
+                f"the command column is {what}: the action table's commands have {len(at.dims)} components "
+                f"{list(at.dims)}, each kept in a float column action_value.<dim>")
+            continue
+        v = t.column(c).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)  # nulls -> NaN
+        finite = np.isfinite(v)
+        if not finite.all():
+            add("non_finite", ~finite & ~skip, c, "command is NaN, infinite or missing")
+        if np.isfinite(lo[j]) or np.isfinite(hi[j]):
+            lo_j, hi_j = float(lo[j]), float(hi[j])
+            tol_lo = COMMAND_BOUND_RTOL * max(1.0, abs(lo_j)) if np.isfinite(lo_j) else 0.0
+            tol_hi = COMMAND_BOUND_RTOL * max(1.0, abs(hi_j)) if np.isfinite(hi_j) else 0.0
+            with np.errstate(invalid="ignore"):
+                out = finite & ~skip & ((v < lo_j - tol_lo) | (v > hi_j + tol_hi))
+            add("command_out_of_bounds", out, c,
+                _messages(out, lambda i, v=v, lo_j=lo_j, hi_j=hi_j, d=at.dims[j]:
+                          f"command {d} = {float(v[i])!r} outside its bounds [{lo_j!r}, {hi_j!r}] (action.low/high)"))
 
 
 def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>") -> ValidationReport:

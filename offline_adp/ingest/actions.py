@@ -1,14 +1,23 @@
-"""Logged commands -> action indices: discrete mapping or binning of continuous commands.
+"""Logged commands -> action indices: discrete mapping, binning of continuous commands, or
+continuous commands kept as logged.
 
 Shared by Parquet and MCAP ingestion. Unmatched discrete values map to index -1 so the
-doctor reports them (with file and row) instead of dropping them.
+doctor reports them (with file and row) instead of dropping them. Continuous commands
+(:func:`command_actions`) are always kept exactly by the caller in ``action_value.<dim>``
+columns; the ``action`` index is then a bin of each command: the spec's bins (kind
+``"binned"``), or, for commands kept as logged (kind ``"continuous"``), coarse quantile bins
+per component (:func:`coarse_bins`) that only the discrete views use.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
-from offline_adp.data.info import Action, ActionTable
+from offline_adp.data.info import ACTION_VALUE_PREFIX, Action, ActionTable
 from offline_adp.errors import IngestError
 from offline_adp.ingest.spec import ActionSpec
 
@@ -135,3 +144,191 @@ def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") 
 
 def _isnan(x: np.ndarray) -> np.ndarray:
     return np.isnan(x) if x.dtype.kind == "f" else np.zeros(len(x), bool)
+
+
+#: Quantile bins per component of a command kept as logged (the product at most
+#: :data:`MAX_COARSE_CELLS` cells): the coarse ``action`` index of the discrete views.
+COARSE_BINS = 16
+MAX_COARSE_CELLS = 4096
+
+
+def command_units(spec: ActionSpec, k: int, *, where: str = "action") -> tuple[str, ...]:
+    """Unit of each of the ``k`` components (``units``, or ``unit`` for every one; ``()``
+    when none is given)."""
+    if spec.units is not None:
+        if len(spec.units) != k:
+            raise IngestError(f"{where}.units: {len(spec.units)} entries for a command of {k} components")
+        return tuple(spec.units)
+    return (spec.unit,) * k if spec.unit else ()
+
+
+def command_bounds(x: np.ndarray, spec: ActionSpec, dims: tuple[str, ...], *, infer: bool = True,
+                   where: str = "action") -> tuple[tuple[float, ...] | None, tuple[float, ...] | None]:
+    """``(low, high)`` of each component: the spec's ``low``/``high`` (one number applies to
+    every component), else - with ``infer`` - the logged minimum/maximum of the finite
+    commands (``None`` without ``infer``)."""
+    k = len(dims)
+    out: list[tuple[float, ...] | None] = []
+    for key in ("low", "high"):
+        v = getattr(spec, key)
+        if v is not None:
+            if len(v) == 1 and k > 1:
+                v = v * k
+            if len(v) != k:
+                raise IngestError(f"{where}.{key}: {len(v)} entries for a command of {k} components {list(dims)}")
+            out.append(tuple(float(b) for b in v))
+            continue
+        if not infer:
+            out.append(None)
+            continue
+        finite = np.isfinite(x)
+        empty = ~finite.any(axis=0)
+        if empty.any():
+            j = int(np.argmax(empty))
+            raise IngestError(f"{where}: component {dims[j]!r}: no finite command to infer its bounds from; declare "
+                              "low and high")
+        red = np.min if key == "low" else np.max
+        fill = np.inf if key == "low" else -np.inf
+        out.append(tuple(float(b) for b in red(np.where(finite, x, fill), axis=0)))
+    low, high = out
+    if low is not None and high is not None and any(lo > hi for lo, hi in zip(low, high, strict=True)):
+        # one bound declared, the other logged: the logged range lies beyond the declared bound
+        if spec.low is None:
+            low = tuple(min(lo, hi) for lo, hi in zip(low, high, strict=True))
+        elif spec.high is None:
+            high = tuple(max(lo, hi) for lo, hi in zip(low, high, strict=True))
+    return low, high
+
+
+def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | None = None,
+                high: tuple[float, ...] | None = None) -> tuple[np.ndarray, ActionTable]:
+    """Commands ``x`` (n, k) -> coarse bin index per row and a table of the bins.
+
+    Each component is cut at quantiles of its finite values (at most :data:`COARSE_BINS`
+    bins, the product at most :data:`MAX_COARSE_CELLS` cells); the index is row-major over
+    the components; each cell's value is the mean command in it (its centre when empty).
+    A non-finite component goes to an end bin (the index stays valid: the doctor reports
+    the command itself). The table has kind ``"continuous"``."""
+    n, k = x.shape
+    nb = max(1, min(COARSE_BINS, int(np.floor(MAX_COARSE_CELLS ** (1.0 / k) + 1e-9))))
+    per = []
+    for j in range(k):
+        col = x[:, j]
+        finite = col[np.isfinite(col)]
+        if len(finite):
+            edges = np.unique(np.quantile(finite, np.linspace(0, 1, nb + 1)))
+        elif low is not None and high is not None:
+            edges = np.unique([low[j], high[j]])
+        else:
+            edges = np.zeros(1)
+        if len(edges) < 2:
+            edges = np.array([edges[0] - 0.5, edges[-1] + 0.5])
+        m = len(edges) - 1
+        per.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, m - 1), (edges[:-1] + edges[1:]) / 2))
+    shape = tuple(len(c) for _, c in per)
+    idx = np.ravel_multi_index(tuple(i for i, _ in per), shape) if n else np.zeros(0, np.int64)
+    cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
+    values = np.column_stack([per[j][1][cells[:, j]] for j in range(k)])
+    ok = np.isfinite(x).all(axis=1)
+    counts = np.bincount(idx[ok], minlength=len(cells))
+    for j in range(k):
+        sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
+        values[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), values[:, j])
+    names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
+    table = ActionTable(actions=tuple(Action(nm, tuple(float(v) for v in row)) for nm, row in zip(names, values, strict=True)),
+                        dims=dims, kind="continuous", low=low, high=high)
+    return idx.astype(np.int32), table
+
+
+def bin_product(x: np.ndarray, bins: Mapping[str, Mapping[str, Any]], dims: tuple[str, ...], *, bin_value: str = "mean",
+                names: tuple[str, ...] | list[str] | None = None, units: tuple[str, ...] = (),
+                where: str = "action") -> tuple[np.ndarray, ActionTable]:
+    """A vector command ``x`` (n, k) binned per component (``bins[dim]``: ``{"edges": [...]}``
+    or ``{"n_bins": m}``; beyond the outer edges into the end bins) into the cells of the
+    product table (index row-major over the components; a row with a non-finite component
+    gets -1, which the doctor reports). Each cell's value is the mean command in it
+    (``bin_value = "mean"``; its centre when empty) or its centre. Kind ``"binned"``."""
+    per_dim = []
+    for j, d in enumerate(dims):
+        b = bins[d]
+        col = x[:, j]
+        finite = col[np.isfinite(col)]
+        if "edges" in b:
+            edges = np.asarray(b["edges"], dtype=np.float64)
+        else:
+            if not len(finite):
+                raise IngestError(f"{where}.{d}: no finite values to compute quantile bins")
+            edges = np.unique(np.quantile(finite, np.linspace(0, 1, int(b["n_bins"]) + 1)))
+            if len(edges) < 2:
+                edges = np.array([finite.min() - 0.5, finite.max() + 0.5])
+        nb = len(edges) - 1
+        lo = np.where(np.isfinite(edges[:-1]), edges[:-1], edges[1:])
+        hi = np.where(np.isfinite(edges[1:]), edges[1:], edges[:-1])
+        per_dim.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, nb - 1), (lo + hi) / 2, nb))
+    shape = tuple(nb for _, _, nb in per_dim)
+    ok = np.isfinite(x).all(axis=1)
+    idx = np.where(ok, np.ravel_multi_index(tuple(i for i, _, _ in per_dim), shape), -1)
+    cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
+    centre = np.column_stack([per_dim[j][1][cells[:, j]] for j in range(len(dims))])
+    vals = centre.copy()
+    if bin_value == "mean":
+        counts = np.bincount(idx[ok], minlength=len(cells))
+        for j in range(len(dims)):
+            sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
+            vals[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
+    values = [tuple(float(v) for v in row) for row in vals]
+    names = list(names) if names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True)) for row in values]
+    if len(set(names)) != len(names):  # equal representative values (e.g. empty cells): name by bin indices
+        names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
+    if len(names) != len(values):
+        raise IngestError(f"{where}.names has {len(names)} entries for {len(values)} actions")
+    table = ActionTable(actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)), dims=dims,
+                        kind="binned", units=units)
+    return idx.astype(np.int32), table
+
+
+def command_actions(x: np.ndarray, spec: ActionSpec, dims: tuple[str, ...], *, vector: bool,
+                    bins: Mapping[str, Mapping[str, Any]] | None = None, infer_binned_bounds: bool = True,
+                    where: str = "action") -> tuple[np.ndarray, ActionTable]:
+    """Continuous commands ``x`` (n, k), components ``dims`` -> (action index, action table).
+
+    - kept as logged (no ``edges``/``n_bins``): kind ``"continuous"`` with bounds (declared
+      or logged) and :func:`coarse_bins` as the index;
+    - a scalar command (``vector`` false) with bins: :func:`bin_continuous`, exactly as
+      before; bounds recorded only when declared (the table, hence the fingerprint, of an
+      existing spec stays the same);
+    - a vector command with bins: :func:`bin_product` (``bins`` per component, else the
+      spec's ``edges``/``n_bins`` for every component); bounds declared, or logged when
+      ``infer_binned_bounds``.
+
+    The caller keeps ``x`` in the ``action_value.<dim>`` columns (:func:`command_columns`).
+    """
+    x = np.asarray(x, dtype=np.float64).reshape(len(x), -1)
+    k = x.shape[1]
+    if len(dims) != k:
+        raise IngestError(f"{where}.names: {len(dims)} component names {list(dims)} for a command of {k} components")
+    units = command_units(spec, k, where=where)
+    if spec.exact and not bins:
+        low, high = command_bounds(x, spec, dims, where=where)
+        idx, table = coarse_bins(x, dims, low, high)
+        return idx, dataclasses.replace(table, units=units)
+    if not vector:
+        idx, table = bin_continuous(x[:, 0], dataclasses.replace(spec, dim=dims[0]), where=where)
+        low, high = command_bounds(x, spec, dims, infer=False, where=where)
+        if low is not None or high is not None or units != table.units:
+            table = dataclasses.replace(table, low=low, high=high, units=units)
+        return idx, table
+    if bins is None:
+        one = {"edges": spec.edges} if spec.edges is not None else {"n_bins": spec.n_bins}
+        bins = {d: one for d in dims}
+    idx, table = bin_product(x, bins, dims, bin_value=spec.bin_value, names=spec.names, units=units, where=where)
+    low, high = command_bounds(x, spec, dims, infer=infer_binned_bounds, where=where)
+    if low is not None or high is not None:
+        table = dataclasses.replace(table, low=low, high=high)
+    return idx, table
+
+
+def command_columns(x: np.ndarray, dims: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The exact commands as ``action_value.<dim>`` float64 columns."""
+    x = np.asarray(x, dtype=np.float64).reshape(len(x), -1)
+    return {ACTION_VALUE_PREFIX + d: np.ascontiguousarray(x[:, j]) for j, d in enumerate(dims)}

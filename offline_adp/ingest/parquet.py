@@ -20,7 +20,7 @@ from __future__ import annotations
 import datetime as _dt
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -39,8 +39,13 @@ from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import locked_directory, sha256_file, write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, ValidationError
-from offline_adp.ingest.actions import bin_continuous, map_discrete
-from offline_adp.ingest.spec import TIME_UNITS, ParquetSpec, load_parquet_spec
+from offline_adp.ingest.actions import (
+    bin_continuous,
+    command_actions,
+    command_columns,
+    map_discrete,
+)
+from offline_adp.ingest.spec import TIME_UNITS, ActionSpec, ParquetSpec, load_parquet_spec
 
 
 @dataclass
@@ -253,6 +258,60 @@ def _blockwise(mapper: Callable[..., tuple[np.ndarray, Any]], raw: np.ndarray, s
     return out, atable
 
 
+def _is_list(t: pa.DataType) -> bool:
+    return pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t)
+
+
+def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callable[[np.ndarray], str]
+              ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """The continuous command of every row, ``(n, k)`` float64 (missing values NaN: the
+    doctor reports them), each row's list length (-1 when not a list column or the list is
+    missing; a row of another width than ``k`` gets a NaN command), and the component names.
+
+    Several columns: one component each. A list column: the width is the number of
+    component names when the spec gives them, else the most common list length; a row
+    whose list has another length is flagged, never cut or padded."""
+    n = table.num_rows
+    if not list_col:
+        x = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.source_columns]) if n else np.zeros((0, len(spec.source_columns)))
+        return x, np.full(n, -1, np.int64), spec.component_names(x.shape[1])
+    c = table.column(spec.column).combine_chunks()
+    if pa.types.is_fixed_size_list(c.type):
+        c = c.cast(pa.list_(c.type.value_type))
+    lengths = pc.list_value_length(c).fill_null(-1).to_numpy(zero_copy_only=False).astype(np.int64)
+    try:
+        flat = pc.list_flatten(c).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
+    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
+        raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: lists of {c.type.value_type} are not "
+                          "numeric commands") from None
+    if spec.components is not None:
+        k = len(spec.components)
+    else:
+        seen = lengths[lengths > 0]
+        if not len(seen):
+            raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: every command list is empty or missing")
+        k = int(np.argmax(np.bincount(seen)))
+    good = lengths == k  # a missing list (null) is a missing command: NaN; another length is flagged
+    offsets = np.cumsum(np.r_[0, np.maximum(lengths, 0)])[:-1]  # into the flattened (non-null) values
+    x = np.full((n, k), np.nan)
+    rows = np.flatnonzero(good)
+    x[rows] = flat[offsets[rows, None] + np.arange(k)]
+    return x, lengths, spec.component_names(k, list_column=True)
+
+
+def _width_findings(lengths: np.ndarray, spec: ActionSpec, atable: Any) -> list[tuple[str, np.ndarray, str, Any]]:
+    """The doctor's findings for command lists of the wrong width (``validate(extra=...)``):
+    ``lengths`` is each row's list length (-1: not a list, or missing)."""
+    k = len(atable.dims)
+    bad = (lengths >= 0) & (lengths != k)
+    if not bad.any():
+        return []
+    msg = np.full(len(bad), "", dtype=object)
+    msg[bad] = [f"a list of {m} values where the command has {k} components {list(atable.dims)}; its command is "
+                "left missing" for m in lengths[bad]]
+    return [("command_width", bad, spec.column, msg)]
+
+
 def _type_conflict(tables: list[pa.Table], metas: list[dict[str, Any]]) -> str | None:
     """Which column has which type in which two files, when files disagree."""
     first: dict[str, tuple[pa.DataType, str]] = {}
@@ -286,7 +345,7 @@ def ingest_tables(
         raise IngestError("no input files given")
     # every intermediate of the mapping (and the input's columns the dataset does not
     # share) is freed when _map returns, before validation and writing
-    out, atable, dropped, metas, names, enc = _map(paths, spec, progress)
+    out, atable, dropped, metas, names, enc, width = _map(paths, spec, progress)
     units = dict(spec.observations.units)
     info = DatasetInfo(
         features=tuple(Feature(nm, units.get(nm, "")) for nm in names),
@@ -308,7 +367,7 @@ def ingest_tables(
     del out, enc  # the dataset holds what it needs (its table, int64 codes)
     if progress:
         progress("validating")
-    report = validate(ds)  # names src_file/src_row of each finding
+    report = validate(ds, extra=width)  # names src_file/src_row of each finding
     result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
     if not report.ok:
         if on_error == "fail":
@@ -325,10 +384,11 @@ def ingest_tables(
 
 
 def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] | None
-         ) -> tuple[pa.Table, Any, int, list[dict[str, Any]], list[str], pa.DictionaryArray | None]:
+         ) -> tuple[pa.Table, Any, int, list[dict[str, Any]], list[str], pa.DictionaryArray | None, list[Any]]:
     """Read the inputs and map them through the spec: the dataset's table (sorted by
-    episode and step), action table, dropped last rows, input metadata, feature names, and
-    the episode ids' encoding for the table's rows (None when rows were dropped)."""
+    episode and step), action table, dropped last rows, input metadata, feature names, the
+    episode ids' encoding for the table's rows (None when rows were dropped), and the
+    findings of command lists of the wrong width (for :func:`validate`'s ``extra``)."""
     tables, metas = [], []
     # input hashes (provenance) are computed in a thread while the tables are read
     with ThreadPoolExecutor(max_workers=1) as hasher:
@@ -454,18 +514,43 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
 
     # actions from the rows that stay (a dropped row must not shape the bins)
     all_kept = bool(keep.all())
-    if spec.action.type == "discrete":
-        raw_action = table.column(spec.action.column).to_numpy(zero_copy_only=False)
-        mapper = map_discrete
+    aspec = spec.action
+    list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
+    if list_col and aspec.type == "discrete":
+        if aspec.type_declared:
+            raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds lists (a command vector per row): "
+                              "set action.type = 'continuous' (discrete actions are one label per row)")
+        aspec = replace(aspec, type="continuous", components=aspec.names, names=None)  # names: its components
+    elif aspec.type == "discrete" and (aspec.low is not None or aspec.high is not None or aspec.units is not None):
+        raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds one label per row: action.low/high/"
+                          "units are only for continuous commands (type = 'continuous')")
+    commands: dict[str, Any] = {}
+    widths = np.full(n, -1, np.int64)
+    if aspec.type == "discrete":
+        raw_action = table.column(aspec.column).to_numpy(zero_copy_only=False)
+        if all_kept:
+            action, atable = _blockwise(map_discrete, raw_action, aspec)
+        else:
+            action = np.full(n, -1, np.int32)
+            action[keep], atable = map_discrete(raw_action[keep], aspec)
+        del raw_action
+    elif not aspec.exact and not aspec.columns and not list_col and all_kept and not (aspec.low or aspec.high or aspec.units):
+        # a binned scalar column as before (block by block), its exact commands kept alongside
+        raw_action = _np(table, aspec.column, np.float64, file_of)
+        action, atable = _blockwise(bin_continuous, raw_action, aspec)
+        commands = command_columns(raw_action, atable.dims)
+        del raw_action
     else:
-        raw_action = _np(table, spec.action.column, np.float64, file_of)
-        mapper = bin_continuous
-    if all_kept:
-        action, atable = _blockwise(mapper, raw_action, spec.action)
-    else:
-        action = np.full(n, -1, np.int32)
-        action[keep], atable = mapper(raw_action[keep], spec.action)
-    del raw_action
+        x, widths, dims = _commands(table, aspec, list_col, file_of)
+        where = f"{file_of(np.array([0]))}: action"
+        vector = bool(aspec.columns) or list_col
+        if all_kept:
+            action, atable = command_actions(x, aspec, dims, vector=vector, where=where)
+        else:
+            action = np.full(n, -1, np.int32)
+            action[keep], atable = command_actions(x[keep], aspec, dims, vector=vector, where=where)
+        commands = command_columns(x, dims)
+        del x
     if spec.cost_column:
         cost = _f64(table, spec.cost_column, file_of)
     else:
@@ -478,6 +563,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     for j, nm in enumerate(names):
         cols[S.obs_column(nm)] = obs[j]
     cols[S.ACTION] = action
+    cols.update(commands)
     cols[S.COST] = cost
     for j, nm in enumerate(names):
         cols[S.next_obs_column(nm)] = nxt[j]
@@ -498,9 +584,11 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     cols["src_row"] = table.column("__row")
     # chunked columns stay chunked: the output shares the input's buffers where it can
     out = pa.table(cols)
+    width = _width_findings(widths, aspec, atable)
     if not all_kept:
         out = out.filter(pa.array(keep))
-    return out, atable, dropped, metas, names, enc if all_kept else None
+        width = [(c, m[keep], col, msg) for c, m, col, msg in width]
+    return out, atable, dropped, metas, names, enc if all_kept else None, width
 
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from os import PathLike
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -57,6 +57,17 @@ class ObservationSpec:
 
 @dataclass(frozen=True)
 class ActionSpec:
+    """The ``[action]`` table: where the logged command is and how it becomes actions.
+
+    ``column`` is one column (a scalar, or for a continuous command a list column whose
+    lists hold the components); ``columns`` several scalar columns forming one vector
+    command (then ``column`` is ``""``). For continuous commands ``components`` names the
+    components (``None``: from the columns, see :meth:`component_names`), ``units`` their
+    units and ``low``/``high`` their declared bounds (``None``: the logged range).
+    ``type_declared`` is whether the spec gave ``type`` (a list column without it is a
+    continuous command).
+    """
+
     column: str
     type: str = "discrete"
     values: tuple[Any, ...] | None = None
@@ -68,6 +79,35 @@ class ActionSpec:
     unit: str = ""
     vectors: tuple[tuple[float, ...], ...] | None = None
     dims: tuple[str, ...] | None = None
+    columns: tuple[str, ...] = ()
+    components: tuple[str, ...] | None = None
+    units: tuple[str, ...] | None = None
+    low: tuple[float, ...] | None = None
+    high: tuple[float, ...] | None = None
+    type_declared: bool = True
+    dim_declared: bool = True
+
+    @property
+    def source_columns(self) -> tuple[str, ...]:
+        """The input columns holding the command."""
+        return self.columns or (self.column,)
+
+    @property
+    def exact(self) -> bool:
+        """A continuous command kept as logged (kind ``"continuous"``): no edges, no n_bins."""
+        return self.type == "continuous" and self.edges is None and self.n_bins is None
+
+    def component_names(self, width: int, *, list_column: bool = False) -> tuple[str, ...]:
+        """Names of the ``width`` components: ``components`` if given, else the columns
+        (``columns``), ``<column>.0``, ``<column>.1``... (a list column), ``dim`` if given, or
+        the column's name (a scalar command kept as logged; binned ones keep ``dim = "a"``)."""
+        if self.components is not None:
+            return self.components
+        if self.columns:
+            return self.columns
+        if list_column:
+            return tuple(f"{self.column}.{j}" for j in range(width))
+        return (self.column,) if self.exact and not self.dim_declared else (self.dim,)
 
 
 @dataclass(frozen=True)
@@ -99,7 +139,7 @@ class ParquetSpec:
         return hashlib.sha256(self.text.encode()).hexdigest()
 
     def needed_columns(self) -> list[str]:
-        cols = [self.episode.id, *self.observations.columns, *self.observations.next_columns, self.action.column]
+        cols = [self.episode.id, *self.observations.columns, *self.observations.next_columns, *self.action.source_columns]
         for c in (
             self.episode.step,
             self.episode.order,
@@ -152,28 +192,46 @@ class ObservationsModel(ConfigModel):
     _u = field_validator("columns", "names")(_unique)
 
 
-class ActionModel(ConfigModel):
-    """``[action]``: the action column and how it becomes an index into the action table."""
+Bounds = Number | tuple[Number, ...]
 
-    column: Column
-    type: Literal["discrete", "continuous"] = "discrete"
+
+class ActionModel(ConfigModel):
+    """``[action]``: the logged command (one column, a list column or several columns) and
+    how it becomes actions: discrete labels, binned, or continuous commands kept as logged."""
+
+    column: Column | None = Field(None, description="the action column (a scalar, or a list column: one command vector per row)")
+    columns: tuple[Column, ...] | None = Field(None, min_length=1, description="several columns forming one vector command (continuous)")
+    type: Literal["discrete", "continuous"] | None = Field(
+        None, description="default: 'continuous' for 'columns' or a list column, else 'discrete'")
     values: tuple[Label, ...] | None = Field(None, min_length=1, description="discrete: the action table in index order")
-    names: tuple[Str, ...] | None = Field(None, min_length=1, description="action names")
-    edges: tuple[Number, ...] | None = Field(None, description="continuous: bin edges (-inf/inf allowed)")
+    names: tuple[Str, ...] | None = Field(
+        None, min_length=1, description="vector or unbinned continuous commands: component names (default: the columns, "
+        "or <column>.0, <column>.1... for a list column); otherwise the action (bin) names")
+    edges: tuple[Number, ...] | None = Field(None, description="continuous: bin edges (-inf/inf allowed); the exact commands are kept too")
     n_bins: Annotated[int, Field(strict=True, ge=1, le=100_000)] | None = Field(None, description="continuous: that many quantile bins")
     bin_value: Literal["mean", "center"] = "mean"
     dim: Str = "a"
     unit: Str = ""
+    units: tuple[Str, ...] | None = Field(None, min_length=1, description="unit of each command component")
+    low: Bounds | None = Field(None, description="continuous: lower bound of each component (default: the logged minimum)")
+    high: Bounds | None = Field(None, description="continuous: upper bound of each component (default: the logged maximum)")
     vectors: tuple[Number | tuple[Number, ...], ...] | None = Field(None, description="each discrete action's value vector")
     dims: tuple[Str, ...] | None = Field(None, description="names of the components of the value vectors")
 
-    _u = field_validator("names", "dims")(_unique)
+    _u = field_validator("names", "dims", "columns")(_unique)
 
     @field_validator("edges")
     @classmethod
     def _edges(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
         if v is not None and (len(v) < 2 or any(math.isnan(x) for x in v) or any(b <= a for a, b in zip(v, v[1:], strict=False))):
             raise ValueError(f"need at least two strictly increasing edges, got {list(v)}")
+        return v
+
+    @field_validator("low", "high")
+    @classmethod
+    def _bounds(cls, v: float | tuple[float, ...] | None) -> float | tuple[float, ...] | None:
+        if v is not None and not all(math.isfinite(x) for x in (v if isinstance(v, tuple) else (v,))):
+            raise ValueError(f"bounds must be finite numbers, got {v!r}")
         return v
 
 
@@ -257,9 +315,53 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
 
 
 def _action(a: ActionModel, w: str) -> ActionSpec:
+    if (a.column is None) == (a.columns is None):
+        raise SpecError(f"{w}: give either 'column' (one column, or a list column holding the command vector) or "
+                        "'columns' (several columns forming one vector command)")
+    typ = a.type or ("continuous" if a.columns is not None else "discrete")
     vectors = None if a.vectors is None else tuple(tuple(v) if isinstance(v, tuple) else (float(v),) for v in a.vectors)
-    act = ActionSpec(column=a.column, type=a.type, values=a.values, names=a.names, edges=a.edges, n_bins=a.n_bins,
-                     bin_value=a.bin_value, dim=a.dim, unit=a.unit, vectors=vectors, dims=a.dims)
+    binned = a.edges is not None or a.n_bins is not None
+    vector = a.columns is not None
+    # names are component names for a vector command or an unbinned continuous one
+    components = a.names if (vector or (typ == "continuous" and not binned)) else None
+    act = ActionSpec(column=a.column or "", type=typ, values=a.values, names=None if components is not None else a.names,
+                     edges=a.edges, n_bins=a.n_bins, bin_value=a.bin_value, dim=a.dim, unit=a.unit, vectors=vectors,
+                     dims=a.dims, columns=a.columns or (), components=components, units=a.units,
+                     low=_bound(a.low), high=_bound(a.high), type_declared=a.type is not None,
+                     dim_declared="dim" in a.model_fields_set)
+    if act.type == "continuous" and act.column and not vector and components is not None and len(components) == 1:
+        if "dim" in a.model_fields_set and a.dim != components[0]:
+            raise SpecError(f"{w}: dim {a.dim!r} and names {list(components)} name the component differently; give one")
+    if vector:
+        if act.type == "discrete":
+            raise SpecError(f"{w}.columns: several columns form a continuous command vector; set type = 'continuous' "
+                            "(or map one column of labels with 'column')")
+        if a.dims is not None or vectors is not None:
+            raise SpecError(f"{w}: 'dims'/'vectors' describe discrete value vectors; name the components of "
+                            "'columns' with 'names'")
+        if components is not None and len(components) != len(act.columns):
+            raise SpecError(f"{w}.names: {len(components)} names for {len(act.columns)} columns {list(act.columns)}")
+    if act.units is not None and act.unit:
+        raise SpecError(f"{w}: give either 'unit' (one for every component) or 'units' (one per component)")
+    if a.type == "discrete" or vectors is not None:  # undeclared: a list column is a continuous command
+        for key in ("low", "high", "units"):
+            if getattr(a, key) is not None:
+                raise SpecError(f"{w}.{key}: only for continuous commands (type = 'continuous')")
+    k = len(act.columns) if vector else (len(components) if components is not None else None)
+    for key in ("units", "low", "high"):
+        v = getattr(act, key)
+        if v is None:
+            continue
+        if key != "units" and not isinstance(getattr(a, key), tuple):  # one number for every component
+            if k is not None:
+                act = replace(act, **{key: v * k})
+            continue
+        if k is not None and len(v) != k:
+            raise SpecError(f"{w}.{key}: {len(v)} entries for a command of {k} components")
+    if act.low is not None and act.high is not None and len(act.low) == len(act.high):
+        bad = [j for j, (lo, hi) in enumerate(zip(act.low, act.high, strict=True)) if lo > hi]
+        if bad:
+            raise SpecError(f"{w}: low {list(act.low)} exceeds high {list(act.high)} (component {bad[0]})")
     if act.vectors is not None:
         if act.values is None or len(act.vectors) != len(act.values):
             raise SpecError(f"{w}.vectors: give one value vector per entry of 'values'")
@@ -268,10 +370,11 @@ def _action(a: ActionModel, w: str) -> ActionSpec:
         if not all(math.isfinite(x) for v in act.vectors for x in v):
             raise SpecError(f"{w}.vectors: values must be finite")
     if act.type == "continuous":
-        if (act.edges is None) == (act.n_bins is None):
-            raise SpecError(f"{w}: a continuous action needs exactly one of 'edges' or 'n_bins'")
+        if act.edges is not None and act.n_bins is not None:
+            raise SpecError(f"{w}: a continuous action takes at most one of 'edges' or 'n_bins' (neither: the "
+                            "commands are kept as logged)")
         if act.values is not None:
-            raise SpecError(f"{w}.values: only for discrete actions (continuous ones are binned)")
+            raise SpecError(f"{w}.values: only for discrete actions (continuous ones are binned or kept as logged)")
     elif act.edges is not None or act.n_bins is not None:
         raise SpecError(f"{w}: 'edges'/'n_bins' bin continuous actions; set type = 'continuous'")
     if act.values is not None:
@@ -282,6 +385,13 @@ def _action(a: ActionModel, w: str) -> ActionSpec:
     if act.names is not None and act.values is not None and len(act.names) != len(act.values):
         raise SpecError(f"{w}: names has {len(act.names)} entries, values has {len(act.values)}")
     return act
+
+
+def _bound(v: float | tuple[float, ...] | None) -> tuple[float, ...] | None:
+    """A bound as a tuple (one number: for every component, resolved by :func:`resolve_bounds`)."""
+    if v is None:
+        return None
+    return tuple(float(x) for x in v) if isinstance(v, tuple) else (float(v),)
 
 
 def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "spec") -> ParquetSpec:

@@ -16,7 +16,12 @@ from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import sha256_file, write_dataset
 from offline_adp.data.validate import split_quarantine, validate
 from offline_adp.errors import IngestError, SpecError, ValidationError
-from offline_adp.ingest.actions import bin_continuous, map_discrete
+from offline_adp.ingest.actions import (
+    bin_continuous,
+    command_actions,
+    command_columns,
+    map_discrete,
+)
 from offline_adp.ingest.mcap.assembler import _Recording
 from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
 from offline_adp.ingest.mcap.sources import resolve_sources
@@ -197,12 +202,17 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
     obs, nxt, aux, aux_next = cat("obs"), cat("next"), cat("aux"), cat("aux_next")
     lengths = np.array([len(e.t) for e in eps])
     raw_action = cat("act")
+    commands: dict[str, Any] = {}
     if raw_action.ndim == 2:  # a vector action (several fields)
         action, atable = vector_actions(raw_action, spec)
     elif spec.action.type == "discrete":
         action, atable = map_discrete(raw_action, spec.action)
+    elif not spec.action.exact and spec.action.low is None and spec.action.high is None and spec.action.units is None:
+        action, atable = bin_continuous(raw_action, spec.action)  # as before: the same table
     else:
-        action, atable = bin_continuous(raw_action, spec.action)
+        action, atable = command_actions(raw_action, spec.action, spec.action.component_names(1), vector=False)
+    if spec.action.type == "continuous":  # the exact commands, as logged
+        commands = command_columns(raw_action, atable.dims)
     term = np.zeros(len(obs), bool)
     ends = np.cumsum(lengths) - 1
     term[ends] = [e.terminated for e in eps]
@@ -214,6 +224,8 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
     def column(name: str, at: str = "step") -> np.ndarray:
         if name == "action" or name.startswith("action."):
             j = atable.dims.index(name[7:]) if name.startswith("action.") else 0
+            if atable.continuous:  # the command as logged
+                return commands[atable.command_columns[j]]
             return np.where(action >= 0, atable.values[np.maximum(action, 0), j], np.nan)
         if name in obs_names:
             return (nxt if at == "next" else obs)[:, obs_names.index(name)]
@@ -244,7 +256,7 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
         source=np.repeat([e.src for e in eps], lengths), t_ns=cat("t"),
         extra={"src_file": pa.DictionaryArray.from_arrays(pa.array(cat("file").astype(np.int32)),
                                                           pa.array([str(p) for p in paths])),
-               "src_log_time": pa.array(cat("log_time").astype(np.int64))},
+               "src_log_time": pa.array(cat("log_time").astype(np.int64)), **commands},
     )
     return ds
 
@@ -254,62 +266,29 @@ def vector_actions(raw: np.ndarray, spec: McapSpec) -> tuple[np.ndarray, ActionT
 
     ``discrete``: each command is matched to the table's ``vectors`` component-wise
     (within 1e-9, relative); unmatched commands get index -1 (the doctor reports them).
-    ``continuous``: each component is binned on its own (``edges`` or ``n_bins``
-    quantiles; beyond the outer edges into the end bins) and the action is the cell of
-    the product table (index = row-major over the components); each cell's value is the
-    mean command of the cell (``bin_value = "mean"``; its centre when empty) or its centre.
+    ``continuous`` kept as logged (no ``edges``/``n_bins``): kind ``"continuous"``
+    (:func:`~offline_adp.ingest.actions.command_actions`). ``continuous`` binned: each
+    component is binned on its own (``edges`` or ``n_bins`` quantiles; beyond the outer
+    edges into the end bins) and the action is the cell of the product table (index =
+    row-major over the components); each cell's value is the mean command of the cell
+    (``bin_value = "mean"``; its centre when empty) or its centre
+    (:func:`~offline_adp.ingest.actions.bin_product`); bounds recorded when declared.
     """
     a = spec.action
     dims = tuple(a.dims or ())
     x = np.asarray(raw, dtype=np.float64)
-    if a.type == "discrete":
-        table = np.asarray(a.vectors, dtype=np.float64)
-        tol = 1e-9 * np.maximum(1.0, np.abs(table))
-        idx = np.full(len(x), -1, np.int64)
-        for k in range(len(table)):
-            idx[(np.abs(x - table[k]) <= tol[k]).all(axis=1)] = k
-        values = [tuple(float(v) for v in row) for row in table]
-        names = list(a.names) if a.names else [",".join(f"{d}={v:g}" for d, v in zip(dims, row, strict=True))
-                                                  for row in values]
-        kind = "discrete"
-    else:
-        per_dim = []
-        for j, d in enumerate(dims):
-            b = spec.action_bins[d]
-            col = x[:, j]
-            finite = col[np.isfinite(col)]
-            if "edges" in b:
-                edges = np.asarray(b["edges"], dtype=np.float64)
-            else:
-                if not len(finite):
-                    raise IngestError(f"action.{d}: no finite values to compute quantile bins")
-                edges = np.unique(np.quantile(finite, np.linspace(0, 1, int(b["n_bins"]) + 1)))
-                if len(edges) < 2:
-                    edges = np.array([finite.min() - 0.5, finite.max() + 0.5])
-            nb = len(edges) - 1
-            lo = np.where(np.isfinite(edges[:-1]), edges[:-1], edges[1:])
-            hi = np.where(np.isfinite(edges[1:]), edges[1:], edges[:-1])
-            per_dim.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, nb - 1), (lo + hi) / 2, nb))
-        shape = tuple(nb for _, _, nb in per_dim)
-        ok = np.isfinite(x).all(axis=1)
-        idx = np.where(ok, np.ravel_multi_index(tuple(i for i, _, _ in per_dim), shape), -1)
-        cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
-        centre = np.column_stack([per_dim[j][1][cells[:, j]] for j in range(len(dims))])
-        vals = centre.copy()
-        if a.bin_value == "mean":
-            counts = np.bincount(idx[ok], minlength=len(cells))
-            for j in range(len(dims)):
-                sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
-                vals[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
-        values = [tuple(float(v) for v in row) for row in vals]
-        names = list(a.names) if a.names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True))
-                                                  for row in values]
-        if len(set(names)) != len(names):  # equal representative values (e.g. empty cells): name by bin indices
-            names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
-        kind = "binned"
+    if a.type == "continuous":
+        return command_actions(x, a, dims, vector=True, bins=spec.action_bins or None, infer_binned_bounds=False)
+    table = np.asarray(a.vectors, dtype=np.float64)
+    tol = 1e-9 * np.maximum(1.0, np.abs(table))
+    idx = np.full(len(x), -1, np.int64)
+    for k in range(len(table)):
+        idx[(np.abs(x - table[k]) <= tol[k]).all(axis=1)] = k
+    values = [tuple(float(v) for v in row) for row in table]
+    names = list(a.names) if a.names else [",".join(f"{d}={v:g}" for d, v in zip(dims, row, strict=True))
+                                              for row in values]
     if len(names) != len(values):
         raise IngestError(f"action.names has {len(names)} entries for {len(values)} actions")
-    table = ActionTable(actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)), dims=dims,
-                        kind=kind, units=(a.unit,) * len(dims) if a.unit else ())
-    return idx.astype(np.int32), table
-
+    atable = ActionTable(actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)), dims=dims,
+                         kind="discrete", units=(a.unit,) * len(dims) if a.unit else ())
+    return idx.astype(np.int32), atable

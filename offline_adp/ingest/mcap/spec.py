@@ -96,7 +96,7 @@ class McapSpec:
 _ALIGN = ("nearest", "previous", "linear")
 _STREAM_KEYS = {"topic", "fields", "time", "align", "max_age", "missing", "fill", "role", "units"}
 _ACTION_KEYS = {"topic", "field", "fields", "time", "align", "max_age", "missing", "fill", "type", "values", "names",
-                "edges", "n_bins", "bin_value", "dim", "dims", "unit", "vectors"}
+                "edges", "n_bins", "bin_value", "dim", "dims", "unit", "units", "vectors", "low", "high"}
 
 
 def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> StreamSpec:
@@ -138,9 +138,11 @@ def _conditions(items: Any, where: str, names: list[str]) -> tuple[Condition, ..
 
 def _vector_action(a: dict[str, Any], dims: list[str], where: str) -> tuple[ActionSpec, dict[str, Any]]:
     """A vector action (several fields): ``discrete`` with ``vectors`` (the table's value
-    vectors, matched component-wise), or ``continuous`` binned per component into a
+    vectors, matched component-wise), or ``continuous``: kept as logged (no ``edges`` /
+    ``n_bins``; bounds ``low``/``high`` declared or logged) or binned per component into a
     product table (``edges`` / ``n_bins``: one value for every component, or a table per
-    component name)."""
+    component name). ``low``/``high``: one number for every component, a list in the
+    order of ``fields``, or a table per component name; ``units`` likewise (or ``unit``)."""
     typ = a.get("type", "discrete")
     if typ not in ("discrete", "continuous"):
         raise SpecError(f"{where}.type: expected 'discrete' or 'continuous', got {typ!r}")
@@ -149,6 +151,9 @@ def _vector_action(a: dict[str, Any], dims: list[str], where: str) -> tuple[Acti
                         f"(one component per field {dims})")
     bins: dict[str, Any] = {}
     if typ == "discrete":
+        for key in ("low", "high", "units"):
+            if key in a:
+                raise SpecError(f"{where}.{key}: only for continuous commands (type = 'continuous')")
         vec = a.get("vectors")
         if not vec or any(not isinstance(v, list) or len(v) != len(dims) for v in vec):
             raise SpecError(f"{where}.vectors: a discrete vector action needs vectors = [[...], ...], each with "
@@ -159,9 +164,12 @@ def _vector_action(a: dict[str, Any], dims: list[str], where: str) -> tuple[Acti
             raise SpecError(f"{where}.vectors: expected numbers, got {vec!r}") from None
     else:
         vectors = None
-        if ("edges" in a) == ("n_bins" in a):
-            raise SpecError(f"{where}: a continuous vector action needs edges or n_bins (one for all components, or "
-                            f"a table per component {dims})")
+        if "edges" in a and "n_bins" in a:
+            raise SpecError(f"{where}: a continuous vector action takes at most one of edges or n_bins (one for all "
+                            f"components, or a table per component {dims}); neither keeps the commands as logged")
+        if "names" in a and "edges" not in a and "n_bins" not in a:
+            raise SpecError(f"{where}.names: the components of a command kept as logged are named by the keys of "
+                            f"fields {dims}")
         for key in ("edges", "n_bins"):
             if key in a:
                 v = a[key]
@@ -174,10 +182,37 @@ def _vector_action(a: dict[str, Any], dims: list[str], where: str) -> tuple[Acti
                     if key == "n_bins" and (not isinstance(x, int) or x < 1):
                         raise SpecError(f"{where}.n_bins.{d}: expected a positive integer, got {x!r}")
                 bins = {d: {key: per[d]} for d in dims}
+    low, high = (_per_component(a.get(k), dims, f"{where}.{k}", number=True) for k in ("low", "high"))
+    if low is not None and high is not None and any(lo > hi for lo, hi in zip(low, high, strict=True)):
+        raise SpecError(f"{where}: low {list(low)} exceeds high {list(high)}")
+    units = _per_component(a.get("units"), dims, f"{where}.units", number=False)
+    if units is not None and a.get("unit"):
+        raise SpecError(f"{where}: give either 'unit' (one for every component) or 'units' (one per component)")
     names = a.get("names")
     spec = ActionSpec(column="action", type=typ, names=tuple(names) if names else None, vectors=vectors,
-                      dims=tuple(dims), unit=str(a.get("unit", "")), bin_value=a.get("bin_value", "mean"))
+                      dims=tuple(dims), unit=str(a.get("unit", "")), bin_value=a.get("bin_value", "mean"),
+                      components=tuple(dims), low=low, high=high, units=units)
     return spec, bins
+
+
+def _per_component(v: Any, dims: list[str], where: str, *, number: bool) -> tuple[Any, ...] | None:
+    """One value for every component, a list in component order, or a table per component."""
+    if v is None:
+        return None
+    if isinstance(v, dict):
+        if set(v) != set(dims):
+            raise SpecError(f"{where}: give one for each component {dims}, got {sorted(v)}")
+        v = [v[d] for d in dims]
+    elif not isinstance(v, list):
+        v = [v] * len(dims)
+    if len(v) != len(dims):
+        raise SpecError(f"{where}: {len(v)} entries for the {len(dims)} components {dims}")
+    ok = (lambda x: isinstance(x, int | float) and not isinstance(x, bool) and np.isfinite(x)) if number else (
+        lambda x: isinstance(x, str))
+    bad = [x for x in v if not ok(x)]
+    if bad:
+        raise SpecError(f"{where}: expected {'finite numbers' if number else 'strings'}, got {bad[0]!r}")
+    return tuple(float(x) for x in v) if number else tuple(v)
 
 
 def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", base_dir: str = ".") -> McapSpec:
@@ -209,12 +244,14 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
         if not isinstance(act_fields, dict) or not act_fields:
             raise SpecError(f"{where}.action.fields: map each component name to a field path, e.g. "
                             "{ v = 'linear.x', w = 'angular.z' }")
-    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS} | {"fields": act_fields},
+    act_stream = _stream({k: a.pop(k) for k in list(a) if k in _STREAM_KEYS - {"units"}} | {"fields": act_fields},
                          f"{where}.action", fields_required=False)
     action_bins: dict[str, Any] = {}
     if len(act_fields) == 1:
         from offline_adp.ingest.spec import parse_parquet_spec
 
+        if a.get("type") == "continuous" and "edges" not in a and "n_bins" not in a and "names" not in a:
+            a.setdefault("dim", "a")  # the component of a command kept as logged: action_value.a
         action = parse_parquet_spec({"episode": {"id": "e", "step": "k"},
                                      "observations": {"columns": ["x"], "next_columns": ["x"]},
                                      "action": {"column": "action", **a}, "cost": {"column": "c"}}, where=where).action
