@@ -31,7 +31,9 @@ def cmd_distill(args: argparse.Namespace) -> int:
         return ", ".join(f"{c} {x:.4g}" for c, x in zip(comps, v, strict=True))
 
     _say(args, f"distilled the greedy policy into {r['n_estimators']} trees on {r['rows']} logged states: "
-         f"mean |distilled - greedy| {per(r['mean_abs_diff'])} (max {per(r['max_abs_diff'])}); mean step change "
+         f"mean |distilled - greedy| {per(r['mean_abs_diff'])} (max {per(r['max_abs_diff'])}"
+         + ("" if r["heldout_mean_abs_diff"] is None else f"; on held-out states {per(r['heldout_mean_abs_diff'])}")
+         + "); mean step change "
          f"greedy {per(r['mean_step_change']['greedy'])}, distilled {per(r['mean_step_change']['distilled'])}"
          + ("" if r["q_increase"] is None else f"; mean Q increase {r['q_increase']:.4g}")
          + ("" if r["max_rate"] is None else f"; max rate {per(r['max_rate'])} per step (applied by act(previous=...))"))
