@@ -11,6 +11,11 @@ The exported model has
   (int64 ``(N,)``) and, for greedy policies, ``q_values`` (double ``(N, n_actions)``,
   costs: the policy picks the lowest, ties to the lowest index).
 
+A distilled continuous policy (:class:`~offline_adp.distill.DistilledCommandPolicy`)
+has one output instead, ``command`` (double ``(N, m)``, within the bounds), and metadata
+``command_low``, ``command_high``, ``max_rate`` (the graph is stateless: the caller applies
+the rate limit), ``outputs``; see docs/deploy.md.
+
 Metadata (``model.metadata_props``): ``feature_names``, ``feature_units``,
 ``action_names``, ``action_dims``, ``action_units``, ``action_values`` (JSON),
 ``policy_kind``, ``time_indexed``, ``n_steps``, ``offline_adp_version``.
