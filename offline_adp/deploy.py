@@ -107,6 +107,10 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
     if len(policy.signature.action_table) != policy.n_actions:
         raise IncompatibleError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "
                                 f"{len(policy.signature.action_table)}; pass the right --dataset")
+    n_dims = getattr(policy, "n_dims", None)  # a distilled continuous policy: one model per component
+    if n_dims is not None and n_dims != len(policy.signature.action_table.dims):
+        raise IncompatibleError(f"{run}: the policy commands {n_dims} components, its action table has "
+                                f"{len(policy.signature.action_table.dims)} ({list(policy.signature.action_table.dims)})")
     return policy
 
 
@@ -127,3 +131,54 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
 
     policy = load_run_policy(run_dir, dataset)
     return save_onnx(policy, out, input_dtype=input_dtype)
+
+
+def distill_run(run_dir: str | PathLike[str], out: str | PathLike[str], dataset: str | PathLike[str] | None = None, *,
+                n_estimators: int = 50, min_samples_leaf: int = 5, max_rate: Any = None, random_state: int = 0,
+                overwrite: bool = False) -> dict[str, Any]:
+    """Distill a run's continuous greedy policy (``offline-adp distill``) into ``out``, a
+    run directory whose policy :func:`load_policy` returns and ``offline-adp export`` writes.
+
+    ``out/model/`` holds ``policy.json`` + ``policy.npz`` (kind ``distilled_command``) and
+    ``signature.json`` (so the distilled run needs no dataset to deploy); ``out/run.json``
+    names the dataset and the run distilled. See :func:`offline_adp.distill.distill_policy`
+    for the fit; returns its report (plus ``out``). An existing ``out`` is replaced only
+    with ``overwrite=True``, and only if it is a distilled run (or empty).
+    """
+    import json
+    import shutil
+
+    from offline_adp.artifacts import save_policy
+    from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.distill import distill_policy
+    from offline_adp.errors import WriteError
+
+    run, dest = Path(run_dir), Path(out)
+    if dest.exists():
+        if not overwrite:
+            raise OutputExistsError(f"{dest} already exists; pass --overwrite to replace it")
+        rj = dest / "run.json"
+        distilled = rj.exists() and read_json_file(rj).get("algorithm") == "distill"
+        if not dest.is_dir() or not (distilled or not any(dest.iterdir())):
+            raise WriteError(f"{dest} is not a distilled run directory; --overwrite replaces only those (or an empty one)")
+    policy = load_run_policy(run, dataset)
+    ds_dir = run_dataset(run, dataset)
+    ds = TransitionDataset.load(ds_dir)
+    if len(ds.info.action_table.dims) != getattr(policy, "n_dims", len(ds.info.action_table.dims)):
+        raise IncompatibleError(f"{run}: the policy commands {policy.n_dims} components, the dataset's action table "
+                                f"has {len(ds.info.action_table.dims)}")
+    pi = distill_policy(policy, ds, n_estimators=n_estimators, min_samples_leaf=min_samples_leaf, max_rate=max_rate,
+                        random_state=random_state)
+    tmp = dest.parent / f".{dest.name}.distill-tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        save_policy(pi, tmp / "model", extra={"distilled_from": str(run.resolve())})
+        (tmp / "model" / "signature.json").write_text(json.dumps(pi.signature.to_dict(), indent=1))
+        (tmp / "run.json").write_text(json.dumps({"dataset": str(ds_dir.resolve()), "algorithm": "distill",
+                                                  "distilled_from": str(run.resolve()), "distill": pi.report}, indent=1))
+        if dest.exists():
+            shutil.rmtree(dest)
+        tmp.rename(dest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return {**pi.report, "out": str(dest)}

@@ -11,6 +11,11 @@ The exported model has
   (int64 ``(N,)``) and, for greedy policies, ``q_values`` (double ``(N, n_actions)``,
   costs: the policy picks the lowest, ties to the lowest index).
 
+A distilled continuous policy (:class:`~offline_adp.distill.DistilledCommandPolicy`)
+has one output instead, ``command`` (double ``(N, m)``, within the bounds), and metadata
+``command_low``, ``command_high``, ``max_rate`` (the graph is stateless: the caller applies
+the rate limit), ``outputs``; see docs/deploy.md.
+
 Metadata (``model.metadata_props``): ``feature_names``, ``feature_units``,
 ``action_names``, ``action_dims``, ``action_units``, ``action_values`` (JSON),
 ``policy_kind``, ``time_indexed``, ``n_steps``, ``offline_adp_version``.
@@ -254,6 +259,8 @@ _Q_EXPORTERS: dict[type, Any] = {}
 _RULE_EXPORTERS: dict[type, Any] = {}
 #: Policy class -> ``steps(pi) -> its per-step rules, or None when it is stationary``.
 _STEP_RULES: dict[type, Any] = {}
+#: Continuous policy class -> ``build(g, pi, X) -> (command (N, m), low (m,), high (m,))``.
+_COMMAND_EXPORTERS: dict[type, Any] = {}
 
 
 def _lookup(table: dict[type, Any], obj: Any) -> Any | None:
@@ -321,6 +328,10 @@ def _greedy_rule(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
 
 def _refusal(pi: Any) -> str:
     kind = type(pi).__name__
+    if kind == "GreedyCommandPolicy":
+        return ("a GreedyCommandPolicy (continuous commands: a minimum over the commands logged at the nearest logged "
+                "states) is not exported to ONNX; distill it first (`offline-adp distill RUN --out RUN_DISTILLED`, "
+                "or offline_adp.distill.distill_policy) and export the distilled policy")
     if kind in ("MixturePolicy", "UniformPolicy", "EpsilonPolicy", "StochasticFunctionPolicy"):
         return (f"a {kind} is stochastic (it draws its action at random) and is not exported to ONNX; export a "
                 "deterministic policy (for a CPI mixture: one of its components, policy.components[k])")
@@ -388,6 +399,9 @@ def _register() -> None:
     _RULE_EXPORTERS.update({GreedyPolicy: _greedy_rule,
                             ClassifierPolicy: lambda g, pi, X: (_classifier_policy(g, pi, X), None)})
     _STEP_RULES.update({NonStationaryPolicy: lambda pi: list(pi.steps), GreedyPolicy: _greedy_steps})
+    from offline_adp.distill import DistilledCommandPolicy
+
+    _COMMAND_EXPORTERS.update({DistilledCommandPolicy: _distilled_commands})
 
 
 # ----------------------------------------------------------------------------- public API
@@ -417,11 +431,9 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
         The policy has no signature, or a part of it cannot be expressed.
     """
     try:
-        import onnx
         from onnx import TensorProto, helper
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ExportError("ONNX export needs the onnx package: pip install 'offline-adp[onnx]'") from exc
-    from offline_adp._version import __version__
 
     sig = signature if signature is not None else getattr(policy, "signature", None)
     if sig is None:
@@ -430,7 +442,8 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     if input_dtype not in INPUT_DTYPES:
         raise ExportError(f"input_dtype {input_dtype!r}: expected one of {list(INPUT_DTYPES)}")
     d, values = len(sig.feature_names), sig.action_table.values
-    if values.shape[0] != policy.n_actions:
+    continuous = getattr(policy, "continuous", False)
+    if not continuous and values.shape[0] != policy.n_actions:
         raise ExportError(f"the signature's action table has {values.shape[0]} actions, the policy {policy.n_actions}")
     g = _Graph()
     cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(sig.feature_names, sig.feature_units, strict=True))
@@ -441,6 +454,8 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     else:
         inputs = [helper.make_tensor_value_info("observation", TensorProto.DOUBLE, ["N", d], doc_string=obs_doc)]
         X = "observation"
+    if continuous:
+        return _command_model(g, policy, sig, X, inputs, name, input_dtype)
     steps = _steps(policy)
     if steps is None:
         index, q = _policy(g, policy, X)
@@ -471,30 +486,102 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     if q is not None:
         g.nodes.append(helper.make_node("Identity", [q], ["q_values"]))
         outputs.append(helper.make_tensor_value_info("q_values", TensorProto.DOUBLE, ["N", policy.n_actions]))
-    graph = helper.make_graph(g.nodes, name, inputs, outputs, g.inits)
-    graph.doc_string = ("observation columns: " + ", ".join(f"{n} [{u}]" if u else n for n, u in zip(sig.feature_names, sig.feature_units, strict=True))
-                        + "; action: " + ", ".join(sig.action_table.dims) + (" ; t: time step (int64)" if steps else ""))
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET), helper.make_opsetid("ai.onnx.ml", ML_OPSET)],
-                              producer_name="offline_adp", producer_version=__version__)
-    model.ir_version = min(model.ir_version, 9)
     at = sig.action_table
+    doc = ("observation columns: " + cols + "; action: " + ", ".join(at.dims) + (" ; t: time step (int64)" if steps else ""))
     meta = {
-        "feature_names": json.dumps(list(sig.feature_names)),
-        "feature_units": json.dumps(list(sig.feature_units)),
+        **_signature_meta(sig, input_dtype, t_input=steps is not None),
         "action_names": json.dumps(at.names),
-        "action_dims": json.dumps(list(at.dims)),
-        "action_units": json.dumps(list(at.units)),
         "action_values": json.dumps(values.tolist()),
         "policy_kind": type(policy).__name__,
         "time_indexed": json.dumps(steps is not None),
         "n_steps": json.dumps(len(steps) if steps is not None else None),
-        "offline_adp_version": __version__,
-        "inputs": json.dumps({"observation": {"dtype": input_dtype, "shape": ["N", d], "columns": list(sig.feature_names)},
-                              **({"t": {"dtype": "int64", "shape": ["N"]}} if steps is not None else {})}),
     }
-    helper.set_model_props(model, meta)
+    return _model(g, name, inputs, outputs, doc, meta)
+
+
+def _model(g: _Graph, name: str, inputs: list[Any], outputs: list[Any], doc: str, meta: dict[str, str]) -> Any:
+    """The checked ``ModelProto`` of graph ``g`` with its doc string and metadata."""
+    import onnx
+    from onnx import helper
+
+    from offline_adp._version import __version__
+
+    graph = helper.make_graph(g.nodes, name, inputs, outputs, g.inits)
+    graph.doc_string = doc
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET), helper.make_opsetid("ai.onnx.ml", ML_OPSET)],
+                              producer_name="offline_adp", producer_version=__version__)
+    model.ir_version = min(model.ir_version, 9)
+    helper.set_model_props(model, {**meta, "offline_adp_version": __version__})
     onnx.checker.check_model(model)
     return model
+
+
+def _signature_meta(sig: Any, input_dtype: str, t_input: bool = False) -> dict[str, str]:
+    """Metadata every exported policy carries: the observation's and the action's names and units, the inputs."""
+    at = sig.action_table
+    return {
+        "feature_names": json.dumps(list(sig.feature_names)),
+        "feature_units": json.dumps(list(sig.feature_units)),
+        "action_dims": json.dumps(list(at.dims)),
+        "action_units": json.dumps(list(at.units)),
+        "inputs": json.dumps({"observation": {"dtype": input_dtype, "shape": ["N", len(sig.feature_names)],
+                                              "columns": list(sig.feature_names)},
+                              **({"t": {"dtype": "int64", "shape": ["N"]}} if t_input else {})}),
+    }
+
+
+def _command_model(g: _Graph, policy: Any, sig: Any, X: str, inputs: list[Any], name: str, input_dtype: str) -> Any:
+    """The model of a continuous policy: output ``command`` (double, N x m) within the bounds."""
+    from onnx import TensorProto, helper
+
+    build = _lookup(_COMMAND_EXPORTERS, policy)
+    if build is None:
+        raise ExportError(_refusal(policy))
+    u, low, high = build(g, policy, X)
+    at = sig.action_table
+    m = len(at.dims)
+    if len(low) != m:
+        raise ExportError(f"the policy commands {len(low)} components, the signature's action table has {m}")
+    g.nodes.append(helper.make_node("Identity", [u], ["command"]))
+    units = [*at.units, *[""] * (m - len(at.units))]
+    comps = ", ".join(f"{n} [{x}]" if x else n for n, x in zip(at.dims, units[:m], strict=True))
+    outputs = [helper.make_tensor_value_info("command", TensorProto.DOUBLE, ["N", m],
+                                             doc_string=f"commands, one row each, within [low, high], columns: {comps}")]
+    rate = getattr(policy, "max_rate", None)
+    meta = {
+        **_signature_meta(sig, input_dtype),
+        "command_low": json.dumps([_finite_or_none(x) for x in low]),
+        "command_high": json.dumps([_finite_or_none(x) for x in high]),
+        "max_rate": json.dumps(None if rate is None else np.asarray(rate, np.float64).tolist()),
+        "rate_limit_in_graph": json.dumps(False),
+        "policy_kind": type(policy).__name__,
+        "time_indexed": json.dumps(False),
+        "outputs": json.dumps({"command": {"dtype": "float64", "shape": ["N", m], "columns": list(at.dims)}}),
+    }
+    doc = (f"observation columns: {', '.join(sig.feature_names)}; command: {comps}; stateless: a max_rate in the "
+           "metadata is for the caller to apply (|u_t - u_(t-1)| <= max_rate per component)")
+    return _model(g, name, inputs, outputs, doc, meta)
+
+
+def _finite_or_none(x: float) -> float | None:
+    """A bound for JSON: None where undeclared (infinite)."""
+    return float(x) if np.isfinite(x) else None
+
+
+def _distilled_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.ndarray]:
+    """A distilled policy's command: one tree node per component on the float32-rounded
+    input (as its ensembles compare), concatenated, then ``min(max(u, low), high)``."""
+    x = _float32_roundtrip(g, X)
+    cols = []
+    for model in pi.models:
+        ens = _ensemble_of(model)
+        if ens is None:
+            raise ExportError(f"cannot export a distilled policy over a {type(model).__name__}; tree ensembles only")
+        cols.append(_tree_node(g, x, _ensemble_arrays(ens), "AVERAGE"))
+    u = cols[0] if len(cols) == 1 else g.op("Concat", cols, "u", axis=1)
+    low, high = np.asarray(pi.low, np.float64), np.asarray(pi.high, np.float64)
+    u = g.op("Max", [u, g.const(low.reshape(1, -1), "low")], "u_low")
+    return g.op("Min", [u, g.const(high.reshape(1, -1), "high")], "u_clipped"), low, high
 
 
 def save_onnx(policy: Any, path: str | PathLike[str], signature: Any = None, *, input_dtype: str = "float64") -> Path:

@@ -393,6 +393,56 @@ def _read_greedy_command(spec: dict[str, Any], arrays: Any, where: str) -> Any:
     return GreedyCommandPolicy(q)
 
 
+def _write_distilled(pi: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
+    arrays[f"{key}.low"], arrays[f"{key}.high"] = pi.low, pi.high
+    out: dict[str, Any] = {"models": [_export_estimator(m, arrays, f"{key}.u{c}") for c, m in enumerate(pi.models)],
+                           "low": f"{key}.low", "high": f"{key}.high", "max_rate": None, "n_features": pi.n_features,
+                           "report": pi.report}
+    if pi.max_rate is not None:
+        arrays[f"{key}.max_rate"] = pi.max_rate
+        out["max_rate"] = f"{key}.max_rate"
+    return out
+
+
+def _read_distilled(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    """A :class:`~offline_adp.distill.DistilledCommandPolicy`: tree ensembles only (checked
+    arrays), bounds and rate limit of one length per component, then one probe."""
+    from offline_adp.distill import DistilledCommandPolicy
+
+    models = spec.get("models")
+    if not isinstance(models, list) or not 1 <= len(models) <= 1024:
+        raise ArtifactError(f"{where}: a distilled_command policy needs a list of 1 to 1024 models (one per component)")
+    if not all(isinstance(m, dict) and m.get("kind") == "tree_ensemble" for m in models):
+        raise ArtifactError(f"{where}: a distilled_command policy's models must be tree ensembles")
+    d = C.check_int(spec.get("n_features"), where, "n_features", 1, C.MAX_WIDTH)
+    ens = [_import_estimator(m, arrays, where) for m in models]
+    m = len(ens)
+    low, high = (np.asarray(C.array(arrays, spec.get(k), where, kinds="f", ndim=1), np.float64) for k in ("low", "high"))
+    rate = None if spec.get("max_rate") is None else \
+        np.asarray(C.array(arrays, spec.get("max_rate"), where, kinds="f", ndim=1), np.float64)
+    if low.shape != (m,) or high.shape != (m,) or (rate is not None and rate.shape != (m,)):
+        raise ArtifactError(f"{where}: low {low.shape}, high {high.shape}, max_rate "
+                            f"{None if rate is None else rate.shape}: one value per component ({m}) required")
+    if np.isnan(low).any() or np.isnan(high).any() or (low > high).any() or \
+            (rate is not None and (not np.isfinite(rate).all() or (rate <= 0).any())):
+        raise ArtifactError(f"{where}: bounds must satisfy low <= high (no NaN) and max_rate be finite and > 0")
+    for c, e in enumerate(ens):
+        w = getattr(e, "n_features_in_", None)
+        if w is not None and w != d:
+            raise ArtifactError(f"{where}: model {c} reads {w} features, the policy {d}")
+    report = spec.get("report")
+    pi = DistilledCommandPolicy(ens, low, high, rate, n_features=d, report=report if isinstance(report, dict) else None)
+    try:
+        u = pi.raw_commands(np.zeros((2, d)))
+    except ArtifactError:
+        raise
+    except Exception as exc:
+        raise ArtifactError(f"{where}: the distilled policy cannot predict ({type(exc).__name__}: {exc})") from None
+    if u.shape != (2, m):
+        raise ArtifactError(f"{where}: the distilled policy predicts shape {u.shape}, expected (2, {m})")
+    return pi
+
+
 def _register_policies() -> None:
     """Register the package's policy kinds (on first use: policies import lazily to keep this module light)."""
     from offline_adp.policies import (
@@ -423,6 +473,9 @@ def _register_policies() -> None:
                          lambda spec, arrays, where: NonStationaryPolicy(
                              _read_parts(spec, arrays, where, "steps", "non_stationary")))
     register_policy_kind("classifier", ClassifierPolicy, _write_classifier, _read_classifier)
+    from offline_adp.distill import DistilledCommandPolicy
+
+    register_policy_kind("distilled_command", DistilledCommandPolicy, _write_distilled, _read_distilled)
 
 
 _POLICY_KINDS = _Kinds("policy", load=_register_policies)
@@ -432,7 +485,8 @@ _export_policy, _import_policy = _POLICY_KINDS.export, _POLICY_KINDS.read
 
 
 def save_policy(policy: Any, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
-    """Write a policy (greedy, uniform, tabular, mixture, non-stationary, classifier) as
+    """Write a policy (greedy, greedy_command, distilled_command, uniform, tabular, mixture,
+    non-stationary, classifier) as
     ``policy.json`` + ``policy.npz``."""
     arrays = Arrays()
     _write(directory, "policy", {"policy": _export_policy(policy, arrays, "p")}, arrays, extra)

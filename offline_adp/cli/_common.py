@@ -48,6 +48,19 @@ def _particle_count(text: str) -> int:
     return value
 
 
+def _rates(text: str) -> list[float]:
+    """argparse type: positive finite numbers separated by commas (a rate limit per component)."""
+    import math
+
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected positive numbers separated by commas, got {text!r}") from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive finite numbers, got {text!r}")
+    return values
+
+
 def _positive_int(text: str) -> int:
     """argparse type: an integer >= 1 (a usage error, exit 2, otherwise)."""
     try:

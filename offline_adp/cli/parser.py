@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from offline_adp._version import __version__
-from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, _particle_count, _positive_int
+from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, _particle_count, _positive_int, _rates
 from offline_adp.cli.data_commands import (
     cmd_ingest_mcap,
     cmd_ingest_parquet,
@@ -14,7 +14,7 @@ from offline_adp.cli.data_commands import (
     cmd_simulate,
     cmd_validate,
 )
-from offline_adp.cli.export_commands import cmd_annotate, cmd_convert, cmd_export
+from offline_adp.cli.export_commands import cmd_annotate, cmd_convert, cmd_distill, cmd_export
 from offline_adp.cli.fit_commands import cmd_evaluate, cmd_fit, cmd_report, cmd_run, cmd_schema
 
 
@@ -293,6 +293,29 @@ def build_parser() -> argparse.ArgumentParser:
                     help="element type of the `observation` input (float32: what robot stacks usually publish)")
     ex.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     ex.set_defaults(func=cmd_export)
+
+    di = sub.add_parser(
+        "distill",
+        help="distill a run's continuous greedy policy into a compact tree ensemble (to deploy and export)",
+        formatter_class=fmt,
+        description="Fit extra trees from the state to the greedy command of RUN_DIR (FQI over continuous commands) at "
+        "its dataset's logged states, weighted by how much the choice matters there, clipped to the action table's "
+        "bounds; write OUT, a run directory whose policy offline_adp.load_policy(OUT) returns and `offline-adp export "
+        "OUT` writes to ONNX. Logs the fit: mean |distilled - greedy| per component. See docs/deploy.md.",
+        epilog="example:\n  offline-adp distill runs/pendulum --out runs/pendulum-distilled --max-rate 0.5\n"
+        "  offline-adp export runs/pendulum-distilled --out policy.onnx --input-dtype float32",
+    )
+    di.add_argument("run", help="run directory of a continuous greedy policy (FQI with commands=auto on exact commands)")
+    di.add_argument("--out", required=True, help="run directory to write")
+    di.add_argument("--dataset", default=None, help="dataset whose logged states to fit on (default: the run's)")
+    di.add_argument("--n-estimators", type=_positive_int, default=50, help="trees (default 50)")
+    di.add_argument("--min-samples-leaf", type=_positive_int, default=5, help="rows per leaf at least (default 5)")
+    di.add_argument("--max-rate", type=_rates, default=None, metavar="R[,R...]",
+                    help="rate limit: largest |u_t - u_(t-1)| per step, one value or one per component (saved with the "
+                         "policy and in the ONNX metadata; applied by act(obs, previous=u_prev))")
+    di.add_argument("--seed", type=int, default=0, help="random state of the forest")
+    di.add_argument("--overwrite", action="store_true", help="replace OUT if it is a distilled run")
+    di.set_defaults(func=cmd_distill)
 
     an = sub.add_parser(
         "annotate",
