@@ -173,3 +173,24 @@ def test_continuous_commands_need_the_exact_commands():
 def test_cpi_refuses_continuous_commands(lq):
     with pytest.raises(IncompatibleError, match="continuous commands"):
         ConservativePolicyIteration(n_iterations=1).fit(lq)
+
+
+def test_two_component_commands_fit_in_the_default_frozen_mode():
+    """A command of two components (the second ignored by the system): the default mode fits it
+    and the greedy commands are two-component vectors from the logged neighbourhood."""
+    ds = lq_dataset(60)
+    u = ds.commands()[:, 0]
+    w = np.random.default_rng(1).uniform(-1, 1, len(u))
+    from dataclasses import replace
+
+    at = ds.info.action_table
+    table = ActionTable(actions=tuple(Action(a.name, (a.value[0], 0.0)) for a in at.actions), dims=("u", "w"),
+                        kind="continuous", low=(-U_MAX, -1.0), high=(U_MAX, 1.0))
+    two = TransitionDataset(ds.table.append_column(ACTION_VALUE_PREFIX + "w", [w]), replace(ds.info, action_table=table))
+    est = FittedQIteration(n_iterations=10).fit(two)
+    assert est.mode_ == "frozen" and est.commands_ == "continuous"
+    xs = np.linspace(-1.5, 1.5, 7)[:, None]
+    c = est.policy_.commands(xs)
+    cand = est.q_function_.encoder.commands(xs)
+    assert c.shape == (7, 2)
+    assert all((cand[i] == c[i]).all(axis=1).any() for i in range(7))
