@@ -11,8 +11,9 @@ The exported model has
   (int64 ``(N,)``) and, for greedy policies, ``q_values`` (double ``(N, n_actions)``,
   costs: the policy picks the lowest, ties to the lowest index).
 
-A distilled continuous policy (:class:`~offline_adp.distill.DistilledCommandPolicy`)
-has one output instead, ``command`` (double ``(N, m)``, within the bounds), and metadata
+A continuous policy (:class:`~offline_adp.policies.GreedyCommandPolicy`, exactly: the
+nearest logged states' commands and the first minimum of Q over them; or
+:class:`~offline_adp.distill.DistilledCommandPolicy`) has one output instead, ``command`` (double ``(N, m)``, within the bounds), and metadata
 ``command_low``, ``command_high``, ``max_rate`` (the graph is stateless: the caller applies
 the rate limit), ``outputs``; see docs/deploy.md.
 
@@ -329,9 +330,8 @@ def _greedy_rule(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
 def _refusal(pi: Any) -> str:
     kind = type(pi).__name__
     if kind == "GreedyCommandPolicy":
-        return ("a GreedyCommandPolicy (continuous commands: a minimum over the commands logged at the nearest logged "
-                "states) is not exported to ONNX; distill it first (`offline-adp distill RUN --out RUN_DISTILLED`, "
-                "or offline_adp.distill.distill_policy) and export the distilled policy")
+        return ("this GreedyCommandPolicy cannot be exported to ONNX (a time-indexed Q, or a Q that is not a tree "
+                "ensemble); distill it (`offline-adp distill RUN --out RUN_DISTILLED`) and export the distilled policy")
     if kind in ("MixturePolicy", "UniformPolicy", "EpsilonPolicy", "StochasticFunctionPolicy"):
         return (f"a {kind} is stochastic (it draws its action at random) and is not exported to ONNX; export a "
                 "deterministic policy (for a CPI mixture: one of its components, policy.components[k])")
@@ -401,7 +401,9 @@ def _register() -> None:
     _STEP_RULES.update({NonStationaryPolicy: lambda pi: list(pi.steps), GreedyPolicy: _greedy_steps})
     from offline_adp.distill import DistilledCommandPolicy
 
-    _COMMAND_EXPORTERS.update({DistilledCommandPolicy: _distilled_commands})
+    from offline_adp.policies import GreedyCommandPolicy
+
+    _COMMAND_EXPORTERS.update({DistilledCommandPolicy: _distilled_commands, GreedyCommandPolicy: _greedy_commands})
 
 
 # ----------------------------------------------------------------------------- public API
@@ -566,6 +568,46 @@ def _command_model(g: _Graph, policy: Any, sig: Any, X: str, inputs: list[Any], 
 def _finite_or_none(x: float) -> float | None:
     """A bound for JSON: None where undeclared (infinite)."""
     return float(x) if np.isfinite(x) else None
+
+
+def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.ndarray]:
+    """The greedy command policy itself, exactly: the ``k`` logged states nearest each row
+    (squared differences of the scaled features summed in feature order, as the library's
+    k-d tree does; ``TopK`` keeps ties in index order), their logged commands as the
+    candidates, the Q-values of every candidate (slot-major pairs, the library's order), the
+    first minimum, the bounds. Memory: ``N x (logged states) x d`` doubles per batch."""
+    from offline_adp.qfunctions import NeighbourCommands, TimeIndexedQ
+
+    enc = pi.encoder
+    cands = enc.candidates
+    if isinstance(pi.q, TimeIndexedQ) or not isinstance(cands, NeighbourCommands):
+        raise ExportError(_refusal(pi))
+    phi = _phi(g, enc.feature_map, X)
+    M, d = cands.points.shape
+    k, m = cands.k, cands.commands.shape[1]
+    z = g.op("Div", [g.op("Sub", [phi, g.const(cands.center.reshape(1, d), "center")]),
+                     g.const(cands.scale.reshape(1, d), "scale")], "z")
+    diff = g.op("Sub", [g.op("Unsqueeze", [z, g.const(np.array([1], np.int64))], "z3"),
+                        g.const(cands.points.reshape(1, M, d), "logged_states")], "diff")
+    dist = g.op("ReduceSum", [g.op("Mul", [diff, diff], "sq"), g.const(np.array([2], np.int64))], "dist2", keepdims=0)
+    nearest = g.op("TopK", [dist, g.const(np.array([k], np.int64))], "nearest", outputs=2, axis=1, largest=0, sorted=1)
+    rows = g.nodes[-1].output[1]  # TopK's second output: the indices
+    cand = g.op("Gather", [g.const(cands.commands, "logged_commands"), rows], "candidates", axis=0)  # (N, k, m)
+    slots = g.op("Reshape", [g.op("Transpose", [cand], "cand_t", perm=[1, 0, 2]), g.const(np.array([-1, m], np.int64))],
+                 "slots")  # row j * N + i: candidate j of row i
+    pairs = g.op("Concat", [g.op("Tile", [phi, g.const(np.array([k, 1], np.int64))], "tiled"), slots], "pairs", axis=1)
+    models = getattr(pi.q, "models", None)
+    if not models or len(models) != 1:
+        raise ExportError(_refusal(pi))
+    q = _action_major(g, _regressor(g, models[0], pairs), k)  # (N, k)
+    best = g.op("ArgMin", [q], "best", axis=1, keepdims=1, select_last_index=0)  # (N, 1)
+    n = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
+    shape = g.op("Concat", [n, g.const(np.array([1, m], np.int64))], "ushape", axis=0)
+    idx = g.op("Expand", [g.op("Unsqueeze", [best, g.const(np.array([2], np.int64))], "best3"), shape], "uidx")
+    u = g.op("Reshape", [g.op("GatherElements", [cand, idx], "picked", axis=1), g.const(np.array([-1, m], np.int64))], "u")
+    low, high = pi.signature.action_table.bounds() if pi.signature is not None else (np.full(m, -np.inf), np.full(m, np.inf))
+    u = g.op("Max", [u, g.const(np.asarray(low, np.float64).reshape(1, -1), "low")], "u_low")
+    return g.op("Min", [u, g.const(np.asarray(high, np.float64).reshape(1, -1), "high")], "u_clipped"), low, high
 
 
 def _distilled_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.ndarray]:

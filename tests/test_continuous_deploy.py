@@ -73,7 +73,6 @@ def planar():
     cost = (x ** 2).sum(axis=1) + 0.1 * ((u - [0.0, 1.0]) ** 2).sum(axis=1)
     ds = command_dataset(x, u, cost, nxt, np.arange(n) // 20, np.arange(n) % 20, [-1.0, 0.0], [1.0, 2.0],
                          ["ux", "uy"], ["m/s", "m/s"])
-    # mode="refit": the frozen mode fails on two-component commands (learn/frozen.py:397, actions (n, 2))
     q = FittedQIteration(n_iterations=3, mode="refit", regressor_params={"n_estimators": 10}).fit(ds).q_function_
     from offline_adp.policies import GreedyCommandPolicy, attach_signature
 
@@ -118,10 +117,39 @@ def test_distill_export_agrees_with_load_policy(pendulum, tmp_path):
         assert meta["rate_limit_in_graph"] is False and meta["policy_kind"] == "DistilledCommandPolicy"
 
 
-def test_greedy_command_policy_export_refused(pendulum):
-    root, _ = pendulum
+def test_greedy_command_policy_exports_exactly(pendulum, tmp_path):
+    """The greedy policy itself (nearest logged states, their commands, the first minimum
+    of Q): `offline-adp export RUN` with float32 input agrees with load_policy(RUN).act to
+    1e-5 on the 10,000 logged states (run in batches: the exact search holds a batch's
+    distances to every logged state)."""
+    import onnx
+
+    root, ds = pendulum
+    path = tmp_path / "greedy.onnx"
+    assert main(["export", str(root / "run"), "--out", str(path), "--input-dtype", "float32", "-q"]) == 0
+    X = ds.arrays().obs[:N_STATES].astype(np.float32)
+    model = onnx.load(str(path))
+    got = np.vstack([_onnx(model, X[i:i + 1000]) for i in range(0, len(X), 1000)])
+    ref = load_policy(root / "run").act(X.astype(np.float64))
+    np.testing.assert_allclose(got[:, 0], ref, rtol=0, atol=1e-5)
+    assert onnx_metadata(path)["policy_kind"] == "GreedyCommandPolicy"
+
+
+def test_two_component_greedy_export(planar):
+    ds, greedy = planar
+    X = ds.arrays().obs[:500].astype(np.float32)
+    got = _onnx(policy_to_onnx(greedy, input_dtype="float32"), X)
+    np.testing.assert_allclose(got, greedy.act(X.astype(np.float64)), rtol=0, atol=1e-5)
+
+
+def test_time_indexed_greedy_command_export_refused(planar):
+    from offline_adp.policies import GreedyCommandPolicy, attach_signature
+    from offline_adp.qfunctions import TimeIndexedQ
+
+    ds, greedy = planar
+    pi = attach_signature(GreedyCommandPolicy(TimeIndexedQ([greedy.q, greedy.q])), ds)
     with pytest.raises(ExportError, match="distill"):
-        policy_to_onnx(load_policy(root / "run"))
+        policy_to_onnx(pi)
 
 
 def test_two_components_bounds_and_onnx(planar):
