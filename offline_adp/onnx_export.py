@@ -400,7 +400,6 @@ def _register() -> None:
                             ClassifierPolicy: lambda g, pi, X: (_classifier_policy(g, pi, X), None)})
     _STEP_RULES.update({NonStationaryPolicy: lambda pi: list(pi.steps), GreedyPolicy: _greedy_steps})
     from offline_adp.distill import DistilledCommandPolicy
-
     from offline_adp.policies import GreedyCommandPolicy
 
     _COMMAND_EXPORTERS.update({DistilledCommandPolicy: _distilled_commands, GreedyCommandPolicy: _greedy_commands})
@@ -590,7 +589,7 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     diff = g.op("Sub", [g.op("Unsqueeze", [z, g.const(np.array([1], np.int64))], "z3"),
                         g.const(cands.points.reshape(1, M, d), "logged_states")], "diff")
     dist = g.op("ReduceSum", [g.op("Mul", [diff, diff], "sq"), g.const(np.array([2], np.int64))], "dist2", keepdims=0)
-    nearest = g.op("TopK", [dist, g.const(np.array([k], np.int64))], "nearest", outputs=2, axis=1, largest=0, sorted=1)
+    g.op("TopK", [dist, g.const(np.array([k], np.int64))], "nearest", outputs=2, axis=1, largest=0, sorted=1)
     rows = g.nodes[-1].output[1]  # TopK's second output: the indices
     cand = g.op("Gather", [g.const(cands.commands, "logged_commands"), rows], "candidates", axis=0)  # (N, k, m)
     slots = g.op("Reshape", [g.op("Transpose", [cand], "cand_t", perm=[1, 0, 2]), g.const(np.array([-1, m], np.int64))],
