@@ -41,7 +41,9 @@ def worker(algo: str, src: str, out: str, steps: int, episodes: int) -> None:
     """Runs under d3rlpy's interpreter: fit ``algo`` on the arrays in ``src`` and score it."""
     import d3rlpy
     import gymnasium
+    import torch
 
+    torch.set_num_threads(1)  # one core: CPU seconds comparable with ours, no spinning on a shared machine
     z = np.load(src)
     env_id = str(z["env_id"])
     low, high = z["low"].astype(np.float32), z["high"].astype(np.float32)

@@ -267,7 +267,7 @@ def test_continuous_d4rl_actions_import_exactly(tmp_path, k):
 
     ds = read_dataset(out)
     table = ds.info.action_table
-    assert table.kind == "binned" and len(table) <= 4096
+    assert table.kind == "continuous" and len(table) <= 4096  # exact commands; the bins a coarse view
     got = np.column_stack([ds.column(ACTION_VALUE + dname) for dname in table.dims])
     np.testing.assert_array_equal(got, a["actions"])  # the exact commands
     # each index is the bin cell of its command; cell values are the mean command in them
@@ -348,7 +348,7 @@ def test_continuous_minari_pendulum_imports_equal_to_the_source(tmp_path, steps)
     acts = np.vstack([e.actions for e in src]).astype(np.float64)
     table = ds.info.action_table
     if ACTION_VALUE + "a" in ds.table.column_names:
-        assert steps == 100 and table.kind == "binned"
+        assert steps == 100 and table.kind == "continuous" and table.low == (-2.0,) and table.high == (2.0,)
         np.testing.assert_array_equal(ds.column(ACTION_VALUE + "a").reshape(-1, 1), acts)
     else:
         assert steps == 20 and table.kind == "discrete" and len(table) == len(np.unique(acts))

@@ -3,6 +3,7 @@ checks of imported arrays, provenance and the doctor's verdict."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -204,13 +205,16 @@ def _binned(vals: np.ndarray, where: str) -> tuple[np.ndarray, ActionTable]:
     return idx.astype(np.int64), table
 
 
-def _encode_actions(vals: np.ndarray, where: str, continuous: bool | None = None
-                    ) -> tuple[np.ndarray, ActionTable, dict[str, np.ndarray]]:
+def _encode_actions(vals: np.ndarray, where: str, continuous: bool | None = None, *, low: Any = None,
+                    high: Any = None) -> tuple[np.ndarray, ActionTable, dict[str, np.ndarray]]:
     """Action values (n, k) without a given table -> (indices, table, extra columns).
 
     At most :data:`MAX_EXACT_ACTIONS` distinct rows (and not ``continuous=True``): an
-    exact discrete table of those rows. Otherwise continuous commands: binned
-    (:func:`_binned`) and kept exactly in ``action_value.<dim>`` float64 columns."""
+    exact discrete table of those rows. Otherwise continuous commands: kept exactly in
+    ``action_value.<dim>`` float64 columns, a table of kind ``continuous`` whose entries
+    are quantile bins (:func:`_binned`, the ``action`` column's coarse view) and whose
+    bounds are ``low``/``high`` (a format's declared box, widened to the logged range),
+    else the logged range."""
     vals = np.asarray(vals, np.float64).reshape(len(vals), -1)
     few = None if continuous else _unique_rows(vals, MAX_EXACT_ACTIONS)
     if few is not None and len(few[0]):
@@ -220,9 +224,14 @@ def _encode_actions(vals: np.ndarray, where: str, continuous: bool | None = None
     if not len(vals):
         raise IngestError(f"{where}: no transitions")
     idx, table = _binned(vals, where)
+    # the exact commands are the actions (kind "continuous", bounds: the logged range, or the
+    # declared ones a format gives); the bins stay as the coarse view
+    lo = tuple(float(x) for x in (vals.min(axis=0) if low is None else np.minimum(low, vals.min(axis=0))))
+    hi = tuple(float(x) for x in (vals.max(axis=0) if high is None else np.maximum(high, vals.max(axis=0))))
+    table = replace(table, kind="continuous", low=lo, high=hi)
     extra = {ACTION_VALUE + d: np.ascontiguousarray(vals[:, j]) for j, d in enumerate(table.dims)}
-    log.info("%s: continuous actions: %d distinct commands binned into %d actions; exact commands kept in %s",
-             where, len(np.unique(vals, axis=0)), len(table), list(extra))
+    log.info("%s: continuous actions: %d distinct commands kept exactly in %s (coarse view: %d bins)",
+             where, len(np.unique(vals, axis=0)), list(extra), len(table))
     return idx, table, extra
 
 

@@ -125,7 +125,7 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
         info = _default_info(obs.shape[1], table, feature_names, name)
     if len(info.features) != obs.shape[1]:
         raise IngestError(f"{where}: observations have {obs.shape[1]} columns, the metadata names {len(info.features)} features")
-    if not extra and info.action_table.kind == "binned" and act_vals.shape[1] == len(info.action_table.dims):
+    if not extra and info.action_table.kind in ("binned", "continuous") and act_vals.shape[1] == len(info.action_table.dims):
         # binned commands: the logged values are the exact commands (what to_d4rl writes)
         extra = {ACTION_VALUE + dname: np.ascontiguousarray(act_vals[:, j]) for j, dname in enumerate(info.action_table.dims)}
     if "infos/action_index" in arrays:

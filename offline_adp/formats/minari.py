@@ -246,7 +246,12 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         action = _action_indices(vals, (info.action_table if info is not None else action_table), where)  # type: ignore[union-attr]
         table = action_table  # type: ignore[assignment]
     else:
-        action, table, extra = _encode_actions(_finite(acts, where, "actions"), where)
+        space = mds.action_space  # a Box: its declared bounds are the commands' (when finite)
+        low, high = (np.asarray(getattr(space, b, np.nan), np.float64).reshape(-1) for b in ("low", "high"))
+        finite = low.shape == high.shape == (acts.reshape(len(acts), -1).shape[1],) and np.isfinite(low).all() \
+            and np.isfinite(high).all()
+        action, table, extra = _encode_actions(_finite(acts, where, "actions"), where, low=low if finite else None,
+                                               high=high if finite else None)
     if info is None:
         info = _default_info(d, table, feature_names, str(meta.get("dataset_id", "minari")))
     if len(info.features) != d:
