@@ -394,7 +394,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         reuse = self.reuse if len(self.reuse) and "next" in inputs else np.zeros(0, np.int64)
         rest = np.ones(n, bool)
         rest[reuse] = False
-        from_next = self.actions[reuse] * n + reuse - 1  # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i
+        # row i continues row i - 1: its leaf is x'_{i-1}'s with a_i (never with continuous commands,
+        # whose actions are (n, m) command vectors: no row is reused then)
+        from_next = self.actions[reuse] * n + reuse - 1 if len(reuse) else np.zeros(0, np.int64)
         looked = None  # the next-state queries looked up (the others are training rows' leaves)
         if train_leaves is not None and len(reuse):
             looked = np.ones(len(inputs["next"]), bool)
