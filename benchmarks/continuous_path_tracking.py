@@ -19,11 +19,13 @@ for every arm; the binned policy steps its bins' representative commands, the co
 one its commands). Reported per arm: mean discounted cost (lower is better) with its
 standard error, failures (left the road), the fit's CPU seconds (``time.process_time``,
 this process), and smoothness: mean ``|u_t - u_{t-1}|`` per step, per command component.
-The demonstrator (stochastic) and its noise-free Stanley controller are rolled out too, as
-references.
+The rollouts of both arms share start states and noise (no greedy policy draws random
+numbers; each step's noise is per row, so this holds while no episode fails), so the cost difference continuous - binned is also given paired, with
+its standard error. The demonstrator (stochastic) and its noise-free Stanley controller
+are rolled out too, as references.
 
     nice -n 10 python benchmarks/continuous_path_tracking.py [--modes continuous steer_accel] \
-        [--demonstrations 50] [--exploration 150] [--episodes 200] [--seed 0] [--json out.json]
+        [--demonstrations 50] [--exploration 150] [--episodes 200] [--seeds 0 1 2] [--json out.json]
 """
 
 from __future__ import annotations
@@ -77,7 +79,7 @@ def score(model, policy, n_episodes: int, seed: int) -> dict:
 
     res = rollout(model, policy, n_episodes, np.random.default_rng(seed), horizon=HORIZON, gamma=GAMMA, on_step=on_step)
     j = np.concatenate(jumps) if jumps else np.zeros((0, values.shape[1]))
-    return {"mean_discounted_cost": res.mean,
+    return {"costs": res.discounted_cost, "mean_discounted_cost": res.mean,
             "se": float(res.discounted_cost.std(ddof=1) / np.sqrt(len(res.discounted_cost))),
             "failures": int(res.terminated.sum()),
             "smoothness": [float(x) for x in j.mean(axis=0)]}
@@ -92,7 +94,8 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
     rows = []
 
     def report(arm: str, sc: dict, cpu: float | None = None, extra: dict | None = None) -> None:
-        row = {"mode": mode, "arm": arm, **sc, "cpu_s": cpu, **(extra or {})}
+        row = {"mode": mode, "seed": args.seed, "arm": arm, **{k: v for k, v in sc.items() if k != "costs"},
+               "cpu_s": cpu, **(extra or {})}
         rows.append(row)
         sm = ", ".join(f"{d} {s:.4f}" for d, s in zip(dims, sc["smoothness"], strict=True))
         print(f"  {arm:<22} cost {sc['mean_discounted_cost']:7.3f} +- {sc['se']:.3f}  failures {sc['failures']:3d}  "
@@ -101,6 +104,7 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
     demo = model.demonstrator()
     report("demonstrator", score(model, demo, args.episodes, 123))
     report("stanley (noise-free)", score(model, _Controller(demo), args.episodes, 123))
+    costs = {}
     for arm, params in (("continuous", {"commands": "continuous", "n_candidates": args.n_candidates}),
                         ("binned", {"commands": "binned"})):
         est = FittedQIteration(gamma=GAMMA, n_iterations=args.iterations, random_state=args.seed,
@@ -111,8 +115,14 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
             est.fit(ds)
             cpu = time.process_time() - c0
         pol = attach_signature(est.policy_, ds)
-        report(arm, score(model, pol, args.episodes, 123), cpu,
-               {"iterations": len(est.history_), "verdict": est.verdict_, "commands": est.commands_})
+        sc = score(model, pol, args.episodes, 123)
+        costs[arm] = sc["costs"]
+        report(arm, sc, cpu, {"iterations": len(est.history_), "verdict": est.verdict_, "commands": est.commands_})
+    d = costs["continuous"] - costs["binned"]
+    paired = {"mode": mode, "seed": args.seed, "arm": "continuous - binned (paired)", "mean_difference": float(d.mean()),
+              "se": float(d.std(ddof=1) / np.sqrt(len(d)))}
+    rows.append(paired)
+    print(f"  continuous - binned: {paired['mean_difference']:+.3f} +- {paired['se']:.3f} (paired)", flush=True)
     return rows
 
 
@@ -125,12 +135,14 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--n-candidates", type=int, default=16)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="data (and learner) seeds")
     ap.add_argument("--json")
     a = ap.parse_args()
     rows = []
-    for mode in a.modes:
-        rows += run(mode, a)
+    for seed in a.seeds:
+        a.seed = seed
+        for mode in a.modes:
+            rows += run(mode, a)
         if a.json:
             with open(a.json, "w") as f:
                 json.dump(rows, f, indent=1)
