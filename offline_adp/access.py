@@ -19,6 +19,8 @@ Each class derives from the next weaker one, so a stronger model *is* a weaker o
 next states by inverse CDF, a ``Simulator`` draws its seed from the caller's
 generator, and a ``GenerativeModel`` with a start distribution is a ``ResetModel``.
 Everything is batched: states are ``(n, d)`` float arrays, actions ``(n,)`` int arrays.
+A model whose ``accepts_commands`` is true also steps continuous commands: an ``(n, m)``
+float array of command vectors in place of the indices (see :func:`command_matrix`).
 Algorithms type-hint the weakest model they need and call :func:`require`.
 """
 
@@ -59,12 +61,18 @@ class ResetModel(ABC):
         Discount factor of the problem (1.0 for undiscounted episodic problems).
     horizon : int or None
         Episode time limit T (truncation), if any.
+    accepts_commands : bool
+        Whether ``step`` also takes continuous commands, an ``(n, m)`` float array (one
+        command vector per row), besides ``(n,)`` action indices. Rollouts of a continuous
+        policy (``policy.continuous``) need it: they pass the policy's commands, never its
+        binned view.
     """
 
     n_actions: int
     obs_dim: int
     gamma: float = 1.0
     horizon: int | None = None
+    accepts_commands: bool = False
 
     @abstractmethod
     def initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -144,6 +152,38 @@ class FullModel(Simulator):
         cdf = self._cdf[a, s]  # (n, S)
         nxt = np.minimum((u[:, None] >= cdf).sum(axis=1), self.n_states - 1)
         return StepResult(nxt.astype(np.float64)[:, None], self.C[s, a], self.terminal[nxt])
+
+
+def is_command_array(actions: np.ndarray) -> bool:
+    """Whether ``actions`` passed to ``step`` are command vectors ``(n, m)`` (two axes),
+    not ``(n,)`` action indices."""
+    return np.ndim(actions) == 2
+
+
+def command_matrix(actions: np.ndarray, n: int, low: np.ndarray, high: np.ndarray, name: str) -> np.ndarray:
+    """Commands ``(n, m)`` for a model's ``step``, checked and clipped into ``[low, high]``.
+
+    Raises :class:`~offline_adp.errors.IncompatibleError` when the array does not hold one
+    command of ``m = len(low)`` components per state and
+    :class:`~offline_adp.errors.InvalidArgumentError` when a command is not a finite number;
+    ``name`` (the simulator) heads the message.
+    """
+    from offline_adp.errors import IncompatibleError, InvalidArgumentError
+
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    try:
+        u = np.asarray(actions, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidArgumentError(f"simulator {name!r}: commands must be numbers ({exc})") from None
+    if u.shape != (n, len(low)):
+        raise IncompatibleError(f"simulator {name!r}: commands must be an array of shape ({n}, {len(low)}) "
+                                f"(one command of {len(low)} components per state), got {u.shape}")
+    bad = ~np.isfinite(u).all(axis=1)
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise InvalidArgumentError(f"simulator {name!r}: {len(rows)} command(s) are not finite, e.g. row {int(rows[0])}: "
+                                   f"{u[rows[0]].tolist()}")
+    return np.clip(u, low, high)
 
 
 def require(model: object, needed: type) -> None:

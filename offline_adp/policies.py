@@ -303,6 +303,10 @@ class CommandPolicy(DeterministicPolicy):
     def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         """The command per row, shape (n, m) float64."""
 
+    def sample_commands(self, obs: np.ndarray, t: TimeArg = 0, rng: np.random.Generator | None = None) -> np.ndarray:
+        """The commands a rollout sends: :meth:`commands` (a deterministic policy; ``rng`` unused)."""
+        return self.commands(obs, t)
+
     @property
     def n_actions(self) -> int:  # type: ignore[override]
         return len(self._table())
@@ -386,6 +390,99 @@ class NearestCommandPolicy(CommandPolicy):
     def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         rows = self.candidates.neighbours(np.asarray(obs, np.float64))[1][:, 0]
         return self.clip(self.candidates.commands[rows])
+
+
+class GaussianCommandPolicy(Policy):
+    """A stochastic behaviour over continuous commands (a driver, an exploration policy).
+
+    With probability ``1 - epsilon`` the command is ``mean(obs, t) + N(0, diag(std^2))``,
+    with probability ``epsilon`` uniform in ``[low, high]``; then clipped into
+    ``[low, high]``. Rollouts and ``collect`` send :meth:`sample_commands`;
+    :meth:`commands` is the noise-free controller ``clip(mean(obs, t))``.
+
+    The discrete view (``probabilities``, ``act_index``) is exact when the action table's
+    entries are the product grid of ``grid`` (one array of values per component, entries in
+    ``itertools.product`` order): the probability that the sampled command's nearest entry
+    (per component: the Voronoi cell of its grid value) is each entry.
+
+    Parameters
+    ----------
+    mean : callable ``(obs (n, d), t) -> (n, m)``
+    std : sequence of float
+        Noise standard deviation per component (> 0, or 0 for none).
+    low, high : sequence of float
+        Bounds per component (finite).
+    epsilon : float
+        Probability of a uniformly random command.
+    grid : sequence of arrays, optional
+        The action table's per-component values (needed by the discrete view only).
+    """
+
+    continuous = True
+    time_varying = False
+
+    def __init__(self, mean: Callable[[np.ndarray, TimeArg], np.ndarray], std: Sequence[float], low: Sequence[float],
+                 high: Sequence[float], epsilon: float = 0.0, grid: Sequence[Sequence[float]] | None = None,
+                 name: str = "") -> None:
+        self.mean, self.name = mean, name
+        self.std, self.low, self.high = (np.asarray(v, np.float64).reshape(-1) for v in (std, low, high))
+        if not (len(self.std) == len(self.low) == len(self.high)) or not (np.isfinite(self.low).all()
+                                                                         and np.isfinite(self.high).all()):
+            raise ValueError("std, low and high need one finite number per command component")
+        if (self.std < 0).any() or (self.low > self.high).any():
+            raise ValueError(f"std must be >= 0 and low <= high; got std {self.std}, low {self.low}, high {self.high}")
+        if not 0.0 <= epsilon <= 1.0:
+            raise ValueError(f"epsilon must be in [0, 1], got {epsilon}")
+        self.epsilon = float(epsilon)
+        self.grid = None if grid is None else [np.asarray(g, np.float64).reshape(-1) for g in grid]
+        self.n_actions = int(np.prod([len(g) for g in self.grid])) if self.grid is not None else 0
+
+    def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        mu = np.asarray(self.mean(np.asarray(obs, np.float64), t), np.float64).reshape(len(obs), len(self.low))
+        return np.clip(mu, self.low, self.high)
+
+    def sample_commands(self, obs: np.ndarray, t: TimeArg = 0, rng: np.random.Generator | None = None) -> np.ndarray:
+        rng = rng if rng is not None else np.random.default_rng()
+        mu = np.asarray(self.mean(np.asarray(obs, np.float64), t), np.float64).reshape(len(obs), len(self.low))
+        n, m = mu.shape
+        noisy = mu + self.std * rng.standard_normal((n, m))
+        uniform = self.low + (self.high - self.low) * rng.random((n, m))
+        explore = rng.random(n) < self.epsilon
+        return np.clip(np.where(explore[:, None], uniform, noisy), self.low, self.high)
+
+    def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
+        from scipy.special import ndtr
+
+        if self.grid is None:
+            raise SchemaError("this continuous behaviour has no discrete view (no grid of action-table values)")
+        mu = np.asarray(self.mean(np.asarray(obs, np.float64), t), np.float64).reshape(len(obs), len(self.low))
+        gauss = uni = np.ones((len(mu), 1))
+        for k, g in enumerate(self.grid):
+            edges = np.r_[-np.inf, (g[1:] + g[:-1]) / 2, np.inf]
+            if self.std[k] > 0:
+                with np.errstate(invalid="ignore"):
+                    pk = np.diff(ndtr((edges[None, :] - mu[:, k:k + 1]) / self.std[k]), axis=1)
+            else:  # no noise: the cell of the clipped mean
+                c = np.clip(mu[:, k], self.low[k], self.high[k])
+                pk = np.eye(len(g))[np.clip(np.searchsorted(edges, c, side="right") - 1, 0, len(g) - 1)]
+            width = self.high[k] - self.low[k]
+            inside = np.clip(edges[1:], self.low[k], self.high[k]) - np.clip(edges[:-1], self.low[k], self.high[k])
+            uk = inside / width if width > 0 else (np.arange(len(g)) == np.argmin(np.abs(g - self.low[k]))).astype(float)
+            gauss = (gauss[:, :, None] * pk[:, None, :]).reshape(len(mu), -1)
+            uni = (uni[:, :, None] * np.broadcast_to(uk, pk.shape)[:, None, :]).reshape(len(mu), -1)
+        return (1.0 - self.epsilon) * gauss + self.epsilon * uni
+
+    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *, return_index: bool = False) -> Any:
+        """Sampled commands (see :meth:`CommandPolicy.act`); ``return_index``: a sampled table entry."""
+        sig = self.signature
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        if return_index:
+            idx = self.act_index(X, t, rng)
+            return int(idx[0]) if single else idx
+        u = self.sample_commands(X, t, rng)
+        if u.shape[1] == 1:
+            u = u[:, 0]
+        return u[0] if single else u
 
 
 def greedy_policy(q: Any) -> DeterministicPolicy:

@@ -5,6 +5,12 @@ Every rollout in the package runs through :func:`run_episodes`: policy evaluatio
 ``simulate``, API and iterated FQI), the Ernst et al. car-on-the-hill score, PSDP's
 state samples and its Q estimates. All episodes advance together: one batched action
 call and one batched ``step`` per time step, never a per-state Python loop.
+
+A continuous policy (``policy.continuous``, e.g. a
+:class:`~offline_adp.policies.CommandPolicy`) acts with its commands, an ``(n, m)`` float
+array passed to ``model.step``; that needs a model that accepts commands
+(``model.accepts_commands``), else :class:`~offline_adp.errors.IncompatibleError` -- a
+continuous policy is never silently rolled out through its binned view.
 """
 
 from __future__ import annotations
@@ -17,21 +23,44 @@ import numpy as np
 
 from offline_adp.access import ResetModel, StepResult
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import InvalidArgumentError
+from offline_adp.errors import IncompatibleError, InvalidArgumentError
 from offline_adp.parallel import TaskMap, local_map
-from offline_adp.policies import Policy
+from offline_adp.policies import Policy, nearest_entry
 
 #: Start of simulated logs (2024-01-01T00:00:00Z), so timestamps look like a real log's.
 T0_NS = 1_704_067_200_000_000_000
 EPISODE_GAP_NS = 5_000_000_000
 DT_NS = 100_000_000
 
-#: ``act(states, t, rng) -> action indices`` for the running episodes.
+#: ``act(states, t, rng) -> action indices (n,)`` (or commands (n, m)) for the running episodes.
 ActFn = Callable[[np.ndarray, int, np.random.Generator], np.ndarray]
 #: ``step(states, actions, rng) -> StepResult`` (a model's ``step`` by default).
 StepFn = Callable[[np.ndarray, np.ndarray, np.random.Generator], StepResult]
 #: ``visit(t, rows, states, actions, result)``: called after every batched step.
 VisitFn = Callable[[int, np.ndarray, np.ndarray, np.ndarray, StepResult], None]
+
+
+def policy_actor(model: Any, policy: Policy) -> ActFn:
+    """How ``policy`` acts in ``model``: its action indices (``act_index``), or, for a
+    continuous policy, its commands ``(n, m)`` (``sample_commands(obs, t, rng)`` when it
+    has it -- stochastic behaviour -- else ``commands(obs, t)``).
+
+    Raises :class:`IncompatibleError` for a continuous policy and a model that does not
+    accept commands (``accepts_commands`` false), naming both.
+    """
+    if not getattr(policy, "continuous", False):
+        return policy.act_index
+    if not getattr(model, "accepts_commands", False):
+        name = getattr(model, "name", "") or type(model).__name__
+        raise IncompatibleError(
+            f"simulator {name!r} takes action indices only (it does not accept continuous commands), and the "
+            f"policy {type(policy).__name__} commands continuous values; rolling out its binned view instead would "
+            "score another policy. Roll it out in a simulator that accepts commands (e.g. gym:ENV_ID with a Box "
+            "action space, path_tracking with the problem option commands = \"continuous\"), or bin it explicitly")
+    sample = getattr(policy, "sample_commands", None)
+    if sample is not None:
+        return sample
+    return lambda x, t, rng: policy.commands(x, t)  # type: ignore[attr-defined]
 
 
 def run_episodes(
@@ -118,12 +147,17 @@ def rollout(
     start_states: np.ndarray | None = None,
     record_states: bool = False,
     step: StepFn | None = None,
+    on_step: VisitFn | None = None,
 ) -> RolloutResult:
     """Run ``n_episodes`` episodes of ``policy`` for at most ``horizon`` steps.
 
     Episode cost ``sum_t gamma^t c_t`` (and the undiscounted sum). With
     ``record_states`` the result keeps every step's states (memory: n x H x d).
     ``step`` replaces ``model.step`` (e.g. a deterministic simulator's seeded step).
+    ``on_step(t, rows, states, actions, result)`` sees every batched step (``rows``: the
+    running episodes; ``actions``: indices, or the commands of a continuous policy).
+    A continuous policy steps with its commands (:func:`policy_actor`; the model must
+    accept commands, else :class:`IncompatibleError`).
     """
     H = horizon if horizon is not None else model.horizon
     if H is None:
@@ -143,8 +177,10 @@ def rollout(
         total[idx] += r.costs
         length[idx] += 1
         term[idx] = r.terminated
+        if on_step is not None:
+            on_step(t, idx, xs, a, r)
 
-    run_episodes(step or model.step, policy.act_index, x0, H, rng, visit=visit)
+    run_episodes(step or model.step, policy_actor(model, policy), x0, H, rng, visit=visit)
     return RolloutResult(disc, total, length, term, states if record_states else None)
 
 
@@ -168,7 +204,14 @@ def collect(
     ``problem`` is a reset model with ``dataset_info()`` (a reference problem).
     Episodes run until ``terminated`` or ``horizon`` steps (then the last transition is
     ``truncated`` and kept). Actions are sampled from ``policy.probabilities`` and
-    ``behavior_prob`` is the probability of the logged action. Episode ids are
+    ``behavior_prob`` is the probability of the logged action.
+
+    A continuous behaviour policy (``policy.continuous``) acts with its commands
+    (:func:`policy_actor`: sampled, for a stochastic one), which the problem must accept, and
+    the problem's action table must be of kind ``"continuous"``. Each row then logs its exact
+    command in the ``action_value.<dim>`` columns and, in ``action``, the nearest table entry
+    (the coarse bin); no ``behavior_prob`` column is written, since the behaviour's law of a
+    command is a density, not the probability of a logged action. Episode ids are
     ``{episode_prefix}-{k:06d}``; episode ``k`` starts at
     ``t0_ns + k * (horizon * dt_ns + episode_gap_ns)``.
     """
@@ -176,21 +219,37 @@ def collect(
     if H is None or H <= 0:
         raise InvalidArgumentError(f"{getattr(problem, 'name', problem)}: collecting needs a positive horizon, got {H}")
     x0 = problem.initial_states(n_episodes, rng) if start_states is None else np.asarray(start_states, dtype=np.float64)
-    rec: dict[str, list[np.ndarray]] = {k: [] for k in ("ep", "step", "obs", "a", "c", "nxt", "term", "trunc", "prob")}
+    info = problem.dataset_info()
+    table = info.action_table
+    continuous = bool(getattr(policy, "continuous", False))
+    keys = ("ep", "step", "obs", "a", "c", "nxt", "term", "trunc") + (() if continuous else ("prob",))
+    rec: dict[str, list[np.ndarray]] = {k: [] for k in keys}
     probs: list[np.ndarray] = []
+    if continuous:
+        actor = policy_actor(problem, policy)
+        if not table.continuous:
+            raise IncompatibleError(
+                f"{getattr(problem, 'name', problem)}: its action table is of kind {table.kind!r}, so a dataset of it "
+                f"cannot keep the exact commands of the continuous policy {type(policy).__name__}; use a problem whose "
+                "action table is continuous (e.g. path_tracking with commands = \"continuous\")")
+        m = len(table.dims)
 
-    def act(xs: np.ndarray, t: int, r: np.random.Generator) -> np.ndarray:
-        p = policy.probabilities(xs, t)
-        u = r.random(len(xs))
-        a = np.minimum((u[:, None] >= np.cumsum(p, axis=1)).sum(axis=1), p.shape[1] - 1)
-        probs.append(p[np.arange(len(xs)), a])
-        return a
+        def act(xs: np.ndarray, t: int, r: np.random.Generator) -> np.ndarray:
+            return np.asarray(actor(xs, t, r), dtype=np.float64).reshape(len(xs), m)
+    else:
+        def act(xs: np.ndarray, t: int, r: np.random.Generator) -> np.ndarray:
+            p = policy.probabilities(xs, t)
+            u = r.random(len(xs))
+            a = np.minimum((u[:, None] >= np.cumsum(p, axis=1)).sum(axis=1), p.shape[1] - 1)
+            probs.append(p[np.arange(len(xs)), a])
+            return a
 
     def visit(t: int, idx: np.ndarray, xs: np.ndarray, a: np.ndarray, r: StepResult) -> None:
         for k, v in (("ep", idx), ("step", np.full(len(idx), t, np.int32)), ("obs", xs), ("a", a), ("c", r.costs),
                      ("nxt", r.next_states), ("term", r.terminated), ("trunc", ~r.terminated & (t == H - 1)),
-                     ("prob", probs[-1])):
-            rec[k].append(v)
+                     ("prob", probs[-1] if probs else None)):
+            if v is not None:
+                rec[k].append(v)
         if on_step is not None:
             on_step(t)
 
@@ -201,8 +260,15 @@ def collect(
     ep = cat["ep"]
     ids = np.char.add(f"{episode_prefix}-", np.char.zfill(ep.astype(str), 6))
     t_ns = t0_ns + ep.astype(np.int64) * (H * dt_ns + episode_gap_ns) + cat["step"].astype(np.int64) * dt_ns
+    if continuous:  # the exact commands, their coarse bins in ``action``, no propensity
+        u = cat["a"]
+        return TransitionDataset.from_arrays(
+            info, episode_id=ids, step=cat["step"], obs=cat["obs"], action=nearest_entry(table, u), cost=cat["c"],
+            next_obs=cat["nxt"], terminated=cat["term"], truncated=cat["trunc"], source=source, t_ns=t_ns,
+            extra={c: u[:, j] for j, c in enumerate(table.command_columns)},
+        )
     return TransitionDataset.from_arrays(
-        problem.dataset_info(), episode_id=ids, step=cat["step"], obs=cat["obs"], action=cat["a"], cost=cat["c"],
+        info, episode_id=ids, step=cat["step"], obs=cat["obs"], action=cat["a"], cost=cat["c"],
         next_obs=cat["nxt"], terminated=cat["term"], truncated=cat["trunc"], source=source, behavior_prob=cat["prob"],
         t_ns=t_ns,
     )
@@ -216,7 +282,7 @@ def state_samples(model: ResetModel, policy: Policy, n: int, T: int, rng: np.ran
     episodes, the PSDP baseline).
     """
     out: list[np.ndarray] = []
-    run_episodes(model.step, policy.act_index, model.initial_states(n, rng), T, rng,
+    run_episodes(model.step, policy_actor(model, policy), model.initial_states(n, rng), T, rng,
                  visit=lambda t, idx, xs, a, r: out.append(xs.copy()), restart=model.initial_states)
     return out
 

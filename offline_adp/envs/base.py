@@ -134,7 +134,8 @@ class ProblemEnv(gym.Env):
     """A reference problem as a ``gymnasium.Env``.
 
     Observations are the problem's feature vector, actions indices into its action
-    table, ``reward = -cost`` (gymnasium maximises; this library minimises cost and
+    table (a ``Box`` of commands within the table's bounds for a problem that accepts
+    continuous commands, e.g. path_tracking with ``commands = "continuous"``), ``reward = -cost`` (gymnasium maximises; this library minimises cost and
     reports ``info["cost"]``). ``truncated`` is set at the problem's horizon.
     ``reset(options={"state": x})`` starts from a given state.
     """
@@ -145,7 +146,12 @@ class ProblemEnv(gym.Env):
         assert isinstance(problem, ResetModel)
         self.problem = problem
         self.max_episode_steps = max_episode_steps if max_episode_steps is not None else problem.horizon
-        self.action_space = gym.spaces.Discrete(len(problem.action_table))
+        self.commands = bool(getattr(problem, "accepts_commands", False))
+        if self.commands:
+            lo, hi = problem.action_table.bounds()
+            self.action_space: gym.Space = gym.spaces.Box(lo, hi, dtype=np.float64)
+        else:
+            self.action_space = gym.spaces.Discrete(len(problem.action_table))
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(problem.obs_dim,), dtype=np.float64)
         self._state: np.ndarray | None = None
         self._t = 0
@@ -159,10 +165,11 @@ class ProblemEnv(gym.Env):
         self._t = 0
         return self._state[0].copy(), {}
 
-    def step(self, action: int):
+    def step(self, action: Any):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        r = self.problem.step(self._state, np.array([int(action)]), self.np_random)
+        a = np.asarray(action, np.float64).reshape(1, -1) if self.commands else np.array([int(action)])
+        r = self.problem.step(self._state, a, self.np_random)
         self._state = r.next_states
         self._t += 1
         terminated = bool(r.terminated[0])

@@ -13,6 +13,11 @@ simulator``, Python :func:`resolve_simulator`) rolls a fitted policy out in
   Pendulum's torque) the table holds ``d`` numbers per action, each within the box's bounds
   -- typically the bins' representative commands of a log ingested with
   ``type = "continuous"``.
+- **Commands.** For a 1-D ``Box`` space of floats, ``step`` also takes continuous commands,
+  an ``(n, d)`` float array (one command per state; :attr:`GymResetModel.accepts_commands`
+  is true), checked finite and of width ``d`` and clipped into the box: how a continuous
+  policy (a :class:`~offline_adp.policies.CommandPolicy`) is rolled out. A ``Discrete``
+  (or integer ``Box``) environment takes action indices only.
 - **Costs** are ``-reward``; ``terminated`` ends an episode (absorbing). The rollout's
   horizon is the evaluation's ``T``, which for a gymnasium simulator is the environment's
   registered time limit (``max_episode_steps``, :attr:`GymResetModel.horizon`, e.g. 500 for
@@ -34,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.access import ResetModel, StepResult
+from offline_adp.access import ResetModel, StepResult, command_matrix, is_command_array
 from offline_adp.data.info import DatasetInfo
 from offline_adp.errors import (
     AccessModelError,
@@ -80,6 +85,11 @@ class GymResetModel(ResetModel):
             raise IncompatibleError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
                                     f"{len(names)} features {names}; they are matched by declared order")
         self.env_actions = _env_actions(self.name, act_space, np.asarray(info.action_table.values, dtype=np.float64))
+        #: Whether ``step`` takes continuous commands (a 1-D ``Box`` of floats).
+        self.accepts_commands = bool(isinstance(act_space, gymnasium.spaces.Box) and len(act_space.shape) == 1
+                                     and np.issubdtype(act_space.dtype, np.floating))
+        self._box = (np.asarray(act_space.low, np.float64), np.asarray(act_space.high, np.float64),
+                     act_space.dtype) if self.accepts_commands else None
         self.n_actions, self.obs_dim = len(self.env_actions), width
         self.gamma = float(gamma if gamma is not None else (info.gamma if info.gamma is not None else 1.0))
         self.horizon = spec.max_episode_steps if spec is not None else None
@@ -101,8 +111,20 @@ class GymResetModel(ResetModel):
         return out
 
     def step(self, states: np.ndarray, actions: np.ndarray, rng: np.random.Generator) -> StepResult:
+        """One environment step per state: ``actions`` are indices ``(n,)`` into the action
+        table, or (a 1-D float ``Box`` space) commands ``(n, d)``, clipped into the box."""
         states = np.asarray(states, dtype=np.float64)
         n = len(states)
+        if is_command_array(actions):
+            if self._box is None:
+                raise IncompatibleError(f"simulator {self.name!r}: its action space is not a 1-D Box of floats, so it "
+                                        "takes action indices (n,) only, not commands (n, d)")
+            low, high, dtype = self._box
+            cmds = command_matrix(actions, n, low, high, self.name).astype(dtype)
+            env_actions: Any = list(cmds)
+        else:
+            idx = np.asarray(actions, dtype=np.int64)
+            env_actions = [self.env_actions[a] for a in idx]
         nxt, costs, term = np.empty((n, self.obs_dim)), np.empty(n), np.zeros(n, bool)
         envs = []
         for i in range(n):
@@ -111,8 +133,8 @@ class GymResetModel(ResetModel):
                 raise AccessModelError(f"simulator {self.name!r} is a reset model: it can only step states it produced "
                                        "(from initial_states or an earlier step)")
             envs.append(stack.pop())
-        for i, (env, a) in enumerate(zip(envs, np.asarray(actions, dtype=np.int64), strict=True)):
-            action = self.env_actions[a]  # a fresh copy: an environment may change its action in place
+        for i, (env, action) in enumerate(zip(envs, env_actions, strict=True)):
+            # a fresh copy: an environment may change its action in place
             obs, reward, terminated, _truncated, _ = env.step(action.copy() if isinstance(action, np.ndarray) else action)
             nxt[i], costs[i], term[i] = obs, -float(reward), terminated
             if terminated:

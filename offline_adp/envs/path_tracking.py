@@ -27,6 +27,32 @@ The demonstrator is a Stanley-style driver without curvature feed-forward and wi
 Gaussian steering noise (std 0.04 rad) quantised to the action set, plus 5% random
 commands: human-like, safe, but it lags in curves, which a learned policy can beat.
 Its action probabilities are known exactly (Gaussian mass of each command's bin).
+
+Continuous commands (problem option ``commands``; ``--problem-options '{"commands":
+"continuous"}'``):
+
+- ``"discrete"`` (default): the seven steering commands above, bit-identical to the
+  original problem.
+- ``"continuous"``: steering ``delta_cmd`` [rad] is any number in [-0.3, 0.3] (clipped
+  there). The action table is of kind ``continuous``: the exact command of every logged
+  row is kept in ``action_value.delta_cmd``; its seven entries (the commands above) are
+  coarse bins (edges halfway between them) for the discrete views. Dynamics and cost are
+  those of the default problem, so a command equal to one of the seven steps exactly as
+  its index does. The demonstrator is the same Stanley driver with its Gaussian noise
+  *not* quantised (std 0.04 rad) and 5% uniform commands in the bounds; exploration draws
+  uniform commands in the bounds.
+- ``"steer_accel"``: commands ``(delta_cmd [rad], accel_cmd [m/s^2])`` in [-0.3, 0.3] x
+  [-2, 2]; the speed becomes controlled, ``dv/dt = accel_cmd`` integrated in the same
+  sub-steps and kept within [4, 12] m/s. The cost adds a speed term and an acceleration
+  term: ``|e'| + 0.1 delta_cmd^2 + 0.02 (v' - 8)^2 + 0.01 accel_cmd^2`` (8 m/s the target
+  speed; without the speed term the best policy would crawl). Coarse bins: the product of
+  the seven steering commands and {-2, 0, 2} m/s^2 (21 entries). The demonstrator adds a
+  speed keeper ``accel = -0.5 (v - 8)`` with noise (std 0.3 m/s^2) to the Stanley steering.
+
+In the continuous modes ``step`` takes commands ``(n, m)`` (``accepts_commands``) as well
+as indices (the entries' values), and the behaviour policies are continuous
+(:class:`~offline_adp.policies.GaussianCommandPolicy`), so ``simulate`` logs exact
+commands (no ``behavior_prob``: a density, not a probability).
 """
 
 from __future__ import annotations
@@ -38,10 +64,15 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from offline_adp.access import Simulator, StepResult
-from offline_adp.data.info import ActionTable, Feature
+from offline_adp.access import Simulator, StepResult, command_matrix, is_command_array
+from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.envs.base import ReferenceProblem
-from offline_adp.policies import EpsilonPolicy, Policy, StochasticFunctionPolicy
+from offline_adp.policies import (
+    EpsilonPolicy,
+    GaussianCommandPolicy,
+    Policy,
+    StochasticFunctionPolicy,
+)
 
 WHEELBASE = 2.7
 TAU_STEER = 0.2
@@ -53,6 +84,28 @@ FAILURE_COST = 50.0
 CONTROL_WEIGHT = 0.1
 PREVIEW_S = 1.0
 STEERING_COMMANDS = np.round(np.arange(-0.3, 0.31, 0.1), 10)
+#: Command modes (problem option ``commands``).
+COMMAND_MODES = ("discrete", "continuous", "steer_accel")
+STEER_LIMIT = 0.3
+ACCEL_LIMIT = 2.0
+ACCEL_BINS = np.array([-2.0, 0.0, 2.0])
+V_MIN, V_MAX, V_TARGET = 4.0, 12.0, 8.0
+SPEED_WEIGHT = 0.02
+ACCEL_WEIGHT = 0.01
+
+
+def _continuous_table(mode: str) -> ActionTable:
+    """The continuous action table of a command mode (coarse bins as entries)."""
+    steer_edges = tuple(float(e) for e in np.r_[-STEER_LIMIT, (STEERING_COMMANDS[1:] + STEERING_COMMANDS[:-1]) / 2,
+                                                 STEER_LIMIT])
+    if mode == "continuous":
+        actions = tuple(Action(f"delta_cmd={v:g}", (float(v),)) for v in STEERING_COMMANDS)
+        return ActionTable(actions=actions, dims=("delta_cmd",), kind="continuous", units=("rad",),
+                           bin_edges=steer_edges, low=(-STEER_LIMIT,), high=(STEER_LIMIT,))
+    actions = tuple(Action(f"delta_cmd={d:g},accel_cmd={a:g}", (float(d), float(a)))
+                    for d in STEERING_COMMANDS for a in ACCEL_BINS)
+    return ActionTable(actions=actions, dims=("delta_cmd", "accel_cmd"), kind="continuous", units=("rad", "m/s^2"),
+                       low=(-STEER_LIMIT, -ACCEL_LIMIT), high=(STEER_LIMIT, ACCEL_LIMIT))
 
 
 @dataclass(frozen=True)
@@ -123,9 +176,35 @@ class PathTracking(ReferenceProblem, Simulator):
     n_actions = len(STEERING_COMMANDS)
     obs_dim = 7
 
-    def __init__(self, horizon: int | None = 200, heading_noise: float = HEADING_NOISE) -> None:
+    def __init__(self, horizon: int | None = 200, heading_noise: float = HEADING_NOISE, commands: str = "discrete") -> None:
+        if commands not in COMMAND_MODES:
+            raise ValueError(f"commands must be one of {list(COMMAND_MODES)}, got {commands!r}")
         self.horizon = horizon
         self.heading_noise = heading_noise
+        self.commands = commands
+        if commands != "discrete":  # instance attributes: the default problem keeps the class's
+            self.action_table = _continuous_table(commands)
+            self.n_actions = len(self.action_table)
+            self.accepts_commands = True
+
+    def command_values(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The steering command (n,) and, with ``commands = "steer_accel"``, the acceleration
+        command (n,) of ``actions``: indices (n,) or, in a continuous mode, commands (n, m)."""
+        if self.commands == "discrete":
+            return STEERING_COMMANDS[np.asarray(actions, dtype=np.int64)], None
+        table = self.action_table
+        if is_command_array(actions):
+            lo, hi = table.bounds()
+            u = command_matrix(actions, len(actions), lo, hi, self.name)
+        else:
+            u = table.values[np.asarray(actions, dtype=np.int64)]
+        return u[:, 0], (u[:, 1] if self.commands == "steer_accel" else None)
+
+    def dataset_info(self, **provenance: Any) -> DatasetInfo:
+        """As every problem's; with continuous commands the propensity source is
+        ``unknown`` (the logs hold commands drawn from a density, no ``behavior_prob``)."""
+        info = super().dataset_info(**provenance)
+        return info if self.commands == "discrete" else info.replace(propensity_source="unknown")
 
     @cached_property
     def course(self) -> Course:
@@ -150,7 +229,7 @@ class PathTracking(ReferenceProblem, Simulator):
         """Advance one control step; optionally also return the (N_SUB, n, 5) sub-step states."""
         x = np.asarray(states, dtype=np.float64).reshape(-1, self.obs_dim)
         s, e, e_psi, delta, v = (x[:, i].copy() for i in range(5))
-        cmd = STEERING_COMMANDS[np.asarray(actions, dtype=np.int64)]
+        cmd, acc = self.command_values(actions)
         noise = np.random.default_rng(seed).normal(0.0, self.heading_noise, len(x)) if self.heading_noise else 0.0
         h = DT / N_SUB
         lag = 1.0 - np.exp(-h / TAU_STEER)
@@ -162,6 +241,8 @@ class PathTracking(ReferenceProblem, Simulator):
             psi_dot = v * np.tan(delta) / WHEELBASE - kap * s_dot
             s, e, e_psi = s + h * s_dot, e + h * e_dot, e_psi + h * psi_dot
             delta = delta + lag * (cmd - delta)
+            if acc is not None:  # steer_accel: the speed is controlled (within bounds)
+                v = np.clip(v + h * acc, V_MIN, V_MAX)
             if k == N_SUB - 1:
                 e_psi = e_psi + noise
             if substeps:
@@ -170,9 +251,12 @@ class PathTracking(ReferenceProblem, Simulator):
 
     def step_seeded(self, states: np.ndarray, actions: np.ndarray, seed: int) -> StepResult:
         nxt, _ = self.integrate(states, actions, seed)
-        cmd = STEERING_COMMANDS[np.asarray(actions, dtype=np.int64)]
+        cmd, acc = self.command_values(actions)
         off_road = np.abs(nxt[:, 1]) > ROAD_HALF_WIDTH
-        cost = np.where(off_road, FAILURE_COST, np.abs(nxt[:, 1]) + CONTROL_WEIGHT * cmd**2)
+        running = np.abs(nxt[:, 1]) + CONTROL_WEIGHT * cmd**2
+        if acc is not None:
+            running = running + SPEED_WEIGHT * (nxt[:, 4] - V_TARGET) ** 2 + ACCEL_WEIGHT * acc**2
+        cost = np.where(off_road, FAILURE_COST, running)
         return StepResult(nxt, cost, off_road)
 
     dt = DT
@@ -195,7 +279,13 @@ class PathTracking(ReferenceProblem, Simulator):
                 "failures": int(np.sum(terminated)), "failure_fraction": float(np.mean(terminated))}
 
     def demonstrator(self, gain: float = 1.5, noise: float = 0.04, epsilon: float = 0.05) -> Policy:
-        """Stanley-style human-like driver (see module docstring), stochastic with known probabilities."""
+        """Stanley-style human-like driver (see module docstring), stochastic with known probabilities.
+
+        With continuous commands: the same driver, its Gaussian steering noise not quantised
+        (a :class:`~offline_adp.policies.GaussianCommandPolicy`; ``commands()`` is the
+        noise-free Stanley controller), plus the speed keeper with ``steer_accel``."""
+        if self.commands != "discrete":
+            return self._continuous_behaviour(gain, noise, epsilon)
         edges = np.r_[-np.inf, (STEERING_COMMANDS[1:] + STEERING_COMMANDS[:-1]) / 2, np.inf]
 
         def probs(x: np.ndarray, t: object) -> np.ndarray:
@@ -204,3 +294,24 @@ class PathTracking(ReferenceProblem, Simulator):
             return np.diff(cdf, axis=1)
 
         return EpsilonPolicy(StochasticFunctionPolicy(probs, self.n_actions, name="stanley"), epsilon)
+
+    def exploration(self) -> Policy:
+        """Uniformly random commands: over the seven indices (discrete), or uniform within
+        the bounds (continuous modes)."""
+        if self.commands == "discrete":
+            return super().exploration()
+        return self._continuous_behaviour(0.0, 0.0, 1.0, name="uniform")
+
+    def _continuous_behaviour(self, gain: float, noise: float, epsilon: float, name: str = "stanley") -> Policy:
+        two = self.commands == "steer_accel"
+
+        def mean(x: np.ndarray, t: object) -> np.ndarray:
+            steer = -(x[:, 2] + np.arctan(gain * x[:, 1] / np.maximum(x[:, 4], 0.1)))
+            if not two:
+                return steer[:, None]
+            return np.column_stack([steer, -0.5 * (x[:, 4] - V_TARGET)])
+
+        lo, hi = self.action_table.bounds()
+        grid = [STEERING_COMMANDS, ACCEL_BINS] if two else [STEERING_COMMANDS]
+        std = [noise, 0.3 if noise > 0 else 0.0] if two else [noise]
+        return GaussianCommandPolicy(mean, std, lo, hi, epsilon=epsilon, grid=grid, name=name)

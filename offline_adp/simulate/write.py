@@ -7,6 +7,7 @@ from pathlib import Path
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import (
+    InvalidArgumentError,
     OutputExistsError,
     UnknownNameError,
     ValidationError,
@@ -25,6 +26,9 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
     out = Path(out)
     if fmt not in FORMATS:
         raise UnknownNameError(f"format {fmt!r}: expected one of {list(FORMATS)}")
+    if fmt != "dataset" and ds.info.action_table.continuous:
+        raise InvalidArgumentError(f"--format {fmt}: the raw table and MCAP writers log action-table entries, which "
+                                   "would drop the exact continuous commands of this dataset; write --format dataset")
     if fmt == "dataset":
         from offline_adp.data.validate import validate
 
