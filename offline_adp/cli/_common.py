@@ -47,7 +47,8 @@ def add_settings_options(parser: argparse.ArgumentParser, defaults: dict[str, ob
     for name, field in EvaluationSettings.model_fields.items():
         default = (defaults or {}).get(name, field.default)
         shown = "" if default is None else f" (default {default})"
-        parser.add_argument(flag(name), dest=name, default=default, type=_setting_type(name),
+        metavar = {"simulator": "NAME", "fqe_params": "JSON", "estimand": "{finite,infinite}"}.get(name, "N")
+        parser.add_argument(flag(name), dest=name, default=default, type=_setting_type(name), metavar=metavar,
                             help=(field.description or "") + shown)
         SETTING_FLAGS.add(flag(name))
 

@@ -194,7 +194,8 @@ def evaluation_metrics(
     metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),
                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
                                            "sources": ds.source_counts()},
-                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": []}
+                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": [],
+                               "settings": cfg.model_dump()}  # what compare reuses an evaluation by
     if note:
         metrics["simulator_note"] = note
         metrics["warnings"].append(note)
