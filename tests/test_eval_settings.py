@@ -291,12 +291,3 @@ def test_the_cli_reports_the_unused_key_warning(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "--set data.spec: unused, ignored" in err and "Traceback" not in err
 
-
-def test_compare_reuses_an_evaluation_only_with_the_same_settings():
-    from offline_adp.evaluation.compare import _same_settings
-
-    made = {"settings": EvaluationSettings(episodes=300, simulator="gridworld").model_dump()}
-    assert _same_settings(made, EvaluationSettings(episodes=300))  # the simulator is matched by name
-    assert not _same_settings(made, EvaluationSettings(episodes=300, seed=5))
-    assert not _same_settings(made, EvaluationSettings(episodes=300, bootstrap=0))
-    assert _same_settings({}, EvaluationSettings(seed=5))  # made before the settings were recorded

@@ -69,16 +69,6 @@ def _same_model_rollouts(m: dict[str, Any], particles: int) -> bool:
     return mr.get("n_particles") == particles and "trust_radius" in mr
 
 
-def _same_settings(m: dict[str, Any], cfg: EvaluationSettings) -> bool:
-    """Was the stored evaluation made with the settings ``cfg`` (the simulator aside: it is
-    matched by name)? One made before the settings were recorded matches any."""
-    stored = m.get("settings")
-    if not isinstance(stored, dict):
-        return True
-    ours = json.loads(json.dumps(cfg.model_dump(), default=float))
-    return {k: v for k, v in stored.items() if k != "simulator"} == {k: v for k, v in ours.items() if k != "simulator"}
-
-
 def compare_runs(
     run_dirs: Sequence[str | PathLike[str]],
     *,
@@ -138,7 +128,7 @@ def compare_runs(
         m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
         same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
                 and (simulator is None or (m.get("simulator") or "none") == simulator)
-                and _same_model_rollouts(m, cfg.model_particles) and _same_settings(m, cfg))
+                and _same_model_rollouts(m, cfg.model_particles))
         if force or not same:
             say(f"evaluating {r}")
             m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
