@@ -95,11 +95,15 @@ class EvaluationOptions(ConfigModel):
         description="particles of the model rollouts of the logs, a second reading of the value and a logs-only drift "
         "measure (0: none; not 1; below 200 they do not count as showing that the policy stays in the data)")
 
-    @field_validator("*", mode="before")
+    @field_validator("episodes", "bootstrap", "fqe_bootstrap", "horizon", "model_particles", mode="before")
     @classmethod
-    def _numpy_integers(cls, value: Any) -> Any:
-        """A numpy integer (e.g. a horizon computed from arrays) is read as the int it is."""
+    def _whole_numbers(cls, value: Any) -> Any:
+        """A numpy integer (e.g. a horizon computed from arrays) or a whole float (``1e13`` in
+        TOML or ``--set``: then refused by its bound, not by its type) is read as the int it is;
+        strings, bools and fractions are refused."""
         if type(value).__module__ == "numpy" and hasattr(value, "__index__") and not isinstance(value, bool | int):
+            return int(value)
+        if isinstance(value, float) and value.is_integer():
             return int(value)
         return value
 
@@ -145,6 +149,8 @@ class EvaluationSettings(EvaluationOptions):
     """Every setting of an evaluation (see the module docstring)."""
 
     seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of the rollouts, bootstraps and fits")
+
+    _seed_whole = field_validator("seed", mode="before")(EvaluationOptions._whole_numbers.__func__)
 
     @classmethod
     def resolve(cls, settings: EvaluationSettings | Mapping[str, Any] | None = None,
