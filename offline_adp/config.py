@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator
 from pydantic import ValidationError as _PydanticValidationError
 
-from offline_adp.errors import InvalidArgumentError, SpecError
+from offline_adp.errors import MAX_JSON_DEPTH, InvalidArgumentError, SpecError, json_depth
 
 M = TypeVar("M", bound="ConfigModel")
 
@@ -244,6 +244,8 @@ def format_validation_error(err: _PydanticValidationError, model: type[BaseModel
             ctx = e.get("ctx") or {}
             if typ == "literal_error" and "expected" in ctx:
                 msg = f"expected one of {ctx['expected']}"
+            elif typ == "value_error" and "error" in ctx:  # a validator's own words, without "Value error, "
+                msg = str(ctx["error"])
             got = e.get("input")
             got_s = repr(got)
             if len(got_s) > 80:
@@ -283,10 +285,15 @@ def parse_json_object(text: str | None, flag: str, example: str = '{"n_iteration
     raises :class:`InvalidArgumentError` naming the option."""
     if not text:
         return {}
+    shown = text if len(text) <= 80 else text[:77] + "..."
     try:
         value = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InvalidArgumentError(f"{flag}: not valid JSON ({exc.msg} at character {exc.pos}): {text!r}") from None
+        raise InvalidArgumentError(f"{flag}: not valid JSON ({exc.msg} at character {exc.pos}): {shown!r}") from None
+    except RecursionError:
+        raise InvalidArgumentError(f"{flag}: JSON nested deeper than {MAX_JSON_DEPTH} levels") from None
     if not isinstance(value, dict):
-        raise InvalidArgumentError(f"{flag}: expected a JSON object such as '{example}', got {text!r}")
+        raise InvalidArgumentError(f"{flag}: expected a JSON object such as '{example}', got {shown!r}")
+    if json_depth(value) > MAX_JSON_DEPTH:
+        raise InvalidArgumentError(f"{flag}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     return value

@@ -146,3 +146,26 @@ def os_error_message(exc: OSError, path: object = None) -> str:
     head = f"{where}{other}: " if where is not None else ""
     return f"{head}{reason}{detail}; check the location (free space, permissions, files or folders in the way) " \
            "or write somewhere else"
+
+
+#: The deepest nesting of a JSON value read from a user or a file (a ``--fqe-params``
+#: option, ``metrics.json``, ``run.json``...): far above any this package writes, so a
+#: hostile file nested 200,000 deep is an error naming it, not a RecursionError.
+MAX_JSON_DEPTH = 64
+
+
+def json_depth(value: object, limit: int = MAX_JSON_DEPTH) -> int:
+    """The nesting depth of a parsed JSON value (a scalar: 0), walked without recursion;
+    counting stops past ``limit`` (then ``limit + 1`` is returned)."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict):
+            v = list(v.values())
+        if isinstance(v, list | tuple):
+            d += 1
+            if d > limit:
+                return d
+            deepest = max(deepest, d)
+            stack.extend((x, d) for x in v if isinstance(x, dict | list | tuple))
+    return deepest

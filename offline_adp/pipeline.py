@@ -68,18 +68,15 @@ from offline_adp.data.io import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
-from offline_adp.evaluation import (
-    FQE_BOOTSTRAP_DEFAULT,
-    MAX_MODEL_PARTICLES,
-    MODEL_PARTICLES_DEFAULT,
-    particle_count_error,
+from offline_adp.evaluation.settings import (  # MAX_*: the evaluate settings' bounds, from their one model
+    MAX_EPISODES,  # noqa: F401
+    MAX_REPLICATES,  # noqa: F401
+    MAX_SEED,
+    EvaluationOptions,
+    EvaluationSettings,
 )
 from offline_adp.progress import log_milestone
 
-#: Upper bounds of the evaluate settings: far above any useful value, so a typo (1e13)
-#: is an error naming the key instead of an allocation of terabytes.
-MAX_EPISODES = 10_000_000
-MAX_REPLICATES = 1_000_000
 #: Address schemes of Dask's comm backends (distributed.comm.registry).
 DASK_SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
 STAGES = ("data", "validate", "fit", "evaluate", "report")
@@ -150,28 +147,9 @@ class FitSection(ConfigModel):
     config: str | None = None
 
 
-class EvaluateSection(ConfigModel):
-    """``[evaluate]``: rollouts, off-policy estimates, shift diagnostics."""
-
-    simulator: str | None = None
-    episodes: int = Field(500, ge=1, le=MAX_EPISODES)
-    bootstrap: int = Field(200, ge=0, le=MAX_REPLICATES)
-    fqe_bootstrap: int | None = Field(
-        FQE_BOOTSTRAP_DEFAULT, ge=0, le=MAX_REPLICATES, description="FQE bootstrap replicates; omitted: as `offline-adp evaluate` (200 "
-        "when replicates are cheap, else 50); 0: no interval")
-    fqe_params: dict[str, Any] | None = None
-    horizon: int | None = Field(None, ge=1)
-    model_particles: int = Field(MODEL_PARTICLES_DEFAULT, ge=0, le=MAX_MODEL_PARTICLES, description="particles of the model "
-                                 "rollouts of the logs (as `offline-adp evaluate --model-particles`); 0: none; not 1",
-                                 json_schema_extra={"not": {"const": 1}})
-
-    @model_validator(mode="after")
-    def _known_simulator(self) -> EvaluateSection:
-        check_simulator_name(self.simulator)
-        why = particle_count_error(self.model_particles)
-        if why:
-            raise ValueError(why)
-        return self
+#: ``[evaluate]``: the evaluation's settings (all but the seed: the pipeline's ``seed``),
+#: one model with the CLI's ``evaluate`` flags and the Python API (:mod:`offline_adp.evaluation.settings`).
+EvaluateSection = EvaluationOptions
 
 
 class EmptySection(ConfigModel):
@@ -182,7 +160,7 @@ class PipelineFile(ConfigModel):
     """A pipeline file (see the module docstring). JSON Schema: ``docs/schemas/pipeline.schema.json``."""
 
     name: str | None = Field(None, pattern=NAME_PATTERN)
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of the data, the fit and the evaluation")
     description: str | None = None
     data: DataSection
     validate_: EmptySection | None = Field(None, alias="validate")
@@ -190,14 +168,6 @@ class PipelineFile(ConfigModel):
     evaluate: EvaluateSection | None = None
     report: EmptySection | None = None
     engine: EngineSection = Field(default_factory=EngineSection)
-
-
-def check_simulator_name(name: str | None) -> None:
-    """A simulator setting: ``None``/``"none"``, a reference problem's name or ``gym:ENV_ID``
-    (a registered gymnasium environment: checked when the evaluate stage makes it)."""
-    if name is not None and name != "none" and name not in PROBLEM_NAMES and not (
-            name.startswith("gym:") and len(name) > 4):
-        raise ValueError(f"simulator = {name!r}: known simulators are {list(PROBLEM_NAMES)}, gym:ENV_ID or 'none'")
 
 
 def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:
@@ -218,6 +188,41 @@ def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:
         node[leaf] = value
 
 
+#: The ``[data]`` keys each source reads (the others are ignored by it).
+DATA_KEYS = {"inputs": ("format", "inputs", "spec", "on_error"),
+             "simulate": ("simulate", "demonstrations", "exploration", "horizon", "problem_options"),
+             "builtin": ("builtin",)}
+
+
+def _warn_unused(data: DataSection, overrides: dict[str, Any], p: Path) -> None:
+    """A ``--set data.KEY=...`` the pipeline's data source does not read: a warning saying so
+    (not a silent no-op: ``data.spec`` on a pipeline that simulates its data changes nothing)."""
+    import warnings
+
+    source = next(k for k in DATA_KEYS if getattr(data, k) is not None)
+    for dotted in overrides:
+        table, _, key = dotted.partition(".")
+        if table == "data" and key in DataSection.model_fields and key not in DATA_KEYS[source]:
+            warnings.warn(f"--set {dotted}: unused, ignored: the data source of {p} is [data] {source} = "
+                          f"{getattr(data, source)!r}, which reads only {', '.join(DATA_KEYS[source])}",
+                          UserWarning, stacklevel=3)
+
+
+def _regular_input(path: str, p: Path, pattern: str) -> str:
+    """An input file of ``[data] inputs``: a regular file (a device such as ``/dev/zero``, a
+    FIFO or a directory would be hashed and read forever, or not at all)."""
+    import stat
+
+    try:
+        mode = Path(path).stat().st_mode
+    except OSError as exc:
+        raise SpecError(f"{p}: [data] inputs {pattern!r}: {path}: cannot be read ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a device, pipe or socket"
+        raise SpecError(f"{p}: [data] inputs {pattern!r}: {path} is {kind}, not a regular file")
+    return path
+
+
 def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """Read and check a whole pipeline file before anything runs; paths become absolute
     (relative to the file). Every problem is a SpecError naming the file and key: unknown
@@ -228,6 +233,7 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
     raw = load_toml(p, "pipeline")
     _apply_overrides(raw, overrides or {})
     model = validate_config(PipelineFile, raw, str(p))
+    _warn_unused(model.data, overrides or {}, p)
     data = model.data.model_dump(exclude_none=True)
     if "inputs" in data:
         files: list[str] = []
@@ -235,7 +241,7 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
             hits = sorted(glob.glob(str(p.parent / pattern)))
             if not hits:
                 raise SpecError(f"{p}: [data] inputs pattern {pattern!r} matches no file (relative to {p.parent})")
-            files += hits
+            files += [_regular_input(h, p, pattern) for h in hits]
         data["inputs"] = files
         if isinstance(data["spec"], str):
             data["spec"] = str((p.parent / data["spec"]).resolve())
@@ -248,9 +254,7 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
     entry.check_complete(fit["params"], str(p), "fit.params")
-    evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None
-    if evaluate is not None and evaluate.get("fqe_params"):
-        evaluate["fqe_params"] = get_algorithm("fqe").check_params(evaluate["fqe_params"], str(p), "evaluate.fqe_params")
+    evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None  # checked by its model
     return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"), "seed": model.seed,
             "file": str(p), "data": data, "fit": fit, "evaluate": evaluate,
             "report": model.report is not None, "engine": model.engine.model_dump(exclude_none=True)}
@@ -511,11 +515,9 @@ def _evaluate_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], 
         from offline_adp.engines.dask import DaskTaskMap
 
         task_map = DaskTaskMap(client)
-    ev = cfg["evaluate"]
-    m = evaluate_run(run / "fit", dataset=run / "dataset", simulator=ev.get("simulator"), n_episodes=ev.get("episodes", 500),
-                     n_boot=ev.get("bootstrap", 200), n_boot_fqe=ev.get("fqe_bootstrap", FQE_BOOTSTRAP_DEFAULT), fqe_params=ev.get("fqe_params"),
-                     horizon=ev.get("horizon"), seed=cfg["seed"], progress=lambda s: say(f"[evaluate] {s}"),
-                     task_map=task_map, model_particles=ev.get("model_particles", MODEL_PARTICLES_DEFAULT))
+    settings = EvaluationSettings.resolve(None, {**cfg["evaluate"], "seed": cfg["seed"]}, cfg["file"])
+    m = evaluate_run(run / "fit", settings=settings, dataset=run / "dataset", progress=lambda s: say(f"[evaluate] {s}"),
+                     task_map=task_map)
     RunDirectory(run).copy_in(run / "fit" / "evaluation" / "metrics.json", "metrics.json")
     return {"fqe": m["ope"]["fqe"]["estimate"]}
 

@@ -71,7 +71,10 @@ def captured_evaluate_run(monkeypatch):
 
     seen: list[dict] = []
 
-    def fake_evaluate_run(run_dir, **kw):
+    def fake_evaluate_run(run_dir, settings=None, **kw):
+        if settings is not None:  # the settings object, read under the Python API's keyword names
+            named = {"episodes": "n_episodes", "bootstrap": "n_boot", "fqe_bootstrap": "n_boot_fqe"}
+            kw = {**{named.get(k, k): v for k, v in settings.model_dump().items()}, "settings": settings, **kw}
         seen.append(kw)
         raise EvaluateRunCalled
 

@@ -34,18 +34,50 @@ def _progress(quiet: bool):
     return on_step, bar.close
 
 
-def _particle_count(text: str) -> int:
-    """argparse type: 0 (none) or an integer >= 2 (a Monte-Carlo interval needs two)."""
-    from offline_adp.evaluation import particle_count_error
+#: The flags made from the evaluation settings' model (:func:`add_settings_options`).
+SETTING_FLAGS: set[str] = set()
 
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 0 or an integer >= 2, got {text!r}") from None
-    why = particle_count_error(value)
-    if why:
-        raise argparse.ArgumentTypeError(why)
-    return value
+
+def add_settings_options(parser: argparse.ArgumentParser, defaults: dict[str, object] | None = None) -> None:
+    """One flag per field of :class:`~offline_adp.evaluation.settings.EvaluationSettings`
+    (``fqe_bootstrap`` -> ``--fqe-bootstrap``), with the model's default (or ``defaults``'),
+    help and check: a refused value is a usage error (exit 2) of one line naming the flag."""
+    from offline_adp.evaluation.settings import EvaluationSettings, flag
+
+    for name, field in EvaluationSettings.model_fields.items():
+        default = (defaults or {}).get(name, field.default)
+        shown = "" if default is None else f" (default {default})"
+        metavar = {"simulator": "NAME", "fqe_params": "JSON", "estimand": "{finite,infinite}"}.get(name, "N")
+        parser.add_argument(flag(name), dest=name, default=default, type=_setting_type(name), metavar=metavar,
+                            help=(field.description or "") + shown)
+        SETTING_FLAGS.add(flag(name))
+
+
+def _setting_type(name: str):
+    """argparse type of the setting ``name``: parsed and checked by the settings' model."""
+    from offline_adp.errors import InvalidArgumentError
+    from offline_adp.evaluation.settings import flag, parse_flag
+
+    def parse(text: str) -> object:
+        try:
+            return parse_flag(name, text)
+        except InvalidArgumentError as exc:  # argparse says "argument --flag: " itself
+            raise argparse.ArgumentTypeError(str(exc).removeprefix(f"{flag(name)}: ")) from None
+
+    parse.__name__ = name  # argparse names the type in "invalid <name> value" messages
+    return parse
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """A parser whose refused setting value (a flag of :func:`add_settings_options`) is one
+    line, ``offline-adp evaluate: error: argument --bootstrap: ...``, exit 2: no usage
+    block to find it in."""
+
+    def error(self, message: str):  # type: ignore[override]
+        head = message.split(":", 1)[0].removeprefix("argument ")
+        if head in SETTING_FLAGS:
+            self.exit(2, f"{self.prog}: error: {message}\n")
+        super().error(message)
 
 
 def _rates(text: str) -> list[float]:

@@ -110,14 +110,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         log.info("  %s", msg)
 
-    from offline_adp.algorithms.registry import get_algorithm
-    from offline_adp.config import parse_json_object
+    from offline_adp.evaluation.settings import EvaluationSettings
 
-    fqe = get_algorithm("fqe").check_params(parse_json_object(args.fqe_params, "--fqe-params"), "--fqe-params") \
-        if args.fqe_params else None
-    m = evaluate_run(args.run, dataset=args.dataset, simulator=args.simulator, n_episodes=args.episodes,
-                     n_boot=args.bootstrap, n_boot_fqe=args.fqe_bootstrap, fqe_params=fqe, horizon=args.horizon,
-                     estimand=args.estimand, seed=args.seed, progress=say, model_particles=args.model_particles)
+    m = evaluate_run(args.run, settings=EvaluationSettings.of_arguments(args), dataset=args.dataset, progress=say)
     for line in summary_lines(m):
         print(line)
     print(f"{args.run}/evaluation/metrics.json")
@@ -152,9 +147,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"  {name:9s} {st.get('status')}{' (reused)' if st.get('reused') else ''}"
               + (f" {st['seconds']:.1f} s" if st.get("seconds") is not None and not st.get("reused") else ""))
     if (run / "metrics.json").exists():
-        from offline_adp.evaluation.summary import summary_lines
+        from offline_adp.evaluation.summary import read_metrics, summary_lines
 
-        for line in summary_lines(read_json_file(run / "metrics.json")):
+        for line in summary_lines(read_metrics(run / "metrics.json")):
             print(line)
     print(run / "report.html" if (run / "report.html").exists() else run)
     return 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from offline_adp._version import __version__
-from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, _particle_count, _positive_int, _rates
+from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, OneLineParser, _positive_int, _rates, add_settings_options
 from offline_adp.cli.data_commands import (
     cmd_ingest_mcap,
     cmd_ingest_parquet,
@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"offline-adp {__version__}")
     p.add_argument("--traceback", action="store_true", help="show the full traceback on errors")
     p.epilog += "\n\nglobal options (before or after the subcommand): -v/--verbose, -q/--quiet, --log-level LEVEL"
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
 
     from offline_adp.envs import PROBLEM_NAMES
 
@@ -161,27 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("run", help="run directory (from offline-adp fit)")
     e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
-    e.add_argument("--simulator", default=None, help="reference problem to roll out in, gym:ENV_ID (a registered gymnasium "
-                   "environment; features by declared order, actions by the action table's values), or 'none' "
-                   "(default: the dataset's problem)")
-    e.add_argument("--episodes", type=_positive_int, default=500, help="rollout episodes (default 500)")
-    e.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates for IS/DR/MIS (default 200)")
-    from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
-
-    e.add_argument("--fqe-bootstrap", type=int, default=FQE_BOOTSTRAP_DEFAULT,
-                   help="FQE bootstrap replicates (default: 200 when cheap, else 50; 0: no interval)")
-    from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
-
-    e.add_argument("--model-particles", type=_particle_count, default=MODEL_PARTICLES_DEFAULT,
-                   help=f"particles of the model rollouts of the logs, a second reading of the value and a logs-only "
-                   f"drift measure (default {MODEL_PARTICLES_DEFAULT}; 0: none; below 200 they do not count as showing "
-                   "that the policy stays in the data)")
-    e.add_argument("--estimand", choices=["finite", "infinite"], default="finite",
-                   help="the value to estimate: over the logged horizon (default) or infinite-horizon discounted (FQE only)")
-    e.add_argument("--fqe-params", default=None, help='JSON FittedQEvaluation parameters, e.g. \'{"mode": "refit"}\'')
-    e.add_argument("--horizon", type=_positive_int, default=None, help="the evaluation horizon (default: the data's longest episode; with --simulator gym:ENV_ID the environment's "
-                   "own time limit)")
-    e.add_argument("--seed", type=int, default=0)
+    add_settings_options(e)  # --simulator, --episodes, --bootstrap, ... --seed: the settings' model
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)
 
@@ -245,12 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cp.add_argument("runs", nargs="+", help="run directories (at least two)")
     cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
-    cp.add_argument("--simulator", default=None, help="as for evaluate: a reference problem or 'none'")
     cp.add_argument("--estimator", default=None, help="rank by this estimator (default: the most reliable for all)")
-    cp.add_argument("--episodes", type=_positive_int, default=300, help="rollout episodes per candidate (default 300)")
-    cp.add_argument("--model-particles", type=_particle_count, default=MODEL_PARTICLES_DEFAULT,
-                    help=f"as for evaluate (default {MODEL_PARTICLES_DEFAULT}); an evaluation made with another count is "
-                    "redone")
+    add_settings_options(cp, {"episodes": 300})  # as for evaluate, 300 rollout episodes per candidate
     cp.add_argument("--force", action="store_true", help="re-evaluate even when a matching evaluation exists")
     cp.add_argument("--json", default=None, metavar="FILE", help="also write the comparison as JSON")
     cp.add_argument("--report", default=None, metavar="FILE", help="HTML report to write (default: next to --json with "

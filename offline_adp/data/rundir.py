@@ -29,11 +29,13 @@ from pathlib import Path
 from typing import Any
 
 from offline_adp.errors import (
+    MAX_JSON_DEPTH,
     ArtifactError,
     InvalidArgumentError,
     OfflineADPError,
     RunDirectoryError,
     WriteError,
+    json_depth,
 )
 
 #: What a run or pipeline name may be: no path separators, no glob characters.
@@ -198,16 +200,43 @@ def read_json_file(path: str | PathLike[str], *, missing: str = "missing",
     """
     p = Path(path)
     try:
-        obj = json.loads(p.read_text(encoding="utf-8"))
+        obj = json.loads(_regular_bytes(p, MAX_JSON_BYTES, error).decode("utf-8"))
     except FileNotFoundError:
         raise error(f"{p}: {missing}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise error(f"{p}: not valid JSON ({exc}); the file is corrupt or truncated, write it again") from None
+    except RecursionError:
+        raise error(f"{p}: JSON nested deeper than {MAX_JSON_DEPTH} levels; not a file this package wrote") from None
     except OSError as exc:
         raise error(f"{p}: cannot be read ({exc.strerror or exc})") from None
     if not isinstance(obj, dict):
         raise error(f"{p}: expected a JSON object, found {type(obj).__name__}")
+    if json_depth(obj) > MAX_JSON_DEPTH:
+        raise error(f"{p}: JSON nested deeper than {MAX_JSON_DEPTH} levels; not a file this package wrote")
     return obj
+
+
+#: The largest JSON file of a run or dataset read (``metrics.json``, ``run.json``,
+#: ``meta/info.json``...): far above any this package writes.
+MAX_JSON_BYTES = 256 << 20
+
+
+def _regular_bytes(p: Path, cap: int, error: type[OfflineADPError]) -> bytes:
+    """The bytes of ``p`` if it is a regular file of at most ``cap`` bytes (a device such
+    as ``/dev/zero``, a FIFO or a directory is refused without blocking); else ``error``."""
+    import stat
+
+    fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{p}: not a regular file (a directory, device, pipe or socket)")
+        if st.st_size > cap:
+            raise error(f"{p}: {st.st_size} bytes, more than such a file can be ({cap} bytes)")
+        raw = f.read(cap + 1)
+    if len(raw) > cap:
+        raise error(f"{p}: more than {cap} bytes, more than such a file can be")
+    return raw
 
 
 def read_table_file(path: str | PathLike[str]) -> Any:

@@ -32,13 +32,13 @@ from offline_adp.errors import (
     RunDirectoryError,
     WriteError,
 )
-from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
-from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators
+from offline_adp.evaluation.settings import EvaluationSettings
+from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators, read_metrics
 
 
 def _metrics(run: Path) -> dict[str, Any] | None:
     p = run / "evaluation" / "metrics.json"
-    return read_json_file(p) if p.exists() else None
+    return read_metrics(p) if p.exists() else None
 
 
 def _dataset_of(run: Path) -> str | None:
@@ -78,6 +78,7 @@ def compare_runs(
     force: bool = False,
     evaluate_params: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
+    settings: EvaluationSettings | None = None,
 ) -> dict[str, Any]:
     """Rank the policies of ``run_dirs`` on one dataset (see the module docstring).
 
@@ -89,7 +90,8 @@ def compare_runs(
     estimator : rank by this estimator (default: the most reliable one that is reliable for
         every candidate, else each candidate's most reliable one, said so).
     force : re-evaluate even when a matching evaluation exists.
-    evaluate_params : extra keyword arguments for :func:`offline_adp.evaluation.run.evaluate_run`.
+    evaluate_params : settings of the evaluations by name, set over ``settings``
+        (:class:`~offline_adp.evaluation.settings.EvaluationSettings`; ``simulator`` too).
 
     Returns
     -------
@@ -98,6 +100,9 @@ def compare_runs(
     """
     from offline_adp.evaluation.run import evaluate_run
 
+    cfg = EvaluationSettings.resolve(settings, {**(evaluate_params or {}),
+                                                **({"simulator": simulator} if simulator is not None else {})})
+    simulator = cfg.simulator
     say = progress or (lambda _m: None)
     runs = [Path(r) for r in run_dirs]
     if len(runs) < 2:
@@ -123,11 +128,10 @@ def compare_runs(
         m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
         same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
                 and (simulator is None or (m.get("simulator") or "none") == simulator)
-                and _same_model_rollouts(m, (evaluate_params or {}).get("model_particles", MODEL_PARTICLES_DEFAULT)))
+                and _same_model_rollouts(m, cfg.model_particles))
         if force or not same:
             say(f"evaluating {r}")
-            m = json.loads(json.dumps(evaluate_run(r, dataset=ds_path, simulator=simulator, progress=say,
-                                                   **(evaluate_params or {})), default=float))
+            m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
             m = _metrics(r) or m
         metrics.append(m)
     estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
@@ -235,9 +239,8 @@ def cli(args: Any) -> int:
     report = report_path(args.runs, args.json, getattr(args, "report", None))
     if report.is_dir():
         raise WriteError(f"--report {report} is a directory; name a file to write (e.g. {report / 'compare.html'})")
-    res = compare_runs(args.runs, dataset=args.dataset, simulator=args.simulator, estimator=args.estimator,
-                       force=args.force, evaluate_params={"n_episodes": args.episodes,
-                                                          "model_particles": args.model_particles}, progress=say)
+    res = compare_runs(args.runs, dataset=args.dataset, estimator=args.estimator, force=args.force,
+                       settings=EvaluationSettings.of_arguments(args), progress=say)
     for line in compare_lines(res):
         print(line)
     from offline_adp.evaluation.run import _finite

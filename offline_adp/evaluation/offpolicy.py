@@ -17,13 +17,13 @@ from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import IncompatibleError, InvalidArgumentError
-from offline_adp.evaluation import ope, particle_count_error, risk, shift
+from offline_adp.evaluation import ope, risk, shift
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,
     support_violations,
 )
-from offline_adp.evaluation.model_rollouts import N_PARTICLES, model_rollouts, widen_fqe
+from offline_adp.evaluation.model_rollouts import model_rollouts, widen_fqe
 from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, CrossFitError: also reached from here
     PSDP_EPS_FOLDS,
     CrossFitError,
@@ -32,6 +32,7 @@ from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, Cr
     episode_groups,
     residual_advantage,
 )
+from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.evaluation.support_bounds import fqe_support_bounds
 from offline_adp.parallel import TaskMap, local_map
 from offline_adp.policies import Policy, is_stationary
@@ -371,10 +372,8 @@ def tabular_fqe_replicates(obs: np.ndarray, action: np.ndarray, cost: np.ndarray
 def off_policy(
     ds: TransitionDataset,
     policy: Policy,
+    settings: EvaluationSettings | None = None,
     *,
-    fqe_params: dict[str, Any] | None = None,
-    n_boot: int = 200,
-    n_boot_fqe: int | None = None,
     level: float = 0.95,
     behaviour_classifier: Any = "lightgbm",
     clip: float = 1e-3,
@@ -383,17 +382,19 @@ def off_policy(
     reference_policies: dict[str, Policy] | None = None,
     policy_states: list[np.ndarray] | None = None,
     k_support: int = 20,
-    horizon: int | None = None,
-    estimand: str = "finite",
-    seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
     psdp_folds: int = PSDP_EPS_FOLDS,
     target_horizon: int | None = None,
     start: str | None = None,
-    model_particles: int = N_PARTICLES,
+    **options: Any,
 ) -> OffPolicyResult:
     """Evaluate ``policy`` from the dataset alone.
+
+    ``settings`` (:class:`~offline_adp.evaluation.settings.EvaluationSettings`, or its fields
+    as keywords in ``options``: ``fqe_params``, ``bootstrap`` (``n_boot``), ``fqe_bootstrap``
+    (``n_boot_fqe``), ``horizon``, ``estimand``, ``seed``, ``model_particles``; the rest are
+    not read here) is checked before any work.
 
     Every estimator targets the quantity of :func:`declare_estimand` (``estimand``:
     ``"finite"``, the T-step value the rollout truth measures, or ``"infinite"``).
@@ -414,8 +415,9 @@ def off_policy(
     (see :func:`declare_estimand`); estimators that cannot see that far say so
     (``comparable=False`` and a warning), as for the infinite-horizon value.
     """
-    if why := particle_count_error(model_particles):
-        raise InvalidArgumentError(why)
+    cfg = EvaluationSettings.resolve(settings, options)  # every setting's one check
+    fqe_params, n_boot, n_boot_fqe, horizon = cfg.fqe_params, cfg.bootstrap, cfg.fqe_bootstrap, cfg.horizon
+    estimand, seed, model_particles = cfg.estimand, cfg.seed, cfg.model_particles
     say = progress or (lambda _msg: None)
     a = ds.arrays()
     est_def = declare_estimand(ds, policy, horizon, estimand, target_horizon=target_horizon, start=start)

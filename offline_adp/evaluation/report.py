@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from offline_adp.data.io import read_info
-from offline_adp.data.rundir import read_json_file, read_table_file
+from offline_adp.data.rundir import read_table_file
 from offline_adp.envs import PROBLEM_NAMES, problem_class
 from offline_adp.errors import ArtifactError, RunDirectoryError
 from offline_adp.evaluation.figures import (
@@ -98,7 +98,9 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     ev = run / "evaluation"
     if not (ev / "metrics.json").exists():
         raise RunDirectoryError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
-    m = read_json_file(ev / "metrics.json")
+    from offline_adp.evaluation.summary import read_metrics
+
+    m = read_metrics(ev / "metrics.json")
     ratios = read_table_file(ev / "ratios.parquet")
     features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier", "w_pooled")]
     problem = m.get("simulator") or ""

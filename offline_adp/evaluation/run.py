@@ -32,15 +32,10 @@ from offline_adp.data.rundir import RunDirectory, read_json_file
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,
-    InvalidArgumentError,
     RunDirectoryError,
 )
-from offline_adp.evaluation import (
-    FQE_BOOTSTRAP_DEFAULT,
-    MODEL_PARTICLES_DEFAULT,
-    particle_count_error,
-)
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
+from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
 
@@ -101,33 +96,32 @@ def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
 
 def evaluate_run(
     run_dir: str | PathLike[str],
+    settings: EvaluationSettings | None = None,
     *,
     dataset: str | PathLike[str] | None = None,
-    simulator: str | None = None,
-    n_episodes: int = 500,
-    n_boot: int = 200,
-    n_boot_fqe: int | None = FQE_BOOTSTRAP_DEFAULT,
-    fqe_params: dict[str, Any] | None = None,
-    horizon: int | None = None,
-    estimand: str = "finite",
-    seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
-    model_particles: int = MODEL_PARTICLES_DEFAULT,
+    **options: Any,
 ) -> dict[str, Any]:
     """Evaluate the policy of a run directory (see the module docstring); returns the metrics.
+
+    ``settings``: the evaluation's settings (:class:`~offline_adp.evaluation.settings.EvaluationSettings`:
+    ``simulator``, ``episodes``, ``bootstrap``, ``fqe_bootstrap``, ``fqe_params``,
+    ``horizon``, ``estimand``, ``seed``, ``model_particles``), or the same as keywords in
+    ``options`` (also by the former names ``n_episodes``, ``n_boot``, ``n_boot_fqe``);
+    checked before anything is read.
 
     ``task_map`` runs the rollout pieces and the FQE bootstrap replicates (default: here;
     :class:`offline_adp.engines.dask.DaskTaskMap` spreads them over Dask workers with the
     same result).
 
-    ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
+    The settings: ``horizon`` caps the evaluation horizon T (default: the data's longest episode,
     capped by the dataset's horizon). With a gymnasium simulator (``gym:ENV_ID``) T is the
     environment's own horizon instead (its registered ``max_episode_steps`` unless
     ``horizon`` is given), the rollouts start from ``env.reset()`` and the estimand says so;
     estimators that see only the shorter logged horizon are marked ``comparable=False``. ``estimand`` is ``"finite"`` (the T-step value the
     rollouts measure) or ``"infinite"`` (FQE only; see
-    :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``n_boot_fqe`` None: the
+    :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``fqe_bootstrap`` None: the
     default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
     ``model_particles``: particles of the model rollouts of the logs (0: none; see
     :mod:`offline_adp.evaluation.model_rollouts`).
@@ -136,6 +130,8 @@ def evaluate_run(
     from offline_adp.envs import PROBLEM_NAMES
     from offline_adp.envs.gym import resolve_simulator
 
+    cfg = EvaluationSettings.resolve(settings, options)  # before any work
+    simulator = cfg.simulator
     say = progress or (lambda _m: None)
     run = Path(run_dir)
     if not (run / "model").is_dir():
@@ -163,9 +159,8 @@ def evaluate_run(
                 f"the dataset does not record the options its {sim_name!r} problem was made with "
                 "(meta/info.json provenance.problem_options): the rollouts use the default problem")
         metrics, res, states, demo_states = evaluation_metrics(
-            ds, policy, problem, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
-            n_episodes=n_episodes, n_boot=n_boot, n_boot_fqe=n_boot_fqe, fqe_params=fqe_params, horizon=horizon,
-            estimand=estimand, seed=seed, progress=say, task_map=task_map, run_dir=run, model_particles=model_particles)
+            ds, policy, problem, cfg, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
+            progress=say, task_map=task_map, run_dir=run)
         say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
         _write(run, metrics, res, ds, states, demo_states)
         return metrics
@@ -175,35 +170,32 @@ def evaluation_metrics(
     ds: TransitionDataset,
     policy: Any,
     problem: Any,
+    settings: EvaluationSettings | None = None,
     *,
     sim_name: str | None = None,
     ds_path: str | PathLike[str] | None = None,
     algorithm: str | None = None,
     note: str | None = None,
-    n_episodes: int = 500,
-    n_boot: int = 200,
-    n_boot_fqe: int | None = FQE_BOOTSTRAP_DEFAULT,
-    fqe_params: dict[str, Any] | None = None,
-    horizon: int | None = None,
-    estimand: str = "finite",
-    seed: int = 0,
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
-    model_particles: int = MODEL_PARTICLES_DEFAULT,
     run_dir: str | PathLike[str] | None = None,
+    **options: Any,
 ) -> tuple[dict[str, Any], OffPolicyResult, list[np.ndarray] | None, list[np.ndarray] | None]:
     """The metrics of :func:`evaluate_run` for ``policy`` on ``ds`` without a run directory:
     ``(metrics, off-policy result, pi's rollout states, the demonstrator's)``. ``problem``
-    None: logs only. ``run_dir`` is read for the fit's convergence in the headline (None:
+    None: logs only (the settings' ``simulator`` is not read: ``problem`` and ``sim_name``
+    say it). ``settings`` or ``options`` as for :func:`evaluate_run`, checked before the
+    rollouts and fits. ``run_dir`` is read for the fit's convergence in the headline (None:
     unknown). Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
-    if why := particle_count_error(model_particles):  # before the rollouts and fits, not inside off_policy
-        raise InvalidArgumentError(why)
+    cfg = EvaluationSettings.resolve(settings, options)
+    n_episodes, horizon, estimand, seed = cfg.episodes, cfg.horizon, cfg.estimand, cfg.seed
     say = progress or (lambda _m: None)
     rng = np.random.default_rng(seed)
     metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),
                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
                                            "sources": ds.source_counts()},
-                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": []}
+                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": [],
+                               "settings": cfg.model_dump()}  # what compare reuses an evaluation by
     if note:
         metrics["simulator_note"] = note
         metrics["warnings"].append(note)
@@ -243,9 +235,8 @@ def evaluation_metrics(
         named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
         if named:
             metrics["named"] = named
-    res = off_policy(ds, policy, fqe_params=fqe_params, n_boot=n_boot, n_boot_fqe=n_boot_fqe, reference_policies=refs,
-                     policy_states=states, horizon=ope_horizon, estimand=estimand, seed=seed, progress=say,
-                     task_map=task_map, target_horizon=target, start=start, model_particles=model_particles)
+    res = off_policy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), reference_policies=refs,
+                     policy_states=states, progress=say, task_map=task_map, target_horizon=target, start=start)
     metrics.update(_offpolicy_block(res, ds))
     if problem is not None:  # the rollouts' per-episode costs: the measured distributions
         from offline_adp.evaluation.risk import distribution_summary

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from pydantic import BaseModel, ConfigDict
 
 from offline_adp.data.rundir import read_json_file, read_table_file
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
@@ -48,6 +49,73 @@ MODEL_EXIT_FRACTION = EXIT_FRACTION
 #: model rollouts show support (with few states per step) only from this many particles: with
 #: 2 or 5, a policy with an exit mass of 0.18 read <= 0.1 in 11 or 3 of 20 seeds (review)
 MIN_SUPPORT_PARTICLES = 200
+
+
+class _Open(BaseModel):
+    """A part of ``metrics.json``: the keys read are typed, others pass (lax: ints fill floats)."""
+
+    model_config = ConfigDict(extra="allow")
+
+
+class _Estimate(_Open):
+    estimate: float | None = None
+    interval: list[float | None] | None = None
+    degenerate: bool | None = None
+    comparable: bool | None = None
+    ess: float | None = None
+    warnings: list[Any] = []
+
+
+class _Estimand(_Open):
+    form: str | None = None
+    quantity: str | None = None
+    horizon: int | None = None
+    gamma: float | None = None
+    possible_range: list[float | None] | None = None
+
+
+class MetricsFile(_Open):
+    """The structure of ``metrics.json`` that ``report``, ``compare`` and ``run`` read: a
+    file without it (``"ope": "nonsense"``) is an :class:`~offline_adp.errors.ArtifactError`
+    naming the file and key before anything indexes into it."""
+
+    ope: dict[str, _Estimate]
+    estimand: _Estimand = _Estimand()
+    dataset: dict[str, Any] = {}
+    algorithm: str | None = None
+    simulator: str | None = None
+    simulator_note: str | None = None
+    warnings: list[Any] = []
+    rollout: dict[str, dict[str, Any] | Any] | None = None
+    shift: dict[str, dict[str, Any]] = {}
+    pooled_shift: dict[str, Any] | None = None
+    psdp_bound: dict[str, Any] | None = None
+    per_source: dict[str, dict[str, Any]] | None = None
+    behaviour: dict[str, Any] | None = None
+    behaviour_value: dict[str, Any] | None = None
+    cost_distribution: dict[str, Any] | None = None
+    headline: dict[str, Any] | None = None
+    worst_step: dict[str, Any] | None = None
+    per_step_counts: list[int] | None = None
+    min_states_per_step: int | None = None
+
+
+def read_metrics(path: str | Path) -> dict[str, Any]:
+    """``metrics.json`` through the gates of every file we read: a regular file of bounded
+    size and nesting (:func:`~offline_adp.data.rundir.read_json_file`), then the structure
+    of :class:`MetricsFile`; the file's own dict is returned."""
+    from pydantic import ValidationError as PydanticValidationError
+
+    from offline_adp.config import format_validation_error
+    from offline_adp.errors import ArtifactError
+
+    m = read_json_file(path)
+    try:
+        MetricsFile.model_validate(m)
+    except PydanticValidationError as exc:
+        raise ArtifactError(format_validation_error(exc, MetricsFile, str(path)).replace("\n", " ")
+                            + "; not a metrics.json this version reads (run `offline-adp evaluate` again)") from None
+    return m
 
 
 def _finite(x: Any) -> bool:

@@ -265,12 +265,19 @@ def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray
     """The arrays of an untrusted ``.npz``: member names, dtypes and declared sizes checked
     against the file size and ``max_bytes`` before anything is read (no pickle)."""
     import re
+    import stat
 
     from offline_adp import artifact_checks as C
 
     p = Path(path)
     try:
-        size = p.stat().st_size
+        st = p.stat()
+    except FileNotFoundError:
+        raise IngestError(f"{p}: no such file") from None
+    if not stat.S_ISREG(st.st_mode):  # /dev/zero, a FIFO, a directory: refused before any read
+        raise IngestError(f"{p}: not a regular file (a directory, device, pipe or socket); expected a D4RL .npz file")
+    try:
+        size = st.st_size
         # per member: deflate's own limit (~1032x; long runs of false flags compress that
         # well); the total is bounded below against the file size
         members = C.check_npz(p, max_expansion=1100, name_pattern=re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*\.npy$"))
