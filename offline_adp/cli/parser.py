@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 
 from offline_adp._version import __version__
-from offline_adp.cli._common import ALGORITHM_NAMES, FORMATS, OneLineParser, _positive_int, _rates, add_settings_options
+from offline_adp.cli._common import (
+    ALGORITHM_NAMES,
+    FORMATS,
+    OneLineParser,
+    _positive_int,
+    _rates,
+    add_settings_options,
+)
 from offline_adp.cli.data_commands import (
     cmd_ingest_mcap,
     cmd_ingest_parquet,
