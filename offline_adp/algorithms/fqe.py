@@ -40,7 +40,7 @@ from offline_adp.algorithms.fqe_bootstrap import (
     support_operators,
 )
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.algorithms.fqi_data import GreedyBackup, PolicyBackup, Prepared
+from offline_adp.algorithms.fqi_data import CommandBackup, PolicyBackup, Prepared
 from offline_adp.algorithms.fqi_loop import FitState, run_fitted_q
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import InvalidArgumentError, NotFittedError
@@ -174,8 +174,11 @@ commands, n_candidates
         return PolicyCommands(self.policy) if getattr(self.policy, "continuous", False) else None
 
     def _backup(self, data: Prepared) -> Any:
-        if data.encoder.continuous:  # one candidate per state, the policy's command: the min is its value
-            return GreedyBackup()
+        if data.encoder.continuous:  # one candidate per state, the policy's command: its value
+            sizes = {"next": len(data.train.next_obs), "start": len(data.start_obs)}
+            if data.valid is not None:
+                sizes["valid_next"] = len(data.valid.next_obs)
+            return CommandBackup(sizes)
         sets = {"next": data.train.next_obs, "start": data.start_obs}
         if data.valid is not None:
             sets["valid_next"] = data.valid.next_obs
@@ -206,8 +209,8 @@ commands, n_candidates
         learner.leaf_values = v
         self.q_function_ = learner.snapshot()
         self.settled_iterations_ = sweeps
-        a0 = d.start_obs
-        self.value_ = float((self.policy.probabilities(a0, 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
+        a0 = d.start_obs  # the backup's start probabilities: the policy's (its one command, over commands)
+        self.value_ = float((fit.backup.probabilities("start", 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
         return sweeps
 
     def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None,

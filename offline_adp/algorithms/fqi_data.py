@@ -201,6 +201,22 @@ class GreedyBackup:
         return q_next.min(axis=1)
 
 
+class CommandBackup:
+    """FQE over continuous commands: one candidate per state, the policy's own command, so
+    ``V(x') = Q(x', pi(x'))``; ``probabilities`` (all mass on that one slot) lets the
+    structure-conditional operators (:mod:`~offline_adp.algorithms.fqe_bootstrap`) read it
+    as they read :class:`PolicyBackup`."""
+
+    def __init__(self, sizes: dict[str, int]) -> None:
+        self.sizes = sizes
+
+    def probabilities(self, which: str, t_next: int) -> np.ndarray:
+        return np.ones((self.sizes[which], 1))
+
+    def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
+        return q_next[:, 0]
+
+
 class PolicyBackup:
     """FQE: ``V(x') = sum_a' pi(a' | x', t+1) Q(x', a')``; probabilities computed once per
     (query set, step) (once per query set for a stationary policy)."""

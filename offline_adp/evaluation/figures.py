@@ -381,3 +381,43 @@ def cost_distribution_figure(figs: Figures, m: dict[str, Any]) -> None:
                         caption=f"Distribution of the episode cost (the estimand per episode). Dot: the mean; thick bar "
                                 f"at the top: CVaR_{a:g}, the mean of the worst {a:.0%} of episodes (dotted line: where "
                                 "that tail starts)." + missing)
+
+
+def command_figures(figs: Figures, policy: Any, ratios: pd.DataFrame, features: list[str], axes: tuple[str, str] | None,
+                    units: dict[str, str], table: Any, logged: np.ndarray | None) -> None:
+    """A continuous policy's figures: the policy map of each command component (continuous
+    colours within the component's bounds, unsupported cells hatched) and, per component,
+    the distribution of the policy's commands at the logged states against the logged ones."""
+    plt = pyplot()
+    dims, aunits = list(table.dims), [*table.units, *[""] * len(table.dims)]
+    lo, hi = table.bounds()
+    if axes is not None and all(a in features for a in axes):
+        gx, gy, obs = _grid(ratios, features, axes)
+        mask = _support_mask(ratios, axes, gx, gy)
+        note = " (other features at their data medians)" if len(features) > 2 else ""
+        u = np.asarray(policy.commands(obs, 0), np.float64)
+        for j, d in enumerate(dims):
+            fig, ax = plt.subplots(figsize=(6.6, 4.8))
+            vmin, vmax = (lo[j], hi[j]) if np.isfinite(lo[j]) and np.isfinite(hi[j]) else (None, None)
+            im = ax.pcolormesh(gx, gy, u[:, j].reshape(gx.shape), shading="auto", cmap="RdBu_r", vmin=vmin, vmax=vmax)
+            _shade_unsupported(ax, gx, gy, mask)
+            fig.colorbar(im, ax=ax).set_label(f"commanded {d}" + (f" [{aunits[j]}]" if aunits[j] else ""))
+            ax.set_xlabel(_label(axes[0], units))
+            ax.set_ylabel(_label(axes[1], units))
+            ax.set_title(f"Policy map of {d} at t = 0" + note, fontsize=10)
+            figs.save(fig, f"policy_map_{j}", f"Policy map of the command component {d!r} over two state features"
+                      + note + "; colours span the component's bounds. Hatched grey: no logged state nearby (outside "
+                      "the data's support, where the policy is extrapolated).")
+    if logged is None or not len(logged):
+        return
+    mine = np.asarray(policy.commands(ratios[features].to_numpy(np.float64), ratios["step"].to_numpy()), np.float64)
+    fig, axs = plt.subplots(1, len(dims), figsize=(4.2 * len(dims), 3.4), squeeze=False)
+    for j, d in enumerate(dims):
+        ax = axs[0, j]
+        edges = np.histogram_bin_edges(np.r_[logged[:, j], mine[:, j]], bins=30)
+        ax.hist(logged[:, j], bins=edges, alpha=0.55, label="logged", color="#888888", density=True)
+        ax.hist(mine[:, j], bins=edges, alpha=0.55, label="policy at the logged states", color="#c0392b", density=True)
+        ax.set_xlabel(f"{d}" + (f" [{aunits[j]}]" if aunits[j] else ""))
+        ax.legend(fontsize=7)
+    figs.save(fig, "commands", "Each command component: the policy's commands at the logged states against the "
+              "logged commands (densities).")

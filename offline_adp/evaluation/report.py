@@ -24,6 +24,7 @@ from offline_adp.evaluation.figures import (
     DISTRIBUTIONS,
     UNITS,
     Figures,
+    command_figures,
     convergence_figure,
     cost_distribution_figure,
     coverage_figure,
@@ -120,7 +121,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
         dims = list(getattr(table, "dims", []) or [])
         aunits = list(getattr(table, "units", []) or [])
         names = table.names() if callable(table.names) else table.names
-        actions = {"values": table.values[:, 0], "names": [str(n) for n in names] or None,
+        actions = {"values": table.values[:, 0], "names": [str(n) for n in names] or None, "table": table,
                    "label": (dims[0] if dims else "action") + (f" [{aunits[0]}]" if aunits and aunits[0] else "")}
         units.setdefault("cost", "")
     cls = problem_class(problem) if problem in PROBLEM_NAMES else None  # problem-specific: the ReferenceProblem's hooks
@@ -141,20 +142,40 @@ def _build(run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[st
     h = headline(m, run)
     figs = Figures(tmp / "figures")
     ope_figure(figs, m, h["ranking"])
-    ratios_figure(figs, m, h["shift"]["method"])
-    if axes is not None and all(a in features for a in axes):
+    if m.get("shift"):  # none for a continuous policy (evaluation/continuous.py)
+        ratios_figure(figs, m, h["shift"]["method"])
+    if actions.get("table") is not None and actions["table"].continuous:  # one map per command component
+        _command_figures(figs, run, m, ratios, features, axes, units, actions["table"])
+    elif axes is not None and all(a in features for a in axes):
         vals = actions.get("values")
         policy_maps(figs, run, ratios, features, axes, units, vals if vals is not None else np.arange(100.0),
               actions.get("names"), actions.get("label", "action"))
         coverage_figure(figs, run, ratios, features, axes, units)
     convergence_figure(figs, run)
-    cost_distribution_figure(figs, m)
-    sources_figure(figs, m)
+    if "per_source" in m:  # both from the density ratios (not for a continuous policy)
+        cost_distribution_figure(figs, m)
+        sources_figure(figs, m)
     cls = problem_class(problem) if problem in PROBLEM_NAMES else None
     if cls is not None and cls.traced_features:
         traced_figure(figs, run, features, cls.traced_features, cls.dt, problem)
     csv = (run / "evaluation" / "per_step.csv").read_bytes() if (run / "evaluation" / "per_step.csv").exists() else b""
     (tmp / "report.html").write_text(_html(m, h, figs, _title(run, m), csv))
+
+
+def _command_figures(figs: Figures, run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[str], axes: Any,
+                     units: dict[str, str], table: Any) -> None:
+    """A continuous policy's maps and command distributions (:func:`command_figures`)."""
+    from offline_adp.artifacts import load_index_policy
+    from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.policies import PolicySignature
+
+    policy = load_index_policy(run / "model")
+    policy.signature = PolicySignature(tuple(features), tuple(units.get(f, "") for f in features), table)
+    ds_path = (m.get("dataset") or {}).get("path")
+    logged = None
+    if isinstance(ds_path, str) and (Path(ds_path) / "meta" / "info.json").exists():
+        logged = TransitionDataset.load(ds_path).commands()
+    command_figures(figs, policy, ratios, features, axes, units, table, logged)
 
 
 #: The stylesheet of every HTML report (run report, comparison).
@@ -334,7 +355,7 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
                      "shifted away from it)" if b.get("plugin_estimate") is not None else "")
         x = model_reading(m, b["name"])
         model = "" if x is None else f"; model rollouts of the logs read {x:.4g} (a second reading the interval holds)"
-        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (95%), "
+        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] ({b.get('level') or 0.95:.0%}), "
            f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}{model}")
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
@@ -359,6 +380,27 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
     kv("Warnings", f"{h['n_warnings']} (listed with each estimator and diagnostic below)")
     rows.append("</table>")
     return "<section class='summary'><h2>Summary</h2>" + "".join(rows) + "</section>"
+
+
+def _continuous_sections(m: dict[str, Any]) -> list[str]:
+    """The sections of a continuous policy's report after its estimates: the command
+    support, what was not computed and why, the warnings."""
+    sv = m["behaviour"]["support_violations"]
+    cmd = m["commands"]
+    comps = ", ".join(f"{d} [{u}]" if u else d for d, u in zip(cmd["dims"], [*cmd["units"], *[""] * len(cmd["dims"])],
+                                                                strict=False))
+    parts = ["<h2>Command support</h2>",
+             f"<p>Commands: {html.escape(comps)}, bounds {html.escape(str(cmd['low']))} to "
+             f"{html.escape(str(cmd['high']))}. The policy commands farther from the commands logged near the state "
+             f"than the logged commands themselves are at {sv['fraction']:.1%} of the logged states "
+             f"({html.escape(sv['method'])}).</p>",
+             "<h2>Not computed for continuous commands</h2>",
+             "<ul>" + "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in m["not_usable"].items())
+             + "</ul>"]
+    if m.get("warnings"):
+        parts += ["<h2>Evaluation warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in m["warnings"])
+                  + "</ul>"]
+    return parts
 
 
 def details_html(summary: str, body: str, open_: bool = False) -> str:
@@ -393,6 +435,8 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
               "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
               "with a 95% interval; grey rows have no interval (it was withheld because it would not cover as "
               "labelled).</p>", table_html(good, cols, "ope")]
+    if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
+        return "\n".join(parts + _continuous_sections(m))
     if bad:
         parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
                               + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",

@@ -146,6 +146,10 @@ def evaluate_run(
         t0 = time.perf_counter()
         ds = read_dataset(ds_path)
         policy = load_index_policy(run / "model")
+        if getattr(policy, "continuous", False):  # its commands' bounds and discrete view are the dataset's
+            from offline_adp.policies import attach_signature
+
+            attach_signature(policy, ds)
         _check_same_actions(run, info, policy, ds, ds_path)
         sim_name = simulator if simulator is not None else ds.info.problem
         if sim_name in ("none", ""):
@@ -235,10 +239,19 @@ def evaluation_metrics(
         named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
         if named:
             metrics["named"] = named
-    res = off_policy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), reference_policies=refs,
-                     policy_states=states, progress=say, task_map=task_map, target_horizon=target, start=start)
-    metrics.update(_offpolicy_block(res, ds))
-    if problem is not None:  # the rollouts' per-episode costs: the measured distributions
+    if getattr(policy, "continuous", False):  # FQE over commands; what cannot run is listed (evaluation/continuous.py)
+        from offline_adp.evaluation.continuous import continuous_offpolicy
+
+        block = continuous_offpolicy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), target_horizon=target,
+                                     start=start, progress=say)
+        metrics["warnings"].extend(block.pop("warnings"))
+        metrics.update(block)
+        res = None
+    else:
+        res = off_policy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), reference_policies=refs,
+                         policy_states=states, progress=say, task_map=task_map, target_horizon=target, start=start)
+        metrics.update(_offpolicy_block(res, ds))
+    if problem is not None and res is not None:  # the rollouts' per-episode costs: the measured distributions
         from offline_adp.evaluation.risk import distribution_summary
 
         cd = metrics["cost_distribution"]
@@ -251,8 +264,8 @@ def evaluation_metrics(
         truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
         metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
             f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
-        for name, r in res.estimates.items():
-            metrics["ope"][name]["rollout_error"] = r.estimate - truth
+        for r in metrics["ope"].values():
+            r["rollout_error"] = r["estimate"] - truth
     from offline_adp.evaluation.summary import headline
 
     metrics["headline"] = headline(_finite(metrics), run_dir)
@@ -331,11 +344,21 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
     }
 
 
-def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
+def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult | None, ds: TransitionDataset,
            states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
     from offline_adp.data.io import atomic_directory
 
     with atomic_directory(run / "evaluation", overwrite=True) as tmp:
+        if res is None:  # continuous commands: no density ratios (evaluation/continuous.py): w is NaN
+            (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
+            a = ds.arrays()
+            cols = {name: a.obs[:, j] for j, name in enumerate(ds.feature_names)}
+            pq.write_table(pa.table({**cols, "step": a.step, "source": ds.table.column("source"),
+                                     "w": np.full(len(ds), np.nan)}), tmp / "ratios.parquet")
+            for name, st in (("rollout_states", states), ("rollout_states_demonstrator", demo_states)):
+                if st is not None:
+                    np.savez_compressed(tmp / f"{name}.npz", **{f"t{t}": s for t, s in enumerate(st)})
+            return
         _write_files(tmp, metrics, res, ds, states, demo_states)
 
 

@@ -136,7 +136,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     out = []
     for name, r in m["ope"].items():
         est, iv = r.get("estimate"), r.get("interval") or [None, None]
-        has_iv = _finite(iv[0]) and _finite(iv[1])
+        # an interval counts only with a level: one whose coverage nobody measured (level null) is not quoted
+        has_iv = _finite(iv[0]) and _finite(iv[1]) and r.get("level") is not None
         reasons = []
         if not _finite(est):
             reasons.append("no finite estimate")
@@ -148,7 +149,9 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         if r.get("comparable") is False:
             reasons.append("estimates another quantity than the one asked for")
         tier = 2 if reasons else (0 if has_iv else 1)
-        if tier == 1:
+        if tier == 1 and _finite(iv[0]) and _finite(iv[1]):  # an interval without a level: shown, never quoted
+            reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] has no measured coverage (no level)")
+        elif tier == 1:
             reasons.append(r.get("interval_method", "no interval"))
         width = (iv[1] - iv[0]) if has_iv else np.inf
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
