@@ -1,0 +1,67 @@
+"""Evaluating a continuous-command policy from the logs (issue #41 item 4), against the
+scalar linear-quadratic closed form of :mod:`tests.test_continuous_commands`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from offline_adp.cli import main
+from offline_adp.evaluation.continuous import command_support
+from offline_adp.evaluation.run import evaluation_metrics
+from offline_adp.policies import CommandPolicy, attach_signature
+
+from .test_continuous_commands import GAMMA, U_MAX, LinearPolicy, linear_value, lq_dataset
+
+
+class Constant(CommandPolicy):
+    def __init__(self, u: float) -> None:
+        self.u = u
+
+    def commands(self, obs, t=0):
+        return np.full((len(np.asarray(obs)), 1), self.u)
+
+
+@pytest.fixture(scope="module")
+def lq():
+    return lq_dataset(150, steps=60)  # gamma^60 < 0.01: the stationary FQE, structure-conditional bootstrap
+
+
+def test_fqe_over_commands_reads_the_closed_form_and_claims_no_level(lq):
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    m, res, _, _ = evaluation_metrics(lq, pol, None, fqe_bootstrap=30, bootstrap=0, model_particles=0)
+    assert res is None and set(m["ope"]) == {"fqe"}
+    fq = m["ope"]["fqe"]
+    x0 = lq.arrays().obs[lq.arrays().step == 0, 0]
+    truth = float(np.mean(linear_value(0.5) * x0 ** 2 * (1 - (GAMMA * 0.25) ** 60)))
+    assert fq["estimate"] == pytest.approx(truth, rel=0.12)
+    assert fq["level"] is None and np.isfinite(fq["interval"]).all()  # shown, never labelled
+    assert m["estimand"]["fqe_form"] == "stationary"
+    assert any("importance" in w for w in m["warnings"]) and "model rollouts of the logs" in m["not_usable"]
+    best = m["headline"]["best"]
+    assert best is None  # an interval without a level is never the headline's interval
+    assert "cannot tell" in m["headline"]["verdict"]["text"]
+
+
+def test_command_support_separates_logged_from_foreign_commands(lq):
+    inside = command_support(lq, attach_signature(LinearPolicy(0.5), lq))
+    assert inside["fraction"] < 0.1
+    outside = command_support(lq, Constant(3 * U_MAX))  # beyond every logged command
+    assert outside["fraction"] == 1.0
+
+
+def test_evaluate_and_report_a_continuous_run(lq, tmp_path):
+    lq.save(tmp_path / "data")
+    (tmp_path / "fqi.toml").write_text("[fqi]\nn_iterations = 20\nregressor_params = {n_estimators = 10}\n")
+    assert main(["fit", str(tmp_path / "data"), "--config", str(tmp_path / "fqi.toml"), "--out", str(tmp_path / "run"),
+                 "-q"]) == 0
+    assert main(["evaluate", str(tmp_path / "run"), "--fqe-bootstrap", "10", "--bootstrap", "0", "-q"]) == 0
+    m = json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())
+    assert m["commands"]["dims"] == ["u"] and m["ope"]["fqe"]["level"] is None
+    assert main(["report", str(tmp_path / "run"), "-q"]) == 0
+    figs = {p.name for p in (tmp_path / "run" / "report" / "figures").iterdir()}
+    assert "commands.png" in figs  # (one state feature: no two-feature policy map)
+    html = (tmp_path / "run" / "report" / "report.html").read_text()
+    assert "Not computed for continuous commands" in html and "(95%)" not in html
