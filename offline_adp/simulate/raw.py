@@ -26,6 +26,7 @@ def raw_table(ds: TransitionDataset) -> tuple[pa.Table, str]:
     at = ds.info.action_table
     one_dim = len(at.dims) == 1
     a = t.column(S.ACTION).to_numpy()
+    exact = ds.commands() if at.continuous else None  # continuous commands: one column per component, as logged
     action = at.values[a, 0] if one_dim else np.asarray(at.names, dtype=object)[a]
     cols: dict[str, object] = {"episode": t.column(S.EPISODE_ID), "step": t.column(S.STEP)}
     if S.T_NS in t.column_names:
@@ -33,7 +34,11 @@ def raw_table(ds: TransitionDataset) -> tuple[pa.Table, str]:
     names = ds.feature_names
     for nm in names:
         cols[nm] = t.column(S.obs_column(nm))
-    cols["command" if one_dim else "action"] = pa.array(action)
+    if exact is not None:
+        for j, d in enumerate(at.dims):
+            cols[f"{d}_command"] = exact[:, j]
+    else:
+        cols["command" if one_dim else "action"] = pa.array(action)
     cols["cost"] = t.column(S.COST)
     for nm in names:
         cols[f"next_{nm}"] = t.column(S.next_obs_column(nm))
@@ -46,7 +51,13 @@ def raw_table(ds: TransitionDataset) -> tuple[pa.Table, str]:
 
     q = lambda xs: "[" + ", ".join(f'"{x}"' for x in xs) + "]"  # noqa: E731
     units = ", ".join(f'{f.name} = "{f.unit}"' for f in ds.info.features if f.unit)
-    if one_dim:
+    if exact is not None:
+        bound = lambda b: "[" + ", ".join(repr(float(x)) for x in b) + "]"  # noqa: E731
+        action_spec = (f"columns = {q([f'{d}_command' for d in at.dims])}\ntype = \"continuous\"\nnames = {q(at.dims)}\n"
+                       + (f"units = {q(at.units)}\n" if at.units else "")
+                       + (f"low = {bound(at.low)}\n" if at.low is not None else "")
+                       + (f"high = {bound(at.high)}\n" if at.high is not None else ""))
+    elif one_dim:
         vals = ", ".join(repr(float(v)) for v in at.values[:, 0])
         action_spec = (
             f'column = "command"\ntype = "discrete"\nvalues = [{vals}]\nnames = {q(at.names)}\n'

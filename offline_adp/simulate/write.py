@@ -26,9 +26,9 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
     out = Path(out)
     if fmt not in FORMATS:
         raise UnknownNameError(f"format {fmt!r}: expected one of {list(FORMATS)}")
-    if fmt != "dataset" and ds.info.action_table.continuous:
-        raise InvalidArgumentError(f"--format {fmt}: the raw table and MCAP writers log action-table entries, which "
-                                   "would drop the exact continuous commands of this dataset; write --format dataset")
+    if fmt not in ("dataset", "parquet", "csv") and ds.info.action_table.continuous:
+        raise InvalidArgumentError(f"--format {fmt}: the MCAP writers log action-table entries, which would drop the "
+                                   "exact continuous commands of this dataset; write --format dataset, parquet or csv")
     if fmt == "dataset":
         from offline_adp.data.validate import validate
 
