@@ -199,8 +199,8 @@ def test_simulate_cli_logs_exact_commands(tmp_path, capsys):
     sim = problem_for_dataset("path_tracking", ds.info)
     assert sim.commands == "continuous" and sim.accepts_commands
     assert main(["simulate", "path_tracking", "--problem-options", json.dumps({"commands": "continuous"}),
-                 "--demonstrations", "1", "--exploration", "0", "--format", "parquet", "--out",
-                 str(tmp_path / "pt.parquet"), "-q"]) == 2
+                 "--demonstrations", "1", "--exploration", "0", "--format", "mcap-json", "--out",
+                 str(tmp_path / "mcap"), "-q"]) == 2  # MCAP writers log table entries: refused, not dropped
     assert "exact continuous commands" in capsys.readouterr().err
 
 
