@@ -129,7 +129,7 @@ def read_checkpoint(directory: str | PathLike[str]) -> dict[str, Any] | None:
 
 def _read_history(path: Path) -> pd.DataFrame:
     """``history.csv`` read with checks: size, the number columns, iterations 1..k."""
-    from offline_adp.data.rundir import read_table_file
+    from offline_adp.data.files import read_table_file
 
     try:
         size = path.stat().st_size

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.data.rundir import read_json_file
+from offline_adp.data.files import read_json_file
 from offline_adp.errors import (
     IncompatibleError,
     InvalidArgumentError,
@@ -47,7 +47,7 @@ def _dataset_of(run: Path) -> str | None:
 
 
 def _fingerprint(path: str) -> str:
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     return read_dataset(path).fingerprint()
 
@@ -246,7 +246,7 @@ def cli(args: Any) -> int:
     from offline_adp.evaluation.run import _finite
 
     if args.json:
-        from offline_adp.data.io import atomic_write_text
+        from offline_adp.data.files import atomic_write_text
 
         atomic_write_text(args.json, json.dumps(_finite(res), indent=1, default=float, allow_nan=False), what="comparison")
         print(args.json)

@@ -26,9 +26,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.io import read_dataset
-from offline_adp.data.rundir import RunDirectory, read_json_file
+from offline_adp.data.dataset import TransitionDataset, read_dataset
+from offline_adp.data.files import read_json_file
+from offline_adp.data.rundir import RunDirectory
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,
@@ -333,7 +333,7 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
 
 def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
            states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
-    from offline_adp.data.io import atomic_directory
+    from offline_adp.data.files import atomic_directory
 
     with atomic_directory(run / "evaluation", overwrite=True) as tmp:
         _write_files(tmp, metrics, res, ds, states, demo_states)

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict
 
-from offline_adp.data.rundir import read_json_file, read_table_file
+from offline_adp.data.files import read_json_file, read_table_file
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 
 #: Human names of the estimators.
@@ -102,7 +102,7 @@ class MetricsFile(_Open):
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
     """``metrics.json`` through the gates of every file we read: a regular file of bounded
-    size and nesting (:func:`~offline_adp.data.rundir.read_json_file`), then the structure
+    size and nesting (:func:`~offline_adp.data.files.read_json_file`), then the structure
     of :class:`MetricsFile`; the file's own dict is returned."""
     from pydantic import ValidationError as PydanticValidationError
 

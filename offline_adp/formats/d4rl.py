@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.files import atomic_file
 from offline_adp.data.info import ActionTable, DatasetInfo
-from offline_adp.data.io import atomic_file
 from offline_adp.errors import IngestError
 from offline_adp.formats.common import (
     _INT32_MAX,
