@@ -267,7 +267,7 @@ def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray
     import re
     import stat
 
-    from offline_adp import artifact_checks as C
+    import offline_adp.artifacts.checks as C
 
     p = Path(path)
     try:
