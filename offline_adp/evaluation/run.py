@@ -63,12 +63,12 @@ def _per_source(ds: TransitionDataset, w: np.ndarray, gamma: float) -> dict[str,
     return out
 
 
-def _finite(obj: Any) -> Any:
+def json_safe(obj: Any) -> Any:
     """Standard JSON: NaN and infinities become null (an undefined estimate, e.g. WIS with no weight)."""
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, float | np.floating):
         return float(obj) if np.isfinite(obj) else None
     if isinstance(obj, np.integer):
@@ -255,7 +255,7 @@ def evaluation_metrics(
             metrics["ope"][name]["rollout_error"] = r.estimate - truth
     from offline_adp.evaluation.summary import headline
 
-    metrics["headline"] = headline(_finite(metrics), run_dir)
+    metrics["headline"] = headline(json_safe(metrics), run_dir)
     return metrics, res, states, demo_states
 
 
@@ -341,7 +341,7 @@ def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: Transit
 
 def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
                  states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
-    (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
+    (tmp / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=1, default=float, allow_nan=False))
     frames = [res.diagnostics.assign(method="recursion")]
     frames += [d.assign(method=k) for k, (_, d) in res.extra_ratios.items()]
     pd.concat(frames, ignore_index=True).to_csv(tmp / "per_step.csv", index=False)

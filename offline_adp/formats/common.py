@@ -73,7 +73,7 @@ def _numeric(x: Any, where: str, field: str, *, n: int | None = None) -> np.ndar
     return a
 
 
-def _finite(a: np.ndarray, where: str, field: str) -> np.ndarray:
+def _finite_floats(a: np.ndarray, where: str, field: str) -> np.ndarray:
     """Float64 copy of ``a``; NaN or infinity is an IngestError naming the field and row."""
     v = np.asarray(a, dtype=np.float64)
     bad = ~np.isfinite(v)
