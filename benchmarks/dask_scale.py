@@ -39,8 +39,7 @@ import numpy as np
 import psutil
 
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import TransitionDataset, read_dataset
 from offline_adp.engines.dask import DistributedFQI, EngineConfig, dask_client
 from offline_adp.envs import CarOnHill
 

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.algorithms.fqi import FittedQIteration
-from offline_adp.evaluation.run import _finite, evaluation_metrics
+from offline_adp.evaluation.run import evaluation_metrics, json_safe
 from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
 from offline_adp.evaluation.summary import side_of_behaviour as _side
 from offline_adp.policies import EpsilonPolicy
@@ -228,7 +228,7 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
             # time limit, 500 steps for CartPole, while the documented estimand is H steps)
             m, _res, _s, _d = evaluation_metrics(ds, policy, sim, sim_name=problem, n_episodes=n_truth, n_boot=n_boot,
                                                  n_boot_fqe=None, horizon=H, seed=seed, run_dir=run)
-            m = _finite(m)
+            m = json_safe(m)
             h = m["headline"]
             lo_only = _logs_only(m)
             h_logs = headline(lo_only, run)
@@ -358,7 +358,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table(out["summary"], out["rows"]))
     print(f"\n{time.perf_counter() - t0:.0f} s")
     if args.json:
-        args.json.write_text(json.dumps(_finite(out), indent=1, default=float))
+        args.json.write_text(json.dumps(json_safe(out), indent=1, default=float))
     return 0
 
 

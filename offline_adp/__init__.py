@@ -34,7 +34,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "ActionTable": ("offline_adp.data.info", "ActionTable"),
     "DatasetInfo": ("offline_adp.data.info", "DatasetInfo"),
     "Feature": ("offline_adp.data.info", "Feature"),
-    "read_dataset": ("offline_adp.data.io", "read_dataset"),
+    "read_dataset": ("offline_adp.data.dataset", "read_dataset"),
     "write_dataset": ("offline_adp.data.io", "write_dataset"),
     "ValidationReport": ("offline_adp.data.validate", "ValidationReport"),
     "validate": ("offline_adp.data.validate", "validate"),
@@ -142,9 +142,9 @@ if TYPE_CHECKING:  # static type checkers and IDEs see the real imports
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.algorithms.fqi import FittedQIteration
     from offline_adp.artifacts import load_index_policy, load_q, save_policy, save_q
-    from offline_adp.data.dataset import TransitionArrays, TransitionDataset
+    from offline_adp.data.dataset import TransitionArrays, TransitionDataset, read_dataset
     from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
-    from offline_adp.data.io import read_dataset, write_dataset
+    from offline_adp.data.io import write_dataset
     from offline_adp.data.validate import ValidationReport, validate, validate_directory
     from offline_adp.deploy import load_policy
     from offline_adp.envs import make_problem

@@ -185,7 +185,7 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                                 f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
     fit_ds = None
     if ds_path is not None:
-        from offline_adp.data.io import read_dataset
+        from offline_adp.data.dataset import read_dataset
 
         fit_ds = read_dataset(ds_path)
     v = annotate_steps(policy, log_ds, fit_ds)

@@ -13,8 +13,8 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+from offline_adp.data.files import read_json_file
 from offline_adp.data.io import read_info
-from offline_adp.data.rundir import read_json_file
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.data.io import atomic_file
+from offline_adp.data.files import atomic_file
 from offline_adp.errors import ExportError  # re-exported: offline_adp.onnx_export.ExportError
 from offline_adp.progress import get_logger
 

@@ -64,7 +64,7 @@ from pydantic import Field, field_validator, model_validator
 
 from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
 from offline_adp.config import ConfigModel, load_toml, validate_config
-from offline_adp.data.io import sha256_file
+from offline_adp.data.files import sha256_file
 from offline_adp.data.rundir import NAME_PATTERN, RunDirectory, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError

@@ -29,7 +29,7 @@ from offline_adp.algorithms.checkpoint import read_checkpoint, share_with_model,
 from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resumable_algorithms
 from offline_adp.artifacts import save_policy, save_q, versions
 from offline_adp.config import load_toml
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import read_dataset
 from offline_adp.data.rundir import RunDirectory
 from offline_adp.data.validate import require_usable
 from offline_adp.errors import InvalidArgumentError, RunDirectoryError

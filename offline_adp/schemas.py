@@ -36,7 +36,7 @@ def schemas() -> dict[str, dict[str, Any]]:
 
 def write_schemas(directory: str | Path = SCHEMA_DIR) -> list[Path]:
     """Write every schema as ``NAME.schema.json`` into ``directory``; returns the paths."""
-    from offline_adp.data.io import atomic_write_text
+    from offline_adp.data.files import atomic_write_text
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from offline_adp.cli import main
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import read_dataset
 
 
 def test_version_and_help_examples(capsys):

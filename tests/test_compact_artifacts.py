@@ -161,7 +161,7 @@ def test_finished_run_keeps_one_copy_and_the_summary_names_the_size(tmp_path, ca
 def test_a_file_declaring_nodes_out_of_proportion_to_its_size_is_refused_before_expansion():
     """Deflate lets a small file declare millions of compact nodes (a bit each) that cost
     ~140 bytes each to expand; the loader refuses more than MAX_NODES_PER_FILE_BYTE a byte."""
-    from offline_adp import artifact_checks as C
+    import offline_adp.artifacts.checks as C
 
     members = {"q.m0.leaf_bits": (np.dtype(np.uint8), (1_048_576,)), "q.m0.feature": (np.dtype(np.uint8), (4_000_000,))}
     nodes = 8 * 1_048_576

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from offline_adp.cli import main
+from offline_adp.data.dataset import read_dataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
-from offline_adp.data.io import read_dataset
 from offline_adp.data.validate import validate
 from offline_adp.envs import make_problem, problem_for_dataset
 from offline_adp.envs.gym import GymResetModel

@@ -10,7 +10,8 @@ import shutil
 import pytest
 
 from offline_adp.cli import main
-from offline_adp.data.rundir import RunDirectory, read_json_file, read_table_file
+from offline_adp.data.files import read_json_file, read_table_file
+from offline_adp.data.rundir import RunDirectory
 from offline_adp.errors import ArtifactError
 
 

@@ -13,7 +13,7 @@ pytest.importorskip("distributed")
 from distributed import Client, LocalCluster  # noqa: E402
 
 from offline_adp.algorithms.fqi import FittedQIteration, load_fqi  # noqa: E402
-from offline_adp.data.io import read_dataset  # noqa: E402
+from offline_adp.data.dataset import read_dataset  # noqa: E402
 from offline_adp.engines.dask import DaskFit, DistributedFQI  # noqa: E402
 from offline_adp.runs import fit_run  # noqa: E402
 from offline_adp.simulate import simulate  # noqa: E402

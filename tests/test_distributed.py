@@ -64,7 +64,7 @@ def test_dask_fit_equals_the_in_process_fit_of_its_estimator(one_worker, coh, tm
     Dask fit runs the same loop with the same targets, seeds and trees, so Q, the history
     and the verdict equal :meth:`DistributedFQI.estimator`'s in-process fit; a fit stopped
     after 2 iterations and resumed from its checkpoint gives that Q too."""
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
     from offline_adp.policies import UniformPolicy
 
     _, path = coh
@@ -91,7 +91,7 @@ def test_dask_finite_horizon_fit_equals_the_in_process_fit(one_worker, tmp_path)
     """gamma = 1 on a dataset with a 5-step horizon hint is Algorithm 10 (one Q per step):
     the same generic loop, so the Dask fit equals the in-process one step by step, and a
     checkpoint of the finished fit (a TimeIndexedQ) gives it back without refitting."""
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     simulate("car_on_hill", 0, 60, seed=5, horizon=5).save(tmp_path / "ds")
     ds = read_dataset(tmp_path / "ds")
@@ -164,7 +164,7 @@ def test_a_worker_added_mid_fit_does_not_change_the_ranks(coh, tmp_path):
     is reported as unplaced. Spreading the blocks over the new worker would make two ranks."""
     import time
 
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds, _ = coh
     path = tmp_path / "two_parts"

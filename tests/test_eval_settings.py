@@ -242,7 +242,7 @@ def test_compare_and_run_read_metrics_json_through_the_same_gate(tmp_path):
 
 
 def test_a_json_file_that_is_a_device_is_refused_without_reading(tmp_path):
-    from offline_adp.data.rundir import read_json_file
+    from offline_adp.data.files import read_json_file
     from offline_adp.errors import ArtifactError
 
     with pytest.raises(ArtifactError, match="not a regular file"):

@@ -12,8 +12,8 @@ import pyarrow as pa
 import pytest
 
 from offline_adp.data import schema as S
-from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.io import read_dataset, write_dataset
+from offline_adp.data.dataset import TransitionDataset, read_dataset
+from offline_adp.data.io import write_dataset
 from offline_adp.simulate import simulate
 
 NARROW = (pa.int8(), pa.int16(), pa.int32(), pa.uint8(), pa.uint16())

@@ -153,7 +153,7 @@ def test_convert_cli(ds, tmp_path):
     assert main(["convert", str(tmp_path / "data"), "--to", "d4rl", "--out", str(tmp_path / "x.npz")]) == 0
     assert main(["convert", str(tmp_path / "x.npz"), "--from", "d4rl", "--to", "minari", "--out", "cli/pt-v0"]) == 0
     assert main(["convert", "cli/pt-v0", "--from", "minari", "--out", str(tmp_path / "back")]) == 0
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     _same(read_dataset(tmp_path / "back"), ds)
     assert main(["convert", str(tmp_path / "data"), "--to", "lerobot", "--out", str(tmp_path / "lr")]) == 0

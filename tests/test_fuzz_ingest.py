@@ -25,7 +25,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from offline_adp.data.io import read_dataset, read_quarantine
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.io import read_quarantine
 from offline_adp.data.validate import validate_directory
 from offline_adp.errors import OfflineADPError
 from offline_adp.ingest.parquet import ingest_parquet

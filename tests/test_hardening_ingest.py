@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from offline_adp.data import schema as S
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import read_dataset
 from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.parquet import ingest_parquet
 from offline_adp.ingest.spec import parse_parquet_spec

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from offline_adp.data.io import locked_directory, read_dataset, write_text_nofollow
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.files import locked_directory, write_text_nofollow
 from offline_adp.data.validate import validate_directory
 from offline_adp.errors import LockedError, OfflineADPError
 from offline_adp.simulate import simulate
@@ -66,7 +67,7 @@ def test_two_concurrent_ingests_one_wins_and_its_output_is_intact(tmp_path, raw_
 
 def test_lock_is_reentrant_in_one_process_and_exclusive_across_processes(tmp_path):
     target = tmp_path / "x"
-    code = ("import sys\nfrom offline_adp.data.io import locked_directory\nfrom offline_adp.errors import LockedError\n"
+    code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import LockedError\n"
             f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError as e:\n    print('LOCKED', e)\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with locked_directory(target), locked_directory(target):  # re-entrant

@@ -192,7 +192,7 @@ def test_export_refuses_to_overwrite_without_flag(run, tmp_path):
 
 # ----------------------------------------------------------------------------- load_policy carries the signature
 def test_top_level_load_policy_carries_the_signature(run):
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds = read_dataset(Path(json.loads((run / "run.json").read_text())["dataset"]))
     a = ds.arrays()

@@ -156,7 +156,7 @@ def test_plain_d4rl_without_infos_converts_and_passes_the_doctor(tmp_path, with_
     out = tmp_path / "ds"
     r = _cli("convert", str(f), "--from", "d4rl", "--out", str(out))
     assert r.returncode == 0, r.stderr
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds = read_dataset(out)
     assert validate(ds).ok
@@ -263,7 +263,7 @@ def test_continuous_d4rl_actions_import_exactly(tmp_path, k):
     out = tmp_path / "ds"
     r = _cli("convert", str(f), "--from", "d4rl", "--out", str(out))
     assert r.returncode == 0, r.stderr
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds = read_dataset(out)
     table = ds.info.action_table
@@ -334,7 +334,7 @@ def test_continuous_minari_pendulum_imports_equal_to_the_source(tmp_path, steps)
     r = _cli("convert", "test/pendulum-v0", "--from", "minari", "--out", str(out),
              env_extra={"MINARI_DATASETS_PATH": os.environ["MINARI_DATASETS_PATH"]})
     assert r.returncode == 0, r.stderr
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds = read_dataset(out)
     x = ds.arrays()
@@ -495,7 +495,7 @@ def test_a_minari_datacollector_dataset_with_continuous_actions_imports_equal_to
     r = _cli("convert", "test/collected-v0", "--from", "minari", "--out", str(out),
              env_extra={"MINARI_DATASETS_PATH": os.environ["MINARI_DATASETS_PATH"]})
     assert r.returncode == 0, r.stderr
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     ds = read_dataset(out)
     x = ds.arrays()

@@ -100,8 +100,8 @@ def test_fingerprint_depends_on_the_values_only(tmp_path):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from offline_adp.data.dataset import TransitionDataset
-    from offline_adp.data.io import read_dataset, write_dataset
+    from offline_adp.data.dataset import TransitionDataset, read_dataset
+    from offline_adp.data.io import write_dataset
 
     ds = simulate("path_tracking", 5, 0, seed=11, horizon=12)
     t = ds.table
@@ -282,7 +282,8 @@ def test_load_mcap_spec_reads_only_a_bounded_regular_text_file(tmp_path, kind):
 def test_a_dataset_written_with_the_previous_fingerprint_still_validates(tmp_path):
     """The fingerprint's definition changed; a dataset (or run) that stored the previous one
     is recognised, not reported as changed; anything else still is."""
-    from offline_adp.data.io import read_dataset, write_dataset
+    from offline_adp.data.dataset import read_dataset
+    from offline_adp.data.io import write_dataset
     from offline_adp.data.validate import validate_directory
 
     ds = simulate("path_tracking", 2, 1, seed=3, horizon=12)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from offline_adp.cli import main
-from offline_adp.data.io import atomic_file, atomic_write_text, lock_path, locked_directory
+from offline_adp.data.files import atomic_file, atomic_write_text, lock_path, locked_directory
 from offline_adp.errors import LockedError, OfflineADPError, WriteError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -310,7 +310,7 @@ def test_lock_files_are_removed_after_release_and_a_removed_file_is_not_shared(t
     lp = lock_path(target)
     with locked_directory(target):
         assert lp.exists()
-        code = ("import sys\nfrom offline_adp.data.io import locked_directory\nfrom offline_adp.errors import LockedError\n"
+        code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import LockedError\n"
                 f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError:\n    print('LOCKED')\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                            env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -334,7 +334,7 @@ def test_lock_files_are_removed_after_release_and_a_removed_file_is_not_shared(t
 
 
 def test_a_held_lock_is_a_locked_error_naming_the_target(tmp_path):
-    code = ("import sys, time\nfrom offline_adp.data.io import locked_directory\n"
+    code = ("import sys, time\nfrom offline_adp.data.files import locked_directory\n"
             f"with locked_directory({str(tmp_path / 'd')!r}):\n    print('HELD', flush=True)\n    time.sleep(30)\n")
     p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT)})

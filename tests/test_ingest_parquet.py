@@ -10,7 +10,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from offline_adp.data import schema as S
-from offline_adp.data.io import read_dataset, read_quarantine
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.io import read_quarantine
 from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.parquet import ingest_parquet
 from offline_adp.ingest.spec import load_parquet_spec, parse_parquet_spec

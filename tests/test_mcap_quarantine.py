@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from offline_adp.data.io import read_dataset, read_quarantine
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.io import read_quarantine
 from offline_adp.errors import ValidationError
 from offline_adp.ingest.mcap import ingest_mcap
 from tests.test_ingest_mcap_streaming import MS, T0, episode_messages, write_log

@@ -58,7 +58,7 @@ def test_coverage_suite_tiny(tmp_path):
     table = oc.table(summary, rows)
     assert "| path_tracking |" in table and all(c in table for c in cands)
     path, again = tmp_path / "cov.json", tmp_path / "again.json"
-    path.write_text(json.dumps(oc._finite(out)))
+    path.write_text(json.dumps(oc.json_safe(out)))
     assert oc.main(["--rows-from", str(path), "--json", str(again)]) == 0  # the CLI, re-summarising without a rerun
     data = json.loads(again.read_text())
     assert [r["candidate"] for r in data["rows"]] == cands and data["summary"]["path_tracking"]["candidates"] == len(cands)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import read_dataset
 from offline_adp.pipeline import load_pipeline, run_pipeline
 from offline_adp.simulate import simulate
 

@@ -11,7 +11,7 @@ import pytest
 from offline_adp import dp
 from offline_adp.artifacts import load_index_policy
 from offline_adp.cli import main
-from offline_adp.data.io import read_dataset
+from offline_adp.data.dataset import read_dataset
 from offline_adp.envs import make_problem, problem_for_dataset, recorded_problem_options
 from offline_adp.envs.tabular import TabularMDP
 from offline_adp.errors import ArtifactError

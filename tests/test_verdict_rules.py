@@ -13,7 +13,7 @@ import copy
 import numpy as np
 import pytest
 
-from offline_adp.evaluation.summary import rank_estimators, verdict
+from offline_adp.evaluation.summary import rank_estimators, verdict_line
 
 BASE = {
     "estimand": {"possible_range": [0.0, 1000.0]},
@@ -27,7 +27,7 @@ CONVERGED = {"verdict": "converged", "text": "fit converged"}
 
 
 def _v(m, shift=IN_SUPPORT, conv=CONVERGED):
-    return verdict(m, rank_estimators(m), shift, conv)
+    return verdict_line(m, rank_estimators(m), shift, conv)
 
 
 def test_a_side_is_claimed_only_when_nothing_undermines_it():

@@ -95,7 +95,7 @@ def _members(path: Path) -> list[tuple[str, int, int]]:
 
 def read_checkpoint(directory: str | PathLike[str]) -> dict[str, Any] | None:
     """The checkpoint in ``directory`` as ``{"q", "history"}`` for
-    :func:`~offline_adp.algorithms.fqi.run_fitted_q`'s ``resume`` (finite horizons: ``q``
+    :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.run_fitted_q`'s ``resume`` (finite horizons: ``q``
     is the list Q_{T-1}, Q_{T-2}, ... in the order they were fitted), or None when there
     is none (no ``q.json``).
 
@@ -129,7 +129,7 @@ def read_checkpoint(directory: str | PathLike[str]) -> dict[str, Any] | None:
 
 def _read_history(path: Path) -> pd.DataFrame:
     """``history.csv`` read with checks: size, the number columns, iterations 1..k."""
-    from offline_adp.data.rundir import read_table_file
+    from offline_adp.data.files import read_table_file
 
     try:
         size = path.stat().st_size

@@ -41,7 +41,7 @@ from offline_adp.algorithms.fqe_bootstrap import (
 )
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.fqi_data import CommandBackup, PolicyBackup, Prepared
-from offline_adp.algorithms.fqi_loop import FitState, run_fitted_q
+from offline_adp.algorithms.fqi_loop import FitState
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import InvalidArgumentError, NotFittedError
 from offline_adp.learn import FrozenTreesLearner
@@ -159,7 +159,7 @@ commands, n_candidates
             check_command_policy(self, dataset)
         elif self.policy.n_actions != dataset.n_actions:
             raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
-        yield from run_fitted_q(self, dataset, sample_weight, resume, self._backup, deferred=deferred)
+        yield from self.run_fitted_q(dataset, sample_weight, resume, self._backup, deferred=deferred)
         a = dataset.arrays()
         start = a.step == 0
         x0 = a.obs[start] if start.any() else a.obs[:1]

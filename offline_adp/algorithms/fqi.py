@@ -59,14 +59,13 @@ import pandas as pd
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
 from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare
-from offline_adp.algorithms.fqi_loop import run_fitted_q
+from offline_adp.algorithms.fqi_loop import FittedQEstimator, is_missing
 from offline_adp.algorithms.fqi_monitor import auto_iterations
 from offline_adp.algorithms.params import (
     GAMMA,
     NON_NEGATIVE,
     POSITIVE_INT,
     SEED,
-    CheckedEstimator,
     check_learner,
     invalid_parameter,
 )
@@ -96,7 +95,7 @@ MODES = ("auto", "refit", "frozen", "warm_start")
 
 
 # ----------------------------------------------------------------------------- the estimator
-class FittedQIteration(CheckedEstimator):
+class FittedQIteration(FittedQEstimator):
     """Fitted Q-iteration with a pluggable regressor (LEARN).
 
     Parameters
@@ -398,28 +397,12 @@ class FittedQIteration(CheckedEstimator):
         ``fit_iter`` early is left without them. A finite-horizon fit sets them after every
         step either way.
         """
-        return run_fitted_q(self, dataset, sample_weight, resume, lambda data: GreedyBackup(), deferred=deferred)
+        return self.run_fitted_q(dataset, sample_weight, resume, lambda data: GreedyBackup(), deferred=deferred)
 
     def predict(self, obs: np.ndarray, t: int | np.ndarray = 0) -> np.ndarray:
         """Q-values of all actions, shape (n, n_actions)."""
         self._check_fitted()
         return self.q_function_.values(np.asarray(obs, dtype=np.float64), t)
-
-    @property
-    def history_(self) -> pd.DataFrame:
-        rows = self.__dict__.get("_history_rows")
-        if rows is None:
-            raise AttributeError("history_")
-        frame = self.__dict__.get("_history_frame")
-        if frame is None or len(frame) != len(rows) or self.__dict__.get("_history_dirty", False):
-            frame = pd.DataFrame(rows)
-            self.__dict__["_history_frame"], self.__dict__["_history_dirty"] = frame, False
-        return frame
-
-    @history_.setter
-    def history_(self, frame: pd.DataFrame) -> None:
-        self.__dict__["_history_rows"] = [{k: (None if _isna(v) else v) for k, v in r.items()} for r in frame.to_dict("records")]
-        self.__dict__["_history_frame"] = frame
 
     # ------------------------------------------------------------------ pieces
     @staticmethod
@@ -576,14 +559,10 @@ def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
     cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant", "structure_builder"]
     rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
     return [{"iteration": int(r["iteration"]),
-             "trees": None if _isna(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
-             "screen": None if _isna(r.get("structure_screen")) else float(r["structure_screen"]),
-             "constant": not _isna(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
+             "trees": None if is_missing(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
+             "screen": None if is_missing(r.get("structure_screen")) else float(r["structure_screen"]),
+             "constant": not is_missing(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
              "builder": r["structure_builder"] if isinstance(r.get("structure_builder"), str) else None} for r in rows]
-
-
-def _isna(v: Any) -> bool:
-    return v is None or (isinstance(v, float) and np.isnan(v))
 
 
 # ----------------------------------------------------------------------------- save / load

@@ -1,28 +1,37 @@
-"""The fitted-Q loop (:func:`fitted_q_loop`) and the bookkeeping around it
-(:func:`run_fitted_q`: prepare, restore, history, monitor, verdict, fitted attributes),
-shared by :class:`~offline_adp.algorithms.fqi.FittedQIteration` and
+"""The fitted-Q loop (:func:`fitted_q_loop`) and the estimator base class around it
+(:class:`FittedQEstimator`: prepare, restore, history, monitor, verdict, fitted
+attributes), shared by :class:`~offline_adp.algorithms.fqi.FittedQIteration` and
 :class:`~offline_adp.algorithms.fqe.FittedQEvaluation` (and the Dask engine).
+
+:class:`FittedQEstimator` declares what the loop needs of an estimator: the hooks a
+subclass implements (:meth:`~FittedQEstimator._prepare`, :meth:`~FittedQEstimator._learner`,
+:meth:`~FittedQEstimator.iteration_plan`, :meth:`~FittedQEstimator._schedule`,
+:meth:`~FittedQEstimator._result_policy`), the parameters it reads and the fitted
+attributes it sets; this module imports no estimator.
 """
 
 from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from offline_adp.algorithms.fqi_data import Backup, Prepared
-from offline_adp.algorithms.fqi_monitor import DivergenceMonitor, distance_bound, verdict
+from offline_adp.algorithms.fqi_monitor import (
+    DivergenceMonitor,
+    convergence_verdict,
+    distance_bound,
+)
+from offline_adp.algorithms.params import CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import DivergenceWarning
 from offline_adp.learn import Learner
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
-
-if TYPE_CHECKING:
-    from offline_adp.algorithms.fqi import FittedQIteration
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -78,125 +87,213 @@ def fitted_q_loop(data: Prepared, learner: Learner, backup: Backup, iterations: 
         q_next = q_new
 
 
-# ----------------------------------------------------------------------------- bookkeeping around the loop
-def run_fitted_q(est: FittedQIteration, dataset: TransitionDataset, sample_weight: np.ndarray | None,
-                 resume: dict[str, Any] | None, make_backup: Any, prepare: Any = None,
-                 make_learner: Any = None, *, deferred: bool = False) -> Iterator[dict[str, Any]]:
-    """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
-    the fitted attributes of ``est`` up to date (FQI and FQE alike). ``prepare(dataset,
-    sample_weight) -> Prepared`` (setting ``est.gamma_``, ``est.horizon_``) and
-    ``make_learner(data) -> Learner`` replace ``est``'s own (the Dask engine's data and LEARN).
-    ``deferred``: an infinite-horizon ``Q_k`` becomes ``est.q_function_`` at the end only."""
-    est._validate_params()  # scikit-learn's, on _parameter_constraints
-    est._check_param_combinations()
-    data = (prepare or est._prepare)(dataset, sample_weight)
-    learner = (make_learner or est._learner)(data)
-    backup = make_backup(data)
-    finite = est.horizon_ is not None
-    total = est.horizon_ if finite else est.iteration_plan()[1]
-    monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=est.divergence_slack,
-                                window=est.patience, finite=finite)
-    est.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
-    rows: list[dict[str, Any]] = []
-    est.__dict__["_history_rows"], est.__dict__["_history_frame"] = rows, None
-    est.diverged_, est.divergence_message_ = False, None
-    est.q_function_ = None
-    qs: list[QFunction] = []
-    n = data.n
-    if est.initial_q is not None:  # Q_0 (or the terminal Q_T)
-        q_next = est.initial_q.values(data.train.next_obs, est.horizon_ or 0)
-        q_train = est.initial_q.values(data.obs, 0)[np.arange(n), data.train.actions]
-    else:
-        q_next, q_train = np.zeros((n, data.n_actions)), np.zeros(n)
-    if resume is not None and resume["history"]:
-        rows.extend(dict(r) for r in resume["history"])
-        qs = list(resume["q"]) if finite else []
-        learner.restore(resume["q"][-1] if finite else resume["q"], len(rows), rows)
-        q_next, q_train = learner.predict("next"), learner.predict("train")
-        for j in range(1, len(rows) + 1):  # replay the monitor silently
-            msg = None if (est.on_divergence == "ignore" or est.diverged_) else monitor.check(rows[:j])
-            if msg:
-                est.diverged_, est.divergence_message_ = True, msg
-        _set_result(est, learner, qs)
-    done = len(rows)
-    if not _finished(est, rows, total):
-        iterations = ((k, (est.horizon_ - k) if finite else None) for k in range(done + 1, total + 1))
-        t0, c0 = time.perf_counter(), time.process_time()  # an iteration's clocks run from here to its row
-        for it in fitted_q_loop(data, learner, backup, iterations, q_next, Noise(est.random_state, est.target_noise, est.next_state_noise)):
-            q_train_new = learner.predict("train")
-            rows.append(_diagnostics(data, learner, backup, it, q_train, q_train_new, t0, c0))
-            est.__dict__["_history_dirty"] = True
-            q_train = q_train_new
-            if finite:
-                qs.append(learner.snapshot())
-            if finite or not deferred:
-                _set_result(est, learner, qs)
-            if not (est.on_divergence == "ignore" or est.diverged_):
-                msg = monitor.check(rows)
+# ----------------------------------------------------------------------------- the estimator around the loop
+class FittedQEstimator(CheckedEstimator):
+    """The base of the fitted-Q estimators: :meth:`run_fitted_q` runs :func:`fitted_q_loop`
+    and keeps the history, the divergence monitor, the verdict and the fitted attributes
+    up to date, through the hooks a subclass implements.
+
+    A subclass's ``__init__`` sets the parameters the loop reads: ``initial_q``,
+    ``on_divergence``, ``patience``, ``divergence_slack``, ``random_state``,
+    ``target_noise``, ``next_state_noise``, ``n_iterations``, ``tol``, ``rtol`` and ``mode``
+    (see :class:`~offline_adp.algorithms.fqi.FittedQIteration`).
+    """
+
+    # fitted attributes (set by the hooks and by run_fitted_q)
+    gamma_: float  #: set by :meth:`_prepare`
+    horizon_: int | None  #: set by :meth:`_prepare`
+    mode_: str  #: set by :meth:`_learner`
+    fit_state_: FitState
+    q_function_: QFunction | None
+    q_functions_: list[QFunction]
+    policy_: Any
+    diverged_: bool
+    divergence_message_: str | None
+    verdict_: str
+    verdict_message_: str
+    converged_: bool
+
+    # ------------------------------------------------------------------ the hooks
+    def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> Prepared:
+        """The prepared data of a fit; sets ``gamma_`` and ``horizon_``."""
+        raise NotImplementedError
+
+    def _learner(self, data: Prepared) -> Learner:
+        """The LEARN step for ``data``; sets ``mode_``."""
+        raise NotImplementedError
+
+    def iteration_plan(self) -> tuple[int, int]:
+        """``(K_b, K_max)``: the iterations the frozen builds are spread over, and the most
+        an infinite-horizon fit runs."""
+        raise NotImplementedError
+
+    def _schedule(self) -> tuple[int, ...]:
+        """The iterations at which ``mode="frozen"`` builds a structure."""
+        raise NotImplementedError
+
+    def _result_policy(self, q: QFunction) -> Any:
+        """The policy of a fitted ``q`` (``policy_``)."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ the history
+    @property
+    def history_(self) -> pd.DataFrame:
+        rows = self.__dict__.get("_history_rows")
+        if rows is None:
+            raise AttributeError("history_")
+        frame = self.__dict__.get("_history_frame")
+        if frame is None or len(frame) != len(rows) or self.__dict__.get("_history_dirty", False):
+            frame = pd.DataFrame(rows)
+            self.__dict__["_history_frame"], self.__dict__["_history_dirty"] = frame, False
+        return frame
+
+    @history_.setter
+    def history_(self, frame: pd.DataFrame) -> None:
+        self.__dict__["_history_rows"] = [{k: (None if is_missing(v) else v) for k, v in r.items()} for r in frame.to_dict("records")]
+        self.__dict__["_history_frame"] = frame
+
+    def _start_history(self, rows: list[dict[str, Any]]) -> None:
+        """``rows`` (appended to by the loop) becomes the history."""
+        self.__dict__["_history_rows"], self.__dict__["_history_frame"] = rows, None
+
+    def _history_changed(self) -> None:
+        """A row was added or changed: ``history_`` rebuilds its frame when next read."""
+        self.__dict__["_history_dirty"] = True
+
+    def discard_fit_state(self) -> None:
+        """Drop ``fit_state_`` (the prepared data and the learner; e.g. a cluster's)."""
+        self.__dict__.pop("fit_state_", None)
+
+    # ------------------------------------------------------------------ the fit
+    def run_fitted_q(self, dataset: Any, sample_weight: np.ndarray | None, resume: dict[str, Any] | None,
+                     make_backup: Callable[[Prepared], Backup],
+                     prepare: Callable[[Any, np.ndarray | None], Prepared] | None = None,
+                     make_learner: Callable[[Prepared], Learner] | None = None, *,
+                     deferred: bool = False) -> Iterator[dict[str, Any]]:
+        """Prepare, restore, run :func:`fitted_q_loop`, and keep history, monitor, verdict and
+        the fitted attributes up to date (FQI and FQE alike), yielding each iteration's
+        history row. ``prepare(dataset, sample_weight) -> Prepared`` (setting ``gamma_``,
+        ``horizon_``) and ``make_learner(data) -> Learner`` replace :meth:`_prepare` and
+        :meth:`_learner` (the Dask engine's data and LEARN). ``deferred``: an
+        infinite-horizon ``Q_k`` becomes ``q_function_`` at the end only."""
+        self._validate_params()  # scikit-learn's, on _parameter_constraints
+        self._check_param_combinations()
+        data = (prepare or self._prepare)(dataset, sample_weight)
+        learner = (make_learner or self._learner)(data)
+        backup = make_backup(data)
+        finite = self.horizon_ is not None
+        total = self.horizon_ if finite else self.iteration_plan()[1]
+        monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=self.divergence_slack,
+                                    window=self.patience, finite=finite)
+        self.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
+        rows: list[dict[str, Any]] = []
+        self._start_history(rows)
+        self.diverged_, self.divergence_message_ = False, None
+        self.q_function_ = None
+        qs: list[QFunction] = []
+        n = data.n
+        if self.initial_q is not None:  # Q_0 (or the terminal Q_T)
+            q_next = self.initial_q.values(data.train.next_obs, self.horizon_ or 0)
+            q_train = self.initial_q.values(data.obs, 0)[np.arange(n), data.train.actions]
+        else:
+            q_next, q_train = np.zeros((n, data.n_actions)), np.zeros(n)
+        if resume is not None and resume["history"]:
+            rows.extend(dict(r) for r in resume["history"])
+            qs = list(resume["q"]) if finite else []
+            learner.restore(resume["q"][-1] if finite else resume["q"], len(rows), rows)
+            q_next, q_train = learner.predict("next"), learner.predict("train")
+            for j in range(1, len(rows) + 1):  # replay the monitor silently
+                msg = None if (self.on_divergence == "ignore" or self.diverged_) else monitor.check(rows[:j])
                 if msg:
-                    est.diverged_, est.divergence_message_ = True, msg
-                    action = "stopping (on_divergence='stop')" if est.on_divergence == "stop" else "continuing (on_divergence='warn')"
-                    warnings.warn(f"{type(est).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
-            yield rows[-1]
-            if _finished(est, rows, total):
-                break
-            t0, c0 = time.perf_counter(), time.process_time()
-    if rows and deferred:
-        _set_result(est, learner, qs)
-    conv = _converged(est, rows)
-    frozen = _bounded(est)
-    est.verdict_, est.verdict_message_ = verdict(
-        rows, finite=finite, divergence=est.divergence_message_, converged=conv, gamma=data.gamma,
-        tolerance=_tolerance(est, rows[-1]) if rows else None, frozen=frozen, window=est.patience,
-        capped=est.n_iterations == "auto" and len(rows) >= total and not conv)
-    est.converged_ = conv
-    if rows:
-        rows[-1]["verdict"] = est.verdict_
-        est.__dict__["_history_dirty"] = True
+                    self.diverged_, self.divergence_message_ = True, msg
+            self._set_result(learner, qs)
+        done = len(rows)
+        if not self._finished(rows, total):
+            iterations = ((k, (self.horizon_ - k) if finite else None) for k in range(done + 1, total + 1))
+            t0, c0 = time.perf_counter(), time.process_time()  # an iteration's clocks run from here to its row
+            for it in fitted_q_loop(data, learner, backup, iterations, q_next,
+                                    Noise(self.random_state, self.target_noise, self.next_state_noise)):
+                q_train_new = learner.predict("train")
+                rows.append(_diagnostics(data, learner, backup, it, q_train, q_train_new, t0, c0))
+                self._history_changed()
+                q_train = q_train_new
+                if finite:
+                    qs.append(learner.snapshot())
+                if finite or not deferred:
+                    self._set_result(learner, qs)
+                if not (self.on_divergence == "ignore" or self.diverged_):
+                    msg = monitor.check(rows)
+                    if msg:
+                        self.diverged_, self.divergence_message_ = True, msg
+                        action = "stopping (on_divergence='stop')" if self.on_divergence == "stop" else "continuing (on_divergence='warn')"
+                        warnings.warn(f"{type(self).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
+                yield rows[-1]
+                if self._finished(rows, total):
+                    break
+                t0, c0 = time.perf_counter(), time.process_time()
+        if rows and deferred:
+            self._set_result(learner, qs)
+        conv = self._converged(rows)
+        frozen = self._bounded()
+        self.verdict_, self.verdict_message_ = convergence_verdict(
+            rows, finite=finite, divergence=self.divergence_message_, converged=conv, gamma=data.gamma,
+            tolerance=self._tolerance(rows[-1]) if rows else None, frozen=frozen, window=self.patience,
+            capped=self.n_iterations == "auto" and len(rows) >= total and not conv)
+        self.converged_ = conv
+        if rows:
+            rows[-1]["verdict"] = self.verdict_
+            self._history_changed()
 
+    def _bounded(self) -> bool:
+        """Whether the contraction bound decides convergence: a frozen structure, gamma < 1 and
+        no target noise (fresh noise every iteration: no fixed point to be near)."""
+        return getattr(self, "mode_", self.mode) == "frozen" and self.gamma_ < 1 and not self.target_noise
 
-def _bounded(est: FittedQIteration) -> bool:
-    """Whether the contraction bound decides convergence: a frozen structure, gamma < 1 and
-    no target noise (fresh noise every iteration: no fixed point to be near)."""
-    return getattr(est, "mode_", est.mode) == "frozen" and est.gamma_ < 1 and not est.target_noise
+    def _tolerance(self, last: dict[str, Any]) -> float | None:
+        """What the convergence test compares with (:mod:`~offline_adp.algorithms.fqi_monitor`):
+        frozen with gamma < 1: ``tol`` if given, else ``rtol max|Q_k|``, for the distance bound;
+        else ``tol``."""
+        if not self._bounded() or self.tol is not None:
+            return self.tol
+        return float(self.rtol) * float(last["max_abs_q"])
 
+    def _converged(self, rows: list[dict[str, Any]]) -> bool:
+        """Converged at the last row (:mod:`~offline_adp.algorithms.fqi_monitor`): frozen, the
+        distance bound ``gamma/(1-gamma) sup|dQ|`` within :meth:`_tolerance`, after the last
+        scheduled build, on an iteration that did not rebuild (or rebuilt one-leaf trees on
+        constant targets, as the one before did: they stay constant); other modes ``sup|dQ| < tol``.
+        A pure function of the history, so a resumed fit decides the same."""
+        if self.horizon_ is not None or len(rows) < 2:
+            return False
+        last, prev = rows[-1], rows[-2]
+        # targets constant at two iterations in a row (every row's cost alike, no terminal): they stay
+        # constant, one-leaf trees are exact, and rebuilding them each iteration changes nothing
+        constant = bool(last.get("structure_on_constant")) and bool(prev.get("structure_on_constant"))
+        if last.get("structure") != prev.get("structure") and not constant:
+            return False
+        if getattr(self, "mode_", self.mode) == "frozen" and (last["iteration"] < max(self._schedule())
+                                                              or (last.get("structure_on_constant") and not constant)):
+            return False
+        if not self._bounded():
+            return self.tol is not None and last["sup_dq"] < self.tol
+        return distance_bound(last["sup_dq"], self.gamma_) <= self._tolerance(last)
 
-def _tolerance(est: FittedQIteration, last: dict[str, Any]) -> float | None:
-    """What the convergence test compares with (:mod:`~offline_adp.algorithms.fqi_monitor`):
-    frozen with gamma < 1: ``tol`` if given, else ``rtol max|Q_k|``, for the distance bound;
-    else ``tol``."""
-    if not _bounded(est) or est.tol is not None:
-        return est.tol
-    return float(est.rtol) * float(last["max_abs_q"])
+    def _finished(self, rows: list[dict[str, Any]], total: int) -> bool:
+        if not rows:
+            return False
+        return (len(rows) >= total or self._converged(rows)
+                or (self.diverged_ and self.on_divergence == "stop"))
 
-
-def _converged(est: FittedQIteration, rows: list[dict[str, Any]]) -> bool:
-    """Converged at the last row (:mod:`~offline_adp.algorithms.fqi_monitor`): frozen, the
-    distance bound ``gamma/(1-gamma) sup|dQ|`` within :func:`_tolerance`, after the last
-    scheduled build, on an iteration that did not rebuild (or rebuilt one-leaf trees on
-    constant targets, as the one before did: they stay constant); other modes ``sup|dQ| < tol``.
-    A pure function of the history, so a resumed fit decides the same."""
-    if est.horizon_ is not None or len(rows) < 2:
-        return False
-    last, prev = rows[-1], rows[-2]
-    # targets constant at two iterations in a row (every row's cost alike, no terminal): they stay
-    # constant, one-leaf trees are exact, and rebuilding them each iteration changes nothing
-    constant = bool(last.get("structure_on_constant")) and bool(prev.get("structure_on_constant"))
-    if last.get("structure") != prev.get("structure") and not constant:
-        return False
-    if getattr(est, "mode_", est.mode) == "frozen" and (last["iteration"] < max(est._schedule())
-                                                        or (last.get("structure_on_constant") and not constant)):
-        return False
-    if not _bounded(est):
-        return est.tol is not None and last["sup_dq"] < est.tol
-    return distance_bound(last["sup_dq"], est.gamma_) <= _tolerance(est, last)
-
-
-def _finished(est: FittedQIteration, rows: list[dict[str, Any]], total: int) -> bool:
-    if not rows:
-        return False
-    return (len(rows) >= total or _converged(est, rows)
-            or (est.diverged_ and est.on_divergence == "stop"))
+    def _set_result(self, learner: Learner, qs: list[QFunction]) -> None:
+        if self.horizon_ is not None:
+            if not qs:
+                return
+            self.q_functions_ = list(reversed(qs))  # index t = 0..T-1
+            self.q_function_ = TimeIndexedQ(self.q_functions_) if len(self.q_functions_) == self.horizon_ else None
+        else:
+            self.q_function_ = learner.snapshot()
+        if self.q_function_ is not None:
+            self.policy_ = self._result_policy(self.q_function_)
 
 
 def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, q_prev_train: np.ndarray,
@@ -230,13 +327,6 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
     }
 
 
-def _set_result(est: FittedQIteration, learner: Learner, qs: list[QFunction]) -> None:
-    if est.horizon_ is not None:
-        if not qs:
-            return
-        est.q_functions_ = list(reversed(qs))  # index t = 0..T-1
-        est.q_function_ = TimeIndexedQ(est.q_functions_) if len(est.q_functions_) == est.horizon_ else None
-    else:
-        est.q_function_ = learner.snapshot()
-    if est.q_function_ is not None:
-        est.policy_ = est._result_policy(est.q_function_)
+def is_missing(v: Any) -> bool:
+    """None or NaN (a history cell a row did not record)."""
+    return v is None or (isinstance(v, float) and np.isnan(v))

@@ -129,7 +129,7 @@ def trend(values: list[float]) -> str:
     return "decreasing" if slope < -0.01 else ("increasing" if slope > 0.01 else "flat")
 
 
-def verdict(rows: list[dict[str, Any]], *, finite: bool, divergence: str | None, converged: bool,
+def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence: str | None, converged: bool,
             gamma: float, tolerance: float | None, frozen: bool, capped: bool = False,
             window: int = 10) -> tuple[str, str]:
     """``(verdict, message)`` for a finished fit (see the module docstring). ``tolerance``:

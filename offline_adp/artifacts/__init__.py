@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp import artifact_checks as C
 from offline_adp._version import __version__
+from offline_adp.artifacts import checks as C
 from offline_adp.artifacts.estimators import (
     ALLOWED,
     Arrays,
@@ -269,7 +269,7 @@ def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], a
 
 def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:
     """Read what :func:`_write` wrote (arrays without pickle, every member checked before
-    use, see :mod:`offline_adp.artifact_checks`); warns on other versions."""
+    use, see :mod:`offline_adp.artifacts.checks`); warns on other versions."""
     d = Path(directory)
     jpath, npath = d / f"{stem}.json", d / f"{stem}.npz"
     try:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp import artifact_checks as C
+import offline_adp.artifacts.checks as C
 from offline_adp.errors import ArtifactError
 from offline_adp.trees import TreeEnsemble
 
@@ -225,7 +225,7 @@ def _shared_structure(arrays: Any, key: str, structure: str, width: int | None, 
 
 def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>") -> Any:
     """Rebuild an estimator from its JSON ``spec`` and checked arrays (see
-    :mod:`offline_adp.artifact_checks`); anything malformed is an :class:`ArtifactError`."""
+    :mod:`offline_adp.artifacts.checks`); anything malformed is an :class:`ArtifactError`."""
     if not isinstance(spec, dict):
         raise ArtifactError(f"{where}: estimator entry is not a JSON object")
     kind = spec.get("kind")

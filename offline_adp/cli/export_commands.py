@@ -9,7 +9,7 @@ from offline_adp.cli._common import _file_output, _say
 
 # ---------------------------------------------------------------------------- export / annotate / convert
 def cmd_export(args: argparse.Namespace) -> int:
-    from offline_adp.data.io import locked_directory
+    from offline_adp.data.files import locked_directory
     from offline_adp.deploy import export_run
 
     _file_output(args.out, "--out", "an ONNX file")

@@ -140,7 +140,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         engine = {"kind": args.engine or "dask", **({"address": args.scheduler} if args.scheduler else {})}
     run = run_pipeline(args.pipeline, out=args.out, runs_root=args.runs, from_stage=args.from_stage, force=args.force,
                        say=say, overrides=overrides, engine=engine)
-    from offline_adp.data.rundir import read_json_file
+    from offline_adp.data.files import read_json_file
 
     man = read_json_file(run / "manifest.json")
     for name, st in man["stages"].items():

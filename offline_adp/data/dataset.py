@@ -21,6 +21,7 @@ import pyarrow.compute as pc
 from offline_adp.data import schema as S
 from offline_adp.data.columns import encode_strings, hash_column, sorted_encoding
 from offline_adp.data.info import DatasetInfo
+from offline_adp.data.io import read_dataset_table, write_dataset
 from offline_adp.errors import SchemaError
 
 _CASTS: dict[str, pa.DataType] = {
@@ -155,15 +156,11 @@ class TransitionDataset:
 
     @classmethod
     def load(cls, path: str | PathLike[str]) -> TransitionDataset:
-        """Read a dataset directory (see :func:`offline_adp.data.io.read_dataset`)."""
-        from offline_adp.data.io import read_dataset
-
+        """Read a dataset directory (see :func:`read_dataset`)."""
         return read_dataset(path)
 
     def save(self, path: str | PathLike[str], *, overwrite: bool = False, **kwargs: Any) -> None:
         """Write atomically to a dataset directory (see :func:`offline_adp.data.io.write_dataset`)."""
-        from offline_adp.data.io import write_dataset
-
         write_dataset(self, path, overwrite=overwrite, **kwargs)
 
     @classmethod
@@ -466,6 +463,24 @@ class TransitionDataset:
 
 
 
+
+
+def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
+    """Read a dataset directory written by :func:`~offline_adp.data.io.write_dataset`
+    (``TransitionDataset.save``).
+
+    Raises
+    ------
+    DatasetNotFoundError
+        If ``path`` has no ``meta/info.json``.
+    SchemaError
+        If metadata or columns do not match the format.
+    """
+    table, info = read_dataset_table(path)
+    try:
+        return TransitionDataset(table, info)
+    except SchemaError as exc:
+        raise SchemaError(f"{path}: {exc}") from None
 
 
 def _canonical(table: pa.Table, info: DatasetInfo, sorted_ids: pa.DictionaryArray | None = None

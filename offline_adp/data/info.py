@@ -252,7 +252,7 @@ class DatasetInfo:
         }
 
     def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=False, default=_json_default)
+        return json.dumps(self.to_dict(), indent=2, sort_keys=False, default=json_numpy)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str = "info.json") -> DatasetInfo:
@@ -278,7 +278,9 @@ class DatasetInfo:
             raise SchemaError(f"{where}: malformed ({exc})") from exc
 
 
-def _json_default(o: Any) -> Any:
+def json_numpy(o: Any) -> Any:
+    """``json.dumps``'s ``default`` for numpy scalars and arrays (their Python values);
+    anything else is a ``TypeError``, as without it."""
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):

@@ -1,4 +1,4 @@
-"""Reading and writing dataset directories, atomically; file fingerprints.
+"""Dataset directories on disk: writing them atomically, reading their tables back.
 
 Layout (``docs/dataset-format.md``)::
 
@@ -7,295 +7,75 @@ Layout (``docs/dataset-format.md``)::
     DIR/meta/episodes.parquet         one row per episode
     DIR/meta/stats.json               per-column statistics, counts per source/action
     DIR/quarantine/                   rejected episodes with a reason per row (optional)
+
+This module sits below :mod:`offline_adp.data.dataset`: it writes any object with the
+dataset's shape (:class:`DatasetToWrite`) and reads back a table and its
+:class:`~offline_adp.data.info.DatasetInfo`;
+:func:`offline_adp.data.dataset.read_dataset` (and ``TransitionDataset.load``) builds
+the dataset from them. The filesystem primitives it uses (atomic directories, the write
+lock) are :mod:`offline_adp.data.files`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import glob
-import hashlib
 import json
 import os
-import secrets
-import shutil
-import threading
 import warnings
-from collections.abc import Iterator
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
+import pandas as pd
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from offline_adp.data import schema as S
-from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.info import DatasetInfo
+from offline_adp.data.files import (
+    atomic_directory,
+    locked_directory,
+    read_json_file,
+    write_text_nofollow,
+)
+from offline_adp.data.info import DatasetInfo, json_numpy
 from offline_adp.errors import (
     DatasetNotFoundError,
     FormatVersionWarning,
-    LockedError,
-    OutputExistsError,
     SchemaError,
-    WriteError,
 )
 
 DEFAULT_ROWS_PER_PART = 500_000
 
 
-def sha256_file(path: str | PathLike[str], chunk: int = 1 << 20) -> str:
-    """sha256 of a file's bytes, hex."""
-    h = hashlib.sha256()
-    buf = bytearray(chunk)  # one buffer, refilled: no fresh allocation (and page zeroing) per block
-    view = memoryview(buf)
-    with open(path, "rb", buffering=0) as f:
-        while size := f.readinto(buf):
-            h.update(view[:size])
-    return h.hexdigest()
+class DatasetToWrite(Protocol):
+    """What :func:`write_dataset` reads of a dataset (a
+    :class:`~offline_adp.data.dataset.TransitionDataset` is one)."""
 
+    table: pa.Table
+    info: DatasetInfo
 
-_HELD: dict[str, list[Any]] = {}  # lock file -> [FileLock, depth]: re-entrant within a process
-_HELD_GUARD = threading.Lock()
-
-
-def lock_path(target: str | PathLike[str]) -> Path:
-    """The lock file guarding writes to ``target``: ``.NAME.lock`` next to it."""
-    t = Path(target).absolute()
-    return t.parent / f".{t.name}.lock"
-
-
-@contextlib.contextmanager
-def locked_directory(target: str | PathLike[str], *, what: str = "directory") -> Iterator[Path]:
-    """Hold the exclusive write lock of ``target`` (a dataset or run directory, or an
-    output file) for the block.
-
-    The lock is an OS file lock (``flock``, the lock :mod:`filelock` takes) on
-    ``.NAME.lock`` next to ``target``, released when the block ends or the process dies
-    (no stale locks after ``kill -9``). Re-entrant within one process (an ingest holding
-    the lock can call :func:`write_dataset`). A second process gets a :class:`LockedError`
-    at once, rather than waiting or silently replacing the first one's output.
-
-    The lock file is removed when the lock is released. That is safe only because the
-    holder unlinks it *before* unlocking and every taker checks, once it holds the lock,
-    that the file it locked is still the one at the path (else it retries on the new
-    one): the race filelock warns of (two processes each holding a lock on a different
-    inode) cannot happen. A lock file a killed process left is simply taken over.
-
-    Yields the lock file's path.
-    """
-    lp = lock_path(target)
-    key = str(lp)
-    with _HELD_GUARD:
-        held = _HELD.get(key)
-        if held is not None:
-            held[1] += 1
-    if held is None:
-        try:
-            lp.parent.mkdir(parents=True, exist_ok=True)
-            handle = _acquire(lp, target, what)
-        except OSError as exc:
-            from offline_adp.errors import os_error_message
-
-            raise WriteError(f"cannot lock {target} for writing: {os_error_message(exc, lp)}") from None
-        with _HELD_GUARD:
-            _HELD[key] = held = [handle, 1]
-    try:
-        yield lp
-    finally:
-        with _HELD_GUARD:
-            held[1] -= 1
-            last = held[1] == 0
-            if last:
-                del _HELD[key]
-        if last:
-            _release(lp, held[0])
-
-
-def _acquire(lp: Path, target: str | PathLike[str], what: str) -> Any:
-    """Take the lock on ``lp`` without waiting (see :func:`locked_directory`)."""
-    def locked() -> LockedError:
-        return LockedError(f"{target}: another process is writing this {what} (lock {lp} is held); "
-                           "wait for it to finish or write somewhere else")
-
-    try:
-        import fcntl
-    except ImportError:  # no flock (Windows): filelock's lock; its file stays
-        from filelock import FileLock, Timeout
-
-        lock = FileLock(lp, timeout=0)
-        try:
-            lock.acquire()
-        except Timeout:
-            raise locked() from None
-        return lock
-    for _ in range(100):
-        fd = os.open(lp, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o666)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            raise locked() from None
-        except BaseException:
-            os.close(fd)
-            raise
-        try:  # the holder before us may have removed (unlinked) the file we locked
-            current = os.stat(lp, follow_symlinks=False)
-        except FileNotFoundError:
-            current = None
-        if current is not None and os.path.samestat(os.fstat(fd), current):
-            return fd
-        os.close(fd)  # a removed lock file: take the new one
-    raise locked()
-
-
-def _release(lp: Path, handle: Any) -> None:
-    """Remove the lock file while still holding it, then unlock (see :func:`locked_directory`)."""
-    if not isinstance(handle, int):
-        handle.release()
-        return
-    try:
-        with contextlib.suppress(OSError):  # a read-only parent: the file stays, harmlessly
-            if os.path.samestat(os.fstat(handle), os.stat(lp, follow_symlinks=False)):
-                os.unlink(lp)
-    finally:
-        os.close(handle)  # closing the descriptor releases the flock
-
-
-def _remove(path: Path) -> None:
-    """Remove a file, directory tree or symlink without following a symlink."""
-    if path.is_symlink() or not path.is_dir():
-        path.unlink(missing_ok=True)
-    else:
-        shutil.rmtree(path, ignore_errors=True)
-
-
-def _new_sibling(target: Path, tag: str) -> Path:
-    """A fresh directory ``.NAME.tag-XXXXXXXX`` next to ``target`` with normal permissions
-    (0777 minus the umask, unlike ``mkdtemp``'s 0700), never an existing path or link."""
-    for _ in range(100):
-        p = target.parent / f".{target.name}.{tag}-{secrets.token_hex(4)}"
-        try:
-            os.mkdir(p)
-            return p
-        except FileExistsError:
-            continue
-    raise WriteError(f"{target.parent}: cannot create a temporary directory for {target.name}")
-
-
-def clean_stale_temporaries(target: str | PathLike[str]) -> list[Path]:
-    """Remove ``.NAME.tmp-*`` / ``.NAME.old-*`` left next to ``target`` by killed writes.
-
-    Call it only while holding :func:`locked_directory` on ``target`` (every writer of
-    ``target`` does, so whatever is there then is stale). Symlinks are removed, never
-    followed. Returns what was removed.
-    """
-    target = Path(target)
-    if not target.parent.is_dir():
-        return []
-    gone = []
-    for pattern in (f".{target.name}.tmp-*", f".{target.name}.old-*"):
-        for p in target.parent.glob(glob.escape(pattern[:-1]) + "*"):
-            _remove(p)
-            gone.append(p)
-    return gone
-
-
-@contextlib.contextmanager
-def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, clean_stale: bool = False) -> Iterator[Path]:
-    """Yield a temporary directory next to ``target``; on success rename it to ``target``.
-
-    A crash or exception inside the block removes the temporary directory and leaves
-    ``target`` as it was (absent, or the previous version when overwriting). The
-    temporary directory is new (never a planted path or link) and gets normal
-    permissions; a ``target`` that is a symlink is replaced, not followed. With
-    ``clean_stale`` (only while holding :func:`locked_directory` on ``target``), temporary
-    directories left by killed writes of ``target`` are removed first.
-    """
-    target = Path(target)
-    if clean_stale:
-        clean_stale_temporaries(target)
-    if (target.exists() or target.is_symlink()) and not overwrite:
-        raise OutputExistsError(f"{target} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _new_sibling(target, "tmp")
-    trash = None
-    try:
-        yield tmp
-        if target.exists() or target.is_symlink():
-            trash = _new_sibling(target, "old")
-            os.replace(target, trash / "old")
-            try:
-                os.replace(tmp, target)
-            except BaseException:
-                os.replace(trash / "old", target)  # the previous version back in place
-                raise
-        else:
-            os.replace(tmp, target)
-    except BaseException:
-        _remove(tmp)
-        raise
-    finally:  # the set-aside previous version, once the target is whole again (new or restored)
-        if trash is not None and (target.exists() or not (trash / "old").exists()):
-            _remove(trash)
-
-
-def write_text_nofollow(path: str | PathLike[str], text: str) -> None:
-    """Write ``text`` to ``path`` without following a symlink planted at ``path``
-    (``O_NOFOLLOW``: a link there is an error, not a write to wherever it points)."""
-    path = Path(path)
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o666)
-    except OSError as exc:
-        if path.is_symlink():
-            raise WriteError(f"{path} is a symbolic link; refusing to write through it") from None
-        raise WriteError(f"{path}: cannot write ({exc.strerror})") from None
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(text)
-
-
-@contextlib.contextmanager
-def atomic_file(target: str | PathLike[str], *, what: str = "file", lock: bool = True) -> Iterator[Path]:
-    """Yield a temporary path next to ``target``; on success rename it to ``target``.
-
-    The one helper for output *files* (a compare's JSON, a raw table, ...): the temporary
-    (``.NAME.tmp-XXXXXXXX``) is removed whatever happens, so a failed write (full disk,
-    read-only folder, Ctrl-C) leaves ``target`` as it was. A ``target`` that is a
-    directory is refused before anything is written; a symbolic link at ``target`` is
-    replaced, not followed. With ``lock``, the write holds :func:`locked_directory` on
-    ``target`` (a second writer fails at once).
-    """
-    target = Path(target)
-    if target.is_dir() and not target.is_symlink():
-        raise WriteError(f"{target} is a directory; expected a {what} path (name a file, e.g. {target / 'out'}"
-                         f"{target.suffix or ''})")
-    with locked_directory(target, what=what) if lock else contextlib.nullcontext():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.parent / f".{target.name}.tmp-{secrets.token_hex(4)}"
-        try:
-            yield tmp
-            os.replace(tmp, target)
-        finally:
-            if tmp.exists() or tmp.is_symlink():
-                _remove(tmp)
-
-
-def atomic_write_text(target: str | PathLike[str], text: str, *, what: str = "file") -> Path:
-    """Write ``text`` to ``target`` through :func:`atomic_file`."""
-    with atomic_file(target, what=what) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    return Path(target)
+    def __len__(self) -> int: ...
+    @property
+    def n_episodes(self) -> int: ...
+    @property
+    def n_actions(self) -> int: ...
+    @property
+    def obs_columns(self) -> Sequence[str]: ...
+    @property
+    def next_obs_columns(self) -> Sequence[str]: ...
+    def episode_table(self) -> pd.DataFrame: ...
+    def fingerprint(self) -> str: ...
+    def source_counts(self) -> dict[str, int]: ...
 
 
 def write_json(path: Path, obj: Any) -> None:
-    from offline_adp.data.info import _json_default
-
-    write_text_nofollow(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+    write_text_nofollow(path, json.dumps(obj, indent=2, default=json_numpy) + "\n")
 
 
-def dataset_stats(ds: TransitionDataset) -> dict[str, Any]:
+def dataset_stats(ds: DatasetToWrite) -> dict[str, Any]:
     """Per-column statistics, counts per source and per action (``meta/stats.json``)."""
     stats: dict[str, Any] = {"n_transitions": len(ds), "n_episodes": ds.n_episodes, "columns": {}}
     buf = np.empty(0)
@@ -356,7 +136,7 @@ def _mean_std(x: np.ndarray, buf: np.ndarray, total: float | None = None) -> tup
 
 
 def write_dataset(
-    ds: TransitionDataset,
+    ds: DatasetToWrite,
     path: str | PathLike[str],
     *,
     overwrite: bool = False,
@@ -488,8 +268,6 @@ def read_info(path: str | PathLike[str]) -> dict[str, Any]:
             f"{path} is not a dataset directory (no {S.INFO_FILE}); create one with "
             "`offline-adp ingest parquet ...` or `offline-adp simulate ...`"
         )
-    from offline_adp.data.rundir import read_json_file
-
     return read_json_file(info_path, error=SchemaError)
 
 
@@ -498,15 +276,16 @@ def part_files(path: str | PathLike[str]) -> list[Path]:
     return sorted((Path(path) / S.DATA_DIR).glob("part-*.parquet"))
 
 
-def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
-    """Read a dataset directory written by :func:`write_dataset`.
+def read_dataset_table(path: str | PathLike[str]) -> tuple[pa.Table, DatasetInfo]:
+    """The transitions table (all parts) and the info of a dataset directory written by
+    :func:`write_dataset`; :func:`offline_adp.data.dataset.read_dataset` builds the dataset.
 
     Raises
     ------
     DatasetNotFoundError
         If ``path`` has no ``meta/info.json``.
     SchemaError
-        If metadata or columns do not match the format.
+        If metadata or parts do not match the format.
     """
     path = Path(path)
     raw = read_info(path)
@@ -516,7 +295,7 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
             f"{path}: written with dataset format {info.format_version!r}, this package reads "
             f"{S.FORMAT_VERSION!r}; re-ingest if anything looks wrong",
             FormatVersionWarning,
-            stacklevel=2,
+            stacklevel=3,  # the caller of read_dataset
         )
     parts = part_files(path)
     if not parts:
@@ -531,10 +310,7 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
         table = pa.concat_tables(tables, promote_options="permissive")
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
         raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from None
-    try:
-        return TransitionDataset(table, info)
-    except SchemaError as exc:
-        raise SchemaError(f"{path}: {exc}") from None
+    return table, info
 
 
 def read_quarantine(path: str | PathLike[str]) -> pa.Table | None:

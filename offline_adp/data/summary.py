@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data import schema as S
-from offline_adp.data.io import read_dataset, read_quarantine
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.io import read_quarantine
 
 
 def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:

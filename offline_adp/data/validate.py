@@ -457,7 +457,8 @@ def validate_directory(path: str | PathLike[str]) -> ValidationReport:
     """Load a dataset directory and run the doctor, naming part files and rows in them
     (datasets ingested from MCAP: the recording and the message's log_time); then check
     the directory's metadata against its data (see the module docstring)."""
-    from offline_adp.data.io import read_dataset, read_info
+    from offline_adp.data.dataset import read_dataset
+    from offline_adp.data.io import read_info
 
     path = Path(path)
     ds = read_dataset(path)

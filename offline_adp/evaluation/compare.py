@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.data.rundir import read_json_file
+from offline_adp.data.files import read_json_file
 from offline_adp.errors import (
     IncompatibleError,
     InvalidArgumentError,
@@ -47,7 +47,7 @@ def _dataset_of(run: Path) -> str | None:
 
 
 def _fingerprint(path: str) -> str:
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
 
     return read_dataset(path).fingerprint()
 
@@ -243,16 +243,16 @@ def cli(args: Any) -> int:
                        settings=EvaluationSettings.of_arguments(args), progress=say)
     for line in compare_lines(res):
         print(line)
-    from offline_adp.evaluation.run import _finite
+    from offline_adp.evaluation.run import json_safe
 
     if args.json:
-        from offline_adp.data.io import atomic_write_text
+        from offline_adp.data.files import atomic_write_text
 
-        atomic_write_text(args.json, json.dumps(_finite(res), indent=1, default=float, allow_nan=False), what="comparison")
+        atomic_write_text(args.json, json.dumps(json_safe(res), indent=1, default=float, allow_nan=False), what="comparison")
         print(args.json)
     from offline_adp.evaluation.compare_report import write_compare_report
 
-    print(write_compare_report(_finite(res), report))
+    print(write_compare_report(json_safe(res), report))
     return 0
 
 

@@ -201,7 +201,7 @@ def compare_html(res: dict[str, Any], figs: Figures) -> str:
 
 def write_compare_report(res: dict[str, Any], path: str | PathLike[str]) -> Path:
     """Write the comparison ``res`` as one self-contained HTML file at ``path`` (atomically)."""
-    from offline_adp.data.io import atomic_write_text
+    from offline_adp.data.files import atomic_write_text
 
     with tempfile.TemporaryDirectory(prefix="offline-adp-compare-") as tmp:
         figs = Figures(Path(tmp))

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from offline_adp.data.files import read_table_file
 from offline_adp.data.io import read_info
-from offline_adp.data.rundir import read_table_file
 from offline_adp.envs import PROBLEM_NAMES, problem_class
 from offline_adp.errors import ArtifactError, RunDirectoryError
 from offline_adp.evaluation.figures import (
@@ -126,7 +126,7 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
         units.setdefault("cost", "")
     cls = problem_class(problem) if problem in PROBLEM_NAMES else None  # problem-specific: the ReferenceProblem's hooks
     axes = getattr(cls, "map_features", None) or (tuple(features[:2]) if len(features) >= 2 else None)
-    from offline_adp.data.io import atomic_directory
+    from offline_adp.data.files import atomic_directory
     from offline_adp.data.rundir import RunDirectory
 
     # a writer of the run directory: under its lock (a concurrent evaluate or report fails at once)

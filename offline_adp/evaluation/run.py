@@ -26,9 +26,9 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from offline_adp.data.dataset import TransitionDataset
-from offline_adp.data.io import read_dataset
-from offline_adp.data.rundir import RunDirectory, read_json_file
+from offline_adp.data.dataset import TransitionDataset, read_dataset
+from offline_adp.data.files import read_json_file
+from offline_adp.data.rundir import RunDirectory
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,
@@ -63,12 +63,12 @@ def _per_source(ds: TransitionDataset, w: np.ndarray, gamma: float) -> dict[str,
     return out
 
 
-def _finite(obj: Any) -> Any:
+def json_safe(obj: Any) -> Any:
     """Standard JSON: NaN and infinities become null (an undefined estimate, e.g. WIS with no weight)."""
     if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
+        return {k: json_safe(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
+        return [json_safe(v) for v in obj]
     if isinstance(obj, float | np.floating):
         return float(obj) if np.isfinite(obj) else None
     if isinstance(obj, np.integer):
@@ -268,7 +268,7 @@ def evaluation_metrics(
             r["rollout_error"] = r["estimate"] - truth
     from offline_adp.evaluation.summary import headline
 
-    metrics["headline"] = headline(_finite(metrics), run_dir)
+    metrics["headline"] = headline(json_safe(metrics), run_dir)
     return metrics, res, states, demo_states
 
 
@@ -346,11 +346,11 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
 
 def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult | None, ds: TransitionDataset,
            states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
-    from offline_adp.data.io import atomic_directory
+    from offline_adp.data.files import atomic_directory
 
     with atomic_directory(run / "evaluation", overwrite=True) as tmp:
         if res is None:  # continuous commands: no density ratios (evaluation/continuous.py): w is NaN
-            (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
+            (tmp / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=1, default=float, allow_nan=False))
             a = ds.arrays()
             cols = {name: a.obs[:, j] for j, name in enumerate(ds.feature_names)}
             pq.write_table(pa.table({**cols, "step": a.step, "source": ds.table.column("source"),
@@ -364,7 +364,7 @@ def _write(run: Path, metrics: dict[str, Any], res: OffPolicyResult | None, ds: 
 
 def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: TransitionDataset,
                  states: list[np.ndarray] | None, demo_states: list[np.ndarray] | None) -> None:
-    (tmp / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1, default=float, allow_nan=False))
+    (tmp / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=1, default=float, allow_nan=False))
     frames = [res.diagnostics.assign(method="recursion")]
     frames += [d.assign(method=k) for k, (_, d) in res.extra_ratios.items()]
     pd.concat(frames, ignore_index=True).to_csv(tmp / "per_step.csv", index=False)

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict
 
-from offline_adp.data.rundir import read_json_file, read_table_file
+from offline_adp.data.files import read_json_file, read_table_file
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 
 #: Human names of the estimators.
@@ -102,7 +102,7 @@ class MetricsFile(_Open):
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
     """``metrics.json`` through the gates of every file we read: a regular file of bounded
-    size and nesting (:func:`~offline_adp.data.rundir.read_json_file`), then the structure
+    size and nesting (:func:`~offline_adp.data.files.read_json_file`), then the structure
     of :class:`MetricsFile`; the file's own dict is returned."""
     from pydantic import ValidationError as PydanticValidationError
 
@@ -118,7 +118,8 @@ def read_metrics(path: str | Path) -> dict[str, Any]:
     return m
 
 
-def _finite(x: Any) -> bool:
+def _is_finite_number(x: Any) -> bool:
+    """A number (not None, not a string) that is neither NaN nor infinite."""
     return x is not None and isinstance(x, int | float) and bool(np.isfinite(x))
 
 
@@ -137,19 +138,19 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     for name, r in m["ope"].items():
         est, iv = r.get("estimate"), r.get("interval") or [None, None]
         # an interval counts only with a level: one whose coverage nobody measured (level null) is not quoted
-        has_iv = _finite(iv[0]) and _finite(iv[1]) and r.get("level") is not None
+        has_iv = _is_finite_number(iv[0]) and _is_finite_number(iv[1]) and r.get("level") is not None
         reasons = []
-        if not _finite(est):
+        if not _is_finite_number(est):
             reasons.append("no finite estimate")
         elif rng and not (rng[0] - 1e-9 <= est <= rng[1] + 1e-9):
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
         if r.get("degenerate"):
             ess = r.get("ess")
-            reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})" if _finite(ess) else ""))
+            reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})" if _is_finite_number(ess) else ""))
         if r.get("comparable") is False:
             reasons.append("estimates another quantity than the one asked for")
         tier = 2 if reasons else (0 if has_iv else 1)
-        if tier == 1 and _finite(iv[0]) and _finite(iv[1]):  # an interval without a level: shown, never quoted
+        if tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]):  # an interval without a level: shown, never quoted
             reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] has no measured coverage (no level)")
         elif tier == 1:
             reasons.append(r.get("interval_method", "no interval"))
@@ -204,7 +205,7 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
 #: an algorithm without a convergence notion that ran to completion).
 FIT_SETTLED = ("converged", "finite horizon", "completed")
 
-#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.verdict`,
+#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.convergence_verdict`,
 #: stored in ``run.json`` as ``verdict`` and ``verdict_message``).
 _FIT_VERDICT_WORDS = {"converged": "fit converged", "still changing": "fit did NOT converge",
                       "diverging": "fit DIVERGED", "completed": "fit completed"}
@@ -272,7 +273,7 @@ def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[st
             for e in ranking if e["tier"] == 0 and e is not best and (e["interval"][1] < lo or e["interval"][0] > hi)]
 
 
-def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
     """Better or worse than the behaviour, only when the evidence behind it holds.
 
     The logs alone say "better" or "worse" only when the most reliable estimator has a
@@ -295,7 +296,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
     beh = m.get("behaviour_value")
     sv = m.get("behaviour", {}).get("support_violations", {}).get("fraction")
     left = []
-    if _finite(sv) and sv > SUPPORT_FRACTION:
+    if _is_finite_number(sv) and sv > SUPPORT_FRACTION:
         left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
     if shift.get("method") == "classifier":
         if shift.get("separable_steps"):
@@ -304,12 +305,12 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
         if shift.get("max_uncovered", 0) > SUPPORT_FRACTION:
             left.append(f"up to {shift['max_uncovered']:.0%} of its simulated states have no data near them")
     mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
-    if _finite(mr.get("exit_mass")) and mr["exit_mass"] >= MODEL_EXIT_FRACTION:
+    if _is_finite_number(mr.get("exit_mass")) and mr["exit_mass"] >= MODEL_EXIT_FRACTION:
         left.append(f"{mr['exit_mass']:.0%} of its discounted mass in model rollouts of the logs reaches states no "
                     "logged state is near")
     # from the logs alone, when the per-step shift is too thin to estimate: the candidate's actions
     # at the logged states (measured) and where the model rollouts of the logs drive it (ran)
-    logs_show = (not left and _finite(sv) and _finite(mr.get("exit_mass"))
+    logs_show = (not left and _is_finite_number(sv) and _is_finite_number(mr.get("exit_mass"))
                  and (mr.get("n_particles") or 0) >= MIN_SUPPORT_PARTICLES)
     if left:
         support = "LEFT the data's support: " + "; ".join(left)
@@ -320,7 +321,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
                    f"{sv:.1%} of the data's states; {mr['exit_mass']:.1%} of the discounted mass of model rollouts of the "
                    "logs past the logged states)")
     else:
-        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _finite(sv) else "")
+        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _is_finite_number(sv) else "")
     side, perf = "unknown", ""
     if best is None:
         top = next((e for e in ranking if e["tier"] == 1), None)
@@ -359,7 +360,7 @@ def verdict(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, A
             perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
                     f"say {ope_side}, but " + "; ".join(doubts))
         ro = m.get("rollout", {}).get("policy")
-        if ro and _finite(ro.get("mean_discounted_cost")) and ro.get("interval"):
+        if ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
             r_lo, r_hi = ro["interval"]
             truth_side = side_of_behaviour(r_lo, r_hi, b)
             truth = (f"{_SIDE_WORDS[truth_side]} the behaviour in the simulator: rollouts "
@@ -378,14 +379,14 @@ def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, 
     ranking = rank_estimators(m)
     shift = shift_verdict(m)
     conv = fit_convergence(run_dir)
-    v = verdict(m, ranking, shift, conv)
+    v = verdict_line(m, ranking, shift, conv)
     n_warn = len(m.get("warnings", [])) + sum(len(r.get("warnings", [])) for r in m["ope"].values())
     best = next((e for e in ranking if e["tier"] == 0), None)
     return {"best": best, "ranking": ranking, "shift": shift, "convergence": conv, "verdict": v, "n_warnings": n_warn}
 
 
 def _f(x: Any) -> str:
-    return f"{x:.3f}" if _finite(x) else "n/a"
+    return f"{x:.3f}" if _is_finite_number(x) else "n/a"
 
 
 def _problem_words(sim: str | None, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
@@ -448,7 +449,7 @@ def model_reading(m: dict[str, Any], name: str) -> float | None:
     holds; on path_tracking and CartPole it was the nearer one, on car_on_hill often not
     (docs/evaluation.md). The summary line and the report print it."""
     mr = (m.get("ope", {}).get(name) or {}).get("model_rollouts") or {}
-    return float(mr["estimate"]) if _finite(mr.get("estimate")) else None
+    return float(mr["estimate"]) if _is_finite_number(mr.get("estimate")) else None
 
 
 def _model_reading(m: dict[str, Any], best: dict[str, Any]) -> str:

@@ -59,7 +59,7 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
     a D4RL ``.npz``, a local Minari dataset id or path) and write ``out`` in ``to_format``
     (a dataset directory, a ``.npz`` file, a Minari dataset id under
     ``MINARI_DATASETS_PATH``, a LeRobot-layout directory)."""
-    from offline_adp.data.io import read_dataset
+    from offline_adp.data.dataset import read_dataset
     from offline_adp.errors import UnknownNameError
 
     for f in (from_format, to_format):

@@ -73,7 +73,7 @@ def _numeric(x: Any, where: str, field: str, *, n: int | None = None) -> np.ndar
     return a
 
 
-def _finite(a: np.ndarray, where: str, field: str) -> np.ndarray:
+def _finite_floats(a: np.ndarray, where: str, field: str) -> np.ndarray:
     """Float64 copy of ``a``; NaN or infinity is an IngestError naming the field and row."""
     v = np.asarray(a, dtype=np.float64)
     bad = ~np.isfinite(v)
@@ -267,7 +267,7 @@ def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray
     import re
     import stat
 
-    from offline_adp import artifact_checks as C
+    import offline_adp.artifacts.checks as C
 
     p = Path(path)
     try:

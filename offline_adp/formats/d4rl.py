@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.files import atomic_file
 from offline_adp.data.info import ActionTable, DatasetInfo
-from offline_adp.data.io import atomic_file
 from offline_adp.errors import IngestError
 from offline_adp.formats.common import (
     _INT32_MAX,
@@ -24,7 +24,7 @@ from offline_adp.formats.common import (
     _columns,
     _default_info,
     _encode_actions,
-    _finite,
+    _finite_floats,
     _flags,
     _integers,
     _load_npz,
@@ -97,14 +97,14 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
     n = len(obs_raw)
     if n == 0:
         raise IngestError(f"{where}: observations: no transitions (shape {obs_raw.shape})")
-    obs = _finite(obs_raw, where, "observations").reshape(n, -1)
+    obs = _finite_floats(obs_raw, where, "observations").reshape(n, -1)
     if obs.shape[1] == 0:
         raise IngestError(f"{where}: observations: shape {obs_raw.shape} has no feature columns")
-    act_vals = _finite(_numeric(arrays["actions"], where, "actions", n=n), where, "actions").reshape(n, -1)
+    act_vals = _finite_floats(_numeric(arrays["actions"], where, "actions", n=n), where, "actions").reshape(n, -1)
     rewards = _numeric(arrays["rewards"], where, "rewards", n=n)
     if rewards.size != n:
         raise IngestError(f"{where}: rewards: shape {rewards.shape} where ({n},) is required")
-    rewards = _finite(rewards.reshape(n), where, "rewards")
+    rewards = _finite_floats(rewards.reshape(n), where, "rewards")
     term = _flags(arrays["terminals"], where, "terminals", n)
     tout = _flags(arrays["timeouts"], where, "timeouts", n) if "timeouts" in arrays else np.zeros(n, bool)
     if info is None and META_KEY in arrays:
@@ -152,7 +152,7 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
     keep = np.ones(n, bool)
     if "next_observations" in arrays:
         nxt = _numeric(arrays["next_observations"], where, "next_observations", n=n)
-        next_obs = _finite(nxt, where, "next_observations").reshape(n, -1)
+        next_obs = _finite_floats(nxt, where, "next_observations").reshape(n, -1)
         if next_obs.shape != obs.shape:
             raise IngestError(f"{where}: next_observations: shape {nxt.shape}, observations {obs_raw.shape}")
     else:  # the next row of the same episode; an episode's last row has no successor

@@ -28,7 +28,7 @@ def to_lerobot(ds: TransitionDataset, root: str | PathLike[str], *, fps: float |
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from offline_adp.data.io import atomic_directory
+    from offline_adp.data.files import atomic_directory
 
     c = _columns(ds)
     bounds = _episode_bounds(ds.episode_index)

@@ -27,7 +27,7 @@ from offline_adp.formats.common import (
     _default_info,
     _encode_actions,
     _episode_bounds,
-    _finite,
+    _finite_floats,
     _flags,
     _integers,
     _numeric,
@@ -203,7 +203,7 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         o = _numeric(e.observations, ew, "observations")
         if o.shape[0] != T + 1 or o.size != (T + 1) * d:
             raise IngestError(f"{ew}: observations: shape {o.shape} where ({T + 1}, {d}) is required (T + 1 for {T} steps)")
-        o = _finite(o.reshape(T + 1, d), ew, "observations")
+        o = _finite_floats(o.reshape(T + 1, d), ew, "observations")
         a = _numeric(e.actions, ew, "actions")
         if a.shape[0] != T or a.size != T * k:
             raise IngestError(f"{ew}: actions: shape {a.shape} where ({T}{'' if discrete else f', {k}'}) is required")
@@ -214,7 +214,7 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         cols["obs"].append(o[:-1])
         cols["next"].append(o[1:])
         cols["act"].append(a.reshape(T, k))
-        cols["rew"].append(_finite(rew, ew, "rewards"))
+        cols["rew"].append(_finite_floats(rew, ew, "rewards"))
         cols["term"].append(_flags(e.terminations, ew, "terminations", T))
         cols["trunc"].append(_flags(e.truncations, ew, "truncations", T))
         cols["src"].append(np.asarray(inf["source"][:T]).astype(str) if "source" in inf else np.full(T, "unknown"))
@@ -242,7 +242,7 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         if info is None:
             table = action_table or ActionTable.from_values(np.arange(n_act, dtype=float))
     elif info is not None or action_table is not None:
-        vals = _finite(acts, where, "actions")
+        vals = _finite_floats(acts, where, "actions")
         action = _action_indices(vals, (info.action_table if info is not None else action_table), where)  # type: ignore[union-attr]
         table = action_table  # type: ignore[assignment]
     else:
@@ -250,7 +250,7 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         low, high = (np.asarray(getattr(space, b, np.nan), np.float64).reshape(-1) for b in ("low", "high"))
         finite = low.shape == high.shape == (acts.reshape(len(acts), -1).shape[1],) and np.isfinite(low).all() \
             and np.isfinite(high).all()
-        action, table, extra = _encode_actions(_finite(acts, where, "actions"), where, low=low if finite else None,
+        action, table, extra = _encode_actions(_finite_floats(acts, where, "actions"), where, low=low if finite else None,
                                                high=high if finite else None)
     if info is None:
         info = _default_info(d, table, feature_names, str(meta.get("dataset_id", "minari")))

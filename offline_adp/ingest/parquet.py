@@ -35,8 +35,9 @@ from offline_adp._version import __version__
 from offline_adp.data import schema as S
 from offline_adp.data.columns import encode_strings, sorted_encoding
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.files import locked_directory, sha256_file
 from offline_adp.data.info import DatasetInfo, Feature
-from offline_adp.data.io import locked_directory, sha256_file, write_dataset
+from offline_adp.data.io import write_dataset
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, ValidationError
 from offline_adp.ingest.actions import (

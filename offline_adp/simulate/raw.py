@@ -111,7 +111,7 @@ column = "behavior_prob"
 
 def write_raw(ds: TransitionDataset, path: str | PathLike[str], fmt: str = "parquet") -> tuple[Path, Path]:
     """Write the raw table (``.parquet`` or ``.csv``) and ``<stem>.spec.toml`` next to it."""
-    from offline_adp.data.io import atomic_file, atomic_write_text
+    from offline_adp.data.files import atomic_file, atomic_write_text
 
     path = Path(path)
     table, spec = raw_table(ds)

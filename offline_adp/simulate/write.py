@@ -53,7 +53,7 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
         raise WriteError(f"{out} is a file; MCAP recordings are written into a folder (name one)")
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise OutputExistsError(f"{out} is not empty; pass --overwrite to write into it")
-    from offline_adp.data.io import locked_directory
+    from offline_adp.data.files import locked_directory
 
     with locked_directory(out, what="MCAP folder"):
         return list(write_mcap(ds, out, encoding=fmt.split("-")[1], seed=seed))

@@ -216,7 +216,7 @@ class TreeEnsemble:
     @classmethod
     def from_arrays(cls, arrays: Any, prefix: str = "", structure_prefix: str | None = None) -> TreeEnsemble:
         """Rebuild from trusted arrays of either layout (:meth:`to_arrays`); untrusted files
-        go through :func:`offline_adp.artifact_checks.check_tree_arrays`."""
+        go through :func:`offline_adp.artifacts.checks.check_tree_arrays`."""
         sp = prefix if structure_prefix is None else structure_prefix
         if sp + "leaf_bits" not in arrays:
             return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})

@@ -1,7 +1,7 @@
 """Fitted Q-iteration and evaluation on the cluster.
 
 :class:`DistributedFQI` is not a second fitted-Q loop: it runs the package's loop
-(:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q`) with the data prepared here (the
+(:meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.run_fitted_q`) with the data prepared here (the
 dataset's rows as blocks on the workers, the per-transition vectors on the client) and a
 learner whose fit and predictions run on the cluster
 (:class:`~offline_adp.engines.dask.learner.DaskLearner`). :class:`DaskFit` is the same
@@ -40,7 +40,7 @@ class DistributedFQI:
     cluster: LightGBM trained data-parallel by ``lightgbm.dask``.
 
     It is the package's one fitted-Q loop
-    (:func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` and
+    (:meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.run_fitted_q` and
     :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`) run for :meth:`estimator`, the
     in-process estimator with the same parameters, with two parts supplied from here: the
     prepared data and the learner (:class:`DaskLearner`). Per iteration::
@@ -288,7 +288,6 @@ class DaskFit:
         only named in the error of a lost cluster. ``est`` ends fitted (FQE: with ``value_``)."""
         from offline_adp.algorithms.fqe import FittedQEvaluation
         from offline_adp.algorithms.fqi_data import GreedyBackup
-        from offline_adp.algorithms.fqi_loop import run_fitted_q
 
         why = unsupported(est, dataset_dir)
         if why is not None:
@@ -298,8 +297,8 @@ class DaskFit:
         backup = est._backup if fqe else (lambda data: GreedyBackup())
         try:
             with self.client.as_current():  # every compute goes to this client, even when others exist
-                yield from run_fitted_q(est, dataset_dir, None, resume, backup, prepare=engine.prepare,
-                                        make_learner=engine.learner)
+                yield from est.run_fitted_q(dataset_dir, None, resume, backup, prepare=engine.prepare,
+                                            make_learner=engine.learner)
         except Exception as exc:  # CommClosedError is an OSError; a lost scheduler cancels the futures too
             from distributed.client import FutureCancelledError
 
@@ -315,7 +314,7 @@ class DaskFit:
                                f"{_one_line(exc)}){where}") from exc
         finally:
             engine.release()
-            est.__dict__.pop("fit_state_", None)  # holds the cluster-side learner
+            est.discard_fit_state()  # fit_state_ holds the cluster-side learner
             self.retried_, self.unplaced_iterations_ = engine.retried, engine.unplaced
         if self.unplaced_iterations_:
             warnings.warn(f"iterations {self.unplaced_iterations_} trained with rows away from their workers (a worker "
@@ -336,7 +335,7 @@ class DaskFit:
 
 
 class _DaskEngine:
-    """The two parts :func:`~offline_adp.algorithms.fqi_loop.run_fitted_q` takes from the Dask
+    """The two parts :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.run_fitted_q` takes from the Dask
     engine: the prepared data (vectors on the client, inputs on the workers) and the learner."""
 
     def __init__(self, client: Any, est: Any, cfg: DaskFit, fqe: bool = False) -> None:

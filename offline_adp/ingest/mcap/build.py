@@ -12,8 +12,9 @@ import numpy as np
 
 from offline_adp._version import __version__
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.data.files import sha256_file
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
-from offline_adp.data.io import sha256_file, write_dataset
+from offline_adp.data.io import write_dataset
 from offline_adp.data.validate import split_quarantine, validate
 from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.actions import (
