@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import AccessModelError
+from offline_adp.errors import AccessModelError, InvalidArgumentError
 
 #: Trace data: the weakest access model, a dataset of logged transitions.
 TraceData = TransitionDataset
@@ -132,9 +132,9 @@ class FullModel(Simulator):
         C = np.asarray(C, dtype=np.float64)
         A, S, S2 = P.shape
         if S != S2 or C.shape != (S, A):
-            raise ValueError(f"P must be (A, S, S) and C (S, A); got P {P.shape}, C {C.shape}")
+            raise InvalidArgumentError(f"P must be (A, S, S) and C (S, A); got P {P.shape}, C {C.shape}")
         if not np.allclose(P.sum(-1), 1.0, atol=1e-10):
-            raise ValueError("rows of P must sum to 1")
+            raise InvalidArgumentError("rows of P must sum to 1")
         self.P, self.C = P, C
         self.initial_distribution = np.asarray(initial_distribution, dtype=np.float64)
         self.gamma, self.horizon = float(gamma), horizon

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from offline_adp.errors import InvalidArgumentError
+
 
 @dataclass(frozen=True)
 class DPSolution:
@@ -83,7 +85,7 @@ def policy_evaluation_finite(
 def policy_evaluation_discounted(P: np.ndarray, C: np.ndarray, policy: np.ndarray, gamma: float) -> DPSolution:
     """Exact discounted ``V^pi`` by a linear solve ``(I - gamma P_pi) V = c_pi``."""
     if not gamma < 1.0:
-        raise ValueError("discounted evaluation needs gamma < 1")
+        raise InvalidArgumentError("discounted evaluation needs gamma < 1")
     A, S, _ = P.shape
     pi = _as_probs(policy, A)
     P_pi = np.einsum("sa,ast->st", pi, P)

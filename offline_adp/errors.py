@@ -66,6 +66,11 @@ class NotFittedError(OfflineADPError, AttributeError):
     """An estimator was used before ``fit``."""
 
 
+class InvalidTypeError(OfflineADPError, TypeError):
+    """A function was given an object of the wrong kind (a dataset where a policy is
+    needed...); the message names the argument and what it takes."""
+
+
 class AccessModelError(OfflineADPError, TypeError):
     """An algorithm was given a weaker access model than it needs."""
 

@@ -9,6 +9,8 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin
 from sklearn.utils.validation import validate_data
 
+from offline_adp.errors import InvalidArgumentError
+
 
 class SelectColumns(TransformerMixin, BaseEstimator):
     """Keep the observation columns ``columns`` (indices), in that order.
@@ -33,7 +35,7 @@ class SelectColumns(TransformerMixin, BaseEstimator):
     def _check_columns(self, width: int) -> None:
         bad = [c for c in self.columns if not -width <= int(c) < width]
         if bad:
-            raise ValueError(f"SelectColumns: columns {bad} are outside an input of {width} features")
+            raise InvalidArgumentError(f"SelectColumns: columns {bad} are outside an input of {width} features")
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         return self.transform(X)

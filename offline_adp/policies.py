@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.info import ActionTable
-from offline_adp.errors import SchemaError
+from offline_adp.errors import InvalidArgumentError, SchemaError
 
 TimeArg = int | np.ndarray
 
@@ -226,7 +226,7 @@ class EpsilonPolicy(Policy):
 
     def __init__(self, base: Policy, epsilon: float) -> None:
         if not 0.0 <= epsilon <= 1.0:
-            raise ValueError(f"epsilon must be in [0, 1], got {epsilon}")
+            raise InvalidArgumentError(f"epsilon must be in [0, 1], got {epsilon}")
         self.base, self.epsilon, self.n_actions = base, float(epsilon), base.n_actions
 
     def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
@@ -255,7 +255,7 @@ class TabularPolicy(Policy):
         table = np.asarray(table)
         if np.issubdtype(table.dtype, np.integer):
             if n_actions is None:
-                raise ValueError("n_actions is required for a table of actions")
+                raise InvalidArgumentError("n_actions is required for a table of actions")
             table = np.eye(n_actions)[table]
         self.table = table.astype(np.float64)
         self.n_actions = self.table.shape[-1]
@@ -428,11 +428,11 @@ class GaussianCommandPolicy(Policy):
         self.std, self.low, self.high = (np.asarray(v, np.float64).reshape(-1) for v in (std, low, high))
         if not (len(self.std) == len(self.low) == len(self.high)) or not (np.isfinite(self.low).all()
                                                                          and np.isfinite(self.high).all()):
-            raise ValueError("std, low and high need one finite number per command component")
+            raise InvalidArgumentError("std, low and high need one finite number per command component")
         if (self.std < 0).any() or (self.low > self.high).any():
-            raise ValueError(f"std must be >= 0 and low <= high; got std {self.std}, low {self.low}, high {self.high}")
+            raise InvalidArgumentError(f"std must be >= 0 and low <= high; got std {self.std}, low {self.low}, high {self.high}")
         if not 0.0 <= epsilon <= 1.0:
-            raise ValueError(f"epsilon must be in [0, 1], got {epsilon}")
+            raise InvalidArgumentError(f"epsilon must be in [0, 1], got {epsilon}")
         self.epsilon = float(epsilon)
         self.grid = None if grid is None else [np.asarray(g, np.float64).reshape(-1) for g in grid]
         self.n_actions = int(np.prod([len(g) for g in self.grid])) if self.grid is not None else 0
@@ -502,9 +502,9 @@ class MixturePolicy(Policy):
     def __init__(self, components: list[Policy], weights: list[float] | np.ndarray) -> None:
         w = np.asarray(weights, dtype=np.float64)
         if len(components) != len(w) or not len(w):
-            raise ValueError("a mixture needs one weight per component")
+            raise InvalidArgumentError("a mixture needs one weight per component")
         if (w < 0).any() or not np.isclose(w.sum(), 1.0):
-            raise ValueError(f"mixture weights must be >= 0 and sum to 1, got {w}")
+            raise InvalidArgumentError(f"mixture weights must be >= 0 and sum to 1, got {w}")
         self.components, self.weights = list(components), w
         self.n_actions = components[0].n_actions
 

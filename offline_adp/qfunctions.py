@@ -22,6 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from offline_adp.errors import InvalidTypeError
 from offline_adp.trees.ensemble import TreeEnsemble, ensemble_predict
 from offline_adp.trees.sklearn import forest_leaf_values, is_sklearn_forest, sklearn_leaves
 
@@ -184,7 +185,7 @@ def with_candidates(q: Any, candidates: NeighbourCommands | PolicyCommands) -> A
         return TimeIndexedQ([with_candidates(x, candidates) for x in q.qs])
     enc = command_encoder(q)
     if enc is None:
-        raise TypeError(f"{type(q).__name__} is not a Q-function over continuous commands")
+        raise InvalidTypeError(f"{type(q).__name__} is not a Q-function over continuous commands")
     out = copy.copy(q)
     out.encoder = CommandEncoder(candidates.k, np.zeros((candidates.k, enc.action_features.shape[1])),
                                  feature_map=enc.feature_map, candidates=candidates)

@@ -32,7 +32,7 @@ from sklearn.base import BaseEstimator, ClassifierMixin, RegressorMixin, clone
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.validation import _check_sample_weight, check_is_fitted, validate_data
 
-from offline_adp.errors import UnknownNameError
+from offline_adp.errors import InvalidArgumentError, UnknownNameError
 
 
 class TabularRegressor(RegressorMixin, BaseEstimator):
@@ -55,7 +55,7 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
         X, y = validate_data(self, X, y, dtype=np.float64, y_numeric=True)
         w = _check_sample_weight(sample_weight, X, dtype=np.float64)
         if not (w > 0).any():
-            raise ValueError("TabularRegressor: every sample weight is zero; there is no data to fit")
+            raise InvalidArgumentError("TabularRegressor: every sample weight is zero; there is no data to fit")
         X, y, w = X[w > 0], y[w > 0], w[w > 0]
         rows = _fit_codes(self, X)
         keys, inv = np.unique(rows, return_inverse=True)
@@ -230,7 +230,7 @@ class TabularClassifier(ClassifierMixin, BaseEstimator):
         check_classification_targets(y)
         w = _check_sample_weight(sample_weight, X, dtype=np.float64)
         if not (w > 0).any():
-            raise ValueError("TabularClassifier: every sample weight is zero; there is no data to fit")
+            raise InvalidArgumentError("TabularClassifier: every sample weight is zero; there is no data to fit")
         X, y, w = X[w > 0], y[w > 0], w[w > 0]
         rows = _fit_codes(self, X)
         self.classes_, yi = np.unique(y, return_inverse=True)

@@ -161,7 +161,7 @@ def rollout(
     """
     H = horizon if horizon is not None else model.horizon
     if H is None:
-        raise ValueError("rollout needs a horizon (the model has none)")
+        raise InvalidArgumentError("rollout needs a horizon (the model has none)")
     g = model.gamma if gamma is None else gamma
     x0 = model.initial_states(n_episodes, rng) if start_states is None else np.asarray(start_states, dtype=np.float64)
     n = len(x0)

@@ -118,8 +118,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
         self.random_state = random_state
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ApproximatePolicyIteration:
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         proto = self.fqe if self.fqe is not None else FittedQEvaluation()
         cands = None
         if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states

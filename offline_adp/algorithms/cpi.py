@@ -42,6 +42,7 @@ from offline_adp.algorithms.params import (
     refuse_continuous,
 )
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.policies import (
     GreedyPolicy,
     MixturePolicy,
@@ -61,7 +62,7 @@ def effective_horizon(gamma: float, horizon: int | None) -> float:
     if horizon is not None:
         h = min(h, float(horizon))
     if not np.isfinite(h):
-        raise ValueError("the Kakade-Langford step needs gamma < 1 or a finite horizon")
+        raise InvalidArgumentError("the Kakade-Langford step needs gamma < 1 or a finite horizon")
     return h
 
 
@@ -136,8 +137,7 @@ class ConservativePolicyIteration(CheckedEstimator):
         return self.fqe if self.fqe is not None else FittedQEvaluation()
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ConservativePolicyIteration:
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         self.simulator_steps_ = 0
         refuse_continuous(type(self).__name__, dataset)
         pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)

@@ -43,7 +43,7 @@ from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.fqi_data import CommandBackup, PolicyBackup, Prepared
 from offline_adp.algorithms.fqi_loop import FitState
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import InvalidArgumentError, NotFittedError
+from offline_adp.errors import InvalidArgumentError, InvalidTypeError, NotFittedError
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import Policy, is_stationary
 from offline_adp.qfunctions import PolicyCommands, QFunction
@@ -151,14 +151,14 @@ commands, n_candidates
                  *, deferred: bool = False):
         """As :meth:`FittedQIteration.fit_iter`, with the policy's backup; sets ``value_`` at the end."""
         if self.policy is None:
-            raise ValueError("FittedQEvaluation needs the policy to evaluate (policy=...)")
+            raise InvalidArgumentError("FittedQEvaluation needs the policy to evaluate (policy=...)")
         if not isinstance(dataset, TransitionDataset):
-            raise TypeError(f"FittedQEvaluation.fit needs a TransitionDataset, got {type(dataset).__name__}")
+            raise InvalidTypeError(f"FittedQEvaluation.fit needs a TransitionDataset, got {type(dataset).__name__}")
         continuous = getattr(self.policy, "continuous", False)
         if continuous:
             check_command_policy(self, dataset)
         elif self.policy.n_actions != dataset.n_actions:
-            raise ValueError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
+            raise InvalidArgumentError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
         yield from self.run_fitted_q(dataset, sample_weight, resume, self._backup, deferred=deferred)
         a = dataset.arrays()
         start = a.step == 0
@@ -229,11 +229,11 @@ commands, n_candidates
         """
         fit = self._check_conditional()
         if not rtol > 0:
-            raise ValueError(f"rtol must be > 0, got {rtol!r}")
+            raise InvalidArgumentError(f"rtol must be > 0, got {rtol!r}")
         d, learner, backup = fit.data, fit.learner, fit.backup
         w = np.asarray(sample_weight, dtype=np.float64)
         if w.shape != (d.n,):
-            raise ValueError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
+            raise InvalidArgumentError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
         M, ops = reweighted_operators(learner, w, base=self._query_operators())
         v, _ = fixed_point(d, backup, M, ops, learner.leaf_values, tol, n_iterations or 10_000, rtol)
         q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
@@ -278,7 +278,7 @@ commands, n_candidates
             raise NotFittedError("this FittedQEvaluation is not fitted in this process (fit it first)")
         if (not isinstance(fit.learner, FrozenTreesLearner) or self.horizon_ is not None or fit.data.valid is not None
                 or fit.data.gamma >= 1.0):
-            raise ValueError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
+            raise InvalidArgumentError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
         return fit
 
     def _result_policy(self, q: QFunction) -> Any:

@@ -21,7 +21,7 @@ import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
-from offline_adp.errors import InvalidArgumentError
+from offline_adp.errors import InvalidArgumentError, InvalidTypeError
 from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, PolicyCommands, QEncoder
 
 
@@ -103,17 +103,17 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`), or,
     for an evaluation, the policy's own command (``policy_commands``)."""
     if not isinstance(ds, TransitionDataset):
-        raise TypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
+        raise InvalidTypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
-        raise ValueError("the dataset is empty")
+        raise InvalidArgumentError("the dataset is empty")
     g = resolve_discount(ds.info, gamma, horizon).gamma  # callers pass the resolved values; this keeps prepare() usable alone
     a = ds.arrays()
     if horizon is None and not g < 1.0 and not a.terminated.any():
-        raise ValueError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless episodes terminate "
+        raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless episodes terminate "
                          "(a shortest-path problem); give a horizon instead")
     w_all = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
     if w_all is not None and w_all.shape != (len(ds),):
-        raise ValueError(f"sample_weight has shape {w_all.shape}, expected ({len(ds)},)")
+        raise InvalidArgumentError(f"sample_weight has shape {w_all.shape}, expected ({len(ds)},)")
     if w_all is not None and not (np.isfinite(w_all).all() and (w_all >= 0).all() and w_all.sum() > 0):
         bad = np.flatnonzero(~np.isfinite(w_all) | (w_all < 0))
         where = f"row {int(bad[0])}: {w_all[bad[0]]!r}" if len(bad) else "all rows 0"

@@ -176,8 +176,7 @@ class FittedQEstimator(CheckedEstimator):
         ``horizon_``) and ``make_learner(data) -> Learner`` replace :meth:`_prepare` and
         :meth:`_learner` (the Dask engine's data and LEARN). ``deferred``: an
         infinite-horizon ``Q_k`` becomes ``q_function_`` at the end only."""
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         data = (prepare or self._prepare)(dataset, sample_weight)
         learner = (make_learner or self._learner)(data)
         backup = make_backup(data)

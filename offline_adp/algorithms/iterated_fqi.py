@@ -77,8 +77,7 @@ class IteratedFQI(CheckedEstimator):
         self.random_state = random_state
 
     def fit(self, model: ResetModel, dataset: TransitionDataset | None = None) -> IteratedFQI:
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         require(model, ResetModel)
         rng = np.random.default_rng(self.random_state)
         proto = self.fqi if self.fqi is not None else FittedQIteration()

@@ -56,6 +56,13 @@ class CheckedEstimator(BaseEstimator):
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {}
 
+    def check_params(self) -> None:
+        """Every parameter check, in order: scikit-learn's ``_validate_params()`` on
+        ``_parameter_constraints``, then :meth:`_check_param_combinations` (the one call
+        ``fit`` and the configuration layer make)."""
+        self._validate_params()
+        self._check_param_combinations()
+
     def _check_param_combinations(self) -> None:
         """The rules ``_parameter_constraints`` cannot express; called right after
         scikit-learn's ``_validate_params()`` (by ``fit`` and by the configuration layer).

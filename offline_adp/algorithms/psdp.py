@@ -60,6 +60,7 @@ from offline_adp.algorithms.params import (
     check_learner,
 )
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.policies import (
     ClassifierPolicy,
     GreedyPolicy,
@@ -161,14 +162,13 @@ class PSDP(CheckedEstimator):
 
     # ------------------------------------------------------------------ algorithm 14
     def fit(self, model: ResetModel, baseline: Baseline) -> PSDP:
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         require(model, ResetModel if isinstance(baseline, Policy) else GenerativeModel)
         if self.q_estimator == "exact":
             require(model, FullModel)
         T = self.horizon if self.horizon is not None else model.horizon
         if not T:
-            raise ValueError("PSDP needs a horizon")
+            raise InvalidArgumentError("PSDP needs a horizon")
         gamma = self.gamma if self.gamma is not None else model.gamma
         rng = np.random.default_rng(self.random_state)
         mu = self._baseline_sampler(model, baseline, T, rng)
@@ -202,7 +202,7 @@ class PSDP(CheckedEstimator):
             per_t = [baseline.states_at(t) for t in range(T)]
             for t, x in enumerate(per_t):
                 if not len(x):
-                    raise ValueError(f"the baseline dataset has no state at step {t}; shorten the horizon to the episodes' length")
+                    raise InvalidArgumentError(f"the baseline dataset has no state at step {t}; shorten the horizon to the episodes' length")
             return lambda t, n, r: per_t[t][r.integers(0, len(per_t[t]), n)]
         if isinstance(baseline, Policy):  # mu_t = states of the baseline policy's rollouts
             per_t = state_samples(model, baseline, self.n_samples, T, rng)
@@ -340,8 +340,7 @@ class IteratedPSDP(CheckedEstimator):
         return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T, gamma=gamma).mean
 
     def fit(self, model: ResetModel, start_policy: Policy) -> IteratedPSDP:
-        self._validate_params()  # scikit-learn's, on _parameter_constraints
-        self._check_param_combinations()
+        self.check_params()  # _parameter_constraints, then the combinations
         proto = self.psdp if self.psdp is not None else PSDP()
         T = proto.horizon if proto.horizon is not None else model.horizon
         gamma = proto.gamma if proto.gamma is not None else model.gamma

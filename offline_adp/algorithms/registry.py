@@ -113,8 +113,7 @@ class AlgorithmEntry:
         est_params = {k: v for k, v in given.items() if k not in self.extra}
         est = self.estimator_class()(**est_params)
         try:  # the checks ``fit`` starts with (scikit-learn's, then the estimator's cross-parameter hook)
-            est._validate_params()
-            est._check_param_combinations()
+            est.check_params()  # _parameter_constraints, then the combinations
         except InvalidParameterError as exc:
             raise SpecError(parameter_error(exc, source, section or self.name)) from None
         out = dict(params or {})

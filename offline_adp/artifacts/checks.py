@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.errors import ArtifactError
+from offline_adp.errors import ArtifactError, InvalidArgumentError
 
 #: Most array members an artifact may hold.
 MAX_MEMBERS = 100_000
@@ -143,7 +143,7 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
                     elif version in ((2, 0), (3, 0)):
                         shape, fortran, dtype = np.lib.format.read_array_header_2_0(f, max_header_size=10_000)
                     else:
-                        raise ValueError(f"unknown .npy version {version}")
+                        raise InvalidArgumentError(f"unknown .npy version {version}")
                     header_len = f.tell()
             except ZIP_ERRORS as exc:
                 raise _fail(where, key, f"unreadable array header ({exc})") from None

@@ -22,7 +22,7 @@ from offline_adp.data import schema as S
 from offline_adp.data.columns import encode_strings, hash_column, sorted_encoding
 from offline_adp.data.info import DatasetInfo
 from offline_adp.data.io import read_dataset_table, write_dataset
-from offline_adp.errors import SchemaError
+from offline_adp.errors import InvalidArgumentError, SchemaError
 
 _CASTS: dict[str, pa.DataType] = {
     S.EPISODE_ID: pa.string(),
@@ -325,11 +325,11 @@ class TransitionDataset:
     def split(self, valid_fraction: float = 0.2, seed: int = 0) -> tuple[TransitionDataset, TransitionDataset]:
         """Split by episode into (train, validation), seeded and reproducible."""
         if not 0.0 < valid_fraction < 1.0:
-            raise ValueError(f"valid_fraction must be in (0, 1), got {valid_fraction}")
+            raise InvalidArgumentError(f"valid_fraction must be in (0, 1), got {valid_fraction}")
         n = self.n_episodes
         n_valid = int(round(valid_fraction * n))
         if n_valid == 0 or n_valid == n:
-            raise ValueError(f"cannot split {n} episodes with valid_fraction={valid_fraction}")
+            raise InvalidArgumentError(f"cannot split {n} episodes with valid_fraction={valid_fraction}")
         perm = np.random.default_rng(seed).permutation(n)
         valid = np.zeros(n, bool)
         valid[perm[:n_valid]] = True

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.schema import FORMAT_VERSION, PROPENSITY_SOURCES
-from offline_adp.errors import SchemaError
+from offline_adp.errors import InvalidTypeError, SchemaError
 
 #: Action table kinds (:class:`ActionTable`).
 ACTION_KINDS = ("discrete", "binned", "continuous")
@@ -285,4 +285,4 @@ def json_numpy(o: Any) -> Any:
         return o.item()
     if isinstance(o, np.ndarray):
         return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+    raise InvalidTypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -67,6 +67,7 @@ from scipy.special import ndtr
 from offline_adp.access import Simulator, StepResult, command_matrix, is_command_array
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.envs.base import ReferenceProblem
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.policies import (
     EpsilonPolicy,
     GaussianCommandPolicy,
@@ -178,7 +179,7 @@ class PathTracking(ReferenceProblem, Simulator):
 
     def __init__(self, horizon: int | None = 200, heading_noise: float = HEADING_NOISE, commands: str = "discrete") -> None:
         if commands not in COMMAND_MODES:
-            raise ValueError(f"commands must be one of {list(COMMAND_MODES)}, got {commands!r}")
+            raise InvalidArgumentError(f"commands must be one of {list(COMMAND_MODES)}, got {commands!r}")
         self.horizon = horizon
         self.heading_noise = heading_noise
         self.commands = commands

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from sklearn.base import clone
 
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight, screen_bias
 from offline_adp.qfunctions import QFunction, TreeQ
@@ -122,7 +123,7 @@ class FrozenBuilds:
         f = self.schedule.fraction(k)
         if f is not None and f < 1.0:
             if "max_samples" not in model.get_params():
-                raise ValueError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
+                raise InvalidArgumentError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
                                  f"not {type(model).__name__}")
             model.set_params(bootstrap=True, max_samples=float(f))
         return model
@@ -229,7 +230,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     def __init__(self, spec: LearnSpec, schedule: FrozenSchedule | None = None) -> None:
         super().__init__(spec)
         if self.encoder.per_action:
-            raise ValueError("the frozen-structure mode needs action_encoding='joint'")
+            raise InvalidArgumentError("the frozen-structure mode needs action_encoding='joint'")
         self._init_builds(schedule)
         phi_next = self.queries["next"][0] if "next" in self.queries else None
         same = np.zeros(len(self.phi), bool)
@@ -312,7 +313,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """Take ``forest`` as the structure: look up every training and query input in it
         (from tree ``start`` on: the earlier trees' lookups are held, see :meth:`_operators`)."""
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
-            raise ValueError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
+            raise InvalidArgumentError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
         # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
         # (snapshot: a checkpoint, the end of the fit), not at every build
         sizes = np.array([e.tree_.node_count for e in forest.estimators_], dtype=np.int64)

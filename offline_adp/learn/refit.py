@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 from sklearn.base import clone
 
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.learn.base import Learner, LearnSpec, fit_model, seeded
 from offline_adp.qfunctions import QFunction, RegressorQ, predict_model
 
@@ -53,7 +54,7 @@ class RefitLearner(Learner):
                 rows = self.actions == a
                 m = seeded(clone(self.regressor), seed)
                 if not rows.any():
-                    raise ValueError(f"action {a} never occurs in the data: a per-action model cannot be fitted")
+                    raise InvalidArgumentError(f"action {a} never occurs in the data: a per-action model cannot be fitted")
                 models.append(fit_model(m, self.phi[rows], y[rows], None if self.weights is None else self.weights[rows]))
         else:
             m = seeded(clone(self.regressor), seed)

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.errors import InvalidArgumentError
+
 
 @dataclass(frozen=True)
 class TreeScreen:
@@ -139,7 +141,7 @@ def check_structure_fractions(value: Any) -> None:
     fractions = list(value) if isinstance(value, list | tuple) else [value]
     if not all(f is None or (isinstance(f, int | float) and not isinstance(f, bool) and 0.0 < float(f) <= 1.0)
                for f in fractions):
-        raise ValueError(f"structure_max_samples must be 'auto', a fraction in (0, 1], None, or a list of "
+        raise InvalidArgumentError(f"structure_max_samples must be 'auto', a fraction in (0, 1], None, or a list of "
                          f"fractions/None, got {value!r}")
 
 
@@ -169,7 +171,7 @@ class FrozenSchedule:
 
     def __post_init__(self) -> None:
         if self.builder not in ("auto", "sklearn"):
-            raise ValueError(f"tree_builder must be 'auto' or 'sklearn', got {self.builder!r}")
+            raise InvalidArgumentError(f"tree_builder must be 'auto' or 'sklearn', got {self.builder!r}")
         check_structure_fractions(self.max_samples)
 
     @property

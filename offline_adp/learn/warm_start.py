@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.learn.base import Learner, LearnSpec
 from offline_adp.qfunctions import BoostedSumQ, QFunction
 
@@ -23,7 +24,7 @@ class LightGBMWarmStartLearner(Learner):
     def __init__(self, spec: LearnSpec, trees_per_iteration: int = 10) -> None:
         super().__init__(spec)
         if self.encoder.per_action:
-            raise ValueError("the LightGBM warm-start mode needs action_encoding='joint'")
+            raise InvalidArgumentError("the LightGBM warm-start mode needs action_encoding='joint'")
         import lightgbm as lgb
 
         self.lgb = lgb

@@ -62,6 +62,8 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.errors import InvalidArgumentError
+
 #: scikit-learn's constants: a feature is constant on a node when max <= min + this (float32)
 FEATURE_THRESHOLD = 1e-7
 _EPSILON = float(np.finfo(np.float64).eps)  # a node is pure when its variance is <= this
@@ -233,15 +235,15 @@ def grow_trees(X: np.ndarray, y: np.ndarray, sample_weight: np.ndarray | None, p
     y = np.asarray(y, dtype=np.float64).ravel()
     n, d = X32.shape
     if len(y) != n:
-        raise ValueError(f"X has {n} rows, y has {len(y)}")
+        raise InvalidArgumentError(f"X has {n} rows, y has {len(y)}")
     w = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64).ravel()
     if w is not None and len(w) != n:
-        raise ValueError(f"X has {n} rows, sample_weight has {len(w)}")
+        raise InvalidArgumentError(f"X has {n} rows, sample_weight has {len(w)}")
     for name, a in (("X", X32), ("y", y), ("sample_weight", w)):
         if a is not None and not np.isfinite(a).all():
-            raise ValueError(f"the extra-trees builder needs finite {name}")
+            raise InvalidArgumentError(f"the extra-trees builder needs finite {name}")
     if w is not None and (w < 0).any():
-        raise ValueError("sample_weight must be >= 0")
+        raise InvalidArgumentError("sample_weight must be >= 0")
     every = w is None or bool((w > 0).all())
     record = bool(record_leaves)
     trees = range(params.n_estimators) if trees is None else trees

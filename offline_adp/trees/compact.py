@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.trees.builder import GrownTree, _kernel
 
 
@@ -26,7 +27,7 @@ class CompactTree:
         """From one tree's arrays (local node ids; leaves: children -1), copied."""
         n = len(left)
         if n >= 2**31 - 1:
-            raise ValueError(f"a tree of {n} nodes does not fit int32 node ids")
+            raise InvalidArgumentError(f"a tree of {n} nodes does not fit int32 node ids")
         thr = np.array(threshold, dtype=np.float64)
         t32 = thr.astype(np.float32)
         above = t32.astype(np.float64) > thr

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.errors import ArtifactError
+from offline_adp.errors import ArtifactError, InvalidArgumentError
 from offline_adp.trees import averaging, builder
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree, tree_arrays
@@ -186,7 +186,7 @@ class TreeEnsemble:
             out[prefix + "feature"] = f.astype(np.int16) if len(f) == 0 or f.max() < 2**15 - 1 else f
             return out
         if layout != "compact":
-            raise ValueError(f"unknown tree layout {layout!r}")
+            raise InvalidArgumentError(f"unknown tree layout {layout!r}")
         left, right, roots = (np.asarray(a, dtype=np.int64) for a in (self.left, self.right, self.roots))
         pos = preorder_positions(left, right, roots)
         if len(pos) == 0 or np.bincount(pos, minlength=len(pos)).max() != 1 or not np.array_equal(pos[roots], roots):

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from offline_adp.errors import IngestError
+from offline_adp.errors import IngestError, InvalidArgumentError
 
 MAGIC = b"#ROSBAG V2.0\n"
 MAX_HEADER_BYTES = 1 << 24  # a record header (connection headers carry message definitions)
@@ -43,14 +43,14 @@ def _fields(buf: bytes | memoryview) -> dict[str, bytes]:
     pos, n = 0, len(buf)
     while pos < n:
         if pos + 4 > n:
-            raise ValueError("a header field length runs past the header")
+            raise InvalidArgumentError("a header field length runs past the header")
         size = struct.unpack_from("<I", buf, pos)[0]
         pos += 4
         if size > n - pos:
-            raise ValueError(f"a header field of {size} bytes runs past the header")
+            raise InvalidArgumentError(f"a header field of {size} bytes runs past the header")
         name, sep, value = bytes(buf[pos:pos + size]).partition(b"=")
         if not sep:
-            raise ValueError("a header field without '='")
+            raise InvalidArgumentError("a header field without '='")
         out[name.decode("utf-8", "replace")] = value
         pos += size
     return out
@@ -59,14 +59,14 @@ def _fields(buf: bytes | memoryview) -> dict[str, bytes]:
 def _u32(h: dict[str, bytes], k: str) -> int:
     v = h.get(k)
     if v is None or len(v) != 4:
-        raise ValueError(f"header field {k!r} missing or not 4 bytes")
+        raise InvalidArgumentError(f"header field {k!r} missing or not 4 bytes")
     return struct.unpack("<I", v)[0]
 
 
 def _time(h: dict[str, bytes], k: str) -> int:
     v = h.get(k)
     if v is None or len(v) != 8:
-        raise ValueError(f"header field {k!r} missing or not 8 bytes")
+        raise InvalidArgumentError(f"header field {k!r} missing or not 8 bytes")
     sec, nsec = struct.unpack("<II", v)
     return sec * 1_000_000_000 + nsec
 
@@ -83,9 +83,9 @@ def _decompress(kind: str, data: bytes, size: int) -> bytes:
 
         out = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=size + 1)
     else:
-        raise ValueError(f"compression {kind!r} is not supported")
+        raise InvalidArgumentError(f"compression {kind!r} is not supported")
     if len(out) != size:
-        raise ValueError(f"chunk declares {size} bytes uncompressed, holds {len(out)}")
+        raise InvalidArgumentError(f"chunk declares {size} bytes uncompressed, holds {len(out)}")
     return out
 
 
@@ -109,22 +109,22 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
         pos, n = 0, len(buf)
         while pos < n:
             if pos + 4 > n:
-                raise ValueError(f"a record header length runs past the chunk at offset {base + pos}")
+                raise InvalidArgumentError(f"a record header length runs past the chunk at offset {base + pos}")
             hl = struct.unpack_from("<I", buf, pos)[0]
             if hl > min(limit_hdr, n - pos - 8):
-                raise ValueError(f"a record header of {hl} bytes does not fit in the chunk at offset {base + pos}")
+                raise InvalidArgumentError(f"a record header of {hl} bytes does not fit in the chunk at offset {base + pos}")
             h = _fields(buf[pos + 4:pos + 4 + hl])
             dl = struct.unpack_from("<I", buf, pos + 4 + hl)[0]
             start = pos + 8 + hl
             if dl > n - start:
-                raise ValueError(f"a record of {dl} bytes does not fit in the chunk at offset {base + pos}")
+                raise InvalidArgumentError(f"a record of {dl} bytes does not fit in the chunk at offset {base + pos}")
             yield base + pos, _op(h), h, buf[start:start + dl]
             pos = start + dl
 
     def _op(h: dict[str, bytes]) -> int:
         v = h.get("op")
         if v is None or len(v) != 1:
-            raise ValueError("a record without its op field")
+            raise InvalidArgumentError("a record without its op field")
         return v[0]
 
     def handle(op: int, h: dict[str, bytes], data: memoryview | bytes) -> Iterator[tuple[Ros1Connection, int, bytes]]:
@@ -143,7 +143,7 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
             cid = _u32(h, "conn")
             c = conns.get(cid)
             if c is None:
-                raise ValueError(f"a message of connection {cid} before its connection record")
+                raise InvalidArgumentError(f"a message of connection {cid} before its connection record")
             report["messages"] += 1
             yield c, _time(h, "time"), bytes(data)
 
@@ -192,7 +192,7 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
                 usize = _u32(h, "size")
                 limit = min(MAX_RECORD_BYTES, dl if kind == "none" else 1024 * dl + 65536)
                 if usize > limit:
-                    raise ValueError(f"declares {usize} bytes uncompressed from {dl} ({kind}), more than the limit "
+                    raise InvalidArgumentError(f"declares {usize} bytes uncompressed from {dl} ({kind}), more than the limit "
                                      f"of {limit}")
                 inner = list(records(memoryview(_decompress(kind, data, usize)), offset, MAX_HEADER_BYTES))
             except Exception as exc:  # noqa: BLE001 - bz2/lz4/framing errors of several types

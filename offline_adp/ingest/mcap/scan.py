@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from offline_adp.errors import IngestError
+from offline_adp.errors import IngestError, InvalidArgumentError
 
 _MAGIC = b"\x89MCAP0\r\n"
 
@@ -175,7 +175,7 @@ def _index_of_lost_chunk(chunk: dict[str, Any], body: bytes) -> None:
     try:
         channel_id, n = struct.unpack_from("<HI", body, 0)
         if n % 16 or 6 + n > len(body):
-            raise ValueError("bad records length")
+            raise InvalidArgumentError("bad records length")
         import numpy as np
 
         times = np.frombuffer(body, dtype="<u8", count=n // 8, offset=6)[0::2].astype(np.int64)
