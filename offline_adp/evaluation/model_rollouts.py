@@ -457,28 +457,3 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
                       "each particle's remaining steps valued at the ends of the logged costs' range once it is "
                       "farther from the logged states than they are from each other"}
-
-
-def widen_fqe(fq: Any, mr: dict[str, Any], hull: bool = True) -> None:
-    """Widen FQE's interval (an ``ope.OPEResult``) to the hull of it and the model
-    rollouts' interval, and say where the two readings part: the interval then holds
-    the value if either reading is right, and a verdict drawn from it needs both.
-    ``hull=False``: record the rollouts and their drift warning only (FQE's interval is of
-    another quantity)."""
-    fq.model_rollouts = mr
-    if "skipped" in mr:
-        return
-    if mr["exit_mass"] >= EXIT_FRACTION:
-        fq.warnings.append(f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} of its discounted "
-                           f"model-rollout mass lies past the logged states (an expected {mr['exit_share']:.0%} of "
-                           "its episodes get there)")
-    lo_m, hi_m = mr["interval"]
-    before = fq.widen(lo_m, hi_m, f"widened to the model rollouts' bounds [{lo_m:.4g}, {hi_m:.4g}] (a model of the "
-                      "logged increments rolled out, valued at the cost range's ends where it leaves the data)") \
-        if hull else None
-    if before is None:
-        return
-    lo_i, hi_i = before
-    if not lo_i <= mr["estimate"] <= hi_i:
-        fq.warnings.append(f"model rollouts of the logs read {mr['estimate']:.4g}, outside FQE's interval "
-                           f"[{lo_i:.4g}, {hi_i:.4g}]: the two readings disagree and the interval holds both")
