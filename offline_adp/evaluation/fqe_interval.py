@@ -17,7 +17,7 @@ The estimate is the value of the evaluated policy pi at the data's start states,
 3. **Support bounds** (:func:`with_support_bounds`, structure-conditional fits): the hull
    with the value of the per-action read with every pair the logs cannot read valued at
    the ends of the cost's value range (:func:`fqe_support_bounds`, :func:`q_value_range`).
-4. **Model rollouts** (:func:`with_model_rollouts`): the hull with the interval of
+4. **Model rollouts** (:func:`model_reading`, :func:`widen_fqe`; finite-horizon estimand): the hull with the interval of
    rollouts of a model of the logged increments (:mod:`~offline_adp.evaluation.model_rollouts`).
 5. **Truncation** (:func:`with_truncation_bound`): a stationary FQE standing in for the
    T-step value is widened by ``gamma^T max|c| / (1 - gamma)`` on both sides.
@@ -349,18 +349,15 @@ def widen_fqe(fq: OPEResult, mr: dict[str, Any], hull: bool = True) -> OPEResult
                                   "interval holds both"])
 
 
-def with_model_rollouts(fq: OPEResult, ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int,
-                        level: float, seed: int, a: TransitionArrays) -> OPEResult:
-    """For the finite-horizon estimand, :func:`widen_fqe` with ``particles`` model rollouts
-    over the estimand's horizon (the model is stationary, so it reads past the logged horizon
-    too); hulled only where FQE's interval is of the same quantity (a time-indexed FQE past
-    the logs reads the T-step value). ``particles=0`` says they were turned off."""
-    if est_def.form != "finite":
-        return fq
-    if not particles:  # said, so metrics.json tells "turned off" from "not yet a feature"
-        return replace(fq, model_rollouts={"skipped": "model_particles=0: model rollouts turned off"})
-    mr = model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed, arrays=a)
-    return widen_fqe(fq, mr, hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
+def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float, seed: int,
+                  a: TransitionArrays) -> dict[str, Any]:
+    """The model rollouts :func:`widen_fqe` hulls FQE's interval with: ``particles`` rollouts
+    of a model of the logged increments over the estimand's horizon (the model is stationary,
+    so it reads past the logged horizon too; :func:`~offline_adp.evaluation.model_rollouts.model_rollouts`);
+    ``particles=0`` says they were turned off (so metrics.json tells "turned off" from "not a feature")."""
+    if not particles:
+        return {"skipped": "model_particles=0: model rollouts turned off"}
+    return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed, arrays=a)
 
 
 def with_rough_note(fq: OPEResult, n_reps: int) -> OPEResult:
@@ -399,7 +396,9 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
     if fit.conditional:  # what the model cannot know: widen to the support bounds
         say("FQE support bounds")
         fq = with_support_bounds(fq, fqe_support_bounds(fit.fqe, ds, cfg.seed))
-    if cfg.model_particles and est_def.form == "finite":
-        say("model rollouts")
-    fq = with_model_rollouts(fq, ds, policy, est_def, cfg.model_particles, level, cfg.seed, a)
+    if est_def.form == "finite":  # hulled only where FQE's interval is of the same quantity (a
+        if cfg.model_particles:  # time-indexed FQE past the logs reads the T-step value)
+            say("model rollouts")
+        fq = widen_fqe(fq, model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a),
+                       hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)
