@@ -63,7 +63,7 @@ def tabular_replicates(n_episodes: int = 1000, n_boot: int = 200, horizon: int =
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.envs.tabular import TabularMDP
     from offline_adp.evaluation import ope
-    from offline_adp.evaluation.offpolicy import tabular_fqe_replicates
+    from offline_adp.evaluation.fqe_interval import tabular_fqe_replicates
     from offline_adp.policies import EpsilonPolicy, TabularPolicy
     from offline_adp.simulate import collect
 

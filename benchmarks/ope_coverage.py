@@ -58,7 +58,7 @@ from offline_adp.policies import EpsilonPolicy
 #: policy has DR intervals ~0.013 wide, and 200 rollouts read its value at 0.1395 and 0.1207
 #: (4000: 0.127), so car_on_hill takes 2000 (its rollouts are cheap). Horizons keep
 #: gamma^T < 0.01 so the evaluation takes the stationary FQE with its cheap structure-conditional
-#: bootstrap (offpolicy.TAIL_NEGLIGIBLE); a shorter T refits FQE per replicate (minutes per candidate).
+#: bootstrap (estimand.TAIL_NEGLIGIBLE); a shorter T refits FQE per replicate (minutes per candidate).
 SIZES = {
     "tiny": {"path_tracking": (10, 10, 40, None), "car_on_hill": (0, 60, 40, None), "cartpole": (0, 30, 40, 100)},
     "small": {"path_tracking": (30, 30, 200, None), "car_on_hill": (0, 200, 2000, None), "cartpole": (0, 60, 200, 100)},

@@ -332,7 +332,7 @@ def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
     from offline_adp.engines.dask import DaskTaskMap
     from offline_adp.envs import make_problem
     from offline_adp.evaluation import ope
-    from offline_adp.evaluation.offpolicy import _reweighted_replicate
+    from offline_adp.evaluation.fqe_interval import _reweighted_replicate
     from offline_adp.policies import UniformPolicy
     from offline_adp.rollout import rollout, rollout_pieces
 

@@ -17,7 +17,9 @@ from offline_adp import dp
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.envs.tabular import TabularMDP
 from offline_adp.evaluation import ope, shift
-from offline_adp.evaluation.offpolicy import declare_estimand, off_policy, tabular_fqe_replicates
+from offline_adp.evaluation.estimand import declare_estimand
+from offline_adp.evaluation.fqe_interval import fqe_interval, tabular_fqe_replicates
+from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from offline_adp.rollout import rollout
 from offline_adp.simulate import collect
@@ -58,7 +60,7 @@ def fqe_estimate(mdp, pib, pi, gamma: float, n: int, seed: int, n_boot: int = 20
     counts = ope.bootstrap_counts(em.n_episodes, n_boot, seed)
     W = np.vstack([np.ones(len(a))] + [c[em.row_episode] for c in counts])
     vals = tabular_fqe_replicates(a.obs, a.action, a.cost, a.next_obs, a.terminated, a.step == 0, pi, 3, T, gamma, W)
-    return ope.fqe_interval(vals[0], vals[1:], em.n_episodes)
+    return fqe_interval(vals[0], vals[1:], em.n_episodes)
 
 
 def estimates(mdp, pib, pi, gamma: float, n: int, seed: int, n_boot: int = 200, fqe: bool = True

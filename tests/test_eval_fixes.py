@@ -89,7 +89,7 @@ def test_shifted_fqe_replicates_widen_the_interval_and_never_move_the_estimate()
     interval may miss it the other way). The estimate stays the plug-in and the interval
     (the hull of both readings) covers the truth in both worlds; the percentile interval
     alone fails the first, the old bias correction moved an accurate estimate in the second."""
-    from offline_adp.evaluation import ope
+    from offline_adp.evaluation.fqe_interval import fqe_interval
 
     rng = np.random.default_rng(0)
     truth, bias, sd = 3.0, 0.4, 0.2
@@ -98,7 +98,7 @@ def test_shifted_fqe_replicates_widen_the_interval_and_never_move_the_estimate()
         for _ in range(300):
             est = truth + estimator_bias + sd * rng.standard_normal()
             reps = est + bias + sd * rng.standard_normal(200)
-            r = ope.fqe_interval(est, reps, 100)
+            r = fqe_interval(est, reps, 100)
             assert r.estimate == est and r.plugin_estimate is None and r.interval_method.startswith("hull")
             assert r.interval[0] <= r.estimate <= r.interval[1]
             covered += r.interval[0] <= truth <= r.interval[1]
@@ -108,5 +108,5 @@ def test_shifted_fqe_replicates_widen_the_interval_and_never_move_the_estimate()
         if estimator_bias:
             assert covered_pct / 300 < 0.5
     reps = 1.0 + 0.1 * rng.standard_normal(200)
-    r = ope.fqe_interval(1.0, reps, 100)
+    r = fqe_interval(1.0, reps, 100)
     assert r.estimate == 1.0 and r.plugin_estimate is None and r.interval == r.percentile_interval

@@ -155,7 +155,7 @@ def test_reweighted_replicate_equals_an_independent_linear_solve(small_pt, polic
     trees that kept weight): the replicate's fixed point equals the oracle's solve, for a
     stochastic policy and for a deterministic one (whose untaken next actions the sweep
     leaves out); the bootstrap's looser ``rtol`` stays within its bound."""
-    from offline_adp.evaluation.offpolicy import REPLICATE_RTOL
+    from offline_adp.evaluation.fqe_interval import REPLICATE_RTOL
     from offline_adp.policies import FunctionPolicy, UniformPolicy
 
     A = small_pt.n_actions

@@ -9,7 +9,7 @@ import pytest
 from offline_adp import pipeline
 from offline_adp.cli import main
 from offline_adp.evaluation import FQE_BOOTSTRAP_DEFAULT
-from offline_adp.evaluation.offpolicy import (
+from offline_adp.evaluation.fqe_interval import (
     FQE_REPLICATE_FLOOR,
     FQE_REPLICATE_ROUGH,
     fqe_replicates,

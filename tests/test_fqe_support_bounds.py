@@ -17,8 +17,8 @@ import pytest
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
+from offline_adp.evaluation.fqe_interval import q_value_range
 from offline_adp.evaluation.offpolicy import off_policy
-from offline_adp.evaluation.support_bounds import q_value_range
 from offline_adp.policies import FunctionPolicy
 
 GAMMA, T, N_EPISODES, N_FAR = 0.95, 100, 30, 4

@@ -98,7 +98,7 @@ def test_a_stationary_fqe_past_the_horizons_range_by_less_than_its_truncation_bo
     truncation bound; it is reported at the floor and ranks as usable, not "outside the
     possible range". Farther out than the bound, it is left as it is (and not usable)."""
     from offline_adp.evaluation import ope
-    from offline_adp.evaluation.offpolicy import Estimand, stationary_onto_range
+    from offline_adp.evaluation.estimand import Estimand, stationary_onto_range
     from offline_adp.evaluation.summary import rank_estimators
 
     gamma, H = 0.99, 500
@@ -106,7 +106,7 @@ def test_a_stationary_fqe_past_the_horizons_range_by_less_than_its_truncation_bo
     est = Estimand(H, gamma, "finite", "stationary", gamma**H / (1 - gamma), "t", (floor, 0.0))
     for value, moved in ((-99.89, True), (floor - 2 * est.tail_bound, False)):
         r = ope.OPEResult("fqe", value, (value - 0.5, -99.2), 100.0, 0.95)
-        stationary_onto_range(r, est)
+        r = stationary_onto_range(r, est)
         assert (r.estimate == floor) is moved
         m = {"estimand": {"possible_range": [floor, 0.0]},
              "ope": {"fqe": {"estimate": r.estimate, "interval": [floor, -99.2], "level": 0.95}}}

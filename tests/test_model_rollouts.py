@@ -17,6 +17,7 @@ from offline_adp.access import ResetModel, StepResult
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ActionTable, DatasetInfo, Feature
 from offline_adp.errors import InvalidArgumentError
+from offline_adp.evaluation.fqe_interval import widen_fqe
 from offline_adp.evaluation.model_rollouts import (
     EXIT_FRACTION,
     SUPPORT_QUANTILE,
@@ -24,7 +25,6 @@ from offline_adp.evaluation.model_rollouts import (
     model_rollout_value,
     model_rollouts,
     remainder_ranges,
-    widen_fqe,
 )
 from offline_adp.evaluation.offpolicy import off_policy
 from offline_adp.evaluation.ope import OPEResult
@@ -157,13 +157,13 @@ def test_noise_is_drawn_from_held_out_rows_however_few_the_episodes(logs):
 
 def test_the_drift_warning_does_not_need_fqes_interval():
     fq = OPEResult("fqe", 1.0, (float("nan"), float("nan")), None)
-    widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.6, "exit_share": 0.9})
+    fq = widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.6, "exit_share": 0.9})
     assert any("drives where the logs do not go" in w for w in fq.warnings)
 
 
 def test_widen_fqe_keeps_an_interval_it_cannot_read():
     fq = OPEResult("fqe", 1.0, (float("nan"), float("nan")), None)
-    widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.0, "exit_share": 0.0})
+    fq = widen_fqe(fq, {"interval": [0.0, 2.0], "estimate": 1.0, "exit_mass": 0.0, "exit_share": 0.0})
     assert np.isnan(fq.interval[0]) and fq.model_rollouts is not None
 
 
@@ -408,7 +408,8 @@ def test_the_trust_radius_is_the_data_own_spacing():
 
 def test_widen_is_a_hull_that_says_so_and_leaves_what_it_cannot_read():
     r = OPEResult("fqe", 5.0, (4.0, 6.0), None, 0.95)
-    assert r.widen(3.0, 5.5, "widened to X") == (4.0, 6.0)
-    assert r.interval == (3.0, 6.0) and r.interval_method.endswith("; widened to X")
-    assert r.widen(float("nan"), 9.0, "never") is None and r.interval == (3.0, 6.0)
-    assert "never" not in r.interval_method
+    w, before = r.widened(3.0, 5.5, "widened to X")
+    assert before == (4.0, 6.0) and r.interval == (4.0, 6.0)  # a new result: r is unchanged
+    assert w.interval == (3.0, 6.0) and w.interval_method.endswith("; widened to X")
+    same, before = w.widened(float("nan"), 9.0, "never")
+    assert before is None and same is w and "never" not in w.interval_method

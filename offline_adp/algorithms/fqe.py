@@ -102,7 +102,7 @@ commands, n_candidates
     the FQI benchmark suite (docs/fqi-modes.md), which scores the greedy policies
     FQI returns, not policy evaluations; FQE's were not moved with them, so an FQE
     estimate did not change. The evaluation reports choose their own settings
-    (:data:`offline_adp.evaluation.offpolicy.DEFAULT_FQE`: ``mode="frozen"``).
+    (:data:`offline_adp.evaluation.fqe_interval.DEFAULT_FQE`: ``mode="frozen"``).
 
     FittedQIteration's ``screen_trees``, ``screen_tol`` and ``early_build_trees`` are not parameters here
     (always None: every frozen build grows the whole forest). The screen bounds the bias

@@ -10,7 +10,7 @@ from __future__ import annotations
 #: FQE bootstrap replicates when none are asked for: the one default of
 #: ``offline-adp evaluate --fqe-bootstrap``, a pipeline's ``[evaluate] fqe_bootstrap`` and
 #: :func:`offline_adp.evaluation.run.evaluate_run`. ``None`` is the replicate rule of
-#: :func:`offline_adp.evaluation.offpolicy.fqe_replicates`: the floor (200) when
+#: :func:`offline_adp.evaluation.fqe_interval.fqe_replicates`: the floor (200) when
 #: replicates are cheap, else 50.
 FQE_BOOTSTRAP_DEFAULT: int | None = None
 #: Particles of the model rollouts of the logs (``model_rollouts.N_PARTICLES``), the one

@@ -344,40 +344,10 @@ def _2d(y: np.ndarray, width: int) -> np.ndarray:
     return np.asarray(y, dtype=np.float64).reshape(len(y), width)
 
 
-def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
-                        ranges: tuple[np.ndarray, np.ndarray], *, n: int = N_PARTICLES, level: float = 0.95,
-                        seed: int = 0) -> dict[str, Any]:
-    """The policy's ``horizon``-step discounted cost under ``model`` and its bounds (module
-    docstring).
-
-    Parameters
-    ----------
-    model : LoggedDynamics
-        Or any object with ``start_states_``, ``radius_`` (and optionally
-        ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a
-        ``StepResult``) and ``in_data(states, radius)`` (bool per state).
-    policy : Policy
-    horizon : int
-    gamma : float
-    ranges : (ndarray, ndarray)
-        ``lo[L], hi[L]`` for ``L = 0 .. horizon`` remaining steps (:func:`remainder_ranges`).
-    n : int
-        Particles.
-    level : float
-        Level of the Monte-Carlo interval around the bounds.
-    seed : int
-
-    Returns
-    -------
-    dict
-        ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
-        (share of the discounted survival mass at or after leaving the data), ``exit_share``
-        (the expected share of episodes that leave the data before they end: the mean
-        survival probability at leaving), ``n_particles``, ``radius`` (support),
-        ``trust_radius`` (the bounds') and ``support_quantile``.
-    """
-    from scipy.stats import norm
-
+def _checked_ranges(n: int, horizon: int, level: float,
+                    ranges: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """``ranges`` as float arrays over ``0 .. horizon`` remaining steps, after checking
+    :func:`model_rollout_value`'s arguments."""
     if n < 2 or horizon < 1 or not 0 < level < 1:
         raise InvalidArgumentError(f"model rollouts need at least 2 particles, a horizon >= 1 and a level in (0, 1); "
                                    f"got n={n}, horizon={horizon}, level={level}")
@@ -385,6 +355,43 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     if lo_r.shape != (horizon + 1,) or hi_r.shape != (horizon + 1,):
         raise InvalidArgumentError(f"ranges must be two arrays over 0 .. {horizon} remaining steps "
                                    f"(remainder_ranges), got shapes {lo_r.shape} and {hi_r.shape}")
+    return lo_r, hi_r
+
+
+def _bounds_summary(value: np.ndarray, lower: np.ndarray, upper: np.ndarray, level: float) -> dict[str, Any]:
+    """Means over the particles of their value and bounds, and the interval
+    ``[mean(lower) - z se(lower), mean(upper) + z se(upper)]`` (``z`` the normal quantile at
+    ``level``) around the bounds."""
+    from scipy.stats import norm
+
+    n = len(value)
+    z = float(norm.ppf(0.5 + level / 2))
+
+    def se(v: np.ndarray) -> float:
+        return float(v.std(ddof=1) / np.sqrt(n))
+
+    return {"estimate": float(value.mean()), "lower": float(lower.mean()), "upper": float(upper.mean()),
+            "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))]}
+
+
+def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
+                        ranges: tuple[np.ndarray, np.ndarray], *, n: int = N_PARTICLES, level: float = 0.95,
+                        seed: int = 0) -> dict[str, Any]:
+    """The policy's ``horizon``-step discounted cost under ``model`` and its bounds (module docstring).
+
+    ``model``: a :class:`LoggedDynamics`, or any object with ``start_states_``, ``radius_``
+    (and optionally ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a
+    ``StepResult``) and ``in_data(states, radius)`` (bool per state). ``ranges``: ``lo[L],
+    hi[L]`` for ``L = 0 .. horizon`` remaining steps (:func:`remainder_ranges`). ``n``
+    particles; ``level`` of the Monte-Carlo interval around the bounds.
+
+    Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
+    (share of the discounted survival mass at or after leaving the data), ``exit_share``
+    (the expected share of episodes that leave the data before they end: the mean
+    survival probability at leaving), ``n_particles``, ``radius`` (support),
+    ``trust_radius`` (the bounds') and ``support_quantile``.
+    """
+    lo_r, hi_r = _checked_ranges(n, horizon, level, ranges)
     rng = np.random.default_rng([seed, 7])
     starts = model.start_states_
     x = starts[rng.integers(0, len(starts), n)].astype(np.float64)
@@ -423,14 +430,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         mass_out += np.where(inside, 0.0, w)
         alive = alive * (1.0 - r.terminated)
         x = r.next_states
-    lower, upper = kept + lo_tail, kept + hi_tail
-    z = float(norm.ppf(0.5 + level / 2))
-
-    def se(v: np.ndarray) -> float:
-        return float(v.std(ddof=1) / np.sqrt(n))
-
-    return {"estimate": float(value.mean()), "lower": float(lower.mean()), "upper": float(upper.mean()),
-            "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))],
+    return {**_bounds_summary(value, kept + lo_tail, kept + hi_tail, level),
             "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
             "exit_share": float(alive_at_exit.mean()), "n_particles": int(n), "radius": float(model.radius_),
             "trust_radius": trust, "support_quantile": SUPPORT_QUANTILE}
@@ -457,28 +457,3 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
                       "each particle's remaining steps valued at the ends of the logged costs' range once it is "
                       "farther from the logged states than they are from each other"}
-
-
-def widen_fqe(fq: Any, mr: dict[str, Any], hull: bool = True) -> None:
-    """Widen FQE's interval (an ``ope.OPEResult``) to the hull of it and the model
-    rollouts' interval, and say where the two readings part: the interval then holds
-    the value if either reading is right, and a verdict drawn from it needs both.
-    ``hull=False``: record the rollouts and their drift warning only (FQE's interval is of
-    another quantity)."""
-    fq.model_rollouts = mr
-    if "skipped" in mr:
-        return
-    if mr["exit_mass"] >= EXIT_FRACTION:
-        fq.warnings.append(f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} of its discounted "
-                           f"model-rollout mass lies past the logged states (an expected {mr['exit_share']:.0%} of "
-                           "its episodes get there)")
-    lo_m, hi_m = mr["interval"]
-    before = fq.widen(lo_m, hi_m, f"widened to the model rollouts' bounds [{lo_m:.4g}, {hi_m:.4g}] (a model of the "
-                      "logged increments rolled out, valued at the cost range's ends where it leaves the data)") \
-        if hull else None
-    if before is None:
-        return
-    lo_i, hi_i = before
-    if not lo_i <= mr["estimate"] <= hi_i:
-        fq.warnings.append(f"model rollouts of the logs read {mr['estimate']:.4g}, outside FQE's interval "
-                           f"[{lo_i:.4g}, {hi_i:.4g}]: the two readings disagree and the interval holds both")

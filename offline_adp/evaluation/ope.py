@@ -16,17 +16,18 @@ Notation: episode i, step t, cost c_t, discount gamma, per-step ratio
 - **WDR** (Thomas & Brunskill 2016): DR with ``R_t`` replaced by ``R_t / mean_i R_t``.
 - **MIS** (marginalised IS): ``sum_t gamma^t (1/N) sum_{i at t} w_t(x_i) rho_i c_i`` with
   the state density ratios ``w_t`` of :mod:`offline_adp.evaluation.shift`.
-- **FQE**: the mean over start states of ``V^(x_0)`` (the default estimate).
 
 Intervals are trajectory-bootstrap percentile intervals: episodes resampled with
-replacement. For the ratio-based estimators the fitted pieces (behaviour model, Q^,
-ratios w_t) are held fixed across replicates; FQE is refitted on each replicate.
+replacement; the fitted pieces (behaviour model, Q^, ratios w_t) are held fixed across
+replicates. FQE's own value and interval (the default estimate, the mean over start
+states of ``V^(x_0)``, bootstrapped through FQE itself) are in
+:mod:`offline_adp.evaluation.fqe_interval`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -64,20 +65,20 @@ class OPEResult:
     comparable: bool = True
     degenerate: bool = False
     weight_diagnostics: dict[str, Any] | None = None  #: the weights' shape (:func:`weight_diagnostics`)
-    #: FQE only: the support bounds the interval was widened to (``offpolicy.fqe_support_bounds``).
+    #: FQE only: the support bounds the interval was widened to (``fqe_interval.fqe_support_bounds``).
     support_bounds: dict[str, Any] | None = None
-    #: FQE only: the model rollouts the interval was widened to (``model_rollouts.widen_fqe``).
+    #: FQE only: the model rollouts the interval was widened to (``fqe_interval.widen_fqe``).
     model_rollouts: dict[str, Any] | None = None
 
-    def widen(self, lo: float, hi: float, why: str) -> tuple[float, float] | None:
-        """Widen the interval to the hull of it and ``[lo, hi]`` and append ``why`` to its
-        method; the interval before, or None (nothing done) when either is not finite."""
+    def widened(self, lo: float, hi: float, why: str) -> tuple[OPEResult, tuple[float, float] | None]:
+        """This result with its interval widened to the hull of it and ``[lo, hi]`` and ``why``
+        appended to its method, and the interval before; ``(self, None)`` (nothing done) when
+        either is not finite."""
         if not (np.all(np.isfinite(self.interval)) and np.isfinite(lo) and np.isfinite(hi)):
-            return None
+            return self, None
         before = (float(self.interval[0]), float(self.interval[1]))
-        self.interval = (min(before[0], lo), max(before[1], hi))
-        self.interval_method += "; " + why
-        return before
+        return replace(self, interval=(min(before[0], lo), max(before[1], hi)),
+                       interval_method=self.interval_method + "; " + why), before
 
     def as_dict(self) -> dict[str, Any]:
         d = {"estimate": self.estimate, "interval": list(self.interval), "interval_method": self.interval_method,
@@ -363,14 +364,6 @@ def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None
             r.warnings.append("no interval: " + "; ".join(why))
 
 
-def check_interval(r: OPEResult) -> None:
-    """Warn when an interval excludes its own estimate (a shifted bootstrap)."""
-    lo, hi = r.interval
-    if np.isfinite(lo) and np.isfinite(hi) and np.isfinite(r.estimate) and not lo <= r.estimate <= hi:
-        r.warnings.append(f"the interval [{lo:.4g}, {hi:.4g}] excludes the estimate {r.estimate:.4g}: the bootstrap "
-                          "replicates are shifted; treat the interval as unreliable")
-
-
 def marginalised_is_estimate(
     em: EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, w_state: np.ndarray, gamma: float, *, n_boot: int = 200,
     level: float = 0.95, seed: int = 0, groups: np.ndarray | None = None,
@@ -398,68 +391,13 @@ def bootstrap_counts(n_episodes: int, n_boot: int, seed: int = 0) -> list[np.nda
             for _ in range(n_boot)]
 
 
-def fqe_interval(est: float, reps: Sequence[float], n_episodes: int, level: float = 0.95) -> OPEResult:
-    """FQE's value ``est`` with the interval from its bootstrap replicates ``reps``.
-
-    The estimate is the plug-in ``est``, never moved. The interval is the percentile
-    interval ``[q_lo, q_hi]`` of the replicates when they are centred on the estimate.
-    When their mean is shifted from it by more than a quarter of the percentile width
-    (about one bootstrap standard error), resampling has changed the regression (a tree
-    fit on ~63% distinct episodes is coarser), and the shift is a bias of unknown sign for
-    the estimate: the percentile interval reads it one way, the *basic* bootstrap interval
-    ``[2 est - q_hi, 2 est - q_lo]`` (Efron & Tibshirani 1993, 13.4) the other. The interval
-    is then the hull of the two, which holds the estimate and both readings.
-
-    Until 2026-11 the shift was subtracted from the estimate (a bias correction). On
-    continuous problems it fired 6 times and moved an accurate plug-in away from the
-    rollout truth 4 times (path_tracking 3.623 -> 3.279 against 3.610; car_on_the_hill
-    -0.390 -> -0.577 against -0.397), so it is gone.
-    """
-    if not len(reps):
-        res = OPEResult("fqe", est, (np.nan, np.nan), float(n_episodes), None)
-        res.interval_method = "none (no bootstrap replicates)"
-        return res
-    q_lo, q_hi = float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
-    shift = float(np.mean(reps)) - est
-    if abs(shift) > 0.25 * (q_hi - q_lo):
-        res = OPEResult("fqe", est, (min(q_lo, 2 * est - q_hi), max(q_hi, 2 * est - q_lo)), float(n_episodes), level)
-        res.interval_method = "hull of the percentile and basic bootstrap intervals"
-        res.warnings.append(f"bootstrap replicates are shifted by {shift:+.4g} from the estimate {est:.4g} "
-                            "(resampling changes the regression): the interval covers both the percentile and the "
-                            "basic bootstrap reading of that shift")
-    else:
-        res = OPEResult("fqe", est, (q_lo, q_hi), float(n_episodes), level)
-    res.percentile_interval = (q_lo, q_hi)
-    check_interval(res)
-    return res
-
-
-def fqe_estimate(
-    fit: Callable[[np.ndarray | None], float], n_episodes: int, *, n_boot: int = 20, level: float = 0.95, seed: int = 0,
-    on_replicate: Callable[[int], None] | None = None,
-) -> OPEResult:
-    """FQE's value with a trajectory-bootstrap interval, run here.
-
-    ``fit(episode_counts)`` refits FQE with each episode weighted by how often the
-    replicate drew it (``None``: the original data) and returns the value estimate; see
-    :func:`fqe_interval` for the interval. (``off_policy`` runs the replicates through a
-    task map instead, so they can go to Dask workers.)
-    """
-    est = fit(None)
-    reps = []
-    for b, counts in enumerate(bootstrap_counts(n_episodes, n_boot, seed)):
-        reps.append(fit(counts))
-        if on_replicate:
-            on_replicate(b)
-    return fqe_interval(est, reps, n_episodes, level)
-
-
-def flag_against(results: dict[str, OPEResult], reference: str = "fqe") -> None:
-    """Add a warning to every estimate that falls outside the reference's interval."""
+def flagged_against(results: dict[str, OPEResult], reference: str = "fqe") -> dict[str, OPEResult]:
+    """The results, each comparable estimate that falls outside the reference's interval
+    with a warning saying so."""
     ref = results.get(reference)
     if ref is None or not np.all(np.isfinite(ref.interval)):
-        return
+        return dict(results)
     lo, hi = ref.interval
-    for name, r in results.items():
-        if name != reference and r.comparable and np.isfinite(r.estimate) and not lo <= r.estimate <= hi:
-            r.warnings.append(f"outside the {reference.upper()} interval [{lo:.4g}, {hi:.4g}]")
+    return {name: replace(r, warnings=[*r.warnings, f"outside the {reference.upper()} interval [{lo:.4g}, {hi:.4g}]"])
+            if name != reference and r.comparable and np.isfinite(r.estimate) and not lo <= r.estimate <= hi else r
+            for name, r in results.items()}
