@@ -187,9 +187,8 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     ax.set_xlabel(f"expected discounted cost over {est.get('horizon', m.get('horizon'))} steps "
                   f"(gamma = {est.get('gamma', m.get('gamma')):g}; lower is better)")
     levels = sorted({f"{e['level']:.0%}" for e in shown if e["interval"] and e.get("level")})
-    lvl = "/".join(levels) if levels else "no"
-    ax.set_title(f"Off-policy estimates (blue: with a {lvl} interval; grey: no level, dashed, or withheld)",
-                 fontsize=10)
+    blue = f"blue: with a {'/'.join(levels)} interval; " if levels else ""
+    ax.set_title(f"Off-policy estimates ({blue}grey: interval without a level, dashed, or withheld)", fontsize=10)
     if truth is not None or demo is not None or beh is not None:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(axis="x", alpha=0.3)

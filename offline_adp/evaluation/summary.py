@@ -597,7 +597,8 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         outside = lo is not None and hi is not None and not lo - tol <= top["estimate"] <= hi + tol
         label = level_words(top)
         lines.append(f"off-policy ({top['name'].upper()}, most reliable): {_f(top['estimate'])} [{_f(lo)}, {_f(hi)}] "
-                     f"({label}" + (f": {top['level_note']}" if top.get("level_note") and b is None else "") + ")"
+                     f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None else "")
+                     + ")"
                      + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
                         "interval as unreliable)" if outside else "")
                      + (f" (bias-corrected by the bootstrap; plug-in {_f(top['plugin_estimate'])})"
