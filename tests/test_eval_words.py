@@ -219,6 +219,7 @@ def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
 def test_compare_shows_the_demonstrator_and_levels_as_they_are(tmp_path):
     cands = [_cand("a", 1, 3.0, [2.0, 4.0], outcome="better"), _cand("b", 2, 9.0, [1.0, 19.0], level=None)]
     cands[1]["support_left"] = True
+    cands[1]["discount_note"] = "the policy was fitted with gamma 0.8, the evaluation uses gamma 0.95 (the dataset's)"
     res = {"dataset": {"path": "/tmp/ds", "fingerprint": "f"}, "estimator": "fqe", "estimand": "expected cost",
            "method": "ranked", "behaviour": {"mean": 12.0}, "candidates": cands, "separation": separation(cands),
            "top_pick": None, "cannot_separate": [],
@@ -230,6 +231,7 @@ def test_compare_shows_the_demonstrator_and_levels_as_they_are(tmp_path):
     assert "cannot separate a and b: b has no interval with a level" in page
     lines = compare_lines(res)
     assert any(ln.startswith("demonstrator (path_tracking simulator): 5.000, failures 0") for ln in lines)
+    assert any(ln.startswith("b: the policy was fitted with gamma 0.8") for ln in lines) and "Discount (b)" in page
 
 
 def test_verdict_rules_still_claim_with_a_level():

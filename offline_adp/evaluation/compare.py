@@ -35,6 +35,7 @@ from offline_adp.errors import (
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.evaluation.summary import (
     ESTIMATOR_NAMES,
+    discount_note,
     headline,
     level_words,
     outcome_of,
@@ -172,6 +173,7 @@ def compare_runs(
                      "reliability": pick["tier_label"] if pick else "no reliable estimate",
                      "outcome": h["verdict"].get("outcome") or outcome_of(h["verdict"].get("performance"), fit),
                      "fit": _FIT_WORDS.get(fit, fit or "unknown"),
+                     "discount_note": h.get("discount_note") or discount_note(m),
                      "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
                      "convergence": h["convergence"]["text"], "truth": truth,
                      "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
@@ -290,6 +292,9 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
         sup = "LEFT support" if c["support_left"] else "in support"
         lines.append(f"{c['rank'] if c['rank'] else '-':>4}  {c['name'][:24]:24s} {est:>9s}  {ivs:32s} {tr:>8s}  "
                      f"{c.get('outcome') or '?':13s} {c.get('fit') or '?':16s} {sup}; {c['shift']}")
+    for c in res["candidates"]:
+        if c.get("discount_note"):
+            lines.append(f"{c['name']}: {c['discount_note']}")
     s = res.get("selection")
     if s:
         lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; regret of the top "

@@ -217,6 +217,9 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
         kv("Against the simulator", "no simulator truth for every candidate: the ranking is not scored")
     if res.get("note"):
         kv("Note", html.escape(res["note"]))
+    for c in cands:
+        if c.get("discount_note"):
+            kv(f"Discount ({c['name']})", html.escape(c["discount_note"]))
     box.append("</table></section>")
     parts += box
     parts += ["<h2>Figures</h2>", *figure_html(figs, folder=None)]
@@ -246,7 +249,8 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
     parts.append("<h2>Verdict and fit per candidate</h2>")
     for r in rows:
         parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(_relative(r['run'], base))})</small></h3>"
-                     f"{r['verdict_html']}<p><small>{html.escape(r.get('convergence') or '')}</small></p>")
+                     f"{r['verdict_html']}<p><small>{html.escape(r.get('convergence') or '')}</small></p>"
+                     + (f"<p><b>Discount: {html.escape(r['discount_note'])}</b></p>" if r.get("discount_note") else ""))
     risk = _risk_rows(res)
     alpha = next((c["cost_distribution"]["alpha"] for c in cands if c.get("cost_distribution")), 0.1)
     if any(len(r) > 1 for r in risk):
