@@ -124,7 +124,7 @@ def test_compare_report_shows_what_the_comparison_says(tmp_path):
                                               "cost_distribution": _dist(9.0, 14.0)},
            "candidates": [
                _candidate("good", 1, 3.0, [2.5, 3.5], 3.1, False, "better", "converged", {**_dist(3.0, 4.0), "usable": True}),
-               _candidate("doubt", 2, 4.0, [3.0, 5.0], 4.2, True, "better", "converged",
+               _candidate("doubt", 2, 4.0, [3.0, 5.0], 4.2, True, "unknown", "converged",
                           {"usable": False, "reason": "effective sample size 1.2 of 40 episodes"}),
                _candidate("bad", 3, 12.0, [11.0, 13.0], 12.5, False, "worse", "still changing", None)],
            "selection": {"spearman": 1.0, "kendall": 1.0, "regret_top1": 0.0, "relative_regret_top1": 0.0,
@@ -137,7 +137,8 @@ def test_compare_report_shows_what_the_comparison_says(tmp_path):
         assert base64.b64decode(data)[:8] == b"\x89PNG\r\n\x1a\n"
     assert page.index("1. good") < page.index("2. doubt") < page.index("3. bad")
     assert "<b>good</b>: 3" in page and "9 [8.5, 9.5] over 40 episodes" in page and "Spearman 1.00" in page
-    colour = {name.lower(): cls for cls, name in re.findall(r"<div class='verdict (good|meh|bad)'>(\w+) verdict</div>", page)}
+    colour = {name.lower(): cls for cls, name in re.findall(
+        r"<div class='verdict (good|meh|bad|stale)'><span class='outcome \w+'>[a-z ]+</span>(\w+) verdict</div>", page)}
     assert colour == {"good": "good", "doubt": "meh", "bad": "bad"}
     assert "cannot tell from these logs: effective sample size 1.2" in page and "LEFT the data" in page
     assert "CVaR_0.1 (simulator)" in page and "None" not in re.sub(r"<img[^>]*>", "", page)

@@ -39,7 +39,7 @@ def test_fqe_over_commands_reads_the_closed_form_and_claims_no_level(lq):
     assert fq["estimate"] == pytest.approx(truth, rel=0.12)
     assert fq["level"] is None and np.isfinite(fq["interval"]).all()  # shown, never labelled
     assert m["estimand"]["fqe_form"] == "stationary"
-    assert any("importance" in w for w in m["warnings"]) and "model rollouts of the logs" in m["not_usable"]
+    assert any("importance" in w["message"] for w in m["warnings"]) and "model rollouts of the logs" in m["not_usable"]
     best = m["headline"]["best"]
     assert best is None  # an interval without a level is never the headline's interval
     assert "cannot tell" in m["headline"]["verdict"]["text"]

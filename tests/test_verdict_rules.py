@@ -93,15 +93,20 @@ def test_equal_up_to_rounding_is_not_a_side():
     assert _v(m)["performance"] == "indistinguishable"
 
 
-def test_the_report_colour_follows_the_weakest_clause():
+def test_the_report_colour_is_the_outcome_words():
+    """One colour per outcome word (issue #42: every box was the same beige): better green,
+    worse red, cannot tell amber, not converged purple. A side with support left can only be
+    the simulator's (the logs claim none then), so it is painted as the side it says; a fit
+    that did not converge has its own colour unless the policy is worse anyway."""
     from offline_adp.evaluation.report import verdict_colour
 
     conv, stale = {"verdict": "converged"}, {"verdict": "still changing"}
     assert verdict_colour({"performance": "better", "support_left": False}, conv) == "good"
-    assert verdict_colour({"performance": "better", "support_left": True}, conv) == "meh"
-    assert verdict_colour({"performance": "better", "support_left": False}, stale) == "meh"
+    assert verdict_colour({"performance": "better", "support_left": True}, conv) == "good"
+    assert verdict_colour({"performance": "better", "support_left": False}, stale) == "stale"
     assert verdict_colour({"performance": "unknown", "support_left": False}, conv) == "meh"
     assert verdict_colour({"performance": "worse", "support_left": True}, stale) == "bad"
+    assert verdict_colour({"performance": "better", "against_demonstrator": "worse"}, conv) == "bad"
 
 
 def test_thin_logs_show_support_through_actions_and_model_rollouts():

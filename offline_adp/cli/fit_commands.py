@@ -103,6 +103,14 @@ def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None
     return lines
 
 
+def _colour() -> bool:
+    """Colour the verdict's outcome word: on a terminal, unless NO_COLOR is set."""
+    import os
+    import sys
+
+    return bool(getattr(sys.stdout, "isatty", lambda: False)()) and not os.environ.get("NO_COLOR")
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from offline_adp.evaluation.run import evaluate_run
     from offline_adp.evaluation.summary import summary_lines
@@ -113,7 +121,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from offline_adp.evaluation.settings import EvaluationSettings
 
     m = evaluate_run(args.run, settings=EvaluationSettings.of_arguments(args), dataset=args.dataset, progress=say)
-    for line in summary_lines(m):
+    for line in summary_lines(m, colour=_colour()):
         print(line)
     print(f"{args.run}/evaluation/metrics.json")
     return 0
@@ -149,7 +157,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if (run / "metrics.json").exists():
         from offline_adp.evaluation.summary import read_metrics, summary_lines
 
-        for line in summary_lines(read_metrics(run / "metrics.json")):
+        for line in summary_lines(read_metrics(run / "metrics.json"), colour=_colour()):
             print(line)
     print(run / "report.html" if (run / "report.html").exists() else run)
     return 0

@@ -33,7 +33,16 @@ from offline_adp.errors import (
     WriteError,
 )
 from offline_adp.evaluation.settings import EvaluationSettings
-from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline, rank_estimators, read_metrics
+from offline_adp.evaluation.summary import (
+    ESTIMATOR_NAMES,
+    discount_note,
+    headline,
+    level_words,
+    outcome_of,
+    rank_estimators,
+    read_metrics,
+    withdraw_levels,
+)
 
 
 def _metrics(run: Path) -> dict[str, Any] | None:
@@ -138,7 +147,7 @@ def compare_runs(
     if len(estimands) > 1:
         raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "
                               "re-run with the same --horizon, or pass force")
-    rankings = [rank_estimators(m) for m in metrics]
+    rankings = [rank_estimators(withdraw_levels(m)) for m in metrics]  # a level only where it holds
     if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
         for max_tier in (0, 1):
             common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
@@ -150,12 +159,21 @@ def compare_runs(
     for r, m, rk in zip(runs, metrics, rankings, strict=True):
         pick = next((e for e in rk if e["name"] == estimator), None) if estimator else next(
             (e for e in rk if e["tier"] <= 1), None)
-        h = m.get("headline") or headline(m, r)
+        h = m.get("headline")
+        if not h or "outcome" not in h:  # written before the outcome word
+            h = headline(m, r)
         truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
+        shown = (pick["interval"] or pick.get("shown_interval")) if pick else None
+        fit = h["convergence"].get("verdict")
         rows.append({"run": str(r), "name": r.name if r.name != "fit" else r.parent.name,
                      "algorithm": m.get("algorithm"), "estimator": pick["name"] if pick else None,
-                     "estimate": pick["estimate"] if pick else None, "interval": pick["interval"] if pick else None,
+                     "estimate": pick["estimate"] if pick else None, "interval": shown,
+                     "level": pick["level"] if pick and pick["interval"] else None,
+                     "level_words": level_words(pick) if shown else None,
                      "reliability": pick["tier_label"] if pick else "no reliable estimate",
+                     "outcome": h["verdict"].get("outcome") or outcome_of(h["verdict"].get("performance"), fit),
+                     "fit": _FIT_WORDS.get(fit, fit or "unknown"),
+                     "discount_note": h.get("discount_note") or discount_note(m),
                      "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
                      "convergence": h["convergence"]["text"], "truth": truth,
                      "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
@@ -176,8 +194,53 @@ def compare_runs(
                                      "(lower cost first)"}
     if estimator is None:
         out["note"] = "no estimator is reliable for every candidate: each is ranked by its own most reliable one"
+    out["separation"] = separation(usable)
+    top = usable[0] if usable else None
+    if top is not None and all(p["separated"] for p in out["separation"] if top["name"] in (p["a"], p["b"])):
+        out["top_pick"] = top["name"]
+    else:
+        out["top_pick"] = None
+        out["cannot_separate"] = [p["text"] for p in out["separation"]
+                                  if not p["separated"] and top is not None and top["name"] in (p["a"], p["b"])]
+    demo = (metrics[0].get("rollout") or {}).get("demonstrator")
+    if isinstance(demo, dict) and demo.get("mean_discounted_cost") is not None:
+        out["demonstrator"] = {"mean": demo["mean_discounted_cost"], "interval": demo.get("interval"),
+                               "failures": demo.get("failures"), "simulator": metrics[0].get("simulator"),
+                               "n_episodes": demo.get("n_episodes")}
     if len(usable) >= 2 and all(x["truth"] is not None for x in usable):
         out["selection"] = selection_scores([x["estimate"] for x in usable], [x["truth"] for x in usable])
+    return out
+
+
+#: How the comparison words a fit's verdict in its convergence column.
+_FIT_WORDS = {"converged": "converged", "still changing": "did NOT converge", "not converged": "did NOT converge",
+              "diverging": "DIVERGED", "diverged": "DIVERGED", "finite horizon": "finite horizon (exact)",
+              "completed": "completed"}
+
+
+def separation(cands: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Can the logs tell the candidates apart? Pairwise, from their intervals: two candidates
+    are separated only when both intervals have a level and do not overlap (for two
+    independent 95% intervals a conservative test of the difference); an interval without a
+    level, or none, separates nothing. One entry per pair, in rank order, with its words."""
+    out = []
+    for i, a in enumerate(cands):
+        for b in cands[i + 1:]:
+            ia, ib = a.get("interval"), b.get("interval")
+            both = bool(ia and ib and a.get("level") is not None and b.get("level") is not None)
+            sep = both and (ia[1] < ib[0] or ib[1] < ia[0])
+            if sep:
+                text = (f"the logs separate {a['name']} from {b['name']}: their {a['level']:.0%} intervals "
+                        f"[{ia[0]:.4g}, {ia[1]:.4g}] and [{ib[0]:.4g}, {ib[1]:.4g}] do not overlap")
+            elif both:
+                text = (f"the logs cannot separate {a['name']} and {b['name']}: their intervals [{ia[0]:.4g}, "
+                        f"{ia[1]:.4g}] and [{ib[0]:.4g}, {ib[1]:.4g}] overlap")
+            else:
+                missing = [c["name"] for c in (a, b) if not (c.get("interval") and c.get("level") is not None)]
+                text = (f"the logs cannot separate {a['name']} and {b['name']}: {' and '.join(missing)} "
+                        f"{'has' if len(missing) == 1 else 'have'} no interval with a level")
+            out.append({"a": a["name"], "b": b["name"], "separated": bool(sep), "text": text,
+                        "method": "overlap of the candidates' intervals (both with a level)"})
     return out
 
 
@@ -211,15 +274,27 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
              f"({res['estimand']}; lower cost is better)"]
     if res.get("note"):
         lines.append(res["note"])
-    lines.append(f"{'rank':>4}  {'candidate':24s} {'estimate':>9s}  {'95% interval':21s} {'truth':>8s}  shift / support")
+    if res.get("top_pick"):
+        lines.append(f"top pick: {res['top_pick']} (the logs separate it from every other candidate)")
+    elif "top_pick" in res:
+        lines.append("no top pick: " + "; ".join(res.get("cannot_separate") or ["no candidate has an estimate"]))
+    d = res.get("demonstrator")
+    if d:
+        lines.append(f"demonstrator ({d.get('simulator')} simulator): {d['mean']:.3f}"
+                     + (f", failures {d['failures']}" if d.get("failures") is not None else ""))
+    lines.append(f"{'rank':>4}  {'candidate':24s} {'estimate':>9s}  {'interval (level)':32s} {'truth':>8s}  "
+                 f"{'verdict':13s} {'fit':16s} shift / support")
     for c in res["candidates"]:
         iv = c["interval"]
-        ivs = f"[{iv[0]:.3f}, {iv[1]:.3f}]" if iv else "none"
+        ivs = f"[{iv[0]:.3f}, {iv[1]:.3f}] ({c.get('level_words') or 'no level'})" if iv else "none"
         est = f"{c['estimate']:.3f}" if c["estimate"] is not None else "n/a"
         tr = f"{c['truth']:.3f}" if c["truth"] is not None else "-"
         sup = "LEFT support" if c["support_left"] else "in support"
-        lines.append(f"{c['rank'] if c['rank'] else '-':>4}  {c['name'][:24]:24s} {est:>9s}  {ivs:21s} {tr:>8s}  "
-                     f"{sup}; {c['shift']}")
+        lines.append(f"{c['rank'] if c['rank'] else '-':>4}  {c['name'][:24]:24s} {est:>9s}  {ivs:32s} {tr:>8s}  "
+                     f"{c.get('outcome') or '?':13s} {c.get('fit') or '?':16s} {sup}; {c['shift']}")
+    for c in res["candidates"]:
+        if c.get("discount_note"):
+            lines.append(f"{c['name']}: {c['discount_note']}")
     s = res.get("selection")
     if s:
         lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; regret of the top "

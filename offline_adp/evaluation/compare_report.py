@@ -10,6 +10,7 @@ style, tables and figure embedding are :mod:`offline_adp.evaluation.report`'s.
 from __future__ import annotations
 
 import html
+import os
 import tempfile
 from os import PathLike
 from pathlib import Path
@@ -23,14 +24,16 @@ from offline_adp.evaluation.report import (
     figure_html,
     page,
     table_html,
-    verdict_colour,
+    verdict_html,
 )
+from offline_adp.evaluation.summary import OUTCOME_COLOUR
 
 #: Column labels of the comparison's tables.
 LABELS = {"name": "candidate", "algorithm": "algorithm", "estimator": "ranked by", "truth": "simulator truth",
           "truth_interval": "truth 95% interval", "reliability": "reliability", "support": "support",
           "shift": "shift diagnostic", "convergence": "fit", "verdict": "verdict", "mean": "mean",
-          "cvar": "CVaR", "source": "distribution from", "note": "note"}
+          "cvar": "CVaR", "source": "distribution from", "note": "note", "interval_words": "interval (its level)",
+          "outcome_html": "verdict", "fit": "fit converged?"}
 
 
 def _label(c: dict[str, Any]) -> str:
@@ -47,6 +50,9 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
                                       + list(c.get("truth_interval") or [])) if v is not None and np.isfinite(v)]
     if beh is not None:
         pts.append(beh)
+    d_mean = (res.get("demonstrator") or {}).get("mean")
+    if d_mean is not None and np.isfinite(d_mean):
+        pts.append(d_mean)
     if not pts:
         return
     lo, hi = min(pts), max(pts)
@@ -61,32 +67,55 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
         seen.add(s)
         return s
 
+    drawn_truth = drawn_demo = drawn_nolevel = False
+    levels: set[str] = set()
     for yi, c in zip(y, cands, strict=True):
-        left = bool(c.get("support_left"))
-        col = "#d62728" if left else "#1f77b4"
-        if c["interval"]:
+        out = c.get("outcome") or "cannot tell"
+        col = OUTCOME_COLOUR.get(out, "#888888")
+        if c["interval"] and c.get("level") is not None:
+            levels.add(f"{c['level']:.0%}")
             ax.plot(c["interval"], [yi, yi], color=col, lw=3, alpha=0.8, solid_capstyle="butt",
-                    label=lab("estimate, 95% interval (left the data's support)" if left else "estimate, 95% interval"))
+                    label=lab(f"{out}: estimate, {c['level']:.0%} interval"))
+        elif c["interval"]:  # shown, without a level: thin and dashed
+            drawn_nolevel = True
+            ax.plot(c["interval"], [yi, yi], color=col, lw=1.5, ls="--",
+                    label=lab(f"{out}: estimate, interval without a level (dashed)"))
         if c["estimate"] is not None and np.isfinite(c["estimate"]):
-            ax.plot([c["estimate"]], [yi], "o", color=col, ms=7, label=None if c["interval"] else lab("estimate, no interval"))
+            ax.plot([c["estimate"]], [yi], "o", color=col, ms=7,
+                    label=None if c["interval"] else lab(f"{out}: estimate, no interval"))
         if c["truth"] is not None:
+            drawn_truth = True
             ti = c.get("truth_interval")
             if ti:
                 ax.plot(ti, [yi - 0.25, yi - 0.25], color="k", lw=1.2)
             ax.plot([c["truth"]], [yi - 0.25], "kx", ms=7, label=lab("simulator truth (95% interval)"))
     if beh is not None:
         ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    demo = (res.get("demonstrator") or {}).get("mean")
+    if demo is not None and np.isfinite(demo):
+        drawn_demo = True
+        ax.axvline(demo, color="#17becf", ls=":", lw=1.5, label="demonstrator: simulator")
     ax.set_yticks(y, [_label(c) for c in cands], fontsize=9)
     ax.set_ylim(-0.7, len(cands) - 0.4)
-    ax.set_xlim(lo - pad, hi + pad)
+    ax.set_xlim(min(lo, demo if drawn_demo else lo) - pad, max(hi, demo if drawn_demo else hi) + pad)
     ax.set_xlabel(f"{res.get('estimand') or 'expected discounted cost'} (lower is better)", fontsize=9)
-    ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (best first)", fontsize=10)
+    ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (lowest estimate first)", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(axis="x", alpha=0.3)
-    figs.save(fig, "ranking", "The candidates ranked by their off-policy estimate (top: lowest estimated cost) with its "
-              "95% interval; red: the candidate left the data's support (its interval is not a 95% interval there); "
-              "black crosses: the simulator truth where a simulator was used; dash-dotted: the behaviour's logged "
-              "cost.")
+    caption = ("The candidates in the order of their off-policy estimate (top: lowest estimated cost), each in the "
+               "colour of its verdict (green better, red worse, amber cannot tell, purple fit not converged)")
+    if levels:
+        caption += f", with its {'/'.join(sorted(levels))} interval"
+    if drawn_nolevel:
+        caption += "; dashed: an interval without a level (the policy left the data's support, or its coverage was "\
+                   "not measured)"
+    if drawn_truth:
+        caption += "; black crosses: the simulator truth with its 95% interval"
+    if drawn_demo:
+        caption += "; dotted: the demonstrator in the simulator"
+    if beh is not None:
+        caption += "; dash-dotted: the behaviour's logged cost"
+    figs.save(fig, "ranking", caption + ".")
 
 
 def _distributions(figs: Figures, res: dict[str, Any]) -> None:
@@ -129,14 +158,24 @@ def _risk_rows(res: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def compare_html(res: dict[str, Any], figs: Figures) -> str:
+def _relative(path: str, base: Path | None) -> str:
+    """``path`` relative to the report's folder ``base`` (as it is when the report moves with its runs)."""
+    if base is None or not path:
+        return path
+    try:
+        return os.path.relpath(Path(path).resolve(), base.resolve())
+    except ValueError:  # another drive
+        return path
+
+
+def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -> str:
     """The comparison page for ``res`` (from :func:`~offline_adp.evaluation.compare.compare_runs`)
-    with the figures already saved in ``figs``."""
+    with the figures already saved in ``figs``; paths relative to ``base`` (the report's folder)."""
     cands = res["candidates"]
     sel = res.get("selection")
     beh = res.get("behaviour") or {}
     parts = ["<h1>Comparison of candidate policies</h1>",
-             f"<p class='sub'>{len(cands)} candidates on {html.escape(res['dataset']['path'])}, ranked by "
+             f"<p class='sub'>{len(cands)} candidates on {html.escape(_relative(res['dataset']['path'], base))}, ranked by "
              f"{html.escape(res['estimator'].upper())}: {html.escape(res.get('method', ''))}. Estimand: "
              f"{html.escape(str(res.get('estimand')))}. Costs are minimised: lower is better.</p>"]
     box = ["<section class='summary'><h2>Summary</h2><table class='kv'>"]
@@ -145,12 +184,26 @@ def compare_html(res: dict[str, Any], figs: Figures) -> str:
         box.append(f"<tr><th>{html.escape(k)}</th><td>{v}</td></tr>")
 
     top = next((c for c in cands if c.get("rank") == 1), None)
-    if top is not None:
+    separable = res.get("top_pick") is not None if "top_pick" in res else top is not None  # older results: as before
+    if top is not None and separable:
         iv = top["interval"]
         kv("Top pick", f"<b>{html.escape(top['name'])}</b>: {top['estimate']:.4g}"
-           + (f" [{iv[0]:.4g}, {iv[1]:.4g}]" if iv else " (no interval)")
+           + (f" [{iv[0]:.4g}, {iv[1]:.4g}] ({html.escape(top.get('level_words') or 'no level')})" if iv
+              else " (no interval)")
+           + " &mdash; the logs separate it from every other candidate"
            + (" &mdash; <b>it left the data's support</b>: its estimate is an extrapolation" if top.get("support_left")
               else ""))
+    elif top is not None:
+        kv("Top pick", "<span class='verdict meh' style='display:inline-block;font-size:13px'><b>none: the logs cannot "
+           "separate the candidates</b></span> " + html.escape("; ".join(res.get("cannot_separate") or []))
+           + f" (lowest estimate: {html.escape(top['name'])} {top['estimate']:.4g}, not a pick)")
+    d = res.get("demonstrator")
+    if d:
+        di = d.get("interval")
+        kv("Demonstrator (simulator)", f"{d['mean']:.4g}" + (f" [{di[0]:.4g}, {di[1]:.4g}]" if di else "")
+           + (f", failures {d['failures']}" if d.get("failures") is not None else "")
+           + (f" over {d['n_episodes']} episodes" if d.get("n_episodes") else "")
+           + f" ({html.escape(str(d.get('simulator')))})")
     if beh.get("mean") is not None:
         kv("Behaviour (logged)", f"{beh['mean']:.4g}" + (f" [{beh['interval'][0]:.4g}, {beh['interval'][1]:.4g}]"
                                                          if beh.get("interval") else "")
@@ -164,22 +217,40 @@ def compare_html(res: dict[str, Any], figs: Figures) -> str:
         kv("Against the simulator", "no simulator truth for every candidate: the ranking is not scored")
     if res.get("note"):
         kv("Note", html.escape(res["note"]))
+    for c in cands:
+        if c.get("discount_note"):
+            kv(f"Discount ({c['name']})", html.escape(c["discount_note"]))
     box.append("</table></section>")
     parts += box
     parts += ["<h2>Figures</h2>", *figure_html(figs, folder=None)]
     rows = []
     for c in cands:
-        colour = verdict_colour({"performance": c.get("performance"), "support_left": c.get("support_left")},
-                                {"verdict": c.get("fit_verdict")})
+        v = {"performance": c.get("performance"), "support_left": c.get("support_left"), "text": c.get("verdict"),
+             "outcome": c.get("outcome")}
+        box = verdict_html(v, {"verdict": c.get("fit_verdict")}, tag="div")
+        cls = box.split("class='verdict ", 1)[1].split("'", 1)[0]
+        word = box.split("<span class='outcome", 1)[1].split(">", 1)[1].split("<", 1)[0]
+        iv = c.get("interval")
         rows.append({**c, "support": "LEFT the data's support" if c.get("support_left") else "within the data's support",
-                     "verdict_html": f"<div class='verdict {colour}'>{html.escape((c.get('verdict') or '')[:1].upper() + (c.get('verdict') or '')[1:])}</div>"})
-    cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval", "reliability"] + \
+                     "verdict_html": box, "outcome_html": word, "outcome_class": cls,
+                     "interval_words": f"[{iv[0]:.4g}, {iv[1]:.4g}] ({c.get('level_words') or 'no level'})" if iv else None,
+                     "fit": c.get("fit") or c.get("fit_verdict")})
+    cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval_words", "reliability", "fit", "outcome_html"] + \
         (["truth", "truth_interval"] if any(c["truth"] is not None for c in cands) else []) + ["support", "shift"]
-    parts += ["<h2>Ranking</h2>", table_html(rows, cols, "ope", labels=LABELS)]
+    table = table_html(rows, cols, "ope", labels=LABELS)
+    for r in rows:  # the verdict cell in its outcome's colour
+        table = table.replace(f"<td>{html.escape(r['outcome_html'])}</td>",
+                              f"<td class='verdict {r['outcome_class']}'><b>{html.escape(r['outcome_html'])}</b></td>", 1)
+    parts += ["<h2>Ranking</h2>", table]
+    if res.get("separation"):
+        parts.append("<p><b>Can the logs tell them apart?</b> " + "; ".join(
+            html.escape(p["text"][:1].upper() + p["text"][1:]) for p in res["separation"])
+            + ". (Pairwise, from their intervals: separated only where both have a level and do not overlap.)</p>")
     parts.append("<h2>Verdict and fit per candidate</h2>")
     for r in rows:
-        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(r['run'])})</small></h3>{r['verdict_html']}"
-                     f"<p><small>{html.escape(r.get('convergence') or '')}</small></p>")
+        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(_relative(r['run'], base))})</small></h3>"
+                     f"{r['verdict_html']}<p><small>{html.escape(r.get('convergence') or '')}</small></p>"
+                     + (f"<p><b>Discount: {html.escape(r['discount_note'])}</b></p>" if r.get("discount_note") else ""))
     risk = _risk_rows(res)
     alpha = next((c["cost_distribution"]["alpha"] for c in cands if c.get("cost_distribution")), 0.1)
     if any(len(r) > 1 for r in risk):
@@ -207,5 +278,5 @@ def write_compare_report(res: dict[str, Any], path: str | PathLike[str]) -> Path
         figs = Figures(Path(tmp))
         _ranking_figure(figs, res)
         _distributions(figs, res)
-        text = compare_html(res, figs)
+        text = compare_html(res, figs, base=Path(path).parent)
     return atomic_write_text(path, text, what="comparison report")

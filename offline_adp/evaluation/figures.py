@@ -161,7 +161,7 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
     demo = m.get("rollout", {}).get("demonstrator", {}).get("mean_discounted_cost")
     beh = (m.get("behaviour_value") or {}).get("mean")
-    pts = [e["estimate"] for e in shown] + [v for e in shown if e["interval"] for v in e["interval"]]
+    pts = [e["estimate"] for e in shown] + [v for e in shown for v in (e["interval"] or e.get("shown_interval") or [])]
     pts += [v for v in (truth, demo, beh) if v is not None]
     lo, hi = min(pts), max(pts)
     pad = 0.08 * (hi - lo) if hi > lo else 1.0
@@ -171,6 +171,8 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
         c = TIER_COLOURS[e["tier"]]
         if e["interval"]:
             ax.plot(e["interval"], [yi, yi], color=c, lw=3, solid_capstyle="butt", alpha=0.8)
+        elif e.get("shown_interval"):  # an interval without a level: drawn thin and dashed, never as a level's
+            ax.plot(e["shown_interval"], [yi, yi], color=c, lw=1.5, ls="--")
         ax.plot([e["estimate"]], [yi], "o", color=c, ms=7)
     if truth is not None:
         ax.axvline(truth, color="k", ls="--", lw=1.5, label="policy: simulator truth")
@@ -184,15 +186,21 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     est = m.get("estimand", {})
     ax.set_xlabel(f"expected discounted cost over {est.get('horizon', m.get('horizon'))} steps "
                   f"(gamma = {est.get('gamma', m.get('gamma')):g}; lower is better)")
-    ax.set_title("Off-policy estimates (blue: with 95% interval; grey: interval withheld)", fontsize=10)
+    levels = sorted({f"{e['level']:.0%}" for e in shown if e["interval"] and e.get("level")})
+    blue = f"blue: with a {'/'.join(levels)} interval; " if levels else ""
+    ax.set_title(f"Off-policy estimates ({blue}grey: interval without a level, dashed, or withheld)", fontsize=10)
     if truth is not None or demo is not None or beh is not None:
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(axis="x", alpha=0.3)
     bad = [e for e in ranking if e["tier"] == 2]
     against = [w for w, v in (("the simulator truth", truth), ("the demonstrator in the simulator", demo),
                               ("the behaviour's logged cost", beh)) if v is not None]
-    caption = ("Off-policy estimates ranked by reliability (most reliable at the top) with their 95% bootstrap "
-               "intervals" + (", against " + " and ".join(against) if against else "") + ".")
+    nolevel = [e["name"].upper() for e in shown if not e["interval"] and e.get("shown_interval")]
+    caption = ("Off-policy estimates ranked by reliability (most reliable at the top) with their bootstrap intervals"
+               + (f" ({', '.join(levels)})" if levels else "")
+               + (", against " + " and ".join(against) if against else "") + "."
+               + (f" Dashed, without a level: {', '.join(nolevel)}"
+                  + (f" ({shown[0]['level_note']})" if shown[0].get("level_note") else "") + "." if nolevel else ""))
     if bad:
         caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} ({e['reason']})" for e in bad) + "."
     figs.save(fig, "ope", caption)

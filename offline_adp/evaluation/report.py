@@ -37,7 +37,7 @@ from offline_adp.evaluation.figures import (
 
 #: Human column labels for the report's tables.
 LABELS = {
-    "estimator": "estimator", "estimate": "estimate", "interval": "95% interval", "interval_method": "interval method",
+    "estimator": "estimator", "estimate": "estimate", "interval": "interval (its level)", "interval_method": "interval method",
     "ess": "effective sample size (episodes)", "rollout_error": "error vs simulator truth", "warnings": "warnings",
     "step": "step t", "n": "data states", "ess_fraction": "ESS / n", "tv": "total variation", "q50": "median ratio",
     "q90": "90% quantile", "q99": "99% quantile", "max": "max ratio", "supported_sup": "supported max",
@@ -186,8 +186,14 @@ STYLE = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:auto;pad
          "figure{margin:1em 0}figcaption{font-size:12px;color:#444}"
          ".summary{border:2px solid #444;border-radius:6px;padding:.2em 1em 1em;background:#fafafa}"
          ".summary h2{margin:.4em 0}.kv th{width:170px}.kv td,.kv th{font-size:13px}"
-         ".verdict{font-size:15px;padding:.5em;border-radius:4px}.good{background:#e3f4e1}.bad{background:#fbe3e3}"
-         ".meh{background:#f4f0dc}details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
+         ".verdict{font-size:15px;padding:.5em .7em;border-radius:4px;border-left:8px solid #888}"
+         ".good{background:#e3f4e1;border-color:#2e7d32}.bad{background:#fbe3e3;border-color:#c62828}"
+         ".meh{background:#f7efd2;border-color:#b58900}.stale{background:#efe3f6;border-color:#7b1fa2}"
+         ".outcome{display:inline-block;font-weight:700;text-transform:uppercase;letter-spacing:.04em;color:#fff;"
+         "padding:.05em .5em;border-radius:3px;margin-right:.5em;font-size:13px}"
+         ".outcome.good{background:#2e7d32}.outcome.bad{background:#c62828}.outcome.meh{background:#b58900}"
+         ".outcome.stale{background:#7b1fa2}"
+         "details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
          "table.ope td{max-width:360px}")
 
 
@@ -303,18 +309,39 @@ def cost_distribution_section(m: dict[str, Any]) -> list[str]:
 
 
 def verdict_colour(v: dict[str, Any], conv: dict[str, Any]) -> str:
-    """The verdict box's colour follows the weakest of its clauses: green ("good") only for
-    a policy better than the behaviour that stayed within the data's support and whose fit
-    converged; red ("bad") for worse; amber ("meh") for everything in between, so a doubt
-    in the same sentence is never painted green."""
-    if v.get("performance") == "worse":
-        return "bad"
-    from offline_adp.evaluation.summary import FIT_SETTLED
+    """The CSS class of a verdict: one per outcome word
+    (:data:`~offline_adp.evaluation.summary.OUTCOME_CLASS`: better green, worse red, cannot
+    tell amber, not converged purple), the word :func:`~offline_adp.evaluation.summary.outcome_of`
+    computed once for the CLI, the report and ``compare``. A verdict without its word (older
+    metrics) gets it from its side and the fit's verdict. A doubt in the same sentence is never
+    painted green: the logs claim a side only without doubts, and a fit that did not converge
+    is its own colour."""
+    from offline_adp.evaluation.summary import OUTCOME_CLASS, outcome_of
 
-    ok = conv.get("verdict") in FIT_SETTLED
-    if v.get("performance") == "better" and not v.get("support_left") and ok:
-        return "good"
-    return "meh"
+    out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
+    return OUTCOME_CLASS.get(out, "meh")
+
+
+def verdict_html(v: dict[str, Any], conv: dict[str, Any], tag: str = "p") -> str:
+    """The verdict box: the outcome word as a badge in its colour, then the verdict's text."""
+    from offline_adp.evaluation.summary import OUTCOME_CLASS, outcome_of
+
+    out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
+    cls = OUTCOME_CLASS.get(out, "meh")
+    text = (v.get("text") or "")[:1].upper() + (v.get("text") or "")[1:]
+    return (f"<{tag} class='verdict {cls}'><span class='outcome {cls}'>{html.escape(out)}</span>"
+            f"{html.escape(text)}</{tag}>")
+
+
+def warning_items(ws: list[Any]) -> str:
+    """The gathered warnings as list items, each with its source."""
+    out = []
+    for w in ws:
+        if isinstance(w, dict):
+            out.append(f"<li><b>{html.escape(str(w.get('source', '')))}</b>: {html.escape(str(w.get('message', '')))}</li>")
+        else:
+            out.append(f"<li>{html.escape(str(w))}</li>")
+    return "".join(out)
 
 
 def risk_text(cd: dict[str, Any]) -> str:
@@ -334,12 +361,10 @@ def risk_text(cd: dict[str, Any]) -> str:
 
 
 def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
-    from offline_adp.evaluation.summary import model_reading
+    from offline_adp.evaluation.summary import level_words, model_reading
 
     v, b, sh, cv = h["verdict"], h["best"], h["shift"], h["convergence"]
-    cls = verdict_colour(v, cv)
-    text = v["text"][:1].upper() + v["text"][1:]
-    rows = [f"<p class='verdict {cls}'>{html.escape(text)}</p>", "<table class='kv'>"]
+    rows = [verdict_html(v, cv), "<table class='kv'>"]
 
     def kv(k: str, val: str) -> None:
         rows.append(f"<tr><th>{html.escape(k)}</th><td>{val}</td></tr>")
@@ -355,12 +380,20 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
                      "shifted away from it)" if b.get("plugin_estimate") is not None else "")
         x = model_reading(m, b["name"])
         model = "" if x is None else f"; model rollouts of the logs read {x:.4g} (a second reading the interval holds)"
-        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] ({b.get('level') or 0.95:.0%}), "
+        kv("Best estimate", f"<b>{b['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] ({level_words(b)}), "
            f"{html.escape(b['label'])}, the most reliable estimator here{corrected}{caveat}{model}")
     else:
         top = next((e for e in h["ranking"] if e["tier"] == 1), None)
-        kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "
-           f"{html.escape(top['reason'])}" if top else "none: no estimator is usable on these logs (see below)")
+        if top is not None and top.get("shown_interval"):
+            lo, hi = top["shown_interval"]
+            x = model_reading(m, top["name"])
+            model = "" if x is None else f"; model rollouts of the logs read {x:.4g}"
+            kv("Best estimate", f"<b>{top['estimate']:.4g}</b> [{lo:.4g}, {hi:.4g}] (no level), "
+               f"{html.escape(top['label'])}: " + html.escape(top.get("level_note") or "its coverage was not measured")
+               + model)
+        else:
+            kv("Best estimate", f"{top['estimate']:.4g} ({html.escape(top['label'])}) without an interval: "
+               f"{html.escape(top['reason'])}" if top else "none: no estimator is usable on these logs (see below)")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
         vs = f" vs demonstrator {d['mean_discounted_cost']:.4g}" if d is not None else " (no demonstrator to compare with)"
@@ -377,7 +410,10 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
         kv("Cost distribution", html.escape(risk_text(cd)))
     kv("Distribution shift", html.escape(sh["text"]))
     kv("Fit", html.escape(cv["text"]))
-    kv("Warnings", f"{h['n_warnings']} (listed with each estimator and diagnostic below)")
+    if h.get("discount_note"):
+        kv("Discount", "<b>" + html.escape(h["discount_note"][:1].upper() + h["discount_note"][1:]) + "</b>")
+    kv("Warnings", f"{h['n_warnings']} (gathered with their sources under <a href='#warnings'>Evaluation warnings</a> "
+       "and in metrics.json's <code>warnings</code>)")
     rows.append("</table>")
     return "<section class='summary'><h2>Summary</h2>" + "".join(rows) + "</section>"
 
@@ -398,8 +434,7 @@ def _continuous_sections(m: dict[str, Any]) -> list[str]:
              "<ul>" + "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in m["not_usable"].items())
              + "</ul>"]
     if m.get("warnings"):
-        parts += ["<h2>Evaluation warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in m["warnings"])
-                  + "</ul>"]
+        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
     return parts
 
 
@@ -421,9 +456,13 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     rk = h["ranking"]
     ope = m["ope"]
 
+    from offline_adp.evaluation.summary import level_words
+
     def row(e: dict[str, Any]) -> dict[str, Any]:
         r = ope[e["name"]]
-        return {"rank": e["rank"], "estimator": e["label"], "estimate": e["estimate"], "interval": e["interval"],
+        iv = e["interval"] or e.get("shown_interval")
+        shown = f"[{iv[0]:.4g}, {iv[1]:.4g}] ({level_words(e)})" if iv else None
+        return {"rank": e["rank"], "estimator": e["label"], "estimate": e["estimate"], "interval": shown,
                 "interval_method": r.get("interval_method"), "ess": r.get("ess"), "rollout_error": r.get("rollout_error"),
                 "reason": e["reason"] or "", "warnings": r.get("warnings") or []}
 
@@ -433,8 +472,10 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     bad = [row(e) for e in rk if e["tier"] == 2]
     parts += ["<h2>Off-policy estimates, most reliable first</h2>",
               "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
-              "with a 95% interval; grey rows have no interval (it was withheld because it would not cover as "
-              "labelled).</p>", table_html(good, cols, "ope")]
+              "with an interval that has a level (printed beside it). An interval marked <i>no level</i> is shown, "
+              "never quoted: its coverage was not measured, or the policy left the data's support where the value "
+              "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
+              table_html(good, cols, "ope")]
     if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
         return "\n".join(parts + _continuous_sections(m))
     if bad:
@@ -472,7 +513,6 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
                                           ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
                                            "policy_mass", "mean_ratio"])]
     if m.get("warnings"):
-        parts += ["<h2>Evaluation warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w)}</li>" for w in m["warnings"])
-                  + "</ul>"]
+        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
 
     return page(title, parts)

@@ -266,10 +266,55 @@ def evaluation_metrics(
             f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
         for r in metrics["ope"].values():
             r["rollout_error"] = r["estimate"] - truth
-    from offline_adp.evaluation.summary import headline
+    _discount(metrics, ds, run_dir)
+    from offline_adp.evaluation.summary import (
+        gather_warnings,
+        headline,
+        left_support,
+        shift_verdict,
+        withdraw_levels,
+    )
 
+    # an interval's level is the level it has: none where the policy left the data's support
+    fm = json_safe(metrics)
+    for k, r in withdraw_levels(fm, left_support(fm, shift_verdict(fm)))["ope"].items():
+        if "level_note" in r and "level_note" not in metrics["ope"][k]:
+            metrics["ope"][k].update(level=None, nominal_level=r["nominal_level"], level_note=r["level_note"])
+    metrics["warnings"] = gather_warnings(metrics)  # one list, each with its source (also kept where it arose)
     metrics["headline"] = headline(json_safe(metrics), run_dir)
     return metrics, res, states, demo_states
+
+
+def fit_discount(run_dir: str | PathLike[str] | None) -> float | None:
+    """The discount the run's policy was fitted with: ``model/q.json``'s resolved ``gamma``,
+    else ``model/params.json``'s when set; None when neither says (or no run directory)."""
+    if run_dir is None:
+        return None
+    for name in ("q.json", "params.json"):
+        p = Path(run_dir) / "model" / name
+        if not p.is_file():
+            continue
+        try:
+            g = read_json_file(p).get("gamma")
+        except Exception:  # noqa: BLE001 - a model file the loader rejects says nothing about the discount here
+            continue
+        if isinstance(g, int | float) and not isinstance(g, bool) and 0 < g <= 1:
+            return float(g)
+    return None
+
+
+def _discount(metrics: dict[str, Any], ds: TransitionDataset, run_dir: str | PathLike[str] | None) -> None:
+    """``metrics["discount"]``: the estimand's discount against the fit's, and a warning when they differ."""
+    from offline_adp.data.discount import resolve_discount
+
+    ev = (metrics.get("estimand") or {}).get("gamma", metrics.get("gamma"))
+    fit = fit_discount(run_dir)
+    src = {"dataset": "the dataset's", "default": "the package default", "explicit": "explicit"}.get(
+        resolve_discount(ds.info).gamma_source, "the dataset's")
+    metrics["discount"] = {"evaluation": ev, "evaluation_source": src, "fit": fit}
+    if fit is not None and ev is not None and abs(fit - float(ev)) > 1e-12:
+        metrics["warnings"].append(f"the policy was fitted with gamma {fit:g}, the evaluation uses gamma {float(ev):g} "
+                                   f"({src}): its values are judged by another objective than the one it optimised")
 
 
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict
 
-from offline_adp.data.files import read_json_file, read_table_file
+from offline_adp.data.rundir import read_json_file, read_table_file
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 
 #: Human names of the estimators.
@@ -102,7 +102,7 @@ class MetricsFile(_Open):
 
 def read_metrics(path: str | Path) -> dict[str, Any]:
     """``metrics.json`` through the gates of every file we read: a regular file of bounded
-    size and nesting (:func:`~offline_adp.data.files.read_json_file`), then the structure
+    size and nesting (:func:`~offline_adp.data.rundir.read_json_file`), then the structure
     of :class:`MetricsFile`; the file's own dict is returned."""
     from pydantic import ValidationError as PydanticValidationError
 
@@ -119,7 +119,6 @@ def read_metrics(path: str | Path) -> dict[str, Any]:
 
 
 def _is_finite_number(x: Any) -> bool:
-    """A number (not None, not a string) that is neither NaN nor infinite."""
     return x is not None and isinstance(x, int | float) and bool(np.isfinite(x))
 
 
@@ -150,14 +149,18 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         if r.get("comparable") is False:
             reasons.append("estimates another quantity than the one asked for")
         tier = 2 if reasons else (0 if has_iv else 1)
-        if tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]):  # an interval without a level: shown, never quoted
+        if tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]) and r.get("level_note"):  # level withdrawn (support left)
+            reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] carries no level: {r['level_note']}")
+        elif tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]):  # an interval without a level: shown, never quoted
             reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] has no measured coverage (no level)")
         elif tier == 1:
             reasons.append(r.get("interval_method", "no interval"))
         width = (iv[1] - iv[0]) if has_iv else np.inf
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
                     "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
-                    "estimate": est, "interval": iv if has_iv else None, "level": r.get("level"), "width": width,
+                    "estimate": est, "interval": iv if has_iv else None, "level": r.get("level") if has_iv else None,
+                    "shown_interval": iv if _is_finite_number(iv[0]) and _is_finite_number(iv[1]) else None,
+                    "level_note": r.get("level_note"), "width": width,
                     "plugin_estimate": r.get("plugin_estimate")})
     order = {k: i for i, k in enumerate(ROBUSTNESS)}
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
@@ -205,7 +208,7 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
 #: an algorithm without a convergence notion that ran to completion).
 FIT_SETTLED = ("converged", "finite horizon", "completed")
 
-#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.convergence_verdict`,
+#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.verdict`,
 #: stored in ``run.json`` as ``verdict`` and ``verdict_message``).
 _FIT_VERDICT_WORDS = {"converged": "fit converged", "still changing": "fit did NOT converge",
                       "diverging": "fit DIVERGED", "completed": "fit completed"}
@@ -273,28 +276,39 @@ def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[st
             for e in ranking if e["tier"] == 0 and e is not best and (e["interval"][1] < lo or e["interval"][0] > hi)]
 
 
-def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
-    """Better or worse than the behaviour, only when the evidence behind it holds.
+#: The one-word outcomes of a verdict, each with one colour everywhere it is shown: the CLI
+#: summary (ANSI), the report's verdict box and the comparison (CSS class, figure colour).
+OUTCOMES = ("better", "worse", "cannot tell", "not converged")
+#: CSS class of each outcome (report.STYLE): green, red, amber, purple.
+OUTCOME_CLASS = {"better": "good", "worse": "bad", "cannot tell": "meh", "not converged": "stale"}
+#: The same colours for figures and the terminal (ANSI SGR codes of the nearest basic colour).
+OUTCOME_COLOUR = {"better": "#2e7d32", "worse": "#c62828", "cannot tell": "#b58900", "not converged": "#7b1fa2"}
+OUTCOME_ANSI = {"better": "32", "worse": "31", "cannot tell": "33", "not converged": "35"}
+#: Fit verdicts that make the outcome "not converged" (unless the policy is worse anyway).
+FIT_UNSETTLED = ("still changing", "not converged", "diverging", "diverged")
 
-    The logs alone say "better" or "worse" only when the most reliable estimator has a
-    95% interval on one side of the behaviour's logged cost *and* nothing in the same
-    evaluation undermines it: the policy did not leave the data's support (actions the
-    data rarely took; states the model rollouts of the logs reach and no logged state is
-    near, at least :data:`MODEL_EXIT_FRACTION` of the discounted mass; or, with a
-    simulator, states the data does not cover), the logs can show it (a per-step shift
-    estimate, or, where the logs are too thin per step for one, both the candidate's
-    actions at the logged states and the model rollouts' exit mass measured), the fit
-    converged, and no other reliable estimator's interval disagrees. Otherwise the
-    performance clause reads "cannot tell from these logs" and names the reasons
-    (an off-policy interval assumes the value model holds where the policy goes; past the
-    data's support it extrapolates, and on continuous problems it did so by 20-50%,
-    docs/evaluation.md). Where a simulator's rollouts measured the same estimand, the
-    verdict is theirs (the truth), and an off-policy side that disagrees is said so.
-    ``performance`` is the side that was claimed, or ``"unknown"``.
-    """
-    best = next((e for e in ranking if e["tier"] == 0), None)
-    beh = m.get("behaviour_value")
-    sv = m.get("behaviour", {}).get("support_violations", {}).get("fraction")
+
+def outcome_of(performance: str | None, fit_verdict: str | None, against_demonstrator: str | None = None,
+               more_failures: bool = False) -> str:
+    """The verdict's one word (:data:`OUTCOMES`), computed here once for the CLI, the report
+    and ``compare``: ``worse`` when the policy is worse than the behaviour or, where the
+    simulator has one, than the demonstrator; else ``not converged`` when its fit did not
+    converge (or diverged); else ``better`` when it is better than the behaviour and not
+    worse than the demonstrator (nor failing more often); else ``cannot tell``."""
+    if performance == "worse" or against_demonstrator == "worse":
+        return "worse"
+    if fit_verdict in FIT_UNSETTLED:
+        return "not converged"
+    if performance == "better" and not more_failures and against_demonstrator in (None, "better", "indistinguishable"):
+        return "better"
+    return "cannot tell"
+
+
+def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
+    """Why the policy left the data's support (empty: it did not, as far as measured): actions
+    the data rarely took, states almost separable from the data's or without data near them
+    (simulator), or model rollouts of the logs that reach past the logged states."""
+    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
     left = []
     if _is_finite_number(sv) and sv > SUPPORT_FRACTION:
         left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
@@ -308,6 +322,88 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     if _is_finite_number(mr.get("exit_mass")) and mr["exit_mass"] >= MODEL_EXIT_FRACTION:
         left.append(f"{mr['exit_mass']:.0%} of its discounted mass in model rollouts of the logs reaches states no "
                     "logged state is near")
+    return left
+
+
+#: Why an off-policy interval carries no level once the policy left the data's support.
+LEVEL_WITHDRAWN = ("the policy left the data's support, where the value model extrapolates: the bootstrap measures "
+                   "the sampling noise, not that extrapolation, so this is not a {level:.0%} interval there")
+
+
+def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[str, Any]:
+    """``m`` with every off-policy interval's level withdrawn (``level: null``, the former
+    one as ``nominal_level``, the reason as ``level_note``) when the policy left the data's
+    support (``left``, default :func:`left_support`): the interval is still shown, never
+    quoted with a level it does not have. Returns a new dict (``m`` is not changed);
+    idempotent."""
+    if left is None:
+        left = left_support(m, shift_verdict(m))
+    if not left:
+        return m
+    ope = {}
+    for k, r in m["ope"].items():
+        if r.get("level") is not None:
+            r = {**r, "nominal_level": r["level"], "level": None, "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
+        ope[k] = r
+    return {**m, "ope": ope}
+
+
+def level_words(e: dict[str, Any]) -> str:
+    """How an interval of :func:`rank_estimators` is labelled wherever it is printed: its
+    level ("95%"), or "no level" when it has none."""
+    lvl = e.get("level")
+    return f"{lvl:.0%}" if _is_finite_number(lvl) and e.get("interval") else "no level"
+
+
+def demonstrator_side(m: dict[str, Any]) -> dict[str, Any] | None:
+    """The policy against the simulator's demonstrator (same start states and seeds): the
+    side of their rollout intervals (``better`` only when the policy's lies below the
+    demonstrator's, ``worse`` above it, else ``indistinguishable``) and their failures where
+    the problem counts them; None without a demonstrator."""
+    ro = m.get("rollout") or {}
+    p, d = ro.get("policy"), ro.get("demonstrator")
+    if not (isinstance(p, dict) and isinstance(d, dict) and _is_finite_number(p.get("mean_discounted_cost"))
+            and _is_finite_number(d.get("mean_discounted_cost"))):
+        return None
+    pi, di = p.get("interval") or [None, None], d.get("interval") or [None, None]
+    if all(_is_finite_number(x) for x in (*pi, *di)):
+        side = "better" if pi[1] < di[0] else "worse" if pi[0] > di[1] else "indistinguishable"
+    else:
+        side = side_of_behaviour(p["mean_discounted_cost"], p["mean_discounted_cost"], d["mean_discounted_cost"])
+    out = {"side": side, "policy": p["mean_discounted_cost"], "demonstrator": d["mean_discounted_cost"],
+           "demonstrator_interval": d.get("interval"), "more_failures": False}
+    if isinstance(p.get("failures"), int | float) and isinstance(d.get("failures"), int | float):
+        out.update(failures=int(p["failures"]), demonstrator_failures=int(d["failures"]),
+                   more_failures=bool(p["failures"] > d["failures"]))
+    return out
+
+
+def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+    """Better or worse than the behaviour, only when the evidence behind it holds.
+
+    The logs alone say "better" or "worse" only when the most reliable estimator has an
+    interval with a level on one side of the behaviour's logged cost *and* nothing in the same
+    evaluation undermines it: the policy did not leave the data's support (actions the
+    data rarely took; states the model rollouts of the logs reach and no logged state is
+    near, at least :data:`MODEL_EXIT_FRACTION` of the discounted mass; or, with a
+    simulator, states the data does not cover), the logs can show it (a per-step shift
+    estimate, or, where the logs are too thin per step for one, both the candidate's
+    actions at the logged states and the model rollouts' exit mass measured), the fit
+    converged, and no other reliable estimator's interval disagrees. Otherwise the
+    performance clause reads "cannot tell from these logs" and names the reasons
+    (an off-policy interval assumes the value model holds where the policy goes; past the
+    data's support it extrapolates, and on continuous problems it did so by 20-50%,
+    docs/evaluation.md). Where a simulator's rollouts measured the same estimand, the
+    verdict is theirs (the truth), against the behaviour and, where the simulator has one,
+    against the demonstrator with both failure counts; an off-policy side that disagrees
+    is said so. ``performance`` is the side against the behaviour that was claimed, or
+    ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
+    """
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    beh = m.get("behaviour_value")
+    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
+    left = left_support(m, shift)
+    mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
     # from the logs alone, when the per-step shift is too thin to estimate: the candidate's actions
     # at the logged states (measured) and where the model rollouts of the logs drive it (ran)
     logs_show = (not left and _is_finite_number(sv) and _is_finite_number(mr.get("exit_mass"))
@@ -322,9 +418,30 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
                    "logs past the logged states)")
     else:
         support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _is_finite_number(sv) else "")
-    side, perf = "unknown", ""
-    if best is None:
-        top = next((e for e in ranking if e["tier"] == 1), None)
+    doubts = []
+    if left:
+        doubts.append("the policy left the data's support, where the value model extrapolates")
+    elif not (shift.get("enough_data") or logs_show):
+        doubts.append("the logs cannot show whether the policy stays within their support")
+    cv = conv.get("verdict")
+    if cv in ("still changing", "not converged"):
+        doubts.append("the fit did not converge")
+    elif cv in ("diverging", "diverged"):
+        doubts.append("the fit diverged")
+    elif cv not in FIT_SETTLED:
+        doubts.append("the fit's convergence is unknown")
+    side, perf, claim = "unknown", "", None
+    top = next((e for e in ranking if e["tier"] == 1), None)
+    if best is None and top is not None and top.get("shown_interval") and beh is not None:
+        # an interval without a level: its side is said, never claimed (nor its numbers quoted as an interval)
+        lo, hi = top["shown_interval"]
+        would = side_of_behaviour(lo, hi, beh["mean"])
+        claim = f"{top['name'].upper()} {top['estimate']:.4g} vs logged {beh['mean']:.4g}"
+        why = doubts or [f"its interval carries no level ({top.get('level_note') or 'coverage not measured'})"]
+        words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[would]
+        perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would say "
+                f"{words}, but " + "; ".join(why))
+    elif best is None:
         perf = ("cannot tell from these logs whether the policy is better than the behaviour: "
                 + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
                    if top else "no estimator is reliable here"))
@@ -335,54 +452,105 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
         b = beh["mean"]
         ope_side = side_of_behaviour(lo, hi, b)
         claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
-        doubts = []
-        if left:
-            doubts.append("the policy left the data's support, where the value model extrapolates")
-        elif not (shift.get("enough_data") or logs_show):
-            doubts.append("the logs cannot show whether the policy stays within their support")
-        cv = conv.get("verdict")
-        if cv in ("still changing", "not converged"):
-            doubts.append("the fit did not converge")
-        elif cv in ("diverging", "diverged"):
-            doubts.append("the fit diverged")
-        elif cv not in FIT_SETTLED:
-            doubts.append("the fit's convergence is unknown")
         dis = _disagreeing(best, ranking)
         if dis:
             doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
         if ope_side == "indistinguishable" or not doubts:
             side = ope_side
-            conf = {"better": "its 95% interval lies below the behaviour's logged cost",
-                    "worse": "its 95% interval lies above the behaviour's logged cost",
-                    "indistinguishable": "its 95% interval contains the behaviour's logged cost"}[ope_side]
+            where = {"better": "lies below", "worse": "lies above", "indistinguishable": "contains"}[ope_side]
+            conf = f"its {level_words(best)} interval {where} the behaviour's logged cost"
             perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
         else:
             perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
                     f"say {ope_side}, but " + "; ".join(doubts))
-        ro = m.get("rollout", {}).get("policy")
-        if ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
-            r_lo, r_hi = ro["interval"]
-            truth_side = side_of_behaviour(r_lo, r_hi, b)
-            truth = (f"{_SIDE_WORDS[truth_side]} the behaviour in the simulator: rollouts "
-                     f"{ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs logged {b:.4g}")
-            if side in ("better", "worse") and truth_side != side:
-                truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
-            elif side == "unknown":
-                truth += f" (from the logs alone: {perf})"
-            side, perf = truth_side, truth
+    ro = (m.get("rollout") or {}).get("policy")
+    demo = None
+    if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
+        b = beh["mean"]
+        r_lo, r_hi = ro["interval"]
+        truth_side = side_of_behaviour(r_lo, r_hi, b)
+        demo = demonstrator_side(m)
+        against = f"{_SIDE_WORDS[truth_side]} the behaviour"
+        if demo is not None:  # the demonstrator first when the policy is worse than it
+            d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
+                       "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
+            against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
+                       else f"{against}; {d_words}")
+        truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
+                 f"logged {b:.4g}")
+        if demo is not None:
+            di = demo.get("demonstrator_interval") or []
+            truth += f", demonstrator {demo['demonstrator']:.4g}" + (
+                f" [{di[0]:.4g}, {di[1]:.4g}]" if len(di) == 2 and all(_is_finite_number(x) for x in di) else "")
+            if "failures" in demo:
+                truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
+                          + (": the policy fails more often" if demo["more_failures"] else ""))
+        if side in ("better", "worse") and truth_side != side:
+            truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+        elif side == "unknown":
+            truth += f" (from the logs alone: {perf})"
+        side, perf = truth_side, truth
+    outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
     ct = conv["text"][:1].upper() + conv["text"][1:]
-    return {"performance": side, "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+    return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
+            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+
+
+def gather_warnings(m: dict[str, Any]) -> list[dict[str, str]]:
+    """Every warning of an evaluation in one list, each with its source: the evaluation's own
+    (``evaluation``), each estimator's (``ope.NAME``), the behaviour model's (``behaviour``),
+    each shift diagnostic's (``shift.NAME``) and the pooled ratios' (``pooled_shift``).
+    Entries already gathered (dicts with a ``source``) are kept as they are."""
+    out: list[dict[str, str]] = []
+
+    def add(source: str, items: Any) -> None:
+        for w in items or []:
+            if isinstance(w, dict) and "message" in w:
+                out.append({"source": str(w.get("source", source)), "message": str(w["message"])})
+            else:
+                out.append({"source": source, "message": str(w)})
+
+    add("evaluation", m.get("warnings"))
+    for name, r in (m.get("ope") or {}).items():
+        add(f"ope.{name}", r.get("warnings"))
+    add("behaviour", (m.get("behaviour") or {}).get("warnings"))
+    for name, block in (m.get("shift") or {}).items():
+        add(f"shift.{name}", (block or {}).get("warnings"))
+    add("pooled_shift", (m.get("pooled_shift") or {}).get("warnings"))
+    return out
+
+
+def warning_count(m: dict[str, Any]) -> int:
+    """How many warnings ``m`` holds: its gathered list when it has one (entries with a
+    source), else (metrics written before) what :func:`gather_warnings` would gather."""
+    top = m.get("warnings") or []
+    if top and all(isinstance(w, dict) and "source" in w for w in top):
+        return len(top)
+    return len(gather_warnings(m))
+
+
+def discount_note(m: dict[str, Any]) -> str | None:
+    """A note when the policy was fitted with another discount than the one the evaluation
+    uses (``metrics.json``'s ``discount``), else None."""
+    d = m.get("discount") or {}
+    fit, ev = d.get("fit"), d.get("evaluation")
+    if not (_is_finite_number(fit) and _is_finite_number(ev)) or abs(fit - ev) <= 1e-12:
+        return None
+    return (f"the policy was fitted with gamma {fit:g}, the evaluation uses gamma {ev:g} ({d.get('evaluation_source', 'the dataset')}): "
+            f"its values are judged by another objective than the one it optimised")
 
 
 def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, Any]:
-    """The summary box of an evaluation (see the module docstring)."""
-    ranking = rank_estimators(m)
+    """The summary box of an evaluation (see the module docstring). Intervals lose their level
+    where the policy left the data's support (:func:`withdraw_levels`)."""
     shift = shift_verdict(m)
+    m = withdraw_levels(m, left_support(m, shift))
+    ranking = rank_estimators(m)
     conv = fit_convergence(run_dir)
     v = verdict_line(m, ranking, shift, conv)
-    n_warn = len(m.get("warnings", [])) + sum(len(r.get("warnings", [])) for r in m["ope"].values())
     best = next((e for e in ranking if e["tier"] == 0), None)
-    return {"best": best, "ranking": ranking, "shift": shift, "convergence": conv, "verdict": v, "n_warnings": n_warn}
+    return {"best": best, "ranking": ranking, "shift": shift, "convergence": conv, "verdict": v,
+            "n_warnings": warning_count(m), "outcome": v["outcome"], "discount_note": discount_note(m)}
 
 
 def _f(x: Any) -> str:
@@ -397,10 +565,14 @@ def _problem_words(sim: str | None, policy: dict[str, Any], demonstrator: dict[s
     return problem_class(sim).summary_line(policy, demonstrator)
 
 
-def summary_lines(m: dict[str, Any]) -> list[str]:
+def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     """A short human summary of ``metrics.json``: estimand, simulator truth, best estimate,
-    shift verdict, verdict line."""
-    h = m.get("headline") or headline(m)
+    shift verdict, verdict line (its outcome word first, in the outcome's colour when
+    ``colour``: a terminal), the discount note, the warnings. An interval is printed with
+    its level, or "no level"."""
+    h = m.get("headline")
+    if not h or "outcome" not in h:  # written before the outcome word (or not at all)
+        h = headline(m)
     lines = []
     if m.get("estimand"):
         lines.append(f"estimand: {m['estimand']['quantity']}")
@@ -414,32 +586,39 @@ def summary_lines(m: dict[str, Any]) -> list[str]:
             lines.append(f"{cost} vs demonstrator {d['mean_discounted_cost']:.3f}" + (f"; {words}" if words else ""))
     elif m.get("simulator_note"):
         lines.append(m["simulator_note"])
+    if h.get("discount_note"):
+        lines.append(f"discount: {h['discount_note']}")
     b = h["best"]
     others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
-    if b is not None:
-        lo, hi = b["interval"]
-        tol = 1e-9 * max(1.0, abs(b["estimate"]))
-        outside = lo is not None and hi is not None and not lo - tol <= b["estimate"] <= hi + tol
-        lines.append(f"off-policy ({b['name'].upper()}, most reliable): {_f(b['estimate'])} [{_f(lo)}, {_f(hi)}]"
+    top = b or next((e for e in h["ranking"] if e["tier"] == 1), None)
+    if top is not None and (b is not None or top.get("shown_interval")):
+        lo, hi = top["interval"] or top["shown_interval"]
+        tol = 1e-9 * max(1.0, abs(top["estimate"]))
+        outside = lo is not None and hi is not None and not lo - tol <= top["estimate"] <= hi + tol
+        label = level_words(top)
+        lines.append(f"off-policy ({top['name'].upper()}, most reliable): {_f(top['estimate'])} [{_f(lo)}, {_f(hi)}] "
+                     f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None else "")
+                     + ")"
                      + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
                         "interval as unreliable)" if outside else "")
-                     + (f" (bias-corrected by the bootstrap; plug-in {_f(b['plugin_estimate'])})"
-                        if b.get("plugin_estimate") is not None else "")
-                     + _model_reading(m, b)
-                     + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others)
-                     + ("; the policy left the data's support, where the value model extrapolates: this interval "
-                        "is not a 95% interval there" if h["verdict"].get("support_left") else ""))
+                     + (f" (bias-corrected by the bootstrap; plug-in {_f(top['plugin_estimate'])})"
+                        if top.get("plugin_estimate") is not None else "")
+                     + _model_reading(m, top)
+                     + "".join(f"; {e['name'].upper()} {_f(e['estimate'])}" for e in others))
     else:
-        top = next((e for e in h["ranking"] if e["tier"] == 1), None)
         lines.append(f"off-policy: {top['name'].upper()} {_f(top['estimate'])} (no interval: {top['reason']})" if top
                      else "off-policy: no usable estimate (see the report)")
     bad = [e["name"].upper() for e in h["ranking"] if e["tier"] == 2]
     if bad:
         lines.append(f"not usable here: {', '.join(bad)}")
     lines.append(f"shift: {h['shift']['text']}")
-    lines.append(f"verdict: {h['verdict']['text']}")
+    out = h.get("outcome") or h["verdict"].get("outcome") or "cannot tell"
+    word = f"[{out}]"
+    if colour:
+        word = f"\x1b[1;{OUTCOME_ANSI[out]}m{word}\x1b[0m"
+    lines.append(f"verdict: {word} {h['verdict']['text']}")
     if h["n_warnings"]:
-        lines.append(f"{h['n_warnings']} warnings (metrics.json, report)")
+        lines.append(f"{h['n_warnings']} warnings (metrics.json 'warnings', each with its source; report)")
     return lines
 
 

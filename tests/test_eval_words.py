@@ -1,0 +1,244 @@
+"""Evaluation a person can act on (issue #42): words, labels, colours and ``compare``.
+
+Synthetic metrics with known answers: an interval without a level (withdrawn where the
+policy left the data's support, or never measured) is never printed as "95%" in the CLI,
+the report or the comparison; the verdict's colour is its outcome word's; the verdict
+compares with the demonstrator and counts failures; the fit's discount is noted when the
+evaluation uses another; warnings are gathered with their sources; and a comparison of two
+candidates whose intervals overlap says the logs cannot separate them (no top pick).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+
+import pytest
+
+from offline_adp.evaluation.compare import compare_lines, separation
+from offline_adp.evaluation.compare_report import write_compare_report
+from offline_adp.evaluation.report import _summary_box, verdict_colour, verdict_html
+from offline_adp.evaluation.summary import (
+    OUTCOME_CLASS,
+    gather_warnings,
+    headline,
+    outcome_of,
+    rank_estimators,
+    summary_lines,
+    verdict,
+    withdraw_levels,
+)
+
+CONVERGED = {"verdict": "converged", "text": "fit converged"}
+STALE = {"verdict": "still changing", "text": "fit did NOT converge"}
+
+# a policy that left the data's support (classifier: separable at 12 of 200 steps), FQE's interval below the behaviour
+LEFT = {
+    "estimand": {"quantity": "expected cost", "possible_range": [0.0, 1000.0], "gamma": 0.95},
+    "ope": {"fqe": {"estimate": 4.348, "interval": [2.607, 9.963], "level": 0.95, "warnings": ["w1", "w2"]},
+            "is": {"estimate": 3.0, "interval": [0.1, 40.0], "level": 0.95, "degenerate": True, "ess": 1.2,
+                   "warnings": ["degenerate"]}},
+    "behaviour_value": {"mean": 20.3, "interval": [18.0, 22.6], "episodes": 135},
+    "behaviour": {"support_violations": {"fraction": 0.05}, "warnings": ["clipped"]},
+    "shift": {"classifier": {"per_step": [{"step": 0, "ess_fraction": 0.5, "auc": 0.6, "uncovered": 0.0},
+                                          {"step": 1, "ess_fraction": 0.02, "auc": 0.99, "uncovered": 0.58}],
+                             "warnings": ["thin step"]}},
+    "warnings": ["no options recorded"],
+    "dataset": {"transitions": 100, "episodes": 10, "sources": {}},
+}
+
+
+def _rollout(policy, demo, pf=0, df=0):
+    return {"policy": {"mean_discounted_cost": policy[0], "interval": [policy[1], policy[2]], "n_episodes": 50,
+                       "failures": pf},
+            "demonstrator": {"mean_discounted_cost": demo[0], "interval": [demo[1], demo[2]], "n_episodes": 50,
+                             "failures": df}}
+
+
+def _no_95(text: str) -> None:
+    """No 95% claimed (the words denying it, "not a 95% interval", are no claim)."""
+    assert "95%" not in text.replace("not a 95% interval", ""), text
+
+
+def test_a_withdrawn_level_is_never_printed_as_95():
+    m = copy.deepcopy(LEFT)
+    w = withdraw_levels(m)
+    fq = w["ope"]["fqe"]
+    assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]
+    assert m["ope"]["fqe"]["level"] == 0.95  # the input is not changed
+    assert withdraw_levels(w) == w  # idempotent
+    h = headline(m)
+    assert h["best"] is None  # an interval without a level is never the quoted best
+    lines = summary_lines(m)
+    off = next(ln for ln in lines if ln.startswith("off-policy"))
+    assert "[2.607, 9.963] (no level" in off
+    for ln in lines:
+        _no_95(ln)
+    v = next(ln for ln in lines if ln.startswith("verdict:"))
+    assert "FQE 4.348 vs logged 20.3 would say better" in v and "[2.607" not in v  # the side said, never claimed
+    box = _summary_box(m, h)
+    _no_95(re.sub(r"<[^>]+>", "", box))
+    assert "(no level)" in box
+
+
+def test_a_level_null_interval_is_never_printed_as_95():
+    m = copy.deepcopy(LEFT)
+    m["shift"] = {}
+    m["behaviour"]["support_violations"]["fraction"] = 0.0
+    m["ope"]["fqe"]["level"] = None  # e.g. continuous commands: coverage not measured
+    lines = summary_lines(m)
+    for ln in lines:
+        _no_95(ln)
+    assert any("no level" in ln for ln in lines)
+
+
+def test_levels_are_written_as_they_are_in_the_cli_when_they_hold():
+    m = copy.deepcopy(LEFT)
+    m["shift"] = {}
+    m["behaviour"]["support_violations"]["fraction"] = 0.0
+    m["worst_step"] = {"step": 3, "ess_fraction": 0.4}
+    off = next(ln for ln in summary_lines(m) if ln.startswith("off-policy"))
+    assert "[2.607, 9.963] (95%)" in off
+
+
+@pytest.mark.parametrize("perf, fit, demo, word", [
+    ("better", "converged", None, "better"), ("worse", "converged", None, "worse"),
+    ("unknown", "converged", None, "cannot tell"), ("indistinguishable", "converged", None, "cannot tell"),
+    ("better", "still changing", None, "not converged"), ("worse", "diverging", None, "worse"),
+    ("better", "converged", "worse", "worse"), ("better", "converged", "indistinguishable", "better"),
+])
+def test_the_colour_is_the_outcome_words(perf, fit, demo, word):
+    assert outcome_of(perf, fit, demo) == word
+    v = {"performance": perf, "against_demonstrator": demo, "text": "x"}
+    assert verdict_colour(v, {"verdict": fit}) == OUTCOME_CLASS[word]
+    box = verdict_html({**v, "outcome": word}, {"verdict": fit})
+    assert box.startswith(f"<p class='verdict {OUTCOME_CLASS[word]}'><span class='outcome {OUTCOME_CLASS[word]}'>"
+                          f"{word}</span>")
+    assert len(set(OUTCOME_CLASS.values())) == 4  # one colour per outcome
+
+
+def test_the_cli_verdict_line_carries_the_outcome_word_and_its_colour():
+    m = copy.deepcopy(LEFT)
+    m["rollout"] = _rollout((3.544, 3.403, 3.684), (5.494, 5.2, 5.8))
+    line = next(ln for ln in summary_lines(m) if ln.startswith("verdict:"))
+    assert line.startswith("verdict: [better] better than the behaviour; better than the demonstrator in the simulator")
+    coloured = next(ln for ln in summary_lines(m, colour=True) if ln.startswith("verdict:"))
+    assert "\x1b[1;32m[better]\x1b[0m" in coloured  # green, as the report's box
+
+
+def test_the_verdict_against_the_demonstrator_with_failures():
+    """The issue's pt-fqi5: 6.843 vs demonstrator 4.608, failures 3 vs 0, behaviour 13.28."""
+    m = copy.deepcopy(LEFT)
+    m["behaviour_value"]["mean"] = 13.28
+    m["rollout"] = _rollout((6.843, 6.2, 7.5), (4.608, 4.4, 4.8), pf=3, df=0)
+    h = headline(m)
+    v = h["verdict"]
+    assert v["outcome"] == "worse" and v["against_demonstrator"] == "worse"
+    assert v["text"].startswith("WORSE than the demonstrator (better than the behaviour) in the simulator")
+    assert "failures 3 vs 0 (demonstrator): the policy fails more often" in v["text"]
+    assert verdict_colour(v, h["convergence"]) == "bad"
+    # cheaper than the demonstrator but failing more often is not "better"
+    m["rollout"] = _rollout((3.0, 2.9, 3.1), (4.608, 4.4, 4.8), pf=3, df=0)
+    assert headline(m)["verdict"]["outcome"] == "cannot tell"
+
+
+def test_the_discount_note():
+    m = copy.deepcopy(LEFT)
+    m["discount"] = {"fit": 0.8, "evaluation": 0.95, "evaluation_source": "the dataset's"}
+    h = headline(m)
+    assert "fitted with gamma 0.8" in h["discount_note"] and "uses gamma 0.95" in h["discount_note"]
+    assert any(ln.startswith("discount: the policy was fitted with gamma 0.8") for ln in summary_lines(m))
+    assert "Discount" in _summary_box(m, h)
+    m["discount"]["fit"] = 0.95
+    assert headline(m)["discount_note"] is None
+
+
+def test_fit_discount_is_read_from_the_model(tmp_path):
+    from offline_adp.evaluation.run import fit_discount
+
+    (tmp_path / "model").mkdir()
+    assert fit_discount(tmp_path) is None and fit_discount(None) is None
+    (tmp_path / "model" / "params.json").write_text(json.dumps({"gamma": None}))
+    assert fit_discount(tmp_path) is None
+    (tmp_path / "model" / "q.json").write_text(json.dumps({"gamma": 0.8}))
+    assert fit_discount(tmp_path) == 0.8
+
+
+def test_warnings_gathered_with_their_sources():
+    ws = gather_warnings(LEFT)
+    assert {"source": "evaluation", "message": "no options recorded"} in ws
+    assert {"source": "ope.fqe", "message": "w1"} in ws and {"source": "ope.is", "message": "degenerate"} in ws
+    assert {"source": "behaviour", "message": "clipped"} in ws and {"source": "shift.classifier", "message": "thin step"} in ws
+    assert len(ws) == 6
+    again = {**LEFT, "warnings": ws}
+    assert headline(again)["n_warnings"] == 6  # gathered once, not counted twice
+    assert any(ln.startswith("6 warnings (metrics.json 'warnings', each with its source") for ln in summary_lines(again))
+
+
+def _cand(name, rank, est, iv, outcome="cannot tell", fit="converged", level=0.95):
+    return {"run": f"/tmp/runs/{name}", "name": name, "algorithm": "fqi", "estimator": "fqe", "estimate": est,
+            "interval": iv, "level": level, "level_words": "95%" if level else "no level",
+            "reliability": "reliable" if level else "no interval", "shift": "ratio recursion (logs only)",
+            "support_left": False, "convergence": f"fit {fit}", "truth": None, "truth_interval": None,
+            "verdict": f"{name} verdict", "performance": "unknown", "outcome": outcome, "fit_verdict": fit,
+            "fit": fit, "rank": rank, "cost_distribution": None}
+
+
+def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
+    """The issue's case: [0, 61.7] and [0, 69.3] from the logs alone got 'Top pick car2d'."""
+    cands = [_cand("car2d", 1, 30.0, [0.0, 61.7]), _cand("car3d", 2, 35.0, [0.0, 69.3], fit="still changing",
+                                                             outcome="not converged")]
+    for c in cands:
+        c["run"] = str(tmp_path / "runs" / c["name"])
+    sep = separation(cands)
+    assert len(sep) == 1 and not sep[0]["separated"] and "cannot separate car2d and car3d" in sep[0]["text"]
+    res = {"dataset": {"path": str(tmp_path / "ds"), "fingerprint": "f"}, "estimator": "fqe",
+           "estimand": "expected cost", "method": "ranked", "behaviour": {"mean": 50.0, "interval": [45.0, 55.0], "episodes": 40},
+           "candidates": cands, "separation": sep, "top_pick": None, "cannot_separate": [sep[0]["text"]]}
+    lines = compare_lines(res)
+    assert any(ln.startswith("no top pick: the logs cannot separate car2d and car3d") for ln in lines)
+    assert not any("top pick: car2d" in ln for ln in lines)
+    page = write_compare_report(res, tmp_path / "cmp.html").read_text()
+    text = re.sub(r"<img[^>]*>", "", page)
+    assert "Top pick</th><td><span" in text and "the logs cannot separate the candidates" in text
+    assert "<b>car2d</b>" not in text
+    caption = re.search(r"<figure id=\"ranking\">.*?<figcaption>(.*?)</figcaption>", page, re.S).group(1)
+    assert "simulator" not in caption and "black crosses" not in caption  # none drawn: none mentioned
+    assert "amber cannot tell" in caption
+    assert "fit converged?" in text and "still changing" in text  # the convergence column
+    assert "<td class='verdict stale'><b>not converged</b></td>" in text  # its colour
+    assert str(tmp_path) not in text and "(runs/car2d)" in text  # relative to the report's folder
+    # separated intervals with levels: a top pick
+    far = [_cand("a", 1, 3.0, [2.0, 4.0]), _cand("b", 2, 9.0, [8.0, 10.0])]
+    assert separation(far)[0]["separated"]
+    # an interval without a level separates nothing
+    assert not separation([far[0], {**far[1], "level": None}])[0]["separated"]
+
+
+def test_compare_shows_the_demonstrator_and_levels_as_they_are(tmp_path):
+    cands = [_cand("a", 1, 3.0, [2.0, 4.0], outcome="better"), _cand("b", 2, 9.0, [1.0, 19.0], level=None)]
+    cands[1]["support_left"] = True
+    cands[1]["discount_note"] = "the policy was fitted with gamma 0.8, the evaluation uses gamma 0.95 (the dataset's)"
+    res = {"dataset": {"path": "/tmp/ds", "fingerprint": "f"}, "estimator": "fqe", "estimand": "expected cost",
+           "method": "ranked", "behaviour": {"mean": 12.0}, "candidates": cands, "separation": separation(cands),
+           "top_pick": None, "cannot_separate": [],
+           "demonstrator": {"mean": 5.0, "interval": [4.8, 5.2], "failures": 0, "simulator": "path_tracking",
+                            "n_episodes": 50}}
+    page = re.sub(r"<img[^>]*>", "", write_compare_report(res, tmp_path / "c.html").read_text())
+    assert "Demonstrator (simulator)</th><td>5 [4.8, 5.2], failures 0 over 50 episodes" in page
+    assert "[1, 19] (no level)" in page and "[1, 19] (95%)" not in page
+    assert "cannot separate a and b: b has no interval with a level" in page
+    lines = compare_lines(res)
+    assert any(ln.startswith("demonstrator (path_tracking simulator): 5.000, failures 0") for ln in lines)
+    assert any(ln.startswith("b: the policy was fitted with gamma 0.8") for ln in lines) and "Discount (b)" in page
+
+
+def test_verdict_rules_still_claim_with_a_level():
+    m = {"estimand": {"possible_range": [0.0, 1000.0]},
+         "ope": {"fqe": {"estimate": 8.2, "interval": [7.1, 9.0], "level": 0.95}},
+         "behaviour_value": {"mean": 15.0}, "behaviour": {"support_violations": {"fraction": 0.0}}}
+    v = verdict(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, CONVERGED)
+    assert v["outcome"] == "better" and "its 95% interval lies below" in v["text"]
+    v = verdict(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, STALE)
+    assert v["outcome"] == "not converged"
