@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict
 
-from offline_adp.data.rundir import read_json_file, read_table_file
+from offline_adp.data.files import read_json_file, read_table_file
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 
 #: Human names of the estimators.
@@ -208,7 +208,7 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
 #: an algorithm without a convergence notion that ran to completion).
 FIT_SETTLED = ("converged", "finite horizon", "completed")
 
-#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.verdict`,
+#: How the summary words the fit's own verdict (:func:`offline_adp.algorithms.fqi_monitor.convergence_verdict`,
 #: stored in ``run.json`` as ``verdict`` and ``verdict_message``).
 _FIT_VERDICT_WORDS = {"converged": "fit converged", "still changing": "fit did NOT converge",
                       "diverging": "fit DIVERGED", "completed": "fit completed"}
