@@ -26,7 +26,7 @@ from offline_adp.evaluation.summary import (
     outcome_of,
     rank_estimators,
     summary_lines,
-    verdict,
+    verdict_line,
     withdraw_levels,
 )
 
@@ -238,7 +238,7 @@ def test_verdict_rules_still_claim_with_a_level():
     m = {"estimand": {"possible_range": [0.0, 1000.0]},
          "ope": {"fqe": {"estimate": 8.2, "interval": [7.1, 9.0], "level": 0.95}},
          "behaviour_value": {"mean": 15.0}, "behaviour": {"support_violations": {"fraction": 0.0}}}
-    v = verdict(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, CONVERGED)
+    v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, CONVERGED)
     assert v["outcome"] == "better" and "its 95% interval lies below" in v["text"]
-    v = verdict(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, STALE)
+    v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, STALE)
     assert v["outcome"] == "not converged"

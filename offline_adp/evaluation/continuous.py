@@ -31,6 +31,7 @@ do not show support, so a logs-only verdict says it cannot tell.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,13 @@ import numpy as np
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.evaluation import ope
-from offline_adp.evaluation.offpolicy import DEFAULT_FQE, declare_estimand, fqe_replicates
+from offline_adp.evaluation.estimand import declare_estimand
+from offline_adp.evaluation.fqe_interval import (
+    DEFAULT_FQE,
+    fqe_interval,
+    fqe_replicates,
+    with_truncation_bound,
+)
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.qfunctions import NeighbourCommands
 
@@ -109,15 +116,12 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     else:
         reps = [FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=est_def.gamma, random_state=cfg.seed, **params)
                 .fit(ds, sample_weight=c[em.row_episode].astype(np.float64)).value_ for c in counts]
-    res = ope.fqe_interval(est, reps, em.n_episodes)
-    res.level = None
-    res.interval_method += (" (structure-conditional: tree structure fixed, leaves re-averaged)" if conditional else "")
-    res.warnings.append("continuous commands: this interval's coverage has not been measured, so it carries no level "
-                        "(it is not a 95% interval)")
-    if est_def.tail_bound > 0 and np.all(np.isfinite(res.interval)):
-        res.interval = (res.interval[0] - est_def.tail_bound, res.interval[1] + est_def.tail_bound)
-        res.interval_method += f", widened by the truncation bound {est_def.tail_bound:.3g}"
-    return res
+    res = fqe_interval(est, reps, em.n_episodes)
+    res = replace(res, level=None, interval_method=res.interval_method + (
+        " (structure-conditional: tree structure fixed, leaves re-averaged)" if conditional else ""),
+        warnings=[*res.warnings, "continuous commands: this interval's coverage has not been measured, so it carries "
+                  "no level (it is not a 95% interval)"])
+    return with_truncation_bound(res, est_def.tail_bound)
 
 
 def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSettings, *, target_horizon: int | None,
