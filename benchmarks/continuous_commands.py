@@ -24,10 +24,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import time
 import warnings
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from gym_returns import returns  # noqa: E402
 
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
@@ -59,33 +64,6 @@ def command_dataset(log: dict[str, np.ndarray], low: np.ndarray, high: np.ndarra
         info, episode_id=np.char.zfill(log["episode"].astype(int).astype(str), 6), step=log["step"], obs=log["obs"],
         action=idx, cost=-log["reward"], next_obs=log["next_obs"], terminated=term,
         truncated=log["truncated"].astype(bool) & ~term, extra={ACTION_VALUE_PREFIX + "u": u[:, 0]})
-
-
-def returns(env_id: str, command, n_episodes: int) -> tuple[np.ndarray, float]:
-    """Each episode's return (episodes seeded 10_000 + i, stepped together) and the mean
-    ``|u_t - u_{t-1}|`` per step; ``command(obs (n, d), t) -> (n, m)``."""
-    import gymnasium
-
-    envs = [gymnasium.make(env_id) for _ in range(n_episodes)]
-    obs = np.array([e.reset(seed=10_000 + i)[0] for i, e in enumerate(envs)], dtype=np.float64)
-    ret, alive = np.zeros(n_episodes), np.ones(n_episodes, bool)
-    last: np.ndarray | None = None
-    jumps: list[np.ndarray] = []
-    t = 0
-    while alive.any():
-        idx = np.flatnonzero(alive)
-        u = np.asarray(command(obs[idx], t), np.float64).reshape(len(idx), -1)
-        if last is not None:
-            jumps.append(np.abs(u - last[idx]).sum(axis=1))
-        full = np.zeros((n_episodes, u.shape[1])) if last is None else last.copy()
-        full[idx] = u
-        last = full
-        for j, i in enumerate(idx):
-            o, r, term, trunc, _ = envs[i].step(u[j].astype(np.float32))
-            obs[i], ret[i] = o, ret[i] + r
-            alive[i] = not (term or trunc)
-        t += 1
-    return ret, float(np.concatenate(jumps).mean()) if jumps else 0.0
 
 
 def run(env_id: str, n: int, seed: int, n_episodes: int, arms: dict[str, dict]) -> list[dict]:

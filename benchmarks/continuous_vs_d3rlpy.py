@@ -40,7 +40,6 @@ DEFAULT_D3 = "/work/d3/venv/bin/python"
 def worker(algo: str, src: str, out: str, steps: int, episodes: int) -> None:
     """Runs under d3rlpy's interpreter: fit ``algo`` on the arrays in ``src`` and score it."""
     import d3rlpy
-    import gymnasium
     import torch
 
     torch.set_num_threads(1)  # one core: CPU seconds comparable with ours, no spinning on a shared machine
@@ -60,24 +59,13 @@ def worker(algo: str, src: str, out: str, steps: int, episodes: int) -> None:
               logger_adapter=d3rlpy.logging.NoopAdapterFactory(), save_interval=10**9)
     c1 = os.times()
     cpu = (c1.user - c0.user) + (c1.system - c0.system)
-    envs = [gymnasium.make(env_id) for _ in range(episodes)]
-    obs = np.array([e.reset(seed=10_000 + i)[0] for i, e in enumerate(envs)], dtype=np.float32)
-    ret, alive, last, jumps = np.zeros(episodes), np.ones(episodes, bool), None, []
-    while alive.any():
-        idx = np.flatnonzero(alive)
-        u = np.clip(np.asarray(model.predict(obs[idx]), np.float64).reshape(len(idx), -1), low, high)
-        if last is not None:
-            jumps.append(np.abs(u - last[idx]).sum(axis=1))
-        full = np.zeros((episodes, u.shape[1])) if last is None else last.copy()
-        full[idx] = u
-        last = full
-        for j, i in enumerate(idx):
-            o, r, term, trunc, _ = envs[i].step(u[j].astype(np.float32))
-            obs[i], ret[i] = o, ret[i] + r
-            alive[i] = not (term or trunc)
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from gym_returns import returns
+
+    ret, smooth = returns(env_id, lambda x, t: model.predict(np.asarray(x, np.float32)), episodes, low, high)
     with open(out, "w") as f:
         json.dump({"score": float(ret.mean()), "score_se": float(ret.std() / np.sqrt(episodes)), "cpu_s": cpu,
-                   "smoothness": float(np.concatenate(jumps).mean()) if jumps else 0.0,
+                   "smoothness": smooth,
                    "d3rlpy": d3rlpy.__version__, "gradient_steps": steps}, f)
 
 

@@ -232,15 +232,21 @@ def _read_encoded(spec: dict[str, Any], arrays: Any, where: str, build: Any) -> 
             raise ArtifactError(f"{where}: models declare {d + k} inputs for {n_actions} actions "
                                 f"({2 * n_actions * (d + k)} values per 2 states, at most {C.MAX_PROBE_ENTRIES}): "
                                 "out of proportion, not a model we wrote")
-        try:
-            v = np.asarray(q.values(np.zeros((2, d))))
-        except ArtifactError:
-            raise
-        except Exception as exc:
-            raise ArtifactError(f"{where}: the Q-function cannot predict ({type(exc).__name__}: {exc})") from None
-        if v.shape != (2, n_actions):
-            raise ArtifactError(f"{where}: the Q-function predicts shape {v.shape}, expected (2, {n_actions})")
+        _probe(where, "the Q-function", lambda: q.values(np.zeros((2, d))), (2, n_actions))
     return q
+
+
+def _probe(where: str, what: str, predict: Any, shape: tuple[int, ...]) -> None:
+    """One probe prediction of a loaded model: any failure, or an output of another shape
+    than ``shape``, is an :class:`ArtifactError` naming ``where`` and ``what``."""
+    try:
+        v = np.asarray(predict())
+    except ArtifactError:
+        raise
+    except Exception as exc:
+        raise ArtifactError(f"{where}: {what} cannot predict ({type(exc).__name__}: {exc})") from None
+    if v.shape != shape:
+        raise ArtifactError(f"{where}: {what} predicts shape {v.shape}, expected {shape}")
 
 
 register_q_kind("time_indexed", TimeIndexedQ, _write_time_indexed, _read_time_indexed)
@@ -432,14 +438,7 @@ def _read_distilled(spec: dict[str, Any], arrays: Any, where: str) -> Any:
             raise ArtifactError(f"{where}: model {c} reads {w} features, the policy {d}")
     report = spec.get("report")
     pi = DistilledCommandPolicy(ens, low, high, rate, n_features=d, report=report if isinstance(report, dict) else None)
-    try:
-        u = pi.raw_commands(np.zeros((2, d)))
-    except ArtifactError:
-        raise
-    except Exception as exc:
-        raise ArtifactError(f"{where}: the distilled policy cannot predict ({type(exc).__name__}: {exc})") from None
-    if u.shape != (2, m):
-        raise ArtifactError(f"{where}: the distilled policy predicts shape {u.shape}, expected (2, {m})")
+    _probe(where, "the distilled policy", lambda: pi.raw_commands(np.zeros((2, d))), (2, m))
     return pi
 
 
