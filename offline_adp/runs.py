@@ -222,7 +222,9 @@ def fit_run(
         _save_model(entry, est, rd, ds.fingerprint())
         if entry.resumable:  # the finished checkpoint shares the model's arrays (one copy on disk)
             share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)
+        from offline_adp.artifacts import model_hashes
+
         status.update(status="completed", fit_seconds=time.perf_counter() - wall, fit_cpu_seconds=time.process_time() - cpu,
-                      **_summary(est, engine))
+                      model_sha256=model_hashes(rd.path / RunDirectory.MODEL), **_summary(est, engine))
         rd.write_json(rd.STATUS, status)
     return est

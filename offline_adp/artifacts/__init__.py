@@ -273,11 +273,44 @@ def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], a
     (d / f"{stem}.json").write_text(json.dumps(spec, indent=1))
 
 
+#: The files of a model directory whose sha256 a run records (``run.json`` ``model_sha256``).
+HASHED = ("q.json", "q.npz", "policy.json", "policy.npz")
+
+
+def model_hashes(model_dir: str | PathLike[str]) -> dict[str, str]:
+    """sha256 of each artifact file in ``model_dir`` (those of :data:`HASHED` present), for
+    ``run.json``: loading checks them (:func:`check_recorded_hashes`)."""
+    from offline_adp.data.files import sha256_file
+
+    d = Path(model_dir)
+    return {n: sha256_file(d / n) for n in HASHED if (d / n).is_file()}
+
+
+def check_recorded_hashes(model_dir: Path, files: tuple[Path, ...]) -> None:
+    """When the run holding ``model_dir`` recorded its model's hashes (``run.json``
+    ``model_sha256``), each of ``files`` must still have the recorded sha256: a model file
+    changed after its fit (a flipped byte in a leaf table) is refused, naming the file."""
+    run_json = model_dir.parent / "run.json"
+    if model_dir.name != "model" or not run_json.is_file():
+        return
+    from offline_adp.data.files import read_json_file, sha256_file
+
+    recorded = read_json_file(run_json).get("model_sha256")
+    if not isinstance(recorded, dict):
+        return  # a run written before hashes were recorded
+    for f in files:
+        want = recorded.get(f.name)
+        if isinstance(want, str) and f.is_file() and sha256_file(f) != want:
+            raise ArtifactError(f"{f}: its sha256 differs from the one {run_json} recorded when the fit wrote it: the "
+                                "file was changed after the fit; restore it or fit again")
+
+
 def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:
     """Read what :func:`_write` wrote (arrays without pickle, every member checked before
     use, see :mod:`offline_adp.artifacts.checks`); warns on other versions."""
     d = Path(directory)
     jpath, npath = d / f"{stem}.json", d / f"{stem}.npz"
+    check_recorded_hashes(d, (jpath, npath))
     try:
         if jpath.stat().st_size > 1 << 30:
             raise ArtifactError(f"{jpath}: {jpath.stat().st_size} bytes is too large for an artifact description")
