@@ -575,7 +575,7 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     k-d tree does; ``TopK`` keeps ties in index order), their logged commands as the
     candidates, the Q-values of every candidate (slot-major pairs, the library's order), the
     first minimum, the bounds. Memory: ``N x (logged states) x d`` doubles per batch."""
-    from offline_adp.qfunctions import NeighbourCommands, TimeIndexedQ
+    from offline_adp.qfunctions import SCALED_LIMIT, NeighbourCommands, TimeIndexedQ
 
     enc = pi.encoder
     cands = enc.candidates
@@ -586,9 +586,16 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     k, m = cands.k, cands.commands.shape[1]
     z = g.op("Div", [g.op("Sub", [phi, g.const(cands.center.reshape(1, d), "center")]),
                      g.const(cands.scale.reshape(1, d), "scale")], "z")
+    z = g.op("Min", [g.op("Max", [z, g.const(np.array(-SCALED_LIMIT))], "zlo"), g.const(np.array(SCALED_LIMIT))], "zc")
     diff = g.op("Sub", [g.op("Unsqueeze", [z, g.const(np.array([1], np.int64))], "z3"),
                         g.const(cands.points.reshape(1, M, d), "logged_states")], "diff")
-    dist = g.op("ReduceSum", [g.op("Mul", [diff, diff], "sq"), g.const(np.array([2], np.int64))], "dist2", keepdims=0)
+    sq = g.op("Mul", [diff, diff], "sq")  # (N, M, d); summed over features in order, as the library sums
+    parts = [g.op("Squeeze", [g.op("Slice", [sq, g.const(np.array([j], np.int64)), g.const(np.array([j + 1], np.int64)),
+                                              g.const(np.array([2], np.int64))], "sqj"), g.const(np.array([2], np.int64))],
+                  "sqj2") for j in range(d)]
+    dist = parts[0]
+    for part in parts[1:]:
+        dist = g.op("Add", [dist, part], "dist2")
     g.op("TopK", [dist, g.const(np.array([k], np.int64))], "nearest", outputs=2, axis=1, largest=0, sorted=1)
     rows = g.nodes[-1].output[1]  # TopK's second output: the indices
     cand = g.op("Gather", [g.const(cands.commands, "logged_commands"), rows], "candidates", axis=0)  # (N, k, m)

@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from offline_adp.errors import InvalidTypeError
+from offline_adp.errors import InvalidArgumentError, InvalidTypeError
 from offline_adp.trees.ensemble import TreeEnsemble, ensemble_predict
 from offline_adp.trees.sklearn import forest_leaf_values, is_sklearn_forest, sklearn_leaves
 
@@ -75,6 +75,11 @@ class QEncoder:
         return np.hstack([np.tile(phi, (self.n_actions, 1)), np.repeat(self.action_features, n, axis=0)])
 
 
+#: States are compared in units of each feature's logged spread, clipped to this magnitude so
+#: that a squared distance never overflows (a state 1e100 spreads away is as far as any).
+SCALED_LIMIT = 1e100
+
+
 @dataclass(eq=False)
 class NeighbourCommands:
     """The candidate commands ``C(x)`` of a state: the commands logged at the ``k`` logged
@@ -116,17 +121,51 @@ class NeighbourCommands:
         return int(self.commands.shape[1])
 
     def neighbours(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(distances, rows)`` of the ``k`` nearest logged states, each ``(n, k)``
-        (scaled units; rows in order of distance, ties by row)."""
+        """``(squared distances, rows)`` of the ``k`` nearest logged states, each ``(n, k)``.
+
+        The order is defined exactly, so that an exported graph can reproduce it
+        (:mod:`offline_adp.onnx_export`): the squared distance is the sum over features, in
+        feature order, of ``(q_j - p_j)^2`` in the scaled units, and ties go to the lower
+        row. A k-d tree proposes ``k + 1`` rows; where the ``k``-th and the next are tied
+        to 1e-9 (duplicated logged states, a robot reset to one pose), every row within
+        that distance is gathered and ordered the same way."""
         if self._tree is None:
             from scipy.spatial import cKDTree
 
             self._tree = cKDTree(self.points)
         q = (np.asarray(phi, np.float64) - self.center) / self.scale
+        k, N = self.k, len(self.points)
         if len(q) == 0:
-            return np.zeros((0, self.k)), np.zeros((0, self.k), np.int64)
-        dist, rows = self._tree.query(q, k=self.k)
-        return dist.reshape(len(q), self.k), rows.reshape(len(q), self.k).astype(np.int64)
+            return np.zeros((0, k)), np.zeros((0, k), np.int64)
+        if not np.isfinite(q).all():
+            bad = int(np.flatnonzero(~np.isfinite(q).all(axis=1))[0])
+            raise InvalidArgumentError(f"state {bad}: {np.asarray(phi)[bad].tolist()} is not finite (or too large to "
+                                       "compare with the logged states)")
+        q = np.clip(q, -SCALED_LIMIT, SCALED_LIMIT)  # squared distances stay finite (the exported graph clips too)
+        kk = min(k + 1, N)
+        _, rows = self._tree.query(q, k=kk)
+        rows = np.asarray(rows, np.int64).reshape(len(q), kk)
+        d2 = self._sq_dist(q[:, None, :], rows)
+        order = np.lexsort((rows, d2), axis=1)
+        d2, rows = np.take_along_axis(d2, order, 1), np.take_along_axis(rows, order, 1)
+        if kk > k:
+            tied = np.flatnonzero(d2[:, k] <= d2[:, k - 1] * (1 + 1e-9))
+            for i in tied:  # rare: a tie across the k-th place; settle it among every row that close
+                near = np.asarray(self._tree.query_ball_point(q[i], np.sqrt(d2[i, k - 1]) * (1 + 1e-6) + 1e-300),
+                                  np.int64)
+                dd = self._sq_dist(q[i][None, None, :], near[None, :])[0]
+                o = np.lexsort((near, dd))[:k]
+                d2[i, :k], rows[i, :k] = dd[o], near[o]
+        return d2[:, :k], rows[:, :k]
+
+    def _sq_dist(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """``sum_j (q_j - p_j)^2`` over features in order (the exported graph's sum)."""
+        p = self.points[rows]  # (n, r, d)
+        diff = q - p
+        acc = diff[..., 0] * diff[..., 0]
+        for j in range(1, p.shape[-1]):
+            acc = acc + diff[..., j] * diff[..., j]
+        return acc
 
     def __call__(self, phi: np.ndarray) -> np.ndarray:
         """``C(x)`` for each row of ``phi``: ``(n, k, m)`` commands."""

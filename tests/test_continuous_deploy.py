@@ -18,7 +18,7 @@ from offline_adp.cli import main  # noqa: E402
 from offline_adp.data.dataset import TransitionDataset  # noqa: E402
 from offline_adp.data.info import ACTION_VALUE_PREFIX, Action, ActionTable, DatasetInfo, Feature  # noqa: E402
 from offline_adp.distill import DistilledCommandPolicy, advantage_weights, distill_policy  # noqa: E402
-from offline_adp.errors import ArtifactError, SchemaError  # noqa: E402
+from offline_adp.errors import ArtifactError, InvalidArgumentError, SchemaError  # noqa: E402
 from offline_adp.onnx_export import ExportError, onnx_metadata, policy_to_onnx  # noqa: E402
 
 N_STATES = 10_000
@@ -254,3 +254,27 @@ def test_distill_refuses_discrete_policies_and_weights_rule(tmp_path):
     w = advantage_weights(np.array([[1.0, 1.0], [0.0, 2.0], [0.0, 4.0]]))
     np.testing.assert_allclose(w, [0.1, 0.1 + 0.9 * 1 / 1.0, 0.1 + 0.9 * 2 / 1.0])
     np.testing.assert_allclose(advantage_weights(np.ones((3, 4))), 1.0)
+
+
+def test_greedy_export_agrees_where_logged_states_tie():
+    """A robot reset to one pose: 200 logged states at exactly the same point, more than the
+    candidates. The neighbours are ordered by (squared distance, row) in the library and in
+    the graph, so both pick the same command there (and at a state far from every log)."""
+    from offline_adp.policies import attach_signature
+    from offline_adp.qfunctions import NeighbourCommands
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    x = rng.uniform(-1, 1, (n, 2))
+    x[::10] = 0.0
+    u = rng.uniform(-1, 1, (n, 1))
+    ds = command_dataset(x, u, (x ** 2).sum(axis=1), x + 0.1 * u, np.arange(n) // 20, np.arange(n) % 20, [-1.0], [1.0],
+                         ["u"])
+    pol = attach_signature(FittedQIteration(n_iterations=5, regressor_params={"n_estimators": 10}).fit(ds).policy_, ds)
+    np.testing.assert_array_equal(NeighbourCommands.from_data(x, u, 16).neighbours(np.zeros((1, 2)))[1][0],
+                                  np.arange(0, 160, 10))  # the tied rows, lowest first
+    X = np.vstack([x[:500], np.zeros((3, 2)), [[1e30, 0.0]]]).astype(np.float32)
+    got = _onnx(policy_to_onnx(pol, input_dtype="float32"), X)
+    np.testing.assert_allclose(got[:, 0], pol.act(X.astype(np.float64)), rtol=0, atol=1e-5)
+    with pytest.raises(InvalidArgumentError, match="not finite"):
+        pol.act(np.array([[np.nan, 0.0]]))
