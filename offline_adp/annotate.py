@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import (
-    IncompatibleError,
     IngestError,
     OfflineADPError,
     OutputExistsError,
@@ -168,6 +167,11 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
     if Path(out).resolve() == Path(log_file).resolve():
         raise OutputExistsError(f"--out {out} is the input log; write the annotated copy elsewhere")
     policy = load_run_policy(run_dir, dataset)
+    if getattr(policy, "continuous", False):
+        from offline_adp.errors import IncompatibleError
+
+        raise IncompatibleError(f"{run_dir}: annotate writes the action table's entries, Q-gaps and action "
+                                "probabilities; a continuous policy has none of them yet")
     try:
         ds_path: Path | None = run_dataset(run_dir, dataset)
     except OfflineADPError:

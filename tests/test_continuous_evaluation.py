@@ -65,3 +65,36 @@ def test_evaluate_and_report_a_continuous_run(lq, tmp_path):
     assert "commands.png" in figs  # (one state feature: no two-feature policy map)
     html = (tmp_path / "run" / "report" / "report.html").read_text()
     assert "Not computed for continuous commands" in html and "(95%)" not in html
+
+
+def test_review_cases_through_the_cli(lq, tmp_path, capsys):
+    """API over commands saves and loads its policy; FQE of a continuous policy is refused
+    before any fit; a binned fit of a continuous log reports; a continuous run evaluates
+    on another log of the same commands (its coarse bins differ)."""
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+
+    lq.save(tmp_path / "data")
+    lq_dataset(150, steps=60, seed=5).save(tmp_path / "other")
+    (tmp_path / "api.toml").write_text("[api]\nn_iterations = 2\n[api.fqe]\nn_iterations = 10\n"
+                                       "regressor_params = {n_estimators = 5}\n")
+    assert main(["fit", str(tmp_path / "data"), "--algorithm", "api", "--config", str(tmp_path / "api.toml"),
+                 "--out", str(tmp_path / "api"), "-q"]) == 0
+    from offline_adp import load_policy
+
+    assert load_policy(tmp_path / "api").act(np.zeros((3, 1))).shape == (3,)
+    (tmp_path / "fqe.toml").write_text(f'[fqe]\npolicy = "{tmp_path / "api" / "model"}"\n')
+    capsys.readouterr()
+    assert main(["fit", str(tmp_path / "data"), "--algorithm", "fqe", "--config", str(tmp_path / "fqe.toml"),
+                 "--out", str(tmp_path / "fqe"), "-q"]) == 2
+    assert "continuous policy" in capsys.readouterr().err
+    (tmp_path / "binned.toml").write_text("[fqi]\nn_iterations = 5\ncommands = \"binned\"\n")
+    assert main(["fit", str(tmp_path / "data"), "--config", str(tmp_path / "binned.toml"), "--out",
+                 str(tmp_path / "binned"), "-q"]) == 0
+    assert main(["evaluate", str(tmp_path / "binned"), "--fqe-bootstrap", "0", "--bootstrap", "20", "-q"]) == 0
+    assert main(["report", str(tmp_path / "binned"), "-q"]) == 0
+    assert main(["evaluate", str(tmp_path / "api"), "--dataset", str(tmp_path / "other"), "--fqe-bootstrap", "0",
+                 "--bootstrap", "0", "-q"]) == 0
+    with pytest.raises(ValueError, match="commands"):  # a table policy cannot be evaluated over commands
+        from offline_adp.policies import UniformPolicy
+
+        FittedQEvaluation(policy=UniformPolicy(lq.n_actions), commands="continuous", n_iterations=2).fit(lq)

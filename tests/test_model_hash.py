@@ -45,3 +45,16 @@ def test_a_model_resaved_with_one_changed_leaf_is_refused(run, tmp_path, capsys)
     assert main(["evaluate", str(copy), "--simulator", "none", "--fqe-bootstrap", "0", "--bootstrap", "0", "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sha256 differs" in err[0]
+
+
+def test_a_policy_file_added_to_the_model_is_refused(run, tmp_path):
+    import shutil
+
+    from offline_adp.artifacts import save_policy
+    from offline_adp.policies import UniformPolicy
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    save_policy(UniformPolicy(5), copy / "model")  # loading would prefer policy.json
+    with pytest.raises(ArtifactError, match=r"policy\.json: not among the model files"):
+        load_policy(copy)

@@ -146,7 +146,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
             changed = 1.0 if same is None else float(1.0 - (same.all(axis=-1) if cands is not None else same).mean())
             rows.append({"iteration": k, "value": fqe.value_, "changed": changed, "n_transitions": len(data),
                          "fit_seconds": time.perf_counter() - t0})
-            self.q_function_, self.policy_, self.fqe_ = fqe.q_function_, improved, fqe
+            # over commands, the Q kept is the one the improvement read (over the neighbours' commands)
+            q_kept = improved.q if cands is not None else fqe.q_function_  # type: ignore[attr-defined]
+            self.q_function_, self.policy_, self.fqe_ = q_kept, improved, fqe
             if changed == 0.0:
                 break
             prev_actions, pi = actions, improved

@@ -59,10 +59,13 @@ def check_command_policy(est: Any, dataset: TransitionDataset) -> None:
     if u is None:
         raise InvalidArgumentError(f"{type(est).__name__}: the policy commands continuous values, the dataset "
                                    f"carries no exact commands ({dataset.info.action_table.command_columns})")
-    if getattr(est.policy, "time_varying", False):
+    x = dataset.arrays().obs[:64]
+    probe = np.asarray(est.policy.commands(x[:1], 0))
+    varies = probe.shape == (1, u.shape[1]) and any(
+        not np.array_equal(est.policy.commands(x, t), est.policy.commands(x, 0)) for t in (1, 7, 50, 500))
+    if getattr(est.policy, "time_varying", False) or varies:
         raise InvalidArgumentError(f"{type(est).__name__}: a time-varying continuous policy cannot be evaluated yet "
-                                   "(its command would depend on the step)")
-    probe = np.asarray(est.policy.commands(dataset.arrays().obs[:1], 0))
+                                   "(its command depends on the step)")
     if probe.shape != (1, u.shape[1]):
         raise InvalidArgumentError(f"{type(est).__name__}: the policy's commands have shape {probe.shape[1:]}, the "
                                    f"dataset's {u.shape[1]} components {list(dataset.info.action_table.dims)}")
@@ -253,6 +256,10 @@ commands, n_candidates
         other actions' rows no longer stand in for its own."""
         fit = self._check_conditional()
         d = fit.data
+        if d.encoder.continuous:
+            raise InvalidArgumentError("support_bounds reads the fitted structure per action-table entry; over "
+                                       "continuous commands there is no such entry (evaluation/continuous.py measures "
+                                       "command support instead)")
         P, u, P0, u0 = support_operators(d, fit.backup, fit.learner, self._query_operators(), min_tree_share,
                                        radius)
         return {"lower": bounded_value(d, P, u, P0, u0, float(lower)),

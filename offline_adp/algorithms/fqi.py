@@ -33,9 +33,10 @@ backup nor the policy ever uses a command that was not logged at one of the
 ``n_candidates`` logged states nearest to the state in question, so the minimum cannot
 run to a command where Q was never fitted (the chapter's warning about the min over
 actions); the price is that a command between logged ones is not chosen unless it was
-logged nearby. With a fixed ``C(x')`` per next state the backup is still a
-gamma-contraction for a fixed tree structure (an averager; the frozen mode's
-convergence statement holds unchanged).
+logged nearby, and "nearest" has no distance cap (at the data's edge the nearest logged
+states can be far). With a fixed ``C(x')`` per next state (no ``next_state_noise``) the
+backup is still a gamma-contraction for a fixed tree structure (an averager; the frozen
+mode's convergence statement holds unchanged).
 
 Fitted Q *evaluation* (Algorithms 12/13, :mod:`offline_adp.algorithms.fqe`) is the same
 loop, :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`, with another backup (the policy's expectation instead of the
@@ -541,6 +542,9 @@ def resolve_commands(est: Any, ds: TransitionDataset) -> str:
     policy = getattr(est, "policy", None)  # an evaluation: what the policy commands decides
     auto = getattr(policy, "continuous", False) if policy is not None else at.continuous
     out = ("continuous" if auto else "binned") if est.commands == "auto" else est.commands
+    if out == "continuous" and policy is not None and not getattr(policy, "continuous", False):
+        raise invalid_parameter(est, "commands", "'auto' or 'binned' for a policy over the action table's entries "
+                                "(evaluating it over commands would back up another policy)", est.commands)
     if out == "continuous" and getattr(est, "initial_q", None) is not None:
         raise invalid_parameter(est, "initial_q", "None with continuous commands (a Q over the action table's "
                                 "entries cannot start a Q over commands)", est.initial_q)

@@ -33,7 +33,7 @@ from sklearn.utils._param_validation import InvalidParameterError
 
 from offline_adp.algorithms.params import refuse_continuous
 from offline_adp.config import ConfigModel, validate_config
-from offline_adp.errors import SpecError, UnknownNameError
+from offline_adp.errors import IncompatibleError, SpecError, UnknownNameError
 
 _SIMPLE = (int, float, str, bool, dict, list, tuple, type(None))
 
@@ -198,7 +198,12 @@ def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     from offline_adp.artifacts import load_index_policy
 
     entry.check_complete(p)
-    return entry.estimator_class()(policy=load_index_policy(p.pop("policy")), **p).fit(ds)
+    policy = load_index_policy(p.pop("policy"))
+    if getattr(policy, "continuous", False):  # its Q reads the policy's own commands: not a savable model yet
+        raise IncompatibleError("fit --algorithm fqe of a continuous policy is not supported (its Q-function reads the "
+                                "policy's own commands and cannot be saved yet); `offline-adp evaluate RUN` runs FQE "
+                                "over commands as part of the evaluation")
+    return entry.estimator_class()(policy=policy, **p).fit(ds)
 
 
 def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:

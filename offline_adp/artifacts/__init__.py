@@ -219,6 +219,12 @@ def _read_encoded(spec: dict[str, Any], arrays: Any, where: str, build: Any) -> 
         enc = CommandEncoder(n_actions, np.asarray(af, dtype=np.float64), False, fmap,
                              candidates=_read_candidates(e, arrays, where, n_actions, af.shape[1]))
     q, widths = build(enc)
+    if isinstance(enc, CommandEncoder) and isinstance(enc.candidates, NeighbourCommands):
+        w = enc.candidates.points.shape[1]
+        known_w = {x for x in widths if x is not None}
+        if fmap is None and known_w and known_w != {w + af.shape[1]}:
+            raise ArtifactError(f"{where}: encoder.candidates: logged states of {w} features, models reading "
+                                f"{sorted(known_w)} inputs with {af.shape[1]} command components")
     # the models' input width agrees with the encoder's; then one probe prediction
     k = 0 if per_action else af.shape[1]
     known = {w for w in widths if w is not None}
@@ -298,11 +304,15 @@ def check_recorded_hashes(model_dir: Path, files: tuple[Path, ...]) -> None:
     recorded = read_json_file(run_json).get("model_sha256")
     if not isinstance(recorded, dict):
         return  # a run written before hashes were recorded
+    extra = [n for n in HASHED if (model_dir / n).exists() and n not in recorded]
+    if extra:  # e.g. a policy.json dropped next to a fitted Q: loading would prefer it
+        raise ArtifactError(f"{model_dir / extra[0]}: not among the model files {run_json} recorded when the fit wrote "
+                            "them (the model directory was changed after the fit); remove it or fit again")
     for f in files:
         want = recorded.get(f.name)
-        if isinstance(want, str) and f.is_file() and sha256_file(f) != want:
-            raise ArtifactError(f"{f}: its sha256 differs from the one {run_json} recorded when the fit wrote it: the "
-                                "file was changed after the fit; restore it or fit again")
+        if isinstance(want, str) and (not f.is_file() or sha256_file(f) != want):
+            raise ArtifactError(f"{f}: its sha256 differs from the one {run_json} recorded when the fit wrote it (or "
+                                "it is missing): the file was changed after the fit; restore it or fit again")
 
 
 def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what: str) -> tuple[Any, dict[str, Any]]:

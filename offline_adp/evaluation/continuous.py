@@ -41,9 +41,9 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.evaluation import ope
 from offline_adp.evaluation.estimand import declare_estimand
 from offline_adp.evaluation.fqe_interval import (
-    DEFAULT_FQE,
     fqe_interval,
     fqe_replicates,
+    fqe_settings,
     with_truncation_bound,
 )
 from offline_adp.evaluation.settings import EvaluationSettings
@@ -94,12 +94,8 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
                       say: Callable[[str], None]) -> ope.OPEResult:
     """FQE's estimate and its (unlabelled) bootstrap interval over episodes."""
     a = ds.arrays()
-    user = dict(cfg.fqe_params or {})
-    params = {**DEFAULT_FQE, **user}
     fqe_T = est_def.fqe_horizon
-    if fqe_T is not None:
-        params.pop("tol", None)
-        params.pop("n_iterations", None)
+    params = fqe_settings(cfg.fqe_params, fqe_T)  # the discrete path's merge of the user's settings
     conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
     say("fitted Q evaluation over commands")
     fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=est_def.gamma, random_state=cfg.seed, **params).fit(ds)
@@ -111,11 +107,17 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     counts = ope.bootstrap_counts(em.n_episodes, n_reps, cfg.seed)
     if n_reps:
         say(f"FQE bootstrap ({n_reps} replicates)")
+    start = a.step == 0
     if conditional:
         reps = [fqe.reweighted_value(c[em.row_episode], rtol=1e-5) for c in counts]
-    else:
-        reps = [FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=est_def.gamma, random_state=cfg.seed, **params)
-                .fit(ds, sample_weight=c[em.row_episode].astype(np.float64)).value_ for c in counts]
+    else:  # a refit per replicate; its start value weighted by the replicate's episode counts
+        reps = []
+        for c in counts:
+            w = c[em.row_episode].astype(np.float64)
+            rep = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=est_def.gamma, random_state=cfg.seed,
+                                    **params).fit(ds, sample_weight=w)
+            v0, w0 = rep.q_function_.values(a.obs[start], 0)[:, 0], w[start]
+            reps.append(float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan"))
     res = fqe_interval(est, reps, em.n_episodes)
     res = replace(res, level=None, interval_method=res.interval_method + (
         " (structure-conditional: tree structure fixed, leaves re-averaged)" if conditional else ""),

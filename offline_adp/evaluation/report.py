@@ -144,7 +144,7 @@ def _build(run: Path, m: dict[str, Any], ratios: pd.DataFrame, features: list[st
     ope_figure(figs, m, h["ranking"])
     if m.get("shift"):  # none for a continuous policy (evaluation/continuous.py)
         ratios_figure(figs, m, h["shift"]["method"])
-    if actions.get("table") is not None and actions["table"].continuous:  # one map per command component
+    if "commands" in m and actions.get("table") is not None:  # a continuous policy: one map per command component
         _command_figures(figs, run, m, ratios, features, axes, units, actions["table"])
     elif axes is not None and all(a in features for a in axes):
         vals = actions.get("values")

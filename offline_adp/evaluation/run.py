@@ -146,10 +146,10 @@ def evaluate_run(
         t0 = time.perf_counter()
         ds = read_dataset(ds_path)
         policy = load_index_policy(run / "model")
-        if getattr(policy, "continuous", False):  # its commands' bounds and discrete view are the dataset's
+        if getattr(policy, "continuous", False):  # its bounds: the data it was fitted on (else these logs)
             from offline_adp.policies import attach_signature
 
-            attach_signature(policy, ds)
+            attach_signature(policy, _fitted_info(info) or ds)
         _check_same_actions(run, info, policy, ds, ds_path)
         sim_name = simulator if simulator is not None else ds.info.problem
         if sim_name in ("none", ""):
@@ -320,7 +320,9 @@ def _discount(metrics: dict[str, Any], ds: TransitionDataset, run_dir: str | Pat
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
     """The policy must command the dataset's actions and read its features: else an error
     naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
-    values = ds.info.action_table.values.ravel().tolist()
+    values = _short(ds.info.action_table.values.ravel().tolist())
+    if getattr(policy, "continuous", False):
+        return _check_same_commands(run, info, ds, ds_path)
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
         raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
                               f"(action table {values}); evaluate or compare runs on data with the action table "
@@ -336,11 +338,49 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
     theirs = fitted.action_table.values
     if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
-        raise IncompatibleError(f"{run}: fitted on {own} with the action table {theirs.ravel().tolist()}, but the dataset "
+        raise IncompatibleError(f"{run}: fitted on {own} with the action table {_short(theirs.ravel().tolist())}, but the dataset "
                               f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
     if list(fitted.feature_names) != list(ds.feature_names):
         raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
                               f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
+
+
+def _short(xs: list[Any], k: int = 8) -> str:
+    """At most ``k`` items of a list for a one-line message."""
+    return str(xs) if len(xs) <= k else f"[{', '.join(f'{x:g}' if isinstance(x, float) else str(x) for x in xs[:k])}, ... " \
+        f"({len(xs)} in all)]"
+
+
+def _fitted_info(info: dict[str, Any]) -> Any:
+    """The :class:`DatasetInfo` of the dataset a run was fitted on (None: not found)."""
+    own = info.get("dataset")
+    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
+        return None
+    from offline_adp.data.info import DatasetInfo
+    from offline_adp.data.io import read_info
+
+    return DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
+
+
+def _check_same_commands(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
+    """A continuous policy reads the dataset's features and commands the same components:
+    names, units and bounds (the coarse bins of two logs of one robot differ and do not count)."""
+    at = ds.info.action_table
+    if not at.continuous:
+        raise IncompatibleError(f"{run}: its policy commands continuous values; the dataset {ds_path} has no exact "
+                                f"commands (action table kind {at.kind!r})")
+    fitted = _fitted_info(info)
+    if fitted is None:
+        return
+    mine = fitted.action_table
+    same = (mine.dims == at.dims and tuple(mine.units) == tuple(at.units)
+            and (mine.low, mine.high) == (at.low, at.high) if mine.low is not None and at.low is not None
+            else mine.dims == at.dims)
+    if not same or list(fitted.feature_names) != list(ds.feature_names):
+        raise IncompatibleError(f"{run}: fitted on commands {list(mine.dims)} {list(mine.units)} within "
+                                f"[{mine.low}, {mine.high}] and features {list(fitted.feature_names)}, but the dataset "
+                                f"{ds_path} has {list(at.dims)} {list(at.units)} within [{at.low}, {at.high}] and "
+                                f"{list(ds.feature_names)}; evaluate on logs of the same commands")
 
 
 def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, Any]:

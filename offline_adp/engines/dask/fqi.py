@@ -363,6 +363,12 @@ class _DaskEngine:
         parts = [str(p) for p in part_files(path)]
         if not parts:
             raise DatasetNotFoundError(f"{path}: no data parts (part-*.parquet); is it a dataset directory?")
+        if info.action_table.continuous and getattr(self.estimator(), "commands", "auto") != "binned":
+            from offline_adp.errors import IncompatibleError
+
+            raise IncompatibleError(f"{path}: the Dask engine learns over the action table's entries; this dataset's "
+                                    "commands are continuous: fit it in process, or with commands = 'binned' to learn "
+                                    "over its bins")
         af = np.asarray(info.action_table.values, dtype=np.float64)
         cols = flat_columns(info)
         n_workers = len(self.client.scheduler_info()["workers"])
