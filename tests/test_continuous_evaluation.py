@@ -64,7 +64,7 @@ def test_evaluate_and_report_a_continuous_run(lq, tmp_path):
     figs = {p.name for p in (tmp_path / "run" / "report" / "figures").iterdir()}
     assert "commands.png" in figs  # (one state feature: no two-feature policy map)
     html = (tmp_path / "run" / "report" / "report.html").read_text()
-    assert "Not computed for continuous commands" in html and "(95%)" not in html
+    assert "Not computed for continuous commands" in html and "(95%)" not in html and "<style" in html
 
 
 def test_review_cases_through_the_cli(lq, tmp_path, capsys):

@@ -477,7 +477,7 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
               "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
               table_html(good, cols, "ope")]
     if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
-        return "\n".join(parts + _continuous_sections(m))
+        return page(title, parts + _continuous_sections(m))
     if bad:
         parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
                               + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
