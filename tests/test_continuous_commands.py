@@ -194,3 +194,23 @@ def test_two_component_commands_fit_in_the_default_frozen_mode():
     cand = est.q_function_.encoder.commands(xs)
     assert c.shape == (7, 2)
     assert all((cand[i] == c[i]).all(axis=1).any() for i in range(7))
+
+
+def test_finite_horizon_over_commands_saves_and_a_crafted_step_is_refused(tmp_path):
+    """Algorithm 10 over commands: one Q per step, every step reading the same candidate set;
+    a saved model whose steps read different candidate sets is refused on load."""
+    from offline_adp.errors import ArtifactError
+
+    ds = lq_dataset(40)
+    est = FittedQIteration(horizon=3, n_iterations=2, regressor_params={"n_estimators": 5}).fit(ds)
+    assert est.commands_ == "continuous" and est.policy_.time_varying
+    save_fqi(est, tmp_path / "m")
+    xs = np.linspace(-1, 1, 5)[:, None]
+    np.testing.assert_array_equal(load_fqi(tmp_path / "m").policy_.commands(xs, 1), est.policy_.commands(xs, 1))
+    with np.load(tmp_path / "m" / "q.npz") as z:
+        arrays = {k: z[k].copy() for k in z.files}
+    key = next(k for k in arrays if k.endswith(".candidates.commands") and ".t1" in k)
+    arrays[key][0] += 0.25
+    np.savez_compressed(tmp_path / "m" / "q.npz", **arrays)
+    with pytest.raises(ArtifactError, match="different candidate sets"):
+        load_fqi(tmp_path / "m")

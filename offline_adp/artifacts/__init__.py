@@ -121,6 +121,14 @@ def _read_time_indexed(spec: dict[str, Any], arrays: Any, where: str) -> QFuncti
     out = TimeIndexedQ([_import_q(x, arrays, where) for x in qs])
     if len({q.n_actions for q in out.qs}) != 1:
         raise ArtifactError(f"{where}: time_indexed Q mixes action counts")
+    cands = [getattr(getattr(q, "encoder", None), "candidates", None) for q in out.qs]
+    if any(c is not None for c in cands):  # over commands: the greedy policy reads step 0's candidates for every step
+        first = cands[0]
+        same = all(isinstance(c, NeighbourCommands) and isinstance(first, NeighbourCommands) and c.k == first.k
+                   and all(np.array_equal(getattr(c, n), getattr(first, n)) for n in ("points", "commands", "center",
+                                                                                       "scale")) for c in cands)
+        if not same:
+            raise ArtifactError(f"{where}: time_indexed Q over commands: its steps read different candidate sets")
     return out
 
 

@@ -174,7 +174,9 @@ def _command_figures(figs: Figures, run: Path, m: dict[str, Any], ratios: pd.Dat
     ds_path = (m.get("dataset") or {}).get("path")
     logged = None
     if isinstance(ds_path, str) and (Path(ds_path) / "meta" / "info.json").exists():
-        logged = TransitionDataset.load(ds_path).commands()
+        ds = TransitionDataset.load(ds_path)
+        if ds.matches_fingerprint((m.get("dataset") or {}).get("fingerprint")):  # the logs the evaluation read
+            logged = ds.commands()
     command_figures(figs, policy, ratios, features, axes, units, table, logged)
 
 
