@@ -150,12 +150,16 @@ class NeighbourCommands:
         d2, rows = np.take_along_axis(d2, order, 1), np.take_along_axis(rows, order, 1)
         if kk > k:
             tied = np.flatnonzero(d2[:, k] <= d2[:, k - 1] * (1 + 1e-9))
-            for i in tied:  # rare: a tie across the k-th place; settle it among every row that close
-                near = np.asarray(self._tree.query_ball_point(q[i], np.sqrt(d2[i, k - 1]) * (1 + 1e-6) + 1e-300),
+            # a tie across the k-th place (duplicated logged states): settled once per distinct
+            # query point among every row that close (a reset pose queried 5,000 times: once)
+            points, which = np.unique(q[tied], axis=0, return_inverse=True)
+            for j, qj in enumerate(points):
+                at = tied[which.reshape(-1) == j]
+                near = np.asarray(self._tree.query_ball_point(qj, np.sqrt(d2[at[0], k - 1]) * (1 + 1e-6) + 1e-300),
                                   np.int64)
-                dd = self._sq_dist(q[i][None, None, :], near[None, :])[0]
+                dd = self._sq_dist(qj[None, None, :], near[None, :])[0]
                 o = np.lexsort((near, dd))[:k]
-                d2[i, :k], rows[i, :k] = dd[o], near[o]
+                d2[at, :k], rows[at, :k] = dd[o], near[o]
         return d2[:, :k], rows[:, :k]
 
     def _sq_dist(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -36,6 +36,7 @@ from offline_adp.errors import (
 )
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.evaluation.settings import EvaluationSettings
+from offline_adp.formats.common import short_list
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
 
@@ -320,7 +321,7 @@ def _discount(metrics: dict[str, Any], ds: TransitionDataset, run_dir: str | Pat
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
     """The policy must command the dataset's actions and read its features: else an error
     naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
-    values = _short(ds.info.action_table.values.ravel().tolist())
+    values = short_list(ds.info.action_table.values.ravel().tolist())
     if getattr(policy, "continuous", False):
         return _check_same_commands(run, info, ds, ds_path)
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
@@ -338,17 +339,11 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
     theirs = fitted.action_table.values
     if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
-        raise IncompatibleError(f"{run}: fitted on {own} with the action table {_short(theirs.ravel().tolist())}, but the dataset "
+        raise IncompatibleError(f"{run}: fitted on {own} with the action table {short_list(theirs.ravel().tolist())}, but the dataset "
                               f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
     if list(fitted.feature_names) != list(ds.feature_names):
         raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
                               f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
-
-
-def _short(xs: list[Any], k: int = 8) -> str:
-    """At most ``k`` items of a list for a one-line message."""
-    return str(xs) if len(xs) <= k else f"[{', '.join(f'{x:g}' if isinstance(x, float) else str(x) for x in xs[:k])}, ... " \
-        f"({len(xs)} in all)]"
 
 
 def _fitted_info(info: dict[str, Any]) -> Any:

@@ -37,7 +37,7 @@ ACTION_VALUE = ACTION_VALUE_PREFIX
 _INT32_MAX = int(np.iinfo(np.int32).max)
 
 
-def _short(items: Any, k: int = 8) -> str:
+def short_list(items: Any, k: int = 8) -> str:
     """At most ``k`` items of a list for a message (never thousands)."""
     items = list(items)
     return repr(items) if len(items) <= k else f"[{', '.join(repr(x) for x in items[:k])}, ... ({len(items)} in all)]"
@@ -145,7 +145,7 @@ def _action_indices(values: np.ndarray, table: ActionTable, where: str) -> np.nd
     if (idx < 0).any():
         i = int(np.argmax(idx < 0))
         raise IngestError(f"{where}: actions: row {i}: action {vals[i].tolist()} is not in the action table "
-                          f"{_short(tv.tolist())} ({int((idx < 0).sum())} rows); pass action_table=, or bin continuous "
+                          f"{short_list(tv.tolist())} ({int((idx < 0).sum())} rows); pass action_table=, or bin continuous "
                           "actions with an ingestion spec")
     return idx
 

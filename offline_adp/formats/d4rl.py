@@ -31,7 +31,7 @@ from offline_adp.formats.common import (
     _numeric,
     _provenance,
     _require_doctor,
-    _short,
+    short_list,
 )
 from offline_adp.progress import get_logger
 
@@ -92,7 +92,7 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
     arrays = _load_npz(data, max_bytes) if isinstance(data, str | PathLike) else dict(data)
     missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in arrays]
     if missing:
-        raise IngestError(f"{where}: missing D4RL arrays {missing}; found {_short(sorted(arrays))}")
+        raise IngestError(f"{where}: missing D4RL arrays {missing}; found {short_list(sorted(arrays))}")
     obs_raw = _numeric(arrays["observations"], where, "observations")
     n = len(obs_raw)
     if n == 0:
