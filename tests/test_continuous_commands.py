@@ -110,8 +110,13 @@ def test_greedy_commands_come_from_the_logged_neighbourhood_and_near_the_optimum
     u = pol.commands(xs)
     assert u.shape == (41, 1)
     # the guarantee: every command was logged at one of the n_candidates nearest logged states
-    cand = fqi.q_function_.encoder.commands(xs)
-    assert all(np.any(cand[i, :, 0] == u[i, 0]) for i in range(len(xs)))
+    # (recomputed by brute force from the dataset, not read back from the fit's own candidate set)
+    obs, logged = lq.arrays().obs, lq.commands()
+    z = (obs - obs.mean(axis=0)) / obs.std(axis=0)
+    zq = (xs - obs.mean(axis=0)) / obs.std(axis=0)
+    d2 = ((zq[:, None, :] - z[None, :, :]) ** 2).sum(axis=2)
+    nearest = np.argsort(d2, axis=1, kind="stable")[:, :32]
+    assert all(np.any(logged[nearest[i], 0] == u[i, 0]) for i in range(len(xs)))
     _, K = riccati()
     assert np.mean(np.abs(u[:, 0] + K * xs[:, 0])) < 0.25
     # the learned policy's true cost is within 10% of the optimum from the data's start states
