@@ -118,19 +118,29 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
     report("demonstrator", score(model, demo, args.episodes, 123))
     report("stanley (noise-free)", score(model, _Controller(demo), args.episodes, 123))
     costs = {}
-    for arm, params in (("continuous", {"commands": "continuous", "n_candidates": args.n_candidates}),
+    for arm, params in (("continuous", {"commands": "continuous", "n_candidates": args.n_candidates,
+                                        "bin_candidates": not args.no_bin_candidates}),
                         ("binned", {"commands": "binned"})):
-        est = FittedQIteration(gamma=GAMMA, n_iterations=args.iterations, random_state=args.seed,
-                               regressor_params={"n_estimators": args.trees}, **params)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DivergenceWarning)
-            c0 = time.process_time()
-            est.fit(ds)
-            cpu = time.process_time() - c0
-        pol = attach_signature(est.policy_, ds)
-        sc = score(model, pol, args.episodes, 123)
+        per_fit, cpu = [], 0.0
+        for ls in range(args.learner_seeds):  # fits of other learner seeds on the same logs
+            est = FittedQIteration(gamma=GAMMA, n_iterations=args.iterations, random_state=args.seed + 1000 * ls,
+                                   regressor_params={"n_estimators": args.trees}, **params)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DivergenceWarning)
+                c0 = time.process_time()
+                est.fit(ds)
+                cpu += time.process_time() - c0
+            per_fit.append(score(model, attach_signature(est.policy_, ds), args.episodes, 123))
+        sc = {"costs": np.mean([p["costs"] for p in per_fit], axis=0),  # per episode, averaged over the fits
+              "failures": int(sum(p["failures"] for p in per_fit)),
+              "smoothness": list(np.mean([p["smoothness"] for p in per_fit], axis=0))}
+        sc["mean_discounted_cost"] = float(sc["costs"].mean())
+        sc["se"] = float(sc["costs"].std(ddof=1) / np.sqrt(len(sc["costs"])))
+        sc["per_fit"] = [p["mean_discounted_cost"] for p in per_fit]
         costs[arm] = sc["costs"]
-        report(arm, sc, cpu, {"iterations": len(est.history_), "verdict": est.verdict_, "commands": est.commands_})
+        report(arm, sc, cpu / len(per_fit), {"iterations": len(est.history_), "verdict": est.verdict_,
+                                             "commands": est.commands_})
+        print(f"    per fit: {', '.join(f'{c:.3f}' for c in sc['per_fit'])}", flush=True)
     d = costs["continuous"] - costs["binned"]
     paired = {"mode": mode, "seed": args.seed, "arm": "continuous - binned (paired)", "mean_difference": float(d.mean()),
               "se": float(d.std(ddof=1) / np.sqrt(len(d)))}
@@ -148,6 +158,10 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--n-candidates", type=int, default=16)
+    ap.add_argument("--no-bin-candidates", action="store_true",
+                    help="the continuous arm's candidates: the neighbours' commands alone")
+    ap.add_argument("--learner-seeds", type=int, default=4,
+                    help="fits per arm on the same logs (learner seeds seed + 1000 j); costs averaged per episode")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="data (and learner) seeds")
     ap.add_argument("--json")
     a = ap.parse_args()

@@ -573,7 +573,7 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     """The greedy command policy itself, exactly: the ``k`` logged states nearest each row
     (squared differences of the scaled features summed in feature order, as the library's
     k-d tree does; ``TopK`` keeps ties in index order), their logged commands as the
-    candidates, the Q-values of every candidate (slot-major pairs, the library's order), the
+    candidates followed by the extra commands offered everywhere (``bin_candidates``), the Q-values of every candidate (slot-major pairs, the library's order), the
     first minimum, the bounds. Memory: ``N x (logged states) x d`` doubles per batch."""
     from offline_adp.qfunctions import SCALED_LIMIT, NeighbourCommands, TimeIndexedQ
 
@@ -599,6 +599,14 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     g.op("TopK", [dist, g.const(np.array([k], np.int64))], "nearest", outputs=2, axis=1, largest=0, sorted=1)
     rows = g.nodes[-1].output[1]  # TopK's second output: the indices
     cand = g.op("Gather", [g.const(cands.commands, "logged_commands"), rows], "candidates", axis=0)  # (N, k, m)
+    if cands.extra is not None:  # the commands offered at every state, after the neighbours'
+        e = len(cands.extra)
+        nn = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))],
+                  "n_rows")
+        eshape = g.op("Concat", [nn, g.const(np.array([e, m], np.int64))], "extra_shape", axis=0)
+        extra = g.op("Expand", [g.const(cands.extra.reshape(1, e, m), "extra_commands"), eshape], "extra")
+        cand = g.op("Concat", [cand, extra], "candidates_all", axis=1)  # (N, k + e, m)
+        k = k + e
     slots = g.op("Reshape", [g.op("Transpose", [cand], "cand_t", perm=[1, 0, 2]), g.const(np.array([-1, m], np.int64))],
                  "slots")  # row j * N + i: candidate j of row i
     pairs = g.op("Concat", [g.op("Tile", [phi, g.const(np.array([k, 1], np.int64))], "tiled"), slots], "pairs", axis=1)

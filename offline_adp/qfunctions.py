@@ -85,9 +85,9 @@ class NeighbourCommands:
     """The candidate commands ``C(x)`` of a state: the commands logged at the ``k`` logged
     states nearest to ``phi(x)`` (Euclidean distance after scaling each feature by its
     logged standard deviation). In the spirit of batch-constrained Q-learning (Fujimoto,
-    Meger & Precup 2019), every candidate is a command that was logged in the data's
-    neighbourhood of ``x``: a minimum over ``C(x)`` never reaches a command the logs did
-    not try near ``x``.
+    Meger & Precup 2019), every neighbour candidate is a command that was logged in the
+    data's neighbourhood of ``x``; ``extra`` commands (the used bins' representatives) are
+    offered at every state after them.
 
     Parameters
     ----------
@@ -97,7 +97,11 @@ class NeighbourCommands:
         The command logged at each of them.
     center, scale : ndarray (d,)
     k : int
-        Candidates per state (at most ``N``).
+        Neighbours per state (at most ``N``).
+    extra : ndarray (e, m) or None
+        Commands offered at every state after the ``k`` neighbours' (FittedQIteration's
+        ``bin_candidates``: the representatives of the action table's coarse bins that hold
+        logged rows), so ``C(x)`` has ``n_slots = k + e`` commands.
     """
 
     points: np.ndarray
@@ -106,19 +110,29 @@ class NeighbourCommands:
     scale: np.ndarray
     k: int
     _tree: Any = field(default=None, repr=False)
+    extra: np.ndarray | None = None
 
     @classmethod
-    def from_data(cls, phi: np.ndarray, commands: np.ndarray, k: int) -> NeighbourCommands:
-        """The candidate set of a dataset's logged states ``phi`` and commands."""
+    def from_data(cls, phi: np.ndarray, commands: np.ndarray, k: int,
+                  extra: np.ndarray | None = None) -> NeighbourCommands:
+        """The candidate set of a dataset's logged states ``phi`` and commands (plus
+        ``extra`` commands offered everywhere)."""
         phi = np.asarray(phi, np.float64)
         center, scale = phi.mean(axis=0), phi.std(axis=0)
         scale = np.where(scale > 0, scale, 1.0)
         cmd = np.ascontiguousarray(np.asarray(commands, np.float64).reshape(len(phi), -1))
-        return cls(np.ascontiguousarray((phi - center) / scale), cmd, center, scale, int(min(k, len(phi))))
+        ext = None if extra is None or len(extra) == 0 else np.ascontiguousarray(
+            np.asarray(extra, np.float64).reshape(-1, cmd.shape[1]))
+        return cls(np.ascontiguousarray((phi - center) / scale), cmd, center, scale, int(min(k, len(phi))), extra=ext)
 
     @property
     def n_dims(self) -> int:
         return int(self.commands.shape[1])
+
+    @property
+    def n_slots(self) -> int:
+        """Candidates per state: the ``k`` neighbours' commands, then the ``extra`` ones."""
+        return self.k + (0 if self.extra is None else len(self.extra))
 
     def neighbours(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(squared distances, rows)`` of the ``k`` nearest logged states, each ``(n, k)``.
@@ -172,8 +186,12 @@ class NeighbourCommands:
         return acc
 
     def __call__(self, phi: np.ndarray) -> np.ndarray:
-        """``C(x)`` for each row of ``phi``: ``(n, k, m)`` commands."""
-        return self.commands[self.neighbours(phi)[1]]
+        """``C(x)`` for each row of ``phi``: ``(n, n_slots, m)`` commands (the neighbours'
+        in order of distance, then ``extra``)."""
+        near = self.commands[self.neighbours(phi)[1]]
+        if self.extra is None:
+            return near
+        return np.concatenate([near, np.broadcast_to(self.extra[None], (len(near), *self.extra.shape))], axis=1)
 
 
 class PolicyCommands:
@@ -182,6 +200,7 @@ class PolicyCommands:
     Reads observations, so the encoder it serves has no feature map."""
 
     k = 1
+    n_slots = 1
 
     def __init__(self, policy: Any) -> None:
         self.policy = policy
@@ -230,9 +249,9 @@ def with_candidates(q: Any, candidates: NeighbourCommands | PolicyCommands) -> A
     if enc is None:
         raise InvalidTypeError(f"{type(q).__name__} is not a Q-function over continuous commands")
     out = copy.copy(q)
-    out.encoder = CommandEncoder(candidates.k, np.zeros((candidates.k, enc.action_features.shape[1])),
+    out.encoder = CommandEncoder(candidates.n_slots, np.zeros((candidates.n_slots, enc.action_features.shape[1])),
                                  feature_map=enc.feature_map, candidates=candidates)
-    out.n_actions = candidates.k
+    out.n_actions = candidates.n_slots
     return out
 
 

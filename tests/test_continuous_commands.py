@@ -109,20 +109,41 @@ def test_greedy_commands_come_from_the_logged_neighbourhood_and_near_the_optimum
     xs = np.linspace(-1.8, 1.8, 41)[:, None]
     u = pol.commands(xs)
     assert u.shape == (41, 1)
-    # the guarantee: every command was logged at one of the n_candidates nearest logged states
+    # the guarantee: every command was logged at one of the n_candidates nearest logged states,
+    # or is the representative of an action-table bin that logged rows fall in (bin_candidates)
     # (recomputed by brute force from the dataset, not read back from the fit's own candidate set)
-    obs, logged = lq.arrays().obs, lq.commands()
-    z = (obs - obs.mean(axis=0)) / obs.std(axis=0)
-    zq = (xs - obs.mean(axis=0)) / obs.std(axis=0)
-    d2 = ((zq[:, None, :] - z[None, :, :]) ** 2).sum(axis=2)
-    nearest = np.argsort(d2, axis=1, kind="stable")[:, :32]
-    assert all(np.any(logged[nearest[i], 0] == u[i, 0]) for i in range(len(xs)))
+    allowed = _allowed_commands(lq, xs, 32, bins=True)
+    assert all(np.any(allowed[i] == u[i, 0]) for i in range(len(xs)))
     _, K = riccati()
     assert np.mean(np.abs(u[:, 0] + K * xs[:, 0])) < 0.25
     # the learned policy's true cost is within 10% of the optimum from the data's start states
     P, _ = riccati()
     x0 = lq.arrays().obs[lq.arrays().step == 0, 0]
     assert discounted_cost(pol, x0).mean() <= 1.1 * float(np.mean(P * x0 ** 2))
+
+
+def _allowed_commands(ds, xs, k, bins):
+    """By brute force: per query state, the commands logged at its k nearest logged states
+    (distances in units of each feature's logged spread, ties to the lower row), plus the
+    representatives of the table's bins that hold logged rows when ``bins``."""
+    obs, logged = ds.arrays().obs, ds.commands()
+    z = (obs - obs.mean(axis=0)) / obs.std(axis=0)
+    zq = (xs - obs.mean(axis=0)) / obs.std(axis=0)
+    d2 = ((zq[:, None, :] - z[None, :, :]) ** 2).sum(axis=2)
+    nearest = np.argsort(d2, axis=1, kind="stable")[:, :k]
+    reps = ds.info.action_table.values[np.unique(ds.arrays().action)][:, 0] if bins else np.zeros(0)
+    return [np.r_[logged[nearest[i], 0], reps] for i in range(len(xs))]
+
+
+def test_without_bin_candidates_every_command_was_logged_nearby(lq):
+    """bin_candidates=False: C(x) is the neighbours' commands alone, and so is every greedy command."""
+    est = FittedQIteration(n_iterations=20, n_candidates=8, bin_candidates=False, random_state=0).fit(lq)
+    xs = np.linspace(-2.5, 2.5, 31)[:, None]
+    u = est.policy_.commands(xs)
+    allowed = _allowed_commands(lq, xs, 8, bins=False)
+    assert all(np.any(allowed[i] == u[i, 0]) for i in range(len(xs)))
+    with_bins = FittedQIteration(n_iterations=20, n_candidates=8, random_state=0).fit(lq)
+    assert with_bins.q_function_.n_actions == 8 + len(np.unique(lq.arrays().action))
 
 
 def test_continuous_beats_the_bins_on_the_same_logs(lq, fqi):
@@ -162,7 +183,10 @@ def test_api_over_commands_improves_on_its_start(lq):
     start = NearestCommandPolicy(NeighbourCommands.from_data(a.obs, lq.commands(), 1))
     x0 = a.obs[a.step == 0, 0]
     assert discounted_cost(api.policy_, x0).mean() < 0.8 * discounted_cost(start, x0).mean()
-    cand = NeighbourCommands.from_data(a.obs, lq.commands(), 16)(x0[:, None])  # commands from C(x) only
+    from offline_adp.algorithms.fqi_data import bin_representatives
+
+    # commands from C(x) only: the 16 nearest logged states' commands, then the used bins' representatives
+    cand = NeighbourCommands.from_data(a.obs, lq.commands(), 16, bin_representatives(lq))(x0[:, None])
     u = api.policy_.commands(x0[:, None])
     assert all(np.any(cand[i, :, 0] == u[i, 0]) for i in range(len(x0)))
 

@@ -122,13 +122,13 @@ def test_the_auto_mode_runs_frozen_where_it_applies_and_refit_elsewhere():
 
 
 def test_auto_structure_rows_cap_the_rows_a_structure_is_grown_on(monkeypatch):
-    import offline_adp.algorithms.fqi as fqi
+    import offline_adp.algorithms.fqi_modes as fqi_modes
 
     ds = _continuous(400)
     kw = dict(gamma=0.9, n_iterations=2, mode="frozen", n_structures=1, regressor_params=TREES)
     full = FittedQIteration(**kw).fit(ds).fit_state_.learner
     assert full.schedule.fraction(1) is None and len(full.ensemble.value) == TREES["n_estimators"] * (2 * len(ds) - 1)
-    monkeypatch.setattr(fqi, "STRUCTURE_ROWS", 100)
+    monkeypatch.setattr(fqi_modes, "STRUCTURE_ROWS", 100)
     capped = FittedQIteration(**kw).fit(ds).fit_state_.learner
     assert capped.schedule.fraction(1) == pytest.approx(100 / 400)
     # a bootstrap of 100 rows: at most 100 distinct samples, so fewer than 2 * 100 nodes a tree

@@ -20,20 +20,26 @@ dynamics are stationary)::
 
 Continuous commands (``commands="continuous"``; the default on a dataset whose action
 table is ``continuous``): ``Q(x, u)`` takes the exact logged command ``u`` as input, and the
-minimum over ``a'`` runs over the candidate set ``C(x')`` of the next state, the commands
+minimum over ``a'`` runs over the candidate set ``C(x')`` of the next state: the commands
 logged at the ``n_candidates`` logged states nearest to ``x'``
 (:class:`~offline_adp.qfunctions.NeighbourCommands`; batch-constrained, as in Fujimoto et
-al. 2019)::
+al. 2019), and, with ``bin_candidates`` (the default), the representative commands of the
+action table's coarse bins that logged rows fall in, ``B``::
 
+    C(x) = {u_j : j among the n_candidates logged states nearest to x}  U  B
     y_i = c_i + gamma * (1 - terminated_i) * min_{u' in C(x'_i)} Q_{k-1}(x'_i, u')
     Q_k = LEARN({((x_i, u_i), y_i)})
 
-and the greedy policy is ``argmin_{u in C(x)} Q(x, u)``. What it guarantees: neither the
-backup nor the policy ever uses a command that was not logged at one of the
-``n_candidates`` logged states nearest to the state in question, so the minimum cannot
-run to a command where Q was never fitted (the chapter's warning about the min over
-actions); the price is that a command between logged ones is not chosen unless it was
-logged nearby, and "nearest" has no distance cap (at the data's edge the nearest logged
+and the greedy policy is ``argmin_{u in C(x)} Q(x, u)`` (ties to the nearest neighbour's
+command). What it guarantees: neither the backup nor the policy ever uses a command that was
+not logged at one of the ``n_candidates`` logged states nearest to the state in question or
+is not one of ``B`` (each the mean of commands logged in its bin somewhere in the data: what
+a binned fit of the same logs minimises over everywhere), so the minimum cannot run to an
+arbitrary command between or beyond the logged ones (the chapter's warning about the min
+over actions). The bins are there because the neighbours alone were measured to lose to the
+bins on path_tracking (a neighbourhood of demonstrations offers only the demonstrator's
+commands; docs/continuous-commands.md); ``bin_candidates=False`` keeps the stricter,
+neighbourhood-only set. "Nearest" has no distance cap (at the data's edge the nearest logged
 states can be far). With a fixed ``C(x')`` per next state (no ``next_state_noise``) the
 backup is still a gamma-contraction for a fixed tree structure (an averager; the frozen
 mode's convergence statement holds unchanged).
@@ -50,7 +56,6 @@ of doing LEARN (``mode``). Around the loop, not in it: the divergence monitor an
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Iterator
 from numbers import Integral, Real
 from typing import Any, ClassVar
@@ -59,44 +64,33 @@ import numpy as np
 import pandas as pd
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
-from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare
-from offline_adp.algorithms.fqi_loop import FittedQEstimator, is_missing
-from offline_adp.algorithms.fqi_monitor import auto_iterations
+from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare, resolve_commands
+from offline_adp.algorithms.fqi_loop import FittedQEstimator
+from offline_adp.algorithms.fqi_modes import (
+    MODES,
+    LearnModes,
+)
+from offline_adp.algorithms.fqi_modes import (
+    STRUCTURE_ROWS as STRUCTURE_ROWS,  # re-exported: the old import path
+)
+from offline_adp.algorithms.fqi_modes import STRUCTURES_PER_ITERATION as STRUCTURES_PER_ITERATION
+from offline_adp.algorithms.fqi_monitor import structure_builds as structure_builds
 from offline_adp.algorithms.params import (
     GAMMA,
     NON_NEGATIVE,
     POSITIVE_INT,
     SEED,
-    check_learner,
-    invalid_parameter,
 )
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import NotFittedError
-from offline_adp.learn import (
-    EarlyBuilds,
-    FrozenSchedule,
-    FrozenTreesLearner,
-    Learner,
-    LearnSpec,
-    LightGBMWarmStartLearner,
-    RefitLearner,
-    TreeScreen,
-    check_structure_fractions,
-)
 from offline_adp.policies import attach_signature, greedy_policy
 from offline_adp.qfunctions import QFunction, TimeIndexedQ
-from offline_adp.regressors import REGRESSORS, make_regressor, predict_n_jobs
-
-#: default frozen schedule: structures per iteration (8 over 100 iterations; docs/fqi-modes.md)
-STRUCTURES_PER_ITERATION = 0.08
-#: ``structure_max_samples="auto"``: a frozen structure is grown on at most this many rows (bootstrap)
-STRUCTURE_ROWS = 131_072
-MODES = ("auto", "refit", "frozen", "warm_start")
+from offline_adp.regressors import REGRESSORS
 
 
 # ----------------------------------------------------------------------------- the estimator
-class FittedQIteration(FittedQEstimator):
+class FittedQIteration(LearnModes, FittedQEstimator):
     """Fitted Q-iteration with a pluggable regressor (LEARN).
 
     Parameters
@@ -243,6 +237,10 @@ class FittedQIteration(FittedQEstimator):
     n_candidates : int
         Continuous commands: the candidate set of a state is the commands logged at its
         ``n_candidates`` nearest logged states (default 16).
+    bin_candidates : bool
+        Continuous commands: the candidate set of every state also holds the
+        representative commands of the action table's coarse bins that logged rows fall in
+        (default True; module docstring).
 
     Attributes
     ----------
@@ -301,6 +299,7 @@ class FittedQIteration(FittedQEstimator):
         "tree_builder": [StrOptions({"auto", "sklearn"})],
         "commands": [StrOptions({"auto", "continuous", "binned"})],
         "n_candidates": [Interval(Integral, 1, 4096, closed="both")],
+        "bin_candidates": ["boolean"],
     }
 
     def __init__(
@@ -334,6 +333,7 @@ class FittedQIteration(FittedQEstimator):
         tree_builder: str = "auto",
         commands: str = "auto",
         n_candidates: int = 16,
+        bin_candidates: bool = True,
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -364,6 +364,7 @@ class FittedQIteration(FittedQEstimator):
         self.tree_builder = tree_builder
         self.commands = commands
         self.n_candidates = n_candidates
+        self.bin_candidates = bin_candidates
 
     # ------------------------------------------------------------------ public API
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
@@ -406,32 +407,6 @@ class FittedQIteration(FittedQEstimator):
         return self.q_function_.values(np.asarray(obs, dtype=np.float64), t)
 
     # ------------------------------------------------------------------ pieces
-    @staticmethod
-    def mode_caveat(mode: str | None) -> str | None:
-        """What a user should know before trusting ``mode`` (None: nothing): the fast paths
-        did not hold the refit score on every problem we measured (docs/fqi-modes.md)."""
-        if mode == "warm_start":
-            return (f"mode = {mode!r} did not hold the refit score on any problem we measured (docs/fqi-modes.md); "
-                    "compare with a mode = 'refit' run on your data")
-        return None
-
-    def _check_param_combinations(self) -> None:
-        """What ``_parameter_constraints`` cannot say (see :mod:`~offline_adp.algorithms.params`):
-        next-state noise needs the refit loop, a list of structure fractions holds fractions,
-        and the regressor takes ``regressor_params``."""
-        super()._check_param_combinations()
-        if self.next_state_noise and self.mode not in ("refit", "auto"):
-            raise invalid_parameter(self, "next_state_noise", "0 unless mode='refit' (the other modes precompute "
-                                    f"next-state inputs; mode={self.mode!r})", self.next_state_noise)
-        if isinstance(self.structure_max_samples, list | tuple):
-            try:
-                check_structure_fractions(list(self.structure_max_samples))
-            except ValueError:
-                raise invalid_parameter(self, "structure_max_samples", "'auto', a fraction in (0, 1], None, or a list "
-                                        "of fractions in (0, 1] or None", self.structure_max_samples) from None
-        check_learner(self, f"the regressor {self.regressor!r}", "regressor_params", make_regressor, self.regressor,
-                      self.regressor_params)
-
     def _prepare(self, ds: TransitionDataset, sample_weight: np.ndarray | None) -> Prepared:
         q0 = 0.0
         if self.initial_q is not None:
@@ -447,7 +422,7 @@ class FittedQIteration(FittedQEstimator):
                        action_encoding=self.action_encoding, infeasible_cost=self.infeasible_cost,
                        target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__,
                        n_candidates=self.n_candidates if self.commands_ == "continuous" else None,
-                       policy_commands=self._policy_commands())
+                       policy_commands=self._policy_commands(), bin_candidates=self.bin_candidates)
         self._encoder = data.encoder
         return data
 
@@ -456,117 +431,12 @@ class FittedQIteration(FittedQEstimator):
         command); None: the commands logged at the nearest logged states."""
         return None
 
-    def iteration_plan(self) -> tuple[int, int]:
-        """``(K_b, K_max)`` of a fit: the iterations the frozen builds are spread over, and
-        the most it runs (``n_iterations`` for both when it is a number; for ``"auto"``
-        :func:`~offline_adp.algorithms.fqi_monitor.auto_iterations` of the fit's gamma and
-        mode). Needs the fit's ``gamma_`` (set at the start of ``fit``)."""
-        if self.n_iterations != "auto":
-            return int(self.n_iterations), int(self.n_iterations)
-        settles = getattr(self, "mode_", None) == "frozen" and not self.target_noise  # a fixed point to reach
-        return auto_iterations(self.gamma_, settles)
-
-    def _schedule(self) -> tuple[int, ...]:
-        """Iterations at which ``mode="frozen"`` builds a structure: ``n_structures`` evenly
-        spaced over the K_b iterations (:meth:`iteration_plan`), by default one per 12.5
-        (``round(0.08 K_b)``, at least 2)."""
-        T = getattr(self, "horizon_", self.horizon)
-        K = T if T is not None else self.iteration_plan()[0]
-        S = max(2, round(STRUCTURES_PER_ITERATION * K)) if self.n_structures is None else int(self.n_structures)
-        S = max(1, min(S, K))
-        return tuple(sorted({1 + (j * K) // S for j in range(S)}))
-
-    def _structure_fraction(self, n: int, regressor: Any) -> float | list[float | None] | None:
-        """``structure_max_samples`` with ``"auto"`` resolved: each structure grown on at most
-        ``STRUCTURE_ROWS`` rows (a bootstrap fraction) when the regressor bags, else all."""
-        f = self.structure_max_samples
-        if not (isinstance(f, str) and f == "auto"):
-            return f
-        return STRUCTURE_ROWS / n if n > STRUCTURE_ROWS and "max_samples" in regressor.get_params() else None
-
-    def resolved_mode(self, regressor: Any = None) -> str:
-        """The mode a fit runs: ``mode``, or for ``"auto"`` ``"frozen"`` where it applies (a
-        discounted fit, a bagged scikit-learn tree ensemble, the joint action encoding, no
-        next-state noise) and ``"refit"`` elsewhere."""
-        if self.mode != "auto":
-            return self.mode
-        from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
-
-        reg = regressor if regressor is not None else make_regressor(self.regressor, **(self.regressor_params or {}))
-        finite = getattr(self, "horizon_", self.horizon) is not None
-        fits = isinstance(reg, ExtraTreesRegressor | RandomForestRegressor) and self.action_encoding == "joint"
-        return "frozen" if fits and not finite and not self.next_state_noise else "refit"
-
-    def _learner(self, data: Prepared) -> Learner:
-        reg = make_regressor(self.regressor, **(self.regressor_params or {}))
-        self.mode_ = self.resolved_mode(reg)
-        queries: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"next": (data.train.phi_next, None), "start": (data.start_phi, None)}
-        if data.valid is not None:
-            queries["valid"] = (data.valid.phi, data.valid.actions)
-            queries["valid_next"] = (data.valid.phi_next, None)
-        spec = LearnSpec(regressor=reg, encoder=data.encoder, phi=data.train.phi, actions=data.train.actions,
-                         queries=queries, weights=data.weights, seed=self.random_state)
-        if self.mode_ == "frozen":
-            return FrozenTreesLearner(spec, self._frozen_schedule(data, reg))
-        if self.mode_ == "warm_start":
-            if not type(reg).__name__.startswith("LGBM"):
-                warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
-                              "(LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
-            return LightGBMWarmStartLearner(spec, trees_per_iteration=self.trees_per_iteration)
-        return RefitLearner(spec, predict_jobs=predict_n_jobs(self.regressor, self.regressor_params))
-
-    def _frozen_schedule(self, data: Prepared, reg: Any) -> FrozenSchedule:
-        """The builds of ``mode="frozen"`` on ``data`` (also the Dask engine's)."""
-        screen = None if self.screen_trees is None else TreeScreen(int(self.screen_trees), float(self.screen_tol),
-                                                                   data.gamma, ~data.train.no_boot)
-        # a finite horizon's every iterate is the policy at one step: no build's error is damped
-        finite = getattr(self, "horizon_", self.horizon) is not None
-        early = (None if self.early_build_trees is None or finite
-                 else EarlyBuilds(int(self.early_build_trees), data.gamma, self.iteration_plan()[0]))
-        return FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
-                              max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)
-
     def _result_policy(self, q: QFunction) -> Any:
         return greedy_policy(q)
 
     def _check_fitted(self) -> None:
         if getattr(self, "q_function_", None) is None:
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(dataset) first")
-
-
-def resolve_commands(est: Any, ds: TransitionDataset) -> str:
-    """``est.commands`` with ``"auto"`` resolved on ``ds`` (continuous where its action table
-    is; for an evaluation, where the policy commands continuous values); continuous
-    commands refuse an ``initial_q`` (a Q over the table's entries)."""
-    at = ds.info.action_table
-    policy = getattr(est, "policy", None)  # an evaluation: what the policy commands decides
-    auto = getattr(policy, "continuous", False) if policy is not None else at.continuous
-    out = ("continuous" if auto else "binned") if est.commands == "auto" else est.commands
-    if out == "continuous" and policy is not None and not getattr(policy, "continuous", False):
-        raise invalid_parameter(est, "commands", "'auto' or 'binned' for a policy over the action table's entries "
-                                "(evaluating it over commands would back up another policy)", est.commands)
-    if out == "continuous" and getattr(est, "initial_q", None) is not None:
-        raise invalid_parameter(est, "initial_q", "None with continuous commands (a Q over the action table's "
-                                "entries cannot start a Q over commands)", est.initial_q)
-    return out
-
-
-def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
-    """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen",
-    "constant", "builder"}`` per build, in order (``screen``: the build's screen value, None
-    when not screened; ``constant``: a build on constant targets, one-leaf trees; ``builder``:
-    ``"compiled"`` or ``"scikit-learn"``, None for a constant build; ``trees`` and ``builder``
-    None in rows written before they were recorded); an empty list for the other modes."""
-    if not len(history) or "structure_trees" not in history:
-        return []
-    built = history["structure"].diff().fillna(1).to_numpy() != 0
-    cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant", "structure_builder"]
-    rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
-    return [{"iteration": int(r["iteration"]),
-             "trees": None if is_missing(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
-             "screen": None if is_missing(r.get("structure_screen")) else float(r["structure_screen"]),
-             "constant": not is_missing(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
-             "builder": r["structure_builder"] if isinstance(r.get("structure_builder"), str) else None} for r in rows]
 
 
 # ----------------------------------------------------------------------------- save / load

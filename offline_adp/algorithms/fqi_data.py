@@ -19,6 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from offline_adp.algorithms.params import invalid_parameter
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.errors import InvalidArgumentError, InvalidTypeError
@@ -97,11 +98,13 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
             initial_q_abs: float, who: str, n_candidates: int | None = None,
-            policy_commands: PolicyCommands | None = None) -> Prepared:
+            policy_commands: PolicyCommands | None = None, bin_candidates: bool = False) -> Prepared:
     """Validate the dataset and build the loop's inputs (see the module docstring).
     ``n_candidates``: learn over the dataset's exact continuous commands, the minimum over
     each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`), or,
-    for an evaluation, the policy's own command (``policy_commands``)."""
+    for an evaluation, the policy's own command (``policy_commands``); ``bin_candidates``:
+    each next state's candidates also hold the representatives of the action table's bins
+    that training rows fall in (:func:`bin_representatives`)."""
     if not isinstance(ds, TransitionDataset):
         raise InvalidTypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
@@ -144,12 +147,14 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         if action_encoding == "per_action":
             raise InvalidArgumentError(f"{who}: continuous commands need action_encoding='joint' (a model per "
                                        "command cannot exist)")
-        cands = (NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates) if policy_commands is None
-                 else policy_commands)
+        extra = bin_representatives(ds, tr) if bin_candidates else None
+        cands = (NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates, extra)
+                 if policy_commands is None else policy_commands)
         if policy_commands is not None and fmap is not None:
             raise InvalidArgumentError(f"{who}: evaluating a continuous policy reads the states themselves; "
                                        "feature_map must be None")
-        enc = CommandEncoder(cands.k, np.zeros((cands.k, actions.shape[1])), feature_map=fmap, candidates=cands)
+        enc = CommandEncoder(cands.n_slots, np.zeros((cands.n_slots, actions.shape[1])), feature_map=fmap,
+                             candidates=cands)
 
     def samples(rows: np.ndarray) -> Samples:
         if rows.all():  # every row: read-only views, not copies (the dataset's arrays at 1M rows: ~0.1 GB)
@@ -167,6 +172,19 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         start_rows=np.flatnonzero(start[tr]) if start.any() else np.zeros(1, np.int64),
         bound=float(bound), bound_text=text, infeasible_cost=infeasible_cost, q0_abs=float(initial_q_abs),
     )
+
+
+def bin_representatives(ds: TransitionDataset, rows: np.ndarray | None = None) -> np.ndarray:
+    """The representative commands ``(e, m)`` of the action table's entries (the coarse
+    bins of a continuous table, each represented by its command) that at least one of
+    ``rows`` (default: all) falls in, in table order: every one stands for commands the
+    logs hold somewhere."""
+    idx = ds.arrays().action if rows is None else ds.arrays().action[rows]
+    at = ds.info.action_table
+    used = np.zeros(len(at), bool)
+    ok = idx[(idx >= 0) & (idx < len(at))].astype(np.int64)
+    used[ok] = True
+    return np.asarray(at.values, np.float64).reshape(len(at), -1)[used]
 
 
 def logged_commands(ds: TransitionDataset, who: str) -> np.ndarray:
@@ -233,3 +251,20 @@ class PolicyBackup:
 
     def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
         return (self.probabilities(which, 0 if t is None else t + 1) * q_next).sum(axis=1)
+
+
+def resolve_commands(est: Any, ds: TransitionDataset) -> str:
+    """``est.commands`` with ``"auto"`` resolved on ``ds`` (continuous where its action table
+    is; for an evaluation, where the policy commands continuous values); continuous
+    commands refuse an ``initial_q`` (a Q over the table's entries)."""
+    at = ds.info.action_table
+    policy = getattr(est, "policy", None)  # an evaluation: what the policy commands decides
+    auto = getattr(policy, "continuous", False) if policy is not None else at.continuous
+    out = ("continuous" if auto else "binned") if est.commands == "auto" else est.commands
+    if out == "continuous" and policy is not None and not getattr(policy, "continuous", False):
+        raise invalid_parameter(est, "commands", "'auto' or 'binned' for a policy over the action table's entries "
+                                "(evaluating it over commands would back up another policy)", est.commands)
+    if out == "continuous" and getattr(est, "initial_q", None) is not None:
+        raise invalid_parameter(est, "initial_q", "None with continuous commands (a Q over the action table's "
+                                "entries cannot start a Q over commands)", est.initial_q)
+    return out

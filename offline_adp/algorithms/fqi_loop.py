@@ -26,6 +26,7 @@ from offline_adp.algorithms.fqi_monitor import (
     DivergenceMonitor,
     convergence_verdict,
     distance_bound,
+    is_missing,
 )
 from offline_adp.algorithms.params import CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
@@ -324,8 +325,3 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
         "structure": None,
         **learner.state(),
     }
-
-
-def is_missing(v: Any) -> bool:
-    """None or NaN (a history cell a row did not record)."""
-    return v is None or (isinstance(v, float) and np.isnan(v))

@@ -57,6 +57,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 #: ``n_iterations="auto"``: the builds span the K_b iterations with ``gamma^K_b <= AUTO_FORGET``
 AUTO_FORGET = 0.05
@@ -162,3 +163,26 @@ def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence:
                               f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))} (no contraction "
                               "bound here: the function class changes every iteration (refit, warm start), or gamma = 1, "
                               "or target noise; set tol to stop on sup|dQ|)")
+
+
+def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
+    """The structure builds of a frozen fit's ``history_``: ``{"iteration", "trees", "screen",
+    "constant", "builder"}`` per build, in order (``screen``: the build's screen value, None
+    when not screened; ``constant``: a build on constant targets, one-leaf trees; ``builder``:
+    ``"compiled"`` or ``"scikit-learn"``, None for a constant build; ``trees`` and ``builder``
+    None in rows written before they were recorded); an empty list for the other modes."""
+    if not len(history) or "structure_trees" not in history:
+        return []
+    built = history["structure"].diff().fillna(1).to_numpy() != 0
+    cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant", "structure_builder"]
+    rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
+    return [{"iteration": int(r["iteration"]),
+             "trees": None if is_missing(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
+             "screen": None if is_missing(r.get("structure_screen")) else float(r["structure_screen"]),
+             "constant": not is_missing(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
+             "builder": r["structure_builder"] if isinstance(r.get("structure_builder"), str) else None} for r in rows]
+
+
+def is_missing(v: Any) -> bool:
+    """None or NaN (a history cell a row did not record)."""
+    return v is None or (isinstance(v, float) and np.isnan(v))

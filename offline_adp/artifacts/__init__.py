@@ -125,6 +125,7 @@ def _read_time_indexed(spec: dict[str, Any], arrays: Any, where: str) -> QFuncti
     if any(c is not None for c in cands):  # over commands: the greedy policy reads step 0's candidates for every step
         first = cands[0]
         same = all(isinstance(c, NeighbourCommands) and isinstance(first, NeighbourCommands) and c.k == first.k
+                   and _same_extra(c.extra, first.extra)
                    and all(np.array_equal(getattr(c, n), getattr(first, n)) for n in ("points", "commands", "center",
                                                                                        "scale")) for c in cands)
         if not same:
@@ -144,16 +145,22 @@ def _write_encoder(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str,
     if isinstance(enc, CommandEncoder):  # continuous commands: the candidate set's logged states and commands
         c = enc.candidates
         assert c is not None
-        for name in ("points", "commands", "center", "scale"):
+        names = ("points", "commands", "center", "scale") + (() if c.extra is None else ("extra",))
+        for name in names:
             arrays[f"{key}.candidates.{name}"] = getattr(c, name)
         out["candidates"] = {"kind": "neighbour_commands", "k": c.k,
-                             **{name: f"{key}.candidates.{name}" for name in ("points", "commands", "center", "scale")}}
+                             **{name: f"{key}.candidates.{name}" for name in names}}
     return out
+
+
+def _same_extra(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
 
 
 def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int, n_dims: int) -> NeighbourCommands:
     """A :class:`NeighbourCommands` from an encoder entry, every array checked (shapes agree,
-    finite, positive scales, ``k`` = the encoder's candidate slots <= the logged states)."""
+    finite, positive scales, ``k`` <= the logged states, ``k`` plus the extra commands = the
+    encoder's candidate slots)."""
     c = e.get("candidates")
     if not isinstance(c, dict) or c.get("kind") != "neighbour_commands":
         raise ArtifactError(f"{where}: encoder.candidates must be a neighbour_commands entry")
@@ -161,14 +168,21 @@ def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int,
                             dtype=np.float64) for name in ("points", "commands", "center", "scale")}
     pts, cmd, center, scale = got["points"], got["commands"], got["center"], got["scale"]
     k = C.check_int(c.get("k"), where, "encoder.candidates.k", 1, 4096)
-    if (len(pts) != len(cmd) or len(pts) < k or k != n_actions or cmd.shape[1] != n_dims
+    extra = None
+    if c.get("extra") is not None:
+        extra = np.asarray(C.array(arrays, c.get("extra"), where, kinds="f", ndim=2), dtype=np.float64)
+        got["extra"] = extra
+        if extra.shape[1] != n_dims or len(extra) == 0:
+            raise ArtifactError(f"{where}: encoder.candidates.extra has shape {extra.shape}, expected (e >= 1, {n_dims})")
+    slots = k + (0 if extra is None else len(extra))
+    if (len(pts) != len(cmd) or len(pts) < k or slots != n_actions or cmd.shape[1] != n_dims
             or center.shape != (pts.shape[1],) or scale.shape != center.shape):
         raise ArtifactError(f"{where}: encoder.candidates: shapes points {pts.shape}, commands {cmd.shape}, center "
                             f"{center.shape}, scale {scale.shape} with k={k} do not agree with {n_actions} slots of "
                             f"{n_dims}-component commands")
     if not all(np.isfinite(v).all() for v in got.values()) or not (scale > 0).all():
         raise ArtifactError(f"{where}: encoder.candidates: non-finite values or a scale <= 0")
-    return NeighbourCommands(pts, cmd, center, scale, k)
+    return NeighbourCommands(pts, cmd, center, scale, k, extra=extra)
 
 
 def _write_boosted_sum(q: Any, arrays: dict[str, np.ndarray], key: str) -> dict[str, Any]:
