@@ -106,9 +106,12 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--n-candidates", type=int, default=16)
+    ap.add_argument("--n-representatives", type=int, default=16,
+                    help="the continuous arm's representative commands of the log (0: the neighbours' alone)")
     ap.add_argument("--json")
     a = ap.parse_args()
-    arms = {"continuous": {"commands": "continuous", "n_candidates": a.n_candidates}, "binned_11": {"commands": "binned"}}
+    arms = {"continuous": {"commands": "continuous", "n_candidates": a.n_candidates,
+                           "n_representatives": a.n_representatives}, "binned_11": {"commands": "binned"}}
     rows = [r for p in a.problems for s in a.seeds for r in run(p, a.transitions, s, a.episodes, arms)]
     if a.json:
         with open(a.json, "w") as f:

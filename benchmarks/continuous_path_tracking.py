@@ -119,7 +119,7 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
     report("stanley (noise-free)", score(model, _Controller(demo), args.episodes, 123))
     costs = {}
     for arm, params in (("continuous", {"commands": "continuous", "n_candidates": args.n_candidates,
-                                        "bin_candidates": not args.no_bin_candidates}),
+                                        "n_representatives": args.n_representatives}),
                         ("binned", {"commands": "binned"})):
         per_fit, cpu = [], 0.0
         for ls in range(args.learner_seeds):  # fits of other learner seeds on the same logs
@@ -158,8 +158,8 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--n-candidates", type=int, default=16)
-    ap.add_argument("--no-bin-candidates", action="store_true",
-                    help="the continuous arm's candidates: the neighbours' commands alone")
+    ap.add_argument("--n-representatives", type=int, default=16,
+                    help="the continuous arm's representative commands of the log (0: the neighbours' alone)")
     ap.add_argument("--learner-seeds", type=int, default=4,
                     help="fits per arm on the same logs (learner seeds seed + 1000 j); costs averaged per episode")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="data (and learner) seeds")

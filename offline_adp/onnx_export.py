@@ -573,7 +573,7 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     """The greedy command policy itself, exactly: the ``k`` logged states nearest each row
     (squared differences of the scaled features summed in feature order, as the library's
     k-d tree does; ``TopK`` keeps ties in index order), their logged commands as the
-    candidates followed by the extra commands offered everywhere (``bin_candidates``), the Q-values of every candidate (slot-major pairs, the library's order), the
+    candidates followed by the extra commands offered everywhere (``n_representatives``), the Q-values of every candidate (slot-major pairs, the library's order), the
     first minimum, the bounds. Memory: ``N x (logged states) x d`` doubles per batch."""
     from offline_adp.qfunctions import SCALED_LIMIT, NeighbourCommands, TimeIndexedQ
 

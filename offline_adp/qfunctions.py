@@ -86,7 +86,7 @@ class NeighbourCommands:
     states nearest to ``phi(x)`` (Euclidean distance after scaling each feature by its
     logged standard deviation). In the spirit of batch-constrained Q-learning (Fujimoto,
     Meger & Precup 2019), every neighbour candidate is a command that was logged in the
-    data's neighbourhood of ``x``; ``extra`` commands (the used bins' representatives) are
+    data's neighbourhood of ``x``; ``extra`` commands (representatives of the whole log) are
     offered at every state after them.
 
     Parameters
@@ -100,8 +100,7 @@ class NeighbourCommands:
         Neighbours per state (at most ``N``).
     extra : ndarray (e, m) or None
         Commands offered at every state after the ``k`` neighbours' (FittedQIteration's
-        ``bin_candidates``: the representatives of the action table's coarse bins that hold
-        logged rows), so ``C(x)`` has ``n_slots = k + e`` commands.
+        ``n_representatives``: representative commands of the whole log), so ``C(x)`` has ``n_slots = k + e`` commands.
     """
 
     points: np.ndarray

@@ -110,10 +110,10 @@ def test_greedy_commands_come_from_the_logged_neighbourhood_and_near_the_optimum
     u = pol.commands(xs)
     assert u.shape == (41, 1)
     # the guarantee: every command was logged at one of the n_candidates nearest logged states,
-    # or is the representative of an action-table bin that logged rows fall in (bin_candidates)
+    # or is one of the log's 16 representative commands (n_representatives)
     # (recomputed by brute force from the dataset, not read back from the fit's own candidate set)
-    allowed = _allowed_commands(lq, xs, 32, bins=True)
-    assert all(np.any(allowed[i] == u[i, 0]) for i in range(len(xs)))
+    allowed = _allowed_commands(lq, xs, 32, reps=16)
+    assert all(np.any(np.isclose(allowed[i], u[i, 0], rtol=1e-12, atol=0)) for i in range(len(xs)))
     _, K = riccati()
     assert np.mean(np.abs(u[:, 0] + K * xs[:, 0])) < 0.25
     # the learned policy's true cost is within 10% of the optimum from the data's start states
@@ -122,28 +122,59 @@ def test_greedy_commands_come_from_the_logged_neighbourhood_and_near_the_optimum
     assert discounted_cost(pol, x0).mean() <= 1.1 * float(np.mean(P * x0 ** 2))
 
 
-def _allowed_commands(ds, xs, k, bins):
+def _representatives(u, n):
+    """A second, plain implementation for one-component commands: n quantile bins, the mean
+    logged command in each occupied one."""
+    edges = np.quantile(u, np.linspace(0, 1, n + 1))
+    out = []
+    for b in range(n):
+        lo, hi = edges[b], edges[b + 1]
+        inside = (u >= lo) & ((u < hi) if b < n - 1 else (u <= hi))
+        if b > 0 and lo == edges[b - 1]:
+            continue
+        if inside.any():
+            out.append(u[inside].mean())
+    return np.array(out)
+
+
+def _allowed_commands(ds, xs, k, reps):
     """By brute force: per query state, the commands logged at its k nearest logged states
     (distances in units of each feature's logged spread, ties to the lower row), plus the
-    representatives of the table's bins that hold logged rows when ``bins``."""
+    log's ``reps`` representative commands."""
     obs, logged = ds.arrays().obs, ds.commands()
     z = (obs - obs.mean(axis=0)) / obs.std(axis=0)
     zq = (xs - obs.mean(axis=0)) / obs.std(axis=0)
     d2 = ((zq[:, None, :] - z[None, :, :]) ** 2).sum(axis=2)
     nearest = np.argsort(d2, axis=1, kind="stable")[:, :k]
-    reps = ds.info.action_table.values[np.unique(ds.arrays().action)][:, 0] if bins else np.zeros(0)
-    return [np.r_[logged[nearest[i], 0], reps] for i in range(len(xs))]
+    r = _representatives(logged[:, 0], reps) if reps else np.zeros(0)
+    return [np.r_[logged[nearest[i], 0], r] for i in range(len(xs))]
 
 
-def test_without_bin_candidates_every_command_was_logged_nearby(lq):
-    """bin_candidates=False: C(x) is the neighbours' commands alone, and so is every greedy command."""
-    est = FittedQIteration(n_iterations=20, n_candidates=8, bin_candidates=False, random_state=0).fit(lq)
+def test_representative_commands_agree_with_a_plain_implementation(lq):
+    from offline_adp.algorithms.fqi_data import command_representatives
+
+    u = lq.commands()
+    for n in (1, 5, 16):
+        np.testing.assert_allclose(command_representatives(u, n)[:, 0], _representatives(u[:, 0], n), rtol=1e-12)
+    # two components: at most n cells, each the mean of rows logged together, so inside the logged range
+    rng = np.random.default_rng(0)
+    u2 = np.column_stack([rng.normal(size=500), rng.uniform(-1, 1, 500)])
+    r = command_representatives(u2, 16)
+    assert r.shape[1] == 2 and 1 <= len(r) <= 16
+    assert (r.min(axis=0) >= u2.min(axis=0)).all() and (r.max(axis=0) <= u2.max(axis=0)).all()
+    # a command logged at one value only: one representative
+    assert len(command_representatives(np.zeros((50, 1)), 16)) == 1
+
+
+def test_without_representatives_every_command_was_logged_nearby(lq):
+    """n_representatives=0: C(x) is the neighbours' commands alone, and so is every greedy command."""
+    est = FittedQIteration(n_iterations=20, n_candidates=8, n_representatives=0, random_state=0).fit(lq)
     xs = np.linspace(-2.5, 2.5, 31)[:, None]
     u = est.policy_.commands(xs)
-    allowed = _allowed_commands(lq, xs, 8, bins=False)
-    assert all(np.any(allowed[i] == u[i, 0]) for i in range(len(xs)))
-    with_bins = FittedQIteration(n_iterations=20, n_candidates=8, random_state=0).fit(lq)
-    assert with_bins.q_function_.n_actions == 8 + len(np.unique(lq.arrays().action))
+    allowed = _allowed_commands(lq, xs, 8, reps=0)
+    assert all(np.any(np.isclose(allowed[i], u[i, 0], rtol=1e-12, atol=0)) for i in range(len(xs)))
+    with_reps = FittedQIteration(n_iterations=20, n_candidates=8, random_state=0).fit(lq)
+    assert with_reps.q_function_.n_actions == 8 + len(_representatives(lq.commands()[:, 0], 16))
 
 
 def test_continuous_beats_the_bins_on_the_same_logs(lq, fqi):
@@ -183,12 +214,11 @@ def test_api_over_commands_improves_on_its_start(lq):
     start = NearestCommandPolicy(NeighbourCommands.from_data(a.obs, lq.commands(), 1))
     x0 = a.obs[a.step == 0, 0]
     assert discounted_cost(api.policy_, x0).mean() < 0.8 * discounted_cost(start, x0).mean()
-    from offline_adp.algorithms.fqi_data import bin_representatives
-
-    # commands from C(x) only: the 16 nearest logged states' commands, then the used bins' representatives
-    cand = NeighbourCommands.from_data(a.obs, lq.commands(), 16, bin_representatives(lq))(x0[:, None])
+    # commands from C(x) only: the 16 nearest logged states' commands, then the log's representatives
+    cand = NeighbourCommands.from_data(a.obs, lq.commands(), 16, _representatives(lq.commands()[:, 0], 16))(
+        x0[:, None])
     u = api.policy_.commands(x0[:, None])
-    assert all(np.any(cand[i, :, 0] == u[i, 0]) for i in range(len(x0)))
+    assert all(np.any(np.isclose(cand[i, :, 0], u[i, 0], rtol=1e-12, atol=0)) for i in range(len(x0)))
 
 
 def test_continuous_commands_need_the_exact_commands():

@@ -30,7 +30,7 @@ from sklearn.base import clone
 from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
-from offline_adp.algorithms.fqi_data import bin_representatives, logged_commands
+from offline_adp.algorithms.fqi_data import command_representatives, logged_commands
 from offline_adp.algorithms.params import (
     NON_NEGATIVE_INT,
     POSITIVE_INT,
@@ -122,9 +122,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
         proto = self.fqe if self.fqe is not None else FittedQEvaluation()
         cands = None
         if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states
-            cands = NeighbourCommands.from_data(dataset.arrays().obs, logged_commands(dataset, type(self).__name__),
-                                                proto.n_candidates,
-                                                bin_representatives(dataset) if proto.bin_candidates else None)
+            u = logged_commands(dataset, type(self).__name__)
+            cands = NeighbourCommands.from_data(dataset.arrays().obs, u, proto.n_candidates,
+                                                command_representatives(u, proto.n_representatives))
             if proto.feature_map is not None:
                 raise invalid_parameter(self, "fqe", "an evaluator without feature_map over continuous commands",
                                         proto)

@@ -82,7 +82,7 @@ class FittedQEvaluation(FittedQIteration):
     horizon, gamma, regressor, regressor_params, action_encoding, action_input, feature_map, \
 n_iterations, tol, rtol, trees_per_iteration, infeasible_cost, target_noise, next_state_noise, \
 validation_fraction, on_divergence, patience, divergence_slack, initial_q, random_state, tree_builder, \
-commands, n_candidates, bin_candidates
+commands, n_candidates, n_representatives
         As :class:`~offline_adp.algorithms.fqi.FittedQIteration`'s, with the same
         defaults and allowed values (``tests/test_estimator_checks.py`` holds them
         equal); the loop backs up ``sum_a' pi(a' | x') Q(x', a')`` instead of the minimum.
@@ -137,7 +137,7 @@ commands, n_candidates, bin_candidates
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
                  structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto",
-                 commands: str = "auto", n_candidates: int = 16, bin_candidates: bool = True) -> None:
+                 commands: str = "auto", n_candidates: int = 16, n_representatives: int = 16) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
@@ -149,7 +149,7 @@ commands, n_candidates, bin_candidates
                          screen_trees=None,  # the screen is about a greedy backup's min
                          early_build_trees=None,  # every build grows the whole forest
                          tree_builder=tree_builder, commands=commands, n_candidates=n_candidates,
-                         bin_candidates=bin_candidates)
+                         n_representatives=n_representatives)
 
     def fit_iter(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, resume: dict | None = None,
                  *, deferred: bool = False):

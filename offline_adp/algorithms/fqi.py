@@ -23,23 +23,25 @@ table is ``continuous``): ``Q(x, u)`` takes the exact logged command ``u`` as in
 minimum over ``a'`` runs over the candidate set ``C(x')`` of the next state: the commands
 logged at the ``n_candidates`` logged states nearest to ``x'``
 (:class:`~offline_adp.qfunctions.NeighbourCommands`; batch-constrained, as in Fujimoto et
-al. 2019), and, with ``bin_candidates`` (the default), the representative commands of the
-action table's coarse bins that logged rows fall in, ``B``::
+al. 2019), followed by ``R``, up to ``n_representatives`` representative commands of the
+whole log (:func:`~offline_adp.algorithms.fqi_data.command_representatives`: the mean
+logged command in each occupied cell of a grid of quantile bins, ``floor(n^(1/m))`` per
+component)::
 
-    C(x) = {u_j : j among the n_candidates logged states nearest to x}  U  B
+    C(x) = {u_j : j among the n_candidates logged states nearest to x}  U  R
     y_i = c_i + gamma * (1 - terminated_i) * min_{u' in C(x'_i)} Q_{k-1}(x'_i, u')
     Q_k = LEARN({((x_i, u_i), y_i)})
 
 and the greedy policy is ``argmin_{u in C(x)} Q(x, u)`` (ties to the nearest neighbour's
 command). What it guarantees: neither the backup nor the policy ever uses a command that was
 not logged at one of the ``n_candidates`` logged states nearest to the state in question or
-is not one of ``B`` (each the mean of commands logged in its bin somewhere in the data: what
-a binned fit of the same logs minimises over everywhere), so the minimum cannot run to an
-arbitrary command between or beyond the logged ones (the chapter's warning about the min
-over actions). The bins are there because the neighbours alone were measured to lose to the
-bins on path_tracking (a neighbourhood of demonstrations offers only the demonstrator's
-commands; docs/continuous-commands.md); ``bin_candidates=False`` keeps the stricter,
-neighbourhood-only set. "Nearest" has no distance cap (at the data's edge the nearest logged
+is not one of ``R`` (each the mean of commands logged together somewhere in the data, dense
+where the logged commands are dense: a binned fit of the same logs minimises over such
+representatives everywhere), so the minimum cannot run to an arbitrary command between or
+beyond the logged ones (the chapter's warning about the min over actions). ``R`` is there
+because the neighbours alone were measured to lose to bins on path_tracking (a neighbourhood
+of demonstrations offers only the demonstrator's commands; docs/continuous-commands.md);
+``n_representatives=0`` keeps the stricter, neighbourhood-only set. "Nearest" has no distance cap (at the data's edge the nearest logged
 states can be far). With a fixed ``C(x')`` per next state (no ``next_state_noise``) the
 backup is still a gamma-contraction for a fixed tree structure (an averager; the frozen
 mode's convergence statement holds unchanged).
@@ -237,10 +239,10 @@ class FittedQIteration(LearnModes, FittedQEstimator):
     n_candidates : int
         Continuous commands: the candidate set of a state is the commands logged at its
         ``n_candidates`` nearest logged states (default 16).
-    bin_candidates : bool
-        Continuous commands: the candidate set of every state also holds the
-        representative commands of the action table's coarse bins that logged rows fall in
-        (default True; module docstring).
+    n_representatives : int
+        Continuous commands: the candidate set of every state also holds up to this many
+        representative commands of the whole log (default 16; 0: the neighbours' alone;
+        module docstring).
 
     Attributes
     ----------
@@ -299,7 +301,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         "tree_builder": [StrOptions({"auto", "sklearn"})],
         "commands": [StrOptions({"auto", "continuous", "binned"})],
         "n_candidates": [Interval(Integral, 1, 4096, closed="both")],
-        "bin_candidates": ["boolean"],
+        "n_representatives": [Interval(Integral, 0, 4096, closed="both")],
     }
 
     def __init__(
@@ -333,7 +335,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         tree_builder: str = "auto",
         commands: str = "auto",
         n_candidates: int = 16,
-        bin_candidates: bool = True,
+        n_representatives: int = 16,
     ) -> None:
         self.horizon = horizon
         self.gamma = gamma
@@ -364,7 +366,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         self.tree_builder = tree_builder
         self.commands = commands
         self.n_candidates = n_candidates
-        self.bin_candidates = bin_candidates
+        self.n_representatives = n_representatives
 
     # ------------------------------------------------------------------ public API
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None, *, verbose: bool = False,
@@ -422,7 +424,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
                        action_encoding=self.action_encoding, infeasible_cost=self.infeasible_cost,
                        target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__,
                        n_candidates=self.n_candidates if self.commands_ == "continuous" else None,
-                       policy_commands=self._policy_commands(), bin_candidates=self.bin_candidates)
+                       policy_commands=self._policy_commands(), n_representatives=self.n_representatives)
         self._encoder = data.encoder
         return data
 

@@ -98,13 +98,13 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
             initial_q_abs: float, who: str, n_candidates: int | None = None,
-            policy_commands: PolicyCommands | None = None, bin_candidates: bool = False) -> Prepared:
+            policy_commands: PolicyCommands | None = None, n_representatives: int = 0) -> Prepared:
     """Validate the dataset and build the loop's inputs (see the module docstring).
     ``n_candidates``: learn over the dataset's exact continuous commands, the minimum over
     each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`), or,
-    for an evaluation, the policy's own command (``policy_commands``); ``bin_candidates``:
-    each next state's candidates also hold the representatives of the action table's bins
-    that training rows fall in (:func:`bin_representatives`)."""
+    for an evaluation, the policy's own command (``policy_commands``); ``n_representatives``:
+    each next state's candidates also hold up to that many representative commands of the
+    training rows (:func:`command_representatives`)."""
     if not isinstance(ds, TransitionDataset):
         raise InvalidTypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
@@ -147,7 +147,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         if action_encoding == "per_action":
             raise InvalidArgumentError(f"{who}: continuous commands need action_encoding='joint' (a model per "
                                        "command cannot exist)")
-        extra = bin_representatives(ds, tr) if bin_candidates else None
+        extra = command_representatives(actions[tr], n_representatives)
         cands = (NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates, extra)
                  if policy_commands is None else policy_commands)
         if policy_commands is not None and fmap is not None:
@@ -174,17 +174,25 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     )
 
 
-def bin_representatives(ds: TransitionDataset, rows: np.ndarray | None = None) -> np.ndarray:
-    """The representative commands ``(e, m)`` of the action table's entries (the coarse
-    bins of a continuous table, each represented by its command) that at least one of
-    ``rows`` (default: all) falls in, in table order: every one stands for commands the
-    logs hold somewhere."""
-    idx = ds.arrays().action if rows is None else ds.arrays().action[rows]
-    at = ds.info.action_table
-    used = np.zeros(len(at), bool)
-    ok = idx[(idx >= 0) & (idx < len(at))].astype(np.int64)
-    used[ok] = True
-    return np.asarray(at.values, np.float64).reshape(len(at), -1)[used]
+def command_representatives(commands: np.ndarray, n: int) -> np.ndarray:
+    """Up to ``n`` representative commands of a log, ``(e, m)``: each component cut at the
+    quantiles of its logged values into ``B = floor(n^(1/m))`` bins, and the mean logged
+    command (the whole vector) of every occupied cell of that grid, in row-major cell
+    order. Dense where the log's commands are dense, and every one the mean of commands
+    logged together, so none lies outside the logged commands' convex hull."""
+    u = np.asarray(commands, np.float64)
+    if n <= 0 or len(u) == 0:
+        return np.zeros((0, u.shape[1] if u.ndim == 2 else 1))
+    m = u.shape[1]
+    B = max(1, int(np.floor(n ** (1.0 / m) + 1e-9)))
+    cell = np.zeros(len(u), np.int64)
+    for j in range(m):
+        edges = np.unique(np.quantile(u[:, j], np.linspace(0.0, 1.0, B + 1)))
+        inner = edges[1:-1]  # a bin per gap; a repeated quantile (a command logged often) merges bins
+        cell = cell * (len(inner) + 1) + np.searchsorted(inner, u[:, j], side="right")
+    cells, inverse = np.unique(cell, return_inverse=True)
+    counts = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+    return np.column_stack([np.bincount(inverse, weights=u[:, j], minlength=len(cells)) / counts for j in range(m)])
 
 
 def logged_commands(ds: TransitionDataset, who: str) -> np.ndarray:
