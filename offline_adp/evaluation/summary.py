@@ -399,10 +399,27 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     is said so. ``performance`` is the side against the behaviour that was claimed, or
     ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
     """
-    best = next((e for e in ranking if e["tier"] == 0), None)
     beh = m.get("behaviour_value")
-    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
     left = left_support(m, shift)
+    support, logs_show = _support_clause(m, shift, left)
+    cv = conv.get("verdict")
+    doubts = _doubts(left, shift, logs_show, cv)
+    side, perf, claim = _offpolicy_side(ranking, beh, doubts)
+    demo = None
+    ro = (m.get("rollout") or {}).get("policy")
+    if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
+        demo = demonstrator_side(m)
+        side, perf = _simulator_side(ro, beh["mean"], demo, side, perf, claim)
+    outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
+    ct = conv["text"][:1].upper() + conv["text"][1:]
+    return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
+            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+
+
+def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -> tuple[str, bool]:
+    """The verdict's support clause, and whether the logs alone show the policy stays within
+    the data's support (where the per-step shift is too thin to estimate)."""
+    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
     mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
     # from the logs alone, when the per-step shift is too thin to estimate: the candidate's actions
     # at the logged states (measured) and where the model rollouts of the logs drive it (ran)
@@ -418,18 +435,30 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
                    "logs past the logged states)")
     else:
         support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _is_finite_number(sv) else "")
+    return support, logs_show
+
+
+def _doubts(left: list[str], shift: dict[str, Any], logs_show: bool, cv: str | None) -> list[str]:
+    """What undermines an off-policy side: the support left or not shown, the fit's convergence."""
     doubts = []
     if left:
         doubts.append("the policy left the data's support, where the value model extrapolates")
     elif not (shift.get("enough_data") or logs_show):
         doubts.append("the logs cannot show whether the policy stays within their support")
-    cv = conv.get("verdict")
     if cv in ("still changing", "not converged"):
         doubts.append("the fit did not converge")
     elif cv in ("diverging", "diverged"):
         doubts.append("the fit diverged")
     elif cv not in FIT_SETTLED:
         doubts.append("the fit's convergence is unknown")
+    return doubts
+
+
+def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
+                    doubts: list[str]) -> tuple[str, str, str | None]:
+    """``(side, performance clause, claim)`` from the logs alone: the most reliable estimator's
+    interval against the behaviour's logged cost, claimed only when no doubt holds."""
+    best = next((e for e in ranking if e["tier"] == 0), None)
     side, perf, claim = "unknown", "", None
     top = next((e for e in ranking if e["tier"] == 1), None)
     if best is None and top is not None and top.get("shown_interval") and beh is not None:
@@ -463,37 +492,35 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
         else:
             perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
                     f"say {ope_side}, but " + "; ".join(doubts))
-    ro = (m.get("rollout") or {}).get("policy")
-    demo = None
-    if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
-        b = beh["mean"]
-        r_lo, r_hi = ro["interval"]
-        truth_side = side_of_behaviour(r_lo, r_hi, b)
-        demo = demonstrator_side(m)
-        against = f"{_SIDE_WORDS[truth_side]} the behaviour"
-        if demo is not None:  # the demonstrator first when the policy is worse than it
-            d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
-                       "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
-            against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
-                       else f"{against}; {d_words}")
-        truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
-                 f"logged {b:.4g}")
-        if demo is not None:
-            di = demo.get("demonstrator_interval") or []
-            truth += f", demonstrator {demo['demonstrator']:.4g}" + (
-                f" [{di[0]:.4g}, {di[1]:.4g}]" if len(di) == 2 and all(_is_finite_number(x) for x in di) else "")
-            if "failures" in demo:
-                truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
-                          + (": the policy fails more often" if demo["more_failures"] else ""))
-        if side in ("better", "worse") and truth_side != side:
-            truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
-        elif side == "unknown":
-            truth += f" (from the logs alone: {perf})"
-        side, perf = truth_side, truth
-    outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
-    ct = conv["text"][:1].upper() + conv["text"][1:]
-    return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
-            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+    return side, perf, claim
+
+
+def _simulator_side(ro: dict[str, Any], b: float, demo: dict[str, Any] | None, side: str, perf: str,
+                    claim: str | None) -> tuple[str, str]:
+    """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
+    behaviour's logged cost ``b`` and the demonstrator, saying where the logs' side disagrees."""
+    r_lo, r_hi = ro["interval"]
+    truth_side = side_of_behaviour(r_lo, r_hi, b)
+    against = f"{_SIDE_WORDS[truth_side]} the behaviour"
+    if demo is not None:  # the demonstrator first when the policy is worse than it
+        d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
+                   "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
+        against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
+                   else f"{against}; {d_words}")
+    truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
+             f"logged {b:.4g}")
+    if demo is not None:
+        di = demo.get("demonstrator_interval") or []
+        truth += f", demonstrator {demo['demonstrator']:.4g}" + (
+            f" [{di[0]:.4g}, {di[1]:.4g}]" if len(di) == 2 and all(_is_finite_number(x) for x in di) else "")
+        if "failures" in demo:
+            truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
+                      + (": the policy fails more often" if demo["more_failures"] else ""))
+    if side in ("better", "worse") and truth_side != side:
+        truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+    elif side == "unknown":
+        truth += f" (from the logs alone: {perf})"
+    return truth_side, truth
 
 
 def gather_warnings(m: dict[str, Any]) -> list[dict[str, str]]:
