@@ -446,6 +446,9 @@ def details_html(summary: str, body: str, open_: bool = False) -> str:
 
 
 def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: bytes) -> str:
+    """The run report's page: title, summary box, figures, the estimates most reliable first,
+    then (discrete actions) the shift diagnostics, the PSDP bound, the cost distributions, the
+    sources and the warnings; a continuous policy's own sections instead (:func:`_continuous_sections`)."""
     ds = m["dataset"]
     src = ", ".join(f"{k}: {v}" for k, v in (ds.get("sources") or {}).items())
     parts = [f"<h1>{html.escape(title)}</h1>",
@@ -454,7 +457,36 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
              "Costs are minimised: lower is better.</p>",
              _summary_box(m, h), "<h2>Figures</h2>"]
     parts += figure_html(figs)
-    # estimators ranked by reliability; the unusable ones collapsed with the reason
+    good, bad, cols = _estimate_rows(m, h)
+    parts += ["<h2>Off-policy estimates, most reliable first</h2>",
+              "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
+              "with an interval that has a level (printed beside it). An interval marked <i>no level</i> is shown, "
+              "never quoted: its coverage was not measured, or the policy left the data's support where the value "
+              "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
+              table_html(good, cols, "ope")]
+    if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
+        return page(title, parts + _continuous_sections(m))
+    if bad:
+        parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
+                              + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
+                              "<p>Their weights are degenerate, or their estimate is impossible for this cost, or they "
+                              "target another quantity. They are never quoted as support.</p>"
+                              + table_html(bad, ["estimator", "estimate", "reason", "warnings"])))
+    parts += _shift_section(m, h, csv)
+    parts += psdp_section(m, h)
+    parts += cost_distribution_section(m)
+    parts += ["<h2>Per source</h2>", table_html([{"source": k, **v} for k, v in m["per_source"].items()],
+                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
+                                           "policy_mass", "mean_ratio"])]
+    if m.get("warnings"):
+        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
+
+    return page(title, parts)
+
+
+def _estimate_rows(m: dict[str, Any], h: dict[str, Any]) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+    """``(usable rows, unusable rows, columns)`` of the estimates table: estimators ranked by
+    reliability; the unusable ones (collapsed in the report) with the reason."""
     rk = h["ranking"]
     ope = m["ope"]
 
@@ -472,26 +504,18 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
         (["rollout_error"] if "rollout" in m else []) + ["warnings"]
     good = [row(e) for e in rk if e["tier"] < 2]
     bad = [row(e) for e in rk if e["tier"] == 2]
-    parts += ["<h2>Off-policy estimates, most reliable first</h2>",
-              "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
-              "with an interval that has a level (printed beside it). An interval marked <i>no level</i> is shown, "
-              "never quoted: its coverage was not measured, or the policy left the data's support where the value "
-              "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
-              table_html(good, cols, "ope")]
-    if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
-        return page(title, parts + _continuous_sections(m))
-    if bad:
-        parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
-                              + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
-                              "<p>Their weights are degenerate, or their estimate is impossible for this cost, or they "
-                              "target another quantity. They are never quoted as support.</p>"
-                              + table_html(bad, ["estimator", "estimate", "reason", "warnings"])))
+    return good, bad, cols
+
+
+def _shift_section(m: dict[str, Any], h: dict[str, Any], csv: bytes) -> list[str]:
+    """The distribution shift: the headline's shift, the behaviour probabilities and action
+    support, and each ratio method's per-step table (collapsed; ``csv`` linked as per_step.csv)."""
     beh = m["behaviour"]
     sv = beh["support_violations"]
-    parts += ["<h2>Distribution shift</h2>", f"<p><b>{html.escape(h['shift']['text'])}</b>.</p>",
-              f"<p>Behaviour probabilities: {html.escape(str(beh['source']))} (clipped at {beh['clip']:g}, "
-              f"{beh['n_clipped']} rows clipped). The policy puts most of its mass on actions the data took with "
-              f"probability below {sv['threshold']:g} at {sv['fraction']:.1%} of the data's states.</p>"]
+    parts = ["<h2>Distribution shift</h2>", f"<p><b>{html.escape(h['shift']['text'])}</b>.</p>",
+             f"<p>Behaviour probabilities: {html.escape(str(beh['source']))} (clipped at {beh['clip']:g}, "
+             f"{beh['n_clipped']} rows clipped). The policy puts most of its mass on actions the data took with "
+             f"probability below {sv['threshold']:g} at {sv['fraction']:.1%} of the data's states.</p>"]
     names = {"classifier": "Classifier ratios (simulator)", "recursion": "Ratio recursion (logs only)"}
     scols = ["step", "n", "ess_fraction", "tv", "q50", "q90", "q99", "max", "supported_sup", "sup_ucb",
              "poorly_covered_mass", "auc", "uncovered"]
@@ -509,12 +533,4 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
         body += table_html(d, cols_, "steps")
         parts.append(details_html(f"{names.get(name, html.escape(name.replace('reference:', 'Reference policy: ')))}: "
                               f"per-step table ({len(d)} steps, {len(warn)} warnings)", body))
-    parts += psdp_section(m, h)
-    parts += cost_distribution_section(m)
-    parts += ["<h2>Per source</h2>", table_html([{"source": k, **v} for k, v in m["per_source"].items()],
-                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
-                                           "policy_mass", "mean_ratio"])]
-    if m.get("warnings"):
-        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
-
-    return page(title, parts)
+    return parts
