@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.evaluation.figures import DIST_COLOURS, Figures, distribution_figure, pyplot
-from offline_adp.evaluation.report import (
+from offline_adp.evaluation.html_blocks import (
     details_html,
     figure_html,
     page,

@@ -279,7 +279,7 @@ def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[st
 #: The one-word outcomes of a verdict, each with one colour everywhere it is shown: the CLI
 #: summary (ANSI), the report's verdict box and the comparison (CSS class, figure colour).
 OUTCOMES = ("better", "worse", "cannot tell", "not converged")
-#: CSS class of each outcome (report.STYLE): green, red, amber, purple.
+#: CSS class of each outcome (html_blocks.STYLE): green, red, amber, purple.
 OUTCOME_CLASS = {"better": "good", "worse": "bad", "cannot tell": "meh", "not converged": "stale"}
 #: The same colours for figures and the terminal (ANSI SGR codes of the nearest basic colour).
 OUTCOME_COLOUR = {"better": "#2e7d32", "worse": "#c62828", "cannot tell": "#b58900", "not converged": "#7b1fa2"}
