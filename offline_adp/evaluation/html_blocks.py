@@ -99,8 +99,8 @@ def figure_html(figs: Figures, folder: str | None = "figures") -> list[str]:
 
 def verdict_colour(v: dict[str, Any], conv: dict[str, Any]) -> str:
     """The CSS class of a verdict: one per outcome word
-    (:data:`~offline_adp.evaluation.summary.OUTCOME_CLASS`: better green, worse red, cannot
-    tell amber, not converged purple), the word :func:`~offline_adp.evaluation.summary.outcome_of`
+    (:data:`~offline_adp.evaluation.verdict.OUTCOME_CLASS`: better green, worse red, cannot
+    tell amber, not converged purple), the word :func:`~offline_adp.evaluation.verdict.outcome_of`
     computed once for the CLI, the report and ``compare``. A verdict without its word (older
     metrics) gets it from its side and the fit's verdict. A doubt in the same sentence is never
     painted green: the logs claim a side only without doubts, and a fit that did not converge
