@@ -74,8 +74,9 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
 def _ranking_points(res: dict[str, Any], beh: float | None) -> list[float]:
     """Every finite value the ranking figure draws (estimates, intervals, truths, the behaviour's
     and the demonstrator's costs): its x range."""
-    pts = [v for c in res["candidates"] for v in ([c["estimate"]] + list(c["interval"] or []) + [c["truth"]]
-                                                  + list(c.get("truth_interval") or [])) if v is not None and np.isfinite(v)]
+    cands = res["candidates"]
+    pts = [v for c in cands for v in ([c["estimate"]] + list(c["interval"] or []) + [c["truth"]]
+                                      + list(c.get("truth_interval") or [])) if v is not None and np.isfinite(v)]
     if beh is not None:
         pts.append(beh)
     d_mean = (res.get("demonstrator") or {}).get("mean")

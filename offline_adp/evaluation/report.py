@@ -371,7 +371,8 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     return page(title, parts)
 
 
-def _estimate_rows(m: dict[str, Any], h: dict[str, Any]) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+def _estimate_rows(m: dict[str, Any], h: dict[str, Any]
+                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
     """``(usable rows, unusable rows, columns)`` of the estimates table: estimators ranked by
     reliability; the unusable ones (collapsed in the report) with the reason."""
     rk = h["ranking"]
