@@ -12,9 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.evaluation.figures import (
-    Figures,
-)
+from offline_adp.evaluation.figures import Figures
 
 #: Human column labels for the report's tables.
 LABELS = {

@@ -19,10 +19,7 @@ from offline_adp.learn.base import seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
-from offline_adp.trees.ensemble import (
-    TreeEnsemble,
-    constant_ensemble,
-)
+from offline_adp.trees.ensemble import TreeEnsemble, constant_ensemble
 from offline_adp.trees.sklearn import sklearn_trees_known
 
 
