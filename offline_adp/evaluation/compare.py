@@ -107,78 +107,19 @@ def compare_runs(
     dict with ``candidates`` (ranked), ``estimator``, ``dataset``, and ``selection`` (rank
     correlations and regret) when the simulator truth is known.
     """
-    from offline_adp.evaluation.run import evaluate_run
-
     cfg = EvaluationSettings.resolve(settings, {**(evaluate_params or {}),
                                                 **({"simulator": simulator} if simulator is not None else {})})
-    simulator = cfg.simulator
     say = progress or (lambda _m: None)
-    runs = [Path(r) for r in run_dirs]
-    if len(runs) < 2:
-        raise InvalidArgumentError("compare needs at least two run directories")
-    if estimator is not None and estimator not in ESTIMATOR_NAMES:
-        raise InvalidArgumentError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
-    for r in runs:
-        if not (r / "model").is_dir():
-            raise RunDirectoryError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+    runs = _checked_runs(run_dirs, estimator)
     if dataset is None:
-        paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
-        if "" in paths:
-            raise RunDirectoryError("a run does not name its dataset; pass --dataset DIR")
-        fps = {_fingerprint(p) for p in paths}
-        if len(fps) > 1:
-            raise IncompatibleError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
-                                  "one with --dataset DIR")
-        dataset = sorted(paths)[0]
+        dataset = _common_dataset(runs)
     ds_path = str(Path(dataset).resolve())
     fp = _fingerprint(ds_path)
-    metrics = []
-    for r in runs:
-        m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
-        same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
-                and (simulator is None or (m.get("simulator") or "none") == simulator)
-                and _same_model_rollouts(m, cfg.model_particles))
-        if force or not same:
-            say(f"evaluating {r}")
-            m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
-            m = _metrics(r) or m
-        metrics.append(m)
-    estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
-    if len(estimands) > 1:
-        raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "
-                              "re-run with the same --horizon, or pass force")
+    metrics = _candidate_metrics(runs, ds_path, fp, cfg, force, say)
     rankings = [rank_estimators(withdraw_levels(m)) for m in metrics]  # a level only where it holds
     if estimator is None:  # reliable for all (with an interval), else usable for all (no interval)
-        for max_tier in (0, 1):
-            common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
-                      and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
-            if common:
-                estimator = common[0]
-                break
-    rows = []
-    for r, m, rk in zip(runs, metrics, rankings, strict=True):
-        pick = next((e for e in rk if e["name"] == estimator), None) if estimator else next(
-            (e for e in rk if e["tier"] <= 1), None)
-        h = m.get("headline")
-        if not h or "outcome" not in h:  # written before the outcome word
-            h = headline(m, r)
-        truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
-        shown = (pick["interval"] or pick.get("shown_interval")) if pick else None
-        fit = h["convergence"].get("verdict")
-        rows.append({"run": str(r), "name": r.name if r.name != "fit" else r.parent.name,
-                     "algorithm": m.get("algorithm"), "estimator": pick["name"] if pick else None,
-                     "estimate": pick["estimate"] if pick else None, "interval": shown,
-                     "level": pick["level"] if pick and pick["interval"] else None,
-                     "level_words": level_words(pick) if shown else None,
-                     "reliability": pick["tier_label"] if pick else "no reliable estimate",
-                     "outcome": h["verdict"].get("outcome") or outcome_of(h["verdict"].get("performance"), fit),
-                     "fit": _FIT_WORDS.get(fit, fit or "unknown"),
-                     "discount_note": h.get("discount_note") or discount_note(m),
-                     "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
-                     "convergence": h["convergence"]["text"], "truth": truth,
-                     "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
-                     "verdict": h["verdict"].get("text"), "performance": h["verdict"].get("performance"),
-                     "fit_verdict": h["convergence"].get("verdict"), "cost_distribution": _risk(m)})
+        estimator = _common_estimator(rankings)
+    rows = [_candidate_row(r, m, rk, estimator) for r, m, rk in zip(runs, metrics, rankings, strict=True)]
     usable = [x for x in rows if x["estimate"] is not None and np.isfinite(x["estimate"])]
     rest = [x for x in rows if x not in usable]
     usable.sort(key=lambda x: x["estimate"])
@@ -194,6 +135,101 @@ def compare_runs(
                                      "(lower cost first)"}
     if estimator is None:
         out["note"] = "no estimator is reliable for every candidate: each is ranked by its own most reliable one"
+    _top_pick_and_truth(out, usable, metrics[0])
+    return out
+
+
+def _checked_runs(run_dirs: Sequence[str | PathLike[str]], estimator: str | None) -> list[Path]:
+    """The run directories as paths, at least two, each with a model; ``estimator`` a known name (or None)."""
+    runs = [Path(r) for r in run_dirs]
+    if len(runs) < 2:
+        raise InvalidArgumentError("compare needs at least two run directories")
+    if estimator is not None and estimator not in ESTIMATOR_NAMES:
+        raise InvalidArgumentError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
+    for r in runs:
+        if not (r / "model").is_dir():
+            raise RunDirectoryError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+    return runs
+
+
+def _common_dataset(runs: list[Path]) -> str:
+    """The dataset every run was fitted on (an error when a run names none, or they name different logs)."""
+    paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
+    if "" in paths:
+        raise RunDirectoryError("a run does not name its dataset; pass --dataset DIR")
+    fps = {_fingerprint(p) for p in paths}
+    if len(fps) > 1:
+        raise IncompatibleError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
+                              "one with --dataset DIR")
+    return sorted(paths)[0]
+
+
+def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationSettings, force: bool,
+                       say: Callable[[str], None]) -> list[dict[str, Any]]:
+    """Every candidate's evaluation on the dataset: the stored one when it matches (dataset,
+    simulator, model rollouts) and ``force`` is off, else a new one; all of one estimand."""
+    from offline_adp.evaluation.run import evaluate_run
+
+    simulator = cfg.simulator
+    metrics = []
+    for r in runs:
+        m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
+        same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
+                and (simulator is None or (m.get("simulator") or "none") == simulator)
+                and _same_model_rollouts(m, cfg.model_particles))
+        if force or not same:
+            say(f"evaluating {r}")
+            m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
+            m = _metrics(r) or m
+        metrics.append(m)
+    estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
+    if len(estimands) > 1:
+        raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "
+                              "re-run with the same --horizon, or pass force")
+    return metrics
+
+
+def _common_estimator(rankings: list[list[dict[str, Any]]]) -> str | None:
+    """The most reliable estimator reliable (with an interval) for every candidate, else usable
+    for every candidate (no interval); None when there is none."""
+    for max_tier in (0, 1):
+        common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
+                  and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
+        if common:
+            return common[0]
+    return None
+
+
+def _candidate_row(r: Path, m: dict[str, Any], rk: list[dict[str, Any]], estimator: str | None) -> dict[str, Any]:
+    """One candidate's row of the comparison: its estimate by ``estimator`` (None: its own most
+    reliable), interval, verdicts and the simulator's truth."""
+    pick = next((e for e in rk if e["name"] == estimator), None) if estimator else next(
+        (e for e in rk if e["tier"] <= 1), None)
+    h = m.get("headline")
+    if not h or "outcome" not in h:  # written before the outcome word
+        h = headline(m, r)
+    truth = m.get("rollout", {}).get("policy", {}).get("mean_discounted_cost")
+    shown = (pick["interval"] or pick.get("shown_interval")) if pick else None
+    fit = h["convergence"].get("verdict")
+    return {"run": str(r), "name": r.name if r.name != "fit" else r.parent.name,
+            "algorithm": m.get("algorithm"), "estimator": pick["name"] if pick else None,
+            "estimate": pick["estimate"] if pick else None, "interval": shown,
+            "level": pick["level"] if pick and pick["interval"] else None,
+            "level_words": level_words(pick) if shown else None,
+            "reliability": pick["tier_label"] if pick else "no reliable estimate",
+            "outcome": h["verdict"].get("outcome") or outcome_of(h["verdict"].get("performance"), fit),
+            "fit": _FIT_WORDS.get(fit, fit or "unknown"),
+            "discount_note": h.get("discount_note") or discount_note(m),
+            "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
+            "convergence": h["convergence"]["text"], "truth": truth,
+            "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
+            "verdict": h["verdict"].get("text"), "performance": h["verdict"].get("performance"),
+            "fit_verdict": h["convergence"].get("verdict"), "cost_distribution": _risk(m)}
+
+
+def _top_pick_and_truth(out: dict[str, Any], usable: list[dict[str, Any]], first: dict[str, Any]) -> None:
+    """Into ``out``: the separation of the candidates, the top pick (only when it is separated
+    from every other), the demonstrator's rollouts and, with every truth known, the selection scores."""
     out["separation"] = separation(usable)
     top = usable[0] if usable else None
     if top is not None and all(p["separated"] for p in out["separation"] if top["name"] in (p["a"], p["b"])):
@@ -202,14 +238,13 @@ def compare_runs(
         out["top_pick"] = None
         out["cannot_separate"] = [p["text"] for p in out["separation"]
                                   if not p["separated"] and top is not None and top["name"] in (p["a"], p["b"])]
-    demo = (metrics[0].get("rollout") or {}).get("demonstrator")
+    demo = (first.get("rollout") or {}).get("demonstrator")
     if isinstance(demo, dict) and demo.get("mean_discounted_cost") is not None:
         out["demonstrator"] = {"mean": demo["mean_discounted_cost"], "interval": demo.get("interval"),
-                               "failures": demo.get("failures"), "simulator": metrics[0].get("simulator"),
+                               "failures": demo.get("failures"), "simulator": first.get("simulator"),
                                "n_episodes": demo.get("n_episodes")}
     if len(usable) >= 2 and all(x["truth"] is not None for x in usable):
         out["selection"] = selection_scores([x["estimate"] for x in usable], [x["truth"] for x in usable])
-    return out
 
 
 #: How the comparison words a fit's verdict in its convergence column.

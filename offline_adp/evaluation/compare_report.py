@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.evaluation.figures import DIST_COLOURS, Figures, distribution_figure, pyplot
-from offline_adp.evaluation.report import (
+from offline_adp.evaluation.html_blocks import (
     details_html,
     figure_html,
     page,
@@ -46,6 +46,35 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
     plt = pyplot()
     cands = res["candidates"]
     beh = (res.get("behaviour") or {}).get("mean")
+    pts = _ranking_points(res, beh)
+    if not pts:
+        return
+    lo, hi = min(pts), max(pts)
+    pad = 0.08 * (hi - lo) if hi > lo else 1.0
+    fig, ax = plt.subplots(figsize=(9, 0.6 * len(cands) + 2.0))
+    y = np.arange(len(cands))[::-1]
+    drawn_demo = False
+    levels, drawn_nolevel, drawn_truth = _draw_candidates(ax, y, cands)
+    if beh is not None:
+        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    demo = (res.get("demonstrator") or {}).get("mean")
+    if demo is not None and np.isfinite(demo):
+        drawn_demo = True
+        ax.axvline(demo, color="#17becf", ls=":", lw=1.5, label="demonstrator: simulator")
+    ax.set_yticks(y, [_label(c) for c in cands], fontsize=9)
+    ax.set_ylim(-0.7, len(cands) - 0.4)
+    ax.set_xlim(min(lo, demo if drawn_demo else lo) - pad, max(hi, demo if drawn_demo else hi) + pad)
+    ax.set_xlabel(f"{res.get('estimand') or 'expected discounted cost'} (lower is better)", fontsize=9)
+    ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (lowest estimate first)", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.grid(axis="x", alpha=0.3)
+    figs.save(fig, "ranking", _ranking_caption(levels, drawn_nolevel, drawn_truth, drawn_demo, beh is not None) + ".")
+
+
+def _ranking_points(res: dict[str, Any], beh: float | None) -> list[float]:
+    """Every finite value the ranking figure draws (estimates, intervals, truths, the behaviour's
+    and the demonstrator's costs): its x range."""
+    cands = res["candidates"]
     pts = [v for c in cands for v in ([c["estimate"]] + list(c["interval"] or []) + [c["truth"]]
                                       + list(c.get("truth_interval") or [])) if v is not None and np.isfinite(v)]
     if beh is not None:
@@ -53,12 +82,12 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
     d_mean = (res.get("demonstrator") or {}).get("mean")
     if d_mean is not None and np.isfinite(d_mean):
         pts.append(d_mean)
-    if not pts:
-        return
-    lo, hi = min(pts), max(pts)
-    pad = 0.08 * (hi - lo) if hi > lo else 1.0
-    fig, ax = plt.subplots(figsize=(9, 0.6 * len(cands) + 2.0))
-    y = np.arange(len(cands))[::-1]
+    return pts
+
+
+def _draw_candidates(ax: Any, y: np.ndarray, cands: list[dict[str, Any]]) -> tuple[set[str], bool, bool]:
+    """Each candidate's estimate and interval in its verdict's colour, and its simulator truth;
+    returns ``(interval levels drawn, an interval without a level drawn, a truth drawn)``."""
     seen: set[str] = set()
 
     def lab(s: str) -> str | None:
@@ -67,7 +96,7 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
         seen.add(s)
         return s
 
-    drawn_truth = drawn_demo = drawn_nolevel = False
+    drawn_truth = drawn_nolevel = False
     levels: set[str] = set()
     for yi, c in zip(y, cands, strict=True):
         out = c.get("outcome") or "cannot tell"
@@ -89,19 +118,12 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
             if ti:
                 ax.plot(ti, [yi - 0.25, yi - 0.25], color="k", lw=1.2)
             ax.plot([c["truth"]], [yi - 0.25], "kx", ms=7, label=lab("simulator truth (95% interval)"))
-    if beh is not None:
-        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
-    demo = (res.get("demonstrator") or {}).get("mean")
-    if demo is not None and np.isfinite(demo):
-        drawn_demo = True
-        ax.axvline(demo, color="#17becf", ls=":", lw=1.5, label="demonstrator: simulator")
-    ax.set_yticks(y, [_label(c) for c in cands], fontsize=9)
-    ax.set_ylim(-0.7, len(cands) - 0.4)
-    ax.set_xlim(min(lo, demo if drawn_demo else lo) - pad, max(hi, demo if drawn_demo else hi) + pad)
-    ax.set_xlabel(f"{res.get('estimand') or 'expected discounted cost'} (lower is better)", fontsize=9)
-    ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (lowest estimate first)", fontsize=10)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    ax.grid(axis="x", alpha=0.3)
+    return levels, drawn_nolevel, drawn_truth
+
+
+def _ranking_caption(levels: set[str], drawn_nolevel: bool, drawn_truth: bool, drawn_demo: bool,
+                     behaviour: bool) -> str:
+    """The ranking figure's caption (without its full stop): what each mark drawn means."""
     caption = ("The candidates in the order of their off-policy estimate (top: lowest estimated cost), each in the "
                "colour of its verdict (green better, red worse, amber cannot tell, purple fit not converged)")
     if levels:
@@ -113,9 +135,9 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
         caption += "; black crosses: the simulator truth with its 95% interval"
     if drawn_demo:
         caption += "; dotted: the demonstrator in the simulator"
-    if beh is not None:
+    if behaviour:
         caption += "; dash-dotted: the behaviour's logged cost"
-    figs.save(fig, "ranking", caption + ".")
+    return caption
 
 
 def _distributions(figs: Figures, res: dict[str, Any]) -> None:
@@ -173,11 +195,38 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
     with the figures already saved in ``figs``; paths relative to ``base`` (the report's folder)."""
     cands = res["candidates"]
     sel = res.get("selection")
-    beh = res.get("behaviour") or {}
     parts = ["<h1>Comparison of candidate policies</h1>",
              f"<p class='sub'>{len(cands)} candidates on {html.escape(_relative(res['dataset']['path'], base))}, ranked by "
              f"{html.escape(res['estimator'].upper())}: {html.escape(res.get('method', ''))}. Estimand: "
              f"{html.escape(str(res.get('estimand')))}. Costs are minimised: lower is better.</p>"]
+    parts += _compare_summary(res)
+    parts += ["<h2>Figures</h2>", *figure_html(figs, folder=None)]
+    rows = _candidate_rows(cands)
+    parts += ["<h2>Ranking</h2>", _ranking_table(rows, cands)]
+    if res.get("separation"):
+        parts.append("<p><b>Can the logs tell them apart?</b> " + "; ".join(
+            html.escape(p["text"][:1].upper() + p["text"][1:]) for p in res["separation"])
+            + ". (Pairwise, from their intervals: separated only where both have a level and do not overlap.)</p>")
+    parts.append("<h2>Verdict and fit per candidate</h2>")
+    for r in rows:
+        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(_relative(r['run'], base))})</small></h3>"
+                     f"{r['verdict_html']}<p><small>{html.escape(r.get('convergence') or '')}</small></p>"
+                     + (f"<p><b>Discount: {html.escape(r['discount_note'])}</b></p>" if r.get("discount_note") else ""))
+    parts += _risk_section(res)
+    if sel:
+        parts.append(details_html("Selection scores (how they are computed)",
+                                  f"<p>{html.escape(sel.get('method', ''))}. Spearman's rho and Kendall's tau between "
+                                  "the estimated and the true costs (1: the same order); regret of the top pick: its "
+                                  "true cost minus the best candidate's.</p>"))
+    return page("compare: " + ", ".join(c["name"] for c in cands), parts)
+
+
+def _compare_summary(res: dict[str, Any]) -> list[str]:
+    """The summary box: the top pick (or why there is none), the demonstrator, the behaviour,
+    the ranking's scores against the simulator, notes and discount notes."""
+    cands = res["candidates"]
+    sel = res.get("selection")
+    beh = res.get("behaviour") or {}
     box = ["<section class='summary'><h2>Summary</h2><table class='kv'>"]
 
     def kv(k: str, v: str) -> None:
@@ -221,8 +270,12 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
         if c.get("discount_note"):
             kv(f"Discount ({c['name']})", html.escape(c["discount_note"]))
     box.append("</table></section>")
-    parts += box
-    parts += ["<h2>Figures</h2>", *figure_html(figs, folder=None)]
+    return box
+
+
+def _candidate_rows(cands: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The candidates as table rows: support in words, the verdict box, its outcome word and
+    colour class, the interval with its level."""
     rows = []
     for c in cands:
         v = {"performance": c.get("performance"), "support_left": c.get("support_left"), "text": c.get("verdict"),
@@ -235,39 +288,35 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
                      "verdict_html": box, "outcome_html": word, "outcome_class": cls,
                      "interval_words": f"[{iv[0]:.4g}, {iv[1]:.4g}] ({c.get('level_words') or 'no level'})" if iv else None,
                      "fit": c.get("fit") or c.get("fit_verdict")})
+    return rows
+
+
+def _ranking_table(rows: list[dict[str, Any]], cands: list[dict[str, Any]]) -> str:
+    """The ranking table, each verdict cell in its outcome's colour."""
     cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval_words", "reliability", "fit", "outcome_html"] + \
         (["truth", "truth_interval"] if any(c["truth"] is not None for c in cands) else []) + ["support", "shift"]
     table = table_html(rows, cols, "ope", labels=LABELS)
     for r in rows:  # the verdict cell in its outcome's colour
         table = table.replace(f"<td>{html.escape(r['outcome_html'])}</td>",
                               f"<td class='verdict {r['outcome_class']}'><b>{html.escape(r['outcome_html'])}</b></td>", 1)
-    parts += ["<h2>Ranking</h2>", table]
-    if res.get("separation"):
-        parts.append("<p><b>Can the logs tell them apart?</b> " + "; ".join(
-            html.escape(p["text"][:1].upper() + p["text"][1:]) for p in res["separation"])
-            + ". (Pairwise, from their intervals: separated only where both have a level and do not overlap.)</p>")
-    parts.append("<h2>Verdict and fit per candidate</h2>")
-    for r in rows:
-        parts.append(f"<h3>{html.escape(_label(r))} <small>({html.escape(_relative(r['run'], base))})</small></h3>"
-                     f"{r['verdict_html']}<p><small>{html.escape(r.get('convergence') or '')}</small></p>"
-                     + (f"<p><b>Discount: {html.escape(r['discount_note'])}</b></p>" if r.get("discount_note") else ""))
+    return table
+
+
+def _risk_section(res: dict[str, Any]) -> list[str]:
+    """The cost distribution and CVaR table (nothing when no candidate has a distribution)."""
+    cands = res["candidates"]
     risk = _risk_rows(res)
     alpha = next((c["cost_distribution"]["alpha"] for c in cands if c.get("cost_distribution")), 0.1)
-    if any(len(r) > 1 for r in risk):
-        labels = {"sim_mean": "mean (simulator)", "sim_cvar": f"CVaR_{alpha:g} (simulator)", "logs_mean": "mean (logs)",
-                  "logs_cvar": f"CVaR_{alpha:g} (logs)", "logs_note": "logs: how", "name": "candidate"}
-        parts += ["<h2>Cost distribution and CVaR</h2>",
-                  f"<p>CVaR_{alpha:g}: the mean of the worst {alpha:.0%} of episode costs. Simulator: the rollouts' "
-                  "episodes. Logs: the logged episodes re-weighted by the candidate's importance weights, only where "
-                  "those weights are usable.</p>",
-                  table_html(risk, ["name", "sim_mean", "sim_cvar", "logs_mean", "logs_cvar", "logs_note"],
-                             labels=labels)]
-    if sel:
-        parts.append(details_html("Selection scores (how they are computed)",
-                                  f"<p>{html.escape(sel.get('method', ''))}. Spearman's rho and Kendall's tau between "
-                                  "the estimated and the true costs (1: the same order); regret of the top pick: its "
-                                  "true cost minus the best candidate's.</p>"))
-    return page("compare: " + ", ".join(c["name"] for c in cands), parts)
+    if not any(len(r) > 1 for r in risk):
+        return []
+    labels = {"sim_mean": "mean (simulator)", "sim_cvar": f"CVaR_{alpha:g} (simulator)", "logs_mean": "mean (logs)",
+              "logs_cvar": f"CVaR_{alpha:g} (logs)", "logs_note": "logs: how", "name": "candidate"}
+    return ["<h2>Cost distribution and CVaR</h2>",
+            f"<p>CVaR_{alpha:g}: the mean of the worst {alpha:.0%} of episode costs. Simulator: the rollouts' "
+            "episodes. Logs: the logged episodes re-weighted by the candidate's importance weights, only where "
+            "those weights are usable.</p>",
+            table_html(risk, ["name", "sim_mean", "sim_cvar", "logs_mean", "logs_cvar", "logs_note"],
+                       labels=labels)]
 
 
 def write_compare_report(res: dict[str, Any], path: str | PathLike[str]) -> Path:

@@ -77,7 +77,7 @@ CLIP_SD = 3.0
 #: values are snapped to the nearest logged one
 MAX_LEVELS = 20
 #: the exit mass from which a warning says the policy drives where the logs do not go (and the
-#: headline judges it left the data's support: ``summary.MODEL_EXIT_FRACTION``)
+#: headline judges it left the data's support: ``verdict.MODEL_EXIT_FRACTION``)
 EXIT_FRACTION = 0.1
 #: the approximate nearest-neighbour search of the support check (:meth:`LoggedDynamics.in_data`)
 _NN_EPS = 1.0

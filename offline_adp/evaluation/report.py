@@ -35,48 +35,19 @@ from offline_adp.evaluation.figures import (
     traced_figure,
 )
 
-#: Human column labels for the report's tables.
-LABELS = {
-    "estimator": "estimator", "estimate": "estimate", "interval": "interval (its level)", "interval_method": "interval method",
-    "ess": "effective sample size (episodes)", "rollout_error": "error vs simulator truth", "warnings": "warnings",
-    "step": "step t", "n": "data states", "ess_fraction": "ESS / n", "tv": "total variation", "q50": "median ratio",
-    "q90": "90% quantile", "q99": "99% quantile", "max": "max ratio", "supported_sup": "supported max",
-    "sup_ucb": "supported max (upper bound)", "poorly_covered_mass": "policy mass poorly covered",
-    "auc": "classifier AUC", "uncovered": "policy states without data", "mean_discounted_cost": "mean discounted cost",
-    "n_episodes": "episodes", "mean_length": "mean length (steps)", "terminated": "terminated episodes",
-    "level": "level", "episodes": "episodes", "transitions": "transitions",
-    "logged_mean_discounted_cost": "logged mean discounted cost", "data_mass": "share of the data",
-    "policy_mass": "share of the policy's mass", "mean_ratio": "mean ratio", "reference": "reference policy",
-    "per_step": "per-step bound", "averaged": "averaged bound", "method": "method", "rank": "rank",
-    "reliability": "reliability", "reason": "why", "failures": "failures",
-    "mean_abs_cross_track_error_m": "mean |cross-track error| [m]",
-}
-
-
-def fmt(v: Any) -> str:
-    """One table cell: numbers to 4 significant digits, missing as a dash, lists and dicts spelled out."""
-    if v is None:
-        return "&ndash;"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return "&ndash;" if not np.isfinite(v) else f"{v:.4g}"
-    if isinstance(v, list | tuple):
-        if len(v) == 2 and all(isinstance(x, int | float) or x is None for x in v):
-            return "&ndash;" if any(x is None for x in v) else f"[{fmt(v[0])}, {fmt(v[1])}]"
-        return "<br>".join(fmt(x) for x in v) if v else "&ndash;"
-    if isinstance(v, dict):
-        return ", ".join(f"{html.escape(str(k))}: {fmt(x)}" for k, x in v.items())
-    return html.escape(str(v).replace("_", " ") if isinstance(v, str) and v.isidentifier() else str(v))
-
-
-def table_html(rows: list[dict[str, Any]], cols: list[str], cls: str = "", labels: dict[str, str] | None = None) -> str:
-    """An HTML table of ``rows`` (dicts) with the columns ``cols``, headed by their labels
-    (``labels``, then :data:`LABELS`), cells formatted by :func:`fmt`."""
-    labels = {**LABELS, **(labels or {})}
-    head = "".join(f"<th>{html.escape(labels.get(c, c.replace('_', ' ')))}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{fmt(r.get(c))}</td>" for c in cols) + "</tr>" for r in rows)
-    return f"<table class='{cls}'><tr>{head}</tr>{body}</table>"
+# the building blocks of every report (LABELS, fmt, STYLE, verdict_colour: importable from here too)
+from offline_adp.evaluation.html_blocks import (  # noqa: F401
+    LABELS,
+    STYLE,
+    details_html,
+    figure_html,
+    fmt,
+    page,
+    table_html,
+    verdict_colour,
+    verdict_html,
+    warning_items,
+)
 
 
 def _title(run: Path, m: dict[str, Any]) -> str:
@@ -180,43 +151,6 @@ def _command_figures(figs: Figures, run: Path, m: dict[str, Any], ratios: pd.Dat
     command_figures(figs, policy, ratios, features, axes, units, table, logged)
 
 
-#: The stylesheet of every HTML report (run report, comparison).
-STYLE = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:auto;padding:1em;color:#222}"
-         "h1{font-size:1.6em;margin-bottom:.2em}.sub{color:#555;margin-top:0}"
-         "table{border-collapse:collapse;font-size:12px;margin:.5em 0}td,th{border:1px solid #ccc;padding:3px 7px;"
-         "vertical-align:top}th{background:#f3f3f3;text-align:left}img{max-width:100%}"
-         "figure{margin:1em 0}figcaption{font-size:12px;color:#444}"
-         ".summary{border:2px solid #444;border-radius:6px;padding:.2em 1em 1em;background:#fafafa}"
-         ".summary h2{margin:.4em 0}.kv th{width:170px}.kv td,.kv th{font-size:13px}"
-         ".verdict{font-size:15px;padding:.5em .7em;border-radius:4px;border-left:8px solid #888}"
-         ".good{background:#e3f4e1;border-color:#2e7d32}.bad{background:#fbe3e3;border-color:#c62828}"
-         ".meh{background:#f7efd2;border-color:#b58900}.stale{background:#efe3f6;border-color:#7b1fa2}"
-         ".outcome{display:inline-block;font-weight:700;text-transform:uppercase;letter-spacing:.04em;color:#fff;"
-         "padding:.05em .5em;border-radius:3px;margin-right:.5em;font-size:13px}"
-         ".outcome.good{background:#2e7d32}.outcome.bad{background:#c62828}.outcome.meh{background:#b58900}"
-         ".outcome.stale{background:#7b1fa2}"
-         "details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
-         "table.ope td{max-width:360px}")
-
-
-def page(title: str, parts: list[str]) -> str:
-    """A self-contained HTML page: ``title`` and the HTML fragments ``parts`` with :data:`STYLE`."""
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{STYLE}</style>"
-            f"</head><body>{''.join(parts)}</body></html>")
-
-
-def figure_html(figs: Figures, folder: str | None = "figures") -> list[str]:
-    """The figures of ``figs`` embedded as base64 PNGs with their captions (and, when ``folder``
-    is given, the PNG file's name under it)."""
-    out = []
-    for name, caption, path in figs.items:
-        data = base64.b64encode(path.read_bytes()).decode()
-        where = f" (<code>{folder}/{name}.png</code>)" if folder else ""
-        out.append(f'<figure id="{name}"><img alt="{html.escape(name)}" src="data:image/png;base64,{data}">'
-                   f"<figcaption>{html.escape(caption)}{where}</figcaption></figure>")
-    return out
-
-
 def psdp_rows(m: dict[str, Any]) -> list[dict[str, Any]]:
     """The PSDP bound per reference policy with the two factors it multiplies, as
     :func:`offline_adp.evaluation.psdp_eps.psdp_bound` uses them: ``sum_t eps_t`` (the
@@ -269,8 +203,6 @@ def psdp_section(m: dict[str, Any], h: dict[str, Any]) -> list[str]:
     return ["<h2>PSDP performance bound</h2>", text, table_html(psdp_rows(m), cols, labels=PSDP_LABELS)]
 
 
-
-
 def distribution_rows(cd: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per distribution of ``cost_distribution`` (unusable ones with the reason)."""
     rows = []
@@ -289,10 +221,6 @@ def distribution_rows(cd: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-
-
-
-
 def cost_distribution_section(m: dict[str, Any]) -> list[str]:
     """The table of episode-cost distributions with mean and CVaR."""
     cd = m.get("cost_distribution")
@@ -308,42 +236,6 @@ def cost_distribution_section(m: dict[str, Any]) -> list[str]:
             "weights, given only where those weights are usable.</p>",
             table_html(distribution_rows(cd), ["distribution", "episodes", "mean", "median", "q90", "cvar", "max", "note"],
                        labels=labels)]
-
-
-def verdict_colour(v: dict[str, Any], conv: dict[str, Any]) -> str:
-    """The CSS class of a verdict: one per outcome word
-    (:data:`~offline_adp.evaluation.summary.OUTCOME_CLASS`: better green, worse red, cannot
-    tell amber, not converged purple), the word :func:`~offline_adp.evaluation.summary.outcome_of`
-    computed once for the CLI, the report and ``compare``. A verdict without its word (older
-    metrics) gets it from its side and the fit's verdict. A doubt in the same sentence is never
-    painted green: the logs claim a side only without doubts, and a fit that did not converge
-    is its own colour."""
-    from offline_adp.evaluation.summary import OUTCOME_CLASS, outcome_of
-
-    out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
-    return OUTCOME_CLASS.get(out, "meh")
-
-
-def verdict_html(v: dict[str, Any], conv: dict[str, Any], tag: str = "p") -> str:
-    """The verdict box: the outcome word as a badge in its colour, then the verdict's text."""
-    from offline_adp.evaluation.summary import OUTCOME_CLASS, outcome_of
-
-    out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
-    cls = OUTCOME_CLASS.get(out, "meh")
-    text = (v.get("text") or "")[:1].upper() + (v.get("text") or "")[1:]
-    return (f"<{tag} class='verdict {cls}'><span class='outcome {cls}'>{html.escape(out)}</span>"
-            f"{html.escape(text)}</{tag}>")
-
-
-def warning_items(ws: list[Any]) -> str:
-    """The gathered warnings as list items, each with its source."""
-    out = []
-    for w in ws:
-        if isinstance(w, dict):
-            out.append(f"<li><b>{html.escape(str(w.get('source', '')))}</b>: {html.escape(str(w.get('message', '')))}</li>")
-        else:
-            out.append(f"<li>{html.escape(str(w))}</li>")
-    return "".join(out)
 
 
 def risk_text(cd: dict[str, Any]) -> str:
@@ -440,12 +332,10 @@ def _continuous_sections(m: dict[str, Any]) -> list[str]:
     return parts
 
 
-def details_html(summary: str, body: str, open_: bool = False) -> str:
-    """A collapsible block (``<details>``) with ``summary`` as its title."""
-    return f"<details{' open' if open_ else ''}><summary>{summary}</summary>{body}</details>"
-
-
 def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: bytes) -> str:
+    """The run report's page: title, summary box, figures, the estimates most reliable first,
+    then (discrete actions) the shift diagnostics, the PSDP bound, the cost distributions, the
+    sources and the warnings; a continuous policy's own sections instead (:func:`_continuous_sections`)."""
     ds = m["dataset"]
     src = ", ".join(f"{k}: {v}" for k, v in (ds.get("sources") or {}).items())
     parts = [f"<h1>{html.escape(title)}</h1>",
@@ -454,7 +344,37 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
              "Costs are minimised: lower is better.</p>",
              _summary_box(m, h), "<h2>Figures</h2>"]
     parts += figure_html(figs)
-    # estimators ranked by reliability; the unusable ones collapsed with the reason
+    good, bad, cols = _estimate_rows(m, h)
+    parts += ["<h2>Off-policy estimates, most reliable first</h2>",
+              "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
+              "with an interval that has a level (printed beside it). An interval marked <i>no level</i> is shown, "
+              "never quoted: its coverage was not measured, or the policy left the data's support where the value "
+              "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
+              table_html(good, cols, "ope")]
+    if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
+        return page(title, parts + _continuous_sections(m))
+    if bad:
+        parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
+                              + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
+                              "<p>Their weights are degenerate, or their estimate is impossible for this cost, or they "
+                              "target another quantity. They are never quoted as support.</p>"
+                              + table_html(bad, ["estimator", "estimate", "reason", "warnings"])))
+    parts += _shift_section(m, h, csv)
+    parts += psdp_section(m, h)
+    parts += cost_distribution_section(m)
+    parts += ["<h2>Per source</h2>", table_html([{"source": k, **v} for k, v in m["per_source"].items()],
+                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
+                                           "policy_mass", "mean_ratio"])]
+    if m.get("warnings"):
+        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
+
+    return page(title, parts)
+
+
+def _estimate_rows(m: dict[str, Any], h: dict[str, Any]
+                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[str]]:
+    """``(usable rows, unusable rows, columns)`` of the estimates table: estimators ranked by
+    reliability; the unusable ones (collapsed in the report) with the reason."""
     rk = h["ranking"]
     ope = m["ope"]
 
@@ -472,26 +392,18 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
         (["rollout_error"] if "rollout" in m else []) + ["warnings"]
     good = [row(e) for e in rk if e["tier"] < 2]
     bad = [row(e) for e in rk if e["tier"] == 2]
-    parts += ["<h2>Off-policy estimates, most reliable first</h2>",
-              "<p>Every estimator targets the estimand above. Reliable: a finite estimate inside the possible range "
-              "with an interval that has a level (printed beside it). An interval marked <i>no level</i> is shown, "
-              "never quoted: its coverage was not measured, or the policy left the data's support where the value "
-              "model extrapolates; a withheld interval (a dash) would not cover as labelled.</p>",
-              table_html(good, cols, "ope")]
-    if "commands" in m:  # a continuous policy (evaluation/continuous.py): what ran and what could not
-        return page(title, parts + _continuous_sections(m))
-    if bad:
-        parts.append(details_html(f"{len(bad)} estimators not usable on these logs: "
-                              + html.escape(", ".join(b["estimator"].split(" ")[0] for b in bad)) + " (why)",
-                              "<p>Their weights are degenerate, or their estimate is impossible for this cost, or they "
-                              "target another quantity. They are never quoted as support.</p>"
-                              + table_html(bad, ["estimator", "estimate", "reason", "warnings"])))
+    return good, bad, cols
+
+
+def _shift_section(m: dict[str, Any], h: dict[str, Any], csv: bytes) -> list[str]:
+    """The distribution shift: the headline's shift, the behaviour probabilities and action
+    support, and each ratio method's per-step table (collapsed; ``csv`` linked as per_step.csv)."""
     beh = m["behaviour"]
     sv = beh["support_violations"]
-    parts += ["<h2>Distribution shift</h2>", f"<p><b>{html.escape(h['shift']['text'])}</b>.</p>",
-              f"<p>Behaviour probabilities: {html.escape(str(beh['source']))} (clipped at {beh['clip']:g}, "
-              f"{beh['n_clipped']} rows clipped). The policy puts most of its mass on actions the data took with "
-              f"probability below {sv['threshold']:g} at {sv['fraction']:.1%} of the data's states.</p>"]
+    parts = ["<h2>Distribution shift</h2>", f"<p><b>{html.escape(h['shift']['text'])}</b>.</p>",
+             f"<p>Behaviour probabilities: {html.escape(str(beh['source']))} (clipped at {beh['clip']:g}, "
+             f"{beh['n_clipped']} rows clipped). The policy puts most of its mass on actions the data took with "
+             f"probability below {sv['threshold']:g} at {sv['fraction']:.1%} of the data's states.</p>"]
     names = {"classifier": "Classifier ratios (simulator)", "recursion": "Ratio recursion (logs only)"}
     scols = ["step", "n", "ess_fraction", "tv", "q50", "q90", "q99", "max", "supported_sup", "sup_ucb",
              "poorly_covered_mass", "auc", "uncovered"]
@@ -509,12 +421,4 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
         body += table_html(d, cols_, "steps")
         parts.append(details_html(f"{names.get(name, html.escape(name.replace('reference:', 'Reference policy: ')))}: "
                               f"per-step table ({len(d)} steps, {len(warn)} warnings)", body))
-    parts += psdp_section(m, h)
-    parts += cost_distribution_section(m)
-    parts += ["<h2>Per source</h2>", table_html([{"source": k, **v} for k, v in m["per_source"].items()],
-                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
-                                           "policy_mass", "mean_ratio"])]
-    if m.get("warnings"):
-        parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
-
-    return page(title, parts)
+    return parts

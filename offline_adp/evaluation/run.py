@@ -31,12 +31,11 @@ from offline_adp.data.files import read_json_file
 from offline_adp.data.rundir import RunDirectory
 from offline_adp.errors import (
     DatasetNotFoundError,
-    IncompatibleError,
     RunDirectoryError,
 )
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
+from offline_adp.evaluation.run_checks import _check_same_actions, _fitted_info
 from offline_adp.evaluation.settings import EvaluationSettings
-from offline_adp.formats.common import short_list
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
 
@@ -127,48 +126,67 @@ def evaluate_run(
     ``model_particles``: particles of the model rollouts of the logs (0: none; see
     :mod:`offline_adp.evaluation.model_rollouts`).
     """
-    from offline_adp.artifacts import load_index_policy
-    from offline_adp.envs import PROBLEM_NAMES
-    from offline_adp.envs.gym import resolve_simulator
-
     cfg = EvaluationSettings.resolve(settings, options)  # before any work
-    simulator = cfg.simulator
     say = progress or (lambda _m: None)
     run = Path(run_dir)
-    if not (run / "model").is_dir():
-        raise RunDirectoryError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
-    info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
-    ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
-    if not (ds_path / "meta" / "info.json").exists():
-        raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")
+    info, ds_path = _run_and_dataset(run, dataset)
     # the one writer of RUN/evaluation at a time: a second evaluate (or a fit of the same run)
     # gets LockedError at once (exit 2), instead of silently replacing the other's results
     with RunDirectory(run).lock():
         t0 = time.perf_counter()
         ds = read_dataset(ds_path)
-        policy = load_index_policy(run / "model")
-        if getattr(policy, "continuous", False):  # its bounds: the data it was fitted on (else these logs)
-            from offline_adp.policies import attach_signature
-
-            attach_signature(policy, _fitted_info(info) or ds)
-        _check_same_actions(run, info, policy, ds, ds_path)
-        sim_name = simulator if simulator is not None else ds.info.problem
-        if sim_name in ("none", ""):
-            sim_name = None
-        problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
-        note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
-        from offline_adp.envs import recorded_problem_options
-
-        if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
-            note = ((note + "; ") if note else "") + (
-                f"the dataset does not record the options its {sim_name!r} problem was made with "
-                "(meta/info.json provenance.problem_options): the rollouts use the default problem")
+        policy = _run_policy(run, info, ds, ds_path)
+        sim_name, problem, note = _simulator(cfg.simulator, ds)
         metrics, res, states, demo_states = evaluation_metrics(
             ds, policy, problem, cfg, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
             progress=say, task_map=task_map, run_dir=run)
         say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
         _write(run, metrics, res, ds, states, demo_states)
         return metrics
+
+
+def _run_and_dataset(run: Path, dataset: str | PathLike[str] | None) -> tuple[dict[str, Any], Path]:
+    """The run's ``run.json`` (empty when absent) and its dataset's path (``dataset``, else
+    the one the run names); an error when ``run`` is not a run directory or the path no dataset."""
+    if not (run / "model").is_dir():
+        raise RunDirectoryError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
+    info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
+    ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
+    if not (ds_path / "meta" / "info.json").exists():
+        raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")
+    return info, ds_path
+
+
+def _run_policy(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> Any:
+    """The run's policy, checked against the dataset's actions and features (a continuous one
+    with its signature: the data it was fitted on, else these logs)."""
+    from offline_adp.artifacts import load_index_policy
+
+    policy = load_index_policy(run / "model")
+    if getattr(policy, "continuous", False):  # its bounds: the data it was fitted on (else these logs)
+        from offline_adp.policies import attach_signature
+
+        attach_signature(policy, _fitted_info(info) or ds)
+    _check_same_actions(run, info, policy, ds, ds_path)
+    return policy
+
+
+def _simulator(simulator: str | None, ds: TransitionDataset) -> tuple[str | None, Any, str | None]:
+    """``(name, problem, note)``: the simulator asked for (else the dataset's reference
+    problem; ``"none"``: none), the problem or gymnasium model, and what the metrics say about it."""
+    from offline_adp.envs import PROBLEM_NAMES, recorded_problem_options
+    from offline_adp.envs.gym import resolve_simulator
+
+    sim_name = simulator if simulator is not None else ds.info.problem
+    if sim_name in ("none", ""):
+        sim_name = None
+    problem = resolve_simulator(sim_name, ds.info)  # a reference problem or gym:ENV_ID
+    note = _simulator_note(simulator, ds.info.problem, [*PROBLEM_NAMES, "gym:ENV_ID"])
+    if problem is not None and sim_name == ds.info.problem and recorded_problem_options(ds.info) is None:
+        note = ((note + "; ") if note else "") + (
+            f"the dataset does not record the options its {sim_name!r} problem was made with "
+            "(meta/info.json provenance.problem_options): the rollouts use the default problem")
+    return sim_name, problem, note
 
 
 def evaluation_metrics(
@@ -193,81 +211,130 @@ def evaluation_metrics(
     rollouts and fits. ``run_dir`` is read for the fit's convergence in the headline (None:
     unknown). Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
     cfg = EvaluationSettings.resolve(settings, options)
-    n_episodes, horizon, estimand, seed = cfg.episodes, cfg.horizon, cfg.estimand, cfg.seed
     say = progress or (lambda _m: None)
-    rng = np.random.default_rng(seed)
+    metrics = _metrics_head(ds, cfg, ds_path, algorithm, sim_name, note)
+    ope_horizon, target, start = _gym_estimand(problem, ds, cfg.horizon, sim_name)
+    pol = demo = None
+    refs: dict[str, Any] = {}
+    if problem is not None:
+        pol, demo, refs = _rollouts(metrics, ds, policy, problem, cfg, sim_name, target, task_map, say)
+    states, demo_states = (None, None) if pol is None else (pol.states, demo.states if demo is not None else None)
+    ope_cfg = cfg.model_copy(update={"horizon": ope_horizon})
+    res = _estimates(metrics, ds, policy, ope_cfg, refs, states, target, start, task_map, say)
+    if problem is not None and res is not None:  # the rollouts' per-episode costs: the measured distributions
+        _rollout_distributions(metrics, pol, demo, sim_name)
+    if "rollout" in metrics:
+        _rollout_errors(metrics, cfg.estimand)
+    _discount(metrics, ds, run_dir)
+    _levels_warnings_headline(metrics, run_dir)
+    return metrics, res, states, demo_states
+
+
+def _metrics_head(ds: TransitionDataset, cfg: EvaluationSettings, ds_path: str | PathLike[str] | None,
+                  algorithm: str | None, sim_name: str | None, note: str | None) -> dict[str, Any]:
+    """The metrics' first keys: the dataset, algorithm, simulator, seed, settings, and the note on the simulator."""
     metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),
                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
                                            "sources": ds.source_counts()},
-                               "algorithm": algorithm, "simulator": sim_name, "seed": seed, "warnings": [],
+                               "algorithm": algorithm, "simulator": sim_name, "seed": cfg.seed, "warnings": [],
                                "settings": cfg.model_dump()}  # what compare reuses an evaluation by
     if note:
         metrics["simulator_note"] = note
         metrics["warnings"].append(note)
-    states = demo_states = None
-    refs = {}
-    T = None
-    ope_horizon, target, start = horizon, None, None
+    return metrics
+
+
+def _gym_estimand(problem: Any, ds: TransitionDataset, horizon: int | None,
+                  sim_name: str | None) -> tuple[int | None, int | None, str | None]:
+    """``(off-policy horizon, target horizon, start)``: a gymnasium environment's own horizon and
+    start distribution, else ``(horizon, None, None)``."""
     from offline_adp.envs.gym import GymResetModel
 
-    if isinstance(problem, GymResetModel):
-        # the environment's own horizon: its registered time limit unless --horizon says otherwise;
-        # rollouts start from env.reset(), and the off-policy estimators target the same value
-        from offline_adp.evaluation.offpolicy import evaluation_horizon
+    if not isinstance(problem, GymResetModel):
+        return horizon, None, None
+    # the environment's own horizon: its registered time limit unless --horizon says otherwise;
+    # rollouts start from env.reset(), and the off-policy estimators target the same value
+    from offline_adp.evaluation.offpolicy import evaluation_horizon
 
-        target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
-        ope_horizon, start = target, f"env.reset() of {sim_name}"
-    if problem is not None:
-        from offline_adp.evaluation.offpolicy import evaluation_horizon
+    target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
+    return target, target, f"env.reset() of {sim_name}"
 
-        T, gamma, _ = evaluation_horizon(ds, horizon)
-        if target is not None:
-            T = target
-        say(f"rollouts in {sim_name} ({n_episodes} episodes x {T} steps)")
-        x0 = problem.initial_states(n_episodes, rng)
-        demonstrator = problem.demonstrator()  # None for a gymnasium environment
-        pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
-        ro = rollout_pieces(problem, pols, x0, seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
-        pol, demo = ro["policy"], ro.get("demonstrator")
-        metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
-                              "horizon": T, "policy": _rollout_block(pol, problem)}
-        if demo is None:
-            metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
-        else:
-            metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
-            refs["demonstrator"] = demonstrator
-        states, demo_states = pol.states, (demo.states if demo is not None else None)
-        named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
-        if named:
-            metrics["named"] = named
-    if getattr(policy, "continuous", False):  # FQE over commands; what cannot run is listed (evaluation/continuous.py)
+
+def _rollouts(metrics: dict[str, Any], ds: TransitionDataset, policy: Any, problem: Any, cfg: EvaluationSettings,
+              sim_name: str | None, target: int | None, task_map: TaskMap | None,
+              say: Callable[[str], None]) -> tuple[RolloutResult, RolloutResult | None, dict[str, Any]]:
+    """Roll the policy (and the problem's demonstrator, if any) out in the simulator; fills
+    ``metrics["rollout"]`` (and ``"named"``) and returns ``(pi's rollouts, the demonstrator's, reference policies)``."""
+    from offline_adp.evaluation.offpolicy import evaluation_horizon
+
+    rng = np.random.default_rng(cfg.seed)
+    T, gamma, _ = evaluation_horizon(ds, cfg.horizon)
+    if target is not None:
+        T = target
+    say(f"rollouts in {sim_name} ({cfg.episodes} episodes x {T} steps)")
+    x0 = problem.initial_states(cfg.episodes, rng)
+    demonstrator = problem.demonstrator()  # None for a gymnasium environment
+    pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
+    ro = rollout_pieces(problem, pols, x0, cfg.seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
+    pol, demo = ro["policy"], ro.get("demonstrator")
+    metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
+                          "horizon": T, "policy": _rollout_block(pol, problem)}
+    refs = {}
+    if demo is None:
+        metrics["rollout"]["note"] = f"the {sim_name} simulator has no demonstrator: comparison skipped"
+    else:
+        metrics["rollout"]["demonstrator"] = _rollout_block(demo, problem)
+        refs["demonstrator"] = demonstrator
+    named = problem.named_scores(policy) if hasattr(problem, "named_scores") else {}  # ReferenceProblem hook
+    if named:
+        metrics["named"] = named
+    return pol, demo, refs
+
+
+def _estimates(metrics: dict[str, Any], ds: TransitionDataset, policy: Any, cfg: EvaluationSettings,
+               refs: dict[str, Any], states: list[np.ndarray] | None, target: int | None, start: str | None,
+               task_map: TaskMap | None, say: Callable[[str], None]) -> OffPolicyResult | None:
+    """The off-policy estimates into ``metrics``: :func:`off_policy`, or FQE over commands for a
+    continuous policy (returns None then; what cannot run is listed, evaluation/continuous.py)."""
+    if getattr(policy, "continuous", False):
         from offline_adp.evaluation.continuous import continuous_offpolicy
 
-        block = continuous_offpolicy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), target_horizon=target,
-                                     start=start, progress=say)
+        block = continuous_offpolicy(ds, policy, cfg, target_horizon=target, start=start, progress=say)
         metrics["warnings"].extend(block.pop("warnings"))
         metrics.update(block)
-        res = None
-    else:
-        res = off_policy(ds, policy, cfg.model_copy(update={"horizon": ope_horizon}), reference_policies=refs,
-                         policy_states=states, progress=say, task_map=task_map, target_horizon=target, start=start)
-        metrics.update(_offpolicy_block(res, ds))
-    if problem is not None and res is not None:  # the rollouts' per-episode costs: the measured distributions
-        from offline_adp.evaluation.risk import distribution_summary
+        return None
+    res = off_policy(ds, policy, cfg, reference_policies=refs, policy_states=states, progress=say, task_map=task_map,
+                     target_horizon=target, start=start)
+    metrics.update(_offpolicy_block(res, ds))
+    return res
 
-        cd = metrics["cost_distribution"]
-        how = f"per-episode discounted costs of the {sim_name} rollouts"
-        cd["policy_rollouts"] = distribution_summary(pol.discounted_cost, alpha=cd["alpha"], source="simulator", method=how)
-        if demo is not None:
-            cd["demonstrator_rollouts"] = distribution_summary(demo.discounted_cost, alpha=cd["alpha"],
-                                                               source="simulator", method=how)
-    if "rollout" in metrics:
-        truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
-        metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
-            f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
-        for r in metrics["ope"].values():
-            r["rollout_error"] = r["estimate"] - truth
-    _discount(metrics, ds, run_dir)
+
+def _rollout_distributions(metrics: dict[str, Any], pol: RolloutResult, demo: RolloutResult | None,
+                           sim_name: str | None) -> None:
+    """The rollouts' per-episode discounted costs as measured distributions in ``metrics["cost_distribution"]``."""
+    from offline_adp.evaluation.risk import distribution_summary
+
+    cd = metrics["cost_distribution"]
+    how = f"per-episode discounted costs of the {sim_name} rollouts"
+    cd["policy_rollouts"] = distribution_summary(pol.discounted_cost, alpha=cd["alpha"], source="simulator", method=how)
+    if demo is not None:
+        cd["demonstrator_rollouts"] = distribution_summary(demo.discounted_cost, alpha=cd["alpha"],
+                                                           source="simulator", method=how)
+
+
+def _rollout_errors(metrics: dict[str, Any], estimand: str) -> None:
+    """What the rollouts measure, and each estimate's error against them."""
+    T = metrics["rollout"]["horizon"]
+    truth = metrics["rollout"]["policy"]["mean_discounted_cost"]
+    metrics["rollout"]["estimand"] = metrics["estimand"]["quantity"] if estimand == "finite" else \
+        f"the {T}-step value (rollouts cannot measure the infinite-horizon one)"
+    for r in metrics["ope"].values():
+        r["rollout_error"] = r["estimate"] - truth
+
+
+def _levels_warnings_headline(metrics: dict[str, Any], run_dir: str | PathLike[str] | None) -> None:
+    """The last stage: levels withdrawn where the policy left the data's support, the warnings
+    gathered into one list, and the headline."""
     from offline_adp.evaluation.summary import (
         gather_warnings,
         headline,
@@ -283,7 +350,6 @@ def evaluation_metrics(
             metrics["ope"][k].update(level=None, nominal_level=r["nominal_level"], level_note=r["level_note"])
     metrics["warnings"] = gather_warnings(metrics)  # one list, each with its source (also kept where it arose)
     metrics["headline"] = headline(json_safe(metrics), run_dir)
-    return metrics, res, states, demo_states
 
 
 def fit_discount(run_dir: str | PathLike[str] | None) -> float | None:
@@ -316,66 +382,6 @@ def _discount(metrics: dict[str, Any], ds: TransitionDataset, run_dir: str | Pat
     if fit is not None and ev is not None and abs(fit - float(ev)) > 1e-12:
         metrics["warnings"].append(f"the policy was fitted with gamma {fit:g}, the evaluation uses gamma {float(ev):g} "
                                    f"({src}): its values are judged by another objective than the one it optimised")
-
-
-def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
-    """The policy must command the dataset's actions and read its features: else an error
-    naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
-    values = short_list(ds.info.action_table.values.ravel().tolist())
-    if getattr(policy, "continuous", False):
-        return _check_same_commands(run, info, ds, ds_path)
-    if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
-        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
-                              f"(action table {values}); evaluate or compare runs on data with the action table "
-                              "they were fitted on")
-    own = info.get("dataset")
-    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
-        return
-    if Path(own).resolve() == ds_path.resolve():
-        return
-    from offline_adp.data.info import DatasetInfo
-    from offline_adp.data.io import read_info
-
-    fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
-    theirs = fitted.action_table.values
-    if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
-        raise IncompatibleError(f"{run}: fitted on {own} with the action table {short_list(theirs.ravel().tolist())}, but the dataset "
-                              f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
-    if list(fitted.feature_names) != list(ds.feature_names):
-        raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
-                              f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
-
-
-def _fitted_info(info: dict[str, Any]) -> Any:
-    """The :class:`DatasetInfo` of the dataset a run was fitted on (None: not found)."""
-    own = info.get("dataset")
-    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
-        return None
-    from offline_adp.data.info import DatasetInfo
-    from offline_adp.data.io import read_info
-
-    return DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
-
-
-def _check_same_commands(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
-    """A continuous policy reads the dataset's features and commands the same components:
-    names, units and bounds (the coarse bins of two logs of one robot differ and do not count)."""
-    at = ds.info.action_table
-    if not at.continuous:
-        raise IncompatibleError(f"{run}: its policy commands continuous values; the dataset {ds_path} has no exact "
-                                f"commands (action table kind {at.kind!r})")
-    fitted = _fitted_info(info)
-    if fitted is None:
-        return
-    mine = fitted.action_table
-    same = (mine.dims == at.dims and tuple(mine.units) == tuple(at.units)
-            and (mine.low, mine.high) == (at.low, at.high) if mine.low is not None and at.low is not None
-            else mine.dims == at.dims)
-    if not same or list(fitted.feature_names) != list(ds.feature_names):
-        raise IncompatibleError(f"{run}: fitted on commands {list(mine.dims)} {list(mine.units)} within "
-                                f"[{mine.low}, {mine.high}] and features {list(fitted.feature_names)}, but the dataset "
-                                f"{ds_path} has {list(at.dims)} {list(at.units)} within [{at.low}, {at.high}] and "
-                                f"{list(ds.feature_names)}; evaluate on logs of the same commands")
 
 
 def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, Any]:

@@ -28,8 +28,6 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.csv as pacsv
-import pyarrow.parquet as pq
 
 from offline_adp._version import __version__
 from offline_adp.data import schema as S
@@ -46,7 +44,20 @@ from offline_adp.ingest.actions import (
     command_columns,
     map_discrete,
 )
-from offline_adp.ingest.spec import TIME_UNITS, ActionSpec, ParquetSpec, load_parquet_spec
+from offline_adp.ingest.parquet_columns import (
+    _blockwise,
+    _commands,
+    _f64,
+    _flag,
+    _is_list,
+    _np,
+    _read,
+    _steps,
+    _times_ns,
+    _type_conflict,
+    _width_findings,
+)
+from offline_adp.ingest.spec import ParquetSpec, load_parquet_spec
 
 
 @dataclass
@@ -73,261 +84,6 @@ class IngestResult:
             "terminated_and_truncated": self.report.n_terminated_and_truncated,
             "inputs": len(self.inputs),
         }
-
-
-def _read(path: Path, spec: ParquetSpec) -> pa.Table:
-    fmt = spec.format
-    if fmt == "auto":
-        suffix = "".join(path.suffixes[-2:]).lower()
-        fmt = "csv" if ".csv" in suffix or ".tsv" in suffix else "parquet"
-    cols = spec.needed_columns()
-    try:
-        if fmt == "csv":
-            opts = pacsv.ReadOptions()
-            table = pacsv.read_csv(path, read_options=opts, parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
-            available = table.column_names
-        else:
-            schema = pq.read_schema(path)
-            available = schema.names
-            table = None
-    except FileNotFoundError:
-        raise IngestError(f"{path}: no such file") from None
-    except (OSError, pa.ArrowInvalid) as exc:
-        raise IngestError(f"{path}: cannot read as {fmt} ({exc})") from exc
-    missing = [c for c in cols if c not in available]
-    if missing:
-        raise IngestError(f"{path}: spec needs columns {missing} that the file does not have; it has {available}")
-    if table is None:
-        try:
-            # column by column, without pre-buffering: only one column's compressed pages
-            # are in memory besides the decoded table (read_table holds them all)
-            # string columns of few distinct values arrive dictionary-encoded: the source
-            # labels stay so (their strings are never materialised); the episode ids are
-            # cast to strings once, at their exact size (decoding them as strings directly
-            # grows buffers that peak at about 3x the column)
-            as_dict = [c for c in dict.fromkeys((spec.episode.id, spec.source_column))
-                       if c and c in available and pa.types.is_string(schema.field(c).type)] or None
-            pf = pq.ParquetFile(path, pre_buffer=False, buffer_size=1 << 20, read_dictionary=as_dict)
-            table = pa.table({c: pf.read(columns=[c], use_threads=False).column(0) for c in dict.fromkeys(cols)})
-        except (OSError, pa.ArrowInvalid) as exc:
-            raise IngestError(f"{path}: unreadable Parquet ({exc})") from exc
-    table = table.select(cols)
-    for name in cols:  # CSV cells that are not UTF-8 arrive as binary
-        col = table.column(name)
-        if pa.types.is_binary(col.type) or pa.types.is_large_binary(col.type):
-            for i, v in enumerate(col.to_pylist()):  # error path only: stops at the first bad cell
-                try:
-                    if v is not None:
-                        v.decode("utf-8")
-                except UnicodeDecodeError:
-                    raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the file as UTF-8") from None
-            raise IngestError(f"{path}: column {name!r} holds binary data, not text or numbers")
-    return table
-
-
-def _where(file_of: Callable[[np.ndarray], str], i: int) -> str:
-    """``"FILE: row R"`` of sorted row ``i`` (``file_of`` carries the row-in-file map)."""
-    return f"{file_of(np.array([i]))}: row {getattr(file_of, 'rows', np.arange(i + 1))[i]}"
-
-
-def _first_unparsable(c: pa.ChunkedArray, target: pa.DataType) -> int | None:
-    """Index of the first non-null value of ``c`` that does not convert to ``target``."""
-    if pa.types.is_string(c.type) or pa.types.is_large_string(c.type):
-        import pandas as pd
-
-        vals = pd.Series(c.to_numpy(zero_copy_only=False))
-        bad = np.flatnonzero(pd.to_numeric(vals, errors="coerce").isna().to_numpy() & vals.notna().to_numpy())
-        return int(bad[0]) if len(bad) else None
-    return None
-
-
-def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], str]) -> np.ndarray:
-    c = table.column(col)
-    if dtype is object:
-        return c.to_numpy(zero_copy_only=False)
-    numeric = pa.types.is_boolean(c.type) or pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type)
-    if not numeric and dtype is not bool:
-        i = _first_unparsable(c, pa.float64())
-        if i is not None:
-            raise IngestError(f"{_where(file_of, i)}: column {col!r}: {c[i].as_py()!r} is not a number")
-        try:
-            c = c.cast(pa.float64())
-        except (ValueError, TypeError, pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} cannot be read as "
-                              f"{np.dtype(dtype).name} ({exc})") from None
-    if c.null_count:
-        bad = np.flatnonzero(np.asarray(pc.is_null(c)))
-        if dtype is bool:
-            return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
-        if np.dtype(dtype).kind == "f":
-            return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
-        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r} is missing ({len(bad)} missing values in the column)")
-    return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
-
-
-def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *, keep_nulls: bool = False) -> pa.ChunkedArray:
-    """A numeric column as float64 in Arrow, without a copy when it already is float64:
-    what :func:`_np` gives for ``np.float64`` (nulls -> NaN, reported by the doctor; with
-    ``keep_nulls`` they stay null), without the conversion to numpy."""
-    c = table.column(col)
-    numeric = pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type) or pa.types.is_boolean(c.type)
-    if not numeric:
-        return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of), mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
-    if c.type != pa.float64():
-        c = c.cast(pa.float64(), safe=False)  # as numpy's astype: large integers round
-    if c.null_count and not keep_nulls:
-        c = c.fill_null(np.nan)
-    return c
-
-
-def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray]:
-    """A bool flag column and its null mask (a null flag is kept null: the doctor reports
-    it, it never silently becomes False)."""
-    if not col:
-        return np.zeros(n, bool), np.zeros(n, bool)
-    c = table.column(col)
-    if not pa.types.is_boolean(c.type):
-        if pa.types.is_integer(c.type) or pa.types.is_floating(c.type):
-            v = c.to_numpy(zero_copy_only=False)
-            bad = np.flatnonzero(~np.isin(v, [0, 1]) & ~np.isnan(v.astype(np.float64)))
-            if len(bad):
-                raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: {v[bad[0]]!r} is not a flag (true/false or 0/1)")
-            c = pc.not_equal(c, 0)
-        else:
-            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column (bool or 0/1)")
-    null = np.asarray(pc.is_null(c)) if c.null_count else np.zeros(n, bool)
-    return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool), null
-
-
-def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray], str]) -> np.ndarray | pa.ChunkedArray:
-    """The step column minus ``base``: integral, within int32 (what the format stores); an
-    int32 Arrow column (no copy when it already is one from 0) or an int64 array."""
-    c = table.column(col)
-    if pa.types.is_integer(c.type) and not c.null_count and len(c):
-        mm = pc.min_max(c).as_py()
-        if mm["min"] - base >= 0 and mm["max"] - base <= np.iinfo(np.int32).max:  # else: the error below
-            if base:
-                c = pc.subtract(c.cast(pa.int64()), base)
-            return c.cast(pa.int32())
-    v = _np(table, col, np.float64 if not pa.types.is_integer(c.type) else np.int64, file_of)
-    if v.dtype.kind == "f":
-        bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
-        if len(bad):
-            raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {float(v[bad[0]])!r} is not a whole number")
-        if len(v) and np.abs(v).max() >= 2**62:
-            i = int(np.argmax(np.abs(v)))
-            raise IngestError(f"{_where(file_of, i)}: column {col!r}: step {float(v[i])!r} is out of range")
-        v = v.astype(np.int64)
-    step = v - base
-    bad = np.flatnonzero((step < 0) | (step > np.iinfo(np.int32).max))
-    if len(bad):
-        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {int(v[bad[0]])} "
-                          f"is outside [{base}, {base + np.iinfo(np.int32).max}] (steps are stored as int32 from 0)")
-    return step
-
-
-def _times_ns(table: pa.Table, col: str, unit: str, file_of: Callable[[np.ndarray], str]) -> pa.Array | pa.ChunkedArray:
-    """Times in int64 nanoseconds; a time that is missing, not finite or beyond int64 stays
-    null (the doctor reports it as a missing value of ``t_ns`` naming file and row)."""
-    tv = table.column(col)
-    try:
-        if pa.types.is_timestamp(tv.type):
-            return tv.cast(pa.timestamp("ns")).cast(pa.int64())
-        if pa.types.is_integer(tv.type):
-            tv = tv.cast(pa.int64())
-            return tv if TIME_UNITS[unit] == 1 else pc.multiply_checked(tv, TIME_UNITS[unit])
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise IngestError(f"{file_of(np.array([0]))}: column {col!r}: times do not fit int64 nanoseconds ({exc})") from None
-    x = _np(table, col, np.float64, file_of) * TIME_UNITS[unit]
-    ok = np.isfinite(x) & (np.abs(x) < 2.0**63 - 1024)
-    return pa.array(np.where(ok, np.round(np.where(ok, x, 0.0)), 0).astype(np.int64), mask=~ok)
-
-
-_ACTION_BLOCK = 1 << 17
-
-
-def _blockwise(mapper: Callable[..., tuple[np.ndarray, Any]], raw: np.ndarray, spec: Any) -> tuple[np.ndarray, Any]:
-    """``mapper(raw, spec)`` block by block when the action table does not depend on the
-    data (discrete actions with given values): the same result, with the mapper's
-    temporaries the size of a block instead of the column."""
-    if mapper is not map_discrete or spec.values is None or len(raw) <= _ACTION_BLOCK:
-        return mapper(raw, spec)
-    out = np.empty(len(raw), np.int32)
-    atable = None
-    for lo in range(0, len(raw), _ACTION_BLOCK):
-        out[lo:lo + _ACTION_BLOCK], atable = mapper(raw[lo:lo + _ACTION_BLOCK], spec)
-    return out, atable
-
-
-def _is_list(t: pa.DataType) -> bool:
-    return pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t)
-
-
-def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callable[[np.ndarray], str]
-              ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """The continuous command of every row, ``(n, k)`` float64 (missing values NaN: the
-    doctor reports them), each row's list length (-1 when not a list column or the list is
-    missing; a row of another width than ``k`` gets a NaN command), and the component names.
-
-    Several columns: one component each. A list column: the width is the number of
-    component names when the spec gives them, else the most common list length; a row
-    whose list has another length is flagged, never cut or padded."""
-    n = table.num_rows
-    if not list_col:
-        x = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.source_columns]) if n else np.zeros((0, len(spec.source_columns)))
-        return x, np.full(n, -1, np.int64), spec.component_names(x.shape[1])
-    c = table.column(spec.column).combine_chunks()
-    if pa.types.is_fixed_size_list(c.type):
-        c = c.cast(pa.list_(c.type.value_type))
-    lengths = pc.list_value_length(c).fill_null(-1).to_numpy(zero_copy_only=False).astype(np.int64)
-    try:
-        flat = pc.list_flatten(c).cast(pa.float64()).fill_null(np.nan).to_numpy(zero_copy_only=False)
-    except (pa.ArrowInvalid, pa.ArrowNotImplementedError, pa.ArrowTypeError):
-        raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: lists of {c.type.value_type} are not "
-                          "numeric commands") from None
-    if spec.components is not None:
-        k = len(spec.components)
-    else:
-        seen = lengths[lengths > 0]
-        if not len(seen):
-            raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: every command list is empty or missing")
-        k = int(np.argmax(np.bincount(seen)))
-    good = lengths == k  # a missing list (null) is a missing command: NaN; another length is flagged
-    offsets = np.cumsum(np.r_[0, np.maximum(lengths, 0)])[:-1]  # into the flattened (non-null) values
-    x = np.full((n, k), np.nan)
-    rows = np.flatnonzero(good)
-    x[rows] = flat[offsets[rows, None] + np.arange(k)]
-    return x, lengths, spec.component_names(k, list_column=True)
-
-
-def _width_findings(lengths: np.ndarray, spec: ActionSpec, atable: Any) -> list[tuple[str, np.ndarray, str, Any]]:
-    """The doctor's findings for command lists of the wrong width (``validate(extra=...)``):
-    ``lengths`` is each row's list length (-1: not a list, or missing)."""
-    k = len(atable.dims)
-    bad = (lengths >= 0) & (lengths != k)
-    if not bad.any():
-        return []
-    msg = np.full(len(bad), "", dtype=object)
-    msg[bad] = [f"a list of {m} values where the command has {k} components {list(atable.dims)}; its command is "
-                "left missing" for m in lengths[bad]]
-    return [("command_width", bad, spec.column, msg)]
-
-
-def _type_conflict(tables: list[pa.Table], metas: list[dict[str, Any]]) -> str | None:
-    """Which column has which type in which two files, when files disagree."""
-    first: dict[str, tuple[pa.DataType, str]] = {}
-    for t, m in zip(tables, metas, strict=True):
-        for f in t.schema:
-            if f.name in first and first[f.name][0] != f.type:
-                a_type, a_path = first[f.name]
-                try:
-                    pa.concat_tables([pa.table({f.name: pa.array([], a_type)}), pa.table({f.name: pa.array([], f.type)})],
-                                     promote_options="permissive")
-                except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
-                    return (f"column {f.name!r} is {a_type} in {a_path} but {f.type} in {m['path']}; "
-                            "give the column one type in every file")
-            first.setdefault(f.name, (f.type, m["path"]))
-    return None
 
 
 def ingest_tables(
@@ -590,7 +346,6 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         out = out.filter(pa.array(keep))
         width = [(c, m[keep], col, msg) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
-
 
 
 def ingest_parquet(

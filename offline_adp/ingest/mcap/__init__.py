@@ -17,6 +17,8 @@ One job per module:
 - ``buffers``: one stream's messages in one epoch, sorted on demand, pruned behind the watermark;
 - ``assembler``: the streaming assembler (epochs from the file order, watermark,
   bounded buffers, steps); ``assemble`` runs it on in-memory messages;
+- ``damage``: the assembler's damage accounting (epochs and steps the lost chunks may have
+  held, episodes whose start event was lost);
 - ``episodes``: cutting steps into episodes (events, gaps, conditions, drops);
 - ``build``: ``ingest_mcap``: recordings -> dataset, quarantine, summary.
 

@@ -1,0 +1,76 @@
+"""Whether a run's policy fits a dataset: it commands the dataset's actions (or, continuous,
+its command components, units and bounds) and reads its features, else an
+:class:`~offline_adp.errors.IncompatibleError` naming both; and the information of the
+dataset a run was fitted on. Used by :func:`offline_adp.evaluation.run.evaluate_run`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import IncompatibleError
+from offline_adp.formats.common import short_list
+
+
+def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
+    """The policy must command the dataset's actions and read its features: else an error
+    naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
+    values = short_list(ds.info.action_table.values.ravel().tolist())
+    if getattr(policy, "continuous", False):
+        return _check_same_commands(run, info, ds, ds_path)
+    if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
+        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
+                              f"(action table {values}); evaluate or compare runs on data with the action table "
+                              "they were fitted on")
+    own = info.get("dataset")
+    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
+        return
+    if Path(own).resolve() == ds_path.resolve():
+        return
+    from offline_adp.data.info import DatasetInfo
+    from offline_adp.data.io import read_info
+
+    fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
+    theirs = fitted.action_table.values
+    if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
+        raise IncompatibleError(f"{run}: fitted on {own} with the action table {short_list(theirs.ravel().tolist())}, but the dataset "
+                              f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
+    if list(fitted.feature_names) != list(ds.feature_names):
+        raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
+                              f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
+
+
+def _fitted_info(info: dict[str, Any]) -> Any:
+    """The :class:`DatasetInfo` of the dataset a run was fitted on (None: not found)."""
+    own = info.get("dataset")
+    if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
+        return None
+    from offline_adp.data.info import DatasetInfo
+    from offline_adp.data.io import read_info
+
+    return DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
+
+
+def _check_same_commands(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
+    """A continuous policy reads the dataset's features and commands the same components:
+    names, units and bounds (the coarse bins of two logs of one robot differ and do not count)."""
+    at = ds.info.action_table
+    if not at.continuous:
+        raise IncompatibleError(f"{run}: its policy commands continuous values; the dataset {ds_path} has no exact "
+                                f"commands (action table kind {at.kind!r})")
+    fitted = _fitted_info(info)
+    if fitted is None:
+        return
+    mine = fitted.action_table
+    same = (mine.dims == at.dims and tuple(mine.units) == tuple(at.units)
+            and (mine.low, mine.high) == (at.low, at.high) if mine.low is not None and at.low is not None
+            else mine.dims == at.dims)
+    if not same or list(fitted.feature_names) != list(ds.feature_names):
+        raise IncompatibleError(f"{run}: fitted on commands {list(mine.dims)} {list(mine.units)} within "
+                                f"[{mine.low}, {mine.high}] and features {list(fitted.feature_names)}, but the dataset "
+                                f"{ds_path} has {list(at.dims)} {list(at.units)} within [{at.low}, {at.high}] and "
+                                f"{list(ds.feature_names)}; evaluate on logs of the same commands")

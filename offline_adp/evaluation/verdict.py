@@ -1,0 +1,277 @@
+"""The verdict of an evaluation: better or worse than the behaviour, claimed only when the
+evidence behind it holds (:func:`verdict_line`), and its parts: why the policy left the
+data's support (:func:`left_support`), the side of an interval against the behaviour's cost
+or the demonstrator's, how an interval's level is worded, and the one outcome word every
+view colours (:func:`outcome_of`). :mod:`offline_adp.evaluation.summary` builds the headline
+around it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
+
+#: Support is "left" when more than this fraction of the data's states see pi choose unlogged actions.
+SUPPORT_FRACTION = 0.05
+#: the policy left the data's support (from the logs alone) when more than this share of its
+#: discounted survival mass in the model rollouts (``evaluation.model_rollouts``) lies past the
+#: logged states; measured on path_tracking (medium, seed 1): 0.03 for the demonstrator, 0.07 for
+#: the default fit, 0.13-0.51 for candidates that leave the road in most episodes
+MODEL_EXIT_FRACTION = EXIT_FRACTION
+#: model rollouts show support (with few states per step) only from this many particles: with
+#: 2 or 5, a policy with an exit mass of 0.18 read <= 0.1 in 11 or 3 of 20 seeds (review)
+MIN_SUPPORT_PARTICLES = 200
+
+
+def _is_finite_number(x: Any) -> bool:
+    return x is not None and isinstance(x, int | float) and bool(np.isfinite(x))
+
+
+#: Fit verdicts that raise no doubt about the policy's values (converged, backward induction,
+#: an algorithm without a convergence notion that ran to completion).
+FIT_SETTLED = ("converged", "finite horizon", "completed")
+
+
+def side_of_behaviour(lo: float, hi: float, b: float) -> str:
+    """Which side of the behaviour's cost ``b`` an interval lies on; equal up to rounding
+    (e.g. every MountainCar policy that never reaches the goal: 86.602 against 86.602 summed
+    in another order) is not a side."""
+    tol = 1e-9 * max(1.0, abs(b))
+    return "better" if hi < b - tol else "worse" if lo > b + tol else "indistinguishable"
+
+
+_SIDE_WORDS = {"better": "better than", "worse": "worse than", "indistinguishable": "not distinguishable from"}
+
+
+def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[str]:
+    """Other reliable estimators whose interval does not overlap the best one's."""
+    lo, hi = best["interval"]
+    return [f"{e['name'].upper()} {e['estimate']:.4g} [{e['interval'][0]:.4g}, {e['interval'][1]:.4g}]"
+            for e in ranking if e["tier"] == 0 and e is not best and (e["interval"][1] < lo or e["interval"][0] > hi)]
+
+
+#: The one-word outcomes of a verdict, each with one colour everywhere it is shown: the CLI
+#: summary (ANSI), the report's verdict box and the comparison (CSS class, figure colour).
+OUTCOMES = ("better", "worse", "cannot tell", "not converged")
+#: CSS class of each outcome (html_blocks.STYLE): green, red, amber, purple.
+OUTCOME_CLASS = {"better": "good", "worse": "bad", "cannot tell": "meh", "not converged": "stale"}
+#: The same colours for figures and the terminal (ANSI SGR codes of the nearest basic colour).
+OUTCOME_COLOUR = {"better": "#2e7d32", "worse": "#c62828", "cannot tell": "#b58900", "not converged": "#7b1fa2"}
+OUTCOME_ANSI = {"better": "32", "worse": "31", "cannot tell": "33", "not converged": "35"}
+#: Fit verdicts that make the outcome "not converged" (unless the policy is worse anyway).
+FIT_UNSETTLED = ("still changing", "not converged", "diverging", "diverged")
+
+
+def outcome_of(performance: str | None, fit_verdict: str | None, against_demonstrator: str | None = None,
+               more_failures: bool = False) -> str:
+    """The verdict's one word (:data:`OUTCOMES`), computed here once for the CLI, the report
+    and ``compare``: ``worse`` when the policy is worse than the behaviour or, where the
+    simulator has one, than the demonstrator; else ``not converged`` when its fit did not
+    converge (or diverged); else ``better`` when it is better than the behaviour and not
+    worse than the demonstrator (nor failing more often); else ``cannot tell``."""
+    if performance == "worse" or against_demonstrator == "worse":
+        return "worse"
+    if fit_verdict in FIT_UNSETTLED:
+        return "not converged"
+    if performance == "better" and not more_failures and against_demonstrator in (None, "better", "indistinguishable"):
+        return "better"
+    return "cannot tell"
+
+
+def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
+    """Why the policy left the data's support (empty: it did not, as far as measured): actions
+    the data rarely took, states almost separable from the data's or without data near them
+    (simulator), or model rollouts of the logs that reach past the logged states."""
+    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
+    left = []
+    if _is_finite_number(sv) and sv > SUPPORT_FRACTION:
+        left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
+    if shift.get("method") == "classifier":
+        if shift.get("separable_steps"):
+            left.append(f"its states are almost separable from the data's at {shift['separable_steps']} of "
+                        f"{shift['n_steps']} steps")
+        if shift.get("max_uncovered", 0) > SUPPORT_FRACTION:
+            left.append(f"up to {shift['max_uncovered']:.0%} of its simulated states have no data near them")
+    mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
+    if _is_finite_number(mr.get("exit_mass")) and mr["exit_mass"] >= MODEL_EXIT_FRACTION:
+        left.append(f"{mr['exit_mass']:.0%} of its discounted mass in model rollouts of the logs reaches states no "
+                    "logged state is near")
+    return left
+
+
+def level_words(e: dict[str, Any]) -> str:
+    """How an interval of :func:`rank_estimators` is labelled wherever it is printed: its
+    level ("95%"), or "no level" when it has none."""
+    lvl = e.get("level")
+    return f"{lvl:.0%}" if _is_finite_number(lvl) and e.get("interval") else "no level"
+
+
+def demonstrator_side(m: dict[str, Any]) -> dict[str, Any] | None:
+    """The policy against the simulator's demonstrator (same start states and seeds): the
+    side of their rollout intervals (``better`` only when the policy's lies below the
+    demonstrator's, ``worse`` above it, else ``indistinguishable``) and their failures where
+    the problem counts them; None without a demonstrator."""
+    ro = m.get("rollout") or {}
+    p, d = ro.get("policy"), ro.get("demonstrator")
+    if not (isinstance(p, dict) and isinstance(d, dict) and _is_finite_number(p.get("mean_discounted_cost"))
+            and _is_finite_number(d.get("mean_discounted_cost"))):
+        return None
+    pi, di = p.get("interval") or [None, None], d.get("interval") or [None, None]
+    if all(_is_finite_number(x) for x in (*pi, *di)):
+        side = "better" if pi[1] < di[0] else "worse" if pi[0] > di[1] else "indistinguishable"
+    else:
+        side = side_of_behaviour(p["mean_discounted_cost"], p["mean_discounted_cost"], d["mean_discounted_cost"])
+    out = {"side": side, "policy": p["mean_discounted_cost"], "demonstrator": d["mean_discounted_cost"],
+           "demonstrator_interval": d.get("interval"), "more_failures": False}
+    if isinstance(p.get("failures"), int | float) and isinstance(d.get("failures"), int | float):
+        out.update(failures=int(p["failures"]), demonstrator_failures=int(d["failures"]),
+                   more_failures=bool(p["failures"] > d["failures"]))
+    return out
+
+
+def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+    """Better or worse than the behaviour, only when the evidence behind it holds.
+
+    The logs alone say "better" or "worse" only when the most reliable estimator has an
+    interval with a level on one side of the behaviour's logged cost *and* nothing in the same
+    evaluation undermines it: the policy did not leave the data's support (actions the
+    data rarely took; states the model rollouts of the logs reach and no logged state is
+    near, at least :data:`MODEL_EXIT_FRACTION` of the discounted mass; or, with a
+    simulator, states the data does not cover), the logs can show it (a per-step shift
+    estimate, or, where the logs are too thin per step for one, both the candidate's
+    actions at the logged states and the model rollouts' exit mass measured), the fit
+    converged, and no other reliable estimator's interval disagrees. Otherwise the
+    performance clause reads "cannot tell from these logs" and names the reasons
+    (an off-policy interval assumes the value model holds where the policy goes; past the
+    data's support it extrapolates, and on continuous problems it did so by 20-50%,
+    docs/evaluation.md). Where a simulator's rollouts measured the same estimand, the
+    verdict is theirs (the truth), against the behaviour and, where the simulator has one,
+    against the demonstrator with both failure counts; an off-policy side that disagrees
+    is said so. ``performance`` is the side against the behaviour that was claimed, or
+    ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
+    """
+    beh = m.get("behaviour_value")
+    left = left_support(m, shift)
+    support, logs_show = _support_clause(m, shift, left)
+    cv = conv.get("verdict")
+    doubts = _doubts(left, shift, logs_show, cv)
+    side, perf, claim = _offpolicy_side(ranking, beh, doubts)
+    demo = None
+    ro = (m.get("rollout") or {}).get("policy")
+    if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
+        demo = demonstrator_side(m)
+        side, perf = _simulator_side(ro, beh["mean"], demo, side, perf, claim)
+    outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
+    ct = conv["text"][:1].upper() + conv["text"][1:]
+    return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
+            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+
+
+def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -> tuple[str, bool]:
+    """The verdict's support clause, and whether the logs alone show the policy stays within
+    the data's support (where the per-step shift is too thin to estimate)."""
+    sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
+    mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
+    # from the logs alone, when the per-step shift is too thin to estimate: the candidate's actions
+    # at the logged states (measured) and where the model rollouts of the logs drive it (ran)
+    logs_show = (not left and _is_finite_number(sv) and _is_finite_number(mr.get("exit_mass"))
+                 and (mr.get("n_particles") or 0) >= MIN_SUPPORT_PARTICLES)
+    if left:
+        support = "LEFT the data's support: " + "; ".join(left)
+    elif shift.get("enough_data"):
+        support = "stays within the data's support"
+    elif logs_show:
+        support = (f"stays within the data's support as far as the logs show (actions the data rarely took at "
+                   f"{sv:.1%} of the data's states; {mr['exit_mass']:.1%} of the discounted mass of model rollouts of the "
+                   "logs past the logged states)")
+    else:
+        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _is_finite_number(sv) else "")
+    return support, logs_show
+
+
+def _doubts(left: list[str], shift: dict[str, Any], logs_show: bool, cv: str | None) -> list[str]:
+    """What undermines an off-policy side: the support left or not shown, the fit's convergence."""
+    doubts = []
+    if left:
+        doubts.append("the policy left the data's support, where the value model extrapolates")
+    elif not (shift.get("enough_data") or logs_show):
+        doubts.append("the logs cannot show whether the policy stays within their support")
+    if cv in ("still changing", "not converged"):
+        doubts.append("the fit did not converge")
+    elif cv in ("diverging", "diverged"):
+        doubts.append("the fit diverged")
+    elif cv not in FIT_SETTLED:
+        doubts.append("the fit's convergence is unknown")
+    return doubts
+
+
+def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
+                    doubts: list[str]) -> tuple[str, str, str | None]:
+    """``(side, performance clause, claim)`` from the logs alone: the most reliable estimator's
+    interval against the behaviour's logged cost, claimed only when no doubt holds."""
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    side, perf, claim = "unknown", "", None
+    top = next((e for e in ranking if e["tier"] == 1), None)
+    if best is None and top is not None and top.get("shown_interval") and beh is not None:
+        # an interval without a level: its side is said, never claimed (nor its numbers quoted as an interval)
+        lo, hi = top["shown_interval"]
+        would = side_of_behaviour(lo, hi, beh["mean"])
+        claim = f"{top['name'].upper()} {top['estimate']:.4g} vs logged {beh['mean']:.4g}"
+        why = doubts or [f"its interval carries no level ({top.get('level_note') or 'coverage not measured'})"]
+        words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[would]
+        perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would say "
+                f"{words}, but " + "; ".join(why))
+    elif best is None:
+        perf = ("cannot tell from these logs whether the policy is better than the behaviour: "
+                + (f"the best available estimate ({top['name'].upper()} {top['estimate']:.4g}) has no interval"
+                   if top else "no estimator is reliable here"))
+    elif beh is None:
+        perf = f"best estimate {best['estimate']:.4g} (no behaviour baseline)"
+    else:
+        lo, hi = best["interval"]
+        b = beh["mean"]
+        ope_side = side_of_behaviour(lo, hi, b)
+        claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
+        dis = _disagreeing(best, ranking)
+        if dis:
+            doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
+        if ope_side == "indistinguishable" or not doubts:
+            side = ope_side
+            where = {"better": "lies below", "worse": "lies above", "indistinguishable": "contains"}[ope_side]
+            conf = f"its {level_words(best)} interval {where} the behaviour's logged cost"
+            perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
+        else:
+            perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
+                    f"say {ope_side}, but " + "; ".join(doubts))
+    return side, perf, claim
+
+
+def _simulator_side(ro: dict[str, Any], b: float, demo: dict[str, Any] | None, side: str, perf: str,
+                    claim: str | None) -> tuple[str, str]:
+    """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
+    behaviour's logged cost ``b`` and the demonstrator, saying where the logs' side disagrees."""
+    r_lo, r_hi = ro["interval"]
+    truth_side = side_of_behaviour(r_lo, r_hi, b)
+    against = f"{_SIDE_WORDS[truth_side]} the behaviour"
+    if demo is not None:  # the demonstrator first when the policy is worse than it
+        d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
+                   "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
+        against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
+                   else f"{against}; {d_words}")
+    truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
+             f"logged {b:.4g}")
+    if demo is not None:
+        di = demo.get("demonstrator_interval") or []
+        truth += f", demonstrator {demo['demonstrator']:.4g}" + (
+            f" [{di[0]:.4g}, {di[1]:.4g}]" if len(di) == 2 and all(_is_finite_number(x) for x in di) else "")
+        if "failures" in demo:
+            truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
+                      + (": the policy fails more often" if demo["more_failures"] else ""))
+    if side in ("better", "worse") and truth_side != side:
+        truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+    elif side == "unknown":
+        truth += f" (from the logs alone: {perf})"
+    return truth_side, truth
