@@ -242,3 +242,17 @@ def test_verdict_rules_still_claim_with_a_level():
     assert v["outcome"] == "better" and "its 95% interval lies below" in v["text"]
     v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, STALE)
     assert v["outcome"] == "not converged"
+
+
+def test_the_psdp_bound_is_printed_as_an_estimate_never_as_a_bound():
+    """The plug-in PSDP bound multiplies estimated factors and has fallen below the true gap
+    (issue #42): the report must not print it as a bound."""
+    from offline_adp.evaluation.report import PSDP_LABELS, psdp_section
+
+    m = {"psdp_bound": {"eps": [0.1, 0.2], "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
+                        "references": {"self": {"per_step": 0.5, "averaged": 0.6, "eps_sum": 0.3,
+                                                "ratio_ucb_max": 1.5, "ratio_ucb_step": 1, "pooled_ratio_ucb": 2.0}}}}
+    html = "".join(psdp_section(m, {"shift": {}, "verdict": {}}))
+    assert "not a bound" in html
+    assert not any(v.lower().startswith("bound") for v in PSDP_LABELS.values())
+    assert "estimate: sum_t eps_t UCB_t" in html
