@@ -17,6 +17,7 @@ batched call. Representations:
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+import weakref
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -110,6 +111,9 @@ class NeighbourCommands:
     k: int
     _tree: Any = field(default=None, repr=False)
     extra: np.ndarray | None = None
+    #: the candidate sets of read-only query arrays, by identity (a fit queries the same next
+    #: states at every structure build): ``id -> (weak reference to the array, result)``
+    _memo: dict[int, tuple[Any, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @classmethod
     def from_data(cls, phi: np.ndarray, commands: np.ndarray, k: int,
@@ -187,10 +191,19 @@ class NeighbourCommands:
     def __call__(self, phi: np.ndarray) -> np.ndarray:
         """``C(x)`` for each row of ``phi``: ``(n, n_slots, m)`` commands (the neighbours'
         in order of distance, then ``extra``)."""
+        frozen = isinstance(phi, np.ndarray) and not phi.flags.writeable  # cannot change under the memo
+        if frozen and id(phi) in self._memo:
+            ref, out = self._memo[id(phi)]
+            if ref() is phi:
+                return out
         near = self.commands[self.neighbours(phi)[1]]
-        if self.extra is None:
-            return near
-        return np.concatenate([near, np.broadcast_to(self.extra[None], (len(near), *self.extra.shape))], axis=1)
+        out = near if self.extra is None else np.concatenate(
+            [near, np.broadcast_to(self.extra[None], (len(near), *self.extra.shape))], axis=1)
+        if frozen:
+            out.setflags(write=False)
+            self._memo = {i: v for i, v in self._memo.items() if v[0]() is not None}  # drop the dead ones
+            self._memo[id(phi)] = (weakref.ref(phi), out)
+        return out
 
 
 class PolicyCommands:
