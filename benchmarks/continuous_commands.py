@@ -105,7 +105,7 @@ def main() -> None:
     ap.add_argument("--transitions", type=int, default=50_000)
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
-    ap.add_argument("--n-candidates", type=int, default=16)
+    ap.add_argument("--n-candidates", type=int, default=8)
     ap.add_argument("--n-representatives", type=int, default=16,
                     help="the continuous arm's representative commands of the log (0: the neighbours' alone)")
     ap.add_argument("--json")

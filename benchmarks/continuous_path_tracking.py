@@ -163,7 +163,7 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=200)
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--trees", type=int, default=50)
-    ap.add_argument("--n-candidates", type=int, default=16)
+    ap.add_argument("--n-candidates", type=int, default=8)
     ap.add_argument("--n-representatives", type=int, default=16,
                     help="the continuous arm's representative commands of the log (0: the neighbours' alone)")
     ap.add_argument("--learner-seeds", type=int, default=4,

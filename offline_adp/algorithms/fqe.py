@@ -137,7 +137,7 @@ commands, n_candidates, n_representatives
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
                  structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto",
-                 commands: str = "auto", n_candidates: int = 16, n_representatives: int = 16) -> None:
+                 commands: str = "auto", n_candidates: int = 8, n_representatives: int = 16) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,

@@ -238,7 +238,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         the dataset's action table is ``continuous``, else the table.
     n_candidates : int
         Continuous commands: the candidate set of a state is the commands logged at its
-        ``n_candidates`` nearest logged states (default 16).
+        ``n_candidates`` nearest logged states (default 8).
     n_representatives : int
         Continuous commands: the candidate set of every state also holds up to this many
         representative commands of the whole log (default 16; 0: the neighbours' alone;
@@ -334,7 +334,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         early_build_trees: int | None = None,
         tree_builder: str = "auto",
         commands: str = "auto",
-        n_candidates: int = 16,
+        n_candidates: int = 8,
         n_representatives: int = 16,
     ) -> None:
         self.horizon = horizon
