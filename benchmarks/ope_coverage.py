@@ -33,6 +33,47 @@ episodes as ``offline-adp simulate path_tracking``, 500 truth rollouts). The gym
 (``cartpole``: CartPole-v1 through :class:`offline_adp.envs.gym.GymResetModel`, uniformly
 random logged actions, horizon 100) has no demonstrator; its candidates are the FQI fits,
 the logging policy and a hand-written balancing heuristic.
+
+**Continuous commands** (issue #41): ``path_tracking_steer`` (problem option ``commands =
+"continuous"``: steering in [-0.3, 0.3] rad) and ``path_tracking_steer_accel`` (``"steer_accel"``:
+steering and acceleration in [-2, 2] m/s^2), logged with the exact commands (the Stanley
+demonstrator with unquantised noise, uniform exploration; 200 steps at ``small``). Their
+candidates are deterministic command policies, evaluated by :mod:`offline_adp.evaluation.continuous`
+through the same :func:`evaluation_metrics`: FQI over commands (``commands="continuous"``) with
+the suite's settings (``fqi``, ``fqi_5it``, ``fqi_1it``, ``fqi_leaf50``, ``fqi_linear``) and 4
+candidates (``fqi_cand4``), the demonstrator's noise-free controller (``demonstrator``) and the
+command logged at the nearest logged state (``nearest``); held out (``--candidates holdout``):
+FQI with another seed, LightGBM, ``min_samples_leaf = 20``, 3 iterations, 64 candidates, and
+drivers the logs never saw (``sluggish``: Stanley gain 0.5 and speed gain 0.2; ``sharp``: 4.0
+and 1.5; ``feedforward``: the demonstrator's gains plus the course's curvature ahead). The
+uniform exploration and an epsilon-mixed fit sample their commands: not evaluable over
+commands (refused), so not candidates. Each row also records FQE's interval as shown,
+labelled or not (``fqe``: coverage, level or the reason it has none, width over the value
+range, unsupported share). Measured (docs/continuous-commands.md, "Coverage"; seed 1 was the
+design seed, 2-3 and the held-out set on 4 were run once the rules were fixed):
+
+=========================  ==========  ==========  ===============  ====================  ===================
+problem                    seed (set)  labelled    labelled         FQE as shown          logs-only claims
+                                       covered     width / range    (labelled or not)     (agree); contradicted
+=========================  ==========  ==========  ===============  ====================  ===================
+path_tracking_steer        1 (design)  6/7         0.11             7/8                   3 (3); 0
+path_tracking_steer        2           5/6         0.07             6/8                   4 (3); 0
+path_tracking_steer        3           6/6         0.09             7/8                   3 (3); 0
+path_tracking_steer        4 (holdout) 6/6         0.10             8/8                   4 (4); 0
+path_tracking_steer_accel  1 (design)  7/7         0.14             8/8                   3 (3); 0
+path_tracking_steer_accel  2           6/6         0.11             7/8                   4 (4); 0
+path_tracking_steer_accel  3           6/6         0.14             8/8                   4 (4); 0
+path_tracking_steer_accel  4 (holdout) 6/6         0.12             8/8                   4 (4); 0
+=========================  ==========  ==========  ===============  ====================  ===================
+
+On seeds 2-4: steering 17/18 (0.94), steering + acceleration 18/18. Seed 1 ran before the
+replay rule (evaluation/continuous.py): its labelled miss is the nearest-command clone, whose
+level that rule now withdraws.
+
+    python benchmarks/ope_coverage.py --problems path_tracking_steer path_tracking_steer_accel --seeds 1 --size small
+    python benchmarks/ope_coverage.py --problems path_tracking_steer path_tracking_steer_accel --seeds 2 3 --size small
+    python benchmarks/ope_coverage.py --problems path_tracking_steer path_tracking_steer_accel --seeds 4 --size small \
+        --candidates holdout
 """
 
 from __future__ import annotations
