@@ -216,7 +216,9 @@ def replayed_commands(ds: TransitionDataset, policy: Any) -> dict[str, Any]:
 
 def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSettings, est_def: Any,
                       say: Callable[[str], None]) -> ope.OPEResult:
-    """FQE's estimate and its (unlabelled) bootstrap interval over episodes."""
+    """FQE's estimate and its interval at :data:`LEVEL`: the bootstrap over episodes, hulled
+    with the model rollouts over commands for a finite-horizon estimand, widened by the
+    truncation bound (module docstring)."""
     a = ds.arrays()
     fqe_T = est_def.fqe_horizon
     params = fqe_settings(cfg.fqe_params, fqe_T)  # the discrete path's merge of the user's settings
