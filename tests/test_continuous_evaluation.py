@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from offline_adp.cli import main
+from offline_adp.evaluation import continuous
 from offline_adp.evaluation.continuous import command_support
 from offline_adp.evaluation.run import evaluation_metrics
 from offline_adp.policies import CommandPolicy, attach_signature
@@ -29,7 +30,7 @@ def lq():
     return lq_dataset(150, steps=60)  # gamma^60 < 0.01: the stationary FQE, structure-conditional bootstrap
 
 
-def test_fqe_over_commands_reads_the_closed_form_and_claims_no_level(lq):
+def test_fqe_over_commands_reads_the_closed_form_with_its_measured_level(lq):
     pol = attach_signature(LinearPolicy(0.5), lq)
     m, res, _, _ = evaluation_metrics(lq, pol, None, fqe_bootstrap=30, bootstrap=0, model_particles=0)
     assert res is None and set(m["ope"]) == {"fqe"}
@@ -37,12 +38,73 @@ def test_fqe_over_commands_reads_the_closed_form_and_claims_no_level(lq):
     x0 = lq.arrays().obs[lq.arrays().step == 0, 0]
     truth = float(np.mean(linear_value(0.5) * x0 ** 2 * (1 - (GAMMA * 0.25) ** 60)))
     assert fq["estimate"] == pytest.approx(truth, rel=0.12)
-    assert fq["level"] is None and np.isfinite(fq["interval"]).all()  # shown, never labelled
+    # the level the coverage suite measured (evaluation/continuous.py LEVEL), kept: the commands are supported
+    assert fq["level"] == continuous.LEVEL == 0.95 and np.isfinite(fq["interval"]).all() and "level_note" not in fq
+    assert fq["interval"][0] <= truth <= fq["interval"][1]
+    assert m["behaviour"]["support_violations"]["fraction"] <= 0.05
+    assert m["behaviour"]["replayed_commands"]["fraction"] == 0.0
     assert m["estimand"]["fqe_form"] == "stationary"
-    assert any("importance" in w["message"] for w in m["warnings"]) and "model rollouts of the logs" in m["not_usable"]
+    assert any("importance" in w["message"] for w in m["warnings"]) and "model rollouts of the logs" not in m["not_usable"]
     best = m["headline"]["best"]
-    assert best is None  # an interval without a level is never the headline's interval
-    assert "cannot tell" in m["headline"]["verdict"]["text"]
+    assert best["name"] == "fqe" and best["level"] == 0.95 and best["interval"] == fq["interval"]
+    # logs only, no model rollouts (turned off): support cannot be shown, so no side is claimed
+    assert "cannot tell" in m["headline"]["verdict"]["text"] or m["headline"]["verdict"]["performance"] == "indistinguishable"
+
+
+def test_model_rollouts_over_commands_read_the_closed_form(lq):
+    """The discrete evaluation's model rollouts, over the exact commands: a second reading
+    near the truth, the exit mass of a policy the logs cover small, FQE's interval hulled."""
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    m, _, _, _ = evaluation_metrics(lq, pol, None, fqe_bootstrap=30, bootstrap=0, model_particles=300)
+    fq = m["ope"]["fqe"]
+    mr = fq["model_rollouts"]
+    x0 = lq.arrays().obs[lq.arrays().step == 0, 0]
+    truth = float(np.mean(linear_value(0.5) * x0 ** 2 * (1 - (GAMMA * 0.25) ** 60)))
+    assert mr["n_particles"] == 300 and mr["exit_mass"] < 0.1
+    assert mr["estimate"] == pytest.approx(truth, rel=0.25)
+    assert fq["interval"][0] <= min(mr["interval"][0], fq["estimate"]) and fq["interval"][1] >= mr["interval"][1]
+    assert fq["level"] == 0.95
+
+
+def test_level_withdrawn_where_commands_are_unsupported(lq):
+    """A policy commanding what the logs never tried near the states: its interval is shown
+    without a level, never quoted, and the verdict cannot tell (the discrete rule: more
+    than 5% of the logged states see unsupported commands)."""
+    m, _, _, _ = evaluation_metrics(lq, attach_signature(Constant(3 * U_MAX), lq), None, fqe_bootstrap=20, bootstrap=0, model_particles=0)
+    fq = m["ope"]["fqe"]
+    assert m["behaviour"]["support_violations"]["fraction"] == 1.0
+    assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]
+    assert m["headline"]["best"] is None and "cannot tell" in m["headline"]["verdict"]["text"]
+
+
+def test_level_withdrawn_for_a_replay_of_the_logs(lq):
+    """The command logged at the nearest logged state (a one-nearest-neighbour clone): at
+    every logged state it commands that state's own logged command, so what the logs show
+    it doing is the logged episodes, not what it does in a new one: no level."""
+    from offline_adp.policies import NearestCommandPolicy
+    from offline_adp.qfunctions import NeighbourCommands
+
+    a = lq.arrays()
+    clone = attach_signature(NearestCommandPolicy(NeighbourCommands.from_data(a.obs, lq.commands(), 1)), lq)
+    rep = continuous.replayed_commands(lq, clone)
+    assert rep["fraction"] == 1.0 and rep["rows_checked"] == len(lq)
+    m, _, _, _ = evaluation_metrics(lq, clone, None, fqe_bootstrap=20, bootstrap=0, model_particles=0)
+    fq = m["ope"]["fqe"]
+    assert fq["level"] is None and fq["nominal_level"] == 0.95 and "replays the logs" in fq["level_note"]
+    assert m["headline"]["best"] is None
+    assert continuous.replayed_commands(lq, attach_signature(LinearPolicy(0.5), lq))["fraction"] == 0.0
+
+
+def test_a_stochastic_command_policy_is_refused(lq):
+    from offline_adp.errors import InvalidArgumentError
+    from offline_adp.policies import GaussianCommandPolicy
+
+    noisy = GaussianCommandPolicy(lambda x, t: -0.5 * x[:, :1], [0.1], [-U_MAX], [U_MAX])
+    with pytest.raises(InvalidArgumentError, match="samples its commands"):
+        evaluation_metrics(lq, noisy, None, fqe_bootstrap=0, bootstrap=0, model_particles=0)
+    quiet = GaussianCommandPolicy(lambda x, t: -0.5 * x[:, :1], [0.0], [-U_MAX], [U_MAX])  # no noise: deterministic
+    assert continuous.is_deterministic(quiet) and continuous.is_deterministic(LinearPolicy(0.5))
+    assert not continuous.is_deterministic(noisy)
 
 
 def test_command_support_separates_logged_from_foreign_commands(lq):
@@ -59,12 +121,14 @@ def test_evaluate_and_report_a_continuous_run(lq, tmp_path):
                  "-q"]) == 0
     assert main(["evaluate", str(tmp_path / "run"), "--fqe-bootstrap", "10", "--bootstrap", "0", "-q"]) == 0
     m = json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())
-    assert m["commands"]["dims"] == ["u"] and m["ope"]["fqe"]["level"] is None
+    fq = m["ope"]["fqe"]
+    assert m["commands"]["dims"] == ["u"] and (fq["level"] == 0.95 or fq.get("level_note"))  # a level, or why not
     assert main(["report", str(tmp_path / "run"), "-q"]) == 0
     figs = {p.name for p in (tmp_path / "run" / "report" / "figures").iterdir()}
     assert "commands.png" in figs  # (one state feature: no two-feature policy map)
     html = (tmp_path / "run" / "report" / "report.html").read_text()
-    assert "Not computed for continuous commands" in html and "(95%)" not in html and "<style" in html
+    assert "Not computed for continuous commands" in html and "<style" in html
+    assert ("(95%)" in html) == (fq["level"] == 0.95)  # an interval is printed with the level it has
 
 
 def test_review_cases_through_the_cli(lq, tmp_path, capsys):

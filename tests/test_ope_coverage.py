@@ -62,3 +62,37 @@ def test_coverage_suite_tiny(tmp_path):
     assert oc.main(["--rows-from", str(path), "--json", str(again)]) == 0  # the CLI, re-summarising without a rerun
     data = json.loads(again.read_text())
     assert [r["candidate"] for r in data["rows"]] == cands and data["summary"]["path_tracking"]["candidates"] == len(cands)
+
+
+def test_continuous_problems_run_through_the_suite():
+    """path_tracking with continuous steering, and with steering and acceleration: logs of
+    exact commands, candidates that are deterministic command policies (a FQI fit over
+    commands and the demonstrator's noise-free controller), the evaluation a user's
+    ``evaluate`` runs (FQE over commands hulled with the model rollouts over commands), a
+    simulator truth and checked verdicts. Fewer replicates and particles than a user's
+    defaults: plumbing, not coverage (docs/continuous-commands.md has the measured numbers)."""
+    oc = _suite()
+    cands = ["fqi_1it", "demonstrator"]
+    out = oc.run_suite(list(oc.CONTINUOUS), [1], "tiny", cands, n_boot=0, say=lambda _m: None,
+                       options={"n_boot_fqe": 20, "model_particles": 200})
+    rows, summary = out["rows"], out["summary"]
+    assert [(r["problem"], r["candidate"]) for r in rows] == [(p, c) for p in oc.CONTINUOUS for c in cands]
+    for r in rows:
+        lo, hi = r["truth_interval"]
+        assert lo <= r["truth"] <= hi and hi > lo
+        assert set(r["estimators"]) == {"fqe"}  # over commands, FQE alone runs (evaluation/continuous.py)
+        f = r["fqe"]
+        assert f["interval"] is not None and f["covers"] in (True, False) and 0 < f["width_over_range"] <= 2
+        assert f["unsupported"] is not None and 0.0 <= f["unsupported"] <= 1.0
+        e = r["estimators"]["fqe"]
+        # a level is the measured one or withdrawn with its reason, never another
+        assert e["labelled_95"] == (e["interval"] is not None) and (e["labelled_95"] or f["level_note"])
+        assert r["verdict"]["check"] != "contradicted", r["verdict"]["text"]
+        assert r["verdict_logs_only"]["check"] != "contradicted", r["verdict_logs_only"]["text"]
+    for p in oc.CONTINUOUS:
+        s = summary[p]
+        assert s["candidates"] == len(cands) and s["fqe_shown"] == len(cands)
+        assert s["contradicted_with_simulator"] == 0 and s["contradicted_logs_only"] == 0
+    assert "| path_tracking_steer_accel |" in oc.table(summary, rows)
+    # the continuous problems' own candidate lists: deterministic command policies only
+    assert "exploration" not in oc.CONTINUOUS_CANDIDATES and "fqi_eps30" not in oc.CONTINUOUS_HOLDOUT

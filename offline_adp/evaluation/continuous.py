@@ -7,25 +7,45 @@ What runs, and why the rest does not:
   quantity of :func:`~offline_adp.evaluation.offpolicy.declare_estimand`; its interval is
   the structure-conditional bootstrap over episodes (tree structure fixed, leaves
   re-averaged with each replicate's episode weights; a refit per replicate for a
-  time-indexed FQE). Its coverage has not been measured on continuous commands, so the
-  interval carries **no level** (``level: null``) and says so: a number printed as a 95%
-  interval would be a claim nobody checked.
+  time-indexed FQE), hulled, for a finite-horizon estimand, with the **model rollouts of
+  the logs over commands** (:class:`CommandDynamics`: the discrete evaluation's model of the
+  logged increments with the exact command in place of the action table's entry, rolled
+  out with the policy's commands, each particle's remaining steps valued at the ends of
+  the logged costs' range once it leaves the data; :func:`command_model_rollouts`), then
+  widened by the truncation bound. The bootstrap alone measured only the sampling noise:
+  FQE read policies that leave the road in most episodes at a third to a half of their
+  cost (path_tracking, docs/continuous-commands.md), and the model rollouts, whose errors
+  are not FQE's, read them within a few percent.
+- **Its level** (:data:`LEVEL`, 95%) is the coverage measured by the coverage suite
+  (``benchmarks/ope_coverage.py``, docs/continuous-commands.md "Coverage"). It is withdrawn
+  (``level: null``, ``nominal_level``, ``level_note``) as the discrete evaluation's are
+  (:func:`~offline_adp.evaluation.summary.withdraw_levels`): where the commands are
+  unsupported at more than 5% of the logged states (below) or the model rollouts put at
+  least 10% of the policy's discounted mass past the logged states; and here also where
+  the policy **replays the logs** (:func:`replayed_commands`): it commands the very command
+  logged at the state at most logged states, so its value at the logged states, which
+  FQE and the model rollouts read, is not its value in a new episode (a one-nearest-
+  neighbour clone of the logged commands read 14.9 at the data's start states, 14.6 in
+  the simulator from them, 10.2 from fresh ones).
 - **Command support**: at each logged state, the distance from the policy's command to the
   nearest command logged at the ``k`` nearest logged states, per component in units of the
   command's bound range (sup over components), against the same distance of the logged
   commands themselves to their neighbours' (leave-own-row-out); the share of states beyond
-  the logged commands' 95% quantile is the policy's unsupported share.
+  the logged commands' 95% quantile is the policy's unsupported share. (A greedy policy of
+  FQI over commands picks among the commands logged at its 16 nearest states, so it always
+  passes; where it drives is what the model rollouts' exit mass measures.)
 - **Not usable**: IS, WIS, PDIS, WPDIS, DR, WDR and MIS weight each logged action by
   ``pi(a | x) / mu(a | x)``; a deterministic continuous policy puts probability 0 on every
   logged command it does not equal, so the weights need a smoothing kernel whose bandwidth
   trades bias for variance, and no kernel's coverage has been measured here. They are listed
   as not usable with that reason. The per-step density ratios and the PSDP bound need the
-  policy's action probabilities too; the model rollouts of the logs read the action table's
-  entries. All are listed the same way.
+  policy's action probabilities too; both are listed the same way. A policy that samples its
+  commands (stochastic) is refused: FQE over commands evaluates one command per state.
 
 The verdict rules are the discrete evaluation's (:mod:`~offline_adp.evaluation.summary`),
-fed with what ran: without a model rollout's exit mass or per-step ratios the logs alone
-do not show support, so a logs-only verdict says it cannot tell.
+fed with what ran: from the logs alone a side is claimed only when the labelled interval
+lies on it and the logs show support (the command support and the model rollouts' exit
+mass, with at least 200 particles), and the fit converged.
 """
 
 from __future__ import annotations
@@ -38,15 +58,23 @@ import numpy as np
 
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import ope
 from offline_adp.evaluation.estimand import declare_estimand
 from offline_adp.evaluation.fqe_interval import (
     fqe_interval,
     fqe_replicates,
     fqe_settings,
+    widen_fqe,
     with_truncation_bound,
 )
+from offline_adp.evaluation.model_rollouts import (
+    LoggedDynamics,
+    model_rollout_value,
+    remainder_ranges,
+)
 from offline_adp.evaluation.settings import EvaluationSettings
+from offline_adp.policies import CommandPolicy, GaussianCommandPolicy
 from offline_adp.qfunctions import NeighbourCommands
 
 #: Neighbours whose logged commands count as "near" a state for the support check.
@@ -59,8 +87,81 @@ NOT_USABLE = {
         "a deterministic continuous policy gives probability 0 to every logged command it does not equal: the "
         "importance weights need a smoothing kernel, and no kernel's bandwidth has a measured coverage here"),
     "per-step density ratios and the PSDP bound": "they read the policy's action probabilities (see above)",
-    "model rollouts of the logs": "the dynamics model reads the action table's entries, not commands",
 }
+#: The level of FQE's interval over commands, as measured by the coverage suite
+#: (``benchmarks/ope_coverage.py``, docs/continuous-commands.md): withdrawn where the policy
+#: left the data's support, as for the discrete estimators (:func:`~offline_adp.evaluation.summary.withdraw_levels`).
+LEVEL = 0.95
+#: The level is withdrawn when the policy commands the very command logged at the state at more
+#: than this share of the logged states (:func:`replayed_commands`): a majority.
+REPLAY_FRACTION = 0.5
+
+
+def is_deterministic(policy: Any) -> bool:
+    """Whether a continuous policy sends one command per state: a :class:`CommandPolicy`
+    (its ``sample_commands`` is its ``commands``), or a :class:`GaussianCommandPolicy`
+    without noise or random commands. Anything that samples its commands is not."""
+    if isinstance(policy, GaussianCommandPolicy):
+        return not policy.std.any() and policy.epsilon == 0.0
+    sample = getattr(type(policy), "sample_commands", None)
+    return sample is None or sample is CommandPolicy.sample_commands
+
+
+class CommandDynamics(LoggedDynamics):
+    """:class:`~offline_adp.evaluation.model_rollouts.LoggedDynamics` over the exact
+    commands: the increment, cost and termination models take each row's command (in units
+    of its logged standard deviation) where the discrete model takes the action table's
+    value and one-hot; the support radii, noise and rollout are that model's own."""
+
+    def fit(self, ds: TransitionDataset, arrays: Any = None) -> CommandDynamics:
+        a = arrays if arrays is not None else ds.arrays()
+        u = np.asarray(ds.commands(), np.float64).reshape(len(a.cost), -1)
+        sd = u.std(axis=0)
+        self.command_sd_ = np.where(sd > 0, sd, 1.0)
+        self._logged = u  # the rows' commands while the parent fits on row indices
+        try:
+            super().fit(ds, replace(a, action=np.arange(len(u))))
+        finally:
+            del self._logged
+        return self
+
+    def _features(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
+        act = np.asarray(action)
+        u = self._logged[act] if act.ndim == 1 else act.astype(np.float64)  # fit: row indices; step: commands
+        return np.column_stack([obs / self.sd_, u / self.command_sd_])
+
+
+class _CommandActor:
+    """A continuous policy as :func:`model_rollout_value` reads a policy: its commands."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+
+    def act_index(self, obs: np.ndarray, t: Any = 0, rng: Any = None) -> np.ndarray:
+        return np.asarray(self.policy.commands(obs, t), np.float64).reshape(len(obs), -1)
+
+
+def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gamma: float, *, n: int,
+                           level: float, seed: int) -> dict[str, Any]:
+    """Model rollouts of the logs over commands (:class:`CommandDynamics`): the discrete
+    evaluation's second reading and support measure
+    (:func:`~offline_adp.evaluation.model_rollouts.model_rollouts`), the policy's commands
+    stepping the model. ``{"skipped": reason}`` where it does not apply."""
+    if not n:
+        return {"skipped": "model_particles=0: model rollouts turned off"}
+    a = ds.arrays()
+    if not (a.step == 0).any():
+        return {"skipped": "no episode is logged from step 0: no start states to roll out from"}
+    model = CommandDynamics(random_state=seed).fit(ds, a)
+    if model.radius_ <= 0:
+        return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it"}
+    out = model_rollout_value(model, _CommandActor(policy), horizon, gamma,
+                              remainder_ranges(a.cost, a.terminated, gamma, horizon), n=n, level=level, seed=seed)
+    return {**out, "noise": model.noise_source_,
+            "method": f"{n} rollouts of a model fitted on the logs over the exact commands (increments: ridge + "
+                      "extra-trees on its residuals + out-of-fold residual noise; cost and termination: extra-trees "
+                      "on state, command, next state), each particle's remaining steps valued at the ends of the "
+                      "logged costs' range once it is farther from the logged states than they are from each other"}
 
 
 def command_support(ds: TransitionDataset, policy: Any, k: int = SUPPORT_NEIGHBOURS) -> dict[str, Any]:
@@ -90,9 +191,34 @@ def command_support(ds: TransitionDataset, policy: Any, k: int = SUPPORT_NEIGHBO
                       f"{SUPPORT_QUANTILE:.0%} quantile ({radius:.3g})"}
 
 
+def replayed_commands(ds: TransitionDataset, policy: Any) -> dict[str, Any]:
+    """The share of logged states where ``policy`` commands exactly the command logged at
+    that state, over the rows whose command no other row shares (a continuous draw: no
+    policy meets it except by reading that row; commands repeated in the logs, e.g. clipped
+    at a bound, are left out). A policy that does this at most states replays the logs (a
+    one-nearest-neighbour clone of them, or a regression that interpolates its training
+    rows): at the logged states, which is where FQE and the model rollouts read it, it does
+    what the logged episode did, and in a new episode it does not. ``fraction`` is None
+    when no logged command is unique."""
+    a, u = ds.arrays(), ds.commands()
+    assert u is not None
+    lo, hi = ds.info.action_table.bounds()
+    span = np.where(np.isfinite(hi - lo) & (hi > lo), hi - lo, np.ptp(u, axis=0))
+    span = np.where(span > 0, span, 1.0)
+    _, inverse, counts = np.unique(u, axis=0, return_inverse=True, return_counts=True)
+    unique = counts[inverse.reshape(-1)] == 1
+    pi = np.asarray(policy.commands(a.obs[unique], a.step[unique]), np.float64).reshape(int(unique.sum()), -1)
+    same = (np.abs(pi - u[unique]) / span).max(axis=1) <= 1e-9 if unique.any() else np.zeros(0, bool)
+    return {"fraction": float(same.mean()) if len(same) else None, "rows_checked": int(unique.sum()),
+            "method": "the policy's command at each logged state equal to the command logged there (to 1e-9 of the "
+                      "bound range), over the rows whose command no other row shares"}
+
+
 def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSettings, est_def: Any,
                       say: Callable[[str], None]) -> ope.OPEResult:
-    """FQE's estimate and its (unlabelled) bootstrap interval over episodes."""
+    """FQE's estimate and its interval at :data:`LEVEL`: the bootstrap over episodes, hulled
+    with the model rollouts over commands for a finite-horizon estimand, widened by the
+    truncation bound (module docstring)."""
     a = ds.arrays()
     fqe_T = est_def.fqe_horizon
     params = fqe_settings(cfg.fqe_params, fqe_T)  # the discrete path's merge of the user's settings
@@ -118,11 +244,18 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
                                     **params).fit(ds, sample_weight=w)
             v0, w0 = rep.q_function_.values(a.obs[start], 0)[:, 0], w[start]
             reps.append(float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan"))
-    res = fqe_interval(est, reps, em.n_episodes)
-    res = replace(res, level=None, interval_method=res.interval_method + (
-        " (structure-conditional: tree structure fixed, leaves re-averaged)" if conditional else ""),
-        warnings=[*res.warnings, "continuous commands: this interval's coverage has not been measured, so it carries "
-                  "no level (it is not a 95% interval)"])
+    res = fqe_interval(est, reps, em.n_episodes, LEVEL if LEVEL is not None else 0.95)
+    res = replace(res, interval_method=res.interval_method + (
+        " (structure-conditional: tree structure fixed, leaves re-averaged)" if conditional else ""))
+    if LEVEL is None:
+        res = replace(res, level=None, warnings=[*res.warnings, "continuous commands: this interval's coverage has not "
+                                                 "been measured, so it carries no level (it is not a 95% interval)"])
+    if est_def.form == "finite":  # as the discrete FQE: hulled with the model rollouts where they read the same quantity
+        if cfg.model_particles:
+            say("model rollouts over commands")
+        mr = command_model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=cfg.model_particles,
+                                    level=0.95, seed=cfg.seed)
+        res = widen_fqe(res, mr, hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
     return with_truncation_bound(res, est_def.tail_bound)
 
 
@@ -130,10 +263,22 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
                          start: str | None, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The off-policy part of ``metrics.json`` for a continuous policy (module docstring)."""
     say = progress or (lambda _m: None)
+    if not is_deterministic(policy):
+        raise InvalidArgumentError(
+            f"{type(policy).__name__} samples its commands (a stochastic policy): FQE over commands evaluates one "
+            "command per state, pi(x), so its value would be that of another policy; evaluate a deterministic command "
+            "policy (policy.commands(obs, t))")
     est_def = declare_estimand(ds, policy, cfg.horizon, cfg.estimand, target_horizon=target_horizon, start=start)
     fq = fqe_over_commands(ds, policy, cfg, est_def, say)
     say("command support")
     support = command_support(ds, policy)
+    replay = replayed_commands(ds, policy)
+    fq_d = fq.as_dict()
+    if replay["fraction"] is not None and replay["fraction"] > REPLAY_FRACTION and fq_d.get("level") is not None:
+        fq_d.update(nominal_level=fq_d["level"], level=None, level_note=(
+            f"the policy commands the very command logged at the state at {replay['fraction']:.0%} of the logged states: "
+            "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "
+            f"value in a new episode; this is not a {fq_d['level']:.0%} interval"))
     a = ds.arrays()
     em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
     from offline_adp.evaluation.offpolicy import behaviour_value
@@ -147,8 +292,9 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
                      "low": None if ds.info.action_table.low is None else list(ds.info.action_table.low),
                      "high": None if ds.info.action_table.high is None else list(ds.info.action_table.high)},
         "behaviour_value": behaviour_value(em, a.cost, est_def.gamma),
-        "behaviour": {"source": "logged commands", "support_violations": support, "warnings": []},
-        "ope": {"fqe": {**fq.as_dict(), "method": "fqe"}},
+        "behaviour": {"source": "logged commands", "support_violations": support, "replayed_commands": replay,
+                      "warnings": []},
+        "ope": {"fqe": {**fq_d, "method": "fqe"}},
         "ope_default": "fqe",
         "not_usable": dict(NOT_USABLE),
         "shift": {},
