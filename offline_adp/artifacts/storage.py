@@ -4,6 +4,8 @@ model directory's files that a run records and loading checks."""
 
 from __future__ import annotations
 
+import functools
+import importlib
 import json
 import warnings
 from os import PathLike
@@ -25,12 +27,22 @@ READABLE_VERSIONS = ("1", "2")
 
 
 def versions() -> dict[str, str]:
-    """Versions of the package and the libraries whose models we store."""
-    import lightgbm
-    import sklearn
+    """Versions of the package and the libraries whose models we store (the libraries'
+    from their installed metadata: reading a model's versions imports neither)."""
+    return {"offline_adp": __version__, "numpy": np.__version__, **_library_versions()}
 
-    return {"offline_adp": __version__, "numpy": np.__version__, "scikit-learn": sklearn.__version__, "lightgbm": lightgbm.__version__}
 
+@functools.cache
+def _library_versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for dist, module in (("scikit-learn", "sklearn"), ("lightgbm", "lightgbm")):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:  # not installed as a distribution (a source tree on the path)
+            out[dist] = importlib.import_module(module).__version__
+    return out
 
 
 def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], arrays: dict[str, np.ndarray],
