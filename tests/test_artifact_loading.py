@@ -152,3 +152,54 @@ def test_loading_a_policy_imports_neither_scikit_learn_lightgbm_nor_pandas(fores
             "print(sorted(m for m in ('sklearn', 'lightgbm', 'pandas') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+# ----------------------------------------------------------------------------- writing
+@pytest.mark.parametrize("compiled", [True, False])
+def test_compact_arrays_are_to_arrays(forest, compiled, monkeypatch):
+    """The writer's arrays are TreeEnsemble.to_arrays' (the format's definition), by the
+    compiled walk and by the numpy passes, for a new structure and one written before."""
+    from offline_adp.artifacts import tree_tables as TT
+
+    ens, _ = forest
+    monkeypatch.setattr(TT, "COMPILED_WALK_NODES", 1 if compiled else 1 << 62)
+    TT._WRITTEN.clear()
+    for e in (ens, ens.with_values(np.round(ens.value, 1)), E.constant_ensemble(1.5, 4)):
+        for structure in (True, False):
+            want, got = e.to_arrays("k.", structure=structure), TT.compact_arrays(e, "k.", structure=structure)
+            assert sorted(want) == sorted(got)
+            for k in want:
+                assert want[k].dtype == got[k].dtype, k
+                np.testing.assert_array_equal(want[k], got[k], err_msg=k)
+
+
+def test_a_structure_that_is_not_trees_is_written_node_by_node(forest):
+    from offline_adp.artifacts import tree_tables as TT
+
+    ens, _ = forest
+    left = ens.left.copy()
+    left[ens.roots[1]] = ens.roots[0]  # the second tree's root points back into the first tree
+    bad = TreeEnsemble(left, ens.right, ens.feature, ens.threshold, ens.value, ens.roots)
+    assert TT.preorder_nodes(np.asarray(left), ens.right, ens.roots) is None
+    assert "k.left" in TT.compact_arrays(bad, "k.")
+
+
+def test_members_are_deflated_where_it_pays_and_read_back_alike(tmp_path):
+    from offline_adp.artifacts.storage import savez
+
+    rng = np.random.default_rng(0)
+    arrays = {"a.codes": rng.integers(0, 4, 200_000).astype(np.uint8), "a.noise": rng.normal(size=50_000).astype(np.float32),
+              "a.small": np.arange(3)}
+    savez(tmp_path / "x.npz", arrays)
+    savez(tmp_path / "y.npz", arrays, compress=False)
+    with zipfile.ZipFile(tmp_path / "x.npz") as z:
+        kinds = {i.filename: i.compress_type for i in z.infolist()}
+    assert kinds["a.codes.npy"] == zipfile.ZIP_DEFLATED and kinds["a.noise.npy"] == zipfile.ZIP_STORED
+    with zipfile.ZipFile(tmp_path / "y.npz") as z:
+        assert {i.compress_type for i in z.infolist()} == {zipfile.ZIP_STORED}
+    for f in ("x.npz", "y.npz"):
+        C.check_npz(tmp_path / f)
+        with np.load(tmp_path / f, allow_pickle=False) as z:
+            for k, v in arrays.items():
+                assert z[k].dtype == v.dtype
+                np.testing.assert_array_equal(z[k], v)

@@ -13,7 +13,12 @@ from typing import Any
 import numpy as np
 
 import offline_adp.artifacts.checks as C
-from offline_adp.artifacts.tree_tables import LoadedEnsemble, load_compact_ensemble, load_ensemble
+from offline_adp.artifacts.tree_tables import (
+    LoadedEnsemble,
+    compact_arrays,
+    load_compact_ensemble,
+    load_ensemble,
+)
 from offline_adp.errors import ArtifactError
 from offline_adp.trees import TreeEnsemble
 
@@ -108,10 +113,10 @@ def _export_ensemble(ens: TreeEnsemble, arrays: dict[str, np.ndarray], key: str,
     spec: dict[str, Any] = {"kind": "tree_ensemble", "key": key, "n_features": width}
     seen = getattr(arrays, "structures", None)
     if seen is not None and id(ens.left) in seen and seen[id(ens.left)][0] is ens.left:
-        arrays.update(ens.to_arrays(f"{key}.", structure=False))
+        arrays.update(compact_arrays(ens, f"{key}.", structure=False))
         spec["structure"] = seen[id(ens.left)][1]
         return spec
-    a = ens.to_arrays(f"{key}.")
+    a = compact_arrays(ens, f"{key}.")
     arrays.update(a)
     if seen is not None and f"{key}.leaf_bits" in a:
         seen[id(ens.left)] = (ens.left, key)

@@ -208,10 +208,12 @@ def _model_width(m: Any) -> int | None:
 
 
 
-def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None) -> None:
-    """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``)."""
+def save_q(q: QFunction, directory: str | PathLike[str], extra: dict[str, Any] | None = None, *,
+           compress: bool = True) -> None:
+    """Write ``q`` into ``directory`` (``q.json`` + ``q.npz``; ``compress=False``: the
+    arrays stored uncompressed, e.g. a checkpoint's)."""
     arrays = Arrays()
-    _write(directory, "q", {"q": _export_q(q, arrays, "q")}, arrays, extra)
+    _write(directory, "q", {"q": _export_q(q, arrays, "q")}, arrays, extra, compress)
 
 
 def load_q(directory: str | PathLike[str]) -> tuple[QFunction, dict[str, Any]]:

@@ -8,6 +8,8 @@ import functools
 import importlib
 import json
 import warnings
+import zipfile
+import zlib
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -46,13 +48,42 @@ def _library_versions() -> dict[str, str]:
 
 
 def _write(directory: str | PathLike[str], stem: str, payload: dict[str, Any], arrays: dict[str, np.ndarray],
-           extra: dict[str, Any] | None) -> None:
-    """``<stem>.json`` (payload, versions, extra) + ``<stem>.npz`` (arrays) in ``directory``."""
+           extra: dict[str, Any] | None, compress: bool = True) -> None:
+    """``<stem>.json`` (payload, versions, extra) + ``<stem>.npz`` (arrays, :func:`savez`)
+    in ``directory``; ``compress=False``: the arrays stored as they are (a checkpoint:
+    written often, read rarely; the reader takes either)."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(d / f"{stem}.npz", **arrays)
+    savez(d / f"{stem}.npz", arrays, compress)
     spec = {"artifact_version": ARTIFACT_VERSION, "versions": versions(), **payload, **(extra or {})}
     (d / f"{stem}.json").write_text(json.dumps(spec, indent=1))
+
+
+#: zlib level of the arrays a model stores: level 1 makes a tree model ~1% larger than the
+#: default level 6 in ~half the CPU (feature indices: 3% larger, 10x faster).
+COMPRESS_LEVEL = 1
+#: A member is deflated when the deflated start of it (:data:`SAMPLE_BYTES`) is at most
+#: this share of its size; else stored (float32 thresholds, leaf flags: ~95%, for 40% of a
+#: model's deflate time).
+DEFLATE_BELOW = 0.9
+SAMPLE_BYTES = 1 << 16
+
+
+def savez(path: str | PathLike[str], arrays: dict[str, np.ndarray], compress: bool = True) -> None:
+    """``np.savez_compressed`` (``np.savez`` with ``compress=False``), readable by
+    ``np.load`` alike, choosing per member: deflated at :data:`COMPRESS_LEVEL` where that
+    pays (:data:`DEFLATE_BELOW`), else stored. No pickles (plain arrays only)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True, compresslevel=COMPRESS_LEVEL) as zf:
+        for key, value in arrays.items():
+            a = np.asanyarray(value)
+            zf.compression = zipfile.ZIP_DEFLATED if compress and _deflates(a) else zipfile.ZIP_STORED
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, a, allow_pickle=False)
+
+
+def _deflates(a: np.ndarray) -> bool:
+    head = np.ascontiguousarray(a.reshape(-1)[:max(SAMPLE_BYTES // max(a.itemsize, 1), 1)]).tobytes()
+    return len(head) < 1024 or len(zlib.compress(head, COMPRESS_LEVEL)) <= DEFLATE_BELOW * len(head)
 
 
 #: The files of a model directory whose sha256 a run records (``run.json`` ``model_sha256``).
