@@ -188,7 +188,8 @@ class _Written:
     in depth-first order, for the arrays it was made from (held weakly: the same objects)."""
 
     def __init__(self, ens: TreeEnsemble, members: dict[str, np.ndarray], leaf_nodes: np.ndarray) -> None:
-        self.refs = [weakref.ref(getattr(ens, k)) for k in _STRUCTURE]
+        key = id(ens.left)  # the entry goes when the structure does
+        self.refs = [weakref.ref(getattr(ens, k), lambda _, key=key: _WRITTEN.pop(key, None)) for k in _STRUCTURE]
         self.sizes = [len(getattr(ens, k)) for k in _STRUCTURE]
         self.members, self.leaf_nodes = members, leaf_nodes
 
@@ -242,7 +243,8 @@ def _structure_members(ens: TreeEnsemble) -> _Written | None:
                "leaf_bits": np.packbits(is_leaf),
                "feature": f.astype(next(d for d in (np.uint8, np.uint16, np.uint32, np.int64) if top <= np.iinfo(d).max)),
                "threshold": t32 if np.all(np.isfinite(t32) == np.isfinite(t)) else t}
-    return _Written(ens, members, node[is_leaf])
+    leaf_nodes = node[is_leaf]
+    return _Written(ens, members, leaf_nodes.astype(np.int32) if len(left) < 2**31 - 1 else leaf_nodes)
 
 
 def _leaf_value_members(values: np.ndarray, prefix: str) -> dict[str, np.ndarray]:
