@@ -118,3 +118,19 @@ def _all_subclasses(cls):
     for c in cls.__subclasses__():
         yield c
         yield from _all_subclasses(c)
+
+
+@pytest.mark.parametrize("share", [1e12, 1e-12])
+@pytest.mark.parametrize("mode", ["frozen", "refit"])
+def test_checkpoints_do_not_change_the_fit(tmp_path, pt_dir, obs, monkeypatch, mode, share):
+    """A run checkpointed at every iteration (its deferred Q snapshot each time) or only at
+    the first and last fits what FittedQIteration.fit fits, bit for bit."""
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.data.dataset import read_dataset
+
+    params = {**PARAMS, "mode": mode}
+    monkeypatch.setattr(runs, "CHECKPOINT_CPU_SHARE", share)
+    est = fit_run(pt_dir, tmp_path / "run", params=params)
+    api = FittedQIteration(**params).fit(read_dataset(pt_dir))
+    np.testing.assert_array_equal(est.predict(obs), api.predict(obs))
+    np.testing.assert_array_equal(est.history_["sup_dq"].to_numpy(), api.history_["sup_dq"].to_numpy())

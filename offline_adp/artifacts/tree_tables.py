@@ -1,4 +1,5 @@
-"""Tree ensembles read from the compact layout straight into their leaf lookups.
+"""Tree ensembles in the compact layout: read straight into their leaf lookups, written
+without renumbering a structure twice.
 
 A saved ensemble (:meth:`~offline_adp.trees.ensemble.TreeEnsemble.to_arrays`, artifact
 format 2) stores each tree's leaf flags in depth-first order, the splits' features and
@@ -12,6 +13,11 @@ the lookups tree by tree, and returns a :class:`LoadedEnsemble` whose per-node a
 made from the lookups when first read. The lookups are those
 :meth:`TreeEnsemble.compiled_trees` would build from the per-node arrays (the same
 numbers), so predictions are the same bit for bit.
+
+Writing, :func:`compact_arrays` makes the arrays :meth:`TreeEnsemble.to_arrays` makes (the
+format's definition; tested equal) with a compiled depth-first walk, and keeps the last
+structures written, so that a frozen fit's checkpoints and model, which share one
+structure between builds, write only their leaf values anew.
 """
 
 from __future__ import annotations
@@ -107,7 +113,7 @@ class LoadedEnsemble(TreeEnsemble):
     feature = _PerNode()
     threshold = _PerNode()
 
-    def __init__(self, structure: _Structure, value: np.ndarray, roots: np.ndarray, n_features: int) -> None:  # noqa: D107
+    def __init__(self, structure: _Structure, value: np.ndarray, roots: np.ndarray, n_features: int) -> None:
         self._structure = structure
         self.value, self.roots = value, roots
         self._trees = structure.trees  # TreeEnsemble.compiled_trees' cache: the lookups are built
