@@ -169,9 +169,11 @@ def fit_run(
     resume : bool
         Continue an interrupted run of a resumable algorithm from its last checkpoint.
     on_iteration : callable, optional
-        Called with each iteration's history row (resumable algorithms).
+        Called with each iteration's history row (resumable algorithms; in process the
+        fit is deferred: the estimator's ``q_function_`` is set when the fit ends).
     checkpoint_every : int
-        Checkpoint every this many iterations.
+        Checkpoint at most every this many iterations (paced by cost:
+        :data:`CHECKPOINT_CPU_SHARE`).
     engine : optional
         Where a resumable algorithm's iterations run: None, in this process; an engine
         such as :class:`offline_adp.engines.dask.DaskFit` (FQI/FQE with LightGBM on a Dask
