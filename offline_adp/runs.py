@@ -57,9 +57,10 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
 CHECKPOINT_CPU_SHARE = 0.05
 
 
-def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]], newer_than: int) -> int:
-    """Checkpoint ``est`` unless the checkpoint has as many iterations; returns the iterations now checkpointed."""
-    return write_checkpoint(run / RunDirectory.CHECKPOINT, est, rows, newer_than) or newer_than
+def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> int:
+    """Checkpoint ``est`` (the Q it has at hand, with its history rows); returns the
+    iterations written (0: none)."""
+    return write_checkpoint(run / RunDirectory.CHECKPOINT, est, rows)
 
 
 def _read_checkpoint(run: Path) -> dict[str, Any] | None:
@@ -90,22 +91,23 @@ def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every
             if len(rows) % checkpoint_every == 0 and \
                     time.process_time() - last_write >= write_cost / CHECKPOINT_CPU_SHARE:
                 w0 = time.process_time()
-                written = _write_checkpoint(rd.path, est, rows, written)
+                written = _write_checkpoint(rd.path, est, rows) or written
                 last_write = time.process_time()
                 write_cost = last_write - w0
             if on_iteration:
                 on_iteration(row)
     except KeyboardInterrupt:  # Ctrl-C: keep the finished iterations the fit has a Q of (between two
         # iterations: all of them; inside one, a deferred fit's last result: maybe fewer than checkpointed)
-        if written != len(rows):
-            _write_checkpoint(rd.path, est, rows, written)
+        at_hand = est.checkpoint_iterations() if hasattr(est, "checkpoint_iterations") else len(rows)
+        if at_hand > written:  # (never an older Q over a newer checkpoint)
+            _write_checkpoint(rd.path, est, rows)
         raise
     finally:  # an engine releases its workers' data now, not when the generator is collected
         close = getattr(iterations, "close", None)
         if close is not None:
             close()
     if written != len(rows):  # the last iteration is always checkpointed before model/ is written
-        _write_checkpoint(rd.path, est, rows, written)
+        _write_checkpoint(rd.path, est, rows)
 
 
 def _save_model(entry: AlgorithmEntry, est: Any, rd: RunDirectory, fingerprint: str) -> None:

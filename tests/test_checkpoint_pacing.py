@@ -39,8 +39,8 @@ def _writes(monkeypatch) -> list[int]:
     seen: list[int] = []
     real = runs.write_checkpoint
 
-    def counting(directory, est, rows, newer_than=0):
-        n = real(directory, est, rows, newer_than)
+    def counting(directory, est, rows):
+        n = real(directory, est, rows)
         if n:
             seen.append(n)
         return n
@@ -64,8 +64,8 @@ def test_checkpoints_are_stored_uncompressed_and_the_last_shares_the_model_file(
     names = []
     real = runs.write_checkpoint
 
-    def look(directory, est, rows, newer_than=0):
-        n = real(directory, est, rows, newer_than)
+    def look(directory, est, rows):
+        n = real(directory, est, rows)
         with zipfile.ZipFile(directory / "q.npz") as z:
             names.append({i.compress_type for i in z.infolist()})
         return n
@@ -79,16 +79,25 @@ def test_checkpoints_are_stored_uncompressed_and_the_last_shares_the_model_file(
         assert zipfile.ZIP_DEFLATED in {i.compress_type for i in z.infolist()}  # the model's arrays compressed
 
 
+@pytest.mark.parametrize("resumed", [False, True])
 @pytest.mark.parametrize("mode", ["frozen", "refit"])
-def test_stopped_inside_an_iteration_the_checkpoint_is_consistent_and_resumes(tmp_path, pt_dir, obs, monkeypatch, mode):
+def test_stopped_inside_an_iteration_the_checkpoint_is_consistent_and_resumes(tmp_path, pt_dir, obs, monkeypatch, mode,
+                                                                              resumed):
     """Ctrl-C inside iteration 6's LEARN step (the deferred fit has no Q of iteration 5 at
-    hand then): the checkpoint holds some earlier iteration, its Q and history agree, and
-    --resume reaches the uninterrupted fit's Q and history bit for bit."""
+    hand then; a resumed one has the Q it resumed from, older than its last checkpoint):
+    the checkpoint of iteration 5 stays, its Q and history agree, and --resume reaches the
+    uninterrupted fit's Q and history bit for bit."""
     from offline_adp.learn import Learner
 
     params = {**PARAMS, "mode": mode}
     ref = fit_run(pt_dir, tmp_path / "ref", params=params)
     monkeypatch.setattr(runs, "CHECKPOINT_CPU_SHARE", 1e12)  # a checkpoint at every iteration before the stop
+    if resumed:  # stopped after iteration 2 first, then resumed from it
+        def stop(row):
+            if row["iteration"] == 2:
+                raise KeyboardInterrupt
+        with pytest.raises(KeyboardInterrupt):
+            fit_run(pt_dir, tmp_path / "run", params=params, on_iteration=stop)
 
     def patch(cls):
         real = cls.fit
@@ -103,7 +112,7 @@ def test_stopped_inside_an_iteration_the_checkpoint_is_consistent_and_resumes(tm
         if "fit" in vars(cls):
             patch(cls)
     with pytest.raises(KeyboardInterrupt):
-        fit_run(pt_dir, tmp_path / "run", params=params)
+        fit_run(pt_dir, tmp_path / "run", params=params, resume=resumed)
     monkeypatch.undo()
     state = read_checkpoint(tmp_path / "run" / "checkpoint")  # consistent, or this raises
     k = json.loads((tmp_path / "run" / "checkpoint" / "q.json").read_text())["iteration"]

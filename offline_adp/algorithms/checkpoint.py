@@ -46,7 +46,7 @@ OPTIONAL_NUMERIC_COLUMNS = ("structure", "structure_trees", "structure_screen")
 FINITE_COLUMNS = ("sup_dq", "max_abs_q")
 
 
-def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]], newer_than: int = 0) -> int:
+def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]]) -> int:
     """Write the fitted-Q estimator ``est``'s current Q and the history ``rows`` as the
     checkpoint ``directory``, replacing it atomically; returns the iterations written
     (0: nothing to write, the checkpoint left as it was).
@@ -62,8 +62,6 @@ def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[s
         ``q_function_`` (infinite horizon) or ``q_functions_`` (finite) of all ``rows``.
     rows : list of dict
         The history rows of the completed iterations.
-    newer_than : int
-        Write only a checkpoint of more iterations than this (the one on disk).
 
     The arrays are stored uncompressed (written at every paced checkpoint, read only to
     resume); :func:`share_with_model` links the last one to the model's compressed copy.
@@ -76,12 +74,10 @@ def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[s
     hook = getattr(est, "checkpoint_q", None)
     if hook is not None:
         state = hook()
-        if state is None or state[1] <= newer_than:
+        if state is None or state[1] == 0:
             return 0
         q, n = state
     else:
-        if len(rows) <= newer_than:
-            return 0
         q, n = (est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))), len(rows)
     with RunDirectory(d.parent).subdirectory(d.name) as tmp:
         save_q(q, tmp, extra={"iteration": n}, compress=False)

@@ -254,6 +254,11 @@ class FittedQEstimator(CheckedEstimator):
         """``q_function_`` (``q_functions_``) is now the result of ``iterations`` iterations."""
         self.__dict__["_result_iterations"] = iterations
 
+    def checkpoint_iterations(self) -> int:
+        """How many iterations :meth:`checkpoint_q` would write (0: none), without taking the Q."""
+        waiting = self.__dict__.get("_waiting")
+        return waiting[0] if waiting is not None else (self.__dict__.get("_result_iterations") or 0)
+
     def checkpoint_q(self) -> tuple[QFunction, int] | None:
         """What a checkpoint writes: the Q of the latest iteration at hand and how many
         iterations it is the result of (None: no iteration yet). While the fit waits at an
