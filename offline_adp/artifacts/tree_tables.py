@@ -140,16 +140,17 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     """The compact-layout ensemble under ``prefix`` (structure under ``structure_prefix``
     when shared), every member checked as :func:`~offline_adp.artifacts.checks.check_compact_tree_arrays`
     checks it: a :class:`LoadedEnsemble` with its lookups built where the compiled lookups
-    run (numba), else a :class:`TreeEnsemble` of per-node arrays (scikit-learn's trees are
-    then rebuilt from them on first use)."""
+    run (numba; each tree decoded by a compiled pass, :func:`_decode_tree`), else a
+    :class:`TreeEnsemble` of per-node arrays (:func:`preorder_children`; scikit-learn's
+    trees are then rebuilt from them on first use)."""
     sp = prefix if structure_prefix is None else structure_prefix
     is_leaf, roots, feature, threshold, values = C.compact_tree_members(arrays, prefix, where, n_features, structure_prefix)
     n = len(is_leaf)
-    splits, right = preorder_children(is_leaf)
     value = np.zeros(n)
     value[is_leaf] = values
     width = int(feature.max()) + 1 if len(feature) else 0
     if not builder.available():  # per-node arrays for scikit-learn's trees (or the numpy traversal)
+        splits, right = preorder_children(is_leaf)
         left_g, right_g = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
         left_g[splits], right_g[splits] = splits + 1, right
         f, t = np.full(n, -2, np.int64), np.full(n, -2.0)
@@ -158,19 +159,63 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
         return TreeEnsemble(left_g, right_g, f, t, value, roots)
     thr = np.asarray(threshold, dtype=np.float64)  # CompactTree compares with its float32 floor: a stored float32 itself
     bounds = np.r_[roots, n]
-    cut = np.searchsorted(splits, bounds)  # tree m's splits: splits[cut[m]:cut[m + 1]]
+    first_split = np.r_[0, np.cumsum(np.diff(bounds) - np.add.reduceat(is_leaf, roots, dtype=np.int64))]
+    leaf8, decode = is_leaf.view(np.uint8), _decoder()
     trees = []
-    for m in range(len(roots)):  # tree by tree (vectorised within each)
-        lo, hi, a, b = int(bounds[m]), int(bounds[m + 1]), int(cut[m]), int(cut[m + 1])
-        s, r = splits[a:b] - lo, right[a:b] - lo
-        if len(s) and (np.any(r <= s + 1) or int(r.max()) >= hi - lo):  # the lookup reads children unchecked
-            raise ArtifactError(f"{where}: {sp}leaf_bits: tree {m}: a right child outside its split's tree")
-        left_l, right_l = np.full(hi - lo, -1, np.int32), np.full(hi - lo, -1, np.int32)
-        left_l[s], right_l[s] = s + 1, r
-        f_l, t_l = np.full(hi - lo, -2, np.int32), np.full(hi - lo, -2.0)
-        f_l[s], t_l[s] = feature[a:b], thr[a:b]
+    for m in range(len(roots)):  # tree by tree, each in one compiled pass
+        lo, hi, a, b = int(bounds[m]), int(bounds[m + 1]), int(first_split[m]), int(first_split[m + 1])
+        left_l, right_l, f_l = np.empty(hi - lo, np.int32), np.empty(hi - lo, np.int32), np.empty(hi - lo, np.int32)
+        t_l = np.empty(hi - lo)
+        if not decode(leaf8[lo:hi], feature[a:b], thr[a:b], left_l, right_l, f_l, t_l, np.empty(hi - lo + 1, np.int64)):
+            raise ArtifactError(f"{where}: {sp}leaf_bits: tree {m} is not a binary tree in depth-first order")
         trees.append(CompactTree(left_l, right_l, f_l, t_l, value[lo:hi]))
     return LoadedEnsemble(_Structure(trees), value, roots, width)
+
+
+def _decoder() -> Any:
+    global _DECODE
+    if _DECODE is None:
+        import numba
+
+        _DECODE = numba.njit(cache=True, nogil=True)(_decode_tree)
+    return _DECODE
+
+
+_DECODE: Any = None
+
+
+def _decode_tree(is_leaf: Any, feature: Any, threshold: Any, left: Any, right: Any, feat: Any, thr: Any,
+                 stack: Any) -> bool:
+    """One tree's lookup arrays (local node ids, leaves: children -1, feature -2, threshold
+    -2.0) from its leaf flags in depth-first order and its splits' features and
+    thresholds, in one pass: a split's left child is the next node; after a leaf, the next
+    node is the right child of the latest split still without one. False unless the
+    flags are one full binary tree and there is one feature and threshold per split
+    (then every child is inside the tree and after its parent)."""
+    n = len(is_leaf)
+    top = -1
+    s = 0
+    for j in range(n):
+        if j > 0 and is_leaf[j - 1]:  # the right child of the latest split still waiting for one
+            if top < 0:
+                return False
+            right[stack[top]] = j
+            top -= 1
+        if is_leaf[j]:
+            left[j] = -1
+            right[j] = -1
+            feat[j] = -2
+            thr[j] = -2.0
+        else:
+            if s >= len(feature) or j + 1 >= n:
+                return False
+            left[j] = j + 1
+            feat[j] = feature[s]
+            thr[j] = threshold[s]
+            s += 1
+            top += 1
+            stack[top] = j
+    return top == -1 and s == len(feature) and n > 0 and is_leaf[n - 1] == 1
 
 
 def load_ensemble(arrays: Any, prefix: str, where: str, n_features: int | None = None) -> TreeEnsemble:
@@ -221,7 +266,7 @@ def compact_arrays(ens: TreeEnsemble, prefix: str = "", structure: bool = True) 
     if hit is None or not hit.of(ens):
         hit = _structure_members(ens)
         if hit is None:  # not trees each spanning its range: stored node by node, as to_arrays does
-            return ens.to_arrays(prefix, structure=structure)
+            return ens.to_arrays(prefix, "nodes")
         _WRITTEN[id(left)] = hit
         while len(_WRITTEN) > WRITTEN_KEPT:
             _WRITTEN.popitem(last=False)
@@ -286,7 +331,8 @@ def preorder_nodes(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np
         ok = _walk()(left, right, roots, out, np.zeros(n, np.uint8), np.empty(n + 1, np.int64))
         return out if ok else None
     pos = _numpy_preorder_positions(left, right, roots)
-    if int(pos.min()) < 0 or np.bincount(pos, minlength=n).max() != 1 or not np.array_equal(pos[roots], roots):
+    if int(pos.min()) < 0 or int(pos.max()) >= n or np.bincount(pos, minlength=n).max() != 1 \
+            or not np.array_equal(pos[roots], roots):  # (nodes no walk reached hold what np.empty held)
         return None
     out = np.empty(n, np.int64)
     out[pos] = np.arange(n)
