@@ -14,12 +14,12 @@ from pathlib import Path
 from typing import Any
 
 from offline_adp.data.files import read_json_file
-from offline_adp.data.io import read_info
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,
     OutputExistsError,
     RunDirectoryError,
+    SchemaError,
 )
 from offline_adp.progress import get_logger
 
@@ -102,7 +102,8 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
                                                      where=str(model / "signature.json"))
     else:
         ds = run_dataset(run, dataset)
-        info = DatasetInfo.from_dict(read_info(ds), where=str(ds / "meta" / "info.json"))
+        info_json = ds / "meta" / "info.json"  # found by run_dataset; read without the dataset readers (pandas)
+        info = DatasetInfo.from_dict(read_json_file(info_json, error=SchemaError), where=str(info_json))
         policy.signature = PolicySignature.from_info(info)
     if len(policy.signature.action_table) != policy.n_actions:
         raise IncompatibleError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "

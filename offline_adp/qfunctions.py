@@ -16,8 +16,8 @@ batched call. Representations:
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
 import weakref
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 

@@ -3,7 +3,7 @@
 A fit run directory (:class:`~offline_adp.data.rundir.RunDirectory`) holds::
 
     RUN_DIR/config.json        the algorithm and its checked parameters
-    RUN_DIR/checkpoint/        the last completed iteration (Q-function, history), replaced atomically
+    RUN_DIR/checkpoint/        the last checkpointed iteration (Q-function, history), replaced atomically
     RUN_DIR/model/             the fitted artifacts, params.json, history.csv (written last, as a whole)
     RUN_DIR/run.json           dataset path and fingerprint, status, wall and CPU seconds, versions
 
@@ -11,8 +11,9 @@ Every algorithm of the registry (:mod:`offline_adp.algorithms.registry`) is fitt
 :func:`fit_run` into this one layout. The directory is locked while it is written, so a
 second ``fit`` into the same ``--out`` fails at once; ``config.json`` is written before
 the work starts and ``model/`` only at the end, so the two can never disagree.
-Resumable algorithms (FQI) checkpoint every iteration: after Ctrl-C or a crash,
-``--resume`` continues from the last completed iteration.
+Resumable algorithms (FQI) checkpoint as they iterate (the first and last iteration, and
+between them as often as costs at most :data:`CHECKPOINT_CPU_SHARE` of the fit's CPU
+time); after Ctrl-C or a crash, ``--resume`` continues from the last checkpoint.
 """
 
 from __future__ import annotations
@@ -51,8 +52,15 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
     return params
 
 
-def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> None:
-    write_checkpoint(run / RunDirectory.CHECKPOINT, est, rows)
+#: A fit's checkpoints may cost at most this share of its CPU time: after a write that took
+#: ``c`` CPU seconds, the next one waits until the iterations since took ``c / share``.
+CHECKPOINT_CPU_SHARE = 0.05
+
+
+def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> int:
+    """Checkpoint ``est`` (the Q it has at hand, with its history rows); returns the
+    iterations written (0: none)."""
+    return write_checkpoint(run / RunDirectory.CHECKPOINT, est, rows)
 
 
 def _read_checkpoint(run: Path) -> dict[str, Any] | None:
@@ -63,25 +71,35 @@ def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every
              on_iteration: Callable[[dict[str, Any]], None] | None, engine: Any = None,
              dataset_dir: str | PathLike[str] | None = None) -> None:
     """Run a resumable algorithm's ``fit_iter`` (in process, or ``engine.fit_iter`` on the
-    engine's workers from ``dataset_dir``), checkpointing every ``checkpoint_every`` iterations."""
+    engine's workers from ``dataset_dir``), checkpointing every ``checkpoint_every``
+    iterations at most, paced by their cost (:data:`CHECKPOINT_CPU_SHARE`); the first
+    and the last iteration always. In process the fit is deferred (its Q is taken from
+    the learner only when a checkpoint is written, :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.checkpoint_q`)."""
     state = _read_checkpoint(rd.path) if resume else None
     rows: list[dict[str, Any]] = list(state["history"]) if state else []
-    written, last_write, write_cost = len(rows), time.perf_counter(), 0.0
-    iterations = est.fit_iter(ds, resume=state) if engine is None else \
-        engine.fit_iter(est, dataset_dir, state, checkpoint_dir=rd.file(rd.CHECKPOINT))
+    written, last_write, write_cost = len(rows), time.process_time(), 0.0
+    if engine is not None:
+        iterations = engine.fit_iter(est, dataset_dir, state, checkpoint_dir=rd.file(rd.CHECKPOINT))
+    else:
+        iterations = est.fit_iter(ds, resume=state, deferred=True) if hasattr(est, "checkpoint_q") else \
+            est.fit_iter(ds, resume=state)
     try:
         for row in iterations:
             rows.append(row)
-            # every mode checkpoints; when writing costs more than a tenth of the iterations since
-            # the last write (a frozen structure is large, its iterations cheap), less often
-            if len(rows) % checkpoint_every == 0 and time.perf_counter() - last_write >= 10 * write_cost:
-                w0 = time.perf_counter()
-                _write_checkpoint(rd.path, est, rows)
-                written, last_write, write_cost = len(rows), time.perf_counter(), time.perf_counter() - w0
+            # every mode checkpoints; when writing costs more than CHECKPOINT_CPU_SHARE of the
+            # iterations since the last write (a frozen structure is large, its iterations cheap), less often
+            if len(rows) % checkpoint_every == 0 and \
+                    time.process_time() - last_write >= write_cost / CHECKPOINT_CPU_SHARE:
+                w0 = time.process_time()
+                written = _write_checkpoint(rd.path, est, rows) or written
+                last_write = time.process_time()
+                write_cost = last_write - w0
             if on_iteration:
                 on_iteration(row)
-    except KeyboardInterrupt:  # Ctrl-C: keep every finished iteration (the pacing may have skipped the last)
-        if written != len(rows):
+    except KeyboardInterrupt:  # Ctrl-C: keep the finished iterations the fit has a Q of (between two
+        # iterations: all of them; inside one, a deferred fit's last result: maybe fewer than checkpointed)
+        at_hand = est.checkpoint_iterations() if hasattr(est, "checkpoint_iterations") else len(rows)
+        if at_hand > written:  # (never an older Q over a newer checkpoint)
             _write_checkpoint(rd.path, est, rows)
         raise
     finally:  # an engine releases its workers' data now, not when the generator is collected
@@ -153,9 +171,11 @@ def fit_run(
     resume : bool
         Continue an interrupted run of a resumable algorithm from its last checkpoint.
     on_iteration : callable, optional
-        Called with each iteration's history row (resumable algorithms).
+        Called with each iteration's history row (resumable algorithms; in process the
+        fit is deferred: the estimator's ``q_function_`` is set when the fit ends).
     checkpoint_every : int
-        Checkpoint every this many iterations.
+        Checkpoint at most every this many iterations (paced by cost:
+        :data:`CHECKPOINT_CPU_SHARE`).
     engine : optional
         Where a resumable algorithm's iterations run: None, in this process; an engine
         such as :class:`offline_adp.engines.dask.DaskFit` (FQI/FQE with LightGBM on a Dask

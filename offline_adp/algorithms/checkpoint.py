@@ -9,9 +9,10 @@ A checkpoint directory holds the last completed iteration of a resumable fit::
 :func:`write_checkpoint` replaces the directory as a whole (a temporary directory renamed
 over it, a planted symbolic link replaced, never followed), so a crash leaves the
 previous checkpoint. Once the run's ``model/`` is written, :func:`share_with_model`
-makes the checkpoint's ``q.npz`` a hard link to the model's when the two hold the same
-arrays (an infinite-horizon fit saves one Q in both): a finished run keeps one copy on
-disk, and the checkpoint still reads on its own (resume; ``model/`` removed or replaced).
+makes the checkpoint's ``q.npz`` (stored uncompressed) a hard link to the model's
+(compressed) when the two hold the same arrays (an infinite-horizon fit saves one Q in
+both): a finished run keeps one copy on disk, and the checkpoint still reads on its own
+(resume; ``model/`` removed or replaced).
 :func:`read_checkpoint` reads an untrusted directory: the Q-function
 through the checked artifact reader, the history through the checked table reader, then
 its size, columns, types and agreement with the Q-function; anything else is an
@@ -45,28 +46,43 @@ OPTIONAL_NUMERIC_COLUMNS = ("structure", "structure_trees", "structure_screen")
 FINITE_COLUMNS = ("sup_dq", "max_abs_q")
 
 
-def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]]) -> None:
+def write_checkpoint(directory: str | PathLike[str], est: Any, rows: list[dict[str, Any]]) -> int:
     """Write the fitted-Q estimator ``est``'s current Q and the history ``rows`` as the
-    checkpoint ``directory``, replacing it atomically.
+    checkpoint ``directory``, replacing it atomically; returns the iterations written
+    (0: nothing to write, the checkpoint left as it was).
 
     Parameters
     ----------
     directory : path-like
         The checkpoint directory (e.g. ``RUN/checkpoint``).
     est : FittedQIteration or FittedQEvaluation
-        Mid-fit: ``q_function_`` (infinite horizon) or ``q_functions_`` (finite) set.
+        Mid-fit. Its :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.checkpoint_q`
+        says which Q and how many of ``rows`` go together (a fit stopped inside an
+        iteration: the rows of the iterations before); an estimator without it has
+        ``q_function_`` (infinite horizon) or ``q_functions_`` (finite) of all ``rows``.
     rows : list of dict
         The history rows of the completed iterations.
+
+    The arrays are stored uncompressed (written at every paced checkpoint, read only to
+    resume); :func:`share_with_model` links the last one to the model's compressed copy.
     """
     from offline_adp.artifacts import save_q
     from offline_adp.data.rundir import RunDirectory
     from offline_adp.qfunctions import TimeIndexedQ
 
     d = Path(directory)
-    q: Any = est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))
+    hook = getattr(est, "checkpoint_q", None)
+    if hook is not None:
+        state = hook()
+        if state is None or state[1] == 0:
+            return 0
+        q, n = state
+    else:
+        q, n = (est.q_function_ if est.horizon_ is None else TimeIndexedQ(list(reversed(est.q_functions_)))), len(rows)
     with RunDirectory(d.parent).subdirectory(d.name) as tmp:
-        save_q(q, tmp, extra={"iteration": len(rows)})
-        pd.DataFrame(rows).to_csv(tmp / HISTORY, index=False)
+        save_q(q, tmp, extra={"iteration": n}, compress=False)
+        pd.DataFrame(rows[:n]).to_csv(tmp / HISTORY, index=False)
+    return n
 
 
 def share_with_model(directory: str | PathLike[str], model: str | PathLike[str]) -> bool:

@@ -188,6 +188,7 @@ class FittedQEstimator(CheckedEstimator):
         self.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
         rows: list[dict[str, Any]] = []
         self._start_history(rows)
+        self.__dict__["_waiting"] = self.__dict__["_result_iterations"] = None  # checkpoint_q: nothing yet
         self.diverged_, self.divergence_message_ = False, None
         self.q_function_ = None
         qs: list[QFunction] = []
@@ -207,6 +208,7 @@ class FittedQEstimator(CheckedEstimator):
                 if msg:
                     self.diverged_, self.divergence_message_ = True, msg
             self._set_result(learner, qs)
+            self._result_at(len(rows))
         done = len(rows)
         if not self._finished(rows, total):
             iterations = ((k, (self.horizon_ - k) if finite else None) for k in range(done + 1, total + 1))
@@ -221,18 +223,22 @@ class FittedQEstimator(CheckedEstimator):
                     qs.append(learner.snapshot())
                 if finite or not deferred:
                     self._set_result(learner, qs)
+                    self._result_at(len(rows))
                 if not (self.on_divergence == "ignore" or self.diverged_):
                     msg = monitor.check(rows)
                     if msg:
                         self.diverged_, self.divergence_message_ = True, msg
                         action = "stopping (on_divergence='stop')" if self.on_divergence == "stop" else "continuing (on_divergence='warn')"
                         warnings.warn(f"{type(self).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
+                self.__dict__["_waiting"] = (len(rows), learner)  # Q_k is at hand while the caller has row k
                 yield rows[-1]
+                self.__dict__["_waiting"] = None
                 if self._finished(rows, total):
                     break
                 t0, c0 = time.perf_counter(), time.process_time()
         if rows and deferred:
             self._set_result(learner, qs)
+            self._result_at(len(rows))
         conv = self._converged(rows)
         frozen = self._bounded()
         self.verdict_, self.verdict_message_ = convergence_verdict(
@@ -243,6 +249,33 @@ class FittedQEstimator(CheckedEstimator):
         if rows:
             rows[-1]["verdict"] = self.verdict_
             self._history_changed()
+
+    # ------------------------------------------------------------------ checkpoint hooks
+    def _result_at(self, iterations: int) -> None:
+        """``q_function_`` (``q_functions_``) is now the result of ``iterations`` iterations."""
+        self.__dict__["_result_iterations"] = iterations
+
+    def checkpoint_iterations(self) -> int:
+        """How many iterations :meth:`checkpoint_q` would write (0: none), without taking the Q."""
+        waiting = self.__dict__.get("_waiting")
+        return waiting[0] if waiting is not None else (self.__dict__.get("_result_iterations") or 0)
+
+    def checkpoint_q(self) -> tuple[QFunction, int] | None:
+        """What a checkpoint writes: the Q of the latest iteration at hand and how many
+        iterations it is the result of (None: no iteration yet). While the fit waits at an
+        iteration's row (between ``fit_iter``'s yields) that is the iteration itself, a
+        deferred fit's Q taken from the learner now; otherwise (a fit stopped inside an
+        iteration) the last result set, which may be some iterations back. A finite
+        horizon's per-step Q-functions come in the order they were fitted."""
+        waiting = self.__dict__.get("_waiting")
+        done = self.__dict__.get("_result_iterations")
+        if waiting is not None and waiting[0] != done and self.horizon_ is None:
+            return waiting[1].snapshot(), waiting[0]
+        if done is None:
+            return None
+        if self.horizon_ is None:
+            return self.q_function_, done
+        return TimeIndexedQ(list(reversed(self.q_functions_))), done
 
     def _bounded(self) -> bool:
         """Whether the contraction bound decides convergence: a frozen structure, gamma < 1 and

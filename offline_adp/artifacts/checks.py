@@ -179,7 +179,7 @@ _KIND_NAMES = {"b": "bool", "i": "int", "u": "uint", "f": "float", "U": "str", "
 
 
 # ----------------------------------------------------------------------------- trees
-def _tree_structure(left: np.ndarray, right: np.ndarray, roots: np.ndarray, where: str, member: str) -> None:
+def tree_structure(left: np.ndarray, right: np.ndarray, roots: np.ndarray, where: str, member: str) -> None:
     """Children after parents, inside their tree, each non-root node reached once."""
     n = len(left)
     if len(roots) == 0:
@@ -253,8 +253,26 @@ def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: 
     they give are inside their tree and after their parent, every node reached once);
     one feature and threshold per split, one value per leaf; as :func:`check_tree_arrays`
     for the rest. ``structure_prefix``: where the structure is stored when another
-    ensemble's (shared structure), else ``prefix``. Returns the per-node arrays."""
-    from offline_adp.trees.ensemble import expand_compact, preorder_valid
+    ensemble's (shared structure), else ``prefix``. Returns the per-node arrays
+    (:mod:`offline_adp.artifacts.tree_tables` decodes the same members, checked here by
+    :func:`compact_tree_members`, into per-tree lookups without them)."""
+    from offline_adp.trees.ensemble import expand_compact
+
+    is_leaf, roots, feature, threshold, values = compact_tree_members(arrays, prefix, where, n_features, structure_prefix)
+    sp = prefix if structure_prefix is None else structure_prefix
+    out = expand_compact(is_leaf, roots, feature.astype(np.int64), threshold.astype(np.float64), values)
+    tree_structure(out["left"], out["right"], out["roots"], where, sp)  # by construction; checked all the same
+    return out
+
+
+def compact_tree_members(arrays: Any, prefix: str, where: str, n_features: int | None = None,
+                         structure_prefix: str | None = None) -> tuple[np.ndarray, ...]:
+    """The checked members of a compact-layout ensemble (see
+    :func:`check_compact_tree_arrays`): ``(is_leaf, roots, feature, threshold, values)``,
+    the leaf flags in depth-first order (bool, one a node; binary trees at ``roots``,
+    int64), the splits' features (as stored: unsigned or >= 0, below ``n_features``) and
+    finite thresholds (float32 or float64, as stored), the leaves' finite values (float64)."""
+    from offline_adp.trees.ensemble import preorder_valid
 
     sp = prefix if structure_prefix is None else structure_prefix
     bits = array(arrays, sp + "leaf_bits", where, kinds="u", ndim=1)
@@ -273,7 +291,7 @@ def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: 
     flags = np.unpackbits(bits)
     if flags[n:].any():
         raise _fail(where, sp + "leaf_bits", "padding bits after the last node are set")
-    is_leaf = flags[:n].astype(bool)
+    is_leaf = flags[:n].view(bool)  # 0/1 bytes: the flags as booleans, not copied
     if int(is_leaf.sum()) != len(values):
         raise _fail(where, sp + "leaf_bits", f"{int(is_leaf.sum())} leaves flagged, {len(values)} leaf values stored")
     if len(roots) == 0 or len(roots) > n or roots[0] != 0 or np.any(np.diff(roots) <= 0) or roots[-1] >= n:
@@ -290,9 +308,7 @@ def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: 
             raise _fail(where, sp + "feature", f"split feature {top} is implausibly large")
     if not np.all(np.isfinite(threshold)):
         raise _fail(where, sp + "threshold", "non-finite split threshold")
-    out = expand_compact(is_leaf, roots, feature.astype(np.int64), threshold.astype(np.float64), values)
-    _tree_structure(out["left"], out["right"], out["roots"], where, sp)  # by construction; checked all the same
-    return out
+    return is_leaf, roots, feature, threshold, values
 
 
 def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | None = None,
@@ -332,7 +348,7 @@ def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | No
     out = {k: v.astype(np.int64) if v.dtype.kind in "iu" else v.astype(np.float64) for k, v in a.items()}
     if a["left"].dtype.kind == "u" or a["right"].dtype.kind == "u":
         raise _fail(where, prefix + "left", "child indices must be signed (leaves are -1)")
-    _tree_structure(out["left"], out["right"], out["roots"], where, prefix)
+    tree_structure(out["left"], out["right"], out["roots"], where, prefix)
     inner = out["left"] >= 0
     f = out["feature"][inner]
     if len(f) and f.min() < 0:
@@ -473,4 +489,4 @@ def check_int(value: Any, where: str, member: str, lo: int = 0, hi: int = MAX_NO
     return value
 
 
-__all__ = ["MAX_NODES_PER_FILE_BYTE", "check_node_budget", "MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]
+__all__ = ["MAX_NODES_PER_FILE_BYTE", "check_node_budget", "compact_tree_members", "tree_structure", "MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]

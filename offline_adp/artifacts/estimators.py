@@ -13,6 +13,12 @@ from typing import Any
 import numpy as np
 
 import offline_adp.artifacts.checks as C
+from offline_adp.artifacts.tree_tables import (
+    LoadedEnsemble,
+    compact_arrays,
+    load_compact_ensemble,
+    load_ensemble,
+)
 from offline_adp.errors import ArtifactError
 from offline_adp.trees import TreeEnsemble
 
@@ -107,10 +113,10 @@ def _export_ensemble(ens: TreeEnsemble, arrays: dict[str, np.ndarray], key: str,
     spec: dict[str, Any] = {"kind": "tree_ensemble", "key": key, "n_features": width}
     seen = getattr(arrays, "structures", None)
     if seen is not None and id(ens.left) in seen and seen[id(ens.left)][0] is ens.left:
-        arrays.update(ens.to_arrays(f"{key}.", structure=False))
+        arrays.update(compact_arrays(ens, f"{key}.", structure=False))
         spec["structure"] = seen[id(ens.left)][1]
         return spec
-    a = ens.to_arrays(f"{key}.")
+    a = compact_arrays(ens, f"{key}.")
     arrays.update(a)
     if seen is not None and f"{key}.leaf_bits" in a:
         seen[id(ens.left)] = (ens.left, key)
@@ -199,26 +205,39 @@ class _TreeClassifier:
         return self.classes_[self.predict_proba(X).argmax(axis=1)]
 
 
-#: Structures checked while one artifact is read (by the opened file), for ensembles that share them.
-_CHECKED: weakref.WeakKeyDictionary[Any, dict[tuple[str, int | None], TreeEnsemble]] = weakref.WeakKeyDictionary()
+#: Structures checked while one artifact is read, by the opened file (id -> (weak reference, cache)),
+#: for ensembles that share them. (An opened .npz is a Mapping: not hashable, so no WeakKeyDictionary.)
+_CHECKED: dict[int, tuple[Any, dict[tuple[str, int | None], TreeEnsemble]]] = {}
+
+
+def _structures(arrays: Any) -> dict[tuple[str, int | None], TreeEnsemble]:
+    """The structures checked so far in the opened file ``arrays`` (an empty dict, kept
+    nowhere, for what cannot be weakly referenced, e.g. an in-memory dict)."""
+    key = id(arrays)
+    hit = _CHECKED.get(key)
+    if hit is not None and hit[0]() is arrays:
+        return hit[1]
+    try:
+        ref = weakref.ref(arrays, lambda _, key=key: _CHECKED.pop(key, None))
+    except TypeError:
+        return {}
+    _CHECKED[key] = (ref, {})
+    return _CHECKED[key][1]
 
 
 def _shared_structure(arrays: Any, key: str, structure: str, width: int | None, where: str) -> TreeEnsemble:
     """Ensemble ``key``'s leaf values on the structure stored under ``structure`` (checked
     once per file; the ensembles made from it share its compiled lookup)."""
-    try:
-        cache = _CHECKED.setdefault(arrays, {})
-    except TypeError:  # not weakly referable (an in-memory dict): no cache
-        cache = {}
+    cache = _structures(arrays)
     base = cache.get((structure, width))
     if base is None:
-        base = cache[(structure, width)] = TreeEnsemble(**C.check_compact_tree_arrays(arrays, f"{structure}.", where, width))
+        base = cache[(structure, width)] = load_compact_ensemble(arrays, f"{structure}.", where, width)
     values = C.check_leaf_values(arrays, f"{key}.", where)
-    leaves = base.left < 0
+    leaves = base.leaf_mask() if isinstance(base, LoadedEnsemble) else base.left < 0
     if len(values) != int(leaves.sum()):
         raise ArtifactError(f"{where}: {key}.value: {len(values)} leaf values for the {int(leaves.sum())} leaves of "
                             f"structure {structure}")
-    full = np.zeros(len(base.left))
+    full = np.zeros(len(base.value))
     full[leaves] = values
     return base.with_values(full)
 
@@ -238,16 +257,20 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
         shared = spec.get("structure")
         if shared is not None and (kind != "tree_ensemble" or not isinstance(shared, str)):
             raise ArtifactError(f"{where}: {key}.structure: a tree ensemble's shared structure is named by its key")
-        ens = _shared_structure(arrays, key, shared, width, where) if shared is not None else \
-            TreeEnsemble(**C.check_tree_arrays(arrays, f"{key}.", where, width))
+        if shared is not None:
+            ens = _shared_structure(arrays, key, shared, width, where)
+        else:
+            ens = load_ensemble(arrays, f"{key}.", where, width)
+            if kind == "tree_ensemble" and isinstance(ens, LoadedEnsemble):  # others may share its structure
+                _structures(arrays).setdefault((key, width), ens)
         ens.n_features_in_ = width  # type: ignore[attr-defined]
         if kind == "tree_ensemble":
             return ens
         cv = C.array(arrays, f"{key}.class_values", where, kinds="f", ndim=2)
         classes = C.array(arrays, f"{key}.classes", where, kinds="biufU", ndim=1)
-        if cv.shape != (len(ens.left), len(classes)) or len(classes) == 0 or not np.all(np.isfinite(cv)):
+        if cv.shape != (len(ens.value), len(classes)) or len(classes) == 0 or not np.all(np.isfinite(cv)):
             raise ArtifactError(f"{where}: {key}.class_values: shape {cv.shape} (or non-finite values) where "
-                                f"({len(ens.left)} nodes, {len(classes)} classes) is required")
+                                f"({len(ens.value)} nodes, {len(classes)} classes) is required")
         return _TreeClassifier(ens, cv, classes)
     if kind == "lightgbm":
         return _Booster(spec.get("model"), where)

@@ -138,8 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
         "a saved policy), api (approximate policy iteration), cpi (conservative policy iteration), psdp (policy "
         "search by dynamic programming; needs a simulator). Parameters come from --config, a TOML file whose "
         "[<algorithm>] table holds the estimator's parameters (api/cpi: an [<algorithm>.fqe] sub-table for the "
-        "evaluator; cpi/psdp: simulator = \"NAME\"; psdp: baseline_source, drop_features). fqi checkpoints every "
-        "iteration; after Ctrl-C or a crash, --resume continues from the last completed iteration.",
+        "evaluator; cpi/psdp: simulator = \"NAME\"; psdp: baseline_source, drop_features). fqi checkpoints as it "
+        "iterates (the first and last iteration, between them at most 5% of its CPU); after Ctrl-C or a crash, "
+        "--resume continues from the last checkpoint to the same result.",
         epilog="examples:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n"
         "  offline-adp fit data/pt --algorithm psdp --config psdp.toml --out runs/pt-psdp\n\n"
         "with fqi.toml:\n  [fqi]\n  gamma = 0.95\n  n_iterations = 50\n  regressor = \"extra_trees\"\n"
