@@ -214,8 +214,11 @@ def test_fitted_command_policy_rolls_out_in_path_tracking():
     sent: list[np.ndarray] = []
     res = rollout(model, est.policy_, 4, np.random.default_rng(0), horizon=10, on_step=lambda t, i, x, a, r: sent.append(a))
     assert all(a.ndim == 2 and a.shape[1] == 1 for a in sent) and np.isfinite(res.discounted_cost).all()
-    logged = ds.commands()[:, 0]
-    assert all(np.isin(a[:, 0], logged).all() for a in sent)  # greedy over logged commands, sent as they are
+    from offline_adp.algorithms.fqi_data import command_representatives
+
+    # greedy over logged commands and the log's representative commands, sent as they are
+    allowed = np.r_[ds.commands()[:, 0], command_representatives(ds.commands(), est.n_representatives)[:, 0]]
+    assert all(np.isin(a[:, 0], allowed).all() for a in sent)
 
 
 def test_make_env_of_a_command_mode_has_a_box_action_space():
