@@ -13,7 +13,9 @@ policy over episodes seeded 10_000 + i at gymnasium's time limit (20 episodes; P
 100, as ``benchmarks/continuous_commands.py``), with its standard error.
 
 The arms of one task run one after the other in the same session, ``--rounds`` times in
-turn (A B C, A B C, ...), so that load drifts reach every arm alike.
+turn (A B C, A B C, ...), so that load drifts reach every arm alike (``--once``: arms run in
+the first round only). At the end: a Markdown table of the means and the CPU ratios to
+``--reference`` (default ``fixed50``).
 
     nice -n 10 python benchmarks/fqi_auto_iterations.py [--tasks CartPole-v1 ...] \
         [--arm fixed50='{"n_iterations": 50}' --arm default='{}' ...] [--rounds 1] [--out DIR]
@@ -128,6 +130,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="data seed (the learner's random_state stays the default)")
     ap.add_argument("--transitions", type=int, default=50_000)
     ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--once", nargs="*", default=[], help="arms run in the first round only (e.g. a slow old default)")
+    ap.add_argument("--reference", default="fixed50", help="the arm the CPU ratios divide by")
     ap.add_argument("--out", default=None, help="where datasets and runs go (default: a temporary directory)")
     ap.add_argument("--json", default=None, help="append every fit's record here (JSON lines)")
     args = ap.parse_args()
@@ -142,21 +146,53 @@ def main() -> None:
     root.mkdir(parents=True, exist_ok=True)
     for source in {s for s, _ in arms.values()}:  # each tree's compiled kernels (cached on disk) are nobody's fit
         subprocess.run([sys.executable, "-c", WARM_UP], env=_env(source), cwd=root, check=True)
+    records = []
     for env in args.tasks:
         ds = collect(env, args.transitions, args.seed, root / "data" / f"{env}-s{args.seed}")
         for rnd in range(args.rounds):
             for arm, (source, params) in arms.items():
+                if rnd and arm in args.once:
+                    continue
                 run = root / "runs" / f"{env}-s{args.seed}-{arm}-r{rnd}"
                 fit = cli_fit(ds, run, params, source)
                 m, se = score(env, run, ds)
                 rec = {"task": env, "arm": arm, "round": rnd, "params": params, "source": source, "score": round(m, 2), "se": round(se, 2),
                        "process_cpu_s": round(fit["process_cpu_s"], 2), "fit_cpu_s": round(fit["fit_cpu_seconds"], 2),
                        "iterations": fit.get("iterations"), "builds": len(fit.get("structure_builds") or []),
+                       "inner_backups": _inner_backups(run),
                        "verdict": fit.get("verdict")}
                 print(json.dumps(rec), flush=True)
+                records.append(rec)
                 if args.json:
                     with open(args.json, "a") as fh:
                         fh.write(json.dumps(rec) + "\n")
+    print(table(records, args.reference))
+
+
+def _inner_backups(run: Path) -> int:
+    """The settling solver's backups of a run (its history's ``inner_backups``; 0 before it existed)."""
+    import pandas as pd
+
+    h = pd.read_csv(run / "model" / "history.csv")
+    return int(h["inner_backups"].fillna(0).sum()) if "inner_backups" in h else 0
+
+
+def table(records: list[dict], reference: str) -> str:
+    """Per task and arm: the score (mean over rounds), the CPU seconds (process, fit: means)
+    and their ratios to the reference arm's means, as a Markdown table."""
+    lines = ["| task | arm | score | process CPU-s | fit CPU-s | ratio to " + reference + " (process / fit) | iterations |",
+             "|---|---|---|---|---|---|---|"]
+    for env in dict.fromkeys(r["task"] for r in records):
+        ref = [r for r in records if r["task"] == env and r["arm"] == reference]
+        for arm in dict.fromkeys(r["arm"] for r in records if r["task"] == env):
+            rs = [r for r in records if r["task"] == env and r["arm"] == arm]
+            p, f = float(np.mean([r["process_cpu_s"] for r in rs])), float(np.mean([r["fit_cpu_s"] for r in rs]))
+            ratio = (f"{p / np.mean([r['process_cpu_s'] for r in ref]):.2f} / {f / np.mean([r['fit_cpu_s'] for r in ref]):.2f}"
+                     if ref else "-")
+            scores = " / ".join(f"{r['score']:g}" for r in rs)
+            lines.append(f"| {env} | {arm} | {np.mean([r['score'] for r in rs]):.1f} ({scores}) | {p:.1f} | {f:.1f} | "
+                         f"{ratio} | {'/'.join(str(r['iterations']) for r in rs)} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
