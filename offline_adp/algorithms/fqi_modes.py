@@ -11,7 +11,7 @@ The schedule of ``n_iterations="auto"`` (issue #44). Rebuilding a structure pays
 targets have moved enough to need other splits: fast at first (the ``k``-step values of
 small ``k`` change shape with every step), hardly at all once ``gamma^k`` is small. Builds
 at 1 and at ``L, L/4, L/16, ...`` (``L`` the largest power of two up to ``K_b / 4``, where
-``gamma^L`` is about ``0.05^(1/4) ~ 0.47``) follow that; the builds before the last grow a
+``gamma^L`` is 0.47-0.69) follow that; the builds before the last grow a
 fifth of the forest (``early_build_trees="auto"``), since only the last structure is kept,
 and its fixed point is then solved for (settled) instead of iterated towards in hundreds
 of plain backups. With a fixed count of iterations the schedule is as before: one build
