@@ -92,8 +92,8 @@ commands, n_candidates, n_representatives
     mode : {"refit", "auto", "frozen", "warm_start"}, default "refit"
         As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``).
     n_structures : int or None, default 4
-        As FittedQIteration's; **the default differs** (FittedQIteration: None, one build
-        per 12.5 iterations).
+        As FittedQIteration's; **the default differs** (FittedQIteration: None, builds at
+        1, 4, 16, 64 with ``n_iterations="auto"`` at gamma 0.99, one per 12.5 with a count).
     structure_max_samples : float, list of (float or None), "auto" or None, default None
         As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``, a
         bootstrap of 131,072 rows beyond that many; None: the regressor's own sampling,

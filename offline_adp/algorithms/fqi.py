@@ -119,13 +119,15 @@ class FittedQIteration(LearnModes, FittedQEstimator):
     n_iterations : int or "auto"
         K for the infinite horizon (ignored for finite horizons); every mode runs K
         iterations at most. ``"auto"`` (default): chosen by the discount
-        (:func:`~offline_adp.algorithms.fqi_monitor.auto_iterations`): the builds span the
-        ``K_b = ceil(log 0.05 / log gamma)`` iterations that damp the initial error to 5%
-        (59 at gamma 0.95, 299 at 0.99), then a frozen fit goes on in its final structure
-        until it has converged (below), up to ``4 K_b`` in all.
+        (:func:`~offline_adp.algorithms.fqi_monitor.auto_iterations`, ``K_b = ceil(log 0.05 /
+        log gamma)``: 59 at gamma 0.95, 299 at 0.99). A frozen fit builds its structures at
+        geometrically spaced iterations up to ``K_b / 4`` (``n_structures``), then solves its
+        final structure's fixed point (accelerated backups, :mod:`offline_adp.learn.settle`)
+        and stops on the first plain iteration that has converged (below), at ``4 K_b``
+        iterations at most; the other modes run ``K_b``.
     tol, rtol : float or None, float
         When a fit has converged, and stops early (never before the last scheduled
-        build, nor on an iteration that rebuilt a structure). In the frozen mode: when
+        build, nor on an iteration that rebuilt a structure or ran the settling solver). In the frozen mode: when
         ``gamma / (1 - gamma) * sup|Q_k - Q_{k-1}|`` over the data's pairs (how far the
         values can still be from the final structure's fixed point, at any input; see
         :mod:`~offline_adp.algorithms.fqi_monitor`) is at most ``tol`` if given, else
@@ -136,13 +138,12 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         scikit-learn tree ensemble such as the default extra-trees, the joint action
         encoding, no next-state noise), else ``refit``; the mode that ran is ``mode_``.
         ``refit``: the plain loop, any regressor, re-fitted every iteration.
-        ``frozen``: a scikit-learn tree ensemble's structure is built at ``n_structures``
-        evenly spaced iterations (and again after any build on constant targets), and the
-        iterations in between only re-average leaf values (Ernst et al. 2005, section 4.3).
-        Between builds it converges towards the fixed point of the averager its structure
-        defines, which is only as good as the structure, so the number of builds matters
-        (the default, one per 12.5 iterations, and its score and CPU against refit:
-        docs/fqi-modes.md).
+        ``frozen``: a scikit-learn tree ensemble's structure is built on a schedule
+        (``n_structures``; again after any build on constant targets), and the iterations
+        in between only re-average leaf values (Ernst et al. 2005, section 4.3). Between
+        builds it converges towards the fixed point of the averager its structure defines,
+        which is only as good as the structure, so the schedule matters (its score and CPU
+        against refit and against fixed counts: docs/fqi-modes.md).
         ``warm_start``: LightGBM, ``trees_per_iteration`` new trees per iteration boosted
         from the previous Q (joint encoding; with a non-LightGBM regressor it uses LightGBM
         with 63 leaves and learning rate 0.3, and says so in a warning). Boosting a few
@@ -151,9 +152,12 @@ class FittedQIteration(LearnModes, FittedQEstimator):
     trees_per_iteration : int
         For ``warm_start``.
     n_structures : int or None
-        For ``frozen``: scheduled structure builds over the K iterations; None: one per
-        12.5 iterations (``round(0.08 K)``, at least 2). Each build costs about one refit
-        iteration; an averaging iteration costs a few percent of one.
+        For ``frozen``: that many builds evenly spaced over the K iterations (``K_b`` for
+        ``"auto"``). None (default): with ``n_iterations="auto"`` builds at 1 and at
+        ``L, L/4, L/16, ...``, ``L`` the largest power of two up to ``K_b / 4`` (1, 4, 16, 64
+        at gamma 0.99; :func:`~offline_adp.algorithms.fqi_modes.geometric_builds`); with a
+        number K one per 12.5 iterations (``round(0.08 K)``, at least 2). Each build costs
+        about one refit iteration; an averaging iteration costs a few percent of one.
     structure_max_samples : "auto", float, list of (float or None), or None
         For ``frozen``: each tree's structure is grown on a bootstrap sample of this
         fraction of the rows (``bootstrap=True, max_samples=...``); its leaves are then
@@ -179,8 +183,12 @@ class FittedQIteration(LearnModes, FittedQEstimator):
     screen_tol : float
         The screen's threshold, a fraction of the targets' standard deviation (>= 0; 0
         grows the whole forest at every build).
-    early_build_trees : int or None
-        For ``frozen``, opt-in (None, the default: every build grows the whole forest). A
+    early_build_trees : int, "auto" or None
+        For ``frozen``. ``"auto"`` (default): with the schedule of ``n_iterations="auto"``
+        (``n_structures=None``) the builds before the last grow a fifth of the forest (the
+        last structure is solved to its own fixed point; measured: docs/fqi-modes.md),
+        otherwise as None. None: every build grows the whole forest. A number, opt-in: with
+        that schedule the builds before the last grow that many trees; otherwise a
         build whose error reaches the final Q with less than half the weight of the last
         build's grows only this many trees (the first trees of the forest it would grow).
         Fitted Q-iteration's last iterate carries the error of iteration ``j``'s LEARN
@@ -191,9 +199,9 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         it; the weights assume all K iterations run, so a fit that ``tol`` stops early has
         damped its early builds' error less. No effect with a finite horizon, where every
         iterate is the policy at one step.
-        **Not the default because it did not hold everywhere** (docs/fqi-modes.md): the
-        bound damps an early structure's error in the values, not in the later structures
-        grown on the targets it produced.
+        **The weight rule is opt-in because it did not hold everywhere** (docs/fqi-modes.md):
+        the bound damps an early structure's error in the values, not in the later
+        structures grown on the targets it produced.
     tree_builder : {"auto", "sklearn"}
         Who grows the frozen mode's structures. ``"auto"`` (default): the compiled
         extra-trees builder (:mod:`offline_adp.trees.builder`, numba) wherever the regressor
@@ -297,7 +305,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         "structure_max_samples": [StrOptions({"auto"}), Interval(Real, 0, 1, closed="right"), list, tuple, None],
         "screen_trees": [Interval(Integral, 2, None, closed="left"), None],  # a spread needs two trees
         "screen_tol": [NON_NEGATIVE],
-        "early_build_trees": [POSITIVE_INT, None],
+        "early_build_trees": [POSITIVE_INT, StrOptions({"auto"}), None],
         "tree_builder": [StrOptions({"auto", "sklearn"})],
         "commands": [StrOptions({"auto", "continuous", "binned"})],
         "n_candidates": [Interval(Integral, 1, 4096, closed="both")],
@@ -331,7 +339,7 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         structure_max_samples: float | list[float | None] | str | None = "auto",
         screen_trees: int | None = None,
         screen_tol: float = 0.005,
-        early_build_trees: int | None = None,
+        early_build_trees: int | str | None = "auto",
         tree_builder: str = "auto",
         commands: str = "auto",
         n_candidates: int = 8,

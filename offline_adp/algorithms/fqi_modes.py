@@ -3,9 +3,19 @@
 A mixin holding the choices around the loop, not the loop: the mode a fit runs
 (``"auto"`` resolved), the iteration plan (``n_iterations="auto"``), the frozen mode's
 schedule of structure builds (when a build happens, on how many rows, the tree screen and
-the early builds), the learner built from them (:mod:`offline_adp.learn`), and the
-parameter combinations ``_parameter_constraints`` cannot express. FittedQEvaluation
-inherits the same choices.
+the early builds) and the settling of its final structure (:mod:`offline_adp.learn.settle`),
+the learner built from them (:mod:`offline_adp.learn`), and the parameter combinations
+``_parameter_constraints`` cannot express. FittedQEvaluation inherits the same choices.
+
+The schedule of ``n_iterations="auto"`` (issue #44). Rebuilding a structure pays when the
+targets have moved enough to need other splits: fast at first (the ``k``-step values of
+small ``k`` change shape with every step), hardly at all once ``gamma^k`` is small. Builds
+at 1 and at ``L, L/4, L/16, ...`` (``L`` the largest power of two up to ``K_b / 4``, where
+``gamma^L`` is 0.47-0.69) follow that; the builds before the last grow a
+fifth of the forest (``early_build_trees="auto"``), since only the last structure is kept,
+and its fixed point is then solved for (settled) instead of iterated towards in hundreds
+of plain backups. With a fixed count of iterations the schedule is as before: one build
+per 12.5 iterations, whole forests, plain backups. Measured: docs/fqi-modes.md.
 """
 
 from __future__ import annotations
@@ -15,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.algorithms.fqi_data import Prepared
+from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared
 from offline_adp.algorithms.fqi_monitor import auto_iterations
 from offline_adp.algorithms.params import check_learner, invalid_parameter
 from offline_adp.learn import (
@@ -26,9 +36,11 @@ from offline_adp.learn import (
     LearnSpec,
     LightGBMWarmStartLearner,
     RefitLearner,
+    Settle,
     TreeScreen,
     check_structure_fractions,
 )
+from offline_adp.learn.settle import backups
 from offline_adp.regressors import make_regressor, predict_n_jobs
 
 #: default frozen schedule: structures per iteration (8 over 100 iterations; docs/fqi-modes.md)
@@ -36,6 +48,25 @@ STRUCTURES_PER_ITERATION = 0.08
 #: ``structure_max_samples="auto"``: a frozen structure is grown on at most this many rows (bootstrap)
 STRUCTURE_ROWS = 131_072
 MODES = ("auto", "refit", "frozen", "warm_start")
+#: ``n_iterations="auto"``'s default schedule (:func:`geometric_builds`): the last build at the
+#: largest power of two up to this fraction of K_b, the ones before it this factor apart
+GEOMETRIC_LAST, GEOMETRIC_RATIO = 0.25, 4
+#: ... and the builds before the last grow this fraction of the forest (``early_build_trees="auto"``)
+INTERMEDIATE_TREES = 0.2
+
+
+def geometric_builds(k_b: int, last: float = GEOMETRIC_LAST, ratio: int = GEOMETRIC_RATIO) -> tuple[int, ...]:
+    """Iteration 1 and ``L, L / ratio, L / ratio^2, ...`` (whole numbers), ``L`` the largest
+    power of two at most ``max(1, last * k_b)``: at gamma 0.99 (K_b 299) 1, 4, 16, 64; at
+    0.95 (K_b 59) 1, 2, 8."""
+    top = 1 << max(0, int(np.floor(np.log2(max(1.0, last * k_b)))))
+    out, x = {1}, top
+    while x >= 1:
+        out.add(x)
+        if x % ratio:
+            break
+        x //= ratio
+    return tuple(sorted(out))
 
 
 class LearnModes:
@@ -81,13 +112,50 @@ class LearnModes:
 
     def _schedule(self) -> tuple[int, ...]:
         """Iterations at which ``mode="frozen"`` builds a structure: ``n_structures`` evenly
-        spaced over the K_b iterations (:meth:`iteration_plan`), by default one per 12.5
-        (``round(0.08 K_b)``, at least 2)."""
+        spaced over the K iterations (K_b for ``"auto"``: :meth:`iteration_plan`; T for a
+        finite horizon); by default :func:`geometric_builds` of K_b where the fit settles
+        (:meth:`_settles`), else one per 12.5 (``round(0.08 K)``, at least 2)."""
         T = getattr(self, "horizon_", self.horizon)
         K = T if T is not None else self.iteration_plan()[0]
+        if self._settles() and self.n_structures is None:
+            return geometric_builds(K)
         S = max(2, round(STRUCTURES_PER_ITERATION * K)) if self.n_structures is None else int(self.n_structures)
         S = max(1, min(S, K))
         return tuple(sorted({1 + (j * K) // S for j in range(S)}))
+
+    def _settles(self) -> bool:
+        """Whether a frozen fit solves its final structure's fixed point
+        (:mod:`offline_adp.learn.settle`): ``n_iterations="auto"``, discounted, no target noise."""
+        return (self.n_iterations == "auto" and getattr(self, "horizon_", self.horizon) is None
+                and not self.target_noise and getattr(self, "gamma_", 0.0) < 1.0)
+
+    def _converged(self, rows: list[dict[str, Any]]) -> bool:
+        """Never on an iteration that ran the settling solver (its Q is not one backup of
+        the one before: :mod:`offline_adp.learn.settle`)."""
+        if rows and backups(rows[-1]):
+            return False
+        return super()._converged(rows)  # type: ignore[misc]
+
+    def run_fitted_q(self, dataset: Any, sample_weight: Any, resume: Any, make_backup: Any, prepare: Any = None,
+                     make_learner: Any = None, *, deferred: bool = False) -> Any:
+        """The loop (:meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.run_fitted_q`),
+        with a frozen learner told the loop's targets (``bind_targets``: what the final
+        structure's settling backs up)."""
+        made: dict[str, Any] = {}
+
+        def learner_of(data: Prepared) -> Learner:
+            made["learner"] = (make_learner or self._learner)(data)
+            return made["learner"]
+
+        def backup_of(data: Prepared) -> Any:
+            backup = make_backup(data)
+            bind = getattr(made.get("learner"), "bind_targets", None)
+            if bind is not None:
+                bind(data.targets, lambda q_next: backup(q_next, "next", None), isinstance(backup, GreedyBackup))
+            return backup
+
+        return super().run_fitted_q(dataset, sample_weight, resume, backup_of, prepare,  # type: ignore[misc]
+                                    learner_of, deferred=deferred)
 
     def _structure_fraction(self, n: int, regressor: Any) -> float | list[float | None] | None:
         """``structure_max_samples`` with ``"auto"`` resolved: each structure grown on at most
@@ -134,7 +202,15 @@ class LearnModes:
                                                                    data.gamma, ~data.train.no_boot)
         # a finite horizon's every iterate is the policy at one step: no build's error is damped
         finite = getattr(self, "horizon_", self.horizon) is not None
-        early = (None if self.early_build_trees is None or finite
-                 else EarlyBuilds(int(self.early_build_trees), data.gamma, self.iteration_plan()[0]))
-        return FrozenSchedule(restructure_at=self._schedule(), screen=screen, early=early,
+        settling = self._settles() and self.n_structures is None and data.gamma < 1
+        trees = self.early_build_trees
+        if isinstance(trees, str):  # "auto": a fifth of the forest before the settled structure, else all
+            full = int(reg.get_params().get("n_estimators") or 0) if hasattr(reg, "get_params") else 0
+            trees = max(1, round(INTERMEDIATE_TREES * full)) if settling and full else None
+        early = (None if trees is None or finite
+                 else EarlyBuilds(int(trees), data.gamma, self.iteration_plan()[0], before_last=settling))
+        builds = self._schedule()
+        settle = (Settle(data.gamma, max(builds), self.tol, float(self.rtol), budget=self.iteration_plan()[1])
+                  if self._settles() and data.gamma < 1 else None)
+        return FrozenSchedule(restructure_at=builds, screen=screen, early=early, settle=settle,
                               max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)

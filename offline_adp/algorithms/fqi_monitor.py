@@ -35,19 +35,27 @@ pair), ``e_{k+1} <= gamma e_k``, so at *every* input ``z`` the last iterate is w
 
     ``gamma / (1 - gamma) * e_k``
 
-of the fixed point of the final structure's averager. The fit has converged when that
-bound is at most ``tol`` (if given, else ``rtol * max|Q_k|``), on an iteration that did not rebuild the
-structure, after the last scheduled build. A structure rebuild starts a new contraction
+of the fixed point of the final structure's averager (``|Q_k - Q*| <= gamma |Q_{k-1} - Q*|
+<= gamma (e_k + |Q_k - Q*|)``): the bound needs only that ``Q_k`` is one backup of
+``Q_{k-1}``, however ``Q_{k-1}`` was reached. The fit has converged when that bound is at
+most ``tol`` (if given, else ``rtol * max|Q_k|``), on an iteration that did not rebuild the
+structure nor run the settling solver (whose Q is not one backup of the previous one:
+:mod:`offline_adp.learn.settle`), after the last scheduled build. A structure rebuild starts a new contraction
 (``sup|dQ|`` jumps), which is why the verdict never reads across one. The refit and
 warm-start modes change the function class every iteration, so no such bound holds
 there (nor with ``gamma = 1`` or target noise): they converge only by ``tol`` on ``e_k`` itself, and
 otherwise say "still changing".
 
-``n_iterations="auto"`` (:func:`auto_iterations`): ``K_b`` iterations carry the builds, the
-number after which the contraction has damped the initial error (``max|c| / (1 - gamma)
-+ max|Q_0|``) to ``gamma^K_b <= 0.05`` of itself; a frozen fit then goes on in its final
-structure until the bound above holds, up to ``4 K_b`` iterations in all (the verdict
-says so when it stops at that cap).
+``n_iterations="auto"`` (:func:`auto_iterations`): ``K_b`` is the number of iterations after
+which the contraction has damped the initial error (``max|c| / (1 - gamma) + max|Q_0|``)
+to ``gamma^K_b <= 0.05`` of itself. A frozen fit builds its structures at geometrically
+spaced iterations up to ``K_b / 4``
+(:func:`~offline_adp.algorithms.fqi_modes.geometric_builds`; with ``n_structures`` set,
+that many evenly over ``K_b``), then solves its final structure's fixed point
+(:mod:`offline_adp.learn.settle`: accelerated backups within one iteration) and stops on
+the next iteration, a plain backup, if the bound above holds there; it never runs more
+than ``4 K_b`` iterations (nor the solver more than ``4 K_b`` backups; the verdict says
+so when it stops at that cap). The other modes run ``K_b`` iterations.
 """
 
 from __future__ import annotations
@@ -58,6 +66,8 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+
+from offline_adp.learn.settle import backups
 
 #: ``n_iterations="auto"``: the builds span the K_b iterations with ``gamma^K_b <= AUTO_FORGET``
 AUTO_FORGET = 0.05
@@ -148,12 +158,14 @@ def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence:
         bound = distance_bound(sd, gamma)
         where = (f"within {bound:.3g} of the final tree structure's fixed point (gamma/(1-gamma) x sup|dQ| = "
                  f"{sd:.3g}; max|Q| = {last['max_abs_q']:.4g})")
+        inner = sum(backups(r) for r in rows)
+        after = f"after {k} iterations" + (f" (and {inner} backups in the final structure's solver)" if inner else "")
         if converged:
-            return "converged", f"after {k} iterations the values are {where} <= tolerance {tolerance:.3g}"
+            return "converged", f"{after} the values are {where} <= tolerance {tolerance:.3g}"
         tr = trend([r["sup_dq"] for r in rows[-window:]])
         why = ("stopped at n_iterations='auto''s cap; " if capped else "")
         need = f" > tolerance {tolerance:.3g}" if tolerance is not None else ""
-        return "still changing", (f"{why}after {k} iterations the values are only known to be {where}{need}; "
+        return "still changing", (f"{why}{after} the values are only known to be {where}{need}; "
                                   f"sup|dQ| {tr} over the last {min(window, len(rows))} (more iterations would settle it)")
     rel = sd / max(last["max_abs_q"], 1e-300)
     if converged:

@@ -75,7 +75,7 @@ def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None
         if builds:
             screened = any(b["screen"] is not None for b in builds)
             grown = [b["trees"] for b in builds if not b["constant"] and b["trees"]]
-            early = (getattr(est, "early_build_trees", None) is not None and bool(grown)
+            early = (isinstance(getattr(est, "early_build_trees", None), int) and bool(grown)  # opt-in counts only
                      and any(b["screen"] is None and not b["constant"] and (b["trees"] or 0) < max(grown)
                              for b in builds))  # an unscreened build grew fewer trees than another
             caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")

@@ -33,7 +33,8 @@ from offline_adp.learn.schedule import (
     check_structure_fractions,
     greedy_min_bias,
 )
+from offline_adp.learn.settle import Settle
 from offline_adp.learn.warm_start import LightGBMWarmStartLearner
 
 __all__ = ["EarlyBuilds", "FrozenSchedule", "FrozenTreesLearner", "Learner", "LearnSpec", "LightGBMWarmStartLearner",
-           "Query", "RefitLearner", "TreeScreen", "build_weight", "check_structure_fractions", "greedy_min_bias"]
+           "Query", "RefitLearner", "Settle", "TreeScreen", "build_weight", "check_structure_fractions", "greedy_min_bias"]

@@ -395,10 +395,12 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         return leaf_sums_reuse(self._pos["next"], self._src, self._rest, self._bounds, v, self.n_jobs)
 
     def fit(self, y: np.ndarray, k: int) -> None:
-        if self._builds_at(k):
+        built = self._builds_at(k)
+        if built:
             self._build(y, k)
         self._built()
         y = np.asarray(y, dtype=np.float64)
+        prev = None if built or self.settle is None else self.leaf_values  # Q_{k-1}'s, for the settling
         self._cache, self.leaf_values, self._values = {}, None, None  # type: ignore[assignment]  # the last ones go first
         sums = self._leaf_sums(y if self._w is None else self._w * y)
         # the leaf means of y_k and a 0 after them (what a query reads for "no training leaf")
@@ -406,7 +408,23 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         np.divide(sums, self._wsum, out=self._values[:-1])
         self._values[-1] = 0.0
         del sums
+        if prev is not None:  # the final structure may settle (learn.settle)
+            v = self._settle(y, self._values[:-1], prev, k, built)
+            del prev
+            if v.base is not self._values:  # the solver's (learn.settle), not the plain step's
+                self._values[:-1] = v
+        else:
+            self.inner_backups = 0
         self.leaf_values = self._values[:-1]
+
+    def _leaf_means(self, y: np.ndarray) -> np.ndarray:
+        y = np.asarray(y, dtype=np.float64)
+        return self._leaf_sums(y if self._w is None else self._w * y) / self._wsum
+
+    def _next_q(self, values: np.ndarray) -> np.ndarray:
+        phi = self.queries["next"][0]
+        q = tree_mean(np.r_[values, 0.0], self._pos["next"], self.n_jobs)
+        return q.reshape(self.encoder.n_actions, len(phi)).T
 
     def predict(self, name: str) -> np.ndarray:
         if name in self._cache:

@@ -17,6 +17,7 @@ from sklearn.base import clone
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.learn.base import seeded
 from offline_adp.learn.schedule import FrozenSchedule, build_weight
+from offline_adp.learn.settle import backups, settle_solve
 from offline_adp.qfunctions import QFunction, TreeQ
 from offline_adp.trees import builder as compiled
 from offline_adp.trees.ensemble import TreeEnsemble, constant_ensemble
@@ -58,6 +59,10 @@ class FrozenBuilds:
         self.structures = 0
         self.built_on_constant = False
         self._m = 0
+        self.settle = schedule.settle
+        self._targets: Any = None  # (targets, value, greedy): the loop's backup (bind_targets), for the settling
+        self._settle_spent = 0  # the solver's backups in this structure
+        self.inner_backups = 0  # this iteration's
 
     def _builds_at(self, k: int) -> bool:
         """Whether iteration ``k`` builds (scheduled, or no structure from real targets yet)."""
@@ -65,6 +70,49 @@ class FrozenBuilds:
 
     def _built(self) -> None:
         self._pending = self.built_on_constant  # constant targets say nothing about where to split
+
+    def bind_targets(self, targets: Any, value: Any, greedy: bool) -> None:
+        """The loop's backup, for the final structure's settling (:mod:`offline_adp.learn.settle`):
+        ``targets(v_next) -> y`` and ``value(Q(x'_i, .)) -> v_next``, the minimum over the
+        columns when ``greedy``."""
+        self._targets = (targets, value, bool(greedy))
+
+    def _settle(self, y: np.ndarray, v: np.ndarray, v_prev: np.ndarray | None, k: int, built: bool) -> np.ndarray:
+        """Iteration ``k``'s leaf values from its targets ``y`` and their leaf means ``v`` (the
+        plain step): in the final structure, when the plain step does not put the values
+        within the tolerance of the fixed point (``v_prev``: ``Q_{k-1}``'s leaf values),
+        one plain backup of :func:`~offline_adp.learn.settle.anderson_solve`'s fixed point;
+        elsewhere ``v``."""
+        self.inner_backups = 0
+        if built:
+            self._settle_spent = 0
+        s = self.settle
+        if (s is None or self._targets is None or built or v_prev is None or k <= s.after or self.built_on_constant
+                or len(v_prev) != len(v)):
+            return v
+        if s.certifies(float(np.abs(v - v_prev).max(initial=0.0)), y):
+            return v  # a plain step within the tolerance: the fit can stop on it
+        budget = s.budget - self._settle_spent
+        if budget < 2:
+            return v
+        targets, value, greedy = self._targets
+        g, n = settle_solve(np.asarray(y, dtype=np.float64), self._evaluate,
+                            lambda v: np.asarray(targets(v), dtype=np.float64), value, s, budget, greedy)
+        self._settle_spent += n
+        self.inner_backups = n
+        return self._leaf_means(g)
+
+    def _evaluate(self, y: np.ndarray) -> np.ndarray:
+        """``Q(x'_i, .)`` in this structure with the leaf means of ``y``."""
+        return self._next_q(self._leaf_means(y))
+
+    def _leaf_means(self, y: np.ndarray) -> np.ndarray:
+        """The (weighted) mean of ``y`` in each leaf (compact index)."""
+        raise NotImplementedError
+
+    def _next_q(self, values: np.ndarray) -> np.ndarray:
+        """``Q(x'_i, .)`` (as ``predict("next")``) with leaf values ``values``."""
+        raise NotImplementedError
 
     def _start_build(self, y: np.ndarray) -> bool:
         """Count a build; True when its targets are constant (then one-leaf trees)."""
@@ -103,7 +151,8 @@ class FrozenBuilds:
         full = int(params.get("n_estimators") or 0)
         e = self.early
         early = (e is not None and e.gamma < 1.0 and 0 < e.trees < full
-                 and build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio)
+                 and (k < max(self.restructure_at) if e.before_last
+                      else build_weight(k, tuple(self.restructure_at), e.gamma, e.n_iterations) < e.ratio))
         if early:  # its error is damped before the end: the forest's first trees only, unscreened
             model.set_params(n_estimators=e.trees)
         s = self.screen
@@ -117,7 +166,7 @@ class FrozenBuilds:
     def state(self) -> dict[str, Any]:
         return {"structure": self.structures, "structure_on_constant": self.built_on_constant,
                 "structure_trees": int(self._m), "structure_screen": self.screen_value,
-                "structure_builder": self.grown_by}
+                "structure_builder": self.grown_by, "inner_backups": self.inner_backups}
 
     def snapshot(self) -> QFunction:
         """The current Q: the structure (``_exported()``) with the leaf values of this iteration
@@ -137,3 +186,6 @@ class FrozenBuilds:
         by = last.get("structure_builder")
         self.grown_by = by if isinstance(by, str) else None
         self._pending = self.built_on_constant
+        # the solver's backups so far in this structure, as the rows recorded them
+        self._settle_spent = sum(backups(r) for r in rows or [] if r.get("structure") == last.get("structure"))
+        self.inner_backups = backups(last)

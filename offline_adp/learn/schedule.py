@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import InvalidArgumentError
+from offline_adp.learn.settle import Settle
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,9 @@ class EarlyBuilds:
     gamma: float
     n_iterations: int
     ratio: float = 0.5
+    #: instead of the weights: every build before the last scheduled one (the settling
+    #: schedule of ``n_iterations="auto"``, whose last structure is solved to its own fixed point)
+    before_last: bool = False
 
 
 def build_weight(k: int, schedule: Sequence[int], gamma: float, n_iterations: int) -> float:
@@ -158,6 +162,8 @@ class FrozenSchedule:
         one per scheduled build.
     screen : TreeScreen, optional
     early : EarlyBuilds, optional
+    settle : Settle, optional
+        Extrapolate the final structure's iteration (:mod:`offline_adp.learn.settle`).
     builder : {"auto", "sklearn"}
         ``"auto"``: the compiled builder (:mod:`offline_adp.trees.builder`) where it
         implements the regressor's settings; ``"sklearn"``: always scikit-learn.
@@ -168,6 +174,7 @@ class FrozenSchedule:
     screen: TreeScreen | None = None
     early: EarlyBuilds | None = None
     builder: str = "auto"
+    settle: Settle | None = None
 
     def __post_init__(self) -> None:
         if self.builder not in ("auto", "sklearn"):

@@ -293,11 +293,24 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
     def fit(self, y: np.ndarray, k: int) -> None:
         self._check_workers()
         y = np.asarray(y, dtype=np.float64)
-        if self._builds_at(k):
+        built = self._builds_at(k)
+        if built:
             self._build(y, k)
         self._built()
-        self.leaf_values = self._leaf_sums(y) / self._wsum  # leaf means of y_k
+        prev = None if built else getattr(self, "leaf_values", None)
         self._cache = {}
+        self.leaf_values = self._settle(y, self._leaf_means(y), prev, k, built)  # leaf means of y_k (learn.settle)
+        self._cache = {}
+
+    def _leaf_means(self, y: np.ndarray) -> np.ndarray:
+        return self._leaf_sums(y) / self._wsum
+
+    def _next_q(self, values: np.ndarray) -> np.ndarray:
+        held, self.leaf_values, self._cache = self.leaf_values, values, {}
+        try:
+            return self.predict("next")
+        finally:
+            self.leaf_values, self._cache = held, {}
 
     def predict(self, name: str) -> np.ndarray:
         if not self._cache:  # Q_k on every query set at once (the loop and its diagnostics read all)
