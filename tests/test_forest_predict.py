@@ -43,3 +43,21 @@ def test_extra_trees_fit_predict_is_the_forest(n, params):
     got = extra_trees_fit_predict(make_regressor("extra_trees", **params), X, y, Xn)
     assert got is not None and np.array_equal(got, ref)
     assert extra_trees_fit_predict(make_regressor("extra_trees", bootstrap=True), X, y, Xn) is None
+
+
+@pytest.mark.parametrize("n0, n1", [(30, 300), (47, 47), (2, 5), (500, 600)])
+def test_lightgbm_binary_proba_is_the_wrapper(n0, n1):
+    """The classifier density ratios' LightGBM fits (evaluation/shift.py), trained with the
+    calls LGBMClassifier makes: the wrapper's probabilities, bit for bit."""
+    from offline_adp.regressors import binary_proba, make_classifier
+
+    rng = np.random.default_rng(n0)
+    for _ in range(3):
+        X = rng.normal(size=(n0 + n1, 4))
+        X[n0:] += rng.normal() * 0.5
+        y = np.r_[np.zeros(n0), np.ones(n1)]
+        Xn = rng.normal(size=(111, 4))
+        ref = make_classifier("lightgbm").fit(X, y).predict_proba(Xn)[:, 1]
+        assert np.array_equal(binary_proba("lightgbm", None, X, y, Xn), ref)
+    assert np.array_equal(binary_proba("extra_trees", {"n_estimators": 3}, X, y, Xn),
+                          make_classifier("extra_trees", n_estimators=3).fit(X, y).predict_proba(Xn)[:, 1])

@@ -37,7 +37,7 @@ from offline_adp import dp
 from offline_adp.access import FullModel
 from offline_adp.policies import Policy
 from offline_adp.qfunctions import predict_model
-from offline_adp.regressors import make_classifier, make_regressor
+from offline_adp.regressors import binary_proba, make_regressor
 
 
 @dataclass
@@ -275,8 +275,7 @@ def ratios_by_classifier(
         y = np.r_[np.zeros(len(here)), np.ones(len(xp))]
         p = np.empty(len(y))
         for train, test in StratifiedKFold(2, shuffle=True, random_state=seed + t).split(X, y):
-            clf = make_classifier(classifier, **(classifier_params or {})).fit(X[train], y[train])
-            p[test] = clf.predict_proba(X[test])[:, 1]
+            p[test] = binary_proba(classifier, classifier_params, X[train], y[train], X[test])
         auc[t] = float(roc_auc_score(y, p))
         pc = np.clip(p, clip, 1 - clip)
         uncovered[t] = float(np.mean(pc[len(here):] >= 1 - clip))
