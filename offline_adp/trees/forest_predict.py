@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.trees.builder import available
+from offline_adp.trees.builder import _kernel, available
 from offline_adp.trees.compact import CompactTree
 
 
@@ -29,25 +29,53 @@ def forest_predictor(forest: Any) -> Callable[[np.ndarray], np.ndarray] | None:
 
     if not available() or type(forest) not in (ExtraTreesRegressor, RandomForestRegressor):
         return None
-    trees = []
-    for est in forest.estimators_:
-        t = est.tree_
-        lookup = CompactTree(t.children_left, t.children_right, t.feature, t.threshold, t.value[:, 0, 0])
-        values = np.asarray(t.value[:, :, 0], dtype=np.float64)  # (nodes, outputs), as tree_.predict reads them
-        trees.append((lookup, values if forest.n_outputs_ > 1 else values[:, 0]))
-    n_features = forest.n_features_in_
+    from offline_adp.trees.pairs import packed_nodes
+
+    trees = [est.tree_ for est in forest.estimators_]
+    sizes = np.array([t.node_count for t in trees], dtype=np.int64)
+    roots = np.r_[0, np.cumsum(sizes)[:-1]]
+    if sizes.sum() >= 2**31 - 1:
+        return None
+    left = np.concatenate([np.where(t.children_left < 0, -1, t.children_left + r) for t, r in zip(trees, roots, strict=True)])
+    right = np.concatenate([np.where(t.children_right < 0, -1, t.children_right + r)
+                            for t, r in zip(trees, roots, strict=True)])
+    packed = packed_nodes(left, right, np.concatenate([t.feature for t in trees]),
+                          np.concatenate([t.threshold for t in trees]))
+    values = np.ascontiguousarray(np.concatenate([t.value[:, :, 0] for t in trees]), dtype=np.float64)  # (nodes, outputs)
+    n_features, n_outputs = forest.n_features_in_, forest.n_outputs_
 
     def predict(X: np.ndarray) -> np.ndarray:
         X32 = np.ascontiguousarray(X, dtype=np.float32)
         if X32.ndim != 2 or X32.shape[1] != n_features:
             raise ValueError(f"the forest reads {n_features} features, got an input of shape {np.shape(X)}")
-        y = np.zeros((len(X32), forest.n_outputs_) if forest.n_outputs_ > 1 else len(X32))
-        for lookup, values in trees:
-            y += values[lookup.apply(X32)]
-        y /= len(trees)
-        return y
+        y = np.zeros((len(X32), n_outputs))
+        _forest_sum(packed, packed.view(np.float32), roots, values, X32, y)
+        return y if n_outputs > 1 else y[:, 0]
 
     return predict
+
+
+def _forest_sum(packed: Any, packed_f: Any, roots: Any, values: Any, X: Any, y: Any) -> None:
+    """``y[i] = (sum over trees, in order, of the value of the leaf row i reaches) / n_trees``,
+    each sum accumulated from 0 tree by tree as ``ForestRegressor.predict`` accumulates its
+    ``y_hat`` (then divided in place by the tree count): the same numbers."""
+    n, m = X.shape[0], roots.shape[0]
+    for j in range(m):
+        for i in range(n):
+            node = roots[j]
+            while True:
+                rec = 4 * node
+                if packed[rec] < 0:
+                    break
+                node = packed[rec] if X[i, packed[rec + 2]] <= packed_f[rec + 3] else packed[rec + 1]
+            for o in range(y.shape[1]):
+                y[i, o] += values[node, o]
+    for i in range(n):
+        for o in range(y.shape[1]):
+            y[i, o] /= m
+
+
+_forest_sum = _kernel(_forest_sum, cache=True, nogil=True, boundscheck=False)
 
 
 def linear_predictor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:
