@@ -58,3 +58,23 @@ def test_row_space_structure_is_built_once_and_follows_settle(small_pt):
     rs2, ve2 = fqe._row_space()
     assert rs2 is rs and ve2 is not ve
     np.testing.assert_array_equal(ve2, fqe.fit_state_.learner.leaf_values[rs.q_leaf])
+
+
+def test_dense_row_space_falls_back_to_the_leaf_space_sweeps(small_pt, monkeypatch):
+    """Where P_w M_w would be dense (leaves of many rows) the replicate runs the leaf-space
+    sweeps, the numbers of fqe_bootstrap.fixed_point."""
+    from offline_adp.algorithms import fqe_replicates
+
+    monkeypatch.setattr(fqe_replicates, "MAX_TRIPLES_RATIO", 0.0)
+    fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=8,
+                            regressor_params={"n_estimators": 3}).fit(small_pt)
+    assert fqe._row_space()[0] is None
+    w = np.random.default_rng(0).poisson(1.0, len(small_pt)).astype(float)
+    w[fqe.fit_state_.data.start_rows[0]] = 1.0
+    fit = fqe.fit_state_
+    M, ops = reweighted_operators(fit.learner, w, base=fqe._query_operators())
+    v, _ = fixed_point(fit.data, fit.backup, M, ops, fit.learner.leaf_values, None, 10_000, REPLICATE_RTOL)
+    q0 = (ops["start"] @ v).reshape(fit.data.n_actions, -1).T
+    v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
+    w0 = w[fit.data.start_rows]
+    assert fqe.reweighted_value(w, rtol=REPLICATE_RTOL) == float(np.sum(w0 * v0) / np.sum(w0))

@@ -36,6 +36,7 @@ from offline_adp.algorithms.fqe_bootstrap import (
     fixed_point,
     leaf_operator,
     query_operators,
+    reweighted_operators,
     support_operators,
 )
 from offline_adp.algorithms.fqi import FittedQIteration
@@ -226,7 +227,9 @@ commands, n_candidates, n_representatives
         ``rtol (1 + max |v|)``, as :meth:`settle`) or ``n_iterations`` sweeps. It is solved
         over the training rows (:mod:`~offline_adp.algorithms.fqe_replicates`: ``y =
         targets(P_w M_w y)``, Gauss-Seidel sweeps back through each episode, the same
-        stopping bound), from the fitted leaf values. This is
+        stopping bound) where ``P_w M_w`` is sparse, else by sweeps over the leaf values
+        (:func:`~offline_adp.algorithms.fqe_bootstrap.fixed_point`), from the fitted leaf
+        values. This is
         a structure-conditional bootstrap replicate: it captures the noise of the data
         through the leaves but not the variability of the tree structure itself. With
         all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
@@ -242,13 +245,21 @@ commands, n_candidates, n_representatives
         if w.shape != (d.n,):
             raise InvalidArgumentError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
         rs, ve = self._row_space()
+        if rs is None:  # leaves of many rows: the leaf-space sweeps (fqe_bootstrap.fixed_point)
+            M, ops = reweighted_operators(fit.learner, w, base=self._query_operators())
+            v, _ = fixed_point(d, fit.backup, M, ops, fit.learner.leaf_values, tol, n_iterations or 10_000, rtol)
+            q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
+            v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
+            w0 = w[d.start_rows]
+            return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
         return replicate_value(rs, d, fit.learner, self._query_operators()["start"],
                                np.asarray(fit.backup.probabilities("start", 0), dtype=np.float64), w, tol, rtol,
                                n_iterations or 10_000, ve)
 
-    def _row_space(self) -> tuple[Any, np.ndarray]:
-        """The replicates' shared structure (:func:`~offline_adp.algorithms.fqe_replicates.row_space`),
-        built once per fit, and the fitted leaf values at its query entries."""
+    def _row_space(self) -> tuple[Any, np.ndarray | None]:
+        """The replicates' shared structure (:func:`~offline_adp.algorithms.fqe_replicates.row_space`,
+        None where it would be dense), built once per fit, and the fitted leaf values at its
+        query entries."""
         from offline_adp.algorithms.fqe_replicates import row_space
 
         fit = self.fit_state_
@@ -256,7 +267,7 @@ commands, n_candidates, n_representatives
         if cached is None or cached[0] is not fit.learner:
             pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
             cached = (fit.learner, row_space(fit.learner, self._query_operators()["next"], pi), None, None)
-        if cached[2] is not fit.learner.leaf_values:  # the leaves' values at the query entries (settle moves them)
+        if cached[1] is not None and cached[2] is not fit.learner.leaf_values:  # at the query entries (settle moves them)
             values = fit.learner.leaf_values
             cached = (*cached[:2], values, np.asarray(values, dtype=np.float64)[cached[1].q_leaf])
         self.__dict__["_row_space_cache"] = cached

@@ -145,9 +145,16 @@ class RowSpace:
     order: np.ndarray
 
 
-def row_space(learner: Any, op_next: Any, pi_next: np.ndarray) -> RowSpace:
+#: ``K_w`` is built when its (query, leaf, row) triples are at most this many times the
+#: entries of the leaf-space operators; leaves of many rows (states that repeat exactly, a
+#: lattice; large ``min_samples_leaf``) make it dense, and the leaf-space sweeps are cheaper.
+MAX_TRIPLES_RATIO = 4.0
+
+
+def row_space(learner: Any, op_next: Any, pi_next: np.ndarray) -> RowSpace | None:
     """The shared structure of a fit (:class:`RowSpace`): ``op_next`` the next-state query
-    operator (rows ``a n + i``), ``pi_next`` (n, A) the policy at the next states."""
+    operator (rows ``a n + i``), ``pi_next`` (n, A) the policy at the next states. None when
+    ``K_w`` would not be sparse (:data:`MAX_TRIPLES_RATIO`): then solve in leaf space."""
     from scipy import sparse
 
     n = pi_next.shape[0]
@@ -159,6 +166,8 @@ def row_space(learner: Any, op_next: Any, pi_next: np.ndarray) -> RowSpace:
     M.sort_indices()
     m_ptr, m_idx = M.indptr.astype(np.int64), M.indices.astype(np.int64)
     counts = np.diff(m_ptr)[sub.indices]  # rows of each entry's leaf
+    if counts.sum() > MAX_TRIPLES_RATIO * (sub.nnz + M.nnz):
+        return None
     q_of_entry = np.repeat(np.arange(sub.shape[0]), np.diff(sub.indptr))
     starts = np.repeat(m_ptr[sub.indices], counts)
     within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
