@@ -113,6 +113,29 @@ class TabularPolicy(Policy):
         return self.table[tt, s]
 
 
+def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
+    """``q.values(obs)`` (n, A) of a Q-function that is one tree ensemble on joint ``(x, a)``
+    inputs (a :class:`~offline_adp.qfunctions.RegressorQ` or ``TreeQ`` of one
+    :class:`~offline_adp.trees.ensemble.TreeEnsemble`), with every tree descended once per
+    state for all actions (:func:`~offline_adp.trees.pairs.pair_leaves`): the same leaves
+    and the same mean over trees, so the same numbers bit for bit. None for any other
+    Q-function (then call ``q.values``)."""
+    from offline_adp.qfunctions import QEncoder, RegressorQ, TreeQ
+    from offline_adp.trees.ensemble import TreeEnsemble, ensemble_predict
+    from offline_adp.trees.pairs import pair_leaves
+
+    if type(q) not in (RegressorQ, TreeQ) or type(q.encoder) is not QEncoder or q.encoder.per_action:  # type: ignore[attr-defined]
+        return None
+    model = q.models[0]  # type: ignore[attr-defined]
+    if type(model) is not TreeEnsemble or getattr(model, "_forest", None) is not None or obs.ndim != 2:
+        return None
+    phi = q.encoder.phi(obs)  # type: ignore[attr-defined]
+    leaves = pair_leaves(model, phi, q.encoder.action_features)  # type: ignore[attr-defined]
+    if leaves is None:
+        return None
+    return np.asarray(ensemble_predict(model.value, leaves), dtype=np.float64).reshape(q.n_actions, len(phi)).T  # type: ignore[attr-defined]
+
+
 class GreedyPolicy(DeterministicPolicy):
     """``pi(x, t) = argmin_a Q(x, a, t)``: greedy with respect to a cost Q-function.
 
@@ -124,7 +147,10 @@ class GreedyPolicy(DeterministicPolicy):
         self.n_actions = q.n_actions  # type: ignore[attr-defined]
 
     def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
-        return np.argmin(self.q.values(np.asarray(obs), t), axis=1).astype(np.int32)  # type: ignore[attr-defined]
+        obs = np.asarray(obs)
+        q = joint_tree_values(self.q, obs)  # the same values, the trees descended once per state
+        q = self.q.values(obs, t) if q is None else q  # type: ignore[attr-defined]
+        return np.argmin(q, axis=1).astype(np.int32)
 
     @property
     def time_varying(self) -> bool:

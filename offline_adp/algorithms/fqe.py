@@ -223,27 +223,55 @@ commands, n_candidates, n_representatives
         (``mode="frozen"``, discounted only): the fixed point of
         ``v <- M_w (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` with the leaf
         averaging operator ``M_w`` of the new weights (leaves left without weight are
-        dropped from the average over trees), iterated from the fitted leaf values to within
-        ``tol`` of the fixed point (default ``rtol (1 + max |v|)``, as :meth:`settle`) or
-        ``n_iterations`` sweeps. This is
+        dropped from the average over trees), to within ``tol`` of the fixed point (default
+        ``rtol (1 + max |v|)``, as :meth:`settle`) or ``n_iterations`` sweeps. It is solved
+        over the training rows (:mod:`~offline_adp.algorithms.fqe_replicates`: ``y =
+        targets(P_w M_w y)``, Gauss-Seidel sweeps back through each episode, the same
+        stopping bound) where ``P_w M_w`` is sparse, else by sweeps over the leaf values
+        (:func:`~offline_adp.algorithms.fqe_bootstrap.fixed_point`), from the fitted leaf
+        values. This is
         a structure-conditional bootstrap replicate: it captures the noise of the data
         through the leaves but not the variability of the tree structure itself. With
         all weights 1 it is the fixed point :meth:`settle` reaches. Rows must be the
         training rows (no ``validation_fraction``).
         """
+        from offline_adp.algorithms.fqe_replicates import replicate_value
+
         fit = self._check_conditional()
         if not rtol > 0:
             raise InvalidArgumentError(f"rtol must be > 0, got {rtol!r}")
-        d, learner, backup = fit.data, fit.learner, fit.backup
+        d = fit.data
         w = np.asarray(sample_weight, dtype=np.float64)
         if w.shape != (d.n,):
             raise InvalidArgumentError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
-        M, ops = reweighted_operators(learner, w, base=self._query_operators())
-        v, _ = fixed_point(d, backup, M, ops, learner.leaf_values, tol, n_iterations or 10_000, rtol)
-        q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
-        v0 = (backup.probabilities("start", 0) * q0).sum(axis=1)
-        w0 = w[d.start_rows]
-        return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+        rs, ve = self._row_space()
+        if rs is None:  # leaves of many rows: the leaf-space sweeps (fqe_bootstrap.fixed_point)
+            M, ops = reweighted_operators(fit.learner, w, base=self._query_operators())
+            v, _ = fixed_point(d, fit.backup, M, ops, fit.learner.leaf_values, tol, n_iterations or 10_000, rtol)
+            q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
+            v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
+            w0 = w[d.start_rows]
+            return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
+        return replicate_value(rs, d, fit.learner, self._query_operators()["start"],
+                               np.asarray(fit.backup.probabilities("start", 0), dtype=np.float64), w, tol, rtol,
+                               n_iterations or 10_000, ve)
+
+    def _row_space(self) -> tuple[Any, np.ndarray | None]:
+        """The replicates' shared structure (:func:`~offline_adp.algorithms.fqe_replicates.row_space`,
+        None where it would be dense), built once per fit, and the fitted leaf values at its
+        query entries."""
+        from offline_adp.algorithms.fqe_replicates import row_space
+
+        fit = self.fit_state_
+        cached = self.__dict__.get("_row_space_cache")
+        if cached is None or cached[0] is not fit.learner:
+            pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
+            cached = (fit.learner, row_space(fit.learner, self._query_operators()["next"], pi), None, None)
+        if cached[1] is not None and cached[2] is not fit.learner.leaf_values:  # at the query entries (settle moves them)
+            values = fit.learner.leaf_values
+            cached = (*cached[:2], values, np.asarray(values, dtype=np.float64)[cached[1].q_leaf])
+        self.__dict__["_row_space_cache"] = cached
+        return cached[1], cached[3]
 
     def support_bounds(self, lower: float, upper: float, min_tree_share: float = 1e-9,
                        radius: float | None = None) -> dict[str, float]:

@@ -74,16 +74,22 @@ def reweighted_operators(learner: FrozenTreesLearner, weights: np.ndarray,
     wsum = learner.leaf_weight_sums(w)
     M = _averaging_matrix(learner.pos["train"], w, wsum, L)
     keep = wsum > 0
-    A = {}
-    for name, op in (query_operators(learner) if base is None else base).items():  # entry by entry, on op's sparsity
-        op = op.tocsr()
-        row = np.repeat(np.arange(op.shape[0]), np.diff(op.indptr))
-        kept = np.where(keep[op.indices], op.data, 0.0)
-        total = np.bincount(row, weights=kept, minlength=op.shape[0])
-        scale = np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)
-        data = np.where((total > 0)[row], kept * scale[row], op.data)  # a row with no leaf left: unchanged
-        A[name] = sparse.csr_matrix((data, op.indices, op.indptr), shape=op.shape)
+    A = {name: reweight_query_operator(op, keep)
+         for name, op in (query_operators(learner) if base is None else base).items()}
     return M, A
+
+
+def reweight_query_operator(op: Any, keep: np.ndarray) -> Any:
+    """A query operator with the leaves not ``keep`` dropped from each query's average over
+    trees (its row renormalised over the remaining entries; a row with none left keeps its
+    original entries), entry by entry on ``op``'s sparsity (:func:`reweighted_operators`)."""
+    op = op.tocsr()
+    row = np.repeat(np.arange(op.shape[0]), np.diff(op.indptr))
+    kept = np.where(keep[op.indices], op.data, 0.0)
+    total = np.bincount(row, weights=kept, minlength=op.shape[0])
+    scale = np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)
+    data = np.where((total > 0)[row], kept * scale[row], op.data)  # a row with no leaf left: unchanged
+    return sparse.csr_matrix((data, op.indices, op.indptr), shape=op.shape)
 
 
 def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any], v: np.ndarray, tol: float | None,

@@ -11,7 +11,8 @@ The estimate is the value of the evaluated policy pi at the data's start states,
    the structure-conditional replicate, which keeps the frozen tree structure and
    re-averages its leaves to the fixed point for the new weights
    (:meth:`~offline_adp.algorithms.fqe.FittedQEvaluation.reweighted_value`, the operators
-   of :mod:`offline_adp.algorithms.fqe_bootstrap`); or a full refit.
+   of :mod:`offline_adp.algorithms.fqe_bootstrap` solved over the training rows,
+   :mod:`offline_adp.algorithms.fqe_replicates`); or a full refit.
 2. **Percentile / basic hull** (:func:`fqe_interval`): the percentile interval, or, when
    the replicates are shifted from ``J^``, the hull of it and the basic interval.
 3. **Support bounds** (:func:`with_support_bounds`, structure-conditional fits): the hull

@@ -226,7 +226,8 @@ class LoggedDynamics:
                                        "exactly, a lattice with radius_ == 0, fit stops before the regressions)")
         F = self._features(states, actions)
         d = states.shape[1]
-        inc = _2d(self.linear_.predict(F), d) + _2d(self.residual_.predict(F), d)
+        linear, residual, outcome = self._predictors()
+        inc = _2d(linear(F), d) + _2d(residual(F), d)
         if rng is not None and len(self.residuals_):
             inc = inc + self.residuals_[rng.integers(0, len(self.residuals_), len(states))]
         nxt = np.clip(states + inc * self.sd_, self.low_, self.high_)
@@ -235,8 +236,23 @@ class LoggedDynamics:
             lower = u[np.maximum(i - 1, 0)]
             upper = u[np.minimum(i, len(u) - 1)]
             nxt[:, j] = np.where(np.abs(nxt[:, j] - lower) <= np.abs(upper - nxt[:, j]), lower, upper)
-        out = _2d(self.outcome_.predict(np.column_stack([F, nxt / self.sd_])), 2)
+        out = _2d(outcome(np.column_stack([F, nxt / self.sd_])), 2)
         return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
+
+    def _predictors(self) -> tuple[Any, Any, Any]:
+        """The fitted models' ``predict`` without scikit-learn's per-call validation and
+        per-tree dispatch (:mod:`offline_adp.trees.forest_predict`: the same numbers), made
+        once per fit; a model they do not read keeps its own ``predict``."""
+        from offline_adp.trees.forest_predict import forest_predictor, linear_predictor
+
+        key = (self.linear_, self.residual_, self.outcome_)
+        cached = self.__dict__.get("_predict_cache")
+        if cached is None or cached[0] != key:
+            cached = (key, (linear_predictor(self.linear_) or self.linear_.predict,
+                            forest_predictor(self.residual_) or self.residual_.predict,
+                            forest_predictor(self.outcome_) or self.outcome_.predict))
+            self.__dict__["_predict_cache"] = cached
+        return cached[1]
 
 
 def _episode_folds(episode: np.ndarray, episodes: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

@@ -181,7 +181,7 @@ def residual_advantages(ds: TransitionDataset, policy: Policy, fit: FQEFit, w: W
     say("PSDP eps and DR's Q, cross-fitted")
     try:
         eps, q = crossfit_residual_advantage(ds, policy, fit.params, fit.horizon, gamma, T, w.em.row_episode,
-                                             folds=folds, seed=seed, return_q=True)
+                                             folds=folds, seed=seed, return_q=True, target=w.target)
     except CrossFitError as exc:  # no out-of-sample eps: the bound is unknown (the in-sample one is 0 by construction)
         return ResidualAdvantage(np.full(T, np.nan), in_sample, f"not measured: {exc}", qv, False)
     return ResidualAdvantage(eps, in_sample, None, q, True)

@@ -51,7 +51,7 @@ class CrossFitError(ValueError):
 
 def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
                                 gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
-                                seed: int = 0, return_q: bool = False) -> Any:
+                                seed: int = 0, return_q: bool = False, target: np.ndarray | None = None) -> Any:
     """``eps_t`` of :func:`residual_advantage` measured out of sample, by cross-fitting.
     With ``return_q``: ``(eps, q)``, ``q`` (n, n_actions) each row's Q-values from the FQE
     fitted without its episode (the cross-fitted Q the DR estimators use).
@@ -64,7 +64,8 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
     the same data, the deficit of a policy greedy in a Q fitted on that data (FQI's) is 0
     by construction, and so was the bound (Bagnell et al. 2003, Theorem 2, needs eps_t of
     the policy's true Q^pi_t on mu_t; an estimate fitted on other episodes is not tuned to
-    the policy). ``n_episodes_index`` is each row's episode index (0 .. N-1).
+    the policy). ``n_episodes_index`` is each row's episode index (0 .. N-1); ``target``:
+    ``policy.probabilities`` at every row when the caller has them (not computed again).
     """
     a = ds.arrays()
     n_ep = int(n_episodes_index.max()) + 1
@@ -84,7 +85,7 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
         if fqe_params.get("mode") == "frozen" and fqe_T is None and not fqe_params.get("validation_fraction"):
             fqe.settle()  # as the estimate's own FQE
         qv = fqe.q_function_.values(a.obs[held], a.step[held])
-        probs = policy.probabilities(a.obs[held], a.step[held])
+        probs = policy.probabilities(a.obs[held], a.step[held]) if target is None else target[held]
         gap[held] = (probs * qv).sum(axis=1) - qv.min(axis=1)
         if q_out is not None:
             q_out[held] = qv

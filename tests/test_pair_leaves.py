@@ -1,0 +1,55 @@
+"""One descent per state for every action (trees/pairs.py): the leaves and the greedy
+policy's values are the ones of ``apply(all_pairs(phi))``, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.ensemble import ExtraTreesRegressor
+
+from offline_adp.policies import GreedyPolicy, joint_tree_values
+from offline_adp.qfunctions import QEncoder, RegressorQ, TreeQ
+from offline_adp.trees.ensemble import TreeEnsemble
+from offline_adp.trees.pairs import pair_leaves
+
+
+def _ensemble(action_features: np.ndarray, d: int = 3, seed: int = 0, n: int = 600) -> tuple[TreeEnsemble, QEncoder]:
+    rng = np.random.default_rng(seed)
+    enc = QEncoder(len(action_features), action_features)
+    X = rng.normal(size=(n, d))
+    a = rng.integers(0, len(action_features), n)
+    Z = enc.pairs(X, a)
+    y = np.sin(Z[:, 0]) + Z[:, -1] * Z[:, 1] + 0.1 * rng.normal(size=n)
+    forest = ExtraTreesRegressor(n_estimators=7, min_samples_leaf=1, random_state=seed).fit(Z, y)
+    e = TreeEnsemble.from_sklearn(forest)
+    return TreeEnsemble(e.left, e.right, e.feature, e.threshold, e.value, e.roots), enc  # no scikit-learn forest behind
+
+
+@pytest.mark.parametrize("features", [np.linspace(-0.3, 0.3, 7)[:, None],  # steering values
+                                      np.eye(4),  # one-hot
+                                      np.array([[0.0, 1.0], [0.5, -1.0], [1.0, 0.0]])])  # two action dimensions
+def test_pair_leaves_are_the_all_pairs_leaves(features):
+    e, enc = _ensemble(features, seed=len(features))
+    rng = np.random.default_rng(1)
+    X = np.vstack([rng.normal(size=(300, 3)) * 2, np.zeros((1, 3))])
+    X[5, 1] = np.nan  # compared as scikit-learn does: NaN goes right
+    X[6] = np.float32(e.threshold[e.feature == 0][0])  # on a threshold: left
+    got = pair_leaves(e, enc.phi(X), enc.action_features)
+    assert np.array_equal(got, e.apply(enc.all_pairs(enc.phi(X))))
+
+
+@pytest.mark.parametrize("wrap", [RegressorQ, TreeQ])
+def test_greedy_values_bit_identical(wrap):
+    e, enc = _ensemble(np.linspace(-1, 1, 5)[:, None])
+    q = wrap([e], enc)
+    X = np.random.default_rng(2).normal(size=(257, 3))
+    fast = joint_tree_values(q, X)
+    assert fast is not None and np.array_equal(fast, q.values(X, 0))  # same bits, not just close
+    assert np.array_equal(GreedyPolicy(q).actions(X), np.argmin(q.values(X, 0), axis=1))
+
+
+def test_other_q_functions_are_left_to_their_values():
+    e, enc = _ensemble(np.linspace(-1, 1, 3)[:, None])
+    per_action = RegressorQ([e, e, e], QEncoder(3, np.zeros((3, 0)), per_action=True))
+    assert joint_tree_values(per_action, np.zeros((2, 3))) is None
+    assert pair_leaves(e, np.zeros((0, 3)), enc.action_features) is None  # no rows: apply's own path
