@@ -38,11 +38,13 @@ demo: $(VENV)/.installed
 # --dist worksteal: a worker that runs out of tests takes queued ones from the other
 # (with the default `load`, tests queued behind a long one waited while a worker idled)
 test: $(VENV)/.installed
+	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 # The unit layer only (no slow or end-to-end tests): under 2 minutes on 2 cores.
 test-fast: $(VENV)/.installed
+	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q -n 2 --dist worksteal -m "not slow and not integration"
 
@@ -71,7 +73,7 @@ lock:
 	    --generate-hashes --no-header --upgrade -o $(LOCK)
 
 lint: $(VENV)/.installed
-	$(BIN)/ruff check offline_adp tests benchmarks
+	$(BIN)/ruff check .
 	$(BIN)/lint-imports
 
 clean:

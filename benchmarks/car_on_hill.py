@@ -19,7 +19,8 @@ little.
 ``--data uniform`` replaces the episodes by 50k one-step transitions from states drawn
 uniformly over [-1, 1] x [-3, 3] with random actions (the paper's second setting).
 
-    python benchmarks/car_on_hill.py [--data episodes|uniform] [--episodes 1000] [--iterations 50] [--seeds 0 1] [--learner-seeds 0 1] [--modes ...]
+    python benchmarks/car_on_hill.py [--data episodes|uniform] [--episodes 1000] [--iterations 50] [--seeds 0 1]
+    [--learner-seeds 0 1] [--modes ...]
 """
 
 from __future__ import annotations
@@ -62,14 +63,17 @@ def main() -> None:
     configs = {
         "refit": dict(mode="refit", regressor="extra_trees"),
         "frozen": dict(mode="frozen", regressor="extra_trees"),
-        "warm_start": dict(mode="warm_start", regressor="lightgbm", regressor_params={"num_leaves": 63, "min_child_samples": 5}, trees_per_iteration=10),
-        "lightgbm_refit": dict(mode="refit", regressor="lightgbm", regressor_params={"n_estimators": 200, "num_leaves": 255, "min_child_samples": 2}),
+        "warm_start": dict(mode="warm_start", regressor="lightgbm",
+                           regressor_params={"num_leaves": 63, "min_child_samples": 5}, trees_per_iteration=10),
+        "lightgbm_refit": dict(mode="refit", regressor="lightgbm",
+                               regressor_params={"n_estimators": 200, "num_leaves": 255, "min_child_samples": 2}),
     }
     results: dict[str, list[tuple[float, float]]] = {m: [] for m in args.modes}
     for seed in args.seeds:
         if args.data == "episodes":
             ds = simulate("car_on_hill", 0, args.episodes, seed=seed, horizon=100)
-            print(f"seed {seed}: {len(ds)} transitions in {ds.n_episodes} episodes (uniformly random actions from (-0.5, 0))")
+            print(f"seed {seed}: {len(ds)} transitions in {ds.n_episodes} episodes (uniformly random actions "
+                  "from (-0.5, 0))")
         else:
             ds = uniform_data(args.uniform_size, seed)
             print(f"seed {seed}: {len(ds)} one-step transitions from uniformly drawn states and actions")
@@ -97,7 +101,8 @@ def main() -> None:
             if name == "refit":
                 continue
             d = np.array([r[0] - b[0] for r, b in zip(rs, base, strict=True)])
-            print(f"{name} - refit over {len(d)} seed pairs: {d.mean():+.4f} +- {d.std(ddof=1) / np.sqrt(len(d)):.4f} (s.e.)")
+            print(f"{name} - refit over {len(d)} seed pairs: {d.mean():+.4f} +- "
+                  f"{d.std(ddof=1) / np.sqrt(len(d)):.4f} (s.e.)")
 
 
 if __name__ == "__main__":

@@ -103,7 +103,8 @@ def main() -> None:
         for tree in (t.resolve() for t in args.trees):
             run = work / f"run-{it}-{abs(hash(str(tree)))}"
             shutil.rmtree(run, ignore_errors=True)
-            cli, _ = child([sys.executable, "-m", "offline_adp", "fit", str(data), "--config", str(cfg), "--out", str(run),
+            cli, _ = child([sys.executable, "-m", "offline_adp", "fit", str(data), "--config", str(cfg), "--out",
+                            str(run),
                             "-q"], tree)
             status = json.loads((run / "run.json").read_text())
             api, out = child([sys.executable, "-c", API, str(data), json.dumps(params)], tree)
@@ -112,7 +113,8 @@ def main() -> None:
             load = json.loads(out.strip().splitlines()[-1])
             size = sum(f.stat().st_size for f in (run / "model").glob("q.*"))
             rows.append({"tree": str(tree), "iterations": f"{it} ({status.get('iterations')})", "cli_cpu": cli,
-                         "cli_fit_cpu": status.get("fit_cpu_seconds"), "api_cpu": api, "api_fit_cpu": api_fit["fit_cpu"],
+                         "cli_fit_cpu": status.get("fit_cpu_seconds"), "api_cpu": api,
+                         "api_fit_cpu": api_fit["fit_cpu"],
                          "ratio": cli / api, "load_cpu": load["load"], "first_act_cpu": load["first_act"],
                          "load_rss_mb": load["rss_mb"], "model_mb": size / 1e6})
             print(json.dumps(rows[-1]), flush=True)

@@ -43,7 +43,9 @@ def car_on_hill(quick: bool) -> list[tuple]:
     rows.append(("FQI (extra-trees, frozen)", coh_score(fqi.policy_), cpu, 0))
     api, cpu = timed(lambda: ApproximatePolicyIteration(fqe, n_iterations=3 if quick else 5).fit(ds))
     rows.append(("API (FQE, frozen)", coh_score(api.policy_), cpu, 0))
-    cpi, cpu = timed(lambda: ConservativePolicyIteration(fqe, n_iterations=3 if quick else 5, model=model, n_eval_episodes=1,  # deterministic start
+    # deterministic start
+    cpi, cpu = timed(lambda: ConservativePolicyIteration(fqe, n_iterations=3 if quick else 5, model=model,
+                                                         n_eval_episodes=1,
                                                          step_sizes=(0.25, 0.5, 1.0)).fit(ds))
     rows.append(("CPI (line search, rollouts)", coh_score(cpi.policy_), cpu, cpi.simulator_steps_))
 
@@ -77,16 +79,19 @@ def path_tracking(quick: bool) -> list[tuple]:
     fqe = FittedQEvaluation(gamma=0.95, n_iterations=its, mode="frozen")
     api, cpu = timed(lambda: ApproximatePolicyIteration(fqe, n_iterations=3, initial_policy=demo).fit(ds))
     rows.append(("API (FQE, frozen; from demonstrator)", *evaluate(api.policy_), cpu, 0))
-    cpi, cpu = timed(lambda: ConservativePolicyIteration(fqe, n_iterations=3, initial_policy=demo, step_sizes=(0.25, 0.5, 1.0)).fit(ds))
+    cpi, cpu = timed(lambda: ConservativePolicyIteration(fqe, n_iterations=3, initial_policy=demo,
+                                                         step_sizes=(0.25, 0.5, 1.0)).fit(ds))
     rows.append(("CPI (line search, FQE estimates)", *evaluate(cpi.policy_), cpu, 0))
     demos = ds.filter_source("demonstration")
     psdp_proto = PSDP(horizon=H, n_samples=300, n_rollouts=1, gamma=0.95, learner="regression", regressor="extra_trees",
-                      learner_params={"n_estimators": 20, "min_samples_leaf": 2, "n_jobs": 1}, feature_map=drop_progress)
+                      learner_params={"n_estimators": 20, "min_samples_leaf": 2, "n_jobs": 1},
+                      feature_map=drop_progress)
     psdp, cpu = timed(lambda: psdp_proto.fit(model, demos))
     rows.append(("PSDP (regression; mu_t = logged demos)", *evaluate(psdp.policy_), cpu, psdp.simulator_steps_))
     cls_proto = PSDP(horizon=H, n_samples=300, n_rollouts=1, gamma=0.95, feature_map=drop_progress)
     it, cpu = timed(lambda: IteratedPSDP(cls_proto, n_rounds=2 if quick else 3, n_eval_episodes=200).fit(model, demo))
-    rows.append(("iterated PSDP (classif.; from demonstr.)", *evaluate(it.policy_), cpu, int(it.history_["simulator_steps"].sum())))
+    rows.append(("iterated PSDP (classif.; from demonstr.)", *evaluate(it.policy_), cpu,
+                 int(it.history_["simulator_steps"].sum())))
     return rows
 
 

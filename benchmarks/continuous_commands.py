@@ -92,7 +92,8 @@ def run(env_id: str, n: int, seed: int, n_episodes: int, arms: dict[str, dict]) 
             def command(x, t, pol=pol, values=values):
                 return values[pol.act_index(x, t)]
         r, smooth = returns(env_id, command, n_episodes)
-        row = {"problem": env_id, "seed": seed, "arm": arm, "score": float(r.mean()), "score_se": float(r.std() / np.sqrt(len(r))),
+        row = {"problem": env_id, "seed": seed, "arm": arm, "score": float(r.mean()),
+               "score_se": float(r.std() / np.sqrt(len(r))),
                "cpu_s": cpu, "smoothness": smooth, "iterations": len(est.history_), "verdict": est.verdict_}
         print(json.dumps(row), flush=True)
         out.append(row)

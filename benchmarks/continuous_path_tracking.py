@@ -151,7 +151,8 @@ def run(mode: str, args: argparse.Namespace) -> list[dict]:
                                              "commands": est.commands_})
         print(f"    per fit: {', '.join(f'{c:.3f}' for c in sc['per_fit'])}", flush=True)
     d = costs["continuous"] - costs["binned"]
-    paired = {"mode": mode, "seed": args.seed, "arm": "continuous - binned (paired)", "mean_difference": float(d.mean()),
+    paired = {"mode": mode, "seed": args.seed, "arm": "continuous - binned (paired)",
+              "mean_difference": float(d.mean()),
               "se": float(d.std(ddof=1) / np.sqrt(len(d)))}
     rows.append(paired)
     print(f"  continuous - binned: {paired['mean_difference']:+.3f} +- {paired['se']:.3f} (paired)", flush=True)

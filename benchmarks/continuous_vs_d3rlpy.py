@@ -102,7 +102,8 @@ def main() -> None:
         term = log["terminated"].astype(bool)
         with tempfile.TemporaryDirectory() as tmp:
             src = os.path.join(tmp, "log.npz")
-            np.savez(src, env_id=np.array(a.problem), obs=log["obs"], action=np.asarray(log["action"], np.float64).reshape(len(term), -1),
+            np.savez(src, env_id=np.array(a.problem), obs=log["obs"],
+                     action=np.asarray(log["action"], np.float64).reshape(len(term), -1),
                      reward=log["reward"], terminated=term, timeout=log["truncated"].astype(bool) & ~term,
                      low=np.asarray(space.low, np.float64), high=np.asarray(space.high, np.float64))
             for algo in d3:

@@ -155,12 +155,14 @@ def main() -> None:
             del ds
             for mode in lgbm:
                 n_it = args.iterations if mode == "refit" else args.warm_iterations
-                with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1, memory_limit="10GiB")) as client:
+                with dask_client(EngineConfig(kind="dask", n_workers=2, threads_per_worker=1,
+                                              memory_limit="10GiB")) as client:
                     marks: list[tuple[float, float]] = []
                     t0 = time.perf_counter()
                     DistributedFQI(gamma=0.95, n_iterations=n_it, lgbm_params=PARAMS, warm_start=mode == "warm_start",
                                    trees_per_iteration=10).fit(
-                        client, path, on_iteration=lambda k, marks=marks: marks.append((time.perf_counter(), tree_cpu())))
+                        client, path, on_iteration=lambda k,
+                        marks=marks: marks.append((time.perf_counter(), tree_cpu())))
                     dask_it = (marks[-1][0] - marks[0][0]) / (n_it - 1)  # iterations 2.. (data already spread)
                     dask_cpu = (marks[-1][1] - marks[0][1]) / (n_it - 1)
                     first = marks[0][0] - t0

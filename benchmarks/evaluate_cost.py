@@ -92,7 +92,8 @@ def _case_50k(tmp: Path) -> dict[str, object]:
     for sim in ("path_tracking", "none"):
         marks: list[tuple[str, float]] = []
         t0 = time.process_time()
-        m = evaluate_run(tmp / "run", simulator=sim, progress=lambda s, marks=marks: marks.append((s, time.process_time())))
+        m = evaluate_run(tmp / "run", simulator=sim, progress=lambda s,
+                         marks=marks: marks.append((s, time.process_time())))
         end = time.process_time()
         out[f"evaluate[{sim}]"] = end - t0
         out["stages"][sim] = _stages([("setup", t0), *marks], end)
@@ -140,7 +141,8 @@ def _print(case: str, arms: dict[str, dict]) -> None:
         print(f"  -- evaluate stages ({which})")
         keys = list(dict.fromkeys(k for n in names for k in arms[n]["stages"][which]))
         for k in keys:
-            print(f"     {k[:33]:33s}" + " | ".join(f"{arms[n]['stages'][which].get(k, 0.0):8.1f}{'':13s}" for n in names))
+            print(f"     {k[:33]:33s}"
+                  + " | ".join(f"{arms[n]['stages'][which].get(k, 0.0):8.1f}{'':13s}" for n in names))
     for n in names[1:]:
         same = arms[n]["numbers"] == arms[names[0]]["numbers"]
         print(f"  estimates {names[0]} vs {n}: {'identical' if same else 'DIFFER'}")
@@ -153,7 +155,8 @@ def main() -> None:
     ap.add_argument("--case", choices=["demo", "50k", "all"], default="all")
     ap.add_argument("--base", type=Path, default=None, help="a checkout of the code to compare with (before)")
     ap.add_argument("--profile", default=None, help="write cProfile stats (CPU timer) into this directory")
-    ap.add_argument("--repeat", type=int, default=1, help="runs of each arm; the smallest reading of each number is kept")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="runs of each arm; the smallest reading of each number is kept")
     ap.add_argument("--one", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--root", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()

@@ -37,12 +37,14 @@ def main() -> None:
         ds.save(Path(tmp) / "ds")
         t0 = time.perf_counter()
         fit_run(Path(tmp) / "ds", Path(tmp) / "run", params={"mode": "frozen", "n_iterations": 40})
-        print(f"dataset: {len(ds)} transitions, {n_ep} episodes; FQI fit {time.perf_counter() - t0:.1f} s (not counted)")
+        print(f"dataset: {len(ds)} transitions, {n_ep} episodes; FQI fit {time.perf_counter() - t0:.1f} s "
+              "(not counted)")
         for sim in ("none", "path_tracking"):
             marks: list[tuple[str, float]] = []
             t0 = time.perf_counter()
             m = evaluate_run(Path(tmp) / "run", simulator=sim, n_episodes=args.episodes, n_boot=args.bootstrap,
-                             n_boot_fqe=args.fqe_bootstrap, progress=lambda s, marks=marks: marks.append((s, time.perf_counter())))
+                             n_boot_fqe=args.fqe_bootstrap, progress=lambda s,
+                             marks=marks: marks.append((s, time.perf_counter())))
             total = time.perf_counter() - t0
             stages: dict[str, float] = {}
             for (name, t), (_, t_next) in zip(marks, marks[1:] + [("end", t0 + total)], strict=True):
@@ -75,7 +77,8 @@ def tabular_replicates(n_episodes: int = 1000, n_boot: int = 200, horizon: int =
     em = ope.EpisodeMatrix.build(a.episode, a.step, horizon)
     W = np.array([c[em.row_episode] for c in ope.bootstrap_counts(em.n_episodes, n_boot, 0)])
     t0 = time.perf_counter()
-    fast = tabular_fqe_replicates(a.obs, a.action, a.cost, a.next_obs, a.terminated, a.step == 0, pi, 3, horizon, 0.9, W)
+    fast = tabular_fqe_replicates(a.obs, a.action, a.cost, a.next_obs, a.terminated, a.step == 0, pi, 3, horizon, 0.9,
+                                  W)
     t_fast = time.perf_counter() - t0
     k = 20
     t0 = time.perf_counter()

@@ -92,7 +92,8 @@ def cli_fit(dataset: Path, run: Path, params: dict, source: str | None = None) -
     cfg.write_text("\n".join(lines) + "\n")
     cmd = [sys.executable, "-m", "offline_adp", "-q", "fit", str(dataset), "--algorithm", "fqi", "--config", str(cfg),
            "--out", str(run)]
-    proc = subprocess.Popen(cmd, env=_env(source), cwd=run.parent, stdout=subprocess.DEVNULL)  # not -m's cwd: the source
+    # not -m's cwd: the source
+    proc = subprocess.Popen(cmd, env=_env(source), cwd=run.parent, stdout=subprocess.DEVNULL)
     _, status, usage = os.wait4(proc.pid, 0)
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"{' '.join(cmd)} failed")
@@ -156,7 +157,8 @@ def main() -> None:
                 run = root / "runs" / f"{env}-s{args.seed}-{arm}-r{rnd}"
                 fit = cli_fit(ds, run, params, source)
                 m, se = score(env, run, ds)
-                rec = {"task": env, "arm": arm, "round": rnd, "params": params, "source": source, "score": round(m, 2), "se": round(se, 2),
+                rec = {"task": env, "arm": arm, "round": rnd, "params": params, "source": source, "score": round(m, 2),
+                       "se": round(se, 2),
                        "process_cpu_s": round(fit["process_cpu_s"], 2), "fit_cpu_s": round(fit["fit_cpu_seconds"], 2),
                        "iterations": fit.get("iterations"), "builds": len(fit.get("structure_builds") or []),
                        "inner_backups": _inner_backups(run),
@@ -180,14 +182,16 @@ def _inner_backups(run: Path) -> int:
 def table(records: list[dict], reference: str) -> str:
     """Per task and arm: the score (mean over rounds), the CPU seconds (process, fit: means)
     and their ratios to the reference arm's means, as a Markdown table."""
-    lines = ["| task | arm | score | process CPU-s | fit CPU-s | ratio to " + reference + " (process / fit) | iterations |",
+    lines = ["| task | arm | score | process CPU-s | fit CPU-s | ratio to " + reference
+             + " (process / fit) | iterations |",
              "|---|---|---|---|---|---|---|"]
     for env in dict.fromkeys(r["task"] for r in records):
         ref = [r for r in records if r["task"] == env and r["arm"] == reference]
         for arm in dict.fromkeys(r["arm"] for r in records if r["task"] == env):
             rs = [r for r in records if r["task"] == env and r["arm"] == arm]
             p, f = float(np.mean([r["process_cpu_s"] for r in rs])), float(np.mean([r["fit_cpu_s"] for r in rs]))
-            ratio = (f"{p / np.mean([r['process_cpu_s'] for r in ref]):.2f} / {f / np.mean([r['fit_cpu_s'] for r in ref]):.2f}"
+            ratio = (f"{p / np.mean([r['process_cpu_s'] for r in ref]):.2f} / "
+                     f"{f / np.mean([r['fit_cpu_s'] for r in ref]):.2f}"
                      if ref else "-")
             scores = " / ".join(f"{r['score']:g}" for r in rs)
             lines.append(f"| {env} | {arm} | {np.mean([r['score'] for r in rs]):.1f} ({scores}) | {p:.1f} | {f:.1f} | "

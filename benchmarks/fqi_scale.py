@@ -22,8 +22,8 @@ setting of ``--threads`` (default 1 and 2) is a separate run.
                                    [--threads 1 2] [--eval-episodes 1000] [--eval-horizon 200]
 
 Modes: ``default`` (``FittedQIteration``'s defaults: ``mode="auto"``, i.e. frozen extra-trees grown
-fully, each structure on at most 131,072 rows), ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen`` (extra-trees,
-``min_samples_leaf=20``, the default structure schedule), ``frozen_sub`` (the same with
+fully, each structure on at most 131,072 rows), ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen``
+(extra-trees, ``min_samples_leaf=20``, the default structure schedule), ``frozen_sub`` (the same with
 each tree grown on 1/8 of the rows, ``structure_max_samples=0.125``), ``refit_lightgbm``.
 """
 
@@ -55,10 +55,12 @@ CHILD = textwrap.dedent(
     obs, nxt = x[:, :-1].reshape(n, 4), x[:, 1:].reshape(n, 4)
     act = a.reshape(n)
     cost = (obs ** 2).sum(1) + 0.1 * (act - 1) ** 2
-    info = DatasetInfo(features=tuple(Feature(f"x{i}") for i in range(4)), action_table=ActionTable.from_values([-1.0, 0.0, 1.0]))
+    info = DatasetInfo(features=tuple(Feature(f"x{i}") for i in range(4)),
+                       action_table=ActionTable.from_values([-1.0, 0.0, 1.0]))
     ep = np.repeat(np.char.zfill(np.arange(E).astype(str), 7), T)
-    ds = TransitionDataset.from_arrays(info, episode_id=ep, step=np.tile(np.arange(T), E), obs=obs, action=act, cost=cost,
-                                       next_obs=nxt, terminated=np.zeros(n, bool), truncated=np.tile(np.arange(T) == T - 1, E))
+    ds = TransitionDataset.from_arrays(info, episode_id=ep, step=np.tile(np.arange(T), E), obs=obs, action=act,
+                                       cost=cost, next_obs=nxt, terminated=np.zeros(n, bool),
+                                       truncated=np.tile(np.arange(T) == T - 1, E))
     del x, obs, nxt
     cfg = {
         "default": {},
@@ -121,13 +123,15 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
     ap.add_argument("--modes", nargs="+", default=["default"])
     ap.add_argument("--iterations", type=int, default=50)
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="n_jobs of the fit's regressor, one run each")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                    help="n_jobs of the fit's regressor, one run each")
     ap.add_argument("--eval-episodes", type=int, default=1000)
     ap.add_argument("--eval-horizon", type=int, default=200)
     args = ap.parse_args()
     here = Path(__file__).resolve().parent
     env = dict(os.environ, PYTHONPATH=str(here.parent))
-    print(f"{'n':>9} {'mode':<15} {'thr':>3} {'iters':>5} {'wall s':>8} {'CPU s':>8} {'median it s':>11} {'max it s':>9} "
+    print(f"{'n':>9} {'mode':<15} {'thr':>3} {'iters':>5} {'wall s':>8} {'CPU s':>8} {'median it s':>11} "
+          f"{'max it s':>9} "
           f"{'peak RSS GiB':>12}  discounted cost over {args.eval_episodes} rollouts of {args.eval_horizon} steps "
           "(mean +- s.e.)")
     for mode in args.modes:
@@ -139,7 +143,8 @@ def main() -> None:
                 r = json.loads(out.stdout.strip().splitlines()[-1])
                 cost = "  ".join(f"{k} {m:.3f}+-{e:.3f}" for k, (m, e) in r["cost"].items())
                 d, de = r["learned_minus_lookahead"]
-                print(f"{r['n']:>9} {r['mode']:<15} {r['threads']:>3} {r['iterations']:>5} {r['wall_s']:>8.1f} {r['cpu_s']:>8.1f} "
+                print(f"{r['n']:>9} {r['mode']:<15} {r['threads']:>3} {r['iterations']:>5} {r['wall_s']:>8.1f} "
+                      f"{r['cpu_s']:>8.1f} "
                       f"{r['median_iter_s']:>11.3f} {r['max_iter_s']:>9.3f} {r['peak_rss_gib']:>12.2f}  {cost}  "
                       f"learned-lookahead {d:+.3f}+-{de:.3f}"
                       + (f"   trees per build {'/'.join(map(str, r['trees']))}" if r.get("trees") else ""), flush=True)

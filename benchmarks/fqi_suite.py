@@ -112,7 +112,8 @@ def problem(name: str, n: int, data_seed: int, quick: bool):
 
         ds = simulate("path_tracking", 15 if quick else 50, 45 if quick else 150, seed=data_seed, horizon=100)
         model = make_problem("path_tracking")
-        return ds, 0.95, 50, lambda pi: -rollout(model, pi, 200, np.random.default_rng(123), horizon=100, gamma=0.95).mean
+        return ds, 0.95, 50, lambda pi: -rollout(model, pi, 200, np.random.default_rng(123), horizon=100,
+                                                 gamma=0.95).mean
     ds = gym_dataset(name, n, data_seed)
     iters = GYM[name] if not quick else GYM[name] // 2
     return ds, 0.99, iters, lambda pi: gym_score(name, pi, 10 if quick else 20)
@@ -127,8 +128,10 @@ def main() -> None:
     ap.add_argument("--transitions", type=int, default=50_000)
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--action-encoding", default="joint", choices=["joint", "per_action"])
-    ap.add_argument("--quick", action="store_true", help="10k transitions, 20 trees, half the iterations, 2 learner seeds")
-    ap.add_argument("--gamma", type=float, default=None, help="override each problem's gamma (e.g. 0.95 for a held-out check)")
+    ap.add_argument("--quick", action="store_true",
+                    help="10k transitions, 20 trees, half the iterations, 2 learner seeds")
+    ap.add_argument("--gamma", type=float, default=None,
+                    help="override each problem's gamma (e.g. 0.95 for a held-out check)")
     ap.add_argument("--iterations", type=int, default=None, help="override each problem's iteration count")
     ap.add_argument("--json", default=None, help="write every fit's numbers here")
     args = ap.parse_args()
@@ -147,7 +150,8 @@ def main() -> None:
                   f"{iters} iterations", flush=True)
             for mode in args.modes:
                 for ls in args.learner_seeds:
-                    f = FittedQIteration(gamma=gamma, n_iterations=iters, random_state=ls, action_encoding=args.action_encoding,
+                    f = FittedQIteration(gamma=gamma, n_iterations=iters, random_state=ls,
+                                         action_encoding=args.action_encoding,
                                          regressor_params={"n_estimators": args.trees}, **MODES[mode])
                     with warnings.catch_warnings(record=True) as caught:
                         warnings.simplefilter("always", DivergenceWarning)
@@ -157,7 +161,8 @@ def main() -> None:
                         cpu, wall = time.process_time() - c0, time.perf_counter() - w0
                     sc = score(f.policy_)
                     flagged = any(issubclass(w.category, DivergenceWarning) for w in caught)
-                    rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc, "cpu_s": cpu,
+                    rec = {"problem": name, "data_seed": ds_seed, "mode": mode, "learner_seed": ls, "score": sc,
+                           "cpu_s": cpu,
                            "wall_s": wall, "iterations": len(f.history_), "verdict": f.verdict_, "flagged": flagged,
                            "builds": [[b["iteration"], "const" if b["constant"] else b["trees"]]
                                       for b in structure_builds(f.history_)]}
@@ -166,9 +171,11 @@ def main() -> None:
                         with open(args.json, "w") as fh:
                             json.dump(records, fh, indent=1)
                     trees = "/".join(str(t) for _, t in rec["builds"])
-                    print(f"  {mode:<11} seed {ls}: score {sc:+9.3f}  CPU {cpu:7.1f} s  wall {wall:6.1f} s  "
-                          f"{f.verdict_}{' (FLAGGED)' if flagged else ''}{f'  trees per build {trees}' if trees else ''}",
-                          flush=True)
+                    print(
+                        f"  {mode:<11} seed {ls}: score {sc:+9.3f}  CPU {cpu:7.1f} s  wall {wall:6.1f} s  "
+                        f"{f.verdict_}{' (FLAGGED)' if flagged else ''}{f'  trees per build {trees}' if trees else ''}",
+                        flush=True,
+                    )
     print("\nproblem         mode        score mean   spread(std)   CPU s (mean)   CPU / refit   flags")
     for name in args.problems:
         ref = [r["cpu_s"] for r in records if r["problem"] == name and r["mode"] == "refit"]
@@ -177,8 +184,8 @@ def main() -> None:
             s = np.array([r["score"] for r in rs])
             cpu = float(np.mean([r["cpu_s"] for r in rs]))
             ratio = f"{cpu / np.mean(ref):.3f}" if ref else "-"
-            print(f"{name:<15} {mode:<11} {s.mean():+10.3f}   {s.std(ddof=1) if len(s) > 1 else 0.0:10.3f}   {cpu:12.1f}   "
-                  f"{ratio:>11}   {sum(r['flagged'] for r in rs)}")
+            print(f"{name:<15} {mode:<11} {s.mean():+10.3f}   {s.std(ddof=1) if len(s) > 1 else 0.0:10.3f}   "
+                  f"{cpu:12.1f}   {ratio:>11}   {sum(r['flagged'] for r in rs)}")
 
 
 if __name__ == "__main__":

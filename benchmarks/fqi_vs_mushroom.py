@@ -33,7 +33,8 @@ rows each); our default mode (frozen structures, compiled builder, joint) 0.174 
 ``per_action`` the default mode resolves to refit. Scores are scored by the same code for both.
 
     nice -n 10 python benchmarks/fqi_vs_mushroom.py --data-seeds 0 1 2 \
-        [--encodings joint per_action] [--modes refit default] [--mushroom-python /work/mr/venv/bin/python] [--json out.json]
+        [--encodings joint per_action] [--modes refit default] [--mushroom-python /work/mr/venv/bin/python] [--json
+        out.json]
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ def worker(src: str, dst: str) -> None:
     agent = FQI(mdp_info, EpsGreedy(Parameter(0.0)), ExtraTreesRegressor, approximator_params=params,
                 n_iterations=K, quiet=True)
     last = np.zeros(len(s), bool)
-    dataset = [(s[i], np.array([a[i]]), r[i], s2[i], bool(ab[i]), bool(last[i])) for i in range(len(s))]  # its input format
+    # its input format
+    dataset = [(s[i], np.array([a[i]]), r[i], s2[i], bool(ab[i]), bool(last[i])) for i in range(len(s))]
     c0, w0 = time.process_time(), time.perf_counter()
     agent.fit(dataset)
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
@@ -98,7 +100,8 @@ def run_mushroom(python: str, arrays: dict, gamma: float, iterations: int, trees
 
     with tempfile.TemporaryDirectory() as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
-        np.savez(src, state=arrays["obs"], action=arrays["action"], reward=-arrays["cost"], next_state=arrays["next_obs"],
+        np.savez(src, state=arrays["obs"], action=arrays["action"], reward=-arrays["cost"],
+                 next_state=arrays["next_obs"],
                  absorbing=arrays["terminated"], n_actions=arrays["n_actions"], gamma=gamma, iterations=iterations,
                  trees=trees, seed=seed)
         proc = subprocess.run([python, __file__, "--worker", str(src), str(dst)], capture_output=True, text=True,
@@ -117,13 +120,16 @@ def run_mushroom(python: str, arrays: dict, gamma: float, iterations: int, trees
             sizes = np.array([len(t["left"]) for t in trees_j])
             offs = np.r_[0, np.cumsum(sizes)[:-1]]
             ens.append(TreeEnsemble(
-                left=np.concatenate([np.where(t["left"] >= 0, t["left"] + o, -1) for t, o in zip(trees_j, offs, strict=True)]),
-                right=np.concatenate([np.where(t["right"] >= 0, t["right"] + o, -1) for t, o in zip(trees_j, offs, strict=True)]),
+                left=np.concatenate([np.where(t["left"] >= 0, t["left"] + o,
+                                              -1) for t, o in zip(trees_j, offs, strict=True)]),
+                right=np.concatenate([np.where(t["right"] >= 0, t["right"] + o,
+                                               -1) for t, o in zip(trees_j, offs, strict=True)]),
                 feature=np.concatenate([t["feature"] for t in trees_j]).astype(np.int64),
                 threshold=np.concatenate([t["threshold"] for t in trees_j]),
                 value=-np.concatenate([t["value"] for t in trees_j]),  # reward Q -> cost Q
                 roots=offs.astype(np.int64)))
-        enc = QEncoder(n_actions=int(arrays["n_actions"]), action_features=np.eye(int(arrays["n_actions"])), per_action=True)
+        enc = QEncoder(n_actions=int(arrays["n_actions"]), action_features=np.eye(int(arrays["n_actions"])),
+                       per_action=True)
         q = TreeQ(ens, enc)
         gap = float(np.abs(-q.values(arrays["obs"][:256]) - out["check_q"]).max())
         if gap > 1e-9:  # the exported forests must be the Q mushroom-rl predicts with
@@ -154,7 +160,8 @@ def main() -> None:
     ap.add_argument("--learner-seed", type=int, default=0)
     ap.add_argument("--encodings", nargs="+", default=["joint", "per_action"], choices=["joint", "per_action"])
     ap.add_argument("--modes", nargs="+", default=["refit"], choices=["refit", "default"],
-                    help="our FQI modes (default: refit, the loop this file compares; 'default' = the library's default mode)")
+                    help="our FQI modes (default: refit, the loop this file compares; 'default' = the library's "
+                    "default mode)")
     ap.add_argument("--mushroom-python", default=DEFAULT_MR)
     ap.add_argument("--no-mushroom", action="store_true")
     ap.add_argument("--json", default=None)
@@ -182,7 +189,8 @@ def main() -> None:
             for enc in args.encodings:
                 # the mode is always named: the library's default mode is not the refit loop
                 kw = {"mode": "refit"} if mode == "refit" else {}
-                f = FittedQIteration(gamma=gamma, n_iterations=args.iterations, action_encoding=enc, random_state=args.learner_seed,
+                f = FittedQIteration(gamma=gamma, n_iterations=args.iterations, action_encoding=enc,
+                                     random_state=args.learner_seed,
                                      regressor_params={"n_estimators": args.trees, "n_jobs": 1}, **kw)
                 c0, w0 = time.process_time(), time.perf_counter()
                 f.fit(ds)
@@ -195,8 +203,10 @@ def main() -> None:
             res = run_mushroom(args.mushroom_python, arrays, gamma, args.iterations, args.trees, args.learner_seed)
             if res is not None:
                 sc = score(GreedyPolicy(res["q"]))
-                records.append({"data_seed": s, "who": "mushroom-rl", "score": sc, "cpu_s": res["cpu_s"], "wall_s": res["wall_s"]})
-                print(f"  {'mushroom-rl':<22} score {sc:+.4f}  CPU {res['cpu_s']:7.1f} s  wall {res['wall_s']:7.1f} s", flush=True)
+                records.append({"data_seed": s, "who": "mushroom-rl", "score": sc, "cpu_s": res["cpu_s"],
+                                "wall_s": res["wall_s"]})
+                print(f"  {'mushroom-rl':<22} score {sc:+.4f}  CPU {res['cpu_s']:7.1f} s  wall {res['wall_s']:7.1f} s",
+                      flush=True)
     whos = list(dict.fromkeys(r["who"] for r in records))
     print("\nwho                    score mean (s.e.)    CPU s mean   CPU / mushroom-rl (paired mean ratio)")
     mr = {r["data_seed"]: r["cpu_s"] for r in records if r["who"] == "mushroom-rl"}

@@ -35,7 +35,8 @@ CHILD = textwrap.dedent(
         from offline_adp.ingest.mcap import JsonDecoderFactory
         n = 0
         with open(path, "rb") as f:
-            for _ in make_reader(f, decoder_factories=[JsonDecoderFactory(), DecoderFactory()]).iter_decoded_messages(topics=topics):
+            reader = make_reader(f, decoder_factories=[JsonDecoderFactory(), DecoderFactory()])
+            for _ in reader.iter_decoded_messages(topics=topics):
                 n += 1
     else:
         from offline_adp.ingest.mcap import ingest_mcap
@@ -56,7 +57,8 @@ def main() -> None:
     from offline_adp.simulate import simulate
     from offline_adp.simulate.mcap_writer import write_mcap
 
-    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} {'ours/raw':>8} "
+    print(f"{'encoding':<9} {'episodes':>8} {'MB':>6} {'messages':>9} {'raw msg/s':>10} {'ours msg/s':>10} "
+          f"{'ours/raw':>8} "
           f"{'CPU ours/raw':>12} {'raw RSS MiB':>11} {'ours RSS MiB':>12} {'max buffered msgs':>17}")
     with tempfile.TemporaryDirectory() as d:
         for n_ep in args.episodes:
@@ -65,11 +67,14 @@ def main() -> None:
                 (f,) = write_mcap(ds, Path(d) / f"{enc}{n_ep}", encoding=enc)
                 res = {}
                 for mode in ("raw", "ours"):
-                    out = subprocess.run([sys.executable, "-c", CHILD, str(f), mode, str(SPEC)], check=True, capture_output=True, text=True)
+                    out = subprocess.run([sys.executable, "-c", CHILD, str(f), mode, str(SPEC)], check=True,
+                                         capture_output=True, text=True)
                     res[mode] = json.loads(out.stdout.strip().splitlines()[-1])
                 r, o = res["raw"], res["ours"]
-                print(f"{enc:<9} {n_ep:>8} {f.stat().st_size / 1e6:>6.1f} {r['messages']:>9} {r['messages'] / r['wall']:>10,.0f} "
-                      f"{o['messages'] / o['wall']:>10,.0f} {(o['messages'] / o['wall']) / (r['messages'] / r['wall']):>8.2f} "
+                print(f"{enc:<9} {n_ep:>8} {f.stat().st_size / 1e6:>6.1f} {r['messages']:>9} "
+                      f"{r['messages'] / r['wall']:>10,.0f} "
+                      f"{o['messages'] / o['wall']:>10,.0f} "
+                      f"{(o['messages'] / o['wall']) / (r['messages'] / r['wall']):>8.2f} "
                       f"{(o['messages'] / o['cpu']) / (r['messages'] / r['cpu']):>12.2f} "
                       f"{r['rss_mib']:>11.0f} {o['rss_mib']:>12.0f} {o['buffered']:>17}", flush=True)
 

@@ -35,7 +35,8 @@ CHILD = textwrap.dedent(
     from offline_adp.envs.car_on_hill import score
     from offline_adp.regressors import make_regressor
     from offline_adp.simulate import simulate
-    episodes, iterations, params, limit = int(sys.argv[1]), int(sys.argv[2]), json.loads(sys.argv[3]), float(sys.argv[4])
+    episodes, iterations = int(sys.argv[1]), int(sys.argv[2])
+    params, limit = json.loads(sys.argv[3]), float(sys.argv[4])
     ds = simulate("car_on_hill", 0, episodes, seed=0, horizon=100)
     ru = resource.getrusage(resource.RUSAGE_SELF)
     used = ru.ru_utime + ru.ru_stime
@@ -94,7 +95,8 @@ def main() -> None:
         out[name] = r
         cpu = f">= {args.cpu_limit:.0f}" if r.get("stopped") else f"{r['cpu_s']:.1f}"
         score = "-" if r.get("stopped") else f"{r['score']:+.4f}"
-        print(f"{name:<10} {r.get('n_jobs', params.get('n_jobs', '')) or '':>6} {cpu:>10} {r['wall_s']:>7.1f} {score:>8}", flush=True)
+        print(f"{name:<10} {r.get('n_jobs', params.get('n_jobs', '')) or '':>6} {cpu:>10} "
+              f"{r['wall_s']:>7.1f} {score:>8}", flush=True)
     d, one = out["default"], out["n_jobs=1"]
     if d.get("cpu_s") and one.get("cpu_s"):
         ratio = d["cpu_s"] / one["cpu_s"]

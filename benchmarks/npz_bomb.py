@@ -24,7 +24,8 @@ def write_bomb(d: Path, expanded_bytes: int = 1_270_000_000) -> None:
     from offline_adp.simulate import simulate
 
     ds = simulate("path_tracking", 4, 4, seed=1, horizon=40)
-    f = FittedQIteration(n_iterations=1, regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1}).fit(ds)
+    f = FittedQIteration(n_iterations=1, regressor="extra_trees",
+                         regressor_params={"n_estimators": 2, "n_jobs": 1}).fit(ds)
     save_fqi(f, d)
     with np.load(d / "q.npz") as z:
         members = {k: z[k] for k in z.files}

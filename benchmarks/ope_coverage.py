@@ -106,9 +106,11 @@ SIZES = {
              "path_tracking_steer": (8, 8, 40, 100), "path_tracking_steer_accel": (8, 8, 40, 100)},
     "small": {"path_tracking": (30, 30, 200, None), "car_on_hill": (0, 200, 2000, None), "cartpole": (0, 60, 200, 100),
               "path_tracking_steer": (30, 30, 200, None), "path_tracking_steer_accel": (30, 30, 200, None)},
-    "medium": {"path_tracking": (60, 60, 300, None), "car_on_hill": (0, 400, 2000, None), "cartpole": (0, 100, 300, 100),
+    "medium": {"path_tracking": (60, 60, 300, None), "car_on_hill": (0, 400, 2000, None),
+               "cartpole": (0, 100, 300, 100),
                "path_tracking_steer": (60, 60, 300, None), "path_tracking_steer_accel": (60, 60, 300, None)},
-    "full": {"path_tracking": (100, 100, 500, None), "car_on_hill": (0, 1000, 500, None), "cartpole": (0, 200, 500, 100),
+    "full": {"path_tracking": (100, 100, 500, None), "car_on_hill": (0, 1000, 500, None),
+             "cartpole": (0, 200, 500, 100),
              "path_tracking_steer": (100, 100, 500, None), "path_tracking_steer_accel": (100, 100, 500, None)},
 }
 #: continuous-command problems: name -> (reference problem, its options). Their candidates are
@@ -141,7 +143,8 @@ CANDIDATES: dict[str, dict[str, Any] | None] = {
 }
 #: candidates of the continuous problems (``fqi_eps30`` and ``exploration`` are stochastic: not evaluable
 #: over commands; ``demonstrator`` is its noise-free controller)
-CONTINUOUS_CANDIDATES = ["fqi", "fqi_5it", "fqi_1it", "fqi_leaf50", "fqi_linear", "fqi_cand4", "demonstrator", "nearest"]
+CONTINUOUS_CANDIDATES = ["fqi", "fqi_5it", "fqi_1it", "fqi_leaf50", "fqi_linear", "fqi_cand4", "demonstrator",
+                         "nearest"]
 CONTINUOUS_HOLDOUT = ["fqi_seed7", "fqi_lightgbm", "fqi_leaf20", "fqi_3it", "fqi_cand64", "sluggish", "sharp",
                       "feedforward"]
 #: a second set, never used to choose a rule (``--set holdout``): other learners and settings, an
@@ -311,7 +314,8 @@ def _run_dir(tmp: Path, name: str, est: Any | None) -> Path:
 
 
 def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str] | None = None,
-                        n_boot: int = 200, say: Any = print, options: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+                        n_boot: int = 200, say: Any = print,
+                        options: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """One row per candidate (see the module docstring). ``options``: evaluation settings over
     the defaults a user gets (the tests' fewer replicates and particles; never for a measurement)."""
     ds, sim, fixed = logs_and_problem(problem, size, seed)
@@ -386,12 +390,14 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                                       for k in ("estimate", "interval", "exit_mass", "exit_share", "skipped")},
                    "verdict": {"performance": h["verdict"]["performance"], "text": h["verdict"]["text"],
                                "check": _check(h["verdict"]["performance"], truth_side)},
-                   "verdict_logs_only": {"performance": h_logs["verdict"]["performance"], "text": h_logs["verdict"]["text"],
+                   "verdict_logs_only": {"performance": h_logs["verdict"]["performance"],
+                                         "text": h_logs["verdict"]["text"],
                                          "check": _check(h_logs["verdict"]["performance"], truth_side)},
                    "seconds": time.perf_counter() - t0}
             rows.append(row)
             say(f"  {name:13s} truth {truth:9.4g} [{t_lo:.4g}, {t_hi:.4g}]  headline "
-                + (f"{best['name'].upper()} {best['estimate']:.4g} [{best['interval'][0]:.4g}, {best['interval'][1]:.4g}] "
+                + (f"{best['name'].upper()} {best['estimate']:.4g} [{best['interval'][0]:.4g}, "
+                   f"{best['interval'][1]:.4g}] "
                    f"{'covers' if row['headline_covers'] else 'MISSES'}" if best else "none labelled")
                 + f"  verdict {row['verdict']['performance']} ({row['verdict']['check']}), logs-only "
                   f"{row['verdict_logs_only']['performance']} ({row['verdict_logs_only']['check']})  "
@@ -445,18 +451,22 @@ def _fmt(x: Any) -> str:
 
 def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     lines = ["| problem | candidates | labelled share | headline coverage | per-estimator coverage (covered/labelled) "
-             "| contradicted (sim) | contradicted (logs only) | logs-only claims (unconfirmed) | logs-only 'not distinguishable', "
-             "truth one-sided | FQE interval as shown, labelled or not: covered | median labelled FQE width / value range |",
+             "| contradicted (sim) | contradicted (logs only) | logs-only claims (unconfirmed) | logs-only 'not "
+             "distinguishable', "
+             "truth one-sided | FQE interval as shown, labelled or not: covered | median labelled FQE width / "
+             "value range |",
              "|" + "---|" * 11]
     for p, s in summary.items():
-        per = ", ".join(f"{k.upper()} {v['covered']}/{v['labelled']}" for k, v in s["per_estimator"].items() if v["labelled"])
+        per = ", ".join(f"{k.upper()} {v['covered']}/{v['labelled']}" for k, v in s["per_estimator"].items()
+                        if v["labelled"])
         lines.append(f"| {p} | {s['candidates']} | {_fmt(s['labelled_share'])} | {_fmt(s['headline_coverage'])} "
                      f"({s['headline_covered']}/{s['headline_labelled']}) | {per or 'none'} | "
                      f"{s['contradicted_with_simulator']} | {s['contradicted_logs_only']} | "
                      f"{s['claims_logs_only']} ({s['unconfirmed_logs_only']}) | {s['missed_logs_only']} | "
                      f"{s.get('fqe_shown_covered', 'n/a')}/{s.get('fqe_shown', 'n/a')} | "
                      f"{_fmt(s.get('median_width_over_range'))} |")
-    lines += ["", "| problem | seed | candidate | truth [95%] | behaviour logged | headline estimate [interval] | covers "
+    lines += ["",
+              "| problem | seed | candidate | truth [95%] | behaviour logged | headline estimate [interval] | covers "
               "| verdict (sim) | verdict (logs only) |", "|" + "---|" * 9]
     for r in rows:
         iv = r["headline_interval"]
@@ -466,7 +476,8 @@ def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
                     f"{'covers' if f['covers'] else 'MISSES'}; unsupported {f['unsupported']})"
                if f.get("interval") else "none labelled")
         lines.append(f"| {r['problem']} | {r['seed']} | {r['candidate']} | {r['truth']:.3g} "
-                     f"[{r['truth_interval'][0]:.3g}, {r['truth_interval'][1]:.3g}] | {r['behaviour_logged']:.3g} | {est} | "
+                     f"[{r['truth_interval'][0]:.3g}, {r['truth_interval'][1]:.3g}] | "
+                     f"{r['behaviour_logged']:.3g} | {est} | "
                      f"{'-' if r['headline_covers'] is None else 'yes' if r['headline_covers'] else 'NO'} | "
                      f"{r['verdict']['performance']} ({r['verdict']['check']}) | "
                      f"{r['verdict_logs_only']['performance']} ({r['verdict_logs_only']['check']}) |")
@@ -475,7 +486,9 @@ def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
 
 def run_suite(problems: list[str], seeds: list[int], size: str, candidates: list[str] | None = None,
               n_boot: int = 200, say: Any = print, options: dict[str, Any] | None = None) -> dict[str, Any]:
-    rows = [r for p in problems for s in seeds for r in evaluate_candidates(p, size, s, candidates, n_boot, say, options)]
+    rows = [
+        r for p in problems for s in seeds for r in evaluate_candidates(p, size, s, candidates, n_boot, say, options)
+    ]
     return {"size": size, "problems": problems, "seeds": seeds, "summary": summarise(rows), "rows": rows,
             "estimator_names": ESTIMATOR_NAMES}
 
@@ -485,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--problems", nargs="+", default=["path_tracking", "car_on_hill", "cartpole"], choices=PROBLEMS)
     ap.add_argument("--seeds", nargs="+", type=int, default=[1])
     ap.add_argument("--size", choices=list(SIZES), default="small")
-    ap.add_argument("--candidates", nargs="+", default=None, help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole), or 'holdout' for the "
+    ap.add_argument("--candidates", nargs="+", default=None,
+                    help=f"subset of {list(CANDIDATES)} (+ heuristic for cartpole), or 'holdout' for the "
                          f"second set {list(HOLDOUT)}; continuous problems: {CONTINUOUS_CANDIDATES}, holdout "
                          f"{CONTINUOUS_HOLDOUT}")
     ap.add_argument("--bootstrap", type=int, default=200, help="bootstrap replicates of the IS family")

@@ -181,8 +181,8 @@ def command_matrix(actions: np.ndarray, n: int, low: np.ndarray, high: np.ndarra
     bad = ~np.isfinite(u).all(axis=1)
     if bad.any():
         rows = np.flatnonzero(bad)
-        raise InvalidArgumentError(f"simulator {name!r}: {len(rows)} command(s) are not finite, e.g. row {int(rows[0])}: "
-                                   f"{u[rows[0]].tolist()}")
+        raise InvalidArgumentError(f"simulator {name!r}: {len(rows)} command(s) are not finite, e.g. row "
+                                   f"{int(rows[0])}: {u[rows[0]].tolist()}")
     return np.clip(u, low, high)
 
 
@@ -193,7 +193,8 @@ def require(model: object, needed: type) -> None:
     :class:`Simulator`, :class:`FullModel`, or :data:`TraceData`.
     """
     if not isinstance(model, needed):
-        have = [c.__name__ for c in (FullModel, Simulator, GenerativeModel, ResetModel, TransitionDataset) if isinstance(model, c)]
+        have = [c.__name__ for c in (FullModel, Simulator, GenerativeModel, ResetModel,
+                                     TransitionDataset) if isinstance(model, c)]
         raise AccessModelError(
             f"this algorithm needs a {needed.__name__} access model; got {type(model).__name__}"
             + (f" (which offers {have[0]})" if have else "")

@@ -77,7 +77,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     "support": {
         "title": "offline_adp.Support", "type": "object",
         "description": "out_of_support: the behaviour policy takes the policy's action with probability < threshold.",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "out_of_support": {"type": "boolean"},
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
+                       "out_of_support": {"type": "boolean"},
                        "behaviour_prob_of_policy_action": {"type": "number"}, "threshold": {"type": "number"}},
     },
 }
@@ -150,7 +151,8 @@ def annotate_steps(policy: Any, log_ds: Any, fit_ds: Any = None) -> dict[str, An
 
 
 def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], out: str | PathLike[str], *,
-                  spec: Any = None, dataset: str | PathLike[str] | None = None, overwrite: bool = False) -> dict[str, Any]:
+                  spec: Any = None, dataset: str | PathLike[str] | None = None,
+                  overwrite: bool = False) -> dict[str, Any]:
     """Write ``out``: every message of ``log_file`` plus the four annotation topics (see
     module docstring). Returns a summary (steps, agreement, out-of-support count)."""
     from mcap.reader import make_reader
@@ -183,9 +185,11 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
     sig = policy.signature
     if log_ds.feature_names != list(sig.feature_names):
         raise IncompatibleError(f"{log_file}: the spec gives features {log_ds.feature_names}, the policy reads "
-                                f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested with (--spec)")
+                                f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested "
+                                "with (--spec)")
     if not np.array_equal(log_ds.info.action_table.values, sig.action_table.values):
-        raise IncompatibleError(f"{log_file}: the spec's action table {log_ds.info.action_table.values.ravel().tolist()} "
+        raise IncompatibleError(f"{log_file}: the spec's action table "
+                                f"{log_ds.info.action_table.values.ravel().tolist()} "
                                 f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
     fit_ds = None
     if ds_path is not None:
@@ -220,7 +224,8 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                     schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
                 if channel.id not in channel_ids:
                     channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding,
-                                                                 schema_ids.get(channel.schema_id, 0), dict(channel.metadata))
+                                                                 schema_ids.get(channel.schema_id, 0),
+                                                                 dict(channel.metadata))
                 w.add_message(channel_ids[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
                 n_copied += 1
             chans = {}
@@ -236,9 +241,11 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                     "action": {**base, "policy_action": values[pi_i].tolist(), "policy_action_index": pi_i,
                                "logged_action": values[lg_i].tolist(), "logged_action_index": lg_i,
                                "agree": pi_i == lg_i, "action_dims": dims},
-                    "q_gap": {**base, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp, "q_logged": ql},
+                    "q_gap": {**base, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp,
+                              "q_logged": ql},
                     "density_ratio": {**base, "ratio": float(v["ratio"][i]), "policy_prob": float(v["policy_prob"][i]),
-                                      "behaviour_prob": float(v["behaviour_prob"][i]), "behaviour_source": v["behaviour_source"]},
+                                      "behaviour_prob": float(v["behaviour_prob"][i]),
+                                      "behaviour_source": v["behaviour_source"]},
                     "support": {**base, "out_of_support": bool(v["out_of_support"][i]),
                                 "behaviour_prob_of_policy_action": float(v["behaviour_prob_of_policy_action"][i]),
                                 "threshold": THRESHOLD},

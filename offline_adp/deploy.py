@@ -32,7 +32,8 @@ def _model_dir(run: Path) -> Path:
     for cand in (run, run / "model", run / "fit" / "model"):
         if (cand / "policy.json").exists() or (cand / "q.json").exists():
             return cand
-    raise RunDirectoryError(f"{run}: not a run directory (no model/ with policy.json or q.json); fit one with `offline-adp fit`")
+    raise RunDirectoryError(f"{run}: not a run directory (no model/ with policy.json or q.json); fit one with "
+                            "`offline-adp fit`")
 
 
 def run_dataset(run_dir: str | PathLike[str], dataset: str | PathLike[str] | None = None) -> Path:
@@ -111,7 +112,8 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
     n_dims = getattr(policy, "n_dims", None)  # a distilled continuous policy: one model per component
     if n_dims is not None and n_dims != len(policy.signature.action_table.dims):
         raise IncompatibleError(f"{run}: the policy commands {n_dims} components, its action table has "
-                                f"{len(policy.signature.action_table.dims)} ({list(policy.signature.action_table.dims)})")
+                                f"{len(policy.signature.action_table.dims)} "
+                                f"({list(policy.signature.action_table.dims)})")
     return policy
 
 
@@ -161,7 +163,8 @@ def distill_run(run_dir: str | PathLike[str], out: str | PathLike[str], dataset:
         rj = dest / "run.json"
         distilled = rj.exists() and read_json_file(rj).get("algorithm") == "distill"
         if not dest.is_dir() or not (distilled or not any(dest.iterdir())):
-            raise WriteError(f"{dest} is not a distilled run directory; --overwrite replaces only those (or an empty one)")
+            raise WriteError(f"{dest} is not a distilled run directory; --overwrite replaces only those (or "
+                             "an empty one)")
     policy = load_run_policy(run, dataset)
     ds_dir = run_dataset(run, dataset)
     ds = TransitionDataset.load(ds_dir)
@@ -176,7 +179,8 @@ def distill_run(run_dir: str | PathLike[str], out: str | PathLike[str], dataset:
         save_policy(pi, tmp / "model", extra={"distilled_from": str(run.resolve())})
         (tmp / "model" / "signature.json").write_text(json.dumps(pi.signature.to_dict(), indent=1))
         (tmp / "run.json").write_text(json.dumps({"dataset": str(ds_dir.resolve()), "algorithm": "distill",
-                                                  "distilled_from": str(run.resolve()), "distill": pi.report}, indent=1))
+                                                  "distilled_from": str(run.resolve()), "distill": pi.report},
+                                                  indent=1))
         if dest.exists():
             shutil.rmtree(dest)
         tmp.rename(dest)

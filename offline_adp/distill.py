@@ -182,7 +182,8 @@ def distill_policy(policy: Any, dataset: Any, *, n_estimators: int = 50, min_sam
     if enc is None or not getattr(policy, "continuous", False):
         raise SchemaError(f"distill_policy needs a greedy policy over continuous commands, got {type(policy).__name__}")
     if getattr(policy, "time_varying", False):
-        raise SchemaError("distilling a time-varying (finite-horizon) greedy policy is not supported; fit a stationary one")
+        raise SchemaError("distilling a time-varying (finite-horizon) greedy policy is not supported; fit a "
+                          "stationary one")
     info = getattr(dataset, "info", None)
     table = getattr(info, "action_table", None)
     if table is None:

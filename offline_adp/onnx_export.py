@@ -13,8 +13,8 @@ The exported model has
 
 A continuous policy (:class:`~offline_adp.policies.GreedyCommandPolicy`, exactly: the
 nearest logged states' commands and the first minimum of Q over them; or
-:class:`~offline_adp.distill.DistilledCommandPolicy`) has one output instead, ``command`` (double ``(N, m)``, within the bounds), and metadata
-``command_low``, ``command_high``, ``max_rate`` (the graph is stateless: the caller applies
+:class:`~offline_adp.distill.DistilledCommandPolicy`) has one output instead, ``command`` (double ``(N, m)``, within
+the bounds), and metadata ``command_low``, ``command_high``, ``max_rate`` (the graph is stateless: the caller applies
 the rate limit), ``outputs``; see docs/deploy.md.
 
 Metadata (``model.metadata_props``): ``feature_names``, ``feature_units``,
@@ -56,8 +56,8 @@ from offline_adp.onnx_trees import (
     _ensemble_arrays,
     _ensemble_of,
     _float32_roundtrip,
+    _forest_classifier,
     _Graph,
-    _is_forest,
     _lightgbm_arrays,
     _regressor,
     _tree_node,
@@ -190,20 +190,6 @@ def _classifier_policy(g: _Graph, pi: Any, X: str) -> str:
     return g.op("Cast", [idx], "index64", to=TensorProto.INT64)
 
 
-def _forest_classifier(clf: Any) -> tuple[Any, np.ndarray, np.ndarray] | None:
-    """(TreeEnsemble, leaf class fractions, classes) of a forest classifier (a loaded
-    artifact's ``_TreeClassifier``, by name: a sibling layer; or a scikit-learn forest), else None."""
-    from offline_adp.trees import TreeEnsemble
-
-    if type(clf).__name__ == "_TreeClassifier":
-        return clf.ensemble, np.asarray(clf.class_values), np.asarray(clf.classes_)
-    if not _is_forest(clf, classifier=True):
-        return None
-    probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
-    return (TreeEnsemble.from_sklearn(clf), probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300),
-            np.asarray(clf.classes_))
-
-
 def _steps(pi: Any) -> list[Any] | None:
     """The per-step rules of a time-indexed policy, or None if stationary."""
     steps = _lookup(_STEP_RULES, pi)
@@ -291,18 +277,23 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     if steps is None:
         index, q = _policy(g, policy, X)
     else:
-        inputs.append(helper.make_tensor_value_info("t", TensorProto.INT64, ["N"], doc_string="time step of each row (int64)"))
+        inputs.append(helper.make_tensor_value_info("t", TensorProto.INT64, ["N"],
+                                                    doc_string="time step of each row (int64)"))
         T = len(steps)
         outs = [_policy(g, s, X) for s in steps]
         tc = g.op("Max", [g.op("Min", ["t", g.const(np.array(T - 1, np.int64))]), g.const(np.array(0, np.int64))], "tc")
         col = g.op("Unsqueeze", [tc, g.const(np.array([1], np.int64))], "tcol")
-        stacked = g.op("Concat", [g.op("Unsqueeze", [i, g.const(np.array([1], np.int64))]) for i, _ in outs], "steps", axis=1)
-        index = g.op("Squeeze", [g.op("GatherElements", [stacked, col], axis=1), g.const(np.array([1], np.int64))], "index")
+        stacked = g.op("Concat", [g.op("Unsqueeze", [i, g.const(np.array([1], np.int64))]) for i, _ in outs], "steps",
+                       axis=1)
+        index = g.op("Squeeze", [g.op("GatherElements", [stacked, col], axis=1), g.const(np.array([1], np.int64))],
+                     "index")
         q = None
         if all(qq is not None for _, qq in outs):
             A = policy.n_actions
-            qs = g.op("Concat", [g.op("Unsqueeze", [qq, g.const(np.array([1], np.int64))]) for _, qq in outs], "qs", axis=1)
-            n = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
+            qs = g.op("Concat", [g.op("Unsqueeze", [qq, g.const(np.array([1], np.int64))]) for _, qq in outs], "qs",
+                      axis=1)
+            n = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))],
+                     "n")
             shape = g.op("Concat", [n, g.const(np.array([1, A], np.int64))], "qshape", axis=0)
             idx3 = g.op("Expand", [g.op("Reshape", [tc, g.const(np.array([-1, 1, 1], np.int64))]), shape], "qidx")
             q = g.op("Reshape", [g.op("GatherElements", [qs, idx3], axis=1), g.const(np.array([-1, A], np.int64))], "q")
@@ -312,13 +303,15 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
     a_units = [*at_.units, *[""] * (len(at_.dims) - len(at_.units))]  # a table may carry no units
     act_cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(at_.dims, a_units[:len(at_.dims)], strict=True))
     outputs = [helper.make_tensor_value_info("action", TensorProto.DOUBLE, ["N", values.shape[1]],
-                                             doc_string=f"action values, one row each, columns (name [unit]): {act_cols}"),
+                                             doc_string="action values, one row each, columns (name "
+                                             f"[unit]): {act_cols}"),
                helper.make_tensor_value_info("action_index", TensorProto.INT64, ["N"])]
     if q is not None:
         g.nodes.append(helper.make_node("Identity", [q], ["q_values"]))
         outputs.append(helper.make_tensor_value_info("q_values", TensorProto.DOUBLE, ["N", policy.n_actions]))
     at = sig.action_table
-    doc = ("observation columns: " + cols + "; action: " + ", ".join(at.dims) + (" ; t: time step (int64)" if steps else ""))
+    doc = ("observation columns: " + cols + "; action: " + ", ".join(at.dims)
+           + (" ; t: time step (int64)" if steps else ""))
     meta = {
         **_signature_meta(sig, input_dtype, t_input=steps is not None),
         "action_names": json.dumps(at.names),
@@ -339,7 +332,8 @@ def _model(g: _Graph, name: str, inputs: list[Any], outputs: list[Any], doc: str
 
     graph = helper.make_graph(g.nodes, name, inputs, outputs, g.inits)
     graph.doc_string = doc
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET), helper.make_opsetid("ai.onnx.ml", ML_OPSET)],
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET),
+                                                    helper.make_opsetid("ai.onnx.ml", ML_OPSET)],
                               producer_name="offline_adp", producer_version=__version__)
     model.ir_version = min(model.ir_version, 9)
     helper.set_model_props(model, {**meta, "offline_adp_version": __version__})
@@ -377,7 +371,8 @@ def _command_model(g: _Graph, policy: Any, sig: Any, X: str, inputs: list[Any], 
     units = [*at.units, *[""] * (m - len(at.units))]
     comps = ", ".join(f"{n} [{x}]" if x else n for n, x in zip(at.dims, units[:m], strict=True))
     outputs = [helper.make_tensor_value_info("command", TensorProto.DOUBLE, ["N", m],
-                                             doc_string=f"commands, one row each, within [low, high], columns: {comps}")]
+                                             doc_string="commands, one row each, within [low, high], "
+                                             f"columns: {comps}")]
     rate = getattr(policy, "max_rate", None)
     meta = {
         **_signature_meta(sig, input_dtype),
@@ -403,7 +398,8 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     """The greedy command policy itself, exactly: the ``k`` logged states nearest each row
     (squared differences of the scaled features summed in feature order, as the library's
     k-d tree does; ``TopK`` keeps ties in index order), their logged commands as the
-    candidates followed by the extra commands offered everywhere (``n_representatives``), the Q-values of every candidate (slot-major pairs, the library's order), the
+    candidates followed by the extra commands offered everywhere (``n_representatives``), the Q-values of every
+    candidate (slot-major pairs, the library's order), the
     first minimum, the bounds. Memory: ``N x (logged states) x d`` doubles per batch."""
     from offline_adp.qfunctions import SCALED_LIMIT, NeighbourCommands, TimeIndexedQ
 
@@ -421,7 +417,8 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
                         g.const(cands.points.reshape(1, M, d), "logged_states")], "diff")
     sq = g.op("Mul", [diff, diff], "sq")  # (N, M, d); summed over features in order, as the library sums
     parts = [g.op("Squeeze", [g.op("Slice", [sq, g.const(np.array([j], np.int64)), g.const(np.array([j + 1], np.int64)),
-                                              g.const(np.array([2], np.int64))], "sqj"), g.const(np.array([2], np.int64))],
+                                              g.const(np.array([2], np.int64))], "sqj"),
+                                              g.const(np.array([2], np.int64))],
                   "sqj2") for j in range(d)]
     dist = parts[0]
     for part in parts[1:]:
@@ -448,8 +445,11 @@ def _greedy_commands(g: _Graph, pi: Any, X: str) -> tuple[str, np.ndarray, np.nd
     n = g.op("Slice", [g.op("Shape", [X]), g.const(np.array([0], np.int64)), g.const(np.array([1], np.int64))], "n")
     shape = g.op("Concat", [n, g.const(np.array([1, m], np.int64))], "ushape", axis=0)
     idx = g.op("Expand", [g.op("Unsqueeze", [best, g.const(np.array([2], np.int64))], "best3"), shape], "uidx")
-    u = g.op("Reshape", [g.op("GatherElements", [cand, idx], "picked", axis=1), g.const(np.array([-1, m], np.int64))], "u")
-    low, high = pi.signature.action_table.bounds() if pi.signature is not None else (np.full(m, -np.inf), np.full(m, np.inf))
+    u = g.op("Reshape", [g.op("GatherElements", [cand, idx], "picked", axis=1), g.const(np.array([-1, m], np.int64))],
+             "u")
+    low, high = (
+        pi.signature.action_table.bounds() if pi.signature is not None else (np.full(m, -np.inf), np.full(m, np.inf))
+    )
     u = g.op("Max", [u, g.const(np.asarray(low, np.float64).reshape(1, -1), "low")], "u_low")
     return g.op("Min", [u, g.const(np.asarray(high, np.float64).reshape(1, -1), "high")], "u_clipped"), low, high
 

@@ -133,9 +133,11 @@ def _lightgbm_arrays(boosters: list[Any]) -> dict[str, np.ndarray]:
                         cols[k].append(v)
                     continue
                 if nd.get("decision_type", "<=") != "<=" or nd.get("missing_type", "None") == "Zero":
-                    raise ExportError(f"LightGBM split {nd.get('decision_type')} with missing_type {nd.get('missing_type')} "
+                    raise ExportError(f"LightGBM split {nd.get('decision_type')} with missing_type "
+                                      f"{nd.get('missing_type')} "
                                       "is not supported (numerical '<=' splits only, no zero_as_missing)")
-                for k, v in (("leaf", False), ("feature", int(nd["split_feature"])), ("threshold", float(nd["threshold"])),
+                for k, v in (("leaf", False), ("feature", int(nd["split_feature"])),
+                             ("threshold", float(nd["threshold"])),
                              ("left", -1), ("right", -1), ("weight", 0.0)):
                     cols[k].append(v)
                 pending.append((j, "right", nd["right_child"]))
@@ -194,3 +196,17 @@ def _float32_roundtrip(g: _Graph, X: str) -> str:
     if key not in g.memo:
         g.memo[key] = g.op("Cast", [g.op("Cast", [X], "x32", to=TensorProto.FLOAT)], "x32d", to=TensorProto.DOUBLE)
     return g.memo[key]
+
+
+def _forest_classifier(clf: Any) -> tuple[Any, np.ndarray, np.ndarray] | None:
+    """(TreeEnsemble, leaf class fractions, classes) of a forest classifier (a loaded
+    artifact's ``_TreeClassifier``, by name: a layer above; or a scikit-learn forest), else None."""
+    from offline_adp.trees import TreeEnsemble
+
+    if type(clf).__name__ == "_TreeClassifier":
+        return clf.ensemble, np.asarray(clf.class_values), np.asarray(clf.classes_)
+    if not _is_forest(clf, classifier=True):
+        return None
+    probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
+    return (TreeEnsemble.from_sklearn(clf), probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300),
+            np.asarray(clf.classes_))

@@ -103,7 +103,8 @@ class Manifest:
 
         self.data: dict[str, Any] = {"name": cfg["name"], "seed": cfg["seed"], "pipeline": cfg["file"],
                                      "config_hash": _hash(cfg), "versions": versions(), "created": old.get("created"),
-                                     "inputs": old.get("inputs", {}), "stages": old.get("stages", {}), "runs": old.get("runs", 0) + 1}
+                                     "inputs": old.get("inputs", {}), "stages": old.get("stages", {}),
+                                     "runs": old.get("runs", 0) + 1}
         self.data["created"] = self.data["created"] or datetime.now(UTC).isoformat(timespec="seconds")
 
     def done(self, stage: str, key: str) -> bool:
@@ -251,7 +252,8 @@ def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str,
     if data["format"] == "parquet":
         from offline_adp.ingest.parquet import ingest_parquet
 
-        res = ingest_parquet(data["inputs"], _load_spec(data, cfg["file"]), run / "dataset", on_error=data.get("on_error"))
+        res = ingest_parquet(data["inputs"], _load_spec(data, cfg["file"]), run / "dataset",
+                             on_error=data.get("on_error"))
         refuse_all_quarantined(run / "dataset", res.summary())
         return res.summary()
     from offline_adp.ingest.mcap import ingest_mcap
@@ -299,7 +301,8 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
             of = f"/{total}" if isinstance(total, int) else ""
             say(f"[fit] iteration {k}{of}{on}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
-    est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume, on_iteration=on_iteration,
+    est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume,
+                  on_iteration=on_iteration,
                   engine=engine)
     hist = getattr(est, "history_", None)
     out = {"iterations": 0 if hist is None else len(hist), "diverged": bool(getattr(est, "diverged_", False))}

@@ -197,8 +197,10 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
     entry.check_complete(fit["params"], str(p), "fit.params")
-    evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None  # checked by its model
-    return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"), "seed": model.seed,
+    # checked by its model
+    evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None
+    return {"name": model.name or check_name(p.stem, f"{p}: the pipeline's name (from its file name)"),
+            "seed": model.seed,
             "file": str(p), "data": data, "fit": fit, "evaluate": evaluate,
             "report": model.report is not None, "engine": model.engine.model_dump(exclude_none=True)}
 

@@ -197,7 +197,8 @@ class CommandPolicy(DeterministicPolicy):
     def actions(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return nearest_entry(self._table(), self.commands(obs, t))
 
-    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *, return_index: bool = False) -> Any:
+    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *,
+            return_index: bool = False) -> Any:
         """The command for each observation (see :meth:`Policy.act`): ``(n, m)``, or ``(n,)``
         for a one-component command; a single observation drops the leading axis.
         ``return_index``: the nearest action-table entry instead."""
@@ -300,7 +301,8 @@ class GaussianCommandPolicy(Policy):
                                                                          and np.isfinite(self.high).all()):
             raise InvalidArgumentError("std, low and high need one finite number per command component")
         if (self.std < 0).any() or (self.low > self.high).any():
-            raise InvalidArgumentError(f"std must be >= 0 and low <= high; got std {self.std}, low {self.low}, high {self.high}")
+            raise InvalidArgumentError(f"std must be >= 0 and low <= high; got std {self.std}, low {self.low}, "
+                                       f"high {self.high}")
         if not 0.0 <= epsilon <= 1.0:
             raise InvalidArgumentError(f"epsilon must be in [0, 1], got {epsilon}")
         self.epsilon = float(epsilon)
@@ -337,12 +339,14 @@ class GaussianCommandPolicy(Policy):
                 pk = np.eye(len(g))[np.clip(np.searchsorted(edges, c, side="right") - 1, 0, len(g) - 1)]
             width = self.high[k] - self.low[k]
             inside = np.clip(edges[1:], self.low[k], self.high[k]) - np.clip(edges[:-1], self.low[k], self.high[k])
-            uk = inside / width if width > 0 else (np.arange(len(g)) == np.argmin(np.abs(g - self.low[k]))).astype(float)
+            uk = inside / width if width > 0 else (np.arange(len(g))
+                                                   == np.argmin(np.abs(g - self.low[k]))).astype(float)
             gauss = (gauss[:, :, None] * pk[:, None, :]).reshape(len(mu), -1)
             uni = (uni[:, :, None] * np.broadcast_to(uk, pk.shape)[:, None, :]).reshape(len(mu), -1)
         return (1.0 - self.epsilon) * gauss + self.epsilon * uni
 
-    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *, return_index: bool = False) -> Any:
+    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *,
+            return_index: bool = False) -> Any:
         """Sampled commands (see :meth:`CommandPolicy.act`); ``return_index``: a sampled table entry."""
         sig = self.signature
         X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
@@ -427,7 +431,8 @@ def apply_feature_map(feature_map: Any, obs: np.ndarray) -> np.ndarray:
     obs = np.asarray(obs, dtype=np.float64)
     if feature_map is None:
         return obs
-    return np.asarray(feature_map.transform(obs) if hasattr(feature_map, "transform") else feature_map(obs), dtype=np.float64)
+    return np.asarray(feature_map.transform(obs) if hasattr(feature_map, "transform") else feature_map(obs),
+                      dtype=np.float64)
 
 
 class ClassifierPolicy(DeterministicPolicy):

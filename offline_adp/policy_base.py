@@ -89,14 +89,16 @@ def observation_matrix(obs: Any, names: Sequence[str] | None) -> tuple[np.ndarra
             cols = [np.asarray(obs[n], dtype=np.float64) for n in names]
         except (TypeError, ValueError) as exc:
             raise SchemaError(f"observation values must be numbers ({exc})") from None
-        if any(c.ndim > 1 for c in cols) or len({c.size for c in cols if c.ndim == 1} | ({1} if any(c.ndim == 0 for c in cols) else set())) > 1:
+        if any(c.ndim > 1 for c in cols) or len({c.size for c in cols if c.ndim == 1}
+                                                | ({1} if any(c.ndim == 0 for c in cols) else set())) > 1:
             raise SchemaError(f"observation values for {list(names)} must be all scalars or all 1-D of one length; "
                               f"got shapes {[c.shape for c in cols]}")
         return np.column_stack([np.atleast_1d(c) for c in cols]), all(c.ndim == 0 for c in cols)
     try:
         X = np.asarray(obs, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise SchemaError(f"observations must be numbers (a dict, DataFrame or array), got {type(obs).__name__} ({exc})") from None
+        raise SchemaError("observations must be numbers (a dict, DataFrame or array), got "
+                          f"{type(obs).__name__} ({exc})") from None
     if X.ndim not in (1, 2):
         raise SchemaError(f"observations must be one vector (d,) or a batch (n, d); got an array of shape {X.shape}")
     single = X.ndim == 1
@@ -125,7 +127,8 @@ class Policy(ABC):
         u = rng.random(p.shape[0])
         return np.minimum((u[:, None] >= np.cumsum(p, axis=1)).sum(axis=1), self.n_actions - 1).astype(np.int32)
 
-    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *, return_index: bool = False) -> Any:
+    def act(self, obs: Any, t: TimeArg = 0, rng: np.random.Generator | None = None, *,
+            return_index: bool = False) -> Any:
         """The action for each observation, checked against the policy's signature.
 
         Parameters

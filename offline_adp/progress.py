@@ -144,7 +144,8 @@ class Progress:
     def __enter__(self) -> Progress:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self.close()
 
 
@@ -199,7 +200,8 @@ def add_logging_options(parser: Any) -> None:
         have = {s for a in p._actions for s in a.option_strings}
         g = p.add_argument_group("logging") if not top else p
         if "-v" not in have:
-            g.add_argument("-v", "--verbose", action="count", dest=f"log_verbose{sfx}", help="more log output (-vv: debug)",
+            g.add_argument("-v", "--verbose", action="count", dest=f"log_verbose{sfx}",
+                           help="more log output (-vv: debug)",
                            **({"default": 0} if top else d))
         if "-q" not in have and "--quiet" not in have:
             g.add_argument("-q", "--quiet", action="store_true", dest=f"log_quiet{sfx}", help="only errors",
@@ -220,7 +222,8 @@ def apply_logging_options(args: Any) -> int:
     ``args.quiet`` (for the commands' own progress output) and configure logging;
     returns the level."""
     verbose = int(getattr(args, "log_verbose", 0) or 0) + int(getattr(args, "log_verbose_sub", 0) or 0)
-    quiet = bool(getattr(args, "log_quiet", False) or getattr(args, "log_quiet_sub", False) or getattr(args, "quiet", False))
+    quiet = bool(getattr(args, "log_quiet", False) or getattr(args, "log_quiet_sub",
+                                                              False) or getattr(args, "quiet", False))
     level_name = getattr(args, "log_level_sub", None) or getattr(args, "log_level", None)
     args.quiet = quiet
     level = resolve_level(verbose, quiet, level_name)
@@ -267,7 +270,8 @@ def _ours(w: warnings.WarningMessage) -> bool:
     import os
 
     here = os.path.dirname(os.path.abspath(__file__))
-    return getattr(w.category, "__module__", "").startswith(PACKAGE) or os.path.abspath(str(w.filename)).startswith(here + os.sep)
+    return getattr(w.category, "__module__",
+                   "").startswith(PACKAGE) or os.path.abspath(str(w.filename)).startswith(here + os.sep)
 
 
 class CapturedWarnings:

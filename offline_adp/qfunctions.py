@@ -371,4 +371,5 @@ class FunctionQ(QFunction):
         self.fn, self.n_actions = fn, n_actions
 
     def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
-        return np.asarray(self.fn(np.asarray(obs, dtype=np.float64), t), dtype=np.float64).reshape(len(obs), self.n_actions)
+        return np.asarray(self.fn(np.asarray(obs, dtype=np.float64), t),
+                          dtype=np.float64).reshape(len(obs), self.n_actions)

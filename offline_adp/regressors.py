@@ -255,7 +255,8 @@ def _lgbm_classifier(**kw: Any) -> BaseEstimator:
 def _extra_trees_classifier(**kw: Any) -> BaseEstimator:
     from sklearn.ensemble import ExtraTreesClassifier
 
-    return ExtraTreesClassifier(**{"n_estimators": 30, "min_samples_leaf": 2, "max_features": 1.0, "n_jobs": 1, "random_state": 0, **kw})
+    return ExtraTreesClassifier(**{"n_estimators": 30, "min_samples_leaf": 2, "max_features": 1.0, "n_jobs": 1,
+                                   "random_state": 0, **kw})
 
 
 CLASSIFIERS: dict[str, Callable[..., BaseEstimator]] = {
@@ -294,7 +295,12 @@ def _lightgbm_binary(clf: Any, X: np.ndarray, y: np.ndarray, X_new: np.ndarray) 
     from lightgbm import Dataset, LGBMClassifier, train
 
     classes = np.unique(y)
-    if type(clf) is not LGBMClassifier or clf.objective is not None or clf.class_weight is not None or len(classes) != 2:
+    if (
+        type(clf) is not LGBMClassifier
+        or clf.objective is not None
+        or clf.class_weight is not None
+        or len(classes) != 2
+    ):
         return None
     try:
         clf._n_classes, clf._objective = 2, None  # what fit sets for two classes before reading its parameters

@@ -323,7 +323,8 @@ def rollout_pieces(
     (:class:`offline_adp.engines.dask.DaskTaskMap`). The split does not depend on the
     engine, so local and distributed runs give identical results.
     """
-    pieces = [(x0, [seed, k]) for k, x0 in enumerate(np.array_split(np.asarray(start_states, dtype=np.float64), n_pieces))
+    pieces = [(x0, [seed, k]) for k, x0 in enumerate(np.array_split(np.asarray(start_states, dtype=np.float64),
+                                                                    n_pieces))
               if len(x0)]
     run = task_map or local_map
     out = run(_rollout_piece, pieces, shared={"model": model, "policies": policies, "horizon": horizon, "gamma": gamma,

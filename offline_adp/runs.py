@@ -74,7 +74,8 @@ def _iterate(rd: RunDirectory, est: Any, ds: Any, resume: bool, checkpoint_every
     engine's workers from ``dataset_dir``), checkpointing every ``checkpoint_every``
     iterations at most, paced by their cost (:data:`CHECKPOINT_CPU_SHARE`); the first
     and the last iteration always. In process the fit is deferred (its Q is taken from
-    the learner only when a checkpoint is written, :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.checkpoint_q`)."""
+    the learner only when a checkpoint is written,
+    :meth:`~offline_adp.algorithms.fqi_loop.FittedQEstimator.checkpoint_q`)."""
     state = _read_checkpoint(rd.path) if resume else None
     rows: list[dict[str, Any]] = list(state["history"]) if state else []
     written, last_write, write_cost = len(rows), time.process_time(), 0.0
@@ -208,7 +209,8 @@ def fit_run(
                                         "resumed (start it without --resume, or choose another --out)")
             saved = rd.read_json(rd.CONFIG)
             if saved.get("algorithm") != algorithm:
-                raise RunDirectoryError(f"{rd.path}: the run was started with algorithm {saved.get('algorithm')!r}, not {algorithm!r}")
+                raise RunDirectoryError(f"{rd.path}: the run was started with algorithm {saved.get('algorithm')!r}, "
+                                        f"not {algorithm!r}")
             if params and params != saved["params"]:
                 raise RunDirectoryError(f"{rd.path}: --resume with different parameters than the run was started "
                                         f"with ({saved['params']})")
@@ -217,10 +219,12 @@ def fit_run(
                 raise RunDirectoryError(f"{rd.path}: the dataset changed since the run started (fingerprint "
                                         "differs); start a new run")
         elif any(rd.exists(n) for n in (rd.CONFIG, rd.STATUS, rd.MODEL)):
-            raise RunDirectoryError(f"{rd.path} already holds a run; use --resume to continue it or choose another --out")
+            raise RunDirectoryError(f"{rd.path} already holds a run; use --resume to continue it or choose "
+                                    "another --out")
         else:
             rd.write_json(rd.CONFIG, {"algorithm": algorithm, "params": params})
-        status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(), "algorithm": algorithm,
+        status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(),
+                                  "algorithm": algorithm,
                                   "access": entry.access, "versions": versions(), "status": "running"}
         if engine is not None:
             status["engine"] = engine.name
@@ -244,7 +248,8 @@ def fit_run(
             share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)
         from offline_adp.artifacts import model_hashes
 
-        status.update(status="completed", fit_seconds=time.perf_counter() - wall, fit_cpu_seconds=time.process_time() - cpu,
+        status.update(status="completed", fit_seconds=time.perf_counter() - wall,
+                      fit_cpu_seconds=time.process_time() - cpu,
                       model_sha256=model_hashes(rd.path / RunDirectory.MODEL), **_summary(est, engine))
         rd.write_json(rd.STATUS, status)
     return est

@@ -169,7 +169,8 @@ def assemble(messages: list[Message], spec: McapSpec, name: str = "mem") -> RefR
             rows = [(t, v) for kk, ee, t, v in placed if kk == k and ee == e]  # noqa: B023
             order = sorted(range(len(rows)), key=lambda i: rows[i][0])  # stable: file order among equal times
             ts = np.array([rows[i][0] for i in order], dtype=np.int64)
-            vals = np.array([rows[i][1] for i in order], dtype=float).reshape(len(rows), len(keys[k].fields) if k in keys else 0)
+            vals = np.array([rows[i][1] for i in order],
+                            dtype=float).reshape(len(rows), len(keys[k].fields) if k in keys else 0)
             return ts, vals
 
         ct, _ = stream(clock)

@@ -51,7 +51,8 @@ def test_cpi_estimated_value_never_increases_and_policy_improves(rule):
     m = TabularMDP(n_states=10, n_actions=3, horizon=30, gamma=0.9, seed=4)
     ds, w = full_support_dataset(m)
     fqe = FittedQEvaluation(gamma=0.9, regressor="tabular", action_input="onehot", n_iterations=200, tol=1e-12)
-    cpi = ConservativePolicyIteration(fqe, n_iterations=6, step_rule=rule, model=m, n_eval_episodes=400).fit(ds, sample_weight=w)
+    cpi = ConservativePolicyIteration(fqe, n_iterations=6, step_rule=rule, model=m,
+                                      n_eval_episodes=400).fit(ds, sample_weight=w)
     v = cpi.history_["value"].to_numpy()
     assert (np.diff(v) <= 0).all()  # the estimated cost is monotone non-increasing
     assert isinstance(cpi.policy_, MixturePolicy) and abs(cpi.policy_.weights.sum() - 1) < 1e-12

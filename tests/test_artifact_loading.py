@@ -90,7 +90,8 @@ def test_shared_structure_steps_load_lazily_and_predict_the_same(forest, tmp_pat
         np.testing.assert_array_equal(q2.values(obs, t), q.values(obs, t))
     loaded = [m.models[0] for m in q2.qs]
     assert all(isinstance(e, LoadedEnsemble) for e in loaded)
-    assert loaded[0].compiled_trees() is loaded[1].compiled_trees() is loaded[2].compiled_trees()  # one set for the structure
+    # one set for the structure
+    assert loaded[0].compiled_trees() is loaded[1].compiled_trees() is loaded[2].compiled_trees()
     assert not {"left", "right"} & set(vars(loaded[0]))
 
 
@@ -188,7 +189,8 @@ def test_members_are_deflated_where_it_pays_and_read_back_alike(tmp_path):
     from offline_adp.artifacts.storage import savez
 
     rng = np.random.default_rng(0)
-    arrays = {"a.codes": rng.integers(0, 4, 200_000).astype(np.uint8), "a.noise": rng.normal(size=50_000).astype(np.float32),
+    arrays = {"a.codes": rng.integers(0, 4, 200_000).astype(np.uint8),
+              "a.noise": rng.normal(size=50_000).astype(np.float32),
               "a.small": np.arange(3)}
     savez(tmp_path / "x.npz", arrays)
     savez(tmp_path / "y.npz", arrays, compress=False)

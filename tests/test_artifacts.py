@@ -38,7 +38,8 @@ def test_round_trip_predictions_identical(tmp_path, small_pt, kwargs):
     obs = small_pt.arrays().obs[::7]
     for t in (0, 1, 2):
         np.testing.assert_array_equal(g.predict(obs, t), f.predict(obs, t))
-        np.testing.assert_array_equal(g.policy_.act(obs, t, return_index=True), f.policy_.act(obs, t, return_index=True))
+        np.testing.assert_array_equal(g.policy_.act(obs, t, return_index=True),
+                                      f.policy_.act(obs, t, return_index=True))
     assert g.dataset_fingerprint_ == small_pt.fingerprint()
     assert len(g.history_) == len(f.history_)
 

@@ -24,7 +24,8 @@ def test_version_and_help_examples(capsys):
 
 def test_simulate_ingest_validate_inspect(tmp_path, capsys):
     raw = tmp_path / "logs" / "pt.parquet"
-    assert main(["simulate", "path_tracking", "--format", "parquet", "--out", str(raw), "--demonstrations", "3", "--exploration", "3", "--horizon", "20", "-q"]) == 0
+    assert main(["simulate", "path_tracking", "--format", "parquet", "--out", str(raw), "--demonstrations", "3",
+                 "--exploration", "3", "--horizon", "20", "-q"]) == 0
     spec = tmp_path / "logs" / "pt.spec.toml"
     assert spec.exists()
     assert main(["ingest", "parquet", str(raw), "--spec", str(spec), "--out", str(tmp_path / "ds"), "-q"]) == 0
@@ -35,7 +36,8 @@ def test_simulate_ingest_validate_inspect(tmp_path, capsys):
     assert rep["episodes"] == 6 and set(rep["per_source"]) == {"demonstration", "exploration"}
     assert sum(rep["actions"]["coverage"].values()) == rep["transitions"]
     # the direct dataset equals the ingested one
-    assert main(["simulate", "path_tracking", "--out", str(tmp_path / "direct"), "--demonstrations", "3", "--exploration", "3", "--horizon", "20", "-q"]) == 0
+    assert main(["simulate", "path_tracking", "--out", str(tmp_path / "direct"), "--demonstrations", "3",
+                 "--exploration", "3", "--horizon", "20", "-q"]) == 0
     assert read_dataset(tmp_path / "direct").fingerprint() == read_dataset(tmp_path / "ds").fingerprint()
 
 
@@ -43,15 +45,18 @@ def test_errors_are_one_line_with_exit_2(tmp_path, capsys):
     assert main(["inspect", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "not a dataset directory" in err and "Traceback" not in err
-    assert main(["simulate", "gridworld", "--out", str(tmp_path / "g"), "--demonstrations", "1", "--exploration", "1", "-q"]) == 0
-    assert main(["simulate", "gridworld", "--out", str(tmp_path / "g"), "--demonstrations", "1", "--exploration", "1", "-q"]) == 2
+    assert main(["simulate", "gridworld", "--out", str(tmp_path / "g"), "--demonstrations", "1", "--exploration", "1",
+                 "-q"]) == 0
+    assert main(["simulate", "gridworld", "--out", str(tmp_path / "g"), "--demonstrations", "1", "--exploration", "1",
+                 "-q"]) == 2
     assert "--overwrite" in capsys.readouterr().err
 
 
 def test_validate_exit_status_on_defects(tmp_path, capsys):
     import pyarrow.parquet as pq
 
-    assert main(["simulate", "tabular", "--out", str(tmp_path / "t"), "--demonstrations", "2", "--exploration", "2", "-q"]) == 0
+    assert main(["simulate", "tabular", "--out", str(tmp_path / "t"), "--demonstrations", "2", "--exploration", "2",
+                 "-q"]) == 0
     part = next((tmp_path / "t" / "data").glob("part-*.parquet"))
     t = pq.read_table(part).to_pandas()
     t.loc[3, "cost"] = np.inf
@@ -66,7 +71,8 @@ def test_validate_exit_status_on_defects(tmp_path, capsys):
 def test_simulate_mcap(tmp_path, encoding):
     from mcap.reader import make_reader
 
-    assert main(["simulate", "path_tracking", "--format", f"mcap-{encoding}", "--out", str(tmp_path / "m"), "--demonstrations", "2", "--exploration", "1", "--horizon", "10", "-q"]) == 0
+    assert main(["simulate", "path_tracking", "--format", f"mcap-{encoding}", "--out", str(tmp_path / "m"),
+                 "--demonstrations", "2", "--exploration", "1", "--horizon", "10", "-q"]) == 0
     files = sorted((tmp_path / "m").glob("*.mcap"))
     assert [f.name for f in files] == ["demonstration.mcap", "exploration.mcap"]
     with open(files[0], "rb") as f:
@@ -86,7 +92,8 @@ def test_simulate_mcap(tmp_path, encoding):
 def test_simulate_mcap_generic_json(tmp_path):
     from mcap.reader import make_reader
 
-    assert main(["simulate", "car_on_hill", "--format", "mcap-json", "--out", str(tmp_path / "m"), "--demonstrations", "2", "--exploration", "0", "-q"]) == 0
+    assert main(["simulate", "car_on_hill", "--format", "mcap-json", "--out", str(tmp_path / "m"), "--demonstrations",
+                 "2", "--exploration", "0", "-q"]) == 0
     with open(tmp_path / "m" / "demonstration.mcap", "rb") as f:
         msgs = [(c.topic, json.loads(m.data)) for _, c, m in make_reader(f).iter_messages()]
     obs = [d for t, d in msgs if t == "/observation"]

@@ -109,15 +109,38 @@ def _bits(a):
 
 
 CRAFTED = {
-    "padding bit set": ("q.m0.leaf_bits", lambda a: a.__setitem__("q.m0.leaf_bits", np.r_[a["q.m0.leaf_bits"][:-1], 255].astype(np.uint8))),
-    "flags not trees": ("q.m0.leaf_bits", lambda a: a.__setitem__("q.m0.leaf_bits", np.packbits(np.roll(_bits(a)[:len(a["q.m0.feature"]) + len(a["q.m0.value_code"])], 1)))),
+    "padding bit set": (
+        "q.m0.leaf_bits",
+        lambda a: a.__setitem__("q.m0.leaf_bits", np.r_[a["q.m0.leaf_bits"][:-1], 255].astype(np.uint8)),
+    ),
+    "flags not trees": (
+        "q.m0.leaf_bits",
+        lambda a: a.__setitem__(
+            "q.m0.leaf_bits", np.packbits(np.roll(_bits(a)[: len(a["q.m0.feature"]) + len(a["q.m0.value_code"])], 1))
+        ),
+    ),
     "one leaf value missing": ("q.m0.leaf_bits", lambda a: a.__setitem__("q.m0.value_code", a["q.m0.value_code"][:-1])),
-    "code beyond the table": ("q.m0.value_code", lambda a: a.__setitem__("q.m0.value_code", np.full_like(a["q.m0.value_code"], len(a["q.m0.value_table"])))),
-    "non-finite value": ("q.m0.value_table", lambda a: a.__setitem__("q.m0.value_table", np.r_[np.nan, a["q.m0.value_table"][1:]])),
-    "feature beyond the width": ("q.m0.feature", lambda a: a.__setitem__("q.m0.feature", np.full_like(a["q.m0.feature"], 200))),
-    "non-finite threshold": ("q.m0.threshold", lambda a: a.__setitem__("q.m0.threshold", np.r_[np.inf, a["q.m0.threshold"][1:]].astype(np.float32))),
+    "code beyond the table": (
+        "q.m0.value_code",
+        lambda a: a.__setitem__("q.m0.value_code", np.full_like(a["q.m0.value_code"], len(a["q.m0.value_table"]))),
+    ),
+    "non-finite value": (
+        "q.m0.value_table",
+        lambda a: a.__setitem__("q.m0.value_table", np.r_[np.nan, a["q.m0.value_table"][1:]]),
+    ),
+    "feature beyond the width": (
+        "q.m0.feature",
+        lambda a: a.__setitem__("q.m0.feature", np.full_like(a["q.m0.feature"], 200)),
+    ),
+    "non-finite threshold": (
+        "q.m0.threshold",
+        lambda a: a.__setitem__("q.m0.threshold", np.r_[np.inf, a["q.m0.threshold"][1:]].astype(np.float32)),
+    ),
     "roots out of order": ("q.m0.roots", lambda a: a.__setitem__("q.m0.roots", a["q.m0.roots"][::-1].copy())),
-    "signed leaf bits": ("q.m0.leaf_bits", lambda a: a.__setitem__("q.m0.leaf_bits", a["q.m0.leaf_bits"].astype(np.int8))),
+    "signed leaf bits": (
+        "q.m0.leaf_bits",
+        lambda a: a.__setitem__("q.m0.leaf_bits", a["q.m0.leaf_bits"].astype(np.int8)),
+    ),
 }
 
 
@@ -145,8 +168,10 @@ def test_finished_run_keeps_one_copy_and_the_summary_names_the_size(tmp_path, ca
     from offline_adp.cli import main
 
     simulate("path_tracking", 5, 10, seed=1, horizon=40).save(tmp_path / "ds")
-    (tmp_path / "fit.toml").write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
-    assert main(["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--config", str(tmp_path / "fit.toml")]) == 0
+    (tmp_path
+     / "fit.toml").write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
+    assert main(["fit", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--config",
+                 str(tmp_path / "fit.toml")]) == 0
     out = capsys.readouterr().out
     model, ckpt = tmp_path / "run" / "model" / "q.npz", tmp_path / "run" / "checkpoint" / "q.npz"
     line = next(x for x in out.splitlines() if x.startswith("model: "))

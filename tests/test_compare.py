@@ -105,7 +105,8 @@ def test_report_path_defaults(tmp_path):
 
 def _dist(mean, cvar):
     return {"mean": mean, "cvar": cvar, "alpha": 0.1, "n_episodes": 50, "ess": 50.0, "median": mean, "q90": cvar,
-            "min": 0.0, "max": cvar + 1, "quantiles": {"levels": [0.0, 0.5, 0.9, 1.0], "values": [0.0, mean, cvar, cvar + 1]}}
+            "min": 0.0, "max": cvar + 1, "quantiles": {"levels": [0.0, 0.5, 0.9, 1.0],
+                                                       "values": [0.0, mean, cvar, cvar + 1]}}
 
 
 def _candidate(name, rank, est, iv, truth, left, performance, fit, logs):
@@ -123,7 +124,8 @@ def test_compare_report_shows_what_the_comparison_says(tmp_path):
            "method": "ranked", "behaviour": {"mean": 9.0, "interval": [8.5, 9.5], "episodes": 40,
                                               "cost_distribution": _dist(9.0, 14.0)},
            "candidates": [
-               _candidate("good", 1, 3.0, [2.5, 3.5], 3.1, False, "better", "converged", {**_dist(3.0, 4.0), "usable": True}),
+               _candidate("good", 1, 3.0, [2.5, 3.5], 3.1, False, "better", "converged",
+                          {**_dist(3.0, 4.0), "usable": True}),
                _candidate("doubt", 2, 4.0, [3.0, 5.0], 4.2, True, "unknown", "converged",
                           {"usable": False, "reason": "effective sample size 1.2 of 40 episodes"}),
                _candidate("bad", 3, 12.0, [11.0, 13.0], 12.5, False, "worse", "still changing", None)],

@@ -20,7 +20,8 @@ pytestmark = pytest.mark.integration
 
 
 def _cli(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "offline_adp", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "offline_adp", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
@@ -42,7 +43,8 @@ def ds_dir(tmp_path_factory):
 
 def _cfg(tmp_path: Path, n: int) -> Path:
     p = tmp_path / f"fqi{n}.toml"
-    p.write_text(f"[fqi]\nn_iterations = {n}\nmode = \"refit\"\n[fqi.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
+    p.write_text(f"[fqi]\nn_iterations = {n}\nmode = \"refit\"\n[fqi.regressor_params]\nn_estimators = "
+                 "20\nn_jobs = 1\n")
     return p
 
 
@@ -64,7 +66,8 @@ def test_two_fits_into_one_out(tmp_path, ds_dir):
 def test_two_pipeline_runs_into_one_directory(tmp_path):
     p = tmp_path / "p.toml"
     p.write_text('name = "p"\n[data]\nsimulate = "path_tracking"\ndemonstrations = 10\nexploration = 10\nhorizon = 60\n'
-                 "[fit]\n[fit.params]\nn_iterations = 40\nmode = \"refit\"\n[fit.params.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
+                 "[fit]\n[fit.params]\nn_iterations = 40\nmode = "
+                 "\"refit\"\n[fit.params.regressor_params]\nn_estimators = 20\nn_jobs = 1\n")
     out = tmp_path / "r"
     first = _cli("run", str(p), "--out", str(out), "-q")
     _wait_for(out / "manifest.json", first)
@@ -81,8 +84,10 @@ def test_lock_is_exclusive_and_writes_do_not_follow_links(tmp_path):
     rd = RunDirectory(tmp_path / "run")
     outside = tmp_path / "outside.txt"
     outside.write_text("precious")
-    probe = ("import sys\nfrom offline_adp.data.rundir import RunDirectory\nfrom offline_adp.errors import LockedError\n"
-             "try:\n    RunDirectory(sys.argv[1]).lock().__enter__()\nexcept LockedError as e:\n    print(e); sys.exit(2)\n")
+    probe = ("import sys\nfrom offline_adp.data.rundir import RunDirectory\nfrom offline_adp.errors import "
+             "LockedError\n"
+             "try:\n    RunDirectory(sys.argv[1]).lock().__enter__()\nexcept LockedError as e:\n    print(e); "
+             "sys.exit(2)\n")
     with rd.lock():
         other = subprocess.run([sys.executable, "-c", probe, str(rd.path)], capture_output=True, text=True)
         assert other.returncode == 2 and "another process is writing this run directory" in other.stdout

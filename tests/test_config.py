@@ -15,7 +15,8 @@ from offline_adp.config import load_toml
 from offline_adp.errors import SpecError, UnknownNameError
 from offline_adp.pipeline import load_pipeline, run_pipeline
 
-GOOD = 'name = "p"\nseed = 0\n[data]\nsimulate = "tabular"\nexploration = 3\ndemonstrations = 0\n[fit]\nalgorithm = "fqi"\n'
+GOOD = ('name = "p"\nseed = 0\n[data]\nsimulate = "tabular"\nexploration = 3\ndemonstrations = 0\n'
+        '[fit]\nalgorithm = "fqi"\n')
 
 
 def _pipeline(tmp_path, text, name="p.toml"):
@@ -29,10 +30,13 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD.replace('name = "p"', 'name = "*"'), r"name: String should match pattern"),
     (GOOD.replace('name = "p"', 'name = "../../x"'), r"name: String should match pattern"),
     (GOOD.replace('name = "p"', 'name = "/tmp/x"'), r"name: String should match pattern"),
-    (GOOD.replace('algorithm = "fqi"', 'algorithm = "fqx"'), r"fit.algorithm: expected one of 'fqi', 'fqe', 'api', 'cpi'"),
-    (GOOD + "[fit.params]\nn_iteratons = 3\n", r"fit.params.n_iteratons: unknown key \(did you mean 'n_iterations'\?\)"),
+    (GOOD.replace('algorithm = "fqi"', 'algorithm = "fqx"'),
+     r"fit.algorithm: expected one of 'fqi', 'fqe', 'api', 'cpi'"),
+    (GOOD + "[fit.params]\nn_iteratons = 3\n",
+     r"fit.params.n_iteratons: unknown key \(did you mean 'n_iterations'\?\)"),
     (GOOD + '[fit.params]\nmode = "fast"\n', r"fit.params.mode must be a str among"),
-    (GOOD + '[fit.params]\nn_iterations = "ten"\n', r"fit.params.n_iterations must be an int in the range \[1, inf\) or a str among \{'auto'\}"),
+    (GOOD + '[fit.params]\nn_iterations = "ten"\n',
+     r"fit.params.n_iterations must be an int in the range \[1, inf\) or a str among \{'auto'\}"),
     (GOOD + '[evaluate]\nsimulator = "path_trackin"\n', r"simulator = 'path_trackin': known simulators are"),
     (GOOD + "[evaluate]\nepisodes = 0\n", r"evaluate.episodes: Input should be greater than or equal to 1"),
     (GOOD.replace('simulate = "tabular"', 'simulate = "tabulr"'), r"simulate = 'tabulr': known problems"),
@@ -43,7 +47,8 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD + "[fit.params]\nn_structures = true\n", r"fit.params.n_structures: .*a bool \(true\) is not a valid value"),
     (GOOD + "[fit.params]\nstructure_max_samples = true\n", r"fit.params.structure_max_samples: .*a bool \(true\)"),
     (GOOD + "[fit.params]\ngamma = false\n", r"fit.params.gamma: .*a bool \(false\)"),
-    (GOOD + "[fit.params]\nstructure_max_samples = [0.5, true]\n", r"fit.params.structure_max_samples: .*a bool \(true\)"),
+    (GOOD + "[fit.params]\nstructure_max_samples = [0.5, true]\n",
+     r"fit.params.structure_max_samples: .*a bool \(true\)"),
 ])
 def test_pipeline_file_is_checked_before_anything_runs(tmp_path, text, match):
     p = _pipeline(tmp_path, text)
@@ -68,7 +73,8 @@ def test_bool_fields_still_take_bools(tmp_path):
         params: dict[str, Any] = {}
         anything: list = []
 
-    m = validate_config(M, {"flag": True, "either": True, "number": 1, "flags": [True, False], "params": {"bootstrap": True},
+    m = validate_config(M, {"flag": True, "either": True, "number": 1, "flags": [True, False],
+                            "params": {"bootstrap": True},
                              "anything": [True]}, "x.toml", "s")
     assert m.flag is True and m.either is True and m.flags == (True, False) and m.params == {"bootstrap": True}
     with pytest.raises(SpecError, match=r"s.number: .*a bool"):

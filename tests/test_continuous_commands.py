@@ -245,7 +245,8 @@ def test_two_component_commands_fit_in_the_default_frozen_mode():
     at = ds.info.action_table
     table = ActionTable(actions=tuple(Action(a.name, (a.value[0], 0.0)) for a in at.actions), dims=("u", "w"),
                         kind="continuous", low=(-U_MAX, -1.0), high=(U_MAX, 1.0))
-    two = TransitionDataset(ds.table.append_column(ACTION_VALUE_PREFIX + "w", [w]), replace(ds.info, action_table=table))
+    two = TransitionDataset(ds.table.append_column(ACTION_VALUE_PREFIX + "w", [w]),
+                            replace(ds.info, action_table=table))
     est = FittedQIteration(n_iterations=10).fit(two)
     assert est.mode_ == "frozen" and est.commands_ == "continuous"
     xs = np.linspace(-1.5, 1.5, 7)[:, None]

@@ -109,7 +109,8 @@ def test_scalar_binned_spec_keeps_its_table_and_gains_the_exact_commands(tmp_pat
     """An existing single-column binned spec: the same action table (no bounds recorded,
     so the same fingerprint) plus an ``action_value.<dim>`` column."""
     t = _table()
-    _, back, _ = _ingest(tmp_path, t, {"column": "steer_cmd", "type": "continuous", "edges": [-1.0, 0.0, 1.0], "dim": "s"})
+    _, back, _ = _ingest(tmp_path, t, {"column": "steer_cmd", "type": "continuous", "edges": [-1.0, 0.0, 1.0],
+                                       "dim": "s"})
     at = back.info.action_table
     assert at.kind == "binned" and at.low is None and at.high is None and at.bin_edges == (-1.0, 0.0, 1.0)
     np.testing.assert_array_equal(back.column("action_value.s"), t.column("steer_cmd").to_numpy())
@@ -137,7 +138,8 @@ def _bad(kind: str) -> tuple[pa.Table, dict]:
     return _table(steer, cmd_list=lists), {"column": "cmd"}
 
 
-EXPECT = {"nan": ("non_finite", "action_value.steer_cmd"), "bounds": ("command_out_of_bounds", "action_value.steer_cmd"),
+EXPECT = {"nan": ("non_finite", "action_value.steer_cmd"), "bounds": ("command_out_of_bounds",
+                                                                      "action_value.steer_cmd"),
           "width": ("command_width", "cmd")}
 
 
@@ -178,7 +180,8 @@ def test_bad_commands_quarantined(tmp_path, kind):
         ({"columns": ["steer_cmd", "throttle_cmd"], "low": [float("nan"), 0.0]}, r"action.low"),
         ({"column": "steer_cmd", "type": "discrete", "low": -1.0}, r"action.low: only for continuous commands"),
         ({"columns": ["steer_cmd", "throttle_cmd"], "edges": [0.0, 1.0], "n_bins": 2}, r"at most one of 'edges'"),
-        ({"columns": ["steer_cmd", "throttle_cmd"], "lows": [0.0]}, r"action.lows: unknown key \(did you mean 'low'\?\)"),
+        ({"columns": ["steer_cmd", "throttle_cmd"], "lows": [0.0]},
+         r"action.lows: unknown key \(did you mean 'low'\?\)"),
     ],
 )
 def test_bad_action_specs_name_the_key(action, match):
@@ -283,9 +286,11 @@ def test_mcap_vector_command_kept_exactly(tmp_path):
                        "low": [-0.5, 0.0], "high": [0.5, 1.0], "units": ["rad", "1"]})
     ds, summary = ingest_mcap([tmp_path / "a.mcap"], spec, tmp_path / "ds")
     at = ds.info.action_table
-    assert at.kind == "continuous" and at.dims == ("steer", "throttle") and at.low == (-0.5, 0.0) and at.units == ("rad", "1")
+    assert at.kind == "continuous" and at.dims == ("steer",
+                                                   "throttle") and at.low == (-0.5, 0.0) and at.units == ("rad", "1")
     n = len(ds)  # the last tick has no next state
-    np.testing.assert_array_equal(ds.commands(), np.column_stack([steer, throttle])[:n])  # JSON round-trips floats exactly
+    # JSON round-trips floats exactly
+    np.testing.assert_array_equal(ds.commands(), np.column_stack([steer, throttle])[:n])
     np.testing.assert_array_equal(read_dataset(tmp_path / "ds").commands(), ds.commands())
     assert summary["doctor"]["ok"]
     # the single-field form: bounds from the logged range, component "a"
@@ -303,10 +308,12 @@ def test_mcap_command_out_of_declared_bounds_refused_or_quarantined(tmp_path):
     _write_mcap(tmp_path / "a.mcap", steer, throttle, gap_at=12)
     spec = _mcap_spec({"fields": {"steer": "steer", "throttle": "throttle"}, "type": "continuous",
                        "low": -1.0, "high": 1.0})
-    with pytest.raises(ValidationError, match=r"a.mcap: log_time 4\d+ .* column 'action_value.steer': \[command_out_of_bounds\]"):
+    with pytest.raises(ValidationError,
+                       match=r"a.mcap: log_time 4\d+ .* column 'action_value.steer': \[command_out_of_bounds\]"):
         ingest_mcap([tmp_path / "a.mcap"], spec)
     ds, summary = ingest_mcap([tmp_path / "a.mcap"], spec, tmp_path / "ds", on_error="quarantine")
-    assert ds.n_episodes == 1 and summary["quarantined_rows"] == 11  # the first episode (its last tick has no next state)
+    # the first episode (its last tick has no next state)
+    assert ds.n_episodes == 1 and summary["quarantined_rows"] == 11
     np.testing.assert_array_equal(ds.commands(), np.column_stack([steer, throttle])[12:23])
     q = read_quarantine(tmp_path / "ds")
     assert any(r.startswith("[command_out_of_bounds] action_value.steer:") for r in q.column("reason").to_pylist())

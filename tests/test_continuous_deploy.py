@@ -91,7 +91,8 @@ def test_distill_export_agrees_with_load_policy(pendulum, tmp_path):
     load_policy(RUN_DISTILLED).act agree to 1e-5 on the 10,000 logged states."""
     root, ds = pendulum
     out = tmp_path / "distilled"
-    assert main(["distill", str(root / "run"), "--out", str(out), "--max-rate", "0.5", "--n-estimators", "30", "-q"]) == 0
+    assert main(["distill", str(root / "run"), "--out", str(out), "--max-rate", "0.5", "--n-estimators", "30",
+                 "-q"]) == 0
     pi = load_policy(out)
     assert isinstance(pi, DistilledCommandPolicy) and pi.max_rate.tolist() == [0.5]
     report = json.loads((out / "run.json").read_text())["distill"]

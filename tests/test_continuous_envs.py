@@ -90,7 +90,8 @@ def test_a_continuous_policy_is_never_rolled_out_binned():
         with pytest.raises(IncompatibleError, match="does not accept continuous commands"):
             state_samples(model, Stanley(), 2, 3, np.random.default_rng(0))
     with pytest.raises(IncompatibleError, match="does not accept continuous commands"):
-        collect(PathTracking(), PathTracking(commands="continuous").demonstrator(), 2, np.random.default_rng(0), horizon=5)
+        collect(PathTracking(), PathTracking(commands="continuous").demonstrator(), 2, np.random.default_rng(0),
+                horizon=5)
 
 
 @pytest.mark.parametrize("mode", ["continuous", "steer_accel"])
@@ -210,9 +211,11 @@ def test_fitted_command_policy_rolls_out_in_path_tracking():
 
     ds = simulate("path_tracking", 3, 6, seed=0, horizon=30, problem_options={"commands": "continuous"})
     model = problem_for_dataset("path_tracking", ds.info)
-    est = FittedQIteration(gamma=0.95, n_iterations=3, regressor_params={"n_estimators": 5}, commands="continuous").fit(ds)
+    est = FittedQIteration(gamma=0.95, n_iterations=3, regressor_params={"n_estimators": 5},
+                           commands="continuous").fit(ds)
     sent: list[np.ndarray] = []
-    res = rollout(model, est.policy_, 4, np.random.default_rng(0), horizon=10, on_step=lambda t, i, x, a, r: sent.append(a))
+    res = rollout(model, est.policy_, 4, np.random.default_rng(0), horizon=10, on_step=lambda t, i, x, a,
+                  r: sent.append(a))
     assert all(a.ndim == 2 and a.shape[1] == 1 for a in sent) and np.isfinite(res.discounted_cost).all()
     from offline_adp.algorithms.fqi_data import command_representatives
 

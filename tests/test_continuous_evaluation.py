@@ -44,11 +44,16 @@ def test_fqe_over_commands_reads_the_closed_form_with_its_measured_level(lq):
     assert m["behaviour"]["support_violations"]["fraction"] <= 0.05
     assert m["behaviour"]["replayed_commands"]["fraction"] == 0.0
     assert m["estimand"]["fqe_form"] == "stationary"
-    assert any("importance" in w["message"] for w in m["warnings"]) and "model rollouts of the logs" not in m["not_usable"]
+    assert (
+        any("importance" in w["message"] for w in m["warnings"]) and "model rollouts of the logs" not in m["not_usable"]
+    )
     best = m["headline"]["best"]
     assert best["name"] == "fqe" and best["level"] == 0.95 and best["interval"] == fq["interval"]
     # logs only, no model rollouts (turned off): support cannot be shown, so no side is claimed
-    assert "cannot tell" in m["headline"]["verdict"]["text"] or m["headline"]["verdict"]["performance"] == "indistinguishable"
+    assert (
+        "cannot tell" in m["headline"]["verdict"]["text"]
+        or m["headline"]["verdict"]["performance"] == "indistinguishable"
+    )
 
 
 def test_model_rollouts_over_commands_read_the_closed_form(lq):
@@ -70,7 +75,8 @@ def test_level_withdrawn_where_commands_are_unsupported(lq):
     """A policy commanding what the logs never tried near the states: its interval is shown
     without a level, never quoted, and the verdict cannot tell (the discrete rule: more
     than 5% of the logged states see unsupported commands)."""
-    m, _, _, _ = evaluation_metrics(lq, attach_signature(Constant(3 * U_MAX), lq), None, fqe_bootstrap=20, bootstrap=0, model_particles=0)
+    m, _, _, _ = evaluation_metrics(lq, attach_signature(Constant(3 * U_MAX), lq), None, fqe_bootstrap=20, bootstrap=0,
+                                    model_particles=0)
     fq = m["ope"]["fqe"]
     assert m["behaviour"]["support_violations"]["fraction"] == 1.0
     assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]

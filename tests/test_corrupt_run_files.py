@@ -148,7 +148,8 @@ def _damage_history(hist, damage):
     return msg
 
 
-@pytest.mark.parametrize("damage", ["unparsable", "text in a number column", "missing column", "iterations out of order",
+@pytest.mark.parametrize("damage", ["unparsable", "text in a number column", "missing column",
+                                    "iterations out of order",
                                     "rows not the checkpoint's", "text in the structure record",
                                     "no number where the verdict reads one", "a build count that is not one"])
 def test_resume_with_a_corrupt_checkpoint_history_exits_2(tmp_path, capsys, damage):

@@ -103,7 +103,8 @@ def test_dask_finite_horizon_fit_equals_the_in_process_fit(one_worker, tmp_path)
     for t in range(5):
         np.testing.assert_array_equal(dist.q_function_.values(x, t), local.q_function_.values(x, t))
     seen: list[int] = []
-    again = DistributedFQI(**kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=tmp_path / "ck", on_iteration=seen.append)
+    again = DistributedFQI(**kw).fit(one_worker, tmp_path / "ds", checkpoint_dir=tmp_path / "ck",
+                                     on_iteration=seen.append)
     assert seen == []
     np.testing.assert_array_equal(again.q_function_.values(x, 2), local.q_function_.values(x, 2))
 
@@ -274,7 +275,8 @@ def test_checkpointed_distributed_fit_resumes(client, coh, tmp_path):
     params = {"n_estimators": 20, "num_leaves": 15}
     DistributedFQI(gamma=0.95, n_iterations=2, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck")
     seen: list[int] = []
-    est = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
+    est = DistributedFQI(gamma=0.95, n_iterations=3,
+                         lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
                                                                            on_iteration=seen.append)
     assert seen == [3] and est.history_["iteration"].tolist() == [1, 2, 3]
     whole = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path)
@@ -283,7 +285,8 @@ def test_checkpointed_distributed_fit_resumes(client, coh, tmp_path):
     assert est.verdict_ == whole.verdict_
     # killed after the last checkpoint, before the caller saved the model: nothing is redone
     again: list[int] = []
-    done = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
+    done = DistributedFQI(gamma=0.95, n_iterations=3,
+                          lgbm_params=params).fit(client, path, checkpoint_dir=tmp_path / "ck",
                                                                             on_iteration=again.append)
     assert again == [] and done.history_["iteration"].tolist() == [1, 2, 3] and done.verdict_ == whole.verdict_
     np.testing.assert_array_equal(done.q_function_.values(x), whole.q_function_.values(x))
@@ -297,7 +300,8 @@ def test_distributed_fqe_of_a_fixed_policy_matches_local(client, coh):
     params = {"n_estimators": 50, "num_leaves": 15, "min_child_samples": 20}
     pi = UniformPolicy(ds.n_actions)
     dist = DistributedFQI(gamma=0.95, n_iterations=3, lgbm_params=params, policy=pi).fit(client, path)
-    local = FittedQEvaluation(policy=pi, gamma=0.95, regressor="lightgbm", regressor_params=params, n_iterations=3).fit(ds)
+    local = FittedQEvaluation(policy=pi, gamma=0.95, regressor="lightgbm", regressor_params=params,
+                              n_iterations=3).fit(ds)
     x = ds.arrays().obs
     assert np.corrcoef(dist.q_function_.values(x).ravel(), local.q_function_.values(x).ravel())[0, 1] > 0.98
 

@@ -37,7 +37,8 @@ def test_finite_horizon_vi_equals_brute_force(seed):
     # per-state optimality: V_0(s) is the min over policies of the cost from s
     for s in range(3):
         e = np.eye(3)[s]
-        best_s = min(_eval_by_forward_distributions(m.P, m.C, e, np.array(r), 3) for r in itertools.product(per_step, repeat=3))
+        best_s = min(_eval_by_forward_distributions(m.P, m.C, e, np.array(r),
+                                                    3) for r in itertools.product(per_step, repeat=3))
         assert sol.V[0, s] == pytest.approx(best_s, abs=1e-12)
 
 
@@ -45,7 +46,8 @@ def test_finite_horizon_vi_equals_brute_force(seed):
 def test_discounted_vi_equals_brute_force(seed):
     m = TabularMDP(n_states=4, n_actions=3, horizon=None, gamma=0.9, branching=3, seed=seed)
     sol = dp.value_iteration_discounted(m.P, m.C, m.gamma)
-    values = [dp.policy_evaluation_discounted(m.P, m.C, np.array(pol), m.gamma).V for pol in itertools.product(range(3), repeat=4)]
+    values = [dp.policy_evaluation_discounted(m.P, m.C, np.array(pol),
+                                              m.gamma).V for pol in itertools.product(range(3), repeat=4)]
     best = np.min(values, axis=0)  # an optimal policy is optimal in every state simultaneously
     np.testing.assert_allclose(sol.V, best, atol=1e-10)
     # Bellman optimality holds

@@ -70,7 +70,8 @@ def test_fqe_defaults_are_fqis_except_those_its_docstring_names():
     from offline_adp.algorithms.fqi import FittedQIteration
 
     fqi, fqe = FittedQIteration().get_params(deep=False), FittedQEvaluation().get_params(deep=False)
-    assert set(fqi) - set(fqe) == {"screen_trees", "screen_tol", "early_build_trees"} and set(fqe) - set(fqi) == {"policy"}
+    assert set(fqi) - set(fqe) == {"screen_trees", "screen_tol",
+                                   "early_build_trees"} and set(fqe) - set(fqi) == {"policy"}
     differ = {k for k in fqe if k in fqi and fqe[k] != fqi[k]}
     assert differ == {"mode", "n_structures", "structure_max_samples"}
     doc = FittedQEvaluation.__doc__

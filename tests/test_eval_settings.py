@@ -136,7 +136,8 @@ def test_a_pipeline_refuses_each_bad_setting_in_one_line(tmp_path, capsys, captu
     if name != "seed":  # the same through --set
         good = tmp_path / "good.toml"
         good.write_text('[data]\nsimulate = "gridworld"\n[fit]\n[evaluate]\n')
-        assert main(["run", str(good), "--out", str(tmp_path / "out"), "-q", "--set", f"{key}={json.dumps(value)}"]) == 2
+        assert main(["run", str(good), "--out", str(tmp_path / "out"), "-q", "--set",
+                     f"{key}={json.dumps(value)}"]) == 2
         assert key in _one_line(capsys.readouterr().err)
         assert not (tmp_path / "out").exists()
 
@@ -207,7 +208,8 @@ def test_fqe_params_nested_20000_deep(tmp_path, capsys, captured):
     assert "--fqe-params: JSON nested deeper than 64 levels" in _one_line(capsys.readouterr().err)
     assert not captured
     with pytest.raises(InvalidArgumentError, match="fqe_params"):  # the API too, however it is built
-        EvaluationSettings.resolve(None, {"fqe_params": {"regressor_params": json.loads('{"a": ' * 100 + "1" + "}" * 100)}})
+        EvaluationSettings.resolve(None,
+                                   {"fqe_params": {"regressor_params": json.loads('{"a": ' * 100 + "1" + "}" * 100)}})
 
 
 def _metrics_run(tmp_path: Path, text: str) -> Path:

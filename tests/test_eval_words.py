@@ -169,11 +169,14 @@ def test_warnings_gathered_with_their_sources():
     ws = gather_warnings(LEFT)
     assert {"source": "evaluation", "message": "no options recorded"} in ws
     assert {"source": "ope.fqe", "message": "w1"} in ws and {"source": "ope.is", "message": "degenerate"} in ws
-    assert {"source": "behaviour", "message": "clipped"} in ws and {"source": "shift.classifier", "message": "thin step"} in ws
+    assert {"source": "behaviour", "message": "clipped"} in ws and {"source": "shift.classifier",
+                                                                    "message": "thin step"} in ws
     assert len(ws) == 6
     again = {**LEFT, "warnings": ws}
     assert headline(again)["n_warnings"] == 6  # gathered once, not counted twice
-    assert any(ln.startswith("6 warnings (metrics.json 'warnings', each with its source") for ln in summary_lines(again))
+    assert any(
+        ln.startswith("6 warnings (metrics.json 'warnings', each with its source") for ln in summary_lines(again)
+    )
 
 
 def _cand(name, rank, est, iv, outcome="cannot tell", fit="converged", level=0.95):
@@ -194,7 +197,8 @@ def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
     sep = separation(cands)
     assert len(sep) == 1 and not sep[0]["separated"] and "cannot separate car2d and car3d" in sep[0]["text"]
     res = {"dataset": {"path": str(tmp_path / "ds"), "fingerprint": "f"}, "estimator": "fqe",
-           "estimand": "expected cost", "method": "ranked", "behaviour": {"mean": 50.0, "interval": [45.0, 55.0], "episodes": 40},
+           "estimand": "expected cost", "method": "ranked",
+           "behaviour": {"mean": 50.0, "interval": [45.0, 55.0], "episodes": 40},
            "candidates": cands, "separation": sep, "top_pick": None, "cannot_separate": [sep[0]["text"]]}
     lines = compare_lines(res)
     assert any(ln.startswith("no top pick: the logs cannot separate car2d and car3d") for ln in lines)

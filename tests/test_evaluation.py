@@ -143,7 +143,8 @@ def test_wdr_within_eight_percent_at_1k(mild_1k):
 @pytest.mark.slow
 def test_mis_within_three_percent_at_10k():
     pib, pi = CASES["strong"]
-    res = off_policy(logged(pib, 10_000, 12), pi, fqe_params=TABULAR_FQE, ratio_regressor="tabular", n_boot=50, n_boot_fqe=0)
+    res = off_policy(logged(pib, 10_000, 12), pi, fqe_params=TABULAR_FQE, ratio_regressor="tabular", n_boot=50,
+                     n_boot_fqe=0)
     truth = true_value(pi)
     assert abs(res.estimates["mis"].estimate - truth) <= 0.03 * truth
     # trajectory IS over 10 steps of a strong shift is degenerate: it must say so

@@ -180,7 +180,8 @@ def test_the_root_picks_the_informative_feature_as_often_as_scikit_learn():
     y = np.where(X[:, 0] > 0.5, 1.0, 0.0) + 0.01 * rng.normal(size=400)
     for mf in (1, 3):
         reg = ExtraTreesRegressor(n_estimators=300, max_features=mf, n_jobs=1, random_state=3)
-        ours = np.mean([t.feature[0] == 0 for t in extra_trees.grow_trees(X, y, None, extra_trees.native_params(reg, 400, 3))])
+        ours = np.mean([t.feature[0]
+                        == 0 for t in extra_trees.grow_trees(X, y, None, extra_trees.native_params(reg, 400, 3))])
         theirs = np.mean([e.tree_.feature[0] == 0 for e in reg.fit(X, y).estimators_])
         se = np.sqrt(max(ours * (1 - ours), theirs * (1 - theirs), 0.01) * 2 / 300)
         assert abs(ours - theirs) <= 4 * se, (mf, ours, theirs)

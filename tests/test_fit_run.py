@@ -44,7 +44,8 @@ def test_killed_fit_resumes_to_the_uninterrupted_result(tmp_path, pt_dir):
                    '[fqi.regressor_params]\nn_estimators = 30\nn_jobs = 1\n')
     run = tmp_path / "run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "offline_adp", "fit", str(pt_dir), "--config", str(cfg), "--out", str(run), "-q"], env=env)
+    proc = subprocess.Popen([sys.executable, "-m", "offline_adp", "fit", str(pt_dir), "--config", str(cfg), "--out",
+                             str(run), "-q"], env=env)
     deadline = time.time() + 120
     while _checkpoint_iteration(run) < 3 and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
@@ -93,7 +94,8 @@ def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
     from offline_adp.artifacts import load_index_policy
 
     fqi_run = tmp_path / "fqi"
-    assert main(["fit", str(pt_dir), "--out", str(fqi_run), "-q", "--config", str(_cfg(tmp_path, "fqi", "n_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n"))]) == 0
+    assert main(["fit", str(pt_dir), "--out", str(fqi_run), "-q", "--config",
+                 str(_cfg(tmp_path, "fqi", "n_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n"))]) == 0
     cfgs = {
         "fqe": 'policy = "fqi/model"\nn_iterations = 3\nmode = "frozen"\n',
         "api": 'n_iterations = 2\n[api.fqe]\nn_iterations = 3\nmode = "frozen"\n',
@@ -104,7 +106,8 @@ def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
     obs = simulate("path_tracking", 2, 2, seed=4, horizon=10).arrays().obs
     for alg, body in cfgs.items():
         out = tmp_path / alg
-        assert main(["fit", str(pt_dir), "--algorithm", alg, "--config", str(_cfg(tmp_path, alg, body)), "--out", str(out), "-q"]) == 0, alg
+        assert main(["fit", str(pt_dir), "--algorithm", alg, "--config", str(_cfg(tmp_path, alg, body)), "--out",
+                     str(out), "-q"]) == 0, alg
         pi = load_index_policy(out / "model")
         assert pi.act(obs, 0, np.random.default_rng(0), return_index=True).shape == (len(obs),)
         assert json.loads((out / "run.json").read_text())["status"] == "completed"
@@ -139,10 +142,14 @@ def test_fit_cli_refuses_a_bad_structure_max_samples_in_one_line(tmp_path, pt_di
 
 
 def test_fit_cli_reports_each_frozen_build_and_its_tree_count(tmp_path, pt_dir, capsys):
-    body = "n_iterations = 3\nn_structures = 2\nscreen_trees = 2\nscreen_tol = 1e-12\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n"
+    body = ("n_iterations = 3\nn_structures = 2\nscreen_trees = 2\nscreen_tol = 1e-12\n"
+            "[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body))]) == 0
     out = capsys.readouterr().out
-    assert "tree structures: 2 built (iterations 1, 2), trees 5/5, grown by compiled (the screen: can cost score;" in out  # tol tiny: every build grows all 5
+    # tol tiny: every build grows all 5
+    assert (
+        "tree structures: 2 built (iterations 1, 2), trees 5/5, grown by compiled (the screen: can cost score;" in out
+    )
     builds = json.loads((tmp_path / "a" / "run.json").read_text())["structure_builds"]
     assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 5), (2, 5)] and all(b["screen"] > 0 for b in builds)
 
@@ -152,7 +159,10 @@ def test_fit_cli_reports_early_builds_with_their_caveat(tmp_path, pt_dir, capsys
             "[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n")
     assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body))]) == 0
     out = capsys.readouterr().out
-    assert "tree structures: 3 built (iterations 1, 3, 5), trees 2/2/5, grown by compiled (early builds: can cost score;" in out
+    assert (
+        "tree structures: 3 built (iterations 1, 3, 5), trees 2/2/5, grown by compiled (early builds: can cost score;"
+        in out
+    )
     builds = json.loads((tmp_path / "a" / "run.json").read_text())["structure_builds"]
     assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 2), (3, 2), (5, 5)]
     # at gamma 0.99 no build is early: the line carries no caveat
@@ -164,8 +174,11 @@ def test_fit_cli_reports_early_builds_with_their_caveat(tmp_path, pt_dir, capsys
 
 def test_a_whole_float_for_an_integer_key_runs_as_that_integer(tmp_path, pt_dir):
     """TOML ``screen_trees = 2.0``: checked as the integer 2 and run as 2 (not refused mid-run)."""
-    body = "n_iterations = 2\nscreen_trees = 2.0\nscreen_tol = 1e9\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n"
-    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body)), "-q"]) == 0
+    body = (
+        "n_iterations = 2\nscreen_trees = 2.0\nscreen_tol = 1e9\n[fqi.regressor_params]\nn_estimators = 5\nn_jobs = 1\n"
+    )
+    assert main(["fit", str(pt_dir), "--out", str(tmp_path / "a"), "--config", str(_cfg(tmp_path, "fqi", body)),
+                 "-q"]) == 0
     run = json.loads((tmp_path / "a" / "run.json").read_text())
     assert run["status"] == "completed" and {b["trees"] for b in run["structure_builds"]} == {2}
 
@@ -185,4 +198,7 @@ def test_a_pipeline_passes_on_validated_fit_and_fqe_numbers():
     spec = load_pipeline(PIPELINES / "car_on_hill.toml", overrides={"fit.params": {"n_iterations": 3.0},
                                                                     "evaluate.fqe_params": {"n_iterations": 5.0}})
     assert type(spec["fit"]["params"]["n_iterations"]) is int and spec["fit"]["params"]["n_iterations"] == 3
-    assert type(spec["evaluate"]["fqe_params"]["n_iterations"]) is int and spec["evaluate"]["fqe_params"]["n_iterations"] == 5
+    assert (
+        type(spec["evaluate"]["fqe_params"]["n_iterations"]) is int
+        and spec["evaluate"]["fqe_params"]["n_iterations"] == 5
+    )

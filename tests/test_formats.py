@@ -107,7 +107,8 @@ def test_minari_without_our_metadata_and_missing_datasets(ds, tmp_path):
     obs = rng.normal(size=(6, 2))
     buf = [EpisodeBuffer(id=0, observations=obs, actions=np.array([0, 2, 1, 1, 0]), rewards=-rng.random(5),
                          terminations=np.array([0, 0, 0, 0, 1], bool), truncations=np.zeros(5, bool))]
-    minari.create_dataset_from_buffers("plain-v0", buf, observation_space=gym.spaces.Box(-np.inf, np.inf, (2,), np.float64),
+    minari.create_dataset_from_buffers("plain-v0", buf,
+                                       observation_space=gym.spaces.Box(-np.inf, np.inf, (2,), np.float64),
                                        action_space=gym.spaces.Discrete(3), data_format="arrow")
     got = from_minari("plain-v0", feature_names=["a", "b"])
     assert got.feature_names == ["a", "b"] and got.n_actions == 3
@@ -120,7 +121,8 @@ def test_minari_without_our_metadata_and_missing_datasets(ds, tmp_path):
 
 def test_minari_refuses_non_contiguous_episodes(ds):
     a = ds.arrays()
-    broken = ds.from_arrays(ds.info, episode_id=ds.column("episode_id"), step=a.step, obs=a.obs, action=a.action, cost=a.cost,
+    broken = ds.from_arrays(ds.info, episode_id=ds.column("episode_id"), step=a.step, obs=a.obs, action=a.action,
+                            cost=a.cost,
                             next_obs=a.next_obs + (np.arange(len(ds)) == 3)[:, None], terminated=a.terminated,
                             truncated=a.truncated)
     with pytest.raises(OfflineADPError, match="contiguous"):

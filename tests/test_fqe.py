@@ -179,12 +179,14 @@ def test_finite_horizon_fqe_on_discounted_data_any_gamma(gamma):
     m = TabularMDP(n_states=8, n_actions=2, horizon=None, gamma=0.95, seed=11)
     ds, w = full_support_dataset(m)
     pi = np.random.default_rng(2).dirichlet(np.ones(2), size=(4, 8))
-    fqe = FittedQEvaluation(policy=TabularPolicy(pi), horizon=4, gamma=gamma, regressor="tabular", action_input="onehot")
+    fqe = FittedQEvaluation(policy=TabularPolicy(pi), horizon=4, gamma=gamma, regressor="tabular",
+                            action_input="onehot")
     fqe.fit(ds, sample_weight=w)
     exact = dp.policy_evaluation_finite(m.P, m.C, pi, 4, gamma=gamma)
     for t in range(4):
         np.testing.assert_allclose(fqe.q_functions_[t].values(np.arange(8.0)[:, None]), exact.Q[t], atol=1e-10, rtol=0)
-    np.testing.assert_allclose(fqe.value_, exact.V[0][ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)].mean(), atol=1e-10)
+    np.testing.assert_allclose(fqe.value_, exact.V[0][ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)].mean(),
+                               atol=1e-10)
     assert fqe.verdict_ == "completed"
 
 

@@ -73,7 +73,9 @@ def test_a_policy_the_logs_cover_keeps_a_tight_interval(logs):
     assert fq.interval[0] <= truth <= fq.interval[1]
     assert "widened to the support bounds" in fq.interval_method
     lo, hi = fq.percentile_interval
-    assert lo - res.estimand.tail_bound - 1e-9 <= fq.interval[0] and fq.interval[1] <= hi + res.estimand.tail_bound + 1e-9
+    assert (
+        lo - res.estimand.tail_bound - 1e-9 <= fq.interval[0] and fq.interval[1] <= hi + res.estimand.tail_bound + 1e-9
+    )
 
 
 def test_q_value_range_bounds_every_path():

@@ -21,7 +21,8 @@ def full_support_dataset(m: TabularMDP) -> tuple[TransitionDataset, np.ndarray]:
     over this data are exact expectations, so a tabular learner does exact DP."""
     a_, s_, sp = np.nonzero(m.P)
     n = len(s_)
-    info = DatasetInfo(features=(Feature("s"),), action_table=ActionTable.from_values(np.arange(m.n_actions, dtype=float)))
+    info = DatasetInfo(features=(Feature("s"),),
+                       action_table=ActionTable.from_values(np.arange(m.n_actions, dtype=float)))
     ds = TransitionDataset.from_arrays(
         info, episode_id=np.char.zfill(np.arange(n).astype(str), 7), step=np.zeros(n), obs=s_[:, None],
         action=a_, cost=m.C[s_, a_], next_obs=sp[:, None], terminated=np.zeros(n, bool), truncated=np.ones(n, bool),
@@ -70,7 +71,8 @@ def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode, builder)
                          tol=1e-7, mode=mode, tree_builder=builder)
     f.fit(ds, sample_weight=w)
     if mode == "frozen":
-        assert {b["builder"] for b in structure_builds(f.history_)} == {"compiled" if builder == "auto" else "scikit-learn"}
+        assert {b["builder"] for b in structure_builds(f.history_)} == {"compiled" if builder == "auto"
+                                                                        else "scikit-learn"}
     sol = dp.value_iteration_discounted(m.P, m.C, 0.9)
     np.testing.assert_array_equal(f.policy_.act(np.arange(15.0)[:, None], return_index=True), sol.policy)
     np.testing.assert_allclose(_q_table(f.q_function_, 15), sol.Q, atol=1e-5)
@@ -99,7 +101,8 @@ def test_boyan_moore_divergence_quadratic_vs_trees_and_table():
         with warnings.catch_warnings():
             warnings.simplefilter("error", DivergenceWarning)
             params = {"n_estimators": 10, "n_jobs": 1} if reg == "extra_trees" else {}
-            g = FittedQIteration(gamma=1.0, regressor=reg, regressor_params=params, n_iterations=80, tol=1e-12).fit(gridworld_dataset())
+            g = FittedQIteration(gamma=1.0, regressor=reg, regressor_params=params, n_iterations=80,
+                                 tol=1e-12).fit(gridworld_dataset())
         np.testing.assert_allclose(g.q_function_.values(lattice).min(axis=1)[:-1], J[:-1], atol=1e-9)
 
 
@@ -108,7 +111,8 @@ def test_terminated_transitions_are_not_bootstrapped():
     info = DatasetInfo(features=(Feature("s"),), action_table=ActionTable.from_values([0.0]))
     ds = TransitionDataset.from_arrays(
         info, episode_id=["a", "a", "b"], step=[0, 1, 0], obs=[[0.0], [1.0], [0.0]], action=[0, 0, 0],
-        cost=[1.0, 1.0, 1.0], next_obs=[[1.0], [2.0], [1.0]], terminated=[False, True, False], truncated=[False, False, True],
+        cost=[1.0, 1.0, 1.0], next_obs=[[1.0], [2.0], [1.0]], terminated=[False, True, False],
+        truncated=[False, False, True],
     )
     f = FittedQIteration(gamma=0.5, regressor="tabular", n_iterations=50).fit(ds)
     q = f.q_function_.values(np.array([[0.0], [1.0]]))[:, 0]
@@ -125,7 +129,8 @@ def test_infeasible_cost_clamps_targets():
 
 
 def test_history_columns_and_validation_residual(small_pt):
-    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 5}, n_iterations=3, validation_fraction=0.25)
+    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 5}, n_iterations=3,
+                         validation_fraction=0.25)
     rows = list(f.fit_iter(small_pt))
     assert len(rows) == 3 == len(f.history_)
     for c in ("sup_dq", "mean_dq", "bellman_residual", "greedy_changed", "start_value", "wall_time"):
@@ -152,7 +157,8 @@ def test_iterated_fqi_improves_on_exploration_data():
     from offline_adp.rollout import rollout
 
     model = CarOnHill(horizon=100)
-    it = IteratedFQI(FittedQIteration(gamma=0.95, n_iterations=20, mode="frozen", regressor_params={"n_estimators": 10}),
+    it = IteratedFQI(FittedQIteration(gamma=0.95, n_iterations=20, mode="frozen",
+                                      regressor_params={"n_estimators": 10}),
                      n_rounds=3, episodes_per_round=100, n_eval_episodes=50, random_state=0).fit(model)
     assert list(it.history_["round"]) == [1, 2, 3]
     assert (np.diff(it.history_["n_transitions"]) > 0).all()
@@ -168,7 +174,8 @@ def test_target_and_next_state_noise_average_out():
     info = DatasetInfo(features=(Feature("s"),), action_table=ActionTable.from_values([0.0]))
     n = 4000
     ds = TransitionDataset.from_arrays(info, episode_id=np.char.zfill(np.arange(n).astype(str), 5), step=np.zeros(n),
-                                       obs=np.zeros((n, 1)), action=np.zeros(n), cost=np.ones(n), next_obs=np.zeros((n, 1)),
+                                       obs=np.zeros((n, 1)), action=np.zeros(n), cost=np.ones(n),
+                                       next_obs=np.zeros((n, 1)),
                                        terminated=np.zeros(n, bool), truncated=np.ones(n, bool))
     exact = FittedQIteration(gamma=0.5, regressor="tabular", n_iterations=40).fit(ds)
     noisy = FittedQIteration(gamma=0.5, regressor="tabular", n_iterations=40, target_noise=0.5, random_state=1).fit(ds)

@@ -23,7 +23,8 @@ MODES = {
     "refit": {"mode": "refit"},
     "refit_noise": {"mode": "refit", "target_noise": 0.05, "next_state_noise": 0.05},
     "frozen": {"mode": "frozen", "n_structures": 2},  # builds at 1 and 5: tol can stop it at 6
-    "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "trees_per_iteration": 3},
+    "warm_start": {"mode": "warm_start", "regressor": "lightgbm", "regressor_params": {"n_jobs": 1},
+                   "trees_per_iteration": 3},
     "finite_frozen": {"mode": "frozen", "horizon": 5},
     # builds screened on 2 of 6 trees: kept small (tol huge), or grown to 6 by warm start (tol tiny)
     "frozen_screen_kept": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
@@ -31,7 +32,8 @@ MODES = {
     "frozen_screen_grown": {"mode": "frozen", "n_structures": 2, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
                             "screen_trees": 2, "screen_tol": 1e-12},
     # builds at 1, 3 and 6; at gamma 0.5 the first two are early (2 trees), the last grows all 6
-    "frozen_early": {"mode": "frozen", "n_structures": 3, "gamma": 0.5, "regressor_params": {"n_estimators": 6, "n_jobs": 1},
+    "frozen_early": {"mode": "frozen", "n_structures": 3, "gamma": 0.5,
+                     "regressor_params": {"n_estimators": 6, "n_jobs": 1},
                      "early_build_trees": 2},
 }
 
@@ -82,11 +84,13 @@ def test_interrupted_then_resumed_equals_uninterrupted(tmp_path, pt_dir, obs, na
         trees = ref.history_["structure_trees"].to_numpy()
         assert set(trees) == ({2} if name.endswith("kept") else {6})
         np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(), trees)
-        np.testing.assert_array_equal(est.history_["structure_screen"].to_numpy(), ref.history_["structure_screen"].to_numpy())
+        np.testing.assert_array_equal(est.history_["structure_screen"].to_numpy(),
+                                      ref.history_["structure_screen"].to_numpy())
     if name == "frozen_early":  # the early builds' smaller forests survive the interruption too
         builds = structure_builds(ref.history_)
         assert [(b["iteration"], b["trees"]) for b in builds] == [(1, 2), (3, 2), (6, 6)]
-        np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(), ref.history_["structure_trees"].to_numpy())
+        np.testing.assert_array_equal(est.history_["structure_trees"].to_numpy(),
+                                      ref.history_["structure_trees"].to_numpy())
     if tol and "horizon" not in params:  # a finite horizon runs its T steps whatever tol says
         assert ref.verdict_ == "converged" and len(ref.history_) < BASE["n_iterations"]
 
@@ -98,7 +102,8 @@ def test_killed_after_the_last_checkpoint_resumes_without_an_extra_iteration(tmp
     run = tmp_path / "run"
     ref = fit_run(pt_dir, run, params=params)
     n = len(ref.history_)
-    assert json.loads((run / "checkpoint" / "q.json").read_text())["iteration"] == n  # the last iteration is checkpointed
+    # the last iteration is checkpointed
+    assert json.loads((run / "checkpoint" / "q.json").read_text())["iteration"] == n
     shutil.rmtree(run / "model")  # what a kill between the last checkpoint and the final write leaves
     status = json.loads((run / "run.json").read_text())
     (run / "run.json").write_text(json.dumps({**status, "status": "running"}))

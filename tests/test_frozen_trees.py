@@ -90,7 +90,8 @@ def test_constant_targets_give_the_constant_without_a_forest():
     assert not hasattr(f.fit_state_.learner.ensemble, "_forest")
     np.testing.assert_allclose(f.predict(obs), np.ones((len(obs), 2)), rtol=1e-12)
     f2 = FittedQIteration(gamma=0.9, n_iterations=3, mode="frozen", n_structures=1, regressor_params=TREES).fit(ds)
-    assert list(f2.history_["structure"]) == [1, 2, 3]  # targets stay constant (1 + 0.9 * 1, ...): a one-leaf "build" each time
+    # targets stay constant (1 + 0.9 * 1, ...): a one-leaf "build" each time
+    assert list(f2.history_["structure"]) == [1, 2, 3]
     np.testing.assert_allclose(f2.predict(obs), np.full((len(obs), 2), 1 + 0.9 + 0.81), rtol=1e-12)
 
 

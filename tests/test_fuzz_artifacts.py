@@ -39,7 +39,8 @@ HANG_S = 60
 KINDS = ["trees", "frozen", "warm_start", "ridge", "tabular", "knn", "mlp"]
 _FIT = {
     "trees": dict(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1, "min_samples_leaf": 5}),
-    "frozen": dict(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1, "min_samples_leaf": 5}, mode="frozen"),
+    "frozen": dict(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1, "min_samples_leaf": 5},
+                   mode="frozen"),
     "warm_start": dict(regressor="lightgbm", mode="warm_start", trees_per_iteration=2),
     "ridge": dict(regressor="ridge", action_encoding="per_action"),
     "tabular": dict(regressor="tabular", horizon=2),
@@ -111,7 +112,8 @@ def _npz_members(path: Path) -> dict[str, np.ndarray]:
 def array_mutation(draw):
     return {
         "pick": draw(st.integers(0, 10_000)),
-        "op": draw(st.sampled_from(["set", "set", "set", "truncate", "extend", "reshape", "dtype", "drop", "object", "rename"])),
+        "op": draw(st.sampled_from(["set", "set", "set", "truncate", "extend", "reshape", "dtype", "drop", "object",
+                                    "rename"])),
         "pos": draw(st.integers(0, 10_000)),
         "int": draw(st.one_of(st.sampled_from(INTERESTING_INTS), st.integers(-1000, 1000))),
         "float": draw(st.one_of(st.sampled_from(INTERESTING_FLOATS), st.floats(allow_nan=True))),
@@ -181,7 +183,8 @@ JSON_VALUES = [None, -1, 0, 1, 2, 10**9, 2**64, -(2**63), "x", "", [], {}, [[]],
 
 
 @settings(max_examples=N, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-@given(kind=st.sampled_from(KINDS), pick=st.integers(0, 100_000), value=st.sampled_from(JSON_VALUES), delete=st.booleans())
+@given(kind=st.sampled_from(KINDS), pick=st.integers(0, 100_000), value=st.sampled_from(JSON_VALUES),
+       delete=st.booleans())
 def test_fuzz_json(saved, tmp_path, kind, pick, value, delete):
     arts, obs = saved
     src, ref = arts[kind]
@@ -195,7 +198,8 @@ def test_fuzz_json(saved, tmp_path, kind, pick, value, delete):
 
 
 @settings(max_examples=N, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
-@given(pick=st.integers(0, 10**9), token=st.sampled_from(["-1", "0", "1", "2", "3", "99", "-99", "nan", "inf", "1e308", "x", "", "-2147483648", "2147483647"]),
+@given(pick=st.integers(0, 10**9), token=st.sampled_from(["-1", "0", "1", "2", "3", "99", "-99", "nan", "inf", "1e308",
+                                                          "x", "", "-2147483648", "2147483647"]),
        which=st.integers(0, 50))
 def test_fuzz_lightgbm_text(saved, tmp_path, pick, token, which):
     arts, obs = saved
@@ -218,7 +222,8 @@ def test_fuzz_lightgbm_text(saved, tmp_path, pick, token, which):
 
 @settings(max_examples=N, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(kind=st.sampled_from(KINDS), target=st.sampled_from(["q.npz", "q.json"]),
-       edits=st.lists(st.tuples(st.integers(0, 10**9), st.integers(0, 255)), min_size=1, max_size=8), cut=st.integers(0, 20))
+       edits=st.lists(st.tuples(st.integers(0, 10**9), st.integers(0, 255)), min_size=1, max_size=8),
+       cut=st.integers(0, 20))
 def test_fuzz_bytes(saved, tmp_path, kind, target, edits, cut):
     arts, obs = saved
     src, ref = arts[kind]

@@ -21,7 +21,8 @@ GOOD = (b'name = "p"\nseed = 0\n[data]\nsimulate = "tabular"\nexploration = 3\n[
 
 scalars = st.one_of(st.none(), st.booleans(), st.integers(-2**70, 2**70), st.floats(allow_nan=True),
                     st.text(max_size=12), st.lists(st.integers(-3, 3), max_size=3))
-keys = st.sampled_from(["name", "seed", "data", "fit", "evaluate", "engine", "report", "validate", "params", "algorithm",
+keys = st.sampled_from(["name", "seed", "data", "fit", "evaluate", "engine", "report", "validate", "params",
+                        "algorithm",
                         "simulate", "inputs", "format", "spec", "exploration", "horizon", "mode", "n_iterations",
                         "gamma", "simulator", "episodes", "kind", "bogus"])
 tables = st.recursive(scalars, lambda inner: st.dictionaries(keys, inner, max_size=5), max_leaves=12)
@@ -33,7 +34,8 @@ def _toml(value: object) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
-        return "nan" if value != value else ("inf" if value == float("inf") else "-inf" if value == float("-inf") else repr(value))
+        return "nan" if value != value else ("inf" if value == float("inf") else "-inf" if value == float("-inf")
+                                             else repr(value))
     if isinstance(value, int):
         return str(value)
     if isinstance(value, str):

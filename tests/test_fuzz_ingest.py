@@ -57,7 +57,8 @@ def column(draw, kind: str, n: int):
         return pd.Series(vals, dtype=object if choice != "other" else "int64")
     if kind == "k":
         if choice == "other":
-            return pd.Series(draw(st.lists(st.one_of(st.floats(allow_nan=True), st.integers(-(2**40), 2**40)), min_size=n, max_size=n)), dtype="float64")
+            return pd.Series(draw(st.lists(st.one_of(st.floats(allow_nan=True), st.integers(-(2**40), 2**40)),
+                                           min_size=n, max_size=n)), dtype="float64")
         vals = draw(st.lists(st.integers(0, 5), min_size=n, max_size=n))
         if draw(st.integers(0, 3)) == 0:
             vals[draw(st.integers(0, n - 1))] = draw(st.sampled_from([2**31, 2**32, -1, 2**62]))
@@ -67,7 +68,8 @@ def column(draw, kind: str, n: int):
         return s
     if kind in ("x", "nx", "c", "t", "p"):
         if choice == "other":
-            return pd.Series(draw(st.lists(st.sampled_from(["0.5", "x", "", "1e3", None]), min_size=n, max_size=n)), dtype=object)
+            return pd.Series(draw(st.lists(st.sampled_from(["0.5", "x", "", "1e3", None]), min_size=n, max_size=n)),
+                             dtype=object)
         s = pd.Series(draw(st.lists(st.floats(0.01, 1.0), min_size=n, max_size=n)), dtype="float64")
         if draw(st.integers(0, 3)) == 0:
             s[draw(st.integers(0, n - 1))] = draw(FLOATS)
@@ -76,7 +78,8 @@ def column(draw, kind: str, n: int):
         return s
     if kind == "a":
         if choice == "other":
-            return pd.Series(draw(st.lists(st.sampled_from(["N", "E", "0", None]), min_size=n, max_size=n)), dtype=object)
+            return pd.Series(draw(st.lists(st.sampled_from(["N", "E", "0", None]), min_size=n, max_size=n)),
+                             dtype=object)
         s = pd.Series(draw(st.lists(st.integers(0, 2), min_size=n, max_size=n)), dtype="Int64")
         if draw(st.integers(0, 3)) == 0:
             s[draw(st.integers(0, n - 1))] = draw(st.sampled_from([-1, 3, 4]))
@@ -85,7 +88,8 @@ def column(draw, kind: str, n: int):
         return s
     # flags
     if choice == "other":
-        return pd.Series(draw(st.lists(st.one_of(st.integers(-1, 2), st.just(None)), min_size=n, max_size=n)), dtype="Float64")
+        return pd.Series(draw(st.lists(st.one_of(st.integers(-1, 2), st.just(None)), min_size=n, max_size=n)),
+                         dtype="Float64")
     s = pd.Series(draw(st.lists(st.booleans(), min_size=n, max_size=n)), dtype="boolean")
     if choice == "null":
         s[draw(st.integers(0, n - 1))] = pd.NA
@@ -136,13 +140,16 @@ def test_fuzz_tables(tmp_path, df, fmt, on_error, kind, use_time):
     assert len(back) + (q.num_rows if q is not None else 0) + res.dropped_last_rows == len(df)
 
 
-KEYS = {"kind": None, "format": None, "name": None, "on_error": None, "episode": ["id", "step", "step_base", "order", "time", "time_unit"],
+KEYS = {"kind": None, "format": None, "name": None, "on_error": None,
+        "episode": ["id", "step", "step_base", "order", "time", "time_unit"],
         "observations": ["columns", "next_columns", "names", "units"],
-        "action": ["column", "type", "values", "names", "edges", "n_bins", "bin_value", "dim", "unit", "vectors", "dims"],
+        "action": ["column", "type", "values", "names", "edges", "n_bins", "bin_value", "dim", "unit", "vectors",
+                   "dims"],
         "cost": ["column", "reward"], "end": ["terminated", "truncated"], "source": ["column", "value"],
         "propensity": ["column"], "hints": ["gamma", "horizon"], "csv": ["delimiter"], "bogus": ["x"]}
 VALUES = st.one_of(st.none(), st.booleans(), st.integers(-(2**64), 2**64), FLOATS, st.text(max_size=4),
-                   st.sampled_from(["transitions", "steps", "csv", "quarantine", "continuous", "mean", "s", ";", ";;", "x", "nx"]),
+                   st.sampled_from(["transitions", "steps", "csv", "quarantine", "continuous", "mean", "s", ";", ";;",
+                                    "x", "nx"]),
                    st.lists(st.one_of(st.integers(-2, 2), FLOATS, st.text(max_size=2)), max_size=4),
                    st.dictionaries(st.text(max_size=3), st.text(max_size=3), max_size=2))
 
@@ -161,7 +168,8 @@ def test_fuzz_spec_mappings(edits):
             else:
                 spec[top] = value
             continue
-        table = spec.setdefault(top, {}) if isinstance(spec.get(top, {}), dict) else spec.__setitem__(top, {}) or spec[top]
+        table = spec.setdefault(top, {}) if isinstance(spec.get(top, {}),
+                                                       dict) else spec.__setitem__(top, {}) or spec[top]
         key = sub[i % len(sub)]
         if delete:
             table.pop(key, None)
@@ -173,7 +181,8 @@ def test_fuzz_spec_mappings(edits):
         assert str(exc).startswith("fuzz.toml")
 
 
-SPEC_TEXT = b'kind = "steps"\n[episode]\nid = "ep"\nstep = "k"\n[observations]\ncolumns = ["x"]\n[action]\ncolumn = "a"\n[cost]\ncolumn = "c"\n[csv]\ndelimiter = ","\n'
+SPEC_TEXT = (b'kind = "steps"\n[episode]\nid = "ep"\nstep = "k"\n[observations]\ncolumns = ["x"]\n'
+             b'[action]\ncolumn = "a"\n[cost]\ncolumn = "c"\n[csv]\ndelimiter = ","\n')
 
 
 @SETTINGS
@@ -202,7 +211,8 @@ def dataset_dir(tmp_path_factory):
 
 
 @SETTINGS
-@given(pick=st.integers(0, 10**6), value=st.sampled_from([None, -1, 0, 1, "x", [], {}, True, 1e308, [["a"]], {"name": 3}]),
+@given(pick=st.integers(0, 10**6), value=st.sampled_from([None, -1, 0, 1, "x", [], {}, True, 1e308, [["a"]],
+                                                          {"name": 3}]),
        delete=st.booleans(), part_op=st.sampled_from(["none", "none", "drop", "text", "null"]), col=st.integers(0, 100))
 def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, part_op, col):
     """A damaged or hand-edited dataset directory (info.json entries, a part's column
@@ -242,7 +252,8 @@ def test_fuzz_dataset_directories(tmp_path, dataset_dir, pick, value, delete, pa
 def test_spec_delimiters_that_are_accepted_work(tmp_path, delimiter):
     df = pd.DataFrame({"ep": ["a", "a"], "k": [0, 1], "x": [0.0, 1.0], "nx": [1.0, 2.0], "a": [0, 1], "c": [1.0, 2.0]})
     df.to_csv(tmp_path / "t.csv", sep=delimiter, index=False)
-    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["nx"]},
+    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"},
+                               "observations": {"columns": ["x"], "next_columns": ["nx"]},
                                "action": {"column": "a"}, "cost": {"column": "c"}, "csv": {"delimiter": delimiter}})
     ds = ingest_parquet([tmp_path / "t.csv"], spec, tmp_path / "ds").dataset
     np.testing.assert_array_equal(ds.arrays().cost, [1.0, 2.0])

@@ -50,7 +50,8 @@ def cartpole_run(tmp_path_factory):
     df.to_parquet(tmp / "cartpole.parquet")
     (tmp / "spec.toml").write_text(SPEC)
     ds, run = tmp / "ds", tmp / "run"
-    assert main(["ingest", "parquet", str(tmp / "cartpole.parquet"), "--spec", str(tmp / "spec.toml"), "--out", str(ds), "-q"]) == 0
+    assert main(["ingest", "parquet", str(tmp / "cartpole.parquet"), "--spec", str(tmp / "spec.toml"), "--out", str(ds),
+                 "-q"]) == 0
     save_policy(_balancing_policy(), run / "model")
     (run / "run.json").write_text(json.dumps({"dataset": str(ds), "algorithm": "hand-written"}))
     logged = int(log["step"].max()) + 1
@@ -71,7 +72,10 @@ def test_gym_evaluation_reports_the_500_step_value(cartpole_run, capsys):
     assert p["mean_discounted_cost"] == pytest.approx(-(1 - g**500) / (1 - g), rel=1e-9)
     est = m["estimand"]
     assert est["horizon"] == 500 and est["logged_horizon"] == logged
-    assert "over 500 steps from env.reset() of gym:CartPole-v1" in est["quantity"] and "data's start" not in est["quantity"]
+    assert (
+        "over 500 steps from env.reset() of gym:CartPole-v1" in est["quantity"]
+        and "data's start" not in est["quantity"]
+    )
     assert r["estimand"] == est["quantity"] and est["quantity"] in out
     # the trajectory estimators see only the logged steps: not comparable, and they say so
     for name in ("is", "wis", "pdis", "dr", "mis"):

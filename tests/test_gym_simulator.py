@@ -53,7 +53,8 @@ def test_steps_match_a_plain_gymnasium_loop_with_the_same_seeds():
 
 
 def test_widths_and_actions_are_checked():
-    three = DatasetInfo(features=(Feature("a"), Feature("b"), Feature("c")), action_table=ActionTable.from_values([0.0, 1.0]))
+    three = DatasetInfo(features=(Feature("a"), Feature("b"), Feature("c")),
+                        action_table=ActionTable.from_values([0.0, 1.0]))
     with pytest.raises(OfflineADPError, match="4 entries, the dataset has 3 features"):
         resolve_simulator("gym:CartPole-v1", three)
     bad = DatasetInfo(features=CARTPOLE.features, action_table=ActionTable.from_values([-1.0, 1.0]))
@@ -96,9 +97,12 @@ def test_evaluate_a_cartpole_run_in_gymnasium(tmp_path, capsys):
     df = _log_table(log, names, ("run", "tick", "push", "r", "fell", "time_up"))
     df.to_parquet(tmp_path / "cartpole.parquet")
     (tmp_path / "spec.toml").write_text(SPEC)
-    (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 8\nmode = "frozen"\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
+    (tmp_path
+     / "fqi.toml").write_text('[fqi]\nn_iterations = 8\nmode = "frozen"\n[fqi.regressor_params]\nn_estimators = '
+                              '10\nn_jobs = 1\n')
     ds, run = tmp_path / "ds", tmp_path / "run"
-    assert main(["ingest", "parquet", str(tmp_path / "cartpole.parquet"), "--spec", str(tmp_path / "spec.toml"), "--out", str(ds), "-q"]) == 0
+    assert main(["ingest", "parquet", str(tmp_path / "cartpole.parquet"), "--spec", str(tmp_path / "spec.toml"),
+                 "--out", str(ds), "-q"]) == 0
     assert main(["fit", str(ds), "--config", str(tmp_path / "fqi.toml"), "--out", str(run), "-q"]) == 0
     assert "verdict: " in capsys.readouterr().out
     assert main(["evaluate", str(run), "--simulator", "gym:CartPole-v1", "--episodes", "16", "--bootstrap", "5",
@@ -114,7 +118,8 @@ def test_evaluate_a_cartpole_run_in_gymnasium(tmp_path, capsys):
     L = p["mean_length"]
     # Jensen: the cost is a convex function of L, so its mean is at least the cost at the mean length
     assert -(1 - 0.99**L) / (1 - 0.99) - 1e-9 <= p["mean_discounted_cost"] <= -1.0
-    assert main(["evaluate", str(run), "--simulator", "gym:MountainCar-v0", "--episodes", "4", "-q"]) == 2  # 2 != 4 features
+    # 2 != 4 features
+    assert main(["evaluate", str(run), "--simulator", "gym:MountainCar-v0", "--episodes", "4", "-q"]) == 2
     assert "4 features" in capsys.readouterr().err
 
 
@@ -146,7 +151,8 @@ def test_box_action_tables_are_checked():
     wide = DatasetInfo(features=PENDULUM.features, action_table=ActionTable.from_values([-3.0, 0.0, 2.0]))
     with pytest.raises(OfflineADPError, match=r"action\(s\) \[0\] with values \[\[-3.0\]\] are outside the action box"):
         resolve_simulator("gym:Pendulum-v1", wide)
-    two = DatasetInfo(features=PENDULUM.features, action_table=ActionTable.from_values([[0.0, 1.0], [1.0, 0.0]], dims=("u", "w")))
+    two = DatasetInfo(features=PENDULUM.features,
+                      action_table=ActionTable.from_values([[0.0, 1.0], [1.0, 0.0]], dims=("u", "w")))
     with pytest.raises(OfflineADPError, match="vectors of 1 numbers.*shape \\(2, 2\\)"):
         resolve_simulator("gym:Pendulum-v1", two)
     with pytest.raises(OfflineADPError, match="unbounded"):
@@ -191,7 +197,8 @@ def _echo(values, space, dims=("a",)):
 def test_echo_environment_receives_the_table_values():
     """Discrete with a nonzero start, a two-entry box, a value within the slack (clipped)."""
     cases = [([[1.0], [3.0]], gymnasium.spaces.Discrete(3, start=1), ("a",), [[1.0, 1.0], [3.0, 3.0]]),
-             ([[0.5, -1.0], [2.0 + 1e-7, 0.25]], gymnasium.spaces.Box(-1.0, 2.0, (2,)), ("u", "w"), [[0.5, -1.0], [2.0, 0.25]])]
+             ([[0.5, -1.0], [2.0 + 1e-7, 0.25]], gymnasium.spaces.Box(-1.0, 2.0, (2,)), ("u", "w"),
+              [[0.5, -1.0], [2.0, 0.25]])]
     for values, space, dims, sent in cases:
         model = _echo(values, space, dims)
         for rep in range(2):  # the second pass sees the table unchanged by the environment's scribbling
@@ -219,7 +226,8 @@ def test_box_bounds_are_checked_side_by_side():
 def test_random_logs_draw_within_the_action_space():
     log = record_random_log("offline_adp_test/Echo-v0", 200, seed=0)
     assert set(np.unique(log["action"])) == {1, 2, 3}
-    log = record_random_log("offline_adp_test/Echo-v0", 300, seed=0, action_space=gymnasium.spaces.Box(0, 2, (1,), np.int64))
+    log = record_random_log("offline_adp_test/Echo-v0", 300, seed=0,
+                            action_space=gymnasium.spaces.Box(0, 2, (1,), np.int64))
     assert set(np.unique(log["action"])) == {0, 1, 2}
     log = record_random_log("offline_adp_test/Echo-v0", 50, seed=0, action_space=gymnasium.spaces.Box(-1.0, 1.0, (2,)))
     assert log["action"].shape == (len(log["step"]), 2) and np.abs(log["action"]).max() <= 1.0
@@ -259,9 +267,11 @@ def test_evaluate_a_pendulum_run_with_binned_torques_in_gymnasium(tmp_path, caps
     df = _log_table(log, names, ("ep", "t", "torque", "r", "term", "trunc"))
     df.to_csv(tmp_path / "pendulum.csv", index=False)
     (tmp_path / "spec.toml").write_text(PENDULUM_SPEC)
-    (tmp_path / "fqi.toml").write_text('[fqi]\nn_iterations = 5\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
+    (tmp_path
+     / "fqi.toml").write_text('[fqi]\nn_iterations = 5\n[fqi.regressor_params]\nn_estimators = 10\nn_jobs = 1\n')
     ds, run = tmp_path / "ds", tmp_path / "run"
-    assert main(["ingest", "parquet", str(tmp_path / "pendulum.csv"), "--spec", str(tmp_path / "spec.toml"), "--out", str(ds), "-q"]) == 0
+    assert main(["ingest", "parquet", str(tmp_path / "pendulum.csv"), "--spec", str(tmp_path / "spec.toml"), "--out",
+                 str(ds), "-q"]) == 0
     assert main(["fit", str(ds), "--config", str(tmp_path / "fqi.toml"), "--out", str(run), "-q"]) == 0
     assert main(["evaluate", str(run), "--simulator", "gym:Pendulum-v1", "--episodes", "6", "--bootstrap", "5",
                  "--fqe-bootstrap", "0", "-q"]) == 0
@@ -270,7 +280,8 @@ def test_evaluate_a_pendulum_run_with_binned_torques_in_gymnasium(tmp_path, caps
     r = m["rollout"]
     p = r["policy"]
     assert m["simulator"] == "gym:Pendulum-v1" and p["n_episodes"] == 6
-    # Pendulum never terminates: every episode runs the horizon; each step's cost is in [0, pi^2 + 0.1 * 8^2 + 0.001 * 2^2]
+    # Pendulum never terminates: every episode runs the horizon; each step's cost is in [0, pi^2 + 0.1 * 8^2 + 0.001 *
+    # 2^2]
     assert p["mean_length"] == r["horizon"]
     worst = (np.pi**2 + 0.1 * 64 + 0.001 * 4) * (1 - 0.95 ** r["horizon"]) / (1 - 0.95)
     assert 0.0 < p["mean_discounted_cost"] < worst

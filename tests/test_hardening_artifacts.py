@@ -46,14 +46,11 @@ def _edit_npz(src: Path, dst: Path, key: str, fn) -> Path:
 
 def _load_in_child(d: Path, width: int, timeout: float = 60) -> str:
     code = (
-        "import sys, numpy as np, warnings\n"
-        "warnings.simplefilter('ignore')\n"
+        "import sys, numpy as np, warnings\nwarnings.simplefilter('ignore')\n"
         "from offline_adp.artifacts import load_q\n"
         "from offline_adp.errors import ArtifactError\n"
-        "try:\n"
-        f"    q, _ = load_q({str(d)!r}); v = q.values(np.random.default_rng(0).normal(size=(64, {width})), 0)\n"
-        "    print('LOADED', v.shape)\n"
-        "except ArtifactError as e:\n"
+        f"try:\n    q, _ = load_q({str(d)!r}); v = q.values(np.random.default_rng(0).normal(size=(64, {width})), 0)\n"
+        "    print('LOADED', v.shape)\nexcept ArtifactError as e:\n"
         "    print('ArtifactError:', e)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -166,7 +163,8 @@ def test_lightgbm_text_checked_against_features(tmp_path, small_pt):
     save_fqi(f, tmp_path / "r")
     spec = json.loads((tmp_path / "r" / "q.json").read_text())
     text = spec["q"]["boosters"][0]
-    spec["q"]["boosters"][0] = text.replace("split_feature=", "split_feature=4000 ", 1).replace("split_feature=4000 ", "split_feature=", 0)
+    spec["q"]["boosters"][0] = text.replace("split_feature=", "split_feature=4000 ",
+                                            1).replace("split_feature=4000 ", "split_feature=", 0)
     lines = text.split("\n")
     i = next(i for i, x in enumerate(lines) if x.startswith("split_feature="))
     vals = lines[i].split("=")[1].split()
@@ -215,7 +213,8 @@ def test_evaluate_on_a_crafted_run_exits_2_with_one_line(tmp_path):
     rj.pop("model_sha256")  # the colleague rewrote run.json too: the structural check must hold on its own
     (tmp_path / "run" / "run.json").write_text(json.dumps(rj))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run([sys.executable, "-m", "offline_adp", "evaluate", str(tmp_path / "run"), "--episodes", "2", "-q"],
+    r = subprocess.run([sys.executable, "-m", "offline_adp", "evaluate", str(tmp_path / "run"), "--episodes", "2",
+                        "-q"],
                        capture_output=True, text=True, timeout=300, env=env)
     assert r.returncode == 2, (r.returncode, r.stderr[-500:])
     lines = [x for x in r.stderr.strip().splitlines() if x.strip()]

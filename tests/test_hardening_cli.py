@@ -52,7 +52,8 @@ def grid():
 
 def _with(ds: TransitionDataset, column: str, values: np.ndarray) -> TransitionDataset:
     t = ds.table
-    return TransitionDataset(t.set_column(t.schema.get_field_index(column), column, pa.array(values, t.schema.field(column).type)), ds.info)
+    return TransitionDataset(t.set_column(t.schema.get_field_index(column), column,
+                                          pa.array(values, t.schema.field(column).type)), ds.info)
 
 
 def test_fit_on_an_empty_dataset_exits_2(tmp_path, capsys, grid):

@@ -67,8 +67,10 @@ def test_two_concurrent_ingests_one_wins_and_its_output_is_intact(tmp_path, raw_
 
 def test_lock_is_reentrant_in_one_process_and_exclusive_across_processes(tmp_path):
     target = tmp_path / "x"
-    code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import LockedError\n"
-            f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError as e:\n    print('LOCKED', e)\n")
+    code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import "
+            "LockedError\n"
+            f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError as e:\n    "
+            "print('LOCKED', e)\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with locked_directory(target), locked_directory(target):  # re-entrant
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
@@ -114,7 +116,9 @@ def test_overwriting_a_symlinked_target_replaces_the_link_not_the_pointee(tmp_pa
     half = small_pt.select_episodes(small_pt.episode_ids[:2])
     half.save(tmp_path / "ds", overwrite=True)
     assert not (tmp_path / "ds").is_symlink() and len(read_dataset(tmp_path / "ds")) == len(half)
-    assert len(read_dataset(outside)) == len(small_pt) and sorted(p.name for p in (outside / "data").iterdir()) == before
+    assert (
+        len(read_dataset(outside)) == len(small_pt) and sorted(p.name for p in (outside / "data").iterdir()) == before
+    )
 
 
 def test_metadata_writes_do_not_follow_symlinks(tmp_path):

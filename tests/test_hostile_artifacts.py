@@ -54,7 +54,9 @@ def run(tmp_path_factory):
     r = _cli("simulate", "gridworld", "--out", str(base / "data"), "--demonstrations", "5", "--exploration", "10",
              "--horizon", "30", "-q")
     assert r.returncode == 0, r.stderr
-    (base / "fit.toml").write_text('[fqi]\nregressor = "extra_trees"\nn_iterations = 3\nregressor_params = {n_estimators = 5}\n')
+    (base
+     / "fit.toml").write_text('[fqi]\nregressor = "extra_trees"\nn_iterations = 3\nregressor_params = '
+                              '{n_estimators = 5}\n')
     r = _cli("fit", str(base / "data"), "--out", str(base / "run"), "--config", str(base / "fit.toml"), "-q")
     assert r.returncode == 0, r.stderr
     return base / "run"
@@ -255,7 +257,8 @@ def test_onnx_accepts_float32_with_the_same_actions(run, tmp_path):
     (inp,) = s32.get_inputs()
     assert inp.name == "observation" and inp.type == "tensor(float)" and inp.shape[1] == len(pi.signature.feature_names)
     got32 = dict(zip([o.name for o in s32.get_outputs()], s32.run(None, {"observation": X}), strict=True))
-    got64 = dict(zip([o.name for o in s64.get_outputs()], s64.run(None, {"observation": X.astype(np.float64)}), strict=True))
+    got64 = dict(zip([o.name for o in s64.get_outputs()], s64.run(None, {"observation": X.astype(np.float64)}),
+                     strict=True))
     q = pi.q.values(X.astype(np.float64))
     np.testing.assert_allclose(got32["q_values"], q, rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(got32["q_values"], got64["q_values"])
@@ -305,7 +308,8 @@ def test_finite_horizon_onnx_is_proportional_to_the_model(tmp_path):
     assert sum(n.op_type == "TreeEnsemble" for n in g.node) == 8
     code = ("import psutil, onnxruntime as ort, sys\np = psutil.Process(); b = p.memory_info().rss\n"
             "s = ort.InferenceSession(sys.argv[1], providers=['CPUExecutionProvider'])\nprint(p.memory_info().rss - b)")
-    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "p8.onnx")], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "p8.onnx")], capture_output=True, text=True,
+                       timeout=300)
     grown = int(r.stdout.split()[-1])
     print(f"onnxruntime load: +{grown / 1e6:.1f} MB for a {size[8] / 1e6:.2f} MB model")
     assert grown < 30 * size[8] + (64 << 20)

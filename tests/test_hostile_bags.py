@@ -113,7 +113,8 @@ def test_a_split_sqlite_bag_is_one_recording_by_glob_directory_or_part(tmp_path_
     with AnyReader([bag], default_typestore=_store()) as r:  # rosbags reads both parts: 2N messages
         assert sum(1 for _ in r.messages()) == 2 * N
     inputs = {"glob": [str(bag / "*.db3")], "directory": [bag], "part 0": [bag / "split_0.db3"],
-              "part 1": [bag / "split_1.db3"], "both parts and the directory": [bag / "split_1.db3", bag, bag / "split_0.db3"]}
+              "part 1": [bag / "split_1.db3"],
+              "both parts and the directory": [bag / "split_1.db3", bag, bag / "split_0.db3"]}
     for what, files in inputs.items():
         for on_error in ("fail", "quarantine"):
             ds, s = ingest_mcap(files, SPEC, on_error=on_error, jobs=2)
@@ -361,8 +362,12 @@ def _episodes_messages(store, n_eps=6, steps=15):
             if topic == "/state":
                 st_ = msg.header.stamp
                 ns = st_.sec * 10**9 + st_.nanosec + shift
-                msg = type(msg)(header=type(msg.header)(seq=msg.header.seq, stamp=type(st_)(sec=ns // 10**9, nanosec=ns % 10**9),
-                                                        frame_id="map"), point=type(msg.point)(x=float(e * 100) + msg.point.x, y=0.0, z=0.0))
+                msg = type(msg)(
+                    header=type(msg.header)(
+                        seq=msg.header.seq, stamp=type(st_)(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="map"
+                    ),
+                    point=type(msg.point)(x=float(e * 100) + msg.point.x, y=0.0, z=0.0),
+                )
             out.append((topic, typ, t + shift, msg))
     return out
 
@@ -388,7 +393,8 @@ def test_a_ros1_bag_cut_short_keeps_every_episode_that_ended_before_the_cut(tmp_
         cut = root / f"cut_{f}.bag"
         cut.write_bytes(data[:cut_at])
         with Reader(whole) as r:  # rosbags' index of the whole bag: the chunks wholly before the cut
-            done = [ci.end_time - 1 for ci in r.chunk_infos if r.chunks[ci.pos].datapos + r.chunks[ci.pos].datasize <= cut_at]
+            done = [ci.end_time - 1 for ci in r.chunk_infos if r.chunks[ci.pos].datapos + r.chunks[ci.pos].datasize
+                    <= cut_at]
             last_t = max(done, default=-1)  # every message up to this time is recovered, none after
             all_t = sorted(t for _, t, _ in r.messages())
         recovered = [t for t in all_t if t <= last_t]

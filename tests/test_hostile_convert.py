@@ -175,7 +175,8 @@ def test_plain_d4rl_without_infos_converts_and_passes_the_doctor(tmp_path, with_
         np.testing.assert_array_equal(x.truncated, a["timeouts"])
     else:
         inner = ~x.terminated
-        np.testing.assert_array_equal(x.next_obs[inner], np.vstack([a["observations"][1:], a["observations"][:1]])[keep][inner])
+        np.testing.assert_array_equal(x.next_obs[inner], np.vstack([a["observations"][1:],
+                                                                    a["observations"][:1]])[keep][inner])
         # every episode ends flagged: terminal, or truncated where its dropped last row was
         ep_end = np.r_[ds.episode_index[1:] != ds.episode_index[:-1], True]
         np.testing.assert_array_equal(x.terminated | x.truncated, ep_end)
@@ -426,15 +427,18 @@ def _break_float_terminations(root: Path) -> str:
     p = root / "data" / "0" / "part-0.arrow"
     t = ipc.open_file(p).read_all()
     n = t.num_rows
-    t = t.set_column(t.schema.get_field_index("terminations"), "terminations", pa.array(np.r_[0.0, 0.5, np.zeros(n - 3), np.nan]))
+    t = t.set_column(t.schema.get_field_index("terminations"), "terminations",
+                     pa.array(np.r_[0.0, 0.5, np.zeros(n - 3), np.nan]))
     with ipc.new_file(p, t.schema) as w:
         w.write_table(t)
     return "not a readable Minari dataset"
 
 
 BREAKS = {f.__name__[len("_break_"):]: f for f in (
-    _break_missing_metadata, _break_metadata_not_json, _break_metadata_not_object, _break_missing_episode, _break_missing_episode_dir,
-    _break_truncated_episode, _break_observation_shape, _break_action_space, _break_action_shape, _break_float_terminations)}
+    _break_missing_metadata, _break_metadata_not_json, _break_metadata_not_object, _break_missing_episode,
+    _break_missing_episode_dir,
+    _break_truncated_episode, _break_observation_shape, _break_action_space, _break_action_shape,
+    _break_float_terminations)}
 
 
 @pytest.mark.parametrize("kind", sorted(BREAKS))

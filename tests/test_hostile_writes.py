@@ -291,7 +291,8 @@ def test_two_concurrent_evaluations_one_wins(tmp_path, inputs):
     run = tmp_path / "run"
     shutil.copytree(inputs["run"], run)
     shutil.rmtree(run / "evaluation")
-    procs = [_cli("evaluate", run, "--episodes", "5", "--bootstrap", "5", "--fqe-bootstrap", "2", "--seed", str(s), "-q")
+    procs = [_cli("evaluate", run, "--episodes", "5", "--bootstrap", "5", "--fqe-bootstrap", "2", "--seed", str(s),
+                  "-q")
              for s in (1, 2)]
     results = [p.communicate(timeout=600) for p in procs]
     codes = sorted(p.returncode for p in procs)
@@ -310,8 +311,10 @@ def test_lock_files_are_removed_after_release_and_a_removed_file_is_not_shared(t
     lp = lock_path(target)
     with locked_directory(target):
         assert lp.exists()
-        code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import LockedError\n"
-                f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError:\n    print('LOCKED')\n")
+        code = ("import sys\nfrom offline_adp.data.files import locked_directory\nfrom offline_adp.errors import "
+                "LockedError\n"
+                f"try:\n    with locked_directory({str(target)!r}):\n        print('GOT')\nexcept LockedError:\n    "
+                "print('LOCKED')\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                            env={**os.environ, "PYTHONPATH": str(ROOT)})
         assert r.stdout.strip() == "LOCKED"
@@ -372,9 +375,11 @@ def test_compare_runs_with_different_action_tables(tmp_path, capsys, inputs):
     from offline_adp.simulate import simulate
 
     simulate("tabular", 2, 2, seed=1, horizon=8).save(tmp_path / "tab")
-    assert main(["fit", str(tmp_path / "tab"), "--config", str(inputs["cfg"]), "--out", str(tmp_path / "trun"), "-q"]) == 0
+    assert main(["fit", str(tmp_path / "tab"), "--config", str(inputs["cfg"]), "--out", str(tmp_path / "trun"),
+                 "-q"]) == 0
     capsys.readouterr()
-    code, _, err = _run(capsys, "compare", inputs["run"], tmp_path / "trun", "--dataset", inputs["ds"], "--episodes", "5",
+    code, _, err = _run(capsys, "compare", inputs["run"], tmp_path / "trun", "--dataset", inputs["ds"], "--episodes",
+                        "5",
                         "-q")
     line = _one_error_line(err)
     assert code == 2 and "trun" in line and "actions" in line

@@ -138,7 +138,8 @@ def test_undecodable_channels_unneeded_skipped_needed_named(tmp_path):
         sid = w.register_schema(name="x", encoding="jsonschema", data=b"{}")
         bad = w.register_schema(name="p", encoding="protobuf", data=b"\x00")
         weird = w.register_channel(topic="/weird", message_encoding="my-encoding", schema_id=bad)
-        chans = {t: w.register_channel(topic=t, message_encoding="json", schema_id=sid) for t in ("/clock", "/fast", "/cmd")}
+        chans = {t: w.register_channel(topic=t, message_encoding="json",
+                                       schema_id=sid) for t in ("/clock", "/fast", "/cmd")}
         for k in range(10):
             t = k * 100 * MS
             w.add_message(weird, log_time=t, publish_time=t, data=b"\x01\x02")
@@ -146,7 +147,8 @@ def test_undecodable_channels_unneeded_skipped_needed_named(tmp_path):
             for j in range(5):
                 w.add_message(chans["/fast"], log_time=t + j * 20 * MS, publish_time=t,
                               data=json.dumps({"pos": {"x": (t + j * 20 * MS) / 1e9}}).encode())
-            w.add_message(chans["/cmd"], log_time=t + 7 * MS, publish_time=t, data=json.dumps({"u": [0.5 * (k % 3)]}).encode())
+            w.add_message(chans["/cmd"], log_time=t + 7 * MS, publish_time=t,
+                          data=json.dumps({"u": [0.5 * (k % 3)]}).encode())
         w.finish()
     ds, s = ingest_mcap([mixed], _spec())
     assert len(ds) == 9 and s["messages_skipped"] == {"/weird": 10}
@@ -180,7 +182,8 @@ def test_real_rosbag2_recording():
         "clock": {"topic": "/odom", "time": "header.stamp"}, "episodes": {"gap": 2.0},
         "streams": [{"topic": "/odom", "time": "header.stamp", "max_age": 0.001,
                      "fields": {"x": "pose.pose.position.x", "y": "pose.pose.position.y", "v": "twist.twist.linear.x"}},
-                    {"topic": "/amcl_pose", "time": "header.stamp", "align": "previous", "max_age": 5.0, "missing": "drop_step",
+                    {"topic": "/amcl_pose", "time": "header.stamp", "align": "previous", "max_age": 5.0,
+                     "missing": "drop_step",
                      "fields": {"amcl_x": "pose.pose.position.x"}}],
         "action": {"topic": "/odom", "field": "twist.twist.angular.z", "time": "header.stamp", "max_age": 0.001,
                    "type": "continuous", "n_bins": 5},

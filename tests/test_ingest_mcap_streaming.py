@@ -53,7 +53,8 @@ def episode_messages(n_steps, t0=T0, ep=0, cmd_every=1, with_events=False, ep_id
                 msgs.append(("/cmd", t - 5 * MS, {"u": [float(k % 3)]}))
     msgs.sort(key=lambda m: m[1])
     if with_events:
-        msgs.append(("/event", t0 + (n_steps - 1) * 100 * MS + 2 * MS, {"event": "end", "id": ep_id, "terminated": terminated}))
+        msgs.append(("/event", t0 + (n_steps - 1) * 100 * MS + 2 * MS, {"event": "end", "id": ep_id,
+                                                                        "terminated": terminated}))
     return msgs
 
 
@@ -170,7 +171,8 @@ def test_continuous_commands_are_binned_with_their_bin_values(tmp_path):
     msgs = []
     for k in range(50):
         t = T0 + k * 100 * MS
-        msgs += [("/clock", t, {"k": k}), ("/fast", t, {"pos": {"x": k * 0.1}}), ("/cmd", t + 3 * MS, {"u": [float(u[k])]})]
+        msgs += [("/clock", t, {"k": k}), ("/fast", t, {"pos": {"x": k * 0.1}}),
+                 ("/cmd", t + 3 * MS, {"u": [float(u[k])]})]
     f = write_log(tmp_path / "cont.mcap", msgs)
     act = {"topic": "/cmd", "field": "u[0]", "align": "nearest", "max_age": 0.05, "type": "continuous",
            "edges": [-1.0, -0.5, 0.0, 0.5, 1.0]}
@@ -328,7 +330,8 @@ def test_a_rosbag2_bag_directory_is_one_recording_in_metadata_order(tmp_path):
         ingest_mcap([bag], spec(episodes=ev))
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
                                        "  relative_file_paths:\n    - x.db3\n")  # SQLite: read by rosbags, named
-    with pytest.raises(IngestError, match=r"rosbag2_2026_11_22/metadata.yaml: relative_file_paths\[0\] = 'x.db3'.*missing"):
+    with pytest.raises(IngestError,
+                       match=r"rosbag2_2026_11_22/metadata.yaml: relative_file_paths\[0\] = 'x.db3'.*missing"):
         ingest_mcap([bag], spec(episodes=ev))
     with pytest.raises(IngestError, match="no file matches"):
         ingest_mcap([str(tmp_path / "nothing*")], spec())

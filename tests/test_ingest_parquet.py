@@ -21,7 +21,8 @@ from offline_adp.simulate.raw import write_raw
 FIELDS = ("obs", "action", "cost", "next_obs", "terminated", "truncated", "step", "episode", "behavior_prob")
 
 
-@pytest.mark.parametrize("problem,fmt", [("path_tracking", "parquet"), ("gridworld", "parquet"), ("car_on_hill", "csv"), ("tabular", "parquet")])
+@pytest.mark.parametrize("problem,fmt", [("path_tracking", "parquet"), ("gridworld", "parquet"), ("car_on_hill", "csv"),
+                                         ("tabular", "parquet")])
 def test_round_trip_simulate_raw_ingest_is_exact(tmp_path, problem, fmt):
     ds = simulate(problem, 10, 10, seed=5, horizon=40)
     raw, spec = write_raw(ds, tmp_path / f"raw.{fmt}", fmt=fmt)
@@ -106,7 +107,8 @@ def test_quantile_bins_keep_values(tmp_path):
     df = pd.DataFrame({"ep": np.repeat(np.arange(20), 20).astype(str), "k": np.tile(np.arange(20), 20),
                        "x": rng.normal(size=n), "u": rng.uniform(-1, 1, n), "c": rng.random(n)})
     df.to_parquet(tmp_path / "t.parquet")
-    spec = parse_parquet_spec({"kind": "steps", "episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["x"]},
+    spec = parse_parquet_spec({"kind": "steps", "episode": {"id": "ep", "step": "k"},
+                               "observations": {"columns": ["x"], "next_columns": ["x"]},
                                "action": {"column": "u", "type": "continuous", "n_bins": 4}, "cost": {"column": "c"}})
     ds = ingest_parquet([tmp_path / "t.parquet"], spec, tmp_path / "ds").dataset
     counts = np.bincount(ds.arrays().action, minlength=4)
@@ -175,7 +177,8 @@ def test_discrete_labels_default_to_sorted_distinct(tmp_path):
     df = pd.DataFrame({"ep": ["a", "a", "b"], "k": [0, 1, 0], "x": [0.0, 1.0, 5.0], "nx": [1.0, 2.0, 6.0],
                        "a": ["right", "left", "right"], "c": [1.0, 1.0, 1.0]})
     df.to_csv(tmp_path / "t.csv", index=False)
-    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["nx"]},
+    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"},
+                               "observations": {"columns": ["x"], "next_columns": ["nx"]},
                                "action": {"column": "a"}, "cost": {"column": "c"}})
     ds = ingest_parquet([tmp_path / "t.csv"], spec, tmp_path / "ds").dataset
     assert ds.info.action_table.names == ["left", "right"]
@@ -216,8 +219,10 @@ def test_checked_in_json_schema_is_the_models():
         ({"csv": {"delimiter": ""}}, r"csv.delimiter"),
         ({"hints": {"gamma": 2.0}}, r"hints.gamma: Input should be less than or equal to 1"),
         ({"hints": {"horizon": "ten"}}, r"hints.horizon: Input should be a valid integer"),
-        ({"action": {"column": "a", "type": "discret"}}, r"action.type: expected one of 'discrete' or 'continuous', got 'discret'"),
-        ({"action": {"column": "a", "type": "continuous", "n_bins": 0}}, r"action.n_bins: Input should be greater than or equal to 1"),
+        ({"action": {"column": "a", "type": "discret"}},
+         r"action.type: expected one of 'discrete' or 'continuous', got 'discret'"),
+        ({"action": {"column": "a", "type": "continuous", "n_bins": 0}},
+         r"action.n_bins: Input should be greater than or equal to 1"),
         ({"action": {"column": "a", "type": "continuous", "edges": [1.0, 0.0]}}, r"action.edges"),
         ({"action": {"column": "a", "values": [1, 1]}}, r"action.values: entries must be unique"),
         ({"observations": {"columns": ["x", "x"], "next_columns": ["a", "b"]}}, r"observations.columns"),

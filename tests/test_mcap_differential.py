@@ -60,16 +60,19 @@ def logs(draw):
                         "lead": float(rng.uniform(-0.05, 0.05)),  # starts before (-) or after the clock
                         "align": str(rng.choice(["nearest", "previous", "linear"])),
                         "max_age": round(float(rng.choice([0.3, 0.6, 1.5, 5.0])) / hz, 4),
-                        "missing": str(rng.choice(["fill", "fill", "drop_step", "drop_step", "error"], p=[.3, .2, .2, .2, .1])),
+                        "missing": str(rng.choice(["fill", "fill", "drop_step", "drop_step", "error"],
+                                                  p=[.3, .2, .2, .2, .1])),
                         "role": "obs" if i == 0 else str(rng.choice(["obs", "aux"]))})
     ahz = float(rng.choice([5.0, 10.0, 20.0]))
     action = {"topic": "/cmd", "hz": ahz, "jitter": float(rng.uniform(0, 0.3)),
               "present": rng.random(n_epochs) < 0.85, "lead": float(rng.uniform(-0.05, 0.05)),
-              "align": str(rng.choice(["nearest", "previous"])), "max_age": round(float(rng.choice([0.6, 1.5, 5.0])) / ahz, 4),
+              "align": str(rng.choice(["nearest", "previous"])),
+              "max_age": round(float(rng.choice([0.6, 1.5, 5.0])) / ahz, 4),
               "missing": str(rng.choice(["drop_step", "fill", "error"], p=[.6, .3, .1]))}
     if draw(st.booleans()):
         action["present"][: rng.integers(0, n_epochs + 1)] = False
-    pauses = (rng.random(n_epochs) < 0.3) & (durations > 1.4)  # the clock pauses longer than gap: two episodes in one epoch
+    # the clock pauses longer than gap: two episodes in one epoch
+    pauses = (rng.random(n_epochs) < 0.3) & (durations > 1.4)
     no_clock = (rng.random(n_epochs) < 0.1) & (np.arange(n_epochs) > 0)  # a whole epoch without the clock
     msgs = []  # (write time, topic, t_ns, payload)
     g = 0.0  # write time of the previous epoch's last message
@@ -107,7 +110,8 @@ def logs(draw):
         "clock": {"rate_hz": clock_hz, "reorder_window": window} if use_rate else
                  {"topic": "/clock", "reorder_window": window},
         "episodes": {"restart": RESTART, "gap": 0.45},
-        "streams": [{"topic": s["topic"], "fields": {f"x{i}": "v", f"k{i}": "k"}, "align": s["align"], "max_age": s["max_age"],
+        "streams": [{"topic": s["topic"], "fields": {f"x{i}": "v", f"k{i}": "k"}, "align": s["align"],
+                     "max_age": s["max_age"],
                      "missing": s["missing"], "role": s["role"], **({"fill": -7.0} if s["missing"] == "fill" else {})}
                     for i, s in enumerate(streams)],
         "action": {"topic": "/cmd", "field": "v", "align": action["align"], "max_age": action["max_age"],

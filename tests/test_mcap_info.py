@@ -33,7 +33,8 @@ def _ros2_bag_with_service_events(path):
                                      b"service_msgs/ServiceEventInfo info\nint64 a\nint64 b\n---\nint64 sum\n")
         cid = mcap_w.register_channel("/add_two_ints/_service_event", "cdr", sid)
         for k in range(3):
-            mcap_w.add_message(cid, log_time=k * 300 * MS, data=b"\x00\x01\x00\x00" + bytes(24), publish_time=k * 300 * MS)
+            mcap_w.add_message(cid, log_time=k * 300 * MS, data=b"\x00\x01\x00\x00" + bytes(24),
+                               publish_time=k * 300 * MS)
         w.finish()
     return path
 

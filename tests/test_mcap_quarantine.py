@@ -62,7 +62,8 @@ def test_episodes_rejected_while_assembling_go_to_quarantine_with_their_reason(t
     f = write_log(tmp_path / "gap.mcap", msgs)
     from offline_adp.errors import IngestError
 
-    with pytest.raises(IngestError, match=r"gap.mcap: episode gap-00001, step 4 \(log_time 15400000000\): no /cmd command"):
+    with pytest.raises(IngestError,
+                       match=r"gap.mcap: episode gap-00001, step 4 \(log_time 15400000000\): no /cmd command"):
         ingest_mcap([f], _spec())
     ds, s = ingest_mcap([f], _spec(), tmp_path / "ds", on_error="quarantine")
     q = read_quarantine(tmp_path / "ds")

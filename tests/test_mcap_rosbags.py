@@ -28,7 +28,8 @@ def _messages(store, ros1=False):
         t = T0 + k * 100 * MS
         stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
         header = H(seq=k, stamp=stamp, frame_id="map") if ros1 else H(stamp=stamp, frame_id="map")
-        out.append(("/state", "geometry_msgs/msg/PointStamped", t, Point(header=header, point=P(x=float(k), y=0.0, z=0.0))))
+        out.append(("/state", "geometry_msgs/msg/PointStamped", t,
+                    Point(header=header, point=P(x=float(k), y=0.0, z=0.0))))
         out.append(("/cmd_vel", "geometry_msgs/msg/Twist", t + 3 * MS,
                     Twist(linear=V3(x=V[k % 3], y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=W[(k // 3) % 3]))))
     return out

@@ -131,7 +131,8 @@ def _alarm(*_):
 @settings(max_examples=N_FUZZ)
 @given(st.sampled_from(sorted(BASES)),
        st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),
-       st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from([0, 1, 2**31, 2**32 + 7, 2**63, 2**64 - 1])), max_size=2),
+       st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from([0, 1, 2**31, 2**32 + 7, 2**63, 2**64 - 1])),
+                max_size=2),
        st.none() | st.integers(0, 10**6))
 def test_mutated_files_give_a_clean_error_or_a_result(tmp_path_factory, base, edits, words, cut):
     data = _mutate(BASES[base], edits, words, cut)

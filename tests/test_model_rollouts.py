@@ -101,7 +101,8 @@ def test_a_drifting_policy_leaves_the_data_and_one_that_stays_does_not(logs, mod
     push = model_rollout_value(model, PUSH, T, GAMMA, vr, n=2000, seed=1)
     stay = model_rollout_value(model, STABILISE, T, GAMMA, vr, n=2000, seed=1)
     assert push["exit_share"] > stay["exit_share"] and push["exit_mass"] > stay["exit_mass"]
-    assert push["upper"] - push["lower"] > 5 * (stay["upper"] - stay["lower"])  # what leaves the data is not read as known
+    # what leaves the data is not read as known
+    assert push["upper"] - push["lower"] > 5 * (stay["upper"] - stay["lower"])
     assert stay["exit_mass"] < 0.01 and stay["upper"] - stay["lower"] < 0.05 * stay["estimate"]
 
 

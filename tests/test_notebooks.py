@@ -20,7 +20,9 @@ def test_notebook_runs(path, monkeypatch):
     assert "import offline_adp as oa" in code and "from offline_adp" not in code and "offline_adp." not in code
     monkeypatch.setenv("OFFLINE_ADP_SMALL", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}})
+    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                                     resources={"metadata": {"path": str(path.parent)}})
     client.execute()  # raises CellExecutionError naming the failing cell
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"]
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type")
+              == "error"]
     assert not errors

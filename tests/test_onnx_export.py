@@ -80,9 +80,11 @@ def test_fqi_extra_trees_agrees_on_every_reference_problem(datasets, problem):
 
 @pytest.mark.parametrize("problem,kw", [
     ("car_on_hill", {"regressor": "lightgbm", "regressor_params": {"n_estimators": 20, "n_jobs": 1}}),
-    ("path_tracking", {"regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "mode": "warm_start", "trees_per_iteration": 5}),
+    ("path_tracking", {"regressor": "lightgbm", "regressor_params": {"n_jobs": 1}, "mode": "warm_start",
+                       "trees_per_iteration": 5}),
     ("car_on_hill", {"regressor": "random_forest", "regressor_params": {"n_estimators": 10, "n_jobs": 1}}),
-    ("path_tracking", {"regressor": "extra_trees", "regressor_params": {"n_estimators": 10}, "action_encoding": "per_action",
+    ("path_tracking", {"regressor": "extra_trees", "regressor_params": {"n_estimators": 10},
+                       "action_encoding": "per_action",
                        "action_input": "onehot"}),
 ])
 def test_fqi_lightgbm_random_forest_and_per_action_agree(datasets, problem, kw):
@@ -106,7 +108,8 @@ def test_finite_horizon_fqi_is_time_indexed(datasets):
     out = _run(model, X, t)
     q = f.q_function_.values(X, t)
     np.testing.assert_allclose(out["q_values"], q, rtol=1e-12, atol=1e-12)
-    _check("FQI finite-horizon (time-indexed) gridworld", out["action_index"], f.policy_.act(X, t, return_index=True), q)
+    _check("FQI finite-horizon (time-indexed) gridworld", out["action_index"], f.policy_.act(X, t, return_index=True),
+           q)
     meta = {p.key: p.value for p in model.metadata_props}
     assert json.loads(meta["time_indexed"]) is True and json.loads(meta["n_steps"]) == T
 
@@ -168,13 +171,15 @@ def test_saved_run_exports_via_cli(tmp_path, datasets):
     X = _states(ds)
     for reg in ("extra_trees", "lightgbm"):
         run = tmp_path / f"run-{reg}"
-        fit_run(tmp_path / "data", run, params={"regressor": reg, "n_iterations": 3, "regressor_params": {"n_estimators": 10, "n_jobs": 1}})
+        fit_run(tmp_path / "data", run, params={"regressor": reg, "n_iterations": 3,
+                                                "regressor_params": {"n_estimators": 10, "n_jobs": 1}})
         assert main(["export", str(run), "--format", "onnx", "--out", str(tmp_path / f"{reg}.onnx")]) == 0
         pi = load_run_policy(run)
         import onnx
 
         out = _run(onnx.load(str(tmp_path / f"{reg}.onnx")), X)
-        _check(f"FQI {reg} car_on_hill (saved run, CLI)", out["action_index"], pi.act(X, return_index=True), pi.q.values(X))
+        _check(f"FQI {reg} car_on_hill (saved run, CLI)", out["action_index"], pi.act(X, return_index=True),
+               pi.q.values(X))
         # the action output is the action value of the chosen index (which _check compared
         # with the policy's, allowing exact ties of Q, where either action is the greedy one)
         np.testing.assert_array_equal(out["action"][:, 0], ds.info.action_table.values[out["action_index"]].ravel())
@@ -186,7 +191,8 @@ def test_saved_run_exports_via_cli(tmp_path, datasets):
 def test_stochastic_and_unsigned_policies_are_refused_clearly(datasets, tmp_path):
     ds = datasets["car_on_hill"]
     sig = PolicySignature.from_info(ds.info)
-    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3}, n_iterations=2, gamma=0.9).fit(ds)
+    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3}, n_iterations=2,
+                         gamma=0.9).fit(ds)
     mix = MixturePolicy([f.policy_, UniformPolicy(2)], [0.5, 0.5])
     with pytest.raises(ExportError, match="stochastic"):
         policy_to_onnx(mix, sig)

@@ -61,7 +61,9 @@ def test_coverage_suite_tiny(tmp_path):
     path.write_text(json.dumps(oc.json_safe(out)))
     assert oc.main(["--rows-from", str(path), "--json", str(again)]) == 0  # the CLI, re-summarising without a rerun
     data = json.loads(again.read_text())
-    assert [r["candidate"] for r in data["rows"]] == cands and data["summary"]["path_tracking"]["candidates"] == len(cands)
+    assert [r["candidate"] for r in data["rows"]] == cands and data["summary"]["path_tracking"]["candidates"] == len(
+        cands
+    )
 
 
 def test_continuous_problems_run_through_the_suite():

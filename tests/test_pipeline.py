@@ -15,14 +15,17 @@ ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = ROOT / "pipelines"
 #: Reduced sizes so every shipped pipeline runs in seconds.
 SMALL = {
-    "driving": {"fit.params.n_iterations": 10, "evaluate.episodes": 40, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 2,
+    "driving": {"fit.params.n_iterations": 10, "evaluate.episodes": 40, "evaluate.bootstrap": 20,
+                "evaluate.fqe_bootstrap": 2,
                 "evaluate.horizon": 20, "evaluate.fqe_params": {"n_iterations": 10}},
-    "car_on_hill": {"data.exploration": 60, "fit.params.n_iterations": 10, "evaluate.episodes": 30, "evaluate.bootstrap": 20,
+    "car_on_hill": {"data.exploration": 60, "fit.params.n_iterations": 10, "evaluate.episodes": 30,
+                    "evaluate.bootstrap": 20,
                     "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 30, "evaluate.fqe_params": {"n_iterations": 10}},
     "gridworld_divergence": {"fit.params.n_iterations": 30, "evaluate.episodes": 30,
                              "evaluate.bootstrap": 20, "evaluate.fqe_params": {"mode": "refit", "n_iterations": 5}},
     "psdp_driving": {"fit.params.horizon": 8, "fit.params.n_samples": 40, "fit.params.n_rollouts": 1,
-                     "evaluate.episodes": 30, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 8,
+                     "evaluate.episodes": 30, "evaluate.bootstrap": 20, "evaluate.fqe_bootstrap": 0,
+                     "evaluate.horizon": 8,
                      "evaluate.fqe_params": {"n_iterations": 10}},
 }
 
@@ -48,7 +51,8 @@ def test_every_shipped_pipeline_runs(name, tmp_path):
 
 #: The driving pipeline at plumbing size (one log, 100 episodes; a few trees, iterations and
 #: rollouts): what reuse is tested on (stages, not numbers).
-TINY = {"data.inputs": ["../data/driving/exploration.mcap"], "fit.params.n_iterations": 2, "fit.params.regressor_params": {"n_estimators": 3}, "evaluate.episodes": 4,
+TINY = {"data.inputs": ["../data/driving/exploration.mcap"], "fit.params.n_iterations": 2,
+        "fit.params.regressor_params": {"n_estimators": 3}, "evaluate.episodes": 4,
         "evaluate.bootstrap": 0, "evaluate.fqe_bootstrap": 0, "evaluate.horizon": 5,
         "evaluate.fqe_params": {"n_iterations": 2, "regressor_params": {"n_estimators": 3}}}
 

@@ -91,7 +91,8 @@ def test_signature_round_trips_through_json():
 def test_fitted_policies_carry_the_dataset_signature(small_pt):
     from offline_adp.algorithms.fqi import FittedQIteration
 
-    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1}, n_iterations=2).fit(small_pt)
+    f = FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 3, "n_jobs": 1},
+                         n_iterations=2).fit(small_pt)
     obs = small_pt.arrays().obs[:50]
     frame = pd.DataFrame(obs, columns=small_pt.feature_names)
     idx = f.policy_.act_index(obs)
@@ -103,7 +104,8 @@ def test_fit_verbose_logs_one_record_per_iteration(small_pt, caplog):
     from offline_adp.algorithms.fqi import FittedQIteration
 
     with caplog.at_level(logging.INFO, logger="offline_adp"):
-        FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1}, n_iterations=3).fit(
+        FittedQIteration(regressor="extra_trees", regressor_params={"n_estimators": 2, "n_jobs": 1},
+                         n_iterations=3).fit(
             small_pt, verbose=True)
     recs = [r for r in caplog.records if r.name == "offline_adp.algorithms.fqi"]
     assert [r.getMessage().split()[1] for r in recs] == ["1/3", "2/3", "3/3"]

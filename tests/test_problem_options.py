@@ -22,7 +22,9 @@ def _exact_value(problem: TabularMDP, policy, T: int) -> float:
     S = problem.P.shape[1]
     states = np.arange(S, dtype=np.float64)[:, None]
     table = np.stack([policy.probabilities(states, t) for t in range(T)])
-    return float(problem.initial_distribution @ dp.policy_evaluation_finite(problem.P, problem.C, table, T, problem.gamma).V[0])
+    return float(
+        problem.initial_distribution @ dp.policy_evaluation_finite(problem.P, problem.C, table, T, problem.gamma).V[0]
+    )
 
 
 def test_cli_evaluate_rolls_out_the_simulated_seed(tmp_path, capsys):

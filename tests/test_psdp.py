@@ -27,7 +27,8 @@ def _tables(m, policy):
 def test_psdp_with_exact_q_and_a_tabular_classifier_is_optimal(seed):
     m = TabularMDP(n_states=S, n_actions=A, horizon=T, seed=seed)
     # S * 30 draws with replacement from mu_t cover every state (a miss has probability < 1e-9)
-    p = PSDP(horizon=T, n_samples=S * 30, q_estimator="exact", classifier="tabular", random_state=seed).fit(m, _uniform_mu(m))
+    p = PSDP(horizon=T, n_samples=S * 30, q_estimator="exact", classifier="tabular",
+             random_state=seed).fit(m, _uniform_mu(m))
     opt = dp.value_iteration_finite(m.P, m.C, T)
     states = np.arange(float(S))[:, None]
     for t in range(T):
@@ -44,7 +45,8 @@ def test_psdp_rollout_estimates_approach_the_optimum():
     assert J_opt <= J <= J_opt + 0.05 * (J_unif - J_opt)
     assert p.simulator_steps_ > 0
     # regression variant too
-    r = PSDP(horizon=T, n_samples=S * 20, n_rollouts=20, learner="regression", regressor="tabular", random_state=0).fit(m, _uniform_mu(m))
+    r = PSDP(horizon=T, n_samples=S * 20, n_rollouts=20, learner="regression", regressor="tabular",
+             random_state=0).fit(m, _uniform_mu(m))
     Jr = m.initial_distribution @ dp.policy_evaluation_finite(m.P, m.C, _tables(m, r.policy_), T).V[0]
     assert Jr <= J_opt + 0.05 * (J_unif - J_opt)
 

@@ -67,7 +67,9 @@ def test_the_tour_runs_as_written(tmp_path):
     for i, (lang, code) in enumerate(tour_blocks()):
         cmd = ["bash", "-e", "-c", code] if lang == "sh" else [sys.executable, "-c", code]
         done = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, f"tour block {i} ({lang}) failed:\n{code}\n--- stdout\n{done.stdout}\n--- stderr\n{done.stderr}"
+        assert done.returncode == 0, (
+            f"tour block {i} ({lang}) failed:\n{code}\n--- stdout\n{done.stdout}\n--- stderr\n{done.stderr}"
+        )
         expected = [line[3:] for line in code.splitlines() if line.startswith("#| ")]
         if expected:
             assert done.stdout.splitlines() == expected, f"tour block {i} printed other lines than its #| comments"

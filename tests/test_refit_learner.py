@@ -81,6 +81,7 @@ def test_history_is_measured_on_the_training_pairs(small_pt):
 
 @pytest.mark.parametrize(("params", "jobs"), [({}, 1), ({"n_jobs": 2}, 2)])
 def test_registry_forests_predict_on_one_thread_unless_n_jobs_is_given(small_pt, params, jobs):
-    f = FittedQIteration(gamma=0.9, mode="refit", n_iterations=1, regressor_params={"n_estimators": 3, **params}).fit(small_pt)
+    f = FittedQIteration(gamma=0.9, mode="refit", n_iterations=1,
+                         regressor_params={"n_estimators": 3, **params}).fit(small_pt)
     assert f.q_function_.models[0].n_jobs == jobs
     assert make_regressor("extra_trees", **params).n_jobs == params.get("n_jobs", -1)  # fitting still uses all cores

@@ -67,7 +67,8 @@ def test_evaluate_and_report_with_simulator(pt_run, capsys):
 
 def test_evaluate_and_report_from_logs_only(pt_run, tmp_path):
     run = pt_run / "run"
-    assert main(["evaluate", str(run), "--simulator", "none", "--bootstrap", "10", "--fqe-bootstrap", "0", "--quiet"]) == 0
+    assert main(["evaluate", str(run), "--simulator", "none", "--bootstrap", "10", "--fqe-bootstrap", "0",
+                 "--quiet"]) == 0
     m = json.loads((run / "evaluation" / "metrics.json").read_text())
     assert "rollout" not in m and m["simulator"] is None
     assert set(m["shift"]) == {"recursion"}
@@ -100,7 +101,8 @@ def run30(tmp_path_factory):
 def test_logs_only_report_on_30_episodes_does_not_claim_no_shift(run30, capsys):
     """30 episodes give ~30 states per step: the per-step recursion shrinks to ratio 1 and would read ESS/n 1.0;
     the headline must say it cannot tell instead (and name what it quotes), and say why no simulator ran."""
-    assert main(["evaluate", str(run30), "--simulator", "none", "--bootstrap", "20", "--fqe-bootstrap", "0", "--quiet"]) == 0
+    assert main(["evaluate", str(run30), "--simulator", "none", "--bootstrap", "20", "--fqe-bootstrap", "0",
+                 "--quiet"]) == 0
     out = capsys.readouterr().out
     m = json.loads((run30 / "evaluation" / "metrics.json").read_text())
     sh = m["headline"]["shift"]

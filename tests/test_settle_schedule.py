@@ -23,7 +23,8 @@ TREES = {"n_estimators": 5, "n_jobs": 1}
 def tab():
     """A discounted random MDP of 12 states, 3 actions, no termination (the values only
     accumulate: plain iteration from 0 is slow at gamma 0.99)."""
-    return simulate("tabular", 10, 10, seed=0, horizon=30, problem_options={"horizon": None, "gamma": 0.95, "n_states": 12})
+    return simulate("tabular", 10, 10, seed=0, horizon=30,
+                    problem_options={"horizon": None, "gamma": 0.95, "n_states": 12})
 
 
 def test_geometric_builds_end_at_a_power_of_two_up_to_a_quarter_of_k_b():

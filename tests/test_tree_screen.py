@@ -113,7 +113,8 @@ def test_the_recorded_screen_is_the_brute_force_one(n_actions, weighted, builder
     ds = _walk(n_actions=n_actions)
     w = np.random.default_rng(1).uniform(0.2, 3.0, len(ds)) if weighted else None
     est = FittedQIteration(gamma=0.9, n_iterations=1, mode="frozen", regressor_params={"n_estimators": 8, "n_jobs": 1},
-                           screen_trees=3, screen_tol=1e9, random_state=5, tree_builder=builder).fit(ds, sample_weight=w)
+                           screen_trees=3, screen_tol=1e9, random_state=5,
+                           tree_builder=builder).fit(ds, sample_weight=w)
     row = est.history_.iloc[0]
     assert row["structure_trees"] == 3
     assert row["structure_screen"] == pytest.approx(_brute_screen(ds, est, 3, 8, 5, w, builder), rel=1e-9)
@@ -124,13 +125,15 @@ def test_growing_the_whole_forest_is_the_unscreened_fit_and_keeping_is_a_smaller
     obs = np.random.default_rng(3).normal(size=(40, 2)) * 0.3
     kw = dict(gamma=0.95, n_iterations=9, mode="frozen", n_structures=3, random_state=2)
     plain = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=None, **kw).fit(ds)
-    grown = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e-12, **kw).fit(ds)
+    grown = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e-12,
+                             **kw).fit(ds)
     np.testing.assert_array_equal(grown.predict(obs), plain.predict(obs))
     np.testing.assert_array_equal(grown.history_["sup_dq"], plain.history_["sup_dq"])
     assert set(grown.history_["structure_trees"]) == {8} and grown.history_["structure_screen"].notna().all()
     assert plain.history_["structure_screen"].isna().all()
 
-    kept = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e9, **kw).fit(ds)
+    kept = FittedQIteration(regressor_params={"n_estimators": 8, "n_jobs": 1}, screen_trees=3, screen_tol=1e9,
+                            **kw).fit(ds)
     small = FittedQIteration(regressor_params={"n_estimators": 3, "n_jobs": 1}, screen_trees=None, **kw).fit(ds)
     np.testing.assert_array_equal(kept.predict(obs), small.predict(obs))
     assert set(kept.history_["structure_trees"]) == {3}
@@ -195,7 +198,8 @@ def test_structure_builds_reads_histories_from_before_the_screen():
     assert [b["builder"] for b in structure_builds(h)] == [None, "scikit-learn", "compiled"]
 
 
-@pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": 1}, {"screen_trees": True}, {"screen_trees": "10"},
+@pytest.mark.parametrize("bad", [{"screen_trees": 0}, {"screen_trees": 1}, {"screen_trees": True},
+                                 {"screen_trees": "10"},
                                  {"screen_tol": -0.1}, {"screen_tol": float("nan")}, {"screen_tol": True}])
 def test_bad_screen_parameters_are_refused_before_fitting(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):

@@ -108,7 +108,8 @@ class ApproximatePolicyIteration(CheckedEstimator):
         "random_state": [SEED],
     }
 
-    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, initial_policy: Policy | None = None,
+    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10,
+                 initial_policy: Policy | None = None,
                  model: Any = None, episodes_per_iteration: int = 0, random_state: int = 0) -> None:
         self.fqe = fqe
         self.n_iterations = n_iterations
@@ -156,7 +157,8 @@ class ApproximatePolicyIteration(CheckedEstimator):
             if self.model is not None and self.episodes_per_iteration:
                 from offline_adp.rollout import collect
 
-                new = collect(self.model, improved, self.episodes_per_iteration, rng, source="policy", episode_prefix=f"api{k:03d}")
+                new = collect(self.model, improved, self.episodes_per_iteration, rng, source="policy",
+                              episode_prefix=f"api{k:03d}")
                 data = TransitionDataset.concat([data, new])
                 w = None if w is None else np.r_[w, np.ones(len(new))]
         self.history_ = pd.DataFrame(rows)

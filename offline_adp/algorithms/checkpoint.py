@@ -175,7 +175,8 @@ def _read_history(path: Path) -> pd.DataFrame:
     for c in FINITE_COLUMNS if len(hist) else ():
         bad = ~np.isfinite(hist[c].to_numpy(dtype=np.float64))
         if bad.any():
-            raise ArtifactError(f"{path}: column {c!r} must hold finite numbers, found {hist[c].iloc[int(bad.argmax())]!r} "
+            raise ArtifactError(f"{path}: column {c!r} must hold finite numbers, found "
+                                f"{hist[c].iloc[int(bad.argmax())]!r} "
                                 f"(row {int(bad.argmax()) + 1}); remove {path.parent} to start the fit again")
     if "structure" in hist.columns and len(hist):
         v = hist["structure"].dropna().to_numpy(dtype=np.float64)
@@ -185,5 +186,6 @@ def _read_history(path: Path) -> pd.DataFrame:
     it = hist["iteration"].to_numpy()
     if not np.array_equal(it, np.arange(1, len(hist) + 1)):
         raise ArtifactError(f"{path}: column 'iteration' must count 1, 2, ..., {len(hist)}; found "
-                            f"{it[:8].tolist()}{'...' if len(it) > 8 else ''}; remove {path.parent} to start the fit again")
+                            f"{it[:8].tolist()}{'...' if len(it) > 8 else ''}; remove {path.parent} to start "
+                            "the fit again")
     return hist

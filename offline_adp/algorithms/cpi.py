@@ -128,7 +128,8 @@ class ConservativePolicyIteration(CheckedEstimator):
     def _estimate(self, policy: Policy, data: TransitionDataset, w: np.ndarray | None) -> float:
         if self.model is not None:  # common random numbers: the same seed for every candidate
             rng = np.random.default_rng(self.random_state)
-            res = rollout(self.model, policy, self.n_eval_episodes, rng, horizon=self._proto().horizon or self.model.horizon)
+            res = rollout(self.model, policy, self.n_eval_episodes, rng,
+                          horizon=self._proto().horizon or self.model.horizon)
             self.simulator_steps_ += int(res.length.sum())
             return res.mean
         return clone(self._proto()).set_params(policy=policy).fit(data, sample_weight=w).value_
@@ -160,7 +161,8 @@ class ConservativePolicyIteration(CheckedEstimator):
             else:
                 alphas = sorted({0.0, *self.step_sizes})
             cands = [(alpha, pi.mix(greedy, alpha) if alpha > 0 else pi) for alpha in alphas]
-            scored = [(self._estimate(c, dataset, sample_weight) if alpha > 0 else value, alpha, c) for alpha, c in cands]
+            scored = [(self._estimate(c, dataset, sample_weight) if alpha > 0 else value, alpha,
+                       c) for alpha, c in cands]
             best_value, best_alpha, best = min(scored, key=lambda s: (s[0], s[1]))
             pi, value = best, best_value  # type: ignore[assignment]
             rows.append({"iteration": k, "alpha": best_alpha, "value": value, "n_components": len(pi.components),

@@ -124,13 +124,15 @@ commands, n_candidates, n_representatives
     """
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
-        **{k: v for k, v in FittedQIteration._parameter_constraints.items() if k not in ("screen_trees", "screen_tol", "early_build_trees")},
+        **{k: v for k, v in FittedQIteration._parameter_constraints.items()
+           if k not in ("screen_trees", "screen_tol", "early_build_trees")},
         "policy": [HasMethods(["probabilities"]), None],
     }
 
     def __init__(self, policy: Policy | None = None, horizon: int | None = None, gamma: float | None = None,
                  regressor: Any = "extra_trees", regressor_params: dict | None = None, action_encoding: str = "joint",
-                 action_input: str = "value", feature_map: Any = None, n_iterations: int | str = "auto", tol: float | None = None,
+                 action_input: str = "value", feature_map: Any = None, n_iterations: int | str = "auto",
+                 tol: float | None = None,
                  rtol: float = 0.01,
                  mode: str = "refit", trees_per_iteration: int = 10, infeasible_cost: float | None = None,
                  target_noise: float = 0.0, next_state_noise: float = 0.0, validation_fraction: float = 0.0,
@@ -141,7 +143,8 @@ commands, n_candidates, n_representatives
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
-                         n_iterations=n_iterations, tol=tol, rtol=rtol, mode=mode, trees_per_iteration=trees_per_iteration,
+                         n_iterations=n_iterations, tol=tol, rtol=rtol, mode=mode,
+                         trees_per_iteration=trees_per_iteration,
                          infeasible_cost=infeasible_cost, target_noise=target_noise, next_state_noise=next_state_noise,
                          validation_fraction=validation_fraction, on_divergence=on_divergence, patience=patience,
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
@@ -162,7 +165,8 @@ commands, n_candidates, n_representatives
         if continuous:
             check_command_policy(self, dataset)
         elif self.policy.n_actions != dataset.n_actions:
-            raise InvalidArgumentError(f"the policy has {self.policy.n_actions} actions, the dataset {dataset.n_actions}")
+            raise InvalidArgumentError(f"the policy has {self.policy.n_actions} actions, the dataset "
+                                       f"{dataset.n_actions}")
         yield from self.run_fitted_q(dataset, sample_weight, resume, self._backup, deferred=deferred)
         a = dataset.arrays()
         start = a.step == 0
@@ -208,7 +212,8 @@ commands, n_candidates, n_representatives
         """
         fit = self._check_conditional()
         d, learner = fit.data, fit.learner
-        v, sweeps = fixed_point(d, fit.backup, leaf_operator(learner), self._query_operators(), learner.leaf_values, tol,
+        v, sweeps = fixed_point(d, fit.backup, leaf_operator(learner), self._query_operators(), learner.leaf_values,
+                                tol,
                                 max_iterations)
         learner.leaf_values = v
         self.q_function_ = learner.snapshot()
@@ -267,7 +272,8 @@ commands, n_candidates, n_representatives
         if cached is None or cached[0] is not fit.learner:
             pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
             cached = (fit.learner, row_space(fit.learner, self._query_operators()["next"], pi), None, None)
-        if cached[1] is not None and cached[2] is not fit.learner.leaf_values:  # at the query entries (settle moves them)
+        # at the query entries (settle moves them)
+        if cached[1] is not None and cached[2] is not fit.learner.leaf_values:
             values = fit.learner.leaf_values
             cached = (*cached[:2], values, np.asarray(values, dtype=np.float64)[cached[1].q_leaf])
         self.__dict__["_row_space_cache"] = cached
@@ -314,7 +320,8 @@ commands, n_candidates, n_representatives
             raise NotFittedError("this FittedQEvaluation is not fitted in this process (fit it first)")
         if (not isinstance(fit.learner, FrozenTreesLearner) or self.horizon_ is not None or fit.data.valid is not None
                 or fit.data.gamma >= 1.0):
-            raise InvalidArgumentError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no validation split")
+            raise InvalidArgumentError("needs a discounted (gamma < 1) FQE fitted with mode='frozen' and no "
+                                       "validation split")
         return fit
 
     def _result_policy(self, q: QFunction) -> Any:

@@ -128,7 +128,8 @@ _DIST_CHUNK = 1 << 20
 
 
 def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any],
-                      min_tree_share: float = 1e-9, radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
+                      min_tree_share: float = 1e-9,
+                      radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
     """The *per-action read* of the fitted forest at the pairs the backup queries, and
     what it cannot read.
 

@@ -41,25 +41,26 @@ representatives everywhere), so the minimum cannot run to an arbitrary command b
 beyond the logged ones (the chapter's warning about the min over actions). ``R`` is there
 because the neighbours alone were measured to lose to bins on path_tracking (a neighbourhood
 of demonstrations offers only the demonstrator's commands; docs/continuous-commands.md);
-``n_representatives=0`` keeps the stricter, neighbourhood-only set. "Nearest" has no distance cap (at the data's edge the nearest logged
-states can be far). With a fixed ``C(x')`` per next state (no ``next_state_noise``) the
-backup is still a gamma-contraction for a fixed tree structure (an averager; the frozen
-mode's convergence statement holds unchanged).
+``n_representatives=0`` keeps the stricter, neighbourhood-only set. "Nearest" has no distance cap (at the data's edge
+the nearest logged states can be far). With a fixed ``C(x')`` per next state (no ``next_state_noise``) the backup is
+still a gamma-contraction for a fixed tree structure (an averager; the frozen mode's convergence statement holds
+unchanged).
 
 Fitted Q *evaluation* (Algorithms 12/13, :mod:`offline_adp.algorithms.fqe`) is the same
-loop, :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`, with another backup (the policy's expectation instead of the
-minimum, :mod:`offline_adp.algorithms.fqi_data`). ``terminated`` transitions (goal or
-failure) are nailed to their cost; ``truncated`` ones bootstrap from ``next_obs``. With
-``infeasible_cost = c^-`` every target is clamped to at most ``c^-`` and transitions
-costing ``>= c^-`` do not bootstrap. See :mod:`offline_adp.learn` for the three ways
-of doing LEARN (``mode``). Around the loop, not in it: the divergence monitor and verdict
+loop, :func:`~offline_adp.algorithms.fqi_loop.fitted_q_loop`, with another backup (the policy's expectation instead of
+the minimum, :mod:`offline_adp.algorithms.fqi_data`). ``terminated`` transitions (goal or failure) are nailed to their
+cost; ``truncated`` ones bootstrap from ``next_obs``. With ``infeasible_cost = c^-`` every target is clamped to at most
+``c^-`` and transitions costing ``>= c^-`` do not bootstrap. See :mod:`offline_adp.learn` for the three ways of doing
+LEARN (``mode``). Around the loop, not in it: the divergence monitor and verdict
 (:mod:`~offline_adp.algorithms.fqi_monitor`), the history, resume, and save/load.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from numbers import Integral, Real
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -131,7 +132,8 @@ class FittedQIteration(LearnModes, FittedQEstimator):
         ``gamma / (1 - gamma) * sup|Q_k - Q_{k-1}|`` over the data's pairs (how far the
         values can still be from the final structure's fixed point, at any input; see
         :mod:`~offline_adp.algorithms.fqi_monitor`) is at most ``tol`` if given, else
-        ``rtol * max|Q_k|`` (default 0.01: 1% of the values' scale). In the refit and warm-start modes no such bound holds: the fit stops when
+        ``rtol * max|Q_k|`` (default 0.01: 1% of the values' scale). In the refit and warm-start modes no such bound
+        holds: the fit stops when
         ``sup|Q_k - Q_{k-1}| < tol`` and otherwise runs all K (``rtol`` is not used).
     mode : {"auto", "refit", "frozen", "warm_start"}
         ``auto`` (default): ``frozen`` where it applies (a discounted fit, a bagged
@@ -457,33 +459,30 @@ def save_fqi(est: FittedQIteration, directory: Any, dataset_fingerprint: str | N
     the verdict), ``params.json`` (``get_params()``, estimators by name or repr),
     ``history.csv``.
     """
-    import json
-    from pathlib import Path
-
     from offline_adp.artifacts import save_q
 
     est._check_fitted()
     d = Path(directory)
-    params = {k: (v if isinstance(v, str | int | float | bool | type(None) | dict | list) else repr(v)) for k, v in est.get_params().items()}
-    save_q(est.q_function_, d, extra={"algorithm": "fqi", "dataset_fingerprint": dataset_fingerprint, "policy": "greedy (argmin_a Q)",
-                                      "verdict": getattr(est, "verdict_", None), "verdict_message": getattr(est, "verdict_message_", None),
-                                      "gamma": getattr(est, "gamma_", est.gamma), "horizon": getattr(est, "horizon_", est.horizon)})
+    plain = str | int | float | bool | type(None) | dict | list
+    params = {k: (v if isinstance(v, plain) else repr(v)) for k, v in est.get_params().items()}
+    meta = {"algorithm": "fqi", "dataset_fingerprint": dataset_fingerprint, "policy": "greedy (argmin_a Q)",
+            "verdict": getattr(est, "verdict_", None), "verdict_message": getattr(est, "verdict_message_", None),
+            "gamma": getattr(est, "gamma_", est.gamma), "horizon": getattr(est, "horizon_", est.horizon)}
+    save_q(est.q_function_, d, extra=meta)
     (d / "params.json").write_text(json.dumps(params, indent=1))
     est.history_.to_csv(d / "history.csv", index=False)
 
 
 def load_fqi(directory: Any) -> FittedQIteration:
     """Read what :func:`save_fqi` wrote; the result predicts and acts like the saved one."""
-    import json
-    from pathlib import Path
-
     from offline_adp.artifacts import load_q
 
     d = Path(directory)
     q, meta = load_q(d)
     raw = json.loads((d / "params.json").read_text())
     known = FittedQIteration().get_params()
-    est = FittedQIteration(**{k: v for k, v in raw.items() if k in known and not (isinstance(v, str) and v.startswith(("<", "Pipeline(", "OneHot")))})
+    est = FittedQIteration(**{k: v for k, v in raw.items() if k in known
+                              and not (isinstance(v, str) and v.startswith(("<", "Pipeline(", "OneHot")))})
     est.q_function_ = q
     est.q_functions_ = list(q.qs) if isinstance(q, TimeIndexedQ) else None
     est.horizon_ = len(q.qs) if isinstance(q, TimeIndexedQ) else None

@@ -109,19 +109,20 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         raise InvalidTypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
         raise InvalidArgumentError("the dataset is empty")
-    g = resolve_discount(ds.info, gamma, horizon).gamma  # callers pass the resolved values; this keeps prepare() usable alone
+    # callers pass the resolved values; this keeps prepare() usable alone
+    g = resolve_discount(ds.info, gamma, horizon).gamma
     a = ds.arrays()
     if horizon is None and not g < 1.0 and not a.terminated.any():
-        raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless episodes terminate "
-                         "(a shortest-path problem); give a horizon instead")
+        raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless "
+                                   "episodes terminate (a shortest-path problem); give a horizon instead")
     w_all = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
     if w_all is not None and w_all.shape != (len(ds),):
         raise InvalidArgumentError(f"sample_weight has shape {w_all.shape}, expected ({len(ds)},)")
     if w_all is not None and not (np.isfinite(w_all).all() and (w_all >= 0).all() and w_all.sum() > 0):
         bad = np.flatnonzero(~np.isfinite(w_all) | (w_all < 0))
         where = f"row {int(bad[0])}: {w_all[bad[0]]!r}" if len(bad) else "all rows 0"
-        raise InvalidArgumentError(f"sample_weight must be finite numbers >= 0, not all 0 (the Bellman backup averages with "
-                         f"them); {where}")
+        raise InvalidArgumentError("sample_weight must be finite numbers >= 0, not all 0 (the Bellman backup "
+                                   f"averages with them); {where}")
     tr = np.ones(len(ds), bool)
     if validation_fraction:
         rng = np.random.default_rng(random_state)
@@ -165,7 +166,8 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs)
     return Prepared(
         train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
-        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=enc.n_actions, encoder=enc, obs=_read_only(a.obs) if tr.all() else a.obs[tr],
+        weights=None if w_all is None else w_all[tr], gamma=g, n_actions=enc.n_actions, encoder=enc,
+        obs=_read_only(a.obs) if tr.all() else a.obs[tr],
         obs_std=a.obs.std(axis=0) + 1e-12,
         start_phi=phi_obs[start] if start.any() else phi_obs[tr][:1],
         start_obs=a.obs[start] if start.any() else a.obs[tr][:1],

@@ -49,7 +49,8 @@ class Noise:
 
     def next_obs(self, k: int, data: Prepared) -> np.ndarray:
         x = data.train.next_obs
-        return x + np.random.default_rng([self.random_state, k, 23]).normal(0.0, self.next_state, x.shape) * data.obs_std
+        return x + np.random.default_rng([self.random_state, k,
+                                          23]).normal(0.0, self.next_state, x.shape) * data.obs_std
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,7 +151,8 @@ class FittedQEstimator(CheckedEstimator):
 
     @history_.setter
     def history_(self, frame: pd.DataFrame) -> None:
-        self.__dict__["_history_rows"] = [{k: (None if is_missing(v) else v) for k, v in r.items()} for r in frame.to_dict("records")]
+        self.__dict__["_history_rows"] = [{k: (None if is_missing(v)
+                                               else v) for k, v in r.items()} for r in frame.to_dict("records")]
         self.__dict__["_history_frame"] = frame
 
     def _start_history(self, rows: list[dict[str, Any]]) -> None:
@@ -228,8 +230,13 @@ class FittedQEstimator(CheckedEstimator):
                     msg = monitor.check(rows)
                     if msg:
                         self.diverged_, self.divergence_message_ = True, msg
-                        action = "stopping (on_divergence='stop')" if self.on_divergence == "stop" else "continuing (on_divergence='warn')"
-                        warnings.warn(f"{type(self).__name__} is diverging: {msg}; {action}", DivergenceWarning, stacklevel=3)
+                        action = (
+                            "stopping (on_divergence='stop')"
+                            if self.on_divergence == "stop"
+                            else "continuing (on_divergence='warn')"
+                        )
+                        warnings.warn(f"{type(self).__name__} is diverging: {msg}; {action}", DivergenceWarning,
+                                      stacklevel=3)
                 self.__dict__["_waiting"] = (len(rows), learner)  # Q_k is at hand while the caller has row k
                 yield rows[-1]
                 self.__dict__["_waiting"] = None
@@ -340,7 +347,8 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
     changed = (it.q_next.argmin(axis=1) != it.q_next_old.argmin(axis=1))[boot]
     if data.valid is not None:
         v = data.valid
-        target = v.cost + data.gamma * np.where(v.no_boot, 0.0, backup(learner.predict("valid_next"), "valid_next", it.t))
+        target = v.cost + data.gamma * np.where(v.no_boot, 0.0, backup(learner.predict("valid_next"), "valid_next",
+                                                                       it.t))
         resid = float(np.sqrt(np.mean((learner.predict("valid") - target) ** 2)))
     else:  # on the training data, against Q_k's own targets
         resid = float(np.sqrt(np.mean((q_train - data.targets(backup(it.q_next, "next", it.t))) ** 2)))

@@ -181,7 +181,8 @@ class LearnModes:
     def _learner(self, data: Prepared) -> Learner:
         reg = make_regressor(self.regressor, **(self.regressor_params or {}))
         self.mode_ = self.resolved_mode(reg)
-        queries: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"next": (data.train.phi_next, None), "start": (data.start_phi, None)}
+        queries: dict[str, tuple[np.ndarray, np.ndarray | None]] = {"next": (data.train.phi_next, None),
+                                                                    "start": (data.start_phi, None)}
         if data.valid is not None:
             queries["valid"] = (data.valid.phi, data.valid.actions)
             queries["valid_next"] = (data.valid.phi_next, None)
@@ -191,8 +192,8 @@ class LearnModes:
             return FrozenTreesLearner(spec, self._frozen_schedule(data, reg))
         if self.mode_ == "warm_start":
             if not type(reg).__name__.startswith("LGBM"):
-                warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} is not used "
-                              "(LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
+                warnings.warn(f"mode='warm_start' boosts LightGBM trees; the regressor {type(reg).__name__} "
+                              "is not used (LightGBM with 63 leaves, learning rate 0.3)", UserWarning, stacklevel=4)
             return LightGBMWarmStartLearner(spec, trees_per_iteration=self.trees_per_iteration)
         return RefitLearner(spec, predict_jobs=predict_n_jobs(self.regressor, self.regressor_params))
 

@@ -166,15 +166,16 @@ def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence:
         why = ("stopped at n_iterations='auto''s cap; " if capped else "")
         need = f" > tolerance {tolerance:.3g}" if tolerance is not None else ""
         return "still changing", (f"{why}{after} the values are only known to be {where}{need}; "
-                                  f"sup|dQ| {tr} over the last {min(window, len(rows))} (more iterations would settle it)")
+                                  f"sup|dQ| {tr} over the last {min(window, len(rows))} (more iterations "
+                                  "would settle it)")
     rel = sd / max(last["max_abs_q"], 1e-300)
     if converged:
         return "converged", f"sup|dQ| = {sd:.3g} < tol = {tolerance:g} at iteration {k}"
     tr = trend([r["sup_dq"] for r in rows[-window:]])
     return "still changing", (f"after {k} iterations sup|dQ| = {sd:.3g} ({rel:.2%} of max|Q| = "
                               f"{last['max_abs_q']:.4g}), {tr} over the last {min(window, len(rows))} (no contraction "
-                              "bound here: the function class changes every iteration (refit, warm start), or gamma = 1, "
-                              "or target noise; set tol to stop on sup|dQ|)")
+                              "bound here: the function class changes every iteration (refit, warm start), "
+                              "or gamma = 1, or target noise; set tol to stop on sup|dQ|)")
 
 
 def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
@@ -188,8 +189,9 @@ def structure_builds(history: pd.DataFrame) -> list[dict[str, Any]]:
     built = history["structure"].diff().fillna(1).to_numpy() != 0
     cols = ["iteration", "structure_trees", "structure_screen", "structure_on_constant", "structure_builder"]
     rows = history.loc[built, [c for c in cols if c in history]].to_dict("records")
+    # None: a run from before
     return [{"iteration": int(r["iteration"]),
-             "trees": None if is_missing(r.get("structure_trees")) else int(r["structure_trees"]),  # None: a run from before
+             "trees": None if is_missing(r.get("structure_trees")) else int(r["structure_trees"]),
              "screen": None if is_missing(r.get("structure_screen")) else float(r["structure_screen"]),
              "constant": not is_missing(r.get("structure_on_constant")) and bool(r["structure_on_constant"]),
              "builder": r["structure_builder"] if isinstance(r.get("structure_builder"), str) else None} for r in rows]

@@ -67,7 +67,8 @@ class IteratedFQI(CheckedEstimator):
     }
 
     def __init__(self, fqi: FittedQIteration | None = None, n_rounds: int = 5, episodes_per_round: int = 50,
-                 epsilon: float = 0.1, n_eval_episodes: int = 200, horizon: int | None = None, random_state: int = 0) -> None:
+                 epsilon: float = 0.1, n_eval_episodes: int = 200, horizon: int | None = None,
+                 random_state: int = 0) -> None:
         self.fqi = fqi
         self.n_rounds = n_rounds
         self.episodes_per_round = episodes_per_round
@@ -96,7 +97,8 @@ class IteratedFQI(CheckedEstimator):
             fit_s = time.perf_counter() - t0
             res = rollout(model, fqi.policy_, self.n_eval_episodes, rng, horizon=H)  # V_r
             lo, hi = res.interval()
-            rows.append({"round": r, "n_transitions": len(data), "value": res.mean, "value_low": lo, "value_high": hi, "fit_seconds": fit_s})
+            rows.append({"round": r, "n_transitions": len(data), "value": res.mean, "value_low": lo, "value_high": hi,
+                         "fit_seconds": fit_s})
             if best is None or res.mean < best[0]:
                 best = (res.mean, fqi)
             if r < self.n_rounds:  # D_r = D_{r-1} + episodes of the eps-greedy pi_r

@@ -81,7 +81,8 @@ class CheckedEstimator(BaseEstimator):
 def check_learner(est: Any, name: str, params_name: str, make: Any, spec: Any, params: dict | None) -> None:
     """Build the learner ``make(spec, **params)`` (a regressor or classifier of
     :mod:`offline_adp.regressors`) and check its own parameters with its scikit-learn
-    ``_validate_params`` when it declares constraints (LightGBM's do not); a failure is an :class:`InvalidParameterError`
+    ``_validate_params`` when it declares constraints (LightGBM's do not); a failure is an
+    :class:`InvalidParameterError`
     naming ``params_name`` (an unknown key or a bad value in it)."""
     from offline_adp.errors import UnknownNameError
 

@@ -18,8 +18,8 @@ PSDP (Algorithm 14), horizon T::
     return (pi_0, ..., pi_{T-1})
 
 Guarantee (the chapter's Theorem 2): with eps_t = E_{s ~ mu_t}[Q_t(s, pi_t(s)) -
-min_a Q_t(s, a)] (estimated on held-out states from mu_t, ``history_["eps_hat"]``), for every reference policy, ``J(pi) <= J(pi_ref) + sum_t eps_t *
-||mu_ref_t / mu_t||_inf`` (:func:`psdp_bound`).
+min_a Q_t(s, a)] (estimated on held-out states from mu_t, ``history_["eps_hat"]``), for every reference policy,
+``J(pi) <= J(pi_ref) + sum_t eps_t * ||mu_ref_t / mu_t||_inf`` (:func:`psdp_bound`).
 
 Iterated PSDP (Algorithms 15, 16)::
 
@@ -133,7 +133,8 @@ class PSDP(CheckedEstimator):
         "random_state": [SEED],
     }
 
-    def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5, learner: str = "classification",
+    def __init__(self, horizon: int | None = None, n_samples: int = 500, n_rollouts: int = 5,
+                 learner: str = "classification",
                  classifier: Any = "extra_trees", regressor: Any = "extra_trees", learner_params: dict | None = None,
                  feature_map: Any = None, q_estimator: str = "rollout", gamma: float | None = None,
                  n_holdout: int | None = None, random_state: int = 0) -> None:
@@ -178,7 +179,8 @@ class PSDP(CheckedEstimator):
             t0 = time.perf_counter()
             S = mu(t, self.n_samples, rng)  # s_i ~ mu_t
             future = steps[t + 1 :]
-            Q = self._exact_q(model, S, t, future, gamma, T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
+            Q = self._exact_q(model, S, t, future, gamma,
+                              T) if self.q_estimator == "exact" else self._rollout_q(model, S, t, future, gamma, T)
             steps[t] = self._learn(S, Q, model.n_actions)  # pi_t
             chosen = steps[t].act_index(S, t, rng)  # type: ignore[union-attr]
             eps_train = float(np.mean(Q[np.arange(len(S)), chosen] - Q.min(axis=1)))
@@ -191,7 +193,8 @@ class PSDP(CheckedEstimator):
                     self._rollout_q(model, H, t, future, gamma, T, stream=1)
                 ch = steps[t].act_index(H, t, rng)  # type: ignore[union-attr]
                 eps_out = float(np.mean(QH[np.arange(len(H)), ch] - QH.min(axis=1)))
-            rows.append({"step": t, "eps_hat": eps_out, "eps_train": eps_train, "mean_q_min": float(Q.min(axis=1).mean()),
+            rows.append({"step": t, "eps_hat": eps_out, "eps_train": eps_train,
+                         "mean_q_min": float(Q.min(axis=1).mean()),
                          "seconds": time.perf_counter() - t0})
         self.policy_ = attach_signature(NonStationaryPolicy(steps), model)  # type: ignore[arg-type]
         self.history_ = pd.DataFrame(rows)
@@ -202,7 +205,8 @@ class PSDP(CheckedEstimator):
             per_t = [baseline.states_at(t) for t in range(T)]
             for t, x in enumerate(per_t):
                 if not len(x):
-                    raise InvalidArgumentError(f"the baseline dataset has no state at step {t}; shorten the horizon to the episodes' length")
+                    raise InvalidArgumentError(f"the baseline dataset has no state at step {t}; shorten the horizon to "
+                                               "the episodes' length")
             return lambda t, n, r: per_t[t][r.integers(0, len(per_t[t]), n)]
         if isinstance(baseline, Policy):  # mu_t = states of the baseline policy's rollouts
             per_t = state_samples(model, baseline, self.n_samples, T, rng)
@@ -262,7 +266,8 @@ class PSDP(CheckedEstimator):
 
     def _learn(self, S: np.ndarray, Q: np.ndarray, n_actions: int) -> Policy:
         if self.learner == "regression":
-            fmap = self.feature_map if (self.feature_map is None or hasattr(self.feature_map, "transform")) else _Map(self.feature_map)
+            fmap = self.feature_map if (self.feature_map is None
+                                        or hasattr(self.feature_map, "transform")) else _Map(self.feature_map)
             enc = QEncoder(n_actions, np.eye(n_actions), feature_map=fmap)
             reg = make_regressor(self.regressor, **(self.learner_params or {}))
             reg.fit(enc.all_pairs(enc.phi(S)), Q.T.reshape(-1))
@@ -323,7 +328,8 @@ class IteratedPSDP(CheckedEstimator):
         "random_state": [SEED],
     }
 
-    def __init__(self, psdp: PSDP | None = None, n_rounds: int = 5, n_eval_episodes: int = 500, exact_values: bool = False,
+    def __init__(self, psdp: PSDP | None = None, n_rounds: int = 5, n_eval_episodes: int = 500,
+                 exact_values: bool = False,
                  random_state: int = 0) -> None:
         self.psdp = psdp
         self.n_rounds = n_rounds
@@ -337,7 +343,8 @@ class IteratedPSDP(CheckedEstimator):
             states = np.arange(model.n_states, dtype=np.float64)[:, None]
             pi = np.stack([policy.probabilities(states, t) for t in range(T)])
             return float(model.initial_distribution @ dp.policy_evaluation_finite(model.P, model.C, pi, T, gamma).V[0])
-        return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T, gamma=gamma).mean
+        return rollout(model, policy, self.n_eval_episodes, np.random.default_rng(self.random_state), horizon=T,
+                       gamma=gamma).mean
 
     def fit(self, model: ResetModel, start_policy: Policy) -> IteratedPSDP:
         self.check_params()  # _parameter_constraints, then the combinations

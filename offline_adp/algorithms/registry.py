@@ -101,9 +101,11 @@ class AlgorithmEntry:
         for key, what in self.required.items():
             if (params or {}).get(key) is None:
                 where = f"{source}: " if source else ""
-                raise SpecError(f"{where}{self.name} needs {what}: {key} = {_EXAMPLES[key]} in [{section or self.name}]")
+                raise SpecError(f"{where}{self.name} needs {what}: {key} = {_EXAMPLES[key]} in "
+                                f"[{section or self.name}]")
 
-    def check_params(self, params: dict[str, Any] | None, source: str = "", section: str | None = None) -> dict[str, Any]:
+    def check_params(self, params: dict[str, Any] | None, source: str = "",
+                     section: str | None = None) -> dict[str, Any]:
         """Validate ``params`` (types, then the estimator's value checks); returns them
         with relative paths left as given and numbers as validated (a whole float for an
         integer field becomes that integer). Raises SpecError naming file and key."""

@@ -24,10 +24,8 @@ vectorised numpy before those libraries see it:
   leaf values or a value table and codes): the flags must be full binary trees in
   depth-first order at the roots (then the children they give are in range), one
   feature and threshold per split, one value per leaf, every code inside its table.
-- :func:`check_lightgbm_text` - LightGBM model text, parsed by us first (the same rules
-  per tree: array lengths against ``num_leaves``, children after parents and in range,
-  each node reached once, split features within ``max_feature_idx``, no categorical or
-  linear trees), then by LightGBM, then compared with the declared features.
+- :func:`~offline_adp.artifacts.lightgbm_text.check_lightgbm_text` (its own module) - LightGBM
+  model text, parsed by us first (the same rules per tree), then by LightGBM.
 
 Every failure is one :class:`~offline_adp.errors.ArtifactError` naming the file and
 the member (array key or model) at fault.
@@ -77,12 +75,14 @@ def plain_dtype(dtype: np.dtype) -> bool:
     if dtype.hasobject or dtype.subdtype is not None:
         return False
     if dtype.fields is not None:
-        return 0 < len(dtype.fields) <= 10_000 and all(f[0].fields is None and f[0].kind in "biuf" and f[0].subdtype is None
+        return 0 < len(dtype.fields) <= 10_000 and all(f[0].fields is None and f[0].kind in "biuf"
+                                                       and f[0].subdtype is None
                                                        for f in dtype.fields.values())
     return dtype.kind in ALLOWED_KINDS
 
 
-def _fail(where: str, member: str, message: str) -> ArtifactError:
+def fail(where: str, member: str, message: str) -> ArtifactError:
+    """The error naming the file (``where``) and the member (array key or model) at fault."""
     return ArtifactError(f"{where}: {member}: {message}")
 
 
@@ -122,19 +122,20 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
         for zi in infos:
             name = zi.filename
             if not name_pattern.match(name):
-                raise _fail(where, repr(name), "member name is not an artifact array key")
+                raise fail(where, repr(name), "member name is not an artifact array key")
             key = name[:-4]
             if key in out:
-                raise _fail(where, key, "member appears twice")
+                raise fail(where, key, "member appears twice")
             if zi.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED) or zi.flag_bits & 0x61:
-                raise _fail(where, key, f"unsupported zip member (compression {zi.compress_type}, flags {zi.flag_bits:#x})")
+                raise fail(where, key,
+                            f"unsupported zip member (compression {zi.compress_type}, flags {zi.flag_bits:#x})")
             if zi.compress_type == zipfile.ZIP_STORED and zi.file_size != zi.compress_size:
-                raise _fail(where, key, "stored member with inconsistent sizes")
+                raise fail(where, key, "stored member with inconsistent sizes")
             if zi.file_size > max_expansion * max(zi.compress_size, 1) + 4096:
-                raise _fail(where, key, f"declares {zi.file_size} bytes from {zi.compress_size} compressed bytes")
+                raise fail(where, key, f"declares {zi.file_size} bytes from {zi.compress_size} compressed bytes")
             total += zi.file_size
             if total > max_expansion * max(size, 1) + (1 << 20):
-                raise _fail(where, key, f"members declare {total} bytes in a {size}-byte file")
+                raise fail(where, key, f"members declare {total} bytes in a {size}-byte file")
             try:
                 with zf.open(zi) as f:
                     version = np.lib.format.read_magic(f)
@@ -146,14 +147,15 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
                         raise InvalidArgumentError(f"unknown .npy version {version}")
                     header_len = f.tell()
             except ZIP_ERRORS as exc:
-                raise _fail(where, key, f"unreadable array header ({exc})") from None
+                raise fail(where, key, f"unreadable array header ({exc})") from None
             if not plain_dtype(dtype):
-                raise _fail(where, key, f"dtype {dtype} is not allowed (bool, integer, float or string arrays only)")
+                raise fail(where, key, f"dtype {dtype} is not allowed (bool, integer, float or string arrays only)")
             if any((not isinstance(s, int)) or s < 0 for s in shape):
-                raise _fail(where, key, f"bad shape {shape}")
+                raise fail(where, key, f"bad shape {shape}")
             nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
             if nbytes + header_len > zi.file_size:
-                raise _fail(where, key, f"header declares {nbytes} bytes of data but the member stores {zi.file_size - header_len}")
+                raise fail(where, key,
+                            f"header declares {nbytes} bytes of data but the member stores {zi.file_size - header_len}")
             out[key] = (dtype, tuple(shape))
     return out
 
@@ -161,17 +163,17 @@ def check_npz(path: str | PathLike[str], *, max_expansion: int = MAX_EXPANSION,
 def array(arrays: Any, key: str, where: str, *, kinds: str, ndim: int | None = None) -> np.ndarray:
     """``arrays[key]`` as an ndarray, checking it exists and has a dtype kind in ``kinds``."""
     if not isinstance(key, str):
-        raise _fail(where, repr(key), "array reference is not a string")
+        raise fail(where, repr(key), "array reference is not a string")
     try:
         a = np.asarray(arrays[key])
     except KeyError:
-        raise _fail(where, key, "array missing from the .npz") from None
+        raise fail(where, key, "array missing from the .npz") from None
     except ZIP_ERRORS as exc:
-        raise _fail(where, key, f"unreadable array ({exc})") from None
+        raise fail(where, key, f"unreadable array ({exc})") from None
     if a.dtype.kind not in kinds or not plain_dtype(a.dtype):
-        raise _fail(where, key, f"dtype {a.dtype} where {'/'.join(_KIND_NAMES[k] for k in kinds)} is required")
+        raise fail(where, key, f"dtype {a.dtype} where {'/'.join(_KIND_NAMES[k] for k in kinds)} is required")
     if ndim is not None and a.ndim != ndim:
-        raise _fail(where, key, f"{a.ndim}-D array where {ndim}-D is required (shape {a.shape})")
+        raise fail(where, key, f"{a.ndim}-D array where {ndim}-D is required (shape {a.shape})")
     return a
 
 
@@ -183,31 +185,34 @@ def tree_structure(left: np.ndarray, right: np.ndarray, roots: np.ndarray, where
     """Children after parents, inside their tree, each non-root node reached once."""
     n = len(left)
     if len(roots) == 0:
-        raise _fail(where, member + "roots", "no trees")
+        raise fail(where, member + "roots", "no trees")
     if roots[0] != 0 or np.any(np.diff(roots) <= 0) or roots[-1] >= n:
-        raise _fail(where, member + "roots", "tree roots must start at 0 and increase strictly within the node arrays")
+        raise fail(where, member + "roots", "tree roots must start at 0 and increase strictly within the node arrays")
     tree_of = np.repeat(np.arange(len(roots)), np.diff(np.r_[roots, n]))
     end = np.r_[roots[1:], n][tree_of]  # one past each node's tree
     idx = np.arange(n)
     leaf_l, leaf_r = left < 0, right < 0
     if np.any(leaf_l != leaf_r):
         j = int(np.flatnonzero(leaf_l != leaf_r)[0])
-        raise _fail(where, member + "left", f"node {j} has exactly one child")
+        raise fail(where, member + "left", f"node {j} has exactly one child")
     if np.any(left[leaf_l] != -1) or np.any(right[leaf_r] != -1):
-        raise _fail(where, member + "left", "leaves must have child index -1")
+        raise fail(where, member + "left", "leaves must have child index -1")
     inner = ~leaf_l
     for name, ch in (("left", left), ("right", right)):
         bad = inner & ((ch <= idx) | (ch >= end))
         if bad.any():
             j = int(np.flatnonzero(bad)[0])
-            raise _fail(where, member + name, f"node {j}: child {int(ch[j])} outside ({j}, {int(end[j])}) (children follow their parent inside its tree)")
+            raise fail(where, member + name,
+                        f"node {j}: child {int(ch[j])} outside ({j}, {int(end[j])}) (children follow their parent "
+                        "inside its tree)")
     reached = np.bincount(np.r_[left[inner], right[inner]], minlength=n)
     is_root = np.zeros(n, bool)
     is_root[roots] = True
     bad = reached != np.where(is_root, 0, 1)
     if bad.any():
         j = int(np.flatnonzero(bad)[0])
-        raise _fail(where, member + "left", f"node {j} is reached {int(reached[j])} times (a tree reaches every node exactly once)")
+        raise fail(where, member + "left",
+                    f"node {j} is reached {int(reached[j])} times (a tree reaches every node exactly once)")
 
 
 def check_leaf_values(arrays: Any, prefix: str, where: str) -> np.ndarray:
@@ -218,14 +223,14 @@ def check_leaf_values(arrays: Any, prefix: str, where: str) -> np.ndarray:
         bad = ~np.isfinite(v)
         if bad.any():
             j = int(np.flatnonzero(bad)[0])
-            raise _fail(where, prefix + "value", f"leaf {j}: value {float(v[j])!r} is not finite")
+            raise fail(where, prefix + "value", f"leaf {j}: value {float(v[j])!r} is not finite")
         return v
     table = array(arrays, prefix + "value_table", where, kinds="f", ndim=1).astype(np.float64)
     code = array(arrays, prefix + "value_code", where, kinds="u", ndim=1)
     if not np.all(np.isfinite(table)):
-        raise _fail(where, prefix + "value_table", "a leaf value is not finite")
+        raise fail(where, prefix + "value_table", "a leaf value is not finite")
     if len(code) and int(code.max()) >= len(table):
-        raise _fail(where, prefix + "value_code", f"code {int(code.max())} outside the {len(table)}-entry value table")
+        raise fail(where, prefix + "value_code", f"code {int(code.max())} outside the {len(table)}-entry value table")
     return table[code]
 
 
@@ -258,7 +263,8 @@ def check_compact_tree_arrays(arrays: Any, prefix: str, where: str, n_features: 
     :func:`compact_tree_members`, into per-tree lookups without them)."""
     from offline_adp.trees.ensemble import expand_compact
 
-    is_leaf, roots, feature, threshold, values = compact_tree_members(arrays, prefix, where, n_features, structure_prefix)
+    is_leaf, roots, feature, threshold, values = compact_tree_members(arrays, prefix, where, n_features,
+                                                                      structure_prefix)
     sp = prefix if structure_prefix is None else structure_prefix
     out = expand_compact(is_leaf, roots, feature.astype(np.int64), threshold.astype(np.float64), values)
     tree_structure(out["left"], out["right"], out["roots"], where, sp)  # by construction; checked all the same
@@ -280,34 +286,35 @@ def compact_tree_members(arrays: Any, prefix: str, where: str, n_features: int |
     feature = array(arrays, sp + "feature", where, kinds="iu", ndim=1)
     threshold = array(arrays, sp + "threshold", where, kinds="f", ndim=1)
     if len(threshold) != len(feature):
-        raise _fail(where, sp + "threshold", f"{len(threshold)} thresholds for {len(feature)} split features")
+        raise fail(where, sp + "threshold", f"{len(threshold)} thresholds for {len(feature)} split features")
     values = check_leaf_values(arrays, prefix, where)
     n = len(feature) + len(values)
     if bits.dtype != np.uint8 or len(bits) != (n + 7) // 8:
-        raise _fail(where, sp + "leaf_bits", f"{len(bits)} {bits.dtype} entries where {n} nodes "
-                                              f"({len(feature)} splits, {len(values)} leaves) need {(n + 7) // 8} bytes")
+        raise fail(where, sp + "leaf_bits", f"{len(bits)} {bits.dtype} entries where {n} nodes "
+                                              f"({len(feature)} splits, {len(values)} leaves) need "
+                                              f"{(n + 7) // 8} bytes")
     if n == 0 or n >= MAX_NODES:
-        raise _fail(where, sp + "leaf_bits", f"{n} nodes")
+        raise fail(where, sp + "leaf_bits", f"{n} nodes")
     flags = np.unpackbits(bits)
     if flags[n:].any():
-        raise _fail(where, sp + "leaf_bits", "padding bits after the last node are set")
+        raise fail(where, sp + "leaf_bits", "padding bits after the last node are set")
     is_leaf = flags[:n].view(bool)  # 0/1 bytes: the flags as booleans, not copied
     if int(is_leaf.sum()) != len(values):
-        raise _fail(where, sp + "leaf_bits", f"{int(is_leaf.sum())} leaves flagged, {len(values)} leaf values stored")
+        raise fail(where, sp + "leaf_bits", f"{int(is_leaf.sum())} leaves flagged, {len(values)} leaf values stored")
     if len(roots) == 0 or len(roots) > n or roots[0] != 0 or np.any(np.diff(roots) <= 0) or roots[-1] >= n:
-        raise _fail(where, sp + "roots", "tree roots must start at 0 and increase strictly within the nodes")
+        raise fail(where, sp + "roots", "tree roots must start at 0 and increase strictly within the nodes")
     if not preorder_valid(is_leaf, roots):
-        raise _fail(where, sp + "leaf_bits", "the leaf flags are not binary trees in depth-first order at these roots")
+        raise fail(where, sp + "leaf_bits", "the leaf flags are not binary trees in depth-first order at these roots")
     if len(feature):
         top = int(feature.max())
         if feature.dtype.kind == "i" and int(feature.min()) < 0:
-            raise _fail(where, sp + "feature", f"negative split feature {int(feature.min())}")
+            raise fail(where, sp + "feature", f"negative split feature {int(feature.min())}")
         if n_features is not None and top >= n_features:
-            raise _fail(where, sp + "feature", f"split feature {top} outside the declared width {n_features}")
+            raise fail(where, sp + "feature", f"split feature {top} outside the declared width {n_features}")
         if top >= MAX_NODES:
-            raise _fail(where, sp + "feature", f"split feature {top} is implausibly large")
+            raise fail(where, sp + "feature", f"split feature {top} is implausibly large")
     if not np.all(np.isfinite(threshold)):
-        raise _fail(where, sp + "threshold", "non-finite split threshold")
+        raise fail(where, sp + "threshold", "non-finite split threshold")
     return is_leaf, roots, feature, threshold, values
 
 
@@ -342,151 +349,38 @@ def check_tree_arrays(arrays: Any, prefix: str, where: str, n_features: int | No
     n = len(a["left"])
     for k in ("right", "feature", "threshold", "value"):
         if len(a[k]) != n:
-            raise _fail(where, prefix + k, f"{len(a[k])} entries where the tree has {n} nodes")
+            raise fail(where, prefix + k, f"{len(a[k])} entries where the tree has {n} nodes")
     if n == 0 or n >= MAX_NODES:
-        raise _fail(where, prefix + "left", f"{n} nodes")
+        raise fail(where, prefix + "left", f"{n} nodes")
     out = {k: v.astype(np.int64) if v.dtype.kind in "iu" else v.astype(np.float64) for k, v in a.items()}
     if a["left"].dtype.kind == "u" or a["right"].dtype.kind == "u":
-        raise _fail(where, prefix + "left", "child indices must be signed (leaves are -1)")
+        raise fail(where, prefix + "left", "child indices must be signed (leaves are -1)")
     tree_structure(out["left"], out["right"], out["roots"], where, prefix)
     inner = out["left"] >= 0
     f = out["feature"][inner]
     if len(f) and f.min() < 0:
-        raise _fail(where, prefix + "feature", f"negative split feature {int(f.min())}")
+        raise fail(where, prefix + "feature", f"negative split feature {int(f.min())}")
     if n_features is not None and len(f) and f.max() >= n_features:
-        raise _fail(where, prefix + "feature", f"split feature {int(f.max())} outside the declared width {n_features}")
+        raise fail(where, prefix + "feature", f"split feature {int(f.max())} outside the declared width {n_features}")
     if len(f) and f.max() >= MAX_NODES:
-        raise _fail(where, prefix + "feature", f"split feature {int(f.max())} is implausibly large")
+        raise fail(where, prefix + "feature", f"split feature {int(f.max())} is implausibly large")
     if not np.all(np.isfinite(out["threshold"][inner])):
-        raise _fail(where, prefix + "threshold", "non-finite split threshold")
+        raise fail(where, prefix + "threshold", "non-finite split threshold")
     bad = ~np.isfinite(out["value"][~inner])
     if bad.any():
         j = int(np.flatnonzero(~inner)[np.flatnonzero(bad)[0]])
-        raise _fail(where, prefix + "value", f"node {j}: leaf value {float(out['value'][j])!r} is not finite")
+        raise fail(where, prefix + "value", f"node {j}: leaf value {float(out['value'][j])!r} is not finite")
     return out
 
 
 # ----------------------------------------------------------------------------- LightGBM
-_TREE_ARRAYS = ("split_feature", "threshold", "decision_type", "left_child", "right_child", "leaf_value")
-
-
-def _ints(text: str, where: str, member: str) -> np.ndarray:
-    try:
-        return np.array([int(x) for x in text.split()], dtype=np.int64)
-    except (ValueError, OverflowError):
-        raise _fail(where, member, f"not a list of integers: {text[:60]!r}") from None
-
-
-def _floats(text: str, where: str, member: str) -> np.ndarray:
-    try:
-        return np.array([float(x) for x in text.split()], dtype=np.float64)
-    except ValueError:
-        raise _fail(where, member, f"not a list of numbers: {text[:60]!r}") from None
-
-
-def check_lightgbm_text(model: Any, where: str, member: str = "lightgbm model", n_features: int | None = None) -> str:
-    """Check LightGBM model text before and after LightGBM parses it.
-
-    Returns the text to hand to LightGBM (our checked copy, without ``tree_sizes``, so
-    LightGBM parses the trees one after the other instead of trusting stored offsets).
-
-    Raises
-    ------
-    ArtifactError
-        Anything outside what a plain regression booster trained by us can contain.
-    """
-    if not isinstance(model, str):
-        raise _fail(where, member, f"model text expected, found {type(model).__name__}")
-    head, sep, _ = model.partition("\nTree=")
-    if not model.startswith("tree\n"):
-        raise _fail(where, member, "not LightGBM model text (no 'tree' header)")
-    header: dict[str, str] = {}
-    for line in head.splitlines()[1:]:
-        k, eq, v = line.partition("=")
-        if eq:
-            header[k.strip()] = v.strip()
-    try:
-        n_feat = int(header.get("max_feature_idx", "")) + 1
-        n_class = int(header.get("num_class", ""))
-        per_iter = int(header.get("num_tree_per_iteration", "1"))
-    except ValueError:
-        raise _fail(where, member, "header lacks integer max_feature_idx / num_class") from None
-    if not 1 <= n_feat <= len(model) or n_class != 1 or per_iter != 1:
-        raise _fail(where, member, f"max_feature_idx {n_feat - 1}, num_class {n_class}: a single-output regression booster is required")
-    if n_features is not None and n_feat != n_features:
-        raise _fail(where, member, f"model has {n_feat} features, the artifact declares {n_features}")
-    body, end_sep, tail = model.partition("\nend of trees")
-    if not end_sep:
-        raise _fail(where, member, "model text is truncated (no 'end of trees')")
-    blocks = body.split("\nTree=")[1:] if sep else []
-    for b in blocks:
-        lines = b.splitlines()
-        tname = f"{member} Tree={lines[0].strip() if lines else '?'}"
-        kv: dict[str, str] = {}
-        for line in lines[1:]:
-            k, eq, v = line.partition("=")
-            if eq:
-                kv[k.strip()] = v.strip()
-        try:
-            nl = int(kv.get("num_leaves", ""))
-            ncat = int(kv.get("num_cat", "0"))
-            linear = int(kv.get("is_linear", "0"))
-        except ValueError:
-            raise _fail(where, tname, "num_leaves / num_cat / is_linear are not integers") from None
-        if not 1 <= nl <= len(model):
-            raise _fail(where, tname, f"num_leaves {nl} out of range")
-        if ncat != 0 or linear != 0:
-            raise _fail(where, tname, "categorical or linear trees are not accepted in artifacts")
-        leaf_value = _floats(kv.get("leaf_value", ""), where, tname + " leaf_value")
-        if len(leaf_value) != nl or np.any(np.isnan(leaf_value)):
-            raise _fail(where, tname, f"leaf_value has {len(leaf_value)} entries for {nl} leaves, or NaN")
-        if nl == 1:
-            continue
-        ni = nl - 1
-        sf = _ints(kv.get("split_feature", ""), where, tname + " split_feature")
-        th = _floats(kv.get("threshold", ""), where, tname + " threshold")
-        dt = _ints(kv.get("decision_type", ""), where, tname + " decision_type")
-        lc = _ints(kv.get("left_child", ""), where, tname + " left_child")
-        rc = _ints(kv.get("right_child", ""), where, tname + " right_child")
-        for nm, arr in (("split_feature", sf), ("threshold", th), ("decision_type", dt), ("left_child", lc), ("right_child", rc)):
-            if len(arr) != ni:
-                raise _fail(where, f"{tname} {nm}", f"{len(arr)} entries for {ni} internal nodes")
-        if np.any((sf < 0) | (sf >= n_feat)):
-            raise _fail(where, f"{tname} split_feature", f"feature index outside [0, {n_feat})")
-        if not np.all(np.isfinite(th)):
-            raise _fail(where, f"{tname} threshold", "non-finite threshold")
-        if np.any((dt < 0) | (dt > 255) | (dt & 1)):
-            raise _fail(where, f"{tname} decision_type", "categorical or unknown decision type")
-        idx = np.arange(ni)
-        reached_inner = np.zeros(ni, np.int64)
-        reached_leaf = np.zeros(nl, np.int64)
-        for nm, ch in (("left_child", lc), ("right_child", rc)):
-            inner = ch >= 0
-            if np.any(inner & ((ch <= idx) | (ch >= ni))) or np.any(~inner & (~ch >= nl)):
-                raise _fail(where, f"{tname} {nm}", "child index out of range (children follow their parent)")
-            reached_inner += np.bincount(ch[inner], minlength=ni)
-            reached_leaf += np.bincount(~ch[~inner], minlength=nl)
-        if reached_inner[0] != 0 or np.any(reached_inner[1:] != 1) or np.any(reached_leaf != 1):
-            raise _fail(where, f"{tname} left_child", "not a tree (a node or leaf is reached other than once)")
-    # our checked copy: no stored byte offsets for LightGBM to trust
-    text = "\n".join(line for line in model.split("\n") if not line.startswith("tree_sizes="))
-    try:
-        import lightgbm as lgb
-
-        booster = lgb.Booster(model_str=text)
-    except Exception as exc:  # LightGBMError and friends: the text is not a model
-        raise _fail(where, member, f"LightGBM cannot parse the model ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
-    if booster.num_feature() != n_feat or booster.num_trees() != len(blocks):
-        raise _fail(where, member, f"LightGBM read {booster.num_trees()} trees over {booster.num_feature()} features, "
-                                   f"the text declares {len(blocks)} over {n_feat}")
-    return text
-
-
 def check_int(value: Any, where: str, member: str, lo: int = 0, hi: int = MAX_NODES) -> int:
     """An integer from the JSON in [lo, hi]."""
     if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-        raise _fail(where, member, f"expected an integer in [{lo}, {hi}], found {value!r}")
+        raise fail(where, member, f"expected an integer in [{lo}, {hi}], found {value!r}")
     return value
 
 
-__all__ = ["MAX_NODES_PER_FILE_BYTE", "check_node_budget", "compact_tree_members", "tree_structure", "MAX_WIDTH", "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values", "check_lightgbm_text", "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]
+__all__ = ["MAX_NODES_PER_FILE_BYTE", "check_node_budget", "compact_tree_members", "tree_structure", "MAX_WIDTH",
+           "MAX_PROBE_ENTRIES", "check_npz", "check_tree_arrays", "check_compact_tree_arrays", "check_leaf_values",
+           "check_int", "array", "MAX_EXPANSION", "MAX_MEMBERS"]

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 import offline_adp.artifacts.checks as C
+from offline_adp.artifacts.lightgbm_text import check_lightgbm_text
 from offline_adp.artifacts.tree_tables import (
     LoadedEnsemble,
     compact_arrays,
@@ -68,7 +69,10 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
     if name not in ALLOWED:
         raise ArtifactError(f"cannot save a {name} safely; allowed: scikit-learn forests, LightGBM, {sorted(ALLOWED)}")
     if name == "Pipeline":
-        return {"kind": "pipeline", "steps": [[n, _export_estimator(s, arrays, f"{key}.{i}")] for i, (n, s) in enumerate(est.steps)]}
+        return {
+            "kind": "pipeline",
+            "steps": [[n, _export_estimator(s, arrays, f"{key}.{i}")] for i, (n, s) in enumerate(est.steps)],
+        }
     params = {k: v for k, v in est.get_params(deep=False).items() if _jsonable(v)}
     attrs: dict[str, Any] = {}
     for k, v in vars(est).items():
@@ -135,7 +139,7 @@ class _Booster:
     def __init__(self, model: str, where: str = "<memory>", member: str = "lightgbm model") -> None:
         import lightgbm as lgb
 
-        text = C.check_lightgbm_text(model, where, member) if where != "<memory>" else model
+        text = check_lightgbm_text(model, where, member) if where != "<memory>" else model
         self.booster = lgb.Booster(model_str=text)
         self.where, self.member = where, member
 
@@ -145,7 +149,8 @@ class _Booster:
     def predict(self, X: np.ndarray, raw_score: bool = False) -> np.ndarray:
         n = self.booster.num_feature()
         if np.ndim(X) != 2 or np.shape(X)[1] != n:
-            raise ArtifactError(f"{self.where}: {self.member}: model reads {n} features, the input has shape {np.shape(X)}")
+            raise ArtifactError(f"{self.where}: {self.member}: model reads {n} features, the input has shape "
+                                f"{np.shape(X)}")
         return self.booster.predict(X, raw_score=raw_score)
 
 
@@ -185,7 +190,9 @@ class _Guarded:
 def _guard(est: Any, where: str, what: str) -> Any:
     """Wrap a loaded scikit-learn estimator or pipeline in :class:`_Guarded` (tree
     ensembles and boosters check their inputs themselves and stay as they are)."""
-    return est if isinstance(est, TreeEnsemble | _TreeClassifier | _Booster) or where == "<memory>" else _Guarded(est, where, what)
+    return est if isinstance(est,
+                             TreeEnsemble | _TreeClassifier
+                             | _Booster) or where == "<memory>" else _Guarded(est, where, what)
 
 
 class _TreeClassifier:
@@ -278,7 +285,10 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
         from sklearn.pipeline import Pipeline
 
         steps = spec.get("steps")
-        if not isinstance(steps, list) or not steps or not all(isinstance(x, list) and len(x) == 2 and isinstance(x[0], str) for x in steps):
+        if not isinstance(steps,
+                          list) or not steps or not all(isinstance(x,
+                                                                   list) and len(x) == 2
+                                                                   and isinstance(x[0], str) for x in steps):
             raise ArtifactError(f"{where}: pipeline entry needs a list of [name, estimator] steps")
         return Pipeline([(n, _import_estimator(s, arrays, where)) for n, s in steps])
     if kind != "sklearn" or spec.get("class") not in ALLOWED:
@@ -312,10 +322,12 @@ def _import_estimator(spec: dict[str, Any], arrays: Any, where: str = "<memory>"
         if set(fit_data) != {"_fit_X", "_y"}:
             raise ArtifactError(f"{where}: {spec['class']} needs both _fit_X and _y")
         est.fit(fit_data["_fit_X"], fit_data["_y"])
-    if "n_features_in_" in attrs or ALLOWED[spec["class"]].startswith("sklearn"):  # fitted sklearn estimators declare it
+    # fitted sklearn estimators declare it
+    if "n_features_in_" in attrs or ALLOWED[spec["class"]].startswith("sklearn"):
         w = getattr(est, "n_features_in_", None)
         if isinstance(w, bool) or not isinstance(w, int | np.integer) or not 1 <= w <= 1_000_000:
-            raise ArtifactError(f"{where}: {spec['class']}: n_features_in_ must be an integer in [1, 1000000], found {w!r}")
+            raise ArtifactError(f"{where}: {spec['class']}: n_features_in_ must be an integer in [1, "
+                                f"1000000], found {w!r}")
     _probe(est, where, spec["class"])
     return est
 
@@ -338,6 +350,7 @@ def _probe(est: Any, where: str, what: str) -> None:
             warnings.simplefilter("ignore")
             out = np.asarray(method(X))
     except Exception as exc:  # any failure means the stored attributes do not fit together
-        raise ArtifactError(f"{where}: {what}: stored attributes are inconsistent ({type(exc).__name__}: {exc})") from None
+        raise ArtifactError(f"{where}: {what}: stored attributes are inconsistent "
+                            f"({type(exc).__name__}: {exc})") from None
     if out.dtype == object or len(out) != 2:
         raise ArtifactError(f"{where}: {what}: predicts {out.shape} {out.dtype} for 2 rows")

@@ -44,5 +44,6 @@ class _Kinds:
             raise ArtifactError(f"{where}: {self.what} entry is not a JSON object")
         read = self.readers.get(spec.get("kind"))  # type: ignore[arg-type]
         if read is None:
-            raise ArtifactError(f"{where}: unknown {self.what} kind {spec.get('kind')!r}; known: {sorted(self.readers)}")
+            raise ArtifactError(f"{where}: unknown {self.what} kind {spec.get('kind')!r}; known: "
+                                f"{sorted(self.readers)}")
         return read(spec, arrays, where)

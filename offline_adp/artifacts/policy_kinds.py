@@ -48,7 +48,9 @@ def _read_mixture(spec: dict[str, Any], arrays: Any, where: str) -> Any:
 
     pols = _read_parts(spec, arrays, where, "components", "mixture")
     w = spec.get("weights")
-    if not isinstance(w, list) or len(w) != len(pols) or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in w):
+    if not isinstance(w,
+                      list) or len(w) != len(pols) or not all(isinstance(x, int | float)
+                                                              and not isinstance(x, bool) for x in w):
         raise ArtifactError(f"{where}: mixture needs one numeric weight per component")
     try:
         return MixturePolicy(pols, w)
@@ -69,15 +71,18 @@ def _read_classifier(spec: dict[str, Any], arrays: Any, where: str) -> Any:
     constant = spec.get("constant")
     if constant is not None:
         C.check_int(constant, where, "constant", 0, n_actions - 1)
-    clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where), where, "classifier")
+    clf = None if spec.get("classifier") is None else _guard(_import_estimator(spec["classifier"], arrays, where),
+                                                             where, "classifier")
     if clf is None and constant is None:
         raise ArtifactError(f"{where}: classifier policy with neither a classifier nor a constant action")
     classes = getattr(clf, "classes_", None)
     if classes is not None:
         c = np.asarray(classes)
         if c.dtype.kind not in "iu" or (len(c) and (c.min() < 0 or c.max() >= n_actions)):
-            raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, {n_actions})")
-    fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where), where, "feature_map")
+            raise ArtifactError(f"{where}: classifier classes {c[:10].tolist()} are not action indices in [0, "
+                                f"{n_actions})")
+    fmap = None if spec.get("feature_map") is None else _guard(_import_estimator(spec["feature_map"], arrays, where),
+                                                               where, "feature_map")
     return ClassifierPolicy(clf, n_actions, constant, fmap)
 
 
@@ -115,7 +120,8 @@ def _read_distilled(spec: dict[str, Any], arrays: Any, where: str) -> Any:
     d = C.check_int(spec.get("n_features"), where, "n_features", 1, C.MAX_WIDTH)
     ens = [_import_estimator(m, arrays, where) for m in models]
     m = len(ens)
-    low, high = (np.asarray(C.array(arrays, spec.get(k), where, kinds="f", ndim=1), np.float64) for k in ("low", "high"))
+    low, high = (np.asarray(C.array(arrays, spec.get(k), where, kinds="f", ndim=1),
+                            np.float64) for k in ("low", "high"))
     rate = None if spec.get("max_rate") is None else \
         np.asarray(C.array(arrays, spec.get("max_rate"), where, kinds="f", ndim=1), np.float64)
     if low.shape != (m,) or high.shape != (m,) or (rate is not None and rate.shape != (m,)):
@@ -151,7 +157,8 @@ def _register_policies() -> None:
     register_policy_kind("greedy_command", GreedyCommandPolicy,
                          lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")}, _read_greedy_command)
     register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {"n_actions": pi.n_actions},
-                         lambda spec, arrays, where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
+                         lambda spec, arrays,
+                         where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
                                                                                1_000_000)))
     register_policy_kind("tabular", TabularPolicy, _write_tabular, _read_tabular)
     register_policy_kind("mixture", MixturePolicy,

@@ -94,7 +94,8 @@ def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int,
     c = e.get("candidates")
     if not isinstance(c, dict) or c.get("kind") != "neighbour_commands":
         raise ArtifactError(f"{where}: encoder.candidates must be a neighbour_commands entry")
-    got = {name: np.asarray(C.array(arrays, c.get(name), where, kinds="f", ndim=2 if name in ("points", "commands") else 1),
+    got = {name: np.asarray(C.array(arrays, c.get(name), where, kinds="f",
+                                    ndim=2 if name in ("points", "commands") else 1),
                             dtype=np.float64) for name in ("points", "commands", "center", "scale")}
     pts, cmd, center, scale = got["points"], got["commands"], got["center"], got["scale"]
     k = C.check_int(c.get("k"), where, "encoder.candidates.k", 1, 4096)
@@ -103,7 +104,8 @@ def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int,
         extra = np.asarray(C.array(arrays, c.get("extra"), where, kinds="f", ndim=2), dtype=np.float64)
         got["extra"] = extra
         if extra.shape[1] != n_dims or len(extra) == 0:
-            raise ArtifactError(f"{where}: encoder.candidates.extra has shape {extra.shape}, expected (e >= 1, {n_dims})")
+            raise ArtifactError(f"{where}: encoder.candidates.extra has shape {extra.shape}, expected (e >= "
+                                f"1, {n_dims})")
     slots = k + (0 if extra is None else len(extra))
     if (len(pts) != len(cmd) or len(pts) < k or slots != n_actions or cmd.shape[1] != n_dims
             or center.shape != (pts.shape[1],) or scale.shape != center.shape):
@@ -142,7 +144,8 @@ def _read_regressor(spec: dict[str, Any], arrays: Any, where: str) -> QFunction:
         n = enc.n_actions if enc.per_action else 1
         if not isinstance(models, list) or len(models) != n:
             raise ArtifactError(f"{where}: regressor Q needs {n} model(s)")
-        q = RegressorQ([_guard(_import_estimator(m, arrays, where), where, f"model {i}") for i, m in enumerate(models)], enc)
+        q = RegressorQ([_guard(_import_estimator(m, arrays, where), where, f"model {i}") for i, m in enumerate(models)],
+                       enc)
         return q, [_model_width(m) for m in q.models]
 
     return _read_encoded(spec, arrays, where, build)
@@ -158,11 +161,13 @@ def _read_encoded(spec: dict[str, Any], arrays: Any, where: str, build: Any) -> 
     n_actions = C.check_int(e.get("n_actions"), where, "encoder.n_actions", 1, 1_000_000)
     af = C.array(arrays, e.get("action_features"), where, kinds="biuf", ndim=2)
     if af.shape[0] != n_actions or not np.all(np.isfinite(af)):
-        raise ArtifactError(f"{where}: {e.get('action_features')}: shape {af.shape} (or non-finite) for {n_actions} actions")
+        raise ArtifactError(f"{where}: {e.get('action_features')}: shape {af.shape} (or non-finite) for "
+                            f"{n_actions} actions")
     per_action = e.get("per_action")
     if not isinstance(per_action, bool):
         raise ArtifactError(f"{where}: encoder.per_action must be true or false")
-    fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where, "feature_map")
+    fmap = None if e.get("feature_map") is None else _guard(_import_estimator(e["feature_map"], arrays, where), where,
+                                                            "feature_map")
     if e.get("candidates") is None:
         enc = QEncoder(n_actions, np.asarray(af, dtype=np.float64), per_action, fmap)
     else:

@@ -145,7 +145,8 @@ def _read(directory: str | PathLike[str], stem: str, key: str, build: Any, what:
     fmt = spec.get("artifact_version", "1")
     if fmt not in READABLE_VERSIONS:
         raise ArtifactError(f"{jpath}: artifact format {fmt!r}, this offline_adp {__version__} reads formats "
-                            f"{', '.join(READABLE_VERSIONS)}: written by a newer version? (upgrade offline_adp to read it)")
+                            f"{', '.join(READABLE_VERSIONS)}: written by a newer version? (upgrade "
+                            "offline_adp to read it)")
     vs = spec.get("versions", {})
     now = versions()
     diff = {k: (v, now.get(k)) for k, v in vs.items() if now.get(k) != v} if isinstance(vs, dict) else {}

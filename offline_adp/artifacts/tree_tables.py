@@ -144,7 +144,8 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     :class:`TreeEnsemble` of per-node arrays (:func:`preorder_children`; scikit-learn's
     trees are then rebuilt from them on first use)."""
     sp = prefix if structure_prefix is None else structure_prefix
-    is_leaf, roots, feature, threshold, values = C.compact_tree_members(arrays, prefix, where, n_features, structure_prefix)
+    is_leaf, roots, feature, threshold, values = C.compact_tree_members(arrays, prefix, where, n_features,
+                                                                        structure_prefix)
     n = len(is_leaf)
     value = np.zeros(n)
     value[is_leaf] = values
@@ -157,7 +158,8 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
         f[splits], t[splits] = feature, threshold
         C.tree_structure(left_g, right_g, roots, where, sp)  # scikit-learn's compiled trees read children unchecked
         return TreeEnsemble(left_g, right_g, f, t, value, roots)
-    thr = np.asarray(threshold, dtype=np.float64)  # CompactTree compares with its float32 floor: a stored float32 itself
+    # CompactTree compares with its float32 floor: a stored float32 itself
+    thr = np.asarray(threshold, dtype=np.float64)
     bounds = np.r_[roots, n]
     first_split = np.r_[0, np.cumsum(np.diff(bounds) - np.add.reduceat(is_leaf, roots, dtype=np.int64))]
     leaf8, decode = is_leaf.view(np.uint8), _decoder()
@@ -292,7 +294,8 @@ def _structure_members(ens: TreeEnsemble) -> _Written | None:
     t32 = float32_floor(t)
     members = {"roots": roots.astype(np.int32) if len(left) < 2**31 - 1 else roots,
                "leaf_bits": np.packbits(is_leaf),
-               "feature": f.astype(next(d for d in (np.uint8, np.uint16, np.uint32, np.int64) if top <= np.iinfo(d).max)),
+               "feature": f.astype(next(d for d in (np.uint8, np.uint16, np.uint32,
+                                                    np.int64) if top <= np.iinfo(d).max)),
                "threshold": t32 if np.all(np.isfinite(t32) == np.isfinite(t)) else t}
     leaf_nodes = node[is_leaf]
     return _Written(ens, members, leaf_nodes.astype(np.int32) if len(left) < 2**31 - 1 else leaf_nodes)
@@ -313,7 +316,8 @@ def _leaf_value_members(values: np.ndarray, prefix: str) -> dict[str, np.ndarray
     ctype = next(t for t in (np.uint8, np.uint16, np.uint32, np.uint64) if k - 1 <= np.iinfo(t).max)
     if k * 8 + len(values) * np.dtype(ctype).itemsize >= len(values) * 8:
         return {prefix + "value": values}
-    return {prefix + "value_table": table_bits.view(np.float64), prefix + "value_code": np.asarray(code).reshape(-1).astype(ctype)}
+    return {prefix + "value_table": table_bits.view(np.float64),
+            prefix + "value_code": np.asarray(code).reshape(-1).astype(ctype)}
 
 
 def preorder_nodes(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np.ndarray | None:

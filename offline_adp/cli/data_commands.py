@@ -50,9 +50,11 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
     refuse_all_quarantined(args.out, s)
     print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
     if s["quarantined_rows"]:
-        print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to {args.out}/quarantine/ with a reason per row")
+        print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to "
+              f"{args.out}/quarantine/ with a reason per row")
     if s["dropped_last_rows"]:
-        print(f"dropped {s['dropped_last_rows']} last rows of step-table episodes without a next state (see docs/ingestion-spec.md)")
+        print(f"dropped {s['dropped_last_rows']} last rows of step-table episodes without a next state (see "
+              "docs/ingestion-spec.md)")
     return 0
 
 
@@ -118,8 +120,8 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
             print(json.dumps(info, indent=2, default=str))
             continue
         rng = info.get("time_range_ns")
-        print(f"{info['file']}: profile {info['profile'] or '-'}, library {info['library']!r}, summary {info['summary']}, "
-              f"compression {info.get('compression', '?')}, {info['messages']} messages"
+        print(f"{info['file']}: profile {info['profile'] or '-'}, library {info['library']!r}, summary "
+              f"{info['summary']}, compression {info.get('compression', '?')}, {info['messages']} messages"
               + (f", log_time {rng[0] / 1e9:.3f} .. {rng[1] / 1e9:.3f} s" if rng else ""))
         if info.get("damage"):
             print(f"  DAMAGE: {info['damage']}")
@@ -141,7 +143,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
     report = validate_directory(args.dataset)
     if args.json:
-        print(json.dumps({**report.summary(), "findings": report.findings.head(args.max_findings).to_dict("records")}, default=str, indent=2))
+        print(json.dumps({**report.summary(), "findings": report.findings.head(args.max_findings).to_dict("records")},
+                         default=str, indent=2))
     else:
         print(report.to_text(max_findings=args.max_findings))
     return 0 if report.ok else 1

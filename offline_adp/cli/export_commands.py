@@ -1,4 +1,5 @@
-"""Output commands: ``export`` (ONNX), ``distill`` (a continuous policy for export), ``annotate`` (MCAP), ``convert`` (dataset formats)."""
+"""Output commands: ``export`` (ONNX), ``distill`` (a continuous policy for export), ``annotate`` (MCAP),
+``convert`` (dataset formats)."""
 
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def cmd_distill(args: argparse.Namespace) -> int:
          + "); mean step change "
          f"greedy {per(r['mean_step_change']['greedy'])}, distilled {per(r['mean_step_change']['distilled'])}"
          + ("" if r["q_increase"] is None else f"; mean Q increase {r['q_increase']:.4g}")
-         + ("" if r["max_rate"] is None else f"; max rate {per(r['max_rate'])} per step (applied by act(previous=...))"))
+         + ("" if r["max_rate"] is None
+            else f"; max rate {per(r['max_rate'])} per step (applied by act(previous=...))"))
     print(r["out"])
     return 0
 
@@ -46,7 +48,8 @@ def cmd_annotate(args: argparse.Namespace) -> int:
 
     s = annotate_mcap(args.run, args.log, args.out, spec=args.spec, dataset=args.dataset, overwrite=args.overwrite)
     _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); policy agrees with the log "
-         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics {', '.join(s['topics'])}")
+         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics "
+         f"{', '.join(s['topics'])}")
     print(s["out"])
     return 0
 
@@ -56,5 +59,6 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
     if args.to_format == "d4rl":
         _file_output(args.out, "--out", "a .npz file")
-    print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format, overwrite=args.overwrite))
+    print(convert(args.source, args.out, from_format=args.from_format, to_format=args.to_format,
+                  overwrite=args.overwrite))
     return 0

@@ -32,7 +32,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     def on_iteration(row: dict) -> None:
         it = row.get("iteration")
-        log.debug("fit %s iteration %s: sup|dQ| %.4g, Bellman residual %.4g, start value %.4g, %.2f s", args.algorithm, it,
+        log.debug("fit %s iteration %s: sup|dQ| %.4g, Bellman residual %.4g, start value %.4g, %.2f s", args.algorithm,
+                  it,
                   *(float(row.get(k) if row.get(k) is not None else float("nan"))
                     for k in ("sup_dq", "bellman_residual", "start_value", "wall_time")))
         if bar is None and log_milestone(it, total):  # in a log: a few lines, not one per iteration
@@ -41,7 +42,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         if bar is not None:
             if bar.n == 0 and row["iteration"] > 1:
                 bar.update(row["iteration"] - 1)  # resumed
-            bar.set_postfix(residual=f"{row['bellman_residual']:.3g}", dq=f"{row['sup_dq']:.3g}", s=f"{row['wall_time']:.2f}")
+            bar.set_postfix(residual=f"{row['bellman_residual']:.3g}", dq=f"{row['sup_dq']:.3g}",
+                            s=f"{row['wall_time']:.2f}")
             bar.update(1)
 
     try:
@@ -78,7 +80,8 @@ def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None
             early = (isinstance(getattr(est, "early_build_trees", None), int) and bool(grown)  # opt-in counts only
                      and any(b["screen"] is None and not b["constant"] and (b["trees"] or 0) < max(grown)
                              for b in builds))  # an unscreened build grew fewer trees than another
-            caveat = ("the screen" if screened else "") + (" and " if screened and early else "") + ("early builds" if early else "")
+            caveat = ("the screen" if screened else "") + (" and " if screened and early
+                                                           else "") + ("early builds" if early else "")
             by = sorted({b["builder"] for b in builds if b["builder"]})
             its = [str(b["iteration"]) for b in builds]
             trees = ["const" if b["constant"] else str(b["trees"] or "?") for b in builds]

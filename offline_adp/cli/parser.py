@@ -72,12 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
         description="Ingest Parquet or CSV tables through a TOML spec (docs/ingestion-spec.md); the dataset "
         "doctor runs at the end.",
-        epilog="example:\n  offline-adp ingest parquet logs/*.parquet --spec logs/pt.spec.toml --out data/pt --on-error quarantine",
+        epilog="example:\n  offline-adp ingest parquet logs/*.parquet --spec logs/pt.spec.toml --out data/pt "
+        "--on-error quarantine",
     )
     ip.add_argument("inputs", nargs="+", help="Parquet or CSV files")
     ip.add_argument("--spec", required=True, help="TOML ingestion spec")
     ip.add_argument("--out", required=True, help="dataset directory to write")
-    ip.add_argument("--on-error", choices=("fail", "quarantine"), default=None, help="default: the spec's on_error (fail)")
+    ip.add_argument("--on-error", choices=("fail", "quarantine"), default=None,
+                    help="default: the spec's on_error (fail)")
     ip.add_argument("--overwrite", action="store_true")
     ip.add_argument("--quiet", "-q", action="store_true")
     ip.set_defaults(func=cmd_ingest_parquet)
@@ -91,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
         "restarts or field conditions, the cost is a field, a negated reward or a declared weighted sum of terms. "
         "Files stream through bounded memory; parts of a split recording (NAME_0.mcap, NAME_1.mcap ...) form one "
         "recording. Use `offline-adp mcap-info` to find topics and field paths (docs/ingestion-spec.md).",
-        epilog="example:\n  offline-adp ingest mcap logs/*.mcap --spec data/specs/path_tracking_mcap.toml --out data/pt "
-        "--jobs 2",
+        epilog="example:\n  offline-adp ingest mcap logs/*.mcap --spec data/specs/path_tracking_mcap.toml "
+        "--out data/pt --jobs 2",
     )
     im.add_argument("inputs", nargs="*", help="MCAP files or globs (default: the spec's [sources] files)")
     im.add_argument("--spec", required=True)
@@ -162,10 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
         description="Evaluate the policy in RUN_DIR/model on the run's dataset: Monte-Carlo rollouts when a simulator "
         "is known (the dataset's reference problem or --simulator), the behaviour policy (logged propensities or a "
-        "classifier), off-policy estimates with bootstrap intervals (FQE, IS, WIS, PDIS, WPDIS, DR, WDR, MIS), per-step "
-        "density ratios with diagnostics, and the PSDP bound. Writes RUN_DIR/evaluation/metrics.json.",
-        epilog="examples:\n  offline-adp evaluate runs/pt-fqi\n  offline-adp evaluate runs/pt-fqi --simulator none --dataset data/pt\n"
-        "  offline-adp report runs/pt-fqi",
+        "classifier), off-policy estimates with bootstrap intervals (FQE, IS, WIS, PDIS, WPDIS, DR, WDR, "
+        "MIS), per-step density ratios with diagnostics, and the PSDP bound. Writes RUN_DIR/evaluation/metrics.json.",
+        epilog="examples:\n  offline-adp evaluate runs/pt-fqi\n  offline-adp evaluate runs/pt-fqi --simulator none "
+        "--dataset data/pt\n  offline-adp report runs/pt-fqi",
     )
     e.add_argument("run", help="run directory (from offline-adp fit)")
     e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
@@ -181,13 +183,14 @@ def build_parser() -> argparse.ArgumentParser:
         "whose inputs and settings are unchanged is reused; an interrupted run continues from its last completed "
         "stage (FQI from its last checkpointed iteration). The manifest (manifest.json) records input fingerprints, "
         "the config hash, versions and per-stage status and timings. See offline_adp/pipeline.py for the file format.",
-        epilog="examples:\n  offline-adp run pipelines/driving.toml\n  offline-adp run pipelines/driving.toml --from evaluate\n"
-        "  offline-adp run pipelines/car_on_hill.toml --set data.exploration=200 --out runs/coh-small",
+        epilog="examples:\n  offline-adp run pipelines/driving.toml\n  offline-adp run pipelines/driving.toml "
+        "--from evaluate\n  offline-adp run pipelines/car_on_hill.toml --set data.exploration=200 --out runs/coh-small",
     )
     rp.add_argument("pipeline", help="pipeline TOML file")
     rp.add_argument("--out", default=None, help="run directory (default: continue the latest runs/<name>__<seed>__*)")
     rp.add_argument("--runs", default="runs", help="folder of run directories (default: runs)")
-    rp.add_argument("--from", dest="from_stage", default=None, choices=["data", "validate", "fit", "evaluate", "report"],
+    rp.add_argument("--from", dest="from_stage", default=None, choices=["data", "validate", "fit", "evaluate",
+                                                                        "report"],
                     help="recompute this stage and the ones after it")
     rp.add_argument("--force", action="store_true", help="start a fresh run directory, reusing nothing")
     rp.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a setting, e.g. evaluate.episodes=50")
@@ -202,8 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
         "report",
         help="write RUN_DIR/report/report.html with figures from an evaluated run",
         formatter_class=fmt,
-        description="Build a single self-contained report.html (figures embedded, also saved as PNG in report/figures/) "
-        "from RUN_DIR/evaluation/ and the fitted model.",
+        description="Build a single self-contained report.html (figures embedded, also saved as PNG in "
+        "report/figures/) from RUN_DIR/evaluation/ and the fitted model.",
         epilog="example:\n  offline-adp evaluate runs/pt-fqi && offline-adp report runs/pt-fqi",
     )
     r.add_argument("run")
@@ -214,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the JSON Schema of a configuration file type (for editors checking TOML)",
         formatter_class=fmt,
         description="Print the JSON Schema of a pipeline file or a fit config, or write them all to a folder.",
-        epilog="examples:\n  offline-adp schema pipeline > pipeline.schema.json\n  offline-adp schema --write docs/schemas",
+        epilog="examples:\n  offline-adp schema pipeline > pipeline.schema.json\n  offline-adp schema --write "
+        "docs/schemas",
     )
     sc.add_argument("kind", nargs="?", default="pipeline", help="pipeline | fit-config (default: pipeline)")
     sc.add_argument("--write", nargs="?", const="docs/schemas", default=None, metavar="DIR",
@@ -228,8 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate every run's policy on one dataset (reusing matching evaluations) and rank them by the "
         "most reliable off-policy estimate, with intervals, shift and convergence verdicts; with a simulator, score "
         "the ranking against the rollout truth (Spearman, Kendall, regret of the top pick).",
-        epilog="examples:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json   # + compare.html\n"
-        "  offline-adp compare runs/fqi-a runs/fqi-b --report cmp/report.html",
+        epilog="examples:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json   # + "
+        "compare.html\n  offline-adp compare runs/fqi-a runs/fqi-b --report cmp/report.html",
     )
     cp.add_argument("runs", nargs="+", help="run directories (at least two)")
     cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
@@ -289,7 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example:\n  offline-adp distill runs/pendulum --out runs/pendulum-distilled --max-rate 0.5\n"
         "  offline-adp export runs/pendulum-distilled --out policy.onnx --input-dtype float32",
     )
-    di.add_argument("run", help="run directory of a continuous greedy policy (FQI with commands=auto on exact commands)")
+    di.add_argument("run",
+                    help="run directory of a continuous greedy policy (FQI with commands=auto on exact commands)")
     di.add_argument("--out", required=True, help="run directory to write")
     di.add_argument("--dataset", default=None, help="dataset whose logged states to fit on (default: the run's)")
     di.add_argument("--n-estimators", type=_positive_int, default=50, help="trees (default 50)")
@@ -305,8 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
         "annotate",
         help="write a copy of an MCAP log with the policy's actions, Q-gap, density ratio and support along it",
         formatter_class=fmt,
-        description="Ingest LOG with the run's MCAP spec (from its dataset's provenance, or --spec) and write OUT: every "
-        "message of LOG plus JSON topics (with JSON schemas) at each logged step's time: /offline_adp/action (policy vs "
+        description="Ingest LOG with the run's MCAP spec (from its dataset's provenance, or --spec) and "
+        "write OUT: every message of LOG plus JSON topics (with JSON schemas) at each logged step's time: "
+        "/offline_adp/action (policy vs "
         "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag). "
         "Open OUT in Foxglove to plot them on the log's timeline.",
         epilog="example:\n  offline-adp annotate runs/pt-fqi --log logs/demonstration.mcap --out annotated.mcap",
@@ -314,7 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     an.add_argument("run", help="run directory")
     an.add_argument("--log", required=True, help="MCAP log to annotate")
     an.add_argument("--out", required=True, help="annotated MCAP file to write")
-    an.add_argument("--spec", default=None, help="MCAP ingestion spec (default: the one the run's dataset was ingested with)")
+    an.add_argument("--spec", default=None,
+                    help="MCAP ingestion spec (default: the one the run's dataset was ingested with)")
     an.add_argument("--dataset", default=None, help="the run's dataset (default: from the run)")
     an.add_argument("--overwrite", action="store_true")
     an.set_defaults(func=cmd_annotate)

@@ -65,7 +65,8 @@ def _canonical(table: pa.Table, info: DatasetInfo, sorted_ids: pa.DictionaryArra
     ids = table.column(S.EPISODE_ID)
     if ids.null_count:  # a row without an episode cannot be placed in one (or sorted)
         i = int(np.flatnonzero(np.asarray(pc.is_null(ids)))[0])
-        raise SchemaError(f"row {i}: episode_id is missing (null) in {ids.null_count} rows; every row needs an episode id")
+        raise SchemaError(f"row {i}: episode_id is missing (null) in {ids.null_count} rows; every row needs "
+                          "an episode id")
     if not table.num_rows:
         return table, None, True
     if sorted_ids is not None and len(sorted_ids) == table.num_rows:

@@ -48,7 +48,8 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
     is_dict = pa.types.is_dictionary(col.type)
     is_str = is_dict or pa.types.is_string(col.type) or pa.types.is_large_string(col.type)
     if is_str and not col.null_count and n:
-        codes, mapping, words_arr = (*encoding[:1], None, encoding[1]) if encoding is not None else _first_appearance_encoding(col)
+        codes, mapping, words_arr = (*encoding[:1], None,
+                                     encoding[1]) if encoding is not None else _first_appearance_encoding(col)
         h.update(bytes((n + 7) // 8))  # the packed null mask: no nulls
         words = [str(w).encode() for w in words_arr]  # one per distinct value
         h.update(np.asarray([len(w) for w in words], np.int64).tobytes() + b"".join(words))
@@ -134,7 +135,11 @@ def _first_appearance_encoding(col: pa.ChunkedArray) -> tuple[np.ndarray, np.nda
     values = dictionary.take(by_index.dictionary)  # per distinct index, in first-appearance order
     by_value = pc.dictionary_encode(values.cast(pa.large_string()))  # indices with equal values merge
     mapping = by_value.indices.to_numpy(zero_copy_only=False).astype(np.int64)
-    return by_index.indices.to_numpy(zero_copy_only=False), mapping, np.asarray(by_value.dictionary.to_pylist(), dtype=object)
+    return (
+        by_index.indices.to_numpy(zero_copy_only=False),
+        mapping,
+        np.asarray(by_value.dictionary.to_pylist(), dtype=object),
+    )
 
 
 def sorted_encoding(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.DictionaryArray | None:

@@ -198,7 +198,8 @@ def clean_stale_temporaries(target: str | PathLike[str]) -> list[Path]:
 
 
 @contextlib.contextmanager
-def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False, clean_stale: bool = False) -> Iterator[Path]:
+def atomic_directory(target: str | PathLike[str], *, overwrite: bool = False,
+                     clean_stale: bool = False) -> Iterator[Path]:
     """Yield a temporary directory next to ``target``; on success rename it to ``target``.
 
     A crash or exception inside the block removes the temporary directory and leaves

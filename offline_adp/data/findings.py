@@ -155,7 +155,9 @@ def split_quarantine(ds: TransitionDataset, report: ValidationReport) -> tuple[T
         # findings carry row-in-file; map back to dataset rows via (episode_id, step)
         key = report.findings[S.EPISODE_ID].astype(str) + "#" + report.findings[S.STEP].astype(str)
         per_row = (
-            report.findings.assign(_k=key, _r="[" + report.findings["check"] + "] " + report.findings["column"] + ": " + report.findings["message"])
+            report.findings.assign(_k=key,
+                                   _r="[" + report.findings["check"] + "] " + report.findings["column"] + ": "
+                                   + report.findings["message"])
             .groupby("_k", sort=False)["_r"]
             .agg("; ".join)
         )
@@ -163,7 +165,8 @@ def split_quarantine(ds: TransitionDataset, report: ValidationReport) -> tuple[T
         keys = pd.Series(ids).str.cat(pd.Series(ds.table.column(S.STEP).to_numpy()).astype(str), sep="#")
         reasons = keys.map(per_row).fillna("").to_numpy(dtype=object)
         first_reason = (
-            report.findings.assign(_r="[" + report.findings["check"] + "] at step " + report.findings[S.STEP].astype(str))
+            report.findings.assign(_r="[" + report.findings["check"] + "] at step "
+                                   + report.findings[S.STEP].astype(str))
             .groupby(S.EPISODE_ID, sort=False)["_r"].first()
         )
         ep_reason = pd.Series(ids).map(first_reason).fillna("").to_numpy(dtype=object)

@@ -76,8 +76,13 @@ class ActionTable:
             raise SchemaError(f"action table kind must be one of {list(ACTION_KINDS)}, got {self.kind!r}")
         for key, b in (("low", self.low), ("high", self.high)):
             if b is not None and (len(b) != len(self.dims) or not all(np.isfinite(x) for x in b)):
-                raise SchemaError(f"action table {key}: {list(b)} must hold one finite number per dim {list(self.dims)}")
-        if self.low is not None and self.high is not None and any(lo > hi for lo, hi in zip(self.low, self.high, strict=True)):
+                raise SchemaError(f"action table {key}: {list(b)} must hold one finite number per dim "
+                                  f"{list(self.dims)}")
+        if (
+            self.low is not None
+            and self.high is not None
+            and any(lo > hi for lo, hi in zip(self.low, self.high, strict=True))
+        ):
             raise SchemaError(f"action table bounds: low {list(self.low)} exceeds high {list(self.high)}")
         for i, a in enumerate(self.actions):
             if len(a.value) != len(self.dims):
@@ -89,7 +94,8 @@ class ActionTable:
         if len(set(names)) != len(names):
             seen: set[str] = set()
             dup = sorted({x for x in names if x in seen or seen.add(x)})  # type: ignore[func-returns-value]
-            raise SchemaError(f"action names must be unique; {len(dup)} repeated, e.g. {dup[:5]} ({len(names)} actions)")
+            raise SchemaError(f"action names must be unique; {len(dup)} repeated, e.g. {dup[:5]} "
+                              f"({len(names)} actions)")
 
     def __len__(self) -> int:
         return len(self.actions)
@@ -214,7 +220,8 @@ class DatasetInfo:
         if len(set(names)) != len(names):
             seen: set[str] = set()
             dup = sorted({x for x in names if x in seen or seen.add(x)})  # type: ignore[func-returns-value]
-            raise SchemaError(f"feature names must be unique; {len(dup)} repeated, e.g. {dup[:5]} ({len(names)} features)")
+            raise SchemaError(f"feature names must be unique; {len(dup)} repeated, e.g. {dup[:5]} "
+                              f"({len(names)} features)")
         if self.propensity_source not in PROPENSITY_SOURCES:
             raise SchemaError(
                 f"propensity_source must be one of {list(PROPENSITY_SOURCES)}, got {self.propensity_source!r}"

@@ -195,7 +195,8 @@ def write_dataset(
         write_json(tmp / S.STATS_FILE, stats)
         if quarantine is not None and quarantine.num_rows:
             (tmp / S.QUARANTINE_DIR).mkdir()
-            pq.write_table(quarantine, tmp / S.QUARANTINE_DIR / S.PART_TEMPLATE.format(0), compression=S.PARQUET_COMPRESSION)
+            pq.write_table(quarantine, tmp / S.QUARANTINE_DIR / S.PART_TEMPLATE.format(0),
+                           compression=S.PARQUET_COMPRESSION)
     return path
 
 
@@ -237,7 +238,12 @@ def _part_encodings(schema: pa.Schema) -> tuple[list[str], dict[str, str]]:
             encoding[f.name] = "PLAIN"
         elif pa.types.is_integer(f.type) and f.name not in _DICTIONARY_COLUMNS:
             encoding[f.name] = "DELTA_BINARY_PACKED"
-        elif pa.types.is_dictionary(f.type) or pa.types.is_string(t) or pa.types.is_large_string(t) or f.name in _DICTIONARY_COLUMNS:
+        elif (
+            pa.types.is_dictionary(f.type)
+            or pa.types.is_string(t)
+            or pa.types.is_large_string(t)
+            or f.name in _DICTIONARY_COLUMNS
+        ):
             dictionary.append(f.name)
     return dictionary, encoding
 

@@ -33,7 +33,8 @@ def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:
         "actions": {
             "kind": info.action_table.kind,
             "dims": list(info.action_table.dims),
-            "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(), strict=True)},
+            "table": {n: list(v) for n, v in zip(info.action_table.names, info.action_table.values.tolist(),
+                                                 strict=True)},
             "coverage": {n: int(c) for n, c in zip(info.action_table.names,
                                                    np.bincount(a[in_range], minlength=n_actions), strict=True)},
             "out_of_range": int((~in_range).sum()),
@@ -48,9 +49,11 @@ def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:
             for src, g in ep.groupby(S.SOURCE, observed=True)
         },
         "episode_length": {q: float(v) for q, v in zip(("min", "p25", "median", "p75", "max"),
-                                                        np.quantile(ep["length"], [0, 0.25, 0.5, 0.75, 1]), strict=True)}
+                                                        np.quantile(ep["length"], [0, 0.25, 0.5, 0.75, 1]),
+                                                        strict=True)}
         if len(ep) else {},
-        "cost": {"mean": float(cost.mean()), "std": float(cost.std()), "min": float(cost.min()), "max": float(cost.max())}
+        "cost": {"mean": float(cost.mean()), "std": float(cost.std()), "min": float(cost.min()),
+                 "max": float(cost.max())}
         if len(cost) else {},
         "gamma": info.gamma,
         "horizon": info.horizon,
@@ -84,7 +87,8 @@ def summary_text(report: dict[str, Any]) -> str:
     c = report["cost"]
     if c:
         lines.append(f"  cost/step   mean {c['mean']:.4g}  std {c['std']:.4g}  min {c['min']:.4g}  max {c['max']:.4g}")
-    lines.append(f"  hints       gamma={report['gamma']} horizon={report['horizon']}; propensities: {report['propensities']}")
+    lines.append(f"  hints       gamma={report['gamma']} horizon={report['horizon']}; propensities: "
+                 f"{report['propensities']}")
     if "quarantined_rows" in report:
         lines.append(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
     return "\n".join(lines)

@@ -115,7 +115,8 @@ def validate(
 
     # nulls in required columns (cast to numpy would hide them)
     timed = (S.T_NS,) if S.T_NS in t.column_names else ()
-    for c in (S.EPISODE_ID, S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *timed, *ds.obs_columns, *ds.next_obs_columns):
+    for c in (S.EPISODE_ID, S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *timed, *ds.obs_columns,
+              *ds.next_obs_columns):
         col = t.column(c)
         if col.null_count:
             add("null_value", np.asarray(pc.is_null(col)), c,
@@ -135,7 +136,8 @@ def validate(
     trunc = _bool(t, S.TRUNCATED)
     n_both = int((term & trunc).sum())  # valid: terminated wins (absorbing); counted, not a finding
     add("flag_not_last", (term | trunc) & ~last, S.TERMINATED, "episode flagged as ended before its last row")
-    add("end_unflagged", last & ~term & ~trunc, "terminated,truncated", "last row of the episode is neither terminated nor truncated")
+    add("end_unflagged", last & ~term & ~trunc, "terminated,truncated",
+        "last row of the episode is neither terminated nor truncated")
 
     # continuity next_obs(t) == obs(t+1) within episodes: np.isclose's rule
     # |x - y| <= atol + rtol * |y| on rows where both are finite, without its temporaries
@@ -181,7 +183,8 @@ def validate(
                     "next_obs_mismatch",
                     mis,
                     nc,
-                    _messages(mis, lambda i, x=x, nxt=nxt, oc=oc: f"next_obs {x[i]!r} != {oc} of the following step {nxt[i]!r}"),
+                    _messages(mis, lambda i, x=x, nxt=nxt,
+                              oc=oc: f"next_obs {x[i]!r} != {oc} of the following step {nxt[i]!r}"),
                 )
 
     absbuf = np.empty(max(1, min(n, _BLOCK)))
@@ -192,7 +195,8 @@ def validate(
             continue
         finite = np.isfinite(v)
         if not finite.all():
-            add("non_finite", ~finite & ~np.asarray(pc.is_null(col)) if col.null_count else ~finite, c, "value is NaN or infinite")
+            add("non_finite", ~finite & ~np.asarray(pc.is_null(col)) if col.null_count else ~finite, c,
+                "value is NaN or infinite")
         big = np.zeros(n, bool)
         with np.errstate(invalid="ignore"):
             for lo in range(0, n, _BLOCK):  # NaN compares False; inf is non_finite, not out of range
@@ -240,7 +244,8 @@ def validate(
     f["check"] = pd.Categorical(f["check"], categories=list(CHECKS))
     f = f.sort_values(["row", "check"], kind="stable").reset_index(drop=True)
     f["check"] = f["check"].astype(str)
-    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids), n_terminated_and_truncated=n_both,
+    return ValidationReport(findings=f[FINDING_COLUMNS], n_rows=n, n_episodes=len(ep_ids),
+                            n_terminated_and_truncated=n_both,
                             row_label=origin.label)
 
 
@@ -363,7 +368,8 @@ def validate_directory(path: str | PathLike[str]) -> ValidationReport:
     report = validate(ds, origin=origin)
     meta = _metadata_findings(path, ds, read_info(path), origin)
     if len(meta):
-        report.findings = pd.concat([report.findings, meta], ignore_index=True)[FINDING_COLUMNS] if len(report.findings) else meta
+        report.findings = pd.concat([report.findings, meta],
+                                    ignore_index=True)[FINDING_COLUMNS] if len(report.findings) else meta
     return report
 
 
@@ -373,7 +379,8 @@ def _metadata_findings(path: Path, ds: TransitionDataset, raw: dict, origin: Row
     info_file = str(path / S.INFO_FILE)
 
     def add(check: str, file: str, column: str, message: str, row: int = -1, episode: str = "", step: int = -1) -> None:
-        rows.append({"check": check, "file": file, "row": row, S.EPISODE_ID: episode, S.STEP: step, "column": column, "message": message})
+        rows.append({"check": check, "file": file, "row": row, S.EPISODE_ID: episode, S.STEP: step, "column": column,
+                     "message": message})
 
     for key, actual in (("n_transitions", len(ds)), ("n_episodes", ds.n_episodes)):
         if key in raw and raw[key] != actual:
@@ -410,5 +417,6 @@ def _metadata_findings(path: Path, ds: TransitionDataset, raw: dict, origin: Row
             seen.add(int(codes[i]))
             add("episode_split_across_parts", str(origin.files[part[i]]), S.EPISODE_ID,
                 f"episode continues from {origin.files[first_part[i]]} (an episode must lie in one part)",
-                row=int(origin.row[i]), episode=str(ds.episode_ids[codes[i]]), step=int(ds.table.column(S.STEP)[i].as_py()))
+                row=int(origin.row[i]), episode=str(ds.episode_ids[codes[i]]),
+                step=int(ds.table.column(S.STEP)[i].as_py()))
     return pd.DataFrame(rows, columns=FINDING_COLUMNS)

@@ -72,7 +72,8 @@ def recorded_problem_options(info: Any) -> dict[str, Any] | None:
     if "problem_options" in prov:
         found = [prov["problem_options"]]
     else:
-        found = [p["problem_options"] for p in prov.get("parts", []) or [] if isinstance(p, dict) and "problem_options" in p]
+        found = [p["problem_options"] for p in prov.get("parts",
+                                                        []) or [] if isinstance(p, dict) and "problem_options" in p]
         if not found:
             return None
     for opts in found:

@@ -135,8 +135,8 @@ class ProblemEnv(gym.Env):
 
     Observations are the problem's feature vector, actions indices into its action
     table (a ``Box`` of commands within the table's bounds for a problem that accepts
-    continuous commands, e.g. path_tracking with ``commands = "continuous"``), ``reward = -cost`` (gymnasium maximises; this library minimises cost and
-    reports ``info["cost"]``). ``truncated`` is set at the problem's horizon.
+    continuous commands, e.g. path_tracking with ``commands = "continuous"``), ``reward = -cost`` (gymnasium maximises;
+    this library minimises cost and reports ``info["cost"]``). ``truncated`` is set at the problem's horizon.
     ``reset(options={"state": x})`` starts from a given state.
     """
 

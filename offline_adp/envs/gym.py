@@ -82,8 +82,8 @@ class GymResetModel(ResetModel):
         width = int(obs_space.shape[0])
         names = [f.name for f in info.features]
         if len(names) != width:
-            raise IncompatibleError(f"simulator {self.name!r}: its observation vector has {width} entries, the dataset has "
-                                    f"{len(names)} features {names}; they are matched by declared order")
+            raise IncompatibleError(f"simulator {self.name!r}: its observation vector has {width} entries, the "
+                                    f"dataset has {len(names)} features {names}; they are matched by declared order")
         self.env_actions = _env_actions(self.name, act_space, np.asarray(info.action_table.values, dtype=np.float64))
         #: Whether ``step`` takes continuous commands (a 1-D ``Box`` of floats).
         self.accepts_commands = bool(isinstance(act_space, gymnasium.spaces.Box) and len(act_space.shape) == 1
@@ -135,7 +135,8 @@ class GymResetModel(ResetModel):
             envs.append(stack.pop())
         for i, (env, action) in enumerate(zip(envs, env_actions, strict=True)):
             # a fresh copy: an environment may change its action in place
-            obs, reward, terminated, _truncated, _ = env.step(action.copy() if isinstance(action, np.ndarray) else action)
+            obs, reward, terminated, _truncated, _ = env.step(action.copy() if isinstance(action, np.ndarray)
+                                                              else action)
             nxt[i], costs[i], term[i] = obs, -float(reward), terminated
             if terminated:
                 env.close()
@@ -177,7 +178,8 @@ def _env_actions(name: str, space: Any, values: np.ndarray) -> list[Any]:
         outside = np.flatnonzero(~inside.all(axis=1))  # NaN is never inside
         if len(outside):
             raise IncompatibleError(f"simulator {name!r}: action(s) {outside.tolist()} with values "
-                                    f"{values[outside].tolist()} are outside the action box [{low.tolist()}, {high.tolist()}]")
+                                    f"{values[outside].tolist()} are outside the action box [{low.tolist()}, "
+                                    f"{high.tolist()}]")
         if np.issubdtype(space.dtype, np.integer) and not (values == np.round(values)).all():
             rows = np.flatnonzero((values != np.round(values)).any(axis=1))
             raise IncompatibleError(f"simulator {name!r}: its action box holds integers ({space}); action(s) "
@@ -236,7 +238,8 @@ def record_random_log(env_id: str, n_transitions: int, seed: int = 0, max_hold: 
                 return rng.uniform(low, high).astype(space.dtype)
     else:
         raise InvalidArgumentError(f"record_random_log({env_id!r}): actions must be Discrete or a 1-D Box, got {space}")
-    cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs", "terminated", "truncated")}
+    cols: dict[str, list[Any]] = {k: [] for k in ("episode", "step", "obs", "action", "reward", "next_obs",
+                                                  "terminated", "truncated")}
     ep = 0
     while len(cols["step"]) < n_transitions:
         obs, _ = env.reset(seed=int(rng.integers(2**31 - 1)))

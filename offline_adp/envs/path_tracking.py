@@ -177,7 +177,8 @@ class PathTracking(ReferenceProblem, Simulator):
     n_actions = len(STEERING_COMMANDS)
     obs_dim = 7
 
-    def __init__(self, horizon: int | None = 200, heading_noise: float = HEADING_NOISE, commands: str = "discrete") -> None:
+    def __init__(self, horizon: int | None = 200, heading_noise: float = HEADING_NOISE,
+                 commands: str = "discrete") -> None:
         if commands not in COMMAND_MODES:
             raise InvalidArgumentError(f"commands must be one of {list(COMMAND_MODES)}, got {commands!r}")
         self.horizon = horizon

@@ -54,7 +54,8 @@ class TabularMDP(ReferenceProblem, FullModel):
         mu0 = rng.dirichlet(np.ones(n_states))
         if gamma is None:
             gamma = 1.0 if horizon is not None else 0.9
-        self.action_table = ActionTable.from_values(np.arange(n_actions, dtype=float), names=[f"a{i}" for i in range(n_actions)])
+        self.action_table = ActionTable.from_values(np.arange(n_actions, dtype=float),
+                                                    names=[f"a{i}" for i in range(n_actions)])
         self.seed = seed
         super().__init__(P, C, mu0, gamma=gamma, horizon=horizon)
 

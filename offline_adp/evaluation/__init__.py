@@ -24,10 +24,13 @@ MAX_MODEL_PARTICLES: int = 1_000_000
 
 def particle_count_error(n: int) -> str | None:
     """Why ``n`` is not a model-rollout particle count (None: it is): 0 turns them off,
-    their Monte-Carlo interval needs at least 2, and at most :data:`MAX_MODEL_PARTICLES`. The one check of the CLI, a pipeline's
+    their Monte-Carlo interval needs at least 2, and at most :data:`MAX_MODEL_PARTICLES`. The one check of the CLI, a
+    pipeline's
     ``[evaluate]``, ``evaluation_metrics`` and ``off_policy``."""
     if n < 0 or n == 1:
-        return f"model_particles must be 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two), got {n}"
+        return (
+            f"model_particles must be 0 (no model rollouts) or at least 2 (a Monte-Carlo interval needs two), got {n}"
+        )
     if n > MAX_MODEL_PARTICLES:
         return f"model_particles must be at most {MAX_MODEL_PARTICLES:,}, got {n:,}"
     return None

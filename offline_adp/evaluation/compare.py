@@ -332,7 +332,8 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
             lines.append(f"{c['name']}: {c['discount_note']}")
     s = res.get("selection")
     if s:
-        lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; regret of the top "
+        lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; "
+                     "regret of the top "
                      f"pick {s['regret_top1']:.3f} ({s['relative_regret_top1']:.0%} of the candidates' spread)")
     return lines
 
@@ -345,7 +346,8 @@ def cli(args: Any) -> int:
         logging.getLogger("offline_adp.cli").info("  %s", msg)
 
     if args.json and Path(args.json).is_dir():  # before the work, not after it
-        raise WriteError(f"--json {args.json} is a directory; name a file to write (e.g. {Path(args.json) / 'compare.json'})")
+        raise WriteError(f"--json {args.json} is a directory; name a file to write (e.g. "
+                         f"{Path(args.json) / 'compare.json'})")
     report = report_path(args.runs, args.json, getattr(args, "report", None))
     if report.is_dir():
         raise WriteError(f"--report {report} is a directory; name a file to write (e.g. {report / 'compare.html'})")
@@ -358,7 +360,8 @@ def cli(args: Any) -> int:
     if args.json:
         from offline_adp.data.files import atomic_write_text
 
-        atomic_write_text(args.json, json.dumps(json_safe(res), indent=1, default=float, allow_nan=False), what="comparison")
+        atomic_write_text(args.json, json.dumps(json_safe(res), indent=1, default=float, allow_nan=False),
+                          what="comparison")
         print(args.json)
     from offline_adp.evaluation.compare_report import write_compare_report
 

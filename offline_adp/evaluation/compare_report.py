@@ -196,7 +196,8 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
     cands = res["candidates"]
     sel = res.get("selection")
     parts = ["<h1>Comparison of candidate policies</h1>",
-             f"<p class='sub'>{len(cands)} candidates on {html.escape(_relative(res['dataset']['path'], base))}, ranked by "
+             f"<p class='sub'>{len(cands)} candidates on "
+             f"{html.escape(_relative(res['dataset']['path'], base))}, ranked by "
              f"{html.escape(res['estimator'].upper())}: {html.escape(res.get('method', ''))}. Estimand: "
              f"{html.escape(str(res.get('estimand')))}. Costs are minimised: lower is better.</p>"]
     parts += _compare_summary(res)
@@ -284,21 +285,25 @@ def _candidate_rows(cands: list[dict[str, Any]]) -> list[dict[str, Any]]:
         cls = box.split("class='verdict ", 1)[1].split("'", 1)[0]
         word = box.split("<span class='outcome", 1)[1].split(">", 1)[1].split("<", 1)[0]
         iv = c.get("interval")
-        rows.append({**c, "support": "LEFT the data's support" if c.get("support_left") else "within the data's support",
+        rows.append({**c,
+                     "support": "LEFT the data's support" if c.get("support_left") else "within the data's support",
                      "verdict_html": box, "outcome_html": word, "outcome_class": cls,
-                     "interval_words": f"[{iv[0]:.4g}, {iv[1]:.4g}] ({c.get('level_words') or 'no level'})" if iv else None,
+                     "interval_words": f"[{iv[0]:.4g}, {iv[1]:.4g}] ({c.get('level_words') or 'no level'})" if iv
+                     else None,
                      "fit": c.get("fit") or c.get("fit_verdict")})
     return rows
 
 
 def _ranking_table(rows: list[dict[str, Any]], cands: list[dict[str, Any]]) -> str:
     """The ranking table, each verdict cell in its outcome's colour."""
-    cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval_words", "reliability", "fit", "outcome_html"] + \
+    cols = ["rank", "name", "algorithm", "estimator", "estimate", "interval_words", "reliability", "fit",
+            "outcome_html"] + \
         (["truth", "truth_interval"] if any(c["truth"] is not None for c in cands) else []) + ["support", "shift"]
     table = table_html(rows, cols, "ope", labels=LABELS)
     for r in rows:  # the verdict cell in its outcome's colour
         table = table.replace(f"<td>{html.escape(r['outcome_html'])}</td>",
-                              f"<td class='verdict {r['outcome_class']}'><b>{html.escape(r['outcome_html'])}</b></td>", 1)
+                              f"<td class='verdict {r['outcome_class']}'><b>{html.escape(r['outcome_html'])}</b></td>",
+                              1)
     return table
 
 

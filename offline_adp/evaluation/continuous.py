@@ -250,7 +250,8 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     if LEVEL is None:
         res = replace(res, level=None, warnings=[*res.warnings, "continuous commands: this interval's coverage has not "
                                                  "been measured, so it carries no level (it is not a 95% interval)"])
-    if est_def.form == "finite":  # as the discrete FQE: hulled with the model rollouts where they read the same quantity
+    # as the discrete FQE: hulled with the model rollouts where they read the same quantity
+    if est_def.form == "finite":
         if cfg.model_particles:
             say("model rollouts over commands")
         mr = command_model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=cfg.model_particles,
@@ -276,7 +277,8 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
     fq_d = fq.as_dict()
     if replay["fraction"] is not None and replay["fraction"] > REPLAY_FRACTION and fq_d.get("level") is not None:
         fq_d.update(nominal_level=fq_d["level"], level=None, level_note=(
-            f"the policy commands the very command logged at the state at {replay['fraction']:.0%} of the logged states: "
+            f"the policy commands the very command logged at the state at {replay['fraction']:.0%} of the "
+            "logged states: "
             "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "
             f"value in a new episode; this is not a {fq_d['level']:.0%} interval"))
     a = ds.arrays()

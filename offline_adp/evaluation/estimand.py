@@ -124,7 +124,8 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
         if gamma < 1.0 and gamma**H <= TAIL_NEGLIGIBLE and _stationary_on(policy, a.obs, T):
             tail = gamma**H * c_max / (1.0 - gamma)
             return Estimand(T, gamma, "finite", "stationary", tail,
-                            f"the {H}-step value asked for exceeds the {T} logged steps; gamma^{H} = {gamma**H:.2g}: the "
+                            f"the {H}-step value asked for exceeds the {T} logged steps; gamma^{H} = "
+                            f"{gamma**H:.2g}: the "
                             f"stationary discounted FQE differs from it by at most gamma^{H} max|c| / (1 - gamma) = "
                             f"{tail:.3g}, added to its interval; the trajectory estimators see only {T} steps",
                             target_horizon=H, **where)
@@ -134,15 +135,16 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
     if gamma < 1.0 and gamma**T <= TAIL_NEGLIGIBLE and _stationary_on(policy, a.obs, T):
         tail = gamma**T * c_max / (1.0 - gamma)
         return Estimand(T, gamma, "finite", "stationary", tail,
-                        f"gamma^T = {gamma**T:.2g}: the stationary discounted FQE differs from the {T}-step value by at "
-                        f"most gamma^T max|c| / (1 - gamma) = {tail:.3g}, added to its interval")
+                        f"gamma^T = {gamma**T:.2g}: the stationary discounted FQE differs from the {T}-step "
+                        f"value by at most gamma^T max|c| / (1 - gamma) = {tail:.3g}, added to its interval")
     why = "the policy changes with t" if gamma < 1.0 and gamma**T <= TAIL_NEGLIGIBLE else (
         "undiscounted" if gamma >= 1.0 else f"gamma^T = {gamma**T:.2g} is not negligible")
     return Estimand(T, gamma, "finite", "time-indexed", 0.0, f"time-indexed FQE over the {T} logged steps ({why})",
                     target_horizon=int(target_horizon) if target_horizon is not None else None, **where)
 
 
-def with_possible_range(est_def: Estimand, a: TransitionArrays, em: ope.EpisodeMatrix) -> tuple[Estimand, tuple[float, float]]:
+def with_possible_range(est_def: Estimand, a: TransitionArrays,
+                        em: ope.EpisodeMatrix) -> tuple[Estimand, tuple[float, float]]:
     """The range the estimand's value can take, from the logged costs ``[c_lo, c_hi]`` (with 0
     when episodes stop early: they add 0 from then on): ``[c_lo, c_hi] sum_{t<T} gamma^t``
     (``1 / (1 - gamma)`` for the infinite-horizon value). Returns the estimand with its

@@ -56,7 +56,8 @@ def convergence_figure(figs: Figures, run: Path) -> None:
         return
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.6))
-    for c, lab in (("sup_dq", "sup |Q_k - Q_{k-1}|"), ("mean_dq", "mean |Q_k - Q_{k-1}|"), ("bellman_residual", "Bellman residual (RMS)")):
+    for c, lab in (("sup_dq", "sup |Q_k - Q_{k-1}|"), ("mean_dq", "mean |Q_k - Q_{k-1}|"),
+                   ("bellman_residual", "Bellman residual (RMS)")):
         if c in h and h[c].notna().any():
             ax.plot(h["iteration"], h[c].abs(), marker=".", label=lab)
     rebuilt = []
@@ -76,7 +77,8 @@ def convergence_figure(figs: Figures, run: Path) -> None:
     figs.save(fig, "convergence", caption)
 
 
-def _grid(ratios: pd.DataFrame, features: list[str], axes: tuple[str, str], n: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _grid(ratios: pd.DataFrame, features: list[str], axes: tuple[str, str],
+          n: int = 60) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     xa, ya = axes
     lo = ratios[[xa, ya]].quantile(0.01).to_numpy()
     hi = ratios[[xa, ya]].quantile(0.99).to_numpy()
@@ -202,7 +204,8 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
                + (f" Dashed, without a level: {', '.join(nolevel)}"
                   + (f" ({shown[0]['level_note']})" if shown[0].get("level_note") else "") + "." if nolevel else ""))
     if bad:
-        caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} ({e['reason']})" for e in bad) + "."
+        caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} "
+                                                                  f"({e['reason']})" for e in bad) + "."
     figs.save(fig, "ope", caption)
 
 
@@ -251,7 +254,8 @@ def ratios_figure(figs: Figures, m: dict[str, Any], headline_method: str) -> Non
     head = {"classifier": "the classifier's (simulator)", "recursion": "the logs-only recursion's",
             "pooled": "the ratios pooled over time (dashed line; the per-step recursion has too few states per step)",
             "none": "none (too few states per step, and the policy is not stationary, so nothing is pooled)"}
-    figs.save(fig, "ratios", "Density ratios mu_pi^t / mu_data^t per step. Left: effective sample size by every method; "
+    figs.save(fig, "ratios",
+              "Density ratios mu_pi^t / mu_data^t per step. Left: effective sample size by every method; "
               f"the headline quotes {head.get(headline_method, headline_method)}. The logs-only recursion shrinks "
               "towards 1 where a step has few states. Right: quantiles and max of the "
               f"{names.get(shown, shown)} ratios at single data states, and the max over regions of at least 20 "
@@ -275,7 +279,8 @@ def coverage_figure(figs: Figures, run: Path, ratios: pd.DataFrame, features: li
         with np.load(st) as z:
             xs = np.concatenate([z[k] for k in z.files])
         xs = xs[rng.permutation(len(xs))[:5000]]
-        a1.scatter(xs[:, features.index(xa)], xs[:, features.index(ya)], s=2, alpha=0.4, color="k", label="policy (simulator)")
+        a1.scatter(xs[:, features.index(xa)], xs[:, features.index(ya)], s=2, alpha=0.4, color="k",
+                   label="policy (simulator)")
     a1.set_xlabel(_label(xa, units))
     a1.set_ylabel(_label(ya, units))
     a1.set_title("Where the data and the policy go" if simulated else "Where the data go (no simulator: the policy's "
@@ -287,7 +292,8 @@ def coverage_figure(figs: Figures, run: Path, ratios: pd.DataFrame, features: li
     a2.set_xlabel(_label(xa, units))
     a2.set_ylabel(_label(ya, units))
     a2.set_title("Coverage: density ratio at the data's states ("
-                  + {"w_classifier": "classifier", "w_pooled": "pooled over time"}.get(wcol, "recursion") + ")", fontsize=10)
+                  + {"w_classifier": "classifier", "w_pooled": "pooled over time"}.get(wcol, "recursion") + ")",
+                  fontsize=10)
     method = {"w_classifier": "classifier ratios from the simulator's rollouts", "w_pooled": "ratios pooled over time, "
               "from the logs alone"}.get(wcol, "the ratio recursion, from the logs alone")
     left = ("data by source with the policy's simulated states (left)" if simulated else
@@ -312,7 +318,8 @@ def sources_figure(figs: Figures, m: dict[str, Any]) -> None:
               "(data re-weighted by the density ratios).")
 
 
-def traced_figure(figs: Figures, run: Path, features: list[str], traced: dict[str, str], dt: float | None, sim: str) -> None:
+def traced_figure(figs: Figures, run: Path, features: list[str], traced: dict[str, str], dt: float | None,
+                  sim: str) -> None:
     """Per feature the problem traces (``ReferenceProblem.traced_features``): its mean
     absolute value over rollout time, learned policy vs demonstrator."""
     plt = pyplot()
@@ -369,7 +376,8 @@ def distribution_figure(figs: Figures, dists: dict[str, tuple[str, dict[str, Any
     ax.set_title("Episode-cost distributions (lower is better)", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(alpha=0.3)
-    figs.save(fig, name, caption or (f"Distribution of the episode cost. Dot: the mean; thick bar at the top: CVaR_{alpha:g}"
+    figs.save(fig, name,
+              caption or (f"Distribution of the episode cost. Dot: the mean; thick bar at the top: CVaR_{alpha:g}"
                                      f", the mean of the worst {alpha:.0%} of episodes (dotted line: where that tail "
                                      "starts)."))
 
@@ -385,10 +393,11 @@ def cost_distribution_figure(figs: Figures, m: dict[str, Any]) -> None:
     missing = "" if "policy_rollouts" in dists or "policy_logs" in dists else (
         " The policy's own distribution is not shown: no simulator was used and its importance weights on these logs "
         "are not usable (see the table below), so the logs cannot tell it.")
-    distribution_figure(figs, dists, f"episode cost sum_t gamma^t c_t over {est.get('horizon', m.get('horizon'))} steps",
-                        caption=f"Distribution of the episode cost (the estimand per episode). Dot: the mean; thick bar "
-                                f"at the top: CVaR_{a:g}, the mean of the worst {a:.0%} of episodes (dotted line: where "
-                                "that tail starts)." + missing)
+    distribution_figure(figs, dists,
+                        f"episode cost sum_t gamma^t c_t over {est.get('horizon', m.get('horizon'))} steps",
+                        caption="Distribution of the episode cost (the estimand per episode). Dot: the "
+                        f"mean; thick bar at the top: CVaR_{a:g}, the mean of the worst {a:.0%} of episodes (dotted "
+                                "line: where that tail starts)." + missing)
 
 
 def command_figures(figs: Figures, policy: Any, ratios: pd.DataFrame, features: list[str], axes: tuple[str, str] | None,

@@ -334,7 +334,8 @@ def widen_fqe(fq: OPEResult, mr: dict[str, Any], hull: bool = True) -> OPEResult
     if "skipped" in mr:
         return out
     if mr["exit_mass"] >= EXIT_FRACTION:
-        out = replace(out, warnings=[*out.warnings, f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} "
+        out = replace(out, warnings=[*out.warnings,
+                                     f"the policy drives where the logs do not go: {mr['exit_mass']:.0%} "
                                      "of its discounted model-rollout mass lies past the logged states (an expected "
                                      f"{mr['exit_share']:.0%} of its episodes get there)"])
     if not hull:
@@ -358,7 +359,8 @@ def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, part
     ``particles=0`` says they were turned off (so metrics.json tells "turned off" from "not a feature")."""
     if not particles:
         return {"skipped": "model_particles=0: model rollouts turned off"}
-    return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed, arrays=a)
+    return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed,
+                          arrays=a)
 
 
 def with_rough_note(fq: OPEResult, n_reps: int) -> OPEResult:

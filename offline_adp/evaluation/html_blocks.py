@@ -16,7 +16,8 @@ from offline_adp.evaluation.figures import Figures
 
 #: Human column labels for the report's tables.
 LABELS = {
-    "estimator": "estimator", "estimate": "estimate", "interval": "interval (its level)", "interval_method": "interval method",
+    "estimator": "estimator", "estimate": "estimate", "interval": "interval (its level)",
+    "interval_method": "interval method",
     "ess": "effective sample size (episodes)", "rollout_error": "error vs simulator truth", "warnings": "warnings",
     "step": "step t", "n": "data states", "ess_fraction": "ESS / n", "tv": "total variation", "q50": "median ratio",
     "q90": "90% quantile", "q99": "99% quantile", "max": "max ratio", "supported_sup": "supported max",
@@ -72,14 +73,14 @@ STYLE = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:auto;pad
          ".outcome{display:inline-block;font-weight:700;text-transform:uppercase;letter-spacing:.04em;color:#fff;"
          "padding:.05em .5em;border-radius:3px;margin-right:.5em;font-size:13px}"
          ".outcome.good{background:#2e7d32}.outcome.bad{background:#c62828}.outcome.meh{background:#b58900}"
-         ".outcome.stale{background:#7b1fa2}"
-         "details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
+         ".outcome.stale{background:#7b1fa2}details{margin:.5em 0}summary{cursor:pointer;font-weight:600}"
          "table.ope td{max-width:360px}")
 
 
 def page(title: str, parts: list[str]) -> str:
     """A self-contained HTML page: ``title`` and the HTML fragments ``parts`` with :data:`STYLE`."""
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{STYLE}</style>"
+    return ("<!DOCTYPE html><html><head><meta "
+            f"charset='utf-8'><title>{html.escape(title)}</title><style>{STYLE}</style>"
             f"</head><body>{''.join(parts)}</body></html>")
 
 
@@ -125,7 +126,8 @@ def warning_items(ws: list[Any]) -> str:
     out = []
     for w in ws:
         if isinstance(w, dict):
-            out.append(f"<li><b>{html.escape(str(w.get('source', '')))}</b>: {html.escape(str(w.get('message', '')))}</li>")
+            out.append(f"<li><b>{html.escape(str(w.get('source', '')))}</b>: "
+                       f"{html.escape(str(w.get('message', '')))}</li>")
         else:
             out.append(f"<li>{html.escape(str(w))}</li>")
     return "".join(out)

@@ -128,7 +128,8 @@ def _ess(w: np.ndarray) -> float:
     return float(np.sum(w) ** 2 / s2) if s2 > 0 else 0.0
 
 
-def _bootstrap(fn: Callable[[np.ndarray], float], n: int, n_boot: int, level: float, rng: np.random.Generator) -> tuple[float, float]:
+def _bootstrap(fn: Callable[[np.ndarray], float], n: int, n_boot: int, level: float,
+               rng: np.random.Generator) -> tuple[float, float]:
     if n_boot <= 0 or n < 2:
         return (float("nan"), float("nan"))
     reps = np.array([fn(rng.integers(0, n, n)) for _ in range(n_boot)])
@@ -378,7 +379,8 @@ def marginalised_is_estimate(
 
     rng = np.random.default_rng(seed)
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
-    res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess, level)
+    res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess,
+                    level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
     _judge_weights(res, Wt, groups)
     return res

@@ -84,7 +84,8 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     actions: dict[str, Any] = {}
     if info_path.exists():
         info = read_info(info_path.parent.parent)
-        units.update({f["name"]: f["unit"] for f in info.get("features", []) if f.get("unit")})  # never blank a fallback
+        # never blank a fallback
+        units.update({f["name"]: f["unit"] for f in info.get("features", []) if f.get("unit")})
         problem = problem or info.get("problem") or ""
         from offline_adp.data.info import DatasetInfo
 
@@ -237,7 +238,8 @@ def cost_distribution_section(m: dict[str, Any]) -> list[str]:
             f"CVaR_{a:g} is the mean of the worst {a:.0%} of episodes (costs are minimised: the highest costs). "
             "From the logs alone, the policy's distribution is the logged episodes re-weighted by their importance "
             "weights, given only where those weights are usable.</p>",
-            table_html(distribution_rows(cd), ["distribution", "episodes", "mean", "median", "q90", "cvar", "max", "note"],
+            table_html(distribution_rows(cd), ["distribution", "episodes", "mean", "median", "q90", "cvar", "max",
+                                               "note"],
                        labels=labels)]
 
 
@@ -271,8 +273,9 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
        " (lower is better)")
     if b is not None:
         lo, hi = b["interval"]
-        caveat = "" if lo <= b["estimate"] <= hi else (" &mdash; <b>the interval excludes the estimate</b>: its bootstrap "
-                                                      "replicates are shifted, treat the interval as unreliable")
+        caveat = "" if lo <= b["estimate"] <= hi else (" &mdash; <b>the interval excludes the estimate</b>: its "
+                                                       "bootstrap replicates are shifted, treat the interval as "
+                                                       "unreliable")
         corrected = (f"; bias-corrected by the bootstrap (plug-in estimate {b['plugin_estimate']:.4g}, its replicates "
                      "shifted away from it)" if b.get("plugin_estimate") is not None else "")
         x = model_reading(m, b["name"])
@@ -293,8 +296,9 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
                f"{html.escape(top['reason'])}" if top else "none: no estimator is usable on these logs (see below)")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
-        vs = f" vs demonstrator {d['mean_discounted_cost']:.4g}" if d is not None else " (no demonstrator to compare with)"
-        kv("Simulator truth", f"policy {p['mean_discounted_cost']:.4g} [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]{vs} "
+        vs = " (no demonstrator to compare with)" if d is None else f" vs demonstrator {d['mean_discounted_cost']:.4g}"
+        kv("Simulator truth",
+           f"policy {p['mean_discounted_cost']:.4g} [{p['interval'][0]:.4g}, {p['interval'][1]:.4g}]{vs} "
            f"({html.escape(str(m.get('simulator')))}, {p['n_episodes']} episodes)")
     else:
         kv("Simulator", html.escape(m.get("simulator_note") or "none used"))
@@ -366,7 +370,8 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     parts += psdp_section(m, h)
     parts += cost_distribution_section(m)
     parts += ["<h2>Per source</h2>", table_html([{"source": k, **v} for k, v in m["per_source"].items()],
-                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost", "data_mass",
+                                          ["source", "episodes", "transitions", "logged_mean_discounted_cost",
+                                           "data_mass",
                                            "policy_mass", "mean_ratio"])]
     if m.get("warnings"):
         parts += ["<h2 id='warnings'>Evaluation warnings</h2>", "<ul>" + warning_items(m["warnings"]) + "</ul>"]
@@ -388,7 +393,8 @@ def _estimate_rows(m: dict[str, Any], h: dict[str, Any]
         iv = e["interval"] or e.get("shown_interval")
         shown = f"[{iv[0]:.4g}, {iv[1]:.4g}] ({level_words(e)})" if iv else None
         return {"rank": e["rank"], "estimator": e["label"], "estimate": e["estimate"], "interval": shown,
-                "interval_method": r.get("interval_method"), "ess": r.get("ess"), "rollout_error": r.get("rollout_error"),
+                "interval_method": r.get("interval_method"), "ess": r.get("ess"),
+                "rollout_error": r.get("rollout_error"),
                 "reason": e["reason"] or "", "warnings": r.get("warnings") or []}
 
     cols = ["rank", "estimator", "estimate", "interval", "interval_method", "ess"] + \

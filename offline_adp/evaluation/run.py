@@ -57,7 +57,8 @@ def _per_source(ds: TransitionDataset, w: np.ndarray, gamma: float) -> dict[str,
         m = src == s
         eps = np.unique(a.episode[m])
         per_ep = np.bincount(a.episode[m], weights=disc_cost[m], minlength=int(a.episode.max()) + 1)[eps]
-        out[s] = {"episodes": int(len(eps)), "transitions": int(m.sum()), "logged_mean_discounted_cost": float(per_ep.mean()),
+        out[s] = {"episodes": int(len(eps)), "transitions": int(m.sum()),
+                  "logged_mean_discounted_cost": float(per_ep.mean()),
                   "mean_ratio": float(w[m].mean()), "policy_mass": float(w[m].sum() / max(w.sum(), 1e-300)),
                   "data_mass": float(m.mean())}
     return out
@@ -119,8 +120,8 @@ def evaluate_run(
     capped by the dataset's horizon). With a gymnasium simulator (``gym:ENV_ID``) T is the
     environment's own horizon instead (its registered ``max_episode_steps`` unless
     ``horizon`` is given), the rollouts start from ``env.reset()`` and the estimand says so;
-    estimators that see only the shorter logged horizon are marked ``comparable=False``. ``estimand`` is ``"finite"`` (the T-step value the
-    rollouts measure) or ``"infinite"`` (FQE only; see
+    estimators that see only the shorter logged horizon are marked ``comparable=False``. ``estimand`` is ``"finite"``
+    (the T-step value the rollouts measure) or ``"infinite"`` (FQE only; see
     :func:`offline_adp.evaluation.offpolicy.declare_estimand`). ``fqe_bootstrap`` None: the
     default replicate count (:func:`offline_adp.evaluation.offpolicy.fqe_replicates`).
     ``model_particles``: particles of the model rollouts of the logs (0: none; see
@@ -140,7 +141,8 @@ def evaluate_run(
         metrics, res, states, demo_states = evaluation_metrics(
             ds, policy, problem, cfg, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
             progress=say, task_map=task_map, run_dir=run)
-        say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")  # no timings in metrics.json: it is deterministic
+        # no timings in metrics.json: it is deterministic
+        say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")
         _write(run, metrics, res, ds, states, demo_states)
         return metrics
 
@@ -153,7 +155,8 @@ def _run_and_dataset(run: Path, dataset: str | PathLike[str] | None) -> tuple[di
     info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
     ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
     if not (ds_path / "meta" / "info.json").exists():
-        raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass --dataset DIR")
+        raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass "
+                                   "--dataset DIR")
     return info, ds_path
 
 
@@ -233,7 +236,8 @@ def evaluation_metrics(
 def _metrics_head(ds: TransitionDataset, cfg: EvaluationSettings, ds_path: str | PathLike[str] | None,
                   algorithm: str | None, sim_name: str | None, note: str | None) -> dict[str, Any]:
     """The metrics' first keys: the dataset, algorithm, simulator, seed, settings, and the note on the simulator."""
-    metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path), "fingerprint": ds.fingerprint(),
+    metrics: dict[str, Any] = {"dataset": {"path": None if ds_path is None else str(ds_path),
+                                           "fingerprint": ds.fingerprint(),
                                            "transitions": len(ds), "episodes": len(ds.episode_ids),
                                            "sources": ds.source_counts()},
                                "algorithm": algorithm, "simulator": sim_name, "seed": cfg.seed, "warnings": [],
@@ -400,7 +404,8 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
     extra: dict[str, Any] = {"per_step_counts": [int(c) for c in res.per_step_counts],
                              "min_states_per_step": MIN_STATES_PER_STEP, "behaviour_value": res.behaviour_value}
     if res.pooled is not None:
-        extra["pooled_shift"] = {**res.pooled[1], "method": "ratio recursion pooled over time (stationary approximation)",
+        extra["pooled_shift"] = {**res.pooled[1],
+                                 "method": "ratio recursion pooled over time (stationary approximation)",
                                  "warnings": res.pooled[0].warnings}
     return {
         "estimand": res.estimand.as_dict(),
@@ -415,7 +420,8 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
                        "ess_fraction": float(worst["ess_fraction"].min())},
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
-                       "eps_method": res.eps_note or (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
+                       "eps_method": res.eps_note
+                       or (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "
                                       "the policy's advantage deficit measured on the held-out fold's states")
                        if res.eps_folds else "in sample (FQE fitted on all the data; 0 for a policy greedy in it)",
                        "eps_in_sample": None if res.eps_in_sample is None else res.eps_in_sample.tolist(),
@@ -460,7 +466,8 @@ def _write_files(tmp: Path, metrics: dict[str, Any], res: OffPolicyResult, ds: T
     extra = {"w_classifier": res.extra_ratios["classifier"][0].w} if "classifier" in res.extra_ratios else {}
     if res.pooled is not None:
         extra["w_pooled"] = res.pooled[0].w
-    pq.write_table(pa.table({**cols, "step": a.step, "source": src, "w": res.ratios.w, **extra}), tmp / "ratios.parquet")
+    pq.write_table(pa.table({**cols, "step": a.step, "source": src, "w": res.ratios.w, **extra}),
+                   tmp / "ratios.parquet")
     if states is not None:
         np.savez_compressed(tmp / "rollout_states.npz", **{f"t{t}": s for t, s in enumerate(states)})
     if demo_states is not None:

@@ -23,7 +23,8 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     if getattr(policy, "continuous", False):
         return _check_same_commands(run, info, ds, ds_path)
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
-        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has {ds.n_actions} "
+        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has "
+                                f"{ds.n_actions} "
                               f"(action table {values}); evaluate or compare runs on data with the action table "
                               "they were fitted on")
     own = info.get("dataset")
@@ -37,11 +38,13 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     fitted = DatasetInfo.from_dict(read_info(own), where=str(Path(own) / "meta" / "info.json"))
     theirs = fitted.action_table.values
     if theirs.shape != ds.info.action_table.values.shape or not np.allclose(theirs, ds.info.action_table.values):
-        raise IncompatibleError(f"{run}: fitted on {own} with the action table {short_list(theirs.ravel().tolist())}, but the dataset "
+        raise IncompatibleError(f"{run}: fitted on {own} with the action table {short_list(theirs.ravel().tolist())}, "
+                                "but the dataset "
                               f"{ds_path} has {values}; evaluate or compare runs on data with the same action table")
     if list(fitted.feature_names) != list(ds.feature_names):
         raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
-                              f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the same features")
+                              f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the "
+                              "same features")
 
 
 def _fitted_info(info: dict[str, Any]) -> Any:

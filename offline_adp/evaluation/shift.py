@@ -73,7 +73,8 @@ def policy_table(policy: Policy, n_states: int, horizon: int) -> np.ndarray:
 
 def exact_distributions(model: FullModel, policy: Policy, horizon: int) -> np.ndarray:
     """Exact ``mu_t`` of ``policy`` on a full model, shape (T + 1, S); each row sums to 1."""
-    return dp.state_distributions(model.P, policy_table(policy, model.n_states, horizon), model.initial_distribution, horizon)
+    return dp.state_distributions(model.P, policy_table(policy, model.n_states, horizon), model.initial_distribution,
+                                  horizon)
 
 
 def exact_ratios(model: FullModel, policy: Policy, behaviour: Policy, horizon: int) -> np.ndarray:
@@ -158,7 +159,8 @@ def ratios_by_recursion(
             w_next = np.ones(len(there))
         w[there] = _normalise(w_next)
     if thin:
-        warnings.append(f"{len(thin)} steps have fewer than 500 samples (as few as {int(min(np.sum(step == t) for t in thin))}): "
+        warnings.append(f"{len(thin)} steps have fewer than 500 samples (as few as "
+                        f"{int(min(np.sum(step == t) for t in thin))}): "
                         "the per-step regressions shrink the ratios towards 1, so these diagnostics are optimistic; "
                         "with a simulator prefer the classifier ratios")
     return DensityRatios("recursion", w, step.copy(), warnings=warnings)

@@ -150,13 +150,16 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
         if r.get("degenerate"):
             ess = r.get("ess")
-            reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})" if _is_finite_number(ess) else ""))
+            reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})"
+                                                              if _is_finite_number(ess) else ""))
         if r.get("comparable") is False:
             reasons.append("estimates another quantity than the one asked for")
         tier = 2 if reasons else (0 if has_iv else 1)
-        if tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]) and r.get("level_note"):  # level withdrawn (support left)
+        # level withdrawn (support left)
+        if tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]) and r.get("level_note"):
             reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] carries no level: {r['level_note']}")
-        elif tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]):  # an interval without a level: shown, never quoted
+        # an interval without a level: shown, never quoted
+        elif tier == 1 and _is_finite_number(iv[0]) and _is_finite_number(iv[1]):
             reasons.append(f"its interval [{iv[0]:.4g}, {iv[1]:.4g}] has no measured coverage (no level)")
         elif tier == 1:
             reasons.append(r.get("interval_method", "no interval"))
@@ -186,7 +189,8 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
             unc = float(d["uncovered"].max()) if "uncovered" in d else 0.0
             text = (f"classifier ratios (simulator): worst-step ESS/n {d.loc[i, 'ess_fraction']:.3f} at t = "
                     f"{int(d.loc[i, 'step'])}; AUC > {AUC_SEPARABLE} at {sep} of {len(d)} steps")
-            return {"method": "classifier", "ess_fraction": float(d.loc[i, "ess_fraction"]), "step": int(d.loc[i, "step"]),
+            return {"method": "classifier", "ess_fraction": float(d.loc[i, "ess_fraction"]),
+                    "step": int(d.loc[i, "step"]),
                     "separable_steps": sep, "n_steps": int(len(d)), "max_uncovered": unc, "text": text,
                     "enough_data": True}
     counts = m.get("per_step_counts")
@@ -277,7 +281,8 @@ def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[st
     ope = {}
     for k, r in m["ope"].items():
         if r.get("level") is not None:
-            r = {**r, "nominal_level": r["level"], "level": None, "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
+            r = {**r, "nominal_level": r["level"], "level": None,
+                 "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
         ope[k] = r
     return {**m, "ope": ope}
 
@@ -322,7 +327,8 @@ def discount_note(m: dict[str, Any]) -> str | None:
     fit, ev = d.get("fit"), d.get("evaluation")
     if not (_is_finite_number(fit) and _is_finite_number(ev)) or abs(fit - ev) <= 1e-12:
         return None
-    return (f"the policy was fitted with gamma {fit:g}, the evaluation uses gamma {ev:g} ({d.get('evaluation_source', 'the dataset')}): "
+    return (f"the policy was fitted with gamma {fit:g}, the evaluation uses gamma {ev:g} "
+            f"({d.get('evaluation_source', 'the dataset')}): "
             f"its values are judged by another objective than the one it optimised")
 
 
@@ -364,7 +370,9 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         lines.append(f"estimand: {m['estimand']['quantity']}")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
-        cost = f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}]"
+        cost = (
+            f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}]"
+        )
         if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
             lines.append(f"{cost}; {m['rollout'].get('note', 'no demonstrator to compare with')}")
         else:
@@ -383,7 +391,8 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         outside = lo is not None and hi is not None and not lo - tol <= top["estimate"] <= hi + tol
         label = level_words(top)
         lines.append(f"off-policy ({top['name'].upper()}, most reliable): {_f(top['estimate'])} [{_f(lo)}, {_f(hi)}] "
-                     f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None else "")
+                     f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None
+                                    else "")
                      + ")"
                      + (" (the interval excludes the estimate: its bootstrap replicates are shifted, so treat the "
                         "interval as unreliable)" if outside else "")

@@ -132,7 +132,8 @@ def demonstrator_side(m: dict[str, Any]) -> dict[str, Any] | None:
     return out
 
 
-def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[str, Any],
+                 conv: dict[str, Any]) -> dict[str, Any]:
     """Better or worse than the behaviour, only when the evidence behind it holds.
 
     The logs alone say "better" or "worse" only when the most reliable estimator has an
@@ -185,10 +186,11 @@ def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -
         support = "stays within the data's support"
     elif logs_show:
         support = (f"stays within the data's support as far as the logs show (actions the data rarely took at "
-                   f"{sv:.1%} of the data's states; {mr['exit_mass']:.1%} of the discounted mass of model rollouts of the "
-                   "logs past the logged states)")
+                   f"{sv:.1%} of the data's states; {mr['exit_mass']:.1%} of the discounted mass of model "
+                   "rollouts of the logs past the logged states)")
     else:
-        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})" if _is_finite_number(sv) else "")
+        support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})"
+                                                            if _is_finite_number(sv) else "")
     return support, logs_show
 
 

@@ -58,6 +58,7 @@ if __name__ == "__main__":
             warnings.simplefilter("always")
             errors, corner, f = run(reg, **params)
         print(f"{reg:>12}: max|V - J*| at iterations 1, 20, 40, 60, 80: "
-              + ", ".join(f"{errors[k]:.2f}" for k in (0, 19, 39, 59, 79)) + f"; V(0, 0) at 40: {corner[39]:.2f} (J* = 20)")
+              + ", ".join(f"{errors[k]:.2f}" for k in (0, 19, 39, 59,
+                                                       79)) + f"; V(0, 0) at 40: {corner[39]:.2f} (J* = 20)")
         for c in caught:
             print(f"{'':>14}{c.category.__name__}: {c.message}")

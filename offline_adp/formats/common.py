@@ -46,7 +46,8 @@ def short_list(items: Any, k: int = 8) -> str:
 def _columns(ds: TransitionDataset) -> dict[str, Any]:
     a = ds.arrays()
     out = {"obs": a.obs, "next_obs": a.next_obs, "action": a.action.astype(np.int64), "cost": a.cost,
-           "terminated": a.terminated.astype(bool), "truncated": a.truncated.astype(bool), "step": a.step.astype(np.int64),
+           "terminated": a.terminated.astype(bool), "truncated": a.truncated.astype(bool),
+           "step": a.step.astype(np.int64),
            "episode_id": ds.column("episode_id").astype(str), "source": ds.column("source").astype(str),
            "behavior_prob": a.behavior_prob}
     out["t_ns"] = ds.column("t_ns").astype(np.int64) if "t_ns" in ds.table.column_names else None
@@ -79,8 +80,10 @@ def _finite_floats(a: np.ndarray, where: str, field: str) -> np.ndarray:
     bad = ~np.isfinite(v)
     if bad.any():
         i = int(np.argmax(bad.reshape(len(v), -1).any(axis=1)))
-        raise IngestError(f"{where}: {field}: row {i}: value {v[i].tolist() if v.ndim > 1 else float(v[i])!r} is NaN or "
-                          f"infinite ({int(bad.reshape(len(v), -1).any(axis=1).sum())} rows); the format stores finite values")
+        raise IngestError(f"{where}: {field}: row {i}: value "
+                          f"{v[i].tolist() if v.ndim > 1 else float(v[i])!r} is NaN or "
+                          f"infinite ({int(bad.reshape(len(v), -1).any(axis=1).sum())} rows); the format stores "
+                          "finite values")
     return v
 
 
@@ -133,7 +136,8 @@ def _action_indices(values: np.ndarray, table: ActionTable, where: str) -> np.nd
     vals = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
     tv = table.values
     if vals.shape[1] != tv.shape[1]:
-        raise IngestError(f"{where}: actions have {vals.shape[1]} components, the action table {tv.shape[1]} {list(table.dims)}")
+        raise IngestError(f"{where}: actions have {vals.shape[1]} components, the action table {tv.shape[1]} "
+                          f"{list(table.dims)}")
     uniq, inv = np.unique(vals, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     pos = np.full(len(uniq), -1, np.int64)
@@ -145,8 +149,8 @@ def _action_indices(values: np.ndarray, table: ActionTable, where: str) -> np.nd
     if (idx < 0).any():
         i = int(np.argmax(idx < 0))
         raise IngestError(f"{where}: actions: row {i}: action {vals[i].tolist()} is not in the action table "
-                          f"{short_list(tv.tolist())} ({int((idx < 0).sum())} rows); pass action_table=, or bin continuous "
-                          "actions with an ingestion spec")
+                          f"{short_list(tv.tolist())} ({int((idx < 0).sum())} rows); pass action_table=, or "
+                          "bin continuous actions with an ingestion spec")
     return idx
 
 
@@ -186,7 +190,8 @@ def _binned(vals: np.ndarray, where: str) -> tuple[np.ndarray, ActionTable]:
         if len(edges) < 2:
             edges = np.array([col.min() - 0.5, col.max() + 0.5])
         m = len(edges) - 1
-        per.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, m - 1), (edges[:-1] + edges[1:]) / 2, edges))
+        per.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, m - 1), (edges[:-1] + edges[1:]) / 2,
+                    edges))
     shape = tuple(len(c) for _, c, _ in per)
     idx = np.ravel_multi_index(tuple(i for i, _, _ in per), shape) if n else np.zeros(0, np.int64)
     cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
@@ -200,7 +205,8 @@ def _binned(vals: np.ndarray, where: str) -> tuple[np.ndarray, ActionTable]:
     names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
     from offline_adp.data.info import Action
 
-    table = ActionTable(actions=tuple(Action(nm, tuple(float(x) for x in v)) for nm, v in zip(names, value, strict=True)),
+    table = ActionTable(actions=tuple(Action(nm,
+                                             tuple(float(x) for x in v)) for nm, v in zip(names, value, strict=True)),
                         dims=dims, kind="binned", bin_edges=tuple(float(e) for e in per[0][2]) if k == 1 else None)
     return idx.astype(np.int64), table
 
@@ -280,7 +286,8 @@ def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray
         size = st.st_size
         # per member: deflate's own limit (~1032x; long runs of false flags compress that
         # well); the total is bounded below against the file size
-        members = C.check_npz(p, max_expansion=1100, name_pattern=re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*\.npy$"))
+        members = C.check_npz(p, max_expansion=1100,
+                              name_pattern=re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*\.npy$"))
     except FileNotFoundError:
         raise IngestError(f"{p}: no such file") from None
     except OfflineADPError as exc:
@@ -300,4 +307,5 @@ def _load_npz(path: str | PathLike[str], max_bytes: int) -> dict[str, np.ndarray
 
 
 def _episode_bounds(ep_codes: np.ndarray) -> np.ndarray:
-    return np.r_[np.flatnonzero(np.r_[True, ep_codes[1:] != ep_codes[:-1]]), len(ep_codes)] if len(ep_codes) else np.zeros(1, int)
+    return np.r_[np.flatnonzero(np.r_[True, ep_codes[1:] != ep_codes[:-1]]),
+                 len(ep_codes)] if len(ep_codes) else np.zeros(1, int)

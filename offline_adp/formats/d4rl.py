@@ -114,7 +114,8 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
         try:
             info = DatasetInfo.from_dict(json.loads(str(meta.reshape(()))), where=f"{where}:{META_KEY}")
         except (json.JSONDecodeError, RecursionError, TypeError, AttributeError) as exc:
-            raise IngestError(f"{where}: {META_KEY}: not a dataset info.json ({type(exc).__name__}: {str(exc)[:200]})") from None
+            raise IngestError(f"{where}: {META_KEY}: not a dataset info.json ({type(exc).__name__}: "
+                              f"{str(exc)[:200]})") from None
     extra: dict[str, np.ndarray] = {}
     idx0: np.ndarray | None = None
     if info is None:
@@ -124,10 +125,14 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
             idx0, table, extra = _encode_actions(act_vals, where)
         info = _default_info(obs.shape[1], table, feature_names, name)
     if len(info.features) != obs.shape[1]:
-        raise IngestError(f"{where}: observations have {obs.shape[1]} columns, the metadata names {len(info.features)} features")
-    if not extra and info.action_table.kind in ("binned", "continuous") and act_vals.shape[1] == len(info.action_table.dims):
+        raise IngestError(f"{where}: observations have {obs.shape[1]} columns, the metadata names "
+                          f"{len(info.features)} features")
+    if not extra and info.action_table.kind in ("binned",
+                                                "continuous") and act_vals.shape[1] == len(info.action_table.dims):
         # binned commands: the logged values are the exact commands (what to_d4rl writes)
-        extra = {ACTION_VALUE + dname: np.ascontiguousarray(act_vals[:, j]) for j, dname in enumerate(info.action_table.dims)}
+        extra = {
+            ACTION_VALUE + dname: np.ascontiguousarray(act_vals[:, j]) for j, dname in enumerate(info.action_table.dims)
+        }
     if "infos/action_index" in arrays:
         action = _integers(arrays["infos/action_index"], where, "infos/action_index", n, 0, info.n_actions - 1,
                            f"indices into the {info.n_actions}-action table")
@@ -138,14 +143,16 @@ def from_d4rl(data: Mapping[str, Any] | str | PathLike[str], info: DatasetInfo |
     if "infos/episode_id" in arrays:
         ep_raw = np.asarray(arrays["infos/episode_id"])
         if ep_raw.dtype.kind not in "Uiu" or ep_raw.shape != (n,):
-            raise IngestError(f"{where}: infos/episode_id: {ep_raw.dtype} {ep_raw.shape} where ({n},) strings or integers are required")
+            raise IngestError(f"{where}: infos/episode_id: {ep_raw.dtype} {ep_raw.shape} where ({n},) strings or "
+                              "integers are required")
         ep = ep_raw.astype(str)
         new_ep = np.r_[True, ep[1:] != ep[:-1]] if n else np.zeros(0, bool)
     else:
         new_ep = np.r_[True, (term | tout)[:-1]] if n else np.zeros(0, bool)
         ep = np.char.add(f"{name}-", np.char.zfill((np.cumsum(new_ep) - 1).astype(str), 6))
     if "infos/step" in arrays:
-        step = _integers(arrays["infos/step"], where, "infos/step", n, 0, _INT32_MAX, "steps are stored as int32 from 0")
+        step = _integers(arrays["infos/step"], where, "infos/step", n, 0, _INT32_MAX,
+                         "steps are stored as int32 from 0")
     else:
         step = np.arange(n) - np.flatnonzero(new_ep)[np.cumsum(new_ep) - 1] if n else np.zeros(0, np.int64)
     last = np.r_[new_ep[1:], True] if n else np.zeros(0, bool)

@@ -92,7 +92,8 @@ def to_lerobot(ds: TransitionDataset, root: str | PathLike[str], *, fps: float |
         (meta / "tasks.jsonl").write_text(json.dumps({"task_index": 0, "task": task}) + "\n")
         n_ep = len(bounds) - 1
         info = {"codebase_version": "v2.1", "robot_type": robot_type, "total_episodes": n_ep, "total_frames": n,
-                "total_tasks": 1, "total_videos": 0, "total_chunks": (n_ep + chunks - 1) // chunks, "chunks_size": chunks,
+                "total_tasks": 1, "total_videos": 0, "total_chunks": (n_ep + chunks - 1) // chunks,
+                "chunks_size": chunks,
                 "fps": fps, "splits": {"train": f"0:{n_ep}"},
                 "data_path": "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet", "video_path": None,
                 "features": feats, "offline_adp": json.loads(ds.info.to_json())}

@@ -63,8 +63,8 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
     gap = np.flatnonzero(inner[:-1] & (c["next_obs"][:-1] != c["obs"][1:]).any(axis=1)) if len(ds) > 1 else []
     if len(gap):
         i = int(gap[0])
-        raise ExportError(f"episode {c['episode_id'][i]!r} step {c['step'][i]}: next_obs differs from the next step's obs; "
-                          "Minari episodes are observation sequences and need contiguous episodes")
+        raise ExportError(f"episode {c['episode_id'][i]!r} step {c['step'][i]}: next_obs differs from the next "
+                          "step's obs; Minari episodes are observation sequences and need contiguous episodes")
     buffers = []
     nan = np.full(1, np.nan)
     for k, (lo, hi) in enumerate(zip(first, last + 1, strict=True)):
@@ -117,7 +117,8 @@ def _minari_dir(source: Any) -> Path:
 
             q = get_dataset_path(str(source))
         except Exception as exc:  # minari's own id parsing: a malformed id
-            raise IngestError(f"{source}: not a Minari dataset id or path ({type(exc).__name__}: {str(exc)[:200]})") from None
+            raise IngestError(f"{source}: not a Minari dataset id or path ({type(exc).__name__}: "
+                              f"{str(exc)[:200]})") from None
         cands = [q / "data"] if q.exists() else []
     data_dir = next((c for c in cands if (c / "metadata.json").is_file()), None)
     if data_dir is None:
@@ -167,7 +168,8 @@ def from_minari(source: Any, info: DatasetInfo | None = None, *, feature_names: 
         try:
             mds = minari.MinariDataset(data_dir)
         except Exception as exc:  # minari raises whatever its parsers raise on a damaged directory
-            raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: {str(exc)[:300]})") from None
+            raise IngestError(f"{where}: not a readable Minari dataset ({type(exc).__name__}: "
+                              f"{str(exc)[:300]})") from None
     try:
         return _read_minari(mds, where, info, feature_names, action_table)
     except OfflineADPError:
@@ -190,7 +192,8 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
     discrete = akind == "Discrete"
     d = int(np.prod(mds.observation_space.shape))
     k = 1 if discrete else int(np.prod(mds.action_space.shape))
-    cols: dict[str, list[Any]] = {c: [] for c in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src", "bp", "t",
+    cols: dict[str, list[Any]] = {c: [] for c in ("ep", "step", "obs", "next", "act", "rew", "term", "trunc", "src",
+                                                  "bp", "t",
                                                    "e", "row")}
     names: list[str] = []
     n_ep = 0
@@ -202,13 +205,15 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
             raise IngestError(f"{ew}: rewards: shape {rew.shape} where (T,) is required")
         o = _numeric(e.observations, ew, "observations")
         if o.shape[0] != T + 1 or o.size != (T + 1) * d:
-            raise IngestError(f"{ew}: observations: shape {o.shape} where ({T + 1}, {d}) is required (T + 1 for {T} steps)")
+            raise IngestError(f"{ew}: observations: shape {o.shape} where ({T + 1}, {d}) is required (T + 1 "
+                              f"for {T} steps)")
         o = _finite_floats(o.reshape(T + 1, d), ew, "observations")
         a = _numeric(e.actions, ew, "actions")
         if a.shape[0] != T or a.size != T * k:
             raise IngestError(f"{ew}: actions: shape {a.shape} where ({T}{'' if discrete else f', {k}'}) is required")
         inf = e.infos if isinstance(e.infos, dict) else {}
-        cols["ep"].append(np.asarray(inf["episode_id"][:T]).astype(str) if "episode_id" in inf else np.full(T, f"minari-{e.id:06d}"))
+        cols["ep"].append(np.asarray(inf["episode_id"][:T]).astype(str) if "episode_id" in inf
+                          else np.full(T, f"minari-{e.id:06d}"))
         cols["step"].append(_integers(np.asarray(inf["step"])[:T], ew, "infos/step", T, 0, _INT32_MAX,
                                       "steps are stored as int32 from 0") if "step" in inf else np.arange(T))
         cols["obs"].append(o[:-1])
@@ -218,7 +223,8 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         cols["term"].append(_flags(e.terminations, ew, "terminations", T))
         cols["trunc"].append(_flags(e.truncations, ew, "truncations", T))
         cols["src"].append(np.asarray(inf["source"][:T]).astype(str) if "source" in inf else np.full(T, "unknown"))
-        cols["bp"].append(np.asarray(inf["behavior_prob"][:T], np.float64) if "behavior_prob" in inf else np.full(T, np.nan))
+        cols["bp"].append(np.asarray(inf["behavior_prob"][:T],
+                                     np.float64) if "behavior_prob" in inf else np.full(T, np.nan))
         if "t_ns" in inf:
             cols["t"].append(_integers(np.asarray(inf["t_ns"])[:T], ew, "infos/t_ns", T, -(2**63) + 1, 2**63 - 1024,
                                        "int64 nanoseconds"))
@@ -232,7 +238,8 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
     for key, found in (("total_episodes", n_ep), ("total_steps", n_steps)):
         declared = meta.get(key)
         if declared is not None and declared != found:
-            raise IngestError(f"{where}: metadata {key} = {declared!r} but {found} were read (a missing or damaged episode file)")
+            raise IngestError(f"{where}: metadata {key} = {declared!r} but {found} were read (a missing or damaged "
+                              "episode file)")
     cat = {c: np.concatenate(v) if v else np.zeros(0) for c, v in cols.items()}
     acts = cat["act"]
     extra: dict[str, Any] = {}
@@ -250,16 +257,19 @@ def _read_minari(mds: Any, where: str, info: DatasetInfo | None, feature_names: 
         low, high = (np.asarray(getattr(space, b, np.nan), np.float64).reshape(-1) for b in ("low", "high"))
         finite = low.shape == high.shape == (acts.reshape(len(acts), -1).shape[1],) and np.isfinite(low).all() \
             and np.isfinite(high).all()
-        action, table, extra = _encode_actions(_finite_floats(acts, where, "actions"), where, low=low if finite else None,
+        action, table, extra = _encode_actions(_finite_floats(acts, where, "actions"), where,
+                                               low=low if finite else None,
                                                high=high if finite else None)
     if info is None:
         info = _default_info(d, table, feature_names, str(meta.get("dataset_id", "minari")))
     if len(info.features) != d:
-        raise IngestError(f"{where}: observations have {d} components, the metadata names {len(info.features)} features")
+        raise IngestError(f"{where}: observations have {d} components, the metadata names "
+                          f"{len(info.features)} features")
     if discrete and info.n_actions < int(mds.action_space.n):
         bad = action >= info.n_actions
         if bad.any():
-            raise IngestError(f"{where}: actions: index {int(action[bad][0])} outside the {info.n_actions}-action table")
+            raise IngestError(f"{where}: actions: index {int(action[bad][0])} outside the "
+                              f"{info.n_actions}-action table")
     bp = cat["bp"] if len(cat["bp"]) and not np.isnan(cat["bp"]).all() else None
     ds = TransitionDataset.from_arrays(
         info, episode_id=cat["ep"], step=cat["step"], obs=cat["obs"], action=action, cost=-cat["rew"],

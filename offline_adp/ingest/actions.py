@@ -38,7 +38,8 @@ def map_discrete(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") ->
     if spec.values is not None:
         table_vals = np.asarray(spec.values)
         if numeric and not _is_numeric(table_vals):
-            raise IngestError(f"{where}: column {spec.column!r} holds numbers but action.values are {list(spec.values)}")
+            raise IngestError(f"{where}: column {spec.column!r} holds numbers but action.values are "
+                              f"{list(spec.values)}")
     else:
         if not numeric:
             raw = raw.astype(str)
@@ -235,8 +236,13 @@ def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | N
         sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
         values[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), values[:, j])
     names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
-    table = ActionTable(actions=tuple(Action(nm, tuple(float(v) for v in row)) for nm, row in zip(names, values, strict=True)),
-                        dims=dims, kind="continuous", low=low, high=high)
+    table = ActionTable(
+        actions=tuple(Action(nm, tuple(float(v) for v in row)) for nm, row in zip(names, values, strict=True)),
+        dims=dims,
+        kind="continuous",
+        low=low,
+        high=high,
+    )
     return idx.astype(np.int32), table
 
 
@@ -277,7 +283,9 @@ def bin_product(x: np.ndarray, bins: Mapping[str, Mapping[str, Any]], dims: tupl
             sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
             vals[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
     values = [tuple(float(v) for v in row) for row in vals]
-    names = list(names) if names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True)) for row in values]
+    names = (
+        list(names) if names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True)) for row in values]
+    )
     if len(set(names)) != len(names):  # equal representative values (e.g. empty cells): name by bin indices
         names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
     if len(names) != len(values):

@@ -157,7 +157,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
             ids = t.column(spec.episode.id)
             if ids.null_count:
                 i = int(np.flatnonzero(np.asarray(pc.is_null(ids)))[0])
-                raise IngestError(f"{p}: row {i} column {spec.episode.id!r}: episode id is missing (null); every row needs one")
+                raise IngestError(f"{p}: row {i} column {spec.episode.id!r}: episode id is missing (null); every "
+                                  "row needs one")
             t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
                 "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
             )
@@ -179,14 +180,21 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
-        raise IngestError(_type_conflict(tables, metas) or f"input files have incompatible column types: {exc}") from None
+        raise IngestError(_type_conflict(tables,
+                                         metas) or f"input files have incompatible column types: {exc}") from None
     names_of = np.array([m["path"] for m in metas], dtype=object)
     if table.num_rows == 0:  # e.g. a CSV with a header and no rows
         raise IngestError(f"{', '.join(str(m['path']) for m in metas)}: no rows (only a header, or empty tables); "
                           "nothing to ingest")
 
     # episodes may not span files (they would silently merge)
-    ep_file = None if len(paths) == 1 else pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")}).group_by("e").aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])
+    ep_file = (
+        None
+        if len(paths) == 1
+        else pa.table({"e": table.column(spec.episode.id), "f": table.column("__file")})
+        .group_by("e")
+        .aggregate([("f", "count_distinct"), ("f", "min"), ("f", "max")])
+    )
     multi = ep_file.filter(pc.greater(ep_file.column("f_count_distinct"), 1)) if ep_file is not None else None
     if multi is not None and multi.num_rows:
         r = multi.slice(0, 1).to_pylist()[0]
@@ -200,7 +208,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     assert order_col is not None
     enc = sorted_encoding(table.column(spec.episode.id), table.column(order_col).to_numpy(zero_copy_only=False))
     if enc is None:  # sort only when needed (ties keep file order)
-        idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"), ("__file", "ascending"), ("__row", "ascending")])
+        idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"),
+                                                ("__file", "ascending"), ("__row", "ascending")])
         table = table.take(idx)
         enc = encode_strings(table.column(spec.episode.id))
     n = table.num_rows
@@ -231,7 +240,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # float64 columns stay the input's Arrow buffers (no copy); steps tables shift in numpy
     obs: list[Any] = [_f64(table, c, file_of) for c in spec.observations.columns]
     has_next = bool(spec.observations.next_columns)
-    nxt_given: list[Any] | None = [_f64(table, c, file_of) for c in spec.observations.next_columns] if has_next else None
+    nxt_given: list[Any] | None = [_f64(table, c,
+                                        file_of) for c in spec.observations.next_columns] if has_next else None
 
     term, term_null = _flag(table, spec.terminated_column, n, file_of)
     trunc_col, trunc_null = _flag(table, spec.truncated_column, n, file_of)
@@ -275,7 +285,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
     if list_col and aspec.type == "discrete":
         if aspec.type_declared:
-            raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds lists (a command vector per row): "
+            raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds lists (a command "
+                              "vector per row): "
                               "set action.type = 'continuous' (discrete actions are one label per row)")
         aspec = replace(aspec, type="continuous", components=aspec.names, names=None)  # names: its components
     elif aspec.type == "discrete" and (aspec.low is not None or aspec.high is not None or aspec.units is not None):
@@ -291,7 +302,13 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
             action = np.full(n, -1, np.int32)
             action[keep], atable = map_discrete(raw_action[keep], aspec)
         del raw_action
-    elif not aspec.exact and not aspec.columns and not list_col and all_kept and not (aspec.low or aspec.high or aspec.units):
+    elif (
+        not aspec.exact
+        and not aspec.columns
+        and not list_col
+        and all_kept
+        and not (aspec.low or aspec.high or aspec.units)
+    ):
         # a binned scalar column as before (block by block), its exact commands kept alongside
         raw_action = _np(table, aspec.column, np.float64, file_of)
         action, atable = _blockwise(bin_continuous, raw_action, aspec)
@@ -314,7 +331,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         cost = pc.negate(_f64(table, spec.reward_column, file_of))  # type: ignore[arg-type]
 
     names = list(spec.observations.names or spec.observations.columns)
-    cols: dict[str, Any] = {S.EPISODE_ID: ep_ids, S.STEP: step.astype(np.int32) if isinstance(step, np.ndarray) else step}
+    cols: dict[str, Any] = {S.EPISODE_ID: ep_ids,
+                            S.STEP: step.astype(np.int32) if isinstance(step, np.ndarray) else step}
     if spec.episode.time:
         cols[S.T_NS] = _times_ns(table, spec.episode.time, spec.episode.time_unit, file_of)
     for j, nm in enumerate(names):
@@ -337,7 +355,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     if spec.propensity_column:
         # a non-number names its file and row; a missing value stays null (the doctor's business)
         cols[S.BEHAVIOR_PROB] = _f64(table, spec.propensity_column, file_of, keep_nulls=True)
-    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32, copy=False)), pa.array(names_of.astype(str).tolist()))
+    cols["src_file"] = pa.DictionaryArray.from_arrays(pa.array(fidx.astype(np.int32, copy=False)),
+                                                      pa.array(names_of.astype(str).tolist()))
     cols["src_row"] = table.column("__row")
     # chunked columns stay chunked: the output shares the input's buffers where it can
     out = pa.table(cols)

@@ -31,7 +31,8 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
     try:
         if fmt == "csv":
             opts = pacsv.ReadOptions()
-            table = pacsv.read_csv(path, read_options=opts, parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
+            table = pacsv.read_csv(path, read_options=opts,
+                                   parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
             available = table.column_names
         else:
             schema = pq.read_schema(path)
@@ -67,7 +68,8 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
                     if v is not None:
                         v.decode("utf-8")
                 except UnicodeDecodeError:
-                    raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the file as UTF-8") from None
+                    raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the "
+                                      "file as UTF-8") from None
             raise IngestError(f"{path}: column {name!r} holds binary data, not text or numbers")
     return table
 
@@ -92,7 +94,12 @@ def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], s
     c = table.column(col)
     if dtype is object:
         return c.to_numpy(zero_copy_only=False)
-    numeric = pa.types.is_boolean(c.type) or pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type)
+    numeric = (
+        pa.types.is_boolean(c.type)
+        or pa.types.is_integer(c.type)
+        or pa.types.is_floating(c.type)
+        or pa.types.is_decimal(c.type)
+    )
     if not numeric and dtype is not bool:
         i = _first_unparsable(c, pa.float64())
         if i is not None:
@@ -107,19 +114,28 @@ def _np(table: pa.Table, col: str, dtype: Any, file_of: Callable[[np.ndarray], s
         if dtype is bool:
             return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
         if np.dtype(dtype).kind == "f":
-            return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype)  # nulls -> NaN, reported by the doctor
-        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r} is missing ({len(bad)} missing values in the column)")
+            # nulls -> NaN, reported by the doctor
+            return c.cast(pa.float64()).to_numpy(zero_copy_only=False).astype(dtype)
+        raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r} is missing ({len(bad)} missing values "
+                          "in the column)")
     return c.to_numpy(zero_copy_only=False).astype(dtype, copy=False)
 
 
-def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *, keep_nulls: bool = False) -> pa.ChunkedArray:
+def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *,
+         keep_nulls: bool = False) -> pa.ChunkedArray:
     """A numeric column as float64 in Arrow, without a copy when it already is float64:
     what :func:`_np` gives for ``np.float64`` (nulls -> NaN, reported by the doctor; with
     ``keep_nulls`` they stay null), without the conversion to numpy."""
     c = table.column(col)
-    numeric = pa.types.is_integer(c.type) or pa.types.is_floating(c.type) or pa.types.is_decimal(c.type) or pa.types.is_boolean(c.type)
+    numeric = (
+        pa.types.is_integer(c.type)
+        or pa.types.is_floating(c.type)
+        or pa.types.is_decimal(c.type)
+        or pa.types.is_boolean(c.type)
+    )
     if not numeric:
-        return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of), mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
+        return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of),
+                                          mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
     if c.type != pa.float64():
         c = c.cast(pa.float64(), safe=False)  # as numpy's astype: large integers round
     if c.null_count and not keep_nulls:
@@ -127,7 +143,8 @@ def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *, kee
     return c
 
 
-def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray]:
+def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray],
+                                                                      str]) -> tuple[np.ndarray, np.ndarray]:
     """A bool flag column and its null mask (a null flag is kept null: the doctor reports
     it, it never silently becomes False)."""
     if not col:
@@ -138,10 +155,12 @@ def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarra
             v = c.to_numpy(zero_copy_only=False)
             bad = np.flatnonzero(~np.isin(v, [0, 1]) & ~np.isnan(v.astype(np.float64)))
             if len(bad):
-                raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: {v[bad[0]]!r} is not a flag (true/false or 0/1)")
+                raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: {v[bad[0]]!r} is not a flag "
+                                  "(true/false or 0/1)")
             c = pc.not_equal(c, 0)
         else:
-            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column (bool or 0/1)")
+            raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column "
+                              "(bool or 0/1)")
     null = np.asarray(pc.is_null(c)) if c.null_count else np.zeros(n, bool)
     return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool), null
 
@@ -160,7 +179,8 @@ def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray],
     if v.dtype.kind == "f":
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
         if len(bad):
-            raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {float(v[bad[0]])!r} is not a whole number")
+            raise IngestError(f"{_where(file_of, int(bad[0]))}: column {col!r}: step {float(v[bad[0]])!r} is not a "
+                              "whole number")
         if len(v) and np.abs(v).max() >= 2**62:
             i = int(np.argmax(np.abs(v)))
             raise IngestError(f"{_where(file_of, i)}: column {col!r}: step {float(v[i])!r} is out of range")
@@ -184,7 +204,8 @@ def _times_ns(table: pa.Table, col: str, unit: str, file_of: Callable[[np.ndarra
             tv = tv.cast(pa.int64())
             return tv if TIME_UNITS[unit] == 1 else pc.multiply_checked(tv, TIME_UNITS[unit])
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError) as exc:
-        raise IngestError(f"{file_of(np.array([0]))}: column {col!r}: times do not fit int64 nanoseconds ({exc})") from None
+        raise IngestError(f"{file_of(np.array([0]))}: column {col!r}: times do not fit int64 "
+                          f"nanoseconds ({exc})") from None
     x = _np(table, col, np.float64, file_of) * TIME_UNITS[unit]
     ok = np.isfinite(x) & (np.abs(x) < 2.0**63 - 1024)
     return pa.array(np.where(ok, np.round(np.where(ok, x, 0.0)), 0).astype(np.int64), mask=~ok)
@@ -221,7 +242,11 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
     whose list has another length is flagged, never cut or padded."""
     n = table.num_rows
     if not list_col:
-        x = np.column_stack([_np(table, c, np.float64, file_of) for c in spec.source_columns]) if n else np.zeros((0, len(spec.source_columns)))
+        x = (
+            np.column_stack([_np(table, c, np.float64, file_of) for c in spec.source_columns])
+            if n
+            else np.zeros((0, len(spec.source_columns)))
+        )
         return x, np.full(n, -1, np.int64), spec.component_names(x.shape[1])
     c = table.column(spec.column).combine_chunks()
     if pa.types.is_fixed_size_list(c.type):
@@ -237,7 +262,8 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
     else:
         seen = lengths[lengths > 0]
         if not len(seen):
-            raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: every command list is empty or missing")
+            raise IngestError(f"{file_of(np.array([0]))}: column {spec.column!r}: every command list is "
+                              "empty or missing")
         k = int(np.argmax(np.bincount(seen)))
     good = lengths == k  # a missing list (null) is a missing command: NaN; another length is flagged
     offsets = np.cumsum(np.r_[0, np.maximum(lengths, 0)])[:-1]  # into the flattened (non-null) values
@@ -268,7 +294,8 @@ def _type_conflict(tables: list[pa.Table], metas: list[dict[str, Any]]) -> str |
             if f.name in first and first[f.name][0] != f.type:
                 a_type, a_path = first[f.name]
                 try:
-                    pa.concat_tables([pa.table({f.name: pa.array([], a_type)}), pa.table({f.name: pa.array([], f.type)})],
+                    pa.concat_tables([pa.table({f.name: pa.array([], a_type)}),
+                                      pa.table({f.name: pa.array([], f.type)})],
                                      promote_options="permissive")
                 except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError):
                     return (f"column {f.name!r} is {a_type} in {a_path} but {f.type} in {m['path']}; "

@@ -139,7 +139,8 @@ class ParquetSpec:
         return hashlib.sha256(self.text.encode()).hexdigest()
 
     def needed_columns(self) -> list[str]:
-        cols = [self.episode.id, *self.observations.columns, *self.observations.next_columns, *self.action.source_columns]
+        cols = [self.episode.id, *self.observations.columns, *self.observations.next_columns,
+                *self.action.source_columns]
         for c in (
             self.episode.step,
             self.episode.order,
@@ -175,7 +176,8 @@ class EpisodeModel(ConfigModel):
 
     id: Column = Field(description="episode id column (any type; compared as strings)")
     step: Column | None = Field(None, description="integer step column, used as is (minus step_base)")
-    step_base: Annotated[int, Field(strict=True, ge=-(2**31), le=2**31 - 1)] = Field(0, description="first step value (e.g. 1)")
+    step_base: Annotated[int, Field(strict=True, ge=-(2**31),
+                                    le=2**31 - 1)] = Field(0, description="first step value (e.g. 1)")
     order: Column | None = Field(None, description="any sortable column: steps are its dense rank within the episode")
     time: Column | None = Field(None, description="optional timestamp column -> t_ns")
     time_unit: Literal["s", "ms", "us", "ns"] = Field("ns", description="unit of a numeric time column")
@@ -199,23 +201,34 @@ class ActionModel(ConfigModel):
     """``[action]``: the logged command (one column, a list column or several columns) and
     how it becomes actions: discrete labels, binned, or continuous commands kept as logged."""
 
-    column: Column | None = Field(None, description="the action column (a scalar, or a list column: one command vector per row)")
-    columns: tuple[Column, ...] | None = Field(None, min_length=1, description="several columns forming one vector command (continuous)")
+    column: Column | None = Field(None,
+                                  description="the action column (a scalar, or a list column: one command "
+                                  "vector per row)")
+    columns: tuple[Column, ...] | None = Field(None, min_length=1,
+                                               description="several columns forming one vector command (continuous)")
     type: Literal["discrete", "continuous"] | None = Field(
         None, description="default: 'continuous' for 'columns' or a list column, else 'discrete'")
-    values: tuple[Label, ...] | None = Field(None, min_length=1, description="discrete: the action table in index order")
+    values: tuple[Label, ...] | None = Field(None, min_length=1,
+                                             description="discrete: the action table in index order")
     names: tuple[Str, ...] | None = Field(
-        None, min_length=1, description="vector or unbinned continuous commands: component names (default: the columns, "
+        None, min_length=1,
+        description="vector or unbinned continuous commands: component names (default: the columns, "
         "or <column>.0, <column>.1... for a list column); otherwise the action (bin) names")
-    edges: tuple[Number, ...] | None = Field(None, description="continuous: bin edges (-inf/inf allowed); the exact commands are kept too")
-    n_bins: Annotated[int, Field(strict=True, ge=1, le=100_000)] | None = Field(None, description="continuous: that many quantile bins")
+    edges: tuple[Number, ...] | None = Field(None,
+                                             description="continuous: bin edges (-inf/inf allowed); the exact commands "
+                                             "are kept too")
+    n_bins: Annotated[int, Field(strict=True, ge=1,
+                                 le=100_000)] | None = Field(None, description="continuous: that many quantile bins")
     bin_value: Literal["mean", "center"] = "mean"
     dim: Str = "a"
     unit: Str = ""
     units: tuple[Str, ...] | None = Field(None, min_length=1, description="unit of each command component")
-    low: Bounds | None = Field(None, description="continuous: lower bound of each component (default: the logged minimum)")
-    high: Bounds | None = Field(None, description="continuous: upper bound of each component (default: the logged maximum)")
-    vectors: tuple[Number | tuple[Number, ...], ...] | None = Field(None, description="each discrete action's value vector")
+    low: Bounds | None = Field(None,
+                               description="continuous: lower bound of each component (default: the logged minimum)")
+    high: Bounds | None = Field(None,
+                                description="continuous: upper bound of each component (default: the logged maximum)")
+    vectors: tuple[Number | tuple[Number, ...], ...] | None = Field(None,
+                                                                    description="each discrete action's value vector")
     dims: tuple[Str, ...] | None = Field(None, description="names of the components of the value vectors")
 
     _u = field_validator("names", "dims", "columns")(_unique)
@@ -223,7 +236,8 @@ class ActionModel(ConfigModel):
     @field_validator("edges")
     @classmethod
     def _edges(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
-        if v is not None and (len(v) < 2 or any(math.isnan(x) for x in v) or any(b <= a for a, b in zip(v, v[1:], strict=False))):
+        if v is not None and (len(v) < 2 or any(math.isnan(x) for x in v)
+                              or any(b <= a for a, b in zip(v, v[1:], strict=False))):
             raise ValueError(f"need at least two strictly increasing edges, got {list(v)}")
         return v
 
@@ -285,7 +299,8 @@ class CsvModel(ConfigModel):
 class ParquetSpecModel(ConfigModel):
     """An ingestion spec for Parquet/CSV tables (``offline-adp ingest parquet --spec``)."""
 
-    kind: Literal["transitions", "steps"] = Field("transitions", description="rows with next-state columns, or one row per step")
+    kind: Literal["transitions", "steps"] = Field("transitions",
+                                                  description="rows with next-state columns, or one row per step")
     format: Literal["auto", "parquet", "csv"] = "auto"
     name: Str = ""
     on_error: Literal["fail", "quarantine"] = "fail"
@@ -324,7 +339,8 @@ def _action(a: ActionModel, w: str) -> ActionSpec:
     vector = a.columns is not None
     # names are component names for a vector command or an unbinned continuous one
     components = a.names if (vector or (typ == "continuous" and not binned)) else None
-    act = ActionSpec(column=a.column or "", type=typ, values=a.values, names=None if components is not None else a.names,
+    act = ActionSpec(column=a.column or "", type=typ, values=a.values,
+                     names=None if components is not None else a.names,
                      edges=a.edges, n_bins=a.n_bins, bin_value=a.bin_value, dim=a.dim, unit=a.unit, vectors=vectors,
                      dims=a.dims, columns=a.columns or (), components=components, units=a.units,
                      low=_bound(a.low), high=_bound(a.high), type_declared=a.type is not None,
@@ -423,7 +439,8 @@ def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "sp
         raise SpecError(f"{w}.next_columns: required for kind = 'transitions' (or use kind = 'steps')")
     unknown_units = set(obs.units) - set(obs.names or obs.columns)
     if unknown_units:
-        raise SpecError(f"{w}.units: keys {sorted(unknown_units)} are not observation names {list(obs.names or obs.columns)}")
+        raise SpecError(f"{w}.units: keys {sorted(unknown_units)} are not observation names "
+                        f"{list(obs.names or obs.columns)}")
     act = _action(m.action, f"{where}: action")
     if (m.cost.column is None) == (m.cost.reward is None):
         raise SpecError(f"{where}: cost: give exactly one of 'column' (a cost, lower is better) or 'reward' (negated)")

@@ -18,8 +18,8 @@ pairs) and answers ``fit(y)`` then ``predict(name)``:
 
 Every learner is built from a :class:`~offline_adp.learn.base.LearnSpec` (the training
 pairs, weights, seed and query sets) plus its mode's options (the frozen mode's
-:class:`~offline_adp.learn.schedule.FrozenSchedule`). Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks for all actions
-(result (m, n_actions)), otherwise for the given action per row (result (m,)).
+:class:`~offline_adp.learn.schedule.FrozenSchedule`). Query sets are ``(phi, actions)`` pairs: ``actions=None`` asks
+for all actions (result (m, n_actions)), otherwise for the given action per row (result (m,)).
 """
 
 from offline_adp.learn.base import Learner, LearnSpec, Query
@@ -37,4 +37,5 @@ from offline_adp.learn.settle import Settle
 from offline_adp.learn.warm_start import LightGBMWarmStartLearner
 
 __all__ = ["EarlyBuilds", "FrozenSchedule", "FrozenTreesLearner", "Learner", "LearnSpec", "LightGBMWarmStartLearner",
-           "Query", "RefitLearner", "Settle", "TreeScreen", "build_weight", "check_structure_fractions", "greedy_min_bias"]
+           "Query", "RefitLearner", "Settle", "TreeScreen", "build_weight", "check_structure_fractions",
+           "greedy_min_bias"]

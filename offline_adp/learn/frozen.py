@@ -83,26 +83,22 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     are then *honest*: each leaf's value is the weighted mean target over **all** training
     rows falling in it, not only the rows its tree was grown on. The scikit-learn forest is
     dropped after the lookups (the arrays of :class:`~offline_adp.trees.ensemble.TreeEnsemble`
-    remain). With a ``screen`` (:class:`~offline_adp.learn.schedule.TreeScreen`; opt-in, ``FittedQIteration(screen_trees=...)``) a build
-    first grows ``screen.trees`` trees and grows the rest of the forest (scikit-learn's warm
-    start: the same trees a one-shot fit grows) only when the greedy targets would be
-    measurably biased by the smaller forest (:func:`~offline_adp.learn.schedule.greedy_min_bias`, carried through
-    ``1 / (1 - gamma)``, above ``screen.tol * std(y)``). With ``early``
-    (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in) a build whose error is damped before the fit ends
-    (:func:`~offline_adp.learn.schedule.build_weight` below ``early.ratio``) grows only ``early.trees`` trees.
-    An iteration is one leaf sum per tree over the training rows' tree-major int32 leaf
-    positions (not held for the rows that continue the previous row: those are read from
-    the next-state queries' positions, in the same row order, so the sums are the same)
-    and one gather per tree and query (each within that tree's leaves, so
-    cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run in
-    ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each
-    tree's work independent and every sum in one fixed order, so the Q-values are the
-    same to the last bit for any thread count (:mod:`offline_adp.trees.averaging`). A
-    build drops the previous structure first, and the compiled builder's trees are held
-    as :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node).
-    With a fixed structure the update is a gamma-contraction, so it converges -- to the
-    fixed point of *that* averager, which is only as good as the structure: a structure
-    fitted to early targets cannot represent what later targets need.
+    remain). With a ``screen`` (:class:`~offline_adp.learn.schedule.TreeScreen`; opt-in,
+    ``FittedQIteration(screen_trees=...)``) a build first grows ``screen.trees`` trees and grows the rest of the forest
+    (scikit-learn's warm start: the same trees a one-shot fit grows) only when the greedy targets would be measurably
+    biased by the smaller forest (:func:`~offline_adp.learn.schedule.greedy_min_bias`, carried through ``1 / (1 -
+    gamma)``, above ``screen.tol * std(y)``). With ``early`` (:class:`~offline_adp.learn.schedule.EarlyBuilds`; opt-in)
+    a build whose error is damped before the fit ends (:func:`~offline_adp.learn.schedule.build_weight` below
+    ``early.ratio``) grows only ``early.trees`` trees. An iteration is one leaf sum per tree over the training rows'
+    tree-major int32 leaf positions (not held for the rows that continue the previous row: those are read from the
+    next-state queries' positions, in the same row order, so the sums are the same) and one gather per tree and query
+    (each within that tree's leaves, so cache-sized): no tree fitting, no traversal. Builds, lookups and these sums run
+    in ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each tree's work independent and
+    every sum in one fixed order, so the Q-values are the same to the last bit for any thread count
+    (:mod:`offline_adp.trees.averaging`). A build drops the previous structure first, and the compiled builder's trees
+    are held as :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node). With a fixed structure the update is
+    a gamma-contraction, so it converges -- to the fixed point of *that* averager, which is only as good as the
+    structure: a structure fitted to early targets cannot represent what later targets need.
 
     How the number of builds and their row fractions trade score against CPU:
     docs/fqi-modes.md.
@@ -194,7 +190,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """Take ``forest`` as the structure: look up every training and query input in it
         (from tree ``start`` on: the earlier trees' lookups are held, see :meth:`_operators`)."""
         if not hasattr(forest, "estimators_") or not hasattr(forest.estimators_[0], "tree_"):
-            raise InvalidArgumentError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, random_forest)")
+            raise InvalidArgumentError("the frozen-structure mode needs a scikit-learn tree ensemble (extra_trees, "
+                                       "random_forest)")
         # the forest's arrays are exported (TreeEnsemble) only when a Q is asked for
         # (snapshot: a checkpoint, the end of the fit), not at every build
         sizes = np.array([e.tree_.node_count for e in forest.estimators_], dtype=np.int64)
@@ -339,7 +336,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         bounds = np.r_[np.asarray(held_bounds[:start + 1], np.int64) if start else np.zeros(1, np.int64),
                        (int(held_bounds[start]) if start else 0) + np.cumsum([len(i) for i in new_ids], dtype=np.int64)]
         joined = np.concatenate(ids)
-        self.leaf_ids = joined.astype(np.int32) if self._n_nodes < 2**31 else joined  # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        # compact index: tree t's leaves are [bounds[t], bounds[t + 1])
+        self.leaf_ids = joined.astype(np.int32) if self._n_nodes < 2**31 else joined
         del joined
         L = len(self.leaf_ids)
         old_L = len(held_ids) if start else None
@@ -434,7 +432,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         if values is None:
             own = self._values is not None and self.leaf_values is not None and self.leaf_values.base is self._values
             values = self._cache[""] = self._values if own else np.r_[self.leaf_values, 0.0]
-        if name == "train" and self._rest is not None and self._rest.shape[1] < len(phi):  # the same leaves: the same numbers
+        # the same leaves: the same numbers
+        if name == "train" and self._rest is not None and self._rest.shape[1] < len(phi):
             v = np.empty(len(phi))
             rest = self._src < 0
             v[rest] = tree_mean(values, self._rest, self.n_jobs)
@@ -450,7 +449,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """The saved ``Q_k`` carries its structure: recompute the leaves of the training and
         query inputs with it (the same leaves the structure's forest gave) and read the
         leaf values back."""
-        self._set_ensemble(q.models[0])  # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
+        # a TreeQ, or the RegressorQ of TreeEnsembles load_q returns  # type: ignore[attr-defined]
+        self._set_ensemble(q.models[0])
         self._operators(self._ensemble_per_tree(self.ensemble))
         self.leaf_values = np.asarray(self.ensemble.value[self.leaf_ids], dtype=np.float64)
         self._cache = {}

@@ -134,8 +134,8 @@ class FrozenBuilds:
         f = self.schedule.fraction(k)
         if f is not None and f < 1.0:
             if "max_samples" not in model.get_params():
-                raise InvalidArgumentError(f"structure max_samples needs a bagging tree ensemble (extra_trees, random_forest), "
-                                 f"not {type(model).__name__}")
+                raise InvalidArgumentError("structure max_samples needs a bagging tree ensemble (extra_trees, "
+                                           f"random_forest), not {type(model).__name__}")
             model.set_params(bootstrap=True, max_samples=float(f))
         return model
 

@@ -54,8 +54,10 @@ class RefitLearner(Learner):
                 rows = self.actions == a
                 m = seeded(clone(self.regressor), seed)
                 if not rows.any():
-                    raise InvalidArgumentError(f"action {a} never occurs in the data: a per-action model cannot be fitted")
-                models.append(fit_model(m, self.phi[rows], y[rows], None if self.weights is None else self.weights[rows]))
+                    raise InvalidArgumentError(f"action {a} never occurs in the data: a per-action model "
+                                               "cannot be fitted")
+                models.append(fit_model(m, self.phi[rows], y[rows],
+                                        None if self.weights is None else self.weights[rows]))
         else:
             m = seeded(clone(self.regressor), seed)
             models = [fit_model(m, self.encoder.pairs(self.phi, self.actions), y, self.weights)]

@@ -124,7 +124,8 @@ def _anderson(fs: list[np.ndarray], gs: list[np.ndarray], f: np.ndarray, g: np.n
     return y
 
 
-def settle_solve(y: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray], targets: Callable[[np.ndarray], np.ndarray],
+def settle_solve(y: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray],
+                 targets: Callable[[np.ndarray], np.ndarray],
                  value: Callable[[np.ndarray], np.ndarray], settle: Settle, budget: int,
                  greedy: bool = False) -> tuple[np.ndarray, int]:
     """The fixed point of one fitted-Q iteration ``y -> G(y) = targets(value(evaluate(y)))``

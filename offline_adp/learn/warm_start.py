@@ -56,7 +56,8 @@ class LightGBMWarmStartLearner(Learner):
 
     def fit(self, y: np.ndarray, k: int) -> None:
         self.data.set_label(y - self.cache["train"])  # the residual; its mean goes into the first tree
-        booster = self.lgb.train({**self.params, "seed": self.seed + k}, self.data, num_boost_round=self.trees_per_iteration)
+        booster = self.lgb.train({**self.params, "seed": self.seed + k}, self.data,
+                                 num_boost_round=self.trees_per_iteration)
         self.boosters.append(booster)
         for name, X in self.X.items():  # only the new trees are evaluated
             self.cache[name] = self.cache[name] + booster.predict(X, raw_score=True)

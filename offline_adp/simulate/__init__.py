@@ -60,7 +60,8 @@ def simulate(
     seed = _count(seed, "seed", 0, 2**63 - 1)
     if horizon is not None:
         horizon = _count(horizon, "horizon", 1, 10**7)
-    if problem_options is not None and not (isinstance(problem_options, Mapping) and all(isinstance(k, str) for k in problem_options)):
+    if problem_options is not None and not (isinstance(problem_options,
+                                                       Mapping) and all(isinstance(k, str) for k in problem_options)):
         raise InvalidArgumentError(f"problem_options must map option names to values, got {problem_options!r}")
     if isinstance(problem, str):
         try:
@@ -68,7 +69,8 @@ def simulate(
         except OfflineADPError:
             raise
         except (ValueError, TypeError, OverflowError, MemoryError) as exc:  # the constructor rejected a value
-            raise InvalidArgumentError(f"problem {problem!r}: options {dict(problem_options or {})} rejected ({exc})") from None
+            raise InvalidArgumentError(f"problem {problem!r}: options {dict(problem_options or {})} "
+                                       f"rejected ({exc})") from None
     else:
         prob = problem
     rng = np.random.default_rng(seed)

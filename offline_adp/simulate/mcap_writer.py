@@ -52,7 +52,8 @@ MSGDEFS = {
         "float64 curvature\nfloat64 curvature_ahead\n"
     ),
     "offline_adp_msgs/msg/SteeringCommand": "std_msgs/Header header\nfloat64 steering_angle\n",
-    "offline_adp_msgs/msg/EpisodeEvent": "std_msgs/Header header\nstring episode_id\nstring event\nstring source\nbool terminated\n",
+    "offline_adp_msgs/msg/EpisodeEvent": "std_msgs/Header header\nstring episode_id\nstring event\nstring source\nbool "
+    "terminated\n",
 }
 TOPIC_TYPES = {
     "/vehicle/odometry": "offline_adp_msgs/msg/VehicleOdometry",
@@ -86,14 +87,17 @@ class _Sink:
 
     def write(self, topic: str, msg: dict, log_time: int, publish_time: int, schema: str = "") -> None:
         if self.encoding == "ros2":
-            self.w.write_message(topic, self.schemas[TOPIC_TYPES[topic]], msg, log_time=log_time, publish_time=publish_time)
+            self.w.write_message(topic, self.schemas[TOPIC_TYPES[topic]], msg, log_time=log_time,
+                                 publish_time=publish_time)
             return
         if topic not in self.channels:
             name = schema or topic.strip("/").replace("/", "_")
             props = {k: {"type": "object"} if isinstance(v, dict) else {"type": _json_type(v)} for k, v in msg.items()}
-            sid = self.w.register_schema(name=name, encoding="jsonschema", data=json.dumps({"type": "object", "properties": props}).encode())
+            sid = self.w.register_schema(name=name, encoding="jsonschema",
+                                         data=json.dumps({"type": "object", "properties": props}).encode())
             self.channels[topic] = self.w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
-        self.w.add_message(self.channels[topic], log_time=log_time, data=json.dumps(msg).encode(), publish_time=publish_time)
+        self.w.add_message(self.channels[topic], log_time=log_time, data=json.dumps(msg).encode(),
+                           publish_time=publish_time)
 
     def close(self) -> None:
         self.w.finish()
@@ -202,12 +206,15 @@ def _write_generic_episode(sink: _Sink, ds: TransitionDataset, ep_id: str, sourc
     sink.write("/episode", ev, int(t[0]) - 1_000_000, int(t[0]) - 1_000_000)
     for k in range(len(t)):
         ts = int(t[k])
-        sink.write("/observation", {"step": k, **{n: float(v) for n, v in zip(names, e["obs"][k], strict=True)}}, ts, ts)
+        sink.write("/observation", {"step": k, **{n: float(v) for n, v in zip(names, e["obs"][k], strict=True)}}, ts,
+                   ts)
         a = int(e["action"][k])
-        sink.write("/action", {"index": a, "name": at.names[a], "value": [float(v) for v in at.values[a]]}, ts + 5_000_000, ts + 5_000_000)
+        sink.write("/action", {"index": a, "name": at.names[a], "value": [float(v) for v in at.values[a]]},
+                   ts + 5_000_000, ts + 5_000_000)
         sink.write("/cost", {"cost": float(e["cost"][k])}, ts + dt, ts + dt)
     tend = int(t[-1]) + dt
-    sink.write("/observation", {"step": len(t), **{n: float(v) for n, v in zip(names, e["next_obs"][-1], strict=True)}}, tend, tend)
+    sink.write("/observation", {"step": len(t), **{n: float(v) for n, v in zip(names, e["next_obs"][-1], strict=True)}},
+               tend, tend)
     ev = {"episode_id": ep_id, "event": "end", "source": source, "terminated": bool(e["terminated"][-1])}
     sink.write("/episode", ev, tend + 1_000_000, tend + 1_000_000)
 
@@ -235,22 +242,28 @@ def _write_vehicle_episode(sink: _Sink, problem, ep_id: str, source: str, e: dic
     odo_t = np.r_[odo_t, t_all[T]]
     px, py, yaw = problem.course.pose(odo[:, 0], odo[:, 1], odo[:, 2])
 
-    ev = {"header": _header(int(t[0]) - 1_000_000), "episode_id": ep_id, "event": "start", "source": source, "terminated": False}
+    ev = {"header": _header(int(t[0]) - 1_000_000), "episode_id": ep_id, "event": "start", "source": source,
+          "terminated": False}
     sink.write("/episode/event", ev, int(t[0]) - 1_000_000, int(t[0]) - 1_000_000)
     lat = rng.integers(1_000_000, 3_000_001, size=len(odo_t) + 2 * (T + 1))
     cmd_delay = rng.integers(6_000_000, 10_000_001, size=T)
     for k in range(T + 1):
         ts = int(t_all[k])
         o = obs[k]
-        msg = {"header": _header(ts), "progress": float(o[0]), "cross_track_error": float(o[1]), "heading_error": float(o[2]), "curvature": float(o[5]), "curvature_ahead": float(o[6])}
+        msg = {"header": _header(ts), "progress": float(o[0]), "cross_track_error": float(o[1]),
+               "heading_error": float(o[2]), "curvature": float(o[5]), "curvature_ahead": float(o[6])}
         sink.write("/planning/tracking_state", msg, ts + int(lat[-1 - k]), ts)
         for j in range(k * N_SUB, min((k + 1) * N_SUB, len(odo_t))):
             tj = int(odo_t[j])
-            msg = {"header": _header(tj), "x": float(px[j]), "y": float(py[j]), "yaw": float(yaw[j]), "speed": float(odo[j, 4]), "steering_angle": float(odo[j, 3])}
+            msg = {"header": _header(tj), "x": float(px[j]), "y": float(py[j]), "yaw": float(yaw[j]),
+                   "speed": float(odo[j, 4]), "steering_angle": float(odo[j, 3])}
             sink.write("/vehicle/odometry", msg, tj + int(lat[j]), tj)
         if k < T:
             tc = ts + int(cmd_delay[k])
-            sink.write("/control/steering_cmd", {"header": _header(tc), "steering_angle": float(STEERING_COMMANDS[e["action"][k]])}, tc + int(lat[len(odo_t) + k]), tc)
+            sink.write("/control/steering_cmd", {"header": _header(tc),
+                                                 "steering_angle": float(STEERING_COMMANDS[e["action"][k]])},
+                                                 tc + int(lat[len(odo_t) + k]), tc)
     tend = int(t_all[T])
-    ev = {"header": _header(tend + 1_000_000), "episode_id": ep_id, "event": "end", "source": source, "terminated": bool(e["terminated"][-1])}
+    ev = {"header": _header(tend + 1_000_000), "episode_id": ep_id, "event": "end", "source": source,
+          "terminated": bool(e["terminated"][-1])}
     sink.write("/episode/event", ev, tend + 1_000_000, tend + 1_000_000)

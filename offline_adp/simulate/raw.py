@@ -53,7 +53,8 @@ def raw_table(ds: TransitionDataset) -> tuple[pa.Table, str]:
     units = ", ".join(f'{f.name} = "{f.unit}"' for f in ds.info.features if f.unit)
     if exact is not None:
         bound = lambda b: "[" + ", ".join(repr(float(x)) for x in b) + "]"  # noqa: E731
-        action_spec = (f"columns = {q([f'{d}_command' for d in at.dims])}\ntype = \"continuous\"\nnames = {q(at.dims)}\n"
+        action_spec = (f"columns = {q([f'{d}_command' for d in at.dims])}\ntype = \"continuous\"\nnames = "
+                       f"{q(at.dims)}\n"
                        + (f"units = {q(at.units)}\n" if at.units else "")
                        + (f"low = {bound(at.low)}\n" if at.low is not None else "")
                        + (f"high = {bound(at.high)}\n" if at.high is not None else ""))

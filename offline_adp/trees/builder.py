@@ -202,7 +202,8 @@ def native_params(regressor: Any, n_rows: int, n_features: int) -> TreeParams | 
     msl = int(msl) if isinstance(msl, int | np.integer) else max(1, math.ceil(float(msl) * n_rows))
     depth = p.get("max_depth")
     ms = p.get("max_samples")
-    n_boot = n_rows if ms is None else (int(ms) if isinstance(ms, int | np.integer) else max(1, round(float(ms) * n_rows)))
+    n_boot = n_rows if ms is None else (int(ms) if isinstance(ms,
+                                                              int | np.integer) else max(1, round(float(ms) * n_rows)))
     jobs = resolve_n_jobs(p.get("n_jobs"))  # scikit-learn's own resolution (affinity, cgroups)
     return TreeParams(n_estimators=int(p["n_estimators"]), max_features=max(1, min(k, n_features)),
                       min_samples_split=max(2, mss), min_samples_leaf=max(1, msl),

@@ -147,7 +147,8 @@ class TreeEnsemble:
         shared with every ensemble made this way, now or when first built: a
         finite-horizon fit's per-step snapshots of one structure need one compiled copy,
         not one per step (the lookup reads no value; sizes in docs/fqi-modes.md)."""
-        out = TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64), self.roots)
+        out = TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64),
+                           self.roots)
         if getattr(self, "_same_structure", None) is None:
             self._same_structure = {}  # type: ignore[attr-defined]
         out._same_structure = self._same_structure  # type: ignore[attr-defined]
@@ -219,7 +220,8 @@ class TreeEnsemble:
         go through :func:`offline_adp.artifacts.checks.check_tree_arrays`."""
         sp = prefix if structure_prefix is None else structure_prefix
         if sp + "leaf_bits" not in arrays:
-            return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value", "roots")})
+            return cls(**{k: np.asarray(arrays[prefix + k]) for k in ("left", "right", "feature", "threshold", "value",
+                                                                      "roots")})
         values = leaf_values_of(arrays, prefix)
         feature, threshold = np.asarray(arrays[sp + "feature"]), np.asarray(arrays[sp + "threshold"])
         n = len(feature) + len(values)
@@ -332,7 +334,8 @@ def expand_compact(is_leaf: np.ndarray, roots: np.ndarray, feature: np.ndarray, 
     t[~is_leaf] = threshold
     v = np.zeros(n)
     v[is_leaf] = values
-    return {"left": left, "right": right, "feature": f, "threshold": t, "value": v, "roots": np.asarray(roots, np.int64)}
+    return {"left": left, "right": right, "feature": f, "threshold": t, "value": v,
+            "roots": np.asarray(roots, np.int64)}
 
 
 def constant_ensemble(value: float, n_trees: int) -> TreeEnsemble:

@@ -36,12 +36,14 @@ def forest_predictor(forest: Any) -> Callable[[np.ndarray], np.ndarray] | None:
     roots = np.r_[0, np.cumsum(sizes)[:-1]]
     if sizes.sum() >= 2**31 - 1:
         return None
-    left = np.concatenate([np.where(t.children_left < 0, -1, t.children_left + r) for t, r in zip(trees, roots, strict=True)])
+    left = np.concatenate([np.where(t.children_left < 0, -1,
+                                    t.children_left + r) for t, r in zip(trees, roots, strict=True)])
     right = np.concatenate([np.where(t.children_right < 0, -1, t.children_right + r)
                             for t, r in zip(trees, roots, strict=True)])
     packed = packed_nodes(left, right, np.concatenate([t.feature for t in trees]),
                           np.concatenate([t.threshold for t in trees]))
-    values = np.ascontiguousarray(np.concatenate([t.value[:, :, 0] for t in trees]), dtype=np.float64)  # (nodes, outputs)
+    # (nodes, outputs)
+    values = np.ascontiguousarray(np.concatenate([t.value[:, :, 0] for t in trees]), dtype=np.float64)
     n_features, n_outputs = forest.n_features_in_, forest.n_outputs_
 
     def predict(X: np.ndarray) -> np.ndarray:
@@ -109,7 +111,13 @@ def extra_trees_fit_predict(forest: Any, X: np.ndarray, y: np.ndarray, X_new: np
     scikit-learn whose private tree-building differs: then fit the forest)."""
     from sklearn.ensemble import ExtraTreesRegressor
 
-    if not available() or type(forest) is not ExtraTreesRegressor or forest.bootstrap or not isinstance(forest.random_state, int) or np.ndim(y) != 1:
+    if (
+        not available()
+        or type(forest) is not ExtraTreesRegressor
+        or forest.bootstrap
+        or not isinstance(forest.random_state, int)
+        or np.ndim(y) != 1
+    ):
         return None
     try:
         X32 = np.ascontiguousarray(X, dtype=np.float32)

@@ -28,5 +28,6 @@ from offline_adp.engines.dask.frozen import DaskFrozenLearner
 from offline_adp.engines.dask.ingest import ingest_distributed
 from offline_adp.engines.dask.learner import DaskLearner
 
-__all__ = ["LOST_WORKER_TIMEOUT_S", "DaskFit", "DaskFrozenLearner", "DaskLearner", "DaskTaskMap", "DistributedFQI", "EngineConfig",
+__all__ = ["LOST_WORKER_TIMEOUT_S", "DaskFit", "DaskFrozenLearner", "DaskLearner", "DaskTaskMap", "DistributedFQI",
+           "EngineConfig",
            "dask_client", "flat_columns", "ingest_distributed", "read_dataset_dask"]

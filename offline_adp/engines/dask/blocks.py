@@ -88,7 +88,8 @@ class _Blocks:
             if self.futures and want == self.where and self._placed():
                 return
             old = self.futures
-            self.futures = [client.submit(_load_block, *c, *self.args, workers=[w], allow_other_workers=True, pure=False)
+            self.futures = [client.submit(_load_block, *c, *self.args, workers=[w], allow_other_workers=True,
+                                          pure=False)
                             for c, w in zip(self.plan, want, strict=True)]
             self.where, self._x = want, None
             wait(self.futures)
@@ -173,7 +174,8 @@ def _predict_block(block: dict[str, np.ndarray], model: Any, encoder: Any, boost
     def pred(X: np.ndarray) -> np.ndarray:
         if not len(X):
             return np.zeros(0)
-        return np.asarray(model.predict(X, raw_score=True, num_threads=1), dtype=np.float64) if booster else predict_model(model, X)
+        return np.asarray(model.predict(X, raw_score=True, num_threads=1),
+                          dtype=np.float64) if booster else predict_model(model, X)
 
     def all_actions(x: np.ndarray) -> np.ndarray:
         return pred(encoder.all_pairs(x)).reshape(encoder.n_actions, len(x)).T

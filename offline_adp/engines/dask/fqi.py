@@ -142,7 +142,8 @@ class DistributedFQI:
                   "n_iterations": self.n_iterations,
                   "mode": "warm_start" if self.warm_start else "refit" if lgbm else "auto",
                   "trees_per_iteration": self.trees_per_iteration, "random_state": self.random_state}
-        return FittedQEvaluation(policy=self.policy, **common) if self.policy is not None else FittedQIteration(**common)
+        return FittedQEvaluation(policy=self.policy,
+                                 **common) if self.policy is not None else FittedQIteration(**common)
 
     def fit(self, client: Any, dataset_dir: str | PathLike[str], on_iteration: Any = None,
             checkpoint_dir: str | PathLike[str] | None = None) -> DistributedFQI:
@@ -383,14 +384,16 @@ class _DaskEngine:
         disc = resolve_discount(info, est.gamma, est.horizon, terminates=bool(term.any()))
         est.gamma_, est.horizon_ = disc.gamma, disc.horizon
         if disc.horizon is None and not disc.gamma < 1.0 and not term.any():
-            raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {disc.gamma}) unless episodes "
-                             "terminate (a shortest-path problem); give a horizon instead")
-        c_inf = getattr(est, "infeasible_cost", None)  # the chapter's c^-: no bootstrap from a row that reached it, targets clamped
+            raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {disc.gamma}) "
+                                       "unless episodes terminate (a shortest-path problem); give a horizon instead")
+        # the chapter's c^-: no bootstrap from a row that reached it, targets clamped
+        c_inf = getattr(est, "infeasible_cost", None)
         no_boot = term if c_inf is None else term | (cost >= c_inf)
         bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon, c_inf,
                                   getattr(est, "target_noise", 0.0))
         start = step == 0
-        start_obs = self.blocks.gather(("start",))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
+        start_obs = self.blocks.gather(("start",
+                                        ))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
         next_obs = self.blocks.gather(("next",))["next"] if self.fqe else None  # FQE's backup
         est._encoder = enc = QEncoder(len(af), af)
         actions = v["action"].astype(np.int64)
@@ -411,11 +414,12 @@ class _DaskEngine:
         if est.mode != "warm_start" and est.resolved_mode(reg) == "frozen":  # the default: frozen extra-trees
             est.mode_ = "frozen"
             self.learner_ = DaskFrozenLearner(self.client, self.blocks, reg, data.encoder, data.train.actions,
-                                              est.random_state, est._frozen_schedule(data, reg), start_obs=data.start_obs)
+                                              est.random_state, est._frozen_schedule(data, reg),
+                                              start_obs=data.start_obs)
             return self.learner_
         if not type(reg).__name__.startswith("LGBM") and est.mode != "warm_start":
-            raise InvalidArgumentError(f"the Dask engine fits {type(reg).__name__} in mode 'frozen' (or 'auto' resolving "
-                                       f"to it) only, not {est.mode!r}; use the local engine")
+            raise InvalidArgumentError(f"the Dask engine fits {type(reg).__name__} in mode 'frozen' (or "
+                                       f"'auto' resolving to it) only, not {est.mode!r}; use the local engine")
         est.mode_ = "warm_start" if est.mode == "warm_start" else "refit"  # LightGBM 'auto': refit on the workers
         self.learner_ = DaskLearner(self.client, self.blocks, reg, data.encoder, data.train.actions, est.random_state,
                                     warm_start=est.mode == "warm_start", trees_per_iteration=est.trees_per_iteration,

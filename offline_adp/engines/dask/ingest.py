@@ -28,7 +28,8 @@ def _ingest_file(path: str | list[str], spec: Any, fmt: str, on_error: str | Non
 
 
 def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any, out: str | PathLike[str], *,
-                       fmt: str = "parquet", on_error: str | None = None, overwrite: bool = False) -> tuple[Any, pd.DataFrame]:
+                       fmt: str = "parquet", on_error: str | None = None,
+                       overwrite: bool = False) -> tuple[Any, pd.DataFrame]:
     """Ingest many files in parallel on the workers (one task per file, the doctor run per
     file), then concatenate in the given file order and write one dataset (atomically).
 

@@ -32,7 +32,12 @@ class DaskLearner(Learner):
                  warm_start: bool = False, trees_per_iteration: int = 10, time_out: int = 2, retries: int = 2,
                  start_obs: np.ndarray | None = None) -> None:
         super().__init__(LearnSpec(regressor, encoder, None, actions, {}, None, seed))  # type: ignore[arg-type]
-        self.client, self.blocks, self.warm_start, self.trees_per_iteration = client, blocks, warm_start, trees_per_iteration
+        self.client, self.blocks, self.warm_start, self.trees_per_iteration = (
+            client,
+            blocks,
+            warm_start,
+            trees_per_iteration,
+        )
         self.time_out, self.retries, self.retried = time_out, retries, 0
         self.unplaced: list[int] = []  # iterations trained with a block away from its worker
         self.start_obs = start_obs  # start states when no block has one (the first row)
@@ -58,7 +63,8 @@ class DaskLearner(Learner):
         for attempt in range(self.retries + 1):
             try:
                 self.blocks.place()  # the rows each worker trains on decide LightGBM's result
-                ordered = _OrderedClient(self.client, self.blocks.where, strict=attempt < self.retries)  # last: wherever
+                # last: wherever
+                ordered = _OrderedClient(self.client, self.blocks.where, strict=attempt < self.retries)
                 model = DaskLGBMRegressor(client=ordered, time_out=self.time_out, **self._params(k))
                 with warnings.catch_warnings():  # said on every fit: the workers' threads are their own
                     warnings.filterwarnings("ignore", message="Parameter n_jobs will be ignored")
@@ -143,7 +149,8 @@ class _OrderedClient:
         if futures is None:
             return got
         keys = list(dict.fromkeys(f.key for f in self._client.futures_of(futures)))
-        placed = len(keys) == len(self._where) and all(w in got.get(k, ()) for k, w in zip(keys, self._where, strict=True))
+        placed = len(keys) == len(self._where) and all(w in got.get(k,
+                                                                    ()) for k, w in zip(keys, self._where, strict=True))
         if placed:
             return {k: (w,) for k, w in zip(keys, self._where, strict=True)}
         if any(not got.get(k) for k in keys):

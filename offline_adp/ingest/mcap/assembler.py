@@ -152,13 +152,16 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         self._note_losses(report)
         text = damage_text(path, report)
         entry = {"path": str(path), "messages_used": {t: n - before[t] for t, n in self.used.items()},
-                 "messages_skipped": dict(Counter(report.get("skipped", {}))), **({"empty": True} if report.get("empty") else {})}
+                 "messages_skipped": dict(Counter(report.get("skipped", {}))),
+                 **({"empty": True} if report.get("empty") else {})}
         if text:
             lost = [{k: v for k, v in c.items() if not k.startswith("_")} for c in report["lost_chunks"]]
             entry["recovered"] = {"messages": report["messages"], "lost_chunks": lost,
-                                  **{k: report[k] for k in ("lost_from_offset", "damaged", "messages_lost") if k in report},
+                                  **{k: report[k] for k in ("lost_from_offset", "damaged", "messages_lost")
+                                     if k in report},
                                   "text": text}
-            if self.on_error == "fail" and report["lost_chunks"]:  # a file merely cut short is kept (its last episode is not)
+            # a file merely cut short is kept (its last episode is not)
+            if self.on_error == "fail" and report["lost_chunks"]:
                 raise IngestError(text + "; re-run with --on-error quarantine to keep what was recovered")
             import warnings
 
@@ -225,7 +228,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 t = int(log_time)
                 values = [get_path(dec, p) for p in self.spec.episode_fields.values()]
                 fields = list(self.spec.episode_fields)
-                self.event_kinds.append(str(values[fields.index("event_field")]) if "event_field" in fields else "start")
+                self.event_kinds.append(str(values[fields.index("event_field")]) if "event_field" in fields
+                                        else "start")
             else:
                 which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
                 t = times.get(which)
@@ -388,7 +392,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         gap = int(self.spec.gap * 1e9)
         out_t, out_f, out_lt = [], [], []
         prev = self.flushed_t
-        for ti, fi, li in zip(t.tolist(), f.tolist(), lt.tolist(), strict=True):  # per reference message, not per row of data
+        # per reference message, not per row of data
+        for ti, fi, li in zip(t.tolist(), f.tolist(), lt.tolist(), strict=True):
             if self.next_tick is None or prev is None or ti - prev > gap:
                 self.next_tick = ti
             if self.next_tick <= ti:
@@ -406,7 +411,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         times, files, lts = self._ticks(e, w)
         if len(times):
             last_clock = self.bufs[(self.clock_key, e)].arrays()["t"]
-            upto = int(last_clock[-1]) if w == np.inf else int(last_clock[np.searchsorted(last_clock, w, side="right") - 1])
+            at = len(last_clock) if w == np.inf else np.searchsorted(last_clock, w, side="right")
+            upto = int(last_clock[at - 1])
             self._steps(e, times, files, lts)
             self.flushed_t = upto
             for (k, ek), b in self.bufs.items():
@@ -444,9 +450,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                         if self.used[s.topic] == 0:  # nothing on it so far: is it in the file at all?
                             self._check_topic_present(s.topic, step)
                         raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
-                                          f"(log_time {int(lts[j])}): no "
-                                          f"{s.topic} message within max_age = {s.max_age} s for {name!r} (use missing = "
-                                          "'fill' or 'drop_step')")
+                                          f"(log_time {int(lts[j])}): no {s.topic} message within max_age = "
+                                          f"{s.max_age} s for {name!r} (use missing = 'fill' or 'drop_step')")
                     missing_here |= ~good
                 if k == "action":
                     act_cols.append(v)

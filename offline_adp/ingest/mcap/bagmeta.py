@@ -19,7 +19,8 @@ from offline_adp.errors import IngestError
 
 MAX_METADATA_BYTES = 1 << 20  # a real metadata.yaml is a few kB (one entry per topic and file)
 MAX_FILES = 100_000
-STORAGES = ("mcap", "sqlite3", "")  # "": no storage_identifier (MCAP assumed, as before rosbag2 wrote one)  # relative_file_paths entries
+# "": no storage_identifier (MCAP assumed, as before rosbag2 wrote one)  # relative_file_paths entries
+STORAGES = ("mcap", "sqlite3", "")
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ class _Buffer:
 
     def arrays(self) -> dict[str, np.ndarray]:
         if self.new["t"]:
-            merged = {k: np.concatenate([self.arr[k], np.asarray(self.new[k], dtype=self.arr[k].dtype)]) for k in self.arr}
+            merged = {k: np.concatenate([self.arr[k], np.asarray(self.new[k],
+                                                                 dtype=self.arr[k].dtype)]) for k in self.arr}
             order = np.argsort(merged["t"], kind="stable")
             self.arr = {k: v[order] for k, v in merged.items()}
             self.new = {k: [] for k in self.new}

@@ -131,7 +131,8 @@ def ingest_mcap_tables(
             for t, v in f["messages_skipped"].items():
                 summary["messages_skipped"][t] = summary["messages_skipped"].get(t, 0) + v
             fp = Path(f["path"])
-            digest = sha256_file(fp) if fp.is_file() else {q.name: sha256_file(q) for q in sorted(fp.iterdir()) if q.is_file()}
+            digest = sha256_file(fp) if fp.is_file() else {q.name: sha256_file(q) for q in sorted(fp.iterdir())
+                                                           if q.is_file()}
             summary["files"].append({**f, "sha256": digest})
         if res.missing_topics:
             needed = [s for s in (*spec.streams, spec.action_stream) if s.topic in res.missing_topics]
@@ -145,8 +146,8 @@ def ingest_mcap_tables(
     summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
     if summary["late_messages"]:
         warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
-                      f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); steps before "
-                      "them were aligned without them. Raise reorder_window.", stacklevel=2)
+                      f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); "
+                      "steps before them were aligned without them. Raise reorder_window.", stacklevel=2)
     paths = [p for r in recordings for p in r]
     eps = [ep for r, _ in good for ep in r.episodes]
     rejected = [ep for ep in eps if ep.reason]
@@ -158,7 +159,8 @@ def ingest_mcap_tables(
         raise IngestError(
             f"no episode with at least one transition in {[str(p) for p in paths]}"
             + (f"; topics without any message: {silent}" if silent else "")
-            + (f"; {summary.get('dropped_steps', 0)} steps dropped for missing values" if summary.get("dropped_steps") else "")
+            + (f"; {summary.get('dropped_steps', 0)} steps dropped for missing values" if summary.get("dropped_steps")
+               else "")
             + (f"; rejected episodes: {[e['reason'] for e in summary['rejected_episodes']][:3]}" if rejected else "")
             + (f"; skipped files: {summary['skipped_files']}" if summary["skipped_files"] else ""))
     ds_all = _dataset(eps, spec, paths, summary)
@@ -168,7 +170,9 @@ def ingest_mcap_tables(
     q_tables = []
     if rejected and on_error == "quarantine":
         reasons = np.repeat([e.reason for e in rejected], [len(e.t) for e in rejected])
-        q_tables.append(ds_all.table.filter(pa.array(row_rejected)).append_column("reason", pa.array(reasons, pa.string())))
+        q_tables.append(
+            ds_all.table.filter(pa.array(row_rejected)).append_column("reason", pa.array(reasons, pa.string()))
+        )
     ds = TransitionDataset(ds_all.table.filter(pa.array(~row_rejected)), ds_all.info) if rejected else ds_all
     report = validate(ds)
     summary["doctor"] = report.summary()
@@ -246,10 +250,12 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
         cost = np.where(term, spec.terminal_cost, cost)
     cost = cost + 0.0  # no -0.0
     info = DatasetInfo(
-        features=tuple(Feature(n, unit=units.get(n, "")) for n in obs_names), action_table=atable, gamma=spec.gamma, horizon=spec.horizon,
+        features=tuple(Feature(n, unit=units.get(n, "")) for n in obs_names), action_table=atable, gamma=spec.gamma,
+        horizon=spec.horizon,
         propensity_source="unknown", name=spec.name,
         provenance={"inputs": summary["files"], "spec": spec.raw, "package_version": __version__,
-                    "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), "generator": "offline-adp ingest mcap"},
+                    "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                    "generator": "offline-adp ingest mcap"},
     )
     ds = TransitionDataset.from_arrays(
         info, episode_id=np.repeat([e.ep for e in eps], lengths), step=np.concatenate([np.arange(n) for n in lengths]),

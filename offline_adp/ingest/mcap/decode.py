@@ -118,7 +118,9 @@ def field_values(msg: Any, prefix: str = "", depth: int = 0) -> list[tuple[str, 
                 v = list(v)  # a repeated field: its first element, or an empty list
             items.append((f.name, v))
     elif isinstance(msg, list | tuple) or (hasattr(msg, "__len__") and hasattr(msg, "__getitem__")
-                                           and not isinstance(msg, str | bytes | bytearray) and not hasattr(msg, "__slots__")):
+                                           and not isinstance(msg,
+                                                              str | bytes | bytearray)
+                                                              and not hasattr(msg, "__slots__")):
         seq = list(msg)
         if not seq:
             return [(f"{prefix}[0]", None)]

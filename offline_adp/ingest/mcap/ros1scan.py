@@ -112,7 +112,8 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
                 raise InvalidArgumentError(f"a record header length runs past the chunk at offset {base + pos}")
             hl = struct.unpack_from("<I", buf, pos)[0]
             if hl > min(limit_hdr, n - pos - 8):
-                raise InvalidArgumentError(f"a record header of {hl} bytes does not fit in the chunk at offset {base + pos}")
+                raise InvalidArgumentError(f"a record header of {hl} bytes does not fit in the chunk at offset "
+                                           f"{base + pos}")
             h = _fields(buf[pos + 4:pos + 4 + hl])
             dl = struct.unpack_from("<I", buf, pos + 4 + hl)[0]
             start = pos + 8 + hl
@@ -152,7 +153,8 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
         head = f.read(4)
         if len(head) < 4:
             if offset < size:
-                report.update(lost_from_offset=offset, damaged="the file ends inside a record header", messages_lost=None)
+                report.update(lost_from_offset=offset, damaged="the file ends inside a record header",
+                              messages_lost=None)
             elif "index_seen" not in report:
                 report.update(lost_from_offset=offset, damaged="the file ends without its index (cut short)",
                               messages_lost=0)
@@ -192,8 +194,8 @@ def scan_ros1(f: Any, report: dict[str, Any]) -> Iterator[tuple[Ros1Connection, 
                 usize = _u32(h, "size")
                 limit = min(MAX_RECORD_BYTES, dl if kind == "none" else 1024 * dl + 65536)
                 if usize > limit:
-                    raise InvalidArgumentError(f"declares {usize} bytes uncompressed from {dl} ({kind}), more than the limit "
-                                     f"of {limit}")
+                    raise InvalidArgumentError(f"declares {usize} bytes uncompressed from {dl} ({kind}), more "
+                                               f"than the limit of {limit}")
                 inner = list(records(memoryview(_decompress(kind, data, usize)), offset, MAX_HEADER_BYTES))
             except Exception as exc:  # noqa: BLE001 - bz2/lz4/framing errors of several types
                 report["lost_chunks"].append({"offset": offset, "error": f"{type(exc).__name__}: {exc}"})

@@ -74,8 +74,8 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
                     raise IngestError(f"more than {max_channels} channels (a corrupt or hostile file?)")
             elif isinstance(rec, Message):
                 if not (0 <= rec.log_time < 1 << 63 and 0 <= rec.publish_time < 1 << 63):
-                    raise IngestError(f"a message on channel {rec.channel_id} has log_time {rec.log_time} / publish_time "
-                                      f"{rec.publish_time} ns, beyond the int64 range (a corrupt record?)")
+                    raise IngestError(f"a message on channel {rec.channel_id} has log_time {rec.log_time} / "
+                                      f"publish_time {rec.publish_time} ns, beyond the int64 range (a corrupt record?)")
                 ch = channels.get(rec.channel_id)
                 if ch is not None and (topics is None or ch.topic in topics):
                     report["messages"] += 1
@@ -147,7 +147,8 @@ def scan_records(f: Any, topics: set[str] | None, report: dict[str, Any], *,
             try:
                 rec = Message.read(stream, length)
             except Exception as exc:  # noqa: BLE001
-                report["lost_chunks"].append({"offset": offset, "error": f"message record: {type(exc).__name__}: {exc}"})
+                report["lost_chunks"].append({"offset": offset,
+                                              "error": f"message record: {type(exc).__name__}: {exc}"})
                 continue
             yield from wanted([rec])
         elif opcode == Opcode.HEADER:

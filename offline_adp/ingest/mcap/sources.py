@@ -27,7 +27,8 @@ def bag_files(directory: Path) -> list[Path]:
             raise IngestError(f"{directory}: a rosbag2 SQLite bag (read through rosbags), not MCAP files")
         return list(meta.files)
     found = sorted(directory.glob("*.mcap"), key=lambda p: (re.sub(r"_\d+$", "", p.stem),
-                                                           int(m.group(1)) if (m := re.search(r"_(\d+)$", p.stem)) else 0))
+                                                           int(m.group(1)) if (m := re.search(r"_(\d+)$", p.stem))
+                                                           else 0))
     if not found:
         raise IngestError(f"{directory}: a directory without metadata.yaml or *.mcap files (not a rosbag2 bag)")
     return found
@@ -97,5 +98,6 @@ def rosbag2_directory(path: Path) -> Path | None:
     meta = read_bag_metadata(bag)
     real = path.resolve()
     if not any(f.resolve() == real for f in meta.files):
-        raise IngestError(f"{path}: not listed in {bag / 'metadata.yaml'} (relative_file_paths = {list(meta.entries)[:10]})")
+        raise IngestError(f"{path}: not listed in {bag / 'metadata.yaml'} (relative_file_paths = "
+                          f"{list(meta.entries)[:10]})")
     return bag

@@ -296,8 +296,10 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
     if on_error not in ("fail", "quarantine"):
         raise SpecError(f"{where}.on_error: expected 'fail' or 'quarantine', got {on_error!r}")
     return McapSpec(
-        clock_topic=clock.get("topic"), clock_time=clock.get("time", "log_time"), streams=streams, action_stream=act_stream,
-        action=action, action_bins=action_bins, cost_terms=terms, terminal_cost=cost.get("terminal_cost"), cost_field=cost_field,
+        clock_topic=clock.get("topic"), clock_time=clock.get("time", "log_time"), streams=streams,
+        action_stream=act_stream,
+        action=action, action_bins=action_bins, cost_terms=terms, terminal_cost=cost.get("terminal_cost"),
+        cost_field=cost_field,
         reward_field=reward_field, rate_hz=None if "rate_hz" not in clock else float(clock["rate_hz"]),
         reorder_window=float(clock.get("reorder_window", 2.0)), episode_topic=ep.get("topic"),
         episode_fields={k: ep[k] for k in ("id_field", "event_field", "terminated_field", "source_field") if k in ep},
