@@ -260,3 +260,27 @@ def test_the_psdp_bound_is_printed_as_an_estimate_never_as_a_bound():
     assert "not a bound" in html
     assert not any(v.lower().startswith("bound") for v in PSDP_LABELS.values())
     assert "estimate: sum_t eps_t UCB_t" in html
+
+
+def test_the_headline_is_three_lines_estimate_verdict_why():
+    """Issue #42: the estimate with its interval and its true level, the verdict (against the
+    demonstrator with failures where a simulator has one) without its reasons, one line of why."""
+    m = copy.deepcopy(LEFT)
+    est, verdict, why = headline(m)["verdict"]["lines"]
+    assert est == "estimate: FQE 4.348 [2.607, 9.963] (no level)"  # the level withdrawn: support left
+    assert verdict.startswith("cannot tell from these logs") and "would say better" in verdict
+    assert ", but" not in verdict  # the reasons are the why line's
+    assert why.startswith("why: policy LEFT the data's support")
+    assert why.endswith("; fit convergence unknown (no run directory)")
+    lines = summary_lines(m)
+    at = lines.index(f"verdict: [cannot tell] {verdict}")  # the CLI: the verdict, then its why
+    assert lines[at + 1] == why
+    m["rollout"] = _rollout((6.843, 6.2, 7.5), (4.608, 4.4, 4.8), pf=3, df=0)
+    est, verdict, why = headline(m)["verdict"]["lines"]
+    assert est.startswith("estimate: simulator rollouts 6.843 [6.2, 7.5]; from the logs alone FQE 4.348")
+    assert "WORSE than the demonstrator" in verdict and "failures 3 vs 0" in verdict
+    assert verdict.endswith("from the logs alone: cannot tell")
+    box = verdict_html(headline(m)["verdict"], {"verdict": "converged"})
+    assert box.startswith("<p class='verdict bad'><span class='outcome bad'>worse</span><b>")
+    for text in (est, verdict, why, re.sub(r"<[^>]+>", "", box)):
+        _no_95(text)

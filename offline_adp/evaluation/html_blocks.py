@@ -68,6 +68,7 @@ STYLE = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:auto;pad
          ".summary{border:2px solid #444;border-radius:6px;padding:.2em 1em 1em;background:#fafafa}"
          ".summary h2{margin:.4em 0}.kv th{width:170px}.kv td,.kv th{font-size:13px}"
          ".verdict{font-size:15px;padding:.5em .7em;border-radius:4px;border-left:8px solid #888}"
+         ".verdict .why{font-size:13px;color:#333}"
          ".good{background:#e3f4e1;border-color:#2e7d32}.bad{background:#fbe3e3;border-color:#c62828}"
          ".meh{background:#f7efd2;border-color:#b58900}.stale{background:#efe3f6;border-color:#7b1fa2}"
          ".outcome{display:inline-block;font-weight:700;text-transform:uppercase;letter-spacing:.04em;color:#fff;"
@@ -116,9 +117,14 @@ def verdict_html(v: dict[str, Any], conv: dict[str, Any], tag: str = "p") -> str
 
     out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
     cls = OUTCOME_CLASS.get(out, "meh")
-    text = (v.get("text") or "")[:1].upper() + (v.get("text") or "")[1:]
-    return (f"<{tag} class='verdict {cls}'><span class='outcome {cls}'>{html.escape(out)}</span>"
-            f"{html.escape(text)}</{tag}>")
+    three = v.get("lines")
+    if three:  # the verdict in bold, then the estimate and the why, one line each
+        first = three[1][:1].upper() + three[1][1:]
+        body = (f"<b>{html.escape(first)}</b><br><span class='why'>{html.escape(three[0])}</span>"
+                f"<br><span class='why'>{html.escape(three[2])}</span>")
+    else:
+        body = html.escape((v.get("text") or "")[:1].upper() + (v.get("text") or "")[1:])
+    return f"<{tag} class='verdict {cls}'><span class='outcome {cls}'>{html.escape(out)}</span>{body}</{tag}>"
 
 
 def warning_items(ws: list[Any]) -> str:

@@ -411,7 +411,8 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     word = f"[{out}]"
     if colour:
         word = f"\x1b[1;{OUTCOME_ANSI[out]}m{word}\x1b[0m"
-    lines.append(f"verdict: {word} {h['verdict']['text']}")
+    three = h["verdict"].get("lines")  # the headline's verdict and why (the estimate is printed above)
+    lines += [f"verdict: {word} {three[1]}", three[2]] if three else [f"verdict: {word} {h['verdict']['text']}"]
     if h["n_warnings"]:
         lines.append(f"{h['n_warnings']} warnings (metrics.json 'warnings', each with its source; report)")
     return lines

@@ -168,7 +168,36 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
     ct = conv["text"][:1].upper() + conv["text"][1:]
     return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
-            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left)}
+            "text": f"{perf}. Policy {support}. {ct}.", "support_left": bool(left),
+            "lines": headline_lines(m, ranking, perf, support, doubts, conv)}
+
+
+def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, support: str, doubts: list[str],
+                   conv: dict[str, Any]) -> list[str]:
+    """The verdict in three lines, read in seconds: the estimate with its interval and its true
+    level (the simulator's rollouts first where they measured the estimand); the verdict
+    against the behaviour (and the demonstrator, with failures), without the reasons; and one
+    line of why (support, convergence, disagreeing estimators). ``text`` keeps the whole
+    sentence for the record."""
+    est = []
+    ro = (m.get("rollout") or {}).get("policy") or {}
+    if _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
+        lo, hi = ro["interval"]
+        est.append(f"simulator rollouts {ro['mean_discounted_cost']:.4g} [{lo:.4g}, {hi:.4g}]")
+    top = next((e for e in ranking if e["tier"] == 0), None) or next((e for e in ranking if e["tier"] == 1), None)
+    if top is not None:
+        iv = top.get("interval") or top.get("shown_interval")
+        where = "from the logs alone " if est else ""
+        est.append(f"{where}{top['name'].upper()} {top['estimate']:.4g}"
+                   + (f" [{iv[0]:.4g}, {iv[1]:.4g}] ({level_words(top)})" if iv and all(map(_is_finite_number, iv))
+                      else " (no interval)"))
+    verdict = perf.split(" (from the logs alone: ", 1)[0]
+    if verdict != perf:  # the simulator's verdict, then the logs' own in a word
+        verdict += "; from the logs alone: cannot tell"
+    verdict = verdict.split(", but ", 1)[0]
+    fit = conv["text"].split(": ", 1)[0]  # "fit converged", "fit still changing", ...; its numbers are in the report
+    why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
+    return ["estimate: " + ("; ".join(est) if est else "none usable"), verdict, "why: " + "; ".join(why)]
 
 
 def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -> tuple[str, bool]:
