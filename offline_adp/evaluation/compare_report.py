@@ -12,6 +12,7 @@ from __future__ import annotations
 import html
 import os
 import tempfile
+import textwrap
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -64,7 +65,8 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
     ax.set_yticks(y, [_label(c) for c in cands], fontsize=9)
     ax.set_ylim(-0.7, len(cands) - 0.4)
     ax.set_xlim(min(lo, demo if drawn_demo else lo) - pad, max(hi, demo if drawn_demo else hi) + pad)
-    ax.set_xlabel(f"{res.get('estimand') or 'expected discounted cost'} (lower is better)", fontsize=9)
+    label = f"{res.get('estimand') or 'expected discounted cost'} (lower is better)"
+    ax.set_xlabel(textwrap.fill(label, 70), fontsize=9)  # one long line ran off the figure's left edge
     ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (lowest estimate first)", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(axis="x", alpha=0.3)
