@@ -97,6 +97,19 @@ def test_classifier_ratios_match_exact(case):
     assert not r.warnings
 
 
+def test_separable_steps_are_one_warning_naming_their_runs():
+    """Policy states far from the data's at steps 1-3 and 6 (of 8): one warning, not four."""
+    rng = np.random.default_rng(0)
+    step = np.repeat(np.arange(8), 200)
+    obs = rng.normal(size=(len(step), 2))
+    far = {1, 2, 3, 6}
+    states = [rng.normal(size=(200, 2)) + (20.0 if t in far else 0.0) for t in range(8)]
+    r = shift.ratios_by_classifier(obs, step, states)
+    assert {t for t, a in r.auc.items() if a > 0.95} == far
+    (w,) = [w for w in r.warnings if "AUC" in w]
+    assert w.startswith("classifier AUC > 0.95 at 4 of 8 steps (1-3, 6; highest ")
+
+
 def test_diagnostics_of_exact_ratios():
     pib, pi = CASES["strong"]
     W = shift.exact_ratios(MDP, pi, pib, T)

@@ -283,10 +283,20 @@ def ratios_by_classifier(
         uncovered[t] = float(np.mean(pc[len(here):] >= 1 - clip))
         r = pc[: len(here)] / (1 - pc[: len(here)]) * len(here) / len(xp)
         w[here] = _normalise(r) if normalise else r
-        if auc[t] > 0.95:
-            warnings.append(f"step {t}: classifier AUC {auc[t]:.3f} — pi's states and the data's are almost separable; "
-                            "the ratio at this step cannot be trusted")
+    sep = np.array(sorted(t for t, a in auc.items() if a > 0.95), np.int64)  # one warning, not one per step
+    if len(sep):
+        top = max(sep.tolist(), key=lambda t: auc[t])
+        warnings.append(f"classifier AUC > 0.95 at {len(sep)} of {len(policy_states)} steps ({step_ranges(sep)}; "
+                        f"highest {auc[top]:.3f} at t = {top}): pi's states and the data's are almost separable "
+                        "there; the ratios at those steps cannot be trusted")
     return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=warnings)
+
+
+def step_ranges(steps: np.ndarray, k: int = 8) -> str:
+    """Sorted steps as runs, ``"12-17, 28-35, 40"``; the first ``k`` runs, then how many more."""
+    runs = np.split(steps, np.flatnonzero(np.diff(steps) != 1) + 1)
+    words = [f"{r[0]}-{r[-1]}" if len(r) > 1 else f"{r[0]}" for r in runs]
+    return ", ".join(words[:k]) + (f" and {len(words) - k} more runs" if len(words) > k else "")
 
 
 # --------------------------------------------------------------------------- diagnostics
