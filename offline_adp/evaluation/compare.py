@@ -223,7 +223,8 @@ def _candidate_row(r: Path, m: dict[str, Any], rk: list[dict[str, Any]], estimat
             "shift": h["shift"]["text"], "support_left": h["verdict"].get("support_left"),
             "convergence": h["convergence"]["text"], "truth": truth,
             "truth_interval": m.get("rollout", {}).get("policy", {}).get("interval"),
-            "verdict": h["verdict"].get("text"), "performance": h["verdict"].get("performance"),
+            "verdict": h["verdict"].get("text"), "verdict_lines": h["verdict"].get("lines"),
+            "performance": h["verdict"].get("performance"),
             "fit_verdict": h["convergence"].get("verdict"), "cost_distribution": _risk(m)}
 
 

@@ -282,7 +282,7 @@ def _candidate_rows(cands: list[dict[str, Any]]) -> list[dict[str, Any]]:
     rows = []
     for c in cands:
         v = {"performance": c.get("performance"), "support_left": c.get("support_left"), "text": c.get("verdict"),
-             "outcome": c.get("outcome")}
+             "outcome": c.get("outcome"), "lines": c.get("verdict_lines")}
         box = verdict_html(v, {"verdict": c.get("fit_verdict")}, tag="div")
         cls = box.split("class='verdict ", 1)[1].split("'", 1)[0]
         word = box.split("<span class='outcome", 1)[1].split(">", 1)[1].split("<", 1)[0]
