@@ -61,3 +61,29 @@ def test_lightgbm_binary_proba_is_the_wrapper(n0, n1):
         assert np.array_equal(binary_proba("lightgbm", None, X, y, Xn), ref)
     assert np.array_equal(binary_proba("extra_trees", {"n_estimators": 3}, X, y, Xn),
                           make_classifier("extra_trees", n_estimators=3).fit(X, y).predict_proba(Xn)[:, 1])
+
+
+@pytest.mark.parametrize("cls", [ExtraTreesRegressor, RandomForestRegressor])
+def test_inputs_that_are_not_all_finite_take_scikit_learns_own_path(cls):
+    """NaN goes to a learned side in scikit-learn (not always right) and inf is refused: the
+    compiled path steps aside (review finding)."""
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(300, 3))
+    Xnan = X.copy()
+    Xnan[::7, 0] = np.nan  # trees that learned where NaN goes
+    y = np.sin(X[:, 0]) + X[:, 1]
+    for train in (X, Xnan):
+        forest = cls(n_estimators=5, random_state=0, n_jobs=1).fit(train, y)
+        Xn = rng.normal(size=(50, 3))
+        Xn[:10, 0] = np.nan
+        assert np.array_equal(forest_predictor(forest)(Xn), forest.predict(Xn))
+        with pytest.raises(ValueError):
+            forest_predictor(forest)(np.full((2, 3), np.inf))
+    unfitted = ExtraTreesRegressor(n_estimators=5, random_state=0)
+    Xn = rng.normal(size=(20, 3))
+    assert extra_trees_fit_predict(unfitted, X, y, Xn) is not None
+    Xn[0, 1] = np.nan
+    assert extra_trees_fit_predict(unfitted, X, y, Xn) is None
+    assert extra_trees_fit_predict(unfitted, X, np.r_[np.inf, y[1:]], Xn[1:]) is None
+    assert extra_trees_fit_predict(ExtraTreesRegressor(n_estimators=5, random_state=0, max_samples=0.5), X, y,
+                                   Xn[1:]) is None

@@ -32,7 +32,7 @@ def test_pair_leaves_are_the_all_pairs_leaves(features):
     e, enc = _ensemble(features, seed=len(features))
     rng = np.random.default_rng(1)
     X = np.vstack([rng.normal(size=(300, 3)) * 2, np.zeros((1, 3))])
-    X[5, 1] = np.nan  # compared as scikit-learn does: NaN goes right
+    X[5, 1] = np.nan  # compared with TreeEnsemble.apply, where NaN goes right
     X[6] = np.float32(e.threshold[e.feature == 0][0])  # on a threshold: left
     got = pair_leaves(e, enc.phi(X), enc.action_features)
     assert np.array_equal(got, e.apply(enc.all_pairs(enc.phi(X))))

@@ -164,8 +164,10 @@ class FittedQEstimator(CheckedEstimator):
         self.__dict__["_history_dirty"] = True
 
     def discard_fit_state(self) -> None:
-        """Drop ``fit_state_`` (the prepared data and the learner; e.g. a cluster's)."""
+        """Drop ``fit_state_`` (the prepared data and the learner; e.g. a cluster's) and what was
+        cached from it (FQE's bootstrap operators over the training rows, which hold the learner)."""
         self.__dict__.pop("fit_state_", None)
+        self.__dict__.pop("_row_space_cache", None)
 
     # ------------------------------------------------------------------ the fit
     def run_fitted_q(self, dataset: Any, sample_weight: np.ndarray | None, resume: dict[str, Any] | None,

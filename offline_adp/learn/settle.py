@@ -173,6 +173,7 @@ def settle_solve(y: np.ndarray, evaluate: Callable[[np.ndarray], np.ndarray],
                 gs.clear()
     return best, n
 
+
 def backups(row: dict[str, Any]) -> int:
     """A history row's ``inner_backups``: the solver's backups in that iteration (0 where
     not recorded)."""

@@ -50,6 +50,8 @@ def forest_predictor(forest: Any) -> Callable[[np.ndarray], np.ndarray] | None:
         X32 = np.ascontiguousarray(X, dtype=np.float32)
         if X32.ndim != 2 or X32.shape[1] != n_features:
             raise ValueError(f"the forest reads {n_features} features, got an input of shape {np.shape(X)}")
+        if not np.isfinite(X32).all():  # NaN (scikit-learn sends it to a learned side) or inf: its own predict
+            return forest.predict(X)
         y = np.zeros((len(X32), n_outputs))
         _forest_sum(packed, packed.view(np.float32), roots, values, X32, y)
         return y if n_outputs > 1 else y[:, 0]
@@ -107,7 +109,8 @@ def extra_trees_fit_predict(forest: Any, X: np.ndarray, y: np.ndarray, X_new: np
     without a bootstrap (each tree's seed drawn in turn from ``RandomState(random_state)``,
     ``tree._fit`` on the float32 inputs), read by the compiled lookups and averaged over
     trees in order as :func:`~offline_adp.trees.ensemble.ensemble_predict` does. None when
-    it does not apply (numba missing, a bootstrap, an integer seed not given, or a
+    it does not apply (numba missing, a bootstrap or ``max_samples``, an integer seed not given,
+    inputs that are not all finite, or a
     scikit-learn whose private tree-building differs: then fit the forest)."""
     from sklearn.ensemble import ExtraTreesRegressor
 
@@ -117,6 +120,9 @@ def extra_trees_fit_predict(forest: Any, X: np.ndarray, y: np.ndarray, X_new: np
         or forest.bootstrap
         or not isinstance(forest.random_state, int)
         or np.ndim(y) != 1
+        or forest.max_samples is not None  # scikit-learn refuses it without a bootstrap
+        or forest.criterion == "poisson"  # its checks on y are scikit-learn's fit's
+        or not (np.isfinite(X).all() and np.isfinite(y).all() and np.isfinite(X_new).all())
     ):
         return None
     try:

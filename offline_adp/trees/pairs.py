@@ -25,8 +25,6 @@ from offline_adp.trees.builder import _kernel, available
 MAX_ACTIONS = 64
 #: descents in flight at once (:func:`_pair_apply`)
 LANES = 16
-#: descents in flight at once (:func:`_pair_apply`)
-LANES = 16
 
 
 def packed_nodes(left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold: np.ndarray) -> np.ndarray:
