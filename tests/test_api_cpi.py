@@ -11,6 +11,7 @@ from offline_adp.algorithms.cpi import ConservativePolicyIteration
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.envs import TabularMDP
 from offline_adp.policies import MixturePolicy, TabularPolicy, UniformPolicy
+from offline_adp.qfunctions import FunctionQ
 from tests.test_fqi import full_support_dataset
 
 
@@ -25,9 +26,55 @@ def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iteratio
     opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
     np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None], return_index=True), opt.policy)
     assert len(api.history_) <= S + 1 and api.history_["changed"].iloc[-1] == 0.0  # stopped: no change
+    assert api.verdict_ == "converged" and "fixed point of policy iteration" in api.verdict_message_
     # values estimated by FQE decrease (policy improvement), ending at the optimal value
     v = api.history_["value"].to_numpy()
     assert (np.diff(v) <= 1e-9).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_warm_started_evaluations_are_the_same_fixed_points(seed):
+    """Each evaluation started from the last one's Q reaches the same Q^{pi_k} (to FQE's
+    tolerance) as one started from zero: the same policies, values and exact optimum."""
+    S = 10
+    m = TabularMDP(n_states=S, n_actions=3, horizon=None, gamma=0.8, seed=seed)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=400, tol=1e-12)
+    fits = {warm: ApproximatePolicyIteration(fqe, n_iterations=S + 1, warm_start=warm).fit(ds, sample_weight=w)
+            for warm in (True, False)}
+    x = np.arange(float(S))[:, None]
+    opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
+    for api in fits.values():
+        np.testing.assert_array_equal(api.policy_.act(x, return_index=True), opt.policy)
+        np.testing.assert_allclose(api.q_function_.values(x), opt.Q, atol=1e-9)
+    np.testing.assert_allclose(fits[True].history_["value"], fits[False].history_["value"], atol=1e-9)
+    assert fits[True].history_["changed"].tolist() == fits[False].history_["changed"].tolist()
+
+
+class _Contrary(FittedQEvaluation):
+    """An evaluator whose Q says the evaluated policy's action is the worst one: its greedy
+    policy takes the other action, so policy iteration on it goes round a cycle."""
+
+    def fit(self, dataset, sample_weight=None):
+        pi = self.policy
+
+        def q(obs, t):
+            return (pi.probabilities(obs, t).argmax(axis=1)[:, None] == np.arange(2)).astype(float)
+
+        self.q_function_, self.value_ = FunctionQ(q, 2), 0.0
+        self.verdict_, self.verdict_message_ = "converged", "by construction"
+        return self
+
+
+def test_a_cycle_of_greedy_policies_stops_the_iteration_and_says_so():
+    m = TabularMDP(n_states=4, n_actions=2, horizon=None, gamma=0.8, seed=0)
+    ds, _ = full_support_dataset(m)
+    api = ApproximatePolicyIteration(_Contrary(), n_iterations=10).fit(ds)
+    # pi_0 uniform (argmax: action 0), pi_1 = action 1, pi_2 = action 0, pi_3 = action 1 = pi_1
+    assert api.history_["changed"].tolist() == [1.0, 1.0, 1.0] and api.verdict_ == "still changing"
+    assert "cycle" in api.verdict_message_ and "pi_1" in api.verdict_message_
+    short = ApproximatePolicyIteration(_Contrary(), n_iterations=2).fit(ds)  # stopped by the budget
+    assert len(short.history_) == 2 and short.verdict_ == "still changing" and "budget" in short.verdict_message_
 
 
 def test_api_finite_horizon():

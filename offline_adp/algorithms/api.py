@@ -4,19 +4,39 @@ Access model: trace data only; optionally a reset or generative model to add epi
 of the current policy between iterations. Evaluate with fitted Q evaluation, improve
 greedily, repeat::
 
-    pi_0 = initial policy (uniform by default)
+    pi_0 = initial policy (uniform by default);  Q_{-1} = 0
     for k = 0, 1, ...:
-        Q^{pi_k} = FQE(pi_k, D)                            # approximate evaluation
-        pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)        # greedy improvement
-        stop if pi_{k+1} = pi_k on every state of D, or after the budget
+        Q^{pi_k} = FQE(pi_k, D), its iteration started from Q_{k-1}     # approximate evaluation
+        pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)                     # greedy improvement
+        stop if pi_{k+1} = pi_k on every state of D                     # a fixed point: converged
+        stop if pi_{k+1} = pi_j on every state of D for some j < k      # a cycle
+        stop after the budget
         (optional) D = D + episodes of pi_{k+1}
+
+Each evaluation starts from the last one's Q (``warm_start``, infinite horizon, the
+action table): ``Q^{pi_k}`` is the fixed point FQE iterates towards, whatever its start, so
+the start changes what FQE computes only through what its tree structures are grown on
+(the first targets ``c + gamma Q_{k-1}(x', pi_k(x'))`` instead of ``c``) and how far its
+last iterate is from the fixed point, which its verdict states.
+
+The stops. With exact evaluations policy iteration strictly improves until
+``pi_{k+1} = pi_k`` (then ``pi_k`` is optimal) and so never revisits a policy (Puterman
+1994, section 6.4); with approximate ones it ends in a neighbourhood of the optimum
+where the evaluation errors decide the greedy actions (Bertsekas & Tsitsiklis 1996,
+section 6.2: ``limsup ||J^{pi_k} - J*|| <= 2 gamma eps / (1 - gamma)^2`` for an
+evaluation error ``eps``), and it may cycle there. A repeated policy is such a cycle: more
+iterations would repeat it. ``verdict_`` says which stop ended the fit: ``"converged"``
+when ``pi_{k+1} = pi_k`` at every state of the data and that policy's evaluation
+converged (FQE's own verdict), else ``"still changing"`` with the reason (a cycle, the
+budget, or the evaluation not converged), or ``"diverging"`` (the evaluation's).
 
 Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
 ``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
 the improvement minimises over ``C(x)``, the commands logged at the evaluator's
 ``n_candidates`` nearest logged states (as FittedQIteration's backup), so no policy ever
 commands what the logs did not try near ``x``; ``pi_0`` is the command logged at the
-nearest logged state, and "changed" counts states whose command vector changed.
+nearest logged state, and "changed" counts states whose command vector changed. Each
+evaluation starts from zero there.
 """
 
 from __future__ import annotations
@@ -49,6 +69,18 @@ from offline_adp.policies import (
 )
 from offline_adp.qfunctions import NeighbourCommands, with_candidates
 
+#: The evaluator's settings where API's differ from FittedQEvaluation's own defaults: those of
+#: FittedQIteration (a frozen tree structure where it applies, built at geometrically spaced
+#: iterations, its fixed point solved: docs/fqi-modes.md), measured for API in
+#: docs/algorithms.md (FQE's own defaults refit the forest at every one of its iterations).
+EVALUATOR_DEFAULTS: dict[str, Any] = {"mode": "auto", "n_structures": None, "structure_max_samples": "auto"}
+
+
+def default_evaluator(**params: Any) -> FittedQEvaluation:
+    """API's evaluator: ``FittedQEvaluation(**params)`` with :data:`EVALUATOR_DEFAULTS` for
+    the keys ``params`` does not set (the CLI's ``[api.fqe]`` table)."""
+    return FittedQEvaluation(**{**EVALUATOR_DEFAULTS, **params})
+
 
 def _greedy_actions(policy: Policy, obs: np.ndarray, horizon: int | None) -> np.ndarray:
     steps = range(horizon) if horizon else [0]
@@ -71,15 +103,54 @@ def _improve(q: Any, candidates: Any) -> Policy:
     return GreedyCommandPolicy(with_candidates(q, candidates))
 
 
+def _changed(actions: np.ndarray, other: np.ndarray | None, commands: bool) -> float:
+    """The fraction of (state, step) pairs whose greedy action (command vector) differs."""
+    if other is None or other.shape != actions.shape:
+        return 1.0
+    same = actions == other
+    return float(1.0 - (same.all(axis=-1) if commands else same).mean())
+
+
+def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, repeat: int | None) -> tuple[str, str]:
+    """``(verdict_, verdict_message_)`` of the fit (module docstring)."""
+    k = rows[-1]["iteration"]
+    ev, ev_msg = getattr(fqe, "verdict_", None), getattr(fqe, "verdict_message_", "")
+    evaluation = f"the evaluation of pi_{k}: {ev} ({ev_msg})" if ev else "the evaluation of pi_{k} gave no verdict"
+    recent = ", ".join(f"{r['changed']:.1%}" for r in rows[-3:])
+    if ev == "diverging":
+        return "diverging", evaluation
+    if stop == "fixed point":
+        if ev in ("converged", "completed"):
+            return "converged", (f"after {k + 1} evaluations the greedy policy of pi_{k}'s evaluation is pi_{k} at "
+                                 f"every state of the data (a fixed point of policy iteration); {evaluation}")
+        return "still changing", (f"the greedy policy of pi_{k}'s evaluation is pi_{k} at every state of the data, "
+                                  f"but {evaluation}")
+    if stop == "cycle":
+        return "still changing", (f"the policies cycle: pi_{k + 1} (the greedy policy of pi_{k}'s evaluation) is "
+                                  f"pi_{repeat} at every state of the data, so more iterations would repeat "
+                                  f"pi_{repeat}..pi_{k} (with exact evaluations policy iteration never revisits a "
+                                  f"policy: here the evaluations' errors decide between them); greedy actions "
+                                  f"changed at {recent} of the data's states in the last iterations")
+    return "still changing", (f"after the budget of {k + 1} iterations the greedy action still changed at {recent} "
+                              "of the data's states in the last iterations (n_iterations)")
+
+
 class ApproximatePolicyIteration(CheckedEstimator):
-    """Approximate policy iteration with FQE as the evaluation step.
+    """Approximate policy iteration with FQE as the evaluation step (module docstring).
 
     Parameters
     ----------
-    fqe : FittedQEvaluation
-        Prototype of the evaluator (cloned each iteration with the current policy).
+    fqe : FittedQEvaluation, optional
+        Prototype of the evaluator (cloned each iteration with the current policy); by
+        default :func:`default_evaluator` (FittedQEvaluation with FittedQIteration's tree
+        schedule, :data:`EVALUATOR_DEFAULTS`).
     n_iterations : int
-        Budget of improvement steps (>= 1).
+        Budget of improvement steps (>= 1); the iteration stops earlier at a fixed point or
+        a cycle of the greedy policies.
+    warm_start : bool
+        Start each evaluation's iteration from the last evaluation's Q (``initial_q``);
+        only over an action table, for an infinite horizon, and when ``fqe`` has no
+        ``initial_q`` of its own.
     initial_policy : Policy, optional
         ``pi_0``; uniformly random by default.
     model : ResetModel, optional
@@ -93,26 +164,31 @@ class ApproximatePolicyIteration(CheckedEstimator):
     ----------
     policy_ : GreedyPolicy  (the last improved policy)
     q_function_ : the last evaluation's Q
-    history_ : DataFrame ``iteration, value, changed, n_transitions, fit_seconds``
+    history_ : DataFrame ``iteration, value, changed, evaluation, n_transitions, fit_seconds, cpu_seconds``
         ``value`` is FQE's estimate of the evaluated policy's expected cost from the
         data's start states; ``changed`` the fraction of data states whose greedy action
-        changed.
+        changed; ``evaluation`` FQE's verdict on that evaluation.
+    verdict_ : str
+        ``"converged"``, ``"still changing"`` or ``"diverging"`` (module docstring).
+    verdict_message_ : str
     """
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
         "fqe": [FittedQEvaluation, None],
         "n_iterations": [POSITIVE_INT],
+        "warm_start": ["boolean"],
         "initial_policy": [HasMethods(["probabilities"]), None],
         "model": [HasMethods(["initial_states", "step"]), None],
         "episodes_per_iteration": [NON_NEGATIVE_INT],
         "random_state": [SEED],
     }
 
-    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10,
+    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, warm_start: bool = True,
                  initial_policy: Policy | None = None,
                  model: Any = None, episodes_per_iteration: int = 0, random_state: int = 0) -> None:
         self.fqe = fqe
         self.n_iterations = n_iterations
+        self.warm_start = warm_start
         self.initial_policy = initial_policy
         self.model = model
         self.episodes_per_iteration = episodes_per_iteration
@@ -120,7 +196,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ApproximatePolicyIteration:
         self.check_params()  # _parameter_constraints, then the combinations
-        proto = self.fqe if self.fqe is not None else FittedQEvaluation()
+        proto = self.fqe if self.fqe is not None else default_evaluator()
         cands = None
         if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states
             u = logged_commands(dataset, type(self).__name__)
@@ -133,27 +209,38 @@ class ApproximatePolicyIteration(CheckedEstimator):
         pi: Policy = self.initial_policy if self.initial_policy is not None else start
         if cands is not None:
             attach_signature(pi, dataset)
+        warm = self.warm_start and cands is None and proto.horizon is None and proto.initial_q is None
         rng = np.random.default_rng(self.random_state)
         data, w = dataset, sample_weight
         rows: list[dict[str, Any]] = []
-        prev_actions = None
+        a = dataset.arrays()
+        states = np.vstack([a.obs, a.next_obs])  # where policies are compared: the logged states
+        seen: list[np.ndarray] = []  # the greedy actions of pi_1, pi_2, ... there
+        stop, repeat, q_prev = "budget", None, None
         for k in range(self.n_iterations):
-            t0 = time.perf_counter()
-            fqe = clone(proto).set_params(policy=pi).fit(data, sample_weight=w)  # Q^{pi_k}
+            t0, c0 = time.perf_counter(), time.process_time()
+            start_q = {"initial_q": q_prev} if warm and q_prev is not None else {}
+            fqe = clone(proto).set_params(policy=pi, **start_q).fit(data, sample_weight=w)  # Q^{pi_k}
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
-            states = np.vstack([data.arrays().obs, data.arrays().next_obs])
             actions = _greedy_actions(improved, states, proto.horizon)
-            same = actions == prev_actions if prev_actions is not None and prev_actions.shape == actions.shape else None
-            changed = 1.0 if same is None else float(1.0 - (same.all(axis=-1) if cands is not None else same).mean())
-            rows.append({"iteration": k, "value": fqe.value_, "changed": changed, "n_transitions": len(data),
-                         "fit_seconds": time.perf_counter() - t0})
+            changed = _changed(actions, seen[-1] if seen else None, cands is not None)
+            rows.append({"iteration": k, "value": fqe.value_, "changed": changed,
+                         "evaluation": getattr(fqe, "verdict_", None), "n_transitions": len(data),
+                         "fit_seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0})
             # over commands, the Q kept is the one the improvement read (over the neighbours' commands)
             q_kept = improved.q if cands is not None else fqe.q_function_  # type: ignore[attr-defined]
             self.q_function_, self.policy_, self.fqe_ = q_kept, improved, fqe
-            if changed == 0.0:
+            if changed == 0.0:  # pi_{k+1} = pi_k
+                stop = "fixed point"
                 break
-            prev_actions, pi = actions, improved
+            repeat = next((j + 1 for j, s in enumerate(seen[:-1]) if _changed(actions, s, cands is not None) == 0.0),
+                          None)
+            if repeat is not None:  # pi_{k+1} = pi_j, j < k
+                stop = "cycle"
+                break
+            seen.append(actions)
+            pi, q_prev = improved, fqe.q_function_
             if self.model is not None and self.episodes_per_iteration:
                 from offline_adp.rollout import collect
 
@@ -162,5 +249,6 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 data = TransitionDataset.concat([data, new])
                 w = None if w is None else np.r_[w, np.ones(len(new))]
         self.history_ = pd.DataFrame(rows)
+        self.verdict_, self.verdict_message_ = _verdict(rows, self.fqe_, stop, repeat)
         attach_signature(self.policy_, dataset)
         return self
