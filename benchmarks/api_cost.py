@@ -136,8 +136,9 @@ def table(records: list[dict], reference: str) -> str:
              "| iterations | verdict |", "|---|---|---|---|---|---|---|---|"]
     for r in records:
         ratio = f"{r['process_cpu_s'] / ref['process_cpu_s']:.2f}" if ref else "-"
-        lines.append(f"| {r['arm']} | {r['cost']:.3f} +- {r['se']:.3f} | {r['process_cpu_s']:.1f} | {r['fit_cpu_s']:.1f} "
-                     f"| {ratio} | {r['max_rss_gib']:.2f} | {r['iterations']} | {r['verdict']} |")
+        lines.append(f"| {r['arm']} | {r['cost']:.3f} +- {r['se']:.3f} | {r['process_cpu_s']:.1f} "
+                     f"| {r['fit_cpu_s']:.1f} | {ratio} | {r['max_rss_gib']:.2f} | {r['iterations']} "
+                     f"| {r['verdict']} |")
     if records:
         lines.append(f"\ndemonstrator on the same episodes: {records[0]['demonstrator']:.3f}")
     return "\n".join(lines)

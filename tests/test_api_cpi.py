@@ -61,9 +61,12 @@ class _Contrary(FittedQEvaluation):
         def q(obs, t):
             return (pi.probabilities(obs, t).argmax(axis=1)[:, None] == np.arange(2)).astype(float)
 
-        self.q_function_, self.value_ = FunctionQ(q, 2), 0.0
+        self.q_function_, self.value_ = FunctionQ(q, 2), self.cost(pi)
         self.verdict_, self.verdict_message_ = "converged", "by construction"
         return self
+
+    def cost(self, pi):
+        return 0.0
 
 
 def test_a_cycle_of_greedy_policies_stops_the_iteration_and_says_so():
@@ -75,6 +78,25 @@ def test_a_cycle_of_greedy_policies_stops_the_iteration_and_says_so():
     assert "cycle" in api.verdict_message_ and "pi_1" in api.verdict_message_
     short = ApproximatePolicyIteration(_Contrary(), n_iterations=2).fit(ds)  # stopped by the budget
     assert len(short.history_) == 2 and short.verdict_ == "still changing" and "budget" in short.verdict_message_
+
+
+class _ContraryRising(_Contrary):
+    """... whose estimate of the policy taking action 1 is the lowest."""
+
+    def cost(self, pi):
+        return 1.0 - 0.5 * float(pi.probabilities(np.zeros((1, 1)), 0).argmax() == 1)
+
+
+def test_a_rise_of_the_estimated_cost_stops_the_iteration_with_the_lowest_estimate():
+    m = TabularMDP(n_states=4, n_actions=2, horizon=None, gamma=0.8, seed=0)
+    ds, _ = full_support_dataset(m)
+    api = ApproximatePolicyIteration(_ContraryRising(), n_iterations=10).fit(ds)
+    # J(pi_0) = 1 (uniform: argmax 0), J(pi_1) = 0.5 (action 1), J(pi_2) = 1 (action 0): a rise
+    assert api.history_["value"].tolist() == [1.0, 0.5, 1.0] and api.verdict_ == "still changing"
+    assert "pi_1 returned" in api.verdict_message_
+    x = np.arange(4.0)[:, None]
+    assert (api.policy_.act(x, return_index=True) == 1).all()  # pi_1, and the Q it is greedy over: Q^{pi_0}
+    assert (api.q_function_.values(x).argmin(axis=1) == 1).all() and api.fqe_.value_ == 0.5
 
 
 def test_api_finite_horizon():

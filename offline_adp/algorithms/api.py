@@ -7,28 +7,38 @@ greedily, repeat::
     pi_0 = initial policy (uniform by default);  Q_{-1} = 0
     for k = 0, 1, ...:
         Q^{pi_k} = FQE(pi_k, D), its iteration started from Q_{k-1}     # approximate evaluation
+        J_k = mean over D's start states x_0 of Q^{pi_k}(x_0, pi_k)       # its estimated cost
+        stop if J_k > min_{j<k} J_j: return the pi_j of the minimum
         pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)                     # greedy improvement
         stop if pi_{k+1} = pi_k on every state of D                     # a fixed point: converged
         stop if pi_{k+1} = pi_j on every state of D for some j < k      # a cycle
         stop after the budget
         (optional) D = D + episodes of pi_{k+1}
 
-Each evaluation starts from the last one's Q (``warm_start``, infinite horizon, the
-action table): ``Q^{pi_k}`` is the fixed point FQE iterates towards, whatever its start, so
-the start changes what FQE computes only through what its tree structures are grown on
-(the first targets ``c + gamma Q_{k-1}(x', pi_k(x'))`` instead of ``c``) and how far its
-last iterate is from the fixed point, which its verdict states.
-
 The stops. With exact evaluations policy iteration strictly improves until
-``pi_{k+1} = pi_k`` (then ``pi_k`` is optimal) and so never revisits a policy (Puterman
-1994, section 6.4); with approximate ones it ends in a neighbourhood of the optimum
-where the evaluation errors decide the greedy actions (Bertsekas & Tsitsiklis 1996,
-section 6.2: ``limsup ||J^{pi_k} - J*|| <= 2 gamma eps / (1 - gamma)^2`` for an
-evaluation error ``eps``), and it may cycle there. A repeated policy is such a cycle: more
-iterations would repeat it. ``verdict_`` says which stop ended the fit: ``"converged"``
-when ``pi_{k+1} = pi_k`` at every state of the data and that policy's evaluation
-converged (FQE's own verdict), else ``"still changing"`` with the reason (a cycle, the
-budget, or the evaluation not converged), or ``"diverging"`` (the evaluation's).
+``pi_{k+1} = pi_k`` (then ``pi_k`` is optimal), so ``J_k`` never rises and no policy comes
+back (Puterman 1994, section 6.4). With approximate ones it only reaches a neighbourhood
+of the optimum (Bertsekas & Tsitsiklis 1996, section 6.2: ``limsup ||J^{pi_k} - J*|| <=
+2 gamma eps / (1 - gamma)^2`` for an evaluation error ``eps``), where the evaluation errors
+decide the greedy actions: a rise of ``J_k`` (beyond rounding) and a repeated policy both
+say it is there, the evaluations' errors (their iterations' tolerance, the structures'
+approximation) now outweighing the improvement, and more iterations would only move about
+in it (a rise: the policy of the lowest estimate is returned; on data that grows with new
+episodes the estimates are of other data and are not compared). ``verdict_`` says which stop ended
+the fit: ``"converged"`` only at a fixed point whose evaluation converged (FQE's own
+verdict), else ``"still changing"`` with the reason (a rise, a cycle, the budget, or the
+evaluation not converged), or ``"diverging"`` (the evaluation's).
+
+The evaluations (``warm_start``; infinite horizon, over the action table): each starts its
+iteration from the last evaluation's Q. ``Q^{pi_k}`` is the fixed point FQE iterates
+towards whatever its start, so the start changes what FQE computes only through what its
+tree structures are grown on and how far its last iterate is from the fixed point, which
+its verdict states. With the default schedule (a frozen structure, ``n_iterations="auto"``,
+``n_structures=None``: builds at geometrically spaced iterations, then the last
+structure's fixed point solved, docs/fqi-modes.md) a warm-started evaluation grows one
+structure, at its first iteration, on ``c + gamma Q_{k-1}(x', pi_k(x'))``, and solves its
+fixed point: the schedule's earlier builds only carry the targets from ``c`` towards the
+fixed point, which the start has done (measured: docs/algorithms.md).
 
 Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
 ``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
@@ -111,11 +121,18 @@ def _changed(actions: np.ndarray, other: np.ndarray | None, commands: bool) -> f
     return float(1.0 - (same.all(axis=-1) if commands else same).mean())
 
 
-def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, repeat: int | None) -> tuple[str, str]:
-    """``(verdict_, verdict_message_)`` of the fit (module docstring)."""
+def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, j: int | None) -> tuple[str, str]:
+    """``(verdict_, verdict_message_)`` of the fit (module docstring); ``j``: the policy
+    repeated (a cycle) or returned (no improvement)."""
     k = rows[-1]["iteration"]
+    if stop == "no improvement":
+        v = [r["value"] for r in rows]
+        return "still changing", (f"the estimated cost of pi_{k} ({v[-1]:.4g}) is above that of pi_{j} ({v[j]:.4g}), "
+                                  "the lowest so far: with exact evaluations it could not rise, so their errors now "
+                                  f"outweigh the improvement; pi_{j} returned "
+                                  f"(greedy actions still changed at {rows[-1]['changed']:.1%} of the data's states)")
     ev, ev_msg = getattr(fqe, "verdict_", None), getattr(fqe, "verdict_message_", "")
-    evaluation = f"the evaluation of pi_{k}: {ev} ({ev_msg})" if ev else "the evaluation of pi_{k} gave no verdict"
+    evaluation = f"the evaluation of pi_{k}: {ev} ({ev_msg})" if ev else f"the evaluation of pi_{k} gave no verdict"
     recent = ", ".join(f"{r['changed']:.1%}" for r in rows[-3:])
     if ev == "diverging":
         return "diverging", evaluation
@@ -127,8 +144,8 @@ def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, repe
                                   f"but {evaluation}")
     if stop == "cycle":
         return "still changing", (f"the policies cycle: pi_{k + 1} (the greedy policy of pi_{k}'s evaluation) is "
-                                  f"pi_{repeat} at every state of the data, so more iterations would repeat "
-                                  f"pi_{repeat}..pi_{k} (with exact evaluations policy iteration never revisits a "
+                                  f"pi_{j} at every state of the data, so more iterations would repeat "
+                                  f"pi_{j}..pi_{k} (with exact evaluations policy iteration never revisits a "
                                   f"policy: here the evaluations' errors decide between them); greedy actions "
                                   f"changed at {recent} of the data's states in the last iterations")
     return "still changing", (f"after the budget of {k + 1} iterations the greedy action still changed at {recent} "
@@ -162,8 +179,15 @@ class ApproximatePolicyIteration(CheckedEstimator):
 
     Attributes
     ----------
-    policy_ : GreedyPolicy  (the last improved policy)
-    q_function_ : the last evaluation's Q
+    policy_ : GreedyPolicy
+        The last improved policy; after a rise of the estimated cost, the policy of the
+        lowest estimate (module docstring).
+    q_function_ : QFunction
+        The evaluation's Q that ``policy_`` is greedy over (the initial policy's own, if
+        that is the one returned).
+    fqe_ : FittedQEvaluation
+        The last evaluation kept: ``Q^{pi_k}``'s, whose greedy policy is ``policy_``;
+        after a rise, the returned policy's own.
     history_ : DataFrame ``iteration, value, changed, evaluation, n_transitions, fit_seconds, cpu_seconds``
         ``value`` is FQE's estimate of the evaluated policy's expected cost from the
         data's start states; ``changed`` the fraction of data states whose greedy action
@@ -210,16 +234,18 @@ class ApproximatePolicyIteration(CheckedEstimator):
         if cands is not None:
             attach_signature(pi, dataset)
         warm = self.warm_start and cands is None and proto.horizon is None and proto.initial_q is None
+        # a warm-started evaluation grows its one structure on c + gamma Q_{k-1}(x', pi_k(x')) (module docstring)
+        one_build = {"n_structures": 1} if proto.n_structures is None and proto.n_iterations == "auto" else {}
         rng = np.random.default_rng(self.random_state)
         data, w = dataset, sample_weight
         rows: list[dict[str, Any]] = []
         a = dataset.arrays()
         states = np.vstack([a.obs, a.next_obs])  # where policies are compared: the logged states
         seen: list[np.ndarray] = []  # the greedy actions of pi_1, pi_2, ... there
-        stop, repeat, q_prev = "budget", None, None
+        stop, repeat, q_prev, best = "budget", None, None, None
         for k in range(self.n_iterations):
             t0, c0 = time.perf_counter(), time.process_time()
-            start_q = {"initial_q": q_prev} if warm and q_prev is not None else {}
+            start_q = {"initial_q": q_prev, **one_build} if warm and q_prev is not None else {}
             fqe = clone(proto).set_params(policy=pi, **start_q).fit(data, sample_weight=w)  # Q^{pi_k}
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
@@ -228,8 +254,15 @@ class ApproximatePolicyIteration(CheckedEstimator):
             rows.append({"iteration": k, "value": fqe.value_, "changed": changed,
                          "evaluation": getattr(fqe, "verdict_", None), "n_transitions": len(data),
                          "fit_seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0})
+            if (best is not None and len(data) == len(dataset)
+                    and fqe.value_ > best[0] + 1e-9 * max(1.0, abs(best[0]))):  # J(pi_k) > min_j J(pi_j)
+                stop = "no improvement"
+                _, _, self.policy_, self.q_function_, self.fqe_ = best
+                break
             # over commands, the Q kept is the one the improvement read (over the neighbours' commands)
             q_kept = improved.q if cands is not None else fqe.q_function_  # type: ignore[attr-defined]
+            if best is None or fqe.value_ < best[0]:  # pi_k, the Q it is greedy over, its evaluation
+                best = (fqe.value_, k, pi, q_prev if k else fqe.q_function_, fqe)
             self.q_function_, self.policy_, self.fqe_ = q_kept, improved, fqe
             if changed == 0.0:  # pi_{k+1} = pi_k
                 stop = "fixed point"
@@ -240,7 +273,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 stop = "cycle"
                 break
             seen.append(actions)
-            pi, q_prev = improved, fqe.q_function_
+            pi, q_prev = improved, q_kept
             if self.model is not None and self.episodes_per_iteration:
                 from offline_adp.rollout import collect
 
@@ -249,6 +282,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 data = TransitionDataset.concat([data, new])
                 w = None if w is None else np.r_[w, np.ones(len(new))]
         self.history_ = pd.DataFrame(rows)
-        self.verdict_, self.verdict_message_ = _verdict(rows, self.fqe_, stop, repeat)
+        self.verdict_, self.verdict_message_ = _verdict(rows, self.fqe_, stop, repeat if stop == "cycle" else
+                                                        best[1] if best is not None else None)
         attach_signature(self.policy_, dataset)
         return self
