@@ -202,3 +202,21 @@ def test_a_pipeline_passes_on_validated_fit_and_fqe_numbers():
         type(spec["evaluate"]["fqe_params"]["n_iterations"]) is int
         and spec["evaluate"]["fqe_params"]["n_iterations"] == 5
     )
+
+
+def test_api_run_records_its_verdict_and_evaluates_with_fqis_schedule(tmp_path, pt_dir):
+    """``fit --algorithm api``: run.json holds the fit's verdict (issue #44); the evaluator
+    runs FittedQIteration's tree schedule (frozen) under the ``[api.fqe]`` table's keys."""
+    from offline_adp.algorithms.api import EVALUATOR_DEFAULTS
+    from offline_adp.evaluation.summary import fit_convergence
+    from offline_adp.runs import fit_run
+
+    est = fit_run(pt_dir, tmp_path / "a", algorithm="api",
+                  params={"n_iterations": 2, "fqe": {"regressor_params": {"n_estimators": 5, "n_jobs": 1}}})
+    p = est.fqe_.get_params()
+    assert est.fqe_.mode_ == "frozen" and p["mode"] == EVALUATOR_DEFAULTS["mode"] == "auto"
+    assert p["structure_max_samples"] == "auto" and p["n_structures"] == 1  # warm-started: one build
+    assert est.history_["cpu_seconds"].notna().all() and est.history_["evaluation"].notna().all()
+    run = json.loads((tmp_path / "a" / "run.json").read_text())
+    assert run["verdict"] == est.verdict_ in ("converged", "still changing") and run["verdict_message"]
+    assert fit_convergence(tmp_path / "a")["source"] == "run.json"
