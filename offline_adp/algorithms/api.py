@@ -10,10 +10,15 @@ greedily, repeat::
         J_k = mean over D's start states x_0 of Q^{pi_k}(x_0, pi_k)       # its estimated cost
         stop if J_k > min_{j<k} J_j: return the pi_j of the minimum
         pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)                     # greedy improvement
-        stop if pi_{k+1} = pi_k on every state of D                     # a fixed point: converged
-        stop if pi_{k+1} = pi_j on every state of D for some j < k      # a cycle
+        stop if pi_{k+1} = pi_k on every state of S                     # a fixed point: converged
+        stop if pi_{k+1} = pi_j on every state of S for some j < k      # a cycle
         stop after the budget
         (optional) D = D + episodes of pi_{k+1}
+
+``S``: the states at which FQE reads the policy, the next states ``x'_i`` of D (its
+backups) and D's start states (its estimate ``J``); the policy anywhere else does not
+change its evaluation. ``pi_{k+1} = pi_k`` on ``S`` is the fixed-point condition of
+policy iteration there: ``pi_k`` greedy with respect to its own evaluation.
 
 The stops. With exact evaluations policy iteration strictly improves until
 ``pi_{k+1} = pi_k`` (then ``pi_k`` is optimal), so ``J_k`` never rises and no policy comes
@@ -33,12 +38,10 @@ The evaluations (``warm_start``; infinite horizon, over the action table): each 
 iteration from the last evaluation's Q. ``Q^{pi_k}`` is the fixed point FQE iterates
 towards whatever its start, so the start changes what FQE computes only through what its
 tree structures are grown on and how far its last iterate is from the fixed point, which
-its verdict states. With the default schedule (a frozen structure, ``n_iterations="auto"``,
-``n_structures=None``: builds at geometrically spaced iterations, then the last
-structure's fixed point solved, docs/fqi-modes.md) a warm-started evaluation grows one
-structure, at its first iteration, on ``c + gamma Q_{k-1}(x', pi_k(x'))``, and solves its
-fixed point: the schedule's earlier builds only carry the targets from ``c`` towards the
-fixed point, which the start has done (measured: docs/algorithms.md).
+its verdict states. The evaluator is by default FittedQEvaluation with FittedQIteration's
+tree schedule (:data:`EVALUATOR_DEFAULTS`: a frozen structure built at geometrically spaced
+iterations, its fixed point solved; docs/fqi-modes.md); the costs are measured in
+docs/algorithms.md.
 
 Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
 ``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
@@ -125,31 +128,31 @@ def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, j: i
     """``(verdict_, verdict_message_)`` of the fit (module docstring); ``j``: the policy
     repeated (a cycle) or returned (no improvement)."""
     k = rows[-1]["iteration"]
+    where = "the data's next states and start states"
     if stop == "no improvement":
         v = [r["value"] for r in rows]
         return "still changing", (f"the estimated cost of pi_{k} ({v[-1]:.4g}) is above that of pi_{j} ({v[j]:.4g}), "
                                   "the lowest so far: with exact evaluations it could not rise, so their errors now "
-                                  f"outweigh the improvement; pi_{j} returned "
-                                  f"(greedy actions still changed at {rows[-1]['changed']:.1%} of the data's states)")
+                                  f"outweigh the improvement; pi_{j} returned (greedy actions still changed at "
+                                  f"{rows[-1]['changed']:.1%} of {where})")
     ev, ev_msg = getattr(fqe, "verdict_", None), getattr(fqe, "verdict_message_", "")
     evaluation = f"the evaluation of pi_{k}: {ev} ({ev_msg})" if ev else f"the evaluation of pi_{k} gave no verdict"
     recent = ", ".join(f"{r['changed']:.1%}" for r in rows[-3:])
     if ev == "diverging":
         return "diverging", evaluation
     if stop == "fixed point":
+        fixed = f"the greedy policy of pi_{k}'s evaluation is pi_{k} at all {where}"
         if ev in ("converged", "completed"):
-            return "converged", (f"after {k + 1} evaluations the greedy policy of pi_{k}'s evaluation is pi_{k} at "
-                                 f"every state of the data (a fixed point of policy iteration); {evaluation}")
-        return "still changing", (f"the greedy policy of pi_{k}'s evaluation is pi_{k} at every state of the data, "
-                                  f"but {evaluation}")
+            return "converged", f"after {k + 1} evaluations {fixed} (a fixed point of policy iteration); {evaluation}"
+        return "still changing", f"{fixed}, but {evaluation}"
     if stop == "cycle":
         return "still changing", (f"the policies cycle: pi_{k + 1} (the greedy policy of pi_{k}'s evaluation) is "
-                                  f"pi_{j} at every state of the data, so more iterations would repeat "
-                                  f"pi_{j}..pi_{k} (with exact evaluations policy iteration never revisits a "
-                                  f"policy: here the evaluations' errors decide between them); greedy actions "
-                                  f"changed at {recent} of the data's states in the last iterations")
+                                  f"pi_{j} at all {where}, so more iterations would repeat pi_{j}..pi_{k} (with "
+                                  "exact evaluations policy iteration never revisits a policy: here the evaluations' "
+                                  f"errors decide between them); greedy actions changed at {recent} of them in the "
+                                  "last iterations")
     return "still changing", (f"after the budget of {k + 1} iterations the greedy action still changed at {recent} "
-                              "of the data's states in the last iterations (n_iterations)")
+                              f"of {where} in the last iterations (n_iterations)")
 
 
 class ApproximatePolicyIteration(CheckedEstimator):
@@ -190,8 +193,8 @@ class ApproximatePolicyIteration(CheckedEstimator):
         after a rise, the returned policy's own.
     history_ : DataFrame ``iteration, value, changed, evaluation, n_transitions, fit_seconds, cpu_seconds``
         ``value`` is FQE's estimate of the evaluated policy's expected cost from the
-        data's start states; ``changed`` the fraction of data states whose greedy action
-        changed; ``evaluation`` FQE's verdict on that evaluation.
+        data's start states; ``changed`` the fraction of the data's next states and start
+        states (``S``, module docstring) whose greedy action changed; ``evaluation`` FQE's verdict on that evaluation.
     verdict_ : str
         ``"converged"``, ``"still changing"`` or ``"diverging"`` (module docstring).
     verdict_message_ : str
@@ -234,18 +237,17 @@ class ApproximatePolicyIteration(CheckedEstimator):
         if cands is not None:
             attach_signature(pi, dataset)
         warm = self.warm_start and cands is None and proto.horizon is None and proto.initial_q is None
-        # a warm-started evaluation grows its one structure on c + gamma Q_{k-1}(x', pi_k(x')) (module docstring)
-        one_build = {"n_structures": 1} if proto.n_structures is None and proto.n_iterations == "auto" else {}
         rng = np.random.default_rng(self.random_state)
         data, w = dataset, sample_weight
         rows: list[dict[str, Any]] = []
         a = dataset.arrays()
-        states = np.vstack([a.obs, a.next_obs])  # where policies are compared: the logged states
+        # where policies are compared: where an evaluation reads them (the backup's next states, the start states)
+        states = np.vstack([a.next_obs, a.obs[a.step == 0]])
         seen: list[np.ndarray] = []  # the greedy actions of pi_1, pi_2, ... there
         stop, repeat, q_prev, best = "budget", None, None, None
         for k in range(self.n_iterations):
             t0, c0 = time.perf_counter(), time.process_time()
-            start_q = {"initial_q": q_prev, **one_build} if warm and q_prev is not None else {}
+            start_q = {"initial_q": q_prev} if warm and q_prev is not None else {}
             fqe = clone(proto).set_params(policy=pi, **start_q).fit(data, sample_weight=w)  # Q^{pi_k}
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
