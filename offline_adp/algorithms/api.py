@@ -84,9 +84,11 @@ from offline_adp.qfunctions import NeighbourCommands, with_candidates
 
 #: The evaluator's settings where API's differ from FittedQEvaluation's own defaults: those of
 #: FittedQIteration (a frozen tree structure where it applies, built at geometrically spaced
-#: iterations, its fixed point solved: docs/fqi-modes.md), measured for API in
+#: iterations, a fifth of the forest in the builds before the last, the last one's fixed point
+#: solved: docs/fqi-modes.md), measured for API in
 #: docs/algorithms.md (FQE's own defaults refit the forest at every one of its iterations).
-EVALUATOR_DEFAULTS: dict[str, Any] = {"mode": "auto", "n_structures": None, "structure_max_samples": "auto"}
+EVALUATOR_DEFAULTS: dict[str, Any] = {"mode": "auto", "n_structures": None, "structure_max_samples": "auto",
+                                      "early_build_trees": "auto"}
 
 
 def default_evaluator(**params: Any) -> FittedQEvaluation:
