@@ -32,25 +32,6 @@ def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iteratio
     assert (np.diff(v) <= 1e-9).all()
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_warm_started_evaluations_are_the_same_fixed_points(seed):
-    """Each evaluation started from the last one's Q reaches the same Q^{pi_k} (to FQE's
-    tolerance) as one started from zero: the same policies, values and exact optimum."""
-    S = 10
-    m = TabularMDP(n_states=S, n_actions=3, horizon=None, gamma=0.8, seed=seed)
-    ds, w = full_support_dataset(m)
-    fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=400, tol=1e-12)
-    fits = {warm: ApproximatePolicyIteration(fqe, n_iterations=S + 1, warm_start=warm).fit(ds, sample_weight=w)
-            for warm in (True, False)}
-    x = np.arange(float(S))[:, None]
-    opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
-    for api in fits.values():
-        np.testing.assert_array_equal(api.policy_.act(x, return_index=True), opt.policy)
-        np.testing.assert_allclose(api.q_function_.values(x), opt.Q, atol=1e-9)
-    np.testing.assert_allclose(fits[True].history_["value"], fits[False].history_["value"], atol=1e-9)
-    assert fits[True].history_["changed"].tolist() == fits[False].history_["changed"].tolist()
-
-
 class _Contrary(FittedQEvaluation):
     """An evaluator whose Q says the evaluated policy's action is the worst one: its greedy
     policy takes the other action, so policy iteration on it goes round a cycle."""

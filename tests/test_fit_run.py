@@ -215,7 +215,7 @@ def test_api_run_records_its_verdict_and_evaluates_with_fqis_schedule(tmp_path, 
                   params={"n_iterations": 2, "fqe": {"regressor_params": {"n_estimators": 5, "n_jobs": 1}}})
     p = est.fqe_.get_params()
     assert est.fqe_.mode_ == "frozen" and p["mode"] == EVALUATOR_DEFAULTS["mode"] == "auto"
-    assert p["structure_max_samples"] == "auto" and p["n_structures"] is None and p["initial_q"] is not None  # warm
+    assert p["structure_max_samples"] == "auto" and p["n_structures"] is None and p["early_build_trees"] == "auto"
     assert est.history_["cpu_seconds"].notna().all() and est.history_["evaluation"].notna().all()
     run = json.loads((tmp_path / "a" / "run.json").read_text())
     assert run["verdict"] == est.verdict_ in ("converged", "still changing") and run["verdict_message"]

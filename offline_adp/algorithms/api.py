@@ -4,9 +4,9 @@ Access model: trace data only; optionally a reset or generative model to add epi
 of the current policy between iterations. Evaluate with fitted Q evaluation, improve
 greedily, repeat::
 
-    pi_0 = initial policy (uniform by default);  Q_{-1} = 0
+    pi_0 = initial policy (uniform by default)
     for k = 0, 1, ...:
-        Q^{pi_k} = FQE(pi_k, D), its iteration started from Q_{k-1}     # approximate evaluation
+        Q^{pi_k} = FQE(pi_k, D)                                         # approximate evaluation
         J_k = mean over D's start states x_0 of Q^{pi_k}(x_0, pi_k)       # its estimated cost
         stop if J_k > min_{j<k} J_j: return the pi_j of the minimum
         pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)                     # greedy improvement
@@ -34,22 +34,20 @@ the fit: ``"converged"`` only at a fixed point whose evaluation converged (FQE's
 verdict), else ``"still changing"`` with the reason (a rise, a cycle, the budget, or the
 evaluation not converged), or ``"diverging"`` (the evaluation's).
 
-The evaluations (``warm_start``; infinite horizon, over the action table): each starts its
-iteration from the last evaluation's Q. ``Q^{pi_k}`` is the fixed point FQE iterates
-towards whatever its start, so the start changes what FQE computes only through what its
-tree structures are grown on and how far its last iterate is from the fixed point, which
-its verdict states. The evaluator is by default FittedQEvaluation with FittedQIteration's
-tree schedule (:data:`EVALUATOR_DEFAULTS`: a frozen structure built at geometrically spaced
-iterations, its fixed point solved; docs/fqi-modes.md); the costs are measured in
-docs/algorithms.md.
+The evaluator is by default FittedQEvaluation with FittedQIteration's tree schedule
+(:data:`EVALUATOR_DEFAULTS`: a frozen structure built at geometrically spaced iterations,
+a fifth of the forest before the last build, the last structure's fixed point solved;
+docs/fqi-modes.md). What it costs against FQI, and what else was tried (evaluations
+started from the last one's Q, a single build), is measured in docs/algorithms.md.
+The greedy actions the stops compare are the ones the next evaluation's backups read:
+computed once for both.
 
 Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
 ``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
 the improvement minimises over ``C(x)``, the commands logged at the evaluator's
 ``n_candidates`` nearest logged states (as FittedQIteration's backup), so no policy ever
 commands what the logs did not try near ``x``; ``pi_0`` is the command logged at the
-nearest logged state, and "changed" counts states whose command vector changed. Each
-evaluation starts from zero there.
+nearest logged state, and "changed" counts states whose command vector changed.
 """
 
 from __future__ import annotations
@@ -157,6 +155,25 @@ def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, j: i
                               f"of {where} in the last iterations (n_iterations)")
 
 
+class _Known(Policy):
+    """``policy`` with its greedy actions at ``states`` already known: the stops compute them,
+    and the next evaluation's backups read the same (``probabilities`` at exactly those
+    rows, or at the leading or trailing block of them, is a table look-up)."""
+
+    def __init__(self, policy: Policy, states: np.ndarray, actions: np.ndarray) -> None:
+        self.policy, self.states, self.actions = policy, states, actions
+        self.n_actions = policy.n_actions
+        self.time_varying = False
+
+    def probabilities(self, obs: np.ndarray, t: Any = 0) -> np.ndarray:
+        x = np.asarray(obs, dtype=np.float64)
+        n = len(x)
+        for rows in (slice(0, n), slice(len(self.states) - n, None)):
+            if x.shape[1:] == self.states.shape[1:] and np.array_equal(x, self.states[rows]):
+                return np.eye(self.n_actions)[self.actions[rows]]
+        return self.policy.probabilities(x, t)
+
+
 class ApproximatePolicyIteration(CheckedEstimator):
     """Approximate policy iteration with FQE as the evaluation step (module docstring).
 
@@ -169,10 +186,6 @@ class ApproximatePolicyIteration(CheckedEstimator):
     n_iterations : int
         Budget of improvement steps (>= 1); the iteration stops earlier at a fixed point or
         a cycle of the greedy policies.
-    warm_start : bool
-        Start each evaluation's iteration from the last evaluation's Q (``initial_q``);
-        only over an action table, for an infinite horizon, and when ``fqe`` has no
-        ``initial_q`` of its own.
     initial_policy : Policy, optional
         ``pi_0``; uniformly random by default.
     model : ResetModel, optional
@@ -205,19 +218,17 @@ class ApproximatePolicyIteration(CheckedEstimator):
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
         "fqe": [FittedQEvaluation, None],
         "n_iterations": [POSITIVE_INT],
-        "warm_start": ["boolean"],
         "initial_policy": [HasMethods(["probabilities"]), None],
         "model": [HasMethods(["initial_states", "step"]), None],
         "episodes_per_iteration": [NON_NEGATIVE_INT],
         "random_state": [SEED],
     }
 
-    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10, warm_start: bool = True,
+    def __init__(self, fqe: FittedQEvaluation | None = None, n_iterations: int = 10,
                  initial_policy: Policy | None = None,
                  model: Any = None, episodes_per_iteration: int = 0, random_state: int = 0) -> None:
         self.fqe = fqe
         self.n_iterations = n_iterations
-        self.warm_start = warm_start
         self.initial_policy = initial_policy
         self.model = model
         self.episodes_per_iteration = episodes_per_iteration
@@ -238,7 +249,6 @@ class ApproximatePolicyIteration(CheckedEstimator):
         pi: Policy = self.initial_policy if self.initial_policy is not None else start
         if cands is not None:
             attach_signature(pi, dataset)
-        warm = self.warm_start and cands is None and proto.horizon is None and proto.initial_q is None
         rng = np.random.default_rng(self.random_state)
         data, w = dataset, sample_weight
         rows: list[dict[str, Any]] = []
@@ -246,11 +256,11 @@ class ApproximatePolicyIteration(CheckedEstimator):
         # where policies are compared: where an evaluation reads them (the backup's next states, the start states)
         states = np.vstack([a.next_obs, a.obs[a.step == 0]])
         seen: list[np.ndarray] = []  # the greedy actions of pi_1, pi_2, ... there
-        stop, repeat, q_prev, best = "budget", None, None, None
+        stop, repeat, q_prev, best, known = "budget", None, None, None, pi
         for k in range(self.n_iterations):
             t0, c0 = time.perf_counter(), time.process_time()
-            start_q = {"initial_q": q_prev} if warm and q_prev is not None else {}
-            fqe = clone(proto).set_params(policy=pi, **start_q).fit(data, sample_weight=w)  # Q^{pi_k}
+            fqe = clone(proto).set_params(policy=known).fit(data, sample_weight=w)  # Q^{pi_k}
+            fqe.policy = fqe.policy_ = pi  # (not its table)
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
             actions = _greedy_actions(improved, states, proto.horizon)
@@ -278,6 +288,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 break
             seen.append(actions)
             pi, q_prev = improved, q_kept
+            known = pi if cands is not None or proto.horizon else _Known(pi, states, actions[0])
             if self.model is not None and self.episodes_per_iteration:
                 from offline_adp.rollout import collect
 
