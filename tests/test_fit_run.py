@@ -220,3 +220,19 @@ def test_api_run_records_its_verdict_and_evaluates_with_fqis_schedule(tmp_path, 
     run = json.loads((tmp_path / "a" / "run.json").read_text())
     assert run["verdict"] == est.verdict_ in ("converged", "still changing") and run["verdict_message"]
     assert fit_convergence(tmp_path / "a")["source"] == "run.json"
+
+
+def test_api_reads_the_greedy_actions_at_next_states_from_the_evaluations_own_lookups(pt_dir):
+    """The next-state values API takes from its evaluation's frozen structure give the
+    greedy policy's own actions there (the same trees and leaves, summed in another order)."""
+    from offline_adp.algorithms.api import _next_state_q, default_evaluator
+    from offline_adp.data.dataset import read_dataset
+    from offline_adp.policies import GreedyPolicy, UniformPolicy
+
+    ds = read_dataset(pt_dir)
+    nxt = ds.arrays().next_obs
+    fqe = default_evaluator(policy=UniformPolicy(ds.n_actions), regressor_params={"n_estimators": 5}).fit(ds)
+    q = _next_state_q(fqe, nxt)
+    assert q is not None and q.shape == (len(ds), ds.n_actions)
+    np.testing.assert_array_equal(q.argmin(axis=1), GreedyPolicy(fqe.q_function_).actions(nxt))
+    assert _next_state_q(fqe, nxt[::-1].copy()) is None  # other states: none

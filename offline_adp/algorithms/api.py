@@ -40,7 +40,8 @@ a fifth of the forest before the last build, the last structure's fixed point so
 docs/fqi-modes.md). What it costs against FQI, and what else was tried (evaluations
 started from the last one's Q, a single build), is measured in docs/algorithms.md.
 The greedy actions the stops compare are the ones the next evaluation's backups read:
-computed once for both.
+computed once for both, at the next states from the values the evaluation's frozen
+structure already looked up there.
 
 Over continuous commands (a dataset whose action table is ``continuous``, the evaluator's
 ``commands="auto"``): FQE evaluates the deterministic command policy (``Q(x', pi(x'))``),
@@ -70,6 +71,7 @@ from offline_adp.algorithms.params import (
     invalid_parameter,
 )
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import (
     GreedyCommandPolicy,
     GreedyPolicy,
@@ -153,6 +155,23 @@ def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, j: i
                                   "last iterations")
     return "still changing", (f"after the budget of {k + 1} iterations the greedy action still changed at {recent} "
                               f"of {where} in the last iterations (n_iterations)")
+
+
+def _next_state_q(fqe: FittedQEvaluation, next_obs: np.ndarray) -> np.ndarray | None:
+    """``Q^{pi_k}(x'_i, .)`` at every row's next state as the evaluation's frozen structure
+    last computed them (a lookup already made: the same trees and leaf values as its
+    ``q_function_``, summed in another order, so equal up to rounding; checked on the first
+    rows), or None where the evaluation holds no such array (another learner, a validation
+    split, other data)."""
+    fit = getattr(fqe, "fit_state_", None)
+    learner = getattr(fit, "learner", None)
+    if not isinstance(learner, FrozenTreesLearner) or fit.data.valid is not None:
+        return None
+    q = np.asarray(learner.predict("next"))
+    if q.shape != (len(next_obs), fqe.q_function_.n_actions) or not np.array_equal(fit.data.train.next_obs, next_obs):
+        return None
+    probe = fqe.q_function_.values(next_obs[:64])
+    return q if np.allclose(q[:64], probe, rtol=1e-9, atol=1e-9 * (1.0 + np.abs(probe).max())) else None
 
 
 class _Known(Policy):
@@ -263,7 +282,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
             fqe.policy = fqe.policy_ = pi  # (not its table)
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
-            actions = _greedy_actions(improved, states, proto.horizon)
+            q_next = _next_state_q(fqe, a.next_obs) if cands is None and not proto.horizon else None
+            actions = (_greedy_actions(improved, states, proto.horizon) if q_next is None else  # (1, |S|)
+                       np.r_[q_next.argmin(axis=1), _greedy_actions(improved, states[len(q_next):], None)[0]][None])
             changed = _changed(actions, seen[-1] if seen else None, cands is not None)
             rows.append({"iteration": k, "value": fqe.value_, "changed": changed,
                          "evaluation": getattr(fqe, "verdict_", None), "n_transitions": len(data),
