@@ -25,14 +25,14 @@ The stops. With exact evaluations policy iteration strictly improves until
 back (Puterman 1994, section 6.4). With approximate ones it only reaches a neighbourhood
 of the optimum (Bertsekas & Tsitsiklis 1996, section 6.2: ``limsup ||J^{pi_k} - J*|| <=
 2 gamma eps / (1 - gamma)^2`` for an evaluation error ``eps``), where the evaluation errors
-decide the greedy actions: a rise of ``J_k`` (beyond rounding) and a repeated policy both
-say it is there, the evaluations' errors (their iterations' tolerance, the structures'
-approximation) now outweighing the improvement, and more iterations would only move about
-in it (a rise: the policy of the lowest estimate is returned; on data that grows with new
-episodes the estimates are of other data and are not compared). ``verdict_`` says which stop ended
-the fit: ``"converged"`` only at a fixed point whose evaluation converged (FQE's own
-verdict), else ``"still changing"`` with the reason (a rise, a cycle, the budget, or the
-evaluation not converged), or ``"diverging"`` (the evaluation's).
+decide the greedy actions. A rise of ``J_k`` (beyond rounding) and a repeated policy both
+say it is there: the evaluations' errors (their iterations' tolerance, the structures'
+approximation) now outweigh the improvement, and more iterations would only move about in
+it. After a rise the policy of the lowest estimate is returned; on data that grows with
+new episodes the estimates are of other data and are not compared. ``verdict_`` says which
+stop ended the fit: ``"converged"`` only at a fixed point whose evaluation converged
+(FQE's own verdict), else ``"still changing"`` with the reason (a rise, a cycle, the
+budget, or the evaluation not converged), or ``"diverging"`` (the evaluation's).
 
 The evaluator is by default FittedQEvaluation with FittedQIteration's tree schedule
 (:data:`EVALUATOR_DEFAULTS`: a frozen structure built at geometrically spaced iterations,
@@ -203,8 +203,8 @@ class ApproximatePolicyIteration(CheckedEstimator):
         default :func:`default_evaluator` (FittedQEvaluation with FittedQIteration's tree
         schedule, :data:`EVALUATOR_DEFAULTS`).
     n_iterations : int
-        Budget of improvement steps (>= 1); the iteration stops earlier at a fixed point or
-        a cycle of the greedy policies.
+        Budget of evaluations (>= 1); the iteration stops earlier at a fixed point, a rise
+        of the estimated cost or a cycle of the greedy policies (module docstring).
     initial_policy : Policy, optional
         ``pi_0``; uniformly random by default.
     model : ResetModel, optional
@@ -228,7 +228,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
     history_ : DataFrame ``iteration, value, changed, evaluation, n_transitions, fit_seconds, cpu_seconds``
         ``value`` is FQE's estimate of the evaluated policy's expected cost from the
         data's start states; ``changed`` the fraction of the data's next states and start
-        states (``S``, module docstring) whose greedy action changed; ``evaluation`` FQE's verdict on that evaluation.
+        states (``S``, module docstring) whose greedy action changed; ``evaluation`` FQE's
+        verdict on that evaluation; ``cpu_seconds`` the process CPU of the evaluation and
+        improvement.
     verdict_ : str
         ``"converged"``, ``"still changing"`` or ``"diverging"`` (module docstring).
     verdict_message_ : str
