@@ -131,13 +131,13 @@ def _verdict(rows: list[dict[str, Any]], fqe: FittedQEvaluation, stop: str, j: i
     repeated (a cycle) or returned (no improvement)."""
     k = rows[-1]["iteration"]
     where = "the data's next states and start states"
-    if stop == "no improvement":
+    ev, ev_msg = getattr(fqe, "verdict_", None), getattr(fqe, "verdict_message_", "")
+    if stop == "no improvement":  # fqe: pi_j's evaluation
         v = [r["value"] for r in rows]
         return "still changing", (f"the estimated cost of pi_{k} ({v[-1]:.4g}) is above that of pi_{j} ({v[j]:.4g}), "
                                   "the lowest so far: with exact evaluations it could not rise, so their errors now "
                                   f"outweigh the improvement; pi_{j} returned (greedy actions still changed at "
-                                  f"{rows[-1]['changed']:.1%} of {where})")
-    ev, ev_msg = getattr(fqe, "verdict_", None), getattr(fqe, "verdict_message_", "")
+                                  f"{rows[-1]['changed']:.1%} of {where}); the evaluation of pi_{j}: {ev} ({ev_msg})")
     evaluation = f"the evaluation of pi_{k}: {ev} ({ev_msg})" if ev else f"the evaluation of pi_{k} gave no verdict"
     recent = ", ".join(f"{r['changed']:.1%}" for r in rows[-3:])
     if ev == "diverging":
