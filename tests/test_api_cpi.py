@@ -26,9 +26,12 @@ def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iteratio
     opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
     np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None], return_index=True), opt.policy)
     assert len(api.history_) <= S + 1 and api.history_["changed"].iloc[-1] == 0.0  # stopped: no change
-    assert api.verdict_ == "converged" and "fixed point of policy iteration" in api.verdict_message_
-    # values estimated by FQE decrease (policy improvement), ending at the optimal value
     v = api.history_["value"].to_numpy()
+    assert api.verdict_ == "converged" and "fixed point of policy iteration" in api.verdict_message_
+    assert api.value_ == v[-1]  # the returned policy is the last evaluated one (on every state)
+    starts = ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)
+    assert api.value_ == pytest.approx(opt.V[starts].mean(), abs=1e-9)  # the optimal cost from the start states
+    # values estimated by FQE decrease (policy improvement), ending at the optimal value
     assert (np.diff(v) <= 1e-9).all()
 
 
@@ -59,6 +62,7 @@ def test_a_cycle_of_greedy_policies_stops_the_iteration_and_says_so():
     assert "cycle" in api.verdict_message_ and "pi_1" in api.verdict_message_
     short = ApproximatePolicyIteration(_Contrary(), n_iterations=2).fit(ds)  # stopped by the budget
     assert len(short.history_) == 2 and short.verdict_ == "still changing" and "budget" in short.verdict_message_
+    assert api.value_ == 0.0 and short.value_ is None  # pi_1's estimate; pi_2 was not evaluated
 
 
 class _ContraryRising(_Contrary):
@@ -77,7 +81,7 @@ def test_a_rise_of_the_estimated_cost_stops_the_iteration_with_the_lowest_estima
     assert "pi_1 returned" in api.verdict_message_
     x = np.arange(4.0)[:, None]
     assert (api.policy_.act(x, return_index=True) == 1).all()  # pi_1, and the Q it is greedy over: Q^{pi_0}
-    assert (api.q_function_.values(x).argmin(axis=1) == 1).all() and api.fqe_.value_ == 0.5
+    assert (api.q_function_.values(x).argmin(axis=1) == 1).all() and api.fqe_.value_ == api.value_ == 0.5
 
 
 def test_api_finite_horizon():

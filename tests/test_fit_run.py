@@ -219,6 +219,7 @@ def test_api_run_records_its_verdict_and_evaluates_with_fqis_schedule(tmp_path, 
     assert est.history_["cpu_seconds"].notna().all() and est.history_["evaluation"].notna().all()
     run = json.loads((tmp_path / "a" / "run.json").read_text())
     assert run["verdict"] == est.verdict_ in ("converged", "still changing") and run["verdict_message"]
+    assert run.get("value") == est.value_ or (est.value_ is None and "value" not in run)  # the returned policy's
     assert fit_convergence(tmp_path / "a")["source"] == "run.json"
 
 

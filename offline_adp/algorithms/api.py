@@ -222,6 +222,10 @@ class ApproximatePolicyIteration(CheckedEstimator):
     q_function_ : QFunction
         The evaluation's Q that ``policy_`` is greedy over (the initial policy's own, if
         that is the one returned).
+    value_ : float or None
+        FQE's estimate of ``policy_``'s cost from the data's start states where ``policy_``
+        was evaluated (a fixed point, a cycle, a rise); None after the budget (the last
+        improved policy is not evaluated).
     fqe_ : FittedQEvaluation
         The last evaluation kept: ``Q^{pi_k}``'s, whose greedy policy is ``policy_``;
         after a rise, the returned policy's own.
@@ -278,6 +282,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
         states = np.vstack([a.next_obs, a.obs[a.step == 0]])
         seen: list[np.ndarray] = []  # the greedy actions of pi_1, pi_2, ... there
         stop, repeat, q_prev, best, known = "budget", None, None, None, pi
+        self.value_ = None  # the returned policy's estimate, where it was evaluated
         for k in range(self.n_iterations):
             t0, c0 = time.perf_counter(), time.process_time()
             fqe = clone(proto).set_params(policy=known).fit(data, sample_weight=w)  # Q^{pi_k}
@@ -294,7 +299,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
             if (best is not None and len(data) == len(dataset)
                     and fqe.value_ > best[0] + 1e-9 * max(1.0, abs(best[0]))):  # J(pi_k) > min_j J(pi_j)
                 stop = "no improvement"
-                _, _, self.policy_, self.q_function_, self.fqe_ = best
+                self.value_, _, self.policy_, self.q_function_, self.fqe_ = best
                 break
             # over commands, the Q kept is the one the improvement read (over the neighbours' commands)
             q_kept = improved.q if cands is not None else fqe.q_function_  # type: ignore[attr-defined]
@@ -302,12 +307,12 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 best = (fqe.value_, k, pi, q_prev if k else fqe.q_function_, fqe)
             self.q_function_, self.policy_, self.fqe_ = q_kept, improved, fqe
             if changed == 0.0:  # pi_{k+1} = pi_k
-                stop = "fixed point"
+                stop, self.value_ = "fixed point", fqe.value_
                 break
             repeat = next((j + 1 for j, s in enumerate(seen[:-1]) if _changed(actions, s, cands is not None) == 0.0),
                           None)
             if repeat is not None:  # pi_{k+1} = pi_j, j < k
-                stop = "cycle"
+                stop, self.value_ = "cycle", rows[repeat]["value"]
                 break
             seen.append(actions)
             pi, q_prev = improved, q_kept
