@@ -133,7 +133,7 @@ def _summary(est: Any, engine: Any = None) -> dict[str, Any]:
         out["iterations"] = len(hist)
     if getattr(est, "value_", None) is not None:
         out["value"] = float(est.value_)
-    elif isinstance(hist, pd.DataFrame) and "value" in hist:
+    elif isinstance(hist, pd.DataFrame) and "value" in hist and not hasattr(est, "value_"):  # (None: not known)
         out["value"] = float(hist["value"].iloc[-1])
     if isinstance(hist, pd.DataFrame) and "structure_trees" in hist:
         from offline_adp.algorithms.fqi import structure_builds

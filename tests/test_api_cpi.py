@@ -11,6 +11,7 @@ from offline_adp.algorithms.cpi import ConservativePolicyIteration
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.envs import TabularMDP
 from offline_adp.policies import MixturePolicy, TabularPolicy, UniformPolicy
+from offline_adp.qfunctions import FunctionQ
 from tests.test_fqi import full_support_dataset
 
 
@@ -25,9 +26,62 @@ def test_api_with_a_tabular_learner_reaches_the_optimal_policy_within_S_iteratio
     opt = dp.value_iteration_discounted(m.P, m.C, 0.8)
     np.testing.assert_array_equal(api.policy_.act(np.arange(float(S))[:, None], return_index=True), opt.policy)
     assert len(api.history_) <= S + 1 and api.history_["changed"].iloc[-1] == 0.0  # stopped: no change
-    # values estimated by FQE decrease (policy improvement), ending at the optimal value
     v = api.history_["value"].to_numpy()
+    assert api.verdict_ == "converged" and "fixed point of policy iteration" in api.verdict_message_
+    assert api.value_ == v[-1]  # the returned policy is the last evaluated one (on every state)
+    starts = ds.arrays().obs[ds.arrays().step == 0, 0].astype(int)
+    assert api.value_ == pytest.approx(opt.V[starts].mean(), abs=1e-9)  # the optimal cost from the start states
+    # values estimated by FQE decrease (policy improvement), ending at the optimal value
     assert (np.diff(v) <= 1e-9).all()
+
+
+class _Contrary(FittedQEvaluation):
+    """An evaluator whose Q says the evaluated policy's action is the worst one: its greedy
+    policy takes the other action, so policy iteration on it goes round a cycle."""
+
+    def fit(self, dataset, sample_weight=None):
+        pi = self.policy
+
+        def q(obs, t):
+            return (pi.probabilities(obs, t).argmax(axis=1)[:, None] == np.arange(2)).astype(float)
+
+        self.q_function_, self.value_ = FunctionQ(q, 2), self.cost(pi)
+        self.verdict_, self.verdict_message_ = "converged", "by construction"
+        return self
+
+    def cost(self, pi):
+        return 0.0
+
+
+def test_a_cycle_of_greedy_policies_stops_the_iteration_and_says_so():
+    m = TabularMDP(n_states=4, n_actions=2, horizon=None, gamma=0.8, seed=0)
+    ds, _ = full_support_dataset(m)
+    api = ApproximatePolicyIteration(_Contrary(), n_iterations=10).fit(ds)
+    # pi_0 uniform (argmax: action 0), pi_1 = action 1, pi_2 = action 0, pi_3 = action 1 = pi_1
+    assert api.history_["changed"].tolist() == [1.0, 1.0, 1.0] and api.verdict_ == "still changing"
+    assert "cycle" in api.verdict_message_ and "pi_1" in api.verdict_message_
+    short = ApproximatePolicyIteration(_Contrary(), n_iterations=2).fit(ds)  # stopped by the budget
+    assert len(short.history_) == 2 and short.verdict_ == "still changing" and "budget" in short.verdict_message_
+    assert api.value_ == 0.0 and short.value_ is None  # pi_1's estimate; pi_2 was not evaluated
+
+
+class _ContraryRising(_Contrary):
+    """... whose estimate of the policy taking action 1 is the lowest."""
+
+    def cost(self, pi):
+        return 1.0 - 0.5 * float(pi.probabilities(np.zeros((1, 1)), 0).argmax() == 1)
+
+
+def test_a_rise_of_the_estimated_cost_stops_the_iteration_with_the_lowest_estimate():
+    m = TabularMDP(n_states=4, n_actions=2, horizon=None, gamma=0.8, seed=0)
+    ds, _ = full_support_dataset(m)
+    api = ApproximatePolicyIteration(_ContraryRising(), n_iterations=10).fit(ds)
+    # J(pi_0) = 1 (uniform: argmax 0), J(pi_1) = 0.5 (action 1), J(pi_2) = 1 (action 0): a rise
+    assert api.history_["value"].tolist() == [1.0, 0.5, 1.0] and api.verdict_ == "still changing"
+    assert "pi_1 returned" in api.verdict_message_
+    x = np.arange(4.0)[:, None]
+    assert (api.policy_.act(x, return_index=True) == 1).all()  # pi_1, and the Q it is greedy over: Q^{pi_0}
+    assert (api.q_function_.values(x).argmin(axis=1) == 1).all() and api.fqe_.value_ == api.value_ == 0.5
 
 
 def test_api_finite_horizon():

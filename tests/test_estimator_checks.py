@@ -64,15 +64,14 @@ def test_every_parameter_is_declared_and_checked_by_sklearn(cls):
 
 def test_fqe_defaults_are_fqis_except_those_its_docstring_names():
     """FittedQEvaluation's docstring: its parameters are FittedQIteration's, with the same
-    defaults, except ``mode``, ``n_structures`` and ``structure_max_samples`` (and without
-    the screen and early builds)."""
+    defaults, except ``mode``, ``n_structures``, ``structure_max_samples`` and
+    ``early_build_trees`` (and without the screen)."""
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.algorithms.fqi import FittedQIteration
 
     fqi, fqe = FittedQIteration().get_params(deep=False), FittedQEvaluation().get_params(deep=False)
-    assert set(fqi) - set(fqe) == {"screen_trees", "screen_tol",
-                                   "early_build_trees"} and set(fqe) - set(fqi) == {"policy"}
+    assert set(fqi) - set(fqe) == {"screen_trees", "screen_tol"} and set(fqe) - set(fqi) == {"policy"}
     differ = {k for k in fqe if k in fqi and fqe[k] != fqi[k]}
-    assert differ == {"mode", "n_structures", "structure_max_samples"}
+    assert differ == {"mode", "n_structures", "structure_max_samples", "early_build_trees"}
     doc = FittedQEvaluation.__doc__
     assert all(f"{k} : " in doc for k in differ) and doc.count("**the default differs**") == len(differ)

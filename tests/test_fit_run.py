@@ -202,3 +202,38 @@ def test_a_pipeline_passes_on_validated_fit_and_fqe_numbers():
         type(spec["evaluate"]["fqe_params"]["n_iterations"]) is int
         and spec["evaluate"]["fqe_params"]["n_iterations"] == 5
     )
+
+
+def test_api_run_records_its_verdict_and_evaluates_with_fqis_schedule(tmp_path, pt_dir):
+    """``fit --algorithm api``: run.json holds the fit's verdict (issue #44); the evaluator
+    runs FittedQIteration's tree schedule (frozen) under the ``[api.fqe]`` table's keys."""
+    from offline_adp.algorithms.api import EVALUATOR_DEFAULTS
+    from offline_adp.evaluation.summary import fit_convergence
+    from offline_adp.runs import fit_run
+
+    est = fit_run(pt_dir, tmp_path / "a", algorithm="api",
+                  params={"n_iterations": 2, "fqe": {"regressor_params": {"n_estimators": 5, "n_jobs": 1}}})
+    p = est.fqe_.get_params()
+    assert est.fqe_.mode_ == "frozen" and p["mode"] == EVALUATOR_DEFAULTS["mode"] == "auto"
+    assert p["structure_max_samples"] == "auto" and p["n_structures"] is None and p["early_build_trees"] == "auto"
+    assert est.history_["cpu_seconds"].notna().all() and est.history_["evaluation"].notna().all()
+    run = json.loads((tmp_path / "a" / "run.json").read_text())
+    assert run["verdict"] == est.verdict_ in ("converged", "still changing") and run["verdict_message"]
+    assert run.get("value") == est.value_ or (est.value_ is None and "value" not in run)  # the returned policy's
+    assert fit_convergence(tmp_path / "a")["source"] == "run.json"
+
+
+def test_api_reads_the_greedy_actions_at_next_states_from_the_evaluations_own_lookups(pt_dir):
+    """The next-state values API takes from its evaluation's frozen structure give the
+    greedy policy's own actions there (the same trees and leaves, summed in another order)."""
+    from offline_adp.algorithms.api import _next_state_q, default_evaluator
+    from offline_adp.data.dataset import read_dataset
+    from offline_adp.policies import GreedyPolicy, UniformPolicy
+
+    ds = read_dataset(pt_dir)
+    nxt = ds.arrays().next_obs
+    fqe = default_evaluator(policy=UniformPolicy(ds.n_actions), regressor_params={"n_estimators": 5}).fit(ds)
+    q = _next_state_q(fqe, nxt)
+    assert q is not None and q.shape == (len(ds), ds.n_actions)
+    np.testing.assert_array_equal(q.argmin(axis=1), GreedyPolicy(fqe.q_function_).actions(nxt))
+    assert _next_state_q(fqe, nxt[::-1].copy()) is None  # other states: none

@@ -98,8 +98,13 @@ commands, n_candidates, n_representatives
         As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``, a
         bootstrap of 131,072 rows beyond that many; None: the regressor's own sampling,
         all rows for the default extra-trees).
+    early_build_trees : int, "auto" or None, default None
+        As FittedQIteration's; **the default differs** (FittedQIteration: ``"auto"``, a
+        fifth of the forest in the builds before the last of ``n_iterations="auto"``'s
+        schedule). None: every frozen build grows the whole forest. Approximate policy
+        iteration's evaluator sets ``"auto"`` (measured there: docs/algorithms.md).
 
-    Why these three differ: they are FittedQIteration's defaults from before its
+    Why the first three differ: they are FittedQIteration's defaults from before its
     ``mode="auto"``. FittedQIteration moved to ``mode="auto"`` with one build per 12.5
     iterations and to ``structure_max_samples="auto"`` on the evidence of
     the FQI benchmark suite (docs/fqi-modes.md), which scores the greedy policies
@@ -107,10 +112,12 @@ commands, n_candidates, n_representatives
     estimate did not change. The evaluation reports choose their own settings
     (:data:`offline_adp.evaluation.fqe_interval.DEFAULT_FQE`: ``mode="frozen"``).
 
-    FittedQIteration's ``screen_trees``, ``screen_tol`` and ``early_build_trees`` are not parameters here
-    (always None: every frozen build grows the whole forest). The screen bounds the bias
-    of a greedy backup's minimum over actions, and FQE's backup takes no minimum
-    (docs/fqi-modes.md); the early builds were measured on FQI only.
+    ``early_build_trees`` differs because the early builds were measured on FQI's greedy
+    policies, not on policy evaluations, so an FQE estimate does not change unless asked.
+
+    FittedQIteration's ``screen_trees`` and ``screen_tol`` are not parameters here (always
+    None). The screen bounds the bias of a greedy backup's minimum over actions, and FQE's
+    backup takes no minimum (docs/fqi-modes.md).
 
     Attributes
     ----------
@@ -125,7 +132,7 @@ commands, n_candidates, n_representatives
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
         **{k: v for k, v in FittedQIteration._parameter_constraints.items()
-           if k not in ("screen_trees", "screen_tol", "early_build_trees")},
+           if k not in ("screen_trees", "screen_tol")},
         "policy": [HasMethods(["probabilities"]), None],
     }
 
@@ -139,7 +146,8 @@ commands, n_candidates, n_representatives
                  on_divergence: str = "warn", patience: int = 10, divergence_slack: float = 0.1,
                  initial_q: QFunction | None = None, random_state: int = 0, n_structures: int = 4,
                  structure_max_samples: float | list[float | None] | str | None = None, tree_builder: str = "auto",
-                 commands: str = "auto", n_candidates: int = 8, n_representatives: int = 16) -> None:
+                 commands: str = "auto", n_candidates: int = 8, n_representatives: int = 16,
+                 early_build_trees: int | str | None = None) -> None:
         self.policy = policy
         super().__init__(horizon=horizon, gamma=gamma, regressor=regressor, regressor_params=regressor_params,
                          action_encoding=action_encoding, action_input=action_input, feature_map=feature_map,
@@ -150,7 +158,7 @@ commands, n_candidates, n_representatives
                          divergence_slack=divergence_slack, initial_q=initial_q, random_state=random_state,
                          n_structures=n_structures, structure_max_samples=structure_max_samples,
                          screen_trees=None,  # the screen is about a greedy backup's min
-                         early_build_trees=None,  # every build grows the whole forest
+                         early_build_trees=early_build_trees,
                          tree_builder=tree_builder, commands=commands, n_candidates=n_candidates,
                          n_representatives=n_representatives)
 

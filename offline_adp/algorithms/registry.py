@@ -209,7 +209,10 @@ def _fit_fqe(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 
 
 def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
-    return entry.estimator_class()(fqe=_make_fqe(p), **p).fit(ds)
+    from offline_adp.algorithms.api import default_evaluator
+
+    table = p.pop("fqe", None)  # API's evaluator defaults under the [api.fqe] table's keys
+    return entry.estimator_class()(fqe=default_evaluator(**(table or {})), **p).fit(ds)
 
 
 def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
