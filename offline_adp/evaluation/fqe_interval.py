@@ -201,13 +201,11 @@ def bootstrap_values(fit: FQEFit, ds: TransitionDataset, policy: Policy, a: Tran
     Tabular time-indexed FQE: all at once (:func:`tabular_fqe_replicates`); a
     structure-conditional fit: its leaves re-averaged to the fixed point for the weights
     (:data:`REPLICATE_RTOL`); otherwise a full refit each. Replicates run on ``task_map``."""
+    from offline_adp.progress import PhaseLines
+
     counts = bootstrap_counts(em.n_episodes, n_reps, seed)
     weights = [c[em.row_episode] for c in counts]
-    quarters = {max(1, (n_reps * q) // 4) for q in (1, 2, 3, 4)}  # four progress lines, not one per replicate
-
-    def on_done(b: int) -> None:
-        if b + 1 in quarters:
-            say(f"FQE bootstrap {b + 1}/{n_reps}")
+    on_done = PhaseLines(say, "FQE bootstrap", n_reps)  # four lines with an ETA, not one per replicate
     run = task_map or local_map
     start = a.step == 0
     if _tabular_fast(fit.params, fit.horizon) and n_reps:
@@ -352,15 +350,19 @@ def widen_fqe(fq: OPEResult, mr: dict[str, Any], hull: bool = True) -> OPEResult
 
 
 def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float, seed: int,
-                  a: TransitionArrays) -> dict[str, Any]:
+                  a: TransitionArrays, say: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The model rollouts :func:`widen_fqe` hulls FQE's interval with: ``particles`` rollouts
     of a model of the logged increments over the estimand's horizon (the model is stationary,
     so it reads past the logged horizon too; :func:`~offline_adp.evaluation.model_rollouts.model_rollouts`);
-    ``particles=0`` says they were turned off (so metrics.json tells "turned off" from "not a feature")."""
+    ``particles=0`` says they were turned off (so metrics.json tells "turned off" from "not a feature");
+    ``say``: progress lines over the rollout's steps."""
+    from offline_adp.progress import PhaseLines
+
     if not particles:
         return {"skipped": "model_particles=0: model rollouts turned off"}
+    steps = None if say is None else PhaseLines(say, "model rollouts: step", est_def.value_horizon)
     return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed,
-                          arrays=a)
+                          arrays=a, on_step=steps)
 
 
 def with_rough_note(fq: OPEResult, n_reps: int) -> OPEResult:
@@ -402,6 +404,6 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
     if est_def.form == "finite":  # hulled only where FQE's interval is of the same quantity (a
         if cfg.model_particles:  # time-indexed FQE past the logs reads the T-step value)
             say("model rollouts")
-        fq = widen_fqe(fq, model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a),
+        fq = widen_fqe(fq, model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a, say),
                        hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)
