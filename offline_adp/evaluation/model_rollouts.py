@@ -395,17 +395,15 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
                         seed: int = 0, on_step: Any = None) -> dict[str, Any]:
     """The policy's ``horizon``-step discounted cost under ``model`` and its bounds (module docstring).
 
-    ``model``: a :class:`LoggedDynamics`, or any object with ``start_states_``, ``radius_``
-    (and optionally ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a
-    ``StepResult``) and ``in_data(states, radius)`` (bool per state). ``ranges``: ``lo[L],
-    hi[L]`` for ``L = 0 .. horizon`` remaining steps (:func:`remainder_ranges`). ``n``
-    particles; ``level`` of the Monte-Carlo interval around the bounds.
+    ``model``: a :class:`LoggedDynamics`, or any object with ``start_states_``, ``radius_`` (and optionally
+    ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a ``StepResult``) and
+    ``in_data(states, radius)`` (bool per state). ``ranges``: ``lo[L], hi[L]`` for ``L = 0 .. horizon`` remaining
+    steps (:func:`remainder_ranges`). ``n`` particles; ``level`` of the Monte-Carlo interval around the bounds.
 
-    Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
-    (share of the discounted survival mass at or after leaving the data), ``exit_share``
-    (the expected share of episodes that leave the data before they end: the mean
-    survival probability at leaving), ``n_particles``, ``radius`` (support),
-    ``trust_radius`` (the bounds') and ``support_quantile``. ``on_step()`` is called after each step (progress).
+    Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass`` (share of the
+    discounted survival mass at or after leaving the data), ``exit_share`` (the expected share of episodes that
+    leave the data before they end: the mean survival probability at leaving), ``n_particles``, ``radius``
+    (support), ``trust_radius`` (the bounds') and ``support_quantile``. ``on_step()``: called after each step.
     """
     lo_r, hi_r = _checked_ranges(n, horizon, level, ranges)
     rng = np.random.default_rng([seed, 7])

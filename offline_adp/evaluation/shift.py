@@ -258,8 +258,7 @@ def ratios_by_classifier(
         count as *uncovered* (no data near them).
     normalise : bool
         Rescale to mean 1 per step (self-normalised; removes the class-prior error).
-    on_step : callable, optional
-        Called once per step of ``policy_states`` (progress).
+    on_step : callable, optional (called once per step of ``policy_states``: progress)
     """
     from sklearn.metrics import roc_auc_score
     from sklearn.model_selection import StratifiedKFold
