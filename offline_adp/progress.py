@@ -186,14 +186,15 @@ def fit_progress(est: Any, verbose: bool = False, show_progress: bool = False) -
 class PhaseLines:
     """Progress lines of a phase of ``total`` parts of about equal cost, for a ``say``
     callback (an evaluation's progress): call it once per finished part (in any order, e.g.
-    from a task map's ``on_done``); at the ``lines`` evenly spaced counts it says
-    ``"{desc} k/total, ETA 12 s"``, the wall time so far scaled to the parts left, and at
-    the last ``"{desc} total/total in 9.8 s"``. A phase of one part says nothing here.
+    from a task map's ``on_done``); at the ``lines`` evenly spaced counts (2: the half and
+    the end, so that a log stays short) it says ``"{desc} k/total, ETA 12 s"``, the wall
+    time so far scaled to the parts left, and at the last ``"{desc} total/total in 9.8 s"``.
+    A phase of one part says nothing here.
 
     ``clock``: the wall clock (seconds; the ETA is what the user waits, not CPU time).
     """
 
-    def __init__(self, say: Any, desc: str, total: int, lines: int = 4, clock: Any = None) -> None:
+    def __init__(self, say: Any, desc: str, total: int, lines: int = 2, clock: Any = None) -> None:
         import time
 
         self.say, self.desc, self.total = say, desc, int(total)

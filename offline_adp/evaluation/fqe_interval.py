@@ -219,7 +219,7 @@ def bootstrap_values(fit: FQEFit, ds: TransitionDataset, policy: Policy, a: Tran
 
     counts = bootstrap_counts(em.n_episodes, n_reps, seed)
     weights = [c[em.row_episode] for c in counts]
-    on_done = PhaseLines(say, "FQE bootstrap", n_reps)  # four lines with an ETA, not one per replicate
+    on_done = PhaseLines(say, "FQE bootstrap", n_reps, lines=4)  # four lines with an ETA, not one per replicate
     run = task_map or local_map
     start = a.step == 0
     if _tabular_fast(fit.params, fit.horizon) and n_reps:
