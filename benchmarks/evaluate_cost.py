@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -35,10 +36,17 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _stages(marks: list[tuple[str, float]], end: float) -> dict[str, float]:
-    """CPU between each progress line and the next, summed by the line's stage name."""
+    """CPU between each progress line and the next, summed by the line's stage name. A
+    counter line (``"model rollouts: step 50/200, ETA 3 s"``) belongs to the stage it
+    counts when their names share a start; else (``"FQE bootstrap 50/200"`` after ``"fitted
+    Q evaluation"``) it starts a stage of its own name."""
     out: dict[str, float] = {}
+    key = None
     for (name, t), (_, t_next) in zip(marks, [*marks[1:], ("end", end)], strict=True):
-        key = "FQE bootstrap" if name.startswith("FQE bootstrap") else name.split(" (")[0]
+        counter = re.match(r"(.*?):? (step |fold )?\d+/\d+\b", name)
+        desc = counter.group(1) if counter else name.split(" (")[0]
+        if not (counter and key is not None and (key.startswith(desc) or desc.startswith(key))):
+            key = desc
         out[key] = out.get(key, 0.0) + t_next - t
     return out
 

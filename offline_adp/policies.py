@@ -127,7 +127,9 @@ def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
     if type(q) not in (RegressorQ, TreeQ) or type(q.encoder) is not QEncoder or q.encoder.per_action:  # type: ignore[attr-defined]
         return None
     model = q.models[0]  # type: ignore[attr-defined]
-    if type(model) is not TreeEnsemble or getattr(model, "_forest", None) is not None or obs.ndim != 2:
+    if (not isinstance(model, TreeEnsemble) or type(model).apply is not TreeEnsemble.apply  # a loaded one too
+            or type(model).predict is not TreeEnsemble.predict or getattr(model, "_forest", None) is not None
+            or obs.ndim != 2):
         return None
     phi = q.encoder.phi(obs)  # type: ignore[attr-defined]
     leaves = pair_leaves(model, phi, q.encoder.action_features)  # type: ignore[attr-defined]

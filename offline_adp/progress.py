@@ -183,6 +183,47 @@ def fit_progress(est: Any, verbose: bool = False, show_progress: bool = False) -
                     logger=get_logger(type(est).__module__))
 
 
+class PhaseLines:
+    """Progress lines of a phase of ``total`` parts of about equal cost, for a ``say``
+    callback (an evaluation's progress): call it once per finished part (in any order, e.g.
+    from a task map's ``on_done``); at the ``lines`` evenly spaced counts (2: the half and
+    the end, so that a log stays short) it says ``"{desc} k/total, ETA 12 s"``, the wall
+    time so far scaled to the parts left, and at the last ``"{desc} total/total in 9.8 s"``.
+    A phase of one part says nothing here.
+
+    ``clock``: the wall clock (seconds; the ETA is what the user waits, not CPU time).
+    """
+
+    def __init__(self, say: Any, desc: str, total: int, lines: int = 2, clock: Any = None) -> None:
+        import time
+
+        self.say, self.desc, self.total = say, desc, int(total)
+        self.clock = clock or time.perf_counter
+        self.start, self.done = self.clock(), 0
+        self.marks = {max(1, (self.total * q) // lines) for q in range(1, lines + 1)} if self.total > 1 else set()
+
+    def __call__(self, *_: Any) -> None:
+        self.done += 1
+        if self.done not in self.marks:
+            return
+        spent = self.clock() - self.start
+        if self.done >= self.total:
+            self.say(f"{self.desc} {self.done}/{self.total} in {_seconds(spent)}")
+        else:
+            left = spent / self.done * (self.total - self.done)
+            self.say(f"{self.desc} {self.done}/{self.total}, ETA {_seconds(left)}")
+
+
+def _seconds(s: float) -> str:
+    """``9.8 s``, ``42 s``, ``3 min 05 s``."""
+    if s < 10:
+        return f"{s:.1f} s"
+    if s < 120:
+        return f"{s:.0f} s"
+    m, r = divmod(int(round(s)), 60)
+    return f"{m} min {r:02d} s"
+
+
 # ----------------------------------------------------------------------------- CLI options
 def add_logging_options(parser: Any) -> None:
     """Add ``-v/--verbose``, ``-q/--quiet`` and ``--log-level`` to an argparse parser and

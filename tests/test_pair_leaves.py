@@ -53,3 +53,20 @@ def test_other_q_functions_are_left_to_their_values():
     per_action = RegressorQ([e, e, e], QEncoder(3, np.zeros((3, 0)), per_action=True))
     assert joint_tree_values(per_action, np.zeros((2, 3))) is None
     assert pair_leaves(e, np.zeros((0, 3)), enc.action_features) is None  # no rows: apply's own path
+
+
+def test_a_loaded_ensemble_takes_the_one_descent_path():
+    """A policy read back from its artifact holds a LoadedEnsemble (lookups built, per-node
+    arrays made only when asked for): its values come from the one-descent path, bit for
+    bit, without making the per-node arrays."""
+    from offline_adp.artifacts.tree_tables import LoadedEnsemble, load_compact_ensemble
+
+    e, enc = _ensemble(np.linspace(-1, 1, 5)[:, None])
+    loaded = load_compact_ensemble(e.to_arrays("q/"), "q/", "test")
+    assert isinstance(loaded, LoadedEnsemble)
+    q = RegressorQ([loaded], enc)
+    X = np.random.default_rng(3).normal(size=(301, 3))
+    fast = joint_tree_values(q, X)
+    assert "left" not in loaded.__dict__  # the lookups' records, not the per-node arrays
+    assert fast is not None and np.array_equal(fast, RegressorQ([e], enc).values(X, 0))
+    assert np.array_equal(fast, q.values(X, 0))

@@ -221,7 +221,7 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     truncation bound (module docstring)."""
     a = ds.arrays()
     fqe_T = est_def.fqe_horizon
-    params = fqe_settings(cfg.fqe_params, fqe_T)  # the discrete path's merge of the user's settings
+    params = fqe_settings(cfg.fqe_params, fqe_T, counted=True)  # the discrete path's merge (a count of iterations)
     conditional = params.get("mode") == "frozen" and fqe_T is None and not params.get("validation_fraction")
     say("fitted Q evaluation over commands")
     fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=est_def.gamma, random_state=cfg.seed, **params).fit(ds)

@@ -392,20 +392,18 @@ def _bounds_summary(value: np.ndarray, lower: np.ndarray, upper: np.ndarray, lev
 
 def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
                         ranges: tuple[np.ndarray, np.ndarray], *, n: int = N_PARTICLES, level: float = 0.95,
-                        seed: int = 0) -> dict[str, Any]:
+                        seed: int = 0, on_step: Any = None) -> dict[str, Any]:
     """The policy's ``horizon``-step discounted cost under ``model`` and its bounds (module docstring).
 
-    ``model``: a :class:`LoggedDynamics`, or any object with ``start_states_``, ``radius_``
-    (and optionally ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a
-    ``StepResult``) and ``in_data(states, radius)`` (bool per state). ``ranges``: ``lo[L],
-    hi[L]`` for ``L = 0 .. horizon`` remaining steps (:func:`remainder_ranges`). ``n``
-    particles; ``level`` of the Monte-Carlo interval around the bounds.
+    ``model``: a :class:`LoggedDynamics`, or any object with ``start_states_``, ``radius_`` (and optionally
+    ``trust_radius_``, default ``radius_``), ``step(states, actions, rng)`` (a ``StepResult``) and
+    ``in_data(states, radius)`` (bool per state). ``ranges``: ``lo[L], hi[L]`` for ``L = 0 .. horizon`` remaining
+    steps (:func:`remainder_ranges`). ``n`` particles; ``level`` of the Monte-Carlo interval around the bounds.
 
-    Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass``
-    (share of the discounted survival mass at or after leaving the data), ``exit_share``
-    (the expected share of episodes that leave the data before they end: the mean
-    survival probability at leaving), ``n_particles``, ``radius`` (support),
-    ``trust_radius`` (the bounds') and ``support_quantile``.
+    Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass`` (share of the
+    discounted survival mass at or after leaving the data), ``exit_share`` (the expected share of episodes that
+    leave the data before they end: the mean survival probability at leaving), ``n_particles``, ``radius``
+    (support), ``trust_radius`` (the bounds') and ``support_quantile``. ``on_step()``: called after each step.
     """
     lo_r, hi_r = _checked_ranges(n, horizon, level, ranges)
     rng = np.random.default_rng([seed, 7])
@@ -446,6 +444,8 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         mass_out += np.where(inside, 0.0, w)
         alive = alive * (1.0 - r.terminated)
         x = r.next_states
+        if on_step is not None:
+            on_step()
     return {**_bounds_summary(value, kept + lo_tail, kept + hi_tail, level),
             "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
             "exit_share": float(alive_at_exit.mean()), "n_particles": int(n), "radius": float(model.radius_),
@@ -453,7 +453,8 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
 
 
 def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float, *, n: int = N_PARTICLES,
-                   level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None) -> dict[str, Any]:
+                   level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None,
+                   on_step: Any = None) -> dict[str, Any]:
     """Fit :class:`LoggedDynamics` on ``ds`` and roll ``policy`` out in it
     (:func:`model_rollout_value`) with the logged costs' :func:`remainder_ranges`; adds
     ``noise`` and ``method``. ``{"skipped": reason}`` where it does not apply: no
@@ -467,7 +468,7 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
         return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it; "
                            "FQE reads such logs without extrapolating between states"}
     out = model_rollout_value(model, policy, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
-                              n=n, level=level, seed=seed)
+                              n=n, level=level, seed=seed, on_step=on_step)
     return {**out, "noise": model.noise_source_,  # no timings: metrics.json is deterministic
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "

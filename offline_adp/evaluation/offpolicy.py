@@ -180,8 +180,11 @@ def residual_advantages(ds: TransitionDataset, policy: Policy, fit: FQEFit, w: W
         return ResidualAdvantage(in_sample, in_sample, None, qv, False)
     say("PSDP eps and DR's Q, cross-fitted")
     try:
+        from offline_adp.progress import PhaseLines
+
         eps, q = crossfit_residual_advantage(ds, policy, fit.params, fit.horizon, gamma, T, w.em.row_episode,
-                                             folds=folds, seed=seed, return_q=True, target=w.target)
+                                             folds=folds, seed=seed, return_q=True, target=w.target,
+                                             on_fold=PhaseLines(say, "PSDP eps and DR's Q: fold", folds))
     except CrossFitError as exc:  # no out-of-sample eps: the bound is unknown (the in-sample one is 0 by construction)
         return ResidualAdvantage(np.full(T, np.nan), in_sample, f"not measured: {exc}", qv, False)
     return ResidualAdvantage(eps, in_sample, None, q, True)
@@ -244,8 +247,11 @@ def shift_and_bounds(a: TransitionArrays, policy: Policy, w: Weighting, ratios: 
         extra[name] = (r, d)
         bounds[name] = bound_entry(eps, d, shift.pooled_ratio_ucb(r, a.obs, k=k, seed=seed), T)
     if policy_states is not None:
+        from offline_adp.progress import PhaseLines
+
         say("classifier density ratios")
-        r = shift.ratios_by_classifier(a.obs, a.step, policy_states[:T], seed=seed)
+        steps = PhaseLines(say, "classifier density ratios: step", len(policy_states[:T]))
+        r = shift.ratios_by_classifier(a.obs, a.step, policy_states[:T], seed=seed, on_step=steps)
         extra["classifier"] = (r, shift.diagnostics(r, a.obs, k=k, seed=seed))
     return {"pooled": pooled, "bounds": bounds, "extra_ratios": extra}
 

@@ -51,7 +51,8 @@ class CrossFitError(ValueError):
 
 def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
                                 gamma: float, T: int, n_episodes_index: np.ndarray, *, folds: int = PSDP_EPS_FOLDS,
-                                seed: int = 0, return_q: bool = False, target: np.ndarray | None = None) -> Any:
+                                seed: int = 0, return_q: bool = False, target: np.ndarray | None = None,
+                                on_fold: Any = None) -> Any:
     """``eps_t`` of :func:`residual_advantage` measured out of sample, by cross-fitting.
     With ``return_q``: ``(eps, q)``, ``q`` (n, n_actions) each row's Q-values from the FQE
     fitted without its episode (the cross-fitted Q the DR estimators use).
@@ -65,7 +66,8 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
     by construction, and so was the bound (Bagnell et al. 2003, Theorem 2, needs eps_t of
     the policy's true Q^pi_t on mu_t; an estimate fitted on other episodes is not tuned to
     the policy). ``n_episodes_index`` is each row's episode index (0 .. N-1); ``target``:
-    ``policy.probabilities`` at every row when the caller has them (not computed again).
+    ``policy.probabilities`` at every row when the caller has them (not computed again);
+    ``on_fold()`` is called after each fold (progress).
     """
     a = ds.arrays()
     n_ep = int(n_episodes_index.max()) + 1
@@ -89,6 +91,8 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
         gap[held] = (probs * qv).sum(axis=1) - qv.min(axis=1)
         if q_out is not None:
             q_out[held] = qv
+        if on_fold is not None:
+            on_fold()
     eps = np.zeros(T)
     for t in range(T):
         m = a.step == t

@@ -279,7 +279,10 @@ def _rollouts(metrics: dict[str, Any], ds: TransitionDataset, policy: Any, probl
     x0 = problem.initial_states(cfg.episodes, rng)
     demonstrator = problem.demonstrator()  # None for a gymnasium environment
     pols = {"policy": policy} if demonstrator is None else {"policy": policy, "demonstrator": demonstrator}
-    ro = rollout_pieces(problem, pols, x0, cfg.seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map)
+    from offline_adp.progress import PhaseLines
+
+    ro = rollout_pieces(problem, pols, x0, cfg.seed + 1, horizon=T, gamma=gamma, record_states=True, task_map=task_map,
+                        on_done=PhaseLines(say, "rollouts", min(8, cfg.episodes)))
     pol, demo = ro["policy"], ro.get("demonstrator")
     metrics["rollout"] = {"method": f"Monte-Carlo in the {sim_name} simulator, same start states and seeds for both",
                           "horizon": T, "policy": _rollout_block(pol, problem)}

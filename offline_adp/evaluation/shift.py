@@ -243,6 +243,7 @@ def ratios_by_classifier(
     clip: float = 1e-3,
     normalise: bool = True,
     seed: int = 0,
+    on_step: Any = None,
 ) -> DensityRatios:
     """Per-step ratios from a classifier between pi's states and the data's (method (b)).
 
@@ -257,6 +258,7 @@ def ratios_by_classifier(
         count as *uncovered* (no data near them).
     normalise : bool
         Rescale to mean 1 per step (self-normalised; removes the class-prior error).
+    on_step : callable, optional (called once per step of ``policy_states``: progress)
     """
     from sklearn.metrics import roc_auc_score
     from sklearn.model_selection import StratifiedKFold
@@ -266,6 +268,8 @@ def ratios_by_classifier(
     uncovered: dict[int, float] = {}
     warnings: list[str] = []
     for t, xp in enumerate(policy_states):
+        if on_step is not None and t:  # step t - 1 is done
+            on_step()
         here = np.flatnonzero(step == t)
         if not len(here) or not len(xp):
             continue
@@ -289,6 +293,8 @@ def ratios_by_classifier(
         warnings.append(f"classifier AUC > 0.95 at {len(sep)} of {len(policy_states)} steps ({step_ranges(sep)}; "
                         f"highest {auc[top]:.3f} at t = {top}): pi's states and the data's are almost separable "
                         "there; the ratios at those steps cannot be trusted")
+    if on_step is not None and len(policy_states):
+        on_step()
     return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=warnings)
 
 

@@ -45,6 +45,26 @@ def packed_nodes(left: np.ndarray, right: np.ndarray, feature: np.ndarray, thres
     return pk.reshape(-1)
 
 
+def ensemble_packed(ensemble: Any) -> np.ndarray:
+    """:func:`packed_nodes` of ``ensemble``: from its compiled lookups where they are built
+    (:class:`~offline_adp.trees.compact.CompactTree` records hold the same fields per node,
+    local ids offset here by each tree's root; a loaded ensemble then never makes its
+    per-node arrays), else from its per-node arrays."""
+    from offline_adp.trees.compact import CompactTree
+
+    trees = ensemble.__dict__.get("_trees")
+    if not (isinstance(trees, list) and len(trees) == len(ensemble.roots) and trees
+            and all(type(t) is CompactTree for t in trees)):
+        return packed_nodes(ensemble.left, ensemble.right, ensemble.feature, ensemble.threshold)
+    parts = []
+    for tree, root in zip(trees, np.asarray(ensemble.roots, dtype=np.int64), strict=True):
+        pk = tree.packed.copy()
+        inner = pk[:, 0] >= 0
+        pk[inner, :2] += np.int32(root)
+        parts.append(pk)
+    return np.concatenate(parts).reshape(-1)
+
+
 def _pair_apply(packed: Any, packed_f: Any, roots: Any, S: Any, Af: Any, lanes: int, out: Any) -> None:
     """``out[j, a * n + i]``: the leaf (global node id) tree ``j`` (root ``roots[j]``) reaches
     on ``[S[i], Af[a]]``, for the ``n`` rows of ``S`` (float32, C order) and the ``A`` rows of
@@ -130,15 +150,14 @@ def pair_leaves(ensemble: Any, phi: np.ndarray, action_features: np.ndarray) -> 
     A, n = af.shape[0], phi.shape[0]
     if not available() or not 0 < A <= MAX_ACTIONS or n == 0 or phi.ndim != 2 or af.ndim != 2:
         return None
-    if len(ensemble.left) >= 2**31 - 1:
+    if len(ensemble.value) >= 2**31 - 1:  # one value per node
         return None
     ensemble.check_inputs(np.empty((1, phi.shape[1] + af.shape[1])))
     shared = getattr(ensemble, "_same_structure", None)  # ensembles of one structure (with_values) share it
     cache = shared if shared is not None else ensemble.__dict__
     packed = cache.get("pair_packed")
     if packed is None:
-        packed = cache["pair_packed"] = packed_nodes(ensemble.left, ensemble.right, ensemble.feature,
-                                                     ensemble.threshold)
+        packed = cache["pair_packed"] = ensemble_packed(ensemble)
     out = np.empty((ensemble.n_trees, A * n), np.int64)  # tree-major: each tree's leaves written in order
     _pair_apply(packed, packed.view(np.float32), np.asarray(ensemble.roots, dtype=np.int64),
                 np.ascontiguousarray(phi, dtype=np.float32), np.ascontiguousarray(af, dtype=np.float32), LANES, out)
