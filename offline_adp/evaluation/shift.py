@@ -287,15 +287,21 @@ def ratios_by_classifier(
         uncovered[t] = float(np.mean(pc[len(here):] >= 1 - clip))
         r = pc[: len(here)] / (1 - pc[: len(here)]) * len(here) / len(xp)
         w[here] = _normalise(r) if normalise else r
-    sep = np.array(sorted(t for t, a in auc.items() if a > 0.95), np.int64)  # one warning, not one per step
-    if len(sep):
-        top = max(sep.tolist(), key=lambda t: auc[t])
-        warnings.append(f"classifier AUC > 0.95 at {len(sep)} of {len(policy_states)} steps ({step_ranges(sep)}; "
-                        f"highest {auc[top]:.3f} at t = {top}): pi's states and the data's are almost separable "
-                        "there; the ratios at those steps cannot be trusted")
+    warnings += _separable_warning(auc, len(policy_states))
     if on_step is not None and len(policy_states):
         on_step()
     return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=warnings)
+
+
+def _separable_warning(auc: dict[int, float], n_steps: int) -> list[str]:
+    """One warning for every step whose classifier AUC is above 0.95 (not one per step)."""
+    sep = np.array(sorted(t for t, a in auc.items() if a > 0.95), np.int64)
+    if not len(sep):
+        return []
+    top = max(sep.tolist(), key=lambda t: auc[t])
+    return [f"classifier AUC > 0.95 at {len(sep)} of {n_steps} steps ({step_ranges(sep)}; highest {auc[top]:.3f} "
+            f"at t = {top}): pi's states and the data's are almost separable there; the ratios at those steps "
+            "cannot be trusted"]
 
 
 def step_ranges(steps: np.ndarray, k: int = 8) -> str:
