@@ -2,7 +2,9 @@
 doctor, atomic write), in a fresh subprocess per size so peak RSS is that run's own.
 
 Reports, per size, the CPU seconds of the ingestion (user + system of every thread of
-the child process, imports excluded), rows per CPU-second, wall seconds, and peak memory:
+the child process, imports excluded; the median run by CPU seconds), rows per CPU-second,
+the medians of user and of system seconds on their own (system time, mostly the kernel
+zeroing fresh pages, varies most between identical runs), wall seconds, and peak memory:
 the child's peak RSS (``VmHWM``: not ``ru_maxrss``, which Linux carries over ``exec`` from
 the parent's image) above its post-import baseline,
 relative to the Arrow size of the ingested table. Targets (issue #33): >= 2M rows per
@@ -90,15 +92,16 @@ CHILD = textwrap.dedent(
     import offline_adp.ingest.parquet as ip
     base = psutil.Process().memory_info().rss
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    t0, c0 = time.perf_counter(), ru.ru_utime + ru.ru_stime
+    t0, u0, s0 = time.perf_counter(), ru.ru_utime, ru.ru_stime
     res = ip.ingest_parquet([sys.argv[1]], sys.argv[2], sys.argv[3], overwrite=True)
     wall = time.perf_counter() - t0
     # VmHWM: this process's own peak. Not ru_maxrss, which Linux carries over exec from
     # the forked parent's image (a parent holding the generated table inflated it by ~30 MiB)
     peak = next(int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM:"))
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    cpu = ru.ru_utime + ru.ru_stime - c0  # every thread of this process
-    print(json.dumps({"module": ip.__file__, "rows": len(res.dataset), "wall_s": wall, "cpu_s": cpu, "peak_rss": peak,
+    user, sys_ = ru.ru_utime - u0, ru.ru_stime - s0  # every thread of this process
+    print(json.dumps({"module": ip.__file__, "rows": len(res.dataset), "wall_s": wall, "cpu_s": user + sys_,
+                      "user_s": user, "sys_s": sys_, "peak_rss": peak,
                       "baseline_rss": base, "arrow_bytes": res.dataset.table.nbytes, "ok": res.report.ok}))
     """
 )
@@ -111,6 +114,11 @@ def run_child(src: Path, spec: Path, out: Path, pythonpath: str) -> dict:
     r = json.loads(res.stdout.strip().splitlines()[-1])
     assert r["ok"]
     return r
+
+
+def med(runs: list[dict], key: str) -> float:
+    """The median of ``key`` over the runs (user and system seconds: each its own median)."""
+    return sorted(r[key] for r in runs)[len(runs) // 2]
 
 
 def main() -> None:
@@ -128,7 +136,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
         (d / "spec.toml").write_text(SPEC)
-        print(f"{'code':>7} {'rows':>9} {'CPU s':>6} {'rows/CPU-s':>11} {'wall s':>6} {'peak RSS MiB':>12} "
+        print(f"{'code':>7} {'rows':>9} {'CPU s':>6} {'rows/CPU-s':>11} {'user s':>6} {'sys s':>6} {'wall s':>6} "
+              f"{'peak RSS MiB':>12} "
               f"{'above base MiB':>14} {'Arrow MiB':>9} {'(peak-base)/Arrow':>17}")
         for rows in args.rows:
             src = d / f"t{rows}.parquet"
@@ -141,7 +150,8 @@ def main() -> None:
                 r = sorted(rs, key=lambda r: r["cpu_s"])[len(rs) // 2]
                 above = r["peak_rss"] - r["baseline_rss"]
                 print(
-                    f"{name:>7} {r['rows']:>9} {r['cpu_s']:>6.2f} {r['rows'] / r['cpu_s']:>11,.0f} {r['wall_s']:>6.2f} "
+                    f"{name:>7} {r['rows']:>9} {r['cpu_s']:>6.2f} {r['rows'] / r['cpu_s']:>11,.0f} "
+                    f"{med(rs, 'user_s'):>6.2f} {med(rs, 'sys_s'):>6.2f} {r['wall_s']:>6.2f} "
                     f"{r['peak_rss'] / mib:>12.0f} {above / mib:>14.0f} {r['arrow_bytes'] / mib:>9.0f} "
                     f"{above / r['arrow_bytes']:>17.2f}"
                 )

@@ -41,11 +41,13 @@ def test_match_each_is_the_last_match_within_tolerance(n: int) -> None:
     np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 127, 1000, 65_537])
+@pytest.mark.parametrize("n", [1, 2, 3, 127, 1000, 65_536, 65_537, 131_079, 300_007, 1_000_003])
 def test_mean_std_are_numpys_bit_for_bit(n: int) -> None:
     rng = np.random.default_rng(n)
-    for x in (rng.normal(size=n) * 1e6 + 3, rng.random(n), np.cumsum(rng.normal(size=n)), np.full(n, 0.1)):
-        mean, std = _mean_std(x, np.empty(n))
+    # the last: Cauchy values over ten orders of magnitude, where the order of the sums shows
+    for x in (rng.normal(size=n) * 1e6 + 3, rng.random(n), np.cumsum(rng.normal(size=n)), np.full(n, 0.1),
+              rng.standard_cauchy(n) * 10.0 ** rng.integers(-5, 5, n)):
+        mean, std = _mean_std(x, np.empty(min(n, 1 << 16)))
         assert mean == float(x.mean()) and std == float(x.std())
 
 

@@ -93,9 +93,9 @@ def dataset_stats(ds: DatasetToWrite) -> dict[str, Any]:
         if not len(finite):
             stats["columns"][c] = {"non_finite": int(len(x))}
             continue
-        if len(buf) < len(finite):
-            buf = np.empty(len(finite))
-        mean, std = _mean_std(finite, buf[:len(finite)], total)
+        if len(buf) < min(len(finite), _STATS_BLOCK):
+            buf = np.empty(min(len(finite), _STATS_BLOCK))
+        mean, std = _mean_std(finite, buf, total)
         stats["columns"][c] = {
             "mean": mean,
             "std": std,
@@ -123,16 +123,36 @@ def _count_true(col: pa.ChunkedArray) -> int:
     return int(pc.sum(col).as_py() or 0)
 
 
+#: values per block of the squared deviations (:func:`_sq_dev_sum`): the block stays in cache
+_STATS_BLOCK = 1 << 16
+
+
 def _mean_std(x: np.ndarray, buf: np.ndarray, total: float | None = None) -> tuple[float, float]:
-    """``x.mean()`` and ``x.std()`` of a 1-D float64 array, bit for bit (numpy's own steps:
-    the pairwise sum over n, then the sum of squared deviations), with the deviations in
-    ``buf`` (reused across columns) instead of a fresh array per call, and one sum for both
+    """``x.mean()`` and ``x.std()`` of a 1-D contiguous float64 array, bit for bit (numpy's own
+    steps: the pairwise sum over n, then the pairwise sum of squared deviations), with the
+    deviations block by block in ``buf`` (at least ``min(len(x), _STATS_BLOCK)`` values,
+    reused across columns) instead of a fresh array per call, and one sum for both
     (``total``, ``np.add.reduce(x)``, when the caller has it)."""
     n = len(x)
     mean = (np.add.reduce(x) if total is None else total) / n
-    np.subtract(x, mean, out=buf)
-    np.multiply(buf, buf, out=buf)
-    return float(mean), float(np.sqrt(np.add.reduce(buf) / n))
+    return float(mean), float(np.sqrt(_sq_dev_sum(x, mean, buf) / n))
+
+
+def _sq_dev_sum(x: np.ndarray, mean: Any, buf: np.ndarray) -> Any:
+    """``np.add.reduce((x - mean) ** 2)``, bit for bit: numpy sums a contiguous float64
+    array pairwise, each half of ``n`` values split at ``n // 2`` rounded down to a multiple
+    of 8; the halves are split the same way here down to blocks of at most
+    ``_STATS_BLOCK`` values, whose squared deviations are formed in ``buf`` (in cache) and
+    summed by numpy itself, and the partial sums added in numpy's order."""
+    n = len(x)
+    if n <= _STATS_BLOCK:
+        d = buf[:n]
+        np.subtract(x, mean, out=d)
+        np.multiply(d, d, out=d)
+        return np.add.reduce(d)
+    half = n // 2
+    half -= half % 8
+    return _sq_dev_sum(x[:half], mean, buf) + _sq_dev_sum(x[half:], mean, buf)
 
 
 def write_dataset(

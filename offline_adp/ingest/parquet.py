@@ -51,6 +51,7 @@ from offline_adp.ingest.parquet_columns import (
     _flag,
     _is_list,
     _np,
+    _one_chunk,
     _read,
     _steps,
     _times_ns,
@@ -182,6 +183,9 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
         raise IngestError(_type_conflict(tables,
                                          metas) or f"input files have incompatible column types: {exc}") from None
+    del tables  # the table holds the columns now: each one combined below frees its chunks
+    for j in range(table.num_columns):  # one column at a time: each frees its chunks before the next
+        table = _one_chunk(table, j)
     names_of = np.array([m["path"] for m in metas], dtype=object)
     if table.num_rows == 0:  # e.g. a CSV with a header and no rows
         raise IngestError(f"{', '.join(str(m['path']) for m in metas)}: no rows (only a header, or empty tables); "
@@ -293,7 +297,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} holds one label per row: action.low/high/"
                           "units are only for continuous commands (type = 'continuous')")
     commands: dict[str, Any] = {}
-    widths = np.full(n, -1, np.int64)
+    widths: np.ndarray | None = None  # list lengths of a list column (else no width to check)
     if aspec.type == "discrete":
         raw_action = table.column(aspec.column).to_numpy(zero_copy_only=False)
         if all_kept:

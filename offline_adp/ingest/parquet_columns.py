@@ -74,6 +74,20 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
     return table
 
 
+def _one_chunk(table: pa.Table, j: int) -> pa.Table:
+    """``table`` with column ``j``, if it is fixed-width (numbers, flags, times) and in
+    several chunks (one per Parquet row group, CSV block or input file), combined into one:
+    one copy here instead of one at every later ``to_numpy`` (the mapping, the doctor, the
+    statistics, the episode table). Text columns stay chunked (they are encoded chunk by
+    chunk). The written parts are the same (their pages do not depend on the chunking)."""
+    c = table.column(j)
+    t = c.type
+    if c.num_chunks > 1 and (pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_boolean(t)
+                             or pa.types.is_temporal(t)):
+        return table.set_column(j, table.field(j), pa.chunked_array([c.combine_chunks()], t))
+    return table
+
+
 def _where(file_of: Callable[[np.ndarray], str], i: int) -> str:
     """``"FILE: row R"`` of sorted row ``i`` (``file_of`` carries the row-in-file map)."""
     return f"{file_of(np.array([i]))}: row {getattr(file_of, 'rows', np.arange(i + 1))[i]}"
@@ -232,10 +246,10 @@ def _is_list(t: pa.DataType) -> bool:
 
 
 def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callable[[np.ndarray], str]
-              ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+              ) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
     """The continuous command of every row, ``(n, k)`` float64 (missing values NaN: the
-    doctor reports them), each row's list length (-1 when not a list column or the list is
-    missing; a row of another width than ``k`` gets a NaN command), and the component names.
+    doctor reports them), each row's list length (None when not a list column; -1 where the
+    list is missing; a row of another width than ``k`` gets a NaN command), and the component names.
 
     Several columns: one component each. A list column: the width is the number of
     component names when the spec gives them, else the most common list length; a row
@@ -247,7 +261,7 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
             if n
             else np.zeros((0, len(spec.source_columns)))
         )
-        return x, np.full(n, -1, np.int64), spec.component_names(x.shape[1])
+        return x, None, spec.component_names(x.shape[1])
     c = table.column(spec.column).combine_chunks()
     if pa.types.is_fixed_size_list(c.type):
         c = c.cast(pa.list_(c.type.value_type))
@@ -273,9 +287,12 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
     return x, lengths, spec.component_names(k, list_column=True)
 
 
-def _width_findings(lengths: np.ndarray, spec: ActionSpec, atable: Any) -> list[tuple[str, np.ndarray, str, Any]]:
+def _width_findings(lengths: np.ndarray | None, spec: ActionSpec,
+                    atable: Any) -> list[tuple[str, np.ndarray, str, Any]]:
     """The doctor's findings for command lists of the wrong width (``validate(extra=...)``):
-    ``lengths`` is each row's list length (-1: not a list, or missing)."""
+    ``lengths`` is each row's list length (-1: not a list, or missing; None: no list column)."""
+    if lengths is None:
+        return []
     k = len(atable.dims)
     bad = (lengths >= 0) & (lengths != k)
     if not bad.any():
