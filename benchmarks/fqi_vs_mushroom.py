@@ -159,9 +159,11 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--learner-seed", type=int, default=0)
     ap.add_argument("--encodings", nargs="+", default=["joint", "per_action"], choices=["joint", "per_action"])
-    ap.add_argument("--modes", nargs="+", default=["refit"], choices=["refit", "default"],
+    ap.add_argument("--modes", nargs="+", default=["refit"], choices=["refit", "default", "default-fixed", "frozen"],
                     help="our FQI modes (default: refit, the loop this file compares; 'default' = the library's "
-                    "default mode)")
+                    "defaults, n_iterations='auto'; 'default-fixed' = the default mode at --iterations; 'frozen' = "
+                    "mode='frozen' with n_iterations='auto', which also runs per_action: trees split on the action "
+                    "first)")
     ap.add_argument("--mushroom-python", default=DEFAULT_MR)
     ap.add_argument("--no-mushroom", action="store_true")
     ap.add_argument("--json", default=None)
@@ -188,8 +190,9 @@ def main() -> None:
         for mode in args.modes:
             for enc in args.encodings:
                 # the mode is always named: the library's default mode is not the refit loop
-                kw = {"mode": "refit"} if mode == "refit" else {}
-                f = FittedQIteration(gamma=gamma, n_iterations=args.iterations, action_encoding=enc,
+                kw = {"mode": mode} if mode in ("refit", "frozen") else {}
+                n_it = "auto" if mode in ("default", "frozen") else args.iterations
+                f = FittedQIteration(gamma=gamma, n_iterations=n_it, action_encoding=enc,
                                      random_state=args.learner_seed,
                                      regressor_params={"n_estimators": args.trees, "n_jobs": 1}, **kw)
                 c0, w0 = time.process_time(), time.perf_counter()
