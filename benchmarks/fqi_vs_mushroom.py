@@ -18,7 +18,8 @@ must cost the same), e.g.::
 
     python3.11 -m venv /work/mr/venv
     /work/mr/venv/bin/pip install torch==<a CPU wheel>   # mushroom-rl imports torch
-    /work/mr/venv/bin/pip install mushroom-rl
+    /work/mr/venv/bin/pip install --no-deps mushroom-rl==1.10.2  # it pins torch 2.5.1 (CUDA) and numpy 1.24
+    /work/mr/venv/bin/pip install matplotlib tqdm pygame opencv-python-headless pytest  # its other imports
     /work/mr/venv/bin/pip install numpy==X scipy==Y scikit-learn==Z joblib==W  # the project's versions
 
 Without it (``--mushroom-python`` missing or its import fails) the mushroom half is
@@ -29,12 +30,19 @@ machine whose load moves CPU times by +-5-10%; 2026-11-23, ``--modes refit defau
 0.238 at ~188-203 CPU-s; our refit loop with ``action_encoding="per_action"`` (mushroom-rl's model)
 0.237 at 0.975x its CPU; our refit loop with the joint model 0.184 (0.250 / 0.117) at 1.10x (one
 joint forest over state and action on all rows costs more than two per-action forests on half the
-rows each); our default mode (frozen structures, compiled builder, joint) 0.174 at 0.053x. With
+rows each); our default mode at 50 iterations (frozen structures, compiled builder, joint; now
+``--modes default-fixed``) 0.174 at 0.053x. With
 ``per_action`` the default mode resolves to refit. Scores are scored by the same code for both.
 
+Measured 2026-11-27 (data seeds 0-4, learner seed 0; the table and the commands in docs/fqi-modes.md,
+"Car-on-the-hill against mushroom-rl"): mushroom-rl 0.252 at ~141 CPU-s; the default
+(``n_iterations="auto"``, ``--modes default``) 0.219 at 0.029x, below mushroom-rl on seeds 1-4 (seed 1:
+0.115 against 0.235); ``--modes frozen --encodings per_action`` (trees that split on the action first)
+0.2515 at 0.029x, above it on seeds 0-2 and below on 3 and 4.
+
     nice -n 10 python benchmarks/fqi_vs_mushroom.py --data-seeds 0 1 2 \
-        [--encodings joint per_action] [--modes refit default] [--mushroom-python /work/mr/venv/bin/python] [--json
-        out.json]
+        [--encodings joint per_action] [--modes refit default default-fixed frozen] \
+        [--mushroom-python /work/mr/venv/bin/python] [--json out.json]
 """
 
 from __future__ import annotations
@@ -159,9 +167,11 @@ def main() -> None:
     ap.add_argument("--trees", type=int, default=50)
     ap.add_argument("--learner-seed", type=int, default=0)
     ap.add_argument("--encodings", nargs="+", default=["joint", "per_action"], choices=["joint", "per_action"])
-    ap.add_argument("--modes", nargs="+", default=["refit"], choices=["refit", "default"],
+    ap.add_argument("--modes", nargs="+", default=["refit"], choices=["refit", "default", "default-fixed", "frozen"],
                     help="our FQI modes (default: refit, the loop this file compares; 'default' = the library's "
-                    "default mode)")
+                    "defaults, n_iterations='auto'; 'default-fixed' = the default mode at --iterations; 'frozen' = "
+                    "mode='frozen' with n_iterations='auto', which also runs per_action: trees split on the action "
+                    "first)")
     ap.add_argument("--mushroom-python", default=DEFAULT_MR)
     ap.add_argument("--no-mushroom", action="store_true")
     ap.add_argument("--json", default=None)
@@ -188,8 +198,9 @@ def main() -> None:
         for mode in args.modes:
             for enc in args.encodings:
                 # the mode is always named: the library's default mode is not the refit loop
-                kw = {"mode": "refit"} if mode == "refit" else {}
-                f = FittedQIteration(gamma=gamma, n_iterations=args.iterations, action_encoding=enc,
+                kw = {"mode": mode} if mode in ("refit", "frozen") else {}
+                n_it = "auto" if mode in ("default", "frozen") else args.iterations
+                f = FittedQIteration(gamma=gamma, n_iterations=n_it, action_encoding=enc,
                                      random_state=args.learner_seed,
                                      regressor_params={"n_estimators": args.trees, "n_jobs": 1}, **kw)
                 c0, w0 = time.process_time(), time.perf_counter()

@@ -150,7 +150,8 @@ def test_screen_is_refused_and_refit_extra_trees_too(one, data):
 
 
 @pytest.mark.parametrize("kw", [{"action_input": "onehot"}, {"validation_fraction": 0.25},
-                                {"regressor": "lightgbm", "mode": "frozen"}, {"horizon": 5}])
+                                {"regressor": "lightgbm", "mode": "frozen"}, {"horizon": 5},
+                                {"action_encoding": "per_action", "mode": "frozen"}])
 def test_what_the_engine_would_not_honour_is_refused_before_anything_is_written(one, data, tmp_path, kw):
     """A parameter the engine does not read (its data preparation has no one-hot inputs,
     no validation split), LightGBM in the frozen mode, or trees under a finite horizon

@@ -60,15 +60,18 @@ def test_infinite_horizon_tabular_equals_value_iteration(encoding):
     assert not f.diverged_
 
 
-@pytest.mark.parametrize(("mode", "builder"), [("refit", "auto"), ("frozen", "auto"), ("frozen", "sklearn")])
-def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode, builder):
+@pytest.mark.parametrize(("mode", "builder", "encoding"), [("refit", "auto", "joint"), ("frozen", "auto", "joint"),
+                                                          ("frozen", "sklearn", "joint"),
+                                                          ("frozen", "auto", "per_action")])
+def test_extra_trees_on_one_hot_features_reach_the_optimal_policy(mode, builder, encoding):
     """Exact DP is the oracle, for scikit-learn's trees and the compiled builder's
-    (weighted rows: the dataset's sample weights)."""
+    (weighted rows: the dataset's sample weights), and for frozen per-action structures
+    (trees that split on the action first)."""
     m = TabularMDP(n_states=15, n_actions=3, horizon=None, gamma=0.9, seed=3)
     ds, w = full_support_dataset(m)
     f = FittedQIteration(gamma=0.9, regressor="extra_trees", regressor_params={"n_estimators": 10, "n_jobs": 1},
                          feature_map=OneHotEncoder(sparse_output=False), action_input="onehot", n_iterations=150,
-                         tol=1e-7, mode=mode, tree_builder=builder)
+                         tol=1e-7, mode=mode, tree_builder=builder, action_encoding=encoding)
     f.fit(ds, sample_weight=w)
     if mode == "frozen":
         assert {b["builder"] for b in structure_builds(f.history_)} == {"compiled" if builder == "auto"

@@ -111,7 +111,8 @@ class FittedQIteration(LearnModes, FittedQEstimator):
     action_encoding : {"joint", "per_action"}
         One model on ``[phi(x), action]`` or one model per action on ``phi(x)``
         (Ernst et al.'s and mushroom-rl's design); how they compare: docs/fqi-modes.md.
-        The frozen and warm-start modes need ``joint``.
+        ``mode="frozen"`` grows ``per_action`` as trees that split on the action first
+        (a joint Q); ``auto`` runs it as ``refit``; warm-start needs ``joint``.
     action_input : {"value", "onehot"}
         What a joint model sees of the action: its value vector from the action table
         (Ernst et al.'s choice) or a one-hot code.

@@ -3,6 +3,7 @@ leaf values re-averaged every iteration (Ernst, Geurts & Wehenkel 2005, section 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, Mapping
 from types import SimpleNamespace
 from typing import Any
@@ -15,6 +16,7 @@ from offline_adp.learn.frozen_builds import BuildPlan, FrozenBuilds  # noqa: F40
 from offline_adp.learn.schedule import FrozenSchedule, screen_bias
 from offline_adp.qfunctions import QFunction
 from offline_adp.trees import builder as compiled
+from offline_adp.trees.action_first import grow_action_first
 from offline_adp.trees.averaging import (
     gather_positions,
     leaf_sums,
@@ -58,7 +60,9 @@ TRAIN_POSITIONS_HELD = 64 * 2**20
 
 
 class FrozenTreesLearner(FrozenBuilds, Learner):
-    """Fixed tree structure, leaf values re-averaged each iteration (joint encoding only).
+    """Fixed tree structure, leaf values re-averaged each iteration (joint encoding; with
+    ``per_action`` the structures' trees split on the action first, :mod:`offline_adp.trees.action_first`,
+    and Q is read as a joint model).
 
     Ernst, Geurts & Wehenkel (2005), "Tree-based batch mode reinforcement learning",
     JMLR 6, section 4.3: with the tree structure frozen, fitted Q-iteration is a kernel
@@ -106,8 +110,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
 
     def __init__(self, spec: LearnSpec, schedule: FrozenSchedule | None = None) -> None:
         super().__init__(spec)
-        if self.encoder.per_action:
-            raise InvalidArgumentError("the frozen-structure mode needs action_encoding='joint'")
+        # per_action: the structures' trees split on the action first (trees.action_first); Q is read as a joint model
+        self.action_first = bool(self.encoder.per_action)
+        if self.action_first:
+            self.encoder = dataclasses.replace(self.encoder, per_action=False)
         self._init_builds(schedule)
         phi_next = self.queries["next"][0] if "next" in self.queries else None
         same = np.zeros(len(self.phi), bool)
@@ -162,6 +168,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             return
         plan = self._plan(y, k, len(X), X.shape[1])
         grow, model, full, screen, native, s = plan.grow, plan.model, plan.full, plan.screen, plan.native, self.screen
+        if self.action_first and native is None:
+            raise InvalidArgumentError("the frozen mode with action_encoding='per_action' grows its structures with "
+                                       "the compiled extra-trees builder (the default extra_trees regressor, "
+                                       "tree_builder='auto')")
         if native is not None:  # the same algorithm, compiled; tree t depends on (seed, t) only
             first = native.n_estimators if not screen else s.trees  # type: ignore[union-attr]
             n_features, grown = X.shape[1], self._grow(X, grow, native, range(first))
@@ -211,6 +221,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             return CompactTree.from_grown(t), leaf
 
         every = not native.bootstrap and (self.weights is None or bool((np.asarray(self.weights) > 0).all()))
+        if self.action_first:
+            return grow_action_first(X, y, self.weights, native, trees, self.encoder.action_features.shape[1], every)
         return compiled.grow_trees(X, y, self.weights, native, trees, finish=finish, record_leaves=every)
 
     def _adopt_grown(self, trees: list[tuple[Any, np.ndarray | None]], n_features: int, start: int = 0) -> None:

@@ -176,6 +176,9 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
     def __init__(self, client: Any, blocks: _Blocks, regressor: Any, encoder: Any, actions: np.ndarray, seed: int,
                  schedule: FrozenSchedule, *, start_obs: np.ndarray | None = None) -> None:
         super().__init__(LearnSpec(regressor, encoder, None, actions, {}, None, seed))  # type: ignore[arg-type]
+        if encoder.per_action:
+            raise InvalidArgumentError("the frozen mode with action_encoding='per_action' is not available on the "
+                                       "Dask engine; use the joint encoding or the local engine")
         if schedule.screen is not None:
             raise InvalidArgumentError("screen_trees is not available on the Dask engine (the screen reads every "
                                        "next state's per-tree values); leave it unset or use the local engine")
