@@ -205,7 +205,8 @@ def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
     assert not any("top pick: car2d" in ln for ln in lines)
     page = write_compare_report(res, tmp_path / "cmp.html").read_text()
     text = re.sub(r"<img[^>]*>", "", page)
-    assert "Top pick</th><td><span" in text and "the logs cannot separate the candidates" in text
+    assert "Top pick</th><td><span" in text
+    assert "<b>no top pick</b></span> The logs cannot separate car2d and car3d" in text
     assert "<b>car2d</b>" not in text
     caption = re.search(r"<figure id=\"ranking\">.*?<figcaption>(.*?)</figcaption>", page, re.S).group(1)
     assert "simulator" not in caption and "black crosses" not in caption  # none drawn: none mentioned

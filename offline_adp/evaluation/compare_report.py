@@ -246,8 +246,9 @@ def _compare_summary(res: dict[str, Any]) -> list[str]:
            + (" &mdash; <b>it left the data's support</b>: its estimate is an extrapolation" if top.get("support_left")
               else ""))
     elif top is not None:
-        kv("Top pick", "<span class='verdict meh' style='display:inline-block;font-size:13px'><b>none: the logs cannot "
-           "separate the candidates</b></span> " + html.escape("; ".join(res.get("cannot_separate") or []))
+        why = "; ".join(res.get("cannot_separate") or []) or "the logs cannot separate the candidates"
+        kv("Top pick", "<span class='verdict meh' style='display:inline-block;font-size:13px'><b>no top pick</b>"
+           "</span> " + html.escape(why[:1].upper() + why[1:])
            + f" (lowest estimate: {html.escape(top['name'])} {top['estimate']:.4g}, not a pick)")
     d = res.get("demonstrator")
     if d:
