@@ -64,12 +64,17 @@ def test_model_rollouts_that_stay_in_the_data_do_not_undermine_a_side():
     assert v["support_left"] and "model rollouts of the logs" in v["text"]
 
 
-def test_an_interval_containing_the_behaviour_is_said_as_such_even_with_doubts():
+def test_an_interval_containing_the_behaviour_is_no_side_when_doubts_hold():
+    """Issue #42: candidates failing every rollout at twice the behaviour's cost read "not
+    distinguishable from the behaviour" because an interval across the behaviour's cost
+    skipped the doubts. Without doubts it is said as such; with them, "cannot tell"."""
     m = copy.deepcopy(BASE)
     m["ope"]["fqe"] = {"estimate": 14.0, "interval": [12.0, 16.0], "level": 0.95}
     m["ope"].pop("wdr")
+    assert _v(m)["performance"] == "indistinguishable"
     v = _v(m, conv={"verdict": "still changing", "text": "fit did NOT converge"})
-    assert v["performance"] == "indistinguishable"
+    assert v["performance"] == "unknown"
+    assert "would say not distinguishable, but the fit did not converge" in v["text"]
 
 
 @pytest.mark.parametrize("truth, side", [((16.5, 15.6, 17.4), "worse"), ((3.6, 3.4, 3.8), "better"),

@@ -269,14 +269,15 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
         dis = _disagreeing(best, ranking)
         if dis:
             doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
-        if ope_side == "indistinguishable" or not doubts:
+        if not doubts:  # an interval across the behaviour's cost is a side too: only without doubts (issue #42)
             side = ope_side
             where = {"better": "lies below", "worse": "lies above", "indistinguishable": "contains"}[ope_side]
             conf = f"its {level_words(best)} interval {where} the behaviour's logged cost"
             perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
         else:
+            words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[ope_side]
             perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would "
-                    f"say {ope_side}, but " + "; ".join(doubts))
+                    f"say {words}, but " + "; ".join(doubts))
     return side, perf, claim
 
 
