@@ -88,16 +88,6 @@ from offline_adp.errors import (
     ArtifactError,
     FormatVersionWarning,
 )
-from offline_adp.qfunctions import (
-    BoostedSumQ,
-    CommandEncoder,
-    NeighbourCommands,
-    QEncoder,
-    QFunction,
-    RegressorQ,
-    TimeIndexedQ,
-    TreeQ,
-)
 
 __all__ = ["ALLOWED", "ARTIFACT_VERSION", "HASHED", "READABLE_VERSIONS", "Arrays", "check_recorded_hashes",
            "load_index_policy", "load_q", "model_hashes", "register_policy_kind", "register_q_kind", "save_policy",
