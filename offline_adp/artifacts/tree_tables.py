@@ -22,6 +22,7 @@ structure between builds, write only their leaf values anew.
 
 from __future__ import annotations
 
+import functools
 import sys
 import weakref
 from collections import OrderedDict
@@ -162,7 +163,7 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     thr = np.asarray(threshold, dtype=np.float64)
     bounds = np.r_[roots, n]
     first_split = np.r_[0, np.cumsum(np.diff(bounds) - np.add.reduceat(is_leaf, roots, dtype=np.int64))]
-    leaf8, decode = is_leaf.view(np.uint8), _decoder()
+    leaf8, decode = is_leaf.view(np.uint8), _compiled(_decode_tree)
     trees = []
     for m in range(len(roots)):  # tree by tree, each in one compiled pass
         lo, hi, a, b = int(bounds[m]), int(bounds[m + 1]), int(first_split[m]), int(first_split[m + 1])
@@ -174,16 +175,13 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     return LoadedEnsemble(_Structure(trees), value, roots, width)
 
 
-def _decoder() -> Any:
-    global _DECODE
-    if _DECODE is None:
-        import numba
+@functools.cache
+def _compiled(fn: Any) -> Any:
+    """``fn`` compiled by numba, imported only when a table first needs it (numba's import
+    is a large part of a small model's load)."""
+    import numba
 
-        _DECODE = numba.njit(cache=True, nogil=True)(_decode_tree)
-    return _DECODE
-
-
-_DECODE: Any = None
+    return numba.njit(cache=True, nogil=True)(fn)
 
 
 def _decode_tree(is_leaf: Any, feature: Any, threshold: Any, left: Any, right: Any, feat: Any, thr: Any,
@@ -332,7 +330,7 @@ def preorder_nodes(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np
         return None
     if builder.available() and n >= COMPILED_WALK_NODES:
         out = np.empty(n, np.int64)
-        ok = _walk()(left, right, roots, out, np.zeros(n, np.uint8), np.empty(n + 1, np.int64))
+        ok = _compiled(_preorder_walk)(left, right, roots, out, np.zeros(n, np.uint8), np.empty(n + 1, np.int64))
         return out if ok else None
     pos = _numpy_preorder_positions(left, right, roots)
     if int(pos.min()) < 0 or int(pos.max()) >= n or np.bincount(pos, minlength=n).max() != 1 \
@@ -346,18 +344,6 @@ def preorder_nodes(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np
 #: Ensembles of at least this many nodes are numbered by the compiled walk (loading it costs
 #: ~0.1 CPU-s a process, compiling it once ~1 s; the numpy passes take ~0.15 s a million nodes).
 COMPILED_WALK_NODES = 1 << 19
-
-
-def _walk() -> Any:
-    global _WALK
-    if _WALK is None:
-        import numba
-
-        _WALK = numba.njit(cache=True, nogil=True)(_preorder_walk)
-    return _WALK
-
-
-_WALK: Any = None
 
 
 def _preorder_walk(left: Any, right: Any, roots: Any, out: Any, seen: Any, stack: Any) -> bool:
