@@ -11,6 +11,7 @@ candidates whose intervals overlap says the logs cannot separate them (no top pi
 from __future__ import annotations
 
 import copy
+import html
 import json
 import re
 
@@ -285,3 +286,15 @@ def test_the_headline_is_three_lines_estimate_verdict_why():
     assert box.startswith("<p class='verdict bad'><span class='outcome bad'>worse</span><b>")
     for text in (est, verdict, why, re.sub(r"<[^>]+>", "", box)):
         _no_95(text)
+
+
+@pytest.mark.parametrize("bad", [["only one"], [1, 2, 3], "three", None, ["a", "b", {"c": 1}]])
+def test_stored_lines_of_an_untrusted_metrics_json_fall_back_to_the_sentence(bad):
+    m = copy.deepcopy(LEFT)
+    h = headline(m)
+    h["verdict"]["lines"] = bad
+    m["headline"] = h
+    line = next(ln for ln in summary_lines(m) if ln.startswith("verdict:"))
+    assert line.endswith(h["verdict"]["text"])
+    box = verdict_html(h["verdict"], {"verdict": "converged"})  # the sentence, its first letter capitalised
+    assert box.endswith(html.escape(h["verdict"]["text"][1:]) + "</p>") and "<br>" not in box

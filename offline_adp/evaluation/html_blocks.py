@@ -117,7 +117,9 @@ def verdict_html(v: dict[str, Any], conv: dict[str, Any], tag: str = "p") -> str
 
     out = v.get("outcome") or outcome_of(v.get("performance"), conv.get("verdict"), v.get("against_demonstrator"))
     cls = OUTCOME_CLASS.get(out, "meh")
-    three = v.get("lines")
+    from offline_adp.evaluation.verdict import stored_lines
+
+    three = stored_lines(v)
     if three:  # the verdict in bold, then the estimate and the why, one line each
         first = three[1][:1].upper() + three[1][1:]
         body = (f"<b>{html.escape(first)}</b><br><span class='why'>{html.escape(three[0])}</span>"

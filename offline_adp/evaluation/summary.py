@@ -44,6 +44,7 @@ from offline_adp.evaluation.verdict import (  # noqa: F401
     level_words,
     outcome_of,
     side_of_behaviour,
+    stored_lines,
     verdict_line,
 )
 
@@ -411,7 +412,7 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     word = f"[{out}]"
     if colour:
         word = f"\x1b[1;{OUTCOME_ANSI[out]}m{word}\x1b[0m"
-    three = h["verdict"].get("lines")  # the headline's verdict and why (the estimate is printed above)
+    three = stored_lines(h["verdict"])  # the headline's verdict and why (the estimate is printed above)
     lines += [f"verdict: {word} {three[1]}", three[2]] if three else [f"verdict: {word} {h['verdict']['text']}"]
     if h["n_warnings"]:
         lines.append(f"{h['n_warnings']} warnings (metrics.json 'warnings', each with its source; report)")

@@ -172,6 +172,13 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
             "lines": headline_lines(m, ranking, perf, support, doubts, conv)}
 
 
+def stored_lines(v: Any) -> list[str] | None:
+    """A verdict's three lines as stored in a ``metrics.json`` (untrusted): three strings, else None."""
+    lines = v.get("lines") if isinstance(v, dict) else None
+    ok = isinstance(lines, list) and len(lines) == 3 and all(isinstance(x, str) for x in lines)
+    return lines if ok else None
+
+
 def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, support: str, doubts: list[str],
                    conv: dict[str, Any]) -> list[str]:
     """The verdict in three lines, read in seconds: the estimate with its interval and its true
