@@ -200,13 +200,14 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
     horizon marked not comparable, with the reason first among its warnings."""
     T, H = est_def.horizon, est_def.value_horizon
     beyond = est_def.beyond_logs
-    stationary_fqe = {"fqe"} if est_def.fqe_form == "stationary" else set()
-    out = {name: clip_to_range(r, est_def.possible_range if not beyond or name in stationary_fqe else logged_range)
+    # the estimators that read the estimand's horizon past the logs: a stationary FQE, the model rollouts
+    sees_past = ({"fqe"} if est_def.fqe_form == "stationary" else set()) | {"model"}
+    out = {name: clip_to_range(r, est_def.possible_range if not beyond or name in sees_past else logged_range)
            for name, r in estimates.items()}
     out["fqe"] = stationary_onto_range(out["fqe"], est_def)
     for name, r in out.items():
         why = []
-        if beyond and name not in stationary_fqe:
+        if beyond and name not in sees_past:
             why.append(f"estimates the {T}-step value, not the {H}-step value asked for: the logs' episodes "
                        f"end by step {T} and no estimator of them sees past it")
         if est_def.form == "infinite" and name != "fqe":

@@ -19,7 +19,9 @@ The estimate is the value of the evaluated policy pi at the data's start states,
    with the value of the per-action read with every pair the logs cannot read valued at
    the ends of the cost's value range (:func:`fqe_support_bounds`, :func:`q_value_range`).
 4. **Model rollouts** (:func:`model_reading`, :func:`widen_fqe`; finite-horizon estimand): the hull with the interval of
-   rollouts of a model of the logged increments (:mod:`~offline_adp.evaluation.model_rollouts`).
+   rollouts of a model of the logged increments (:mod:`~offline_adp.evaluation.model_rollouts`); the model's own
+   bootstrap interval (:mod:`~offline_adp.evaluation.model_bootstrap`) is recorded with FQE's interval before the
+   hull (:func:`with_fqe_interval`), which it is checked against before it becomes an estimator of its own.
 5. **Truncation** (:func:`with_truncation_bound`): a stationary FQE standing in for the
    T-step value is widened by ``gamma^T max|c| / (1 - gamma)`` on both sides.
 
@@ -37,6 +39,7 @@ import numpy as np
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.evaluation.estimand import Estimand
+from offline_adp.evaluation.model_bootstrap import MODEL_REPLICATES
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION, model_rollouts
 from offline_adp.evaluation.ope import EpisodeMatrix, OPEResult, bootstrap_counts
 from offline_adp.evaluation.settings import EvaluationSettings
@@ -363,6 +366,17 @@ def widen_fqe(fq: OPEResult, mr: dict[str, Any], hull: bool = True) -> OPEResult
                                   "interval holds both"])
 
 
+def with_fqe_interval(mr: dict[str, Any], fq: OPEResult, tail: float) -> dict[str, Any]:
+    """The model rollouts ``mr`` with FQE's interval before their hull (its bootstrap and support
+    bounds, widened by the truncation bound ``tail`` as :func:`with_truncation_bound` will) as
+    ``fqe_interval``: what :func:`~offline_adp.evaluation.model_bootstrap.model_estimate` checks
+    the model's own interval against."""
+    if "skipped" in mr or not np.all(np.isfinite(fq.interval)):
+        return mr
+    t = tail if tail > 0 else 0.0
+    return {**mr, "fqe_interval": [float(fq.interval[0]) - t, float(fq.interval[1]) + t]}
+
+
 def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float, seed: int,
                   a: TransitionArrays, say: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The model rollouts :func:`widen_fqe` hulls FQE's interval with: ``particles`` rollouts
@@ -376,7 +390,7 @@ def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, part
         return {"skipped": "model_particles=0: model rollouts turned off"}
     steps = None if say is None else PhaseLines(say, "model rollouts: step", est_def.value_horizon)
     return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed,
-                          arrays=a, on_step=steps)
+                          arrays=a, on_step=steps, replicates=MODEL_REPLICATES)
 
 
 def with_rough_note(fq: OPEResult, n_reps: int) -> OPEResult:
@@ -418,6 +432,7 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
     if est_def.form == "finite":  # hulled only where FQE's interval is of the same quantity (a
         if cfg.model_particles:  # time-indexed FQE past the logs reads the T-step value)
             say("model rollouts")
-        fq = widen_fqe(fq, model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a, say),
-                       hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
+        hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
+        mr = model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a, say)
+        fq = widen_fqe(fq, with_fqe_interval(mr, fq, est_def.tail_bound) if hull else mr, hull=hull)
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)

@@ -134,6 +134,7 @@ class LoggedDynamics:
         rng = np.random.default_rng(self.random_state)
         rows = np.arange(len(a.cost)) if len(a.cost) <= MAX_FIT_ROWS else \
             np.sort(rng.choice(len(a.cost), MAX_FIT_ROWS, replace=False))
+        self.fit_rows_ = rows
         obs, nxt = a.obs[rows], a.next_obs[rows]
         sd = obs.std(axis=0)
         self.sd_ = np.where(sd > 0, sd, 1.0)
@@ -454,11 +455,12 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
 
 def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float, *, n: int = N_PARTICLES,
                    level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None,
-                   on_step: Any = None) -> dict[str, Any]:
+                   on_step: Any = None, replicates: int = 0) -> dict[str, Any]:
     """Fit :class:`LoggedDynamics` on ``ds`` and roll ``policy`` out in it
     (:func:`model_rollout_value`) with the logged costs' :func:`remainder_ranges`; adds
-    ``noise`` and ``method``. ``{"skipped": reason}`` where it does not apply: no
-    episode logged from step 0, or states on a lattice (repeated exactly: the support
+    ``noise`` and ``method``, and with ``replicates`` the model's own interval as ``bootstrap``
+    (:func:`offline_adp.evaluation.model_bootstrap.bootstrap_reading`). ``{"skipped": reason}`` where it
+    does not apply: no episode logged from step 0, or states on a lattice (repeated exactly: the support
     radius is 0, and a regression's next state is never exactly on the lattice)."""
     a = arrays if arrays is not None else ds.arrays()
     if not (a.step == 0).any():
@@ -467,8 +469,13 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
     if model.radius_ <= 0:
         return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it; "
                            "FQE reads such logs without extrapolating between states"}
-    out = model_rollout_value(model, policy, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
-                              n=n, level=level, seed=seed, on_step=on_step)
+    ranges = remainder_ranges(a.cost, a.terminated, gamma, horizon)
+    out = model_rollout_value(model, policy, horizon, gamma, ranges, n=n, level=level, seed=seed, on_step=on_step)
+    if replicates:
+        from offline_adp.evaluation.model_bootstrap import bootstrap_reading  # it builds on this module
+
+        out["bootstrap"] = bootstrap_reading(model, a, policy, horizon, gamma, ranges, out["estimate"], n=n,
+                                             level=level, seed=seed, replicates=replicates)
     return {**out, "noise": model.noise_source_,  # no timings: metrics.json is deterministic
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "

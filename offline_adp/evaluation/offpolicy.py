@@ -59,6 +59,7 @@ from offline_adp.evaluation.fqe_interval import (  # noqa: F401
     fqe_replicates,
     fqe_with_interval,
 )
+from offline_adp.evaluation.model_bootstrap import model_estimate
 from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, CrossFitError: also reached from here
     PSDP_EPS_FOLDS,
     CrossFitError,
@@ -285,7 +286,9 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     fit, fq = fqe_with_interval(ds, policy, est_def, cfg, a=a, em=w.em, level=level, task_map=task_map, say=say)
     say("importance sampling")
     boot = {"n_boot": cfg.bootstrap, "level": level, "seed": seed, "groups": w.groups}
-    estimates = {"fqe": fq, **ope.importance_sampling_estimates(w.em, a.cost, w.rho, gamma, **boot)}
+    model = model_estimate(fq.model_rollouts, level)  # the model rollouts' own interval, checked against FQE's
+    estimates = {"fqe": fq, **({"model": model} if model is not None else {}),
+                 **ope.importance_sampling_estimates(w.em, a.cost, w.rho, gamma, **boot)}
     ra = residual_advantages(ds, policy, fit, w, a, T, gamma, psdp_folds, seed, say)
     estimates.update(doubly_robust(w, a, ra, gamma, psdp_folds, boot))
     say("density ratios")

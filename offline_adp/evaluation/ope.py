@@ -69,6 +69,8 @@ class OPEResult:
     support_bounds: dict[str, Any] | None = None
     #: FQE only: the model rollouts the interval was widened to (``fqe_interval.widen_fqe``).
     model_rollouts: dict[str, Any] | None = None
+    #: why the interval carries no level (``level`` None), where that was decided with a reason
+    level_note: str | None = None
 
     def widened(self, lo: float, hi: float, why: str) -> tuple[OPEResult, tuple[float, float] | None]:
         """This result with its interval widened to the hull of it and ``[lo, hi]`` and ``why``
@@ -94,6 +96,8 @@ class OPEResult:
             d["support_bounds"] = dict(self.support_bounds)
         if self.model_rollouts is not None:
             d["model_rollouts"] = dict(self.model_rollouts)
+        if self.level_note is not None:
+            d["level_note"] = self.level_note
         return d
 
 

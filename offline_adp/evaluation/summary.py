@@ -40,6 +40,7 @@ from offline_adp.evaluation.verdict import (  # noqa: F401
     SUPPORT_FRACTION,
     _is_finite_number,
     demonstrator_side,
+    left_states,
     left_support,
     level_words,
     outcome_of,
@@ -53,6 +54,7 @@ ESTIMATOR_NAMES = {
     "fqe": "FQE (fitted Q evaluation)", "is": "IS (trajectory importance sampling)", "wis": "WIS (weighted IS)",
     "pdis": "PDIS (per-decision IS)", "wpdis": "WPDIS (weighted per-decision IS)", "dr": "DR (doubly robust)",
     "wdr": "WDR (weighted doubly robust)", "mis": "MIS (marginalised IS)",
+    "model": "MODEL (rollouts of a model of the logged dynamics)",
 }
 #: Estimators from the least to the most fragile under distribution shift: model-based FQE
 #: (the default), doubly robust, marginalised IS (state ratios), then the trajectory-weighted ones.
@@ -172,6 +174,9 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
                     "level_note": r.get("level_note"), "width": width,
                     "plugin_estimate": r.get("plugin_estimate")})
     order = {k: i for i, k in enumerate(ROBUSTNESS)}
+    # the model rollouts lead only with a level: inside FQE's interval, where the logs validate them
+    # (evaluation/model_bootstrap.py); without one, FQE's hull of both readings comes first
+    order["model"] = -1 if any(e["name"] == "model" and e["tier"] == 0 for e in out) else 0.5
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
         e["rank"] = i + 1
@@ -273,15 +278,19 @@ def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[st
     """``m`` with every off-policy interval's level withdrawn (``level: null``, the former
     one as ``nominal_level``, the reason as ``level_note``) when the policy left the data's
     support (``left``, default :func:`left_support`): the interval is still shown, never
-    quoted with a level it does not have. Returns a new dict (``m`` is not changed);
-    idempotent."""
+    quoted with a level it does not have. The model rollouts' level stays where only the
+    policy's actions left the data (:func:`~offline_adp.evaluation.verdict.left_states` empty).
+    Returns a new dict (``m`` is not changed); idempotent."""
     if left is None:
         left = left_support(m, shift_verdict(m))
     if not left:
         return m
+    # the model rollouts' label already answers for the policy's actions (checked against FQE's
+    # per-action support bounds); it is withdrawn only where the policy's states leave the data
+    keep_model = not left_states(m, shift_verdict(m))
     ope = {}
     for k, r in m["ope"].items():
-        if r.get("level") is not None:
+        if r.get("level") is not None and not (k == "model" and keep_model):
             r = {**r, "nominal_level": r["level"], "level": None,
                  "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
         ope[k] = r

@@ -89,6 +89,14 @@ def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
     left = []
     if _is_finite_number(sv) and sv > SUPPORT_FRACTION:
         left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
+    return left + left_states(m, shift)
+
+
+def left_states(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
+    """The reasons of :func:`left_support` about the policy's *states* (not its actions at the
+    logged states): what undermines the model rollouts' reading, which steps the model under
+    any action and is checked against FQE's interval with its per-action support bounds."""
+    left = []
     if shift.get("method") == "classifier":
         if shift.get("separable_steps"):
             left.append(f"its states are almost separable from the data's at {shift['separable_steps']} of "
@@ -158,7 +166,8 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     left = left_support(m, shift)
     support, logs_show = _support_clause(m, shift, left)
     cv = conv.get("verdict")
-    doubts = _doubts(left, shift, logs_show, cv)
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    doubts = _model_doubts(m, shift) if best and best["name"] == "model" else _doubts(left, shift, logs_show, cv)
     side, perf, claim = _offpolicy_side(ranking, beh, doubts)
     demo = None
     ro = (m.get("rollout") or {}).get("policy")
@@ -228,6 +237,14 @@ def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -
         support = "support: cannot tell from these logs" + (f" (action support violations {sv:.1%})"
                                                             if _is_finite_number(sv) else "")
     return support, logs_show
+
+
+def _model_doubts(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
+    """What undermines a side read from the model rollouts' labelled interval: only states past
+    the data (its label already needs the rollouts within the logged states and its interval
+    inside FQE's with the per-action support bounds), not the candidate's fit (the model reads
+    the policy as given, however it was fitted)."""
+    return ["the policy left the data's support, where the model extrapolates"] if left_states(m, shift) else []
 
 
 def _doubts(left: list[str], shift: dict[str, Any], logs_show: bool, cv: str | None) -> list[str]:

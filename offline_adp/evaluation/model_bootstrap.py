@@ -1,0 +1,152 @@
+"""The model rollouts' own interval: a bootstrap of the logged-dynamics model over whole
+episodes, and the rule that gives it a level (docs/evaluation.md, section 2, "The model's
+own interval"). Access model: trace data only.
+
+The model rollouts (:mod:`~offline_adp.evaluation.model_rollouts`) read a policy's value
+as ``V^ = mean_i sum_t gamma^t S_it c_it`` over particles rolled out in a model ``M^``
+fitted on the logs. Their Monte-Carlo interval measures the particles' noise only; the
+error that matters is ``M^``'s own, which a new set of logged episodes would change. So:
+
+1. **Replicates**: ``B`` = :data:`MODEL_REPLICATES` resamples of the logged episodes with
+   replacement; on each, the increment model (ridge + extra-trees on its residuals) and
+   the cost-and-termination model are refitted (:func:`replicate_model`; the support radii,
+   the out-of-fold noise, the clipping range and the discrete levels stay the full fit's:
+   they judge where the data is, not what it says), and the start states are the resampled
+   episodes' own.
+2. **Readings**: each replicate rolls the policy out with ``n / B`` particles
+   (:func:`~offline_adp.evaluation.model_rollouts.model_rollout_value`): the same particle
+   budget as the main reading, so the replicates cost their fits, not more rollouts. The
+   spread ``s_B`` of the ``B`` readings holds the model's sampling error *and* the
+   particles' noise at ``n / B`` (so it is, if anything, too large).
+3. **Interval** (:func:`bootstrap_interval`): around the main reading ``V^``,
+   ``V^ +- (t_{B-1, (1+level)/2} s_B + |mean_b V^_b - V^|)``: the normal bootstrap interval
+   with Student's quantile for ``B - 1`` degrees of freedom (``s_B`` is itself estimated
+   from ``B`` readings) widened by the bootstrap's estimate of the reading's bias (a model
+   fitted on fewer distinct episodes drifts less, or more, than one fitted on all).
+
+**Its level** (:func:`model_estimate`): the interval is called a ``level`` interval only
+where the logs validate the model's reading: the rollouts ran with at least
+:data:`~offline_adp.evaluation.verdict.MIN_SUPPORT_PARTICLES` particles, less than
+:data:`~offline_adp.evaluation.model_rollouts.EXIT_FRACTION` of their discounted mass lies
+past the logged states (where the model extrapolates), and the interval overlaps FQE's
+interval as widened to its support bounds (what the logs cannot tell FQE: every pair they
+hold no row of the queried action near valued at the cost range's ends). Then the two
+readings, whose errors are not the same (FQE's trees snap a drifting policy's states back
+to the data; the model's increments do not), agree, and the headline takes the model's.
+Otherwise the interval is shown without a level, with the reason, and FQE's hull of both
+stays the headline. Measured on the coverage suite (docs/evaluation.md): this is an empirical rule,
+not a theorem; the model's error where the data is dense is what the replicates measure.
+"""
+
+from __future__ import annotations
+
+from copy import copy
+from typing import Any
+
+import numpy as np
+
+from offline_adp.data.dataset import TransitionArrays
+from offline_adp.evaluation.model_rollouts import EXIT_FRACTION, LoggedDynamics, model_rollout_value
+from offline_adp.evaluation.ope import OPEResult
+from offline_adp.policies import Policy
+
+#: Bootstrap replicates of the model (each one fit of the increment and outcome models)
+MODEL_REPLICATES = 10
+#: Particles per replicate at least (the particle budget is split over the replicates)
+MIN_REPLICATE_PARTICLES = 20
+#: Rollouts with fewer particles do not show where the policy goes (``verdict.MIN_SUPPORT_PARTICLES``)
+MIN_LABEL_PARTICLES = 200
+
+
+def resampled_rows(a: TransitionArrays, rows: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of a resample of whole episodes with replacement, among ``rows`` (the full fit's
+    row sample), and each drawn row's replicate episode number (a drawn twice episode counts twice)."""
+    ep = a.episode[rows]
+    order = np.argsort(ep, kind="stable")
+    codes, starts, counts = np.unique(ep[order], return_index=True, return_counts=True)
+    pick = rng.integers(0, len(codes), len(codes))
+    lengths = counts[pick]
+    # every drawn episode's rows, laid out one after another (vectorised: offsets within each draw)
+    within = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    drawn = rows[order[np.repeat(starts[pick], lengths) + within]]
+    return drawn, np.repeat(np.arange(len(pick)), lengths)
+
+
+def replicate_model(model: LoggedDynamics, a: TransitionArrays, rows: np.ndarray, seed: int) -> LoggedDynamics:
+    """``model`` with its increment and outcome models refitted on ``rows`` (a resample) and
+    its start states the resample's; everything that judges where the data is stays ``model``'s."""
+    rep = copy(model)
+    rep.random_state = seed
+    rep.__dict__.pop("_predict_cache", None)
+    obs, nxt = a.obs[rows], a.next_obs[rows]
+    F = rep._features(obs, a.action[rows])
+    rep.linear_, rep.residual_ = rep._increments(F, (nxt - obs) / rep.sd_)
+    G = np.column_stack([F, nxt / rep.sd_])
+    rep.outcome_ = rep._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
+    starts = obs[a.step[rows] == 0]
+    rep.start_states_ = starts if len(starts) else model.start_states_
+    return rep
+
+
+def bootstrap_interval(estimate: float, readings: np.ndarray, level: float) -> tuple[float, float]:
+    """``estimate +- (t_{B-1} s_B + |mean(readings) - estimate|)`` (module docstring, step 3)."""
+    from scipy.stats import t as student
+
+    r = np.asarray(readings, dtype=np.float64)
+    half = float(student.ppf(0.5 + level / 2, len(r) - 1) * r.std(ddof=1) + abs(r.mean() - estimate))
+    return estimate - half, estimate + half
+
+
+def bootstrap_reading(model: LoggedDynamics, a: TransitionArrays, policy: Policy, horizon: int, gamma: float,
+                      ranges: tuple[np.ndarray, np.ndarray], estimate: float, *, n: int, level: float, seed: int,
+                      replicates: int = MODEL_REPLICATES) -> dict[str, Any]:
+    """The bootstrap of the model (module docstring, steps 1-3) around the main reading
+    ``estimate``: ``interval``, ``readings`` (one per replicate), ``replicates``,
+    ``particles`` (per replicate), ``spread`` (``s_B``), ``bias`` (``mean - estimate``) and
+    ``method``. ``{"skipped": reason}`` with fewer than two replicates."""
+    if replicates < 2:
+        return {"skipped": f"{replicates} replicate(s): an interval needs two"}
+    rows = model.fit_rows_
+    rng = np.random.default_rng([seed, 31])
+    per = max(n // replicates, MIN_REPLICATE_PARTICLES)
+    readings = []
+    for _ in range(replicates):
+        drawn, _ = resampled_rows(a, rows, rng)
+        rep = replicate_model(model, a, drawn, seed=int(rng.integers(2**31)))
+        readings.append(model_rollout_value(rep, policy, horizon, gamma, ranges, n=per, level=level,
+                                            seed=int(rng.integers(2**31)))["estimate"])
+    r = np.array(readings)
+    lo, hi = bootstrap_interval(estimate, r, level)
+    return {"interval": [lo, hi], "readings": [float(x) for x in r], "replicates": int(replicates),
+            "particles": int(per), "spread": float(r.std(ddof=1)), "bias": float(r.mean() - estimate),
+            "method": f"{replicates} refits of the model on episodes resampled with replacement, {per} particles "
+                      f"each: the main reading +- (Student's t_{replicates - 1} x their spread + |their mean - the "
+                      "main reading|)"}
+
+
+def model_estimate(mr: dict[str, Any] | None, level: float) -> OPEResult | None:
+    """The model rollouts as an estimator (``"model"``): the main reading with the bootstrap
+    interval, labelled ``level`` only where the logs validate it (module docstring, "Its
+    level"); None where the rollouts or their bootstrap did not run."""
+    boot = (mr or {}).get("bootstrap") or {}
+    if "skipped" in (mr or {}) or "interval" not in boot:
+        return None
+    lo, hi = boot["interval"]
+    fqe = mr.get("fqe_interval")
+    why = []
+    if mr["n_particles"] < MIN_LABEL_PARTICLES:
+        why.append(f"{mr['n_particles']} particles (fewer than {MIN_LABEL_PARTICLES}) do not show where the policy "
+                   "goes")
+    if mr["exit_mass"] >= EXIT_FRACTION:
+        why.append(f"{mr['exit_mass']:.0%} of the rollouts' discounted mass lies past the logged states, where the "
+                   "model extrapolates")
+    if fqe is None:
+        why.append("FQE's interval is of another quantity here: nothing to check the model against")
+    elif hi < fqe[0] or lo > fqe[1]:
+        why.append(f"the interval and FQE's [{fqe[0]:.4g}, {fqe[1]:.4g}] (with its support bounds) do not overlap: "
+                   "the two readings disagree")
+    method = ("model rollouts of the logs (" + boot["method"] + "); labelled only where it overlaps FQE's interval "
+              "with its support bounds and the rollouts stay within the logged states")
+    return OPEResult("model", float(mr["estimate"]), (float(lo), float(hi)), None, level=None if why else level,
+                     warnings=[f"no level: {w}" for w in why], interval_method=method,
+                     level_note="; ".join(why) if why else None)
