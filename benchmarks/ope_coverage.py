@@ -296,8 +296,18 @@ def _logs_only(m: dict[str, Any]) -> dict[str, Any]:
     reference-policy ratios (the off-policy estimates do not depend on them)."""
     out = {k: v for k, v in m.items() if k not in ("rollout", "named", "headline")}
     out["shift"] = {k: v for k, v in m["shift"].items() if k == "recursion"}
-    out["ope"] = {k: {kk: vv for kk, vv in v.items() if kk != "rollout_error"} for k, v in m["ope"].items()}
+    out["ope"] = {k: _level_back({kk: vv for kk, vv in v.items() if kk != "rollout_error"})
+                  for k, v in m["ope"].items()}
     return out
+
+
+def _level_back(r: dict[str, Any]) -> dict[str, Any]:
+    """An estimator's entry with a level withdrawn by the simulator's findings (``nominal_level``,
+    set by ``evaluation.run``) restored: a user without a simulator never had those findings, and
+    ``headline`` withdraws again whatever the logs alone show."""
+    if "nominal_level" not in r:
+        return r
+    return {**{k: v for k, v in r.items() if k not in ("nominal_level", "level_note")}, "level": r["nominal_level"]}
 
 
 def _run_dir(tmp: Path, name: str, est: Any | None) -> Path:
@@ -371,6 +381,8 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                                    "labelled_95": e["tier"] == 0 and e.get("level") == 0.95,
                                    "covers": _covers(iv, truth)}
             best = h["best"]
+            best_logs = h_logs["best"]
+            logs_iv = best_logs["interval"] if best_logs and best_logs.get("level") == 0.95 else None
             fq = m["ope"].get("fqe") or {}
             shown = fq.get("interval") if fq.get("interval") and all(np.isfinite(fq["interval"])) else None
             row_fqe = {"estimate": fq.get("estimate"), "interval": shown, "covers": _covers(shown, truth),
@@ -385,6 +397,12 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                    "headline_estimate": None if best is None else best["estimate"],
                    "headline_interval": None if best is None else best["interval"],
                    "headline_covers": None if best is None else ests[best["name"]]["covers"],
+                   "headline_width_over_range": None if best is None or best["interval"] is None
+                   else (best["interval"][1] - best["interval"][0]) / value_span,
+                   # what a user without a simulator reads: the logs-only headline's labelled interval
+                   "logs_only_headline": None if logs_iv is None else
+                   {"name": best_logs["name"], "estimate": best_logs["estimate"], "interval": logs_iv,
+                    "covers": _covers(logs_iv, truth), "width_over_range": (logs_iv[1] - logs_iv[0]) / value_span},
                    "estimators": ests, "fqe": row_fqe, "value_range": list(value_range),
                    "model_rollouts": {k: (m["ope"]["fqe"].get("model_rollouts") or {}).get(k)
                                       for k in ("estimate", "interval", "exit_mass", "exit_share", "skipped")},
@@ -433,6 +451,19 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                   "missed_logs_only": sum(r["verdict_logs_only"]["performance"] == "indistinguishable"
                                           and r["truth_side"] in ("better", "worse") for r in rs),
                   "claims_logs_only": sum(r["verdict_logs_only"]["performance"] in ("better", "worse") for r in rs)}
+        # the candidates whose true value differs from the behaviour's logged cost by more than 20%, and how
+        # many of them the logs alone put on the right side
+        apart = [r for r in rs if r["behaviour_logged"] is not None
+                 and abs(r["truth"] - r["behaviour_logged"]) > 0.2 * abs(r["behaviour_logged"])]
+        lo_head = [r["logs_only_headline"] for r in rs if r.get("logs_only_headline")]
+        out[p].update(apart=len(apart), apart_claimed_right=sum(r["verdict_logs_only"]["check"] == "agrees"
+                                                               and r["verdict_logs_only"]["performance"]
+                                                               in ("better", "worse") for r in apart),
+                      logs_only_labelled=len(lo_head), logs_only_covered=sum(bool(x["covers"]) for x in lo_head),
+                      logs_only_median_width=float(np.median([x["width_over_range"] for x in lo_head]))
+                      if lo_head else None,
+                      median_headline_width_over_range=float(np.median(
+                          [r["headline_width_over_range"] for r in head])) if head else None)
         # FQE's interval as shown, labelled or not (how the continuous interval's coverage was measured
         # before it carried a level), and the widths of the labelled headline intervals
         shown = [r["fqe"] for r in rs if (r.get("fqe") or {}).get("interval") is not None]
@@ -465,6 +496,14 @@ def table(summary: dict[str, Any], rows: list[dict[str, Any]]) -> str:
                      f"{s['claims_logs_only']} ({s['unconfirmed_logs_only']}) | {s['missed_logs_only']} | "
                      f"{s.get('fqe_shown_covered', 'n/a')}/{s.get('fqe_shown', 'n/a')} | "
                      f"{_fmt(s.get('median_width_over_range'))} |")
+    lines += ["", "| problem | median labelled headline width / value range | logs only: labelled headline covered "
+              "| logs only: median labelled width / range | true value >20% from the behaviour's | of them, claimed "
+              "right from the logs |", "|" + "---|" * 6]
+    for p, s in summary.items():
+        lines.append(f"| {p} | {_fmt(s.get('median_headline_width_over_range'))} | "
+                     f"{s.get('logs_only_covered', 'n/a')}/{s.get('logs_only_labelled', 'n/a')} | "
+                     f"{_fmt(s.get('logs_only_median_width'))} | {s.get('apart', 'n/a')} | "
+                     f"{s.get('apart_claimed_right', 'n/a')} |")
     lines += ["",
               "| problem | seed | candidate | truth [95%] | behaviour logged | headline estimate [interval] | covers "
               "| verdict (sim) | verdict (logs only) |", "|" + "---|" * 9]

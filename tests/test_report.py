@@ -39,7 +39,7 @@ def test_evaluate_and_report_with_simulator(pt_run, capsys):
     assert "cross-track" in out and "FQE" in out
     m = json.loads((run / "evaluation" / "metrics.json").read_text())
     assert m["simulator"] == "path_tracking"
-    assert set(m["ope"]) == {"fqe", "is", "wis", "pdis", "wpdis", "dr", "wdr", "mis"}
+    assert set(m["ope"]) == {"fqe", "model", "is", "wis", "pdis", "wpdis", "dr", "wdr", "mis"}
     for r in m["ope"].values():
         assert len(r["interval"]) == 2 and "rollout_error" in r
     p, d = m["rollout"]["policy"], m["rollout"]["demonstrator"]
