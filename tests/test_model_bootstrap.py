@@ -8,6 +8,7 @@ for the resample and the interval's formula; synthetic metrics for the label and
 from __future__ import annotations
 
 import copy
+from functools import partial
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from scipy.stats import t as student
 from offline_adp.evaluation.model_bootstrap import (
     MIN_LABEL_PARTICLES,
     bootstrap_interval,
+    bootstrap_reading,
     model_estimate,
     resampled_rows,
 )
@@ -61,6 +63,11 @@ def _lane_logs(seed: int):
     return TransitionDataset.concat([demo, explore])
 
 
+def _boot(model, a, ranges, estimate, *, policy, seed):
+    return bootstrap_reading(model, a, policy, T, GAMMA, ranges, estimate, n=400, level=0.95, seed=seed,
+                             replicates=10)
+
+
 @pytest.mark.parametrize("name, policy", [("stabilise", STABILISE), ("coast", COAST)])
 def test_the_bootstrap_interval_covers_the_simulators_truth_over_data_seeds(name, policy):
     """Eight independent small logs (18 episodes): the interval holds the simulator's value
@@ -69,7 +76,8 @@ def test_the_bootstrap_interval_covers_the_simulators_truth_over_data_seeds(name
     truth = _truth(policy)
     covered, spreads = 0, []
     for seed in range(8):
-        mr = model_rollouts(_lane_logs(seed), policy, T, GAMMA, n=400, seed=seed, replicates=10)
+        boot = partial(_boot, policy=policy, seed=seed)
+        mr = model_rollouts(_lane_logs(seed), policy, T, GAMMA, n=400, seed=seed, bootstrap=boot)
         lo, hi = mr["bootstrap"]["interval"]
         covered += lo <= truth <= hi
         spreads.append(mr["bootstrap"]["spread"])

@@ -39,7 +39,7 @@ import numpy as np
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.evaluation.estimand import Estimand
-from offline_adp.evaluation.model_bootstrap import MODEL_REPLICATES
+from offline_adp.evaluation.model_bootstrap import MODEL_REPLICATES, bootstrap_reading
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION, model_rollouts
 from offline_adp.evaluation.ope import EpisodeMatrix, OPEResult, bootstrap_counts
 from offline_adp.evaluation.settings import EvaluationSettings
@@ -389,8 +389,14 @@ def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, part
     if not particles:
         return {"skipped": "model_particles=0: model rollouts turned off"}
     steps = None if say is None else PhaseLines(say, "model rollouts: step", est_def.value_horizon)
+    def boot(model: Any, arrays: TransitionArrays, ranges: Any, estimate: float) -> dict[str, Any]:
+        if say is not None:
+            say(f"model rollouts: {MODEL_REPLICATES} bootstrap refits of the model")
+        return bootstrap_reading(model, arrays, policy, est_def.value_horizon, est_def.gamma, ranges, estimate,
+                                 n=particles, level=level, seed=seed, replicates=MODEL_REPLICATES)
+
     return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed,
-                          arrays=a, on_step=steps, replicates=MODEL_REPLICATES)
+                          arrays=a, on_step=steps, bootstrap=boot)
 
 
 def with_rough_note(fq: OPEResult, n_reps: int) -> OPEResult:

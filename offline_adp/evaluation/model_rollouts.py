@@ -116,6 +116,9 @@ class LoggedDynamics:
         Out-of-fold residuals of the increments, in standard deviations.
     start_states_ : ndarray
         The logged states at step 0.
+    fit_rows_ : ndarray
+        The rows fitted on (all, or a sample of :data:`MAX_FIT_ROWS`): the bootstrap's replicates
+        resample their episodes (:mod:`offline_adp.evaluation.model_bootstrap`).
     """
 
     n_estimators: int = 20
@@ -455,13 +458,14 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
 
 def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: float, *, n: int = N_PARTICLES,
                    level: float = 0.95, seed: int = 0, arrays: TransitionArrays | None = None,
-                   on_step: Any = None, replicates: int = 0) -> dict[str, Any]:
+                   on_step: Any = None, bootstrap: Any = None) -> dict[str, Any]:
     """Fit :class:`LoggedDynamics` on ``ds`` and roll ``policy`` out in it
     (:func:`model_rollout_value`) with the logged costs' :func:`remainder_ranges`; adds
-    ``noise`` and ``method``, and with ``replicates`` the model's own interval as ``bootstrap``
-    (:func:`offline_adp.evaluation.model_bootstrap.bootstrap_reading`). ``{"skipped": reason}`` where it
-    does not apply: no episode logged from step 0, or states on a lattice (repeated exactly: the support
-    radius is 0, and a regression's next state is never exactly on the lattice)."""
+    ``noise`` and ``method``. ``bootstrap(model, arrays, ranges, estimate)``: the model's own
+    interval, kept as ``bootstrap`` (:func:`offline_adp.evaluation.model_bootstrap.bootstrap_reading`).
+    ``{"skipped": reason}`` where it does not apply: no episode logged from step 0, or states on
+    a lattice (repeated exactly: the support radius is 0, and a regression's next state is never
+    exactly on the lattice)."""
     a = arrays if arrays is not None else ds.arrays()
     if not (a.step == 0).any():
         return {"skipped": "no episode is logged from step 0: no start states to roll out from"}
@@ -471,11 +475,8 @@ def model_rollouts(ds: TransitionDataset, policy: Policy, horizon: int, gamma: f
                            "FQE reads such logs without extrapolating between states"}
     ranges = remainder_ranges(a.cost, a.terminated, gamma, horizon)
     out = model_rollout_value(model, policy, horizon, gamma, ranges, n=n, level=level, seed=seed, on_step=on_step)
-    if replicates:
-        from offline_adp.evaluation.model_bootstrap import bootstrap_reading  # it builds on this module
-
-        out["bootstrap"] = bootstrap_reading(model, a, policy, horizon, gamma, ranges, out["estimate"], n=n,
-                                             level=level, seed=seed, replicates=replicates)
+    if bootstrap is not None:
+        out["bootstrap"] = bootstrap(model, a, ranges, out["estimate"])
     return {**out, "noise": model.noise_source_,  # no timings: metrics.json is deterministic
             "method": f"{n} rollouts of a model fitted on the logs (increments: ridge + extra-trees on its residuals "
                       "+ out-of-fold residual noise; cost and termination: extra-trees on state, action, next state), "
