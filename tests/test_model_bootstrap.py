@@ -64,7 +64,7 @@ def _lane_logs(seed: int):
 
 
 def _boot(model, a, ranges, estimate, *, policy, seed):
-    return bootstrap_reading(model, a, policy, T, GAMMA, ranges, estimate, n=400, level=0.95, seed=seed,
+    return bootstrap_reading(model, a, policy, T, GAMMA, estimate, n=400, level=0.95, seed=seed,
                              replicates=10)
 
 

@@ -392,7 +392,7 @@ def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, part
     def boot(model: Any, arrays: TransitionArrays, ranges: Any, estimate: float) -> dict[str, Any]:
         if say is not None:
             say(f"model rollouts: {MODEL_REPLICATES} bootstrap refits of the model")
-        return bootstrap_reading(model, arrays, policy, est_def.value_horizon, est_def.gamma, ranges, estimate,
+        return bootstrap_reading(model, arrays, policy, est_def.value_horizon, est_def.gamma, estimate,
                                  n=particles, level=level, seed=seed, replicates=MODEL_REPLICATES)
 
     return model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=particles, level=level, seed=seed,

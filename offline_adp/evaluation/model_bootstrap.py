@@ -9,13 +9,15 @@ error that matters is ``M^``'s own, which a new set of logged episodes would cha
 
 1. **Replicates**: ``B`` = :data:`MODEL_REPLICATES` resamples of the logged episodes with
    replacement; on each, the increment model (ridge + extra-trees on its residuals) and
-   the cost-and-termination model are refitted (:func:`replicate_model`; the support radii,
+   the cost-and-termination model are refitted with half the trees (their own randomness
+   then adds to the spread: wider, never narrower) (:func:`replicate_model`; the support radii,
    the out-of-fold noise, the clipping range and the discrete levels stay the full fit's:
    they judge where the data is, not what it says), and the start states are the resampled
    episodes' own.
-2. **Readings**: each replicate rolls the policy out with ``n / B`` particles
-   (:func:`~offline_adp.evaluation.model_rollouts.model_rollout_value`): the same particle
-   budget as the main reading, so the replicates cost their fits, not more rollouts. The
+2. **Readings** (:func:`replicate_readings`): each replicate rolls the policy out with ``n / B``
+   particles, the estimate of :func:`~offline_adp.evaluation.model_rollouts.model_rollout_value`
+   without its bounds: the same particle budget as the main reading, the policy called once
+   per step for all of them, so the replicates cost their fits, not more rollouts. The
    spread ``s_B`` of the ``B`` readings holds the model's sampling error *and* the
    particles' noise at ``n / B`` (so it is, if anything, too large).
 3. **Interval** (:func:`bootstrap_interval`): around the main reading ``V^``,
@@ -46,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.dataset import TransitionArrays
-from offline_adp.evaluation.model_rollouts import EXIT_FRACTION, LoggedDynamics, model_rollout_value
+from offline_adp.evaluation.model_rollouts import EXIT_FRACTION, LoggedDynamics
 from offline_adp.evaluation.ope import OPEResult
 from offline_adp.policies import Policy
 
@@ -77,6 +79,7 @@ def replicate_model(model: LoggedDynamics, a: TransitionArrays, rows: np.ndarray
     its start states the resample's; everything that judges where the data is stays ``model``'s."""
     rep = copy(model)
     rep.random_state = seed
+    rep.n_estimators = max(model.n_estimators // 2, 5)  # half the trees: the spread holds their randomness too
     rep.__dict__.pop("_predict_cache", None)
     obs, nxt = a.obs[rows], a.next_obs[rows]
     F = rep._features(obs, a.action[rows])
@@ -86,6 +89,29 @@ def replicate_model(model: LoggedDynamics, a: TransitionArrays, rows: np.ndarray
     starts = obs[a.step[rows] == 0]
     rep.start_states_ = starts if len(starts) else model.start_states_
     return rep
+
+
+def replicate_readings(models: list[LoggedDynamics], policy: Policy, horizon: int, gamma: float, per: int,
+                       rng: np.random.Generator) -> np.ndarray:
+    """Each model's reading ``mean_i sum_t gamma^t S_it c_it`` over ``per`` particles from its
+    own start states: the main reading's estimate (:func:`model_rollout_value`) without its
+    bounds and support checks, all replicates' particles acting through the policy in one
+    call per step (the policy's cost per call, not per particle, dominates small batches)."""
+    B = len(models)
+    x = np.vstack([m.start_states_[rng.integers(0, len(m.start_states_), per)] for m in models]).astype(np.float64)
+    alive, value = np.ones(B * per), np.zeros(B * per)
+    for t in range(horizon):
+        if not alive.any():
+            break
+        act = policy.act_index(x, t, rng)
+        w = alive * gamma**t
+        for b, m in enumerate(models):
+            s = slice(b * per, (b + 1) * per)
+            r = m.step(x[s], act[s], rng)
+            value[s] += w[s] * r.costs
+            alive[s] = alive[s] * (1.0 - r.terminated)
+            x[s] = r.next_states
+    return value.reshape(B, per).mean(axis=1)
 
 
 def bootstrap_interval(estimate: float, readings: np.ndarray, level: float) -> tuple[float, float]:
@@ -98,7 +124,7 @@ def bootstrap_interval(estimate: float, readings: np.ndarray, level: float) -> t
 
 
 def bootstrap_reading(model: LoggedDynamics, a: TransitionArrays, policy: Policy, horizon: int, gamma: float,
-                      ranges: tuple[np.ndarray, np.ndarray], estimate: float, *, n: int, level: float, seed: int,
+                      estimate: float, *, n: int, level: float, seed: int,
                       replicates: int = MODEL_REPLICATES) -> dict[str, Any]:
     """The bootstrap of the model (module docstring, steps 1-3) around the main reading
     ``estimate``: ``interval``, ``readings`` (one per replicate), ``replicates``,
@@ -109,13 +135,9 @@ def bootstrap_reading(model: LoggedDynamics, a: TransitionArrays, policy: Policy
     rows = model.fit_rows_
     rng = np.random.default_rng([seed, 31])
     per = max(n // replicates, MIN_REPLICATE_PARTICLES)
-    readings = []
-    for _ in range(replicates):
-        drawn, _ = resampled_rows(a, rows, rng)
-        rep = replicate_model(model, a, drawn, seed=int(rng.integers(2**31)))
-        readings.append(model_rollout_value(rep, policy, horizon, gamma, ranges, n=per, level=level,
-                                            seed=int(rng.integers(2**31)))["estimate"])
-    r = np.array(readings)
+    reps = [replicate_model(model, a, resampled_rows(a, rows, rng)[0], seed=int(rng.integers(2**31)))
+            for _ in range(replicates)]
+    r = replicate_readings(reps, policy, horizon, gamma, per, np.random.default_rng([seed, 37]))
     lo, hi = bootstrap_interval(estimate, r, level)
     return {"interval": [lo, hi], "readings": [float(x) for x in r], "replicates": int(replicates),
             "particles": int(per), "spread": float(r.std(ddof=1)), "bias": float(r.mean() - estimate),
