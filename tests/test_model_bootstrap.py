@@ -130,6 +130,8 @@ def test_a_labelled_model_leads_and_claims_a_side_where_only_the_actions_left_th
     assert v["performance"] == "better" and v["text"].startswith("better than the behaviour: MODEL 6")
     assert v["outcome"] == "not converged"  # the colour still says the fit did not settle
     assert v["lines"][0].startswith("estimate: MODEL 6 [5, 7] (95%)")
+    assert "LEFT the data's support: chooses actions" in v["lines"][2]  # said, and why it does not undermine
+    assert "the model rollouts' reading holds there" in v["lines"][2]
 
 
 def test_states_past_the_data_withdraw_the_models_level_and_its_claim():

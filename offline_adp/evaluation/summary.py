@@ -174,8 +174,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
                     "level_note": r.get("level_note"), "width": width,
                     "plugin_estimate": r.get("plugin_estimate")})
     order = {k: i for i, k in enumerate(ROBUSTNESS)}
-    # the model rollouts lead only with a level: inside FQE's interval, where the logs validate them
-    # (evaluation/model_bootstrap.py); without one, FQE's hull of both readings comes first
+    # the model rollouts lead only with a level (overlapping FQE's interval, within the logged states:
+    # evaluation/model_bootstrap.py); without one, FQE's hull of both readings comes first
     order["model"] = -1 if any(e["name"] == "model" and e["tier"] == 0 for e in out) else 0.5
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):

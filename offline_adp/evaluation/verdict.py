@@ -213,6 +213,10 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
     verdict = verdict.split(", but ", 1)[0]
     fit = conv["text"].split(": ", 1)[0]  # "fit converged", "fit still changing", ...; its numbers are in the report
     why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
+    best = next((e for e in ranking if e["tier"] == 0), None)
+    if best is not None and best["name"] == "model" and support.startswith("LEFT") and not doubts:
+        why.insert(1, "the model rollouts' reading holds there (they step any action, stay within the logged "
+                      "states and agree with FQE's per-action support bounds)")
     return ["estimate: " + ("; ".join(est) if est else "none usable"), verdict, "why: " + "; ".join(why)]
 
 
@@ -242,8 +246,8 @@ def _support_clause(m: dict[str, Any], shift: dict[str, Any], left: list[str]) -
 def _model_doubts(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
     """What undermines a side read from the model rollouts' labelled interval: only states past
     the data (its label already needs the rollouts within the logged states and its interval
-    inside FQE's with the per-action support bounds), not the candidate's fit (the model reads
-    the policy as given, however it was fitted)."""
+    overlapping FQE's with the per-action support bounds), not the candidate's fit (the model
+    reads the policy as given, however it was fitted)."""
     return ["the policy left the data's support, where the model extrapolates"] if left_states(m, shift) else []
 
 
