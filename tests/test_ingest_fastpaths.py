@@ -156,3 +156,20 @@ def test_dataset_stats_are_the_plain_statistics_of_the_finite_values() -> None:
         for k, v in want.items():
             assert got[k] == v or (np.isnan(got[k]) and np.isnan(v)), (name, k)
     assert stats["action_counts"] == {f"a{k}": int((action == k).sum()) for k in range(3)}
+
+
+@pytest.mark.parametrize("cuts", [(), (0,), (3,), (0, 0, 7), (5, 5, 19), (20,)])
+def test_take_chunkwise_is_the_take_of_the_combined_column(cuts: tuple[int, ...]) -> None:
+    """The episode ids' dictionary is taken chunk by chunk (no concatenation of the column):
+    the same strings as Arrow's take on the chunked column, empty chunks included."""
+    from offline_adp.data.columns import _take_chunkwise
+
+    words = [f"id-{i:03d}" for i in range(20)]
+    edges = [0, *cuts, 20]
+    for large in (False, True):
+        typ = pa.large_string() if large else pa.string()
+        col = pa.chunked_array([pa.array(words[a:b], typ) for a, b in zip(edges[:-1], edges[1:], strict=True)], typ)
+        for idx in (np.arange(20), np.array([0, 4, 5, 6, 19]), np.array([], np.int64), np.array([7])):
+            got = _take_chunkwise(col, idx)
+            assert got.type == typ
+            assert got.to_pylist() == col.take(pa.array(idx, pa.int64())).combine_chunks().to_pylist()
