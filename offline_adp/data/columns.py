@@ -65,8 +65,8 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
         return
     if is_dict:
         col = col.cast(col.type.value_type)
-    nulls = np.asarray(pc.is_null(col), dtype=bool) if col.null_count else np.zeros(n, bool)
-    h.update(np.packbits(nulls).tobytes())
+    # the packed null mask (all zero bytes without nulls: no mask of n booleans to pack)
+    h.update(np.packbits(np.asarray(pc.is_null(col), dtype=bool)).tobytes() if col.null_count else bytes((n + 7) // 8))
     if pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
         enc = encode_strings(col.cast(pa.large_string()).fill_null(""))
         words = [w.encode() for w in enc.dictionary.to_pylist()]  # one per distinct value
