@@ -27,11 +27,21 @@ def _last_match(x: np.ndarray, tv: np.ndarray, tol: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("n", [0, 1, 5, (1 << 14) + 3, 100_000])
-def test_match_each_is_the_last_match_within_tolerance(n: int) -> None:
+@pytest.mark.parametrize(("tv", "far"), [
+    ([-1.0, 0.0, 1.0, 1.0 + 5e-10, 3e9], False),  # two values within each other's tolerance: the rule
+    ([1.0, -1.0, 0.0, 3e9, -5e-9], True),  # far apart: matched by equality first, the rest by the rule
+    ([1.0, 0.0, -2.5e-9], False),  # tolerances 1e-9 each, 2.5e-9 apart: not far enough
+    ([0.5], True),
+    ([-1.0, 0.0, np.inf], False),  # not finite: the rule
+])
+def test_match_each_is_the_last_match_within_tolerance(n: int, tv: list[float], far: bool) -> None:
+    from offline_adp.ingest.actions import _far_apart
+
     rng = np.random.default_rng(n)
-    tv = np.array([-1.0, 0.0, 1.0, 1.0 + 5e-10, 3e9])  # two values within each other's tolerance
+    tv = np.array(tv)
     tol = 1e-9 * np.maximum(1.0, np.abs(tv))
-    x = rng.choice(tv, n) + rng.choice([0.0, 2e-10, -8e-10, 2e-9, 0.5], n)
+    assert _far_apart(tv, tol) == far
+    x = rng.choice(tv, n) + rng.choice([0.0, 0.0, 0.0, -0.0, 2e-10, -8e-10, 1e-9, 2e-9, 0.5], n)
     if n > 3:
         x[:3] = [np.nan, np.inf, -np.inf]
     with np.errstate(invalid="ignore"):
