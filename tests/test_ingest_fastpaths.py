@@ -183,3 +183,24 @@ def test_take_chunkwise_is_the_take_of_the_combined_column(cuts: tuple[int, ...]
             got = _take_chunkwise(col, idx)
             assert got.type == typ
             assert got.to_pylist() == col.take(pa.array(idx, pa.int64())).combine_chunks().to_pylist()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bool_values_is_arrows_conversion(seed: int) -> None:
+    """Booleans unpacked from the bitmaps equal Arrow's value-by-value conversion: slices at
+    any bit offset, several chunks, nulls as False or True."""
+    from offline_adp.data.columns import bool_values
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 3000))
+    vals = rng.random(n) < 0.5
+    mask = rng.random(n) < (0.2 if seed % 2 else 0.0)
+    arr = pa.array(vals, mask=mask)
+    cuts = np.sort(rng.integers(0, n + 1, 3))
+    chunks = [arr.slice(int(a), int(b - a)) for a, b in zip([0, *cuts], [*cuts, n], strict=True)]
+    for col in (arr, pa.chunked_array(chunks, pa.bool_()), arr.slice(min(n, 13))):
+        for null in (False, True):
+            want = np.asarray(col.fill_null(null).to_numpy(zero_copy_only=False), dtype=bool)
+            got = bool_values(col, null)
+            assert got.dtype == bool
+            np.testing.assert_array_equal(got, want)

@@ -22,6 +22,32 @@ def encode_strings(col: pa.Array | pa.ChunkedArray) -> pa.DictionaryArray:
     return pc.dictionary_encode(col)
 
 
+def bool_values(col: pa.Array | pa.ChunkedArray, null: bool = False) -> np.ndarray:
+    """A boolean column as a numpy bool array, each null as ``null``: what
+    ``np.asarray(col.fill_null(null).to_numpy(zero_copy_only=False), dtype=bool)`` gives,
+    unpacked from the bit-packed buffers in one vectorised pass per chunk (Arrow's own
+    conversion goes value by value: 2 ms against 0.15 ms for 2M values)."""
+    chunks = col.chunks if isinstance(col, pa.ChunkedArray) else [col]
+    out = np.empty(len(col), bool)
+    at = 0
+    for c in chunks:
+        n = len(c)
+        if n:
+            validity, data = c.buffers()[:2]
+            out[at:at + n] = _bits(data, c.offset, n)
+            if c.null_count:
+                out[at:at + n][~_bits(validity, c.offset, n)] = null
+        at += n
+    return out
+
+
+def _bits(buf: pa.Buffer, offset: int, n: int) -> np.ndarray:
+    """Bits ``offset`` to ``offset + n`` of an Arrow bitmap (least significant bit first)."""
+    first = offset // 8
+    raw = np.frombuffer(buf, np.uint8, count=(offset + n + 7) // 8 - first, offset=first)
+    return np.unpackbits(raw, count=offset % 8 + n, bitorder="little")[offset % 8:].view(bool)
+
+
 _HASH_BLOCK = 1 << 16  # values per conversion block: temporaries stay in cache, never a column copy
 
 
@@ -85,10 +111,11 @@ def hash_column(h: Any, name: str, col: pa.ChunkedArray, encoding: tuple[np.ndar
     int_type = np.int32 if narrow and col.type in _NARROW_INTS else np.int64
     buf = np.empty(min(n, _HASH_BLOCK), int_type if kind == "i" else np.float64)  # reused by every block
     for chunk in col.chunks:
-        arr = chunk.to_numpy(zero_copy_only=False)  # no nulls left: a view, except booleans (unpacked)
-        if kind == "b":
-            h.update(np.ascontiguousarray(arr, dtype=bool).view(np.uint8))
-        elif kind == "i" and arr.dtype == int_type:
+        if kind == "b":  # no nulls left: the values as bytes
+            h.update(bool_values(chunk).view(np.uint8))
+            continue
+        arr = chunk.to_numpy(zero_copy_only=False)  # no nulls left: a view
+        if kind == "i" and arr.dtype == int_type:
             h.update(np.ascontiguousarray(arr))
         else:
             for lo in range(0, len(arr), _HASH_BLOCK):

@@ -369,8 +369,8 @@ class TransitionDataset:
                 "length": lengths.astype(np.int64),
                 S.SOURCE: source if len(self) else np.array([], dtype=object),
                 "total_cost": total,
-                S.TERMINATED: self.table.column(S.TERMINATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
-                S.TRUNCATED: self.table.column(S.TRUNCATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
+                S.TERMINATED: _values_at(self.table.column(S.TERMINATED), last) if len(self) else np.zeros(0, bool),
+                S.TRUNCATED: _values_at(self.table.column(S.TRUNCATED), last) if len(self) else np.zeros(0, bool),
                 "first_row": starts.astype(np.int64),
             }
         )
@@ -464,3 +464,7 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
         raise SchemaError(f"{path}: {exc}") from None
 
 
+def _values_at(col: pa.ChunkedArray, rows: np.ndarray) -> np.ndarray:
+    """``col.to_numpy()[rows]``, converting only those rows when the column has no nulls
+    (with nulls, the whole column's object array as before)."""
+    return col.to_numpy()[rows] if col.null_count else col.take(pa.array(rows)).to_numpy()

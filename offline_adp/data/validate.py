@@ -46,6 +46,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from offline_adp.data import schema as S
+from offline_adp.data.columns import bool_values
 from offline_adp.data.dataset import TransitionDataset
 
 # the report and the quarantine (findings.py), importable from here too
@@ -327,7 +328,7 @@ def _directory_origin(path: Path, ds: TransitionDataset) -> RowOrigin | None:
 
 
 def _bool(t: pa.Table, name: str) -> np.ndarray:
-    return np.asarray(t.column(name).fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
+    return bool_values(t.column(name))  # nulls as False
 
 
 def _all_within(v: np.ndarray, bound: float, buf: np.ndarray) -> bool:
