@@ -204,3 +204,28 @@ def test_bool_values_is_arrows_conversion(seed: int) -> None:
             got = bool_values(col, null)
             assert got.dtype == bool
             np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_episode_sums_are_bincount_bit_for_bit(seed: int) -> None:
+    """Per-episode sums over whole episodes a block at a time (from a read-only column, as
+    Arrow's) equal ``np.bincount`` with weights bit for bit: short and long episodes, NaN,
+    signed zeros, values over many orders of magnitude."""
+    from offline_adp.data.columns import episode_sums
+
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(1, 400, int(rng.integers(1, 60)))
+    if seed % 3 == 0:
+        lengths[len(lengths) // 2] = 5000  # an episode longer than the block
+    n = int(lengths.sum())
+    codes = np.repeat(np.arange(len(lengths)), lengths)
+    starts = np.r_[0, np.cumsum(lengths)[:-1]]
+    x = rng.standard_cauchy(n) * 10.0 ** rng.integers(-8, 8, n)
+    x[rng.integers(0, n, 3)] = [np.nan, -0.0, 0.0]
+    x.flags.writeable = False
+    want = np.bincount(codes, weights=x, minlength=len(lengths))
+    got = episode_sums(codes, starts, x, len(lengths), block=int(rng.integers(1, 700)))
+    assert got.tobytes() == want.tobytes()
+    shuffled = codes[::-1].copy()  # not in episode order: bincount itself
+    assert episode_sums(shuffled, starts, x, len(lengths)).tobytes() == np.bincount(
+        shuffled, weights=x, minlength=len(lengths)).tobytes()

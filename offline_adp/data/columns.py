@@ -48,6 +48,33 @@ def _bits(buf: pa.Buffer, offset: int, n: int) -> np.ndarray:
     return np.unpackbits(raw, count=offset % 8 + n, bitorder="little")[offset % 8:].view(bool)
 
 
+def episode_sums(codes: np.ndarray, starts: np.ndarray, x: np.ndarray, n_episodes: int,
+                 block: int = 1 << 16) -> np.ndarray:
+    """``np.bincount(codes, weights=x, minlength=n_episodes)``, bit for bit, for rows in
+    episode order (episode ``k`` is rows ``starts[k]`` to ``starts[k + 1]``): numpy copies
+    read-only weights (a column viewed from Arrow) whole before summing, here whole episodes
+    of about ``block`` rows at a time are copied into a reused buffer instead. Each episode
+    is summed in one call, from 0.0 in row order, as bincount does."""
+    n = len(codes)
+    if not (len(starts) == n_episodes and n and np.array_equal(codes[starts], np.arange(n_episodes))):
+        return np.bincount(codes, weights=x, minlength=n_episodes)
+    out = np.empty(n_episodes)
+    buf = np.empty(min(n, block))
+    e = 0
+    while e < n_episodes:
+        lo = int(starts[e])
+        if n - lo <= block:
+            e2, hi = n_episodes, n
+        else:  # the episodes starting within the block (at least one)
+            e2 = max(e + 1, int(np.searchsorted(starts, lo + block, side="right")) - 1)
+            hi = int(starts[e2]) if e2 < n_episodes else n
+        w = buf[:hi - lo] if hi - lo <= len(buf) else np.empty(hi - lo)
+        np.copyto(w, x[lo:hi])
+        out[e:e2] = np.bincount(codes[lo:hi] - e, weights=w, minlength=e2 - e)
+        e = e2
+    return out
+
+
 _HASH_BLOCK = 1 << 16  # values per conversion block: temporaries stay in cache, never a column copy
 
 

@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 
 from offline_adp.data import schema as S
 from offline_adp.data.canonical import _canonical, _column_order
-from offline_adp.data.columns import encode_strings, hash_column
+from offline_adp.data.columns import encode_strings, episode_sums, hash_column
 from offline_adp.data.info import DatasetInfo
 from offline_adp.data.io import read_dataset_table, write_dataset
 from offline_adp.errors import InvalidArgumentError, SchemaError
@@ -360,7 +360,7 @@ class TransitionDataset:
         lengths = np.diff(np.r_[starts, len(self)])
         last = starts + lengths - 1
         cost = self.table.column(S.COST).to_numpy()
-        total = np.bincount(a_codes, weights=cost, minlength=n_ep) if len(self) else np.zeros(0)
+        total = episode_sums(a_codes, starts, cost, n_ep) if len(self) else np.zeros(0)
         src_col = self.table.column(S.SOURCE)
         source = src_col.take(pa.array(starts)).cast(pa.string()).to_numpy(zero_copy_only=False) if len(self) else None
         df = pd.DataFrame(
