@@ -86,6 +86,7 @@ class TransitionDataset:
         self.info = info
         self.table, enc, self.was_sorted = _canonical(table, info, _sorted_ids)
         self._codes: np.ndarray | None = None
+        self._codes64: np.ndarray | None = None
         self._episode_ids: np.ndarray | None = None
         if enc is not None:  # the sortedness check already encoded the ids in order
             self._set_codes(enc)
@@ -214,7 +215,9 @@ class TransitionDataset:
         return S.BEHAVIOR_PROB in self.table.column_names
 
     def _set_codes(self, enc: pa.DictionaryArray) -> None:
-        self._codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+        # the encoding's own indices (int32, a read-only view): widened only if episode_index is read
+        self._codes = enc.indices.to_numpy(zero_copy_only=False)
+        self._codes64 = None
         self._episode_ids = np.asarray(enc.dictionary.to_pylist(), dtype=object)
 
     def _episode_codes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +237,15 @@ class TransitionDataset:
 
     @property
     def episode_index(self) -> np.ndarray:
-        """Per row, the index of its episode in :attr:`episode_ids`."""
+        """Per row, the index of its episode in :attr:`episode_ids` (int64)."""
+        if self._codes64 is None:
+            self._codes64 = self._episode_codes()[0].astype(np.int64)
+        return self._codes64
+
+    @property
+    def episode_codes(self) -> np.ndarray:
+        """:attr:`episode_index` in its encoding's integer type (int32 as a rule), read-only:
+        no int64 copy of the column (16 MB at 2M rows) for readers that only index with it."""
         return self._episode_codes()[0]
 
     def column(self, name: str) -> np.ndarray:
@@ -428,7 +439,7 @@ class TransitionDataset:
             h.update(name.encode())
             if name == S.EPISODE_ID:
                 codes, ids = self._episode_codes()
-                h.update(codes.tobytes())
+                h.update(codes.astype(np.int64).tobytes())  # as int64 in this definition
                 h.update("\x00".join(map(str, ids)).encode())
             elif pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
                 if pa.types.is_dictionary(col.type):

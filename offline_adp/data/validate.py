@@ -93,7 +93,7 @@ def validate(
     """
     t = ds.table
     n = t.num_rows
-    ep_codes = ds.episode_index
+    ep_codes = ds.episode_codes  # int32: indexes as well as int64, without the copy
     ep_ids = ds.episode_ids
     step = t.column(S.STEP).to_numpy(zero_copy_only=False)
     last = np.r_[ep_codes[1:] != ep_codes[:-1], True] if n else np.zeros(0, bool)
