@@ -229,3 +229,20 @@ def test_episode_sums_are_bincount_bit_for_bit(seed: int) -> None:
     shuffled = codes[::-1].copy()  # not in episode order: bincount itself
     assert episode_sums(shuffled, starts, x, len(lengths)).tobytes() == np.bincount(
         shuffled, weights=x, minlength=len(lengths)).tobytes()
+
+
+def test_episode_codes_are_episode_index_without_the_copy() -> None:
+    """``episode_codes`` (the encoding's int32, read by the doctor, the episode table and the
+    fingerprint) holds the values of ``episode_index`` (int64, widened once when read)."""
+    n = 7
+    table = pa.table({"episode_id": ["b", "b", "a", "c", "c", "c", "a"], "step": [0, 1, 0, 0, 1, 2, 1],
+                      "obs.x": np.arange(n, dtype=float), "action": np.zeros(n, np.int32), "cost": np.ones(n),
+                      "next_obs.x": np.arange(n, dtype=float) + 1, "terminated": [False] * n,
+                      "truncated": [False, True, False, False, False, True, True], "source": ["s"] * n})
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable((Action("a0", (0.0,)),), ("u",)))
+    ds = TransitionDataset(table, info)
+    assert ds.episode_codes.dtype == np.int32
+    assert ds.episode_index.dtype == np.int64
+    np.testing.assert_array_equal(ds.episode_codes, ds.episode_index)
+    assert ds.episode_ids[ds.episode_index].tolist() == ds.table.column("episode_id").to_pylist()
+    assert ds.episode_table()["length"].tolist() == [2, 2, 3]
