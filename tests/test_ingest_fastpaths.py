@@ -246,3 +246,39 @@ def test_episode_codes_are_episode_index_without_the_copy() -> None:
     np.testing.assert_array_equal(ds.episode_codes, ds.episode_index)
     assert ds.episode_ids[ds.episode_index].tolist() == ds.table.column("episode_id").to_pylist()
     assert ds.episode_table()["length"].tolist() == [2, 2, 3]
+
+
+def test_doctor_mask_checks_follow_their_rules() -> None:
+    """Flags, actions, propensities and times against their plain definitions (each check
+    computes its mask with as few column-sized temporaries as it can)."""
+    rng = np.random.default_rng(3)
+    ep_len, n_ep = 40, 2000
+    n = ep_len * n_ep
+    walk = rng.normal(size=n + 1).cumsum()
+    last = (np.arange(n) % ep_len) == ep_len - 1
+    term = rng.random(n) < 0.01
+    trunc = last & (rng.random(n) < 0.8)
+    action = rng.integers(-3, 5, n).astype(np.int32)
+    prob = rng.choice([0.5, 1.0, 0.0, -0.1, 1.5, np.nan, np.inf, -np.inf, 1e-300], n)
+    t_ns = np.arange(n, dtype=np.int64) * 10 - rng.choice([0, 0, 0, 25], n)
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable(tuple(Action(f"a{k}", (float(k),))
+                                                                                for k in range(3))))
+    ep = np.arange(n) // ep_len
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=np.char.add("e", np.char.zfill(ep.astype(str), 6)), step=np.arange(n) % ep_len,
+        obs=walk[:-1], action=action, cost=np.zeros(n), next_obs=walk[1:], terminated=term, truncated=trunc,
+        behavior_prob=prob, t_ns=t_ns)
+    f = validate(ds).findings
+
+    def rows(check: str) -> np.ndarray:
+        return np.sort(f.loc[f["check"] == check, "row"].to_numpy())
+
+    first = np.r_[True, last[:-1]]
+    np.testing.assert_array_equal(rows("flag_not_last"), np.flatnonzero((term | trunc) & ~last))
+    np.testing.assert_array_equal(rows("end_unflagged"), np.flatnonzero(last & ~term & ~trunc))
+    np.testing.assert_array_equal(rows("action_out_of_range"), np.flatnonzero((action < 0) | (action >= 3)))
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(rows("propensity_out_of_range"),
+                                      np.flatnonzero(~np.isnan(prob) & ~((prob > 0) & (prob <= 1))))
+    np.testing.assert_array_equal(rows("time_decreasing"),
+                                  np.flatnonzero(np.r_[False, (t_ns[1:] < t_ns[:-1]) & ~first[1:]]))
