@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pytest
 
 from offline_adp.data.columns import sorted_encoding
@@ -282,3 +283,20 @@ def test_doctor_mask_checks_follow_their_rules() -> None:
                                       np.flatnonzero(~np.isnan(prob) & ~((prob > 0) & (prob <= 1))))
     np.testing.assert_array_equal(rows("time_decreasing"),
                                   np.flatnonzero(np.r_[False, (t_ns[1:] < t_ns[:-1]) & ~first[1:]]))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_code_counts_are_arrows_value_counts(seed: int) -> None:
+    """Source labels counted by one comparison per code: Arrow's value_counts (codes used, in
+    order of first appearance), over chunks, unused codes left out."""
+    from offline_adp.data.dataset import _code_counts
+
+    rng = np.random.default_rng(seed)
+    n_codes = int(rng.integers(1, 9))
+    used = rng.choice(n_codes, int(rng.integers(1, n_codes + 1)), replace=False)
+    x = rng.choice(used, int(rng.integers(1, 5000))).astype(np.int32)
+    cuts = np.sort(rng.integers(0, len(x) + 1, 2))
+    chunks = [pa.array(x[a:b]) for a, b in zip([0, *cuts], [*cuts, len(x)], strict=True)]
+    vc = pc.value_counts(pa.chunked_array(chunks, pa.int32()))
+    want = list(zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True))
+    assert _code_counts(chunks, n_codes) == want

@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 
 from offline_adp.data import schema as S
 from offline_adp.data.canonical import _canonical, _column_order
-from offline_adp.data.columns import encode_strings, episode_sums, hash_column
+from offline_adp.data.columns import _FEW_LABELS, encode_strings, episode_sums, hash_column
 from offline_adp.data.info import DatasetInfo
 from offline_adp.data.io import read_dataset_table, write_dataset
 from offline_adp.errors import InvalidArgumentError, SchemaError
@@ -353,9 +353,8 @@ class TransitionDataset:
         if pa.types.is_dictionary(col.type) and len(col) and not col.null_count:  # count codes, not strings
             col = col.unify_dictionaries()
             words = col.chunk(0).dictionary.cast(pa.string())
-            vc = pc.value_counts(pa.chunked_array([c.indices for c in col.chunks]))
             counts: dict[str, int] = {}
-            for code, count in zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True):
+            for code, count in _code_counts([c.indices for c in col.chunks], len(words)):
                 word = str(words[code].as_py())
                 counts[word] = counts.get(word, 0) + int(count)  # a dictionary may repeat a word
             return counts
@@ -479,3 +478,23 @@ def _values_at(col: pa.ChunkedArray, rows: np.ndarray) -> np.ndarray:
     """``col.to_numpy()[rows]``, converting only those rows when the column has no nulls
     (with nulls, the whole column's object array as before)."""
     return col.to_numpy()[rows] if col.null_count else col.take(pa.array(rows)).to_numpy()
+
+
+def _code_counts(indices: list[pa.Array], n_codes: int) -> list[tuple[int, int]]:
+    """``(code, count)`` of the codes used, in order of first appearance (as Arrow's
+    ``value_counts``); a few codes (the source labels) by one comparison each, no hash table."""
+    if n_codes > _FEW_LABELS:
+        vc = pc.value_counts(pa.chunked_array(indices))
+        return list(zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True))
+    seen: list[tuple[int, int, int]] = []  # (first row, code, count)
+    for code in range(n_codes):
+        count, first, at = 0, -1, 0
+        for ind in indices:
+            hit = ind.to_numpy(zero_copy_only=False) == code
+            k = int(np.count_nonzero(hit))
+            if k and first < 0:
+                first = at + int(np.argmax(hit))
+            count, at = count + k, at + len(ind)
+        if count:
+            seen.append((first, code, count))
+    return [(code, count) for _, code, count in sorted(seen)]
