@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pytest
 
 from offline_adp.data.columns import sorted_encoding
@@ -27,11 +28,21 @@ def _last_match(x: np.ndarray, tv: np.ndarray, tol: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("n", [0, 1, 5, (1 << 14) + 3, 100_000])
-def test_match_each_is_the_last_match_within_tolerance(n: int) -> None:
+@pytest.mark.parametrize(("tv", "far"), [
+    ([-1.0, 0.0, 1.0, 1.0 + 5e-10, 3e9], False),  # two values within each other's tolerance: the rule
+    ([1.0, -1.0, 0.0, 3e9, -5e-9], True),  # far apart: matched by equality first, the rest by the rule
+    ([1.0, 0.0, -2.5e-9], False),  # tolerances 1e-9 each, 2.5e-9 apart: not far enough
+    ([0.5], True),
+    ([-1.0, 0.0, np.inf], False),  # not finite: the rule
+])
+def test_match_each_is_the_last_match_within_tolerance(n: int, tv: list[float], far: bool) -> None:
+    from offline_adp.ingest.actions import _far_apart
+
     rng = np.random.default_rng(n)
-    tv = np.array([-1.0, 0.0, 1.0, 1.0 + 5e-10, 3e9])  # two values within each other's tolerance
+    tv = np.array(tv)
     tol = 1e-9 * np.maximum(1.0, np.abs(tv))
-    x = rng.choice(tv, n) + rng.choice([0.0, 2e-10, -8e-10, 2e-9, 0.5], n)
+    assert _far_apart(tv, tol) == far
+    x = rng.choice(tv, n) + rng.choice([0.0, 0.0, 0.0, -0.0, 2e-10, -8e-10, 1e-9, 2e-9, 0.5], n)
     if n > 3:
         x[:3] = [np.nan, np.inf, -np.inf]
     with np.errstate(invalid="ignore"):
@@ -156,3 +167,136 @@ def test_dataset_stats_are_the_plain_statistics_of_the_finite_values() -> None:
         for k, v in want.items():
             assert got[k] == v or (np.isnan(got[k]) and np.isnan(v)), (name, k)
     assert stats["action_counts"] == {f"a{k}": int((action == k).sum()) for k in range(3)}
+
+
+@pytest.mark.parametrize("cuts", [(), (0,), (3,), (0, 0, 7), (5, 5, 19), (20,)])
+def test_take_chunkwise_is_the_take_of_the_combined_column(cuts: tuple[int, ...]) -> None:
+    """The episode ids' dictionary is taken chunk by chunk (no concatenation of the column):
+    the same strings as Arrow's take on the chunked column, empty chunks included."""
+    from offline_adp.data.columns import _take_chunkwise
+
+    words = [f"id-{i:03d}" for i in range(20)]
+    edges = [0, *cuts, 20]
+    for large in (False, True):
+        typ = pa.large_string() if large else pa.string()
+        col = pa.chunked_array([pa.array(words[a:b], typ) for a, b in zip(edges[:-1], edges[1:], strict=True)], typ)
+        for idx in (np.arange(20), np.array([0, 4, 5, 6, 19]), np.array([], np.int64), np.array([7])):
+            got = _take_chunkwise(col, idx)
+            assert got.type == typ
+            assert got.to_pylist() == col.take(pa.array(idx, pa.int64())).combine_chunks().to_pylist()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bool_values_is_arrows_conversion(seed: int) -> None:
+    """Booleans unpacked from the bitmaps equal Arrow's value-by-value conversion: slices at
+    any bit offset, several chunks, nulls as False or True."""
+    from offline_adp.data.columns import bool_values
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 3000))
+    vals = rng.random(n) < 0.5
+    mask = rng.random(n) < (0.2 if seed % 2 else 0.0)
+    arr = pa.array(vals, mask=mask)
+    cuts = np.sort(rng.integers(0, n + 1, 3))
+    chunks = [arr.slice(int(a), int(b - a)) for a, b in zip([0, *cuts], [*cuts, n], strict=True)]
+    for col in (arr, pa.chunked_array(chunks, pa.bool_()), arr.slice(min(n, 13))):
+        for null in (False, True):
+            want = np.asarray(col.fill_null(null).to_numpy(zero_copy_only=False), dtype=bool)
+            got = bool_values(col, null)
+            assert got.dtype == bool
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_episode_sums_are_bincount_bit_for_bit(seed: int) -> None:
+    """Per-episode sums over whole episodes a block at a time (from a read-only column, as
+    Arrow's) equal ``np.bincount`` with weights bit for bit: short and long episodes, NaN,
+    signed zeros, values over many orders of magnitude."""
+    from offline_adp.data.columns import episode_sums
+
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(1, 400, int(rng.integers(1, 60)))
+    if seed % 3 == 0:
+        lengths[len(lengths) // 2] = 5000  # an episode longer than the block
+    n = int(lengths.sum())
+    codes = np.repeat(np.arange(len(lengths)), lengths)
+    starts = np.r_[0, np.cumsum(lengths)[:-1]]
+    x = rng.standard_cauchy(n) * 10.0 ** rng.integers(-8, 8, n)
+    x[rng.integers(0, n, 3)] = [np.nan, -0.0, 0.0]
+    x.flags.writeable = False
+    want = np.bincount(codes, weights=x, minlength=len(lengths))
+    got = episode_sums(codes, starts, x, len(lengths), block=int(rng.integers(1, 700)))
+    assert got.tobytes() == want.tobytes()
+    shuffled = codes[::-1].copy()  # not in episode order: bincount itself
+    assert episode_sums(shuffled, starts, x, len(lengths)).tobytes() == np.bincount(
+        shuffled, weights=x, minlength=len(lengths)).tobytes()
+
+
+def test_episode_codes_are_episode_index_without_the_copy() -> None:
+    """``episode_codes`` (the encoding's int32, read by the doctor, the episode table and the
+    fingerprint) holds the values of ``episode_index`` (int64, widened once when read)."""
+    n = 7
+    table = pa.table({"episode_id": ["b", "b", "a", "c", "c", "c", "a"], "step": [0, 1, 0, 0, 1, 2, 1],
+                      "obs.x": np.arange(n, dtype=float), "action": np.zeros(n, np.int32), "cost": np.ones(n),
+                      "next_obs.x": np.arange(n, dtype=float) + 1, "terminated": [False] * n,
+                      "truncated": [False, True, False, False, False, True, True], "source": ["s"] * n})
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable((Action("a0", (0.0,)),), ("u",)))
+    ds = TransitionDataset(table, info)
+    assert ds.episode_codes.dtype == np.int32
+    assert ds.episode_index.dtype == np.int64
+    np.testing.assert_array_equal(ds.episode_codes, ds.episode_index)
+    assert ds.episode_ids[ds.episode_index].tolist() == ds.table.column("episode_id").to_pylist()
+    assert ds.episode_table()["length"].tolist() == [2, 2, 3]
+
+
+def test_doctor_mask_checks_follow_their_rules() -> None:
+    """Flags, actions, propensities and times against their plain definitions (each check
+    computes its mask with as few column-sized temporaries as it can)."""
+    rng = np.random.default_rng(3)
+    ep_len, n_ep = 40, 2000
+    n = ep_len * n_ep
+    walk = rng.normal(size=n + 1).cumsum()
+    last = (np.arange(n) % ep_len) == ep_len - 1
+    term = rng.random(n) < 0.01
+    trunc = last & (rng.random(n) < 0.8)
+    action = rng.integers(-3, 5, n).astype(np.int32)
+    prob = rng.choice([0.5, 1.0, 0.0, -0.1, 1.5, np.nan, np.inf, -np.inf, 1e-300], n)
+    t_ns = np.arange(n, dtype=np.int64) * 10 - rng.choice([0, 0, 0, 25], n)
+    info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable(tuple(Action(f"a{k}", (float(k),))
+                                                                                for k in range(3))))
+    ep = np.arange(n) // ep_len
+    ds = TransitionDataset.from_arrays(
+        info, episode_id=np.char.add("e", np.char.zfill(ep.astype(str), 6)), step=np.arange(n) % ep_len,
+        obs=walk[:-1], action=action, cost=np.zeros(n), next_obs=walk[1:], terminated=term, truncated=trunc,
+        behavior_prob=prob, t_ns=t_ns)
+    f = validate(ds).findings
+
+    def rows(check: str) -> np.ndarray:
+        return np.sort(f.loc[f["check"] == check, "row"].to_numpy())
+
+    first = np.r_[True, last[:-1]]
+    np.testing.assert_array_equal(rows("flag_not_last"), np.flatnonzero((term | trunc) & ~last))
+    np.testing.assert_array_equal(rows("end_unflagged"), np.flatnonzero(last & ~term & ~trunc))
+    np.testing.assert_array_equal(rows("action_out_of_range"), np.flatnonzero((action < 0) | (action >= 3)))
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(rows("propensity_out_of_range"),
+                                      np.flatnonzero(~np.isnan(prob) & ~((prob > 0) & (prob <= 1))))
+    np.testing.assert_array_equal(rows("time_decreasing"),
+                                  np.flatnonzero(np.r_[False, (t_ns[1:] < t_ns[:-1]) & ~first[1:]]))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_code_counts_are_arrows_value_counts(seed: int) -> None:
+    """Source labels counted by one comparison per code: Arrow's value_counts (codes used, in
+    order of first appearance), over chunks, unused codes left out."""
+    from offline_adp.data.dataset import _code_counts
+
+    rng = np.random.default_rng(seed)
+    n_codes = int(rng.integers(1, 9))
+    used = rng.choice(n_codes, int(rng.integers(1, n_codes + 1)), replace=False)
+    x = rng.choice(used, int(rng.integers(1, 5000))).astype(np.int32)
+    cuts = np.sort(rng.integers(0, len(x) + 1, 2))
+    chunks = [pa.array(x[a:b]) for a, b in zip([0, *cuts], [*cuts, len(x)], strict=True)]
+    vc = pc.value_counts(pa.chunked_array(chunks, pa.int32()))
+    want = list(zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True))
+    assert _code_counts(chunks, n_codes) == want

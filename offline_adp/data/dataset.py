@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 
 from offline_adp.data import schema as S
 from offline_adp.data.canonical import _canonical, _column_order
-from offline_adp.data.columns import encode_strings, hash_column
+from offline_adp.data.columns import _FEW_LABELS, encode_strings, episode_sums, hash_column
 from offline_adp.data.info import DatasetInfo
 from offline_adp.data.io import read_dataset_table, write_dataset
 from offline_adp.errors import InvalidArgumentError, SchemaError
@@ -86,6 +86,7 @@ class TransitionDataset:
         self.info = info
         self.table, enc, self.was_sorted = _canonical(table, info, _sorted_ids)
         self._codes: np.ndarray | None = None
+        self._codes64: np.ndarray | None = None
         self._episode_ids: np.ndarray | None = None
         if enc is not None:  # the sortedness check already encoded the ids in order
             self._set_codes(enc)
@@ -214,7 +215,9 @@ class TransitionDataset:
         return S.BEHAVIOR_PROB in self.table.column_names
 
     def _set_codes(self, enc: pa.DictionaryArray) -> None:
-        self._codes = enc.indices.to_numpy(zero_copy_only=False).astype(np.int64)
+        # the encoding's own indices (int32, a read-only view): widened only if episode_index is read
+        self._codes = enc.indices.to_numpy(zero_copy_only=False)
+        self._codes64 = None
         self._episode_ids = np.asarray(enc.dictionary.to_pylist(), dtype=object)
 
     def _episode_codes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -234,7 +237,15 @@ class TransitionDataset:
 
     @property
     def episode_index(self) -> np.ndarray:
-        """Per row, the index of its episode in :attr:`episode_ids`."""
+        """Per row, the index of its episode in :attr:`episode_ids` (int64)."""
+        if self._codes64 is None:
+            self._codes64 = self._episode_codes()[0].astype(np.int64)
+        return self._codes64
+
+    @property
+    def episode_codes(self) -> np.ndarray:
+        """:attr:`episode_index` in its encoding's integer type (int32 as a rule), read-only:
+        no int64 copy of the column (16 MB at 2M rows) for readers that only index with it."""
         return self._episode_codes()[0]
 
     def column(self, name: str) -> np.ndarray:
@@ -342,9 +353,8 @@ class TransitionDataset:
         if pa.types.is_dictionary(col.type) and len(col) and not col.null_count:  # count codes, not strings
             col = col.unify_dictionaries()
             words = col.chunk(0).dictionary.cast(pa.string())
-            vc = pc.value_counts(pa.chunked_array([c.indices for c in col.chunks]))
             counts: dict[str, int] = {}
-            for code, count in zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True):
+            for code, count in _code_counts([c.indices for c in col.chunks], len(words)):
                 word = str(words[code].as_py())
                 counts[word] = counts.get(word, 0) + int(count)  # a dictionary may repeat a word
             return counts
@@ -360,7 +370,7 @@ class TransitionDataset:
         lengths = np.diff(np.r_[starts, len(self)])
         last = starts + lengths - 1
         cost = self.table.column(S.COST).to_numpy()
-        total = np.bincount(a_codes, weights=cost, minlength=n_ep) if len(self) else np.zeros(0)
+        total = episode_sums(a_codes, starts, cost, n_ep) if len(self) else np.zeros(0)
         src_col = self.table.column(S.SOURCE)
         source = src_col.take(pa.array(starts)).cast(pa.string()).to_numpy(zero_copy_only=False) if len(self) else None
         df = pd.DataFrame(
@@ -369,8 +379,8 @@ class TransitionDataset:
                 "length": lengths.astype(np.int64),
                 S.SOURCE: source if len(self) else np.array([], dtype=object),
                 "total_cost": total,
-                S.TERMINATED: self.table.column(S.TERMINATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
-                S.TRUNCATED: self.table.column(S.TRUNCATED).to_numpy()[last] if len(self) else np.zeros(0, bool),
+                S.TERMINATED: _values_at(self.table.column(S.TERMINATED), last) if len(self) else np.zeros(0, bool),
+                S.TRUNCATED: _values_at(self.table.column(S.TRUNCATED), last) if len(self) else np.zeros(0, bool),
                 "first_row": starts.astype(np.int64),
             }
         )
@@ -428,7 +438,7 @@ class TransitionDataset:
             h.update(name.encode())
             if name == S.EPISODE_ID:
                 codes, ids = self._episode_codes()
-                h.update(codes.tobytes())
+                h.update(codes.astype(np.int64).tobytes())  # as int64 in this definition
                 h.update("\x00".join(map(str, ids)).encode())
             elif pa.types.is_dictionary(col.type) or pa.types.is_string(col.type) or pa.types.is_large_string(col.type):
                 if pa.types.is_dictionary(col.type):
@@ -464,3 +474,27 @@ def read_dataset(path: str | PathLike[str]) -> TransitionDataset:
         raise SchemaError(f"{path}: {exc}") from None
 
 
+def _values_at(col: pa.ChunkedArray, rows: np.ndarray) -> np.ndarray:
+    """``col.to_numpy()[rows]``, converting only those rows when the column has no nulls
+    (with nulls, the whole column's object array as before)."""
+    return col.to_numpy()[rows] if col.null_count else col.take(pa.array(rows)).to_numpy()
+
+
+def _code_counts(indices: list[pa.Array], n_codes: int) -> list[tuple[int, int]]:
+    """``(code, count)`` of the codes used, in order of first appearance (as Arrow's
+    ``value_counts``); a few codes (the source labels) by one comparison each, no hash table."""
+    if n_codes > _FEW_LABELS:
+        vc = pc.value_counts(pa.chunked_array(indices))
+        return list(zip(vc.field("values").to_pylist(), vc.field("counts").to_pylist(), strict=True))
+    seen: list[tuple[int, int, int]] = []  # (first row, code, count)
+    for code in range(n_codes):
+        count, first, at = 0, -1, 0
+        for ind in indices:
+            hit = ind.to_numpy(zero_copy_only=False) == code
+            k = int(np.count_nonzero(hit))
+            if k and first < 0:
+                first = at + int(np.argmax(hit))
+            count, at = count + k, at + len(ind)
+        if count:
+            seen.append((first, code, count))
+    return [(code, count) for _, code, count in sorted(seen)]

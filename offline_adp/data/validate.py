@@ -46,6 +46,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from offline_adp.data import schema as S
+from offline_adp.data.columns import bool_values
 from offline_adp.data.dataset import TransitionDataset
 
 # the report and the quarantine (findings.py), importable from here too
@@ -92,7 +93,7 @@ def validate(
     """
     t = ds.table
     n = t.num_rows
-    ep_codes = ds.episode_index
+    ep_codes = ds.episode_codes  # int32: indexes as well as int64, without the copy
     ep_ids = ds.episode_ids
     step = t.column(S.STEP).to_numpy(zero_copy_only=False)
     last = np.r_[ep_codes[1:] != ep_codes[:-1], True] if n else np.zeros(0, bool)
@@ -134,20 +135,22 @@ def validate(
 
     term = _bool(t, S.TERMINATED)
     trunc = _bool(t, S.TRUNCATED)
-    n_both = int((term & trunc).sum())  # valid: terminated wins (absorbing); counted, not a finding
-    add("flag_not_last", (term | trunc) & ~last, S.TERMINATED, "episode flagged as ended before its last row")
-    add("end_unflagged", last & ~term & ~trunc, "terminated,truncated",
+    n_both = int(np.count_nonzero(term & trunc))  # valid: terminated wins (absorbing); counted, not a finding
+    inner = ~last
+    ended = term | trunc
+    add("flag_not_last", ended & inner, S.TERMINATED, "episode flagged as ended before its last row")
+    add("end_unflagged", np.greater(last, ended), "terminated,truncated",  # last row, not ended
         "last row of the episode is neither terminated nor truncated")
+    del ended
 
     # continuity next_obs(t) == obs(t+1) within episodes: np.isclose's rule
     # |x - y| <= atol + rtol * |y| on rows where both are finite, without its temporaries
-    inner = ~last
     for oc, nc in zip(ds.obs_columns, ds.next_obs_columns, strict=True):
         o = t.column(oc).to_numpy(zero_copy_only=False)
         x = t.column(nc).to_numpy(zero_copy_only=False)
         if n > 1:
             xs, ys = x[:-1], o[1:]
-            mis_head = np.zeros(n - 1, bool)
+            mis_head: np.ndarray | None = None  # made at the first mismatch (there is rarely one)
             with np.errstate(invalid="ignore", over="ignore"):
                 for lo in range(0, n - 1, _BLOCK):  # temporaries the size of a block
                     xb, yb = xs[lo:lo + _BLOCK], ys[lo:lo + _BLOCK]
@@ -173,10 +176,15 @@ def validate(
                     m &= np.isfinite(yb)
                     if isinstance(j, slice):
                         m &= cand
+                    if not m.any():
+                        continue
+                    if mis_head is None:
+                        mis_head = np.zeros(n - 1, bool)
+                    if isinstance(j, slice):
                         mis_head[lo:lo + _BLOCK] = m
                     else:
                         mis_head[lo + j[m]] = True
-            if mis_head.any():
+            if mis_head is not None:
                 mis = np.r_[mis_head, False]
                 nxt = np.r_[ys, np.nan]
                 add(
@@ -208,7 +216,8 @@ def validate(
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
     add(
         "action_out_of_range",
-        (a < 0) | (a >= ds.n_actions),
+        # one comparison: a negative integer read as unsigned is beyond any action count
+        a.view(f"u{a.itemsize}") >= ds.n_actions if a.dtype.kind == "i" else (a < 0) | (a >= ds.n_actions),
         S.ACTION,
         f"action index outside the action table [0, {ds.n_actions})",
     )
@@ -223,13 +232,16 @@ def validate(
         p = t.column(S.BEHAVIOR_PROB).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
         add(
             "propensity_out_of_range",
-            ~np.isnan(p) & ~((p > 0) & (p <= 1)),
+            (p <= 0) | (p > 1),  # outside (0, 1]; NaN (a missing propensity) compares False
             S.BEHAVIOR_PROB,
             "behavior_prob outside (0, 1]",
         )
     if S.T_NS in t.column_names:
         ts = t.column(S.T_NS).to_numpy(zero_copy_only=False)
-        dec = np.r_[False, (ts[1:] < ts[:-1]) & ~first[1:]] if n else np.zeros(0, bool)
+        dec = np.zeros(n, bool)
+        if n > 1:  # a row after a row of its episode (inner[:-1] is ~first[1:])
+            np.less(ts[1:], ts[:-1], out=dec[1:])
+            dec[1:] &= inner[:-1]
         add("time_decreasing", dec, S.T_NS, "timestamp earlier than the previous step's")
 
     if not parts:
@@ -327,7 +339,7 @@ def _directory_origin(path: Path, ds: TransitionDataset) -> RowOrigin | None:
 
 
 def _bool(t: pa.Table, name: str) -> np.ndarray:
-    return np.asarray(t.column(name).fill_null(False).to_numpy(zero_copy_only=False), dtype=bool)
+    return bool_values(t.column(name))  # nulls as False
 
 
 def _all_within(v: np.ndarray, bound: float, buf: np.ndarray) -> bool:

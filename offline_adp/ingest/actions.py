@@ -84,20 +84,56 @@ _MATCH_BLOCK = 1 << 14  # values per block of _match_each: its buffers stay in c
 
 def _match_each(x: np.ndarray, tv: np.ndarray, tol: np.ndarray) -> np.ndarray:
     """Per value of ``x``, the last ``k`` with ``|x - tv[k]| <= tol[k]`` (else -1), int32:
-    block by block in place, no temporary the size of ``x``."""
+    block by block in place, no temporary the size of ``x``.
+
+    When the table's tolerance intervals are far apart (finite, distinct values: at most one
+    ``k`` can match), a value equal to ``tv[k]`` is that match: each block is first matched by
+    equality (two in-cache passes per action instead of four, without masked copies), and
+    only the values equal to none (NaN, rounding, labels outside the table) take the
+    tolerance rule."""
     idx = np.full(len(x), -1, np.int32)
     d = np.empty(min(len(x), _MATCH_BLOCK))
     hit = np.empty(len(d), bool)
+    exact = _far_apart(tv, tol)
     for lo in range(0, len(x), _MATCH_BLOCK):
         xb = x[lo:lo + _MATCH_BLOCK]
         n = len(xb)
         out, db, hb = idx[lo:lo + n], d[:n], hit[:n]
+        if not exact:
+            _match_tolerance(xb, tv, tol, out, db, hb)
+            continue
+        code = db.view(np.int64)[:n]  # k + 1 of the equal table value, 0 when none
+        code[:] = 0
         for k in range(len(tv)):
-            np.subtract(xb, tv[k], out=db)
-            np.abs(db, out=db)
-            np.less_equal(db, tol[k], out=hb)
-            np.copyto(out, k, where=hb)
+            np.equal(xb, tv[k], out=hb)
+            code += hb * np.int64(k + 1)
+        np.subtract(code, 1, out=out, casting="unsafe")
+        rest = np.flatnonzero(out < 0)
+        if len(rest):
+            sub = np.full(len(rest), -1, np.int32)
+            _match_tolerance(xb[rest], tv, tol, sub, np.empty(len(rest)), np.empty(len(rest), bool))
+            out[rest] = sub
     return idx
+
+
+def _far_apart(tv: np.ndarray, tol: np.ndarray) -> bool:
+    """Whether no number is within tolerance of two table values (finite values whose
+    neighbours are more than twice their two tolerances apart: far beyond rounding)."""
+    if not (np.isfinite(tv).all() and np.isfinite(tol).all()):
+        return False
+    order = np.argsort(tv, kind="stable")
+    s, t = tv[order], tol[order]
+    return bool((np.diff(s) > 2 * (t[:-1] + t[1:])).all())
+
+
+def _match_tolerance(xb: np.ndarray, tv: np.ndarray, tol: np.ndarray, out: np.ndarray, db: np.ndarray,
+                     hb: np.ndarray) -> None:
+    """``out`` (-1 where nothing matches) set to the last ``k`` with ``|xb - tv[k]| <= tol[k]``."""
+    for k in range(len(tv)):
+        np.subtract(xb, tv[k], out=db)
+        np.abs(db, out=db)
+        np.less_equal(db, tol[k], out=hb)
+        np.copyto(out, k, where=hb)
 
 
 def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") -> tuple[np.ndarray, ActionTable]:

@@ -17,6 +17,7 @@ import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from offline_adp.data.columns import bool_values
 from offline_adp.errors import IngestError
 from offline_adp.ingest.actions import map_discrete
 from offline_adp.ingest.spec import TIME_UNITS, ActionSpec, ParquetSpec
@@ -176,7 +177,7 @@ def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarra
             raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column "
                               "(bool or 0/1)")
     null = np.asarray(pc.is_null(c)) if c.null_count else np.zeros(n, bool)
-    return np.asarray(c.fill_null(False).to_numpy(zero_copy_only=False), dtype=bool), null
+    return bool_values(c), null  # a null as False (and in the mask)
 
 
 def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray], str]) -> np.ndarray | pa.ChunkedArray:
