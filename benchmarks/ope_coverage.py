@@ -462,8 +462,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                       logs_only_labelled=len(lo_head), logs_only_covered=sum(bool(x["covers"]) for x in lo_head),
                       logs_only_median_width=float(np.median([x["width_over_range"] for x in lo_head]))
                       if lo_head else None,
-                      median_headline_width_over_range=float(np.median(
-                          [r["headline_width_over_range"] for r in head])) if head else None)
+                      median_headline_width_over_range=_median([r.get("headline_width_over_range") for r in head]))
         # FQE's interval as shown, labelled or not (how the continuous interval's coverage was measured
         # before it carried a level), and the widths of the labelled headline intervals
         shown = [r["fqe"] for r in rs if (r.get("fqe") or {}).get("interval") is not None]
@@ -474,6 +473,12 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                       median_shown_width_over_range=float(np.median([f["width_over_range"] for f in shown]))
                       if shown else None)
     return out
+
+
+def _median(xs: list[Any]) -> float | None:
+    """The median of the values that are there (rows of earlier runs may lack a field)."""
+    xs = [x for x in xs if x is not None]
+    return float(np.median(xs)) if xs else None
 
 
 def _fmt(x: Any) -> str:
