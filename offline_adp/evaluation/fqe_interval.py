@@ -398,14 +398,18 @@ def with_truncation_bound(fq: OPEResult, tail: float) -> OPEResult:
 
 def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: EvaluationSettings, *,
                       a: TransitionArrays, em: EpisodeMatrix, level: float, task_map: TaskMap | None,
-                      say: Callable[[str], None]) -> tuple[FQEFit, OPEResult]:
+                      say: Callable[[str], None], fit: FQEFit | None = None,
+                      model: dict[str, Any] | None = None) -> tuple[FQEFit, OPEResult]:
     """FQE's estimate ``J^`` and its interval: fit (:func:`fit_fqe`), bootstrap
     (:func:`bootstrap_values`, :func:`fqe_replicates` replicates), percentile / basic hull
     (:func:`fqe_interval`), then widened by the support bounds (structure-conditional fits),
-    the model rollouts and the truncation bound, in that order (module docstring)."""
+    the model rollouts and the truncation bound, in that order (module docstring). ``fit``
+    and ``model``: the fit and the model rollouts' reading when already computed (on a
+    task map, :mod:`~offline_adp.evaluation.batch`)."""
     x0 = a.obs[a.step == 0]
     pi_x0 = policy.probabilities(x0, 0)  # once, not per bootstrap replicate
-    fit = fit_fqe(ds, policy, est_def, cfg.fqe_params, cfg.seed, x0, pi_x0)
+    if fit is None:
+        fit = fit_fqe(ds, policy, est_def, cfg.fqe_params, cfg.seed, x0, pi_x0)
     cheap = fit.conditional or fit.params.get("regressor") in CHEAP_REGRESSORS
     n_reps = fqe_replicates(cfg.fqe_bootstrap, cheap)
     reps = bootstrap_values(fit, ds, policy, a, em, n_reps, cfg.seed, est_def.gamma, x0, pi_x0, task_map, say)
@@ -416,8 +420,9 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
         say("FQE support bounds")
         fq = with_support_bounds(fq, fqe_support_bounds(fit.fqe, ds, cfg.seed))
     if est_def.form == "finite":  # hulled only where FQE's interval is of the same quantity (a
-        if cfg.model_particles:  # time-indexed FQE past the logs reads the T-step value)
+        if cfg.model_particles and model is None:  # time-indexed FQE past the logs reads the T-step value)
             say("model rollouts")
-        fq = widen_fqe(fq, model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a, say),
-                       hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
+        mr = model if model is not None else model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed,
+                                                           a, say)
+        fq = widen_fqe(fq, mr, hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)
