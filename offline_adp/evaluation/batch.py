@@ -60,23 +60,24 @@ def _model(*, ds: TransitionDataset, policy: Policy, est_def: Estimand, particle
     return model_reading(ds, policy, est_def, particles, level, seed, ds.arrays())
 
 
-def _fold(*, ds: TransitionDataset, policy: Policy, f: int, **kw: Any) -> np.ndarray | CrossFitError:
+def _fold(*, ds: TransitionDataset, policy: Policy, vectors: dict[str, np.ndarray], f: int,
+          **kw: Any) -> np.ndarray | CrossFitError:
     try:
-        return fold_q(f, ds=ds, policy=policy, **kw)
+        return fold_q(f, ds=ds, policy=policy, row_fold=vectors["row_fold"], **kw)
     except CrossFitError as exc:  # returned, so that the other tasks' results are kept
         return exc
 
 
-def _recursion(*, ds: TransitionDataset, policy: Policy, rho: np.ndarray, T: int,
+def _recursion(*, ds: TransitionDataset, policy: Policy, vectors: dict[str, np.ndarray], rho: str, T: int,
                ratio_fit: dict[str, Any]) -> shift.DensityRatios:
     a = ds.arrays()
-    return shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho, horizon=T, **ratio_fit)
+    return shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, vectors[rho], horizon=T, **ratio_fit)
 
 
-def _pooled(*, ds: TransitionDataset, policy: Policy, rho: np.ndarray, T: int,
+def _pooled(*, ds: TransitionDataset, policy: Policy, vectors: dict[str, np.ndarray], rho: str, T: int,
             ratio_fit: dict[str, Any]) -> shift.DensityRatios:
     a = ds.arrays()
-    return shift.ratios_pooled(a.obs, a.next_obs, a.step, rho, horizon=T, **ratio_fit)
+    return shift.ratios_pooled(a.obs, a.next_obs, a.step, vectors[rho], horizon=T, **ratio_fit)
 
 
 def _classifier(*, ds: TransitionDataset, policy: Policy, states: list[np.ndarray], seed: int) -> shift.DensityRatios:
@@ -88,10 +89,14 @@ _JOBS: dict[str, Callable[..., Any]] = {"fqe": _fqe, "model": _model, "fold": _f
                                         "pooled": _pooled, "classifier": _classifier}
 
 
-def run_job(job: tuple[str, str, dict[str, Any]], **shared: Any) -> Any:
-    """One task of the batch: ``job = (kind, name, arguments)`` with the broadcast ``shared``."""
+def run_job(job: tuple[str, str, dict[str, Any]], *, ds: TransitionDataset, policy: Policy,
+            vectors: dict[str, np.ndarray]) -> Any:
+    """One task of the batch: ``job = (kind, name, arguments)`` with the broadcast dataset,
+    policy and per-row ``vectors`` (the ratios' rho, the folds), which the jobs name."""
     kind, _name, kw = job
-    return _JOBS[kind](**shared, **kw)
+    if kind in ("fold", "recursion", "pooled"):
+        kw = {**kw, "vectors": vectors}
+    return _JOBS[kind](ds=ds, policy=policy, **kw)
 
 
 @dataclass(frozen=True)
@@ -109,9 +114,12 @@ class BatchInputs:
 
 def batch_jobs(policy: Policy, est_def: Estimand, cfg: EvaluationSettings, b: BatchInputs,
                reference_policies: dict[str, Policy] | None,
-               policy_states: list[np.ndarray] | None) -> tuple[list[tuple[str, str, dict[str, Any]]], Any]:
-    """The batch's jobs ``(kind, name, arguments)``, longest first, and the folds' ``(row_fold, k)``."""
+               policy_states: list[np.ndarray] | None) -> tuple[list[tuple[str, str, dict[str, Any]]], Any,
+                                                                dict[str, np.ndarray]]:
+    """The batch's jobs ``(kind, name, arguments)``, longest first, the folds' ``(row_fold, k)``
+    and the per-row vectors the jobs name (broadcast with the dataset, not sent per job)."""
     a, T, seed = b.a, est_def.horizon, cfg.seed
+    vectors = {"rho": b.rho}
     x0 = a.obs[a.step == 0]
     jobs: list[tuple[str, str, dict[str, Any]]] = [
         ("fqe", "fqe", {"est_def": est_def, "fqe_params": cfg.fqe_params, "seed": seed, "x0": x0,
@@ -119,22 +127,22 @@ def batch_jobs(policy: Policy, est_def: Estimand, cfg: EvaluationSettings, b: Ba
     folds = None
     if b.psdp_folds:
         row_fold, k = crossfit_folds(b.row_episode, b.psdp_folds, seed)
-        folds = (row_fold, k)
+        folds, vectors["row_fold"] = (row_fold, k), row_fold
         kw = {"fqe_params": fqe_settings(cfg.fqe_params, est_def.fqe_horizon), "fqe_T": est_def.fqe_horizon,
-              "gamma": est_def.gamma, "seed": seed, "row_fold": row_fold, "k": k}
+              "gamma": est_def.gamma, "seed": seed, "k": k}
         jobs += [("fold", f"fold {f + 1}", {"f": f, **kw}) for f in range(k)]
     if est_def.form == "finite" and cfg.model_particles:
         jobs.append(("model", "model", {"est_def": est_def, "particles": cfg.model_particles, "level": b.level,
                                         "seed": seed}))
-    jobs.append(("recursion", "self", {"rho": b.rho, "T": T, "ratio_fit": b.ratio_fit}))
+    jobs.append(("recursion", "self", {"rho": "rho", "T": T, "ratio_fit": b.ratio_fit}))
     if is_stationary(policy, a.obs, T):
-        jobs.append(("pooled", "pooled", {"rho": b.rho, "T": T, "ratio_fit": b.ratio_fit}))
+        jobs.append(("pooled", "pooled", {"rho": "rho", "T": T, "ratio_fit": b.ratio_fit}))
     for name, ref in (reference_policies or {}).items():
-        rho_ref = ref.probabilities(a.obs, a.step)[np.arange(len(a)), a.action] / b.logged_prob
-        jobs.append(("recursion", f"ref:{name}", {"rho": rho_ref, "T": T, "ratio_fit": b.ratio_fit}))
+        vectors[f"rho:{name}"] = ref.probabilities(a.obs, a.step)[np.arange(len(a)), a.action] / b.logged_prob
+        jobs.append(("recursion", f"ref:{name}", {"rho": f"rho:{name}", "T": T, "ratio_fit": b.ratio_fit}))
     if policy_states is not None:
         jobs.append(("classifier", "classifier", {"states": policy_states[:T], "seed": seed}))
-    return jobs, folds
+    return jobs, folds, vectors
 
 
 def fit_batch(ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: EvaluationSettings, b: BatchInputs,
@@ -143,10 +151,10 @@ def fit_batch(ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: Eva
     """Run the batch (module docstring) on ``task_map``; the dataset and policy are broadcast once."""
     from offline_adp.progress import PhaseLines
 
-    jobs, folds = batch_jobs(policy, est_def, cfg, b, reference_policies, policy_states)
+    jobs, folds, vectors = batch_jobs(policy, est_def, cfg, b, reference_policies, policy_states)
     say(f"fits on the task map: {', '.join(name for _k, name, _a in jobs)}")
     out = dict(zip([name for _k, name, _a in jobs],
-                   task_map(run_job, jobs, shared={"ds": ds, "policy": policy},
+                   task_map(run_job, jobs, shared={"ds": ds, "policy": policy, "vectors": vectors},
                             on_done=PhaseLines(say, "fits on the task map", len(jobs), lines=len(jobs))), strict=True))
     held = None
     if folds is not None:
