@@ -19,6 +19,7 @@ to ``--metrics-out`` (compare two runs' files: they are equal but for ``dataset.
 
     python benchmarks/dask_evaluate.py [--rows 1000000] [--data /tmp/ds1m] [--run /tmp/run1m]
         [--workers 2] [--memory-limit 4GiB] [--fqe-bootstrap N] [--model-particles N] [--episodes N]
+        [--fqe-trees N]
 """
 
 from __future__ import annotations
@@ -141,11 +142,16 @@ def main() -> None:
     ap.add_argument("--model-particles", type=int, default=None)
     ap.add_argument("--episodes", type=int, default=None)
     ap.add_argument("--bootstrap", type=int, default=None)
+    ap.add_argument("--fqe-trees", type=int, default=None,
+                    help='fqe_params={"regressor_params": {"n_estimators": N}} (default: the evaluation\'s 20)')
     ap.add_argument("--metrics-out", type=Path, default=None)
     args = ap.parse_args()
     prepare(args)
+    trees = args.fqe_trees and {"regressor_params": {"n_estimators": args.fqe_trees}}
     settings = {k: v for k, v in (("fqe_bootstrap", args.fqe_bootstrap), ("model_particles", args.model_particles),
-                                  ("episodes", args.episodes), ("bootstrap", args.bootstrap)) if v is not None}
+                                  ("episodes", args.episodes), ("bootstrap", args.bootstrap),
+                                  ("fqe_params", trees or None),
+                                  ) if v is not None}
     out = evaluate(args, settings)
     if args.metrics_out is not None:
         shutil.copy(args.run / "evaluation" / "metrics.json", args.metrics_out)

@@ -17,13 +17,13 @@ from offline_adp.simulate import simulate  # noqa: E402
 
 #: Small enough for a test, with every stage the batch runs: model rollouts, two folds,
 #: the recursion, pooled, demonstrator and classifier ratios, 10 FQE replicates.
-SETTINGS = {"episodes": 10, "bootstrap": 10, "fqe_bootstrap": 10, "model_particles": 20, "horizon": 30}
+SETTINGS = {"episodes": 8, "bootstrap": 10, "fqe_bootstrap": 10, "model_particles": 20, "horizon": 15}
 
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     root = tmp_path_factory.mktemp("daskeval")
-    simulate("car_on_hill", 0, 150, seed=3, horizon=100).save(root / "ds")
+    simulate("car_on_hill", 0, 60, seed=3, horizon=100).save(root / "ds")
     fit_run(root / "ds", root / "run", params={"gamma": 0.95, "n_iterations": 3, "regressor_params": {"n_jobs": 1}})
     return root / "ds", root / "run"
 
@@ -44,6 +44,7 @@ def _on_cluster(fitted, n_workers):
     return m
 
 
+@pytest.mark.slow
 def test_a_dask_evaluation_equals_the_local_one_and_is_reproducible(fitted):
     local = _evaluate(fitted)
     assert "estimate" in local["ope"]["fqe"]["model_rollouts"]  # the model rollouts ran (in the batch on Dask)
