@@ -5,7 +5,11 @@ Given a task map (:mod:`offline_adp.parallel`; under the Dask engine
 fit of :func:`~offline_adp.evaluation.offpolicy.off_policy` that needs only the data, the
 policy and the behaviour model's ratios:
 
-- the main FQE fit (:func:`~offline_adp.evaluation.fqe_interval.fit_fqe`, settled as locally);
+- the main FQE fit (:func:`~offline_adp.evaluation.fqe_interval.fit_fqe`, settled as locally)
+  and everything read from it: Q at every row, its bootstrap replicates (in order, on that
+  worker) and its support bounds
+  (:func:`~offline_adp.evaluation.fqe_interval.read_where_fitted`; only these numbers come
+  back, never the fitted FQE and its training state, several times the data's size);
 - the model rollouts (:func:`~offline_adp.evaluation.fqe_interval.model_reading`: the
   :class:`~offline_adp.evaluation.model_rollouts.LoggedDynamics` fit and its rollouts);
 - each fold of the cross-fitted FQE (:func:`~offline_adp.evaluation.psdp_eps.fold_q`);
@@ -17,8 +21,9 @@ Each task is a function of its arguments and its own seed (the evaluation's seed
 local evaluation), never of where or after which other task it runs, so the results equal
 the local evaluation's on any number of workers. The dataset and the policy are broadcast
 once. The main FQE runs as one task on a worker, not through the Dask fit engine (which
-splits the trees over the workers): its bootstrap replicates and support bounds read the
-fit's training state (leaf positions of every row), which that engine does not bring back.
+splits the trees over the workers): its bootstrap replicates, fixed point and support
+bounds read the fit's training state (leaf positions of every row, the operators), which
+that engine leaves on the workers.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ import numpy as np
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.evaluation import shift
 from offline_adp.evaluation.estimand import Estimand
-from offline_adp.evaluation.fqe_interval import FQEFit, fit_fqe, fqe_settings, model_reading
+from offline_adp.evaluation.fqe_interval import FQEFit, fit_fqe, fqe_settings, model_reading, read_where_fitted
 from offline_adp.evaluation.psdp_eps import CrossFitError, crossfit_folds, fold_q
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.parallel import TaskMap
@@ -50,9 +55,10 @@ class BatchFits:
     ratios: dict[str, shift.DensityRatios]  #: "self", "pooled", "ref:NAME", "classifier"
 
 
-def _fqe(*, ds: TransitionDataset, policy: Policy, est_def: Estimand, fqe_params: dict[str, Any] | None, seed: int,
-         x0: np.ndarray, pi_x0: np.ndarray) -> FQEFit:
-    return fit_fqe(ds, policy, est_def, fqe_params, seed, x0, pi_x0)
+def _fqe(*, ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: EvaluationSettings, x0: np.ndarray,
+         pi_x0: np.ndarray) -> FQEFit:
+    fit = fit_fqe(ds, policy, est_def, cfg.fqe_params, cfg.seed, x0, pi_x0)
+    return read_where_fitted(fit, ds, policy, est_def, cfg, x0, pi_x0)
 
 
 def _model(*, ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float,
@@ -122,8 +128,7 @@ def batch_jobs(policy: Policy, est_def: Estimand, cfg: EvaluationSettings, b: Ba
     vectors = {"rho": b.rho}
     x0 = a.obs[a.step == 0]
     jobs: list[tuple[str, str, dict[str, Any]]] = [
-        ("fqe", "fqe", {"est_def": est_def, "fqe_params": cfg.fqe_params, "seed": seed, "x0": x0,
-                        "pi_x0": policy.probabilities(x0, 0)})]
+        ("fqe", "fqe", {"est_def": est_def, "cfg": cfg, "x0": x0, "pi_x0": policy.probabilities(x0, 0)})]
     folds = None
     if b.psdp_folds:
         row_fold, k = crossfit_folds(b.row_episode, b.psdp_folds, seed)

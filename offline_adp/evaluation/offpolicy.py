@@ -86,7 +86,7 @@ class OffPolicyResult:
     diagnostics: pd.DataFrame
     support: dict[str, Any]
     eps: np.ndarray
-    fqe: FittedQEvaluation
+    fqe: FittedQEvaluation | None  #: the main FQE; None when fitted on a worker (task map: evaluation/batch.py)
     extra_ratios: dict[str, tuple[shift.DensityRatios, pd.DataFrame]] = field(default_factory=dict)
     bounds: dict[str, dict[str, Any]] = field(default_factory=dict)
     estimand: Estimand | None = None
@@ -178,7 +178,7 @@ def residual_advantages(ds: TransitionDataset, policy: Policy, fit: FQEFit, w: W
     bootstrap sees no spread (car_on_hill, the logging policy: [0.1294, 0.1296] against a truth
     of 0.127). ``held``: the folds' held-out Q-values already fitted on a task map
     (:class:`~offline_adp.evaluation.batch.BatchFits`' ``folds``)."""
-    qv = fit.fqe.q_function_.values(a.obs, a.step)
+    qv = fit.q if fit.q is not None else fit.fqe.q_function_.values(a.obs, a.step)
     in_sample = residual_advantage(qv, w.target, a.step, gamma, T)
     if not folds:
         return ResidualAdvantage(in_sample, in_sample, None, qv, False)
