@@ -115,14 +115,15 @@ def evaluate(args: argparse.Namespace, settings: dict[str, Any]) -> dict[str, An
     with RSSSampler() as rss:
         if args.workers == 0:
             evaluate_run(args.run, dataset=args.data, progress=say, **settings)
+            end = (time.perf_counter() - t0, tree_cpu() - c0)
         else:
             cfg = EngineConfig(kind="dask", n_workers=args.workers, threads_per_worker=1,
                                memory_limit=args.memory_limit)
             with dask_client(cfg) as client:
                 say("cluster up")
                 evaluate_run(args.run, dataset=args.data, progress=say, task_map=DaskTaskMap(client), **settings)
+                end = (time.perf_counter() - t0, tree_cpu() - c0)  # before the workers (and their CPU) are gone
                 workers = {k: round(v, 3) for k, v in client.run(vmhwm_gib).items()}
-        end = (time.perf_counter() - t0, tree_cpu() - c0)
     by_pid = {f"{pid} {rss.names.get(pid, '')}": round(v / 2**30, 3) for pid, v in sorted(rss.peak.items())}
     return {"workers": args.workers, "settings": settings, "wall_s": round(end[0], 1), "cpu_s": round(end[1], 1),
             "stages": {k: [round(v[0], 1), round(v[1], 1)] for k, v in stages(marks, end).items()},
