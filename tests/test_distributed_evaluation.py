@@ -59,3 +59,20 @@ def test_the_batch_on_the_local_task_map_equals_the_stages_inline(fitted):
     from offline_adp.parallel import local_map
 
     assert _evaluate(fitted, local_map) == _evaluate(fitted)
+
+
+def test_a_fitted_frozen_fqe_pickles_with_the_standard_pickle(fitted):
+    """Dask sends a task's result with pickle (arrays out of band) unless it fails; then
+    cloudpickle copies every array into its stream (a 1M-row FQE: 2.5 -> 7.9 GiB)."""
+    import pickle
+
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.data.dataset import read_dataset
+    from offline_adp.policies import UniformPolicy
+
+    ds = read_dataset(fitted[0])
+    fqe = FittedQEvaluation(policy=UniformPolicy(ds.n_actions), gamma=0.95, mode="frozen", n_iterations=4,
+                            regressor_params={"n_estimators": 3}).fit(ds)
+    back = pickle.loads(pickle.dumps(fqe, protocol=5))
+    x = ds.arrays().obs[:50]
+    assert (back.q_function_.values(x, 0) == fqe.q_function_.values(x, 0)).all()
