@@ -20,6 +20,7 @@ per 12.5 iterations, whole forests, plain backups. Measured: docs/fqi-modes.md.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Any
 
@@ -53,6 +54,12 @@ MODES = ("auto", "refit", "frozen", "warm_start")
 GEOMETRIC_LAST, GEOMETRIC_RATIO = 0.25, 4
 #: ... and the builds before the last grow this fraction of the forest (``early_build_trees="auto"``)
 INTERMEDIATE_TREES = 0.2
+
+
+def _next_backup(backup: Any, q_next: Any) -> Any:
+    """The loop's backup of next-state Q-values (what a frozen learner settles with): a
+    module-level function, so that a fitted estimator pickles (a Dask task's result)."""
+    return backup(q_next, "next", None)
 
 
 def geometric_builds(k_b: int, last: float = GEOMETRIC_LAST, ratio: int = GEOMETRIC_RATIO) -> tuple[int, ...]:
@@ -151,7 +158,7 @@ class LearnModes:
             backup = make_backup(data)
             bind = getattr(made.get("learner"), "bind_targets", None)
             if bind is not None:
-                bind(data.targets, lambda q_next: backup(q_next, "next", None), isinstance(backup, GreedyBackup))
+                bind(data.targets, functools.partial(_next_backup, backup), isinstance(backup, GreedyBackup))
             return backup
 
         return super().run_fitted_q(dataset, sample_weight, resume, backup_of, prepare,  # type: ignore[misc]

@@ -82,11 +82,31 @@ SUPPORT_RADIUS_QUANTILE = 0.99
 class FQEFit:
     """FQE of the policy fitted on all the data, and how its interval is bootstrapped."""
 
-    fqe: FittedQEvaluation
+    fqe: FittedQEvaluation | None  #: None: fitted and read on a worker (:func:`read_where_fitted`)
     params: dict[str, Any]  #: its FittedQEvaluation settings (policy, horizon, gamma and seed aside)
     horizon: int | None  #: T of the time-indexed FQE; None: the stationary (discounted) one
     conditional: bool  #: structure-conditional bootstrap (frozen trees, discounted, no validation rows)
     estimate: float  #: J^ = mean over start states of sum_a pi(a | x0) Q^(x0, a)
+    q: np.ndarray | None = None  #: Q^(x_i, .) at every row, when read where it was fitted
+    reps: list[float] | None = None  #: its bootstrap replicates' J^, when read where it was fitted
+    support: dict[str, Any] | None = None  #: its support bounds (conditional), when read where it was fitted
+
+
+def read_where_fitted(fit: FQEFit, ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: EvaluationSettings,
+                      x0: np.ndarray, pi_x0: np.ndarray) -> FQEFit:
+    """``fit`` without its fitted FQE, with what the evaluation reads from it instead: Q at
+    every row, the bootstrap replicates (:func:`bootstrap_values`, here, in order) and the
+    support bounds (structure-conditional fits). A task on a worker returns this, so that
+    the fitted FQE and its training state never travel (they are several times the data)."""
+    from offline_adp.evaluation.ope import EpisodeMatrix
+
+    a = ds.arrays()
+    em = EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
+    n_reps = fqe_replicates(cfg.fqe_bootstrap, fit.conditional or fit.params.get("regressor") in CHEAP_REGRESSORS)
+    reps = bootstrap_values(fit, ds, policy, a, em, n_reps, cfg.seed, est_def.gamma, x0, pi_x0, None, lambda _m: None)
+    support = fqe_support_bounds(fit.fqe, ds, cfg.seed) if fit.conditional else None
+    return replace(fit, fqe=None, q=fit.fqe.q_function_.values(a.obs, a.step), reps=[float(r) for r in reps],
+                   support=support)
 
 
 def fqe_replicates(requested: int | None, cheap: bool) -> int:
@@ -418,27 +438,34 @@ def with_truncation_bound(fq: OPEResult, tail: float) -> OPEResult:
 
 def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, cfg: EvaluationSettings, *,
                       a: TransitionArrays, em: EpisodeMatrix, level: float, task_map: TaskMap | None,
-                      say: Callable[[str], None]) -> tuple[FQEFit, OPEResult]:
+                      say: Callable[[str], None], fit: FQEFit | None = None,
+                      model: dict[str, Any] | None = None) -> tuple[FQEFit, OPEResult]:
     """FQE's estimate ``J^`` and its interval: fit (:func:`fit_fqe`), bootstrap
     (:func:`bootstrap_values`, :func:`fqe_replicates` replicates), percentile / basic hull
     (:func:`fqe_interval`), then widened by the support bounds (structure-conditional fits),
-    the model rollouts and the truncation bound, in that order (module docstring)."""
+    the model rollouts and the truncation bound, in that order (module docstring). ``fit``
+    and ``model``: the fit and the model rollouts' reading when already computed (on a
+    task map, :mod:`~offline_adp.evaluation.batch`)."""
     x0 = a.obs[a.step == 0]
     pi_x0 = policy.probabilities(x0, 0)  # once, not per bootstrap replicate
-    fit = fit_fqe(ds, policy, est_def, cfg.fqe_params, cfg.seed, x0, pi_x0)
+    if fit is None:
+        fit = fit_fqe(ds, policy, est_def, cfg.fqe_params, cfg.seed, x0, pi_x0)
     cheap = fit.conditional or fit.params.get("regressor") in CHEAP_REGRESSORS
     n_reps = fqe_replicates(cfg.fqe_bootstrap, cheap)
-    reps = bootstrap_values(fit, ds, policy, a, em, n_reps, cfg.seed, est_def.gamma, x0, pi_x0, task_map, say)
+    reps = fit.reps if fit.reps is not None else bootstrap_values(fit, ds, policy, a, em, n_reps, cfg.seed,
+                                                                  est_def.gamma, x0, pi_x0, task_map, say)
     fq = fqe_interval(fit.estimate, reps, em.n_episodes, level)
     if fit.conditional and n_reps:
         fq = with_structure_note(fq)
     if fit.conditional:  # what the model cannot know: widen to the support bounds
         say("FQE support bounds")
-        fq = with_support_bounds(fq, fqe_support_bounds(fit.fqe, ds, cfg.seed))
+        fq = with_support_bounds(fq, fit.support if fit.support is not None else fqe_support_bounds(fit.fqe, ds,
+                                                                                                     cfg.seed))
     if est_def.form == "finite":  # hulled only where FQE's interval is of the same quantity (a
-        if cfg.model_particles:  # time-indexed FQE past the logs reads the T-step value)
+        if cfg.model_particles and model is None:  # time-indexed FQE past the logs reads the T-step value)
             say("model rollouts")
         hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
-        mr = model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed, a, say)
+        mr = model if model is not None else model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed,
+                                                           a, say)
         fq = widen_fqe(fq, with_fqe_interval(mr, fq, est_def.tail_bound) if hull else mr, hull=hull)
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)

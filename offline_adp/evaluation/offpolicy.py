@@ -36,6 +36,7 @@ import pandas as pd
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.evaluation import ope, risk, shift
+from offline_adp.evaluation.batch import BatchInputs, fit_batch
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,
@@ -64,6 +65,7 @@ from offline_adp.evaluation.psdp_eps import (  # crossfit_residual_advantage, Cr
     PSDP_EPS_FOLDS,
     CrossFitError,
     bound_entry,
+    crossfit_combine,
     crossfit_residual_advantage,
     episode_groups,
     residual_advantage,
@@ -85,7 +87,7 @@ class OffPolicyResult:
     diagnostics: pd.DataFrame
     support: dict[str, Any]
     eps: np.ndarray
-    fqe: FittedQEvaluation
+    fqe: FittedQEvaluation | None  #: the main FQE; None when fitted on a worker (task map: evaluation/batch.py)
     extra_ratios: dict[str, tuple[shift.DensityRatios, pd.DataFrame]] = field(default_factory=dict)
     bounds: dict[str, dict[str, Any]] = field(default_factory=dict)
     estimand: Estimand | None = None
@@ -166,7 +168,8 @@ def behaviour_model(ds: TransitionDataset, a: TransitionArrays, policy: Policy, 
 
 
 def residual_advantages(ds: TransitionDataset, policy: Policy, fit: FQEFit, w: Weighting, a: TransitionArrays,
-                        T: int, gamma: float, folds: int, seed: int, say: Callable[[str], None]) -> ResidualAdvantage:
+                        T: int, gamma: float, folds: int, seed: int, say: Callable[[str], None],
+                        held: Any = None) -> ResidualAdvantage:
     """``eps_t = gamma^t E_{mu_t}[sum_a pi(a|x) Q_t(x, a) - min_a Q_t(x, a)]``
     (:func:`~offline_adp.evaluation.psdp_eps.residual_advantage`) with ``Q`` cross-fitted over
     ``folds`` folds of episodes (:func:`~offline_adp.evaluation.psdp_eps.crossfit_residual_advantage`:
@@ -174,15 +177,23 @@ def residual_advantages(ds: TransitionDataset, policy: Policy, fit: FQEFit, w: W
     which gives 0 for FQI's greedy policy). The cross-fitted Q is also DR's: an in-sample Q of
     trees with small leaves reproduces the logged returns, so DR's corrections vanish and its
     bootstrap sees no spread (car_on_hill, the logging policy: [0.1294, 0.1296] against a truth
-    of 0.127)."""
-    qv = fit.fqe.q_function_.values(a.obs, a.step)
+    of 0.127). ``held``: the folds' held-out Q-values already fitted on a task map
+    (:class:`~offline_adp.evaluation.batch.BatchFits`' ``folds``)."""
+    qv = fit.q if fit.q is not None else fit.fqe.q_function_.values(a.obs, a.step)
     in_sample = residual_advantage(qv, w.target, a.step, gamma, T)
     if not folds:
         return ResidualAdvantage(in_sample, in_sample, None, qv, False)
-    say("PSDP eps and DR's Q, cross-fitted")
+    if held is None:
+        say("PSDP eps and DR's Q, cross-fitted")
     try:
         from offline_adp.progress import PhaseLines
 
+        if isinstance(held, CrossFitError):
+            raise held
+        if held is not None:
+            eps, q = crossfit_combine(a, policy, held[2], held[0], gamma, T, return_q=True, target=w.target,
+                                      n_actions=ds.n_actions)
+            return ResidualAdvantage(eps, in_sample, None, q, True)
         eps, q = crossfit_residual_advantage(ds, policy, fit.params, fit.horizon, gamma, T, w.em.row_episode,
                                              folds=folds, seed=seed, return_q=True, target=w.target,
                                              on_fold=PhaseLines(say, "PSDP eps and DR's Q: fold", folds))
@@ -205,11 +216,13 @@ def doubly_robust(w: Weighting, a: TransitionArrays, ra: ResidualAdvantage, gamm
 
 
 def marginalised(a: TransitionArrays, w: Weighting, T: int, gamma: float, ratio_fit: dict[str, Any],
-                 boot: dict[str, Any]) -> tuple[shift.DensityRatios, ope.OPEResult]:
+                 boot: dict[str, Any], ratios: shift.DensityRatios | None = None,
+                 ) -> tuple[shift.DensityRatios, ope.OPEResult]:
     """Per-step state density ratios ``w_t(x) = d^pi_t(x) / d^b_t(x)`` by the recursion
-    ``w_{t+1}(x') = E_b[w_t(x) rho | x']`` (:func:`~offline_adp.evaluation.shift.ratios_by_recursion`)
-    and marginalised IS ``sum_t gamma^t (1/N) sum_{i at t} w_t(x_i) rho_i c_i`` from them."""
-    ratios = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, w.rho, horizon=T, **ratio_fit)
+    ``w_{t+1}(x') = E_b[w_t(x) rho | x']`` (:func:`~offline_adp.evaluation.shift.ratios_by_recursion`;
+    ``ratios`` when already fitted) and marginalised IS ``sum_t gamma^t (1/N) sum_{i at t} w_t(x_i) rho_i c_i``."""
+    if ratios is None:
+        ratios = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, w.rho, horizon=T, **ratio_fit)
     return ratios, ope.marginalised_is_estimate(w.em, a.cost, w.rho, ratios.w, gamma, **boot)
 
 
@@ -227,14 +240,18 @@ def verdict_inputs(a: TransitionArrays, w: Weighting, est_def: Estimand, level: 
 def shift_and_bounds(a: TransitionArrays, policy: Policy, w: Weighting, ratios: shift.DensityRatios, diag: pd.DataFrame,
                      eps: np.ndarray, T: int, ratio_fit: dict[str, Any], k: int, seed: int,
                      reference_policies: dict[str, Policy] | None, policy_states: list[np.ndarray] | None,
-                     say: Callable[[str], None]) -> dict[str, Any]:
+                     say: Callable[[str], None],
+                     fitted: dict[str, shift.DensityRatios] | None = None) -> dict[str, Any]:
     """The shift diagnostics and the PSDP bound ``sum_t eps_t x ratio``
     (:func:`~offline_adp.evaluation.psdp_eps.bound_entry`): the ratios pooled over time (a
     stationary policy), the bound for the policy itself (``self``) and for each reference
     policy (its own ratio recursion), and with ``policy_states`` (pi's states per step from a
-    simulator) the classifier ratios."""
+    simulator) the classifier ratios. ``fitted``: the ratios already fitted on a task map
+    (:class:`~offline_adp.evaluation.batch.BatchFits`' ``ratios``)."""
     pooled = None
-    if is_stationary(policy, a.obs, T):
+    if fitted is not None and "pooled" in fitted:
+        pooled = (fitted["pooled"], shift.pooled_summary(fitted["pooled"]))
+    elif fitted is None and is_stationary(policy, a.obs, T):
         say("pooled density ratios")
         p = shift.ratios_pooled(a.obs, a.next_obs, a.step, w.rho, horizon=T, **ratio_fit)
         pooled = (p, shift.pooled_summary(p))
@@ -242,8 +259,11 @@ def shift_and_bounds(a: TransitionArrays, policy: Policy, w: Weighting, ratios: 
     extra: dict[str, tuple[shift.DensityRatios, pd.DataFrame]] = {}
     for name, ref in (reference_policies or {}).items():
         say(f"reference policy {name}")
-        rho_ref = ref.probabilities(a.obs, a.step)[np.arange(len(a)), a.action] / w.behaviour.logged_prob
-        r = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho_ref, horizon=T, **ratio_fit)
+        if fitted is not None:
+            r = fitted[f"ref:{name}"]
+        else:
+            rho_ref = ref.probabilities(a.obs, a.step)[np.arange(len(a)), a.action] / w.behaviour.logged_prob
+            r = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho_ref, horizon=T, **ratio_fit)
         d = shift.diagnostics(r, a.obs, k=k, seed=seed)
         extra[name] = (r, d)
         bounds[name] = bound_entry(eps, d, shift.pooled_ratio_ucb(r, a.obs, k=k, seed=seed), T)
@@ -252,7 +272,8 @@ def shift_and_bounds(a: TransitionArrays, policy: Policy, w: Weighting, ratios: 
 
         say("classifier density ratios")
         steps = PhaseLines(say, "classifier density ratios: step", len(policy_states[:T]))
-        r = shift.ratios_by_classifier(a.obs, a.step, policy_states[:T], seed=seed, on_step=steps)
+        r = (fitted["classifier"] if fitted is not None
+             else shift.ratios_by_classifier(a.obs, a.step, policy_states[:T], seed=seed, on_step=steps))
         extra["classifier"] = (r, shift.diagnostics(r, a.obs, k=k, seed=seed))
     return {"pooled": pooled, "bounds": bounds, "extra_ratios": extra}
 
@@ -273,7 +294,10 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     (:func:`~offline_adp.evaluation.estimand.declare_estimand`). ``psdp_folds``: folds of the
     cross-fitted eps_t and DR's Q (0: in sample). ``reference_policies``: more PSDP bounds;
     ``policy_states``: pi's states per step from a simulator (classifier ratios). ``task_map``
-    runs the FQE bootstrap replicates (:mod:`offline_adp.parallel`).
+    (:mod:`offline_adp.parallel`), when given, runs the main FQE fit, the model rollouts, the
+    cross-fitted FQE's folds and the density ratios as one batch of tasks
+    (:mod:`~offline_adp.evaluation.batch`), then the FQE bootstrap replicates; the same
+    numbers as without it.
     """
     cfg = EvaluationSettings.resolve(settings, options)  # every setting's one check
     say = progress or (lambda _msg: None)
@@ -282,18 +306,22 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     T, gamma, seed = est_def.horizon, est_def.gamma, cfg.seed
     say("behaviour policy")
     w = behaviour_model(ds, a, policy, T, behaviour_classifier, clip)
+    ratio_fit = {"regressor": ratio_regressor, "regressor_params": ratio_params}
+    bf = None if task_map is None else fit_batch(
+        ds, policy, est_def, cfg, BatchInputs(a, w.rho, w.behaviour.logged_prob, w.em.row_episode, level, ratio_fit,
+                                              psdp_folds), reference_policies, policy_states, task_map, say)
     say("fitted Q evaluation")
-    fit, fq = fqe_with_interval(ds, policy, est_def, cfg, a=a, em=w.em, level=level, task_map=task_map, say=say)
+    fit, fq = fqe_with_interval(ds, policy, est_def, cfg, a=a, em=w.em, level=level, task_map=task_map, say=say,
+                                fit=bf and bf.fit, model=bf and bf.model)
     say("importance sampling")
     boot = {"n_boot": cfg.bootstrap, "level": level, "seed": seed, "groups": w.groups}
     model = model_estimate(fq.model_rollouts, level)  # the model rollouts' own interval, checked against FQE's
     estimates = {"fqe": fq, **({"model": model} if model is not None else {}),
                  **ope.importance_sampling_estimates(w.em, a.cost, w.rho, gamma, **boot)}
-    ra = residual_advantages(ds, policy, fit, w, a, T, gamma, psdp_folds, seed, say)
+    ra = residual_advantages(ds, policy, fit, w, a, T, gamma, psdp_folds, seed, say, held=bf and bf.folds)
     estimates.update(doubly_robust(w, a, ra, gamma, psdp_folds, boot))
     say("density ratios")
-    ratio_fit = {"regressor": ratio_regressor, "regressor_params": ratio_params}
-    ratios, estimates["mis"] = marginalised(a, w, T, gamma, ratio_fit, boot)
+    ratios, estimates["mis"] = marginalised(a, w, T, gamma, ratio_fit, boot, ratios=bf and bf.ratios["self"])
     estimates = ope.flagged_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     est_def, logged_range = with_possible_range(est_def, a, w.em)
@@ -302,4 +330,4 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
                            eps_in_sample=ra.in_sample, eps_folds=int(psdp_folds or 0), eps_note=ra.note,
                            **verdict_inputs(a, w, est_def, level),
                            **shift_and_bounds(a, policy, w, ratios, diag, ra.eps, T, ratio_fit, k_support, seed,
-                                              reference_policies, policy_states, say))
+                                              reference_policies, policy_states, say, bf and bf.ratios))

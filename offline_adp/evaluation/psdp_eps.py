@@ -70,29 +70,55 @@ def crossfit_residual_advantage(ds: TransitionDataset, policy: Policy, fqe_param
     ``on_fold()`` is called after each fold (progress).
     """
     a = ds.arrays()
+    row_fold, k = crossfit_folds(n_episodes_index, folds, seed)
+    held_q = []
+    for f in range(k):
+        held_q.append(fold_q(f, ds=ds, policy=policy, fqe_params=fqe_params, fqe_T=fqe_T, gamma=gamma, seed=seed,
+                             row_fold=row_fold, k=k))
+        if on_fold is not None:
+            on_fold()
+    return crossfit_combine(a, policy, held_q, row_fold, gamma, T, return_q=return_q, target=target,
+                            n_actions=ds.n_actions)
+
+
+def crossfit_folds(n_episodes_index: np.ndarray, folds: int, seed: int) -> tuple[np.ndarray, int]:
+    """``(each row's fold, number of folds k)``: the episodes split at random (``seed``)
+    into ``k = max(2, min(folds, episodes))`` folds."""
     n_ep = int(n_episodes_index.max()) + 1
     k = int(max(2, min(folds, n_ep)))
     fold_of = np.random.default_rng(seed).permutation(n_ep) % k
-    row_fold = fold_of[n_episodes_index]
+    return fold_of[n_episodes_index], k
+
+
+def fold_q(f: int, *, ds: TransitionDataset, policy: Policy, fqe_params: dict[str, Any], fqe_T: int | None,
+           gamma: float, seed: int, row_fold: np.ndarray, k: int) -> np.ndarray:
+    """Q-values ``(held rows, n_actions)`` at the rows of fold ``f`` from FQE fitted on the
+    other folds (settled as the estimate's own FQE in the structure-conditional case); one
+    task of :func:`crossfit_residual_advantage`, the same wherever it runs."""
+    a = ds.arrays()
+    held = row_fold == f
+    fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **fqe_params)
+    try:
+        fqe.fit(ds.take(np.flatnonzero(~held)))
+    except ValueError as exc:  # a fold the settings cannot fit on (per_action: an action it lacks)
+        raise CrossFitError(f"fold {f + 1} of {k}: {exc}") from None
+    if fqe_params.get("mode") == "frozen" and fqe_T is None and not fqe_params.get("validation_fraction"):
+        fqe.settle()  # as the estimate's own FQE
+    return fqe.q_function_.values(a.obs[held], a.step[held])
+
+
+def crossfit_combine(a: Any, policy: Policy, held_q: list[np.ndarray], row_fold: np.ndarray, gamma: float, T: int,
+                     *, return_q: bool, target: np.ndarray | None, n_actions: int) -> Any:
+    """``eps`` (and with ``return_q`` the cross-fitted Q of every row) from each fold's
+    held-out Q-values ``held_q[f]`` (:func:`fold_q`)."""
     gap = np.zeros(len(a))
-    q_out = np.zeros((len(a), ds.n_actions)) if return_q else None
-    for f in range(k):
+    q_out = np.zeros((len(a), n_actions)) if return_q else None
+    for f, qv in enumerate(held_q):
         held = row_fold == f
-        train = np.flatnonzero(~held)
-        fqe = FittedQEvaluation(policy=policy, horizon=fqe_T, gamma=gamma, random_state=seed, **fqe_params)
-        try:
-            fqe.fit(ds.take(train))
-        except ValueError as exc:  # a fold the settings cannot fit on (per_action: an action it lacks)
-            raise CrossFitError(f"fold {f + 1} of {k}: {exc}") from None
-        if fqe_params.get("mode") == "frozen" and fqe_T is None and not fqe_params.get("validation_fraction"):
-            fqe.settle()  # as the estimate's own FQE
-        qv = fqe.q_function_.values(a.obs[held], a.step[held])
         probs = policy.probabilities(a.obs[held], a.step[held]) if target is None else target[held]
         gap[held] = (probs * qv).sum(axis=1) - qv.min(axis=1)
         if q_out is not None:
             q_out[held] = qv
-        if on_fold is not None:
-            on_fold()
     eps = np.zeros(T)
     for t in range(T):
         m = a.step == t

@@ -9,6 +9,8 @@ breaks later computes; :func:`read_dataset_dask` inserts a ``map_partitions`` fi
 from __future__ import annotations
 
 import contextlib
+import functools
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from os import PathLike
@@ -104,10 +106,20 @@ def flat_columns(info: Any) -> dict[str, list[str]]:
 
 
 
+def _on_worker(fn: Any, item: Any, **shared: Any) -> Any:
+    """``fn(item, **shared)`` on a worker, without joblib's warning that a Dask worker (a
+    daemon process) runs ``n_jobs`` estimators on one thread: a task uses its worker's
+    thread, as intended (the results do not depend on ``n_jobs``)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Inside a Dask worker with daemon=True", category=UserWarning)
+        return fn(item, **shared)
+
+
 class DaskTaskMap:
     """A task map (:mod:`offline_adp.parallel`) on a Dask cluster: ``shared`` objects are
     broadcast to every worker once, each item is one task, results come back in item
-    order (so the outcome does not depend on which worker ran what)."""
+    order (so the outcome does not depend on which worker ran what); each is fetched when its
+    task ends and released on its worker."""
 
     def __init__(self, client: Any) -> None:
         self.client = client
@@ -119,8 +131,15 @@ class DaskTaskMap:
         if not items:
             return []
         futures_shared = {k: self.client.scatter(v, broadcast=True, hash=False) for k, v in (shared or {}).items()}
-        futures = self.client.map(fn, items, pure=False, **futures_shared)
-        for k, _f in enumerate(as_completed(futures)):
+        futures = self.client.map(functools.partial(_on_worker, fn), items, pure=False, **futures_shared)
+        index = {f.key: i for i, f in enumerate(futures)}
+        out: list[Any] = [None] * len(futures)
+        # each result is fetched as its task ends and then released on the worker, so a large
+        # one (a fitted FQE) does not stay in the worker's memory while it runs the next tasks
+        for k, f in enumerate(as_completed(futures)):
+            out[index[f.key]] = f.result()
+            futures[index[f.key]] = None
+            f.release()
             if on_done is not None:
                 on_done(k)
-        return self.client.gather(futures)
+        return out
