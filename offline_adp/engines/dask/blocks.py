@@ -14,6 +14,14 @@ from offline_adp.errors import ClusterError
 from offline_adp.qfunctions import predict_model
 
 
+def scheduler_workers(client: Any) -> dict[str, Any]:
+    """The scheduler's workers now, asked directly (``scheduler.identity``). Not
+    ``Client.scheduler_info()``: it returns the client's cached identity, which the client's
+    own periodic refresh may replace, between the fetch and the read, with one that carries
+    cluster totals only and no workers (a fit under load reported its live workers gone)."""
+    return dict(client.sync(client.scheduler.identity, n_workers=-1).get("workers") or {})
+
+
 def _chunk_plan(parts: list[str], n_workers: int) -> list[tuple[str, int, int]]:
     """Row ranges ``(part, lo, hi)`` in dataset order: one per Parquet part, the largest
     halved until there is one per worker (a function of the data and ``n_workers`` only)."""
@@ -110,7 +118,7 @@ class _Blocks:
         while True:
             if self.client.status != "running":
                 raise OSError(f"the Dask client is {self.client.status}: no scheduler to place the blocks on")
-            info = self.client.scheduler_info()["workers"]
+            info = scheduler_workers(self.client)
             workers = sorted(w for w, d in info.items() if d.get("status", "running") == "running")
             if len(workers) >= self.n_workers or len(workers) == self._gave_up_at:
                 return workers

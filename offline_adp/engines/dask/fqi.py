@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.engines.dask.blocks import _Blocks, _chunk_plan
+from offline_adp.engines.dask.blocks import _Blocks, _chunk_plan, scheduler_workers
 from offline_adp.engines.dask.cluster import _one_line, flat_columns
 from offline_adp.engines.dask.frozen import DaskFrozenLearner
 from offline_adp.engines.dask.learner import DaskLearner
@@ -372,7 +372,7 @@ class _DaskEngine:
                                     "over its bins")
         af = np.asarray(info.action_table.values, dtype=np.float64)
         cols = flat_columns(info)
-        n_workers = len(self.client.scheduler_info()["workers"])
+        n_workers = len(scheduler_workers(self.client))
         plan = _chunk_plan(parts, n_workers)
         if not plan:
             raise IngestError(f"{path}: the dataset is empty (no rows in its parts)")

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.engines.dask.blocks import _Blocks, _count_starts
+from offline_adp.engines.dask.blocks import _Blocks, _count_starts, scheduler_workers
 from offline_adp.errors import ClusterError, InvalidArgumentError
 from offline_adp.learn import Learner, LearnSpec
 from offline_adp.learn.base import fit_model
@@ -288,7 +288,7 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
     # ------------------------------------------------------------------ the Learner interface
     def _check_workers(self) -> None:
         """The segments' workers are still there (their leaf positions live nowhere else)."""
-        alive = set(self.client.scheduler_info(n_workers=-1)["workers"]) if self._states else set()
+        alive = set(scheduler_workers(self.client)) if self._states else set()
         gone = sorted({w for _, w, _, _ in self.segments} - alive) if self._states else []
         if gone:
             raise ClusterError(f"workers {gone} holding the frozen structure's leaf positions are gone")
