@@ -81,12 +81,8 @@ def replicate_model(model: LoggedDynamics, a: TransitionArrays, rows: np.ndarray
     rep.random_state = seed
     rep.n_estimators = max(model.n_estimators // 2, 5)  # half the trees: the spread holds their randomness too
     rep.__dict__.pop("_predict_cache", None)
-    obs, nxt = a.obs[rows], a.next_obs[rows]
-    F = rep._features(obs, a.action[rows])
-    rep.linear_, rep.residual_ = rep._increments(F, (nxt - obs) / rep.sd_)
-    G = np.column_stack([F, nxt / rep.sd_])
-    rep.outcome_ = rep._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
-    starts = obs[a.step[rows] == 0]
+    rep.fit_predictors(a, rows)
+    starts = a.obs[rows][a.step[rows] == 0]
     rep.start_states_ = starts if len(starts) else model.start_states_
     return rep
 

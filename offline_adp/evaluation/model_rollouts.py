@@ -158,9 +158,7 @@ class LoggedDynamics:
         values = np.asarray(ds.info.action_table.values, dtype=np.float64).reshape(ds.n_actions, -1)
         vsd = values.std(axis=0)
         self.action_features_ = np.hstack([values / np.where(vsd > 0, vsd, 1.0), np.eye(ds.n_actions)])
-        F = self._features(obs, a.action[rows])
-        dx = (nxt - obs) / self.sd_
-        self.linear_, self.residual_ = self._increments(F, dx)
+        F, dx = self.fit_predictors(a, rows)
         self.residuals_ = np.zeros((0, dx.shape[1]))
         self.noise_source_ = "none (noise=False)"
         if self.noise:  # out-of-fold residuals: two balanced folds of whole episodes (one episode: its halves)
@@ -183,9 +181,20 @@ class LoggedDynamics:
             self.residuals_ = np.vstack(res) if res else self.residuals_
             if not res:
                 self.noise_source_ = "none (too few rows to hold any out)"
+        return self
+
+    def fit_predictors(self, a: TransitionArrays, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fit the increment models (``linear_``, ``residual_``) and the cost-and-termination
+        model (``outcome_``) on ``rows`` of ``a`` (each tree model seeded with ``random_state``,
+        so the order of the fits does not matter); returns the features and the scaled
+        increments. :meth:`fit` calls it once, the model bootstrap once per replicate."""
+        obs, nxt = a.obs[rows], a.next_obs[rows]
+        F = self._features(obs, a.action[rows])
+        dx = (nxt - obs) / self.sd_
+        self.linear_, self.residual_ = self._increments(F, dx)
         G = np.column_stack([F, nxt / self.sd_])
         self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
-        return self
+        return F, dx
 
     def _trees(self) -> Any:
         from sklearn.ensemble import ExtraTreesRegressor
