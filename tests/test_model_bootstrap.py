@@ -115,6 +115,14 @@ def test_the_model_is_labelled_only_where_the_logs_validate_it():
     assert model_estimate({**_mr(), "bootstrap": {"skipped": "1 replicate"}}, 0.95) is None
 
 
+def test_the_reading_past_the_data_widens_the_interval_by_its_own_size():
+    r = model_estimate(_mr(past_data_cost=0.5), 0.95)
+    assert r.interval == (4.5, 7.5) and r.level == 0.95
+    # the overlap with FQE's interval is judged on the widened interval
+    assert model_estimate(_mr(fqe_interval=[7.2, 30.0]), 0.95).level is None
+    assert model_estimate(_mr(fqe_interval=[7.2, 30.0], past_data_cost=0.5), 0.95).level == 0.95
+
+
 def _v(m, shift=IN_SUPPORT, conv=None):
     conv = conv or {"verdict": "still changing", "text": "fit did NOT converge"}
     m = withdraw_levels(m)

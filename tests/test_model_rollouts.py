@@ -216,6 +216,7 @@ def test_the_bounds_bookkeeping_against_a_hand_computed_path():
     assert out["upper"] == pytest.approx(known + w[2] * hi_r[H - 2])
     assert out["exit_mass"] == pytest.approx(w[2:].sum() / w.sum())
     assert out["exit_share"] == pytest.approx(0.5**2)  # the survival when it leaves
+    assert out["past_data_cost"] == pytest.approx(np.sum(w[2:] * cost[2:]))  # the reading from the exit on
     assert out["interval"] == [pytest.approx(out["lower"]), pytest.approx(out["upper"])]  # identical particles
 
 
@@ -394,6 +395,7 @@ def test_leaving_trust_then_support_sets_the_tails_once_and_the_exit_at_the_supp
     assert out["upper"] == pytest.approx(known + w[2] * hi_r[H - 2])
     assert out["exit_mass"] == pytest.approx(w[4:].sum() / w.sum())  # out of the support at x = 4
     assert out["exit_share"] == pytest.approx(0.5**4)
+    assert out["past_data_cost"] == pytest.approx(np.sum(w[4:] * cost[4:]))  # past the support, not the trust radius
 
 
 def test_the_trust_radius_is_the_data_own_spacing():

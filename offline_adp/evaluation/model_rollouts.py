@@ -415,7 +415,8 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
 
     Returns ``estimate``, ``lower``, ``upper`` (the bounds' means), ``interval``, ``exit_mass`` (share of the
     discounted survival mass at or after leaving the data), ``exit_share`` (the expected share of episodes that
-    leave the data before they end: the mean survival probability at leaving), ``n_particles``, ``radius``
+    leave the data before they end: the mean survival probability at leaving), ``past_data_cost`` (the
+    reading's part read past the data: ``mean_i sum_{t >= sigma_i} w_it |c_it|``), ``n_particles``, ``radius``
     (support), ``trust_radius`` (the bounds') and ``support_quantile``. ``on_step()``: called after each step.
     """
     lo_r, hi_r = _checked_ranges(n, horizon, level, ranges)
@@ -424,7 +425,7 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     x = starts[rng.integers(0, len(starts), n)].astype(np.float64)
     alive = np.ones(n)
     inside, trusted = np.ones(n, bool), np.ones(n, bool)
-    value, kept, mass, mass_out = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    value, kept, mass, mass_out, past = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     lo_tail, hi_tail = np.zeros(n), np.zeros(n)
     alive_at_exit = np.zeros(n)
     trust = min(float(getattr(model, "trust_radius_", model.radius_)), float(model.radius_))
@@ -455,13 +456,15 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
         kept += np.where(trusted, w * r.costs, 0.0)
         mass += w
         mass_out += np.where(inside, 0.0, w)
+        past += np.where(inside, 0.0, w * np.abs(r.costs))
         alive = alive * (1.0 - r.terminated)
         x = r.next_states
         if on_step is not None:
             on_step()
     return {**_bounds_summary(value, kept + lo_tail, kept + hi_tail, level),
             "exit_mass": float(mass_out.sum() / mass.sum()) if mass.sum() > 0 else 0.0,
-            "exit_share": float(alive_at_exit.mean()), "n_particles": int(n), "radius": float(model.radius_),
+            "exit_share": float(alive_at_exit.mean()), "past_data_cost": float(past.mean()),
+            "n_particles": int(n), "radius": float(model.radius_),
             "trust_radius": trust, "support_quantile": SUPPORT_QUANTILE}
 
 
