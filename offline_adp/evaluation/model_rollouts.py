@@ -403,6 +403,15 @@ def _bounds_summary(value: np.ndarray, lower: np.ndarray, upper: np.ndarray, lev
             "interval": [float(lower.mean() - z * se(lower)), float(upper.mean() + z * se(upper))]}
 
 
+def _within(model: Any, x: np.ndarray, check: np.ndarray, radius: float) -> np.ndarray:
+    """Whether each state is within ``radius`` of the data; only the ``check`` ones (particles
+    still within and alive) get the (costly) search, the others read False."""
+    out = np.zeros(len(x), bool)
+    if check.any():
+        out[check] = model.in_data(x[check], radius)
+    return out
+
+
 def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
                         ranges: tuple[np.ndarray, np.ndarray], *, n: int = N_PARTICLES, level: float = 0.95,
                         seed: int = 0, on_step: Any = None) -> dict[str, Any]:
@@ -430,19 +439,12 @@ def model_rollout_value(model: Any, policy: Policy, horizon: int, gamma: float,
     alive_at_exit = np.zeros(n)
     trust = min(float(getattr(model, "trust_radius_", model.radius_)), float(model.radius_))
 
-    def within(mask: np.ndarray, radius: float) -> np.ndarray:
-        """Only particles still within and alive need the (costly) check."""
-        out = np.zeros(n, bool)
-        check = mask & (alive > 0)
-        if check.any():
-            out[check] = model.in_data(x[check], radius)
-        return out
-
     for t in range(horizon):
         if not alive.any():
             break
         act = policy.act_index(x, t, rng)
-        in_data, in_trust = within(inside, model.radius_), within(trusted, trust)
+        live = alive > 0
+        in_data, in_trust = _within(model, x, inside & live, model.radius_), _within(model, x, trusted & live, trust)
         r = model.step(x, act, rng)
         w = alive * gamma**t
         left = inside & ~in_data
