@@ -405,7 +405,8 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                     "covers": _covers(logs_iv, truth), "width_over_range": (logs_iv[1] - logs_iv[0]) / value_span},
                    "estimators": ests, "fqe": row_fqe, "value_range": list(value_range),
                    "model_rollouts": {k: (m["ope"]["fqe"].get("model_rollouts") or {}).get(k)
-                                      for k in ("estimate", "interval", "exit_mass", "exit_share", "skipped")},
+                                      for k in ("estimate", "interval", "exit_mass", "exit_share", "past_data_cost",
+                                                "skipped")},
                    "verdict": {"performance": h["verdict"]["performance"], "text": h["verdict"]["text"],
                                "check": _check(h["verdict"]["performance"], truth_side)},
                    "verdict_logs_only": {"performance": h_logs["verdict"]["performance"],
