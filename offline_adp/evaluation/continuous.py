@@ -66,8 +66,10 @@ from offline_adp.evaluation.fqe_interval import (
     fqe_replicates,
     fqe_settings,
     widen_fqe,
+    with_fqe_interval,
     with_truncation_bound,
 )
+from offline_adp.evaluation.model_bootstrap import MODEL_REPLICATES, bootstrap_reading, model_estimate
 from offline_adp.evaluation.model_rollouts import (
     LoggedDynamics,
     model_rollout_value,
@@ -118,17 +120,19 @@ class CommandDynamics(LoggedDynamics):
         u = np.asarray(ds.commands(), np.float64).reshape(len(a.cost), -1)
         sd = u.std(axis=0)
         self.command_sd_ = np.where(sd > 0, sd, 1.0)
-        self._logged = u  # the rows' commands while the parent fits on row indices
-        try:
-            super().fit(ds, replace(a, action=np.arange(len(u))))
-        finally:
-            del self._logged
-        return self
+        self.commands_ = u  # the rows' commands: the parent (and the bootstrap's refits) fit on row indices
+        return super().fit(ds, row_actions(a))
 
     def _features(self, obs: np.ndarray, action: np.ndarray) -> np.ndarray:
         act = np.asarray(action)
-        u = self._logged[act] if act.ndim == 1 else act.astype(np.float64)  # fit: row indices; step: commands
+        u = self.commands_[act] if act.ndim == 1 else act.astype(np.float64)  # fit: row indices; step: commands
         return np.column_stack([obs / self.sd_, u / self.command_sd_])
+
+
+def row_actions(a: Any) -> Any:
+    """``a`` with each row's action its own row index: how :class:`CommandDynamics` fits
+    (its features look the row's command up)."""
+    return replace(a, action=np.arange(len(a.cost)))
 
 
 class _CommandActor:
@@ -142,11 +146,13 @@ class _CommandActor:
 
 
 def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gamma: float, *, n: int,
-                           level: float, seed: int) -> dict[str, Any]:
+                           level: float, seed: int, replicates: int = MODEL_REPLICATES) -> dict[str, Any]:
     """Model rollouts of the logs over commands (:class:`CommandDynamics`): the discrete
     evaluation's second reading and support measure
     (:func:`~offline_adp.evaluation.model_rollouts.model_rollouts`), the policy's commands
-    stepping the model. ``{"skipped": reason}`` where it does not apply."""
+    stepping the model, with the model's own interval (``bootstrap``: ``replicates`` refits on
+    episodes resampled with replacement, :func:`~offline_adp.evaluation.model_bootstrap.bootstrap_reading`).
+    ``{"skipped": reason}`` where it does not apply."""
     if not n:
         return {"skipped": "model_particles=0: model rollouts turned off"}
     a = ds.arrays()
@@ -155,8 +161,11 @@ def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gam
     model = CommandDynamics(random_state=seed).fit(ds, a)
     if model.radius_ <= 0:
         return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it"}
-    out = model_rollout_value(model, _CommandActor(policy), horizon, gamma,
-                              remainder_ranges(a.cost, a.terminated, gamma, horizon), n=n, level=level, seed=seed)
+    actor = _CommandActor(policy)
+    out = model_rollout_value(model, actor, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
+                              n=n, level=level, seed=seed)
+    out["bootstrap"] = bootstrap_reading(model, row_actions(a), actor, horizon, gamma, out["estimate"], n=n,
+                                         level=level, seed=seed, replicates=replicates)
     return {**out, "noise": model.noise_source_,
             "method": f"{n} rollouts of a model fitted on the logs over the exact commands (increments: ridge + "
                       "extra-trees on its residuals + out-of-fold residual noise; cost and termination: extra-trees "
@@ -256,8 +265,35 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
             say("model rollouts over commands")
         mr = command_model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=cfg.model_particles,
                                     level=0.95, seed=cfg.seed)
-        res = widen_fqe(res, mr, hull=not est_def.beyond_logs or est_def.fqe_form == "stationary")
+        hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
+        res = widen_fqe(res, with_fqe_interval(mr, res, est_def.tail_bound) if hull else mr, hull=hull)
     return with_truncation_bound(res, est_def.tail_bound)
+
+
+def command_model_estimate(mr: dict[str, Any] | None, support: dict[str, Any],
+                           replay: dict[str, Any]) -> ope.OPEResult | None:
+    """The model rollouts over commands as an estimator (``"model"``,
+    :func:`~offline_adp.evaluation.model_bootstrap.model_estimate`), its level withdrawn also
+    where the policy's commands are unsupported at more than
+    :data:`~offline_adp.evaluation.verdict.SUPPORT_FRACTION` of the logged states (FQE's
+    interval over commands has no support bounds to check the model's extrapolation in the
+    command against, as the discrete label has) or where the policy replays the logs."""
+    from offline_adp.evaluation.verdict import SUPPORT_FRACTION
+
+    model = model_estimate(mr, LEVEL)
+    if model is None or model.level is None:
+        return model
+    why = []
+    if support["fraction"] > SUPPORT_FRACTION:
+        why.append(f"the policy's commands are unsupported at {support['fraction']:.0%} of the logged states, where "
+                   "the model extrapolates in the command and FQE's interval over commands cannot check it")
+    if replay["fraction"] is not None and replay["fraction"] > REPLAY_FRACTION:
+        why.append(f"the policy replays the logged commands at {replay['fraction']:.0%} of the logged states: its "
+                   "value from the logged start states is not its value in a new episode")
+    if not why:
+        return model
+    return replace(model, level=None, level_note="; ".join(why),
+                   warnings=[*model.warnings, *(f"no level: {w}" for w in why)])
 
 
 def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSettings, *, target_horizon: int | None,
@@ -281,6 +317,7 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
             "logged states: "
             "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "
             f"value in a new episode; this is not a {fq_d['level']:.0%} interval"))
+    model = command_model_estimate(fq.model_rollouts, support, replay)
     a = ds.arrays()
     em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
     from offline_adp.evaluation.offpolicy import behaviour_value
@@ -296,7 +333,8 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
         "behaviour_value": behaviour_value(em, a.cost, est_def.gamma),
         "behaviour": {"source": "logged commands", "support_violations": support, "replayed_commands": replay,
                       "warnings": []},
-        "ope": {"fqe": {**fq_d, "method": "fqe"}},
+        "ope": {"fqe": {**fq_d, "method": "fqe"},
+                **({"model": {**model.as_dict(), "method": "model"}} if model is not None else {})},
         "ope_default": "fqe",
         "not_usable": dict(NOT_USABLE),
         "shift": {},
