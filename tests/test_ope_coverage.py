@@ -98,3 +98,17 @@ def test_continuous_problems_run_through_the_suite():
     assert "| path_tracking_steer_accel |" in oc.table(summary, rows)
     # the continuous problems' own candidate lists: deterministic command policies only
     assert "exploration" not in oc.CONTINUOUS_CANDIDATES and "fqi_eps30" not in oc.CONTINUOUS_HOLDOUT
+
+
+def test_the_logs_only_view_restores_only_what_the_simulator_withdrew():
+    """A user without a simulator never has the simulator's findings (their withdrawal note is
+    undone), but a level withdrawn from the logs alone (a policy replaying the logged commands)
+    stays withdrawn."""
+    from offline_adp.evaluation.summary import LEVEL_WITHDRAWN
+
+    oc = _suite()
+    by_sim = {"level": None, "nominal_level": 0.95, "level_note": LEVEL_WITHDRAWN.format(level=0.95)}
+    assert oc._level_back(by_sim) == {"level": 0.95}
+    by_logs = {"level": None, "nominal_level": 0.95, "level_note": "the policy replays the logs"}
+    assert oc._level_back(by_logs) == by_logs
+    assert oc._level_back({"level": 0.95}) == {"level": 0.95}
