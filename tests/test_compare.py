@@ -144,3 +144,12 @@ def test_compare_report_shows_what_the_comparison_says(tmp_path):
     assert colour == {"good": "good", "doubt": "meh", "bad": "bad"}
     assert "cannot tell from these logs: effective sample size 1.2" in page and "LEFT the data" in page
     assert "CVaR_0.1 (simulator)" in page and "None" not in re.sub(r"<img[^>]*>", "", page)
+
+
+def test_a_stored_evaluation_before_the_past_data_allowance_is_redone():
+    from offline_adp.evaluation.compare import _same_model_rollouts
+
+    mr = {"n_particles": 1000, "trust_radius": 0.3, "past_data_cost": 0.1}
+    assert _same_model_rollouts({"ope": {"fqe": {"model_rollouts": mr}}}, 1000)
+    old = {k: v for k, v in mr.items() if k != "past_data_cost"}
+    assert not _same_model_rollouts({"ope": {"fqe": {"model_rollouts": old}}}, 1000)

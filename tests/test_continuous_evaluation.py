@@ -92,7 +92,34 @@ def test_the_models_interval_over_commands_covers_the_closed_form_over_data_seed
         mr = continuous.command_model_rollouts(ds, pol, 60, GAMMA, n=300, level=0.95, seed=seed)
         lo, hi = model_estimate(mr, 0.95).interval
         covered += lo <= truth <= hi
+        assert hi - lo < 2.5 * truth  # an interval that says something (refits on the wrong commands: ~30x wider)
     assert covered >= 5
+
+
+@pytest.mark.parametrize("cap", [None, 400])
+def test_every_refit_of_the_model_over_commands_reads_its_rows_own_commands(lq, monkeypatch, cap):
+    """The main fit and each bootstrap refit see, for every row they fit on, that row's logged
+    command (not its bin, not another row's), also when the fit samples its rows."""
+    from offline_adp.evaluation import model_rollouts as mrmod
+
+    if cap:
+        monkeypatch.setattr(mrmod, "MAX_FIT_ROWS", cap)
+    seen = []
+    fit = continuous.CommandDynamics.fit_predictors
+
+    def spy(self, a, rows):
+        F, dx = fit(self, a, rows)
+        seen.append((rows, F[:, 1:] * self.command_sd_))
+        return F, dx
+
+    monkeypatch.setattr(continuous.CommandDynamics, "fit_predictors", spy)
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    continuous.command_model_rollouts(lq, pol, 60, GAMMA, n=40, level=0.95, seed=0, replicates=3)
+    u = np.asarray(lq.commands(), np.float64).reshape(len(lq), -1)
+    assert len(seen) == 4  # the main fit, three refits
+    for rows, commands in seen:
+        assert np.allclose(commands, u[rows])
+    assert len(seen[0][0]) == (cap or len(lq)) and all(np.isin(r, seen[0][0]).all() for r, _ in seen[1:])
 
 
 def test_the_models_level_over_commands_needs_supported_commands_and_no_replay():

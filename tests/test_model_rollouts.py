@@ -220,6 +220,24 @@ def test_the_bounds_bookkeeping_against_a_hand_computed_path():
     assert out["interval"] == [pytest.approx(out["lower"]), pytest.approx(out["upper"])]  # identical particles
 
 
+class _Rewarding(_Stub):
+    """The stub's path with negative costs (rewards logged as costs): the reading past the
+    data is counted by its size."""
+
+    def step(self, x, a, rng=None):
+        return StepResult(x + 1.0, -(1.0 + x[:, 0]), np.full(len(x), 0.5))
+
+
+def test_the_reading_past_the_data_is_counted_by_its_size_whatever_the_sign():
+    H, g = 5, 0.8
+    lo_r, hi_r = -10.0 * np.arange(H + 1), np.zeros(H + 1)
+    out = model_rollout_value(_Rewarding(), COAST, H, g, (lo_r, hi_r), n=4, seed=0)
+    w = (g * 0.5) ** np.arange(H)
+    cost = -(1.0 + np.arange(H))
+    assert out["estimate"] == pytest.approx(np.sum(w * cost))
+    assert out["past_data_cost"] == pytest.approx(np.sum(w[2:] * np.abs(cost[2:]))) and out["past_data_cost"] > 0
+
+
 def test_states_on_a_lattice_are_left_to_fqe(logs):
     a = logs.arrays()
     grid = TransitionDataset.from_arrays(

@@ -60,7 +60,7 @@ from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import ope
-from offline_adp.evaluation.estimand import declare_estimand
+from offline_adp.evaluation.estimand import clip_to_range, declare_estimand, with_possible_range
 from offline_adp.evaluation.fqe_interval import (
     fqe_interval,
     fqe_replicates,
@@ -317,9 +317,11 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
             "logged states: "
             "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "
             f"value in a new episode; this is not a {fq_d['level']:.0%} interval"))
-    model = command_model_estimate(fq.model_rollouts, support, replay)
     a = ds.arrays()
     em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
+    model = command_model_estimate(fq.model_rollouts, support, replay)
+    if model is not None:  # the allowances can reach past what the costs make possible: clipped there
+        model = clip_to_range(model, with_possible_range(est_def, a, em)[0].possible_range)
     from offline_adp.evaluation.offpolicy import behaviour_value
 
     warnings = [f"not computed for continuous commands: {k}: {why}" for k, why in NOT_USABLE.items()]

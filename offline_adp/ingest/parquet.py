@@ -161,7 +161,9 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
                 i = int(np.flatnonzero(np.asarray(pc.is_null(ids)))[0])
                 raise IngestError(f"{p}: row {i} column {spec.episode.id!r}: episode id is missing (null); every "
                                   "row needs one")
-            t = t.append_column("__file", pa.array(np.full(t.num_rows, k, np.int32))).append_column(
+            # file 0's indices as calloc'd zeros: pages the kernel maps only when written (never)
+            fi = np.zeros(t.num_rows, np.int32) if k == 0 else np.full(t.num_rows, k, np.int32)
+            t = t.append_column("__file", pa.array(fi)).append_column(
                 "__row", pa.array(np.arange(t.num_rows, dtype=np.int64))
             )
             # unify id column type across files
