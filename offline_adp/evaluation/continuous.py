@@ -42,10 +42,17 @@ What runs, and why the rest does not:
   policy's action probabilities too; both are listed the same way. A policy that samples its
   commands (stochastic) is refused: FQE over commands evaluates one command per state.
 
+- **The model's own interval** (:func:`command_model_estimate`): the model over commands
+  refitted on episodes resampled with replacement
+  (:mod:`~offline_adp.evaluation.model_bootstrap`; each refit reads its rows' own commands),
+  an estimator of its own (``model``), labelled as the discrete one is and withdrawn also
+  where the commands are unsupported or the policy replays the logs.
+
 The verdict rules are the discrete evaluation's (:mod:`~offline_adp.evaluation.summary`),
 fed with what ran: from the logs alone a side is claimed only when the labelled interval
 lies on it and the logs show support (the command support and the model rollouts' exit
-mass, with at least 200 particles), and the fit converged.
+mass, with at least 200 particles), and the fit converged (where the labelled model leads,
+its reading of the policy does not depend on the fit's convergence, as for discrete policies).
 """
 
 from __future__ import annotations
