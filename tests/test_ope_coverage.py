@@ -82,7 +82,8 @@ def test_continuous_problems_run_through_the_suite():
     for r in rows:
         lo, hi = r["truth_interval"]
         assert lo <= r["truth"] <= hi and hi > lo
-        assert set(r["estimators"]) == {"fqe"}  # over commands, FQE alone runs (evaluation/continuous.py)
+        # over commands, FQE and the model's own interval run (evaluation/continuous.py)
+        assert set(r["estimators"]) == {"fqe", "model"}
         f = r["fqe"]
         assert f["interval"] is not None and f["covers"] in (True, False) and 0 < f["width_over_range"] <= 2
         assert f["unsupported"] is not None and 0.0 <= f["unsupported"] <= 1.0
