@@ -121,7 +121,7 @@ def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
     and the same mean over trees, so the same numbers bit for bit. None for any other
     Q-function (then call ``q.values``)."""
     from offline_adp.qfunctions import QEncoder, RegressorQ, TreeQ
-    from offline_adp.trees.ensemble import TreeEnsemble, ensemble_predict
+    from offline_adp.trees.ensemble import LOOKUP_CHUNK, TreeEnsemble, ensemble_predict
     from offline_adp.trees.pairs import pair_leaves
 
     if type(q) not in (RegressorQ, TreeQ) or type(q.encoder) is not QEncoder or q.encoder.per_action:  # type: ignore[attr-defined]
@@ -132,10 +132,18 @@ def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
             or obs.ndim != 2):
         return None
     phi = q.encoder.phi(obs)  # type: ignore[attr-defined]
-    leaves = pair_leaves(model, phi, q.encoder.action_features)  # type: ignore[attr-defined]
-    if leaves is None:
-        return None
-    return np.asarray(ensemble_predict(model.value, leaves), dtype=np.float64).reshape(q.n_actions, len(phi)).T  # type: ignore[attr-defined]
+    A, out = q.n_actions, None  # type: ignore[attr-defined]
+    step = max(1, LOOKUP_CHUNK // A)  # states a chunk: no (pairs, trees) matrix of a whole set is held
+    for lo in range(0, max(len(phi), 1), step):
+        leaves = pair_leaves(model, phi[lo:lo + step], q.encoder.action_features)  # type: ignore[attr-defined]
+        if leaves is None:
+            return None
+        part = ensemble_predict(model.value, leaves).reshape(A, -1).T  # type: ignore[attr-defined]
+        if len(phi) <= step:
+            return np.asarray(part, dtype=np.float64)
+        out = np.empty((len(phi), A)) if out is None else out
+        out[lo:lo + step] = part
+    return out
 
 
 class GreedyPolicy(DeterministicPolicy):

@@ -336,7 +336,7 @@ def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
     from offline_adp.engines.dask import DaskTaskMap
     from offline_adp.envs import make_problem
     from offline_adp.evaluation import ope
-    from offline_adp.evaluation.fqe_interval import _reweighted_replicate
+    from offline_adp.evaluation.fqe_interval import REPLICATE_RTOL, _reweighted_replicate
     from offline_adp.policies import UniformPolicy
     from offline_adp.rollout import rollout, rollout_pieces
 
@@ -359,9 +359,10 @@ def test_rollouts_and_fqe_replicates_on_workers_equal_local(client, coh):
     fqe = FittedQEvaluation(policy=UniformPolicy(2), gamma=0.95, regressor="extra_trees", mode="frozen",
                             regressor_params={"n_estimators": 5}, n_iterations=20, random_state=0).fit(ds)
     em = ope.EpisodeMatrix.build(ds.arrays().episode, ds.arrays().step, 100)
-    weights = [c[em.row_episode] for c in ope.bootstrap_counts(em.n_episodes, 4, seed=1)]
-    got = DaskTaskMap(client)(_reweighted_replicate, weights, shared={"fqe": fqe})
-    assert got == [_reweighted_replicate(w, fqe=fqe) for w in weights]  # the same replicate, run here
+    counts = ope.bootstrap_counts(em.n_episodes, 4, seed=1)
+    got = DaskTaskMap(client)(_reweighted_replicate, counts, shared={"fqe": fqe, "row_episode": em.row_episode})
+    assert got == [_reweighted_replicate(c, fqe=fqe, row_episode=em.row_episode) for c in counts]  # run here
+    assert got == [fqe.reweighted_value(c[em.row_episode], rtol=REPLICATE_RTOL) for c in counts]
     assert len(set(got)) == 4  # the replicates differ from one another
 
 

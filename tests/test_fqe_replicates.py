@@ -78,3 +78,110 @@ def test_dense_row_space_falls_back_to_the_leaf_space_sweeps(small_pt, monkeypat
     v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
     w0 = w[fit.data.start_rows]
     assert fqe.reweighted_value(w, rtol=REPLICATE_RTOL) == float(np.sum(w0 * v0) / np.sum(w0))
+
+
+def _row_space_numpy(learner, op_next, pi_next):
+    """The row space as it was built before 2026-11-28 (int64 numpy temporaries, np.unique)."""
+    from scipy import sparse
+
+    n = pi_next.shape[0]
+    i_, a_ = np.nonzero(pi_next > 0)
+    sub = op_next[a_ * n + i_].tocsr()
+    pos = learner.pos["train"]
+    L = len(learner.leaf_ids)
+    M = sparse.csr_matrix((np.ones(pos.size), (pos.reshape(-1), np.tile(np.arange(n), pos.shape[0]))), shape=(L, n))
+    M.sort_indices()
+    m_ptr, m_idx = M.indptr.astype(np.int64), M.indices.astype(np.int64)
+    counts = np.diff(m_ptr)[sub.indices]
+    q_of_entry = np.repeat(np.arange(sub.shape[0]), np.diff(sub.indptr))
+    starts = np.repeat(m_ptr[sub.indices], counts)
+    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    cols = m_idx[starts + within]
+    rows = np.repeat(i_[q_of_entry], counts)
+    keys, slots = np.unique(rows * np.int64(n) + cols, return_inverse=True)
+    k_ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(keys // n, minlength=n), out=k_ptr[1:])
+    t_ptr = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=t_ptr[1:])
+    return {"q_ptr": sub.indptr, "q_leaf": sub.indices, "q_dat": sub.data, "q_pi": pi_next[i_, a_], "q_row": i_,
+            "m_ptr": m_ptr, "m_idx": m_idx, "k_ptr": k_ptr, "k_idx": keys % n, "t_ptr": t_ptr, "t_col": cols,
+            "slots": slots.reshape(-1), "order": np.arange(n - 1, -1, -1)}
+
+
+@pytest.mark.parametrize("policy", ["deterministic", "uniform"])
+def test_row_space_equals_the_numpy_construction_in_int32(small_pt, policy):
+    """The compiled construction (no (triples,) int64 temporaries, int32 indices) holds the
+    same numbers as the numpy one it replaced, so the replicates are the same bit for bit."""
+    from offline_adp.algorithms.fqe_replicates import row_space
+
+    A = small_pt.n_actions
+    pol = UniformPolicy(A) if policy == "uniform" else \
+        FunctionPolicy(lambda x, t: (np.abs(x[:, 0] * 7).astype(int)) % A, A)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.95, mode="frozen", n_iterations=10,
+                            regressor_params={"n_estimators": 5, "min_samples_leaf": 3}).fit(small_pt)
+    fit = fqe.fit_state_
+    pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
+    op = fqe._query_operators()["next"]
+    rs, ref = row_space(fit.learner, op, pi), _row_space_numpy(fit.learner, op, pi)
+    for k, v in ref.items():
+        got = getattr(rs, k)
+        assert got.dtype == (np.float64 if k in ("q_dat", "q_pi") else np.int32), k
+        np.testing.assert_array_equal(got, v, err_msg=k)
+
+
+def test_replicates_and_support_bounds_without_the_trees(small_pt):
+    """drop_trees frees the trees; the replicates and the support bounds read leaf positions only."""
+    pol = UniformPolicy(small_pt.n_actions)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.9, mode="frozen", n_iterations=8,
+                            regressor_params={"n_estimators": 4}).fit(small_pt)
+    fqe.settle()
+    w = np.random.default_rng(1).poisson(1.0, len(small_pt)).astype(float)
+    before = (fqe.reweighted_value(w), fqe.support_bounds(-1.0, 3.0))
+    fqe.drop_replicate_cache()
+    fqe.drop_trees()
+    assert fqe.q_function_ is None and fqe.fit_state_.learner.ensemble is None
+    assert (fqe.reweighted_value(w), fqe.support_bounds(-1.0, 3.0)) == before
+
+
+def _leaf_operator_csc(pos, w, wsum, L):
+    """The averaging matrix as it was built before 2026-11-28: a (n, trees) CSC, then CSR."""
+    from scipy import sparse
+
+    m, n = pos.shape
+    idx = np.ascontiguousarray(pos.T)
+    data = wsum[idx]
+    np.divide(w[:, None], data, out=data, where=data > 0)
+    return sparse.csc_matrix((data.reshape(-1), idx.reshape(-1), np.arange(0, n * m + 1, m, dtype=np.int64)),
+                             shape=(L, n)).tocsr()
+
+
+def test_settle_and_its_operators_are_the_ones_built_before(small_pt, monkeypatch):
+    """The averaging matrix built in place holds the entries the CSC conversion gave, in the
+    same order, and the sweeps with the change taken a chunk at a time stop where the whole
+    difference vector stopped them: settle gives the same leaf values bit for bit."""
+    import offline_adp.algorithms.fqe_bootstrap as fb
+
+    fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=6,
+                            regressor_params={"n_estimators": 4}).fit(small_pt)
+    fit = fqe.fit_state_
+    d, learner = fit.data, fit.learner
+    w = np.random.default_rng(3).poisson(1.0, d.n).astype(float)
+    wsum = learner.leaf_weight_sums(w)
+    pos, L = learner.pos["train"], len(learner.leaf_ids)
+    new, old = fb._averaging_matrix(pos, w, wsum, L), _leaf_operator_csc(pos, w, wsum, L)
+    for k in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(new, k), getattr(old, k), err_msg=k)
+    M, P, v0 = fb.leaf_operator(learner), fb.policy_operator(d, fit.backup, fqe._query_operators()["next"]), \
+        learner.leaf_values.copy()
+    v, sweeps, diff = v0.copy(), 0, np.empty_like(v0)  # the loop as it was: one difference vector
+    while True:
+        sweeps += 1
+        v_new = M @ d.targets(P @ v)
+        np.subtract(v_new, v, out=diff)
+        change, v = max(float(diff.max()), -float(diff.min())), v_new
+        if change * d.gamma / (1 - d.gamma) <= 1e-7 * (1.0 + max(float(v.max()), -float(v.min()))):
+            break
+    monkeypatch.setattr(fb, "_CHANGE_CHUNK", 700)  # several chunks, a short last one
+    assert len(v0) > 2100 and len(v0) % 700
+    assert fqe.settle() == sweeps
+    np.testing.assert_array_equal(learner.leaf_values, v)

@@ -201,3 +201,29 @@ def test_training_positions_held_or_read_through_the_next_state_positions_give_t
     x = pt.arrays().obs
     np.testing.assert_array_equal(held.q_function_.values(x), read.q_function_.values(x))
     np.testing.assert_array_equal(held.fit_state_.learner.pos["train"], read.fit_state_.learner.pos["train"])
+
+
+def test_the_compiled_builders_structure_is_held_as_its_lookups(pt, monkeypatch):
+    """A frozen fit's Q over the compiled builder's trees holds the trees themselves
+    (trees/loaded.py: no per-node int64 arrays, no second copy of the lookups or values):
+    its predictions and its saved arrays are the ones of the per-node export it replaced."""
+    import offline_adp.learn.frozen as frozen_mod
+    from offline_adp.trees.ensemble import TreeEnsemble
+    from offline_adp.trees.loaded import LoadedEnsemble
+
+    params = {"gamma": 0.9, "n_iterations": 4, "mode": "frozen", "regressor_params": TREES}
+    lazy = FittedQIteration(**params).fit(pt)
+    ens = lazy.q_function_.models[0]
+    assert isinstance(ens, LoadedEnsemble) and "left" not in ens.__dict__
+    assert all(t.values.base is not None for t in ens._structure.trees)  # views of one value array
+    monkeypatch.setattr(frozen_mod, "compact_ensemble", lambda trees: TreeEnsemble.from_trees(trees, consume=True))
+    eager = FittedQIteration(**params).fit(pt)
+    assert type(eager.q_function_.models[0]) is TreeEnsemble
+    x = pt.arrays().obs
+    np.testing.assert_array_equal(lazy.q_function_.values(x, 0), eager.q_function_.values(x, 0))
+    a, b = ens.to_arrays("q/"), eager.q_function_.models[0].to_arrays("q/")
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    for k in ("left", "right", "feature", "threshold", "value", "roots"):
+        np.testing.assert_array_equal(getattr(ens, k), getattr(eager.q_function_.models[0], k), err_msg=k)

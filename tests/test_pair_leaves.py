@@ -70,3 +70,21 @@ def test_a_loaded_ensemble_takes_the_one_descent_path():
     assert "left" not in loaded.__dict__  # the lookups' records, not the per-node arrays
     assert fast is not None and np.array_equal(fast, RegressorQ([e], enc).values(X, 0))
     assert np.array_equal(fast, q.values(X, 0))
+
+
+def test_values_in_row_chunks_are_the_whole_set_values(monkeypatch):
+    """TreeEnsemble.predict and the one-descent values run in row chunks of LOOKUP_CHUNK (no
+    (rows, trees) matrix of a whole query set): the same numbers bit for bit as one chunk."""
+    import offline_adp.trees.ensemble as ens_mod
+    from offline_adp.trees.ensemble import ensemble_predict
+
+    e, enc = _ensemble(np.linspace(-1, 1, 3)[:, None])
+    q = RegressorQ([e], enc)
+    X = np.random.default_rng(4).normal(size=(1001, 3))
+    Z = enc.all_pairs(enc.phi(X))
+    whole, fast = ensemble_predict(e.value, e.apply(Z)), joint_tree_values(q, X)
+    monkeypatch.setattr(ens_mod, "LOOKUP_CHUNK", 97)  # chunks of 97 rows, 32 states of 3 pairs, a short last one
+    assert np.array_equal(e.predict(Z), whole)
+    chunked = joint_tree_values(q, X)
+    assert chunked is not None and np.array_equal(chunked, fast)
+    assert np.array_equal(chunked, whole.reshape(3, -1).T)

@@ -32,9 +32,11 @@ import numpy as np
 from sklearn.utils._param_validation import HasMethods
 
 from offline_adp.algorithms.fqe_bootstrap import (
+    averaged_fixed_point,
     bounded_value,
     fixed_point,
     leaf_operator,
+    policy_operator,
     query_operators,
     reweighted_operators,
     support_operators,
@@ -47,6 +49,7 @@ from offline_adp.errors import InvalidArgumentError, InvalidTypeError, NotFitted
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import Policy, is_stationary
 from offline_adp.qfunctions import PolicyCommands, QFunction
+from offline_adp.trees.averaging import release_freed
 
 
 def check_command_policy(est: Any, dataset: TransitionDataset) -> None:
@@ -220,10 +223,19 @@ commands, n_candidates, n_representatives
         """
         fit = self._check_conditional()
         d, learner = fit.data, fit.learner
-        v, sweeps = fixed_point(d, fit.backup, leaf_operator(learner), self._query_operators(), learner.leaf_values,
-                                tol,
-                                max_iterations)
-        learner.leaf_values = v
+        self.q_function_ = None  # type: ignore[assignment]  # its node values not held through the solve
+        try:  # the next-state query operator only for P (built again when asked for: not held through the sweeps)
+            ops = self.__dict__.get("_ops_cache")
+            held = ops is not None and ops[0] is learner and "next" in ops[1]
+            P = policy_operator(d, fit.backup, ops[1]["next"] if held else query_operators(learner, ("next",))["next"])
+            del ops
+            v, sweeps = averaged_fixed_point(d, leaf_operator(learner), P, learner.leaf_values, tol, max_iterations)
+            del P
+        except BaseException:
+            self.q_function_ = learner.snapshot()  # the leaf values it had
+            raise
+        learner.leaf_values, learner._values, learner._cache = v, None, {}  # the loop's buffer and reads: stale
+        release_freed()  # the solve's operators
         self.q_function_ = learner.snapshot()
         self.settled_iterations_ = sweeps
         a0 = d.start_obs  # the backup's start probabilities: the policy's (its one command, over commands)
@@ -265,9 +277,27 @@ commands, n_candidates, n_representatives
             v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
             w0 = w[d.start_rows]
             return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
-        return replicate_value(rs, d, fit.learner, self._query_operators()["start"],
+        return replicate_value(rs, d, fit.learner, self._query_operators(("start",))["start"],
                                np.asarray(fit.backup.probabilities("start", 0), dtype=np.float64), w, tol, rtol,
                                n_iterations or 10_000, ve)
+
+    def drop_trees(self) -> None:
+        """Free what only reads Q at new inputs: ``q_function_`` (None after this) and the
+        learner's tree arrays and compiled lookups (20 trees on 1M rows: ~2.4 GB), keeping
+        ``value_`` and the leaf positions and values :meth:`reweighted_value` and
+        :meth:`support_bounds` read (their numbers do not change). For a caller that has
+        read every Q it needs (:func:`~offline_adp.evaluation.fqe_interval.read_where_fitted`)."""
+        learner = self._check_conditional().learner
+        learner.ensemble, learner._forest, learner._cache = None, None, {}
+        if learner.leaf_values is not None and learner.leaf_values.base is not learner._values:
+            learner._values = None  # the buffer settle() replaced (learner.predict rebuilds it when asked)
+        self.q_function_ = None  # type: ignore[assignment]
+        release_freed()  # the trees' pages back to the system, not left in the heap for smaller arrays only
+
+    def drop_replicate_cache(self) -> None:
+        """Free the replicates' shared structure (:meth:`_row_space`), rebuilt when next asked."""
+        self.__dict__.pop("_row_space_cache", None)
+        release_freed()
 
     def _row_space(self) -> tuple[Any, np.ndarray | None]:
         """The replicates' shared structure (:func:`~offline_adp.algorithms.fqe_replicates.row_space`,
@@ -279,7 +309,12 @@ commands, n_candidates, n_representatives
         cached = self.__dict__.get("_row_space_cache")
         if cached is None or cached[0] is not fit.learner:
             pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
-            cached = (fit.learner, row_space(fit.learner, self._query_operators()["next"], pi), None, None)
+            ops = self.__dict__.get("_ops_cache")
+            held = ops is not None and ops[0] is fit.learner and "next" in ops[1]
+            # the next-state operator only while the row space is built (not held through the replicates)
+            cached = (fit.learner, row_space(fit.learner, ops[1]["next"] if held else
+                                             query_operators(fit.learner, ("next",))["next"], pi), None, None)
+            release_freed()
         # at the query entries (settle moves them)
         if cached[1] is not None and cached[2] is not fit.learner.leaf_values:
             values = fit.learner.leaf_values
@@ -310,14 +345,17 @@ commands, n_candidates, n_representatives
                 "unsupported_next": float(u.mean()) if len(u) else 0.0,
                 "unsupported_start": float(u0.mean()) if len(u0) else 0.0}
 
-    def _query_operators(self) -> dict[str, Any]:
-        """The fitted structure's next-state and start-state operators, built once per fit
-        (every replicate reweights the same ones)."""
+    def _query_operators(self, names: tuple[str, ...] = ("next", "start")) -> dict[str, Any]:
+        """The fitted structure's query operators ``names`` (next-state, start-state), each built
+        once per fit when first asked for (every replicate reweights the same ones)."""
         learner = self.fit_state_.learner
         cached = self.__dict__.get("_ops_cache")
         if cached is None or cached[0] is not learner:
-            cached = (learner, query_operators(learner, ("next", "start")))
-            self.__dict__["_ops_cache"] = cached
+            cached = (learner, {})
+        missing = tuple(k for k in names if k not in cached[1])
+        if missing:
+            cached = (learner, {**cached[1], **query_operators(learner, missing)})
+        self.__dict__["_ops_cache"] = cached
         return cached[1]
 
     def _check_conditional(self) -> FitState:

@@ -18,20 +18,61 @@ from scipy import sparse
 
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
 from offline_adp.learn import FrozenTreesLearner
+from offline_adp.trees.builder import _kernel
+
+
+def _leaf_rows(pos: Any, m_ptr: Any, m_idx: Any) -> None:
+    """Each leaf's training rows, in increasing order, into ``m_idx`` at ``m_ptr`` (tree-major
+    ``pos``: a leaf's rows all come from its own tree, in row order)."""
+    fill = m_ptr[:-1].copy()
+    for t in range(pos.shape[0]):
+        for i in range(pos.shape[1]):
+            leaf = pos[t, i]
+            m_idx[fill[leaf]] = i
+            fill[leaf] += 1
+
+
+def _leaf_counts(pos: Any, m_ptr: Any) -> None:
+    """``m_ptr[l + 1]``: the rows before the end of leaf ``l`` (a cumulative count)."""
+    for t in range(pos.shape[0]):
+        for i in range(pos.shape[1]):
+            m_ptr[pos[t, i] + 1] += 1
+    for leaf in range(1, len(m_ptr)):
+        m_ptr[leaf] += m_ptr[leaf - 1]
+
+
+def _leaf_data(m_ptr: Any, m_idx: Any, w: Any, wsum: Any, data: Any) -> None:
+    """``w_i / wsum[leaf]`` at each (leaf, row) entry (a leaf without weight keeps its ``wsum``)."""
+    for leaf in range(len(m_ptr) - 1):
+        s = wsum[leaf]
+        for j in range(m_ptr[leaf], m_ptr[leaf + 1]):
+            data[j] = w[m_idx[j]] / s if s > 0.0 else s
+
+
+_leaf_rows = _kernel(_leaf_rows, cache=True, nogil=True, boundscheck=False)
+_leaf_counts = _kernel(_leaf_counts, cache=True, nogil=True, boundscheck=False)
+_leaf_data = _kernel(_leaf_data, cache=True, nogil=True, boundscheck=False)
+
+
+def leaf_rows(pos: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(m_ptr, m_idx)``: each of the ``L`` leaves' training rows (``pos`` (trees, n), every
+    entry below ``L``), sorted, as CSR row pointers and column indices (int32 where they fit)."""
+    idx = np.int32 if pos.size < 2**31 - 1 else np.int64
+    m_ptr = np.zeros(L + 1, idx)
+    _leaf_counts(pos, m_ptr)
+    m_idx = np.empty(pos.size, idx)
+    _leaf_rows(pos, m_ptr, m_idx)
+    return m_ptr, m_idx
 
 
 def _averaging_matrix(pos: np.ndarray, w: np.ndarray, wsum: np.ndarray, L: int) -> Any:
-    """``M[leaf, i] = w_i / wsum[leaf]`` (0 where ``wsum`` is 0) as CSR, built column by
-    column (row ``i``'s ``m`` leaves are ``pos[:, i]``) with no tree-major (m * n) index
-    temporaries: the data, its int32 leaf indices, then one conversion."""
-    m, n = pos.shape
-    idx = np.ascontiguousarray(pos.T)  # (n, m): column i's entries, tree order
-    data = wsum[idx]
-    np.divide(w[:, None], data, out=data, where=data > 0)  # a leaf without weight keeps its 0
-    M = sparse.csc_matrix((data.reshape(-1), idx.reshape(-1), np.arange(0, n * m + 1, m, dtype=np.int64)),
-                          shape=(L, n))
-    del data, idx
-    return M.tocsr()
+    """``M[leaf, i] = w_i / wsum[leaf]`` (0 where ``wsum`` is 0) as CSR, each leaf's rows in
+    increasing order, built in place by compiled passes (:func:`leaf_rows`): no (n, trees)
+    temporaries and no second copy in a format conversion."""
+    m_ptr, m_idx = leaf_rows(pos, L)
+    data = np.empty(len(m_idx))
+    _leaf_data(m_ptr, m_idx, np.asarray(w, dtype=np.float64), np.asarray(wsum, dtype=np.float64), data)
+    return sparse.csr_matrix((data, m_idx, m_ptr), shape=(L, pos.shape[1]))
 
 
 def leaf_operator(learner: FrozenTreesLearner) -> Any:
@@ -102,19 +143,40 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
     ``P = sum_a diag(pi(a|x')) A_next[a]`` (rows of actions the policy never takes
     left out), so a sweep is two sparse products; for a deterministic policy ``P`` has
     ``1/A`` of ``A_next``'s entries."""
+    return averaged_fixed_point(data, M, policy_operator(data, backup, ops["next"]), v, tol, max_iterations, rtol)
+
+
+def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any) -> Any:
+    """``P = sum_a diag(pi(a|x')) A_next[a]`` (:func:`fixed_point`): ``V(x'_i) = sum_a
+    pi(a|x'_i) Q(x'_i, a)`` as one operator on the leaf values."""
     n, A = data.n, data.n_actions
     pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
     i, a = np.nonzero(pi_next > 0)
     pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
-    P = (pick @ ops["next"]).tocsr()  # V(x'_i) = sum_a pi(a|x'_i) Q(x'_i, a) as one operator on the leaf values
+    return (pick @ op_next).tocsr()
+
+
+#: leaf values whose change is taken at once in :func:`averaged_fixed_point` (bounded memory)
+_CHANGE_CHUNK = 1 << 20
+
+
+def averaged_fixed_point(data: Prepared, M: Any, P: Any, v: np.ndarray, tol: float | None, max_iterations: int,
+                         rtol: float = 1e-7) -> tuple[np.ndarray, int]:
+    """:func:`fixed_point` with the policy's operator ``P`` (:func:`policy_operator`) given,
+    so that the query operator it was made from need not be held through the sweeps."""
     v = np.asarray(v, dtype=np.float64).copy()
     if not len(v):
         return v, 1
-    diff = np.empty_like(v)
+    buf = np.empty(min(len(v), _CHANGE_CHUNK))
     for sweep in range(1, max_iterations + 1):
         v_new = M @ data.targets(P @ v)  # the loop's own targets (c^- clamp included)
-        np.subtract(v_new, v, out=diff)
-        change = max(float(diff.max()), -float(diff.min()))
+        ends = []  # (max, min) of v_new - v a chunk at a time: no second vector of the leaves' size
+        for lo in range(0, len(v), _CHANGE_CHUNK):
+            hi = min(lo + _CHANGE_CHUNK, len(v))
+            d = np.subtract(v_new[lo:hi], v[lo:hi], out=buf[:hi - lo])
+            ends.append((d.max(), d.min()))
+        e = np.array(ends)
+        change = max(float(e[:, 0].max()), -float(e[:, 1].min()))  # NaN as the whole vector's max and min give it
         v = v_new
         # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
         bound = change * data.gamma / (1.0 - data.gamma)

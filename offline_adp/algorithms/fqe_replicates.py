@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.algorithms.fqe_bootstrap import reweight_query_operator
+from offline_adp.algorithms.fqe_bootstrap import leaf_rows, reweight_query_operator
 from offline_adp.trees.builder import _kernel
 
 
@@ -151,37 +151,69 @@ class RowSpace:
 MAX_TRIPLES_RATIO = 4.0
 
 
+def _k_pattern(q_ptr: Any, q_leaf: Any, q_row: Any, m_ptr: Any, m_idx: Any, t_ptr: Any, t_col: Any, slots: Any,
+               k_ptr: Any, k_idx: Any) -> int:
+    """The (query row, leaf, row) triples' rows ``t_col`` (entry by entry, each leaf's rows in
+    order), ``K``'s sparsity (``k_ptr``, ``k_idx``: each row's distinct triple rows, sorted)
+    and each triple's ``slots`` in it, one row's query rows at a time (``q_row`` ascending);
+    returns ``K``'s entries."""
+    nq, nk, r = len(q_ptr) - 1, 0, 0
+    k_ptr[0] = 0
+    for i in range(len(k_ptr) - 1):
+        r0 = r
+        while r < nq and q_row[r] == i:
+            r += 1
+        ta, tb = t_ptr[q_ptr[r0]], t_ptr[q_ptr[r]]
+        for e in range(q_ptr[r0], q_ptr[r]):
+            lo = m_ptr[q_leaf[e]]
+            for t in range(t_ptr[e], t_ptr[e + 1]):
+                t_col[t] = m_idx[lo + t - t_ptr[e]]
+        if tb > ta:
+            cols = np.sort(t_col[ta:tb])
+            k_idx[nk] = cols[0]
+            u = 1
+            for j in range(1, len(cols)):
+                if cols[j] != cols[j - 1]:
+                    k_idx[nk + u] = cols[j]
+                    u += 1
+            for t in range(ta, tb):
+                slots[t] = nk + np.searchsorted(k_idx[nk:nk + u], t_col[t])
+            nk += u
+        k_ptr[i + 1] = nk
+    return nk
+
+
+_k_pattern = _kernel(_k_pattern, cache=True, nogil=True, boundscheck=False)
+
+
 def row_space(learner: Any, op_next: Any, pi_next: np.ndarray) -> RowSpace | None:
     """The shared structure of a fit (:class:`RowSpace`): ``op_next`` the next-state query
     operator (rows ``a n + i``), ``pi_next`` (n, A) the policy at the next states. None when
-    ``K_w`` would not be sparse (:data:`MAX_TRIPLES_RATIO`): then solve in leaf space."""
-    from scipy import sparse
-
+    ``K_w`` would not be sparse (:data:`MAX_TRIPLES_RATIO`): then solve in leaf space.
+    Indices are int32 where they fit and no (triples,) int64 temporary is made (1M rows, 20
+    trees: ~20M triples; the structure held is ~0.8 GB)."""
     n = pi_next.shape[0]
-    i_, a_ = np.nonzero(pi_next > 0)
+    i_, a_ = np.nonzero(pi_next > 0)  # row-major: query rows in increasing row order
     sub = op_next[a_ * n + i_].tocsr()
-    pos = learner.pos["train"]  # (trees, n): each row's leaf in each tree
     L = len(learner.leaf_ids)
-    M = sparse.csr_matrix((np.ones(pos.size), (pos.reshape(-1), np.tile(np.arange(n), pos.shape[0]))), shape=(L, n))
-    M.sort_indices()
-    m_ptr, m_idx = M.indptr.astype(np.int64), M.indices.astype(np.int64)
+    pos = learner.pos["train"]  # (trees, n): each row's leaf in each tree
+    m_ptr, m_idx = leaf_rows(pos, L)
+    del pos
     counts = np.diff(m_ptr)[sub.indices]  # rows of each entry's leaf
-    if counts.sum() > MAX_TRIPLES_RATIO * (sub.nnz + M.nnz):
+    n_triples = int(counts.sum(dtype=np.int64))
+    if n_triples > MAX_TRIPLES_RATIO * (sub.nnz + len(m_idx)):
         return None
-    q_of_entry = np.repeat(np.arange(sub.shape[0]), np.diff(sub.indptr))
-    starts = np.repeat(m_ptr[sub.indices], counts)
-    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    cols = m_idx[starts + within]
-    rows = np.repeat(i_[q_of_entry], counts)
-    keys, slots = np.unique(rows * np.int64(n) + cols, return_inverse=True)
-    k_ptr = np.zeros(n + 1, np.int64)
-    np.cumsum(np.bincount(keys // n, minlength=n), out=k_ptr[1:])
-    t_ptr = np.zeros(len(counts) + 1, np.int64)
+    idx = np.int32 if max(n_triples, len(m_idx), sub.nnz, n) < 2**31 - 1 else np.int64
+    t_ptr = np.zeros(len(counts) + 1, idx)
     np.cumsum(counts, out=t_ptr[1:])
-    return RowSpace(sub.indptr.astype(np.int64), sub.indices.astype(np.int64), sub.data.astype(np.float64),
-                    pi_next[i_, a_].astype(np.float64), i_.astype(np.int64), m_ptr, m_idx, k_ptr,
-                    (keys % n).astype(np.int64), t_ptr, cols.astype(np.int64), slots.reshape(-1).astype(np.int64),
-                    np.arange(n - 1, -1, -1))
+    del counts
+    m_ptr, q_ptr, q_leaf = m_ptr.astype(idx), np.asarray(sub.indptr, idx), np.asarray(sub.indices, idx)
+    t_col, slots, k_idx = np.empty(n_triples, idx), np.empty(n_triples, idx), np.empty(n_triples, idx)
+    k_ptr = np.empty(n + 1, idx)
+    nk = _k_pattern(q_ptr, q_leaf, i_.astype(idx), m_ptr, m_idx, t_ptr, t_col, slots, k_ptr, k_idx)
+    return RowSpace(q_ptr, q_leaf, np.asarray(sub.data, dtype=np.float64), pi_next[i_, a_].astype(np.float64),
+                    i_.astype(idx), m_ptr, m_idx, k_ptr, k_idx[:nk].copy(), t_ptr, t_col, slots,
+                    np.arange(n - 1, -1, -1, dtype=idx))
 
 
 def replicate_value(rs: RowSpace, data: Any, learner: Any, op_start: Any, pi_start: np.ndarray, w: np.ndarray,

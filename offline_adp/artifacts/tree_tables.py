@@ -36,7 +36,7 @@ from offline_adp.trees import builder
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import TreeEnsemble, float32_floor
 from offline_adp.trees.ensemble import preorder_positions as _numpy_preorder_positions
-from offline_adp.trees.sklearn import tree_arrays
+from offline_adp.trees.loaded import LoadedEnsemble, _Structure
 
 
 def preorder_children(is_leaf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,72 +68,6 @@ def preorder_children(is_leaf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     nxt += 1
     np.minimum(nxt, n - 1, out=nxt)  # the last node has no successor (it is a leaf in trees that passed)
     return splits, order[nxt]
-
-
-class _Structure:
-    """One decoded tree structure: its per-tree lookups and, made from them when first
-    asked for, its per-node arrays (shared by every ensemble over the structure)."""
-
-    def __init__(self, trees: list[CompactTree]) -> None:
-        self.trees = trees
-        self._arrays: dict[str, np.ndarray] | None = None
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        if self._arrays is None:
-            a = tree_arrays(self.trees)  # the lookups read like scikit-learn trees
-            self._arrays = {k: a[k] for k in ("left", "right", "feature", "threshold")}
-        return self._arrays
-
-
-class _PerNode:
-    """A per-node array of :class:`LoadedEnsemble` made from its structure's lookups when
-    first read (assigned ones are kept as they are)."""
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
-
-    def __get__(self, obj: Any, owner: type | None = None) -> Any:
-        if obj is None:
-            return self
-        d = obj.__dict__
-        if self.name not in d:
-            d[self.name] = obj._structure.arrays()[self.name]
-        return d[self.name]
-
-    def __set__(self, obj: Any, value: Any) -> None:
-        obj.__dict__[self.name] = value
-
-
-class LoadedEnsemble(TreeEnsemble):
-    """A :class:`TreeEnsemble` read from an artifact: ``value`` and ``roots`` as arrays,
-    the compiled lookups built, and ``left, right, feature, threshold`` made from the
-    lookups when first read (re-saving, resuming, export): scoring never makes them."""
-
-    left = _PerNode()
-    right = _PerNode()
-    feature = _PerNode()
-    threshold = _PerNode()
-
-    def __init__(self, structure: _Structure, value: np.ndarray, roots: np.ndarray, n_features: int) -> None:
-        self._structure = structure
-        self.value, self.roots = value, roots
-        self._trees = structure.trees  # TreeEnsemble.compiled_trees' cache: the lookups are built
-        self._n_features = n_features  # TreeEnsemble.check_inputs' cache: the widest split feature + 1
-
-    def with_values(self, value: np.ndarray) -> TreeEnsemble:
-        """As :meth:`TreeEnsemble.with_values` (the same structure and lookups), without
-        making the per-node arrays."""
-        out = LoadedEnsemble(self._structure, np.asarray(value, dtype=np.float64), self.roots, self._n_features)
-        if getattr(self, "_same_structure", None) is None:
-            self._same_structure: dict[str, Any] = {}
-        out._same_structure = self._same_structure
-        if getattr(self, "n_features_in_", None) is not None:
-            out.n_features_in_ = self.n_features_in_  # type: ignore[attr-defined]
-        return out
-
-    def leaf_mask(self) -> np.ndarray:
-        """Which nodes are leaves (without making the per-node arrays)."""
-        return np.concatenate([t.children_left < 0 for t in self._structure.trees])
 
 
 def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int | None = None,

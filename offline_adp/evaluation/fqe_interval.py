@@ -103,10 +103,14 @@ def read_where_fitted(fit: FQEFit, ds: TransitionDataset, policy: Policy, est_de
     a = ds.arrays()
     em = EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
     n_reps = fqe_replicates(cfg.fqe_bootstrap, fit.conditional or fit.params.get("regressor") in CHEAP_REGRESSORS)
+    q = fit.fqe.q_function_.values(a.obs, a.step)
+    if fit.conditional:  # the replicates and the support bounds read leaf positions, not the trees
+        fit.fqe.drop_trees()
     reps = bootstrap_values(fit, ds, policy, a, em, n_reps, cfg.seed, est_def.gamma, x0, pi_x0, None, lambda _m: None)
+    if fit.conditional:
+        fit.fqe.drop_replicate_cache()  # not held through the support bounds' operators
     support = fqe_support_bounds(fit.fqe, ds, cfg.seed) if fit.conditional else None
-    return replace(fit, fqe=None, q=fit.fqe.q_function_.values(a.obs, a.step), reps=[float(r) for r in reps],
-                   support=support)
+    return replace(fit, fqe=None, q=q, reps=[float(r) for r in reps], support=support)
 
 
 def fqe_replicates(requested: int | None, cheap: bool) -> int:
@@ -160,14 +164,17 @@ def fit_fqe(ds: TransitionDataset, policy: Policy, est_def: Estimand, fqe_params
     return FQEFit(fqe, params, fqe_T, conditional, _start_value(fqe, x0, pi_x0, None))
 
 
-def _reweighted_replicate(w: np.ndarray, *, fqe: FittedQEvaluation) -> float:
-    return fqe.reweighted_value(w, rtol=REPLICATE_RTOL)
+def _reweighted_replicate(c: np.ndarray, *, fqe: FittedQEvaluation, row_episode: np.ndarray) -> float:
+    """The replicate of episode counts ``c``: its row weights ``c[row_episode]`` made here, one
+    replicate's at a time (200 replicates' on 1M rows held at once: 1.5 GiB)."""
+    return fqe.reweighted_value(c[row_episode], rtol=REPLICATE_RTOL)
 
 
-def _refit_replicate(w: np.ndarray, *, ds: TransitionDataset, params: dict[str, Any], x0: np.ndarray,
-                     pi_x0: np.ndarray, start: np.ndarray) -> float:
+def _refit_replicate(c: np.ndarray, *, ds: TransitionDataset, params: dict[str, Any], x0: np.ndarray,
+                     pi_x0: np.ndarray, start: np.ndarray, row_episode: np.ndarray) -> float:
     import gc
 
+    w = c[row_episode]
     fqe = FittedQEvaluation(**params).fit(ds, sample_weight=w)
     value = _start_value(fqe, x0, pi_x0, w[start])
     del fqe
@@ -240,19 +247,21 @@ def bootstrap_values(fit: FQEFit, ds: TransitionDataset, policy: Policy, a: Tran
     (:data:`REPLICATE_RTOL`); otherwise a full refit each. Replicates run on ``task_map``."""
     from offline_adp.progress import PhaseLines
 
-    counts = bootstrap_counts(em.n_episodes, n_reps, seed)
-    weights = [c[em.row_episode] for c in counts]
+    counts = bootstrap_counts(em.n_episodes, n_reps, seed)  # per episode: each replicate's row weights made in it
     on_done = PhaseLines(say, "FQE bootstrap", n_reps, lines=4)  # four lines with an ETA, not one per replicate
     run = task_map or local_map
     start = a.step == 0
     if _tabular_fast(fit.params, fit.horizon) and n_reps:
         return list(tabular_fqe_replicates(a.obs, a.action, a.cost, a.next_obs, a.terminated, start, policy,
-                                           ds.n_actions, fit.horizon, gamma, np.array(weights)))
+                                           ds.n_actions, fit.horizon, gamma,
+                                           np.array([c[em.row_episode] for c in counts])))
     if fit.conditional:  # same trees, leaves re-averaged with the replicate's weights
-        return run(_reweighted_replicate, weights, shared={"fqe": fit.fqe}, on_done=on_done)
+        return run(_reweighted_replicate, counts, shared={"fqe": fit.fqe, "row_episode": em.row_episode},
+                   on_done=on_done)
     params = {"policy": policy, "horizon": fit.horizon, "gamma": gamma, "random_state": seed, **fit.params}
-    return run(_refit_replicate, weights, on_done=on_done,
-               shared={"ds": ds, "params": params, "x0": x0, "pi_x0": pi_x0, "start": start})
+    return run(_refit_replicate, counts, on_done=on_done, shared={"ds": ds, "params": params, "x0": x0,
+                                                                  "pi_x0": pi_x0, "start": start,
+                                                                  "row_episode": em.row_episode})
 
 
 def _check_interval(r: OPEResult) -> OPEResult:

@@ -32,6 +32,7 @@ from offline_adp.trees.ensemble import (
     ensemble_per_tree_leaves,
     tree_mean,
 )
+from offline_adp.trees.loaded import compact_ensemble
 
 
 class LeafPositions(Mapping[str, np.ndarray]):
@@ -255,7 +256,10 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             forest, self._forest = self._forest, None
             trees = [e.tree_ for e in forest.estimators_]
             forest.estimators_ = []  # ours (a clone): each tree is freed as soon as it is copied
-            ens = TreeEnsemble.from_trees(trees, consume=True)
+            # the compiled builder's trees are the lookups: held as they are, the per-node arrays
+            # (40 bytes a node, and a rebuilt lookup's 32) made only if asked for (trees.loaded)
+            compact = all(type(t) is CompactTree for t in trees)
+            ens = compact_ensemble(trees) if compact else TreeEnsemble.from_trees(trees, consume=True)
             ens.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
             self._set_ensemble(ens)
         return self.ensemble
