@@ -60,12 +60,13 @@ def test_compare_reuses_an_evaluation_only_with_the_same_model_rollouts():
     def m(mr, form="finite"):
         return {"estimand": {"form": form}, "ope": {"fqe": {} if mr is None else {"model_rollouts": mr}}}
 
-    ran = m({"estimate": 1.0, "n_particles": 1000, "trust_radius": 0.5})
+    ran = m({"estimate": 1.0, "n_particles": 1000, "trust_radius": 0.5, "past_data_cost": 0.0})
     before_trust = m({"estimate": 1.0, "n_particles": 1000})  # bounds on the support radius: redone
+    before_past = m({"estimate": 1.0, "n_particles": 1000, "trust_radius": 0.5})  # the model's interval not widened
     off = m({"skipped": "model_particles=0: model rollouts turned off"})
     lattice = m({"skipped": "the logged states repeat exactly (a lattice)"})
     assert _same_model_rollouts(ran, 1000) and not _same_model_rollouts(ran, 200) and not _same_model_rollouts(ran, 0)
-    assert not _same_model_rollouts(before_trust, 1000)
+    assert not _same_model_rollouts(before_trust, 1000) and not _same_model_rollouts(before_past, 1000)
     assert _same_model_rollouts(off, 0) and not _same_model_rollouts(off, 1000)
     assert _same_model_rollouts(lattice, 1000) and _same_model_rollouts(lattice, 0) is False
     assert not _same_model_rollouts(m(None), 1000)  # made before the model rollouts existed
