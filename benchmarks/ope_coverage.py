@@ -91,7 +91,7 @@ import numpy as np
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.evaluation.fqe_interval import q_value_range
 from offline_adp.evaluation.run import evaluation_metrics, json_safe
-from offline_adp.evaluation.summary import ESTIMATOR_NAMES, LEVEL_WITHDRAWN, headline
+from offline_adp.evaluation.summary import ESTIMATOR_NAMES, headline
 from offline_adp.evaluation.summary import side_of_behaviour as _side
 from offline_adp.policies import CommandPolicy, EpsilonPolicy, attach_signature
 
@@ -302,14 +302,15 @@ def _logs_only(m: dict[str, Any]) -> dict[str, Any]:
 
 
 def _level_back(r: dict[str, Any]) -> dict[str, Any]:
-    """An estimator's entry with a level withdrawn by the simulator's findings (``nominal_level``,
-    set by ``evaluation.run`` with the note :data:`LEVEL_WITHDRAWN`) restored: a user without a
-    simulator never had those findings, and ``headline`` withdraws again whatever the logs alone
-    show. A level withdrawn from the logs alone (a continuous policy replaying the logged
-    commands: another note) stays withdrawn."""
-    if "nominal_level" not in r or r.get("level_note") != LEVEL_WITHDRAWN.format(level=r["nominal_level"]):
+    """An estimator's entry with a level withdrawn by the support findings (``withdrawn_by:
+    "support"``, set by ``evaluation.run``: they read the simulator's ratios) restored: a user
+    without a simulator never had those findings, and ``headline`` withdraws again whatever the
+    logs alone show. A level withdrawn from the logs alone (``withdrawn_by: "replay"``: a
+    continuous policy replaying the logged commands) stays withdrawn."""
+    if "nominal_level" not in r or r.get("withdrawn_by") != "support":
         return r
-    return {**{k: v for k, v in r.items() if k not in ("nominal_level", "level_note")}, "level": r["nominal_level"]}
+    drop = ("nominal_level", "level_note", "withdrawn_by")
+    return {**{k: v for k, v in r.items() if k not in drop}, "level": r["nominal_level"]}
 
 
 def _run_dir(tmp: Path, name: str, est: Any | None) -> Path:

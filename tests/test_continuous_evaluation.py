@@ -133,6 +133,12 @@ def test_the_models_level_over_commands_needs_supported_commands_and_no_replay()
     replays = continuous.command_model_estimate(mr, fine, {"fraction": 0.9})
     assert replays.level is None and "replays" in replays.level_note and replays.interval == (5.0, 7.0)
     assert continuous.command_model_estimate({"skipped": "off"}, fine, replay_none) is None
+    # a level the model's own rule already withheld keeps its reason and gains the commands'
+    left = {**mr, "exit_mass": 0.5}
+    both = continuous.command_model_estimate(left, {"fraction": 0.3}, replay_none)
+    assert both.level is None and "past the logged states" in both.level_note
+    assert "unsupported at 30%" in both.level_note
+    assert continuous.command_model_estimate(left, fine, replay_none).level_note.count(";") == 0
 
 
 def test_level_withdrawn_where_commands_are_unsupported(lq):
@@ -144,6 +150,7 @@ def test_level_withdrawn_where_commands_are_unsupported(lq):
     fq = m["ope"]["fqe"]
     assert m["behaviour"]["support_violations"]["fraction"] == 1.0
     assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]
+    assert fq["withdrawn_by"] == "support"
     assert m["headline"]["best"] is None and "cannot tell" in m["headline"]["verdict"]["text"]
 
 
@@ -161,6 +168,7 @@ def test_level_withdrawn_for_a_replay_of_the_logs(lq):
     m, _, _, _ = evaluation_metrics(lq, clone, None, fqe_bootstrap=20, bootstrap=0, model_particles=0)
     fq = m["ope"]["fqe"]
     assert fq["level"] is None and fq["nominal_level"] == 0.95 and "replays the logs" in fq["level_note"]
+    assert fq["withdrawn_by"] == "replay"
     assert m["headline"]["best"] is None
     assert continuous.replayed_commands(lq, attach_signature(LinearPolicy(0.5), lq))["fraction"] == 0.0
 

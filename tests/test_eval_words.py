@@ -67,6 +67,7 @@ def test_a_withdrawn_level_is_never_printed_as_95():
     w = withdraw_levels(m)
     fq = w["ope"]["fqe"]
     assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]
+    assert fq["withdrawn_by"] == "support"
     assert m["ope"]["fqe"]["level"] == 0.95  # the input is not changed
     assert withdraw_levels(w) == w  # idempotent
     h = headline(m)

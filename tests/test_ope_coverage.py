@@ -108,8 +108,10 @@ def test_the_logs_only_view_restores_only_what_the_simulator_withdrew():
     from offline_adp.evaluation.summary import LEVEL_WITHDRAWN
 
     oc = _suite()
-    by_sim = {"level": None, "nominal_level": 0.95, "level_note": LEVEL_WITHDRAWN.format(level=0.95)}
+    by_sim = {"level": None, "nominal_level": 0.95, "level_note": LEVEL_WITHDRAWN.format(level=0.95),
+              "withdrawn_by": "support"}
     assert oc._level_back(by_sim) == {"level": 0.95}
-    by_logs = {"level": None, "nominal_level": 0.95, "level_note": "the policy replays the logs"}
+    by_logs = {"level": None, "nominal_level": 0.95, "level_note": "the policy replays the logs",
+               "withdrawn_by": "replay"}
     assert oc._level_back(by_logs) == by_logs
     assert oc._level_back({"level": 0.95}) == {"level": 0.95}

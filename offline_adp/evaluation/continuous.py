@@ -290,8 +290,8 @@ def command_model_estimate(mr: dict[str, Any] | None, support: dict[str, Any],
     from offline_adp.evaluation.verdict import SUPPORT_FRACTION
 
     model = model_estimate(mr, LEVEL)
-    if model is None or model.level is None:
-        return model
+    if model is None:
+        return None
     why = []
     if support["fraction"] > SUPPORT_FRACTION:
         why.append(f"the policy's commands are unsupported at {support['fraction']:.0%} of the logged states, where "
@@ -301,8 +301,8 @@ def command_model_estimate(mr: dict[str, Any] | None, support: dict[str, Any],
                    "value from the logged start states is not its value in a new episode")
     if not why:
         return model
-    return replace(model, level=None, level_note="; ".join(why),
-                   warnings=[*model.warnings, *(f"no level: {w}" for w in why)])
+    note = "; ".join([model.level_note, *why] if model.level is None and model.level_note else why)
+    return replace(model, level=None, level_note=note, warnings=[*model.warnings, *(f"no level: {w}" for w in why)])
 
 
 def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSettings, *, target_horizon: int | None,
@@ -321,7 +321,7 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
     replay = replayed_commands(ds, policy)
     fq_d = fq.as_dict()
     if replay["fraction"] is not None and replay["fraction"] > REPLAY_FRACTION and fq_d.get("level") is not None:
-        fq_d.update(nominal_level=fq_d["level"], level=None, level_note=(
+        fq_d.update(nominal_level=fq_d["level"], level=None, withdrawn_by="replay", level_note=(
             f"the policy commands the very command logged at the state at {replay['fraction']:.0%} of the "
             "logged states: "
             "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "

@@ -354,7 +354,8 @@ def _levels_warnings_headline(metrics: dict[str, Any], run_dir: str | PathLike[s
     fm = json_safe(metrics)
     for k, r in withdraw_levels(fm, left_support(fm, shift_verdict(fm)))["ope"].items():
         if "level_note" in r and "level_note" not in metrics["ope"][k]:
-            metrics["ope"][k].update(level=None, nominal_level=r["nominal_level"], level_note=r["level_note"])
+            metrics["ope"][k].update(level=None, nominal_level=r["nominal_level"], level_note=r["level_note"],
+                                     withdrawn_by=r["withdrawn_by"])
     metrics["warnings"] = gather_warnings(metrics)  # one list, each with its source (also kept where it arose)
     metrics["headline"] = headline(json_safe(metrics), run_dir)
 

@@ -276,7 +276,7 @@ LEVEL_WITHDRAWN = ("the policy left the data's support, where the value model ex
 
 def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[str, Any]:
     """``m`` with every off-policy interval's level withdrawn (``level: null``, the former
-    one as ``nominal_level``, the reason as ``level_note``) when the policy left the data's
+    one as ``nominal_level``, the reason as ``level_note``, ``withdrawn_by: "support"``) when the policy left the data's
     support (``left``, default :func:`left_support`): the interval is still shown, never
     quoted with a level it does not have. The model rollouts' level stays where only the
     policy's actions left the data (:func:`~offline_adp.evaluation.verdict.left_states` empty).
@@ -291,7 +291,7 @@ def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[st
     ope = {}
     for k, r in m["ope"].items():
         if r.get("level") is not None and not (k == "model" and keep_model):
-            r = {**r, "nominal_level": r["level"], "level": None,
+            r = {**r, "nominal_level": r["level"], "level": None, "withdrawn_by": "support",
                  "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
         ope[k] = r
     return {**m, "ope": ope}
