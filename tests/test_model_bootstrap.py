@@ -18,7 +18,6 @@ from offline_adp.evaluation.model_bootstrap import (
     MIN_LABEL_PARTICLES,
     bootstrap_interval,
     bootstrap_reading,
-    corrected_spread,
     model_estimate,
     resampled_rows,
 )
@@ -53,35 +52,6 @@ def test_the_interval_is_students_spread_plus_the_bootstrap_bias():
     lo, hi = bootstrap_interval(2.5, r, 0.95)
     half = student.ppf(0.975, 4) * r.std(ddof=1) + 0.5
     assert (lo, hi) == pytest.approx((2.5 - half, 2.5 + half))
-
-
-def test_the_spread_trades_the_replicates_particle_noise_for_the_main_readings():
-    r = np.array([1.0, 1.5, 2.0, 2.5, 3.0])  # s_B^2 = 0.625
-    assert corrected_spread(r) == pytest.approx(np.sqrt(0.625))
-    # within variance 20 at 100 particles a replicate (0.2 of s_B^2), the main reading at 1000 particles
-    assert corrected_spread(r, np.full(5, 20.0), 100, 1000) == pytest.approx(np.sqrt(0.625 - 0.2 + 0.02))
-    # readings that spread less than their particles' noise: the model's share is 0, not negative
-    assert corrected_spread(r, np.full(5, 100.0), 100, 1000) == pytest.approx(np.sqrt(0.1))
-    lo, hi = bootstrap_interval(2.5, r, 0.95, spread=0.3)
-    assert (lo, hi) == pytest.approx((2.5 - student.ppf(0.975, 4) * 0.3 - 0.5, 2.5 + student.ppf(0.975, 4) * 0.3 + 0.5))
-
-
-def test_replicates_of_one_model_spread_by_the_main_readings_noise_only():
-    """Oracle: ten copies of the same model (no model variance at all): the readings' spread is
-    their particles' noise, sigma / sqrt(per), and what is left is the main reading's,
-    sigma / sqrt(n), within the sampling error of a spread from ten readings."""
-    from offline_adp.evaluation.model_bootstrap import replicate_readings
-    from offline_adp.evaluation.model_rollouts import LoggedDynamics
-
-    ds = _lane_logs(0)
-    model = LoggedDynamics(random_state=0).fit(ds, ds.arrays())
-    per, n, ratios = 100, 1000, []
-    for seed in range(6):
-        r, within = replicate_readings([model] * 10, COAST, T, GAMMA, per, np.random.default_rng(seed))
-        sigma = np.sqrt(within.mean())
-        assert r.std(ddof=1) == pytest.approx(sigma / np.sqrt(per), rel=0.7)  # 10 readings: a rough spread
-        ratios.append(corrected_spread(r, within, per, n) / (sigma / np.sqrt(n)))
-    assert np.median(ratios) < 2.0  # mostly the main reading's noise; s_B alone would be sqrt(10) = 3.2x
 
 
 def _lane_logs(seed: int):

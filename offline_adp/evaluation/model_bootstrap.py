@@ -18,21 +18,13 @@ error that matters is ``M^``'s own, which a new set of logged episodes would cha
    particles, the estimate of :func:`~offline_adp.evaluation.model_rollouts.model_rollout_value`
    without its bounds: the same particle budget as the main reading, the policy called once
    per step for all of them, so the replicates cost their fits, not more rollouts. The
-   variance ``s_B^2`` of the ``B`` readings holds the model's sampling error *and* the
-   particles' noise at ``m = n / B`` particles, ten times the main reading's at ``n``: by the
-   law of total variance ``E[s_B^2] = Var_model + E[sigma^2] / m``, with ``sigma^2`` a
-   particle's variance within a replicate (estimated by ``sigma^2_w``, the mean of the
-   replicates' within variances over their ``B m`` particles).
+   spread ``s_B`` of the ``B`` readings holds the model's sampling error *and* the
+   particles' noise at ``n / B`` (so it is, if anything, too large).
 3. **Interval** (:func:`bootstrap_interval`): around the main reading ``V^``,
-   ``V^ +- (t_{B-1, (1+level)/2} s + |mean_b V^_b - V^|)`` with
-   ``s^2 = max(s_B^2 - sigma^2_w / m, 0) + sigma^2_w / n``: the model's sampling variance
-   (the readings' spread less their particles' noise) plus the main reading's own
-   particle noise; the normal bootstrap interval with Student's quantile for ``B - 1``
-   degrees of freedom (``s_B`` is itself estimated from ``B`` readings), widened by the
-   bootstrap's estimate of the reading's bias (a model fitted on fewer distinct episodes
-   drifts less, or more, than one fitted on all). Without the correction a stochastic
-   policy's interval was mostly the replicates' particle noise (cartpole's random
-   exploration: ``s_B`` 0.25-0.45 on a value range of 20, almost all of it ``sigma / sqrt(m)``).
+   ``V^ +- (t_{B-1, (1+level)/2} s_B + |mean_b V^_b - V^|)``: the normal bootstrap interval
+   with Student's quantile for ``B - 1`` degrees of freedom (``s_B`` is itself estimated
+   from ``B`` readings) widened by the bootstrap's estimate of the reading's bias (a model
+   fitted on fewer distinct episodes drifts less, or more, than one fitted on all).
 4. **Past the data** (:func:`model_estimate`): the interval is widened on both sides by
    ``E = mean_i sum_{t >= sigma_i} w_it |c_it|``, the part of the main reading that its
    particles accrue after first leaving the logged states (``past_data_cost``, the cost side
@@ -108,12 +100,11 @@ def replicate_model(model: LoggedDynamics, a: TransitionArrays, rows: np.ndarray
 
 
 def replicate_readings(models: list[LoggedDynamics], policy: Policy, horizon: int, gamma: float, per: int,
-                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                       rng: np.random.Generator) -> np.ndarray:
     """Each model's reading ``mean_i sum_t gamma^t S_it c_it`` over ``per`` particles from its
     own start states: the main reading's estimate (:func:`model_rollout_value`) without its
     bounds and support checks, all replicates' particles acting through the policy in one
-    call per step (the policy's cost per call, not per particle, dominates small batches).
-    Returns the readings and each replicate's variance over its particles (``ddof=1``)."""
+    call per step (the policy's cost per call, not per particle, dominates small batches)."""
     B = len(models)
     x = np.vstack([m.start_states_[rng.integers(0, len(m.start_states_), per)] for m in models]).astype(np.float64)
     alive, value = np.ones(B * per), np.zeros(B * per)
@@ -128,32 +119,15 @@ def replicate_readings(models: list[LoggedDynamics], policy: Policy, horizon: in
             value[s] += w[s] * r.costs
             alive[s] = alive[s] * (1.0 - r.terminated)
             x[s] = r.next_states
-    v = value.reshape(B, per)
-    return v.mean(axis=1), v.var(axis=1, ddof=1) if per > 1 else np.zeros(B)
+    return value.reshape(B, per).mean(axis=1)
 
 
-def corrected_spread(readings: np.ndarray, within: np.ndarray | None = None, per: int = 1, n: int = 1) -> float:
-    """``s = sqrt(max(s_B^2 - sigma^2_w / per, 0) + sigma^2_w / n)`` (module docstring, step 3):
-    the readings' spread with their particles' noise (``within``: each replicate's variance
-    over its ``per`` particles) replaced by the main reading's (``n`` particles); ``s_B``
-    itself where ``within`` is None."""
-    r = np.asarray(readings, dtype=np.float64)
-    s2 = float(r.var(ddof=1))
-    if within is not None:
-        w = float(np.mean(within))
-        s2 = max(s2 - w / per, 0.0) + w / n
-    return float(np.sqrt(s2))
-
-
-def bootstrap_interval(estimate: float, readings: np.ndarray, level: float, spread: float | None = None
-                       ) -> tuple[float, float]:
-    """``estimate +- (t_{B-1} s + |mean(readings) - estimate|)`` (module docstring, step 3);
-    ``s``: ``spread`` (:func:`corrected_spread`), else the readings' standard deviation."""
+def bootstrap_interval(estimate: float, readings: np.ndarray, level: float) -> tuple[float, float]:
+    """``estimate +- (t_{B-1} s_B + |mean(readings) - estimate|)`` (module docstring, step 3)."""
     from scipy.stats import t as student
 
     r = np.asarray(readings, dtype=np.float64)
-    s = float(r.std(ddof=1)) if spread is None else float(spread)
-    half = float(student.ppf(0.5 + level / 2, len(r) - 1) * s + abs(r.mean() - estimate))
+    half = float(student.ppf(0.5 + level / 2, len(r) - 1) * r.std(ddof=1) + abs(r.mean() - estimate))
     return estimate - half, estimate + half
 
 
@@ -171,15 +145,13 @@ def bootstrap_reading(model: LoggedDynamics, a: TransitionArrays, policy: Policy
     per = max(n // replicates, MIN_REPLICATE_PARTICLES)
     reps = [replicate_model(model, a, resampled_rows(a, rows, rng)[0], seed=int(rng.integers(2**31)))
             for _ in range(replicates)]
-    r, within = replicate_readings(reps, policy, horizon, gamma, per, np.random.default_rng([seed, 37]))
-    s = corrected_spread(r, within, per, n)
-    lo, hi = bootstrap_interval(estimate, r, level, s)
+    r = replicate_readings(reps, policy, horizon, gamma, per, np.random.default_rng([seed, 37]))
+    lo, hi = bootstrap_interval(estimate, r, level)
     return {"interval": [lo, hi], "readings": [float(x) for x in r], "replicates": int(replicates),
-            "particles": int(per), "spread": s, "readings_spread": float(r.std(ddof=1)),
-            "particle_sd": float(np.sqrt(np.mean(within))), "bias": float(r.mean() - estimate),
+            "particles": int(per), "spread": float(r.std(ddof=1)), "bias": float(r.mean() - estimate),
             "method": f"{replicates} refits of the model on episodes resampled with replacement, {per} particles "
-                      f"each: the main reading +- (Student's t_{replicates - 1} x their spread, its particles' noise "
-                      f"at {per} replaced by the main reading's at {n}, + |their mean - the main reading|)"}
+                      f"each: the main reading +- (Student's t_{replicates - 1} x their spread + |their mean - the "
+                      "main reading|)"}
 
 
 def model_estimate(mr: dict[str, Any] | None, level: float) -> OPEResult | None:
