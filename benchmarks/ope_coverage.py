@@ -313,6 +313,14 @@ def _level_back(r: dict[str, Any]) -> dict[str, Any]:
     return {**{k: v for k, v in r.items() if k not in drop}, "level": r["nominal_level"]}
 
 
+def _model_summary(mr: dict[str, Any]) -> dict[str, Any]:
+    """The model rollouts' reading and what its interval is made of (the bootstrap's spread,
+    its parts and its bias), for a row."""
+    boot = mr.get("bootstrap") or {}
+    return {**{k: mr.get(k) for k in ("estimate", "interval", "exit_mass", "exit_share", "past_data_cost", "skipped")},
+            "bootstrap": {k: boot.get(k) for k in ("interval", "spread", "bias", "particles", "skipped")}}
+
+
 def _run_dir(tmp: Path, name: str, est: Any | None) -> Path:
     """A run directory holding only what the headline reads: the fit's convergence verdict."""
     d = tmp / name
@@ -407,9 +415,7 @@ def evaluate_candidates(problem: str, size: str, seed: int, candidates: list[str
                    {"name": best_logs["name"], "estimate": best_logs["estimate"], "interval": logs_iv,
                     "covers": _covers(logs_iv, truth), "width_over_range": (logs_iv[1] - logs_iv[0]) / value_span},
                    "estimators": ests, "fqe": row_fqe, "value_range": list(value_range),
-                   "model_rollouts": {k: (m["ope"]["fqe"].get("model_rollouts") or {}).get(k)
-                                      for k in ("estimate", "interval", "exit_mass", "exit_share", "past_data_cost",
-                                                "skipped")},
+                   "model_rollouts": _model_summary(m["ope"]["fqe"].get("model_rollouts") or {}),
                    "verdict": {"performance": h["verdict"]["performance"], "text": h["verdict"]["text"],
                                "check": _check(h["verdict"]["performance"], truth_side)},
                    "verdict_logs_only": {"performance": h_logs["verdict"]["performance"],
