@@ -226,7 +226,7 @@ def sorted_encoding(ids: pa.Array | pa.ChunkedArray, order: np.ndarray) -> pa.Di
             changes.append(np.array([a != b]))
         if len(c) > 1:
             head, tail = c.slice(0, len(c) - 1), c.slice(1)
-            change = np.asarray(pc.not_equal(tail, head).to_numpy(zero_copy_only=False), dtype=bool)
+            change = bool_values(pc.not_equal(tail, head))  # unpacked in one pass (no nulls here)
             at = pa.array(np.flatnonzero(change))  # ids out of order differ: compared only where they change
             if len(at) and pc.any(pc.less(tail.take(at), head.take(at))).as_py():
                 return None

@@ -366,7 +366,7 @@ class TransitionDataset:
         """One row per episode: id, length, source, return (total cost), end flags, first row."""
         a_codes, ids = self._episode_codes()
         n_ep = len(ids)
-        starts = np.flatnonzero(np.r_[True, a_codes[1:] != a_codes[:-1]]) if len(self) else np.zeros(0, int)
+        starts = np.r_[0, np.flatnonzero(a_codes[1:] != a_codes[:-1]) + 1] if len(self) else np.zeros(0, int)
         lengths = np.diff(np.r_[starts, len(self)])
         last = starts + lengths - 1
         cost = self.table.column(S.COST).to_numpy()

@@ -35,7 +35,7 @@ partly replaced directory gets wrong. These findings name the metadata file and 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -96,11 +96,18 @@ def validate(
     ep_codes = ds.episode_codes  # int32: indexes as well as int64, without the copy
     ep_ids = ds.episode_ids
     step = t.column(S.STEP).to_numpy(zero_copy_only=False)
-    last = np.r_[ep_codes[1:] != ep_codes[:-1], True] if n else np.zeros(0, bool)
-    first = np.r_[True, ep_codes[1:] != ep_codes[:-1]] if n else np.zeros(0, bool)
+    # last[i]: row i ends its episode. The row masks of the checks below are made block by
+    # block (_flagged), the size of the table only when a row is flagged: no column-sized
+    # temporaries (and no fresh pages) for a clean dataset
+    last = np.empty(n, bool)
+    if n:
+        np.not_equal(ep_codes[1:], ep_codes[:-1], out=last[:-1])
+        last[-1] = True
     parts: list[pd.DataFrame] = []
 
-    def add(check: str, mask: np.ndarray, column: str | np.ndarray, message: str | np.ndarray) -> None:
+    def add(check: str, mask: np.ndarray | None, column: str | np.ndarray, message: str | np.ndarray) -> None:
+        if mask is None:  # no row flagged
+            return
         idx = np.flatnonzero(mask)
         if len(idx):
             parts.append(
@@ -124,24 +131,21 @@ def validate(
                 "time is missing, not finite or beyond int64 nanoseconds" if c == S.T_NS else "value is missing (null)")
 
     # steps contiguous from 0
-    starts = np.flatnonzero(first)
+    starts = np.r_[0, np.flatnonzero(last[:-1]) + 1] if n else np.zeros(0, np.int64)
     # expected step of row i: i minus the first row of its episode (rows are in episode order)
-    bad = np.zeros(n, bool)
-    for lo in range(0, n, _BLOCK):
-        hi = min(lo + _BLOCK, n)
-        bad[lo:hi] = step[lo:hi] != np.arange(lo, hi) - starts[ep_codes[lo:hi]]
+    bad = _flagged(n, lambda lo, hi: step[lo:hi] != np.arange(lo, hi) - starts[ep_codes[lo:hi]])
     add("step_not_contiguous", bad, S.STEP,
         _messages(bad, lambda i: f"expected step {i - starts[ep_codes[i]]}, found {step[i]}"))
 
     term = _bool(t, S.TERMINATED)
     trunc = _bool(t, S.TRUNCATED)
-    n_both = int(np.count_nonzero(term & trunc))  # valid: terminated wins (absorbing); counted, not a finding
-    inner = ~last
-    ended = term | trunc
-    add("flag_not_last", ended & inner, S.TERMINATED, "episode flagged as ended before its last row")
-    add("end_unflagged", np.greater(last, ended), "terminated,truncated",  # last row, not ended
+    # valid: terminated wins (absorbing); counted, not a finding
+    n_both = sum(int(np.count_nonzero(term[lo:lo + _BLOCK] & trunc[lo:lo + _BLOCK])) for lo in range(0, n, _BLOCK))
+    add("flag_not_last", _flagged(n, lambda lo, hi: np.greater(term[lo:hi] | trunc[lo:hi], last[lo:hi])),
+        S.TERMINATED, "episode flagged as ended before its last row")
+    add("end_unflagged", _flagged(n, lambda lo, hi: np.greater(last[lo:hi], term[lo:hi] | trunc[lo:hi])),
+        "terminated,truncated",  # last row, not ended
         "last row of the episode is neither terminated nor truncated")
-    del ended
 
     # continuity next_obs(t) == obs(t+1) within episodes: np.isclose's rule
     # |x - y| <= atol + rtol * |y| on rows where both are finite, without its temporaries
@@ -157,7 +161,7 @@ def validate(
                     # equal values always pass: the rule is evaluated on the rows that differ
                     # (episode ends, rounding), all of the block's only when most differ
                     cand = np.not_equal(xb, yb)
-                    cand &= inner[lo:lo + len(xb)]
+                    np.greater(cand, last[lo:lo + len(xb)], out=cand)  # and not an episode's last row
                     k = np.count_nonzero(cand)
                     if not k:
                         continue
@@ -214,10 +218,12 @@ def validate(
             f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column")
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
+    # one comparison: a negative integer read as unsigned is beyond any action count
+    au = a.view(f"u{a.itemsize}") if a.dtype.kind == "i" else None
     add(
         "action_out_of_range",
-        # one comparison: a negative integer read as unsigned is beyond any action count
-        a.view(f"u{a.itemsize}") >= ds.n_actions if a.dtype.kind == "i" else (a < 0) | (a >= ds.n_actions),
+        _flagged(n, lambda lo, hi: au[lo:hi] >= ds.n_actions) if au is not None
+        else _flagged(n, lambda lo, hi: (a[lo:hi] < 0) | (a[lo:hi] >= ds.n_actions)),
         S.ACTION,
         f"action index outside the action table [0, {ds.n_actions})",
     )
@@ -226,22 +232,21 @@ def validate(
     for check, mask, column, message in extra:
         add(check, mask, column, message)
         skip |= mask
-    _check_commands(ds, add, first, skip)
+    _check_commands(ds, add, last, skip)
 
     if S.BEHAVIOR_PROB in t.column_names:
         p = t.column(S.BEHAVIOR_PROB).to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
         add(
             "propensity_out_of_range",
-            (p <= 0) | (p > 1),  # outside (0, 1]; NaN (a missing propensity) compares False
+            # outside (0, 1]; NaN (a missing propensity) compares False
+            _flagged(n, lambda lo, hi: (p[lo:hi] <= 0) | (p[lo:hi] > 1)),
             S.BEHAVIOR_PROB,
             "behavior_prob outside (0, 1]",
         )
     if S.T_NS in t.column_names:
         ts = t.column(S.T_NS).to_numpy(zero_copy_only=False)
-        dec = np.zeros(n, bool)
-        if n > 1:  # a row after a row of its episode (inner[:-1] is ~first[1:])
-            np.less(ts[1:], ts[:-1], out=dec[1:])
-            dec[1:] &= inner[:-1]
+        # a row earlier than the row before it, of its episode (that row is not an episode's last)
+        dec = _flagged(n, lambda lo, hi: np.greater(ts[lo:hi] < ts[lo - 1:hi - 1], last[lo - 1:hi - 1]), start=1)
         add("time_decreasing", dec, S.T_NS, "timestamp earlier than the previous step's")
 
     if not parts:
@@ -261,10 +266,10 @@ def validate(
                             row_label=origin.label)
 
 
-def _check_commands(ds: TransitionDataset, add: Any, first: np.ndarray, skip: np.ndarray) -> None:
+def _check_commands(ds: TransitionDataset, add: Any, last: np.ndarray, skip: np.ndarray) -> None:
     """The command checks (see the module docstring) on a dataset whose action table is
-    continuous or that carries ``action_value.<dim>`` columns; ``skip``: rows already
-    flagged for their command."""
+    continuous or that carries ``action_value.<dim>`` columns; ``last``: each episode's last
+    row, ``skip``: rows already flagged for their command."""
     t = ds.table
     at = ds.info.action_table
     cols = at.command_columns
@@ -275,6 +280,7 @@ def _check_commands(ds: TransitionDataset, add: Any, first: np.ndarray, skip: np
     for j, c in enumerate(cols):
         if not present[j] or not pa.types.is_floating(t.column(c).type):
             what = "missing" if not present[j] else f"of type {t.column(c).type}, not float"
+            first = np.r_[True, last[:-1]] if len(last) else last  # each episode's first row
             add("command_width", first, c,
                 f"the command column is {what}: the action table's commands have {len(at.dims)} components "
                 f"{list(at.dims)}, each kept in a float column action_value.<dim>")
@@ -342,6 +348,36 @@ def _bool(t: pa.Table, name: str) -> np.ndarray:
     return bool_values(t.column(name))  # nulls as False
 
 
+def _flagged(n: int, block: Callable[[int, int], np.ndarray], start: int = 0) -> np.ndarray | None:
+    """The row mask whose rows ``lo:hi`` are ``block(lo, hi)`` (rows before ``start``:
+    False), evaluated :data:`_BLOCK` rows at a time; None when no row is flagged, so that a
+    mask the size of the table is made only for a finding.
+
+    Parameters
+    ----------
+    n : int
+        Rows of the table.
+    block : callable
+        ``block(lo, hi)``: the boolean mask of rows ``lo`` to ``hi``.
+    start : int
+        The first row checked.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        ``n`` booleans, or None if ``block`` flagged no row.
+    """
+    out = None
+    for lo in range(start, n, _BLOCK):
+        hi = min(lo + _BLOCK, n)
+        m = block(lo, hi)
+        if m.any():
+            if out is None:
+                out = np.zeros(n, bool)
+            out[lo:hi] = m
+    return out
+
+
 def _all_within(v: np.ndarray, bound: float, buf: np.ndarray) -> bool:
     """Whether every value of ``v`` is a number of magnitude at most ``bound`` (NaN is not),
     block by block through ``buf``: no temporary the size of the column."""
@@ -353,10 +389,10 @@ def _all_within(v: np.ndarray, bound: float, buf: np.ndarray) -> bool:
     return True
 
 
-def _messages(mask: np.ndarray, fmt) -> np.ndarray | str:
+def _messages(mask: np.ndarray | None, fmt) -> np.ndarray | str:
     """Per-row messages, formatted only for the flagged rows (defects are few); ``""``
     when no row is flagged (then :func:`validate`'s ``add`` adds nothing)."""
-    if not mask.any():
+    if mask is None or not mask.any():
         return ""
     out = np.full(len(mask), "", dtype=object)
     for i in np.flatnonzero(mask):

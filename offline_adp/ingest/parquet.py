@@ -230,9 +230,10 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
 
     ep_ids = table.column(spec.episode.id)
     codes = enc.indices.to_numpy(zero_copy_only=False)  # int32: a view
-    first = np.r_[True, codes[1:] != codes[:-1]] if n else np.zeros(0, bool)
-    last = np.r_[codes[1:] != codes[:-1], True] if n else np.zeros(0, bool)
-    starts = np.flatnonzero(first)
+    last = np.empty(n, bool)  # each episode's last row (n > 0 here); starts from it: no second mask
+    np.not_equal(codes[1:], codes[:-1], out=last[:-1])
+    last[-1] = True
+    starts = np.r_[0, np.flatnonzero(last[:-1]) + 1]
     lens = np.diff(np.r_[starts, n])
     if spec.episode.step:
         step = _steps(table, spec.episode.step, spec.episode.step_base, file_of)
@@ -240,7 +241,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         # dense rank of the order value within the episode: ties share a step (doctor flags them)
         ov = table.column(order_col).to_numpy(zero_copy_only=False)
         new_val = np.r_[True, ov[1:] != ov[:-1]] if n else np.zeros(0, bool)
-        new_val = new_val | first
+        new_val[starts] = True  # an episode's first row
         cum = np.cumsum(new_val) - 1
         step = cum - np.repeat(cum[starts], lens)
 
@@ -252,10 +253,13 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
 
     term, term_null = _flag(table, spec.terminated_column, n, file_of)
     trunc_col, trunc_null = _flag(table, spec.truncated_column, n, file_of)
-    # rule: an episode's end is truncated unless the terminal column says terminated
-    trunc = trunc_col | (last & ~term)
+    # rule: an episode's end is truncated unless the terminal column says terminated; set
+    # in place (the column's own unpacked flags) at the episodes' last rows only
+    trunc = trunc_col
+    ends = np.r_[starts[1:] - 1, n - 1]
+    trunc[ends] |= ~term[ends]
 
-    keep = np.ones(n, bool)
+    keep: np.ndarray | None = None  # rows kept (None: every row)
     dropped = 0
     if spec.kind == "transitions":
         assert nxt_given is not None
@@ -287,7 +291,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
             trunc[prev[same]] = True  # the previous row becomes the episode's truncated end
 
     # actions from the rows that stay (a dropped row must not shape the bins)
-    all_kept = bool(keep.all())
+    all_kept = keep is None or bool(keep.all())
     aspec = spec.action
     list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
     if list_col and aspec.type == "discrete":
@@ -349,8 +353,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     cols[S.COST] = cost
     for j, nm in enumerate(names):
         cols[S.next_obs_column(nm)] = nxt[j]
-    cols[S.TERMINATED] = pa.array(term, mask=term_null) if term_null.any() else term
-    cols[S.TRUNCATED] = pa.array(trunc, mask=trunc_null) if trunc_null.any() else trunc
+    cols[S.TERMINATED] = pa.array(term, mask=term_null) if term_null is not None else term
+    cols[S.TRUNCATED] = pa.array(trunc, mask=trunc_null) if trunc_null is not None else trunc
     if spec.source_column:
         src = table.column(spec.source_column)
         if pa.types.is_dictionary(src.type):  # read as such: one dictionary for every chunk

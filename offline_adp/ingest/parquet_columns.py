@@ -159,11 +159,12 @@ def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *,
 
 
 def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray],
-                                                                      str]) -> tuple[np.ndarray, np.ndarray]:
-    """A bool flag column and its null mask (a null flag is kept null: the doctor reports
-    it, it never silently becomes False)."""
+                                                                      str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A bool flag column (a fresh array, the caller's to change) and its null mask, None
+    without nulls (a null flag is kept null: the doctor reports it, it never silently
+    becomes False)."""
     if not col:
-        return np.zeros(n, bool), np.zeros(n, bool)
+        return np.zeros(n, bool), None
     c = table.column(col)
     if not pa.types.is_boolean(c.type):
         if pa.types.is_integer(c.type) or pa.types.is_floating(c.type):
@@ -176,7 +177,7 @@ def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarra
         else:
             raise IngestError(f"{file_of(np.array([0]))}: column {col!r} of type {c.type} is not a flag column "
                               "(bool or 0/1)")
-    null = np.asarray(pc.is_null(c)) if c.null_count else np.zeros(n, bool)
+    null = np.asarray(pc.is_null(c)) if c.null_count else None
     return bool_values(c), null  # a null as False (and in the mask)
 
 
