@@ -195,3 +195,30 @@ def test_leaf_average_is_the_matrix_product(monkeypatch, held, weighted):
     assert (learner._train is not None) == held and (learner._src >= 0).any()
     y = rng.normal(size=len(ds)) * 10
     np.testing.assert_array_equal(LeafAverage(learner) @ y, fb.leaf_operator(learner) @ y)
+
+
+def test_query_rows_are_the_operators_rows(fitted):
+    _, fqe = fitted
+    learner = fqe.fit_state_.learner
+    ops = fb.query_operators(learner)
+    for name in ("next", "start"):
+        nq = learner.pos[name].shape[1]
+        for lo, hi in ((0, nq // 2), (nq // 2, nq), (3, 4)):
+            new, old = fb.query_rows(learner, name, lo, hi), ops[name][lo:hi]
+            assert new.shape == old.shape
+            for k in ("indptr", "indices", "data"):
+                np.testing.assert_array_equal(getattr(new, k), getattr(old, k), err_msg=f"{name} {k}")
+
+
+@pytest.mark.parametrize("radius", [None, 0.5])
+def test_support_bounds_without_the_whole_query_operator_are_the_same(fitted, radius):
+    """``support_bounds`` makes each action's query rows when it reads them: the same bounds
+    as with the whole operators held."""
+    _, fqe = fitted
+    fit = fqe.fit_state_
+    d = fit.data
+    P, u, P0, u0 = fb.support_operators(d, fit.backup, fit.learner, fb.query_operators(fit.learner), 1e-9, radius)
+    old = {"lower": fb.bounded_value(d, P, u, P0, u0, -2.0), "upper": fb.bounded_value(d, P, u, P0, u0, 3.0),
+           "unsupported_next": float(u.mean()), "unsupported_start": float(u0.mean())}
+    assert fqe.support_bounds(-2.0, 3.0, radius=radius) == old
+    assert "_ops_cache" not in fqe.__dict__ or "next" not in fqe.__dict__["_ops_cache"][1]

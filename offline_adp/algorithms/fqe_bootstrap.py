@@ -93,15 +93,26 @@ def query_operators(learner: FrozenTreesLearner, names: tuple[str, ...] | None =
     for name, pos in learner.pos.items():
         if names is not None and name not in names:
             continue
-        m, nq = pos.shape
-        idx = np.ascontiguousarray(pos.T)  # (nq, m), tree order (increasing leaf ids) in each row
-        hit = idx < L
-        indptr = np.zeros(nq + 1, np.int64)
-        np.cumsum(hit.sum(axis=1), out=indptr[1:])
-        indices = idx[hit]
-        del idx, hit
-        out[name] = sparse.csr_matrix((np.full(len(indices), 1.0 / m), indices, indptr), shape=(nq, L))
+        out[name] = _query_matrix(pos, L)
     return out
+
+
+def query_rows(learner: FrozenTreesLearner, name: str, lo: int, hi: int) -> Any:
+    """Rows ``lo .. hi - 1`` of ``query_operators(learner, (name,))[name]`` (its entries, in
+    its order), made from those queries' positions only: the whole operator is not built."""
+    return _query_matrix(learner.pos[name][:, lo:hi], len(learner.leaf_ids))
+
+
+def _query_matrix(pos: np.ndarray, L: int) -> Any:
+    """``A[q, leaf] = 1 / n_trees`` over the leaves ``pos[:, q]`` with training rows (< ``L``)."""
+    m, nq = pos.shape
+    idx = np.ascontiguousarray(pos.T)  # (nq, m), tree order (increasing leaf ids) in each row
+    hit = idx < L
+    indptr = np.zeros(nq + 1, np.int64)
+    np.cumsum(hit.sum(axis=1), out=indptr[1:])
+    indices = idx[hit]
+    del idx, hit
+    return sparse.csr_matrix((np.full(len(indices), 1.0 / m), indices, indptr), shape=(nq, L))
 
 
 def reweighted_operators(learner: FrozenTreesLearner, weights: np.ndarray,
@@ -294,7 +305,7 @@ def _sup_change(v_new: np.ndarray, v: np.ndarray, buf: np.ndarray, copy: bool) -
 _DIST_CHUNK = 1 << 20
 
 
-def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any],
+def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any] | None,
                       min_tree_share: float = 1e-9,
                       radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
     """The *per-action read* of the fitted forest at the pairs the backup queries, and
@@ -312,7 +323,9 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
     Returns ``(P, u, P0, u0)``: ``V(x'_i) = (P y)_i + u_i B`` over the training rows'
     targets ``y`` with the unsupported part valued ``B`` (``u_i`` = the policy's
     probability mass on unsupported actions at ``x'_i``); ``P0, u0`` the same at the start
-    states. ``P`` and ``P0`` are sparse (n, n) and (n_start, n).
+    states. ``P`` and ``P0`` are sparse (n, n) and (n_start, n). ``ops``: the query operators
+    (:func:`query_operators`) if held, else None: each action's rows are made when read
+    (:func:`query_rows`; the same numbers).
 
     ``radius``: a row of the queried action counts only when its state lies within this
     distance of the queried state (Euclidean, in units of each feature's standard
@@ -336,7 +349,8 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
         Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
         has = (sb > 0).astype(np.float64)
         for k in pi:
-            Ab = ops[k][b * nq[k]:(b + 1) * nq[k]]
+            lo, hi = b * nq[k], (b + 1) * nq[k]  # action b's rows (without ops: made alone, not the whole operator)
+            Ab = ops[k][lo:hi] if ops is not None else query_rows(learner, k, lo, hi)
             if radius is None:
                 K = Ab @ Mb
                 f = Ab @ has  # share of trees whose reached leaf holds a row of b
