@@ -35,12 +35,11 @@ from offline_adp.algorithms.fqe_bootstrap import (
     averaged_fixed_point,
     bounded_value,
     fixed_point,
-    leaf_operator,
-    policy_operator,
     query_operators,
     reweighted_operators,
     support_operators,
 )
+from offline_adp.algorithms.fqe_sweeps import LeafAverage, PolicyRead
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.fqi_data import CommandBackup, PolicyBackup, Prepared
 from offline_adp.algorithms.fqi_loop import FitState
@@ -224,19 +223,19 @@ commands, n_candidates, n_representatives
         fit = self._check_conditional()
         d, learner = fit.data, fit.learner
         self.q_function_ = None  # type: ignore[assignment]  # its node values not held through the solve
-        try:  # the next-state query operator only for P (built again when asked for: not held through the sweeps)
-            ops = self.__dict__.get("_ops_cache")
-            held = ops is not None and ops[0] is learner and "next" in ops[1]
-            P = policy_operator(d, fit.backup, ops[1]["next"] if held else query_operators(learner, ("next",))["next"])
-            del ops
-            v, sweeps = averaged_fixed_point(d, leaf_operator(learner), P, learner.leaf_values, tol, max_iterations)
-            del P
-        except BaseException:
-            self.q_function_ = learner.snapshot()  # the leaf values it had
-            raise
-        learner.leaf_values, learner._values, learner._cache = v, None, {}  # the loop's buffer and reads: stale
+        v = learner.leaf_values  # solved in place (the fit's buffer): no second copy held through the sweeps
+        if not (v.dtype == np.float64 and v.flags.writeable and v.flags.c_contiguous):
+            v = learner.leaf_values = np.array(v, dtype=np.float64)
+        try:  # M and P applied from the fit's leaf positions (fqe_sweeps: their matrices' numbers, not made)
+            P = PolicyRead(learner.pos["next"], np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64),
+                           len(learner.leaf_ids))
+            sweeps = averaged_fixed_point(d, LeafAverage(learner), P, v, tol, max_iterations, in_place=True)[1]
+        finally:  # the values moved (on an exception: to the last completed sweep's)
+            learner._cache = {}
+            self._forget_replicate_values()
+            if self.q_function_ is None:
+                self.q_function_ = learner.snapshot()
         release_freed()  # the solve's operators
-        self.q_function_ = learner.snapshot()
         self.settled_iterations_ = sweeps
         a0 = d.start_obs  # the backup's start probabilities: the policy's (its one command, over commands)
         self.value_ = float((fit.backup.probabilities("start", 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
@@ -294,6 +293,13 @@ commands, n_candidates, n_representatives
         self.q_function_ = None  # type: ignore[assignment]
         release_freed()  # the trees' pages back to the system, not left in the heap for smaller arrays only
 
+    def _forget_replicate_values(self) -> None:
+        """The replicates' start values at the query entries (:meth:`_row_space`) are read
+        again: the leaf values moved in place (:meth:`settle`)."""
+        cached = self.__dict__.get("_row_space_cache")
+        if cached is not None:
+            self.__dict__["_row_space_cache"] = (*cached[:2], None, None)
+
     def drop_replicate_cache(self) -> None:
         """Free the replicates' shared structure (:meth:`_row_space`), rebuilt when next asked."""
         self.__dict__.pop("_row_space_cache", None)
@@ -338,8 +344,8 @@ commands, n_candidates, n_representatives
             raise InvalidArgumentError("support_bounds reads the fitted structure per action-table entry; over "
                                        "continuous commands there is no such entry (evaluation/continuous.py measures "
                                        "command support instead)")
-        P, u, P0, u0 = support_operators(d, fit.backup, fit.learner, self._query_operators(), min_tree_share,
-                                       radius)
+        # each action's query rows made when read, not the whole next-state operator (held: ~0.5 GiB at 1M rows)
+        P, u, P0, u0 = support_operators(d, fit.backup, fit.learner, None, min_tree_share, radius)
         return {"lower": bounded_value(d, P, u, P0, u0, float(lower)),
                 "upper": bounded_value(d, P, u, P0, u0, float(upper)),
                 "unsupported_next": float(u.mean()) if len(u) else 0.0,

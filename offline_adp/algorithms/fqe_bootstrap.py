@@ -17,6 +17,7 @@ import numpy as np
 from scipy import sparse
 
 from offline_adp.algorithms.fqi_data import PolicyBackup, Prepared
+from offline_adp.errors import InvalidArgumentError
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.trees.builder import _kernel
 
@@ -80,7 +81,8 @@ def leaf_operator(learner: FrozenTreesLearner) -> Any:
     ``M[leaf, i] = w_i / (sum of w in the leaf)``, so ``leaf_values = M @ y``."""
     pos = learner.pos["train"]
     w = np.ones(pos.shape[1]) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
-    return _averaging_matrix(pos, w, learner.leaf_weight_sums(w), len(learner.leaf_ids))
+    wsum = getattr(learner, "weight_sums", None)  # the fit's own (another vector of the leaves' size not made)
+    return _averaging_matrix(pos, w, learner.leaf_weight_sums(w) if wsum is None else wsum, len(learner.leaf_ids))
 
 
 def query_operators(learner: FrozenTreesLearner, names: tuple[str, ...] | None = None) -> dict[str, Any]:
@@ -91,15 +93,26 @@ def query_operators(learner: FrozenTreesLearner, names: tuple[str, ...] | None =
     for name, pos in learner.pos.items():
         if names is not None and name not in names:
             continue
-        m, nq = pos.shape
-        idx = np.ascontiguousarray(pos.T)  # (nq, m), tree order (increasing leaf ids) in each row
-        hit = idx < L
-        indptr = np.zeros(nq + 1, np.int64)
-        np.cumsum(hit.sum(axis=1), out=indptr[1:])
-        indices = idx[hit]
-        del idx, hit
-        out[name] = sparse.csr_matrix((np.full(len(indices), 1.0 / m), indices, indptr), shape=(nq, L))
+        out[name] = _query_matrix(pos, L)
     return out
+
+
+def query_rows(learner: FrozenTreesLearner, name: str, lo: int, hi: int) -> Any:
+    """Rows ``lo .. hi - 1`` of ``query_operators(learner, (name,))[name]`` (its entries, in
+    its order), made from those queries' positions only: the whole operator is not built."""
+    return _query_matrix(learner.pos[name][:, lo:hi], len(learner.leaf_ids))
+
+
+def _query_matrix(pos: np.ndarray, L: int) -> Any:
+    """``A[q, leaf] = 1 / n_trees`` over the leaves ``pos[:, q]`` with training rows (< ``L``)."""
+    m, nq = pos.shape
+    idx = np.ascontiguousarray(pos.T)  # (nq, m), tree order (increasing leaf ids) in each row
+    hit = idx < L
+    indptr = np.zeros(nq + 1, np.int64)
+    np.cumsum(hit.sum(axis=1), out=indptr[1:])
+    indices = idx[hit]
+    del idx, hit
+    return sparse.csr_matrix((np.full(len(indices), 1.0 / m), indices, indptr), shape=(nq, L))
 
 
 def reweighted_operators(learner: FrozenTreesLearner, weights: np.ndarray,
@@ -146,14 +159,97 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
     return averaged_fixed_point(data, M, policy_operator(data, backup, ops["next"]), v, tol, max_iterations, rtol)
 
 
-def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any) -> Any:
+def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any = None, pos_next: np.ndarray | None = None,
+                    L: int | None = None) -> Any:
     """``P = sum_a diag(pi(a|x')) A_next[a]`` (:func:`fixed_point`): ``V(x'_i) = sum_a
-    pi(a|x'_i) Q(x'_i, a)`` as one operator on the leaf values."""
+    pi(a|x'_i) Q(x'_i, a)`` as one operator on the leaf values, from the next-state query
+    operator ``op_next`` (:func:`query_operators`) or, without it, from the next-state leaf
+    positions ``pos_next`` ((trees, A n), position ``L``: no training leaf) directly
+    (:func:`policy_rows`: the same matrix, int32 indices where they fit, without the
+    query operator, twice its size, ever being made)."""
     n, A = data.n, data.n_actions
     pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
+    if op_next is None:
+        assert pos_next is not None and L is not None
+        return policy_rows(np.ascontiguousarray(pos_next), pi_next, n, L)
     i, a = np.nonzero(pi_next > 0)
     pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
     return (pick @ op_next).tocsr()
+
+
+def _policy_row_entries(pos: Any, pi: Any, n: int, L: int, inv_m: float, i: int, keys: Any, sums: Any) -> int:
+    """Row ``i`` of ``pick @ op_next`` as scipy's CSR product builds it: its leaves in the order
+    first reached (actions in order, trees in order), each summing ``pi(a|x'_i) * (1/m)`` from 0;
+    returns their count (entries in ``keys``, ``sums``). The trees' leaves are disjoint, so
+    only a later action's leaves can repeat one reached before."""
+    k = 0
+    first = True
+    for a in range(pi.shape[1]):
+        p = pi[i, a]
+        if not p > 0:
+            continue
+        for t in range(pos.shape[0]):
+            leaf = pos[t, a * n + i]
+            if leaf >= L:
+                continue
+            j = k
+            if not first:
+                j = 0
+                while j < k and keys[j] != leaf:
+                    j += 1
+            if j == k:
+                keys[k] = leaf
+                sums[k] = 0.0
+                k += 1
+            sums[j] += p * inv_m
+        first = False
+    return k
+
+
+def _policy_counts(pos: Any, pi: Any, n: int, L: int, inv_m: float, indptr: Any) -> None:
+    """``indptr`` of :func:`policy_rows` (entries summing to 0 dropped, as scipy drops them)."""
+    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
+    for i in range(n):
+        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
+        c = 0
+        for j in range(k):
+            if sums[j] != 0.0:
+                c += 1
+        indptr[i + 1] = indptr[i] + c
+
+
+def _policy_fill(pos: Any, pi: Any, n: int, L: int, inv_m: float, indptr: Any, indices: Any, data: Any) -> None:
+    """The entries of :func:`policy_rows`, each row's in scipy's order: last first reached first."""
+    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
+    for i in range(n):
+        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
+        o = indptr[i]
+        for j in range(k - 1, -1, -1):
+            if sums[j] != 0.0:
+                indices[o] = keys[j]
+                data[o] = sums[j]
+                o += 1
+
+
+_policy_row_entries = _kernel(_policy_row_entries, cache=True, nogil=True, boundscheck=False)
+_policy_counts = _kernel(_policy_counts, cache=True, nogil=True, boundscheck=False)
+_policy_fill = _kernel(_policy_fill, cache=True, nogil=True, boundscheck=False)
+
+
+def policy_rows(pos_next: np.ndarray, pi_next: np.ndarray, n: int, L: int) -> Any:
+    """``pick @ op_next`` of :func:`policy_operator` from the next-state leaf positions
+    ``pos_next`` ((trees, A n), tree-major; ``L``: no training leaf) and the policy's
+    probabilities ``pi_next`` (n, A), in two compiled passes (count, fill): the same entries
+    in the same order within each row (so ``P @ v`` sums in the same order), int32 indices
+    where ``L`` fits."""
+    m = pos_next.shape[0]
+    inv_m = 1.0 / m
+    indptr = np.zeros(n + 1, np.int64)
+    _policy_counts(pos_next, pi_next, n, L, inv_m, indptr)
+    indices = np.empty(int(indptr[-1]), np.int32 if L < 2**31 - 1 else np.int64)
+    data = np.empty(int(indptr[-1]))
+    _policy_fill(pos_next, pi_next, n, L, inv_m, indptr, indices, data)
+    return sparse.csr_matrix((data, indices, indptr), shape=(n, L))
 
 
 #: leaf values whose change is taken at once in :func:`averaged_fixed_point` (bounded memory)
@@ -161,23 +257,28 @@ _CHANGE_CHUNK = 1 << 20
 
 
 def averaged_fixed_point(data: Prepared, M: Any, P: Any, v: np.ndarray, tol: float | None, max_iterations: int,
-                         rtol: float = 1e-7) -> tuple[np.ndarray, int]:
+                         rtol: float = 1e-7, in_place: bool = False) -> tuple[np.ndarray, int]:
     """:func:`fixed_point` with the policy's operator ``P`` (:func:`policy_operator`) given,
-    so that the query operator it was made from need not be held through the sweeps."""
-    v = np.asarray(v, dtype=np.float64).copy()
+    so that the query operator it was made from need not be held through the sweeps.
+
+    ``v`` is never written unless ``in_place`` (a float64, writable, contiguous ``v``): each
+    sweep's values are then copied into ``v`` (returned), so that the sweeps hold two vectors
+    of the leaves' size, not three (the starting values, the current and the new ones); the
+    numbers are the same (the copy is exact). ``v`` holds the last completed sweep's values
+    if the solve is interrupted."""
+    v = np.asarray(v, dtype=np.float64)
+    if in_place and not (v.flags.writeable and v.flags.c_contiguous):
+        raise InvalidArgumentError("averaged_fixed_point(in_place=True) needs a writable, contiguous float64 v")
     if not len(v):
-        return v, 1
+        return (v if in_place else v.copy()), 1
     buf = np.empty(min(len(v), _CHANGE_CHUNK))
     for sweep in range(1, max_iterations + 1):
         v_new = M @ data.targets(P @ v)  # the loop's own targets (c^- clamp included)
-        ends = []  # (max, min) of v_new - v a chunk at a time: no second vector of the leaves' size
-        for lo in range(0, len(v), _CHANGE_CHUNK):
-            hi = min(lo + _CHANGE_CHUNK, len(v))
-            d = np.subtract(v_new[lo:hi], v[lo:hi], out=buf[:hi - lo])
-            ends.append((d.max(), d.min()))
-        e = np.array(ends)
-        change = max(float(e[:, 0].max()), -float(e[:, 1].min()))  # NaN as the whole vector's max and min give it
-        v = v_new
+        change = _sup_change(v_new, v, buf, in_place)
+        if in_place:
+            del v_new  # copied into v
+        else:
+            v = v_new
         # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
         bound = change * data.gamma / (1.0 - data.gamma)
         if bound <= (tol if tol is not None else rtol * (1.0 + max(float(v.max()), -float(v.min())))):
@@ -185,11 +286,26 @@ def averaged_fixed_point(data: Prepared, M: Any, P: Any, v: np.ndarray, tol: flo
     return v, max_iterations
 
 
+def _sup_change(v_new: np.ndarray, v: np.ndarray, buf: np.ndarray, copy: bool) -> float:
+    """``max |v_new - v|`` (NaN as the whole vector's max and min give it), taken a chunk of
+    ``buf``'s size at a time (no second vector of the leaves' size); with ``copy`` each chunk
+    of ``v_new`` is then copied into ``v``."""
+    ends = []
+    for lo in range(0, len(v), _CHANGE_CHUNK):
+        hi = min(lo + _CHANGE_CHUNK, len(v))
+        d = np.subtract(v_new[lo:hi], v[lo:hi], out=buf[:hi - lo])
+        ends.append((d.max(), d.min()))
+        if copy:
+            v[lo:hi] = v_new[lo:hi]
+    e = np.array(ends)
+    return max(float(e[:, 0].max()), -float(e[:, 1].min()))
+
+
 #: entries of the per-action read whose state distances are computed at once (bounded memory)
 _DIST_CHUNK = 1 << 20
 
 
-def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any],
+def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTreesLearner, ops: dict[str, Any] | None,
                       min_tree_share: float = 1e-9,
                       radius: float | None = None) -> tuple[Any, np.ndarray, Any, np.ndarray]:
     """The *per-action read* of the fitted forest at the pairs the backup queries, and
@@ -207,7 +323,9 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
     Returns ``(P, u, P0, u0)``: ``V(x'_i) = (P y)_i + u_i B`` over the training rows'
     targets ``y`` with the unsupported part valued ``B`` (``u_i`` = the policy's
     probability mass on unsupported actions at ``x'_i``); ``P0, u0`` the same at the start
-    states. ``P`` and ``P0`` are sparse (n, n) and (n_start, n).
+    states. ``P`` and ``P0`` are sparse (n, n) and (n_start, n). ``ops``: the query operators
+    (:func:`query_operators`) if held, else None: each action's rows are made when read
+    (:func:`query_rows`; the same numbers).
 
     ``radius``: a row of the queried action counts only when its state lies within this
     distance of the queried state (Euclidean, in units of each feature's standard
@@ -231,7 +349,8 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
         Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
         has = (sb > 0).astype(np.float64)
         for k in pi:
-            Ab = ops[k][b * nq[k]:(b + 1) * nq[k]]
+            lo, hi = b * nq[k], (b + 1) * nq[k]  # action b's rows (without ops: made alone, not the whole operator)
+            Ab = ops[k][lo:hi] if ops is not None else query_rows(learner, k, lo, hi)
             if radius is None:
                 K = Ab @ Mb
                 f = Ab @ has  # share of trees whose reached leaf holds a row of b

@@ -4,7 +4,7 @@ without renumbering a structure twice.
 A saved ensemble (:meth:`~offline_adp.trees.ensemble.TreeEnsemble.to_arrays`, artifact
 format 2) stores each tree's leaf flags in depth-first order, the splits' features and
 thresholds, and the leaves' values. Scoring needs only the per-tree lookups
-(:class:`~offline_adp.trees.compact.CompactTree`, 32 bytes a node) and the leaf values;
+(:class:`~offline_adp.trees.compact.CompactTree`, about 28 bytes a node) and the leaf values;
 the per-node ``left, right, feature, threshold`` arrays a :class:`TreeEnsemble` holds (40
 bytes a node as int64/float64) serve re-saving, resuming and export only. So
 :func:`load_compact_ensemble` checks the members (:func:`~offline_adp.artifacts.checks.compact_tree_members`),

@@ -101,9 +101,9 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     in ``n_jobs`` threads (the regressor's; -1, the extra_trees default: every core), each tree's work independent and
     every sum in one fixed order, so the Q-values are the same to the last bit for any thread count
     (:mod:`offline_adp.trees.averaging`). A build drops the previous structure first, and the compiled builder's trees
-    are held as :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node). With a fixed structure the update is
-    a gamma-contraction, so it converges -- to the fixed point of *that* averager, which is only as good as the
-    structure: a structure fitted to early targets cannot represent what later targets need.
+    are held as :class:`~offline_adp.trees.compact.CompactTree` (about 28 bytes a node). With a fixed structure the
+    update is a gamma-contraction, so it converges -- to the fixed point of *that* averager, which is only as good as
+    the structure: a structure fitted to early targets cannot represent what later targets need.
 
     How the number of builds and their row fractions trade score against CPU:
     docs/fqi-modes.md.
@@ -215,7 +215,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     def _grow(self, X: np.ndarray, y: np.ndarray, native: compiled.TreeParams,
               trees: range) -> list[tuple[Any, np.ndarray | None]]:
         """Trees ``trees`` from the compiled builder, each as a
-        :class:`~offline_adp.trees.compact.CompactTree` (32 bytes a node, made in the calling
+        :class:`~offline_adp.trees.compact.CompactTree` (about 28 bytes a node, made in the calling
         thread) and its training rows' leaves (None unless every row is in the tree)."""
         def finish(t: compiled.GrownTree) -> tuple[Any, np.ndarray | None]:  # copies: the arrays are reused
             leaf = t.train_leaf.copy() if t.train_leaf is not None and int(t.train_leaf.min(initial=0)) >= 0 else None
@@ -399,6 +399,22 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
         """``sum of v_i`` over the training rows in each leaf (compact index, as
         ``leaf_ids``); the same numbers as ``np.bincount`` over each tree's leaves."""
         return self._leaf_sums(np.asarray(v, dtype=np.float64))
+
+    def reused_positions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(nxt, src, rest, wsum)``: training row ``i``'s leaf in tree ``t`` is ``nxt[t, src[i]]``
+        where ``src[i] >= 0``, else the next column of ``rest[t]`` (the positions the fit holds,
+        none made), and the leaf weights (:attr:`weight_sums`)."""
+        assert self._rest is not None and self._wsum is not None
+        if self._train is not None or self._rest.shape[1] == len(self._src):  # every row's held
+            rest = self._rest if self._train is None else self._train
+            return rest, np.full(len(self._src), -1, np.int64), rest, self._wsum
+        return self._pos["next"], self._src, self._rest, self._wsum
+
+    @property
+    def weight_sums(self) -> np.ndarray | None:
+        """The training weight in each leaf (compact index), held: ``leaf_weight_sums`` of the
+        weights (of ones without weights), the same numbers."""
+        return self._wsum
 
     def _leaf_sums(self, v: np.ndarray) -> np.ndarray:
         """``sum of v_i`` over the training rows in each leaf (compact index), trees in

@@ -1,4 +1,4 @@
-"""Grown trees held for leaf lookups in 32 bytes a node (:class:`CompactTree`) and their
+"""Grown trees held for leaf lookups in about 28 bytes a node (:class:`CompactTree`) and their
 compiled lookup (a nogil numba kernel, so trees are looked up in threads); used by the
 frozen LEARN step (:mod:`offline_adp.learn.frozen`) and :class:`~offline_adp.trees.ensemble.TreeEnsemble`."""
 
@@ -11,12 +11,15 @@ import numpy as np
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.trees.builder import GrownTree, _kernel
 
+_UNDEFINED = -2.0  #: scikit-learn's threshold at a leaf (TREE_UNDEFINED)
+
 
 class CompactTree:
-    """A grown tree held for leaf lookups in 32 bytes a node (scikit-learn's ``Tree``: 72):
+    """A grown tree held for leaf lookups in about 28 bytes a node (scikit-learn's ``Tree``: 72):
     a packed lookup record per node (left, right, feature as int32 and the threshold as
     the largest float32 not above it, 16 bytes: four nodes a cache line) plus the float64
-    thresholds and values for the export. For float32 inputs ``x <= threshold`` and
+    values and the splits' float64 thresholds for the export (a leaf's threshold, -2,
+    not held). For float32 inputs ``x <= threshold`` and
     ``x <= float32-floor(threshold)`` are the same test, so :meth:`apply` reaches the leaf
     scikit-learn's ``apply`` reaches. It reads like a ``Tree`` where
     :func:`~offline_adp.trees.sklearn.tree_arrays` reads one (``node_count``,
@@ -35,7 +38,12 @@ class CompactTree:
         pk = np.empty((n, 4), np.int32)
         pk[:, 0], pk[:, 1], pk[:, 2] = left, right, feature
         pk[:, 3] = t32.view(np.int32)
-        self.packed, self.thresholds, self.values = pk, thr, np.array(value, dtype=np.float64)
+        self.packed, self.values = pk, np.array(value, dtype=np.float64)
+        # read only by the export: a leaf's is scikit-learn's -2 (every builder's and decoder's
+        # trees), so the splits' only are held where that is so (8 bytes a split, not a node)
+        leaf = pk[:, 0] < 0
+        self._leaf_undefined = bool((thr[leaf] == _UNDEFINED).all())
+        self._thresholds = thr[~leaf] if self._leaf_undefined else thr
 
     @classmethod
     def from_grown(cls, tree: GrownTree) -> CompactTree:
@@ -57,6 +65,15 @@ class CompactTree:
     @property
     def feature(self) -> np.ndarray:
         return self.packed[:, 2]
+
+    @property
+    def thresholds(self) -> np.ndarray:
+        """The float64 thresholds of every node (a leaf's: -2), as given."""
+        if not self._leaf_undefined:
+            return self._thresholds
+        out = np.full(self.node_count, _UNDEFINED)
+        out[self.packed[:, 0] >= 0] = self._thresholds
+        return out
 
     @property
     def threshold(self) -> np.ndarray:

@@ -105,7 +105,7 @@ class TreeEnsemble:
     def compiled_trees(self) -> list[Any] | None:
         """Compiled per-tree lookups rebuilt from our arrays (plain numbers, no code from any
         file): :class:`~offline_adp.trees.compact.CompactTree` where numba is installed (the
-        leaves scikit-learn's ``apply`` reaches, in 32 bytes a node), else scikit-learn
+        leaves scikit-learn's ``apply`` reaches, in about 28 bytes a node), else scikit-learn
         ``Tree`` objects for its compiled ``apply``; None if this scikit-learn's tree state
         layout is not the one we know (then the numpy traversal is used)."""
         cached = getattr(self, "_trees", False)
@@ -118,7 +118,7 @@ class TreeEnsemble:
         trees: list[Any] | None = []
         bounds = np.r_[self.roots, len(self.left)]
         n_features = int(max(self.feature.max(), 0)) + 1
-        compact = builder.available()  # 32 bytes a node and a lookup in threads (scikit-learn's: 72)
+        compact = builder.available()  # about 28 bytes a node and a lookup in threads (scikit-learn's: 72)
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             leaf = self.left[lo:hi] < 0
             if compact:

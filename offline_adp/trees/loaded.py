@@ -1,5 +1,5 @@
 """A :class:`~offline_adp.trees.ensemble.TreeEnsemble` held as its per-tree lookups
-(:class:`~offline_adp.trees.compact.CompactTree`, 32 bytes a node) and its node values, the
+(:class:`~offline_adp.trees.compact.CompactTree`, about 28 bytes a node) and its node values, the
 per-node ``left, right, feature, threshold`` arrays (40 bytes a node as int64/float64) made
 from the lookups only when first read (re-saving, resuming, export): :class:`LoadedEnsemble`.
 

@@ -1,0 +1,96 @@
+"""The settle's sweeps without their sparse matrices
+(:meth:`~offline_adp.algorithms.fqe.FittedQEvaluation.settle`): the leaf-averaging operator
+``M`` (:func:`~offline_adp.algorithms.fqe_bootstrap.leaf_operator`) and the policy's
+operator ``P`` (:func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator`) applied
+from the fit's leaf positions, each product the one the CSR matrix gives bit for bit: every
+output entry sums the same terms, each the same IEEE product, from 0 in the same order
+(scipy's ``csr_matvec``). At 1M rows and 20 trees the two matrices are ~0.55 GiB, held
+through every sweep; here only the positions the fit holds anyway are read.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from offline_adp.algorithms.fqe_bootstrap import _policy_row_entries
+from offline_adp.learn import FrozenTreesLearner
+from offline_adp.trees.averaging import _split, thread_map
+from offline_adp.trees.builder import _kernel
+
+
+def _average_rows(nxt: Any, src: Any, rest: Any, w: Any, wsum: Any, y: Any, t0: int, t1: int, out: Any) -> None:
+    """``out[l] = sum over the rows i of leaf l, in order, of (w_i / wsum[l]) y_i`` (from 0; a
+    leaf without weight: ``wsum[l] * y_i``, as :func:`~offline_adp.algorithms.fqe_bootstrap._leaf_data`
+    stores it) for trees ``t0..t1-1``; row ``i``'s leaf in tree ``t`` is ``nxt[t, src[i]]``
+    where ``src[i] >= 0``, else the next column of ``rest[t]``. A leaf's rows are all in its
+    own tree, in increasing order: the CSR row's order."""
+    n = len(src)
+    for t in range(t0, t1):
+        j = 0
+        for i in range(n):
+            s = src[i]
+            if s >= 0:
+                leaf = nxt[t, s]
+            else:
+                leaf = rest[t, j]
+                j += 1
+            ws = wsum[leaf]
+            d = w[i] / ws if ws > 0.0 else ws
+            out[leaf] += d * y[i]
+
+
+def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: Any) -> None:
+    """``out[i] = (P v)_i`` with row ``i`` of ``P`` made as
+    :func:`~offline_adp.algorithms.fqe_bootstrap.policy_rows` makes it (its entries, last first
+    reached first, zero sums left out), summed from 0 in that order."""
+    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
+    for i in range(n):
+        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
+        acc = 0.0
+        for j in range(k - 1, -1, -1):
+            if sums[j] != 0.0:
+                acc += sums[j] * v[keys[j]]
+        out[i] = acc
+
+
+_average_rows = _kernel(_average_rows, cache=True, nogil=True, boundscheck=False)
+_policy_apply = _kernel(_policy_apply, cache=True, nogil=True, boundscheck=False)
+
+
+class LeafAverage:
+    """``M @ y`` of :func:`~offline_adp.algorithms.fqe_bootstrap.leaf_operator` (the same
+    numbers) from ``learner``'s training positions and held leaf weights, trees over its
+    ``n_jobs`` threads (each leaf summed in one thread, in row order)."""
+
+    def __init__(self, learner: FrozenTreesLearner) -> None:
+        nxt, src, rest, wsum = learner.reused_positions()
+        self.nxt, self.rest, self.wsum = nxt, rest, wsum
+        self.src = np.ascontiguousarray(src, dtype=np.int64)
+        n = len(self.src)
+        self.w = np.ones(n) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
+        self.n_jobs, self.L = learner.n_jobs, len(learner.leaf_ids)
+
+    def __matmul__(self, y: np.ndarray) -> np.ndarray:
+        y = np.ascontiguousarray(y, dtype=np.float64)
+        out = np.zeros(self.L)
+        m = self.rest.shape[0]
+        thread_map(lambda r: _average_rows(self.nxt, self.src, self.rest, self.w, self.wsum, y, r[0], r[1], out),
+                   _split(m, self.n_jobs), self.n_jobs)
+        return out
+
+
+class PolicyRead:
+    """``P @ v`` of :func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator` (the same
+    numbers) from the next-state leaf positions ``pos_next`` ((trees, A n); ``L``: no training
+    leaf) and the policy's probabilities there ``pi_next`` (n, A)."""
+
+    def __init__(self, pos_next: np.ndarray, pi_next: np.ndarray, L: int) -> None:
+        self.pos, self.pi = np.ascontiguousarray(pos_next), np.ascontiguousarray(pi_next, dtype=np.float64)
+        self.n, self.L, self.inv_m = len(self.pi), int(L), 1.0 / pos_next.shape[0]
+
+    def __matmul__(self, v: np.ndarray) -> np.ndarray:
+        out = np.empty(self.n)
+        _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, np.ascontiguousarray(v, dtype=np.float64), out)
+        return out
