@@ -1,6 +1,6 @@
 """The settle's pieces rebuilt for memory (docs/scaling.md, "Distributed evaluation") give
-the numbers of the constructions they replaced: the policy's operator made from the
-next-state leaf positions (no query operator), the sweeps written into the fit's buffer,
+the numbers of the constructions they replaced: the policy's operator applied from the
+next-state leaf positions (no query operator, no matrix), the sweeps written into the fit's buffer,
 the leaf-averaging matrix from the fit's held leaf weights."""
 
 from __future__ import annotations
@@ -34,17 +34,20 @@ def _synthetic(seed: int, n: int = 400, A: int = 3, m: int = 5, sizes: int = 60)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_policy_operator_from_positions_is_the_product_it_replaced(seed):
+def test_policy_read_from_positions_is_the_product_it_replaced(seed):
+    """The settle's ``P @ v`` from the next-state positions (no query operator, no ``P``) is
+    the CSR product's bit for bit, on vectors of several scales."""
+    from offline_adp.algorithms.fqe_sweeps import PolicyRead
+
     pos, pi, L, n, A = _synthetic(seed)
     learner = SimpleNamespace(leaf_ids=np.arange(L), pos={"next": pos})
     data, backup = SimpleNamespace(n=n, n_actions=A), SimpleNamespace(probabilities=lambda name, t: pi)
     old = fb.policy_operator(data, backup, fb.query_operators(learner, ("next",))["next"])
-    new = fb.policy_operator(data, backup, pos_next=pos, L=L)
-    assert new.shape == old.shape and new.indices.dtype == np.int32
-    for k in ("indptr", "indices", "data"):  # the same entries in the same order: P @ v sums the same
-        np.testing.assert_array_equal(getattr(new, k), getattr(old, k), err_msg=k)
-    v = np.random.default_rng(seed).normal(size=L)
-    np.testing.assert_array_equal(new @ v, old @ v)
+    new = PolicyRead(pos, pi, L)
+    rng = np.random.default_rng(seed)
+    for scale in (1.0, 1e-3, 1e6):  # the same entries summed in the same order: the same bits
+        v = rng.normal(size=L) * scale
+        np.testing.assert_array_equal(new @ v, old @ v)
 
 
 @pytest.fixture(scope="module")
@@ -62,10 +65,13 @@ def test_the_settles_policy_operator_is_the_product_on_a_fit(fitted):
     _, fqe = fitted
     fit = fqe.fit_state_
     learner = fit.learner
+    from offline_adp.algorithms.fqe_sweeps import PolicyRead
+
     old = fb.policy_operator(fit.data, fit.backup, fb.query_operators(learner, ("next",))["next"])
-    new = fb.policy_operator(fit.data, fit.backup, pos_next=learner.pos["next"], L=len(learner.leaf_ids))
-    for k in ("indptr", "indices", "data"):
-        np.testing.assert_array_equal(getattr(new, k), getattr(old, k), err_msg=k)
+    new = PolicyRead(learner.pos["next"], np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64),
+                     len(learner.leaf_ids))
+    v = learner.leaf_values.copy()
+    np.testing.assert_array_equal(new @ v, old @ v)
 
 
 def test_leaf_operator_from_the_held_weight_sums_is_the_one_summed_again(fitted):
@@ -87,7 +93,7 @@ def test_sweeps_in_place_are_the_sweeps_on_copies(fitted):
     fit = fqe.fit_state_
     d, learner = fit.data, fit.learner
     M = fb.leaf_operator(learner)
-    P = fb.policy_operator(d, fit.backup, pos_next=learner.pos["next"], L=len(learner.leaf_ids))
+    P = fb.policy_operator(d, fit.backup, fb.query_operators(learner, ("next",))["next"])
     start = learner.leaf_values.copy()
     v0 = start.copy()
     v, sweeps = fb.averaged_fixed_point(d, M, P, v0, None, 10_000)

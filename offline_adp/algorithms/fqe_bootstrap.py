@@ -159,19 +159,13 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
     return averaged_fixed_point(data, M, policy_operator(data, backup, ops["next"]), v, tol, max_iterations, rtol)
 
 
-def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any = None, pos_next: np.ndarray | None = None,
-                    L: int | None = None) -> Any:
+def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any) -> Any:
     """``P = sum_a diag(pi(a|x')) A_next[a]`` (:func:`fixed_point`): ``V(x'_i) = sum_a
     pi(a|x'_i) Q(x'_i, a)`` as one operator on the leaf values, from the next-state query
-    operator ``op_next`` (:func:`query_operators`) or, without it, from the next-state leaf
-    positions ``pos_next`` ((trees, A n), position ``L``: no training leaf) directly
-    (:func:`policy_rows`: the same matrix, int32 indices where they fit, without the
-    query operator, twice its size, ever being made)."""
+    operator ``op_next`` (:func:`query_operators`). The settle applies it without making it
+    (:class:`~offline_adp.algorithms.fqe_sweeps.PolicyRead`, rows by :func:`_policy_row_entries`)."""
     n, A = data.n, data.n_actions
     pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
-    if op_next is None:
-        assert pos_next is not None and L is not None
-        return policy_rows(np.ascontiguousarray(pos_next), pi_next, n, L)
     i, a = np.nonzero(pi_next > 0)
     pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
     return (pick @ op_next).tocsr()
@@ -206,50 +200,7 @@ def _policy_row_entries(pos: Any, pi: Any, n: int, L: int, inv_m: float, i: int,
     return k
 
 
-def _policy_counts(pos: Any, pi: Any, n: int, L: int, inv_m: float, indptr: Any) -> None:
-    """``indptr`` of :func:`policy_rows` (entries summing to 0 dropped, as scipy drops them)."""
-    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
-    for i in range(n):
-        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
-        c = 0
-        for j in range(k):
-            if sums[j] != 0.0:
-                c += 1
-        indptr[i + 1] = indptr[i] + c
-
-
-def _policy_fill(pos: Any, pi: Any, n: int, L: int, inv_m: float, indptr: Any, indices: Any, data: Any) -> None:
-    """The entries of :func:`policy_rows`, each row's in scipy's order: last first reached first."""
-    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
-    for i in range(n):
-        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
-        o = indptr[i]
-        for j in range(k - 1, -1, -1):
-            if sums[j] != 0.0:
-                indices[o] = keys[j]
-                data[o] = sums[j]
-                o += 1
-
-
 _policy_row_entries = _kernel(_policy_row_entries, cache=True, nogil=True, boundscheck=False)
-_policy_counts = _kernel(_policy_counts, cache=True, nogil=True, boundscheck=False)
-_policy_fill = _kernel(_policy_fill, cache=True, nogil=True, boundscheck=False)
-
-
-def policy_rows(pos_next: np.ndarray, pi_next: np.ndarray, n: int, L: int) -> Any:
-    """``pick @ op_next`` of :func:`policy_operator` from the next-state leaf positions
-    ``pos_next`` ((trees, A n), tree-major; ``L``: no training leaf) and the policy's
-    probabilities ``pi_next`` (n, A), in two compiled passes (count, fill): the same entries
-    in the same order within each row (so ``P @ v`` sums in the same order), int32 indices
-    where ``L`` fits."""
-    m = pos_next.shape[0]
-    inv_m = 1.0 / m
-    indptr = np.zeros(n + 1, np.int64)
-    _policy_counts(pos_next, pi_next, n, L, inv_m, indptr)
-    indices = np.empty(int(indptr[-1]), np.int32 if L < 2**31 - 1 else np.int64)
-    data = np.empty(int(indptr[-1]))
-    _policy_fill(pos_next, pi_next, n, L, inv_m, indptr, indices, data)
-    return sparse.csr_matrix((data, indices, indptr), shape=(n, L))
 
 
 #: leaf values whose change is taken at once in :func:`averaged_fixed_point` (bounded memory)

@@ -42,9 +42,9 @@ def _average_rows(nxt: Any, src: Any, rest: Any, w: Any, wsum: Any, y: Any, t0: 
 
 
 def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: Any) -> None:
-    """``out[i] = (P v)_i`` with row ``i`` of ``P`` made as
-    :func:`~offline_adp.algorithms.fqe_bootstrap.policy_rows` makes it (its entries, last first
-    reached first, zero sums left out), summed from 0 in that order."""
+    """``out[i] = (P v)_i`` with row ``i`` of ``P`` (:func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator`)
+    as scipy's product orders it (:func:`~offline_adp.algorithms.fqe_bootstrap._policy_row_entries`:
+    its entries, last first reached first, zero sums left out), summed from 0 in that order."""
     keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
     for i in range(n):
         k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
