@@ -228,3 +228,31 @@ def test_support_bounds_without_the_whole_query_operator_are_the_same(fitted, ra
            "unsupported_next": float(u.mean()), "unsupported_start": float(u0.mean())}
     assert fqe.support_bounds(-2.0, 3.0, radius=radius) == old
     assert "_ops_cache" not in fqe.__dict__ or "next" not in fqe.__dict__["_ops_cache"][1]
+
+
+def test_an_interrupted_settle_leaves_q_and_its_value_agreeing(monkeypatch):
+    """The sweeps write into the fit's buffer: an exception mid-solve leaves moved leaf
+    values, and the estimate must be read from those (never the value before the solve
+    beside a Q of later values); the sweep count is unknown (None)."""
+    from offline_adp.simulate import simulate
+
+    ds = simulate("path_tracking", 6, 6, seed=3, horizon=40)
+    fqe = FittedQEvaluation(policy=UniformPolicy(ds.n_actions), gamma=0.9, mode="frozen", n_iterations=5,
+                            regressor_params={"n_estimators": 3}).fit(ds)
+    fit = fqe.fit_state_
+    d = fit.data
+    before = fit.learner.leaf_values.copy()
+    orig, calls = type(d).targets, {"k": 0}
+
+    def boom(self, x):
+        calls["k"] += 1
+        if calls["k"] == 4:
+            raise MemoryError("simulated")
+        return orig(self, x)
+
+    monkeypatch.setattr(type(d), "targets", boom)
+    with pytest.raises(MemoryError):
+        fqe.settle()
+    assert not np.array_equal(fit.learner.leaf_values, before)  # the solve had moved the values
+    read = float((fit.backup.probabilities("start", 0) * fqe.q_function_.values(d.start_obs, 0)).sum(axis=1).mean())
+    assert fqe.value_ == read and fqe.settled_iterations_ is None

@@ -223,22 +223,24 @@ commands, n_candidates, n_representatives
         fit = self._check_conditional()
         d, learner = fit.data, fit.learner
         self.q_function_ = None  # type: ignore[assignment]  # its node values not held through the solve
-        v = learner.leaf_values  # solved in place (the fit's buffer): no second copy held through the sweeps
-        if not (v.dtype == np.float64 and v.flags.writeable and v.flags.c_contiguous):
-            v = learner.leaf_values = np.array(v, dtype=np.float64)
+        sweeps = None
         try:  # M and P applied from the fit's leaf positions (fqe_sweeps: their matrices' numbers, not made)
+            v = learner.leaf_values  # solved in place (the fit's buffer): no second copy held through the sweeps
+            if not (v.dtype == np.float64 and v.flags.writeable and v.flags.c_contiguous):
+                v = learner.leaf_values = np.array(v, dtype=np.float64)
             P = PolicyRead(learner.pos["next"], np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64),
                            len(learner.leaf_ids))
             sweeps = averaged_fixed_point(d, LeafAverage(learner), P, v, tol, max_iterations, in_place=True)[1]
-        finally:  # the values moved (on an exception: to the last completed sweep's)
+        finally:  # the values moved (on an exception: to the sweeps' last values): Q and value_ read them
             learner._cache = {}
             self._forget_replicate_values()
             if self.q_function_ is None:
                 self.q_function_ = learner.snapshot()
+            a0 = d.start_obs  # the backup's start probabilities: the policy's (its one command, over commands)
+            self.value_ = float((fit.backup.probabilities("start", 0) * self.q_function_.values(a0, 0)).sum(axis=1)
+                                .mean())
+            self.settled_iterations_ = sweeps
         release_freed()  # the solve's operators
-        self.settled_iterations_ = sweeps
-        a0 = d.start_obs  # the backup's start probabilities: the policy's (its one command, over commands)
-        self.value_ = float((fit.backup.probabilities("start", 0) * self.q_function_.values(a0, 0)).sum(axis=1).mean())
         return sweeps
 
     def reweighted_value(self, sample_weight: np.ndarray, n_iterations: int | None = None, tol: float | None = None,

@@ -163,44 +163,12 @@ def policy_operator(data: Prepared, backup: PolicyBackup, op_next: Any) -> Any:
     """``P = sum_a diag(pi(a|x')) A_next[a]`` (:func:`fixed_point`): ``V(x'_i) = sum_a
     pi(a|x'_i) Q(x'_i, a)`` as one operator on the leaf values, from the next-state query
     operator ``op_next`` (:func:`query_operators`). The settle applies it without making it
-    (:class:`~offline_adp.algorithms.fqe_sweeps.PolicyRead`, rows by :func:`_policy_row_entries`)."""
+    (:class:`~offline_adp.algorithms.fqe_sweeps.PolicyRead`)."""
     n, A = data.n, data.n_actions
     pi_next = np.asarray(backup.probabilities("next", 0), dtype=np.float64)
     i, a = np.nonzero(pi_next > 0)
     pick = sparse.csr_matrix((pi_next[i, a], (i, a * n + i)), shape=(n, A * n))
     return (pick @ op_next).tocsr()
-
-
-def _policy_row_entries(pos: Any, pi: Any, n: int, L: int, inv_m: float, i: int, keys: Any, sums: Any) -> int:
-    """Row ``i`` of ``pick @ op_next`` as scipy's CSR product builds it: its leaves in the order
-    first reached (actions in order, trees in order), each summing ``pi(a|x'_i) * (1/m)`` from 0;
-    returns their count (entries in ``keys``, ``sums``). The trees' leaves are disjoint, so
-    only a later action's leaves can repeat one reached before."""
-    k = 0
-    first = True
-    for a in range(pi.shape[1]):
-        p = pi[i, a]
-        if not p > 0:
-            continue
-        for t in range(pos.shape[0]):
-            leaf = pos[t, a * n + i]
-            if leaf >= L:
-                continue
-            j = k
-            if not first:
-                j = 0
-                while j < k and keys[j] != leaf:
-                    j += 1
-            if j == k:
-                keys[k] = leaf
-                sums[k] = 0.0
-                k += 1
-            sums[j] += p * inv_m
-        first = False
-    return k
-
-
-_policy_row_entries = _kernel(_policy_row_entries, cache=True, nogil=True, boundscheck=False)
 
 
 #: leaf values whose change is taken at once in :func:`averaged_fixed_point` (bounded memory)

@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.algorithms.fqe_bootstrap import _policy_row_entries
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.trees.averaging import _split, thread_map
 from offline_adp.trees.builder import _kernel
@@ -41,15 +40,36 @@ def _average_rows(nxt: Any, src: Any, rest: Any, w: Any, wsum: Any, y: Any, t0: 
             out[leaf] += d * y[i]
 
 
-def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: Any) -> None:
+def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: Any, slot: Any) -> None:
     """``out[i] = (P v)_i`` with row ``i`` of ``P`` (:func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator`)
-    as scipy's product orders it (:func:`~offline_adp.algorithms.fqe_bootstrap._policy_row_entries`:
-    its entries, last first reached first, zero sums left out), summed from 0 in that order."""
-    keys, sums = np.empty(pos.shape[0] * pi.shape[1], np.int64), np.empty(pos.shape[0] * pi.shape[1])
+    as scipy's product ``pick @ op_next`` builds it: its leaves in the order first reached
+    (actions in order, trees in order), each summing ``pi(a|x'_i) * (1/m)`` from 0, entries
+    summing to 0 left out, then summed from 0, last first reached first (scipy's order).
+    ``slot[leaf]``: the row's entry of a leaf already reached, else -1 (as scipy's own
+    ``csr_matmat`` finds it; reset after each row)."""
+    A, m = pi.shape[1], pos.shape[0]
+    keys, sums = np.empty(m * A, np.int64), np.empty(m * A)
     for i in range(n):
-        k = _policy_row_entries(pos, pi, n, L, inv_m, i, keys, sums)
+        k = 0
+        for a in range(A):
+            p = pi[i, a]
+            if not p > 0:
+                continue
+            for t in range(m):
+                leaf = pos[t, a * n + i]
+                if leaf >= L:
+                    continue
+                j = slot[leaf]
+                if j < 0:
+                    j = k
+                    slot[leaf] = k
+                    keys[k] = leaf
+                    sums[k] = 0.0
+                    k += 1
+                sums[j] += p * inv_m
         acc = 0.0
         for j in range(k - 1, -1, -1):
+            slot[keys[j]] = -1
             if sums[j] != 0.0:
                 acc += sums[j] * v[keys[j]]
         out[i] = acc
@@ -89,8 +109,13 @@ class PolicyRead:
     def __init__(self, pos_next: np.ndarray, pi_next: np.ndarray, L: int) -> None:
         self.pos, self.pi = np.ascontiguousarray(pos_next), np.ascontiguousarray(pi_next, dtype=np.float64)
         self.n, self.L, self.inv_m = len(self.pi), int(L), 1.0 / pos_next.shape[0]
+        self.slot = np.full(self.L, -1, np.int32)  # each leaf's entry in the row being read (4 bytes a leaf)
+        if self.pi.ndim != 2 or self.pos.ndim != 2 or self.pos.shape[1] != self.pi.size:
+            raise ValueError(f"PolicyRead: next-state positions {self.pos.shape} do not match the policy's "
+                             f"probabilities {self.pi.shape} (trees, actions x rows)")
 
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
         out = np.empty(self.n)
-        _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, np.ascontiguousarray(v, dtype=np.float64), out)
+        _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, np.ascontiguousarray(v, dtype=np.float64), out,
+                      self.slot)
         return out
