@@ -62,6 +62,28 @@ def test_mean_std_are_numpys_bit_for_bit(n: int) -> None:
         assert mean == float(x.mean()) and std == float(x.std())
 
 
+
+@pytest.mark.parametrize("block", [0, 8, 15, 16, 24, 100, 128, 200])
+def test_squared_deviations_with_a_small_block_end_and_are_numpys(monkeypatch, block: int) -> None:
+    """``_STATS_BLOCK`` below 16 made the split's half (rounded down to a multiple of 8) 0,
+    recursing with no end; below numpy's own block (128) the split was not numpy's. Any
+    block now gives ``np.add.reduce((x - mean) ** 2)`` bit for bit, and the statistics too,
+    with the buffer ``dataset_stats`` makes for it."""
+    import offline_adp.data.io as io
+
+    monkeypatch.setattr(io, "_STATS_BLOCK", block)
+    rng = np.random.default_rng(block)
+    for n in (0, 1, 7, 8, 9, 12, 15, 16, 17, 33, 100, 127, 128, 129, 257, 1000, 4099):
+        x = rng.standard_cauchy(n) * 10.0 ** rng.integers(-5, 5, n)  # where the order of the sums shows
+        mean = x.mean() if n else 0.0
+        buf = np.empty(min(n, io._stats_block()))
+        got, want = io._sq_dev_sum(x, mean, buf), np.add.reduce((x - mean) ** 2)
+        assert np.float64(got).view(np.int64) == np.float64(want).view(np.int64), (block, n)
+        if n:
+            m, s = io._mean_std(x, buf)
+            assert m == float(x.mean()) and s == float(x.std()), (block, n)
+
+
 def _dataset(obs: np.ndarray, nxt: np.ndarray, ep_len: int) -> TransitionDataset:
     n = len(obs)
     info = DatasetInfo(features=(Feature("x"),), action_table=ActionTable((Action("a", (0.0,)),)))

@@ -93,8 +93,8 @@ def dataset_stats(ds: DatasetToWrite) -> dict[str, Any]:
         if not len(finite):
             stats["columns"][c] = {"non_finite": int(len(x))}
             continue
-        if len(buf) < min(len(finite), _STATS_BLOCK):
-            buf = np.empty(min(len(finite), _STATS_BLOCK))
+        if len(buf) < min(len(finite), _stats_block()):
+            buf = np.empty(min(len(finite), _stats_block()))
         mean, std = _mean_std(finite, buf, total)
         stats["columns"][c] = {
             "mean": mean,
@@ -125,12 +125,20 @@ def _count_true(col: pa.ChunkedArray) -> int:
 
 #: values per block of the squared deviations (:func:`_sq_dev_sum`): the block stays in cache
 _STATS_BLOCK = 1 << 16
+#: numpy's pairwise-summation block (``PW_BLOCKSIZE``): it splits only sums of more values
+_NUMPY_PAIRWISE_BLOCK = 128
+
+
+def _stats_block() -> int:
+    """``_STATS_BLOCK``, at least numpy's own block: below it the split here is not numpy's
+    (other bits), and below 16 a half rounded down to a multiple of 8 can be 0 (no end)."""
+    return max(int(_STATS_BLOCK), _NUMPY_PAIRWISE_BLOCK)
 
 
 def _mean_std(x: np.ndarray, buf: np.ndarray, total: float | None = None) -> tuple[float, float]:
     """``x.mean()`` and ``x.std()`` of a 1-D contiguous float64 array, bit for bit (numpy's own
     steps: the pairwise sum over n, then the pairwise sum of squared deviations), with the
-    deviations block by block in ``buf`` (at least ``min(len(x), _STATS_BLOCK)`` values,
+    deviations block by block in ``buf`` (at least ``min(len(x), _stats_block())`` values,
     reused across columns) instead of a fresh array per call, and one sum for both
     (``total``, ``np.add.reduce(x)``, when the caller has it)."""
     n = len(x)
@@ -142,10 +150,10 @@ def _sq_dev_sum(x: np.ndarray, mean: Any, buf: np.ndarray) -> Any:
     """``np.add.reduce((x - mean) ** 2)``, bit for bit: numpy sums a contiguous float64
     array pairwise, each half of ``n`` values split at ``n // 2`` rounded down to a multiple
     of 8; the halves are split the same way here down to blocks of at most
-    ``_STATS_BLOCK`` values, whose squared deviations are formed in ``buf`` (in cache) and
+    :func:`_stats_block` values, whose squared deviations are formed in ``buf`` (in cache) and
     summed by numpy itself, and the partial sums added in numpy's order."""
     n = len(x)
-    if n <= _STATS_BLOCK:
+    if n <= _stats_block():  # (at least 128: each half below is then at least 64 values)
         d = buf[:n]
         np.subtract(x, mean, out=d)
         np.multiply(d, d, out=d)
