@@ -123,6 +123,34 @@ def test_the_reading_past_the_data_widens_the_interval_by_its_own_size():
     assert model_estimate(_mr(fqe_interval=[7.2, 30.0], past_data_cost=0.5), 0.95).level == 0.95
 
 
+def test_a_model_interval_missing_fqes_own_bootstrap_interval_becomes_the_hull_of_both():
+    """FQE's support bounds make its interval wide enough to overlap almost any reading; its
+    bootstrap interval alone is what the logs hold. Where the model's interval misses it,
+    the two readings disagree there, and the labelled interval holds both."""
+    same = model_estimate(_mr(fqe_bootstrap_interval=[6.5, 9.0]), 0.95)  # overlapping: the model's own
+    assert same.interval == (5.0, 7.0) and same.level == 0.95
+    for fb, hull in (([7.5, 9.0], (5.0, 9.0)), ([2.0, 4.0], (2.0, 7.0))):  # above, below
+        r = model_estimate(_mr(fqe_bootstrap_interval=fb), 0.95)
+        assert r.interval == hull and r.level == 0.95 and r.estimate == 6.0
+        assert any("hull of both" in w for w in r.warnings)
+    # judged after the widening past the data: [4.5, 7.5] reaches [7.2, 9.0]
+    assert model_estimate(_mr(fqe_bootstrap_interval=[7.2, 9.0], past_data_cost=0.5), 0.95).interval == (4.5, 7.5)
+    # without a level (its support-bound interval missed too) it is shown as it is, not hulled
+    r = model_estimate(_mr(fqe_interval=[8.0, 30.0], fqe_bootstrap_interval=[8.0, 9.0]), 0.95)
+    assert r.level is None and r.interval == (5.0, 7.0)
+
+
+def test_the_fqe_intervals_recorded_for_the_model_are_widened_by_the_truncation_bound():
+    from offline_adp.evaluation.fqe_interval import with_fqe_interval
+    from offline_adp.evaluation.ope import OPEResult
+
+    fq = OPEResult("fqe", 5.0, (2.0, 20.0), 10.0, 0.95)
+    mr = with_fqe_interval({"estimate": 6.0}, fq, 0.25, (4.0, 6.0))
+    assert mr["fqe_interval"] == [1.75, 20.25] and mr["fqe_bootstrap_interval"] == [3.75, 6.25]
+    assert "fqe_bootstrap_interval" not in with_fqe_interval({"estimate": 6.0}, fq, 0.25)
+    assert with_fqe_interval({"skipped": "x"}, fq, 0.25, (4.0, 6.0)) == {"skipped": "x"}
+
+
 def _v(m, shift=IN_SUPPORT, conv=None):
     conv = conv or {"verdict": "still changing", "text": "fit did NOT converge"}
     m = withdraw_levels(m)

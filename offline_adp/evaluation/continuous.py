@@ -275,7 +275,7 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
         mr = command_model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=cfg.model_particles,
                                     level=0.95, seed=cfg.seed)
         hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
-        res = widen_fqe(res, with_fqe_interval(mr, res, est_def.tail_bound) if hull else mr, hull=hull)
+        res = widen_fqe(res, with_fqe_interval(mr, res, est_def.tail_bound, res.interval) if hull else mr, hull=hull)
     return with_truncation_bound(res, est_def.tail_bound)
 
 

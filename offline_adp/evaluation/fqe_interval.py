@@ -395,15 +395,22 @@ def widen_fqe(fq: OPEResult, mr: dict[str, Any], hull: bool = True) -> OPEResult
                                   "interval holds both"])
 
 
-def with_fqe_interval(mr: dict[str, Any], fq: OPEResult, tail: float) -> dict[str, Any]:
+def with_fqe_interval(mr: dict[str, Any], fq: OPEResult, tail: float,
+                      boot: tuple[float, float] | None = None) -> dict[str, Any]:
     """The model rollouts ``mr`` with FQE's interval before their hull (its bootstrap and support
     bounds, widened by the truncation bound ``tail`` as :func:`with_truncation_bound` will) as
     ``fqe_interval``: what :func:`~offline_adp.evaluation.model_bootstrap.model_estimate` checks
-    the model's own interval against."""
+    the model's own interval against; and ``boot``, FQE's bootstrap interval alone (before the
+    support bounds; widened by ``tail`` too), as ``fqe_bootstrap_interval``: where the model's
+    interval misses it, the two readings disagree on what the logs do hold, and the model's
+    labelled interval becomes the hull of both (``model_estimate``)."""
     if "skipped" in mr or not np.all(np.isfinite(fq.interval)):
         return mr
     t = tail if tail > 0 else 0.0
-    return {**mr, "fqe_interval": [float(fq.interval[0]) - t, float(fq.interval[1]) + t]}
+    out = {**mr, "fqe_interval": [float(fq.interval[0]) - t, float(fq.interval[1]) + t]}
+    if boot is not None and np.all(np.isfinite(boot)):
+        out["fqe_bootstrap_interval"] = [float(boot[0]) - t, float(boot[1]) + t]
+    return out
 
 
 def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float, seed: int,
@@ -466,6 +473,7 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
     fq = fqe_interval(fit.estimate, reps, em.n_episodes, level)
     if fit.conditional and n_reps:
         fq = with_structure_note(fq)
+    boot = fq.interval  # FQE's own bootstrap interval: the model's interval is checked against it
     if fit.conditional:  # what the model cannot know: widen to the support bounds
         say("FQE support bounds")
         fq = with_support_bounds(fq, fit.support if fit.support is not None else fqe_support_bounds(fit.fqe, ds,
@@ -476,5 +484,5 @@ def fqe_with_interval(ds: TransitionDataset, policy: Policy, est_def: Estimand, 
         hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
         mr = model if model is not None else model_reading(ds, policy, est_def, cfg.model_particles, level, cfg.seed,
                                                            a, say)
-        fq = widen_fqe(fq, with_fqe_interval(mr, fq, est_def.tail_bound) if hull else mr, hull=hull)
+        fq = widen_fqe(fq, with_fqe_interval(mr, fq, est_def.tail_bound, boot) if hull else mr, hull=hull)
     return fit, with_truncation_bound(with_rough_note(fq, n_reps), est_def.tail_bound)
