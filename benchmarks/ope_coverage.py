@@ -317,7 +317,8 @@ def _model_summary(mr: dict[str, Any]) -> dict[str, Any]:
     """The model rollouts' reading and what its interval is made of (the bootstrap's spread,
     its parts and its bias), for a row."""
     boot = mr.get("bootstrap") or {}
-    return {**{k: mr.get(k) for k in ("estimate", "interval", "exit_mass", "exit_share", "past_data_cost", "skipped")},
+    return {**{k: mr.get(k) for k in ("estimate", "interval", "exit_mass", "exit_share", "past_data_cost", "skipped",
+                                      "fqe_interval", "fqe_bootstrap_interval")},
             "bootstrap": {k: boot.get(k) for k in ("interval", "spread", "bias", "particles", "skipped")}}
 
 

@@ -153,3 +153,9 @@ def test_a_stored_evaluation_before_the_past_data_allowance_is_redone():
     assert _same_model_rollouts({"ope": {"fqe": {"model_rollouts": mr}}}, 1000)
     old = {k: v for k, v in mr.items() if k != "past_data_cost"}
     assert not _same_model_rollouts({"ope": {"fqe": {"model_rollouts": old}}}, 1000)
+    # recorded FQE's interval but not its bootstrap interval: made before the hull where they disagree
+    before_hull = {**mr, "fqe_interval": [1.0, 20.0]}
+    assert not _same_model_rollouts({"ope": {"fqe": {"model_rollouts": before_hull}}}, 1000)
+    for fb in ([2.0, 3.0], None):  # written by this version (None: FQE had no bootstrap interval)
+        assert _same_model_rollouts({"ope": {"fqe": {"model_rollouts": {**before_hull,
+                                                                         "fqe_bootstrap_interval": fb}}}}, 1000)

@@ -135,7 +135,7 @@ def test_a_model_interval_missing_fqes_own_bootstrap_interval_becomes_the_hull_o
         assert any("hull of both" in w for w in r.warnings)
     # judged after the widening past the data: [4.5, 7.5] reaches [7.2, 9.0]
     assert model_estimate(_mr(fqe_bootstrap_interval=[7.2, 9.0], past_data_cost=0.5), 0.95).interval == (4.5, 7.5)
-    # without a level (its support-bound interval missed too) it is shown as it is, not hulled
+    # without a level from these checks (its support-bound interval missed too): shown as it is, not hulled
     r = model_estimate(_mr(fqe_interval=[8.0, 30.0], fqe_bootstrap_interval=[8.0, 9.0]), 0.95)
     assert r.level is None and r.interval == (5.0, 7.0)
 
@@ -147,8 +147,35 @@ def test_the_fqe_intervals_recorded_for_the_model_are_widened_by_the_truncation_
     fq = OPEResult("fqe", 5.0, (2.0, 20.0), 10.0, 0.95)
     mr = with_fqe_interval({"estimate": 6.0}, fq, 0.25, (4.0, 6.0))
     assert mr["fqe_interval"] == [1.75, 20.25] and mr["fqe_bootstrap_interval"] == [3.75, 6.25]
-    assert "fqe_bootstrap_interval" not in with_fqe_interval({"estimate": 6.0}, fq, 0.25)
+    assert with_fqe_interval({"estimate": 6.0}, fq, 0.25)["fqe_bootstrap_interval"] is None  # written: it dates it
     assert with_fqe_interval({"skipped": "x"}, fq, 0.25, (4.0, 6.0)) == {"skipped": "x"}
+
+
+def test_an_evaluation_records_fqes_bootstrap_interval_from_before_its_support_bounds(tmp_path):
+    """In a real evaluation, ``fqe_bootstrap_interval`` is FQE's bootstrap (percentile)
+    interval and ``fqe_interval`` its hull with the support bounds, both widened by the same
+    truncation bound: on logs where the support bounds do widen it, the two differ."""
+    import json
+
+    from offline_adp.evaluation.run import evaluate_run
+    from offline_adp.runs import fit_run
+    from offline_adp.simulate import simulate
+
+    simulate("path_tracking", 8, 8, seed=11, horizon=100).save(tmp_path / "ds")  # gamma^100 < 0.01: stationary
+    fit_run(tmp_path / "ds", tmp_path / "run", params={"gamma": 0.95, "n_iterations": 3,
+                                                       "regressor_params": {"n_jobs": 1}})
+    evaluate_run(tmp_path / "run", dataset=tmp_path / "ds", episodes=8, bootstrap=10, fqe_bootstrap=10,
+                 model_particles=20)
+    fqe = json.loads((tmp_path / "run" / "evaluation" / "metrics.json").read_text())["ope"]["fqe"]
+    mr, sb = fqe["model_rollouts"], fqe["support_bounds"]
+    assert "hull of the percentile" not in fqe["interval_method"]  # unshifted: the bootstrap interval is the percentile
+    p_lo, p_hi = fqe["percentile_interval"]
+    fb, fi = mr["fqe_bootstrap_interval"], mr["fqe_interval"]
+    t = p_lo - fb[0]
+    assert t >= 0 and fb[1] - p_hi == pytest.approx(t, abs=1e-12)
+    assert sb["lower"] < p_lo or sb["upper"] > p_hi  # the support bounds widen FQE's interval here
+    assert fi == pytest.approx([min(p_lo, sb["lower"]) - t, max(p_hi, sb["upper"]) + t], abs=1e-12)
+    assert fi != pytest.approx(fb)
 
 
 def _v(m, shift=IN_SUPPORT, conv=None):

@@ -74,9 +74,11 @@ def _same_model_rollouts(m: dict[str, Any], particles: int) -> bool:
     if "skipped" in mr:
         turned_off = str(mr["skipped"]).startswith("model_particles=0")
         return turned_off == (particles == 0)
-    # evaluations made before the bounds had their own (trust) radius, or before the model's own
-    # interval was widened by its reading past the data (past_data_cost), are redone
-    return mr.get("n_particles") == particles and "trust_radius" in mr and "past_data_cost" in mr
+    # evaluations made before the bounds had their own (trust) radius, before the model's own
+    # interval was widened by its reading past the data (past_data_cost), or before it was hulled
+    # with FQE's bootstrap interval where the two disagree (fqe_bootstrap_interval), are redone
+    return (mr.get("n_particles") == particles and "trust_radius" in mr and "past_data_cost" in mr
+            and ("fqe_interval" not in mr or "fqe_bootstrap_interval" in mr))
 
 
 def compare_runs(

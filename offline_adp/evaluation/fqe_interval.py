@@ -407,10 +407,9 @@ def with_fqe_interval(mr: dict[str, Any], fq: OPEResult, tail: float,
     if "skipped" in mr or not np.all(np.isfinite(fq.interval)):
         return mr
     t = tail if tail > 0 else 0.0
-    out = {**mr, "fqe_interval": [float(fq.interval[0]) - t, float(fq.interval[1]) + t]}
-    if boot is not None and np.all(np.isfinite(boot)):
-        out["fqe_bootstrap_interval"] = [float(boot[0]) - t, float(boot[1]) + t]
-    return out
+    ok = boot is not None and bool(np.all(np.isfinite(boot)))  # the key is always written: it dates the evaluation
+    return {**mr, "fqe_interval": [float(fq.interval[0]) - t, float(fq.interval[1]) + t],
+            "fqe_bootstrap_interval": [float(boot[0]) - t, float(boot[1]) + t] if ok else None}
 
 
 def model_reading(ds: TransitionDataset, policy: Policy, est_def: Estimand, particles: int, level: float, seed: int,
