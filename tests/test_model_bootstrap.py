@@ -133,6 +133,9 @@ def test_a_model_interval_missing_fqes_own_bootstrap_interval_becomes_the_hull_o
         r = model_estimate(_mr(fqe_bootstrap_interval=fb), 0.95)
         assert r.interval == hull and r.level == 0.95 and r.estimate == 6.0
         assert any("hull of both" in w for w in r.warnings)
+        assert r.hull == {"model": [5.0, 7.0], "fqe_bootstrap": list(fb)}  # what it is the hull of, recorded
+        assert r.as_dict()["hull"] == r.hull
+    assert same.hull is None and "hull" not in same.as_dict()
     # judged after the widening past the data: [4.5, 7.5] reaches [7.2, 9.0]
     assert model_estimate(_mr(fqe_bootstrap_interval=[7.2, 9.0], past_data_cost=0.5), 0.95).interval == (4.5, 7.5)
     # without a level from these checks (its support-bound interval missed too): shown as it is, not hulled
@@ -219,3 +222,20 @@ def test_an_unlabelled_model_does_not_lead():
     m["behaviour"]["support_violations"]["fraction"] = 0.0
     ranking = rank_estimators(m)
     assert [e["name"] for e in ranking[:2]] == ["fqe", "model"]
+
+
+def test_the_why_line_says_the_model_interval_is_the_hull_where_it_is():
+    """A hulled model interval is asymmetric around its estimate; the why line says why, with
+    both intervals, instead of claiming the two readings agree. A malformed record (metrics.json
+    is untrusted) adds nothing and raises nothing."""
+    m = copy.deepcopy(BASE)
+    m["ope"]["model"]["interval"] = [5.0, 9.0]
+    m["ope"]["model"]["hull"] = {"model": [5.0, 7.0], "fqe_bootstrap": [7.5, 9.0]}
+    why = _v(m)["lines"][2]
+    assert "the model rollouts [5, 7] and FQE [7.5, 9] disagree on what the logs hold, so the interval is the hull" \
+        in why
+    assert "the model rollouts' reading holds there" not in why  # it would say they agree
+    for bad in ("x", {"model": [5.0], "fqe_bootstrap": [7.5, 9.0]}, {"model": [5.0, "7"], "fqe_bootstrap": [7.5, 9.0]},
+                {"model": [5.0, float("nan")], "fqe_bootstrap": [7.5, 9.0]}, {"model": [5.0, 7.0]}):
+        m["ope"]["model"]["hull"] = bad
+        assert "hull" not in _v(m)["lines"][2]

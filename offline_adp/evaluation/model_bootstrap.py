@@ -191,11 +191,14 @@ def model_estimate(mr: dict[str, Any] | None, level: float) -> OPEResult | None:
               "rollouts stay within the logged states")
     warnings = [f"no level: {w}" for w in why]
     fb = mr.get("fqe_bootstrap_interval")
+    hull = None
     if not why and fb is not None and (hi < fb[0] or lo > fb[1]):  # they disagree on what the logs hold: both
         warnings.append(f"the model's interval [{lo:.4g}, {hi:.4g}] and FQE's bootstrap interval [{fb[0]:.4g}, "
                         f"{fb[1]:.4g}] (before its support bounds) do not overlap: the two readings disagree where "
                         "the logs hold the policy's actions, so the interval is the hull of both")
+        hull = {"model": [float(lo), float(hi)], "fqe_bootstrap": [float(fb[0]), float(fb[1])]}
         lo, hi = min(lo, fb[0]), max(hi, fb[1])
         method += "; hulled with FQE's bootstrap interval where the two do not overlap"
     return OPEResult("model", float(mr["estimate"]), (float(lo), float(hi)), None, level=None if why else level,
-                     warnings=warnings, interval_method=method, level_note="; ".join(why) if why else None)
+                     warnings=warnings, interval_method=method, level_note="; ".join(why) if why else None,
+                     hull=hull)

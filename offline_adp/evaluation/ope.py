@@ -71,6 +71,9 @@ class OPEResult:
     model_rollouts: dict[str, Any] | None = None
     #: why the interval carries no level (``level`` None), where that was decided with a reason
     level_note: str | None = None
+    #: the model rollouts only: where their interval and FQE's bootstrap interval did not overlap, the two
+    #: intervals it is the hull of (``{"model": [lo, hi], "fqe_bootstrap": [lo, hi]}``; model_bootstrap.py)
+    hull: dict[str, Any] | None = None
 
     def widened(self, lo: float, hi: float, why: str) -> tuple[OPEResult, tuple[float, float] | None]:
         """This result with its interval widened to the hull of it and ``[lo, hi]`` and ``why``
@@ -98,6 +101,8 @@ class OPEResult:
             d["model_rollouts"] = dict(self.model_rollouts)
         if self.level_note is not None:
             d["level_note"] = self.level_note
+        if self.hull is not None:
+            d["hull"] = {k: list(v) for k, v in self.hull.items()}
         return d
 
 

@@ -188,6 +188,20 @@ def stored_lines(v: Any) -> list[str] | None:
     return lines if ok else None
 
 
+def model_hull_words(m: dict[str, Any]) -> str | None:
+    """The why-clause of a model interval that is the hull of the model rollouts' own interval
+    and FQE's bootstrap interval, which did not overlap (``metrics.json``'s ``ope.model.hull``,
+    untrusted: None unless both are pairs of finite numbers)."""
+    hull = ((m.get("ope") or {}).get("model") or {}).get("hull")
+    if not isinstance(hull, dict):
+        return None
+    mod, fqe = hull.get("model"), hull.get("fqe_bootstrap")
+    if not all(isinstance(p, list) and len(p) == 2 and all(map(_is_finite_number, p)) for p in (mod, fqe)):
+        return None
+    return (f"the model rollouts [{mod[0]:.4g}, {mod[1]:.4g}] and FQE [{fqe[0]:.4g}, {fqe[1]:.4g}] disagree on what "
+            "the logs hold, so the interval is the hull of both")
+
+
 def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, support: str, doubts: list[str],
                    conv: dict[str, Any]) -> list[str]:
     """The verdict in three lines, read in seconds: the estimate with its interval and its true
@@ -214,7 +228,10 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
     fit = conv["text"].split(": ", 1)[0]  # "fit converged", "fit still changing", ...; its numbers are in the report
     why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
     best = next((e for e in ranking if e["tier"] == 0), None)
-    if best is not None and best["name"] == "model" and support.startswith("LEFT") and not doubts:
+    hulled = model_hull_words(m) if top is not None and top["name"] == "model" else None
+    if hulled:
+        why.insert(1, hulled)
+    elif best is not None and best["name"] == "model" and support.startswith("LEFT") and not doubts:
         why.insert(1, "the model rollouts' reading holds there (they step any action, stay within the logged "
                       "states and agree with FQE's per-action support bounds)")
     return ["estimate: " + ("; ".join(est) if est else "none usable"), verdict, "why: " + "; ".join(why)]
