@@ -43,6 +43,9 @@ def test_converged_means_within_the_bound_of_the_final_structures_fixed_point(co
     assert bound <= 0.01 * last["max_abs_q"]  # the default rtol
     stated = float(re.search(r"within ([0-9.e+-]+) of the final tree structure", est.verdict_message_).group(1))
     assert stated == pytest.approx(bound, rel=1e-2)
+    # the message's own arithmetic: the bound it states is gamma/(1-gamma) x the sup|dQ| it states
+    sd = float(re.search(r"sup\|dQ\| = ([0-9.e+-]+);", est.verdict_message_).group(1))
+    assert sd == pytest.approx(last["sup_dq"], rel=1e-2) and stated == pytest.approx(gamma / (1 - gamma) * sd, rel=2e-2)
     # the oracle: go on in the same structure until nothing moves
     fit = est.fit_state_
     x0 = coh.arrays().obs[:500]

@@ -115,3 +115,27 @@ def test_a_mean_weight_far_from_1_withholds_only_unnormalised_intervals():
     d = weight_diagnostics(w[:, None])
     assert interval_unreliable(d, normalised=True) == []
     assert any("average" in r for r in interval_unreliable(d, normalised=False))
+
+
+@pytest.mark.parametrize("n", [40, 135, 1000])
+def test_fewer_than_two_effective_episodes_are_degenerate_at_any_n(n):
+    """ESS 1.0 of 40 episodes (one episode holding all the weight) was ranked as "no interval"
+    with its point estimate quoted (ESS below 1% of n was the only rule); below two effective
+    episodes the estimate is one or two episodes' returns, "not usable". Above, the interval is
+    withheld but the estimate stays ranked."""
+    from offline_adp.evaluation.summary import rank_estimators
+
+    for w_big, degenerate in ((1e6, True), (3.0, False)):
+        W = np.ones(n)
+        W[:1 if degenerate else 0] = w_big
+        if not degenerate:
+            W[: n // 2] = 1e-3  # ESS ~ n/2: well shaped (interval kept or withheld by the other rules only)
+        r = ope.OPEResult("wis", 1.0, (0.5, 1.5), ope._ess(W), 0.95)
+        ope._judge_weights(r, W)
+        assert r.degenerate is degenerate, (r.ess, n)
+        tier = rank_estimators({"ope": {"wis": r.as_dict()}})[0]["tier"]
+        assert (tier == 2) is degenerate
+    W = np.r_[np.full(3, 1e3), np.ones(n - 3)]  # ESS ~3 whatever n: no interval, not degenerate unless 1% of n says so
+    r = ope.OPEResult("wis", 1.0, (0.5, 1.5), ope._ess(W), 0.95)
+    ope._judge_weights(r, W)
+    assert r.degenerate is (r.ess < 0.01 * n) and r.level is None

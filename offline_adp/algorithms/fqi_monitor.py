@@ -156,8 +156,8 @@ def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence:
     sd, k = last["sup_dq"], last["iteration"]
     if frozen:
         bound = distance_bound(sd, gamma)
-        where = (f"within {bound:.3g} of the final tree structure's fixed point (gamma/(1-gamma) x sup|dQ| = "
-                 f"{sd:.3g}; max|Q| = {last['max_abs_q']:.4g})")
+        where = (f"within {bound:.3g} of the final tree structure's fixed point (gamma/(1-gamma) x sup|dQ|, "
+                 f"sup|dQ| = {sd:.3g}; max|Q| = {last['max_abs_q']:.4g})")
         inner = sum(backups(r) for r in rows)
         after = f"after {k} iterations" + (f" (and {inner} backups in the final structure's solver)" if inner else "")
         if converged:

@@ -48,6 +48,19 @@ def check_name(name: str, what: str = "name") -> str:
     return name
 
 
+def pipeline_hint(path: str | PathLike[str]) -> str:
+    """Where ``path`` is a pipeline run directory (``offline-adp run``: its fitted run in
+    ``fit/``, its metrics and report at the top), the words that send a user there, to append
+    to an error about a missing ``model/`` or ``evaluation/``; else ``""``."""
+    p = Path(path)
+    if not ((p / "fit" / "model").is_dir() and (p / "manifest.json").is_file()):
+        return ""
+    fit = p / "fit"
+    return (f"; {p} is a pipeline run directory (`offline-adp run`): its fitted run is {fit} (e.g. "
+            f"`offline-adp evaluate {fit}`, `offline-adp report {fit}`), its metrics {p / 'metrics.json'} and its "
+            f"report {p / 'report.html'}")
+
+
 class RunDirectory:
     """A run directory (see the module docstring).
 

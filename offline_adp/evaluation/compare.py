@@ -151,7 +151,10 @@ def _checked_runs(run_dirs: Sequence[str | PathLike[str]], estimator: str | None
         raise InvalidArgumentError(f"unknown estimator {estimator!r}; known: {sorted(ESTIMATOR_NAMES)}")
     for r in runs:
         if not (r / "model").is_dir():
-            raise RunDirectoryError(f"{r}: not a run directory (no model/); fit one with `offline-adp fit`")
+            from offline_adp.data.rundir import pipeline_hint
+
+            raise RunDirectoryError(f"{r}: not a run directory (no model/)"
+                                    + (pipeline_hint(r) or "; fit one with `offline-adp fit`"))
     return runs
 
 
@@ -336,9 +339,10 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
             lines.append(f"{c['name']}: {c['discount_note']}")
     s = res.get("selection")
     if s:
+        who = "the top pick" if res.get("top_pick") else "the lowest estimate (not a pick)"
         lines.append(f"against the simulator: Spearman {s['spearman']:.2f}, Kendall {s['kendall']:.2f}; "
-                     "regret of the top "
-                     f"pick {s['regret_top1']:.3f} ({s['relative_regret_top1']:.0%} of the candidates' spread)")
+                     f"regret of {who} {s['regret_top1']:.3f} ({s['relative_regret_top1']:.0%} of the candidates' "
+                     "spread)")
     return lines
 
 

@@ -219,8 +219,9 @@ def compare_html(res: dict[str, Any], figs: Figures, base: Path | None = None) -
     if sel:
         parts.append(details_html("Selection scores (how they are computed)",
                                   f"<p>{html.escape(sel.get('method', ''))}. Spearman's rho and Kendall's tau between "
-                                  "the estimated and the true costs (1: the same order); regret of the top pick: its "
-                                  "true cost minus the best candidate's.</p>"))
+                                  "the estimated and the true costs (1: the same order); regret of the top pick "
+                                  "(or, where the logs pick none, of the lowest estimate): its true cost minus the "
+                                  "best candidate's.</p>"))
     return page("compare: " + ", ".join(c["name"] for c in cands), parts)
 
 
@@ -262,9 +263,10 @@ def _compare_summary(res: dict[str, Any]) -> list[str]:
                                                          if beh.get("interval") else "")
            + (f" over {beh['episodes']} episodes" if beh.get("episodes") else ""))
     if sel:
-        kv("Against the simulator", f"Spearman {sel['spearman']:.2f}, Kendall {sel['kendall']:.2f}; regret of the top "
-           f"pick {sel['regret_top1']:.4g} ({sel['relative_regret_top1']:.0%} of the candidates' spread); "
-           + ("the top pick is the best candidate" if sel["top_pick_is_best"] else "<b>the top pick is not the best "
+        who = "the top pick" if top is not None and separable else "the lowest estimate (not a pick)"
+        kv("Against the simulator", f"Spearman {sel['spearman']:.2f}, Kendall {sel['kendall']:.2f}; regret of {who} "
+           f"{sel['regret_top1']:.4g} ({sel['relative_regret_top1']:.0%} of the candidates' spread); "
+           + (f"{who} is the best candidate" if sel["top_pick_is_best"] else f"<b>{who} is not the best "
               "candidate</b>"))
     else:
         kv("Against the simulator", "no simulator truth for every candidate: the ranking is not scored")

@@ -232,6 +232,9 @@ def doubly_robust_estimates(
 MIN_ESS = 30.0
 #: ... or below this fraction of the episodes (ESS/n): the weights are degenerate.
 MIN_ESS_FRACTION = 0.01
+#: ... as they are below this many episodes whatever n: one or two episodes' returns, not an estimate
+#: (ESS 1.0 of 40 episodes, one episode holding all the weight, was "no interval" and ranked, not "not usable").
+MIN_ESS_DEGENERATE = 2.0
 #: ... or when one episode holds more than this share of the total weight.
 MAX_WEIGHT_SHARE = 0.1
 #: ... or when the generalized Pareto shape of the weights' upper tail exceeds this
@@ -360,7 +363,7 @@ def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None
     d = weight_diagnostics(W, groups)
     r.weight_diagnostics = {k: v for k, v in d.items() if k != "n"}
     n = d["n"]
-    if r.ess is not None and r.ess < MIN_ESS_FRACTION * n:
+    if r.ess is not None and r.ess < max(MIN_ESS_FRACTION * n, MIN_ESS_DEGENERATE):
         r.degenerate = True
         r.warnings.append(f"effective sample size {r.ess:.1f} of {n} episodes: the weights are degenerate")
     why = interval_unreliable(d, normalised=r.name in NORMALISED)

@@ -69,7 +69,11 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
     run = Path(run_dir)
     ev = run / "evaluation"
     if not (ev / "metrics.json").exists():
-        raise RunDirectoryError(f"{run}: no evaluation/metrics.json; run `offline-adp evaluate {run}` first")
+        from offline_adp.data.rundir import pipeline_hint
+
+        hint = pipeline_hint(run)
+        raise RunDirectoryError(f"{run}: no evaluation/metrics.json" + (hint or f"; run `offline-adp evaluate {run}` "
+                                                                                 "first"))
     from offline_adp.evaluation.summary import read_metrics
 
     m = read_metrics(ev / "metrics.json")

@@ -151,7 +151,10 @@ def _run_and_dataset(run: Path, dataset: str | PathLike[str] | None) -> tuple[di
     """The run's ``run.json`` (empty when absent) and its dataset's path (``dataset``, else
     the one the run names); an error when ``run`` is not a run directory or the path no dataset."""
     if not (run / "model").is_dir():
-        raise RunDirectoryError(f"{run}: not a run directory (no model/); fit one with `offline-adp fit`")
+        from offline_adp.data.rundir import pipeline_hint
+
+        raise RunDirectoryError(f"{run}: not a run directory (no model/)"
+                                + (pipeline_hint(run) or "; fit one with `offline-adp fit`"))
     info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
     ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
     if not (ds_path / "meta" / "info.json").exists():
