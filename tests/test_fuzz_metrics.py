@@ -186,3 +186,20 @@ def test_fuzz_metrics_json_readers(evaluated, tmp_path, pick, value, keep_headli
                        "candidates": [{**row, "rank": 1}]})
     except OfflineADPError:
         pass
+
+
+@pytest.mark.parametrize("tol", ["x", [1], True])
+def test_report_with_a_malformed_tol_in_config_json_exits_2(evaluated, tmp_path, capsys, tol):
+    """A run.json without the fit's verdict sends the report to config.json's params.tol:
+    a tol that is not a number was a ValueError / TypeError from float()."""
+    a, _, _ = _edited(evaluated, tmp_path, ("ope",), json.loads((evaluated / "a" / "evaluation" / "metrics.json")
+                                                                 .read_text())["ope"])
+    info = json.loads((a / "run.json").read_text())
+    info.pop("verdict", None)
+    (a / "run.json").write_text(json.dumps(info))
+    cfg = json.loads((a / "config.json").read_text())
+    cfg.setdefault("params", {})["tol"] = tol
+    (a / "config.json").write_text(json.dumps(cfg))
+    code = main(["report", str(a)])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and "config.json: params.tol" in err, err

@@ -172,6 +172,10 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
     info = read_json_file(run / "run.json") if (run / "run.json").is_file() else {}
     cfg = read_json_file(run / "config.json") if (run / "config.json").is_file() else {}
     tol = cfg.get("params", {}).get("tol") if isinstance(cfg.get("params"), dict) else None
+    if tol is not None and not _is_finite_number(tol):
+        from offline_adp.errors import ArtifactError
+
+        raise ArtifactError(f"{run / 'config.json'}: params.tol must be a finite number, found {tol!r:.60}")
     stored = info.get("verdict")
     if isinstance(stored, str) and stored:
         msg = info.get("verdict_message")
