@@ -74,9 +74,9 @@ def build_report(run_dir: str | PathLike[str]) -> Path:
         hint = pipeline_hint(run)
         raise RunDirectoryError(f"{run}: no evaluation/metrics.json" + (hint or f"; run `offline-adp evaluate {run}` "
                                                                                  "first"))
-    from offline_adp.evaluation.summary import read_metrics
+    from offline_adp.evaluation.metrics_file import ReportMetricsFile, read_metrics
 
-    m = read_metrics(ev / "metrics.json")
+    m = read_metrics(ev / "metrics.json", ReportMetricsFile)
     ratios = read_table_file(ev / "ratios.parquet")
     features = [c for c in ratios.columns if c not in ("step", "source", "w", "w_classifier", "w_pooled")]
     problem = m.get("simulator") or ""

@@ -23,9 +23,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict
 
 from offline_adp.data.files import read_json_file, read_table_file
+
+# the structure of metrics.json and its reader (evaluation/metrics_file.py), importable from here too
+from offline_adp.evaluation.metrics_file import MetricsFile, read_metrics  # noqa: F401
 
 # the verdict and its parts (evaluation/verdict.py), importable from here too
 from offline_adp.evaluation.verdict import (  # noqa: F401
@@ -61,73 +63,6 @@ ESTIMATOR_NAMES = {
 ROBUSTNESS = ("fqe", "wdr", "dr", "mis", "wpdis", "pdis", "wis", "is")
 #: A classifier AUC above this: pi's states and the data's are almost separable at that step.
 AUC_SEPARABLE = 0.95
-
-
-class _Open(BaseModel):
-    """A part of ``metrics.json``: the keys read are typed, others pass (lax: ints fill floats)."""
-
-    model_config = ConfigDict(extra="allow")
-
-
-class _Estimate(_Open):
-    estimate: float | None = None
-    interval: list[float | None] | None = None
-    degenerate: bool | None = None
-    comparable: bool | None = None
-    ess: float | None = None
-    warnings: list[Any] = []
-
-
-class _Estimand(_Open):
-    form: str | None = None
-    quantity: str | None = None
-    horizon: int | None = None
-    gamma: float | None = None
-    possible_range: list[float | None] | None = None
-
-
-class MetricsFile(_Open):
-    """The structure of ``metrics.json`` that ``report``, ``compare`` and ``run`` read: a
-    file without it (``"ope": "nonsense"``) is an :class:`~offline_adp.errors.ArtifactError`
-    naming the file and key before anything indexes into it."""
-
-    ope: dict[str, _Estimate]
-    estimand: _Estimand = _Estimand()
-    dataset: dict[str, Any] = {}
-    algorithm: str | None = None
-    simulator: str | None = None
-    simulator_note: str | None = None
-    warnings: list[Any] = []
-    rollout: dict[str, dict[str, Any] | Any] | None = None
-    shift: dict[str, dict[str, Any]] = {}
-    pooled_shift: dict[str, Any] | None = None
-    psdp_bound: dict[str, Any] | None = None
-    per_source: dict[str, dict[str, Any]] | None = None
-    behaviour: dict[str, Any] | None = None
-    behaviour_value: dict[str, Any] | None = None
-    cost_distribution: dict[str, Any] | None = None
-    headline: dict[str, Any] | None = None
-    worst_step: dict[str, Any] | None = None
-    per_step_counts: list[int] | None = None
-    min_states_per_step: int | None = None
-
-
-def read_metrics(path: str | Path) -> dict[str, Any]:
-    """``metrics.json`` through the gates of every file we read: a regular file of bounded
-    size and nesting (:func:`~offline_adp.data.rundir.read_json_file`), then the structure
-    of :class:`MetricsFile`; the file's own dict is returned."""
-    from pydantic import ValidationError as PydanticValidationError
-
-    from offline_adp.config import format_validation_error
-    from offline_adp.errors import ArtifactError
-
-    m = read_json_file(path)
-    try:
-        MetricsFile.model_validate(m)
-    except PydanticValidationError as exc:
-        raise ArtifactError(format_validation_error(exc, MetricsFile, str(path)).replace("\n", " ")
-                            + "; not a metrics.json this version reads (run `offline-adp evaluate` again)") from None
-    return m
 
 
 def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
@@ -237,6 +172,10 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
     info = read_json_file(run / "run.json") if (run / "run.json").is_file() else {}
     cfg = read_json_file(run / "config.json") if (run / "config.json").is_file() else {}
     tol = cfg.get("params", {}).get("tol") if isinstance(cfg.get("params"), dict) else None
+    if tol is not None and not _is_finite_number(tol):
+        from offline_adp.errors import ArtifactError
+
+        raise ArtifactError(f"{run / 'config.json'}: params.tol must be a finite number, found {tol!r:.60}")
     stored = info.get("verdict")
     if isinstance(stored, str) and stored:
         msg = info.get("verdict_message")
@@ -376,7 +315,7 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     if not h or "outcome" not in h:  # written before the outcome word (or not at all)
         h = headline(m)
     lines = []
-    if m.get("estimand"):
+    if (m.get("estimand") or {}).get("quantity"):
         lines.append(f"estimand: {m['estimand']['quantity']}")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")

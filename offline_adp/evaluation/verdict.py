@@ -8,6 +8,7 @@ around it.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -27,7 +28,14 @@ MIN_SUPPORT_PARTICLES = 200
 
 
 def _is_finite_number(x: Any) -> bool:
-    return x is not None and isinstance(x, int | float) and bool(np.isfinite(x))
+    """A finite int or float (not a bool; an int too large for a float is not one: numpy cannot
+    test it and no formatting of ours would read it)."""
+    if isinstance(x, bool) or not isinstance(x, int | float | np.floating | np.integer):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 
 #: Fit verdicts that raise no doubt about the policy's values (converged, backward induction,
