@@ -23,7 +23,14 @@ from tests.fuzz_util import edit_json_path, json_paths
 
 NIGHTLY = settings().max_examples >= 1000
 N = 1000 if NIGHTLY else 30
-DELETE = object()
+class _Delete:
+    """The key is removed (a stable repr: test ids must be the same in every xdist worker)."""
+
+    def __repr__(self) -> str:
+        return "DELETE"
+
+
+DELETE = _Delete()
 
 
 @pytest.fixture(scope="module")

@@ -232,8 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate every run's policy on one dataset (reusing matching evaluations) and rank them by the "
         "most reliable off-policy estimate, with intervals, shift and convergence verdicts; with a simulator, score "
         "the ranking against the rollout truth (Spearman, Kendall, regret of the top pick).",
-        epilog="examples:\n  offline-adp compare runs/fqi-a runs/fqi-b runs/api --json compare.json   # + "
-        "compare.html\n  offline-adp compare runs/fqi-a runs/fqi-b --report cmp/report.html",
+        epilog="examples (the README's tour fits runs/pt-fqi and runs/pt-fqi5):\n  offline-adp compare runs/pt-fqi "
+        "runs/pt-fqi5 --json compare.json   # + compare.html\n  offline-adp compare runs/pt-fqi runs/pt-fqi5 --report "
+        "cmp/report.html",
     )
     cp.add_argument("runs", nargs="+", help="run directories (at least two)")
     cp.add_argument("--dataset", default=None, help="dataset directory (default: the one the runs were fitted on)")
@@ -315,7 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
         "/offline_adp/action (policy vs "
         "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag). "
         "Open OUT in Foxglove to plot them on the log's timeline.",
-        epilog="example:\n  offline-adp annotate runs/pt-fqi --log logs/demonstration.mcap --out annotated.mcap",
+        epilog="example (the README's tour):\n  offline-adp annotate runs/pt-fqi --log logs/ros2/demonstration.mcap "
+        "--spec data/specs/path_tracking_mcap.toml --out annotated.mcap   # --spec: a run fitted on a table",
     )
     an.add_argument("run", help="run directory")
     an.add_argument("--log", required=True, help="MCAP log to annotate")

@@ -346,7 +346,6 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
                       "warnings": []},
         "ope": {"fqe": {**fq_d, "method": "fqe"},
                 **({"model": {**model.as_dict(), "method": "model"}} if model is not None else {})},
-        "ope_default": "fqe",
         "not_usable": dict(NOT_USABLE),
         "shift": {},
         "warnings": warnings,

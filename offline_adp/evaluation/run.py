@@ -422,7 +422,6 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
         "behaviour": {"source": beh.source, "clip": beh.clip, "n_clipped": beh.n_clipped, "classifier": beh.classifier,
                       "support_violations": res.support, "warnings": beh.warnings},
         "ope": {k: {**v.as_dict(), "method": k} for k, v in res.estimates.items()},
-        "ope_default": "fqe",
         "shift": shift_block,
         "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
                        "ess_fraction": float(worst["ess_fraction"].min())},
