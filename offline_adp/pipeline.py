@@ -171,7 +171,12 @@ def _run_locked(cfg: dict[str, Any], rd: RunDirectory, from_stage: str | None, s
             man.set(name, reused=True)
             say(f"[{name}] reused (inputs and settings unchanged)")
             return
-        say(f"[{name}] running")
+        if from_stage and name not in redo:  # asked to start later, but this earlier stage has nothing to reuse
+            say(f"[{name}] running: no completed {name} stage with these inputs and settings in {run} to reuse "
+                f"(--from {from_stage} reuses what a previous run in that directory completed; --runs DIR or --out "
+                "DIR names where it is)")
+        else:
+            say(f"[{name}] running")
         man.set(name, status="running", key=key, reused=False)
         t0 = time.perf_counter()
         try:

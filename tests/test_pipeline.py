@@ -125,3 +125,18 @@ def test_pipeline_errors_name_the_key(tmp_path):
 def test_unknown_override_is_refused(tmp_path):
     with pytest.raises(SpecError, match="not a pipeline setting"):
         run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "x", say=quiet, overrides={"evaluate.episode": 5})
+
+
+def test_from_a_stage_with_nothing_to_reuse_says_so(tmp_path):
+    """`run --from evaluate` in a directory without a previous run (e.g. after `make demo`, which
+    writes under demo_out/) ran every stage saying only "running"; it says why now."""
+    said: list[str] = []
+    run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "a", from_stage="evaluate", say=said.append,
+                 overrides=TINY)
+    first = [s for s in said if s.startswith("[data]")]
+    assert first and "no completed data stage" in first[0] and "--from evaluate" in first[0]
+    assert not any("nothing" in s or "no completed" in s for s in said if s.startswith(("[evaluate]", "[report]")))
+    said.clear()  # again in the same directory: the stages before evaluate are reused, nothing to explain
+    run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "a", from_stage="evaluate", say=said.append,
+                 overrides=TINY)
+    assert "[data] reused (inputs and settings unchanged)" in said and not any("no completed" in s for s in said)
