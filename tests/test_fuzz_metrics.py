@@ -137,7 +137,8 @@ def test_run_summary_of_a_malformed_metrics_json_is_our_error(evaluated, tmp_pat
 
 
 def test_the_files_evaluate_writes_still_read(evaluated, tmp_path, capsys):
-    """The structure holds every metrics.json this version writes: read as it is, and a report."""
+    """The gridworld logs-only metrics.json this version writes reads as it is, and makes a report (the
+    other variants, with a simulator, continuous commands, gym, are read by the report and compare tests)."""
     from offline_adp.evaluation.metrics_file import ReportMetricsFile, read_metrics
 
     p = evaluated / "a" / "evaluation" / "metrics.json"
@@ -210,3 +211,15 @@ def test_report_with_a_malformed_tol_in_config_json_exits_2(evaluated, tmp_path,
     code = main(["report", str(a)])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err and "config.json: params.tol" in err, err
+
+
+def test_a_malformed_tol_is_not_read_where_run_json_has_the_verdict(evaluated, tmp_path, capsys):
+    """tol is read only for runs whose run.json lacks the fit's verdict: with the verdict, a
+    hand-edited tol is never looked at and the report is made."""
+    a, _, _ = _edited(evaluated, tmp_path, ("ope",), json.loads((evaluated / "a" / "evaluation" / "metrics.json")
+                                                                 .read_text())["ope"])
+    assert json.loads((a / "run.json").read_text()).get("verdict")
+    cfg = json.loads((a / "config.json").read_text())
+    cfg.setdefault("params", {})["tol"] = "x"
+    (a / "config.json").write_text(json.dumps(cfg))
+    assert main(["report", str(a)]) == 0, capsys.readouterr().err

@@ -139,3 +139,24 @@ def test_fewer_than_two_effective_episodes_are_degenerate_at_any_n(n):
     r = ope.OPEResult("wis", 1.0, (0.5, 1.5), ope._ess(W), 0.95)
     ope._judge_weights(r, W)
     assert r.degenerate is (r.ess < 0.01 * n) and r.level is None
+
+
+def test_mis_is_not_degenerate_for_one_episode_outliving_the_others():
+    """MIS's ESS is the worst step's among the episodes still running: 1.0 wherever one episode
+    runs longer than every other, with every weight 1 (a review's counterexample to the floor of
+    two episodes, which is not applied to it); IS-type weights with one episode carrying all are."""
+    from offline_adp.evaluation.summary import rank_estimators
+
+    n, T = 60, 20
+    W = np.zeros((n, T))
+    W[:, :10] = 1.0
+    W[0, :] = 1.0  # one episode of 20 steps, 59 of 10: the last steps have one episode alive
+    ess = min(ope._ess(W[W[:, t] > 0, t]) for t in range(T))
+    assert ess == 1.0
+    r = ope.OPEResult("mis", 1.0, (0.5, 1.5), ess, 0.95)
+    ope._judge_weights(r, W)
+    assert not r.degenerate
+    m = {"ope": {"mis": r.as_dict(), "wis": {**r.as_dict(), "degenerate": False}}}
+    tiers = {e["name"]: e["tier"] for e in rank_estimators(m)}
+    # a stored file's WIS at ESS 1 (written before the floor) is read as degenerate; MIS is not
+    assert tiers["wis"] == 2 and tiers["mis"] != 2

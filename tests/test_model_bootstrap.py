@@ -232,10 +232,10 @@ def test_the_why_line_says_the_model_interval_is_the_hull_where_it_is():
     m["ope"]["model"]["interval"] = [5.0, 9.0]
     m["ope"]["model"]["hull"] = {"model": [5.0, 7.0], "fqe_bootstrap": [7.5, 9.0]}
     why = _v(m)["lines"][2]
-    assert "the model rollouts [5, 7] and FQE [7.5, 9] disagree on what the logs hold, so the interval is the hull" \
-        in why
+    assert ("the model rollouts [5, 7] and FQE's bootstrap interval [7.5, 9] (before its support bounds) disagree on "
+            "what the logs hold, so the interval spans both") in why
     assert "the model rollouts' reading holds there" not in why  # it would say they agree
     for bad in ("x", {"model": [5.0], "fqe_bootstrap": [7.5, 9.0]}, {"model": [5.0, "7"], "fqe_bootstrap": [7.5, 9.0]},
                 {"model": [5.0, float("nan")], "fqe_bootstrap": [7.5, 9.0]}, {"model": [5.0, 7.0]}):
         m["ope"]["model"]["hull"] = bad
-        assert "hull" not in _v(m)["lines"][2]
+        assert "spans both" not in _v(m)["lines"][2]

@@ -234,7 +234,14 @@ MIN_ESS = 30.0
 MIN_ESS_FRACTION = 0.01
 #: ... as they are below this many episodes whatever n: one or two episodes' returns, not an estimate
 #: (ESS 1.0 of 40 episodes, one episode holding all the weight, was "no interval" and ranked, not "not usable").
+#: Not for MIS: its ESS is the worst step's among the episodes still running there, 1.0 wherever one
+#: episode runs longer than every other, whatever the weights (:func:`degenerate_floor`).
 MIN_ESS_DEGENERATE = 2.0
+
+
+def degenerate_floor(name: str, n: int) -> float:
+    """The ESS below which estimator ``name``'s weights over ``n`` episodes are degenerate."""
+    return max(MIN_ESS_FRACTION * n, 0.0 if name == "mis" else MIN_ESS_DEGENERATE)
 #: ... or when one episode holds more than this share of the total weight.
 MAX_WEIGHT_SHARE = 0.1
 #: ... or when the generalized Pareto shape of the weights' upper tail exceeds this
@@ -363,7 +370,7 @@ def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None
     d = weight_diagnostics(W, groups)
     r.weight_diagnostics = {k: v for k, v in d.items() if k != "n"}
     n = d["n"]
-    if r.ess is not None and r.ess < max(MIN_ESS_FRACTION * n, MIN_ESS_DEGENERATE):
+    if r.ess is not None and r.ess < degenerate_floor(r.name, n):
         r.degenerate = True
         r.warnings.append(f"effective sample size {r.ess:.1f} of {n} episodes: the weights are degenerate")
     why = interval_unreliable(d, normalised=r.name in NORMALISED)

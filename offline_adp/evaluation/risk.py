@@ -134,7 +134,7 @@ def weighted_policy_distribution(G: np.ndarray, W: np.ndarray, *, alpha: float =
                 "policy could take", "ess": 0.0, "source": "logs (importance-weighted)"}
     d = ope.weight_diagnostics(W, groups)
     why = ope.interval_unreliable(d, normalised=True)
-    if d["ess"] < max(ope.MIN_ESS_FRACTION * d["n"], ope.MIN_ESS_DEGENERATE) and not why:
+    if d["ess_fraction"] < ope.MIN_ESS_FRACTION and not why:
         why = [f"effective sample size {d['ess']:.1f} of {d['n']} episodes: the weights are degenerate"]
     if why:
         return {"usable": False, "reason": "; ".join(why), "ess": float(d["ess"]),

@@ -28,6 +28,7 @@ from offline_adp.data.files import read_json_file, read_table_file
 
 # the structure of metrics.json and its reader (evaluation/metrics_file.py), importable from here too
 from offline_adp.evaluation.metrics_file import MetricsFile, read_metrics  # noqa: F401
+from offline_adp.evaluation.ope import degenerate_floor
 
 # the verdict and its parts (evaluation/verdict.py), importable from here too
 from offline_adp.evaluation.verdict import (  # noqa: F401
@@ -86,7 +87,9 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
             reasons.append("no finite estimate")
         elif rng and not (rng[0] - 1e-9 <= est <= rng[1] + 1e-9):
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
-        if r.get("degenerate"):
+        # the ESS floor again for files written before it (compare reuses them): the 1% rule is in their flag
+        floor = degenerate_floor(name, 0) if name not in ("fqe", "model") else 0.0
+        if r.get("degenerate") or (_is_finite_number(r.get("ess")) and r["ess"] < floor):
             ess = r.get("ess")
             reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})"
                                                               if _is_finite_number(ess) else ""))
@@ -172,10 +175,6 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
     info = read_json_file(run / "run.json") if (run / "run.json").is_file() else {}
     cfg = read_json_file(run / "config.json") if (run / "config.json").is_file() else {}
     tol = cfg.get("params", {}).get("tol") if isinstance(cfg.get("params"), dict) else None
-    if tol is not None and not _is_finite_number(tol):
-        from offline_adp.errors import ArtifactError
-
-        raise ArtifactError(f"{run / 'config.json'}: params.tol must be a finite number, found {tol!r:.60}")
     stored = info.get("verdict")
     if isinstance(stored, str) and stored:
         msg = info.get("verdict_message")
@@ -194,6 +193,10 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
             last = float(h["sup_dq"].dropna().iloc[-1])
             k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)
             if tol is not None:
+                if not _is_finite_number(tol):
+                    from offline_adp.errors import ArtifactError
+
+                    raise ArtifactError(f"{run / 'config.json'}: params.tol must be a finite number, found {tol!r:.60}")
                 ok = last < float(tol)
                 return {"verdict": "converged" if ok else "not converged", "last_change": last, "tol": tol,
                         "text": f"fit {'converged' if ok else 'did NOT converge'}: last change {last:.3g} "

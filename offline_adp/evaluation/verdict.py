@@ -206,8 +206,8 @@ def model_hull_words(m: dict[str, Any]) -> str | None:
     mod, fqe = hull.get("model"), hull.get("fqe_bootstrap")
     if not all(isinstance(p, list) and len(p) == 2 and all(map(_is_finite_number, p)) for p in (mod, fqe)):
         return None
-    return (f"the model rollouts [{mod[0]:.4g}, {mod[1]:.4g}] and FQE [{fqe[0]:.4g}, {fqe[1]:.4g}] disagree on what "
-            "the logs hold, so the interval is the hull of both")
+    return (f"the model rollouts [{mod[0]:.4g}, {mod[1]:.4g}] and FQE's bootstrap interval [{fqe[0]:.4g}, "
+            f"{fqe[1]:.4g}] (before its support bounds) disagree on what the logs hold, so the interval spans both")
 
 
 def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, support: str, doubts: list[str],
