@@ -60,10 +60,13 @@ def estimate_behaviour(
     fit_rows = np.arange(len(action))
     if len(fit_rows) > max_fit_rows:  # a random subsample is plenty for pi_b(. | x)
         fit_rows = np.sort(np.random.default_rng(seed).choice(len(action), max_fit_rows, replace=False))
-    clf = make_classifier(classifier, **(classifier_params or {})).fit(obs[fit_rows], action[fit_rows])
-    raw = clf.predict_proba(obs)
     probs = np.zeros((len(action), n_actions))
-    probs[:, np.asarray(clf.classes_, dtype=np.int64)] = raw
+    taken = np.unique(action[fit_rows])
+    if len(taken) == 1:  # one action in the logs (e.g. a one-action chain): pi_b(a | x) = 1, no classifier to fit
+        probs[:, int(taken[0])] = 1.0
+    else:
+        clf = make_classifier(classifier, **(classifier_params or {})).fit(obs[fit_rows], action[fit_rows])
+        probs[:, np.asarray(clf.classes_, dtype=np.int64)] = clf.predict_proba(obs)
     probs = np.maximum(probs, clip)
     probs /= probs.sum(axis=1, keepdims=True)
     est = probs[np.arange(len(action)), action]

@@ -76,7 +76,8 @@ class EvaluationOptions(ConfigModel):
     simulator: str | None = Field(
         None, description="reference problem to roll out in, gym:ENV_ID (a registered gymnasium environment; features "
         "by declared order, actions by the action table's values), or 'none' (default: the dataset's problem)")
-    episodes: int = Field(500, ge=1, le=MAX_EPISODES, description="rollout episodes in the simulator")
+    episodes: int = Field(500, ge=2, le=MAX_EPISODES,
+                          description="rollout episodes in the simulator (at least 2: their mean's interval needs two)")
     bootstrap: int = Field(200, ge=0, le=MAX_REPLICATES, json_schema_extra=_NOT_ONE,
                            description="bootstrap replicates for IS/DR/MIS (0: no interval; not 1)")
     fqe_bootstrap: int | None = Field(
