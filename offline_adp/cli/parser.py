@@ -145,7 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--resume continues from the last checkpoint to the same result.",
         epilog="examples:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n"
         "  offline-adp fit data/pt --algorithm psdp --config psdp.toml --out runs/pt-psdp\n\n"
-        "with fqi.toml:\n  [fqi]\n  gamma = 0.95\n  n_iterations = 50\n  regressor = \"extra_trees\"\n"
+        "with fqi.toml (the defaults written out; n_iterations = \"auto\" fits to convergence):\n  [fqi]\n"
+        "  gamma = 0.95\n  n_iterations = \"auto\"\n  regressor = \"extra_trees\"\n"
         "  [fqi.regressor_params]\n  n_estimators = 50\n\n"
         "and psdp.toml:\n  [psdp]\n  simulator = \"path_tracking\"\n  horizon = 50\n  learner = \"regression\"\n"
         "  baseline_source = \"demonstration\"\n  drop_features = [\"s\"]",
