@@ -266,3 +266,17 @@ def test_load_fqi_with_a_damaged_params_json_is_an_artifact_error(fitted, tmp_pa
     with pytest.raises(ArtifactError, match="params.json"):
         load_fqi(a / "model")
     assert np.isfinite(load_fqi(fitted / "a" / "model").gamma_)  # the undamaged one loads
+
+
+def test_a_part_with_a_column_of_another_type_is_named(tmp_path, capsys):
+    """The concatenation's error named the dataset only: now the part, the column and both types."""
+    from offline_adp.simulate import simulate
+
+    simulate("gridworld", 4, 4, seed=3, horizon=30).save(tmp_path / "ds", rows_per_part=40)
+    parts = sorted((tmp_path / "ds" / "data").glob("part-*.parquet"))
+    assert len(parts) >= 2
+    t = pq.read_table(parts[1])
+    i = t.column_names.index("action")
+    pq.write_table(t.set_column(i, "action", pa.array(t.column("action").to_numpy().astype(str))), parts[1])
+    _one_line_error(capsys, ["validate", str(tmp_path / "ds")], parts[1].name, "column 'action' is string",
+                    f"in {parts[0].name} int32")
