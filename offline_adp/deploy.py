@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from offline_adp.data.files import read_json_file
+from offline_adp.data.rundir import recorded_dataset
 from offline_adp.errors import (
     DatasetNotFoundError,
     IncompatibleError,
@@ -46,8 +47,9 @@ def run_dataset(run_dir: str | PathLike[str], dataset: str | PathLike[str] | Non
     else:
         for d in (model.parent, run, run / "fit"):
             rj = d / "run.json"
-            if rj.exists():
-                p = Path(read_json_file(rj).get("dataset", ""))
+            named = recorded_dataset(rj) if rj.exists() else None
+            if named is not None:
+                p = Path(named)
                 cands += [p, d / p] if not p.is_absolute() else [p]
         cands.append(run / "dataset")
     for c in cands:

@@ -64,7 +64,6 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
-import pandas as pd
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 
 from offline_adp.algorithms.fqi_data import GreedyBackup, Prepared, prepare, resolve_commands
@@ -477,10 +476,11 @@ def save_fqi(est: FittedQIteration, directory: Any, dataset_fingerprint: str | N
 def load_fqi(directory: Any) -> FittedQIteration:
     """Read what :func:`save_fqi` wrote; the result predicts and acts like the saved one."""
     from offline_adp.artifacts import load_q
+    from offline_adp.data.files import read_json_file, read_table_file
 
     d = Path(directory)
     q, meta = load_q(d)
-    raw = json.loads((d / "params.json").read_text())
+    raw = read_json_file(d / "params.json")  # missing, corrupt or not an object: ArtifactError naming it
     known = FittedQIteration().get_params()
     est = FittedQIteration(**{k: v for k, v in raw.items() if k in known
                               and not (isinstance(v, str) and v.startswith(("<", "Pipeline(", "OneHot")))})
@@ -489,7 +489,7 @@ def load_fqi(directory: Any) -> FittedQIteration:
     est.horizon_ = len(q.qs) if isinstance(q, TimeIndexedQ) else None
     est.gamma_ = meta.get("gamma", est.gamma)
     est.policy_ = est._result_policy(q)
-    est.history_ = pd.read_csv(d / "history.csv")
+    est.history_ = read_table_file(d / "history.csv")
     est.verdict_, est.verdict_message_ = meta.get("verdict"), meta.get("verdict_message")
     est.diverged_ = est.verdict_ == "diverging"
     est.divergence_message_ = est.verdict_message_ if est.diverged_ else None

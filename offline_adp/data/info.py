@@ -169,9 +169,9 @@ class ActionTable:
                 low=None if low is None else tuple(float(v) for v in low),
                 high=None if high is None else tuple(float(v) for v in high),
                 actions=actions,
-                dims=tuple(d.get("dims", ("a",))),
+                dims=_strings(d.get("dims", ("a",)), f"{where}: dims"),
                 kind=d.get("kind", "discrete"),
-                units=tuple(d.get("units", ())),
+                units=_strings(d.get("units", ()), f"{where}: units"),
                 bin_edges=None if edges is None else tuple(float(e) for e in edges),
             )
         except (KeyError, TypeError, ValueError) as exc:
@@ -271,8 +271,8 @@ class DatasetInfo:
             return cls(
                 features=features,
                 action_table=ActionTable.from_dict(d["action_table"], where=f"{where}: action_table"),
-                gamma=d.get("gamma"),
-                horizon=d.get("horizon"),
+                gamma=_hint(d.get("gamma"), f"{where}: gamma", whole=False),
+                horizon=_hint(d.get("horizon"), f"{where}: horizon", whole=True),
                 propensity_source=d.get("propensity_source", "unknown"),
                 provenance=d.get("provenance", {}),
                 name=d.get("name", ""),
@@ -283,6 +283,25 @@ class DatasetInfo:
             raise SchemaError(f"{where}: missing key {exc.args[0]!r}") from exc
         except (TypeError, ValueError) as exc:
             raise SchemaError(f"{where}: malformed ({exc})") from exc
+
+
+def _strings(value: Any, where: str) -> tuple[str, ...]:
+    """A list of names read from ``info.json`` (action dims, units): strings only (a number
+    there would fail later as a column name ``action_value.`` + 5)."""
+    if isinstance(value, str) or not isinstance(value, list | tuple) or not all(isinstance(x, str) for x in value):
+        raise SchemaError(f"{where} must be a list of strings, found {value!r:.80}")
+    return tuple(value)
+
+
+def _hint(value: Any, where: str, whole: bool) -> Any:
+    """``gamma`` or ``horizon`` as read from ``info.json``: None, or a number (not a bool; a
+    horizon a whole number: NaN or 2.5 steps would reach ``int()`` deep in an evaluation);
+    the ranges are :class:`DatasetInfo`'s own checks."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or (whole and not float(value).is_integer()):
+        raise SchemaError(f"{where} must be null or {'a whole number' if whole else 'a number'}, found {value!r:.60}")
+    return int(value) if whole else value
 
 
 def json_numpy(o: Any) -> Any:

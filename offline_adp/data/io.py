@@ -356,8 +356,20 @@ def read_dataset_table(path: str | PathLike[str]) -> tuple[pa.Table, DatasetInfo
     try:
         table = pa.concat_tables(tables, promote_options="permissive")
     except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
-        raise SchemaError(f"{path}: parts have incompatible schemas ({exc})") from None
+        raise SchemaError(f"{_odd_part(parts, tables) or path}: parts have incompatible schemas ({exc})") from None
     return table, info
+
+
+def _odd_part(parts: list[Path], tables: list[pa.Table]) -> str | None:
+    """The first part whose type of a column differs from the first part's with that column,
+    and the column (the concatenation's own error names neither the file nor both types)."""
+    first: dict[str, tuple[Path, pa.DataType]] = {}
+    for p, t in zip(parts, tables, strict=True):
+        for f in t.schema:
+            seen = first.setdefault(f.name, (p, f.type))
+            if seen[1] != f.type:
+                return f"{p}: column {f.name!r} is {f.type}, in {seen[0].name} {seen[1]}"
+    return None
 
 
 def read_quarantine(path: str | PathLike[str]) -> pa.Table | None:

@@ -170,6 +170,21 @@ class RunDirectory:
             shutil.rmtree(p)
 
 
+def recorded_dataset(run_json: str | PathLike[str]) -> str | None:
+    """The dataset path a run's ``run.json`` names (``dataset``), or None when it names none
+    (no such key, null or empty). Anything else there (a number, a list...) is an
+    :class:`~offline_adp.errors.ArtifactError` naming the file and the key, not a
+    ``TypeError`` from ``Path()`` or a path that silently means the current directory."""
+    p = Path(run_json)
+    value = read_json_file(p).get("dataset")
+    if value is None or value == "":
+        return None
+    if not isinstance(value, str) or "\0" in value:
+        raise ArtifactError(f"{p}: 'dataset' must be the path of the dataset directory (a string), found "
+                            f"{type(value).__name__} {value!r:.60}; fit the run again or pass --dataset DIR")
+    return value
+
+
 def _json_or_str(o: Any) -> Any:
     """``json.dumps``'s ``default`` for a run's own files: numpy values as Python values,
     anything else as its ``str`` (a run file is written whatever a setting holds)."""

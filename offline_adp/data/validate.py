@@ -300,11 +300,13 @@ def _check_commands(ds: TransitionDataset, add: Any, last: np.ndarray, skip: np.
                           f"command {d} = {float(v[i])!r} outside its bounds [{lo_j!r}, {hi_j!r}] (action.low/high)"))
 
 
-def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>") -> ValidationReport:
-    """Refuse a dataset an algorithm cannot be fitted on: empty, or failing the doctor.
+def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>", use: str = "fit"
+                   ) -> ValidationReport:
+    """Refuse a dataset an algorithm cannot be fitted on (or a policy evaluated on): empty,
+    or failing the doctor.
 
     ``where`` is the dataset directory ``ds`` was read from (findings then name its part
-    files and rows) or a label.
+    files and rows) or a label; ``use`` what there would be nothing to do ("fit", "evaluate on").
 
     Raises
     ------
@@ -315,7 +317,7 @@ def require_usable(ds: TransitionDataset, where: str | PathLike[str] = "<memory>
     from offline_adp.errors import ValidationError
 
     if len(ds) == 0:
-        raise ValidationError(f"{where}: the dataset has no transitions; nothing to fit")
+        raise ValidationError(f"{where}: the dataset has no transitions; nothing to {use}")
     report = validate(ds, origin=_directory_origin(Path(where), ds) if Path(where).is_dir() else None)
     if not report.ok:
         f = report.findings.iloc[0]

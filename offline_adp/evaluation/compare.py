@@ -25,7 +25,6 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.data.files import read_json_file
 from offline_adp.errors import (
     IncompatibleError,
     InvalidArgumentError,
@@ -51,8 +50,10 @@ def _metrics(run: Path) -> dict[str, Any] | None:
 
 
 def _dataset_of(run: Path) -> str | None:
+    from offline_adp.data.rundir import recorded_dataset
+
     p = run / "run.json"
-    return read_json_file(p).get("dataset") if p.exists() else None
+    return recorded_dataset(p) if p.exists() else None
 
 
 def _fingerprint(path: str) -> str:

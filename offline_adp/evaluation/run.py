@@ -29,6 +29,7 @@ import pyarrow.parquet as pq
 from offline_adp.data.dataset import TransitionDataset, read_dataset
 from offline_adp.data.files import read_json_file
 from offline_adp.data.rundir import RunDirectory
+from offline_adp.data.validate import require_usable
 from offline_adp.errors import (
     DatasetNotFoundError,
     RunDirectoryError,
@@ -136,6 +137,9 @@ def evaluate_run(
     with RunDirectory(run).lock():
         t0 = time.perf_counter()
         ds = read_dataset(ds_path)
+        # empty or failing the doctor (actions outside the table, negative steps...): one error
+        # naming the part file and row, not an IndexError deep in an estimator or wrong numbers
+        require_usable(ds, ds_path, use="evaluate on")
         policy = _run_policy(run, info, ds, ds_path)
         sim_name, problem, note = _simulator(cfg.simulator, ds)
         metrics, res, states, demo_states = evaluation_metrics(
@@ -156,7 +160,13 @@ def _run_and_dataset(run: Path, dataset: str | PathLike[str] | None) -> tuple[di
         raise RunDirectoryError(f"{run}: not a run directory (no model/)"
                                 + (pipeline_hint(run) or "; fit one with `offline-adp fit`"))
     info = read_json_file(run / "run.json") if (run / "run.json").exists() else {}
-    ds_path = Path(dataset) if dataset is not None else Path(info.get("dataset", ""))
+    if dataset is None:
+        from offline_adp.data.rundir import recorded_dataset
+
+        dataset = recorded_dataset(run / "run.json") if info else None
+        if dataset is None:
+            raise DatasetNotFoundError(f"{run}: names no dataset (no 'dataset' in its run.json); pass --dataset DIR")
+    ds_path = Path(dataset)
     if not (ds_path / "meta" / "info.json").exists():
         raise DatasetNotFoundError(f"{run}: its dataset {str(ds_path)!r} is not a dataset directory; pass "
                                    "--dataset DIR")

@@ -187,28 +187,70 @@ def fit_convergence(run_dir: str | Path | None) -> dict[str, Any]:
         return {"verdict": "diverged", "text": "fit DIVERGED (run.json): its policy and values are not to be trusted",
                 "source": "run.json"}
     hist = run / "model" / "history.csv"
-    if hist.exists():
-        h = read_table_file(hist)
-        if "sup_dq" in h and h["sup_dq"].notna().any() and ("step" not in h or h["step"].isna().all()):
-            last = float(h["sup_dq"].dropna().iloc[-1])
-            k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)
-            if tol is not None:
-                if not _is_finite_number(tol):
-                    from offline_adp.errors import ArtifactError
-
-                    raise ArtifactError(f"{run / 'config.json'}: params.tol must be a finite number, found {tol!r:.60}")
-                ok = last < float(tol)
-                return {"verdict": "converged" if ok else "not converged", "last_change": last, "tol": tol,
-                        "text": f"fit {'converged' if ok else 'did NOT converge'}: last change {last:.3g} "
-                                f"{'<' if ok else '>='} tol {tol:g} after {k} iterations", "source": "history.csv"}
-            return {"verdict": "unknown", "last_change": last,
-                    "text": f"fit ran {k} iterations, last change {last:.3g} (no tol set)", "source": "history.csv"}
-        if "step" in h and h["step"].notna().any():
-            return {"verdict": "finite horizon", "text": "fit: finite horizon (backward induction, no convergence to "
-                    "check)", "source": "history.csv"}
+    from_history = _history_convergence(hist, tol) if hist.exists() else None
+    if from_history is not None:
+        return from_history
     status = info.get("status")
     return {"verdict": "unknown", "text": f"fit convergence unknown (status {status})" if status else
             "fit convergence unknown"}
+
+
+def _history_convergence(hist: Path, tol: Any) -> dict[str, Any] | None:
+    """The convergence a run's ``model/history.csv`` shows (its last ``sup_dq`` against
+    ``tol``; a finite-horizon fit's ``step`` rows), or None when it shows none."""
+    h = read_fit_history(hist)
+    if "sup_dq" in h and h["sup_dq"].notna().any() and ("step" not in h or h["step"].isna().all()):
+        last = float(h["sup_dq"].dropna().iloc[-1])
+        k = int(h["iteration"].iloc[-1]) if "iteration" in h else len(h)
+        if tol is not None:
+            if not _is_finite_number(tol):
+                from offline_adp.errors import ArtifactError
+
+                raise ArtifactError(f"{hist.parent.parent / 'config.json'}: params.tol must be a finite number, "
+                                    f"found {tol!r:.60}")
+            ok = last < float(tol)
+            return {"verdict": "converged" if ok else "not converged", "last_change": last, "tol": tol,
+                    "text": f"fit {'converged' if ok else 'did NOT converge'}: last change {last:.3g} "
+                            f"{'<' if ok else '>='} tol {tol:g} after {k} iterations", "source": "history.csv"}
+        return {"verdict": "unknown", "last_change": last,
+                "text": f"fit ran {k} iterations, last change {last:.3g} (no tol set)", "source": "history.csv"}
+    if "step" in h and h["step"].notna().any():
+        return {"verdict": "finite horizon", "text": "fit: finite horizon (backward induction, no convergence to "
+                "check)", "source": "history.csv"}
+    return None
+
+
+def read_fit_history(path: Path) -> pd.DataFrame:
+    """A run's ``model/history.csv`` with the columns the convergence summary reads checked:
+    at most :data:`~offline_adp.algorithms.checkpoint.MAX_HISTORY_BYTES`; ``iteration``
+    whole numbers from 1, ``sup_dq`` numbers >= 0 (NaN: not measured), ``step`` numbers.
+    Anything else is an :class:`~offline_adp.errors.ArtifactError` naming the file, the
+    column and the row, not a ValueError from ``float()`` or ``int()``."""
+    from offline_adp.algorithms.checkpoint import MAX_HISTORY_BYTES
+    from offline_adp.errors import ArtifactError
+
+    size = path.stat().st_size if path.is_file() else 0
+    if size > MAX_HISTORY_BYTES:
+        raise ArtifactError(f"{path}: {size} bytes, more than a fit's history can be ({MAX_HISTORY_BYTES}); "
+                            "fit the run again")
+    h = read_table_file(path)
+    for col, ok, what in (("iteration", lambda v: v.notna() & (v >= 1) & (v <= 2**53) & (v == np.floor(v)),
+                           "whole numbers 1, 2, ..."),
+                          ("sup_dq", lambda v: v.isna() | (v >= 0), "numbers >= 0"),
+                          ("step", lambda v: v.isna() | np.isfinite(v), "numbers")):
+        if col not in h.columns or not len(h):
+            continue
+        raw = h[col]
+        v = pd.Series(np.nan, index=raw.index) if pd.api.types.is_bool_dtype(raw) else pd.to_numeric(
+            raw, errors="coerce")
+        bad = ~ok(v.astype(np.float64)) | (v.isna() & raw.notna())
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            found = raw.iloc[i].item() if hasattr(raw.iloc[i], "item") else raw.iloc[i]
+            raise ArtifactError(f"{path}: column {col!r} must hold {what}, found {found!r:.40} (row {i + 1}); "
+                                "the file is damaged: fit the run again")
+        h[col] = v
+    return h
 
 
 #: Why an off-policy interval carries no level once the policy left the data's support.
