@@ -106,7 +106,7 @@ def test_simulate_mcap_generic_json(tmp_path):
     (["--fqe-params", "{bad"], "--fqe-params: not valid JSON"),
     (["--fqe-params", "[1]"], "--fqe-params: expected a JSON object"),
     (["--fqe-params", '{"n_iterationz": 3}'], "did you mean 'n_iterations'"),
-    (["--episodes", "0"], "expected a positive integer"),
+    (["--episodes", "0"], "expected an integer from 2 up to"),
     (["--horizon", "-3"], "expected a positive integer"),
 ])
 def test_evaluate_refuses_bad_options_in_one_line(tmp_path, capsys, args, said):

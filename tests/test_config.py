@@ -38,7 +38,7 @@ def _pipeline(tmp_path, text, name="p.toml"):
     (GOOD + '[fit.params]\nn_iterations = "ten"\n',
      r"fit.params.n_iterations must be an int in the range \[1, inf\) or a str among \{'auto'\}"),
     (GOOD + '[evaluate]\nsimulator = "path_trackin"\n', r"simulator = 'path_trackin': known simulators are"),
-    (GOOD + "[evaluate]\nepisodes = 0\n", r"evaluate.episodes: Input should be greater than or equal to 1"),
+    (GOOD + "[evaluate]\nepisodes = 0\n", r"evaluate.episodes: Input should be greater than or equal to 2"),
     (GOOD.replace('simulate = "tabular"', 'simulate = "tabulr"'), r"simulate = 'tabulr': known problems"),
     (GOOD + '[engine]\nkind = "spark"\n', r"engine.kind: expected one of 'local' or 'dask'"),
     ('name = "p"\n[data]\nsimulate = "tabular"\n', r"fit: missing required key"),
