@@ -31,6 +31,7 @@ import pandas as pd
 from sklearn.base import clone
 from sklearn.utils._param_validation import HasMethods, StrOptions
 
+from offline_adp.algorithms.api import default_evaluator
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.params import (
     FRACTION,
@@ -71,8 +72,9 @@ class ConservativePolicyIteration(CheckedEstimator):
 
     Parameters
     ----------
-    fqe : FittedQEvaluation
-        Prototype for ``Q^{pi_k}`` (and for the off-policy estimates without a model).
+    fqe : FittedQEvaluation, optional
+        Prototype for ``Q^{pi_k}`` (and for the off-policy estimates without a model); default
+        API's evaluator, FQE on FittedQIteration's tree schedule (``api.EVALUATOR_DEFAULTS``).
     n_iterations : int
         Improvement steps (>= 0; 0 returns the initial policy).
     step_rule : {"line_search", "kakade_langford"}
@@ -135,7 +137,9 @@ class ConservativePolicyIteration(CheckedEstimator):
         return clone(self._proto()).set_params(policy=policy).fit(data, sample_weight=w).value_
 
     def _proto(self) -> FittedQEvaluation:
-        return self.fqe if self.fqe is not None else FittedQEvaluation()
+        """The evaluator: ``fqe``, else API's (:func:`~offline_adp.algorithms.api.default_evaluator`:
+        FQE on FittedQIteration's tree schedule, its last structure's fixed point solved)."""
+        return self.fqe if self.fqe is not None else default_evaluator()
 
     def fit(self, dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> ConservativePolicyIteration:
         self.check_params()  # _parameter_constraints, then the combinations

@@ -179,9 +179,6 @@ def _fit_on_data(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
     return entry.estimator_class()(**p).fit(ds)
 
 
-def _make_fqe(p: dict[str, Any]) -> Any:
-    return FQE.estimator_class()(**p.pop("fqe")) if p.get("fqe") is not None else p.pop("fqe", None)
-
 
 def _simulator(p: dict[str, Any], ds: Any = None) -> Any:
     """The configured simulator: ``problem_options`` when given, else the options the
@@ -216,9 +213,11 @@ def _fit_api(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
 
 
 def _fit_cpi(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
+    from offline_adp.algorithms.api import default_evaluator
+
     refuse_continuous("cpi", ds)
-    fqe = _make_fqe(p)
-    return entry.estimator_class()(fqe=fqe, model=_simulator(p, ds), **p).fit(ds)
+    table = p.pop("fqe", None)  # API's evaluator defaults under the [cpi.fqe] table's keys
+    return entry.estimator_class()(fqe=default_evaluator(**(table or {})), model=_simulator(p, ds), **p).fit(ds)
 
 
 def _fit_psdp(entry: AlgorithmEntry, p: dict[str, Any], ds: Any) -> Any:
