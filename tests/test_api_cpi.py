@@ -161,3 +161,24 @@ def test_cpi_evaluates_with_apis_evaluator_by_default(monkeypatch):
 
     registry._fit_cpi(entry, {"fqe": {"n_iterations": 7}}, simulate("car_on_hill", 0, 3, seed=0, horizon=10))
     assert seen["n_iterations"] == 7 and all(seen[k] == v for k, v in EVALUATOR_DEFAULTS.items())
+
+
+@pytest.mark.parametrize("budget", [1, 12])
+def test_cpi_stops_at_its_fixed_point_and_says_so(budget):
+    """A step of 0 leaves pi unchanged, so the next iteration would see the same evaluation
+    and candidates: CPI stops there, "converged". The oracle: one more CPI iteration started
+    from the returned policy chooses alpha = 0 again at the same estimate."""
+    m = TabularMDP(n_states=6, n_actions=3, horizon=None, gamma=0.8, seed=2)
+    ds, w = full_support_dataset(m)
+    fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=200, tol=1e-12)
+    cpi = ConservativePolicyIteration(fqe, n_iterations=budget, step_sizes=(0.5, 1.0)).fit(ds, sample_weight=w)
+    h = cpi.history_
+    if cpi.verdict_ == "converged":
+        assert h["alpha"].iloc[-1] == 0.0 and len(h) <= budget + 1 and (h["alpha"].iloc[1:-1] > 0).all()
+        again = ConservativePolicyIteration(fqe, n_iterations=1, step_sizes=(0.5, 1.0),
+                                            initial_policy=cpi.policy_).fit(ds, sample_weight=w)
+        assert again.history_["alpha"].iloc[-1] == 0.0
+        assert again.history_["value"].iloc[-1] == pytest.approx(h["value"].iloc[-1], abs=1e-9)
+    else:
+        assert cpi.verdict_ == "still changing" and len(h) == budget + 1 and h["alpha"].iloc[-1] > 0
+    assert budget == 1 or cpi.verdict_ == "converged"  # 12 steps reach the fixed point on 6 states

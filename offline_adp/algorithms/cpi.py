@@ -19,6 +19,10 @@ mixture that keeps its components and weights::
 
 Because ``alpha = 0`` is a candidate and the estimator is deterministic (common random
 numbers: every rollout estimate uses the same seed), the estimated cost never increases.
+For the same reason ``alpha = 0`` is a fixed point: ``pi_{k+1} = pi_k`` gets the same
+evaluation, greedy policy and candidates again, so the iteration stops there with the
+verdict ``converged`` (no step improves the estimate); after ``n_iterations`` steps without
+it the verdict is ``still changing``.
 """
 
 from __future__ import annotations
@@ -67,6 +71,18 @@ def effective_horizon(gamma: float, horizon: int | None) -> float:
     return h
 
 
+def _verdict(rows: list[dict[str, Any]], budget: int) -> tuple[str, str]:
+    """``(verdict_, verdict_message_)`` from the history rows (iteration 0 first)."""
+    last = rows[-1]
+    if len(rows) > 1 and last["alpha"] == 0.0:
+        return "converged", (f"at iteration {last['iteration']} no step of the line search improves the estimated "
+                             f"cost {last['value']:.4g} (alpha = 0): a fixed point of the iteration")
+    if budget == 0:
+        return "still changing", "no improvement step was run (n_iterations = 0): the initial policy"
+    return "still changing", (f"the budget of {budget} iterations ended with a step alpha = {last['alpha']:g} "
+                              f"(estimated cost {last['value']:.4g}): more iterations may improve it")
+
+
 class ConservativePolicyIteration(CheckedEstimator):
     """Conservative policy iteration with a line search (or the Kakade-Langford step).
 
@@ -95,6 +111,9 @@ class ConservativePolicyIteration(CheckedEstimator):
     history_ : DataFrame ``iteration, alpha, value, n_components, seconds``
     simulator_steps_ : int
         Transitions simulated by the rollout estimates (0 with FQE estimates).
+    verdict_ : str
+        ``converged`` (a step of 0 was chosen: a fixed point) or ``still changing``.
+    verdict_message_ : str
     """
 
     _parameter_constraints: ClassVar[dict[str, list[Any]]] = {
@@ -171,6 +190,9 @@ class ConservativePolicyIteration(CheckedEstimator):
             pi, value = best, best_value  # type: ignore[assignment]
             rows.append({"iteration": k, "alpha": best_alpha, "value": value, "n_components": len(pi.components),
                          "seconds": time.perf_counter() - t0})
+            if best_alpha == 0.0:  # pi_{k+1} = pi_k: the same evaluation and candidates again (module docstring)
+                break
+        self.verdict_, self.verdict_message_ = _verdict(rows, self.n_iterations)
         self.policy_ = attach_signature(pi, dataset)
         self.history_ = pd.DataFrame(rows)
         return self
