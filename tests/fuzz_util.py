@@ -69,3 +69,39 @@ def node_layout(arrays: dict[str, Any]) -> dict[str, Any]:
             del arrays[k]
         arrays.update(ens.to_arrays(p, layout="nodes"))
     return arrays
+
+
+def gridworld_runs(root: Any, evaluate: tuple[str, ...] = ("a",), extra: tuple[str, ...] = ()) -> Any:
+    """A small gridworld log in ``root/ds`` and two quick FQI fits ``root/a`` and ``root/b``,
+    the runs named in ``evaluate`` evaluated from the logs (``extra``: more evaluate flags)."""
+    from pathlib import Path
+
+    from offline_adp.cli import main
+    from offline_adp.simulate import simulate
+
+    root = Path(root)
+    simulate("gridworld", 4, 4, seed=3, horizon=30).save(root / "ds")
+    cfg = root / "fqi.toml"
+    cfg.write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n")
+    for name in ("a", "b"):
+        assert main(["fit", str((root / "ds").resolve()), "--config", str(cfg), "--out", str(root / name),
+                     "--quiet"]) == 0
+    for name in evaluate:
+        assert main(["evaluate", str(root / name), "--simulator", "none", "--bootstrap", "5", *extra, "--quiet"]) == 0
+    return root
+
+
+def one_line_error(capsys: Any, argv: list[str], *names: str) -> str:
+    """Run the CLI on ``argv``: exit 2, no traceback, one ``error:`` line naming every one of
+    ``names`` (a file, a key); returns that line."""
+    from offline_adp.cli import main
+
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err, err
+    lines = [x for x in err.strip().splitlines() if "error:" in x]
+    assert len(lines) == 1, err
+    for name in names:
+        assert name in lines[0], err
+    return lines[0]

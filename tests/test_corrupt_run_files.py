@@ -9,26 +9,16 @@ import shutil
 
 import pytest
 
-from offline_adp.cli import main
 from offline_adp.data.files import read_json_file, read_table_file
 from offline_adp.data.rundir import RunDirectory
 from offline_adp.errors import ArtifactError
+from tests.fuzz_util import gridworld_runs, one_line_error
 
 
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """A small gridworld log, two quick FQI fits, the first evaluated from the logs."""
-    from offline_adp.simulate import simulate
-
-    root = tmp_path_factory.mktemp("corrupt")
-    simulate("gridworld", 4, 4, seed=3, horizon=30).save(root / "ds")
-    cfg = root / "fqi.toml"
-    cfg.write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n")
-    for name in ("a", "b"):
-        assert main(["fit", str((root / "ds").resolve()), "--config", str(cfg), "--out", str(root / name),
-                     "--quiet"]) == 0
-    assert main(["evaluate", str(root / "a"), "--simulator", "none", "--bootstrap", "5", "--fqe-bootstrap", "0",
-                 "--quiet"]) == 0
+    root = gridworld_runs(tmp_path_factory.mktemp("corrupt"), extra=("--fqe-bootstrap", "0"))
     assert (root / "a" / "evaluation" / "ratios.parquet").is_file()
     return root
 
@@ -45,14 +35,7 @@ def _truncate(path):
 
 
 def _one_line_error(capsys, argv, filename):
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err, err
-    lines = [x for x in err.strip().splitlines() if "error:" in x]
-    assert len(lines) == 1, err
-    assert filename in lines[0], err
-    return lines[0]
+    return one_line_error(capsys, argv, filename)
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "list"])

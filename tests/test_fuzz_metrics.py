@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from offline_adp.cli import main
 from offline_adp.errors import ArtifactError, OfflineADPError
-from tests.fuzz_util import edit_json_path, json_paths
+from tests.fuzz_util import edit_json_path, gridworld_runs, json_paths, one_line_error
 
 NIGHTLY = settings().max_examples >= 1000
 N = 1000 if NIGHTLY else 30
@@ -36,18 +36,8 @@ DELETE = _Delete()
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """A small gridworld log, two quick FQI fits, both evaluated from the logs."""
-    from offline_adp.simulate import simulate
-
-    root = tmp_path_factory.mktemp("metrics")
-    simulate("gridworld", 4, 4, seed=3, horizon=30).save(root / "ds")
-    cfg = root / "fqi.toml"
-    cfg.write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n")
-    for name in ("a", "b"):
-        assert main(["fit", str((root / "ds").resolve()), "--config", str(cfg), "--out", str(root / name),
-                     "--quiet"]) == 0
-        assert main(["evaluate", str(root / name), "--simulator", "none", "--bootstrap", "5", "--fqe-bootstrap", "5",
-                     "--model-particles", "50", "--quiet"]) == 0
-    return root
+    return gridworld_runs(tmp_path_factory.mktemp("metrics"), evaluate=("a", "b"),
+                          extra=("--fqe-bootstrap", "5", "--model-particles", "50"))
 
 
 def _edited(evaluated, tmp_path, path, value):
@@ -61,13 +51,7 @@ def _edited(evaluated, tmp_path, path, value):
 
 
 def _one_line_error(capsys, argv, key):
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err, err
-    lines = [x for x in err.strip().splitlines() if "error:" in x]
-    assert len(lines) == 1, err
-    assert "evaluation/metrics.json" in lines[0] and key in lines[0], err
+    return one_line_error(capsys, argv, "evaluation/metrics.json", key)
 
 
 #: (key path, value): each escaped ``report`` and ``compare`` before (the error it was).

@@ -20,8 +20,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from offline_adp.cli import main
 from offline_adp.errors import ArtifactError, OfflineADPError
+from tests.fuzz_util import gridworld_runs, one_line_error
 
 NIGHTLY = settings().max_examples >= 1000
 N = 1000 if NIGHTLY else 25
@@ -30,18 +30,7 @@ N = 1000 if NIGHTLY else 25
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     """A small gridworld log and two quick FQI fits, the first evaluated from the logs."""
-    from offline_adp.simulate import simulate
-
-    root = tmp_path_factory.mktemp("runds")
-    simulate("gridworld", 4, 4, seed=3, horizon=30).save(root / "ds")
-    cfg = root / "fqi.toml"
-    cfg.write_text("[fqi]\nn_iterations = 3\n[fqi.regressor_params]\nn_estimators = 5\n")
-    for name in ("a", "b"):
-        assert main(["fit", str((root / "ds").resolve()), "--config", str(cfg), "--out", str(root / name),
-                     "--quiet"]) == 0
-    assert main(["evaluate", str(root / "a"), "--simulator", "none", "--bootstrap", "5", "--fqe-bootstrap", "0",
-                 "--model-particles", "0", "--quiet"]) == 0
-    return root
+    return gridworld_runs(tmp_path_factory.mktemp("runds"), extra=("--fqe-bootstrap", "0", "--model-particles", "0"))
 
 
 def _copy(root, tmp_path):
@@ -59,15 +48,7 @@ def _copy(root, tmp_path):
 
 
 def _one_line_error(capsys, argv, *names):
-    code = main(argv)
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert "Traceback" not in err, err
-    lines = [x for x in err.strip().splitlines() if "error:" in x]
-    assert len(lines) == 1, err
-    for name in names:
-        assert name in lines[0], err
-    return lines[0]
+    return one_line_error(capsys, argv, *names)
 
 
 def _edit_json(path, **changes):
