@@ -224,6 +224,9 @@ def fit_run(
         else:
             rd.write_json(rd.CONFIG, {"algorithm": algorithm, "params": params})
         status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(),
+                                  # what the policy reads, in order: evaluate refuses data whose features differ
+                                  # even where the fitted dataset itself was edited since (run_checks.py)
+                                  "features": list(ds.feature_names),
                                   "algorithm": algorithm,
                                   "access": entry.access, "versions": versions(), "status": "running"}
         if engine is not None:

@@ -158,3 +158,26 @@ def test_export_with_a_corrupt_run_json_exits_2(evaluated, tmp_path, capsys):
     _truncate(a / "run.json")
     _one_line_error(capsys, ["export", str(a), "--out", str(tmp_path / "p.onnx")], "run.json")
     assert not (tmp_path / "p.onnx").exists()
+
+
+def test_features_reordered_in_the_fitted_datasets_own_info_are_refused(tmp_path, capsys):
+    """run.json records the features the fit read; reordering them in the fitted dataset's own
+    info.json afterwards gave wrong numbers from evaluate (the check compared the run's dataset
+    with itself). Now exit 2 naming run.json's features and the dataset's."""
+    import json
+
+    from offline_adp.cli import main
+    from offline_adp.simulate import simulate
+
+    simulate("car_on_hill", 0, 20, seed=0, horizon=30).save(tmp_path / "ds")
+    (tmp_path / "c.toml").write_text("[fqi]\nn_iterations = 2\n[fqi.regressor_params]\nn_estimators = 3\n")
+    assert main(["fit", str(tmp_path / "ds"), "--config", str(tmp_path / "c.toml"), "--out", str(tmp_path / "r"),
+                 "-q"]) == 0
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["features"] == ["p", "s"]
+    info_path = tmp_path / "ds" / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    info["features"] = info["features"][::-1]
+    info_path.write_text(json.dumps(info))
+    line = _one_line_error(capsys, ["evaluate", str(tmp_path / "r"), "--simulator", "none", "--bootstrap", "0",
+                                    "--fqe-bootstrap", "0", "--model-particles", "0"], "run.json")
+    assert "['p', 's']" in line and "['s', 'p']" in line

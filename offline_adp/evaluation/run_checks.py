@@ -19,6 +19,11 @@ from offline_adp.formats.common import short_list
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
     """The policy must command the dataset's actions and read its features: else an error
     naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
+    recorded = info.get("features")  # the features the fit read, in order (runs written since 2026-11-28)
+    if isinstance(recorded, list) and all(isinstance(f, str) for f in recorded) and recorded != list(ds.feature_names):
+        raise IncompatibleError(f"{run}: fitted on the features {short_list(recorded)} (run.json), but the dataset "
+                                f"{ds_path} has {short_list(list(ds.feature_names))}; evaluate or compare runs on data "
+                                "with the same features in the same order")
     values = short_list(ds.info.action_table.values.ravel().tolist())
     if getattr(policy, "continuous", False):
         return _check_same_commands(run, info, ds, ds_path)
