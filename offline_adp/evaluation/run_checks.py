@@ -19,19 +19,16 @@ from offline_adp.formats.common import short_list
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
     """The policy must command the dataset's actions and read its features: else an error
     naming both (not a shape error deep inside an estimator, nor silently wrong numbers)."""
-    recorded = info.get("features")  # the features the fit read, in order (runs written since 2026-11-28)
-    if isinstance(recorded, list) and all(isinstance(f, str) for f in recorded) and recorded != list(ds.feature_names):
-        raise IncompatibleError(f"{run}: fitted on the features {short_list(recorded)} (run.json), but the dataset "
-                                f"{ds_path} has {short_list(list(ds.feature_names))}; evaluate or compare runs on data "
-                                "with the same features in the same order")
     values = short_list(ds.info.action_table.values.ravel().tolist())
     if getattr(policy, "continuous", False):
-        return _check_same_commands(run, info, ds, ds_path)
+        _check_same_commands(run, info, ds, ds_path)
+        return _check_recorded_features(run, info, ds, ds_path)
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
         raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has "
                                 f"{ds.n_actions} "
                               f"(action table {values}); evaluate or compare runs on data with the action table "
                               "they were fitted on")
+    _check_recorded_features(run, info, ds, ds_path)
     own = info.get("dataset")
     if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
         return
@@ -50,6 +47,17 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
         raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
                               f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the "
                               "same features")
+
+
+def _check_recorded_features(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
+    """The features the fit read, in order (``run.json``'s ``features``, runs written since
+    2026-11-28), against the dataset's: the fitted dataset's own ``info.json`` may have been
+    edited since, which comparing that dataset with itself cannot see."""
+    recorded = info.get("features")
+    if isinstance(recorded, list) and all(isinstance(f, str) for f in recorded) and recorded != list(ds.feature_names):
+        raise IncompatibleError(f"{run}: fitted on the features {short_list(recorded)} (run.json), but the dataset "
+                                f"{ds_path} has {short_list(list(ds.feature_names))}; evaluate or compare runs on data "
+                                "with the same features in the same order")
 
 
 def _fitted_info(info: dict[str, Any]) -> Any:
