@@ -170,13 +170,14 @@ class RunDirectory:
             shutil.rmtree(p)
 
 
-def recorded_dataset(run_json: str | PathLike[str]) -> str | None:
+def recorded_dataset(run_json: str | PathLike[str], info: dict[str, Any] | None = None) -> str | None:
     """The dataset path a run's ``run.json`` names (``dataset``), or None when it names none
-    (no such key, null or empty). Anything else there (a number, a list...) is an
+    (no such key, null or empty); ``info``: the file's contents where the caller read them.
+    Anything else there (a number, a list...) is an
     :class:`~offline_adp.errors.ArtifactError` naming the file and the key, not a
     ``TypeError`` from ``Path()`` or a path that silently means the current directory."""
     p = Path(run_json)
-    value = read_json_file(p).get("dataset")
+    value = (info if info is not None else read_json_file(p)).get("dataset")
     if value is None or value == "":
         return None
     if not isinstance(value, str) or "\0" in value:

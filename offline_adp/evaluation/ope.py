@@ -240,8 +240,12 @@ MIN_ESS_DEGENERATE = 2.0
 
 
 def degenerate_floor(name: str, n: int) -> float:
-    """The ESS below which estimator ``name``'s weights over ``n`` episodes are degenerate."""
+    """The ESS below which estimator ``name``'s weights over ``n`` episodes are degenerate
+    (0 for FQE and the model rollouts: their ``ess`` is no importance weights' ESS)."""
+    if name in ("fqe", "model"):
+        return 0.0
     return max(MIN_ESS_FRACTION * n, 0.0 if name == "mis" else MIN_ESS_DEGENERATE)
+
 #: ... or when one episode holds more than this share of the total weight.
 MAX_WEIGHT_SHARE = 0.1
 #: ... or when the generalized Pareto shape of the weights' upper tail exceeds this

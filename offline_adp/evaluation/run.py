@@ -163,7 +163,7 @@ def _run_and_dataset(run: Path, dataset: str | PathLike[str] | None) -> tuple[di
     if dataset is None:
         from offline_adp.data.rundir import recorded_dataset
 
-        dataset = recorded_dataset(run / "run.json") if info else None
+        dataset = recorded_dataset(run / "run.json", info) if info else None
         if dataset is None:
             raise DatasetNotFoundError(f"{run}: names no dataset (no 'dataset' in its run.json); pass --dataset DIR")
     ds_path = Path(dataset)

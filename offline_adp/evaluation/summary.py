@@ -88,8 +88,7 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         elif rng and not (rng[0] - 1e-9 <= est <= rng[1] + 1e-9):
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
         # the ESS floor again for files written before it (compare reuses them): the 1% rule is in their flag
-        floor = degenerate_floor(name, 0) if name not in ("fqe", "model") else 0.0
-        if r.get("degenerate") or (_is_finite_number(r.get("ess")) and r["ess"] < floor):
+        if r.get("degenerate") or (_is_finite_number(r.get("ess")) and r["ess"] < degenerate_floor(name, 0)):
             ess = r.get("ess")
             reasons.append("degenerate importance weights" + (f" (effective sample size {ess:.1f})"
                                                               if _is_finite_number(ess) else ""))
