@@ -191,13 +191,48 @@ def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> ope.OPEResult
     return replace(fq, estimate=near, warnings=[*fq.warnings, why])
 
 
+def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float, float],
+                  complete: bool = False) -> ope.OPEResult:
+    """A doubly robust estimate on the logging policy's own weights (:func:`ope.on_policy`) read
+    as the estimand's H-step value, past the T logged steps.
+
+    ``complete`` (every logged episode ended in a terminal state, by step T): each logged
+    episode's cost past its end is 0, so its logged cost is its H-step cost, and the estimate
+    reads the H-step value as it stands (the weights keep most episodes: the policy's episodes
+    outlast the logged ones about as rarely as the logging policy's, which the episode
+    bootstrap sees). Otherwise the two values differ by the cost of steps T .. H-1, within
+    ``[min(c_lo, 0), max(c_hi, 0)] sum_{T <= t < H} gamma^t`` (the logged cost range; 0 for an
+    episode that has ended), added to the interval and to the paired difference from the
+    logged cost, as the stationary FQE's truncation bound is.
+    """
+    T, H, gamma = est_def.horizon, est_def.value_horizon, est_def.gamma
+    if complete:
+        why = (f"reads the {H}-step value: every logged episode ended in a terminal state by step {T} (its cost "
+               f"after that is 0), and the weights are the logging policy's own, nearly")
+        return replace(r, warnings=[why, *r.warnings])
+    span_t = float(np.sum(gamma ** np.arange(T)))
+    tail = float(np.sum(gamma ** np.arange(T, H)))
+    c_lo, c_hi = (logged_range[0] / span_t, logged_range[1] / span_t) if span_t > 0 else (0.0, 0.0)
+    lo_t, hi_t = min(c_lo, 0.0) * tail, max(c_hi, 0.0) * tail
+    why = (f"estimates the {T}-step value; the {H}-step value asked for differs from it by the cost of steps "
+           f"{T}..{H - 1}, within [{lo_t:.4g}, {hi_t:.4g}] (the logged cost range times sum_{{{T}<=t<{H}}} "
+           f"{gamma:g}^t), added to its interval")
+    iv = r.interval
+    vs = None if r.vs_logged is None else (r.vs_logged[0] + lo_t, r.vs_logged[1] + hi_t)
+    return replace(r, interval=(iv[0] + lo_t, iv[1] + hi_t), vs_logged=vs, warnings=[why, *r.warnings],
+                   interval_method=r.interval_method + f"; plus the cost past the {T} logged steps, "
+                   f"[{lo_t:.4g}, {hi_t:.4g}]")
+
+
 def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
-             logged_range: tuple[float, float]) -> dict[str, ope.OPEResult]:
+             logged_range: tuple[float, float], complete: bool = False) -> dict[str, ope.OPEResult]:
     """The estimates confined to what the estimand allows: intervals clipped to the possible
     range (the estimand's for an estimator that reads it, the logged T steps' otherwise;
     :func:`clip_to_range`), the stationary FQE moved onto the range within its truncation
     bound (:func:`stationary_onto_range`), and every estimator that cannot see the estimand's
-    horizon marked not comparable, with the reason first among its warnings."""
+    horizon marked not comparable, with the reason first among its warnings -- but DR and WDR
+    on the logging policy's own weights, read past the logs by :func:`past_the_logs`
+    (``complete``: every logged episode ended in a terminal state)."""
     T, H = est_def.horizon, est_def.value_horizon
     beyond = est_def.beyond_logs
     # the estimators that read the estimand's horizon past the logs: a stationary FQE, the model rollouts
@@ -207,6 +242,10 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
     out["fqe"] = stationary_onto_range(out["fqe"], est_def)
     for name, r in out.items():
         why = []
+        if beyond and name in ("dr", "wdr") and est_def.form == "finite" and ope.on_policy(r):
+            out[name] = clip_to_range(past_the_logs(r, est_def, logged_range, complete),
+                                      est_def.possible_range or logged_range)
+            continue
         if beyond and name not in sees_past:
             why.append(f"estimates the {T}-step value, not the {H}-step value asked for: the logs' episodes "
                        f"end by step {T} and no estimator of them sees past it")

@@ -36,6 +36,10 @@ class _ModelRollouts(_Open):
     n_particles: int | None = None
 
 
+class _WeightDiagnostics(_Open):
+    ess_fraction: float | None = None
+
+
 class _Estimate(_Open):
     estimate: float | None = None
     interval: Pair | None = None
@@ -49,6 +53,8 @@ class _Estimate(_Open):
     ess: float | None = None
     warnings: list[Any] | None = []
     model_rollouts: _ModelRollouts | None = None
+    vs_logged: Pair | None = None
+    weight_diagnostics: _WeightDiagnostics | None = None
 
 
 class _Estimand(_Open):

@@ -325,7 +325,8 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     estimates = ope.flagged_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     est_def, logged_range = with_possible_range(est_def, a, w.em)
-    estimates = confined(estimates, est_def, logged_range)
+    complete = bool(np.all(np.bincount(w.em.row_episode, weights=a.terminated, minlength=w.em.n_episodes) > 0))
+    estimates = confined(estimates, est_def, logged_range, complete)
     return OffPolicyResult(gamma, T, w.behaviour, estimates, ratios, diag, w.support, ra.eps, fit.fqe, estimand=est_def,
                            eps_in_sample=ra.in_sample, eps_folds=int(psdp_folds or 0), eps_note=ra.note,
                            **verdict_inputs(a, w, est_def, level),

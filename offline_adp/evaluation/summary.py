@@ -28,7 +28,7 @@ from offline_adp.data.files import read_json_file, read_table_file
 
 # the structure of metrics.json and its reader (evaluation/metrics_file.py), importable from here too
 from offline_adp.evaluation.metrics_file import MetricsFile, read_metrics  # noqa: F401
-from offline_adp.evaluation.ope import degenerate_floor
+from offline_adp.evaluation.ope import degenerate_floor, on_policy
 
 # the verdict and its parts (evaluation/verdict.py), importable from here too
 from offline_adp.evaluation.verdict import (  # noqa: F401
@@ -74,7 +74,10 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     weights) or not computed. Tier 2 ``not usable``: degenerate weights, an estimate outside
     the possible range of the cost, or another estimand. Within a tier, by
     :data:`ROBUSTNESS` (never by interval width: a narrow interval from fixed, wrong
-    ratios would flatter).
+    ratios would flatter), with two regimes ahead of it: on the logging policy's own weights
+    (:func:`~offline_adp.evaluation.ope.on_policy`) WDR, then DR, lead, with their paired
+    difference from the logged cost (``vs_logged``); else the model rollouts lead where they
+    carry a level.
     """
     rng = m.get("estimand", {}).get("possible_range")
     out = []
@@ -104,7 +107,10 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         elif tier == 1:
             reasons.append(r.get("interval_method", "no interval"))
         width = (iv[1] - iv[0]) if has_iv else np.inf
+        vs = r.get("vs_logged") or [None, None]
+        paired = tier == 0 and name in ("dr", "wdr") and on_policy(r) and all(_is_finite_number(v) for v in vs)
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
+                    "on_policy": paired, "vs_logged": list(vs) if paired else None,
                     "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
                     "estimate": est, "interval": iv if has_iv else None, "level": r.get("level") if has_iv else None,
                     "shown_interval": iv if _is_finite_number(iv[0]) and _is_finite_number(iv[1]) else None,
@@ -114,6 +120,11 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     # the model rollouts lead only with a level (overlapping FQE's interval, within the logged states:
     # evaluation/model_bootstrap.py); without one, FQE's hull of both readings comes first
     order["model"] = -1 if any(e["name"] == "model" and e["tier"] == 0 for e in out) else 0.5
+    # on the logging policy's own weights, the doubly robust estimate leads (WDR before DR): the logged
+    # episodes are nearly the policy's own, with FQE only a control variate (ope.ON_POLICY_ESS_FRACTION)
+    for name, key in (("dr", -2.5), ("wdr", -3)):
+        if any(e["name"] == name and e["on_policy"] for e in out):
+            order[name] = key
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
         e["rank"] = i + 1

@@ -319,13 +319,18 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
         b = beh["mean"]
         ope_side = side_of_behaviour(lo, hi, b)
         claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
+        paired = best.get("vs_logged")
+        if paired:  # on the logging policy's own weights: the difference, read on the same episodes
+            ope_side = side_of_behaviour(paired[0], paired[1], 0.0)
         dis = _disagreeing(best, ranking)
         if dis:
             doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
         if not doubts:  # an interval across the behaviour's cost is a side too: only without doubts (issue #42)
             side = ope_side
             where = {"better": "lies below", "worse": "lies above", "indistinguishable": "contains"}[ope_side]
-            conf = f"its {level_words(best)} interval {where} the behaviour's logged cost"
+            conf = (f"its {level_words(best)} interval of the difference from the logged cost of the same episodes, "
+                    f"[{paired[0]:.4g}, {paired[1]:.4g}], {where} 0" if paired
+                    else f"its {level_words(best)} interval {where} the behaviour's logged cost")
             perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
         else:
             words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[ope_side]

@@ -1,0 +1,149 @@
+"""On the logging policy's own weights the doubly robust estimate leads (issue #42).
+
+Ground truth: exact dynamic programming on the seeded tabular MDP of
+``test_eval_estimand`` (10-step logs, logged propensities), and closed forms: with every
+weight 1 and a zero Q, DR is the logged mean, so its paired difference from the logged
+cost is exactly 0 on every replicate; the cost past the logs is the logged cost range
+times ``sum_{T <= t < H} gamma^t``.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from offline_adp.evaluation import ope
+from offline_adp.evaluation.estimand import Estimand, confined
+from offline_adp.evaluation.summary import rank_estimators, verdict_line
+from offline_adp.policies import EpsilonPolicy, TabularPolicy
+from tests.test_eval_estimand import T, estimates, problem, truth
+
+
+def test_dr_on_the_logged_mean_has_a_paired_difference_of_zero():
+    rng = np.random.default_rng(0)
+    n, steps = 60, 5
+    em = ope.EpisodeMatrix.build(np.repeat(np.arange(n), steps), np.tile(np.arange(steps), n))
+    cost = rng.normal(3.0, 2.0, n * steps)
+    zeros, ones = np.zeros(n * steps), np.ones(n * steps)
+    dr = ope.doubly_robust_estimates(em, cost, ones, zeros, zeros, 0.9, n_boot=100, seed=4)
+    is_ = ope.importance_sampling_estimates(em, cost, ones, 0.9, n_boot=100, seed=4)["is"]
+    G = em.lay(cost) @ 0.9 ** np.arange(steps)
+    for r in dr.values():
+        assert r.estimate == pytest.approx(G.mean())
+        assert r.vs_logged == pytest.approx((0.0, 0.0), abs=1e-12)
+        assert ope.on_policy(r)
+    assert dr["dr"].interval == pytest.approx(is_.interval)  # the same replicates as before the pairing
+
+
+@pytest.mark.slow
+def test_paired_difference_and_interval_cover_the_exact_values():
+    """Over 30 seeds x 500 episodes: the logging policy evaluated on its own logs (WDR on-policy, its
+    paired difference's truth 0) and a nearby target (epsilon 0.6 against the logs' 0.8: ESS about half
+    the episodes; the truth J(pi) - J(b) by DP): each 95% interval given covers its exact value at least
+    85% of the time."""
+    gamma = 0.9
+    mdp, pib, _ = problem(gamma, "mild")
+    pi = EpsilonPolicy(TabularPolicy(mdp.optimal().policy, 3), 0.6)
+    J_b, J_pi = truth(mdp, pib, gamma), truth(mdp, pi, gamma)
+    hits = {"self": [], "self_diff": [], "pi_diff": []}
+    for seed in range(30):
+        own = estimates(mdp, pib, pib, gamma, 500, seed, fqe=False)["wdr"]
+        assert ope.on_policy(own)
+        hits["self"].append(own.interval[0] <= J_b <= own.interval[1])
+        hits["self_diff"].append(own.vs_logged[0] <= 0.0 <= own.vs_logged[1])
+        other = estimates(mdp, pib, pi, gamma, 500, seed, fqe=False)["wdr"]
+        if other.vs_logged is not None:
+            hits["pi_diff"].append(other.vs_logged[0] <= J_pi - J_b <= other.vs_logged[1])
+    assert len(hits["pi_diff"]) >= 20 and J_pi - J_b < -0.3  # a real difference, mostly given
+    for k, h in hits.items():
+        assert np.mean(h) >= 0.85, (k, h)
+
+
+def _wdr(frac: float, iv: list[float], vs: list[float]) -> dict:
+    return {"estimate": sum(iv) / 2, "interval": iv, "level": 0.95, "vs_logged": vs,
+            "weight_diagnostics": {"ess_fraction": frac}}
+
+
+BASE = {"estimand": {"possible_range": [-20.0, 0.0]},
+        "ope": {"fqe": {"estimate": -12.6, "interval": [-14.1, -12.2], "level": 0.95},
+                "model": {"estimate": -12.7, "interval": [-13.3, -12.0], "level": 0.95},
+                "wdr": _wdr(1.0, [-12.88, -12.57], [-0.10, 0.25])},
+        "behaviour_value": {"mean": -12.9},
+        "behaviour": {"support_violations": {"fraction": 0.0}}}
+IN_SUPPORT = {"method": "recursion", "enough_data": True}
+CONVERGED = {"verdict": "converged", "text": "fit converged"}
+
+
+def test_wdr_leads_on_the_logging_policys_weights_and_the_verdict_reads_the_paired_difference():
+    rank = rank_estimators(BASE)
+    assert rank[0]["name"] == "wdr" and rank[0]["vs_logged"] == [-0.10, 0.25]
+    # its interval lies above the logged -12.9, but the difference on the same episodes holds 0
+    v = verdict_line(BASE, rank, IN_SUPPORT, CONVERGED)
+    assert v["performance"] == "indistinguishable" and "difference from the logged cost" in v["text"]
+    worse = copy.deepcopy(BASE)
+    worse["ope"]["wdr"]["vs_logged"] = [0.05, 0.4]
+    assert verdict_line(worse, rank_estimators(worse), IN_SUPPORT, CONVERGED)["performance"] == "worse"
+
+
+@pytest.mark.parametrize("change", ["thin weights", "no level", "degenerate", "no paired interval", "bad number"])
+def test_without_the_logging_policys_weights_the_model_leads(change):
+    m = copy.deepcopy(BASE)
+    w = m["ope"]["wdr"]
+    if change == "thin weights":
+        w["weight_diagnostics"]["ess_fraction"] = 0.3
+    elif change == "no level":
+        w["level"] = None
+    elif change == "degenerate":
+        w["degenerate"] = True
+    elif change == "no paired interval":
+        del w["vs_logged"]
+    else:
+        w["weight_diagnostics"]["ess_fraction"] = "1.0"
+    rank = rank_estimators(m)
+    assert rank[0]["name"] == "model" and rank[0]["vs_logged"] is None
+    # the model's interval holds the logged cost: no side, and no paired words
+    v = verdict_line(m, rank, IN_SUPPORT, CONVERGED)
+    assert "difference from the logged cost" not in v["text"]
+
+
+def _est(name: str, frac: float) -> ope.OPEResult:
+    return ope.OPEResult(name, 5.0, (4.0, 6.0), 100.0 * frac, vs_logged=(-1.0, 1.0),
+                         weight_diagnostics={"ess_fraction": frac})
+
+
+@pytest.mark.parametrize("complete", [True, False])
+def test_past_the_logs_the_tail_is_added_unless_every_episode_ended(complete):
+    gamma, T_, H = 0.5, 3, 5
+    span = sum(gamma**t for t in range(T_))
+    est_def = Estimand(T_, gamma, target_horizon=H, possible_range=(0.0, 2.0 * sum(gamma**t for t in range(H))))
+    logged_range = (1.0 * span, 2.0 * span)  # costs in [1, 2]: the tail lies in [0, 2 (0.5^3 + 0.5^4)]
+    out = confined({"fqe": _est("fqe", 1.0), "wdr": _est("wdr", 1.0), "dr": _est("dr", 0.3),
+                    "wis": _est("wis", 1.0)}, est_def, logged_range, complete)
+    tail = 2.0 * (gamma**3 + gamma**4)
+    w = out["wdr"]
+    assert w.comparable
+    if complete:
+        assert w.interval == (4.0, 6.0) and w.vs_logged == (-1.0, 1.0)
+        assert "ended in a terminal state" in w.warnings[0]
+    else:
+        assert w.interval == pytest.approx((4.0, 6.0 + tail)) and w.vs_logged == pytest.approx((-1.0, 1.0 + tail))
+        assert f"{T_}..{H - 1}" in w.warnings[0]
+    # thin weights (DR at ESS 30%) and the other trajectory estimators still see only the T logged steps
+    assert not out["dr"].comparable and not out["wis"].comparable
+
+
+def test_the_cost_past_the_logs_holds_the_exact_value():
+    """Exact DP: the H-step value of the logging policy lies within its T-step value plus the tail bound."""
+    gamma = 0.9
+    mdp, pib, _ = problem(gamma, "mild")
+    from offline_adp import dp
+    from offline_adp.evaluation import shift
+
+    table = shift.policy_table(pib, mdp.n_states, T)
+    V = {h: float(mdp.initial_distribution @ dp.policy_evaluation_finite(mdp.P, mdp.C, table[:h], h, gamma).V[0])
+         for h in (6, T)}
+    c_lo, c_hi = float(mdp.C.min()), float(mdp.C.max())
+    tail = sum(gamma**t for t in range(6, T))
+    assert min(c_lo, 0.0) * tail - 1e-12 <= V[T] - V[6] <= max(c_hi, 0.0) * tail + 1e-12
