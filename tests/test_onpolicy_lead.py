@@ -82,6 +82,7 @@ def test_wdr_leads_on_the_logging_policys_weights_and_the_verdict_reads_the_pair
     # its interval lies above the logged -12.9, but the difference on the same episodes holds 0
     v = verdict_line(BASE, rank, IN_SUPPORT, CONVERGED)
     assert v["performance"] == "indistinguishable" and "difference from the logged cost" in v["text"]
+    assert "nearly the policy's own (its importance weights keep 100% of them)" in v["lines"][2]
     worse = copy.deepcopy(BASE)
     worse["ope"]["wdr"]["vs_logged"] = [0.05, 0.4]
     assert verdict_line(worse, rank_estimators(worse), IN_SUPPORT, CONVERGED)["performance"] == "worse"

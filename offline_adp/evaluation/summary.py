@@ -111,6 +111,7 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         paired = tier == 0 and name in ("dr", "wdr") and on_policy(r) and all(_is_finite_number(v) for v in vs)
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
                     "on_policy": paired, "vs_logged": list(vs) if paired else None,
+                    "ess_fraction": r["weight_diagnostics"]["ess_fraction"] if paired else None,
                     "tier_label": ("reliable", "no interval", "not usable")[tier], "reason": "; ".join(reasons),
                     "estimate": est, "interval": iv if has_iv else None, "level": r.get("level") if has_iv else None,
                     "shown_interval": iv if _is_finite_number(iv[0]) and _is_finite_number(iv[1]) else None,

@@ -237,6 +237,9 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
     why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
     best = next((e for e in ranking if e["tier"] == 0), None)
     hulled = model_hull_words(m) if top is not None and top["name"] == "model" else None
+    if best is not None and best.get("on_policy"):
+        why.insert(1, f"the logged episodes are nearly the policy's own (its importance weights keep "
+                      f"{best['ess_fraction']:.0%} of them), so the doubly robust estimate leads")
     if hulled:
         why.insert(1, hulled)
     elif best is not None and best["name"] == "model" and support.startswith("LEFT") and not doubts:
