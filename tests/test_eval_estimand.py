@@ -193,6 +193,8 @@ def test_off_policy_declares_its_estimand_and_matches_the_pieces():
         assert res.estimates[k].estimate == pytest.approx(pieces[k].estimate, abs=1e-9), k
     # cheap replicates are raised to the floor: 10 asked for, 200 run
     assert np.isfinite(res.estimates["fqe"].interval).all()
+    # DR's Q fitted on the same episodes (no folds): no paired difference from the logged cost
+    assert res.estimates["dr"].vs_logged is None and res.estimates["wdr"].vs_logged is None
 
 
 def test_infinite_horizon_estimand_only_fqe_can_answer():

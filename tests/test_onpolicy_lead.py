@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from offline_adp.evaluation import ope
-from offline_adp.evaluation.estimand import Estimand, confined
+from offline_adp.evaluation.estimand import Estimand, confined, episode_ends
 from offline_adp.evaluation.summary import rank_estimators, verdict_line
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from tests.test_eval_estimand import T, estimates, problem, truth
@@ -109,30 +109,79 @@ def test_without_the_logging_policys_weights_the_model_leads(change):
     assert "difference from the logged cost" not in v["text"]
 
 
-def _est(name: str, frac: float) -> ope.OPEResult:
-    return ope.OPEResult(name, 5.0, (4.0, 6.0), 100.0 * frac, vs_logged=(-1.0, 1.0),
+def _est(name: str, frac: float, iv: tuple[float, float] = (4.0, 6.0)) -> ope.OPEResult:
+    return ope.OPEResult(name, 5.0, iv, 100.0 * frac, vs_logged=(-1.0, 1.0),
                          weight_diagnostics={"ess_fraction": frac})
 
 
-@pytest.mark.parametrize("complete", [True, False])
-def test_past_the_logs_the_tail_is_added_unless_every_episode_ended(complete):
-    gamma, T_, H = 0.5, 3, 5
+@pytest.mark.parametrize("ends", ["terminal", "horizon", "short"])
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_past_the_logs_the_cost_after_step_T_is_added(ends, sign):
+    gamma, T_, H, n = 0.5, 3, 5, 20
     span = sum(gamma**t for t in range(T_))
-    est_def = Estimand(T_, gamma, target_horizon=H, possible_range=(0.0, 2.0 * sum(gamma**t for t in range(H))))
-    logged_range = (1.0 * span, 2.0 * span)  # costs in [1, 2]: the tail lies in [0, 2 (0.5^3 + 0.5^4)]
+    est_def = Estimand(T_, gamma, target_horizon=H, possible_range=(-1e3, 1e3))
+    logged_range = (sign * 1.0 * span, sign * 2.0 * span)  # costs in [1, 2] (or [-2, -1])
+    logged_range = (min(logged_range), max(logged_range))
     out = confined({"fqe": _est("fqe", 1.0), "wdr": _est("wdr", 1.0), "dr": _est("dr", 0.3),
-                    "wis": _est("wis", 1.0)}, est_def, logged_range, complete)
-    tail = 2.0 * (gamma**3 + gamma**4)
+                    "wis": _est("wis", 1.0)}, est_def, logged_range, ends, n)
+    tail = 2.0 * (gamma**3 + gamma**4)  # the cost of steps 3 and 4 lies in [0, tail] (or [-tail, 0])
+    if ends == "terminal":
+        tail *= 3 / n
+    lo_t, hi_t = (0.0, tail) if sign > 0 else (-tail, 0.0)
     w = out["wdr"]
-    assert w.comparable
-    if complete:
-        assert w.interval == (4.0, 6.0) and w.vs_logged == (-1.0, 1.0)
-        assert "ended in a terminal state" in w.warnings[0]
+    if ends == "short":  # an episode stopped early unterminated: its later cost is unknown
+        assert not w.comparable and w.interval == (4.0, 6.0)
     else:
-        assert w.interval == pytest.approx((4.0, 6.0 + tail)) and w.vs_logged == pytest.approx((-1.0, 1.0 + tail))
-        assert f"{T_}..{H - 1}" in w.warnings[0]
+        assert w.comparable and f"{T_}..{H - 1}" in w.warnings[0]
+        assert w.interval == pytest.approx((4.0 + lo_t, 6.0 + hi_t))
+        assert w.vs_logged == pytest.approx((-1.0 + lo_t, 1.0 + hi_t))
     # thin weights (DR at ESS 30%) and the other trajectory estimators still see only the T logged steps
     assert not out["dr"].comparable and not out["wis"].comparable
+    # an allowance wider than the estimate's own interval: it stays a T-step estimate
+    narrow = confined({"fqe": _est("fqe", 1.0), "wdr": _est("wdr", 1.0, (5.0, 5.0 + 1e-3))}, est_def, logged_range,
+                      "horizon", n)
+    assert not narrow["wdr"].comparable
+
+
+def test_how_the_episodes_end_is_read_within_the_T_steps():
+    # three episodes of 4, 2 and 6 steps, read over T = 4
+    episode = np.repeat([0, 1, 2], [4, 2, 6])
+    step = np.concatenate([np.arange(4), np.arange(2), np.arange(6)])
+    em = ope.EpisodeMatrix.build(episode, step, 4)
+
+    def ends(last_terminated):
+        term = np.zeros(len(step), bool)
+        for e, flag in enumerate(last_terminated):
+            if flag:
+                term[np.flatnonzero(episode == e)[-1]] = True
+        return episode_ends(em, term)
+
+    assert ends([True, True, False]) == "horizon"  # the third runs past T: cut there, not ended
+    assert ends([True, False, False]) == "short"  # the second stopped at step 2 without ending
+    assert ends([False, True, True]) == "horizon"  # the third's terminal state is past T: not seen
+    term = np.zeros(len(step), bool)
+    term[[3, 5, 9]] = True  # the third ends at its step 3, within T
+    assert episode_ends(em, term) == "terminal"
+
+
+def test_without_bootstrap_replicates_nothing_is_on_policy():
+    n, steps = 40, 4
+    em = ope.EpisodeMatrix.build(np.repeat(np.arange(n), steps), np.tile(np.arange(steps), n))
+    ones, zeros = np.ones(n * steps), np.zeros(n * steps)
+    for r in ope.doubly_robust_estimates(em, ones, ones, zeros, zeros, 0.9, n_boot=0).values():
+        assert not ope.on_policy(r)
+
+
+def test_compare_ranks_by_a_promoted_estimator_only_where_every_candidate_promotes_it():
+    from offline_adp.evaluation.compare import _common_estimator
+
+    own = rank_estimators(BASE)
+    other = copy.deepcopy(BASE)
+    other["ope"]["wdr"]["weight_diagnostics"]["ess_fraction"] = 0.2
+    far = rank_estimators(other)
+    assert own[0]["name"] == "wdr" and far[0]["name"] == "model"
+    assert _common_estimator([own, far]) == _common_estimator([far, own]) == "model"
+    assert _common_estimator([own, own]) == "wdr"
 
 
 def test_the_cost_past_the_logs_holds_the_exact_value():

@@ -199,9 +199,14 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
 def _common_estimator(rankings: list[list[dict[str, Any]]]) -> str | None:
     """The most reliable estimator reliable (with an interval) for every candidate, else usable
     for every candidate (no interval); None when there is none."""
+    # an estimator promoted on one candidate's own weights (summary.rank_estimators: on_policy) ranks them
+    # all only where it is promoted for every one: else the list's order would choose the estimator
+    promoted = {x["name"] for rk in rankings for x in rk if x.get("on_policy")}
+    everywhere = {n for n in promoted if all(any(x["name"] == n and x.get("on_policy") for x in rk) for rk in rankings)}
     for max_tier in (0, 1):
         common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
-                  and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
+                  and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)
+                  and (e["name"] not in promoted or e["name"] in everywhere)]
         if common:
             return common[0]
     return None

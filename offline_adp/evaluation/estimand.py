@@ -191,48 +191,66 @@ def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> ope.OPEResult
     return replace(fq, estimate=near, warnings=[*fq.warnings, why])
 
 
-def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float, float],
-                  complete: bool = False) -> ope.OPEResult:
-    """A doubly robust estimate on the logging policy's own weights (:func:`ope.on_policy`) read
-    as the estimand's H-step value, past the T logged steps.
+def episode_ends(em: ope.EpisodeMatrix, terminated: np.ndarray) -> str:
+    """How the logged episodes end within the T steps the estimators read: ``"terminal"`` (every
+    one in a terminal state), ``"horizon"`` (each in a terminal state or running to step T), or
+    ``"short"`` (one stops before T without a terminal state: its cost after that is unknown)."""
+    keep = em.row_step < em.horizon
+    ended = np.bincount(em.row_episode[keep], weights=np.asarray(terminated, float)[keep],
+                        minlength=em.n_episodes) > 0
+    if ended.all():
+        return "terminal"
+    return "horizon" if bool(np.all(ended | em.mask[:, -1])) else "short"
 
-    ``complete`` (every logged episode ended in a terminal state, by step T): each logged
-    episode's cost past its end is 0, so its logged cost is its H-step cost, and the estimate
-    reads the H-step value as it stands (the weights keep most episodes: the policy's episodes
-    outlast the logged ones about as rarely as the logging policy's, which the episode
-    bootstrap sees). Otherwise the two values differ by the cost of steps T .. H-1, within
-    ``[min(c_lo, 0), max(c_hi, 0)] sum_{T <= t < H} gamma^t`` (the logged cost range; 0 for an
-    episode that has ended), added to the interval and to the paired difference from the
-    logged cost, as the stationary FQE's truncation bound is.
+
+def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float, float],
+                  ends: str = "short", n_episodes: int = 1) -> ope.OPEResult:
+    """A doubly robust estimate on the logging policy's own weights (:func:`ope.on_policy`) read
+    as the estimand's H-step value, past the T logged steps (``ends``: :func:`episode_ends`, over ``n_episodes``).
+
+    The two differ by the cost of steps T .. H-1, within ``[lo_t, hi_t] = [min(c_lo, 0),
+    max(c_hi, 0)] sum_{T <= t < H} gamma^t`` (the logged cost range; 0 for an episode that has
+    ended). ``"horizon"``: that range is added to the interval and to the paired difference
+    from the logged cost, as the stationary FQE's truncation bound is. ``"terminal"``: each
+    logged episode's cost after its end is 0, so its logged cost is its H-step cost; what the
+    logs cannot show is a run of the policy past step T, which no episode of ``n`` made (at 95%,
+    probability at most ``3 / n``, the rule of three; the weights keep most episodes, so the
+    policy's runs are nearly the logged ones'): ``3 / n`` of the range is added. ``"short"``
+    (an episode stopped early without a terminal state), or an allowance wider than the
+    estimate's own interval: the estimate stays a T-step one, not comparable.
     """
     T, H, gamma = est_def.horizon, est_def.value_horizon, est_def.gamma
-    if complete:
-        why = (f"reads the {H}-step value: every logged episode ended in a terminal state by step {T} (its cost "
-               f"after that is 0), and the weights are the logging policy's own, nearly")
-        return replace(r, warnings=[why, *r.warnings])
     span_t = float(np.sum(gamma ** np.arange(T)))
     tail = float(np.sum(gamma ** np.arange(T, H)))
     c_lo, c_hi = (logged_range[0] / span_t, logged_range[1] / span_t) if span_t > 0 else (0.0, 0.0)
     lo_t, hi_t = min(c_lo, 0.0) * tail, max(c_hi, 0.0) * tail
-    why = (f"estimates the {T}-step value; the {H}-step value asked for differs from it by the cost of steps "
-           f"{T}..{H - 1}, within [{lo_t:.4g}, {hi_t:.4g}] (the logged cost range times sum_{{{T}<=t<{H}}} "
-           f"{gamma:g}^t), added to its interval")
+    if ends == "terminal":
+        lo_t, hi_t = lo_t * min(1.0, 3.0 / n_episodes), hi_t * min(1.0, 3.0 / n_episodes)
     iv = r.interval
+    if ends == "short" or hi_t - lo_t > iv[1] - iv[0]:
+        return r
+    what = (f"every logged episode ended in a terminal state by step {T}; a run of the policy past it, which "
+            f"none of the {n_episodes} episodes made, adds at most 3/{n_episodes} of the cost of steps {T}..{H - 1}"
+            if ends == "terminal" else f"the cost of steps {T}..{H - 1}")
+    why = (f"reads the {H}-step value from {T} logged steps: {what}, within [{lo_t:.4g}, {hi_t:.4g}] (the logged "
+           f"cost range times sum_{{{T}<=t<{H}}} {gamma:g}^t{' x 3/n' if ends == 'terminal' else ''}), added to "
+           "its interval")
     vs = None if r.vs_logged is None else (r.vs_logged[0] + lo_t, r.vs_logged[1] + hi_t)
     return replace(r, interval=(iv[0] + lo_t, iv[1] + hi_t), vs_logged=vs, warnings=[why, *r.warnings],
-                   interval_method=r.interval_method + f"; plus the cost past the {T} logged steps, "
-                   f"[{lo_t:.4g}, {hi_t:.4g}]")
+                   comparable=True, interval_method=r.interval_method + f"; plus the cost past the {T} logged "
+                   f"steps, [{lo_t:.4g}, {hi_t:.4g}]")
 
 
 def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
-             logged_range: tuple[float, float], complete: bool = False) -> dict[str, ope.OPEResult]:
+             logged_range: tuple[float, float], ends: str = "short",
+             n_episodes: int = 1) -> dict[str, ope.OPEResult]:
     """The estimates confined to what the estimand allows: intervals clipped to the possible
     range (the estimand's for an estimator that reads it, the logged T steps' otherwise;
     :func:`clip_to_range`), the stationary FQE moved onto the range within its truncation
     bound (:func:`stationary_onto_range`), and every estimator that cannot see the estimand's
     horizon marked not comparable, with the reason first among its warnings -- but DR and WDR
-    on the logging policy's own weights, read past the logs by :func:`past_the_logs`
-    (``complete``: every logged episode ended in a terminal state)."""
+    on the logging policy's own weights, read past the logs by :func:`past_the_logs` where
+    the way the logged episodes end allows (``ends``: :func:`episode_ends`)."""
     T, H = est_def.horizon, est_def.value_horizon
     beyond = est_def.beyond_logs
     # the estimators that read the estimand's horizon past the logs: a stationary FQE, the model rollouts
@@ -243,9 +261,10 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
     for name, r in out.items():
         why = []
         if beyond and name in ("dr", "wdr") and est_def.form == "finite" and ope.on_policy(r):
-            out[name] = clip_to_range(past_the_logs(r, est_def, logged_range, complete),
-                                      est_def.possible_range or logged_range)
-            continue
+            read = past_the_logs(r, est_def, logged_range, ends, n_episodes)
+            if read is not r:
+                out[name] = clip_to_range(read, est_def.possible_range or logged_range)
+                continue
         if beyond and name not in sees_past:
             why.append(f"estimates the {T}-step value, not the {H}-step value asked for: the logs' episodes "
                        f"end by step {T} and no estimator of them sees past it")

@@ -49,6 +49,7 @@ from offline_adp.evaluation.estimand import (  # noqa: F401
     Estimand,
     confined,
     declare_estimand,
+    episode_ends,
     evaluation_horizon,
     with_possible_range,
 )
@@ -212,7 +213,10 @@ def doubly_robust(w: Weighting, a: TransitionArrays, ra: ResidualAdvantage, gamm
                                       gamma, **boot)
     note = (f" (Q cross-fitted over {folds} folds of episodes)" if ra.crossfit
             else " (Q fitted on the same episodes: the interval omits its error)")
-    return {name: replace(r, interval_method=r.interval_method + note) for name, r in est.items()}
+    # the paired difference from the logged cost only with a cross-fitted Q: one fitted on the same
+    # episodes correlates its control variate with their own costs
+    return {name: replace(r, interval_method=r.interval_method + note,
+                          vs_logged=r.vs_logged if ra.crossfit else None) for name, r in est.items()}
 
 
 def marginalised(a: TransitionArrays, w: Weighting, T: int, gamma: float, ratio_fit: dict[str, Any],
@@ -325,8 +329,7 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     estimates = ope.flagged_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     est_def, logged_range = with_possible_range(est_def, a, w.em)
-    complete = bool(np.all(np.bincount(w.em.row_episode, weights=a.terminated, minlength=w.em.n_episodes) > 0))
-    estimates = confined(estimates, est_def, logged_range, complete)
+    estimates = confined(estimates, est_def, logged_range, episode_ends(w.em, a.terminated), w.em.n_episodes)
     return OffPolicyResult(gamma, T, w.behaviour, estimates, ratios, diag, w.support, ra.eps, fit.fqe, estimand=est_def,
                            eps_in_sample=ra.in_sample, eps_folds=int(psdp_folds or 0), eps_note=ra.note,
                            **verdict_inputs(a, w, est_def, level),

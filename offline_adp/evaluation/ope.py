@@ -284,9 +284,15 @@ def on_policy(r: dict[str, Any] | OPEResult) -> bool:
     d = r.as_dict() if isinstance(r, OPEResult) else r
     wd = d.get("weight_diagnostics")
     frac = wd.get("ess_fraction") if isinstance(wd, dict) else None
-    ok = isinstance(frac, (int, float)) and not isinstance(frac, bool) and np.isfinite(frac)
-    return bool(d.get("level") is not None and ok and frac >= ON_POLICY_ESS_FRACTION
-                and not d.get("degenerate"))
+    iv = d.get("interval")
+    ok = _finite_number(frac) and ON_POLICY_ESS_FRACTION <= frac <= 1.0 + 1e-9
+    labelled = (d.get("level") is not None and isinstance(iv, (list, tuple)) and len(iv) == 2
+                and all(map(_finite_number, iv)))
+    return bool(labelled and ok and not d.get("degenerate"))
+
+
+def _finite_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
 
 #: ... or when one episode holds more than this share of the total weight.
 MAX_WEIGHT_SHARE = 0.1

@@ -108,7 +108,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
             reasons.append(r.get("interval_method", "no interval"))
         width = (iv[1] - iv[0]) if has_iv else np.inf
         vs = r.get("vs_logged") or [None, None]
-        paired = tier == 0 and name in ("dr", "wdr") and on_policy(r) and all(_is_finite_number(v) for v in vs)
+        paired = (tier == 0 and name in ("dr", "wdr") and on_policy(r) and all(_is_finite_number(v) for v in vs)
+                  and vs[0] <= vs[1])
         out.append({"name": name, "label": ESTIMATOR_NAMES.get(name, name.upper()), "tier": tier,
                     "on_policy": paired, "vs_logged": list(vs) if paired else None,
                     "ess_fraction": r["weight_diagnostics"]["ess_fraction"] if paired else None,
