@@ -197,3 +197,17 @@ def test_the_cost_past_the_logs_holds_the_exact_value():
     c_lo, c_hi = float(mdp.C.min()), float(mdp.C.max())
     tail = sum(gamma**t for t in range(6, T))
     assert min(c_lo, 0.0) * tail - 1e-12 <= V[T] - V[6] <= max(c_hi, 0.0) * tail + 1e-12
+
+
+def test_the_figure_shades_the_logged_costs_interval_and_names_the_paired_difference(tmp_path):
+    from offline_adp.evaluation.figures import Figures, ope_figure
+
+    for m, shaded in ((BASE, True), ({**BASE, "ope": {**BASE["ope"], "wdr": _wdr(0.3, [-12.88, -12.57],
+                                                                                  [-0.1, 0.25])}}, False)):
+        m = {**m, "behaviour_value": {"mean": -12.9, "interval": [-13.5, -12.3]},
+             "estimand": {**m["estimand"], "horizon": 100, "gamma": 0.95}}
+        figs = Figures(tmp_path / str(shaded))
+        ope_figure(figs, m, rank_estimators(m))
+        caption = figs.items[0][1]
+        assert ("[-0.1, 0.25] (not drawn), against 0" in caption) == shaded
+        assert ("shaded: its interval [-13.5, -12.3]" in caption) == shaded

@@ -182,6 +182,7 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
         ax.axvline(demo, color="#2ca02c", ls=":", lw=1.5, label="demonstrator: simulator")
     if beh is not None:
         ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    paired = _paired_band(ax, m, shown[0])
     ax.set_yticks(y, [e["label"] for e in shown], fontsize=9)
     ax.set_ylim(-0.6, len(shown) - 0.4)
     ax.set_xlim(lo - pad, hi + pad)
@@ -206,7 +207,23 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     if bad:
         caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} "
                                                                   f"({e['reason']})" for e in bad) + "."
-    figs.save(fig, "ope", caption)
+    figs.save(fig, "ope", caption + paired)
+
+
+def _paired_band(ax: Any, m: dict[str, Any], top: dict[str, Any]) -> str:
+    """Where the top estimator leads on the logging policy's own weights (``on_policy``), shade the
+    behaviour's logged cost's own interval and return the caption's words on the paired difference
+    the verdict reads (not drawn); else ''."""
+    iv = (m.get("behaviour_value") or {}).get("interval")
+    if not (top.get("vs_logged") and isinstance(iv, list) and len(iv) == 2
+            and all(isinstance(v, (int, float)) and np.isfinite(v) for v in iv)):
+        return ""
+    ax.axvspan(iv[0], iv[1], color="#9467bd", alpha=0.12, lw=0, label="behaviour: logged cost's interval")
+    d = top["vs_logged"]
+    return (f" {top['name'].upper()} leads on the logging policy's own weights: the logged cost is a mean of the same "
+            f"episodes (shaded: its interval [{iv[0]:.4g}, {iv[1]:.4g}]), so the verdict reads "
+            f"{top['name'].upper()}'s interval of the difference from it on the same episodes, "
+            f"[{d[0]:.4g}, {d[1]:.4g}] (not drawn), against 0.")
 
 
 def ratios_figure(figs: Figures, m: dict[str, Any], headline_method: str) -> None:

@@ -118,20 +118,26 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
                     "shown_interval": iv if _is_finite_number(iv[0]) and _is_finite_number(iv[1]) else None,
                     "level_note": r.get("level_note"), "width": width,
                     "plugin_estimate": r.get("plugin_estimate")})
-    order = {k: i for i, k in enumerate(ROBUSTNESS)}
-    # the model rollouts lead only with a level (overlapping FQE's interval, within the logged states:
-    # evaluation/model_bootstrap.py); without one, FQE's hull of both readings comes first
-    order["model"] = -1 if any(e["name"] == "model" and e["tier"] == 0 for e in out) else 0.5
-    # on the logging policy's own weights, the doubly robust estimate leads (WDR before DR): the logged
-    # episodes are nearly the policy's own, with FQE only a control variate (ope.ON_POLICY_ESS_FRACTION)
-    for name, key in (("dr", -2.5), ("wdr", -3)):
-        if any(e["name"] == name and e["on_policy"] for e in out):
-            order[name] = key
+    order = _order(out)
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
         e["rank"] = i + 1
         e["width"] = None if not np.isfinite(e["width"]) else e["width"]
     return out
+
+
+def _order(entries: list[dict[str, Any]]) -> dict[str, float]:
+    """The order within a tier: :data:`ROBUSTNESS`, with the model rollouts first where they carry a
+    level (overlapping FQE's interval, within the logged states: evaluation/model_bootstrap.py; without
+    one, FQE's hull of both readings comes first), and before them, on the logging policy's own
+    weights, the doubly robust estimate (WDR before DR: the logged episodes are nearly the policy's
+    own, with FQE only a control variate; ope.ON_POLICY_ESS_FRACTION)."""
+    order: dict[str, float] = {k: i for i, k in enumerate(ROBUSTNESS)}
+    order["model"] = -1 if any(e["name"] == "model" and e["tier"] == 0 for e in entries) else 0.5
+    for name, key in (("dr", -2.5), ("wdr", -3)):
+        if any(e["name"] == name and e["on_policy"] for e in entries):
+            order[name] = key
+    return order
 
 
 def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
