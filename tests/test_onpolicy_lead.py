@@ -47,7 +47,7 @@ def test_paired_difference_and_interval_cover_the_exact_values():
     mdp, pib, _ = problem(gamma, "mild")
     pi = EpsilonPolicy(TabularPolicy(mdp.optimal().policy, 3), 0.6)
     J_b, J_pi = truth(mdp, pib, gamma), truth(mdp, pi, gamma)
-    hits = {"self": [], "self_diff": [], "pi_diff": []}
+    hits = {"self": [], "self_diff": [], "pi": [], "pi_diff": []}
     for seed in range(30):
         own = estimates(mdp, pib, pib, gamma, 500, seed, fqe=False)["wdr"]
         assert ope.on_policy(own)
@@ -55,6 +55,7 @@ def test_paired_difference_and_interval_cover_the_exact_values():
         hits["self_diff"].append(own.vs_logged[0] <= 0.0 <= own.vs_logged[1])
         other = estimates(mdp, pib, pi, gamma, 500, seed, fqe=False)["wdr"]
         if other.vs_logged is not None:
+            hits["pi"].append(other.interval[0] <= J_pi <= other.interval[1])
             hits["pi_diff"].append(other.vs_logged[0] <= J_pi - J_b <= other.vs_logged[1])
     assert len(hits["pi_diff"]) >= 20 and J_pi - J_b < -0.3  # a real difference, mostly given
     for k, h in hits.items():
