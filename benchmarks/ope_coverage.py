@@ -309,8 +309,9 @@ def _level_back(r: dict[str, Any]) -> dict[str, Any]:
     continuous policy replaying the logged commands) stays withdrawn."""
     if "nominal_level" not in r or r.get("withdrawn_by") != "support":
         return r
-    drop = ("nominal_level", "level_note", "withdrawn_by")
-    return {**{k: v for k, v in r.items() if k not in drop}, "level": r["nominal_level"]}
+    drop = ("nominal_level", "level_note", "withdrawn_by", "nominal_vs_logged")
+    paired = {"vs_logged": r["nominal_vs_logged"]} if r.get("nominal_vs_logged") is not None else {}
+    return {**{k: v for k, v in r.items() if k not in drop}, **paired, "level": r["nominal_level"]}
 
 
 def _model_summary(mr: dict[str, Any]) -> dict[str, Any]:

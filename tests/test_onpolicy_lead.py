@@ -89,7 +89,8 @@ def test_wdr_leads_on_the_logging_policys_weights_and_the_verdict_reads_the_pair
     assert verdict_line(worse, rank_estimators(worse), IN_SUPPORT, CONVERGED)["performance"] == "worse"
 
 
-@pytest.mark.parametrize("change", ["thin weights", "no level", "degenerate", "no paired interval", "bad number"])
+@pytest.mark.parametrize("change", ["thin weights", "no level", "degenerate", "no paired interval", "bad number",
+                                    "reversed paired interval", "fraction above 1"])
 def test_without_the_logging_policys_weights_the_model_leads(change):
     m = copy.deepcopy(BASE)
     w = m["ope"]["wdr"]
@@ -101,6 +102,10 @@ def test_without_the_logging_policys_weights_the_model_leads(change):
         w["degenerate"] = True
     elif change == "no paired interval":
         del w["vs_logged"]
+    elif change == "reversed paired interval":
+        w["vs_logged"] = [0.25, -0.10]
+    elif change == "fraction above 1":
+        w["weight_diagnostics"]["ess_fraction"] = 1.5
     else:
         w["weight_diagnostics"]["ess_fraction"] = "1.0"
     rank = rank_estimators(m)
@@ -157,6 +162,7 @@ def test_how_the_episodes_end_is_read_within_the_T_steps():
                 term[np.flatnonzero(episode == e)[-1]] = True
         return episode_ends(em, term)
 
+    assert ends([True, True, True]) == "horizon"  # the third's terminal state (step 5) is past T: not seen
     assert ends([True, True, False]) == "horizon"  # the third runs past T: cut there, not ended
     assert ends([True, False, False]) == "short"  # the second stopped at step 2 without ending
     assert ends([False, True, True]) == "horizon"  # the third's terminal state is past T: not seen
@@ -212,3 +218,50 @@ def test_the_figure_shades_the_logged_costs_interval_and_names_the_paired_differ
         caption = figs.items[0][1]
         assert ("[-0.1, 0.25] (not drawn), against 0" in caption) == shaded
         assert ("shaded: its interval [-13.5, -12.3]" in caption) == shaded
+
+
+def test_compare_keeps_the_plain_order_of_shared_estimators():
+    """Where one candidate promotes WDR and another does not, the shared estimators go by the plain
+    order (WDR before WIS), in either order of the candidates."""
+    from offline_adp.evaluation.compare import _common_estimator
+
+    def case(frac):
+        return {"estimand": {"possible_range": [-20.0, 0.0]}, "behaviour_value": {"mean": -12.9},
+                "ope": {"fqe": {"estimate": 1e9}, "model": {"estimate": 1e9},
+                        "wdr": _wdr(frac, [-12.9, -12.5], [-0.1, 0.2]), "dr": _wdr(frac, [-12.9, -12.4], [-0.1, 0.2]),
+                        "wis": {"estimate": -12.7, "interval": [-13.4, -12.0], "level": 0.95}}}
+
+    a, b = rank_estimators(case(0.3)), rank_estimators(case(1.0))
+    assert b[0]["name"] == "wdr" and a[0]["name"] == "wdr" and not a[0]["on_policy"]
+    assert _common_estimator([a, b]) == _common_estimator([b, a]) == "wdr"
+
+
+def test_a_withdrawn_level_takes_the_paired_difference_with_it():
+    from offline_adp.evaluation.summary import withdraw_levels
+
+    m = withdraw_levels(copy.deepcopy(BASE), ["its states left the data"])
+    w = m["ope"]["wdr"]
+    assert w["level"] is None and "vs_logged" not in w and w["nominal_vs_logged"] == [-0.10, 0.25]
+    assert rank_estimators(m)[0]["vs_logged"] is None
+
+
+def test_without_a_paired_difference_nothing_is_read_past_the_logs():
+    est_def = Estimand(3, 0.5, target_horizon=5, possible_range=(0.0, 10.0))
+    r = _est("wdr", 1.0)
+    r.vs_logged = None
+    assert not confined({"fqe": _est("fqe", 1.0), "wdr": r}, est_def, (0.0, 3.5), "terminal", 20)["wdr"].comparable
+
+
+@pytest.mark.parametrize("folds", [0, 2])
+def test_the_paired_difference_needs_a_cross_fitted_q(folds):
+    from offline_adp.evaluation.offpolicy import off_policy
+    from offline_adp.simulate import collect
+    from tests.test_eval_estimand import TABULAR_FQE
+
+    mdp, pib, _ = problem(0.9, "mild")
+    ds = collect(mdp, pib, 300, np.random.default_rng(1000), horizon=T)
+    res = off_policy(ds, pib, fqe_params=TABULAR_FQE, ratio_regressor="tabular", n_boot=50, n_boot_fqe=10, seed=0,
+                     psdp_folds=folds)
+    w = res.estimates["wdr"]
+    assert w.level is not None and ope.on_policy(w)  # the logging policy: every weight 1
+    assert (w.vs_logged is not None) == (folds > 0)

@@ -35,6 +35,7 @@ from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.evaluation.summary import (
     ESTIMATOR_NAMES,
     discount_note,
+    estimator_order,
     headline,
     level_words,
     outcome_of,
@@ -199,16 +200,17 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
 def _common_estimator(rankings: list[list[dict[str, Any]]]) -> str | None:
     """The most reliable estimator reliable (with an interval) for every candidate, else usable
     for every candidate (no interval); None when there is none."""
-    # an estimator promoted on one candidate's own weights (summary.rank_estimators: on_policy) ranks them
-    # all only where it is promoted for every one: else the list's order would choose the estimator
+    # an estimator promoted on one candidate's own weights (summary.rank_estimators: on_policy) leads the
+    # choice only where every candidate promotes it; else the shared ones go by the plain order
     promoted = {x["name"] for rk in rankings for x in rk if x.get("on_policy")}
     everywhere = {n for n in promoted if all(any(x["name"] == n and x.get("on_policy") for x in rk) for rk in rankings)}
+    first = [{**e, "on_policy": e["name"] in everywhere} for e in rankings[0]]
+    order = estimator_order(first)
     for max_tier in (0, 1):
-        common = [e["name"] for e in rankings[0] if e["tier"] <= max_tier
-                  and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)
-                  and (e["name"] not in promoted or e["name"] in everywhere)]
+        common = [e for e in first if e["tier"] <= max_tier
+                  and all(any(x["name"] == e["name"] and x["tier"] <= max_tier for x in rk) for rk in rankings)]
         if common:
-            return common[0]
+            return min(common, key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))["name"]
     return None
 
 

@@ -214,8 +214,9 @@ def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float
     from the logged cost, as the stationary FQE's truncation bound is. ``"terminal"``: each
     logged episode's cost after its end is 0, so its logged cost is its H-step cost; what the
     logs cannot show is a run of the policy past step T, which no episode of ``n`` made (at 95%,
-    probability at most ``3 / n``, the rule of three; the weights keep most episodes, so the
-    policy's runs are nearly the logged ones'): ``3 / n`` of the range is added. ``"short"``
+    probability at most ``3 / ESS``, the rule of three over the episodes the weights keep, at
+    least n/2 of them): ``3 / ESS`` of the range is added (a 95% bound added to a 95% interval:
+    at least 90% together, by the union bound). ``"short"``
     (an episode stopped early without a terminal state), or an allowance wider than the
     estimate's own interval: the estimate stays a T-step one, not comparable.
     """
@@ -224,16 +225,18 @@ def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float
     tail = float(np.sum(gamma ** np.arange(T, H)))
     c_lo, c_hi = (logged_range[0] / span_t, logged_range[1] / span_t) if span_t > 0 else (0.0, 0.0)
     lo_t, hi_t = min(c_lo, 0.0) * tail, max(c_hi, 0.0) * tail
+    # the policy's own chance of a run past T, from the episodes its weights keep (ESS >= n/2 here)
+    n_eff = min(float(n_episodes), float(r.ess)) if r.ess is not None and r.ess > 0 else float(n_episodes)
     if ends == "terminal":
-        lo_t, hi_t = lo_t * min(1.0, 3.0 / n_episodes), hi_t * min(1.0, 3.0 / n_episodes)
+        lo_t, hi_t = lo_t * min(1.0, 3.0 / n_eff), hi_t * min(1.0, 3.0 / n_eff)
     iv = r.interval
     if ends == "short" or hi_t - lo_t > iv[1] - iv[0]:
         return r
     what = (f"every logged episode ended in a terminal state by step {T}; a run of the policy past it, which "
-            f"none of the {n_episodes} episodes made, adds at most 3/{n_episodes} of the cost of steps {T}..{H - 1}"
-            if ends == "terminal" else f"the cost of steps {T}..{H - 1}")
+            f"none of the {n_episodes} episodes (effective sample size {n_eff:.4g}) made, adds at most 3/{n_eff:.4g} "
+            f"of the cost of steps {T}..{H - 1}" if ends == "terminal" else f"the cost of steps {T}..{H - 1}")
     why = (f"reads the {H}-step value from {T} logged steps: {what}, within [{lo_t:.4g}, {hi_t:.4g}] (the logged "
-           f"cost range times sum_{{{T}<=t<{H}}} {gamma:g}^t{' x 3/n' if ends == 'terminal' else ''}), added to "
+           f"cost range times sum_{{{T}<=t<{H}}} {gamma:g}^t{' x 3/ESS' if ends == 'terminal' else ''}), added to "
            "its interval")
     vs = None if r.vs_logged is None else (r.vs_logged[0] + lo_t, r.vs_logged[1] + hi_t)
     return replace(r, interval=(iv[0] + lo_t, iv[1] + hi_t), vs_logged=vs, warnings=[why, *r.warnings],
@@ -260,7 +263,7 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
     out["fqe"] = stationary_onto_range(out["fqe"], est_def)
     for name, r in out.items():
         why = []
-        if beyond and name in ("dr", "wdr") and est_def.form == "finite" and ope.on_policy(r):
+        if beyond and name in ("dr", "wdr") and est_def.form == "finite" and ope.on_policy(r) and r.vs_logged:
             read = past_the_logs(r, est_def, logged_range, ends, n_episodes)
             if read is not r:
                 out[name] = clip_to_range(read, est_def.possible_range or logged_range)

@@ -369,6 +369,8 @@ def _levels_warnings_headline(metrics: dict[str, Any], run_dir: str | PathLike[s
         if "level_note" in r and "level_note" not in metrics["ope"][k]:
             metrics["ope"][k].update(level=None, nominal_level=r["nominal_level"], level_note=r["level_note"],
                                      withdrawn_by=r["withdrawn_by"])
+            if "nominal_vs_logged" in r:  # the paired difference goes with the level
+                metrics["ope"][k]["nominal_vs_logged"] = metrics["ope"][k].pop("vs_logged")
     metrics["warnings"] = gather_warnings(metrics)  # one list, each with its source (also kept where it arose)
     metrics["headline"] = headline(json_safe(metrics), run_dir)
 

@@ -118,7 +118,7 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
                     "shown_interval": iv if _is_finite_number(iv[0]) and _is_finite_number(iv[1]) else None,
                     "level_note": r.get("level_note"), "width": width,
                     "plugin_estimate": r.get("plugin_estimate")})
-    order = _order(out)
+    order = estimator_order(out)
     out.sort(key=lambda e: (e["tier"], order.get(e["name"], len(order)), e["name"]))
     for i, e in enumerate(out):
         e["rank"] = i + 1
@@ -126,7 +126,7 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
     return out
 
 
-def _order(entries: list[dict[str, Any]]) -> dict[str, float]:
+def estimator_order(entries: list[dict[str, Any]]) -> dict[str, float]:
     """The order within a tier: :data:`ROBUSTNESS`, with the model rollouts first where they carry a
     level (overlapping FQE's interval, within the logged states: evaluation/model_bootstrap.py; without
     one, FQE's hull of both readings comes first), and before them, on the logging policy's own
@@ -293,8 +293,10 @@ def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[st
     ope = {}
     for k, r in m["ope"].items():
         if r.get("level") is not None and not (k == "model" and keep_model):
-            r = {**r, "nominal_level": r["level"], "level": None, "withdrawn_by": "support",
-                 "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
+            # DR/WDR's paired difference is kept aside with the level (nominal_vs_logged): never read without one
+            paired = {"nominal_vs_logged": r["vs_logged"]} if r.get("vs_logged") is not None else {}
+            r = {**{kk: v for kk, v in r.items() if kk != "vs_logged"}, **paired, "nominal_level": r["level"],
+                 "level": None, "withdrawn_by": "support", "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
         ope[k] = r
     return {**m, "ope": ope}
 
