@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from offline_adp.evaluation import ope
-from offline_adp.evaluation.estimand import Estimand, confined, episode_ends
+from offline_adp.evaluation.estimand import Estimand, confined, episode_ends, past_the_logs
 from offline_adp.evaluation.summary import rank_estimators, verdict_line
 from offline_adp.policies import EpsilonPolicy, TabularPolicy
 from tests.test_eval_estimand import T, estimates, problem, truth
@@ -204,6 +204,17 @@ def test_the_cost_past_the_logs_holds_the_exact_value():
     c_lo, c_hi = float(mdp.C.min()), float(mdp.C.max())
     tail = sum(gamma**t for t in range(6, T))
     assert min(c_lo, 0.0) * tail - 1e-12 <= V[T] - V[6] <= max(c_hi, 0.0) * tail + 1e-12
+    # the library's reading past the logs: an interval that holds exactly the 6-step value at either end,
+    # read as the T-step value (episodes that run to step 6), holds the exact T-step value
+    span = sum(gamma**t for t in range(6))
+    est_def = Estimand(6, gamma, target_horizon=T, possible_range=(-1e6, 1e6))
+    width = 2 * (max(c_hi, 0.0) - min(c_lo, 0.0)) * tail
+    for iv in ((V[6] - width, V[6]), (V[6], V[6] + width)):
+        r = past_the_logs(ope.OPEResult("wdr", V[6], iv, 100.0, vs_logged=(0.0, 0.0),
+                                        weight_diagnostics={"ess_fraction": 1.0}), est_def,
+                          (c_lo * span, c_hi * span), "horizon", 100)
+        assert r.comparable and r.interval[0] - 1e-12 <= V[T] <= r.interval[1] + 1e-12, (iv, r.interval, V[T])
+        assert r.interval[1] - r.interval[0] == pytest.approx(width + (max(c_hi, 0.0) - min(c_lo, 0.0)) * tail)
 
 
 def test_the_figure_shades_the_logged_costs_interval_and_names_the_paired_difference(tmp_path):

@@ -26,6 +26,7 @@ states of ``V^(x_0)``, bootstrapped through FQE itself) are in
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -285,14 +286,21 @@ def on_policy(r: dict[str, Any] | OPEResult) -> bool:
     wd = d.get("weight_diagnostics")
     frac = wd.get("ess_fraction") if isinstance(wd, dict) else None
     iv = d.get("interval")
-    ok = _finite_number(frac) and ON_POLICY_ESS_FRACTION <= frac <= 1.0 + 1e-9
+    ok = is_finite_number(frac) and ON_POLICY_ESS_FRACTION <= frac <= 1.0 + 1e-9
     labelled = (d.get("level") is not None and isinstance(iv, (list, tuple)) and len(iv) == 2
-                and all(map(_finite_number, iv)))
+                and all(map(is_finite_number, iv)))
     return bool(labelled and ok and not d.get("degenerate"))
 
 
-def _finite_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and bool(np.isfinite(x))
+def is_finite_number(x: Any) -> bool:
+    """A finite int or float (not a bool; an int too large for a float is not one: numpy cannot
+    test it and no formatting of ours would read it)."""
+    if isinstance(x, bool) or not isinstance(x, int | float | np.floating | np.integer):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
 
 #: ... or when one episode holds more than this share of the total weight.
 MAX_WEIGHT_SHARE = 0.1

@@ -8,12 +8,10 @@ around it.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
-import numpy as np
-
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
+from offline_adp.evaluation.ope import is_finite_number as _is_finite_number
 
 #: Support is "left" when more than this fraction of the data's states see pi choose unlogged actions.
 SUPPORT_FRACTION = 0.05
@@ -25,17 +23,6 @@ MODEL_EXIT_FRACTION = EXIT_FRACTION
 #: model rollouts show support (with few states per step) only from this many particles: with
 #: 2 or 5, a policy with an exit mass of 0.18 read <= 0.1 in 11 or 3 of 20 seeds (review)
 MIN_SUPPORT_PARTICLES = 200
-
-
-def _is_finite_number(x: Any) -> bool:
-    """A finite int or float (not a bool; an int too large for a float is not one: numpy cannot
-    test it and no formatting of ours would read it)."""
-    if isinstance(x, bool) or not isinstance(x, int | float | np.floating | np.integer):
-        return False
-    try:
-        return math.isfinite(x)
-    except OverflowError:
-        return False
 
 
 #: Fit verdicts that raise no doubt about the policy's values (converged, backward induction,
