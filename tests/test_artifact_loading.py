@@ -205,3 +205,26 @@ def test_members_are_deflated_where_it_pays_and_read_back_alike(tmp_path):
             for k, v in arrays.items():
                 assert z[k].dtype == v.dtype
                 np.testing.assert_array_equal(z[k], v)
+
+
+def test_a_constant_member_is_written_so_that_our_loader_reads_it(tmp_path):
+    """A constant array deflates ~1000-fold, past the expansion the loader accepts from an
+    untrusted file: it is stored instead (a fit on a constant command saved a model its own
+    loader refused)."""
+    from offline_adp.artifacts.storage import savez
+
+    rng = np.random.default_rng(1)
+    arrays = {"q.commands": np.full((2416, 1), 0.1), "q.zeros": np.zeros(1_000_000),
+              "q.codes": rng.integers(0, 4, 200_000).astype(np.uint8)}
+    savez(tmp_path / "c.npz", arrays)
+    C.check_npz(tmp_path / "c.npz")  # raised "declares 19328 bytes from 236 compressed bytes" before
+    with zipfile.ZipFile(tmp_path / "c.npz") as z:
+        kinds = {i.filename: i.compress_type for i in z.infolist()}
+    assert kinds["q.zeros.npy"] == zipfile.ZIP_STORED and kinds["q.codes.npy"] == zipfile.ZIP_DEFLATED
+    with np.load(tmp_path / "c.npz", allow_pickle=False) as z:
+        for k, v in arrays.items():
+            np.testing.assert_array_equal(z[k], v)
+    # many small constant members: each within the per-member limit, the total not
+    many = {f"m.k{i}": np.zeros(3000) for i in range(400)}
+    savez(tmp_path / "m.npz", many)
+    C.check_npz(tmp_path / "m.npz")

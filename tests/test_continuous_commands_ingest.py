@@ -130,6 +130,9 @@ def _bad(kind: str) -> tuple[pa.Table, dict]:
     if kind == "nan":
         steer[8] = np.nan
         return _table(steer), {"columns": ["steer_cmd", "throttle_cmd"]}
+    if kind == "huge":  # beyond float32: the trees would read inf (a fit failed naming nothing)
+        steer[8] = 1e200
+        return _table(steer), {"columns": ["steer_cmd", "throttle_cmd"]}
     if kind == "bounds":
         steer[8] = 0.9
         return _table(steer), {"columns": ["steer_cmd", "throttle_cmd"], "low": [-0.5, 0.0], "high": [0.5, 1.0]}
@@ -140,7 +143,7 @@ def _bad(kind: str) -> tuple[pa.Table, dict]:
 
 EXPECT = {"nan": ("non_finite", "action_value.steer_cmd"), "bounds": ("command_out_of_bounds",
                                                                       "action_value.steer_cmd"),
-          "width": ("command_width", "cmd")}
+          "width": ("command_width", "cmd"), "huge": ("value_out_of_range", "action_value.steer_cmd")}
 
 
 @pytest.mark.parametrize("kind", sorted(EXPECT))

@@ -16,7 +16,7 @@ from offline_adp.data.columns import sorted_encoding
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import _mean_std
-from offline_adp.data.validate import MAX_ABS_VALUE, validate
+from offline_adp.data.validate import MAX_ABS_INPUT, MAX_ABS_VALUE, validate
 from offline_adp.ingest.actions import _match_each
 
 
@@ -106,6 +106,9 @@ def test_doctor_continuity_and_range_checks_follow_their_rules() -> None:
     obs[k[200:220]] = np.nan
     nxt[k[220:240]] = np.inf
     obs[k[240:250]] = MAX_ABS_VALUE * 10
+    obs[k[250:255]] = 1e50  # within the cost's bound, beyond a model input's (float32 trees)
+    nxt[k[255:260]] = -MAX_ABS_INPUT * 1.01
+    obs[k[260:265]] = MAX_ABS_INPUT  # at the bound: accepted
     nxt[70_000:80_000] += 1e-12 * (1 + np.abs(nxt[70_000:80_000]))  # a block where many rows differ (within tolerance)
     nxt[90_000:100_000] += 1.0  # ... and many beyond it
     ds = _dataset(obs, nxt, ep_len)
@@ -122,7 +125,8 @@ def test_doctor_continuity_and_range_checks_follow_their_rules() -> None:
         np.testing.assert_array_equal(np.sort(f.loc[sel & (f["check"] == "non_finite"), "row"].to_numpy()),
                                       np.flatnonzero(~np.isfinite(v)))
         with np.errstate(invalid="ignore"):
-            big = np.isfinite(v) & (np.abs(v) > MAX_ABS_VALUE)
+            big = np.isfinite(v) & (np.abs(v) > MAX_ABS_INPUT)
+        assert big.sum() == {"obs.x": 15, "next_obs.x": 5}[col]
         np.testing.assert_array_equal(np.sort(f.loc[sel & (f["check"] == "value_out_of_range"), "row"].to_numpy()),
                                       np.flatnonzero(big))
 

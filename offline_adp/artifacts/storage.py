@@ -72,13 +72,39 @@ SAMPLE_BYTES = 1 << 16
 def savez(path: str | PathLike[str], arrays: dict[str, np.ndarray], compress: bool = True) -> None:
     """``np.savez_compressed`` (``np.savez`` with ``compress=False``), readable by
     ``np.load`` alike, choosing per member: deflated at :data:`COMPRESS_LEVEL` where that
-    pays (:data:`DEFLATE_BELOW`), else stored. No pickles (plain arrays only)."""
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True, compresslevel=COMPRESS_LEVEL) as zf:
-        for key, value in arrays.items():
-            a = np.asanyarray(value)
-            zf.compression = zipfile.ZIP_DEFLATED if compress and _deflates(a) else zipfile.ZIP_STORED
-            with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, a, allow_pickle=False)
+    pays (:data:`DEFLATE_BELOW`), else stored. No pickles (plain arrays only).
+
+    A member that deflates further than our own loader accepts from an untrusted file
+    (:func:`~offline_adp.artifacts.checks.check_npz`: at most ``MAX_EXPANSION`` times its
+    compressed size; a constant array deflates ~1000-fold) is written again stored, so that
+    every file written here loads."""
+    stored: set[str] = set()
+    for _ in range(3):  # the members over the limit stored; then, if the total is still over, all
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True, compresslevel=COMPRESS_LEVEL) as zf:
+            for key, value in arrays.items():
+                a = np.asanyarray(value)
+                deflate = compress and key not in stored and _deflates(a)
+                zf.compression = zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED
+                with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, a, allow_pickle=False)
+            infos = zf.infolist()
+        over = _too_deflated(infos, Path(path).stat().st_size)
+        if not over:
+            return
+        stored |= over
+    raise ArtifactError(f"{path}: could not be written within the loader's expansion limit")  # not reached
+
+
+def _too_deflated(infos: list[zipfile.ZipInfo], size: int) -> set[str]:
+    """Members the loader's expansion limits (:func:`~offline_adp.artifacts.checks.check_npz`,
+    with half its margin) would refuse: those, or every deflated one when only the total is over."""
+    lim = C.MAX_EXPANSION // 2
+    deflated = {zi.filename[:-4] for zi in infos if zi.compress_type == zipfile.ZIP_DEFLATED}
+    over = {zi.filename[:-4] for zi in infos if zi.compress_type == zipfile.ZIP_DEFLATED
+            and zi.file_size > lim * max(zi.compress_size, 1) + 4096}
+    if not over and sum(zi.file_size for zi in infos) > lim * max(size, 1) + (1 << 20):
+        over = deflated
+    return over
 
 
 def _deflates(a: np.ndarray) -> bool:

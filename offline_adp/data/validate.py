@@ -11,8 +11,9 @@ Rules (check codes in brackets):
   terminated (absorbing, never bootstrapped) and the report counts such rows
   (``summary()["terminated_and_truncated"]``);
 - no NaN/inf in obs, cost, next_obs [``non_finite``], nor magnitudes beyond
-  :data:`MAX_ABS_VALUE` (1e150: their squares, in every regressor's loss, overflow)
-  [``value_out_of_range``]; no nulls in required columns, nor in
+  :data:`MAX_ABS_VALUE` in the cost (1e150: their squares, in every regressor's loss,
+  overflow) or :data:`MAX_ABS_INPUT` in a model input (1e38 in obs, next_obs and command
+  components: trees compare inputs as float32) [``value_out_of_range``]; no nulls in required columns, nor in
   ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
 - actions inside the action table [``action_out_of_range``];
 - continuous commands (an action table of kind ``"continuous"``, or ``action_value.<dim>``
@@ -62,6 +63,10 @@ from offline_adp.data.findings import (  # noqa: F401
 #: Largest magnitude of an observation or cost the doctor accepts: squared errors of larger
 #: values overflow float64 (1.8e308) in every regressor, so a fit could only produce inf/NaN.
 MAX_ABS_VALUE = 1e150
+#: Largest magnitude of a model input the doctor accepts (observations, next observations,
+#: command components): tree regressors compare inputs as float32 (scikit-learn's and ours),
+#: whose largest finite value is 3.4e38; a larger input becomes inf and no fit can split on it.
+MAX_ABS_INPUT = 1e38
 #: Relative tolerance of the command bounds (``max(1, |bound|)`` times this): round-off of a
 #: command written at its bound is not a finding.
 COMMAND_BOUND_RTOL = 1e-9
@@ -203,7 +208,8 @@ def validate(
     for c in (*ds.obs_columns, S.COST, *ds.next_obs_columns):
         col = t.column(c)
         v = col.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
-        if _all_within(v, MAX_ABS_VALUE, absbuf):  # no NaN, inf or huge value: neither check finds anything
+        bound = MAX_ABS_VALUE if c == S.COST else MAX_ABS_INPUT
+        if _all_within(v, bound, absbuf):  # no NaN, inf or huge value: neither check finds anything
             continue
         finite = np.isfinite(v)
         if not finite.all():
@@ -212,10 +218,12 @@ def validate(
         big = np.zeros(n, bool)
         with np.errstate(invalid="ignore"):
             for lo in range(0, n, _BLOCK):  # NaN compares False; inf is non_finite, not out of range
-                big[lo:lo + _BLOCK] = np.abs(v[lo:lo + _BLOCK]) > MAX_ABS_VALUE
+                big[lo:lo + _BLOCK] = np.abs(v[lo:lo + _BLOCK]) > bound
         big &= finite
         add("value_out_of_range", big, c,
-            f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column")
+            f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column" if c == S.COST
+            else f"magnitude beyond {MAX_ABS_INPUT:g} (a model input: trees compare inputs as float32, whose "
+            f"largest value is 3.4e38); rescale the column")
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
     # one comparison: a negative integer read as unsigned is beyond any action count
@@ -289,6 +297,11 @@ def _check_commands(ds: TransitionDataset, add: Any, last: np.ndarray, skip: np.
         finite = np.isfinite(v)
         if not finite.all():
             add("non_finite", ~finite & ~skip, c, "command is NaN, infinite or missing")
+        with np.errstate(invalid="ignore"):
+            big = finite & ~skip & (np.abs(v) > MAX_ABS_INPUT)
+        add("value_out_of_range", big, c,
+            f"command magnitude beyond {MAX_ABS_INPUT:g} (a model input: trees compare inputs as float32, whose "
+            f"largest value is 3.4e38); rescale the column")
         if np.isfinite(lo[j]) or np.isfinite(hi[j]):
             lo_j, hi_j = float(lo[j]), float(hi[j])
             tol_lo = COMMAND_BOUND_RTOL * max(1.0, abs(lo_j)) if np.isfinite(lo_j) else 0.0
