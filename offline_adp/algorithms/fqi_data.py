@@ -22,6 +22,7 @@ import numpy as np
 from offline_adp.algorithms.params import invalid_parameter
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
+from offline_adp.data.levels import cell_means, level_edges
 from offline_adp.errors import InvalidArgumentError, InvalidTypeError
 from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, PolicyCommands, QEncoder
 
@@ -181,7 +182,10 @@ def command_representatives(commands: np.ndarray, n: int) -> np.ndarray:
     quantiles of its logged values into ``B = floor(n^(1/m))`` bins, and the mean logged
     command (the whole vector) of every occupied cell of that grid, in row-major cell
     order. Dense where the log's commands are dense, and every one the mean of commands
-    logged together, so none lies outside the logged commands' convex hull."""
+    logged together, so none lies outside the logged commands' convex hull. A level logged
+    on many rows (a teleop's fixed steering values) is a bin of its own
+    (:func:`~offline_adp.data.levels.level_edges`), so the representatives of a log of
+    levels are its levels, never a mean of two of them."""
     u = np.asarray(commands, np.float64)
     if n <= 0 or len(u) == 0:
         return np.zeros((0, u.shape[1] if u.ndim == 2 else 1))
@@ -189,12 +193,11 @@ def command_representatives(commands: np.ndarray, n: int) -> np.ndarray:
     B = max(1, int(np.floor(n ** (1.0 / m) + 1e-9)))
     cell = np.zeros(len(u), np.int64)
     for j in range(m):
-        edges = np.unique(np.quantile(u[:, j], np.linspace(0.0, 1.0, B + 1)))
-        inner = edges[1:-1]  # a bin per gap; a repeated quantile (a command logged often) merges bins
+        edges = level_edges(u[:, j], B)  # a level logged often is a bin of its own (data/levels.py)
+        inner = edges[1:-1]
         cell = cell * (len(inner) + 1) + np.searchsorted(inner, u[:, j], side="right")
     cells, inverse = np.unique(cell, return_inverse=True)
-    counts = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
-    return np.column_stack([np.bincount(inverse, weights=u[:, j], minlength=len(cells)) / counts for j in range(m)])
+    return np.column_stack([cell_means(inverse, u[:, j], len(cells))[0] for j in range(m)])
 
 
 def logged_commands(ds: TransitionDataset, who: str) -> np.ndarray:

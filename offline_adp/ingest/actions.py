@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.info import ACTION_VALUE_PREFIX, Action, ActionTable
+from offline_adp.data.levels import cell_means, level_edges
 from offline_adp.errors import IngestError
 from offline_adp.ingest.spec import ActionSpec
 
@@ -150,7 +151,7 @@ def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") 
     else:
         if not len(finite):
             raise IngestError(f"{where}: no finite values in {spec.column!r} to compute quantile bins")
-        edges = np.unique(np.quantile(finite, np.linspace(0, 1, spec.n_bins + 1)))
+        edges = level_edges(finite, spec.n_bins)
         if len(edges) < 2:
             edges = np.array([finite.min() - 0.5, finite.max() + 0.5])
     n_bins = len(edges) - 1
@@ -161,9 +162,8 @@ def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") 
     centre = (lo + hi) / 2
     if spec.bin_value == "mean" and len(finite):
         ok = idx >= 0
-        sums = np.bincount(idx[ok], weights=x[ok], minlength=n_bins)
-        counts = np.bincount(idx[ok], minlength=n_bins)
-        vals = np.where(counts > 0, sums / np.maximum(counts, 1), centre)
+        means, counts = cell_means(idx[ok], x[ok], n_bins)
+        vals = np.where(counts > 0, means, centre)
     else:
         vals = centre
     names = spec.names or [f"{spec.dim}~{v:.4g}" for v in vals]
@@ -253,7 +253,7 @@ def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | N
         col = x[:, j]
         finite = col[np.isfinite(col)]
         if len(finite):
-            edges = np.unique(np.quantile(finite, np.linspace(0, 1, nb + 1)))
+            edges = level_edges(finite, nb)
         elif low is not None and high is not None:
             edges = np.unique([low[j], high[j]])
         else:
@@ -267,10 +267,9 @@ def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | N
     cells = np.array(np.unravel_index(np.arange(int(np.prod(shape))), shape)).T
     values = np.column_stack([per[j][1][cells[:, j]] for j in range(k)])
     ok = np.isfinite(x).all(axis=1)
-    counts = np.bincount(idx[ok], minlength=len(cells))
     for j in range(k):
-        sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
-        values[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), values[:, j])
+        means, counts = cell_means(idx[ok], x[ok, j], len(cells))
+        values[:, j] = np.where(counts > 0, means, values[:, j])
     names = [",".join(f"{d}#{i}" for d, i in zip(dims, c, strict=True)) for c in cells]
     table = ActionTable(
         actions=tuple(Action(nm, tuple(float(v) for v in row)) for nm, row in zip(names, values, strict=True)),
@@ -300,7 +299,7 @@ def bin_product(x: np.ndarray, bins: Mapping[str, Mapping[str, Any]], dims: tupl
         else:
             if not len(finite):
                 raise IngestError(f"{where}.{d}: no finite values to compute quantile bins")
-            edges = np.unique(np.quantile(finite, np.linspace(0, 1, int(b["n_bins"]) + 1)))
+            edges = level_edges(finite, int(b["n_bins"]))
             if len(edges) < 2:
                 edges = np.array([finite.min() - 0.5, finite.max() + 0.5])
         nb = len(edges) - 1
@@ -314,10 +313,9 @@ def bin_product(x: np.ndarray, bins: Mapping[str, Mapping[str, Any]], dims: tupl
     centre = np.column_stack([per_dim[j][1][cells[:, j]] for j in range(len(dims))])
     vals = centre.copy()
     if bin_value == "mean":
-        counts = np.bincount(idx[ok], minlength=len(cells))
         for j in range(len(dims)):
-            sums = np.bincount(idx[ok], weights=x[ok, j], minlength=len(cells))
-            vals[:, j] = np.where(counts > 0, sums / np.maximum(counts, 1), centre[:, j])
+            means, counts = cell_means(idx[ok], x[ok, j], len(cells))
+            vals[:, j] = np.where(counts > 0, means, centre[:, j])
     values = [tuple(float(v) for v in row) for row in vals]
     names = (
         list(names) if names else [",".join(f"{d}~{v:.4g}" for d, v in zip(dims, row, strict=True)) for row in values]
