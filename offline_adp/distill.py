@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.errors import SchemaError
+from offline_adp.errors import InvalidArgumentError, SchemaError
 from offline_adp.policies import CommandPolicy, TimeArg, attach_signature, observation_matrix
 from offline_adp.progress import get_logger
 
@@ -88,8 +88,7 @@ class DistilledCommandPolicy(CommandPolicy):
         u = self.raw_commands(obs)
         if previous is None or self.max_rate is None:
             return u
-        prev = np.broadcast_to(np.asarray(previous, np.float64).reshape(-1, self.n_dims) if np.ndim(previous) else
-                               np.full((1, self.n_dims), float(previous)), u.shape)
+        prev = _previous(previous, u.shape)
         limited = np.clip(u, prev - self.max_rate, prev + self.max_rate)
         u = np.where(np.isnan(prev), u, limited)
         return np.minimum(np.maximum(u, self.low), self.high)
@@ -251,3 +250,20 @@ def distill_policy(policy: Any, dataset: Any, *, n_estimators: int = 50, min_sam
 
 def _fmt(v: Any) -> str:
     return "[" + ", ".join(f"{x:.4g}" for x in np.asarray(v).reshape(-1)) + "]"
+
+
+def _previous(previous: Any, shape: tuple[int, int]) -> np.ndarray:
+    """``previous`` as an ``(n, m)`` array for commands of ``shape``: ``(n, m)``, ``(m,)`` (the
+    same for every row), ``(n,)`` or a scalar for a one-component command. A scalar for a
+    command of several components is refused: which component would it be?"""
+    n, m = shape
+    p = np.asarray(previous, dtype=np.float64)
+    if p.ndim == 0 and m != 1:
+        raise InvalidArgumentError(f"previous={float(p)!r} is one number for a command of {m} components; give "
+                                   f"one per component, shape ({m},) or ({n}, {m})")
+    if p.ndim == 0 or (p.ndim == 1 and m == 1 and len(p) in (1, n)):
+        return np.broadcast_to(p.reshape(-1, 1), shape)
+    if p.shape in ((m,), (1, m), (n, m)):
+        return np.broadcast_to(p.reshape(-1, m), shape)
+    raise InvalidArgumentError(f"previous has shape {p.shape}; for {n} observation(s) of a command of {m} "
+                               f"component(s) give shape ({m},) or ({n}, {m})")

@@ -159,9 +159,13 @@ def _greedy_rule(g: _Graph, pi: Any, X: str) -> tuple[str, str | None]:
 
 def _refusal(pi: Any) -> str:
     kind = type(pi).__name__
+    if kind == "GreedyCommandPolicy" and getattr(pi, "time_varying", False):
+        return ("this GreedyCommandPolicy is time-indexed (a finite-horizon fit: one Q per step), which neither ONNX "
+                "export nor distillation supports; fit a stationary policy (a discount gamma < 1, no horizon) to "
+                "deploy it")
     if kind == "GreedyCommandPolicy":
-        return ("this GreedyCommandPolicy cannot be exported to ONNX (a time-indexed Q, or a Q that is not a tree "
-                "ensemble); distill it (`offline-adp distill RUN --out RUN_DISTILLED`) and export the distilled policy")
+        return ("this GreedyCommandPolicy cannot be exported to ONNX (its Q is not a tree ensemble); distill it "
+                "(`offline-adp distill RUN --out RUN_DISTILLED`) and export the distilled policy")
     if kind in ("MixturePolicy", "UniformPolicy", "EpsilonPolicy", "StochasticFunctionPolicy"):
         return (f"a {kind} is stochastic (it draws its action at random) and is not exported to ONNX; export a "
                 "deterministic policy (for a CPI mixture: one of its components, policy.components[k])")

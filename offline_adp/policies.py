@@ -237,7 +237,9 @@ def nearest_entry(table: ActionTable, u: np.ndarray) -> np.ndarray:
 class GreedyCommandPolicy(CommandPolicy):
     """``pi(x, t) = argmin_{u in C(x)} Q(x, u, t)`` over the candidate commands ``C(x)`` of
     ``x`` (:class:`~offline_adp.qfunctions.NeighbourCommands`: commands logged at the
-    nearest logged states), so it never commands what the logs did not try near ``x``.
+    nearest logged states, and, when the fit offers them, representative commands of the
+    whole log), so it never commands what the logs did not try, though a representative
+    may not have been tried near ``x`` (the evaluation's command support measures how often).
     Ties go to the nearest neighbour's command."""
 
     def __init__(self, q: Any) -> None:
@@ -250,6 +252,10 @@ class GreedyCommandPolicy(CommandPolicy):
 
     def commands(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
+        if not len(obs):  # no observations: no commands (as the discrete greedy policy returns none)
+            logged = getattr(self.encoder.candidates, "commands", None)
+            m = len(self.signature.action_table.dims) if self.signature is not None else np.shape(logged)[-1]
+            return np.zeros((0, m))
         cand = self.encoder.commands(self.encoder.phi(obs))
         j = np.argmin(self.q.values(obs, t), axis=1)
         return self.clip(cand[np.arange(len(obs)), j])

@@ -180,3 +180,24 @@ def test_without_a_top_pick_the_regret_is_said_of_the_lowest_estimate():
     assert "top pick 0" not in text
     res["top_pick"] = "a"
     assert "regret of the top pick 0.000" in "\n".join(compare_lines(res))
+
+
+def test_a_stored_evaluation_replaced_by_compare_is_named_with_the_reason():
+    from offline_adp.evaluation.compare import _why_again
+
+    fp, mr = "abc", {"ope": {"fqe": {"model_rollouts": {"skipped": "model_particles=0: model rollouts turned off"}}}}
+    assert _why_again(None, fp, None, 0, False) == ""  # never evaluated: nothing replaced
+    m = {"dataset": {"fingerprint": "other"}, "simulator": "none", **mr}
+    assert "other logs: its evaluation/ is replaced" in _why_again(m, fp, None, 0, False)
+    m = {"dataset": {"fingerprint": fp}, "simulator": "none", **mr}
+    assert "simulator 'none', not 'path_tracking'" in _why_again(m, fp, "path_tracking", 0, False)
+    assert "model rollouts differ from 500 particles" in _why_again(m, fp, None, 500, False)
+    assert _why_again(m, fp, None, 0, True).startswith(" (--force")
+
+
+def test_a_share_over_the_support_rule_never_reads_as_the_rule_itself():
+    from offline_adp.evaluation.verdict import SUPPORT_FRACTION, _share_over
+
+    assert SUPPORT_FRACTION == 0.05
+    assert _share_over(0.0517) == "5.2%" and _share_over(0.0549) == "5.5%"
+    assert _share_over(0.0551) == "6%" and _share_over(0.63) == "63%"

@@ -149,8 +149,15 @@ def test_time_indexed_greedy_command_export_refused(planar):
 
     ds, greedy = planar
     pi = attach_signature(GreedyCommandPolicy(TimeIndexedQ([greedy.q, greedy.q])), ds)
-    with pytest.raises(ExportError, match="distill"):
+    with pytest.raises(ExportError, match="time-indexed") as e:
         policy_to_onnx(pi)
+    # the refusal must not send the user to distill, which refuses it too (they pointed at each other)
+    assert "offline-adp distill" not in str(e.value) and "fit a stationary policy" in str(e.value)
+    from offline_adp.distill import distill_policy
+    from offline_adp.errors import SchemaError
+
+    with pytest.raises(SchemaError, match="time-varying"):
+        distill_policy(pi, ds)
 
 
 def test_two_components_bounds_and_onnx(planar):
@@ -188,10 +195,23 @@ def test_rate_limit(planar):
     lim = pi.act(X[:4], previous=prev)
     np.testing.assert_allclose(lim[2:], free[2:])
     assert (np.abs(lim[:2] - prev[:2]) <= [0.05, 0.1 + 1e-12]).all()
+    # one number for a two-component command is refused (it was applied to both), and so are wrong shapes
+    from offline_adp.errors import InvalidArgumentError
+
+    for bad in (0.3, np.zeros(3), np.zeros((3, 2)), np.zeros((4, 3))):
+        with pytest.raises(InvalidArgumentError, match="previous"):
+            pi.act(X[:4], previous=bad)
+    np.testing.assert_allclose(pi.act(X[:4], previous=np.array([0.0, 1.0])), pi.act(X[:4], previous=prev[[0, 0, 0, 0]]))
     lo, hi = ds.info.action_table.bounds()
     assert (lim >= lo).all() and (lim <= hi).all()
     with pytest.raises(SchemaError):
         distill_policy(greedy, ds, n_estimators=2, max_rate=[0.1, 0.0])
+
+
+def test_no_observations_no_commands(planar):
+    ds, greedy = planar
+    assert greedy.commands(np.zeros((0, ds.arrays().obs.shape[1]))).shape == (0, 2)
+    assert np.shape(greedy.act(np.zeros((0, ds.arrays().obs.shape[1])))) == (0, 2)
 
 
 def test_artifact_round_trip(planar, tmp_path):

@@ -172,6 +172,21 @@ def _common_dataset(runs: list[Path]) -> str:
     return sorted(paths)[0]
 
 
+def _why_again(m: dict[str, Any] | None, fp: str, simulator: str | None, particles: int, force: bool) -> str:
+    """Why a candidate is evaluated again, and that its stored evaluation is replaced."""
+    if m is None:
+        return ""
+    if force:
+        why = "--force"
+    elif m.get("dataset", {}).get("fingerprint") != fp:
+        why = "it was evaluated on other logs"
+    elif simulator is not None and (m.get("simulator") or "none") != simulator:
+        why = f"it was evaluated with simulator {m.get('simulator') or 'none'!r}, not {simulator!r}"
+    else:
+        why = f"its evaluation's model rollouts differ from {particles} particles"
+    return f" ({why}: its evaluation/ is replaced)"
+
+
 def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationSettings, force: bool,
                        say: Callable[[str], None]) -> list[dict[str, Any]]:
     """Every candidate's evaluation on the dataset: the stored one when it matches (dataset,
@@ -186,7 +201,7 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
                 and (simulator is None or (m.get("simulator") or "none") == simulator)
                 and _same_model_rollouts(m, cfg.model_particles))
         if force or not same:
-            say(f"evaluating {r}")
+            say(f"evaluating {r}" + _why_again(m, fp, simulator, cfg.model_particles, force))
             m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
             m = _metrics(r) or m
         metrics.append(m)

@@ -76,6 +76,14 @@ def outcome_of(performance: str | None, fit_verdict: str | None, against_demonst
     return "cannot tell"
 
 
+def _share_over(x: float) -> str:
+    """A share above :data:`SUPPORT_FRACTION` as a percentage that does not read as the rule's
+    own 5% (0.0517 is "5.2%", not "5%"): whole percents, a decimal where those would not show
+    it above the rule."""
+    whole = f"{x:.0%}"
+    return whole if round(x * 100) > round(SUPPORT_FRACTION * 100) else f"{x:.1%}"
+
+
 def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
     """Why the policy left the data's support (empty: it did not, as far as measured): actions
     the data rarely took, states almost separable from the data's or without data near them
@@ -83,7 +91,7 @@ def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
     sv = (m.get("behaviour") or {}).get("support_violations", {}).get("fraction")
     left = []
     if _is_finite_number(sv) and sv > SUPPORT_FRACTION:
-        left.append(f"chooses actions the data rarely took at {sv:.0%} of the data's states")
+        left.append(f"chooses actions the data rarely took at {_share_over(sv)} of the data's states")
     return left + left_states(m, shift)
 
 
@@ -97,7 +105,7 @@ def left_states(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
             left.append(f"its states are almost separable from the data's at {shift['separable_steps']} of "
                         f"{shift['n_steps']} steps")
         if shift.get("max_uncovered", 0) > SUPPORT_FRACTION:
-            left.append(f"up to {shift['max_uncovered']:.0%} of its simulated states have no data near them")
+            left.append(f"up to {_share_over(shift['max_uncovered'])} of its simulated states have no data near them")
     mr = (m.get("ope", {}).get("fqe") or {}).get("model_rollouts") or {}
     if _is_finite_number(mr.get("exit_mass")) and mr["exit_mass"] >= MODEL_EXIT_FRACTION:
         left.append(f"{mr['exit_mass']:.0%} of its discounted mass in model rollouts of the logs reaches states no "
