@@ -337,3 +337,36 @@ def test_mcap_binned_specs_unchanged(tmp_path):
         _mcap_spec({"fields": {"steer": "steer", "throttle": "throttle"}, "type": "continuous", "names": ["a", "b"]})
     with pytest.raises(SpecError, match=r"action.low: 3 entries for the 2 components"):
         _mcap_spec({"fields": {"steer": "steer", "throttle": "throttle"}, "type": "continuous", "low": [0, 0, 0]})
+
+
+def test_struct_command_column_refused_naming_the_column(tmp_path):
+    t = _table()
+    s = pa.StructArray.from_arrays([t.column("steer_cmd").combine_chunks(), t.column("throttle_cmd").combine_chunks()],
+                                   names=["steer", "throttle"])
+    t = t.append_column("cmds", s)  # it became 24 discrete "actions" named after each row's dict
+    with pytest.raises(IngestError, match=r"log.parquet: column 'cmds' is a struct .*action.columns"):
+        _ingest(tmp_path, t, {"column": "cmds"})
+
+
+def _float_labels(tmp_path, n_ep: int, declared: bool):
+    T_ = 10
+    n = n_ep * T_
+    step = np.tile(np.arange(T_), n_ep)
+    x = np.arange(n, dtype=np.float64)
+    t = pa.table({"ep": np.repeat([f"e{e}" for e in range(n_ep)], T_), "k": step, "x": x, "x_next": x + 1.0,
+                  "u": np.random.default_rng(3).uniform(-1, 1, n), "c": 0.01 * x, "trunc": step == T_ - 1})
+    return _ingest(tmp_path, t, {"column": "u", **({"type": "discrete"} if declared else {})})
+
+
+def test_a_float_column_read_as_one_label_per_row_is_warned_about(tmp_path):
+    with pytest.warns(UserWarning, match=r"'u' was read as discrete labels .* 200 distinct values in 200 rows.*"
+                                         r"action.type = 'continuous'"):
+        _, back, _ = _float_labels(tmp_path, 20, declared=False)
+    assert back.n_actions == 200  # nothing dropped: the documented default, now said out loud
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for sub, n_ep, declared in (("d", 20, True), ("s", 5, False)):  # declared; 50 labels: few enough
+            (tmp_path / sub).mkdir()
+            _float_labels(tmp_path / sub, n_ep, declared=declared)

@@ -293,6 +293,10 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # actions from the rows that stay (a dropped row must not shape the bins)
     all_kept = keep is None or bool(keep.all())
     aspec = spec.action
+    if not aspec.columns and pa.types.is_struct(table.column(aspec.column).type):
+        raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} is a struct "
+                          f"({table.column(aspec.column).type}): give each component its own column "
+                          "(action.columns = [...], type = 'continuous') or store the command as a list column")
     list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
     if list_col and aspec.type == "discrete":
         if aspec.type_declared:
@@ -312,6 +316,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         else:
             action = np.full(n, -1, np.int32)
             action[keep], atable = map_discrete(raw_action[keep], aspec)
+        _warn_many_labels(raw_action, len(atable.actions), aspec, file_of(np.array([0])))
         del raw_action
     elif (
         not aspec.exact
@@ -376,6 +381,23 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         out = out.filter(pa.array(keep))
         width = [(c, m[keep], col, msg) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
+
+
+#: A discrete action column read by default (no ``action.type``) with more distinct float
+#: values than this, and more than half as many as rows, is probably a continuous command.
+MANY_LABELS = 64
+
+
+def _warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> None:
+    """Warn when the default discrete reading turned a float column into about one action per
+    row (a continuous command ingested as labels: nothing is dropped, but nothing is learnt)."""
+    if aspec.type_declared or raw.dtype.kind != "f" or n_labels <= MANY_LABELS or n_labels <= len(raw) / 2:
+        return
+    import warnings
+
+    warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels (the default without "
+                  f"action.type) and holds {n_labels} distinct values in {len(raw)} rows; if it is a continuous "
+                  "command, set action.type = 'continuous' in the spec", UserWarning, stacklevel=2)
 
 
 def ingest_parquet(
