@@ -370,3 +370,24 @@ def test_a_float_column_read_as_one_label_per_row_is_warned_about(tmp_path):
         for sub, n_ep, declared in (("d", 20, True), ("s", 5, False)):  # declared; 50 labels: few enough
             (tmp_path / sub).mkdir()
             _float_labels(tmp_path / sub, n_ep, declared=declared)
+
+
+def test_a_continuous_run_reads_another_recording_of_the_same_commands(tmp_path):
+    """Without declared low/high each log's bounds are its own min/max: a held-out recording of
+    the same robot was refused ("evaluate on logs of the same commands")."""
+    from offline_adp.errors import IncompatibleError
+    from offline_adp.evaluation.run_checks import _check_same_commands
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    (tmp_path / "c").mkdir()
+    action = {"columns": ["steer_cmd", "throttle_cmd"], "units": ["rad", "1"]}
+    _, a, _ = _ingest(tmp_path / "a", _table(), action)
+    other = np.random.default_rng(11).uniform(-0.4, 0.45, N_EP * T)
+    _, b, _ = _ingest(tmp_path / "b", _table(steer=other), action)
+    assert a.info.action_table.low != b.info.action_table.low  # each log's own range
+    info = {"dataset": str(tmp_path / "a" / "ds")}
+    _check_same_commands(tmp_path / "run", info, b, tmp_path / "b" / "ds")  # accepted
+    _, c, _ = _ingest(tmp_path / "c", _table(), {"columns": ["steer_cmd", "throttle_cmd"], "names": ["s", "t"]})
+    with pytest.raises(IncompatibleError, match="logs of the same commands"):
+        _check_same_commands(tmp_path / "run", info, c, tmp_path / "c" / "ds")

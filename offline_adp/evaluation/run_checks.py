@@ -73,7 +73,10 @@ def _fitted_info(info: dict[str, Any]) -> Any:
 
 def _check_same_commands(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
     """A continuous policy reads the dataset's features and commands the same components:
-    names, units and bounds (the coarse bins of two logs of one robot differ and do not count)."""
+    names and units. The bounds need not agree: without ``low``/``high`` in the spec they are
+    each log's own minimum and maximum, so two recordings of one robot differ (the policy
+    keeps its own bounds; where it commands beyond what these logs hold, the evaluation's
+    command support says so), nor do the coarse bins."""
     at = ds.info.action_table
     if not at.continuous:
         raise IncompatibleError(f"{run}: its policy commands continuous values; the dataset {ds_path} has no exact "
@@ -82,11 +85,9 @@ def _check_same_commands(run: Path, info: dict[str, Any], ds: TransitionDataset,
     if fitted is None:
         return
     mine = fitted.action_table
-    same = (mine.dims == at.dims and tuple(mine.units) == tuple(at.units)
-            and (mine.low, mine.high) == (at.low, at.high) if mine.low is not None and at.low is not None
-            else mine.dims == at.dims)
+    same = mine.dims == at.dims and (not mine.units or not at.units or tuple(mine.units) == tuple(at.units))
     if not same or list(fitted.feature_names) != list(ds.feature_names):
-        raise IncompatibleError(f"{run}: fitted on commands {list(mine.dims)} {list(mine.units)} within "
-                                f"[{mine.low}, {mine.high}] and features {list(fitted.feature_names)}, but the dataset "
-                                f"{ds_path} has {list(at.dims)} {list(at.units)} within [{at.low}, {at.high}] and "
-                                f"{list(ds.feature_names)}; evaluate on logs of the same commands")
+        raise IncompatibleError(f"{run}: fitted on commands {list(mine.dims)} {list(mine.units)} and features "
+                                f"{list(fitted.feature_names)}, but the dataset {ds_path} has {list(at.dims)} "
+                                f"{list(at.units)} and {list(ds.feature_names)}; evaluate on logs of the same commands "
+                                "(names and units)")
