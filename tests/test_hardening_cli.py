@@ -101,3 +101,29 @@ def test_simulate_python_api_rejects_bad_counts():
         simulate("gridworld", 1, -1)
     with pytest.raises(InvalidArgumentError, match="n_demonstrations"):
         simulate("gridworld", True, 1)
+
+
+def test_ctrl_c_before_the_command_runs_is_one_line_not_a_traceback(monkeypatch, capsys):
+    import offline_adp.cli as cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", interrupted)  # Ctrl-C while the parser's imports load
+    assert cli.main(["evaluate", "x"]) == 130
+    assert capsys.readouterr().err.strip() == "interrupted"
+
+
+def test_spec_names_must_be_non_empty_and_unique_said_once():
+    import pytest
+
+    from offline_adp.errors import SpecError
+    from offline_adp.ingest.spec import parse_parquet_spec
+
+    base = {"episode": {"id": "ep", "step": "k"}, "observations": {"columns": ["x"], "next_columns": ["x_next"]},
+            "cost": {"column": "c"}, "end": {"truncated": "trunc"}}
+    with pytest.raises(SpecError, match=r"action.names\[0\]: String should have at least 1 character"):
+        parse_parquet_spec({**base, "action": {"columns": ["a", "b"], "names": ["", "c"]}}, where="s.toml")
+    with pytest.raises(SpecError) as e:
+        parse_parquet_spec({**base, "action": {"columns": ["a", "b"], "names": ["a", "a"]}}, where="s.toml")
+    assert str(e.value).count("['a', 'a']") == 1  # was "got ['a', 'a'], got ['a', 'a']"

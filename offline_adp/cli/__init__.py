@@ -23,18 +23,22 @@ __all__ = ["ALGORITHM_NAMES", "FORMATS", "build_parser", "log", "main"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
-    from offline_adp.progress import capturing_warnings
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return 2
+        from offline_adp.progress import capturing_warnings
 
-    with capturing_warnings() as caught:
-        try:
-            return _run(args)
-        finally:
-            caught.report(log)  # the package's warnings once each; the libraries' in one line
+        with capturing_warnings() as caught:
+            try:
+                return _run(args)
+            finally:
+                caught.report(log)  # the package's warnings once each; the libraries' in one line
+    except KeyboardInterrupt:  # Ctrl-C while the parser or a command's imports load, or while warnings print
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 def _run(args: argparse.Namespace) -> int:

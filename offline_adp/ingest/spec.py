@@ -160,6 +160,8 @@ class ParquetSpec:
 # ----------------------------------------------------------------------------- the TOML model
 Str = Annotated[str, Field(strict=True)]
 Column = Annotated[str, Field(strict=True, min_length=1, max_length=1000)]
+#: A name that becomes part of a column name (``action_value.<name>``) or an action's name.
+Name = Annotated[str, Field(strict=True, min_length=1, max_length=1000)]
 Int = Annotated[int, Field(strict=True)]
 Number = Annotated[float, Field(strict=True)]
 Label = Annotated[int, Field(strict=True)] | Annotated[float, Field(strict=True)] | Annotated[str, Field(strict=True)]
@@ -167,7 +169,7 @@ Label = Annotated[int, Field(strict=True)] | Annotated[float, Field(strict=True)
 
 def _unique(v: tuple[str, ...] | None) -> tuple[str, ...] | None:
     if v is not None and len(set(v)) != len(v):
-        raise ValueError(f"entries must be unique, got {list(v)}")
+        raise ValueError("entries must be unique")
     return v
 
 
@@ -210,7 +212,7 @@ class ActionModel(ConfigModel):
         None, description="default: 'continuous' for 'columns' or a list column, else 'discrete'")
     values: tuple[Label, ...] | None = Field(None, min_length=1,
                                              description="discrete: the action table in index order")
-    names: tuple[Str, ...] | None = Field(
+    names: tuple[Name, ...] | None = Field(
         None, min_length=1,
         description="vector or unbinned continuous commands: component names (default: the columns, "
         "or <column>.0, <column>.1... for a list column); otherwise the action (bin) names")
@@ -220,7 +222,7 @@ class ActionModel(ConfigModel):
     n_bins: Annotated[int, Field(strict=True, ge=1,
                                  le=100_000)] | None = Field(None, description="continuous: that many quantile bins")
     bin_value: Literal["mean", "center"] = "mean"
-    dim: Str = "a"
+    dim: Name = "a"
     unit: Str = ""
     units: tuple[Str, ...] | None = Field(None, min_length=1, description="unit of each command component")
     low: Bounds | None = Field(None,
@@ -229,7 +231,7 @@ class ActionModel(ConfigModel):
                                 description="continuous: upper bound of each component (default: the logged maximum)")
     vectors: tuple[Number | tuple[Number, ...], ...] | None = Field(None,
                                                                     description="each discrete action's value vector")
-    dims: tuple[Str, ...] | None = Field(None, description="names of the components of the value vectors")
+    dims: tuple[Name, ...] | None = Field(None, description="names of the components of the value vectors")
 
     _u = field_validator("names", "dims", "columns")(_unique)
 
