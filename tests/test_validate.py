@@ -82,6 +82,7 @@ def test_each_defect_class_is_reported_with_file_row_column(check):
     assert h["column"] == column
     assert set(rep.bad_episodes) == {"e1"}, rep.to_text()
     assert check in rep.to_text() and "logs/bad.parquet: row" in rep.to_text()
+    assert "np.float64(" not in rep.to_text()  # numbers as numbers (a mismatch printed numpy's repr)
 
 
 CONTINUOUS = DatasetInfo(features=(Feature("x"),), action_table=ActionTable(

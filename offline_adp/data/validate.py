@@ -201,7 +201,7 @@ def validate(
                     mis,
                     nc,
                     _messages(mis, lambda i, x=x, nxt=nxt,
-                              oc=oc: f"next_obs {x[i]!r} != {oc} of the following step {nxt[i]!r}"),
+                              oc=oc: f"next_obs {float(x[i])!r} != {oc} of the following step {float(nxt[i])!r}"),
                 )
 
     absbuf = np.empty(max(1, min(n, _BLOCK)))
