@@ -216,3 +216,18 @@ def test_infinite_horizon_estimand_only_fqe_can_answer():
     with pytest.raises(Exception, match="infinite"):
         declare_estimand(collect(TabularMDP(30, 3, horizon=T, gamma=1.0, seed=3), pib, 5, np.random.default_rng(0),
                                  horizon=T), pi, form="infinite")
+
+
+def test_a_horizon_past_the_logs_is_said_not_silently_cut():
+    from offline_adp.evaluation.estimand import evaluation_horizon
+    from offline_adp.simulate import simulate
+
+    ds = simulate("car_on_hill", 0, 3, seed=0, horizon=20)
+    T = int(ds.arrays().step.max()) + 1
+    with pytest.warns(UserWarning, match=f"horizon 500 asked for, but the longest logged episode has {T} steps"):
+        assert evaluation_horizon(ds, 500)[0] == T
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert evaluation_horizon(ds, T)[0] == T and evaluation_horizon(ds)[0] == T

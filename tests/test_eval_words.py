@@ -78,7 +78,7 @@ def test_a_withdrawn_level_is_never_printed_as_95():
     for ln in lines:
         _no_95(ln)
     v = next(ln for ln in lines if ln.startswith("verdict:"))
-    assert "FQE 4.348 vs logged 20.3 would say better" in v and "[2.607" not in v  # the side said, never claimed
+    assert "FQE 4.348 vs logged 20.3 [18, 22.6] would say better" in v and "[2.607" not in v  # said, never claimed
     box = _summary_box(m, h)
     _no_95(re.sub(r"<[^>]+>", "", box))
     assert "(no level)" in box
@@ -244,7 +244,8 @@ def test_compare_shows_the_demonstrator_and_levels_as_they_are(tmp_path):
 def test_verdict_rules_still_claim_with_a_level():
     m = {"estimand": {"possible_range": [0.0, 1000.0]},
          "ope": {"fqe": {"estimate": 8.2, "interval": [7.1, 9.0], "level": 0.95}},
-         "behaviour_value": {"mean": 15.0}, "behaviour": {"support_violations": {"fraction": 0.0}}}
+         "behaviour_value": {"mean": 15.0, "interval": [14.0, 16.0]},
+         "behaviour": {"support_violations": {"fraction": 0.0}}}
     v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, CONVERGED)
     assert v["outcome"] == "better" and "its 95% interval lies below" in v["text"]
     v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, STALE)
@@ -299,3 +300,17 @@ def test_stored_lines_of_an_untrusted_metrics_json_fall_back_to_the_sentence(bad
     assert line.endswith(h["verdict"]["text"])
     box = verdict_html(h["verdict"], {"verdict": "converged"})  # the sentence, its first letter capitalised
     assert box.endswith(html.escape(h["verdict"]["text"][1:]) + "</p>") and "<br>" not in box
+
+
+def test_the_report_box_of_a_single_episode_has_no_logged_interval():
+    """One logged episode: its cost has no spread to measure (metrics.json interval [null, null]);
+    the report crashed formatting None."""
+    from offline_adp.evaluation.report import _summary_box
+
+    m = copy.deepcopy(LEFT)
+    m["behaviour_value"] = {"mean": 20.3, "interval": [None, None], "episodes": 1}
+    box = _summary_box(m, headline(m))
+    assert "20.3 (no interval: one episode) over 1 episodes" in box
+    m["behaviour_value"] = {"mean": 20.3, "interval": [18.0, 22.6], "episodes": 135, "comparable": False,
+                            "not_comparable": "3 of 135 logged episodes stop before step 200"}
+    assert "not the behaviour's value of the estimand: 3 of 135" in _summary_box(m, headline(m))

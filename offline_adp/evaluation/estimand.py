@@ -31,6 +31,12 @@ def evaluation_horizon(ds: TransitionDataset, horizon: int | None = None) -> tup
     a = ds.arrays()
     gamma = resolve_discount(ds.info).gamma  # the package's one rule, as the fit used
     T = int(a.step.max()) + 1
+    if horizon is not None and int(horizon) > T:
+        import warnings
+
+        warnings.warn(f"horizon {int(horizon)} asked for, but the longest logged episode has {T} steps: the "
+                      f"estimand is the {T}-step value (a simulator's rollout horizon, target_horizon, reads past "
+                      "the logs)", UserWarning, stacklevel=2)
     for cap in (ds.info.horizon, horizon):
         if cap is not None:
             T = min(T, int(cap))
@@ -203,6 +209,14 @@ def episode_ends(em: ope.EpisodeMatrix, terminated: np.ndarray) -> str:
     return "horizon" if bool(np.all(ended | em.mask[:, -1])) else "short"
 
 
+def short_episodes(em: ope.EpisodeMatrix, terminated: np.ndarray) -> int:
+    """How many logged episodes stop before step T without a terminal state (truncated)."""
+    keep = em.row_step < em.horizon
+    ended = np.bincount(em.row_episode[keep], weights=np.asarray(terminated, float)[keep],
+                        minlength=em.n_episodes) > 0
+    return int(np.sum(~(ended | em.mask[:, -1])))
+
+
 def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float, float],
                   ends: str = "short", n_episodes: int = 1) -> ope.OPEResult:
     """A doubly robust estimate on the logging policy's own weights (:func:`ope.on_policy`) read
@@ -244,6 +258,11 @@ def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float
                    f"steps, [{lo_t:.4g}, {hi_t:.4g}]")
 
 
+#: The estimators that sum each logged episode's own costs (zero after it stops): a truncated
+#: episode's missing steps count as zero cost in them.
+TRAJECTORY_ESTIMATORS = ("is", "wis", "pdis", "wpdis", "dr", "wdr", "mis")
+
+
 def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
              logged_range: tuple[float, float], ends: str = "short",
              n_episodes: int = 1) -> dict[str, ope.OPEResult]:
@@ -274,6 +293,10 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
         if est_def.form == "infinite" and name != "fqe":
             why.append(f"estimates the {T}-step value, not the infinite-horizon value asked for: "
                        "trajectory estimators cannot see past the logged horizon")
+        elif ends == "short" and name in TRAJECTORY_ESTIMATORS and not beyond:
+            why.append(f"some logged episodes stop before step {T} without a terminal state (truncated): this "
+                       "estimator counts their missing steps as zero cost, so it does not estimate the "
+                       f"{T}-step value")
         if why:
             out[name] = replace(r, warnings=[*reversed(why), *r.warnings], comparable=False)
     return out

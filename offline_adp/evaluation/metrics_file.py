@@ -123,6 +123,8 @@ class _BehaviourValue(_Open):
     mean: float
     interval: Pair | None = None
     episodes: int | None = None
+    comparable: bool | None = None  # False: not the behaviour's T-step value (truncated episodes)
+    not_comparable: str | None = None
 
 
 class _Quantiles(_Open):

@@ -51,6 +51,7 @@ from offline_adp.evaluation.estimand import (  # noqa: F401
     declare_estimand,
     episode_ends,
     evaluation_horizon,
+    short_episodes,
     with_possible_range,
 )
 from offline_adp.evaluation.fqe_interval import (  # noqa: F401
@@ -236,7 +237,13 @@ def verdict_inputs(a: TransitionArrays, w: Weighting, est_def: Estimand, level: 
     (:func:`logged_cost_distributions`; the policy's only where the estimators see the estimand)."""
     T, gamma = est_def.horizon, est_def.gamma
     comparable = not est_def.beyond_logs and est_def.form == "finite"
-    return {"behaviour_value": behaviour_value(w.em, a.cost, gamma, level),
+    bv = behaviour_value(w.em, a.cost, gamma, level)
+    if episode_ends(w.em, a.terminated) == "short":  # a truncated episode's missing steps count as 0 in it
+        short = short_episodes(w.em, a.terminated)
+        bv = {**bv, "comparable": False,
+              "not_comparable": f"{short} of {w.em.n_episodes} logged episodes stop before step {T} without a "
+                                f"terminal state: their missing steps count as zero cost in the logged mean"}
+    return {"behaviour_value": bv,
             "per_step_counts": shift.per_step_counts(a.step, T),
             "cost_distribution": logged_cost_distributions(w.em, a.cost, w.rho, gamma, w.groups, comparable=comparable)}
 

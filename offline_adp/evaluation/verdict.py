@@ -41,6 +41,36 @@ def side_of_behaviour(lo: float, hi: float, b: float) -> str:
 _SIDE_WORDS = {"better": "better than", "worse": "worse than", "indistinguishable": "not distinguishable from"}
 
 
+def logged_interval(beh: dict[str, Any]) -> tuple[float, float] | None:
+    """The behaviour's logged cost's own interval (``behaviour_value.interval``, untrusted), or
+    None where it has none (a single episode: no spread to measure)."""
+    bi = beh.get("interval")
+    if isinstance(bi, list | tuple) and len(bi) == 2 and all(_is_finite_number(x) for x in bi) and bi[0] <= bi[1]:
+        return float(bi[0]), float(bi[1])
+    return None
+
+
+def logged_side(lo: float, hi: float, beh: dict[str, Any]) -> str:
+    """The side of an interval ``[lo, hi]`` of the policy's cost against the behaviour's logged
+    cost, which is itself a mean of the logged episodes: ``better`` only when the interval lies
+    below the logged cost's own interval, ``worse`` above it. Each 95% interval misses its own
+    value on the side that matters at most 2.5% of the time, so a side is claimed falsely at most
+    5% of the time; read against the logged mean as if it were exact, a policy with the
+    behaviour's own value was called better or worse in 5 of 20 seeds (a tabular problem with
+    its exact value). Without a logged interval (one episode) there is no side to claim."""
+    bi = logged_interval(beh)
+    if bi is None:
+        return "indistinguishable"
+    tol = 1e-9 * max(1.0, abs(float(beh["mean"])))
+    return "better" if hi < bi[0] - tol else "worse" if lo > bi[1] + tol else "indistinguishable"
+
+
+def logged_words(beh: dict[str, Any]) -> str:
+    """``logged 2.93 [2.88, 2.98]``: the logged cost and its own interval, where it has one."""
+    bi = logged_interval(beh)
+    return f"logged {beh['mean']:.4g}" + (f" [{bi[0]:.4g}, {bi[1]:.4g}]" if bi else "")
+
+
 def _disagreeing(best: dict[str, Any], ranking: list[dict[str, Any]]) -> list[str]:
     """Other reliable estimators whose interval does not overlap the best one's."""
     lo, hi = best["interval"]
@@ -166,17 +196,20 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
     """
     beh = m.get("behaviour_value")
+    beh_off = beh.get("not_comparable") if isinstance(beh, dict) and beh.get("comparable") is False else None
     left = left_support(m, shift)
     support, logs_show = _support_clause(m, shift, left)
     cv = conv.get("verdict")
     best = next((e for e in ranking if e["tier"] == 0), None)
     doubts = _model_doubts(m, shift) if best and best["name"] == "model" else _doubts(left, shift, logs_show, cv)
-    side, perf, claim = _offpolicy_side(ranking, beh, doubts)
+    side, perf, claim = _offpolicy_side(ranking, None if beh_off else beh, doubts)
+    if beh_off:
+        perf = f"cannot tell from these logs whether the policy is better than the behaviour: {beh_off}"
     demo = None
     ro = (m.get("rollout") or {}).get("policy")
     if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
         demo = demonstrator_side(m)
-        side, perf = _simulator_side(ro, beh["mean"], demo, side, perf, claim)
+        side, perf = _simulator_side(ro, beh, demo, side, perf, claim)
     outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
     ct = conv["text"][:1].upper() + conv["text"][1:]
     return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
@@ -300,8 +333,8 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
     if best is None and top is not None and top.get("shown_interval") and beh is not None:
         # an interval without a level: its side is said, never claimed (nor its numbers quoted as an interval)
         lo, hi = top["shown_interval"]
-        would = side_of_behaviour(lo, hi, beh["mean"])
-        claim = f"{top['name'].upper()} {top['estimate']:.4g} vs logged {beh['mean']:.4g}"
+        would = logged_side(lo, hi, beh)
+        claim = f"{top['name'].upper()} {top['estimate']:.4g} vs {logged_words(beh)}"
         why = doubts or [f"its interval carries no level ({top.get('level_note') or 'coverage not measured'})"]
         words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[would]
         perf = (f"cannot tell from these logs whether the policy is better than the behaviour: {claim} would say "
@@ -314,12 +347,12 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
         perf = f"best estimate {best['estimate']:.4g} (no behaviour baseline)"
     else:
         lo, hi = best["interval"]
-        b = beh["mean"]
-        ope_side = side_of_behaviour(lo, hi, b)
-        claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {b:.4g}"
+        ope_side = logged_side(lo, hi, beh)
+        claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs {logged_words(beh)}"
         paired = best.get("vs_logged")
         if paired:  # on the logging policy's own weights: the difference, read on the same episodes
             ope_side = side_of_behaviour(paired[0], paired[1], 0.0)
+            claim = f"{best['name'].upper()} {best['estimate']:.4g} [{lo:.4g}, {hi:.4g}] vs logged {beh['mean']:.4g}"
         dis = _disagreeing(best, ranking)
         if dis:
             doubts.append("other reliable estimators disagree (" + "; ".join(dis) + ")")
@@ -328,7 +361,8 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
             where = {"better": "lies below", "worse": "lies above", "indistinguishable": "contains"}[ope_side]
             conf = (f"its {level_words(best)} interval of the difference from the logged cost of the same episodes, "
                     f"[{paired[0]:.4g}, {paired[1]:.4g}], {where} 0" if paired
-                    else f"its {level_words(best)} interval {where} the behaviour's logged cost")
+                    else f"its {level_words(best)} interval {_WHERE_LOGGED[ope_side]} the logged cost's own 95% "
+                    "interval")
             perf = f"{_SIDE_WORDS[ope_side]} the behaviour: {claim} ({conf})"
         else:
             words = {"better": "better", "worse": "worse", "indistinguishable": "not distinguishable"}[ope_side]
@@ -337,20 +371,25 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
     return side, perf, claim
 
 
-def _simulator_side(ro: dict[str, Any], b: float, demo: dict[str, Any] | None, side: str, perf: str,
+_WHERE_LOGGED = {"better": "lies below", "worse": "lies above", "indistinguishable": "overlaps"}
+
+
+def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any] | None, side: str, perf: str,
                     claim: str | None) -> tuple[str, str]:
     """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
-    behaviour's logged cost ``b`` and the demonstrator, saying where the logs' side disagrees."""
+    behaviour's logged cost (with its own interval, :func:`logged_side`) and the demonstrator,
+    saying where the logs' side disagrees."""
     r_lo, r_hi = ro["interval"]
-    truth_side = side_of_behaviour(r_lo, r_hi, b)
-    against = f"{_SIDE_WORDS[truth_side]} the behaviour"
+    off = beh.get("not_comparable") if beh.get("comparable") is False else None
+    truth_side = "unknown" if off else logged_side(r_lo, r_hi, beh)
+    against = f"not compared with the behaviour ({off})" if off else f"{_SIDE_WORDS[truth_side]} the behaviour"
     if demo is not None:  # the demonstrator first when the policy is worse than it
         d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
                    "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
         against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
                    else f"{against}; {d_words}")
     truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
-             f"logged {b:.4g}")
+             f"{logged_words(beh)}")
     if demo is not None:
         di = demo.get("demonstrator_interval") or []
         truth += f", demonstrator {demo['demonstrator']:.4g}" + (
@@ -358,8 +397,8 @@ def _simulator_side(ro: dict[str, Any], b: float, demo: dict[str, Any] | None, s
         if "failures" in demo:
             truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
                       + (": the policy fails more often" if demo["more_failures"] else ""))
-    if side in ("better", "worse") and truth_side != side:
+    if side in ("better", "worse") and truth_side != side and not off:
         truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
-    elif side == "unknown":
+    elif side == "unknown" and not off:
         truth += f" (from the logs alone: {perf})"
     return truth_side, truth
