@@ -391,3 +391,24 @@ def test_a_continuous_run_reads_another_recording_of_the_same_commands(tmp_path)
     _, c, _ = _ingest(tmp_path / "c", _table(), {"columns": ["steer_cmd", "throttle_cmd"], "names": ["s", "t"]})
     with pytest.raises(IncompatibleError, match="logs of the same commands"):
         _check_same_commands(tmp_path / "run", info, c, tmp_path / "c" / "ds")
+
+
+@pytest.mark.parametrize("kind", ["bool", "bigint", "bigint_list"])
+def test_commands_a_float64_cannot_keep_are_refused_naming_them(tmp_path, kind):
+    t = _table()
+    n = t.num_rows
+    if kind == "bool":
+        t = t.set_column(t.schema.get_field_index("steer_cmd"), "steer_cmd", pa.array(np.arange(n) % 2 == 0))
+        action, match = {"columns": ["steer_cmd", "throttle_cmd"]}, r"column 'steer_cmd' holds booleans"
+    elif kind == "bigint":
+        v = np.arange(n, dtype=np.int64)
+        v[9] = 2**62 + 1  # a float64 rounds it to 2**62
+        t = t.set_column(t.schema.get_field_index("steer_cmd"), "steer_cmd", pa.array(v))
+        action, match = {"columns": ["steer_cmd", "throttle_cmd"]}, r"log.parquet: row 9 column 'steer_cmd'.*2\^53"
+    else:
+        lists = [[i, 1] for i in range(n)]
+        lists[7] = [2**62 + 1, 1]
+        t = t.set_column(t.schema.get_field_index("cmd"), "cmd", pa.array(lists, pa.list_(pa.int64())))
+        action, match = {"column": "cmd"}, r"log.parquet: row 7 column 'cmd'.*2\^53"
+    with pytest.raises(IngestError, match=match):
+        _ingest(tmp_path, t, action)

@@ -58,6 +58,7 @@ from offline_adp.ingest.parquet_columns import (
     _times_ns,
     _type_conflict,
     _width_findings,
+    check_command_column,
 )
 from offline_adp.ingest.spec import ParquetSpec, load_parquet_spec
 
@@ -326,6 +327,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         and not (aspec.low or aspec.high or aspec.units)
     ):
         # a binned scalar column as before (block by block), its exact commands kept alongside
+        check_command_column(table, aspec.column, file_of)
         raw_action = _np(table, aspec.column, np.float64, file_of)
         action, atable = _blockwise(bin_continuous, raw_action, aspec)
         commands = command_columns(raw_action, atable.dims)

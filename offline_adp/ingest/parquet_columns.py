@@ -247,6 +247,33 @@ def _is_list(t: pa.DataType) -> bool:
     return pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t)
 
 
+def check_command_column(table: pa.Table, column: str, file_of: Callable[[np.ndarray], str]) -> None:
+    """A command column must hold numbers a float64 keeps exactly: not booleans (a flag is not
+    a command), not integers beyond 2^53 (they would be rounded, and commands are kept as
+    logged); the error names the file, the row and the column."""
+    col = table.column(column)
+    t = col.type
+    if pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t):
+        t = t.value_type
+    if pa.types.is_boolean(t):
+        raise IngestError(f"{file_of(np.array([0]))}: column {column!r} holds booleans: a command is numeric (map "
+                          "a flag with action.type = 'discrete')")
+    if pa.types.is_integer(t) and table.num_rows:
+        whole = col.combine_chunks()
+        flat = whole if pa.types.is_integer(whole.type) else pc.list_flatten(whole)
+        v = np.abs(flat.fill_null(0).to_numpy(zero_copy_only=False).astype(np.float64))
+        big = np.flatnonzero(v > 2.0**53)
+        if len(big):
+            row = int(big[0])
+            if flat is not whole:  # a list column: the row holding that value
+                ends = np.cumsum(pc.list_value_length(whole).fill_null(0).to_numpy(zero_copy_only=False))
+                row = int(np.searchsorted(ends, row, side="right"))
+            rows = getattr(file_of, "rows", None)
+            at = f" row {int(rows[row])}" if rows is not None else ""
+            raise IngestError(f"{file_of(np.array([row]))}:{at} column {column!r}: integer command beyond 2^53 (a "
+                              "float64 would round it, and commands are kept exactly as logged); rescale the column")
+
+
 def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callable[[np.ndarray], str]
               ) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
     """The continuous command of every row, ``(n, k)`` float64 (missing values NaN: the
@@ -257,6 +284,8 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
     component names when the spec gives them, else the most common list length; a row
     whose list has another length is flagged, never cut or padded."""
     n = table.num_rows
+    for col in (spec.source_columns if not list_col else [spec.column]):
+        check_command_column(table, col, file_of)
     if not list_col:
         x = (
             np.column_stack([_np(table, c, np.float64, file_of) for c in spec.source_columns])
