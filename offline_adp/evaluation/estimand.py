@@ -201,20 +201,22 @@ def episode_ends(em: ope.EpisodeMatrix, terminated: np.ndarray) -> str:
     """How the logged episodes end within the T steps the estimators read: ``"terminal"`` (every
     one in a terminal state), ``"horizon"`` (each in a terminal state or running to step T), or
     ``"short"`` (one stops before T without a terminal state: its cost after that is unknown)."""
-    keep = em.row_step < em.horizon
-    ended = np.bincount(em.row_episode[keep], weights=np.asarray(terminated, float)[keep],
-                        minlength=em.n_episodes) > 0
+    ended = _ended(em, terminated)
     if ended.all():
         return "terminal"
     return "horizon" if bool(np.all(ended | em.mask[:, -1])) else "short"
 
 
+def _ended(em: ope.EpisodeMatrix, terminated: np.ndarray) -> np.ndarray:
+    """Per episode: does it reach a terminal state within the T steps the estimators read?"""
+    keep = em.row_step < em.horizon
+    return np.bincount(em.row_episode[keep], weights=np.asarray(terminated, float)[keep],
+                       minlength=em.n_episodes) > 0
+
+
 def short_episodes(em: ope.EpisodeMatrix, terminated: np.ndarray) -> int:
     """How many logged episodes stop before step T without a terminal state (truncated)."""
-    keep = em.row_step < em.horizon
-    ended = np.bincount(em.row_episode[keep], weights=np.asarray(terminated, float)[keep],
-                        minlength=em.n_episodes) > 0
-    return int(np.sum(~(ended | em.mask[:, -1])))
+    return int(np.sum(~(_ended(em, terminated) | em.mask[:, -1])))
 
 
 def past_the_logs(r: ope.OPEResult, est_def: Estimand, logged_range: tuple[float, float],
