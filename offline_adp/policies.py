@@ -238,8 +238,9 @@ class GreedyCommandPolicy(CommandPolicy):
     """``pi(x, t) = argmin_{u in C(x)} Q(x, u, t)`` over the candidate commands ``C(x)`` of
     ``x`` (:class:`~offline_adp.qfunctions.NeighbourCommands`: commands logged at the
     nearest logged states, and, when the fit offers them, representative commands of the
-    whole log), so it never commands what the logs did not try, though a representative
-    may not have been tried near ``x`` (the evaluation's command support measures how often).
+    whole log: means of commands logged together, logged commands themselves where each
+    component has few levels), so a representative may be a command nobody logged exactly,
+    or one not tried near ``x`` (the evaluation's command support measures how often).
     Ties go to the nearest neighbour's command."""
 
     def __init__(self, q: Any) -> None:

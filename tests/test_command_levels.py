@@ -88,3 +88,21 @@ def test_ingest_bins_keep_levels_apart():
     occupied = {table.actions[i].value for i in np.unique(idx)}
     assert occupied == {tuple(r) for r in u}
     assert isinstance(pa.array(idx), pa.Array)
+
+
+def test_coarse_bins_keep_the_cell_cap_with_levels():
+    from offline_adp.ingest.actions import MAX_COARSE_CELLS
+
+    rng = np.random.default_rng(0)
+    for k in (2, 3, 12):  # half of every component idle at 0: a level's own bin in each
+        x = np.where(rng.random((5000, k)) < 0.5, 0.0, rng.normal(size=(5000, k)))
+        idx, table = coarse_bins(x, tuple(f"d{i}" for i in range(k)))
+        assert len(table.actions) <= MAX_COARSE_CELLS and idx.max() < len(table.actions)
+
+
+def test_a_level_and_the_bin_above_it_never_share_a_name():
+    rng = np.random.default_rng(0)
+    x = np.r_[np.full(600, 0.2), rng.uniform(0.2, 0.20004, 200), rng.uniform(0.3, 1.0, 1200)]
+    idx, table = bin_continuous(x, ActionSpec(column="u", type="continuous", n_bins=8), where="t")
+    names = [a.name for a in table.actions]
+    assert len(set(names)) == len(names)  # "a~0.2" twice refused the ingest

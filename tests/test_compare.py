@@ -186,13 +186,12 @@ def test_a_stored_evaluation_replaced_by_compare_is_named_with_the_reason():
     from offline_adp.evaluation.compare import _why_again
 
     fp, mr = "abc", {"ope": {"fqe": {"model_rollouts": {"skipped": "model_particles=0: model rollouts turned off"}}}}
-    assert _why_again(None, fp, None, 0, False) == ""  # never evaluated: nothing replaced
+    assert _why_again(None, fp, None, 0) == ""  # never evaluated: nothing replaced
     m = {"dataset": {"fingerprint": "other"}, "simulator": "none", **mr}
-    assert "other logs: its evaluation/ is replaced" in _why_again(m, fp, None, 0, False)
+    assert "other logs: its evaluation/ is replaced" in _why_again(m, fp, None, 0)
     m = {"dataset": {"fingerprint": fp}, "simulator": "none", **mr}
-    assert "simulator 'none', not 'path_tracking'" in _why_again(m, fp, "path_tracking", 0, False)
-    assert "model rollouts differ from 500 particles" in _why_again(m, fp, None, 500, False)
-    assert _why_again(m, fp, None, 0, True).startswith(" (--force")
+    assert "simulator 'none', not 'path_tracking'" in _why_again(m, fp, "path_tracking", 0)
+    assert "model rollouts are not this one's (500 particles" in _why_again(m, fp, None, 500)
 
 
 def test_a_share_over_the_support_rule_never_reads_as_the_rule_itself():

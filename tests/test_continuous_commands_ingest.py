@@ -402,7 +402,7 @@ def test_commands_a_float64_cannot_keep_are_refused_naming_them(tmp_path, kind):
         action, match = {"columns": ["steer_cmd", "throttle_cmd"]}, r"column 'steer_cmd' holds booleans"
     elif kind == "bigint":
         v = np.arange(n, dtype=np.int64)
-        v[9] = 2**62 + 1  # a float64 rounds it to 2**62
+        v[9] = 2**53 + 1  # the first integer a float64 rounds (to 2**53)
         t = t.set_column(t.schema.get_field_index("steer_cmd"), "steer_cmd", pa.array(v))
         action, match = {"columns": ["steer_cmd", "throttle_cmd"]}, r"log.parquet: row 9 column 'steer_cmd'.*2\^53"
     else:

@@ -240,3 +240,34 @@ def test_review_cases_through_the_cli(lq, tmp_path, capsys):
         from offline_adp.policies import UniformPolicy
 
         FittedQEvaluation(policy=UniformPolicy(lq.n_actions), commands="continuous", n_iterations=2).fit(lq)
+
+
+def test_truncated_command_logs_give_no_side_against_the_logged_cost():
+    """Half the episodes cut at step 5 without a terminal state: the logged mean counts their
+    missing steps as zero, so the continuous evaluation marks it not the T-step value (a
+    reviewer saw "not distinguishable from the behaviour" read against it)."""
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.evaluation.continuous import continuous_offpolicy
+    from offline_adp.evaluation.settings import EvaluationSettings
+    from offline_adp.policies import GreedyCommandPolicy, attach_signature
+    from tests.test_continuous_deploy import command_dataset
+
+    rng = np.random.default_rng(0)
+    ep, st, X, U, C, NX, TR = [], [], [], [], [], [], []
+    for e in range(40):
+        L = 12 if e % 2 == 0 else 5
+        s = rng.uniform(-1, 1, 2)
+        for t in range(L):
+            u = np.array([rng.uniform(-1, 1), rng.uniform(0, 2)])
+            nx = s + 0.1 * np.array([u[0], u[1] - 1.0])
+            ep.append(e), st.append(t), X.append(s), U.append(u), NX.append(nx), TR.append(t == L - 1)
+            C.append((s**2).sum() + 0.1 * ((u - [0, 1]) ** 2).sum())
+            s = nx
+    ds = command_dataset(np.array(X), np.array(U), np.array(C), np.array(NX), np.array(ep), np.array(st),
+                         [-1.0, 0.0], [1.0, 2.0], ["ux", "uy"], truncated=np.array(TR))
+    q = FittedQIteration(n_iterations=2, mode="refit", regressor_params={"n_estimators": 5}).fit(ds).q_function_
+    pi = attach_signature(GreedyCommandPolicy(q), ds)
+    cfg = EvaluationSettings.resolve(None, {"fqe_bootstrap": 5, "bootstrap": 5, "model_particles": 0,
+                                            "fqe_params": {"regressor_params": {"n_estimators": 5}}})
+    bv = continuous_offpolicy(ds, pi, cfg, target_horizon=None, start=None)["behaviour_value"]
+    assert bv["comparable"] is False and "20 of 40 logged episodes stop before step 12" in bv["not_comparable"]

@@ -210,6 +210,14 @@ def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
     assert "Top pick</th><td><span" in text
     assert "<b>no top pick</b></span> The logs cannot separate car2d and car3d" in text
     assert "<b>car2d</b>" not in text
+    assert "50 [45, 55] over 40 episodes" in text
+    # one logged episode (metrics.json: [null, null]) crashed the page; a truncated log says why it is not the value
+    res["behaviour"] = {"mean": 50.0, "interval": [None, None], "episodes": 1}
+    assert "(no interval: one episode)" in write_compare_report(res, tmp_path / "c1.html").read_text()
+    res["behaviour"] = {"mean": 50.0, "interval": [45.0, 55.0], "episodes": 40, "comparable": False,
+                        "not_comparable": "3 of 40 logged episodes stop before step 100"}
+    page = html.unescape(write_compare_report(res, tmp_path / "c2.html").read_text())
+    assert "not the behaviour's value of the estimand: 3 of 40 logged episodes" in page
     caption = re.search(r"<figure id=\"ranking\">.*?<figcaption>(.*?)</figcaption>", page, re.S).group(1)
     assert "simulator" not in caption and "black crosses" not in caption  # none drawn: none mentioned
     assert "amber cannot tell" in caption
@@ -313,4 +321,4 @@ def test_the_report_box_of_a_single_episode_has_no_logged_interval():
     assert "20.3 (no interval: one episode) over 1 episodes" in box
     m["behaviour_value"] = {"mean": 20.3, "interval": [18.0, 22.6], "episodes": 135, "comparable": False,
                             "not_comparable": "3 of 135 logged episodes stop before step 200"}
-    assert "not the behaviour's value of the estimand: 3 of 135" in _summary_box(m, headline(m))
+    assert "not the behaviour's value of the estimand: 3 of 135" in html.unescape(_summary_box(m, headline(m)))

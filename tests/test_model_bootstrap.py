@@ -90,7 +90,7 @@ BASE = {
     "ope": {"fqe": {"estimate": 9.0, "interval": [3.0, 20.0], "level": None, "level_note": "support left",
                     "model_rollouts": {"exit_mass": 0.02, "exit_share": 0.1, "n_particles": 1000}},
             "model": {"estimate": 6.0, "interval": [5.0, 7.0], "level": 0.95}},
-    "behaviour_value": {"mean": 15.0},
+    "behaviour_value": {"mean": 15.0, "interval": [14.0, 16.0]},
     "behaviour": {"support_violations": {"fraction": 0.3}},
 }
 IN_SUPPORT = {"method": "recursion", "enough_data": True}

@@ -313,3 +313,24 @@ def test_truncated_episodes_within_T_make_the_trajectory_estimators_not_comparab
     m["rollout"] = {"policy": {"mean_discounted_cost": 3.0, "interval": [2.9, 3.1]}}
     v = verdict_line(m, rank_estimators(m), {"method": "recursion", "enough_data": True}, conv)
     assert v["performance"] == "unknown" and v["text"].startswith("not compared with the behaviour")
+
+
+def test_the_logged_cost_has_a_student_t_interval_and_says_when_it_is_not_the_T_step_value():
+    from scipy.stats import t as student_t
+
+    from offline_adp.evaluation.offpolicy import behaviour_value
+
+    em = ope.EpisodeMatrix.build(np.repeat([0, 1, 2], 4), np.tile(np.arange(4), 3), 4)
+    cost = np.r_[np.ones(4), 2 * np.ones(4), 4 * np.ones(4)]
+    G = np.array([4.0, 8.0, 16.0])  # gamma 1
+    bv = behaviour_value(em, cost, 1.0, terminated=np.zeros(12, bool))
+    half = student_t.ppf(0.975, 2) * G.std(ddof=1) / np.sqrt(3)  # 4.30 standard errors, not 1.96
+    assert bv["interval"] == pytest.approx([G.mean() - half, G.mean() + half])
+    assert "comparable" not in bv  # every episode runs to T
+    # the third stops after 2 steps without a terminal state: its steps 2 and 3 count as 0
+    em = ope.EpisodeMatrix.build(np.repeat([0, 1, 2], [4, 4, 2]), np.r_[np.arange(4), np.arange(4), np.arange(2)], 4)
+    bv = behaviour_value(em, np.ones(10), 1.0, terminated=np.zeros(10, bool))
+    assert bv["comparable"] is False and bv["not_comparable"].startswith("1 of 3 logged episodes stop before step 4")
+    term = np.zeros(10, bool)
+    term[9] = True  # it ended in a terminal state: its cost after that is 0 indeed
+    assert "comparable" not in behaviour_value(em, np.ones(10), 1.0, terminated=term)

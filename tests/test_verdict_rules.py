@@ -92,7 +92,7 @@ def test_equal_up_to_rounding_is_not_a_side():
     # MountainCar: a policy that never reaches the goal costs sum_{t<200} 0.99^t = 86.602 exactly
     # as the behaviour does; summed in another order the two differ in the last bit
     b = float(np.sum(0.99 ** np.arange(200)))
-    m = {**BASE, "behaviour_value": {"mean": b},
+    m = {**BASE, "behaviour_value": {"mean": b, "interval": [b, b]},  # every episode the same cost
          "ope": {"fqe": {"estimate": b * (1 - 1e-15), "interval": [b * (1 - 1e-15), b * (1 - 1e-15)], "level": 0.95}},
          "rollout": {"policy": {"mean_discounted_cost": b * (1 + 1e-15), "interval": [b * (1 + 1e-15)] * 2}}}
     assert _v(m)["performance"] == "indistinguishable"
@@ -165,8 +165,14 @@ def test_a_policy_with_the_behaviours_own_value_is_rarely_called_a_side():
     beh = {"mean": J, "interval": [J - z * 0.5, J + z * 0.5]}
     assert logged_side(J - 1.5 - 0.4, J - 1.5 + 0.4, beh) == "better"
     assert logged_side(J + 1.5 - 0.4, J + 1.5 + 0.4, beh) == "worse"
-    # one episode: no spread of the logged cost, no side
-    assert logged_side(1.0, 2.0, {"mean": 9.0, "interval": [None, None]}) == "indistinguishable"
+    # one episode: no spread of the logged cost, no side (not even "not distinguishable")
+    assert logged_side(1.0, 2.0, {"mean": 9.0, "interval": [None, None]}) == "unknown"
+    m = {**BASE, "behaviour_value": {"mean": 15.0, "interval": [None, None], "episodes": 1}}
+    v = _v(m)
+    assert v["performance"] == "unknown" and "one logged episode: its cost has no interval" in v["text"]
+    m["rollout"] = {"policy": {"mean_discounted_cost": 3.0, "interval": [2.9, 3.1]}}
+    v = _v(m)
+    assert v["performance"] == "unknown" and "not compared with the behaviour (one logged episode" in v["text"]
 
 
 def test_the_verdict_names_the_logged_interval_it_read():
@@ -177,3 +183,20 @@ def test_the_verdict_names_the_logged_interval_it_read():
     m["ope"]["wdr"]["interval"] = [7.0, 14.5]
     v = _v(m)
     assert v["performance"] == "indistinguishable" and "overlaps the logged cost's own 95% interval" in v["text"]
+
+
+def test_rollouts_that_only_overlap_the_logged_interval_do_not_contradict_a_side():
+    """FQE said better; the rollouts lie below the logged mean but overlap its interval: that
+    does not confirm the claim, and it does not contradict it either."""
+    m = {**BASE, "rollout": {"policy": {"mean_discounted_cost": 13.0, "interval": [12.5, 14.5]}}}
+    v = _v(m)
+    assert v["performance"] == "indistinguishable"
+    assert "contradicted" not in v["text"] and "the rollouts do not confirm it" in v["text"]
+    m["rollout"]["policy"] = {"mean_discounted_cost": 18.0, "interval": [17.5, 18.5]}
+    assert "said better: it is contradicted here" in _v(m)["text"]
+
+
+def test_a_share_over_the_rule_keeps_the_digits_that_show_it():
+    from offline_adp.evaluation.verdict import _share_over
+
+    assert _share_over(0.0504) == "5.04%" and _share_over(0.0500001) not in ("5%", "5.0%", "5.00%")

@@ -183,9 +183,10 @@ def command_representatives(commands: np.ndarray, n: int) -> np.ndarray:
     command (the whole vector) of every occupied cell of that grid, in row-major cell
     order. Dense where the log's commands are dense, and every one the mean of commands
     logged together, so none lies outside the logged commands' convex hull. A level logged
-    on many rows (a teleop's fixed steering values) is a bin of its own
-    (:func:`~offline_adp.data.levels.level_edges`), so the representatives of a log of
-    levels are its levels, never a mean of two of them."""
+    on at least ``1/B`` of the rows (a teleop's fixed steering values) is a bin of its own
+    (:func:`~offline_adp.data.levels.level_edges`), so where every component has at most
+    ``B`` levels the representatives are logged commands; a component with more levels than
+    ``B`` still has cells that average two or more of them."""
     u = np.asarray(commands, np.float64)
     if n <= 0 or len(u) == 0:
         return np.zeros((0, u.shape[1] if u.ndim == 2 else 1))

@@ -132,6 +132,7 @@ def compare_runs(
         x["rank"] = i + 1 if x in usable else None
     bv = metrics[0].get("behaviour_value") or {}
     beh = {"mean": bv.get("mean"), "interval": bv.get("interval"), "episodes": bv.get("episodes"),
+           **{k: bv[k] for k in ("comparable", "not_comparable") if k in bv},
            "cost_distribution": (metrics[0].get("cost_distribution") or {}).get("behaviour_logged")}
     out: dict[str, Any] = {"dataset": {"path": ds_path, "fingerprint": fp}, "behaviour": beh,
                            "estimator": estimator or "mixed",
@@ -172,18 +173,16 @@ def _common_dataset(runs: list[Path]) -> str:
     return sorted(paths)[0]
 
 
-def _why_again(m: dict[str, Any] | None, fp: str, simulator: str | None, particles: int, force: bool) -> str:
+def _why_again(m: dict[str, Any] | None, fp: str, simulator: str | None, particles: int) -> str:
     """Why a candidate is evaluated again, and that its stored evaluation is replaced."""
     if m is None:
         return ""
-    if force:
-        why = "--force"
-    elif m.get("dataset", {}).get("fingerprint") != fp:
+    if m.get("dataset", {}).get("fingerprint") != fp:
         why = "it was evaluated on other logs"
     elif simulator is not None and (m.get("simulator") or "none") != simulator:
         why = f"it was evaluated with simulator {m.get('simulator') or 'none'!r}, not {simulator!r}"
     else:
-        why = f"its evaluation's model rollouts differ from {particles} particles"
+        why = f"its evaluation's model rollouts are not this one's ({particles} particles with the current bounds)"
     return f" ({why}: its evaluation/ is replaced)"
 
 
@@ -201,7 +200,9 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
                 and (simulator is None or (m.get("simulator") or "none") == simulator)
                 and _same_model_rollouts(m, cfg.model_particles))
         if force or not same:
-            say(f"evaluating {r}" + _why_again(m, fp, simulator, cfg.model_particles, force))
+            stored = (r / "evaluation" / "metrics.json").is_file()
+            say(f"evaluating {r}" + (" (--force: its evaluation/ is replaced)" if force and stored
+                                     else _why_again(m, fp, simulator, cfg.model_particles)))
             m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
             m = _metrics(r) or m
         metrics.append(m)

@@ -27,7 +27,9 @@ from offline_adp.evaluation.html_blocks import (
     table_html,
     verdict_html,
 )
+from offline_adp.evaluation.ope import is_finite_number as _is_finite_number
 from offline_adp.evaluation.summary import OUTCOME_COLOUR
+from offline_adp.evaluation.verdict import behaviour_words
 
 #: Column labels of the comparison's tables.
 LABELS = {"name": "candidate", "algorithm": "algorithm", "estimator": "ranked by", "truth": "simulator truth",
@@ -258,10 +260,8 @@ def _compare_summary(res: dict[str, Any]) -> list[str]:
            + (f", failures {d['failures']}" if d.get("failures") is not None else "")
            + (f" over {d['n_episodes']} episodes" if d.get("n_episodes") else "")
            + f" ({html.escape(str(d.get('simulator')))})")
-    if beh.get("mean") is not None:
-        kv("Behaviour (logged)", f"{beh['mean']:.4g}" + (f" [{beh['interval'][0]:.4g}, {beh['interval'][1]:.4g}]"
-                                                         if beh.get("interval") else "")
-           + (f" over {beh['episodes']} episodes" if beh.get("episodes") else ""))
+    if _is_finite_number(beh.get("mean")):
+        kv("Behaviour (logged)", html.escape(behaviour_words(beh)))
     if sel:
         who = "the top pick" if top is not None and separable else "the lowest estimate (not a pick)"
         kv("Against the simulator", f"Spearman {sel['spearman']:.2f}, Kendall {sel['kendall']:.2f}; regret of {who} "

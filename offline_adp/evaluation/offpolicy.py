@@ -129,16 +129,27 @@ class ResidualAdvantage:
     crossfit: bool
 
 
-def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level: float = 0.95) -> dict[str, Any]:
+def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level: float = 0.95,
+                    terminated: np.ndarray | None = None) -> dict[str, Any]:
     """The logged behaviour's own value of the estimand: mean over episodes of
-    ``sum_{t<T} gamma^t c_t`` with a normal-approximation interval."""
-    from scipy.stats import norm
+    ``sum_{t<T} gamma^t c_t`` with a Student-t interval (n - 1 degrees of freedom: with few
+    episodes a normal one covers far less than its level). With ``terminated``, episodes that stop
+    before step T without a terminal state (truncated) mark it ``comparable: false``: their
+    missing steps count as zero cost in it, so it is not the behaviour's T-step value."""
+    from scipy.stats import t as student_t
 
     G = em.lay(cost) @ (gamma ** np.arange(em.horizon))
-    se = float(G.std(ddof=1) / np.sqrt(len(G))) if len(G) > 1 else float("inf")
-    z = float(norm.ppf(0.5 + level / 2))
-    return {"mean": float(G.mean()), "se": se, "interval": [float(G.mean() - z * se), float(G.mean() + z * se)],
-            "episodes": int(len(G)), "method": "mean logged discounted cost over the data's episodes"}
+    n = len(G)
+    se = float(G.std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
+    q = float(student_t.ppf(0.5 + level / 2, n - 1)) if n > 1 else float("inf")
+    out = {"mean": float(G.mean()), "se": se, "interval": [float(G.mean() - q * se), float(G.mean() + q * se)],
+           "episodes": int(n), "method": "mean logged discounted cost over the data's episodes (Student-t interval)"}
+    if terminated is not None and episode_ends(em, terminated) == "short":
+        out |= {"comparable": False,
+                "not_comparable": f"{short_episodes(em, terminated)} of {em.n_episodes} logged episodes stop before "
+                                  f"step {em.horizon} without a terminal state: their missing steps count as zero "
+                                  "cost in the logged mean"}
+    return out
 
 
 def logged_cost_distributions(em: ope.EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, gamma: float,
@@ -236,14 +247,10 @@ def verdict_inputs(a: TransitionArrays, w: Weighting, est_def: Estimand, level: 
     (:func:`behaviour_value`), the states logged per step, and the episode-cost distributions
     (:func:`logged_cost_distributions`; the policy's only where the estimators see the estimand)."""
     T, gamma = est_def.horizon, est_def.gamma
-    comparable = not est_def.beyond_logs and est_def.form == "finite"
-    bv = behaviour_value(w.em, a.cost, gamma, level)
-    if episode_ends(w.em, a.terminated) == "short":  # a truncated episode's missing steps count as 0 in it
-        short = short_episodes(w.em, a.terminated)
-        bv = {**bv, "comparable": False,
-              "not_comparable": f"{short} of {w.em.n_episodes} logged episodes stop before step {T} without a "
-                                f"terminal state: their missing steps count as zero cost in the logged mean"}
-    return {"behaviour_value": bv,
+    # the weighted distribution is WIS's: not the estimand's where truncated episodes count their missing steps as 0
+    comparable = (not est_def.beyond_logs and est_def.form == "finite"
+                  and episode_ends(w.em, a.terminated) != "short")
+    return {"behaviour_value": behaviour_value(w.em, a.cost, gamma, level, a.terminated),
             "per_step_counts": shift.per_step_counts(a.step, T),
             "cost_distribution": logged_cost_distributions(w.em, a.cost, w.rho, gamma, w.groups, comparable=comparable)}
 

@@ -48,7 +48,7 @@ from offline_adp.evaluation.html_blocks import (  # noqa: F401
     verdict_html,
     warning_items,
 )
-from offline_adp.evaluation.verdict import logged_interval
+from offline_adp.evaluation.verdict import behaviour_words
 
 
 def _title(run: Path, m: dict[str, Any]) -> str:
@@ -309,12 +309,7 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
         kv("Simulator", html.escape(m.get("simulator_note") or "none used"))
     bv = m.get("behaviour_value")
     if bv:
-        bi = logged_interval(bv)
-        kv("Behaviour (logged)", f"{bv['mean']:.4g} " + (f"[{bi[0]:.4g}, {bi[1]:.4g}]" if bi else
-                                                         "(no interval: one episode)")
-           + f" over {bv['episodes']} episodes"
-           + (f"; not the behaviour's value of the estimand: {html.escape(bv['not_comparable'])}"
-              if bv.get("comparable") is False and isinstance(bv.get("not_comparable"), str) else ""))
+        kv("Behaviour (logged)", html.escape(behaviour_words(bv)))
     cd = m.get("cost_distribution")
     if cd:
         kv("Cost distribution", html.escape(risk_text(cd)))

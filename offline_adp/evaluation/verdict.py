@@ -53,16 +53,37 @@ def logged_interval(beh: dict[str, Any]) -> tuple[float, float] | None:
 def logged_side(lo: float, hi: float, beh: dict[str, Any]) -> str:
     """The side of an interval ``[lo, hi]`` of the policy's cost against the behaviour's logged
     cost, which is itself a mean of the logged episodes: ``better`` only when the interval lies
-    below the logged cost's own interval, ``worse`` above it. Each 95% interval misses its own
-    value on the side that matters at most 2.5% of the time, so a side is claimed falsely at most
-    5% of the time; read against the logged mean as if it were exact, a policy with the
-    behaviour's own value was called better or worse in 5 of 20 seeds (a tabular problem with
-    its exact value). Without a logged interval (one episode) there is no side to claim."""
+    below the logged cost's own interval, ``worse`` above it, ``indistinguishable`` when they
+    overlap. A false "better" needs the policy's interval to miss its value above or the logged
+    interval to miss the behaviour's below: each 95% interval does so at most 2.5% of the time,
+    so "better" (and, alike, "worse") is claimed falsely at most 5% of the time. Read against the
+    logged mean as if it were exact, a policy with the behaviour's own value was called better
+    or worse in 5 of 20 seeds (a tabular problem with its exact value). ``unknown`` without a
+    logged interval (one episode: no spread to measure): no side, not even "not distinguishable"."""
     bi = logged_interval(beh)
     if bi is None:
-        return "indistinguishable"
+        return "unknown"
     tol = 1e-9 * max(1.0, abs(float(beh["mean"])))
     return "better" if hi < bi[0] - tol else "worse" if lo > bi[1] + tol else "indistinguishable"
+
+
+def behaviour_words(beh: dict[str, Any]) -> str:
+    """The report's and compare's behaviour row: the logged cost, its interval (or why none),
+    its episodes, and why it is not the behaviour's value of the estimand where it is not."""
+    bi = logged_interval(beh)
+    words = f"{beh['mean']:.4g} " + (f"[{bi[0]:.4g}, {bi[1]:.4g}]" if bi else "(no interval: one episode)")
+    words += f" over {beh['episodes']} episodes" if isinstance(beh.get("episodes"), int) else ""
+    off = behaviour_not_comparable(beh)
+    return words + (f"; not the behaviour's value of the estimand: {off}" if off else "")
+
+
+def behaviour_not_comparable(beh: Any) -> str | None:
+    """Why the logged cost is not the behaviour's value of the estimand (``comparable: false``
+    in metrics.json, untrusted), else None."""
+    if not isinstance(beh, dict) or beh.get("comparable") is not False:
+        return None
+    why = beh.get("not_comparable")
+    return why if isinstance(why, str) and why else "the logged cost is not the behaviour's value of the estimand"
 
 
 def logged_words(beh: dict[str, Any]) -> str:
@@ -110,8 +131,12 @@ def _share_over(x: float) -> str:
     """A share above :data:`SUPPORT_FRACTION` as a percentage that does not read as the rule's
     own 5% (0.0517 is "5.2%", not "5%"): whole percents, a decimal where those would not show
     it above the rule."""
-    whole = f"{x:.0%}"
-    return whole if round(x * 100) > round(SUPPORT_FRACTION * 100) else f"{x:.1%}"
+    limit = round(SUPPORT_FRACTION * 100, 6)
+    for digits in range(4):
+        words = f"{x:.{digits}%}"
+        if float(words[:-1]) > limit:
+            return words
+    return f"{x:.6%}"
 
 
 def left_support(m: dict[str, Any], shift: dict[str, Any]) -> list[str]:
@@ -196,7 +221,9 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
     """
     beh = m.get("behaviour_value")
-    beh_off = beh.get("not_comparable") if isinstance(beh, dict) and beh.get("comparable") is False else None
+    beh_off = behaviour_not_comparable(beh) or (
+        "one logged episode: its cost has no interval" if isinstance(beh, dict) and logged_interval(beh) is None
+        else None)
     left = left_support(m, shift)
     support, logs_show = _support_clause(m, shift, left)
     cv = conv.get("verdict")
@@ -380,8 +407,10 @@ def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any
     behaviour's logged cost (with its own interval, :func:`logged_side`) and the demonstrator,
     saying where the logs' side disagrees."""
     r_lo, r_hi = ro["interval"]
-    off = beh.get("not_comparable") if beh.get("comparable") is False else None
+    off = behaviour_not_comparable(beh)
     truth_side = "unknown" if off else logged_side(r_lo, r_hi, beh)
+    if truth_side == "unknown" and not off:
+        off = "one logged episode: its cost has no interval"
     against = f"not compared with the behaviour ({off})" if off else f"{_SIDE_WORDS[truth_side]} the behaviour"
     if demo is not None:  # the demonstrator first when the policy is worse than it
         d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
@@ -398,7 +427,10 @@ def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any
             truth += (f"; failures {demo['failures']} vs {demo['demonstrator_failures']} (demonstrator)"
                       + (": the policy fails more often" if demo["more_failures"] else ""))
     if side in ("better", "worse") and truth_side != side and not off:
-        truth += f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+        truth += (f" (the off-policy estimate, {claim}, said {side}: it is contradicted here)"
+                  if truth_side in ("better", "worse") else
+                  f" (the off-policy estimate, {claim}, said {side}: the rollouts do not confirm it against the "
+                  "logged cost's own interval)")
     elif side == "unknown" and not off:
         truth += f" (from the logs alone: {perf})"
     return truth_side, truth

@@ -167,6 +167,8 @@ def bin_continuous(raw: np.ndarray, spec: ActionSpec, *, where: str = "action") 
     else:
         vals = centre
     names = spec.names or [f"{spec.dim}~{v:.4g}" for v in vals]
+    if not spec.names and len(set(names)) != len(names):  # a level and the bin just above it print alike
+        names = [f"{spec.dim}#{i}" for i in range(n_bins)]
     if len(names) != n_bins:
         raise IngestError(f"{where}: action.names has {len(names)} entries for {n_bins} bins")
     table = ActionTable(
@@ -237,6 +239,22 @@ def command_bounds(x: np.ndarray, spec: ActionSpec, dims: tuple[str, ...], *, in
     return low, high
 
 
+def _coarse_edges(col: np.ndarray, nb: int, low: tuple[float, ...] | None, high: tuple[float, ...] | None,
+                  j: int, levels: bool = True) -> np.ndarray:
+    """One component's coarse bin edges (:func:`coarse_bins`): with ``levels``, a frequent
+    level's own bin (:func:`~offline_adp.data.levels.level_edges`), else plain quantiles."""
+    finite = col[np.isfinite(col)]
+    if len(finite):
+        edges = level_edges(finite, nb) if levels else np.unique(np.quantile(finite, np.linspace(0, 1, nb + 1)))
+    elif low is not None and high is not None:
+        edges = np.unique([low[j], high[j]])
+    else:
+        edges = np.zeros(1)
+    if len(edges) < 2:
+        edges = np.array([edges[0] - 0.5, edges[-1] + 0.5])
+    return edges
+
+
 def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | None = None,
                 high: tuple[float, ...] | None = None) -> tuple[np.ndarray, ActionTable]:
     """Commands ``x`` (n, k) -> coarse bin index per row and a table of the bins.
@@ -248,18 +266,13 @@ def coarse_bins(x: np.ndarray, dims: tuple[str, ...], low: tuple[float, ...] | N
     the command itself). The table has kind ``"continuous"``."""
     n, k = x.shape
     nb = max(1, min(COARSE_BINS, int(np.floor(MAX_COARSE_CELLS ** (1.0 / k) + 1e-9))))
+    all_edges = [_coarse_edges(x[:, j], nb, low, high, j) for j in range(k)]
+    if int(np.prod([len(e) - 1 for e in all_edges], dtype=object)) > MAX_COARSE_CELLS:
+        # a frequent level's own bin adds one per component: past the cap, plain quantile bins
+        all_edges = [_coarse_edges(x[:, j], nb, low, high, j, levels=False) for j in range(k)]
     per = []
-    for j in range(k):
+    for j, edges in enumerate(all_edges):
         col = x[:, j]
-        finite = col[np.isfinite(col)]
-        if len(finite):
-            edges = level_edges(finite, nb)
-        elif low is not None and high is not None:
-            edges = np.unique([low[j], high[j]])
-        else:
-            edges = np.zeros(1)
-        if len(edges) < 2:
-            edges = np.array([edges[0] - 0.5, edges[-1] + 0.5])
         m = len(edges) - 1
         per.append((np.clip(np.searchsorted(edges, col, side="right") - 1, 0, m - 1), (edges[:-1] + edges[1:]) / 2))
     shape = tuple(len(c) for _, c in per)

@@ -261,8 +261,8 @@ def check_command_column(table: pa.Table, column: str, file_of: Callable[[np.nda
     if pa.types.is_integer(t) and table.num_rows:
         whole = col.combine_chunks()
         flat = whole if pa.types.is_integer(whole.type) else pc.list_flatten(whole)
-        v = np.abs(flat.fill_null(0).to_numpy(zero_copy_only=False).astype(np.float64))
-        big = np.flatnonzero(v > 2.0**53)
+        v = flat.fill_null(0).to_numpy(zero_copy_only=False)  # compared as integers: 2^53 + 1 rounds to 2^53
+        big = np.flatnonzero((v > 2**53) | (v < -(2**53)) if v.dtype.kind == "i" else v > 2**53)
         if len(big):
             row = int(big[0])
             if flat is not whole:  # a list column: the row holding that value
