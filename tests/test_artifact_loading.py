@@ -224,7 +224,7 @@ def test_a_constant_member_is_written_so_that_our_loader_reads_it(tmp_path):
     with np.load(tmp_path / "c.npz", allow_pickle=False) as z:
         for k, v in arrays.items():
             np.testing.assert_array_equal(z[k], v)
-    # many small constant members: each within the per-member limit, the total not
+    # many small constant members: each past the per-member limit, so each stored, and the file loads
     many = {f"m.k{i}": np.zeros(3000) for i in range(400)}
     savez(tmp_path / "m.npz", many)
     C.check_npz(tmp_path / "m.npz")
