@@ -71,7 +71,7 @@ BASE = {"estimand": {"possible_range": [-20.0, 0.0]},
         "ope": {"fqe": {"estimate": -12.6, "interval": [-14.1, -12.2], "level": 0.95},
                 "model": {"estimate": -12.7, "interval": [-13.3, -12.0], "level": 0.95},
                 "wdr": _wdr(1.0, [-12.88, -12.57], [-0.10, 0.25])},
-        "behaviour_value": {"mean": -12.9},
+        "behaviour_value": {"mean": -12.9, "interval": [-13.3, -12.5]},
         "behaviour": {"support_violations": {"fraction": 0.0}}}
 IN_SUPPORT = {"method": "recursion", "enough_data": True}
 CONVERGED = {"verdict": "converged", "text": "fit converged"}
