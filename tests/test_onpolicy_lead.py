@@ -334,3 +334,18 @@ def test_the_logged_cost_has_a_student_t_interval_and_says_when_it_is_not_the_T_
     term = np.zeros(10, bool)
     term[9] = True  # it ended in a terminal state: its cost after that is 0 indeed
     assert "comparable" not in behaviour_value(em, np.ones(10), 1.0, terminated=term)
+
+
+def test_past_the_logs_the_logged_cost_of_episodes_cut_at_T_is_not_the_behaviours_value():
+    from offline_adp.evaluation.offpolicy import behaviour_value
+
+    em = ope.EpisodeMatrix.build(np.repeat([0, 1], 4), np.tile(np.arange(4), 2), 4)
+    cost, term = np.ones(8), np.zeros(8, bool)
+    assert "comparable" not in behaviour_value(em, cost, 0.9, terminated=term, est_def=Estimand(4, 0.9))
+    bv = behaviour_value(em, cost, 0.9, terminated=term, est_def=Estimand(4, 0.9, target_horizon=10))
+    assert bv["comparable"] is False and "reads 10 steps" in bv["not_comparable"]
+    bv = behaviour_value(em, cost, 0.9, terminated=term, est_def=Estimand(4, 0.9, form="infinite"))
+    assert bv["comparable"] is False and "infinite-horizon value" in bv["not_comparable"]
+    term[[3, 7]] = True  # both ended in a terminal state: their cost after it is 0 indeed
+    assert "comparable" not in behaviour_value(em, cost, 0.9, terminated=term, est_def=Estimand(4, 0.9,
+                                                                                                target_horizon=10))

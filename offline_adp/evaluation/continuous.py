@@ -341,7 +341,7 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
         "commands": {"dims": list(ds.info.action_table.dims), "units": list(ds.info.action_table.units),
                      "low": None if ds.info.action_table.low is None else list(ds.info.action_table.low),
                      "high": None if ds.info.action_table.high is None else list(ds.info.action_table.high)},
-        "behaviour_value": behaviour_value(em, a.cost, est_def.gamma, terminated=a.terminated),
+        "behaviour_value": behaviour_value(em, a.cost, est_def.gamma, terminated=a.terminated, est_def=est_def),
         "behaviour": {"source": "logged commands", "support_violations": support, "replayed_commands": replay,
                       "warnings": []},
         "ope": {"fqe": {**fq_d, "method": "fqe"},

@@ -130,12 +130,15 @@ class ResidualAdvantage:
 
 
 def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level: float = 0.95,
-                    terminated: np.ndarray | None = None) -> dict[str, Any]:
+                    terminated: np.ndarray | None = None, est_def: Estimand | None = None) -> dict[str, Any]:
     """The logged behaviour's own value of the estimand: mean over episodes of
     ``sum_{t<T} gamma^t c_t`` with a Student-t interval (n - 1 degrees of freedom: with few
-    episodes a normal one covers far less than its level). With ``terminated``, episodes that stop
-    before step T without a terminal state (truncated) mark it ``comparable: false``: their
-    missing steps count as zero cost in it, so it is not the behaviour's T-step value."""
+    episodes a normal one covers far less than its level). With ``terminated``, it is marked
+    ``comparable: false`` where it is not the behaviour's value of the estimand: episodes that
+    stop before step T without a terminal state (truncated: their missing steps count as zero
+    cost in it), or, for an estimand past the T logged steps (``est_def``: a longer horizon or the
+    infinite-horizon value), episodes that run to step T without a terminal state (their cost
+    after step T is not in it)."""
     from scipy.stats import t as student_t
 
     G = em.lay(cost) @ (gamma ** np.arange(em.horizon))
@@ -144,11 +147,18 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
     q = float(student_t.ppf(0.5 + level / 2, n - 1)) if n > 1 else float("inf")
     out = {"mean": float(G.mean()), "se": se, "interval": [float(G.mean() - q * se), float(G.mean() + q * se)],
            "episodes": int(n), "method": "mean logged discounted cost over the data's episodes (Student-t interval)"}
-    if terminated is not None and episode_ends(em, terminated) == "short":
+    ends = None if terminated is None else episode_ends(em, terminated)
+    if ends == "short":
         out |= {"comparable": False,
                 "not_comparable": f"{short_episodes(em, terminated)} of {em.n_episodes} logged episodes stop before "
                                   f"step {em.horizon} without a terminal state: their missing steps count as zero "
                                   "cost in the logged mean"}
+    elif ends == "horizon" and est_def is not None and (est_def.beyond_logs or est_def.form == "infinite"):
+        what = "the infinite-horizon value" if est_def.form == "infinite" else f"{est_def.value_horizon} steps"
+        out |= {"comparable": False,
+                "not_comparable": f"the estimand reads {what}, but logged episodes run to step {em.horizon} without "
+                                  f"a terminal state: the logged mean holds none of their cost after step "
+                                  f"{em.horizon}"}
     return out
 
 
@@ -250,7 +260,7 @@ def verdict_inputs(a: TransitionArrays, w: Weighting, est_def: Estimand, level: 
     # the weighted distribution is WIS's: not the estimand's where truncated episodes count their missing steps as 0
     comparable = (not est_def.beyond_logs and est_def.form == "finite"
                   and episode_ends(w.em, a.terminated) != "short")
-    return {"behaviour_value": behaviour_value(w.em, a.cost, gamma, level, a.terminated),
+    return {"behaviour_value": behaviour_value(w.em, a.cost, gamma, level, a.terminated, est_def),
             "per_step_counts": shift.per_step_counts(a.step, T),
             "cost_distribution": logged_cost_distributions(w.em, a.cost, w.rho, gamma, w.groups, comparable=comparable)}
 
