@@ -182,3 +182,22 @@ def test_cpi_stops_at_its_fixed_point_and_says_so(budget):
     else:
         assert cpi.verdict_ == "still changing" and len(h) == budget + 1 and h["alpha"].iloc[-1] > 0
     assert budget == 1 or cpi.verdict_ == "converged"  # 12 steps reach the fixed point on 6 states
+
+
+def test_api_with_the_datas_own_finite_horizon_reaches_the_exact_optimum():
+    """The evaluator's horizon came from the dataset (the CLI's default), but API compared and
+    handed on only the step-0 actions: it said "converged" at 2.5604 where the tabular optimum
+    (finite-horizon FQI on the same lookup table: backward induction) is 2.49959, and its policy
+    cost 2.5157."""
+    from offline_adp.algorithms.api import ApproximatePolicyIteration, default_evaluator
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.simulate import simulate
+
+    ds = simulate("tabular", 20, 20, seed=3, problem_options={"n_states": 6, "n_actions": 3})
+    assert ds.info.horizon is not None
+    opt = FittedQIteration(regressor="tabular", action_input="onehot").fit(ds).history_["start_value"].iloc[-1]
+    api = ApproximatePolicyIteration(fqe=default_evaluator(regressor="tabular", action_input="onehot")).fit(ds)
+    assert api.verdict_ == "converged" and api.value_ == pytest.approx(opt, abs=1e-9)
+    own = FittedQEvaluation(policy=api.policy_, regressor="tabular", action_input="onehot").fit(ds).value_
+    assert own == pytest.approx(api.value_, abs=1e-9)  # the value printed is the returned policy's

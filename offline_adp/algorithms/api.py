@@ -289,8 +289,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
             fqe.policy = fqe.policy_ = pi  # (not its table)
             improved = _improve(fqe.q_function_, cands)  # pi_{k+1} = argmin_a Q^{pi_k}
             attach_signature(improved, dataset)
-            q_next = _next_state_q(fqe, a.next_obs) if cands is None and not proto.horizon else None
-            actions = (_greedy_actions(improved, states, proto.horizon) if q_next is None else  # (1, |S|)
+            H = getattr(fqe, "horizon_", None) or proto.horizon  # the evaluator's horizon, also one from the data
+            q_next = _next_state_q(fqe, a.next_obs) if cands is None and not H else None
+            actions = (_greedy_actions(improved, states, H) if q_next is None else  # (1, |S|)
                        np.r_[q_next.argmin(axis=1), _greedy_actions(improved, states[len(q_next):], None)[0]][None])
             changed = _changed(actions, seen[-1] if seen else None, cands is not None)
             rows.append({"iteration": k, "value": fqe.value_, "changed": changed,
@@ -316,7 +317,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 break
             seen.append(actions)
             pi, q_prev = improved, q_kept
-            known = pi if cands is not None or proto.horizon else _Known(pi, states, actions[0])
+            known = pi if cands is not None or H else _Known(pi, states, actions[0])
             if self.model is not None and self.episodes_per_iteration:
                 from offline_adp.rollout import collect
 
