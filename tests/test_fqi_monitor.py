@@ -60,3 +60,41 @@ def test_every_fit_ends_with_a_verdict(small_pt):
         h = FittedQIteration(horizon=3, regressor_params={"n_estimators": 5, "n_jobs": 1}).fit(small_pt)
         assert h.verdict_ == "completed"
     assert (f.history_["cpu_time"] >= 0).all()
+
+
+def test_a_lookup_tables_verdict_states_the_contraction_bound_and_it_holds():
+    """A refit with the lookup table is exact value iteration on the logs' empirical model: its
+    backup is a gamma-contraction, so the distance bound holds. It said "still changing (no
+    contraction bound here)" at the exact fixed point, and "converged" on sup|dQ| < tol when the
+    values were 0.98 from it (gamma 0.99, tol 0.01)."""
+    import numpy as np
+
+    from offline_adp import dp
+    from offline_adp.algorithms.fqi import FittedQIteration
+    from offline_adp.envs import TabularMDP
+    from offline_adp.rollout import collect
+
+    mdp = TabularMDP(n_states=5, n_actions=2, horizon=30, gamma=0.9, seed=2)
+    ds = collect(mdp, mdp.exploration(), 300, np.random.default_rng(0), horizon=30)
+    a = ds.arrays()
+    S, A = 5, 2
+    s, x2 = a.obs[:, 0].astype(int), a.next_obs[:, 0].astype(int)
+    P, C, N = np.zeros((A, S + 1, S + 1)), np.zeros((S + 1, A)), np.zeros((S, A))
+    np.add.at(N, (s, a.action), 1)
+    np.add.at(C, (s, a.action), a.cost)
+    np.add.at(P, (a.action, s, np.where(a.terminated, S, x2)), 1)
+    C[:S] /= np.maximum(N, 1)
+    P[:, :S] /= np.maximum(N.T[:, :, None], 1)
+    P[:, S, S] = 1.0
+    assert (N > 0).all()
+    exact = dp.value_iteration_discounted(P, C, 0.9).Q[:S]
+    for kw in ({"n_iterations": 1000}, {"n_iterations": 1000, "tol": 0.05}, {"n_iterations": 20}):
+        f = FittedQIteration(gamma=0.9, regressor="tabular", action_input="onehot", **kw).fit(ds)
+        err = np.abs(f.q_function_.values(np.arange(S, dtype=float)[:, None]) - exact).max()
+        bound = 9.0 * f.history_["sup_dq"].iloc[-1]
+        assert err <= bound + 1e-9 and "lookup table" in f.verdict_message_
+        assert (f.verdict_ == "converged") == (bound <= max(kw.get("tol", 0.0),
+                                                             0.01 * f.history_["max_abs_q"].iloc[-1]))
+        assert f"within {bound:.3g} of its fixed point" in f.verdict_message_
+    assert FittedQIteration(gamma=0.9, regressor="tabular", action_input="onehot",
+                            n_iterations=1000).fit(ds).verdict_ == "converged"  # was "still changing"

@@ -254,6 +254,8 @@ class FittedQEstimator(CheckedEstimator):
             rows, finite=finite, divergence=self.divergence_message_, converged=conv, gamma=data.gamma,
             tolerance=self._tolerance(rows[-1]) if rows else None, frozen=frozen, window=self.patience,
             capped=self.n_iterations == "auto" and len(rows) >= total and not conv)
+        if rows and not finite and self.divergence_message_ is None and self._lookup_table():
+            conv, self.verdict_, self.verdict_message_ = self._table_verdict(rows[-1])
         self.converged_ = conv
         if rows:
             rows[-1]["verdict"] = self.verdict_
@@ -290,6 +292,35 @@ class FittedQEstimator(CheckedEstimator):
         """Whether the contraction bound decides convergence: a frozen structure, gamma < 1 and
         no target noise (fresh noise every iteration: no fixed point to be near)."""
         return getattr(self, "mode_", self.mode) == "frozen" and self.gamma_ < 1 and not self.target_noise
+
+    def _lookup_table(self) -> bool:
+        """A refit with the lookup table (``regressor="tabular"``), gamma < 1, no noise: each
+        iteration averages the backed-up targets over a fixed set of cells, so it is a sup-norm
+        gamma-contraction, as a frozen structure's is, and the distance bound holds."""
+        from offline_adp.regressors import TabularRegressor, make_regressor
+
+        if getattr(self, "mode_", self.mode) != "refit" or not self.gamma_ < 1 or self.target_noise \
+                or getattr(self, "next_state_noise", 0.0):
+            return False
+        try:
+            reg = make_regressor(self.regressor, **(self.regressor_params or {}))
+        except Exception:  # noqa: BLE001 - any regressor we cannot make here is not the lookup table
+            return False
+        return isinstance(reg, TabularRegressor)
+
+    def _table_verdict(self, last: dict[str, Any]) -> tuple[bool, str, str]:
+        """The lookup table's verdict by the contraction bound (:meth:`_lookup_table`): "converged"
+        when ``gamma/(1-gamma) sup|dQ|`` is within ``rtol max|Q|`` (or ``tol``, whichever is wider:
+        ``tol`` stops the loop on ``sup|dQ|``), the bound stated either way."""
+        sd, k = last["sup_dq"], last["iteration"]
+        bound = distance_bound(sd, self.gamma_)
+        tol = max(float(self.rtol) * float(last["max_abs_q"]), self.tol if self.tol is not None else 0.0)
+        where = (f"after {k} iterations the lookup table's values are within {bound:.3g} of its fixed point "
+                 f"(gamma/(1-gamma) x sup|dQ|, sup|dQ| = {sd:.3g}: a lookup table's backup is a gamma-contraction; "
+                 f"max|Q| = {last['max_abs_q']:.4g})")
+        if bound <= tol:
+            return True, "converged", f"{where} <= tolerance {tol:.3g}"
+        return False, "still changing", f"{where} > tolerance {tol:.3g} (more iterations would settle it)"
 
     def _tolerance(self, last: dict[str, Any]) -> float | None:
         """What the convergence test compares with (:mod:`~offline_adp.algorithms.fqi_monitor`):
