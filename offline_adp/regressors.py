@@ -45,7 +45,11 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
     Parameters
     ----------
     fill_value : float
-        Prediction for input rows never seen in ``fit``.
+        Prediction for input rows never seen in ``fit``. The default 0 is optimistic for
+        positive costs: where the logs never took an action at a state, FQI's greedy minimum
+        (and its policy) prefers that action's 0 to the logged actions' costs (found against
+        exact DP on logs that leave some actions out). With such logs, pass a pessimistic
+        cost, e.g. ``regressor_params={"fill_value": max_cost / (1 - gamma)}``.
     """
 
     def __init__(self, fill_value: float = 0.0) -> None:
