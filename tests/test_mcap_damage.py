@@ -96,3 +96,33 @@ def test_a_file_cut_mid_step_keeps_every_complete_episode(tmp_path, on_error):
         assert len(ds) + q.num_rows == s["transitions_assembled"]
     else:
         assert q is None and s["dropped_rows"] == s["transitions_assembled"] - len(ds) > 0
+
+
+@pytest.mark.parametrize("on_error", ["fail", "quarantine"])
+def test_the_cut_episode_is_the_one_left_out_whatever_order_the_ids_sort_in(tmp_path, on_error):
+    """A cut recording listed before an intact one whose episode ids sort first: the rows of the
+    cut episode were located in file order but removed after the sort by episode id, so a
+    complete episode lost rows and the cut one stayed (a helper's bug hunt)."""
+    from pathlib import Path
+
+    from offline_adp.cli import main
+    from offline_adp.ingest.mcap.spec import load_mcap_spec
+
+    spec = load_mcap_spec(Path(__file__).resolve().parents[1] / "data" / "specs" / "path_tracking_mcap.toml")
+    assert main(["simulate", "path_tracking", "--format", "mcap-ros2", "--demonstrations", "3", "--exploration", "4",
+                 "--seed", "2", "--out", str(tmp_path / "mc"), "-q"]) == 0
+    expl, demo = tmp_path / "mc" / "exploration.mcap", tmp_path / "mc" / "demonstration.mcap"
+    data = expl.read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[:int(len(data) * 0.7)])
+    full, _ = ingest_mcap([expl, demo], spec)
+    with pytest.warns(UserWarning, match="recovered"):
+        ds, s = ingest_mcap([tmp_path / "cut.mcap", demo], spec, tmp_path / "out", on_error=on_error)
+    assert s["cut_episodes"] == 1
+    rows = lambda d: dict(zip(*np.unique(np.asarray(d.table.column("episode_id").to_pylist()),  # noqa: E731
+                                        return_counts=True), strict=True))
+    whole, kept = rows(full), rows(ds)
+    assert kept and all(kept[e] == whole[e] for e in kept)  # every kept episode whole
+    assert sum(whole[e] for e in kept) == len(ds) and len(kept) == len(whole) - 1  # only the cut one left out
+    q = read_quarantine(tmp_path / "out")
+    if on_error == "quarantine":
+        assert set(q.column("episode_id").to_pylist()) == set(whole) - set(kept)

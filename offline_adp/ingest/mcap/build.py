@@ -163,17 +163,24 @@ def ingest_mcap_tables(
                else "")
             + (f"; rejected episodes: {[e['reason'] for e in summary['rejected_episodes']][:3]}" if rejected else "")
             + (f"; skipped files: {summary['skipped_files']}" if summary["skipped_files"] else ""))
-    ds_all = _dataset(eps, spec, paths, summary)
-    row_rejected = np.repeat([bool(e.reason) for e in eps], [len(e.t) for e in eps])
     import pyarrow as pa
 
+    ds_all = _dataset(eps, spec, paths, summary, mark=bool(rejected))
     q_tables = []
-    if rejected and on_error == "quarantine":
-        reasons = np.repeat([e.reason for e in rejected], [len(e.t) for e in rejected])
-        q_tables.append(
-            ds_all.table.filter(pa.array(row_rejected)).append_column("reason", pa.array(reasons, pa.string()))
-        )
-    ds = TransitionDataset(ds_all.table.filter(pa.array(~row_rejected)), ds_all.info) if rejected else ds_all
+    if rejected:
+        # the dataset's rows are in (episode id, step) order, not the episodes' file order: each row
+        # carries its episode's index into eps (a cut or incomplete episode, wherever it sorts)
+        table = ds_all.table
+        which = table.column(_EP_INDEX).to_numpy(zero_copy_only=False)
+        table = table.drop_columns([_EP_INDEX])
+        row_rejected = np.array([bool(e.reason) for e in eps])[which]
+        if on_error == "quarantine":
+            reasons = np.array([e.reason for e in eps], dtype=object)[which[row_rejected]]
+            q_tables.append(table.filter(pa.array(row_rejected)).append_column(
+                "reason", pa.array(list(reasons), pa.string())))
+        ds = TransitionDataset(table.filter(pa.array(~row_rejected)), ds_all.info)
+    else:
+        row_rejected, ds = np.zeros(len(ds_all), bool), ds_all
     report = validate(ds)
     summary["doctor"] = report.summary()
     if not report.ok:
@@ -198,9 +205,16 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary: dict[str, Any]) -> TransitionDataset:
+#: A column of the assembled table (dropped before anything is written): each row's episode's
+#: index in the list of assembled episodes, so that rejected episodes are found after the sort.
+_EP_INDEX = "_episode_index"
+
+
+def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary: dict[str, Any],
+             mark: bool = False) -> TransitionDataset:
     """Episodes -> dataset: action table, costs, provenance (``src_file`` and
-    ``src_log_time``, the log_time of the message that made the step, per row)."""
+    ``src_log_time``, the log_time of the message that made the step, per row); ``mark``: each
+    row also carries its episode's index in ``eps`` (:data:`_EP_INDEX`)."""
     import pyarrow as pa
 
     cat = lambda k: np.concatenate([getattr(e, k) for e in eps])  # noqa: E731
@@ -263,7 +277,8 @@ def _dataset(eps: list[EpisodeRows], spec: McapSpec, paths: list[Path], summary:
         source=np.repeat([e.src for e in eps], lengths), t_ns=cat("t"),
         extra={"src_file": pa.DictionaryArray.from_arrays(pa.array(cat("file").astype(np.int32)),
                                                           pa.array([str(p) for p in paths])),
-               "src_log_time": pa.array(cat("log_time").astype(np.int64)), **commands},
+               "src_log_time": pa.array(cat("log_time").astype(np.int64)), **commands,
+               **({_EP_INDEX: pa.array(np.repeat(np.arange(len(eps), dtype=np.int32), lengths))} if mark else {})},
     )
     return ds
 
