@@ -168,3 +168,24 @@ def test_action_table_mismatch_is_named():
 
     with pytest.raises(IngestError, match="1 components, the action table 2"):
         _action_indices(np.zeros((3, 1)), t, "x")
+
+
+def test_continuous_commands_are_exported_exactly_or_refused(tmp_path):
+    """LeRobot wrote each command's coarse bin value (16 values for 2454 logged commands, off by
+    up to 0.33); Minari wrote a Discrete space and dropped the commands (its import then failed
+    the doctor). LeRobot now writes the commands as logged; Minari refuses, naming the formats that keep them."""
+    from offline_adp.errors import ExportError
+    from tests.test_continuous_deploy import command_dataset
+
+    rng = np.random.default_rng(0)
+    n = 60
+    u = rng.uniform(-1, 1, (n, 2))
+    x = rng.normal(size=(n, 2))
+    ds = command_dataset(x, u, rng.random(n), x + 0.1, np.repeat(np.arange(6), 10), np.tile(np.arange(10), 6),
+                         [-1.0, -1.0], [1.0, 1.0], ["steer", "throttle"])
+    root = to_lerobot(ds, tmp_path / "lr", fps=10.0)
+    frames = pd.concat([pd.read_parquet(f) for f in sorted((root / "data").rglob("episode_*.parquet"))],
+                       ignore_index=True)
+    np.testing.assert_array_equal(np.stack(frames["action"]), ds.commands())
+    with pytest.raises(ExportError, match="continuous commands .* --to d4rl or --to lerobot"):
+        to_minari(ds, "test/cont-v0", datasets_path=tmp_path / "minari")

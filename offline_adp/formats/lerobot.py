@@ -43,7 +43,8 @@ def to_lerobot(ds: TransitionDataset, root: str | PathLike[str], *, fps: float |
     else:
         timestamp = frame / fps
     at = ds.info.action_table
-    values = at.values[c["action"]]
+    exact = ds.commands()  # continuous commands as logged: the action itself, never its coarse bin's value
+    values = np.asarray(exact, np.float64) if exact is not None else at.values[c["action"]]
     task = task or ds.info.name or ds.info.problem or "offline_adp dataset"
 
     def lst(x: np.ndarray) -> pa.Array:

@@ -51,6 +51,10 @@ def to_minari(ds: TransitionDataset, dataset_id: str, *, datasets_path: str | Pa
               author: str | None = None, description: str | None = None) -> Path:
     """Write ``ds`` as a local Minari dataset ``dataset_id`` (see module docstring);
     returns its directory. ``datasets_path`` overrides ``MINARI_DATASETS_PATH``."""
+    if ds.commands() is not None:
+        raise ExportError("this dataset holds continuous commands (action_value.*): the Minari export writes a "
+                          "Discrete action space, which would keep only their coarse bins and lose the commands; "
+                          "convert it --to d4rl or --to lerobot, which keep the exact commands")
     minari = _minari()
     import gymnasium as gym
     from minari.data_collector import EpisodeBuffer
