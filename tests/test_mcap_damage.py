@@ -126,3 +126,24 @@ def test_the_cut_episode_is_the_one_left_out_whatever_order_the_ids_sort_in(tmp_
     q = read_quarantine(tmp_path / "out")
     if on_error == "quarantine":
         assert set(q.column("episode_id").to_pylist()) == set(whole) - set(kept)
+
+
+def test_a_clock_that_steps_back_less_than_a_restart_is_said(tmp_path):
+    """The clock's time falls back 0.35 s (under restart = 1 s) in file order: the steps are
+    ordered by time and a transition can pair steps the robot did not take in that order. It was
+    silent (every counter 0); it is now counted and warned about."""
+    msgs = rl_log(n_episodes=2, k_absent=0, n_steps=300)  # each episode 1.5 s: its restart is one
+    f = write_log(tmp_path / "ok.mcap", msgs)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a monotonic clock: no such warning
+        _, s = ingest_mcap([f], rl_spec(0.01))
+    assert s["clock_steps_back"] == 0
+    states = [i for i, m in enumerate(msgs) if m[0] == "/state"]
+    i, j = states[100], states[300]  # in the first episode, from its step 100 on
+    jumped = [(tp, t - 350_000_000 if i <= k < j else t, d) for k, (tp, t, d) in enumerate(msgs)]
+    f = write_log(tmp_path / "jump.mcap", jumped)
+    with pytest.warns(UserWarning, match=r"clock messages are earlier than one before them .* clock.restart = 1.0 s"):
+        _, s = ingest_mcap([f], rl_spec(0.01))
+    assert s["clock_steps_back"] >= 1

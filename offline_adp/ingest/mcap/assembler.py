@@ -80,7 +80,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
                       "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
-                      "episode_splits": 0, "lost_chunks_uncounted": 0,
+                      "episode_splits": 0, "lost_chunks_uncounted": 0, "clock_steps_back": 0,
                       "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
@@ -268,6 +268,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             e = ek + 1 if own_restart else ek
             if own_restart:
                 self.stats["restarts"] += 1
+            elif m is not None and t < m:  # back in time, by less than a restart: ordered by time, said
+                self.stats["clock_steps_back"] += 1
             if e not in self.clock_first:
                 self.clock_first[e] = t
                 for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped

@@ -143,6 +143,11 @@ def ingest_mcap_tables(
                 if on_error == "fail" or not any(not isinstance(r, str) and len(r.episodes) for r in results):
                     raise IngestError(msg)
                 warnings.warn(msg, stacklevel=2)
+    if summary.get("clock_steps_back"):
+        warnings.warn(f"{summary['clock_steps_back']} clock messages are earlier than one before them in the file, by "
+                      f"less than clock.restart = {spec.restart} s: their steps are ordered by time, so a transition "
+                      "may pair steps the robot did not take in that order. If the clock restarted, lower "
+                      "clock.restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
     summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
     if summary["late_messages"]:
         warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
