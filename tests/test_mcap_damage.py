@@ -147,3 +147,28 @@ def test_a_clock_that_steps_back_less_than_a_restart_is_said(tmp_path):
     with pytest.warns(UserWarning, match=r"clock messages are earlier than one before them .* clock.restart = 1.0 s"):
         _, s = ingest_mcap([f], rl_spec(0.01))
     assert s["clock_steps_back"] >= 1
+
+
+def test_a_second_mcap_ingest_into_the_same_directory_fails_at_once(tmp_path):
+    """The MCAP ingest took the dataset's lock only while writing: two `ingest mcap --overwrite`
+    into one --out both succeeded, the last writer silently winning. It holds it from the start now."""
+    import subprocess
+    import sys
+
+    from offline_adp.errors import LockedError
+
+    f = write_log(tmp_path / "rl.mcap", rl_log(n_episodes=2, k_absent=0, n_steps=300))
+    out = tmp_path / "ds"
+    hold = ("import sys, time\nfrom offline_adp.data.files import locked_directory\n"
+            "with locked_directory(sys.argv[1], what='dataset'):\n    print('held', flush=True)\n    time.sleep(60)\n")
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(LockedError, match="another process is writing"):
+            ingest_mcap([f], rl_spec(0.01), out, overwrite=True)
+        assert not out.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    ds, _ = ingest_mcap([f], rl_spec(0.01), out)  # the lock released with its holder
+    assert len(ds) > 0 and out.exists()

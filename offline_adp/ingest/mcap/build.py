@@ -63,10 +63,15 @@ def ingest_mcap(
     quarantine = transitions_assembled``) and the files skipped.
     ``progress(done, total)`` is called after each recording.
     """
-    if out is not None and Path(out).exists() and not overwrite:
-        raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
-    ds, quarantine, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
-    if out is not None:
+    if out is None:
+        ds, _, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
+        return ds, summary
+    from offline_adp.data.files import locked_directory
+
+    with locked_directory(out, what="dataset"):  # from the start, as the Parquet ingest: a second ingest fails now
+        if Path(out).exists() and not overwrite:
+            raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+        ds, quarantine, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
         write_dataset(ds, out, overwrite=overwrite, quarantine=quarantine, extra_meta={"ingest": _jsonable(summary)})
     return ds, summary
 
