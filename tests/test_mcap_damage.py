@@ -166,6 +166,9 @@ def test_a_second_mcap_ingest_into_the_same_directory_fails_at_once(tmp_path):
         assert holder.stdout.readline().strip() == "held"
         with pytest.raises(LockedError, match="another process is writing"):
             ingest_mcap([f], rl_spec(0.01), out, overwrite=True)
+        # refused before reading anything (not after the whole ingest): a missing input is not even opened
+        with pytest.raises(LockedError, match="another process is writing"):
+            ingest_mcap([tmp_path / "missing.mcap"], rl_spec(0.01), out, overwrite=True)
         assert not out.exists()
     finally:
         holder.kill()
