@@ -175,3 +175,17 @@ def test_a_second_mcap_ingest_into_the_same_directory_fails_at_once(tmp_path):
         holder.wait()
     ds, _ = ingest_mcap([f], rl_spec(0.01), out)  # the lock released with its holder
     assert len(ds) > 0 and out.exists()
+
+
+def test_an_action_topic_missing_from_the_file_is_named_as_such(tmp_path):
+    from offline_adp.ingest.mcap.spec import parse_mcap_spec
+
+    f = write_log(tmp_path / "rl.mcap", rl_log(n_episodes=2, k_absent=0, n_steps=300))
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/state", "reorder_window": 0.01}, "episodes": {"restart": 1.0, "gap": 1.0},
+        "streams": [{"topic": "/state", "fields": {"x": "x"}, "max_age": 0.001},
+                    {"topic": "/reward", "role": "reward", "fields": {"r": "r"}, "max_age": 0.002}],
+        "action": {"topic": "/steer", "field": "u", "max_age": 0.01, "type": "discrete", "values": [0.0, 1.0]},
+        "cost": {"reward": "r"}})
+    with pytest.raises(IngestError, match=r"topic '/steer' of the spec is not in the file .*'/cmd'"):
+        ingest_mcap([f], spec)
