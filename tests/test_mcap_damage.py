@@ -189,3 +189,24 @@ def test_an_action_topic_missing_from_the_file_is_named_as_such(tmp_path):
         "cost": {"reward": "r"}})
     with pytest.raises(IngestError, match=r"topic '/steer' of the spec is not in the file .*'/cmd'"):
         ingest_mcap([f], spec)
+
+
+def test_steps_given_a_fill_value_are_counted_and_said(tmp_path):
+    """A stream whose every step got its fill value (its time field never met the clock's) was
+    silent: doctor OK, no count. Filled steps are counted per topic and warned about."""
+    from offline_adp.ingest.mcap.spec import parse_mcap_spec
+
+    msgs = rl_log(n_episodes=2, k_absent=0, n_steps=300)
+    msgs += [("/imu", t + 10**12, {"w": 1.0}) for tp, t, _ in msgs if tp == "/state"]  # far from the clock
+    f = write_log(tmp_path / "rl.mcap", msgs)
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/state", "reorder_window": 0.01}, "episodes": {"restart": 1.0, "gap": 1.0},
+        "streams": [{"topic": "/state", "fields": {"x": "x"}, "max_age": 0.001},
+                    {"topic": "/imu", "fields": {"w": "w"}, "max_age": 0.001, "missing": "fill", "fill": 0.0},
+                    {"topic": "/reward", "role": "reward", "fields": {"r": "r"}, "max_age": 0.002}],
+        "action": {"topic": "/cmd", "field": "u", "align": "previous", "max_age": 0.01, "type": "discrete",
+                   "values": [0.0, 1.0, 2.0, 3.0]},
+        "cost": {"reward": "r"}})
+    with pytest.warns(UserWarning, match=r"fill value .* \{'/imu': 600\}"):
+        ds, s = ingest_mcap([f], spec)
+    assert s["filled_steps"] == {"/imu": 600} and len(ds) == 2 * 299

@@ -77,6 +77,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         self.out: list[EpisodeRows] = []
         self.used = {t: 0 for t in self.by_topic}
         self.late = {t: 0 for t in self.by_topic}
+        self.filled = {t: 0 for t in self.by_topic}  # steps given a stream's fill value (missing = "fill")
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
                       "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
@@ -125,7 +126,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 self.stats["episodes_lost_to_damage"] += 1
         self.stats["episodes_lost_to_damage"] += self._episodes_never_seen()
         missing = [t for t, n in self.used.items() if n == 0 and t != self.spec.episode_topic]
-        return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing)
+        return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing, self.filled)
 
     def _read(self, path: Path, file_index: int) -> None:
         from collections import Counter
@@ -433,6 +434,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             if top is not None:
                 damaged |= times >= top - self.lag
         missing_here = np.zeros(n, bool)
+        filled_here: dict[str, int] = {}
         act_cols: list[np.ndarray] = []
         act_ok = np.ones(n, bool)
         for k, s in self.value_keys.items():
@@ -441,6 +443,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             for name in s.fields:
                 v, good = _align(a["t"], a[name], times, s)
                 if s.missing == "fill":
+                    filled_here[s.topic] = max(filled_here.get(s.topic, 0), int((~good).sum()))  # steps, not fields
                     v, good = np.where(good, v, s.fill), np.ones(n, bool)
                 elif s.missing == "drop_step":
                     keep &= good
@@ -461,6 +464,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 else:
                     where, j = self.col[name]
                     (obs if where == "obs" else aux)[:, j] = v
+        for topic, c in filled_here.items():
+            self.filled[topic] += c
         act = act_cols[0] if len(act_cols) == 1 else np.column_stack(act_cols)  # a vector action: one column each
         hit = damaged & (missing_here | ~keep)  # lacks data that damage may have taken: episode rejected
         self.stats["damaged_steps"] += int(hit.sum())

@@ -111,7 +111,8 @@ def ingest_mcap_tables(
     import warnings
 
     summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
-                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}, "skipped_files": []}
+                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}, "filled_steps": {},
+                               "skipped_files": []}
     good: list[tuple[RecordingResult, list[Path]]] = []
     for res, rec in zip(results, recordings, strict=True):
         if isinstance(res, str):  # unreadable under quarantine: named, skipped, counted
@@ -128,8 +129,8 @@ def ingest_mcap_tables(
         good.append((res, rec))
         for k, v in res.stats.items():
             summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
-        for name in ("used", "late"):
-            tgt = summary["messages_used" if name == "used" else "late_messages"]
+        for name in ("used", "late", "filled"):
+            tgt = summary[{"used": "messages_used", "late": "late_messages", "filled": "filled_steps"}[name]]
             for t, v in getattr(res, name).items():
                 tgt[t] = tgt.get(t, 0) + v
         for f in res.files:
@@ -153,6 +154,11 @@ def ingest_mcap_tables(
                       f"less than clock.restart = {spec.restart} s: their steps are ordered by time, so a transition "
                       "may pair steps the robot did not take in that order. If the clock restarted, lower "
                       "clock.restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
+    summary["filled_steps"] = {t: v for t, v in summary["filled_steps"].items() if v}
+    if summary["filled_steps"]:
+        warnings.warn(f"steps given a stream's fill value (missing = 'fill'), per topic: {summary['filled_steps']} "
+                      "(if that is most steps, check the stream's time field against the clock's: a header stamp "
+                      "in simulation time against log_time never aligns)", stacklevel=2)
     summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
     if summary["late_messages"]:
         warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,3 +50,4 @@ class RecordingResult:
     late: dict[str, int]
     files: list[dict[str, Any]]
     missing_topics: list[str]
+    filled: dict[str, int] = field(default_factory=dict)  # steps given a stream's fill value, per topic
