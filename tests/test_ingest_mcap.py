@@ -160,7 +160,8 @@ def test_undecodable_channels_unneeded_skipped_needed_named(tmp_path):
 def test_bad_field_path_and_spec_errors(tmp_path):
     f = _synthetic(tmp_path)
     spec = _spec(extra_stream={"topic": "/fast", "fields": {"z": "pos.zz"}})
-    with pytest.raises(IngestError, match="field path .* mcap-info"):
+    with pytest.raises(IngestError, match=r"a.mcap: topic '/fast', message at log_time \d+: field 'z' "
+                                          r"\(path 'pos.zz'\) cannot be read as a number .* mcap-info"):
         ingest_mcap([f], spec)
     with pytest.raises(SpecError, match="valid keys"):
         parse_mcap_spec({"clock": {"topic": "/c", "rate": 10}})

@@ -210,3 +210,18 @@ def test_steps_given_a_fill_value_are_counted_and_said(tmp_path):
     with pytest.warns(UserWarning, match=r"fill value .* \{'/imu': 600\}"):
         ds, s = ingest_mcap([f], spec)
     assert s["filled_steps"] == {"/imu": 600} and len(ds) == 2 * 299
+
+
+def test_a_null_field_is_a_missing_value_of_one_episode_not_of_the_file(tmp_path):
+    """One JSON null in one message discarded the whole file with an error naming nothing; it is a
+    missing value now: the doctor names its row, quarantine sets only that episode aside."""
+    msgs = rl_log(n_episodes=3, k_absent=0, n_steps=300)
+    i = next(k for k, m in enumerate(msgs) if m[0] == "/reward" and m[2]["ep"] == 1)
+    msgs[i] = (msgs[i][0], msgs[i][1], {**msgs[i][2], "r": None})
+    f = write_log(tmp_path / "rl.mcap", msgs)
+    from offline_adp.errors import ValidationError
+
+    with pytest.raises(ValidationError, match=r"rl.mcap: log_time \d+ .*\[non_finite\]"):
+        ingest_mcap([f], rl_spec(0.01))
+    ds, s = ingest_mcap([f], rl_spec(0.01), tmp_path / "q", on_error="quarantine")
+    assert sorted(set(_episode_of(ds))) == [0, 2] and read_quarantine(tmp_path / "q").num_rows == 299

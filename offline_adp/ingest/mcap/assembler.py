@@ -13,7 +13,7 @@ from offline_adp.errors import IngestError
 from offline_adp.ingest.mcap.align import _align
 from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
-from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, get_path
+from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, get_path, numeric_fields
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
@@ -236,7 +236,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 t = times.get(which)
                 if t is None:
                     t = times[which] = _msg_time(which, log_time, publish_time, dec)
-                values = [] if k == "clock" else [float(get_path(dec, p)) for p in self.value_keys[k].fields.values()]
+                values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time)
             e = self._epoch_of(k, t)
             if e is None:  # late for an epoch already over (by file order, not by flush points)
                 self.late[topic] += 1
@@ -267,10 +267,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         ck = self.clock_key
         if k == ck:
             e = ek + 1 if own_restart else ek
-            if own_restart:
-                self.stats["restarts"] += 1
-            elif m is not None and t < m:  # back in time, by less than a restart: ordered by time, said
-                self.stats["clock_steps_back"] += 1
+            back = own_restart or (m is not None and t < m)  # back in time by less than a restart: counted, said
+            self.stats["restarts" if own_restart else "clock_steps_back"] += int(back)
             if e not in self.clock_first:
                 self.clock_first[e] = t
                 for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
@@ -434,7 +432,6 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             if top is not None:
                 damaged |= times >= top - self.lag
         missing_here = np.zeros(n, bool)
-        filled_here: dict[str, int] = {}
         act_cols: list[np.ndarray] = []
         act_ok = np.ones(n, bool)
         for k, s in self.value_keys.items():
@@ -443,7 +440,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             for name in s.fields:
                 v, good = _align(a["t"], a[name], times, s)
                 if s.missing == "fill":
-                    filled_here[s.topic] = max(filled_here.get(s.topic, 0), int((~good).sum()))  # steps, not fields
+                    self.filled[s.topic] += int((~good).sum()) if name == next(iter(s.fields)) else 0  # steps
                     v, good = np.where(good, v, s.fill), np.ones(n, bool)
                 elif s.missing == "drop_step":
                     keep &= good
@@ -464,8 +461,6 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 else:
                     where, j = self.col[name]
                     (obs if where == "obs" else aux)[:, j] = v
-        for topic, c in filled_here.items():
-            self.filled[topic] += c
         act = act_cols[0] if len(act_cols) == 1 else np.column_stack(act_cols)  # a vector action: one column each
         hit = damaged & (missing_here | ~keep)  # lacks data that damage may have taken: episode rejected
         self.stats["damaged_steps"] += int(hit.sum())

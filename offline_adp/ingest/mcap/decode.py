@@ -147,3 +147,20 @@ def _msg_time(which: str, log_time: int, publish_time: int, dec: Any) -> int:
     if which == "publish_time":
         return int(publish_time)
     return to_ns(get_path(dec, which))
+
+
+def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int) -> list[float]:
+    """The float value of each field path in a decoded message; a null (JSON ``null``) is a
+    missing value, NaN (the doctor reports it, naming the row; quarantine sets that episode
+    aside); a path the message lacks, or a value that is no number, is an error naming the
+    topic, the message's log_time and the field."""
+    out = []
+    for name, path in fields.items():
+        try:
+            v = get_path(dec, path)
+            out.append(float("nan") if v is None else float(v))
+        except (KeyError, AttributeError, IndexError, TypeError, ValueError, OverflowError) as exc:
+            raise IngestError(f"topic {topic!r}, message at log_time {int(log_time)}: field {name!r} (path {path!r}) "
+                              f"cannot be read as a number ({type(exc).__name__}: {exc}); run `offline-adp "
+                              "mcap-info` to list the fields") from None
+    return out
