@@ -211,6 +211,8 @@ def test_compare_of_overlapping_candidates_names_no_top_pick(tmp_path):
     assert "<b>no top pick</b></span> The logs cannot separate car2d and car3d" in text
     assert "<b>car2d</b>" not in text
     assert "50 [45, 55] over 40 episodes" in text
+    assert "Shaded: the logged cost&#x27;s own 95% interval [45, 55]" in page or \
+        "Shaded: the logged cost's own 95% interval [45, 55]" in page  # the ranking figure's caption
     # one logged episode (metrics.json: [null, null]) crashed the page; a truncated log says why it is not the value
     res["behaviour"] = {"mean": 50.0, "interval": [None, None], "episodes": 1}
     assert "(no interval: one episode)" in write_compare_report(res, tmp_path / "c1.html").read_text()

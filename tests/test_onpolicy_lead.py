@@ -218,6 +218,7 @@ def test_the_cost_past_the_logs_holds_the_exact_value():
 
 
 def test_the_figure_shades_the_logged_costs_interval_and_names_the_paired_difference(tmp_path):
+    """The paired difference is named only where WDR leads on the logging policy's own weights."""
     from offline_adp.evaluation.figures import Figures, ope_figure
 
     for m, shaded in ((BASE, True), ({**BASE, "ope": {**BASE["ope"], "wdr": _wdr(0.3, [-12.88, -12.57],
@@ -228,7 +229,8 @@ def test_the_figure_shades_the_logged_costs_interval_and_names_the_paired_differ
         ope_figure(figs, m, rank_estimators(m))
         caption = figs.items[0][1]
         assert ("[-0.1, 0.25] (not drawn), against 0" in caption) == shaded
-        assert ("shaded: its interval [-13.5, -12.3]" in caption) == shaded
+        # the logged cost's own interval is shaded wherever it exists now: every verdict reads a side against it
+        assert "Shaded: the logged cost's own 95% interval [-13.5, -12.3]" in caption
 
 
 def test_compare_keeps_the_plain_order_of_shared_estimators():

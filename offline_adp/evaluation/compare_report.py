@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.evaluation.figures import DIST_COLOURS, Figures, distribution_figure, pyplot
+from offline_adp.evaluation.figures import DIST_COLOURS, Figures, behaviour_line, distribution_figure, pyplot
 from offline_adp.evaluation.html_blocks import (
     details_html,
     figure_html,
@@ -58,8 +58,7 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
     y = np.arange(len(cands))[::-1]
     drawn_demo = False
     levels, drawn_nolevel, drawn_truth = _draw_candidates(ax, y, cands)
-    if beh is not None:
-        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    band = behaviour_line(ax, res.get("behaviour") or {})
     demo = (res.get("demonstrator") or {}).get("mean")
     if demo is not None and np.isfinite(demo):
         drawn_demo = True
@@ -72,7 +71,8 @@ def _ranking_figure(figs: Figures, res: dict[str, Any]) -> None:
     ax.set_title(f"Candidates ranked by {res['estimator'].upper()} (lowest estimate first)", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax.grid(axis="x", alpha=0.3)
-    figs.save(fig, "ranking", _ranking_caption(levels, drawn_nolevel, drawn_truth, drawn_demo, beh is not None) + ".")
+    figs.save(fig, "ranking", _ranking_caption(levels, drawn_nolevel, drawn_truth, drawn_demo, beh is not None) + "."
+              + band)
 
 
 def _ranking_points(res: dict[str, Any], beh: float | None) -> list[float]:

@@ -12,6 +12,8 @@ import numpy as np
 import pandas as pd
 
 from offline_adp.data.files import read_table_file
+from offline_adp.evaluation.ope import is_finite_number
+from offline_adp.evaluation.verdict import behaviour_not_comparable, logged_interval
 
 UNITS = {"e": "m", "e_psi": "rad", "p": "", "v": "m/s", "s": "m", "delta": "rad", "kappa": "1/m"}
 
@@ -180,9 +182,8 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
         ax.axvline(truth, color="k", ls="--", lw=1.5, label="policy: simulator truth")
     if demo is not None:
         ax.axvline(demo, color="#2ca02c", ls=":", lw=1.5, label="demonstrator: simulator")
-    if beh is not None:
-        ax.axvline(beh, color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
-    paired = _paired_band(ax, m, shown[0])
+    band = behaviour_line(ax, m.get("behaviour_value") or {})
+    paired = _paired_words(m, shown[0])
     ax.set_yticks(y, [e["label"] for e in shown], fontsize=9)
     ax.set_ylim(-0.6, len(shown) - 0.4)
     ax.set_xlim(lo - pad, hi + pad)
@@ -207,23 +208,34 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     if bad:
         caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} "
                                                                   f"({e['reason']})" for e in bad) + "."
-    figs.save(fig, "ope", caption + paired)
+    figs.save(fig, "ope", caption + band + paired)
 
 
-def _paired_band(ax: Any, m: dict[str, Any], top: dict[str, Any]) -> str:
-    """Where the top estimator leads on the logging policy's own weights (``on_policy``), shade the
-    behaviour's logged cost's own interval and return the caption's words on the paired difference
-    the verdict reads (not drawn); else ''."""
-    iv = (m.get("behaviour_value") or {}).get("interval")
-    if not (top.get("vs_logged") and isinstance(iv, list) and len(iv) == 2
-            and all(isinstance(v, (int, float)) and np.isfinite(v) for v in iv)):
+def behaviour_line(ax: Any, beh: dict[str, Any]) -> str:
+    """Draw the behaviour's logged cost (dash-dotted) and shade its own interval, the one the verdict
+    reads a side against (:func:`~offline_adp.evaluation.verdict.logged_side`); returns the
+    caption's words on the shading ('' when there is no interval to shade)."""
+    if not is_finite_number(beh.get("mean")):
+        return ""
+    ax.axvline(beh["mean"], color="#9467bd", ls="-.", lw=1.2, label="behaviour: logged cost")
+    iv = logged_interval(beh)
+    if iv is None:
         return ""
     ax.axvspan(iv[0], iv[1], color="#9467bd", alpha=0.12, lw=0, label="behaviour: logged cost's interval")
+    off = behaviour_not_comparable(beh)
+    return (f" Shaded: the logged cost's own 95% interval [{iv[0]:.4g}, {iv[1]:.4g}]; a side against the behaviour "
+            "is claimed only where an interval lies clear of it" + (f" (not here: {off})" if off else "") + ".")
+
+
+def _paired_words(m: dict[str, Any], top: dict[str, Any]) -> str:
+    """Where the top estimator leads on the logging policy's own weights (``on_policy``), the
+    caption's words on the paired difference the verdict reads instead (not drawn); else ''."""
+    if not top.get("vs_logged") or logged_interval(m.get("behaviour_value") or {}) is None:
+        return ""
     d = top["vs_logged"]
     return (f" {top['name'].upper()} leads on the logging policy's own weights: the logged cost is a mean of the same "
-            f"episodes (shaded: its interval [{iv[0]:.4g}, {iv[1]:.4g}]), so the verdict reads "
-            f"{top['name'].upper()}'s interval of the difference from it on the same episodes, "
-            f"[{d[0]:.4g}, {d[1]:.4g}] (not drawn), against 0.")
+            f"episodes, so the verdict reads {top['name'].upper()}'s interval of the difference from it on the same "
+            f"episodes, [{d[0]:.4g}, {d[1]:.4g}] (not drawn), against 0.")
 
 
 def ratios_figure(figs: Figures, m: dict[str, Any], headline_method: str) -> None:

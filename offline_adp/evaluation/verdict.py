@@ -39,6 +39,8 @@ def side_of_behaviour(lo: float, hi: float, b: float) -> str:
 
 
 _SIDE_WORDS = {"better": "better than", "worse": "worse than", "indistinguishable": "not distinguishable from"}
+#: Where an interval lies against the logged cost's own interval, for each side.
+_WHERE_LOGGED = {"better": "lies below", "worse": "lies above", "indistinguishable": "overlaps"}
 
 
 def logged_interval(beh: dict[str, Any]) -> tuple[float, float] | None:
@@ -84,6 +86,13 @@ def behaviour_not_comparable(beh: Any) -> str | None:
         return None
     why = beh.get("not_comparable")
     return why if isinstance(why, str) and why else "the logged cost is not the behaviour's value of the estimand"
+
+
+def _no_side_against(beh: dict[str, Any]) -> str | None:
+    """Why no side can be read against the logged cost (not the estimand's value, or no interval:
+    one episode), else None."""
+    return behaviour_not_comparable(beh) or (
+        "one logged episode: its cost has no interval" if logged_interval(beh) is None else None)
 
 
 def logged_words(beh: dict[str, Any]) -> str:
@@ -221,9 +230,7 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     ``"unknown"``; ``outcome`` the one word (:func:`outcome_of`) every view colours.
     """
     beh = m.get("behaviour_value")
-    beh_off = behaviour_not_comparable(beh) or (
-        "one logged episode: its cost has no interval" if isinstance(beh, dict) and logged_interval(beh) is None
-        else None)
+    beh_off = _no_side_against(beh) if isinstance(beh, dict) else None
     left = left_support(m, shift)
     support, logs_show = _support_clause(m, shift, left)
     cv = conv.get("verdict")
@@ -398,19 +405,14 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
     return side, perf, claim
 
 
-_WHERE_LOGGED = {"better": "lies below", "worse": "lies above", "indistinguishable": "overlaps"}
-
-
 def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any] | None, side: str, perf: str,
                     claim: str | None) -> tuple[str, str]:
     """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
     behaviour's logged cost (with its own interval, :func:`logged_side`) and the demonstrator,
     saying where the logs' side disagrees."""
     r_lo, r_hi = ro["interval"]
-    off = behaviour_not_comparable(beh)
+    off = _no_side_against(beh)
     truth_side = "unknown" if off else logged_side(r_lo, r_hi, beh)
-    if truth_side == "unknown" and not off:
-        off = "one logged episode: its cost has no interval"
     against = f"not compared with the behaviour ({off})" if off else f"{_SIDE_WORDS[truth_side]} the behaviour"
     if demo is not None:  # the demonstrator first when the policy is worse than it
         d_words = {"better": "better than the demonstrator", "worse": "WORSE than the demonstrator",
