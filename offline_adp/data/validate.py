@@ -67,6 +67,8 @@ MAX_ABS_VALUE = 1e150
 #: command components): tree regressors compare inputs as float32 (scikit-learn's and ours),
 #: whose largest finite value is 3.4e38; a larger input becomes inf and no fit can split on it.
 MAX_ABS_INPUT = 1e38
+_INPUT_TOO_LARGE = (f"magnitude beyond {MAX_ABS_INPUT:g} (a model input: trees compare inputs as float32, whose "
+                    "largest value is 3.4e38); rescale the column")
 #: Relative tolerance of the command bounds (``max(1, |bound|)`` times this): round-off of a
 #: command written at its bound is not a finding.
 COMMAND_BOUND_RTOL = 1e-9
@@ -222,8 +224,7 @@ def validate(
         big &= finite
         add("value_out_of_range", big, c,
             f"magnitude beyond {MAX_ABS_VALUE:g} (squared errors would overflow); rescale the column" if c == S.COST
-            else f"magnitude beyond {MAX_ABS_INPUT:g} (a model input: trees compare inputs as float32, whose "
-            f"largest value is 3.4e38); rescale the column")
+            else _INPUT_TOO_LARGE)
 
     a = t.column(S.ACTION).to_numpy(zero_copy_only=False)
     # one comparison: a negative integer read as unsigned is beyond any action count
@@ -299,9 +300,7 @@ def _check_commands(ds: TransitionDataset, add: Any, last: np.ndarray, skip: np.
             add("non_finite", ~finite & ~skip, c, "command is NaN, infinite or missing")
         with np.errstate(invalid="ignore"):
             big = finite & ~skip & (np.abs(v) > MAX_ABS_INPUT)
-        add("value_out_of_range", big, c,
-            f"command magnitude beyond {MAX_ABS_INPUT:g} (a model input: trees compare inputs as float32, whose "
-            f"largest value is 3.4e38); rescale the column")
+        add("value_out_of_range", big, c, "command " + _INPUT_TOO_LARGE)
         if np.isfinite(lo[j]) or np.isfinite(hi[j]):
             lo_j, hi_j = float(lo[j]), float(hi[j])
             tol_lo = COMMAND_BOUND_RTOL * max(1.0, abs(lo_j)) if np.isfinite(lo_j) else 0.0

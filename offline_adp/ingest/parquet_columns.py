@@ -252,9 +252,7 @@ def check_command_column(table: pa.Table, column: str, file_of: Callable[[np.nda
     a command), not integers beyond 2^53 (they would be rounded, and commands are kept as
     logged); the error names the file, the row and the column."""
     col = table.column(column)
-    t = col.type
-    if pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t):
-        t = t.value_type
+    t = col.type.value_type if _is_list(col.type) else col.type
     if pa.types.is_boolean(t):
         raise IngestError(f"{file_of(np.array([0]))}: column {column!r} holds booleans: a command is numeric (map "
                           "a flag with action.type = 'discrete')")
