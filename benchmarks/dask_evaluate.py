@@ -19,7 +19,7 @@ to ``--metrics-out`` (compare two runs' files: they are equal but for ``dataset.
 
     python benchmarks/dask_evaluate.py [--rows 1000000] [--data /tmp/ds1m] [--run /tmp/run1m]
         [--workers 2] [--memory-limit 4GiB] [--fqe-bootstrap N] [--model-particles N] [--episodes N]
-        [--fqe-trees N]
+        [--fqe-trees N] [--fqe-structure-rows auto]
 """
 
 from __future__ import annotations
@@ -145,13 +145,21 @@ def main() -> None:
     ap.add_argument("--bootstrap", type=int, default=None)
     ap.add_argument("--fqe-trees", type=int, default=None,
                     help='fqe_params={"regressor_params": {"n_estimators": N}} (default: the evaluation\'s 20)')
+    ap.add_argument("--fqe-structure-rows", choices=["auto"], default=None,
+                    help='fqe_params={"structure_max_samples": "auto"}: FQE\'s tree structures grown on a '
+                         'bootstrap of at most 131,072 rows, their leaves averaged over every row '
+                         '(default: the evaluation\'s, every row)')
     ap.add_argument("--metrics-out", type=Path, default=None)
     args = ap.parse_args()
     prepare(args)
-    trees = args.fqe_trees and {"regressor_params": {"n_estimators": args.fqe_trees}}
+    fqe_params: dict[str, Any] = {}
+    if args.fqe_trees:
+        fqe_params["regressor_params"] = {"n_estimators": args.fqe_trees}
+    if args.fqe_structure_rows:
+        fqe_params["structure_max_samples"] = args.fqe_structure_rows
     settings = {k: v for k, v in (("fqe_bootstrap", args.fqe_bootstrap), ("model_particles", args.model_particles),
                                   ("episodes", args.episodes), ("bootstrap", args.bootstrap),
-                                  ("fqe_params", trees or None),
+                                  ("fqe_params", fqe_params or None),
                                   ) if v is not None}
     out = evaluate(args, settings)
     if args.metrics_out is not None:

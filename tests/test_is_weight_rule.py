@@ -3,6 +3,8 @@ against exact DP on seeded tabular MDPs (T = 10, 30 states, 3 actions)."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -35,6 +37,19 @@ def test_pareto_k_reads_tail_heaviness():
     assert abs(ope.pareto_k(light)) < 0.25
     assert 0.8 < ope.pareto_k(heavy) < 1.3
     assert np.isnan(ope.pareto_k(np.r_[np.ones(100), np.zeros(100)]))  # flat: no tail to fit
+
+
+def test_pareto_k_on_many_weights_says_nothing_of_overflow():
+    """With ~600k weights (a 1M-row evaluation) the profile log-likelihoods differ by more than
+    exp can hold: the weights over them are a softmax, read without a RuntimeWarning, and the
+    shape is still the tail's (Pareto index 1: k ~ 1; index 3: k ~ 1/3)."""
+    rng = np.random.default_rng(1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        heavy = ope.pareto_k(rng.pareto(1.0, size=600_000) + 1)
+        lighter = ope.pareto_k(rng.pareto(3.0, size=600_000) + 1)
+    assert 0.8 < heavy < 1.3
+    assert 0.2 < lighter < 0.5
 
 
 def test_mixed_behaviour_is_interval_withheld_with_the_reason():

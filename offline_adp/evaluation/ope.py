@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.special import softmax
 
 
 @dataclass
@@ -326,7 +327,7 @@ def _gpd_shape(x: np.ndarray) -> float:
     bs = 1.0 / x[-1] + (1.0 - np.sqrt(m / (np.arange(1, m + 1) - 0.5))) / (3.0 * x[int(n / 4 + 0.5) - 1])
     ks = np.log1p(-bs[:, None] * x).mean(axis=1)
     L = n * (np.log(-bs / ks) - ks - 1.0)
-    w = 1.0 / np.exp(L[None, :] - L[:, None]).sum(axis=1)
+    w = softmax(L)  # = 1 / sum_j exp(L_j - L_i), without overflowing where one L dominates
     keep = w >= 10 * np.finfo(float).eps
     w, bs = w[keep] / w[keep].sum(), bs[keep]
     b = float(np.sum(bs * w))
