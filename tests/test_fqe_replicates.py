@@ -60,16 +60,24 @@ def test_row_space_structure_is_built_once_and_follows_settle(small_pt):
     np.testing.assert_array_equal(ve2, fqe.fit_state_.learner.leaf_values[rs.q_leaf])
 
 
-def test_dense_row_space_falls_back_to_the_leaf_space_sweeps(small_pt, monkeypatch):
+@pytest.mark.parametrize("policy", ["deterministic", "uniform"])
+@pytest.mark.parametrize("lam", [0.3, 1.0])
+def test_dense_row_space_falls_back_to_the_leaf_space_sweeps(small_pt, monkeypatch, policy, lam):
     """Where P_w M_w would be dense (leaves of many rows) the replicate runs the leaf-space
-    sweeps, the numbers of fqe_bootstrap.fixed_point."""
+    sweeps with M_w and P_w applied from the leaf positions (fqe_sweeps), the numbers of
+    fqe_bootstrap.fixed_point on reweighted_operators' matrices bit for bit: a policy that
+    reads one action or all, most leaves kept or most dropped (lam 0.3: queries whose every
+    tree lost its leaf keep their entries)."""
     from offline_adp.algorithms import fqe_replicates
 
     monkeypatch.setattr(fqe_replicates, "MAX_TRIPLES_RATIO", 0.0)
-    fqe = FittedQEvaluation(policy=UniformPolicy(small_pt.n_actions), gamma=0.9, mode="frozen", n_iterations=8,
+    A = small_pt.n_actions
+    pol = UniformPolicy(A) if policy == "uniform" else \
+        FunctionPolicy(lambda x, t: (np.abs(x[:, 0] * 7).astype(int)) % A, A)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.9, mode="frozen", n_iterations=8,
                             regressor_params={"n_estimators": 3}).fit(small_pt)
     assert fqe._row_space()[0] is None
-    w = np.random.default_rng(0).poisson(1.0, len(small_pt)).astype(float)
+    w = np.random.default_rng(0).poisson(lam, len(small_pt)).astype(float)
     w[fqe.fit_state_.data.start_rows[0]] = 1.0
     fit = fqe.fit_state_
     M, ops = reweighted_operators(fit.learner, w, base=fqe._query_operators())
@@ -78,6 +86,24 @@ def test_dense_row_space_falls_back_to_the_leaf_space_sweeps(small_pt, monkeypat
     v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
     w0 = w[fit.data.start_rows]
     assert fqe.reweighted_value(w, rtol=REPLICATE_RTOL) == float(np.sum(w0 * v0) / np.sum(w0))
+
+
+@pytest.mark.parametrize("ratio", [0.0, 1.0, 2.0, 4.0, 1e9])
+def test_row_space_sparse_decides_as_the_row_space_build(small_pt, monkeypatch, ratio):
+    """The decision read from the positions alone (the next-state operator not made) is the
+    one row_space makes from that operator, at every threshold."""
+    from offline_adp.algorithms import fqe_replicates
+    from offline_adp.algorithms.fqe_bootstrap import query_operators
+
+    monkeypatch.setattr(fqe_replicates, "MAX_TRIPLES_RATIO", ratio)
+    A = small_pt.n_actions
+    pol = FunctionPolicy(lambda x, t: (np.abs(x[:, 0] * 7).astype(int)) % A, A)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.9, mode="frozen", n_iterations=5,
+                            regressor_params={"n_estimators": 4, "min_samples_leaf": 3}).fit(small_pt)
+    learner = fqe.fit_state_.learner
+    pi = np.asarray(fqe.fit_state_.backup.probabilities("next", 0), dtype=np.float64)
+    built = fqe_replicates.row_space(learner, query_operators(learner, ("next",))["next"], pi)
+    assert fqe_replicates.row_space_sparse(learner, pi) == (built is not None)
 
 
 def _row_space_numpy(learner, op_next, pi_next):

@@ -34,9 +34,8 @@ from sklearn.utils._param_validation import HasMethods
 from offline_adp.algorithms.fqe_bootstrap import (
     averaged_fixed_point,
     bounded_value,
-    fixed_point,
     query_operators,
-    reweighted_operators,
+    reweight_query_operator,
     support_operators,
 )
 from offline_adp.algorithms.fqe_sweeps import LeafAverage, PolicyRead
@@ -271,10 +270,15 @@ commands, n_candidates, n_representatives
         if w.shape != (d.n,):
             raise InvalidArgumentError(f"sample_weight has shape {w.shape}; the fit has {d.n} training rows")
         rs, ve = self._row_space()
-        if rs is None:  # leaves of many rows: the leaf-space sweeps (fqe_bootstrap.fixed_point)
-            M, ops = reweighted_operators(fit.learner, w, base=self._query_operators())
-            v, _ = fixed_point(d, fit.backup, M, ops, fit.learner.leaf_values, tol, n_iterations or 10_000, rtol)
-            q0 = (ops["start"] @ v).reshape(d.n_actions, -1).T
+        if rs is None:  # leaves of many rows: the leaf-space sweeps (fqe_bootstrap.fixed_point's numbers)
+            learner = fit.learner
+            W = np.asarray(learner.leaf_weight_sums(w), dtype=np.float64)
+            P = PolicyRead(learner.pos["next"], np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64),
+                           len(learner.leaf_ids), keep=W > 0)  # P_w and M_w applied, not made
+            v, _ = averaged_fixed_point(d, LeafAverage(learner, weights=w, weight_sums=W), P, learner.leaf_values,
+                                        tol, n_iterations or 10_000, rtol)
+            q0 = (reweight_query_operator(self._query_operators(("start",))["start"], W > 0) @ v)
+            q0 = q0.reshape(d.n_actions, -1).T
             v0 = (fit.backup.probabilities("start", 0) * q0).sum(axis=1)
             w0 = w[d.start_rows]
             return float(np.sum(w0 * v0) / np.sum(w0)) if np.sum(w0) > 0 else float("nan")
@@ -311,7 +315,7 @@ commands, n_candidates, n_representatives
         """The replicates' shared structure (:func:`~offline_adp.algorithms.fqe_replicates.row_space`,
         None where it would be dense), built once per fit, and the fitted leaf values at its
         query entries."""
-        from offline_adp.algorithms.fqe_replicates import row_space
+        from offline_adp.algorithms.fqe_replicates import row_space, row_space_sparse
 
         fit = self.fit_state_
         cached = self.__dict__.get("_row_space_cache")
@@ -319,9 +323,11 @@ commands, n_candidates, n_representatives
             pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
             ops = self.__dict__.get("_ops_cache")
             held = ops is not None and ops[0] is fit.learner and "next" in ops[1]
-            # the next-state operator only while the row space is built (not held through the replicates)
-            cached = (fit.learner, row_space(fit.learner, ops[1]["next"] if held else
-                                             query_operators(fit.learner, ("next",))["next"], pi), None, None)
+            # the next-state operator only while the row space is built (not held through the replicates),
+            # and not at all where the row space would be dense
+            rs = None if not row_space_sparse(fit.learner, pi) else row_space(
+                fit.learner, ops[1]["next"] if held else query_operators(fit.learner, ("next",))["next"], pi)
+            cached = (fit.learner, rs, None, None)
             release_freed()
         # at the query entries (settle moves them)
         if cached[1] is not None and cached[2] is not fit.learner.leaf_values:

@@ -186,6 +186,23 @@ def _k_pattern(q_ptr: Any, q_leaf: Any, q_row: Any, m_ptr: Any, m_idx: Any, t_pt
 _k_pattern = _kernel(_k_pattern, cache=True, nogil=True, boundscheck=False)
 
 
+def row_space_sparse(learner: Any, pi_next: np.ndarray) -> bool:
+    """Whether :func:`row_space` would build ``K_w`` (:data:`MAX_TRIPLES_RATIO`), read from the
+    leaf positions alone (the next-state query operator is not made where it would not be)."""
+    L = len(learner.leaf_ids)
+    pos = learner.pos["next"]  # (trees, A n)
+    n = pi_next.shape[0]
+    read = np.flatnonzero((pi_next > 0).T.ravel())  # query columns a n + i the policy reads
+    counts = np.zeros(L + 1, np.int64)
+    counts[:L] = learner.leaf_weight_sums(np.ones(n)).astype(np.int64)  # rows of each leaf; L: none
+    nnz = n_triples = 0
+    for t in range(pos.shape[0]):
+        leaves = np.minimum(pos[t, read], L)
+        nnz += int(np.count_nonzero(leaves < L))
+        n_triples += int(counts[leaves].sum())
+    return n_triples <= MAX_TRIPLES_RATIO * (nnz + n * pos.shape[0])
+
+
 def row_space(learner: Any, op_next: Any, pi_next: np.ndarray) -> RowSpace | None:
     """The shared structure of a fit (:class:`RowSpace`): ``op_next`` the next-state query
     operator (rows ``a n + i``), ``pi_next`` (n, A) the policy at the next states. None when

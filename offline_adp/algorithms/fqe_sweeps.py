@@ -6,6 +6,12 @@ from the fit's leaf positions, each product the one the CSR matrix gives bit for
 output entry sums the same terms, each the same IEEE product, from 0 in the same order
 (scipy's ``csr_matvec``). At 1M rows and 20 trees the two matrices are ~0.55 GiB, held
 through every sweep; here only the positions the fit holds anyway are read.
+
+A bootstrap replicate solved in leaf space (leaves of many rows, where the row space is
+dense: :meth:`~offline_adp.algorithms.fqe.FittedQEvaluation.reweighted_value`) applies its
+``M_w`` and ``P_w`` the same way (``LeafAverage(weights=...)``, ``PolicyRead(keep=...)``):
+the numbers of :func:`~offline_adp.algorithms.fqe_bootstrap.reweighted_operators`' matrices,
+none of which is made (their copies were ~5 GiB of a 1M-row evaluation's FQE task).
 """
 
 from __future__ import annotations
@@ -75,21 +81,71 @@ def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: 
         out[i] = acc
 
 
+def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: Any, v: Any, out: Any,
+                       slot: Any) -> None:
+    """:func:`_policy_apply` on the reweighted query operator
+    (:func:`~offline_adp.algorithms.fqe_bootstrap.reweight_query_operator` with ``keep``): a
+    query's entries at leaves not kept are 0, the others ``inv_m / total`` (``total``: the kept
+    entries' ``inv_m`` summed in tree order, as ``np.bincount`` sums them); a query with none
+    kept keeps ``inv_m`` at every leaf it reached. Entry by entry the CSR product's numbers."""
+    A, m = pi.shape[1], pos.shape[0]
+    keys, sums = np.empty(m * A, np.int64), np.empty(m * A)
+    for i in range(n):
+        k = 0
+        for a in range(A):
+            p = pi[i, a]
+            if not p > 0:
+                continue
+            q = a * n + i
+            total = 0.0
+            for t in range(m):
+                leaf = pos[t, q]
+                if leaf < L and keep[leaf]:
+                    total += inv_m
+            fall = not total > 0.0
+            d = inv_m if fall else inv_m * (1.0 / total)
+            for t in range(m):
+                leaf = pos[t, q]
+                if leaf >= L or not (fall or keep[leaf]):
+                    continue
+                j = slot[leaf]
+                if j < 0:
+                    j = k
+                    slot[leaf] = k
+                    keys[k] = leaf
+                    sums[k] = 0.0
+                    k += 1
+                sums[j] += p * d
+        acc = 0.0
+        for j in range(k - 1, -1, -1):
+            slot[keys[j]] = -1
+            if sums[j] != 0.0:
+                acc += sums[j] * v[keys[j]]
+        out[i] = acc
+
+
 _average_rows = _kernel(_average_rows, cache=True, nogil=True, boundscheck=False)
 _policy_apply = _kernel(_policy_apply, cache=True, nogil=True, boundscheck=False)
+_policy_apply_kept = _kernel(_policy_apply_kept, cache=True, nogil=True, boundscheck=False)
 
 
 class LeafAverage:
     """``M @ y`` of :func:`~offline_adp.algorithms.fqe_bootstrap.leaf_operator` (the same
     numbers) from ``learner``'s training positions and held leaf weights, trees over its
-    ``n_jobs`` threads (each leaf summed in one thread, in row order)."""
+    ``n_jobs`` threads (each leaf summed in one thread, in row order); with ``weights``, of a
+    replicate's ``M_w`` (``weight_sums``: their leaf sums, when the caller has them)."""
 
-    def __init__(self, learner: FrozenTreesLearner) -> None:
+    def __init__(self, learner: FrozenTreesLearner, weights: np.ndarray | None = None,
+                 weight_sums: np.ndarray | None = None) -> None:
         nxt, src, rest, wsum = learner.reused_positions()
         self.nxt, self.rest, self.wsum = nxt, rest, wsum
         self.src = np.ascontiguousarray(src, dtype=np.int64)
         n = len(self.src)
         self.w = np.ones(n) if learner.weights is None else np.asarray(learner.weights, dtype=np.float64)
+        if weights is not None:  # a replicate's M_w (fqe_bootstrap.reweighted_operators's numbers)
+            self.w = np.ascontiguousarray(weights, dtype=np.float64)
+            self.wsum = np.asarray(learner.leaf_weight_sums(self.w) if weight_sums is None else weight_sums,
+                                   dtype=np.float64)
         self.n_jobs, self.L = learner.n_jobs, len(learner.leaf_ids)
 
     def __matmul__(self, y: np.ndarray) -> np.ndarray:
@@ -104,10 +160,12 @@ class LeafAverage:
 class PolicyRead:
     """``P @ v`` of :func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator` (the same
     numbers) from the next-state leaf positions ``pos_next`` ((trees, A n); ``L``: no training
-    leaf) and the policy's probabilities there ``pi_next`` (n, A)."""
+    leaf) and the policy's probabilities there ``pi_next`` (n, A); with ``keep`` (a bool per
+    leaf), of the operator reweighted to the leaves kept (a bootstrap replicate's ``P_w``)."""
 
-    def __init__(self, pos_next: np.ndarray, pi_next: np.ndarray, L: int) -> None:
+    def __init__(self, pos_next: np.ndarray, pi_next: np.ndarray, L: int, keep: np.ndarray | None = None) -> None:
         self.pos, self.pi = np.ascontiguousarray(pos_next), np.ascontiguousarray(pi_next, dtype=np.float64)
+        self.keep = None if keep is None else np.ascontiguousarray(keep, dtype=np.bool_)
         self.n, self.L, self.inv_m = len(self.pi), int(L), 1.0 / pos_next.shape[0]
         self.slot = np.full(self.L, -1, np.int32)  # each leaf's entry in the row being read (4 bytes a leaf)
         if self.pi.ndim != 2 or self.pos.ndim != 2 or self.pos.shape[1] != self.pi.size:
@@ -115,7 +173,9 @@ class PolicyRead:
                              f"probabilities {self.pi.shape} (trees, actions x rows)")
 
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
-        out = np.empty(self.n)
-        _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, np.ascontiguousarray(v, dtype=np.float64), out,
-                      self.slot)
+        out, v = np.empty(self.n), np.ascontiguousarray(v, dtype=np.float64)
+        if self.keep is None:
+            _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, v, out, self.slot)
+        else:
+            _policy_apply_kept(self.pos, self.pi, self.n, self.L, self.inv_m, self.keep, v, out, self.slot)
         return out
