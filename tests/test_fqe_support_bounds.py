@@ -84,3 +84,41 @@ def test_q_value_range_bounds_every_path():
     lo, hi = q_value_range(cost, term, 0.9)
     assert lo == pytest.approx(min(0.2 / 0.1, 50.0)) and hi == pytest.approx(max(1.0 / 0.1, 50.0))
     assert q_value_range(cost, term, 0.9, infeasible_cost=20.0)[1] == 20.0
+
+
+@pytest.mark.parametrize("radius_scale", [0.37, 1.37, 50.0])
+@pytest.mark.parametrize("policy", ["deterministic", "uniform"])
+def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scale, policy):
+    """Where leaves hold many rows of an action the per-action read finds the pairs within the
+    radius first (fqe_bootstrap.near_pairs) instead of filtering every (query, row) product
+    term: the same operators (to rounding) and the same bounds, on leaves of 10+ rows, at a
+    radius that keeps few pairs, one that keeps more, and one that keeps all."""
+    from offline_adp.algorithms import fqe_bootstrap
+    from offline_adp.algorithms.fqe import FittedQEvaluation
+    from offline_adp.policies import UniformPolicy
+
+    A = small_pt.n_actions
+    pol = UniformPolicy(A) if policy == "uniform" else \
+        FunctionPolicy(lambda x, t=0: (np.abs(x[:, 0] * 7).astype(int)) % A, A)
+    fqe = FittedQEvaluation(policy=pol, gamma=0.9, mode="frozen", n_iterations=8,
+                            regressor_params={"n_estimators": 5, "min_samples_leaf": 10}).fit(small_pt)
+    fit = fqe.fit_state_
+    d = fit.data
+    radius = radius_scale * fqe_bootstrap.support_radius(d.obs, np.asarray(d.train.actions), d.obs_std)
+    out = {}
+    for name, limit in (("product", np.inf), ("near", 0.0)):
+        monkeypatch.setattr(fqe_bootstrap, "MAX_PAIRS_PER_ENTRY", limit)
+        out[name] = fqe_bootstrap.support_operators(d, fit.backup, fit.learner, None, 1e-9, radius)
+    (P, u, P0, u0), (Pn, un, P0n, u0n) = out["product"], out["near"]
+    assert P.nnz > 0 and Pn.nnz > 0
+    np.testing.assert_allclose(Pn.toarray(), P.toarray(), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(P0n.toarray(), P0.toarray(), rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(un, u)
+    np.testing.assert_array_equal(u0n, u0)
+    for B in (-5.0, 5.0):
+        assert fqe_bootstrap.bounded_value(d, Pn, un, P0n, u0n, B) == pytest.approx(
+            fqe_bootstrap.bounded_value(d, P, u, P0, u0, B), rel=1e-9, abs=1e-12)
+    monkeypatch.setattr(fqe_bootstrap, "MAX_PAIRS_PER_ENTRY", 4.0)
+    assert fqe_bootstrap._pairs_per_entry(fqe._query_operators(("next",))["next"][:len(d.obs)],
+                                          fit.learner.leaf_weight_sums(np.ones(d.n)), np.ones(d.n, bool),
+                                          fit.learner.pos["train"]) > 4.0  # these leaves take the near path

@@ -273,6 +273,9 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
             if radius is None:
                 K = Ab @ Mb
                 f = Ab @ has  # share of trees whose reached leaf holds a row of b
+            elif _pairs_per_entry(Ab, sb, wb > 0, pos) > MAX_PAIRS_PER_ENTRY:  # leaves of many rows of b
+                K = near_pairs(learner.pos[k], lo, pos, queried[k] / scale, data.obs / scale, wb, sb, radius, L)
+                f = np.asarray(K.sum(axis=1)).reshape(-1)
             else:  # only the rows of b near the queried state count
                 K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
                 near = np.empty(K.nnz, bool)
@@ -329,3 +332,76 @@ def support_radius(obs: np.ndarray, actions: np.ndarray, obs_std: np.ndarray, qu
             d, _ = NearestNeighbors(n_neighbors=2).fit(X).kneighbors(X)
             dists.append(d[:, 1])
     return float(np.quantile(np.concatenate(dists), quantile)) if dists else float("inf")
+
+
+#: :func:`support_operators` with a radius builds ``Ab diag(has) Mb`` (every (query, tree, row
+#: of b in the reached leaf) term) and keeps the pairs within the radius when it has at most
+#: this many terms per query entry; beyond it (leaves of many rows: structures grown on a
+#: bootstrap of the rows, ``structure_max_samples``; exactly repeated states) the pairs
+#: within the radius are found first (:func:`near_pairs`), so the terms far from the query
+#: are never made (at 10M rows with 131,072-row structures ~150 rows a leaf: ~10^10 terms).
+MAX_PAIRS_PER_ENTRY = 4.0
+#: queries whose radius neighbours are found at once (:func:`near_pairs`)
+_NEAR_CHUNK = 1 << 17
+
+
+def _pairs_per_entry(Ab: Any, sb: np.ndarray, is_b: np.ndarray, pos: np.ndarray) -> float:
+    """Terms of ``Ab diag(has) Mb`` per entry of ``Ab``: the rows of action b in each entry's leaf."""
+    counts = np.zeros(len(sb) + 1, np.int64)
+    for t in range(pos.shape[0]):  # rows of b in each leaf (a leaf's rows are all in its own tree)
+        counts += np.bincount(pos[t][is_b], minlength=len(counts))
+    return float(counts[Ab.indices].sum()) / max(Ab.nnz, 1)
+
+
+def _shared_leaf_weight(pos_q: Any, col0: int, pos_t: Any, qi: Any, rj: Any, wb: Any, sb: Any, inv_m: float,
+                        L: int, out: Any) -> None:
+    """``out[p] = sum over trees t where query qi[p] (column ``col0 + qi[p]`` of ``pos_q``) and
+    row rj[p] reach the same leaf l (< L) of inv_m * (wb[rj] / sb[l])``: the pair's entry of
+    ``Ab diag(has) Mb``."""
+    for p in range(len(qi)):
+        q, j = col0 + qi[p], rj[p]
+        c = 0.0
+        for t in range(pos_q.shape[0]):
+            leaf = pos_q[t, q]
+            if leaf < L and leaf == pos_t[t, j]:
+                c += inv_m * (wb[j] / sb[leaf])
+        out[p] = c
+
+
+_shared_leaf_weight = _kernel(_shared_leaf_weight, cache=True, nogil=True, boundscheck=False)
+
+
+def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, Xt: np.ndarray, wb: np.ndarray,
+               sb: np.ndarray, radius: float, L: int) -> Any:
+    """``Ab diag(has) Mb`` of :func:`support_operators` restricted to the pairs whose states are
+    within ``radius`` (``Xq``, ``Xt``: the queried and the training states, already scaled;
+    query ``i``'s leaves ``pos_q[:, col0 + i]``, row ``j``'s ``pos_t[:, j]``),
+    as sparse (queries, rows): the rows of b (``wb > 0``) within the radius of each query are
+    found with a k-d tree (:class:`sklearn.neighbors.NearestNeighbors`, ``<= radius``), then
+    each pair's weight summed over the trees where both reach the same leaf (pairs sharing no
+    leaf left out). The same entries as the product filtered by distance (each a sum of the
+    same terms, in tree order)."""
+    from sklearn.neighbors import NearestNeighbors
+
+    rows_b = np.flatnonzero(wb > 0)
+    nq = len(Xq)
+    if not len(rows_b) or not nq:
+        return sparse.csr_matrix((nq, len(Xt)))
+    nn = NearestNeighbors(radius=radius).fit(Xt[rows_b])
+    wb, sb = np.asarray(wb, dtype=np.float64), np.asarray(sb, dtype=np.float64)
+    pos_q, pos_t = np.ascontiguousarray(pos_q), np.ascontiguousarray(pos_t)
+    parts, ptr = [], [np.zeros(1, np.int64)]
+    for lo in range(0, nq, _NEAR_CHUNK):
+        g = nn.radius_neighbors_graph(Xq[lo:lo + _NEAR_CHUNK], mode="connectivity")
+        qi = np.repeat(np.arange(lo, lo + g.shape[0]), np.diff(g.indptr))
+        rj = rows_b[g.indices]
+        c = np.empty(len(qi))
+        _shared_leaf_weight(pos_q, col0, pos_t, qi, rj, wb, sb, 1.0 / pos_q.shape[0], L, c)
+        keep = c > 0.0
+        parts.append((rj[keep], c[keep]))
+        ptr.append(np.bincount(qi[keep] - lo, minlength=g.shape[0]))
+    indptr = np.cumsum(np.concatenate(ptr))
+    K = sparse.csr_matrix((np.concatenate([p[1] for p in parts]), np.concatenate([p[0] for p in parts]), indptr),
+                          shape=(nq, len(Xt)))
+    K.sort_indices()
+    return K
