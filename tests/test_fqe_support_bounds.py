@@ -118,7 +118,6 @@ def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scal
     for B in (-5.0, 5.0):
         assert fqe_bootstrap.bounded_value(d, Pn, un, P0n, u0n, B) == pytest.approx(
             fqe_bootstrap.bounded_value(d, P, u, P0, u0, B), rel=1e-9, abs=1e-12)
-    monkeypatch.setattr(fqe_bootstrap, "MAX_PAIRS_PER_ENTRY", 4.0)
-    assert fqe_bootstrap._pairs_per_entry(fqe._query_operators(("next",))["next"][:len(d.obs)],
-                                          fit.learner.leaf_weight_sums(np.ones(d.n)), np.ones(d.n, bool),
-                                          fit.learner.pos["train"]) > 4.0  # these leaves take the near path
+    L = len(fit.learner.leaf_ids)
+    counts = fqe_bootstrap._rows_per_leaf(fit.learner.pos["train"], np.ones(d.n, bool), L)
+    assert fqe_bootstrap._terms_per_entry(fit.learner.pos["next"], 0, d.n, counts, L) > 4.0  # leaves of 10+ rows

@@ -262,29 +262,28 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
     u = {k: np.zeros(nq[k]) for k in pi}
     queried = {"next": data.train.next_obs, "start": data.start_obs}
     scale = np.where(data.obs_std > 0, data.obs_std, 1.0)
+    scaled: dict[str, np.ndarray] = {}
     for b in range(A):
         wb = np.where(acts == b, w, 0.0)
         sb = learner.leaf_weight_sums(wb)
-        Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
-        has = (sb > 0).astype(np.float64)
+        Mb = has = counts = None
         for k in pi:
             lo, hi = b * nq[k], (b + 1) * nq[k]  # action b's rows (without ops: made alone, not the whole operator)
-            Ab = ops[k][lo:hi] if ops is not None else query_rows(learner, k, lo, hi)
-            if radius is None:
-                K = Ab @ Mb
-                f = Ab @ has  # share of trees whose reached leaf holds a row of b
-            elif _pairs_per_entry(Ab, sb, wb > 0, pos) > MAX_PAIRS_PER_ENTRY:  # leaves of many rows of b
-                K = near_pairs(learner.pos[k], lo, pos, queried[k] / scale, data.obs / scale, wb, sb, radius, L)
+            if radius is not None:
+                counts = _rows_per_leaf(pos, wb > 0, L) if counts is None else counts
+            if radius is not None and _terms_per_entry(learner.pos[k], lo, hi, counts, L) > MAX_PAIRS_PER_ENTRY:
+                # leaves of many rows of b: the pairs within the radius first, no product term made
+                if k not in scaled:  # the states in units of each feature's spread, once
+                    scaled[k], scaled["train"] = queried[k] / scale, scaled.get("train", data.obs / scale)
+                K = near_pairs(learner.pos[k], lo, pos, scaled[k], scaled["train"], wb, sb, radius, L,
+                               pi[k][:, b] > 0)
                 f = np.asarray(K.sum(axis=1)).reshape(-1)
-            else:  # only the rows of b near the queried state count
-                K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
-                near = np.empty(K.nnz, bool)
-                for c0 in range(0, K.nnz, _DIST_CHUNK):  # (entries, features) temporaries a chunk at a time
-                    r_, c_ = K.row[c0:c0 + _DIST_CHUNK], K.col[c0:c0 + _DIST_CHUNK]
-                    near[c0:c0 + _DIST_CHUNK] = np.sqrt(np.sum(((queried[k][r_] - data.obs[c_]) / scale) ** 2,
-                                                               axis=1)) <= radius
-                K = sparse.csr_matrix((K.data[near], (K.row[near], K.col[near])), shape=K.shape)
-                f = np.asarray(K.sum(axis=1)).reshape(-1)
+            else:
+                if Mb is None:
+                    Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
+                    has = (sb > 0).astype(np.float64)
+                K, f = _product_read(ops[k][lo:hi] if ops is not None else query_rows(learner, k, lo, hi), Mb, has,
+                                     radius, queried[k], data.obs, scale)
             ok = f >= min_tree_share
             r = np.where(ok, 1.0 / np.where(ok, f, 1.0), 0.0) * pi[k][:, b]
             if np.any(r > 0):
@@ -345,12 +344,39 @@ MAX_PAIRS_PER_ENTRY = 4.0
 _NEAR_CHUNK = 1 << 17
 
 
-def _pairs_per_entry(Ab: Any, sb: np.ndarray, is_b: np.ndarray, pos: np.ndarray) -> float:
-    """Terms of ``Ab diag(has) Mb`` per entry of ``Ab``: the rows of action b in each entry's leaf."""
-    counts = np.zeros(len(sb) + 1, np.int64)
-    for t in range(pos.shape[0]):  # rows of b in each leaf (a leaf's rows are all in its own tree)
-        counts += np.bincount(pos[t][is_b], minlength=len(counts))
-    return float(counts[Ab.indices].sum()) / max(Ab.nnz, 1)
+def _product_read(Ab: Any, Mb: Any, has: np.ndarray, radius: float | None, Xq: np.ndarray, Xt: np.ndarray,
+                  scale: np.ndarray) -> tuple[Any, np.ndarray]:
+    """``(K, f)`` of :func:`support_operators` from the product ``Ab diag(has) Mb``: every row of
+    b in the reached leaves (``radius`` None), or only those within ``radius`` of the queried
+    state; ``f`` the share of trees whose reached leaf holds such a row."""
+    if radius is None:
+        return Ab @ Mb, Ab @ has
+    K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
+    near = np.empty(K.nnz, bool)
+    for c0 in range(0, K.nnz, _DIST_CHUNK):  # (entries, features) temporaries a chunk at a time
+        r_, c_ = K.row[c0:c0 + _DIST_CHUNK], K.col[c0:c0 + _DIST_CHUNK]
+        near[c0:c0 + _DIST_CHUNK] = np.sqrt(np.sum(((Xq[r_] - Xt[c_]) / scale) ** 2, axis=1)) <= radius
+    K = sparse.csr_matrix((K.data[near], (K.row[near], K.col[near])), shape=K.shape)
+    return K, np.asarray(K.sum(axis=1)).reshape(-1)
+
+
+def _rows_per_leaf(pos: np.ndarray, is_b: np.ndarray, L: int) -> np.ndarray:
+    """Rows ``is_b`` in each leaf (``L + 1`` counts, the last 0: no training leaf)."""
+    counts = np.zeros(L + 1, np.int64)
+    for t in range(pos.shape[0]):  # a leaf's rows are all in its own tree
+        counts += np.bincount(pos[t][is_b], minlength=L + 1)[:L + 1]
+    return counts
+
+
+def _terms_per_entry(pos_q: np.ndarray, lo: int, hi: int, counts: np.ndarray, L: int) -> float:
+    """Terms of ``Ab diag(has) Mb`` (:func:`support_operators`) per entry of ``Ab`` (queries
+    ``lo .. hi - 1`` of ``pos_q``): the rows of b in each entry's leaf, read from the positions."""
+    terms = entries = 0
+    for t in range(pos_q.shape[0]):
+        leaves = np.minimum(pos_q[t, lo:hi], L)
+        terms += int(counts[leaves].sum())
+        entries += int(np.count_nonzero(leaves < L))
+    return terms / max(entries, 1)
 
 
 def _shared_leaf_weight(pos_q: Any, col0: int, pos_t: Any, qi: Any, rj: Any, wb: Any, sb: Any, inv_m: float,
@@ -372,7 +398,7 @@ _shared_leaf_weight = _kernel(_shared_leaf_weight, cache=True, nogil=True, bound
 
 
 def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, Xt: np.ndarray, wb: np.ndarray,
-               sb: np.ndarray, radius: float, L: int) -> Any:
+               sb: np.ndarray, radius: float, L: int, need: np.ndarray | None = None) -> Any:
     """``Ab diag(has) Mb`` of :func:`support_operators` restricted to the pairs whose states are
     within ``radius`` (``Xq``, ``Xt``: the queried and the training states, already scaled;
     query ``i``'s leaves ``pos_q[:, col0 + i]``, row ``j``'s ``pos_t[:, j]``),
@@ -380,7 +406,9 @@ def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, 
     found with a k-d tree (:class:`sklearn.neighbors.NearestNeighbors`, ``<= radius``), then
     each pair's weight summed over the trees where both reach the same leaf (pairs sharing no
     leaf left out). The same entries as the product filtered by distance (each a sum of the
-    same terms, in tree order)."""
+    same terms, in tree order; a pair at exactly the radius may fall either side, the
+    distances being computed on the scaled states). ``need``: the queries whose rows are
+    wanted (the policy's probability is positive); the others are left empty."""
     from sklearn.neighbors import NearestNeighbors
 
     rows_b = np.flatnonzero(wb > 0)
@@ -392,14 +420,16 @@ def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, 
     pos_q, pos_t = np.ascontiguousarray(pos_q), np.ascontiguousarray(pos_t)
     parts, ptr = [], [np.zeros(1, np.int64)]
     for lo in range(0, nq, _NEAR_CHUNK):
-        g = nn.radius_neighbors_graph(Xq[lo:lo + _NEAR_CHUNK], mode="connectivity")
-        qi = np.repeat(np.arange(lo, lo + g.shape[0]), np.diff(g.indptr))
+        sel = np.arange(lo, min(lo + _NEAR_CHUNK, nq))
+        sel = sel if need is None else sel[need[sel]]
+        g = nn.radius_neighbors_graph(Xq[sel], mode="connectivity") if len(sel) else sparse.csr_matrix((0, 1))
+        qi = np.repeat(sel, np.diff(g.indptr))
         rj = rows_b[g.indices]
         c = np.empty(len(qi))
         _shared_leaf_weight(pos_q, col0, pos_t, qi, rj, wb, sb, 1.0 / pos_q.shape[0], L, c)
         keep = c > 0.0
         parts.append((rj[keep], c[keep]))
-        ptr.append(np.bincount(qi[keep] - lo, minlength=g.shape[0]))
+        ptr.append(np.bincount(qi[keep] - lo, minlength=min(_NEAR_CHUNK, nq - lo)))
     indptr = np.cumsum(np.concatenate(ptr))
     K = sparse.csr_matrix((np.concatenate([p[1] for p in parts]), np.concatenate([p[0] for p in parts]), indptr),
                           shape=(nq, len(Xt)))
