@@ -211,3 +211,35 @@ def test_settle_and_its_operators_are_the_ones_built_before(small_pt, monkeypatc
     assert len(v0) > 2100 and len(v0) % 700
     assert fqe.settle() == sweeps
     np.testing.assert_array_equal(learner.leaf_values, v)
+
+
+@pytest.mark.parametrize("lam", [0.05, 0.3, 1.0])
+def test_policy_read_with_kept_leaves_is_the_reweighted_product(small_pt, lam):
+    """P_w v applied from the positions (PolicyRead(keep=...)) equals the CSR product of the
+    reweighted query operator bit for bit, for a stochastic policy reading several actions
+    (some with probability 0): a leaf one action's query drops and another's falls back to
+    keeps the product's order."""
+    from offline_adp.algorithms.fqe_bootstrap import policy_operator, query_operators, reweight_query_operator
+    from offline_adp.algorithms.fqe_sweeps import PolicyRead
+
+    A = small_pt.n_actions
+
+    class Mixed(UniformPolicy):
+        def probabilities(self, x, t=0):
+            p = np.abs(np.sin(np.arange(A)[None, :] + 3.0 * x[:, :1]))
+            p[np.arange(len(x)), (np.abs(x[:, 0]) * 5).astype(int) % A] = 0.0
+            return p / p.sum(axis=1, keepdims=True)
+
+    fqe = FittedQEvaluation(policy=Mixed(A), gamma=0.9, mode="frozen", n_iterations=5,
+                            regressor_params={"n_estimators": 7}).fit(small_pt)
+    fit = fqe.fit_state_
+    learner = fit.learner
+    rng = np.random.default_rng(3)
+    W = learner.leaf_weight_sums(rng.poisson(lam, fit.data.n).astype(float))
+    op = reweight_query_operator(query_operators(learner, ("next",))["next"], W > 0)
+    v = rng.normal(size=len(learner.leaf_ids))
+    pi = np.asarray(fit.backup.probabilities("next", 0), dtype=np.float64)
+    assert ((pi > 0).sum(axis=1) > 1).all() and (pi == 0).any()
+    want = policy_operator(fit.data, fit.backup, op) @ v
+    got = PolicyRead(learner.pos["next"], pi, len(learner.leaf_ids), keep=W > 0) @ v
+    np.testing.assert_array_equal(got, want)

@@ -121,3 +121,19 @@ def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scal
     L = len(fit.learner.leaf_ids)
     counts = fqe_bootstrap._rows_per_leaf(fit.learner.pos["train"], np.ones(d.n, bool), L)
     assert fqe_bootstrap._terms_per_entry(fit.learner.pos["next"], 0, d.n, counts, L) > 4.0  # leaves of 10+ rows
+
+
+def test_near_pairs_keep_exact_duplicates_at_radius_zero_in_many_dimensions():
+    """Repeated states give a support radius of 0; in 16 features (where scikit-learn's
+    default would compute distances by a matrix product, exact duplicates slightly apart)
+    every query still pairs with the rows at its very state."""
+    from offline_adp.algorithms.fqe_bootstrap import near_pairs
+
+    rng = np.random.default_rng(0)
+    X = np.repeat(rng.normal(size=(6, 16)) * 1e3, 3, axis=0)  # 6 states, each logged 3 times
+    n = len(X)
+    pos = np.zeros((2, n), np.int64)  # two trees, one leaf each holding every row
+    K = near_pairs(pos, 0, pos, X, X, np.ones(n), np.full(1, float(n)), 0.0, 1)
+    same = (np.arange(n)[:, None] // 3) == (np.arange(n)[None, :] // 3)
+    np.testing.assert_array_equal(K.toarray() > 0, same)
+    np.testing.assert_allclose(K.toarray()[same], 1.0 / n)  # both trees, (1/2) (1/n) each

@@ -273,14 +273,17 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
                 counts = _rows_per_leaf(pos, wb > 0, L) if counts is None else counts
             if radius is not None and _terms_per_entry(learner.pos[k], lo, hi, counts, L) > MAX_PAIRS_PER_ENTRY:
                 # leaves of many rows of b: the pairs within the radius first, no product term made
-                if k not in scaled:  # the states in units of each feature's spread, once
-                    scaled[k], scaled["train"] = queried[k] / scale, scaled.get("train", data.obs / scale)
+                if "train" not in scaled:  # the states in units of each feature's spread, once
+                    scaled["train"] = data.obs / scale
+                if k not in scaled:
+                    scaled[k] = queried[k] / scale
                 K = near_pairs(learner.pos[k], lo, pos, scaled[k], scaled["train"], wb, sb, radius, L,
                                pi[k][:, b] > 0)
                 f = np.asarray(K.sum(axis=1)).reshape(-1)
             else:
                 if Mb is None:
                     Mb = _averaging_matrix(pos, wb, sb, L)  # leaf -> mean over its rows of action b (0 without any)
+                    Mb.eliminate_zeros()  # other actions' rows: no terms in the product (its sums are the same)
                     has = (sb > 0).astype(np.float64)
                 K, f = _product_read(ops[k][lo:hi] if ops is not None else query_rows(learner, k, lo, hi), Mb, has,
                                      radius, queried[k], data.obs, scale)
@@ -415,7 +418,9 @@ def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, 
     nq = len(Xq)
     if not len(rows_b) or not nq:
         return sparse.csr_matrix((nq, len(Xt)))
-    nn = NearestNeighbors(radius=radius).fit(Xt[rows_b])
+    # a k-d tree, whatever the dimension: brute force's distances (a matrix product) put exact
+    # duplicates slightly apart, and a radius of 0 (repeated states) would then miss them
+    nn = NearestNeighbors(radius=radius, algorithm="kd_tree").fit(Xt[rows_b])
     wb, sb = np.asarray(wb, dtype=np.float64), np.asarray(sb, dtype=np.float64)
     pos_q, pos_t = np.ascontiguousarray(pos_q), np.ascontiguousarray(pos_t)
     parts, ptr = [], [np.zeros(1, np.int64)]

@@ -87,7 +87,9 @@ def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: An
     (:func:`~offline_adp.algorithms.fqe_bootstrap.reweight_query_operator` with ``keep``): a
     query's entries at leaves not kept are 0, the others ``inv_m / total`` (``total``: the kept
     entries' ``inv_m`` summed in tree order, as ``np.bincount`` sums them); a query with none
-    kept keeps ``inv_m`` at every leaf it reached. Entry by entry the CSR product's numbers."""
+    kept keeps ``inv_m`` at every leaf it reached. Entry by entry the CSR product's numbers, in
+    its order: a dropped leaf is an explicit 0 of the reweighted operator, so it holds its place
+    in the row where first reached (another action's query may then add a fallback's terms)."""
     A, m = pi.shape[1], pos.shape[0]
     keys, sums = np.empty(m * A, np.int64), np.empty(m * A)
     for i in range(n):
@@ -106,16 +108,16 @@ def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: An
             d = inv_m if fall else inv_m * (1.0 / total)
             for t in range(m):
                 leaf = pos[t, q]
-                if leaf >= L or not (fall or keep[leaf]):
+                if leaf >= L:
                     continue
                 j = slot[leaf]
-                if j < 0:
+                if j < 0:  # a dropped leaf's explicit 0 takes its place in the row too, as in scipy's product
                     j = k
                     slot[leaf] = k
                     keys[k] = leaf
                     sums[k] = 0.0
                     k += 1
-                sums[j] += p * d
+                sums[j] += p * (d if (fall or keep[leaf]) else 0.0)
         acc = 0.0
         for j in range(k - 1, -1, -1):
             slot[keys[j]] = -1
