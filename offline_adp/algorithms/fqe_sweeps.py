@@ -46,51 +46,23 @@ def _average_rows(nxt: Any, src: Any, rest: Any, w: Any, wsum: Any, y: Any, t0: 
             out[leaf] += d * y[i]
 
 
-def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, v: Any, out: Any, slot: Any) -> None:
+def _policy_apply(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: Any, v: Any, out: Any, slot: Any) -> None:
     """``out[i] = (P v)_i`` with row ``i`` of ``P`` (:func:`~offline_adp.algorithms.fqe_bootstrap.policy_operator`)
     as scipy's product ``pick @ op_next`` builds it: its leaves in the order first reached
     (actions in order, trees in order), each summing ``pi(a|x'_i) * (1/m)`` from 0, entries
     summing to 0 left out, then summed from 0, last first reached first (scipy's order).
     ``slot[leaf]``: the row's entry of a leaf already reached, else -1 (as scipy's own
-    ``csr_matmat`` finds it; reset after each row)."""
-    A, m = pi.shape[1], pos.shape[0]
-    keys, sums = np.empty(m * A, np.int64), np.empty(m * A)
-    for i in range(n):
-        k = 0
-        for a in range(A):
-            p = pi[i, a]
-            if not p > 0:
-                continue
-            for t in range(m):
-                leaf = pos[t, a * n + i]
-                if leaf >= L:
-                    continue
-                j = slot[leaf]
-                if j < 0:
-                    j = k
-                    slot[leaf] = k
-                    keys[k] = leaf
-                    sums[k] = 0.0
-                    k += 1
-                sums[j] += p * inv_m
-        acc = 0.0
-        for j in range(k - 1, -1, -1):
-            slot[keys[j]] = -1
-            if sums[j] != 0.0:
-                acc += sums[j] * v[keys[j]]
-        out[i] = acc
+    ``csr_matmat`` finds it; reset after each row).
 
-
-def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: Any, v: Any, out: Any,
-                       slot: Any) -> None:
-    """:func:`_policy_apply` on the reweighted query operator
-    (:func:`~offline_adp.algorithms.fqe_bootstrap.reweight_query_operator` with ``keep``): a
+    ``keep`` (a bool per leaf; empty: the fit's own operator): the operator reweighted to the
+    leaves kept (:func:`~offline_adp.algorithms.fqe_bootstrap.reweight_query_operator`): a
     query's entries at leaves not kept are 0, the others ``inv_m / total`` (``total``: the kept
     entries' ``inv_m`` summed in tree order, as ``np.bincount`` sums them); a query with none
-    kept keeps ``inv_m`` at every leaf it reached. Entry by entry the CSR product's numbers, in
-    its order: a dropped leaf is an explicit 0 of the reweighted operator, so it holds its place
-    in the row where first reached (another action's query may then add a fallback's terms)."""
+    kept keeps ``inv_m`` at every leaf it reached. A dropped leaf is an explicit 0 of that
+    operator, so it holds its place in the row where first reached (another action's query
+    may then add a fallback's terms), as in scipy's product."""
     A, m = pi.shape[1], pos.shape[0]
+    reweight = len(keep) > 0
     keys, sums = np.empty(m * A, np.int64), np.empty(m * A)
     for i in range(n):
         k = 0
@@ -99,19 +71,21 @@ def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: An
             if not p > 0:
                 continue
             q = a * n + i
-            total = 0.0
-            for t in range(m):
-                leaf = pos[t, q]
-                if leaf < L and keep[leaf]:
-                    total += inv_m
-            fall = not total > 0.0
-            d = inv_m if fall else inv_m * (1.0 / total)
+            fall, d = True, inv_m
+            if reweight:
+                total = 0.0
+                for t in range(m):
+                    leaf = pos[t, q]
+                    if leaf < L and keep[leaf]:
+                        total += inv_m
+                fall = not total > 0.0
+                d = inv_m if fall else inv_m * (1.0 / total)
             for t in range(m):
                 leaf = pos[t, q]
                 if leaf >= L:
                     continue
                 j = slot[leaf]
-                if j < 0:  # a dropped leaf's explicit 0 takes its place in the row too, as in scipy's product
+                if j < 0:
                     j = k
                     slot[leaf] = k
                     keys[k] = leaf
@@ -128,7 +102,6 @@ def _policy_apply_kept(pos: Any, pi: Any, n: int, L: int, inv_m: float, keep: An
 
 _average_rows = _kernel(_average_rows, cache=True, nogil=True, boundscheck=False)
 _policy_apply = _kernel(_policy_apply, cache=True, nogil=True, boundscheck=False)
-_policy_apply_kept = _kernel(_policy_apply_kept, cache=True, nogil=True, boundscheck=False)
 
 
 class LeafAverage:
@@ -167,7 +140,7 @@ class PolicyRead:
 
     def __init__(self, pos_next: np.ndarray, pi_next: np.ndarray, L: int, keep: np.ndarray | None = None) -> None:
         self.pos, self.pi = np.ascontiguousarray(pos_next), np.ascontiguousarray(pi_next, dtype=np.float64)
-        self.keep = None if keep is None else np.ascontiguousarray(keep, dtype=np.bool_)
+        self.keep = np.zeros(0, np.bool_) if keep is None else np.ascontiguousarray(keep, dtype=np.bool_)
         self.n, self.L, self.inv_m = len(self.pi), int(L), 1.0 / pos_next.shape[0]
         self.slot = np.full(self.L, -1, np.int32)  # each leaf's entry in the row being read (4 bytes a leaf)
         if self.pi.ndim != 2 or self.pos.ndim != 2 or self.pos.shape[1] != self.pi.size:
@@ -176,8 +149,5 @@ class PolicyRead:
 
     def __matmul__(self, v: np.ndarray) -> np.ndarray:
         out, v = np.empty(self.n), np.ascontiguousarray(v, dtype=np.float64)
-        if self.keep is None:
-            _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, v, out, self.slot)
-        else:
-            _policy_apply_kept(self.pos, self.pi, self.n, self.L, self.inv_m, self.keep, v, out, self.slot)
+        _policy_apply(self.pos, self.pi, self.n, self.L, self.inv_m, self.keep, v, out, self.slot)
         return out
