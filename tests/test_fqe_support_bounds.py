@@ -89,10 +89,10 @@ def test_q_value_range_bounds_every_path():
 @pytest.mark.parametrize("radius_scale", [0.37, 1.37, 50.0])
 @pytest.mark.parametrize("policy", ["deterministic", "uniform"])
 def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scale, policy):
-    """Where leaves hold many rows of an action the per-action read finds the pairs within the
-    radius first (fqe_bootstrap.near_pairs) instead of filtering every (query, row) product
-    term: the same operators (to rounding) and the same bounds, on leaves of 10+ rows, at a
-    radius that keeps few pairs, one that keeps more, and one that keeps all."""
+    """Where leaves hold many rows of an action the per-action read streams the product's terms
+    and keeps only the pairs within the radius (fqe_bootstrap.near_pairs) instead of making
+    every (query, row) term and filtering: the same operators and the same bounds, on leaves
+    of 10+ rows, at a radius that keeps few pairs, one that keeps more, and one that keeps all."""
     from offline_adp.algorithms import fqe_bootstrap
     from offline_adp.algorithms.fqe import FittedQEvaluation
     from offline_adp.policies import UniformPolicy
@@ -124,16 +124,16 @@ def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scal
 
 
 def test_near_pairs_keep_exact_duplicates_at_radius_zero_in_many_dimensions():
-    """Repeated states give a support radius of 0; in 16 features (where scikit-learn's
-    default would compute distances by a matrix product, exact duplicates slightly apart)
-    every query still pairs with the rows at its very state."""
+    """Repeated states give a support radius of 0; in 16 features every query still pairs
+    with the rows at its very state (distances taken as the product path takes them), and
+    a leaf's weight is split over its rows of the action."""
     from offline_adp.algorithms.fqe_bootstrap import near_pairs
 
     rng = np.random.default_rng(0)
     X = np.repeat(rng.normal(size=(6, 16)) * 1e3, 3, axis=0)  # 6 states, each logged 3 times
     n = len(X)
-    pos = np.zeros((2, n), np.int64)  # two trees, one leaf each holding every row
-    K = near_pairs(pos, 0, pos, X, X, np.ones(n), np.full(1, float(n)), 0.0, 1)
+    pos = np.repeat(np.arange(2)[:, None], n, axis=1)  # two trees, one leaf each (leaves 0, 1) holding every row
+    K = near_pairs(pos, 0, pos, X, X, np.full(16, 7.0), np.ones(n), np.full(2, float(n)), 0.0, 2)
     same = (np.arange(n)[:, None] // 3) == (np.arange(n)[None, :] // 3)
     np.testing.assert_array_equal(K.toarray() > 0, same)
     np.testing.assert_allclose(K.toarray()[same], 1.0 / n)  # both trees, (1/2) (1/n) each

@@ -262,7 +262,6 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
     u = {k: np.zeros(nq[k]) for k in pi}
     queried = {"next": data.train.next_obs, "start": data.start_obs}
     scale = np.where(data.obs_std > 0, data.obs_std, 1.0)
-    scaled: dict[str, np.ndarray] = {}
     for b in range(A):
         wb = np.where(acts == b, w, 0.0)
         sb = learner.leaf_weight_sums(wb)
@@ -272,12 +271,8 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
             if radius is not None:
                 counts = _rows_per_leaf(pos, wb > 0, L) if counts is None else counts
             if radius is not None and _terms_per_entry(learner.pos[k], lo, hi, counts, L) > MAX_PAIRS_PER_ENTRY:
-                # leaves of many rows of b: the pairs within the radius first, no product term made
-                if "train" not in scaled:  # the states in units of each feature's spread, once
-                    scaled["train"] = data.obs / scale
-                if k not in scaled:
-                    scaled[k] = queried[k] / scale
-                K = near_pairs(learner.pos[k], lo, pos, scaled[k], scaled["train"], wb, sb, radius, L,
+                # leaves of many rows of b: the product's terms streamed, only the near pairs kept
+                K = near_pairs(learner.pos[k], lo, pos, queried[k], data.obs, scale, wb, sb, radius, L,
                                pi[k][:, b] > 0)
                 f = np.asarray(K.sum(axis=1)).reshape(-1)
             else:
@@ -339,12 +334,11 @@ def support_radius(obs: np.ndarray, actions: np.ndarray, obs_std: np.ndarray, qu
 #: :func:`support_operators` with a radius builds ``Ab diag(has) Mb`` (every (query, tree, row
 #: of b in the reached leaf) term) and keeps the pairs within the radius when it has at most
 #: this many terms per query entry; beyond it (leaves of many rows: structures grown on a
-#: bootstrap of the rows, ``structure_max_samples``; exactly repeated states) the pairs
-#: within the radius are found first (:func:`near_pairs`), so the terms far from the query
-#: are never made (at 10M rows with 131,072-row structures ~150 rows a leaf: ~10^10 terms).
+#: bootstrap of the rows, ``structure_max_samples``; exactly repeated states) the terms are
+#: streamed query by query and only the pairs within the radius kept (:func:`near_pairs`), so
+#: the terms far from the query are never held (at 10M rows with 131,072-row structures ~150
+#: rows a leaf: ~10^10 terms).
 MAX_PAIRS_PER_ENTRY = 4.0
-#: queries whose radius neighbours are found at once (:func:`near_pairs`)
-_NEAR_CHUNK = 1 << 17
 
 
 def _product_read(Ab: Any, Mb: Any, has: np.ndarray, radius: float | None, Xq: np.ndarray, Xt: np.ndarray,
@@ -382,61 +376,99 @@ def _terms_per_entry(pos_q: np.ndarray, lo: int, hi: int, counts: np.ndarray, L:
     return terms / max(entries, 1)
 
 
-def _shared_leaf_weight(pos_q: Any, col0: int, pos_t: Any, qi: Any, rj: Any, wb: Any, sb: Any, inv_m: float,
-                        L: int, out: Any) -> None:
-    """``out[p] = sum over trees t where query qi[p] (column ``col0 + qi[p]`` of ``pos_q``) and
-    row rj[p] reach the same leaf l (< L) of inv_m * (wb[rj] / sb[l])``: the pair's entry of
-    ``Ab diag(has) Mb``."""
-    for p in range(len(qi)):
-        q, j = col0 + qi[p], rj[p]
-        c = 0.0
+def _near_terms(pos_q: Any, col0: int, qs: Any, m_ptr: Any, m_idx: Any, Xq: Any, Xt: Any, scale: Any, wb: Any,
+                sb: Any, radius: float, inv_m: float, L: int, seen: Any, where: Any, out_ptr: Any, out_idx: Any,
+                out_dat: Any) -> int:
+    """The product ``Ab diag(has) Mb`` of :func:`support_operators` at queries ``qs``, streamed:
+    for each query, tree by tree, the rows of b in its reached leaf (``m_ptr``, ``m_idx``), each
+    row's distance taken once (``sqrt(sum(((x'_i - x_j) / scale)^2)) <= radius``, as the product
+    path tests it) and, if near, ``inv_m * (wb_j / sb_leaf)`` added to its entry, in tree order
+    (the product's terms, each the same IEEE product). Writes query ``qs[u]``'s entries at
+    ``out_ptr[u] .. out_ptr[u + 1]`` (rows in first-reached order); ``seen[j]`` / ``where[j]``:
+    the last query that met row j and its entry (-1: far). Returns the entries written."""
+    nk = 0
+    out_ptr[0] = 0
+    D = Xq.shape[1]
+    for u in range(len(qs)):
+        i = qs[u]
         for t in range(pos_q.shape[0]):
-            leaf = pos_q[t, q]
-            if leaf < L and leaf == pos_t[t, j]:
-                c += inv_m * (wb[j] / sb[leaf])
-        out[p] = c
+            leaf = pos_q[t, col0 + i]
+            if leaf >= L:
+                continue
+            s = sb[leaf]
+            if not s > 0.0:
+                continue
+            for e in range(m_ptr[leaf], m_ptr[leaf + 1]):
+                j = m_idx[e]
+                if seen[j] != i:
+                    seen[j] = i
+                    d2 = 0.0
+                    for f in range(D):
+                        diff = (Xq[i, f] - Xt[j, f]) / scale[f]
+                        d2 += diff * diff
+                    if np.sqrt(d2) <= radius:
+                        where[j] = nk
+                        out_idx[nk] = j
+                        out_dat[nk] = 0.0
+                        nk += 1
+                    else:
+                        where[j] = -1
+                w = where[j]
+                if w >= 0:
+                    out_dat[w] += inv_m * (wb[j] / s)
+        out_ptr[u + 1] = nk
+    return nk
 
 
-_shared_leaf_weight = _kernel(_shared_leaf_weight, cache=True, nogil=True, boundscheck=False)
+_near_terms = _kernel(_near_terms, cache=True, nogil=True, boundscheck=False)
+
+#: product terms a streamed chunk of :func:`near_pairs` may hold (its entry buffers: 12 bytes a term)
+_NEAR_TERMS = 1 << 23
 
 
-def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, Xt: np.ndarray, wb: np.ndarray,
-               sb: np.ndarray, radius: float, L: int, need: np.ndarray | None = None) -> Any:
+def near_pairs(pos_q: np.ndarray, col0: int, pos_t: np.ndarray, Xq: np.ndarray, Xt: np.ndarray, scale: np.ndarray,
+               wb: np.ndarray, sb: np.ndarray, radius: float, L: int, need: np.ndarray | None = None) -> Any:
     """``Ab diag(has) Mb`` of :func:`support_operators` restricted to the pairs whose states are
-    within ``radius`` (``Xq``, ``Xt``: the queried and the training states, already scaled;
-    query ``i``'s leaves ``pos_q[:, col0 + i]``, row ``j``'s ``pos_t[:, j]``),
-    as sparse (queries, rows): the rows of b (``wb > 0``) within the radius of each query are
-    found with a k-d tree (:class:`sklearn.neighbors.NearestNeighbors`, ``<= radius``), then
-    each pair's weight summed over the trees where both reach the same leaf (pairs sharing no
-    leaf left out). The same entries as the product filtered by distance (each a sum of the
-    same terms, in tree order; a pair at exactly the radius may fall either side, the
-    distances being computed on the scaled states). ``need``: the queries whose rows are
-    wanted (the policy's probability is positive); the others are left empty."""
-    from sklearn.neighbors import NearestNeighbors
-
+    within ``radius`` (``Xq``, ``Xt``: the queried and the training states, distances in units
+    of ``scale``; query ``i``'s leaves ``pos_q[:, col0 + i]``, row ``j``'s ``pos_t[:, j]``), as
+    sparse (queries, rows), without making the product: each query's terms are streamed
+    (:func:`_near_terms`) and only the pairs within the radius kept, queries a chunk of at most
+    :data:`_NEAR_TERMS` terms at a time. Each kept entry sums the product's terms in tree order
+    under the same distance test (rows sorted within each query; sums over a row may differ
+    from the product path's in the last bit). ``need``: the queries whose rows are wanted (the policy's probability
+    is positive); the others are left empty."""
+    nq, n = len(Xq), len(Xt)
     rows_b = np.flatnonzero(wb > 0)
-    nq = len(Xq)
     if not len(rows_b) or not nq:
-        return sparse.csr_matrix((nq, len(Xt)))
-    # a k-d tree, whatever the dimension: brute force's distances (a matrix product) put exact
-    # duplicates slightly apart, and a radius of 0 (repeated states) would then miss them
-    nn = NearestNeighbors(radius=radius, algorithm="kd_tree").fit(Xt[rows_b])
-    wb, sb = np.asarray(wb, dtype=np.float64), np.asarray(sb, dtype=np.float64)
-    pos_q, pos_t = np.ascontiguousarray(pos_q), np.ascontiguousarray(pos_t)
-    parts, ptr = [], [np.zeros(1, np.int64)]
-    for lo in range(0, nq, _NEAR_CHUNK):
-        sel = np.arange(lo, min(lo + _NEAR_CHUNK, nq))
-        sel = sel if need is None else sel[need[sel]]
-        g = nn.radius_neighbors_graph(Xq[sel], mode="connectivity") if len(sel) else sparse.csr_matrix((0, 1))
-        qi = np.repeat(sel, np.diff(g.indptr))
-        rj = rows_b[g.indices]
-        c = np.empty(len(qi))
-        _shared_leaf_weight(pos_q, col0, pos_t, qi, rj, wb, sb, 1.0 / pos_q.shape[0], L, c)
-        keep = c > 0.0
-        parts.append((rj[keep], c[keep]))
-        ptr.append(np.bincount(qi[keep] - lo, minlength=min(_NEAR_CHUNK, nq - lo)))
-    indptr = np.cumsum(np.concatenate(ptr))
-    K = sparse.csr_matrix((np.concatenate([p[1] for p in parts]), np.concatenate([p[0] for p in parts]), indptr),
-                          shape=(nq, len(Xt)))
+        return sparse.csr_matrix((nq, n))
+    m_ptr, m_idx = leaf_rows(np.ascontiguousarray(pos_t[:, rows_b]), L)  # each leaf's rows of b
+    m_idx = rows_b.astype(m_idx.dtype)[m_idx]
+    counts = np.diff(m_ptr).astype(np.int64)
+    counts = np.append(counts, 0)  # position L: no training leaf
+    qs_all = np.arange(nq) if need is None else np.flatnonzero(need)
+    terms = np.zeros(len(qs_all), np.int64)
+    for t in range(pos_q.shape[0]):
+        terms += counts[np.minimum(pos_q[t, col0 + qs_all], L)]
+    seen, where = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+    sbf, wbf = np.asarray(sb, dtype=np.float64), np.asarray(wb, dtype=np.float64)
+    Xq, Xt = np.ascontiguousarray(Xq, dtype=np.float64), np.ascontiguousarray(Xt, dtype=np.float64)
+    sc = np.ascontiguousarray(scale, dtype=np.float64)
+    row_nnz, idx_parts, dat_parts = np.zeros(nq, np.int64), [np.zeros(0, np.int64)], [np.zeros(0)]
+    cum, lo = np.cumsum(terms), 0
+    while lo < len(qs_all):
+        base = cum[lo - 1] if lo else 0
+        hi = max(lo + 1, int(np.searchsorted(cum, base + _NEAR_TERMS, side="right")))
+        qs = qs_all[lo:hi]
+        cap = int(cum[hi - 1] - base)
+        ptr, idx, dat = np.empty(len(qs) + 1, np.int64), np.empty(cap, np.int64), np.empty(cap)
+        nk = _near_terms(pos_q, col0, qs, m_ptr, m_idx, Xq, Xt, sc, wbf, sbf, float(radius), 1.0 / pos_q.shape[0], L,
+                         seen, where, ptr, idx, dat)
+        row_nnz[qs] = np.diff(ptr)
+        idx_parts.append(idx[:nk].copy())
+        dat_parts.append(dat[:nk].copy())
+        lo = hi
+    indptr = np.zeros(nq + 1, np.int64)
+    np.cumsum(row_nnz, out=indptr[1:])
+    K = sparse.csr_matrix((np.concatenate(dat_parts), np.concatenate(idx_parts), indptr), shape=(nq, n))
     K.sort_indices()
     return K
