@@ -119,8 +119,9 @@ def test_near_pairs_give_the_filtered_product(small_pt, monkeypatch, radius_scal
         assert fqe_bootstrap.bounded_value(d, Pn, un, P0n, u0n, B) == pytest.approx(
             fqe_bootstrap.bounded_value(d, P, u, P0, u0, B), rel=1e-9, abs=1e-12)
     L = len(fit.learner.leaf_ids)
-    counts = fqe_bootstrap._rows_per_leaf(fit.learner.pos["train"], np.ones(d.n, bool), L)
-    assert fqe_bootstrap._terms_per_entry(fit.learner.pos["next"], 0, d.n, counts, L) > 4.0  # leaves of 10+ rows
+    terms, entries = fqe_bootstrap.query_terms(fit.learner.pos["next"], slice(0, d.n),
+                                               fqe_bootstrap.leaf_counts(fit.learner, np.ones(d.n, bool)), L)
+    assert terms > 4.0 * entries  # leaves of 10+ rows: the streamed path
 
 
 def test_near_pairs_keep_exact_duplicates_at_radius_zero_in_many_dimensions():

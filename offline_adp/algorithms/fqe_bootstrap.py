@@ -269,8 +269,9 @@ def support_operators(data: Prepared, backup: PolicyBackup, learner: FrozenTrees
         for k in pi:
             lo, hi = b * nq[k], (b + 1) * nq[k]  # action b's rows (without ops: made alone, not the whole operator)
             if radius is not None:
-                counts = _rows_per_leaf(pos, wb > 0, L) if counts is None else counts
-            if radius is not None and _terms_per_entry(learner.pos[k], lo, hi, counts, L) > MAX_PAIRS_PER_ENTRY:
+                counts = leaf_counts(learner, wb > 0) if counts is None else counts
+                terms, entries = query_terms(learner.pos[k], slice(lo, hi), counts, L)
+            if radius is not None and terms > MAX_PAIRS_PER_ENTRY * max(entries, 1):
                 # leaves of many rows of b: the product's terms streamed, only the near pairs kept
                 K = near_pairs(learner.pos[k], lo, pos, queried[k], data.obs, scale, wb, sb, radius, L,
                                pi[k][:, b] > 0)
@@ -357,23 +358,23 @@ def _product_read(Ab: Any, Mb: Any, has: np.ndarray, radius: float | None, Xq: n
     return K, np.asarray(K.sum(axis=1)).reshape(-1)
 
 
-def _rows_per_leaf(pos: np.ndarray, is_b: np.ndarray, L: int) -> np.ndarray:
-    """Rows ``is_b`` in each leaf (``L + 1`` counts, the last 0: no training leaf)."""
-    counts = np.zeros(L + 1, np.int64)
-    for t in range(pos.shape[0]):  # a leaf's rows are all in its own tree
-        counts += np.bincount(pos[t][is_b], minlength=L + 1)[:L + 1]
-    return counts
-
-
-def _terms_per_entry(pos_q: np.ndarray, lo: int, hi: int, counts: np.ndarray, L: int) -> float:
-    """Terms of ``Ab diag(has) Mb`` (:func:`support_operators`) per entry of ``Ab`` (queries
-    ``lo .. hi - 1`` of ``pos_q``): the rows of b in each entry's leaf, read from the positions."""
+def query_terms(pos_q: np.ndarray, cols: Any, counts: np.ndarray, L: int) -> tuple[int, int]:
+    """``(terms, entries)`` of the queries ``cols`` of ``pos_q`` (trees, queries): the entries
+    reaching a training leaf (< ``L``) and the rows those leaves hold (``counts``, ``L + 1`` per
+    leaf, the last 0): the size of a product of their query operator with a leaf's rows
+    (:func:`support_operators`' ``Ab diag(has) Mb``, the replicates' ``P_w M_w``)."""
     terms = entries = 0
     for t in range(pos_q.shape[0]):
-        leaves = np.minimum(pos_q[t, lo:hi], L)
+        leaves = np.minimum(pos_q[t, cols], L)
         terms += int(counts[leaves].sum())
         entries += int(np.count_nonzero(leaves < L))
-    return terms / max(entries, 1)
+    return terms, entries
+
+
+def leaf_counts(learner: FrozenTreesLearner, rows: np.ndarray) -> np.ndarray:
+    """The ``rows`` (bool, the training rows') in each leaf, with a last 0 for position ``L``
+    (no training leaf): :func:`query_terms`' ``counts``."""
+    return np.append(np.rint(learner.leaf_weight_sums(rows.astype(np.float64))).astype(np.int64), 0)
 
 
 def _near_terms(pos_q: Any, col0: int, qs: Any, m_ptr: Any, m_idx: Any, Xq: Any, Xt: Any, scale: Any, wb: Any,

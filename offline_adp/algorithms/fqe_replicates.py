@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.algorithms.fqe_bootstrap import leaf_rows, reweight_query_operator
+from offline_adp.algorithms.fqe_bootstrap import leaf_counts, leaf_rows, query_terms, reweight_query_operator
 from offline_adp.trees.builder import _kernel
 
 
@@ -193,13 +193,7 @@ def row_space_sparse(learner: Any, pi_next: np.ndarray) -> bool:
     pos = learner.pos["next"]  # (trees, A n)
     n = pi_next.shape[0]
     read = np.flatnonzero((pi_next > 0).T.ravel())  # query columns a n + i the policy reads
-    counts = np.zeros(L + 1, np.int64)
-    counts[:L] = learner.leaf_weight_sums(np.ones(n)).astype(np.int64)  # rows of each leaf; L: none
-    nnz = n_triples = 0
-    for t in range(pos.shape[0]):
-        leaves = np.minimum(pos[t, read], L)
-        nnz += int(np.count_nonzero(leaves < L))
-        n_triples += int(counts[leaves].sum())
+    n_triples, nnz = query_terms(pos, read, leaf_counts(learner, np.ones(n, bool)), L)
     return n_triples <= MAX_TRIPLES_RATIO * (nnz + n * pos.shape[0])
 
 
