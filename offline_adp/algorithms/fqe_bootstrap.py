@@ -122,7 +122,11 @@ def reweighted_operators(learner: FrozenTreesLearner, weights: np.ndarray,
     average over trees (rows of ``A`` renormalised over the remaining trees; a query
     with none left keeps its original row). ``base``: the unweighted query operators
     to reweight (default: all of :func:`query_operators`, built here), so that many
-    replicates build them once."""
+    replicates build them once.
+
+    The matrix construction a replicate's leaf-space sweeps are defined by and tested against
+    (``tests/test_fqe_replicates.py``); the library applies them without making them
+    (:class:`~offline_adp.algorithms.fqe_sweeps.LeafAverage`, ``PolicyRead``)."""
     L = len(learner.leaf_ids)
     w = np.asarray(weights, dtype=np.float64)
     wsum = learner.leaf_weight_sums(w)
@@ -150,7 +154,9 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
                 max_iterations: int, rtol: float = 1e-7) -> tuple[np.ndarray, int]:
     """Iterate the leaf-averaging backup ``v <- M (targets(P v))`` from ``v`` (a
     gamma-contraction) until its distance to the fixed point is at most ``tol`` (default
-    ``rtol (1 + max |v|)``) or ``max_iterations`` sweeps; returns ``(v, sweeps)``.
+    ``rtol (1 + max |v|)``) or ``max_iterations`` sweeps; returns ``(v, sweeps)``. On
+    :func:`reweighted_operators`' matrices: the reference the matrix-free replicate is tested
+    against.
 
     The policy's expectation over next actions is folded into one operator first,
     ``P = sum_a diag(pi(a|x')) A_next[a]`` (rows of actions the policy never takes
