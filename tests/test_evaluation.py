@@ -84,6 +84,40 @@ def test_recursion_matches_exact_ratios_and_improves_with_data(case, l1_max, w2_
     assert l1_100k <= 0.45 * l1_10k
 
 
+def test_ratio_regressions_above_the_row_cap_fit_a_sample_and_still_match_exact(monkeypatch):
+    """Above ``RATIO_MAX_FIT_ROWS`` each ratio regression is fitted on a sample of that many rows
+    (and read at every row): on 100k episodes (100k rows a step) capped to 15,000 the recursion
+    still meets the 10k-episode bound against the exact ratios, and pooling stays the exact
+    fixed point of the same sampled regressions: a sweep's output depends on its input only
+    through the sampled rows."""
+    fitted: list[int] = []
+    real = shift.make_regressor
+
+    def counting(*args, **kw):
+        model = real(*args, **kw)
+        fit = model.fit
+        model.fit = lambda X, y: (fitted.append(len(X)), fit(X, y))[1]
+        return model
+
+    monkeypatch.setattr(shift, "make_regressor", counting)
+    monkeypatch.setattr(shift, "RATIO_MAX_FIT_ROWS", 15_000)
+    l1, w2 = recursion_errors("strong", 100_000)
+    assert fitted and max(fitted) == 15_000
+    assert l1 <= 0.12 and w2 <= 0.03
+    # the same sample at every sweep: rows outside it do not move the pooled ratios
+    a, rho = rho_of(logged(CASES["strong"][0], 2_000, 4), CASES["strong"][1])
+    base = shift.ratios_pooled(a.obs, a.next_obs, a.step, rho, regressor="tabular").w
+    src = np.flatnonzero(a.step < a.step.max())
+    sample = np.sort(np.random.default_rng(len(src)).choice(len(src), 15_000, replace=False))
+    outside = np.setdiff1d(np.arange(len(src)), sample)
+    rho2 = rho.copy()
+    rho2[src[outside]] *= 3.0
+    np.testing.assert_allclose(shift.ratios_pooled(a.obs, a.next_obs, a.step, rho2, regressor="tabular").w, base,
+                               rtol=1e-12)
+    rho2[src[sample[:50]]] *= 3.0
+    assert not np.allclose(shift.ratios_pooled(a.obs, a.next_obs, a.step, rho2, regressor="tabular").w, base)
+
+
 @pytest.mark.parametrize("case", ["mild", "strong"])
 def test_classifier_ratios_match_exact(case):
     pib, pi = CASES[case]

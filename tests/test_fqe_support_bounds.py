@@ -138,3 +138,29 @@ def test_near_pairs_keep_exact_duplicates_at_radius_zero_in_many_dimensions():
     same = (np.arange(n)[:, None] // 3) == (np.arange(n)[None, :] // 3)
     np.testing.assert_array_equal(K.toarray() > 0, same)
     np.testing.assert_allclose(K.toarray()[same], 1.0 / n)  # both trees, (1/2) (1/n) each
+
+
+def test_support_radius_reads_the_spacing_of_all_rows_not_of_its_sample():
+    """The radius is a quantile of each sampled row's distance to its nearest other row of its
+    action among *all* of them (brute force here), so above ``max_rows`` it is the data's spacing
+    (uniform states: ~``n ** -1/2`` in 2-D), not the sample's ``(n / max_rows) ** 1/2`` times
+    wider one."""
+    from offline_adp.algorithms.fqe_bootstrap import support_radius
+
+    rng = np.random.default_rng(1)
+    obs = rng.uniform(size=(40_000, 2))
+    actions = rng.integers(0, 2, len(obs))
+    std = obs.std(axis=0)
+    full = support_radius(obs, actions, std, max_rows=len(obs))
+    sampled = support_radius(obs, actions, std, max_rows=2_000)
+    assert sampled == pytest.approx(full, rel=0.15)
+    # the brute-force reading of the same sample
+    r = np.random.default_rng(0)
+    d = []
+    for b in (0, 1):
+        X = obs[actions == b] / std
+        q = X[r.choice(len(X), 2_000, replace=False)]
+        for c in range(0, len(q), 250):  # (250, ~20k) distances at a time
+            d2 = ((q[c:c + 250, None, :] - X[None, :, :]) ** 2).sum(axis=2)
+            d.append(np.sqrt(np.partition(d2, 1, axis=1)[:, 1]))
+    assert sampled == pytest.approx(float(np.quantile(np.concatenate(d), 0.99)), rel=1e-12)

@@ -320,9 +320,15 @@ def support_radius(obs: np.ndarray, actions: np.ndarray, obs_std: np.ndarray, qu
                    max_rows: int = 20_000, seed: int = 0) -> float:
     """The data's own spacing: the ``quantile`` of the distance from a logged state to the
     nearest other logged state of the same action (Euclidean in units of each feature's
-    standard deviation; at most ``max_rows`` rows per action, drawn at random). A queried
-    state farther than this from every row of the queried action lies where the logs are
-    sparser than at 99% of their own rows (:func:`support_operators`' ``radius``)."""
+    standard deviation), read at most ``max_rows`` rows per action drawn at random, each
+    against *every* row of its action. A queried state farther than this from every row of
+    the queried action lies where the logs are sparser than at 99% of their own rows
+    (:func:`support_operators`' ``radius``).
+
+    Only the rows whose distance is read are sampled: nearest neighbours among a sample of
+    ``m`` of ``n`` rows lie ``(n / m) ** (1 / d)`` times farther than in the data (at 1M rows
+    of car-on-the-hill 0.060 against 0.012), which made the radius, and the pairs the
+    support bounds keep, grow with the data instead of shrinking."""
     from sklearn.neighbors import NearestNeighbors
 
     scale = np.where(obs_std > 0, obs_std, 1.0)
@@ -330,11 +336,11 @@ def support_radius(obs: np.ndarray, actions: np.ndarray, obs_std: np.ndarray, qu
     dists = []
     for b in np.unique(actions):
         X = obs[actions == b] / scale
-        if len(X) > max_rows:
-            X = X[rng.choice(len(X), max_rows, replace=False)]
-        if len(X) >= 2:
-            d, _ = NearestNeighbors(n_neighbors=2).fit(X).kneighbors(X)
-            dists.append(d[:, 1])
+        if len(X) < 2:
+            continue
+        Xq = X[rng.choice(len(X), max_rows, replace=False)] if len(X) > max_rows else X
+        d, _ = NearestNeighbors(n_neighbors=2).fit(X).kneighbors(Xq)
+        dists.append(d[:, 1])
     return float(np.quantile(np.concatenate(dists), quantile)) if dists else float("inf")
 
 

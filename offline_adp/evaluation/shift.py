@@ -92,13 +92,26 @@ def exact_ratios(model: FullModel, policy: Policy, behaviour: Policy, horizon: i
 RATIO_TREES = {"n_estimators": 10, "min_samples_leaf": 20, "max_features": 1.0, "n_jobs": 1}
 
 
+#: The ratio regressions are fitted on at most this many rows (a uniform sample above it, the
+#: same sample at every sweep of :func:`ratios_pooled`) and read at every row; as the model
+#: rollouts' :data:`~offline_adp.evaluation.model_rollouts.MAX_FIT_ROWS`. Below it nothing
+#: changes. At 10M transitions the pooled regression's 20 sweeps on all ~9.4M rows cost
+#: ~80 CPU-s each; on 1M rows ~7 (docs/scaling.md, "The 10M evaluate").
+RATIO_MAX_FIT_ROWS = 1_000_000
+
+
 def _fit_predict(regressor: Any, params: dict | None, X: np.ndarray, y: np.ndarray, X_new: np.ndarray) -> np.ndarray:
     """The ratio regression fitted on ``(X, y)`` and read at ``X_new`` (a forest's read is
     deterministic: :func:`~offline_adp.qfunctions.predict_model`); the registry's
     extra-trees are built and read without the forest's per-tree overhead, with the same
-    numbers (:func:`~offline_adp.trees.forest_predict.extra_trees_fit_predict`)."""
+    numbers (:func:`~offline_adp.trees.forest_predict.extra_trees_fit_predict`). Above
+    :data:`RATIO_MAX_FIT_ROWS` rows the fit sees a uniform sample of them (seeded: the same
+    rows for the same ``len(X)``)."""
     from offline_adp.trees.forest_predict import extra_trees_fit_predict
 
+    if len(X) > RATIO_MAX_FIT_ROWS:
+        rows = np.sort(np.random.default_rng(len(X)).choice(len(X), RATIO_MAX_FIT_ROWS, replace=False))
+        X, y = X[rows], y[rows]
     model = make_regressor(regressor, **(params or {}))
     out = extra_trees_fit_predict(model, X, y, X_new) if regressor == "extra_trees" else None
     return predict_model(model.fit(X, y), X_new) if out is None else out
