@@ -73,6 +73,7 @@ def test_ratios_are_one_when_target_is_behaviour():
     np.testing.assert_allclose(r.w, 1.0, atol=1e-12)
     r = shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho)  # extra-trees
     np.testing.assert_allclose(r.w, 1.0, atol=1e-9)
+    assert not [m for m in r.warnings if "sample" in m]  # below the cap: every row fitted, nothing said
 
 
 @pytest.mark.parametrize("case,l1_max,w2_max", [("mild", 0.05, 0.01), ("strong", 0.12, 0.03)])
@@ -103,10 +104,16 @@ def test_ratio_regressions_above_the_row_cap_fit_a_sample_and_still_match_exact(
     monkeypatch.setattr(shift, "RATIO_MAX_FIT_ROWS", 15_000)
     l1, w2 = recursion_errors("strong", 100_000)
     assert fitted and max(fitted) == 15_000
+    a, rho = rho_of(logged(CASES["strong"][0], 100_000, 1), CASES["strong"][1])
+    (said,) = [m for m in shift.ratios_by_recursion(a.obs, a.next_obs, a.step, a.episode, rho,
+                                                    regressor="tabular").warnings if "sample" in m]
+    assert "15,000 of 100,000 rows" in said  # the cap is said, not silent
     assert l1 <= 0.12 and w2 <= 0.03
     # the same sample at every sweep: rows outside it do not move the pooled ratios
     a, rho = rho_of(logged(CASES["strong"][0], 2_000, 4), CASES["strong"][1])
-    base = shift.ratios_pooled(a.obs, a.next_obs, a.step, rho, regressor="tabular").w
+    pooled = shift.ratios_pooled(a.obs, a.next_obs, a.step, rho, regressor="tabular")
+    assert any("15,000 of 18,000 rows" in m for m in pooled.warnings)
+    base = pooled.w
     src = np.flatnonzero(a.step < a.step.max())
     sample = np.sort(np.random.default_rng(len(src)).choice(len(src), 15_000, replace=False))
     outside = np.setdiff1d(np.arange(len(src)), sample)

@@ -117,6 +117,15 @@ def _fit_predict(regressor: Any, params: dict | None, X: np.ndarray, y: np.ndarr
     return predict_model(model.fit(X, y), X_new) if out is None else out
 
 
+def _sampled_warning(n_rows: int, what: str) -> list[str]:
+    """The warning that ``what`` was fitted on a sample (:data:`RATIO_MAX_FIT_ROWS` of
+    ``n_rows``), or none: a cap the user did not ask for is said, not silent."""
+    if n_rows <= RATIO_MAX_FIT_ROWS:
+        return []
+    return [f"{what} fitted on a uniform sample of {RATIO_MAX_FIT_ROWS:,} of {n_rows:,} rows "
+            "(shift.RATIO_MAX_FIT_ROWS) and read at every row"]
+
+
 def _normalise(w: np.ndarray) -> np.ndarray:
     m = w.mean() if len(w) else 1.0
     return w / m if m > 0 else np.ones_like(w)
@@ -176,6 +185,8 @@ def ratios_by_recursion(
                         f"{int(min(np.sum(step == t) for t in thin))}): "
                         "the per-step regressions shrink the ratios towards 1, so these diagnostics are optimistic; "
                         "with a simulator prefer the classifier ratios")
+    counts = np.bincount(step[step < T - 1].astype(np.int64)) if T > 1 else np.zeros(1, np.int64)
+    warnings += _sampled_warning(int(counts.max(initial=0)), "the per-step ratio regressions (largest step)")
     return DensityRatios("recursion", w, step.copy(), warnings=warnings)
 
 
@@ -228,7 +239,8 @@ def ratios_pooled(
         if done:
             break
     return DensityRatios("pooled", w, step.copy(),
-                         warnings=["pooled over time: assumes the problem and the policy are stationary"])
+                         warnings=["pooled over time: assumes the problem and the policy are stationary",
+                                   *_sampled_warning(len(src), "the pooled ratio regression")])
 
 
 def pooled_summary(ratios: DensityRatios) -> dict[str, Any]:
