@@ -19,7 +19,8 @@ Notation: episode i, step t, cost c_t, discount gamma, per-step ratio
 
 Intervals are trajectory-bootstrap percentile intervals: episodes resampled with
 replacement; the fitted pieces (behaviour model, Q^, ratios w_t) are held fixed across
-replicates. FQE's own value and interval (the default estimate, the mean over start
+replicates; a resample is read through sums over episodes (:mod:`~offline_adp.evaluation.resample`).
+FQE's own value and interval (the default estimate, the mean over start
 states of ``V^(x_0)``, bootstrapped through FQE itself) are in
 :mod:`offline_adp.evaluation.fqe_interval`.
 """
@@ -33,6 +34,8 @@ from typing import Any
 
 import numpy as np
 from scipy.special import softmax
+
+from offline_adp.evaluation import resample
 
 
 @dataclass
@@ -145,32 +148,6 @@ def _ess(w: np.ndarray) -> float:
     return float(np.sum(w) ** 2 / s2) if s2 > 0 else 0.0
 
 
-def _bootstrap(fn: Callable[[np.ndarray], float], n: int, n_boot: int, level: float,
-               rng: np.random.Generator) -> tuple[float, float]:
-    return _paired_bootstrap(fn, None, n, n_boot, level, rng)[0]
-
-
-def _quantiles(reps: np.ndarray, level: float) -> tuple[float, float]:
-    reps = reps[np.isfinite(reps)]
-    if not len(reps):
-        return (float("nan"), float("nan"))
-    return float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
-
-
-def _paired_bootstrap(fn: Callable[[np.ndarray], float], g: np.ndarray | None, n: int, n_boot: int, level: float,
-                      rng: np.random.Generator) -> tuple[tuple[float, float], tuple[float, float] | None]:
-    """Percentile intervals of ``fn`` over episode resamples and, with ``g`` (one logged cost per
-    episode), of ``fn(i) - mean(g[i])`` on the same resamples (the paired difference)."""
-    nan = (float("nan"), float("nan"))
-    if n_boot <= 0 or n < 2:
-        return nan, (None if g is None else nan)
-    draws = [rng.integers(0, n, n) for _ in range(n_boot)]
-    reps = np.array([fn(i) for i in draws])
-    if g is None:
-        return _quantiles(reps, level), None
-    return _quantiles(reps, level), _quantiles(reps - np.array([g[i].mean() for i in draws]), level)
-
-
 def importance_sampling_estimates(
     em: EpisodeMatrix, cost: np.ndarray, rho: np.ndarray, gamma: float, *, n_boot: int = 200, level: float = 0.95,
     seed: int = 0, groups: np.ndarray | None = None,
@@ -185,29 +162,22 @@ def importance_sampling_estimates(
     disc = gamma ** np.arange(em.horizon)
     G = C @ disc
     RT = R[:, -1]
-
-    def is_(i: np.ndarray) -> float:
-        return float(np.mean(RT[i] * G[i]))
-
-    def wis(i: np.ndarray) -> float:
-        s = RT[i].sum()
-        return float(np.sum(RT[i] * G[i]) / s) if s > 0 else np.nan
-
-    def pdis(i: np.ndarray) -> float:
-        return float(np.mean((R[i] * C[i]) @ disc))
-
-    def wpdis(i: np.ndarray) -> float:
-        s = R[i].sum(axis=0)
-        return float(np.sum(disc * np.where(s > 0, (R[i] * C[i]).sum(axis=0) / np.where(s > 0, s, 1), 0.0)))
-
+    N, T = em.n_episodes, em.horizon
+    # each estimator: its per-episode sums M (made when its turn comes) and f of their totals S
+    forms: tuple[tuple[str, Callable[[], np.ndarray], Callable[[np.ndarray], np.ndarray]], ...] = (
+        ("is", lambda: (RT * G)[:, None], lambda S: S[:, 0] / N),
+        ("wis", lambda: np.column_stack([RT * G, RT]),
+         lambda S: np.where(S[:, 1] > 0, S[:, 0] / np.where(S[:, 1] > 0, S[:, 1], 1.0), np.nan)),
+        ("pdis", lambda: ((R * C) @ disc)[:, None], lambda S: S[:, 0] / N),
+        ("wpdis", lambda: np.hstack([R * C, R]), lambda S: resample.ratio(S[:, :T], S[:, T:]) @ disc),
+    )
     rng = np.random.default_rng(seed)
-    full = np.arange(em.n_episodes)
     step_ess = min(_ess(R[:, t]) for t in range(em.horizon))
     out = {}
-    for name, fn, ess, W in (("is", is_, _ess(RT), RT), ("wis", wis, _ess(RT), RT), ("pdis", pdis, step_ess, R),
-                             ("wpdis", wpdis, step_ess, R)):
-        out[name] = OPEResult(name, fn(full), _bootstrap(fn, em.n_episodes, n_boot, level, rng), ess, level)
-        _judge_weights(out[name], W, groups)
+    for name, M, f in forms:
+        est, iv, _ = resample.estimate_and_interval(M(), f, n_boot, level, rng)
+        out[name] = OPEResult(name, est, iv, _ess(RT) if name in ("is", "wis") else step_ess, level)
+        _judge_weights(out[name], RT if name in ("is", "wis") else R, groups)
     return out
 
 
@@ -228,25 +198,20 @@ def doubly_robust_estimates(
     R = np.cumprod(em.lay(rho, fill=1.0), axis=1)
     R_prev = np.hstack([np.ones((em.n_episodes, 1)), R[:, :-1]])
     disc = gamma ** np.arange(em.horizon)
-
-    def dr(i: np.ndarray) -> float:
-        return float(np.mean((R[i] * (C[i] - Q[i]) + R_prev[i] * V[i]) @ disc))
-
-    def wdr(i: np.ndarray) -> float:
-        m = R[i].mean(axis=0)
-        mp = R_prev[i].mean(axis=0)
-        Wt = R[i] / np.where(m > 0, m, 1)
-        Wp = R_prev[i] / np.where(mp > 0, mp, 1)
-        return float(np.mean((Wt * (C[i] - Q[i]) + Wp * V[i]) @ disc))
-
+    N, T = em.n_episodes, em.horizon
+    forms: tuple[tuple[str, Callable[[], np.ndarray], Callable[[np.ndarray], np.ndarray]], ...] = (
+        ("dr", lambda: ((R * (C - Q) + R_prev * V) @ disc)[:, None], lambda S: S[:, 0] / N),
+        # WDR: R_t / mean_i R_t, so the step's sum over the resample divides its weighted terms
+        ("wdr", lambda: np.hstack([R * (C - Q), R, R_prev * V, R_prev]),
+         lambda S: (resample.ratio(S[:, :T], S[:, T:2 * T]) + resample.ratio(S[:, 2 * T:3 * T], S[:, 3 * T:])) @ disc),
+    )
     rng = np.random.default_rng(seed)
-    full = np.arange(em.n_episodes)
     ess = min(_ess(R[:, t]) for t in range(em.horizon))
     G = C @ disc  # each episode's logged discounted cost: the paired difference's other half
     out = {}
-    for name, fn in (("dr", dr), ("wdr", wdr)):
-        iv, diff = _paired_bootstrap(fn, G, em.n_episodes, n_boot, level, rng)
-        out[name] = OPEResult(name, fn(full), iv, ess, level, vs_logged=diff)
+    for name, M, f in forms:
+        est, iv, diff = resample.estimate_and_interval(M(), f, n_boot, level, rng, g=G)
+        out[name] = OPEResult(name, est, iv, ess, level, vs_logged=diff)
         _judge_weights(out[name], R, groups)
     return out
 
@@ -455,13 +420,11 @@ def marginalised_is_estimate(
     Wt = em.lay(w_state * rho)
     disc = gamma ** np.arange(em.horizon)
 
-    def mis(i: np.ndarray) -> float:
-        return float(np.mean(Y[i] @ disc))
-
     rng = np.random.default_rng(seed)
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
-    res = OPEResult("mis", mis(np.arange(em.n_episodes)), _bootstrap(mis, em.n_episodes, n_boot, level, rng), ess,
-                    level)
+    N = em.n_episodes
+    est, iv, _ = resample.estimate_and_interval((Y @ disc)[:, None], lambda S: S[:, 0] / N, n_boot, level, rng)
+    res = OPEResult("mis", est, iv, ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
     _judge_weights(res, Wt, groups)
     return res

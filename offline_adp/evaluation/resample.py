@@ -1,0 +1,74 @@
+"""The trajectory bootstrap of the importance-sampling family, read through sums over episodes.
+
+Every estimator of :mod:`~offline_adp.evaluation.ope` is a function of a few sums over
+episodes. With episode ``i`` drawn ``k_i`` times in a resample (``k_i = 1`` for the data
+itself), an estimator reads ``S = sum_i k_i M_i`` for a per-episode matrix ``M`` (N, p) of its
+own and returns ``f(S)``: IS is ``S / N`` with ``M_i = R_{i,T-1} G_i``; WPDIS is
+``sum_t gamma^t S^{Rc}_t / S^R_t`` with ``M_i = (R_{i,t} c_{i,t}, R_{i,t})_t``; and so on
+(each estimator's ``M`` and ``f`` are in :mod:`~offline_adp.evaluation.ope`).
+
+A block of resamples is then one matrix product, ``K M`` with ``K`` (replicates x N) their
+multiplicities, where indexing each resample's rows of the (N, T) matrices would copy
+them once per replicate (``benchmarks/ope_bootstrap.py``). The resamples are drawn as
+before, ``rng.integers(0, N, N)`` per replicate in order, so a seed gives the same
+resamples; the replicates agree with the indexed ones to rounding.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+#: Bytes of one block of resample multiplicities (replicates x episodes, float64).
+BLOCK_BYTES = 32 * 2**20
+
+
+def quantiles(reps: np.ndarray, level: float) -> tuple[float, float]:
+    """The percentile interval of the finite replicates at ``level`` (NaN without any)."""
+    reps = reps[np.isfinite(reps)]
+    if not len(reps):
+        return (float("nan"), float("nan"))
+    return float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
+
+
+def replicate_sums(M: np.ndarray, n_boot: int, rng: np.random.Generator) -> np.ndarray:
+    """``S_b = sum_i k_{b,i} M_i`` (n_boot, p) for ``n_boot`` episode resamples with replacement
+    (``k_b``: resample ``b``'s multiplicities, drawn from ``rng`` as ``rng.integers(0, N, N)``)."""
+    M = np.asarray(M, dtype=np.float64)
+    n = M.shape[0]
+    out = np.empty((n_boot, M.shape[1]))
+    block = max(1, BLOCK_BYTES // (8 * max(n, 1)))
+    for b0 in range(0, n_boot, block):
+        K = np.stack([np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
+                      for _ in range(b0, min(n_boot, b0 + block))])
+        out[b0:b0 + len(K)] = K @ M
+    return out
+
+
+def estimate_and_interval(M: np.ndarray, f: Callable[[np.ndarray], np.ndarray], n_boot: int, level: float,
+                          rng: np.random.Generator, g: np.ndarray | None = None
+                          ) -> tuple[float, tuple[float, float], tuple[float, float] | None]:
+    """``f`` of the data's sums, and the percentile intervals of ``f`` over ``n_boot`` resamples
+    and, with ``g`` (one logged cost per episode), of ``f - mean(g)`` on the same resamples
+    (the paired difference). ``f`` maps sums (b, p) to b values. No interval (NaN, and no
+    draws from ``rng``) with ``n_boot <= 0`` or fewer than 2 episodes."""
+    M = np.asarray(M, dtype=np.float64)
+    n = M.shape[0]
+    if g is not None:
+        M = np.column_stack([M, np.asarray(g, dtype=np.float64)])
+    p = M.shape[1] - (g is not None)
+    est = float(f(M.sum(axis=0)[None, :p])[0])
+    nan = (float("nan"), float("nan"))
+    if n_boot <= 0 or n < 2:
+        return est, nan, (None if g is None else nan)
+    S = replicate_sums(M, n_boot, rng)
+    reps = f(S[:, :p])
+    if g is None:
+        return est, quantiles(reps, level), None
+    return est, quantiles(reps, level), quantiles(reps - S[:, p] / n, level)
+
+
+def ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """``num / den`` where ``den > 0``, else 0 (a step no resampled episode's weight reaches)."""
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
