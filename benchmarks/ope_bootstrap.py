@@ -3,8 +3,9 @@
 Synthetic logs of ``--episodes`` episodes of ``--horizon`` steps (lengths uniform in
 ``[horizon / 2, horizon]``), lognormal per-step ratios, costs, ``Q^`` and ``V^``; each family
 is timed with ``time.process_time`` at ``--boot`` resamples (the evaluation's default 200), one
-thread. The estimates and intervals are printed so two source trees can be compared side by
-side (``PYTHONPATH=OTHER_TREE python benchmarks/ope_bootstrap.py``)::
+thread unless ``OMP/MKL/OPENBLAS_NUM_THREADS`` say otherwise. The estimates and intervals are
+printed so two source trees can be compared side by side
+(``PYTHONPATH=OTHER_TREE python benchmarks/ope_bootstrap.py``)::
 
     python benchmarks/ope_bootstrap.py --episodes 10000 --horizon 100
 """

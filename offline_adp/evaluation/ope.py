@@ -174,10 +174,11 @@ def importance_sampling_estimates(
     rng = np.random.default_rng(seed)
     step_ess = min(_ess(R[:, t]) for t in range(em.horizon))
     out = {}
-    for name, M, f in forms:
-        est, iv, _ = resample.estimate_and_interval(M(), f, n_boot, level, rng)
+    for name, make, f in forms:
+        M = make()
+        est, iv, _ = resample.estimate_and_interval(M, f, n_boot, level, rng)
         out[name] = OPEResult(name, est, iv, _ess(RT) if name in ("is", "wis") else step_ess, level)
-        _judge_weights(out[name], RT if name in ("is", "wis") else R, groups)
+        _judge_weights(out[name], RT if name in ("is", "wis") else R, groups, resample.nonfinite_episodes(M))
     return out
 
 
@@ -209,10 +210,11 @@ def doubly_robust_estimates(
     ess = min(_ess(R[:, t]) for t in range(em.horizon))
     G = C @ disc  # each episode's logged discounted cost: the paired difference's other half
     out = {}
-    for name, M, f in forms:
-        est, iv, diff = resample.estimate_and_interval(M(), f, n_boot, level, rng, g=G)
+    for name, make, f in forms:
+        M = make()
+        est, iv, diff = resample.estimate_and_interval(M, f, n_boot, level, rng, g=G)
         out[name] = OPEResult(name, est, iv, ess, level, vs_logged=diff)
-        _judge_weights(out[name], R, groups)
+        _judge_weights(out[name], R, groups, resample.nonfinite_episodes(M, G))
     return out
 
 
@@ -388,11 +390,18 @@ def interval_unreliable(d: dict[str, Any], *, normalised: bool) -> list[str]:
 NORMALISED = ("wis", "wpdis", "wdr")
 
 
-def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None) -> None:
+def _judge_weights(r: OPEResult, W: np.ndarray, groups: np.ndarray | None = None, nonfinite: int = 0) -> None:
     """Degenerate weights and intervals that would not cover as labelled: say so and withhold.
 
     ``r.ess`` is the worst step's ESS; ``r.weight_diagnostics`` keeps the shape measured.
+    ``nonfinite``: episodes whose terms were NaN or infinite (no estimate at all, said so).
     """
+    if nonfinite:
+        r.level, r.vs_logged = None, None
+        r.interval_method = "none: no estimate"
+        r.warnings.append(f"no estimate: {nonfinite} of {len(W)} episodes give a NaN or infinite term (ratios, "
+                          "costs or Q-values)")
+        return
     d = weight_diagnostics(W, groups)
     r.weight_diagnostics = {k: v for k, v in d.items() if k != "n"}
     n = d["n"]
@@ -423,10 +432,11 @@ def marginalised_is_estimate(
     rng = np.random.default_rng(seed)
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
     N = em.n_episodes
-    est, iv, _ = resample.estimate_and_interval((Y @ disc)[:, None], lambda S: S[:, 0] / N, n_boot, level, rng)
+    M = (Y @ disc)[:, None]
+    est, iv, _ = resample.estimate_and_interval(M, lambda S: S[:, 0] / N, n_boot, level, rng)
     res = OPEResult("mis", est, iv, ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
-    _judge_weights(res, Wt, groups)
+    _judge_weights(res, Wt, groups, resample.nonfinite_episodes(M))
     return res
 
 
