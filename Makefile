@@ -55,6 +55,7 @@ bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/car_on_hill.py --seeds 0
 	$(BIN)/python benchmarks/compare_algorithms.py --quick
 	$(BIN)/python benchmarks/evaluation.py
+	$(BIN)/python benchmarks/ope_bootstrap.py --episodes 10000 --horizon 100
 	$(BIN)/python benchmarks/dask_scale.py
 
 # The suite against the newest releases pyproject.toml allows (not in CI; the lock stays).
