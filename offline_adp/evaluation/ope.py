@@ -166,8 +166,7 @@ def importance_sampling_estimates(
     # each estimator: its per-episode sums M (made when its turn comes) and f of their totals S
     forms: tuple[tuple[str, Callable[[], np.ndarray], Callable[[np.ndarray], np.ndarray]], ...] = (
         ("is", lambda: (RT * G)[:, None], lambda S: S[:, 0] / N),
-        ("wis", lambda: np.column_stack([RT * G, RT]),
-         lambda S: np.where(S[:, 1] > 0, S[:, 0] / np.where(S[:, 1] > 0, S[:, 1], 1.0), np.nan)),
+        ("wis", lambda: np.column_stack([RT * G, RT]), lambda S: resample.ratio(S[:, 0], S[:, 1], np.nan)),
         ("pdis", lambda: ((R * C) @ disc)[:, None], lambda S: S[:, 0] / N),
         ("wpdis", lambda: np.hstack([R * C, R]), lambda S: resample.ratio(S[:, :T], S[:, T:]) @ disc),
     )
@@ -176,9 +175,10 @@ def importance_sampling_estimates(
     out = {}
     for name, make, f in forms:
         M = make()
-        est, iv, _ = resample.estimate_and_interval(M, f, n_boot, level, rng)
+        bad = resample.nonfinite_episodes(M)
+        est, iv, _ = resample.estimate_and_interval(M, f, n_boot, level, rng, nonfinite=bad)
         out[name] = OPEResult(name, est, iv, _ess(RT) if name in ("is", "wis") else step_ess, level)
-        _judge_weights(out[name], RT if name in ("is", "wis") else R, groups, resample.nonfinite_episodes(M))
+        _judge_weights(out[name], RT if name in ("is", "wis") else R, groups, bad)
     return out
 
 
@@ -212,9 +212,10 @@ def doubly_robust_estimates(
     out = {}
     for name, make, f in forms:
         M = make()
-        est, iv, diff = resample.estimate_and_interval(M, f, n_boot, level, rng, g=G)
+        bad = resample.nonfinite_episodes(M, G)
+        est, iv, diff = resample.estimate_and_interval(M, f, n_boot, level, rng, g=G, nonfinite=bad)
         out[name] = OPEResult(name, est, iv, ess, level, vs_logged=diff)
-        _judge_weights(out[name], R, groups, resample.nonfinite_episodes(M, G))
+        _judge_weights(out[name], R, groups, bad)
     return out
 
 
@@ -433,18 +434,18 @@ def marginalised_is_estimate(
     ess = min(_ess(Wt[em.mask[:, t], t]) for t in range(em.horizon) if em.mask[:, t].any())
     N = em.n_episodes
     M = (Y @ disc)[:, None]
-    est, iv, _ = resample.estimate_and_interval(M, lambda S: S[:, 0] / N, n_boot, level, rng)
+    bad = resample.nonfinite_episodes(M)
+    est, iv, _ = resample.estimate_and_interval(M, lambda S: S[:, 0] / N, n_boot, level, rng, nonfinite=bad)
     res = OPEResult("mis", est, iv, ess, level)
     res.warnings.append("interval holds the fitted ratios fixed (it omits their estimation error)")
-    _judge_weights(res, Wt, groups, resample.nonfinite_episodes(M))
+    _judge_weights(res, Wt, groups, bad)
     return res
 
 
 def bootstrap_counts(n_episodes: int, n_boot: int, seed: int = 0) -> list[np.ndarray]:
     """Episode multiplicities of ``n_boot`` trajectory-bootstrap replicates (seeded)."""
     rng = np.random.default_rng(seed)
-    return [np.bincount(rng.integers(0, n_episodes, n_episodes), minlength=n_episodes).astype(np.float64)
-            for _ in range(n_boot)]
+    return [resample.multiplicities(n_episodes, rng) for _ in range(n_boot)]
 
 
 def flagged_against(results: dict[str, OPEResult], reference: str = "fqe") -> dict[str, OPEResult]:

@@ -41,6 +41,13 @@ def nonfinite_episodes(M: np.ndarray, g: np.ndarray | None = None) -> int:
     return int(bad.sum())
 
 
+def multiplicities(n: int, rng: np.random.Generator) -> np.ndarray:
+    """One resample's episode multiplicities (float64, length ``n``): ``n`` episodes drawn with
+    replacement as ``rng.integers(0, n, n)``, counted: the IS family's resamples and the FQE
+    replicates' (:func:`~offline_adp.evaluation.ope.bootstrap_counts`) are drawn here."""
+    return np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
+
+
 def replicate_sums(M: np.ndarray, n_boot: int, rng: np.random.Generator,
                    g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """``S_b = sum_i k_{b,i} M_i`` (n_boot, p) for ``n_boot`` episode resamples with replacement
@@ -56,8 +63,7 @@ def replicate_sums(M: np.ndarray, n_boot: int, rng: np.random.Generator,
     block = max(1, BLOCK_BYTES // (8 * max(n, 1)))
     with threadpool_limits(limits=1, user_api="blas"):
         for b0 in range(0, n_boot, block):
-            K = np.stack([np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
-                          for _ in range(b0, min(n_boot, b0 + block))])
+            K = np.stack([multiplicities(n, rng) for _ in range(b0, min(n_boot, b0 + block))])
             out[b0:b0 + len(K)] = K @ M
             if out_g is not None:
                 out_g[b0:b0 + len(K)] = K @ np.asarray(g, dtype=np.float64)
@@ -65,7 +71,7 @@ def replicate_sums(M: np.ndarray, n_boot: int, rng: np.random.Generator,
 
 
 def estimate_and_interval(M: np.ndarray, f: Callable[[np.ndarray], np.ndarray], n_boot: int, level: float,
-                          rng: np.random.Generator, g: np.ndarray | None = None
+                          rng: np.random.Generator, g: np.ndarray | None = None, nonfinite: int | None = None
                           ) -> tuple[float, tuple[float, float], tuple[float, float] | None]:
     """``f`` of the data's sums, and the percentile intervals of ``f`` over ``n_boot`` resamples
     and, with ``g`` (one logged cost per episode), of ``f - mean(g)`` on the same resamples
@@ -73,11 +79,12 @@ def estimate_and_interval(M: np.ndarray, f: Callable[[np.ndarray], np.ndarray], 
     draws from ``rng``) with ``n_boot <= 0`` or fewer than 2 episodes; nothing at all (NaN
     everywhere, no draws) when an episode's ``M`` or ``g`` is not finite: a NaN or an
     infinity in one episode is in every resample's sums (``0 * inf`` is NaN), and the
-    resamples that miss it would not estimate the same quantity."""
+    resamples that miss it would not estimate the same quantity. ``nonfinite``: those episodes'
+    count if the caller has it (:func:`nonfinite_episodes`), else counted here."""
     M = np.asarray(M, dtype=np.float64)
     n = M.shape[0]
     nan = (float("nan"), float("nan"))
-    if nonfinite_episodes(M, g):
+    if nonfinite_episodes(M, g) if nonfinite is None else nonfinite:
         return float("nan"), nan, (None if g is None else nan)
     est = float(f(M.sum(axis=0)[None, :])[0])
     if n_boot <= 0 or n < 2:
@@ -89,6 +96,7 @@ def estimate_and_interval(M: np.ndarray, f: Callable[[np.ndarray], np.ndarray], 
     return est, quantiles(reps, level), quantiles(reps - Sg / n, level)
 
 
-def ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
-    """``num / den`` where ``den > 0``, else 0 (a step no resampled episode's weight reaches)."""
-    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+def ratio(num: np.ndarray, den: np.ndarray, fill: float = 0.0) -> np.ndarray:
+    """``num / den`` where ``den > 0``, else ``fill`` (0: a step no resampled episode's weight
+    reaches; NaN: a self-normalised estimate with no weight at all)."""
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), fill)
