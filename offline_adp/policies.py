@@ -149,7 +149,9 @@ def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
 class GreedyPolicy(DeterministicPolicy):
     """``pi(x, t) = argmin_a Q(x, a, t)``: greedy with respect to a cost Q-function.
 
-    Ties go to the lowest action index.
+    Ties go to the lowest action index. Over a Q with a ``support`` (lookup tables: the
+    actions logged at each state) the minimum runs over the supported actions wherever a
+    state has one (:func:`~offline_adp.qfunctions.restrict_to_support`).
     """
 
     def __init__(self, q: object) -> None:
@@ -160,7 +162,9 @@ class GreedyPolicy(DeterministicPolicy):
         obs = np.asarray(obs)
         q = joint_tree_values(self.q, obs)  # the same values, the trees descended once per state
         q = self.q.values(obs, t) if q is None else q  # type: ignore[attr-defined]
-        return np.argmin(q, axis=1).astype(np.int32)
+        from offline_adp.qfunctions import q_support, restrict_to_support
+
+        return np.argmin(restrict_to_support(q, q_support(self.q, obs, t)), axis=1).astype(np.int32)
 
     @property
     def time_varying(self) -> bool:

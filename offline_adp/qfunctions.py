@@ -39,6 +39,29 @@ class QFunction(ABC):
     def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         """Q-values, shape (n, n_actions)."""
 
+    def support(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
+        """Which actions the greedy minimum may choose at each state, ``(n, n_actions)``
+        bool, or None: every action (any Q but one made of lookup tables; see
+        :func:`restrict_to_support`)."""
+        return None
+
+
+def q_support(q: Any, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
+    """``q.support(obs, t)`` of any Q-like object (None where it has no ``support``)."""
+    support = getattr(q, "support", None)
+    return None if support is None else support(obs, t)
+
+
+def restrict_to_support(values: np.ndarray, support: np.ndarray | None) -> np.ndarray:
+    """``values`` (n, A) for a minimum over the supported actions: ``+inf`` at the actions
+    ``support`` leaves out, in the rows where it holds at least one action; rows where it
+    holds none keep every value (all actions count, e.g. a lookup table's ``fill_value``
+    at a state where nothing was logged). ``support`` None: ``values`` itself."""
+    if support is None:
+        return values
+    keep = support | ~support.any(axis=1, keepdims=True)
+    return np.where(keep, values, np.inf)
+
 
 @dataclass
 class QEncoder:
@@ -308,6 +331,27 @@ class RegressorQ(QFunction):
         phi = self.encoder.phi(obs)
         return self.values_phi(phi)
 
+    def support(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
+        """The (state, action) pairs the models hold, where every model is a lookup table
+        (it has ``seen(X)``, :class:`~offline_adp.regressors.TabularRegressor`): the
+        actions logged at each state, ``(n, n_actions)``; else None. In the empirical
+        model a lookup-table Q is exact DP on, those are the actions available at a state.
+        Over continuous commands None (the candidate set already restricts the minimum)."""
+        return self.support_phi(self.encoder.phi(obs)) if self._tables() else None
+
+    def _tables(self) -> bool:
+        """Whether every model is a lookup table (has ``seen``) over a finite action set."""
+        return not self.encoder.continuous and all(callable(getattr(m, "seen", None)) for m in self.models)
+
+    def support_phi(self, phi: np.ndarray) -> np.ndarray | None:
+        """:meth:`support` from regression inputs ``phi(x)``."""
+        if not self._tables():
+            return None
+        n = len(phi)
+        if self.encoder.per_action:
+            return np.column_stack([np.asarray(m.seen(phi), bool) for m in self.models]).reshape(n, self.n_actions)
+        return np.asarray(self.models[0].seen(self.encoder.all_pairs(phi)), bool).reshape(self.n_actions, n).T
+
     def values_phi(self, phi: np.ndarray) -> np.ndarray:
         n = len(phi)
         if self.encoder.per_action:
@@ -335,6 +379,19 @@ class TimeIndexedQ(QFunction):
 
     def values(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
         return per_step(obs, t, len(self.qs), self.n_actions, lambda k, x: self.qs[k].values(x, k))
+
+    def support(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
+        """Each step's Q's :meth:`QFunction.support` (None where no step has one; a step
+        without one supports every action)."""
+        found: list[bool] = []
+
+        def step(k: int, x: np.ndarray) -> np.ndarray:
+            s = q_support(self.qs[k], x, k)
+            found.append(s is not None)
+            return np.ones((len(x), self.n_actions), bool) if s is None else s
+
+        out = per_step(obs, t, len(self.qs), self.n_actions, step)
+        return out.astype(bool) if any(found) else None
 
 
 class TreeQ(QFunction):

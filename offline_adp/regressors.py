@@ -42,14 +42,33 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
     fitted Q-iteration is exact dynamic programming on the data's empirical model.
     Rows with zero weight (e.g. left out of a bootstrap replicate) are not data.
 
+    The table answers only for the rows it holds (:meth:`seen`). In the empirical model
+    the actions available at a state are the actions logged there, so a Q-function made
+    of lookup tables (:class:`~offline_adp.qfunctions.RegressorQ`, either action
+    encoding) exposes the (state, action) pairs its tables hold as its ``support``, and
+    fitted Q-iteration's Bellman minimum ``min_a' Q(x', a')`` and its greedy policy's
+    ``argmin_a Q(x, a)`` range over the actions logged at that state, whenever at least
+    one is (:func:`~offline_adp.qfunctions.restrict_to_support`). At a state with no
+    logged action at all every action answers ``fill_value`` and counts, as before.
+    Fitted Q *evaluation* does not restrict anything: the evaluated policy chooses the action.
+
     Parameters
     ----------
     fill_value : float
-        Prediction for input rows never seen in ``fit``. The default 0 is optimistic for
-        positive costs: where the logs never took an action at a state, FQI's greedy minimum
-        (and its policy) prefers that action's 0 to the logged actions' costs (found against
-        exact DP on logs that leave some actions out). With such logs, pass a pessimistic
-        cost, e.g. ``regressor_params={"fill_value": max_cost / (1 - gamma)}``.
+        Prediction for input rows never seen in ``fit``: the value of a (state, action)
+        the logs never took, and, where no action at a state was logged, the value of
+        every action there (so of the state, in the backup). Unlogged actions at a state
+        with a logged one never enter a minimum, whatever this is.
+
+    Attributes
+    ----------
+    keys_ : ndarray
+        The codes of the distinct rows held, sorted.
+    values_ : ndarray
+        Their weighted mean targets.
+    columns_ : list of ndarray
+        Each input column's distinct values; ``radix_`` (and ``rows_``, the distinct rows,
+        where the columns have too many combinations for one int64) turn a row into its code.
     """
 
     def __init__(self, fill_value: float = 0.0) -> None:
@@ -72,6 +91,11 @@ class TabularRegressor(RegressorMixin, BaseEstimator):
     def predict(self, X: np.ndarray) -> np.ndarray:
         pos, hit = _table_rows(self, X)
         return np.where(hit, self.values_[pos], self.fill_value)
+
+    def seen(self, X: np.ndarray) -> np.ndarray:
+        """Whether each input row is one the table holds (a row of ``fit`` with positive
+        weight), shape ``(n,)`` bool; elsewhere :meth:`predict` answers ``fill_value``."""
+        return _table_rows(self, X)[1]
 
 
 def _fit_codes(est: Any, X: np.ndarray) -> np.ndarray:

@@ -55,6 +55,7 @@ from offline_adp.policies import (
     UniformPolicy,
     attach_signature,
 )
+from offline_adp.qfunctions import q_support, restrict_to_support
 from offline_adp.rollout import rollout
 
 DEFAULT_STEPS = (0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0)
@@ -177,7 +178,8 @@ class ConservativePolicyIteration(CheckedEstimator):
             if self.step_rule == "kakade_langford":
                 q = fqe.q_function_.values(a.obs, a.step)
                 v = (pi.probabilities(a.obs, a.step) * q).sum(axis=1)
-                adv = float(np.mean(v - q.min(axis=1)))  # expected improvement, >= 0
+                # expected improvement, >= 0: Q of the greedy action (over a lookup table's logged actions)
+                adv = float(np.mean(v - restrict_to_support(q, q_support(fqe.q_function_, a.obs, a.step)).min(axis=1)))
                 gamma = fqe.gamma_  # resolved by the fit (offline_adp.data.discount)
                 horizon = fqe.horizon_ or dataset.info.horizon or int(a.step.max()) + 1
                 alphas = [0.0, float(np.clip(adv / (4 * r_max * effective_horizon(gamma, horizon)), 0.0, 1.0))]

@@ -8,7 +8,8 @@ their costs and bootstrap mask, the next states, the start states, an optional h
 A *backup* maps ``Q_{k-1}(x', .)`` (shape (n, n_actions)) to the value of the next
 states that enters the target ``y_i = c_i + gamma (1 - term_i) V(x'_i)``:
 
-- :class:`GreedyBackup` (FQI, Algorithms 10/11): ``V(x') = min_a' Q(x', a')``;
+- :class:`GreedyBackup` (FQI, Algorithms 10/11): ``V(x') = min_a' Q(x', a')`` (with the
+  lookup table over the actions logged at ``x'``);
 - :class:`PolicyBackup` (FQE, Algorithms 12/13): ``V(x') = sum_a' pi(a' | x', t+1) Q(x', a')``.
 """
 
@@ -24,7 +25,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.discount import resolve_discount
 from offline_adp.data.levels import cell_means, level_edges
 from offline_adp.errors import InvalidArgumentError, InvalidTypeError
-from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, PolicyCommands, QEncoder
+from offline_adp.qfunctions import CommandEncoder, NeighbourCommands, PolicyCommands, QEncoder, restrict_to_support
 
 
 @dataclass(frozen=True)
@@ -227,10 +228,28 @@ class Backup(Protocol):
 
 
 class GreedyBackup:
-    """FQI: ``V(x') = min_a' Q(x', a')`` (costs are minimised)."""
+    """FQI: ``V(x') = min_a' Q(x', a')`` (costs are minimised).
+
+    Bound to the fit's learner (:meth:`bind`), the minimum runs over the actions the
+    learner's current Q supports at ``x'`` (:meth:`~offline_adp.learn.Learner.support`:
+    with the lookup table, the actions logged at ``x'``, wherever one is; every action for
+    any other Q), which is exact DP on the data's empirical model."""
+
+    def __init__(self) -> None:
+        self.learner: Any = None
+
+    def bind(self, learner: Any) -> None:
+        """Read the support of ``learner``'s current Q (the Q whose values are backed up)."""
+        self.learner = learner
 
     def __call__(self, q_next: np.ndarray, which: str, t: int | None) -> np.ndarray:
-        return q_next.min(axis=1)
+        support = None if self.learner is None else self.learner.support(which)
+        return self.over(q_next, support)
+
+    @staticmethod
+    def over(q_next: np.ndarray, support: np.ndarray | None) -> np.ndarray:
+        """The minimum of ``q_next`` over the ``support`` (None: every action)."""
+        return restrict_to_support(q_next, support).min(axis=1)
 
 
 class CommandBackup:

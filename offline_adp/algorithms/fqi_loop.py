@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from offline_adp.algorithms.fqi_data import Backup, Prepared
+from offline_adp.algorithms.fqi_data import Backup, GreedyBackup, Prepared
 from offline_adp.algorithms.fqi_monitor import (
     DivergenceMonitor,
     convergence_verdict,
@@ -32,7 +32,7 @@ from offline_adp.algorithms.params import CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import DivergenceWarning
 from offline_adp.learn import Learner
-from offline_adp.qfunctions import QFunction, TimeIndexedQ
+from offline_adp.qfunctions import QFunction, TimeIndexedQ, q_support, restrict_to_support
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -79,9 +79,15 @@ def fitted_q_loop(data: Prepared, learner: Learner, backup: Backup, iterations: 
     ``(k, t)`` of ``iterations`` (``t = T - k`` for a finite horizon, else ``None``);
     ``q_next`` is ``Q_{k-1}(x'_i, a')`` for every next state and action."""
     for k, t in iterations:
+        support: np.ndarray | None = None
         if noise.next_state and k > 1:  # Q_{k-1} at perturbed next states (smoothing)
-            q_next = learner.snapshot().values(noise.next_obs(k, data))
-        y = data.targets(backup(q_next, "next", t))  # y_i = c_i + gamma (1 - term_i) V_{k-1}(x'_i)
+            q, x = learner.snapshot(), noise.next_obs(k, data)
+            q_next, support = q.values(x), q_support(q, x)  # a lookup table's support: at the perturbed states
+        if support is not None and isinstance(backup, GreedyBackup):
+            v = backup.over(q_next, support)
+        else:
+            v = backup(q_next, "next", t)
+        y = data.targets(v)  # y_i = c_i + gamma (1 - term_i) V_{k-1}(x'_i)
         y = y + noise.targets(k, len(y))
         learner.fit(y, k)  # Q_k = LEARN({((x_i, a_i), y_i)})
         q_new = learner.predict("next")  # Q_k(x'_i, a') for all a': one batched call
@@ -185,6 +191,9 @@ class FittedQEstimator(CheckedEstimator):
         data = (prepare or self._prepare)(dataset, sample_weight)
         learner = (make_learner or self._learner)(data)
         backup = make_backup(data)
+        bind = getattr(backup, "bind", None)
+        if bind is not None:  # FQI's minimum reads the learner's support (lookup tables: the logged actions)
+            bind(learner)
         finite = self.horizon_ is not None
         total = self.horizon_ if finite else self.iteration_plan()[1]
         monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=self.divergence_slack,
@@ -296,7 +305,9 @@ class FittedQEstimator(CheckedEstimator):
     def _lookup_table(self) -> bool:
         """A refit with the lookup table (``regressor="tabular"``), gamma < 1, no noise: each
         iteration averages the backed-up targets over a fixed set of cells, so it is a sup-norm
-        gamma-contraction, as a frozen structure's is, and the distance bound holds."""
+        gamma-contraction, as a frozen structure's is, and the distance bound holds. Its
+        minimum runs over a fixed set of actions per next state (the logged ones, where any
+        are: :class:`~offline_adp.algorithms.fqi_data.GreedyBackup`), which keeps it one."""
         from offline_adp.regressors import TabularRegressor, make_regressor
 
         if getattr(self, "mode_", self.mode) != "refit" or not self.gamma_ < 1 or self.target_noise \
@@ -377,7 +388,9 @@ def _diagnostics(data: Prepared, learner: Learner, backup: Backup, it: Iterate, 
     # read (the contraction's sup norm; fqi_monitor)
     d_next = np.abs(it.q_next - it.q_next_old).max(axis=1, initial=0.0)[boot]  # per row, over actions
     sup_dq = max(float(dq.max()) if len(dq) else 0.0, float(d_next.max()) if len(d_next) else 0.0)
-    changed = (it.q_next.argmin(axis=1) != it.q_next_old.argmin(axis=1))[boot]
+    support = learner.support("next") if isinstance(backup, GreedyBackup) else None  # greedy over the logged actions
+    changed = (restrict_to_support(it.q_next, support).argmin(axis=1)
+               != restrict_to_support(it.q_next_old, support).argmin(axis=1))[boot]
     if data.valid is not None:
         v = data.valid
         target = v.cost + data.gamma * np.where(v.no_boot, 0.0, backup(learner.predict("valid_next"), "valid_next",

@@ -166,7 +166,10 @@ class _Guarded:
     def __getattr__(self, name: str) -> Any:  # fitted attributes (classes_, n_features_in_...)
         if name.startswith("_oadp"):
             raise AttributeError(name)
-        return getattr(self._oadp_inner, name)
+        found = getattr(self._oadp_inner, name)
+        if name == "seen" and callable(found):  # a lookup table's support (TabularRegressor.seen), guarded too
+            return lambda X: self._call("seen", X)
+        return found
 
     def _call(self, method: str, X: Any) -> Any:
         try:  # on a copy: stored parameters (e.g. copy=False) must not let it edit the caller's array

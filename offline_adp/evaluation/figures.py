@@ -115,6 +115,7 @@ def policy_maps(figs: Figures, run: Path, ratios: pd.DataFrame, features: list[s
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
     from offline_adp.artifacts import load_index_policy, load_q
+    from offline_adp.qfunctions import q_support, restrict_to_support
 
     plt = pyplot()
     gx, gy, obs = _grid(ratios, features, axes)
@@ -141,7 +142,7 @@ def policy_maps(figs: Figures, run: Path, ratios: pd.DataFrame, features: list[s
               "where the policy is extrapolated).")
     if (run / "model" / "q.json").exists():
         q, _ = load_q(run / "model")
-        v = q.values(obs, 0).min(axis=1)
+        v = restrict_to_support(q.values(obs, 0), q_support(q, obs, 0)).min(axis=1)  # lookup tables: logged actions
         fig, ax = plt.subplots(figsize=(6.6, 4.8))
         im = ax.pcolormesh(gx, gy, v.reshape(gx.shape), shading="auto", cmap="viridis")
         _shade_unsupported(ax, gx, gy, mask)

@@ -22,6 +22,7 @@ import numpy as np
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.envs.gridworld import Gridworld, optimal_cost_to_go
+from offline_adp.qfunctions import q_support, restrict_to_support
 
 
 def dataset() -> TransitionDataset:
@@ -46,7 +47,7 @@ def run(regressor: str, n_iterations: int = 90, **params) -> tuple[list[float], 
                          on_divergence="warn")
     errors, corner = [], []
     for _ in f.fit_iter(dataset()):
-        V = f.q_function_.values(lattice).min(axis=1)
+        V = restrict_to_support(f.q_function_.values(lattice), q_support(f.q_function_, lattice)).min(axis=1)
         errors.append(float(np.abs(V - J)[:-1].max()))
         corner.append(float(V[0]))
     return errors, corner, f

@@ -84,6 +84,12 @@ class Learner:
     def predict(self, name: str) -> np.ndarray:
         raise NotImplementedError
 
+    def support(self, name: str) -> np.ndarray | None:
+        """The current Q's :meth:`~offline_adp.qfunctions.QFunction.support` on the query
+        set ``name`` (all actions per row), or None: every action (no Q yet, or a Q that is
+        not made of lookup tables)."""
+        return None
+
     def snapshot(self) -> QFunction:
         """The current Q as a standalone Q-function."""
         raise NotImplementedError

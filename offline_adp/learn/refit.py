@@ -34,6 +34,7 @@ class RefitLearner(Learner):
     def __init__(self, spec: LearnSpec, predict_jobs: int | None = None) -> None:
         super().__init__(spec)
         self._cache: dict[str, np.ndarray] = {}
+        self._support: dict[str, np.ndarray | None] = {}  # per query set, for the current Q
         self._predict_jobs = predict_jobs
         self._source: dict[str, np.ndarray] = {}  # query -> row of [next; extra] holding each row's input
         if "next" not in self.queries:
@@ -66,7 +67,7 @@ class RefitLearner(Learner):
                 if hasattr(m, "estimators_") and hasattr(m, "n_jobs"):
                     m.n_jobs = self._predict_jobs
         self.q = RegressorQ(models, self.encoder)
-        self._cache = {}
+        self._cache, self._support = {}, {}
 
     def predict(self, name: str) -> np.ndarray:
         if name not in self._cache:
@@ -89,11 +90,21 @@ class RefitLearner(Learner):
             return self.q.predict_model(0, X)
         return predict_model(self.q.models[0], X)  # a restored Q of another kind (its models[0])
 
+    def support(self, name: str) -> np.ndarray | None:
+        """The lookup tables' support on the query set ``name`` (an all-actions one), else None."""
+        q = getattr(self, "q", None)
+        support_phi = getattr(q, "support_phi", None)
+        if support_phi is None or self.queries[name][1] is not None:
+            return None
+        if name not in self._support:
+            self._support[name] = support_phi(self.queries[name][0])
+        return self._support[name]
+
     def snapshot(self) -> QFunction:
         return self.q
 
     def restore(self, q: QFunction, iteration: int, rows: list[dict[str, Any]] | None = None) -> None:
-        self.q, self._cache = q, {}  # type: ignore[assignment]
+        self.q, self._cache, self._support = q, {}, {}  # type: ignore[assignment]
 
 
 def _row_sources(base: np.ndarray, sets: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
