@@ -88,7 +88,10 @@ def cli_fit(dataset: Path, run: Path, params: dict, source: str | None = None) -
         shutil.rmtree(run)
     run.parent.mkdir(parents=True, exist_ok=True)
     cfg = run.parent / (run.name + ".toml")
-    lines = ["[fqi]"] + [f"{k} = {json.dumps(v)}" for k, v in params.items()]
+    lines = ["[fqi]"] + [f"{k} = {json.dumps(v)}" for k, v in params.items() if not isinstance(v, dict)]
+    for k, v in params.items():  # sub-tables ([fqi.regressor_params])
+        if isinstance(v, dict):
+            lines += [f"[fqi.{k}]"] + [f"{kk} = {json.dumps(vv)}" for kk, vv in v.items()]
     cfg.write_text("\n".join(lines) + "\n")
     cmd = [sys.executable, "-m", "offline_adp", "-q", "fit", str(dataset), "--algorithm", "fqi", "--config", str(cfg),
            "--out", str(run)]
@@ -142,7 +145,11 @@ def main() -> None:
         for a in args.arm:
             name, params = a.split("=", 1)
             name, _, source = name.partition("@")
-            arms[name] = (source or None, json.loads(params))
+            parsed = json.loads(params)
+            nulls = [k for k, v in parsed.items() if v is None or (isinstance(v, dict) and None in v.values())]
+            if nulls:  # TOML has no null: say so before any fit runs
+                ap.error(f"--arm {name}: {', '.join(nulls)} holds null, which a TOML config cannot express")
+            arms[name] = (source or None, parsed)
     root = (Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="fqi_auto_"))).resolve()
     root.mkdir(parents=True, exist_ok=True)
     for source in {s for s, _ in arms.values()}:  # each tree's compiled kernels (cached on disk) are nobody's fit
