@@ -18,11 +18,12 @@ policy's paired difference to ``lookahead`` (negative: the learned policy is che
 Threads: the extra-trees and LightGBM fits take ``regressor_params = {n_jobs = k}``; each
 setting of ``--threads`` (default 1 and 2) is a separate run.
 
-    python benchmarks/fqi_scale.py [--sizes 100000 1000000] [--modes default warm_start ...] [--iterations 50]
+    python benchmarks/fqi_scale.py [--sizes 100000 1000000] [--modes default warm_start ...] [--iterations 50|auto]
                                    [--threads 1 2] [--eval-episodes 1000] [--eval-horizon 200]
 
 Modes: ``default`` (``FittedQIteration``'s defaults: ``mode="auto"``, i.e. frozen extra-trees grown
-fully, each structure on at most 131,072 rows), ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen``
+fully, each structure on at most 131,072 rows; ``--iterations auto``: its ``n_iterations`` too),
+``default100`` (the same with 100 trees), ``warm_start`` (LightGBM, 10 trees an iteration), ``frozen``
 (extra-trees, ``min_samples_leaf=20``, the default structure schedule), ``frozen_sub`` (the same with
 each tree grown on 1/8 of the rows, ``structure_max_samples=0.125``), ``refit_lightgbm``.
 """
@@ -43,7 +44,8 @@ CHILD = textwrap.dedent(
     import numpy as np
     from offline_adp import TransitionDataset, DatasetInfo, Feature, ActionTable
     from offline_adp.algorithms.fqi import FittedQIteration, structure_builds
-    n, mode, iters, threads = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+    n, mode, iters, threads = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+    iters = iters if iters == "auto" else int(iters)
     eval_episodes, eval_horizon, gamma = int(sys.argv[5]), int(sys.argv[6]), 0.95
     rng = np.random.default_rng(0)
     T = 100; E = n // T; n = E * T
@@ -64,6 +66,7 @@ CHILD = textwrap.dedent(
     del x, obs, nxt
     cfg = {
         "default": {},
+        "default100": dict(regressor_params={"n_estimators": 100}),  # the default with a 100-tree forest
         "sklearn_builder": dict(tree_builder="sklearn"),  # the default with scikit-learn growing the structures
         "warm_start": dict(mode="warm_start", regressor="lightgbm", trees_per_iteration=10),
         "frozen": dict(mode="frozen", regressor="extra_trees", regressor_params={"min_samples_leaf": 20}),
@@ -122,7 +125,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[100_000, 1_000_000])
     ap.add_argument("--modes", nargs="+", default=["default"])
-    ap.add_argument("--iterations", type=int, default=50)
+    ap.add_argument("--iterations", type=lambda v: v if v == "auto" else int(v), default=50,
+                    help="a count, or auto (the default fit's n_iterations)")
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                     help="n_jobs of the fit's regressor, one run each")
     ap.add_argument("--eval-episodes", type=int, default=1000)
