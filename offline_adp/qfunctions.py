@@ -45,6 +45,10 @@ class QFunction(ABC):
         :func:`restrict_to_support`)."""
         return None
 
+    def has_support(self) -> bool:
+        """Whether :meth:`support` can restrict anything (False: it is always None)."""
+        return False
+
 
 def q_support(q: Any, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
     """``q.support(obs, t)`` of any Q-like object (None where it has no ``support``)."""
@@ -339,6 +343,9 @@ class RegressorQ(QFunction):
         Over continuous commands None (the candidate set already restricts the minimum)."""
         return self.support_phi(self.encoder.phi(obs)) if self._tables() else None
 
+    def has_support(self) -> bool:
+        return self._tables()
+
     def _tables(self) -> bool:
         """Whether every model is a lookup table (has ``seen``) over a finite action set."""
         return not self.encoder.continuous and all(callable(getattr(m, "seen", None)) for m in self.models)
@@ -383,6 +390,8 @@ class TimeIndexedQ(QFunction):
     def support(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray | None:
         """Each step's Q's :meth:`QFunction.support` (None where no step has one; a step
         without one supports every action)."""
+        if not self.has_support():  # no step's Q restricts: no pass over the rows
+            return None
         found: list[bool] = []
 
         def step(k: int, x: np.ndarray) -> np.ndarray:
@@ -392,6 +401,9 @@ class TimeIndexedQ(QFunction):
 
         out = per_step(obs, t, len(self.qs), self.n_actions, step)
         return out.astype(bool) if any(found) else None
+
+    def has_support(self) -> bool:
+        return any(q.has_support() if hasattr(q, "has_support") else hasattr(q, "support") for q in self.qs)
 
 
 class TreeQ(QFunction):
