@@ -122,12 +122,13 @@ def joint_tree_values(q: object, obs: np.ndarray) -> np.ndarray | None:
     Q-function (then call ``q.values``)."""
     from offline_adp.qfunctions import QEncoder, RegressorQ, TreeQ
     from offline_adp.trees.ensemble import LOOKUP_CHUNK, TreeEnsemble, ensemble_predict
+    from offline_adp.trees.loaded import LoadedEnsemble
     from offline_adp.trees.pairs import pair_leaves
 
     if type(q) not in (RegressorQ, TreeQ) or type(q.encoder) is not QEncoder or q.encoder.per_action:  # type: ignore[attr-defined]
         return None
     model = q.models[0]  # type: ignore[attr-defined]
-    if (not isinstance(model, TreeEnsemble) or type(model).apply is not TreeEnsemble.apply  # a loaded one too
+    if (not isinstance(model, TreeEnsemble) or type(model).apply not in (TreeEnsemble.apply, LoadedEnsemble.apply)
             or type(model).predict is not TreeEnsemble.predict or getattr(model, "_forest", None) is not None
             or obs.ndim != 2):
         return None

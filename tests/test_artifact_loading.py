@@ -96,12 +96,12 @@ def test_shared_structure_steps_load_lazily_and_predict_the_same(forest, tmp_pat
 
 
 def test_without_compiled_lookups_the_per_node_ensemble_predicts_the_same(forest, tmp_path, monkeypatch):
-    from offline_adp.trees import builder
+    from offline_adp.trees import jit
 
     ens, X = forest
     q = _q(ens)
     save_q(q, tmp_path / "m")
-    monkeypatch.setattr(builder, "available", lambda: False)
+    monkeypatch.setattr(jit, "available", lambda: False)
     q2, _ = load_q(tmp_path / "m")
     assert type(q2.models[0]) is TreeEnsemble
     obs = _obs(X, 2000)
@@ -140,9 +140,10 @@ def test_children_match_the_reference_decoder(seed):
     np.testing.assert_array_equal(ens.predict(X), TreeEnsemble.from_sklearn(f).predict(X))
 
 
-def test_loading_a_policy_imports_neither_scikit_learn_lightgbm_nor_pandas(forest, tmp_path):
+def test_loading_a_policy_imports_neither_scikit_learn_lightgbm_pandas_nor_numba(forest, tmp_path):
     """What scoring does not need is not imported: reading the versions a model was saved
-    with comes from the installed metadata, the signature from info.json as JSON."""
+    with comes from the installed metadata, the signature from info.json as JSON, and a few
+    states are looked up by numpy descents (numba and its scipy imports: about 0.6 CPU-s)."""
     from offline_adp.artifacts import save_policy
     from offline_adp.policies import greedy_policy
 
@@ -150,7 +151,7 @@ def test_loading_a_policy_imports_neither_scikit_learn_lightgbm_nor_pandas(fores
     save_policy(greedy_policy(_q(ens)), tmp_path / "m")
     code = ("import sys, warnings; warnings.simplefilter('ignore'); import offline_adp; "
             f"p = offline_adp.load_policy({str(tmp_path / 'm')!r}); p.act_index(__import__('numpy').zeros((3, 4)), 0); "
-            "print(sorted(m for m in ('sklearn', 'lightgbm', 'pandas') if m in sys.modules))")
+            "print(sorted(m for m in ('sklearn', 'lightgbm', 'pandas', 'numba', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 

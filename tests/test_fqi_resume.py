@@ -121,7 +121,7 @@ def test_frozen_resume_without_compiled_trees_takes_the_numpy_lookups(tmp_path, 
     """Restoring a frozen structure looks leaves up with scikit-learn's compiled trees
     rebuilt from the saved arrays; where this scikit-learn's tree layout is unknown it
     falls back to the numpy traversal. Both give the uninterrupted fit's Q."""
-    from offline_adp.trees import ensemble
+    from offline_adp.trees import ensemble, loaded
 
     params = _params("frozen", False)
     ref = fit_run(pt_dir, tmp_path / "ref", params=params)
@@ -135,6 +135,7 @@ def test_frozen_resume_without_compiled_trees_takes_the_numpy_lookups(tmp_path, 
         fit_run(pt_dir, tmp_path / "run", params=params, on_iteration=interrupt)
     # (checkpoint writes are paced by their cost, so the resume may start from an earlier iteration)
     monkeypatch.setattr(ensemble.TreeEnsemble, "compiled_trees", lambda self: None)  # "an unknown scikit-learn layout"
+    monkeypatch.setattr(loaded.LoadedEnsemble, "compiled_trees", lambda self: None)  # (a checkpoint's structure)
     per_tree = ensemble.per_tree_leaves
     monkeypatch.setattr(ensemble, "per_tree_leaves", lambda f: calls.append(f) or per_tree(f))
     est = fit_run(pt_dir, tmp_path / "run", params=params, resume=True)

@@ -32,8 +32,7 @@ import numpy as np
 
 from offline_adp.artifacts import checks as C
 from offline_adp.errors import ArtifactError
-from offline_adp.trees import builder
-from offline_adp.trees.compact import CompactTree
+from offline_adp.trees import jit
 from offline_adp.trees.ensemble import TreeEnsemble, float32_floor
 from offline_adp.trees.ensemble import preorder_positions as _numpy_preorder_positions
 from offline_adp.trees.loaded import LoadedEnsemble, _Structure
@@ -74,10 +73,12 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
                           structure_prefix: str | None = None) -> TreeEnsemble:
     """The compact-layout ensemble under ``prefix`` (structure under ``structure_prefix``
     when shared), every member checked as :func:`~offline_adp.artifacts.checks.check_compact_tree_arrays`
-    checks it: a :class:`LoadedEnsemble` with its lookups built where the compiled lookups
-    run (numba; each tree decoded by a compiled pass, :func:`_decode_tree`), else a
-    :class:`TreeEnsemble` of per-node arrays (:func:`preorder_children`; scikit-learn's
-    trees are then rebuilt from them on first use)."""
+    checks it, each split's children found in one vectorised pass (:func:`preorder_children`)
+    and checked inside its tree: a :class:`LoadedEnsemble` over the node records
+    (:func:`~offline_adp.trees.pairs.packed_nodes`' layout; numpy descends them for small
+    lookups, the compiled lookups are built from them when needed) where numba is
+    installed, else a :class:`TreeEnsemble` of per-node arrays (scikit-learn's trees are
+    then rebuilt from them on first use). Nothing here imports numba."""
     sp = prefix if structure_prefix is None else structure_prefix
     is_leaf, roots, feature, threshold, values = C.compact_tree_members(arrays, prefix, where, n_features,
                                                                         structure_prefix)
@@ -85,71 +86,37 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     value = np.zeros(n)
     value[is_leaf] = values
     width = int(feature.max()) + 1 if len(feature) else 0
-    if not builder.available():  # per-node arrays for scikit-learn's trees (or the numpy traversal)
-        splits, right = preorder_children(is_leaf)
+    splits, right = preorder_children(is_leaf)
+    tree_end = np.r_[roots[1:], n][np.searchsorted(roots, splits, side="right") - 1]
+    bad = (right <= splits + 1) | (right >= tree_end)  # flags that passed preorder_valid never do this
+    if bad.any():
+        j = int(np.flatnonzero(bad)[0])
+        raise ArtifactError(f"{where}: {sp}leaf_bits: split node {int(splits[j])} has no right child inside its tree")
+    if not jit.available() or n >= 2**31 - 1:  # per-node arrays for scikit-learn's trees (or the numpy traversal)
         left_g, right_g = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
         left_g[splits], right_g[splits] = splits + 1, right
         f, t = np.full(n, -2, np.int64), np.full(n, -2.0)
         f[splits], t[splits] = feature, threshold
         C.tree_structure(left_g, right_g, roots, where, sp)  # scikit-learn's compiled trees read children unchecked
         return TreeEnsemble(left_g, right_g, f, t, value, roots)
-    # CompactTree compares with its float32 floor: a stored float32 itself
-    thr = np.asarray(threshold, dtype=np.float64)
-    bounds = np.r_[roots, n]
-    first_split = np.r_[0, np.cumsum(np.diff(bounds) - np.add.reduceat(is_leaf, roots, dtype=np.int64))]
-    leaf8, decode = is_leaf.view(np.uint8), _compiled(_decode_tree)
-    trees = []
-    for m in range(len(roots)):  # tree by tree, each in one compiled pass
-        lo, hi, a, b = int(bounds[m]), int(bounds[m + 1]), int(first_split[m]), int(first_split[m + 1])
-        left_l, right_l, f_l = np.empty(hi - lo, np.int32), np.empty(hi - lo, np.int32), np.empty(hi - lo, np.int32)
-        t_l = np.empty(hi - lo)
-        if not decode(leaf8[lo:hi], feature[a:b], thr[a:b], left_l, right_l, f_l, t_l, np.empty(hi - lo + 1, np.int64)):
-            raise ArtifactError(f"{where}: {sp}leaf_bits: tree {m} is not a binary tree in depth-first order")
-        trees.append(CompactTree(left_l, right_l, f_l, t_l, value[lo:hi]))
-    return LoadedEnsemble(_Structure(trees), value, roots, width)
+    thr = np.asarray(threshold, dtype=np.float64)  # a stored float32 is its own float32 floor
+    pk = np.empty((n, 4), np.int32)
+    pk[:, 0] = -1
+    pk[:, 1] = -1
+    pk[:, 2] = -2
+    pk[:, 3] = np.float32(-2.0).view(np.int32)
+    pk[splits, 0] = splits + 1
+    pk[splits, 1] = right
+    pk[splits, 2] = feature
+    pk[splits, 3] = float32_floor(thr).view(np.int32)
+    structure = _Structure(packed=pk.reshape(-1), split_thresholds=thr, roots=roots, value=value)
+    return LoadedEnsemble(structure, value, roots, width)
 
 
 @functools.cache
 def _compiled(fn: Any) -> Any:
-    """``fn`` compiled by numba, imported only when a table first needs it (numba's import
-    is a large part of a small model's load)."""
-    import numba
-
-    return numba.njit(cache=True, nogil=True)(fn)
-
-
-def _decode_tree(is_leaf: Any, feature: Any, threshold: Any, left: Any, right: Any, feat: Any, thr: Any,
-                 stack: Any) -> bool:
-    """One tree's lookup arrays (local node ids, leaves: children -1, feature -2, threshold
-    -2.0) from its leaf flags in depth-first order and its splits' features and
-    thresholds, in one pass: a split's left child is the next node; after a leaf, the next
-    node is the right child of the latest split still without one. False unless the
-    flags are one full binary tree and there is one feature and threshold per split
-    (then every child is inside the tree and after its parent)."""
-    n = len(is_leaf)
-    top = -1
-    s = 0
-    for j in range(n):
-        if j > 0 and is_leaf[j - 1]:  # the right child of the latest split still waiting for one
-            if top < 0:
-                return False
-            right[stack[top]] = j
-            top -= 1
-        if is_leaf[j]:
-            left[j] = -1
-            right[j] = -1
-            feat[j] = -2
-            thr[j] = -2.0
-        else:
-            if s >= len(feature) or j + 1 >= n:
-                return False
-            left[j] = j + 1
-            feat[j] = feature[s]
-            thr[j] = threshold[s]
-            s += 1
-            top += 1
-            stack[top] = j
-    return top == -1 and s == len(feature) and n > 0 and is_leaf[n - 1] == 1
+    """``fn`` compiled by numba on its first call (:func:`~offline_adp.trees.jit.kernel`)."""
+    return jit.kernel(fn, cache=True, nogil=True)
 
 
 def load_ensemble(arrays: Any, prefix: str, where: str, n_features: int | None = None) -> TreeEnsemble:
@@ -262,7 +229,7 @@ def preorder_nodes(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -> np
     n = len(left)
     if n == 0:
         return None
-    if builder.available() and n >= COMPILED_WALK_NODES:
+    if jit.available() and n >= COMPILED_WALK_NODES:
         out = np.empty(n, np.int64)
         ok = _compiled(_preorder_walk)(left, right, roots, out, np.zeros(n, np.uint8), np.empty(n + 1, np.int64))
         return out if ok else None

@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from offline_adp.trees.jit import available, kernel
+
 #: fewest queries per thread of :func:`tree_mean`
 MEAN_CHUNK = 16_384
 
@@ -78,10 +80,7 @@ def _split(n: int, parts: int, least: int = 1) -> list[tuple[int, int]]:
 
 
 # ----------------------------------------------------------------------------- kernels
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a dependency
-    numba = None
+numba_here = available()
 
 
 def _sums_kernel(pos: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any, zero: bool) -> None:
@@ -126,10 +125,9 @@ def _mean_kernel(values: Any, pos: Any, j0: int, j1: int, out: Any) -> None:
         out[j] = acc[j - j0] / m
 
 
-if numba is not None:
-    _sums_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_sums_kernel)
-    _sums_reuse_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_sums_reuse_kernel)
-    _mean_kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_mean_kernel)
+_sums_kernel = kernel(_sums_kernel, cache=True, nogil=True, boundscheck=False)
+_sums_reuse_kernel = kernel(_sums_reuse_kernel, cache=True, nogil=True, boundscheck=False)
+_mean_kernel = kernel(_mean_kernel, cache=True, nogil=True, boundscheck=False)
 
 
 def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 1,
@@ -144,7 +142,7 @@ def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 
     bounds = np.asarray(bounds, dtype=np.int64)
     out = np.empty(int(bounds[-1])) if carry is None else np.array(carry, dtype=np.float64)
     v = np.ascontiguousarray(v, dtype=np.float64)
-    if numba is None:
+    if not numba_here:
         for t in range(m):
             lo, hi = int(bounds[t]), int(bounds[t + 1])
             if carry is None:
@@ -177,7 +175,7 @@ def leaf_sums_reuse(nxt: np.ndarray, src: np.ndarray, rest: np.ndarray, bounds: 
     bounds = np.asarray(bounds, dtype=np.int64)
     v = np.ascontiguousarray(v, dtype=np.float64)
     src = np.ascontiguousarray(src, dtype=np.int64)
-    if numba is None:
+    if not numba_here:
         return leaf_sums(gather_positions(nxt, src, rest), bounds, v, 1)
     out = np.empty(int(bounds[-1]))
     thread_map(lambda r: _sums_reuse_kernel(nxt, src, rest, bounds, v, r[0], r[1], out), _split(m, n_jobs), n_jobs)
@@ -190,7 +188,7 @@ def tree_mean(values: np.ndarray, pos: np.ndarray, n_jobs: int = 1) -> np.ndarra
     order (bit-for-bit a running numpy sum over trees, then ``/ m``). Every position must
     be in range: nothing is checked."""
     m, nq = pos.shape
-    if numba is None:
+    if not numba_here:
         out, tmp = np.zeros(nq), np.empty(nq)
         for row in pos:  # "clip" skips numpy's buffered bounds check (~2x)
             values.take(row, out=tmp, mode="clip")

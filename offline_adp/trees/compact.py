@@ -4,12 +4,15 @@ frozen LEARN step (:mod:`offline_adp.learn.frozen`) and :class:`~offline_adp.tre
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from offline_adp.errors import InvalidArgumentError
-from offline_adp.trees.builder import GrownTree, _kernel
+from offline_adp.trees.jit import kernel
+
+if TYPE_CHECKING:
+    from offline_adp.trees.builder import GrownTree
 
 _UNDEFINED = -2.0  #: scikit-learn's threshold at a leaf (TREE_UNDEFINED)
 
@@ -116,4 +119,4 @@ def _apply(packed: Any, packed_f: Any, X: Any, out: Any) -> None:
         out[i] = node
 
 
-_apply = _kernel(_apply, cache=True, nogil=True, boundscheck=False)
+_apply = kernel(_apply, cache=True, nogil=True, boundscheck=False)

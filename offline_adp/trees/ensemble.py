@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import ArtifactError, InvalidArgumentError
-from offline_adp.trees import averaging, builder
+from offline_adp.trees import averaging, jit
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree, tree_arrays
 
@@ -118,7 +118,7 @@ class TreeEnsemble:
         trees: list[Any] | None = []
         bounds = np.r_[self.roots, len(self.left)]
         n_features = int(max(self.feature.max(), 0)) + 1
-        compact = builder.available()  # about 28 bytes a node and a lookup in threads (scikit-learn's: 72)
+        compact = jit.available()  # about 28 bytes a node and a lookup in threads (scikit-learn's: 72)
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             leaf = self.left[lo:hi] < 0
             if compact:
@@ -138,6 +138,10 @@ class TreeEnsemble:
         if shared is not None:
             shared["trees"] = trees
         return trees
+
+    def lookup_compiled(self, pairs: int) -> bool:
+        """Whether a lookup of ``pairs`` (row, tree) pairs would use compiled lookups (numba's)."""
+        return jit.available()
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         """The mean over trees of the reached leaf values, in row chunks of

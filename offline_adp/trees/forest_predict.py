@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.trees.builder import _kernel, available
 from offline_adp.trees.compact import CompactTree
+from offline_adp.trees.jit import available, kernel
 
 
 def forest_predictor(forest: Any) -> Callable[[np.ndarray], np.ndarray] | None:
@@ -79,7 +79,7 @@ def _forest_sum(packed: Any, packed_f: Any, roots: Any, values: Any, X: Any, y: 
             y[i, o] /= m
 
 
-_forest_sum = _kernel(_forest_sum, cache=True, nogil=True, boundscheck=False)
+_forest_sum = kernel(_forest_sum, cache=True, nogil=True, boundscheck=False)
 
 
 def linear_predictor(model: Any) -> Callable[[np.ndarray], np.ndarray] | None:

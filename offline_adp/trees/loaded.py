@@ -13,28 +13,109 @@ lookups, so predictions and saved files are the same bit for bit.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
 
+from offline_adp.trees import jit
 from offline_adp.trees.compact import CompactTree
 from offline_adp.trees.ensemble import TreeEnsemble
 from offline_adp.trees.sklearn import tree_arrays
 
 
 class _Structure:
-    """One decoded tree structure: its per-tree lookups and, made from them when first
-    asked for, its per-node arrays (shared by every ensemble over the structure)."""
+    """One tree structure: its per-tree compiled lookups (:class:`CompactTree`) and, made
+    when first asked for, its per-node arrays (shared by every ensemble over the structure).
 
-    def __init__(self, trees: list[CompactTree]) -> None:
-        self.trees = trees
+    A structure read from a file comes as one record per node instead (``packed``: left,
+    right, feature and the threshold's float32 floor as int32, global node ids, the
+    layout of :func:`~offline_adp.trees.pairs.packed_nodes`) with the splits' float64
+    thresholds: small lookups then descend it with numpy (:meth:`numpy_leaves`), and the
+    compiled lookups are built only when a lookup is large or many were made
+    (:meth:`use_compiled`): numba's import and kernel set-up (about 0.6 CPU-s) is most of
+    what loading a small policy and acting on a few states would cost. Both reach the
+    same leaves, so every number is the same either way."""
+
+    def __init__(self, trees: list[CompactTree] | None = None, packed: np.ndarray | None = None,
+                 split_thresholds: np.ndarray | None = None, roots: np.ndarray | None = None,
+                 value: np.ndarray | None = None) -> None:
+        self._trees = trees
+        self.packed, self.split_thresholds, self.roots, self.value = packed, split_thresholds, roots, value
         self._arrays: dict[str, np.ndarray] | None = None
+        self.numpy_seconds = 0.0
+
+    @property
+    def trees(self) -> list[CompactTree]:
+        """The per-tree compiled lookups (built from ``packed`` when first asked for)."""
+        if self._trees is None:
+            pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
+            thr = np.full(len(pk), -2.0)
+            thr[pk[:, 0] >= 0] = self.split_thresholds
+            bounds = np.r_[self.roots, len(pk)]
+            trees = []
+            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+                part = pk[lo:hi]
+                inner = part[:, 0] >= 0
+                tree = CompactTree(np.where(inner, part[:, 0] - lo, -1), np.where(inner, part[:, 1] - lo, -1),
+                                   part[:, 2], thr[lo:hi], self.value[lo:hi])  # type: ignore[index]
+                tree.values = self.value[lo:hi]  # type: ignore[index]  # a view: one copy of the values
+                trees.append(tree)
+            self._trees = trees
+        return self._trees
+
+    def use_compiled(self, pairs: int) -> bool:
+        """Whether a lookup of ``pairs`` (row, tree) pairs goes through the compiled lookups:
+        always once they are built or numba's kernels run in this process, for a large
+        lookup (more than :data:`NUMPY_PAIRS`), and after :data:`NUMPY_SECONDS` of numpy
+        lookups on this structure (a loop of small lookups); never without numba."""
+        if self._trees is not None:
+            return True
+        if not jit.available():
+            return False
+        return jit.warm() or pairs > NUMPY_PAIRS or self.numpy_seconds > NUMPY_SECONDS
+
+    def numpy_leaves(self, X: np.ndarray) -> np.ndarray:
+        """The global leaf each row of ``X`` (every feature a split reads present, checked
+        by the caller) reaches in every tree, (n, n_trees) int64: all (row, tree) pairs
+        descend together a level per pass, comparing the float32 input with the float32
+        floor of the threshold as :class:`CompactTree` does (the same leaves)."""
+        t0 = time.perf_counter()
+        pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
+        left, right, feature, thr = pk[:, 0], pk[:, 1], pk[:, 2], pk[:, 3].view(np.float32)
+        X32 = np.ascontiguousarray(X, dtype=np.float32)
+        n, m = len(X32), len(self.roots)  # type: ignore[arg-type]
+        node = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # flat (n * m), row-major
+        row = np.repeat(np.arange(n), m)
+        idx = np.flatnonzero(left[node] >= 0)
+        while len(idx):
+            nd = node[idx]
+            nxt = np.where(X32[row[idx], feature[nd]] <= thr[nd], left[nd], right[nd])
+            node[idx] = nxt
+            idx = idx[left[nxt] >= 0]
+        self.numpy_seconds += time.perf_counter() - t0
+        return node.reshape(n, m)
 
     def arrays(self) -> dict[str, np.ndarray]:
         if self._arrays is None:
-            a = tree_arrays(self.trees)  # the lookups read like scikit-learn trees
-            self._arrays = {k: a[k] for k in ("left", "right", "feature", "threshold")}
+            if self._trees is None:  # straight from the node records (what the lookups would export)
+                pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
+                inner = pk[:, 0] >= 0
+                thr = np.full(len(pk), -2.0)
+                thr[inner] = self.split_thresholds
+                self._arrays = {"left": pk[:, 0].astype(np.int64), "right": pk[:, 1].astype(np.int64),
+                                "feature": pk[:, 2].astype(np.int64), "threshold": thr}
+            else:
+                a = tree_arrays(self._trees)  # the lookups read like scikit-learn trees
+                self._arrays = {k: a[k] for k in ("left", "right", "feature", "threshold")}
         return self._arrays
+
+
+#: a lookup of more (row, tree) pairs than this uses the compiled lookups (numpy's descent
+#: costs about 2.5x a compiled one's on 1,000 rows of 50 deep trees)
+NUMPY_PAIRS = 2**17
+#: CPU seconds of numpy lookups on one structure after which the compiled ones are built
+NUMPY_SECONDS = 0.5
 
 
 class _PerNode:
@@ -57,9 +138,11 @@ class _PerNode:
 
 
 class LoadedEnsemble(TreeEnsemble):
-    """A :class:`TreeEnsemble` read from an artifact: ``value`` and ``roots`` as arrays,
-    the compiled lookups built, and ``left, right, feature, threshold`` made from the
-    lookups when first read (re-saving, resuming, export): scoring never makes them."""
+    """A :class:`TreeEnsemble` read from an artifact (or a frozen fit's structure): ``value``
+    and ``roots`` as arrays, leaves looked up through its :class:`_Structure` (numpy
+    descents of the node records or the compiled lookups, the same leaves), and ``left,
+    right, feature, threshold`` made when first read (re-saving, resuming, export):
+    scoring never makes them."""
 
     left = _PerNode()
     right = _PerNode()
@@ -69,7 +152,6 @@ class LoadedEnsemble(TreeEnsemble):
     def __init__(self, structure: _Structure, value: np.ndarray, roots: np.ndarray, n_features: int) -> None:
         self._structure = structure
         self.value, self.roots = value, roots
-        self._trees = structure.trees  # TreeEnsemble.compiled_trees' cache: the lookups are built
         self._n_features = n_features  # TreeEnsemble.check_inputs' cache: the widest split feature + 1
 
     def with_values(self, value: np.ndarray) -> TreeEnsemble:
@@ -83,9 +165,31 @@ class LoadedEnsemble(TreeEnsemble):
             out.n_features_in_ = self.n_features_in_  # type: ignore[attr-defined]
         return out
 
+    def compiled_trees(self) -> list[Any] | None:
+        """The structure's compiled lookups (built on the first call where read from a file)."""
+        if self._structure.packed is not None and not jit.available():
+            return None  # the numpy descent (TreeEnsemble.apply's without lookups)
+        return self._structure.trees
+
+    def apply(self, X: np.ndarray) -> np.ndarray:
+        """As :meth:`TreeEnsemble.apply`: by numpy descents of the node records while
+        :meth:`_Structure.use_compiled` says so, else by the compiled lookups."""
+        s = self._structure
+        if s.packed is not None and not s.use_compiled(len(X) * self.n_trees):
+            self.check_inputs(X)
+            return s.numpy_leaves(X)
+        return super().apply(X)
+
+    def lookup_compiled(self, pairs: int) -> bool:
+        """Whether a lookup of ``pairs`` (row, tree) pairs would use the compiled lookups."""
+        return self._structure.packed is None or self._structure.use_compiled(pairs)
+
     def leaf_mask(self) -> np.ndarray:
         """Which nodes are leaves (without making the per-node arrays)."""
-        return np.concatenate([t.children_left < 0 for t in self._structure.trees])
+        s = self._structure
+        if s._trees is None:
+            return s.packed.reshape(-1, 4)[:, 0] < 0  # type: ignore[union-attr]
+        return np.concatenate([t.children_left < 0 for t in s.trees])
 
 
 def compact_ensemble(trees: list[CompactTree]) -> LoadedEnsemble:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from offline_adp.trees.builder import _kernel, available
+from offline_adp.trees.jit import available, kernel
 
 #: at most this many actions (a set of actions is a bit mask of one unsigned 64-bit word)
 MAX_ACTIONS = 64
@@ -52,6 +52,9 @@ def ensemble_packed(ensemble: Any) -> np.ndarray:
     per-node arrays), else from its per-node arrays."""
     from offline_adp.trees.compact import CompactTree
 
+    packed = getattr(getattr(ensemble, "_structure", None), "packed", None)
+    if packed is not None:  # a loaded ensemble's node records: this layout already
+        return packed
     trees = ensemble.__dict__.get("_trees")
     if not (isinstance(trees, list) and len(trees) == len(ensemble.roots) and trees
             and all(type(t) is CompactTree for t in trees)):
@@ -136,7 +139,7 @@ def _pair_apply(packed: Any, packed_f: Any, roots: Any, S: Any, Af: Any, lanes: 
                     lane_node[k], lane_mask[k] = left, go_left
 
 
-_pair_apply = _kernel(_pair_apply, cache=True, nogil=True, boundscheck=False)
+_pair_apply = kernel(_pair_apply, cache=True, nogil=True, boundscheck=False)
 
 
 def pair_leaves(ensemble: Any, phi: np.ndarray, action_features: np.ndarray) -> np.ndarray | None:
@@ -149,6 +152,8 @@ def pair_leaves(ensemble: Any, phi: np.ndarray, action_features: np.ndarray) -> 
     af = np.asarray(action_features)
     A, n = af.shape[0], phi.shape[0]
     if not available() or not 0 < A <= MAX_ACTIONS or n == 0 or phi.ndim != 2 or af.ndim != 2:
+        return None
+    if not ensemble.lookup_compiled(A * n * ensemble.n_trees):  # a small lookup of a loaded policy: numpy's
         return None
     if len(ensemble.value) >= 2**31 - 1:  # one value per node
         return None

@@ -1,0 +1,66 @@
+"""Numba for the kernels that run alone (leaf lookups, sums over leaves), imported when one
+first runs, not when its module is.
+
+Importing numba and loading the first kernel from its on-disk cache costs about 0.6 CPU-s
+(numba's import, then its typing registries, which import parts of scipy): most of what
+loading a small saved policy cost. A process that loads a policy and acts on a few states
+(:class:`~offline_adp.trees.loaded.LoadedEnsemble` then looks leaves up with numpy) never
+pays it. :func:`kernel` wraps a plain function as one compiled on its first call; a
+kernel called from another compiled kernel must be compiled eagerly instead (numba types
+its callees), as the builder's are (:mod:`offline_adp.trees.builder_kernel`).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import threading
+from collections.abc import Callable
+from typing import Any
+
+_LOCK = threading.Lock()
+_warm = False
+
+
+@functools.cache
+def available() -> bool:
+    """Whether numba is installed (found, not imported)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def warm() -> bool:
+    """Whether a kernel of :func:`kernel` has been compiled or loaded in this process (numba's
+    import and registries paid: another compiled call costs little more)."""
+    return _warm
+
+
+class LazyKernel:
+    """``numba.njit(**options)(fn)``, made on the first call (threads wait for one copy)."""
+
+    def __init__(self, fn: Callable[..., Any], options: dict[str, Any]) -> None:
+        self.fn, self.options = fn, options
+        self._compiled: Any = None
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args: Any) -> Any:
+        k = self._compiled
+        if k is None:
+            k = self.compiled()
+        return k(*args)
+
+    def compiled(self) -> Any:
+        """The numba dispatcher (imports numba on the first call)."""
+        global _warm
+        with _LOCK:
+            if self._compiled is None:
+                import numba
+
+                self._compiled = numba.njit(**self.options)(self.fn)
+                _warm = True
+        return self._compiled
+
+
+def kernel(fn: Callable[..., Any], **options: Any) -> Any:
+    """``fn`` as a kernel compiled by numba on its first call (``options``: ``numba.njit``'s),
+    or ``fn`` itself where numba is not installed."""
+    return LazyKernel(fn, options) if available() else fn

@@ -1,0 +1,132 @@
+"""Leaves of a loaded tree ensemble by numpy descents of its node records and by the
+compiled lookups (trees.loaded): the same leaves, so the same numbers, whichever runs.
+
+Ground truth: scikit-learn's own ``apply`` on the forest that was saved (float32 inputs),
+and the in-memory ensemble before saving. Random forests of random depth and width on
+inputs with repeated values and values on float32 boundaries (a hypothesis property,
+bounded in CI), plus the rule that picks the path (trees.loaded._Structure.use_compiled).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
+
+from offline_adp.artifacts.tree_tables import load_compact_ensemble
+from offline_adp.trees import TreeEnsemble, jit
+from offline_adp.trees import loaded as L
+
+pytestmark = pytest.mark.skipif(not jit.available(), reason="the compiled lookups need numba")
+
+
+def _forest(seed: int, n_trees: int, depth: int | None, d: int, kind: str) -> tuple[object, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(400, d))
+    X[:, 0] = np.round(X[:, 0], 1)  # repeated values: cuts between neighbours
+    X[: 40, -1] = np.float32(0.1)  # a float32 value stored as float64, next to its double neighbours
+    X[40: 80, -1] = 0.1
+    y = np.sin(X[:, 0]) + X[:, -1] + rng.normal(0, 0.1, len(X))
+    cls = ExtraTreesRegressor if kind == "extra" else RandomForestRegressor
+    return cls(n_estimators=n_trees, max_depth=depth, random_state=seed).fit(X, y), X
+
+
+def _loaded(forest: object) -> tuple[TreeEnsemble, L.LoadedEnsemble]:
+    ens = TreeEnsemble.from_sklearn(forest)
+    out = load_compact_ensemble(ens.to_arrays(), "", "test")
+    assert isinstance(out, L.LoadedEnsemble) and out._structure.packed is not None
+    return ens, out
+
+
+def _queries(X: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    Q = np.r_[X[:50], rng.normal(size=(200, X.shape[1])) * 3]
+    Q[:20, -1] = np.nextafter(np.float32(0.1), np.float32(1))  # just above the float32 value
+    Q[20:40, -1] = np.nextafter(0.1, 1.0)  # a double that rounds to float32(0.1)
+    Q[40, 0], Q[41, 0], Q[42, -1] = np.inf, -np.inf, np.nan  # compared as the compiled lookups compare them
+    return Q
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**16), n_trees=st.integers(1, 9), depth=st.one_of(st.none(), st.integers(1, 12)),
+       d=st.integers(1, 4), kind=st.sampled_from(["extra", "forest"]))
+def test_numpy_descents_reach_the_compiled_lookups_leaves(seed, n_trees, depth, d, kind):
+    forest, X = _forest(seed, n_trees, depth, d, kind)
+    ens, loaded = _loaded(forest)
+    Q = _queries(X, np.random.default_rng(seed))
+    numpy_leaves = loaded._structure.numpy_leaves(Q)
+    assert loaded._structure._trees is None  # no compiled lookup was built for it
+    compiled = TreeEnsemble.apply(loaded, Q)  # builds the per-tree lookups from the records
+    np.testing.assert_array_equal(numpy_leaves, compiled)
+    finite = np.isfinite(Q).all(axis=1)
+    offs = np.r_[0, np.cumsum([e.tree_.node_count for e in forest.estimators_])[:-1]]
+    truth = forest.apply(Q[finite].astype(np.float32)) + offs
+    np.testing.assert_array_equal(numpy_leaves[finite], truth)
+    np.testing.assert_array_equal(loaded.predict(Q[finite]), ens.predict(Q[finite]))
+
+
+def test_the_path_is_numpy_for_small_lookups_and_compiled_for_large_or_many(monkeypatch):
+    forest, X = _forest(1, 5, None, 3, "extra")
+    _, loaded = _loaded(forest)
+    s = loaded._structure
+    monkeypatch.setattr(jit, "_warm", False)  # as in a fresh process that ran no kernel
+    assert not s.use_compiled(10 * loaded.n_trees)
+    assert s.use_compiled(L.NUMPY_PAIRS + 1)
+    small = np.random.default_rng(0).normal(size=(10, 3))
+    first = loaded.predict(small)
+    assert s._trees is None  # the small lookup descended the records
+    monkeypatch.setattr(s, "numpy_seconds", L.NUMPY_SECONDS + 1.0)  # many small lookups made
+    assert s.use_compiled(10 * loaded.n_trees)
+    np.testing.assert_array_equal(loaded.predict(small), first)
+    assert s._trees is not None  # now built, and used from here on
+    monkeypatch.setattr(s, "numpy_seconds", 0.0)
+    assert s.use_compiled(1)
+
+
+def test_a_process_with_kernels_running_uses_the_compiled_lookups(monkeypatch):
+    forest, _ = _forest(2, 3, 6, 2, "extra")
+    _, loaded = _loaded(forest)
+    monkeypatch.setattr(jit, "_warm", True)
+    assert loaded._structure.use_compiled(1)
+
+
+def test_per_node_arrays_from_the_records_are_the_lookups_export():
+    forest, _ = _forest(3, 4, None, 3, "forest")
+    ens, a = _loaded(forest)
+    _, b = _loaded(forest)
+    b._structure.trees  # noqa: B018 - built: the arrays then come from the lookups
+    for k in ("left", "right", "feature", "threshold"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    for k in ("left", "right", "feature"):  # (the file holds a threshold's float32 where that is the same test)
+        np.testing.assert_array_equal(getattr(a, k), getattr(ens, k))
+    np.testing.assert_array_equal(a.leaf_mask(), b.leaf_mask())
+
+
+def test_joint_greedy_actions_are_the_same_by_either_path(monkeypatch, tmp_path):
+    """A loaded joint (x, a) Q: small batches descend with numpy (each pair of state and
+    action), large ones through the compiled all-actions descent (trees.pairs): the greedy
+    actions and values are those of the Q before saving."""
+    from offline_adp.artifacts import load_q, save_q
+    from offline_adp.policies import GreedyPolicy
+    from offline_adp.qfunctions import QEncoder, TreeQ
+
+    rng = np.random.default_rng(4)
+    S = rng.normal(size=(600, 2))
+    A = rng.integers(0, 3, 600)
+    y = np.sin(S[:, 0]) * (A - 1) + S[:, 1]
+    enc = QEncoder(3, np.arange(3.0).reshape(3, 1), per_action=False)
+    forest = ExtraTreesRegressor(n_estimators=6, random_state=0).fit(np.c_[S, A.astype(float)], y)
+    ens = TreeEnsemble.from_sklearn(forest)
+    ens.n_features_in_ = 3  # type: ignore[attr-defined]
+    q = TreeQ([ens], enc)
+    save_q(q, tmp_path / "m")
+    monkeypatch.setattr(jit, "_warm", False)  # as in a fresh process that ran no kernel
+    q2, _ = load_q(tmp_path / "m")
+    obs = rng.normal(size=(40, 2)) * 2
+    want = GreedyPolicy(q).actions(obs)
+    np.testing.assert_array_equal(GreedyPolicy(q2).actions(obs), want)
+    assert q2.models[0]._structure._trees is None
+    monkeypatch.setattr(L, "NUMPY_PAIRS", 0)  # every lookup compiled from here
+    np.testing.assert_array_equal(GreedyPolicy(q2).actions(obs), want)
+    np.testing.assert_array_equal(q2.values(obs), q.values(obs))
