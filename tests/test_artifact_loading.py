@@ -101,7 +101,7 @@ def test_without_compiled_lookups_the_per_node_ensemble_predicts_the_same(forest
     ens, X = forest
     q = _q(ens)
     save_q(q, tmp_path / "m")
-    monkeypatch.setattr(jit, "available", lambda: False)
+    monkeypatch.setattr(jit, "installed", lambda: False)
     q2, _ = load_q(tmp_path / "m")
     assert type(q2.models[0]) is TreeEnsemble
     obs = _obs(X, 2000)

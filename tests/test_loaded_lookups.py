@@ -36,7 +36,7 @@ def _forest(seed: int, n_trees: int, depth: int | None, d: int, kind: str) -> tu
 def _loaded(forest: object) -> tuple[TreeEnsemble, L.LoadedEnsemble]:
     ens = TreeEnsemble.from_sklearn(forest)
     out = load_compact_ensemble(ens.to_arrays(), "", "test")
-    assert isinstance(out, L.LoadedEnsemble) and out._structure.packed is not None
+    assert isinstance(out, L.LoadedEnsemble) and out._structure.records is not None
     return ens, out
 
 
@@ -70,7 +70,7 @@ def test_the_path_is_numpy_for_small_lookups_and_compiled_for_large_or_many(monk
     forest, X = _forest(1, 5, None, 3, "extra")
     _, loaded = _loaded(forest)
     s = loaded._structure
-    monkeypatch.setattr(jit, "_warm", False)  # as in a fresh process that ran no kernel
+    monkeypatch.setattr(jit, "warm", lambda: False)  # as in a fresh process that ran no kernel
     assert not s.use_compiled(10 * loaded.n_trees)
     assert s.use_compiled(L.NUMPY_PAIRS + 1)
     small = np.random.default_rng(0).normal(size=(10, 3))
@@ -87,7 +87,7 @@ def test_the_path_is_numpy_for_small_lookups_and_compiled_for_large_or_many(monk
 def test_a_process_with_kernels_running_uses_the_compiled_lookups(monkeypatch):
     forest, _ = _forest(2, 3, 6, 2, "extra")
     _, loaded = _loaded(forest)
-    monkeypatch.setattr(jit, "_warm", True)
+    monkeypatch.setattr(jit, "warm", lambda: True)
     assert loaded._structure.use_compiled(1)
 
 
@@ -121,7 +121,7 @@ def test_joint_greedy_actions_are_the_same_by_either_path(monkeypatch, tmp_path)
     ens.n_features_in_ = 3  # type: ignore[attr-defined]
     q = TreeQ([ens], enc)
     save_q(q, tmp_path / "m")
-    monkeypatch.setattr(jit, "_warm", False)  # as in a fresh process that ran no kernel
+    monkeypatch.setattr(jit, "warm", lambda: False)  # as in a fresh process that ran no kernel
     q2, _ = load_q(tmp_path / "m")
     obs = rng.normal(size=(40, 2)) * 2
     want = GreedyPolicy(q).actions(obs)
@@ -130,3 +130,44 @@ def test_joint_greedy_actions_are_the_same_by_either_path(monkeypatch, tmp_path)
     monkeypatch.setattr(L, "NUMPY_PAIRS", 0)  # every lookup compiled from here
     np.testing.assert_array_equal(GreedyPolicy(q2).actions(obs), want)
     np.testing.assert_array_equal(q2.values(obs), q.values(obs))
+
+
+@pytest.mark.parametrize("shift", [-1, 10**6])
+def test_a_right_child_outside_its_tree_is_refused(monkeypatch, shift):
+    """The records are read unchecked by the compiled lookups: a right child before its left
+    child or past its tree's end (which flags that passed the depth-first check never give)
+    is refused, naming the member, not looked up."""
+    from offline_adp.artifacts import tree_tables as TT
+    from offline_adp.errors import ArtifactError
+
+    forest, _ = _forest(5, 3, 4, 2, "extra")
+    arrays = TreeEnsemble.from_sklearn(forest).to_arrays()
+    real = TT.preorder_children
+
+    def broken(is_leaf):
+        splits, right = real(is_leaf)
+        right = right.copy()
+        right[-1] = splits[-1] if shift < 0 else len(is_leaf) + shift  # the last tree's last split
+        return splits, right
+
+    monkeypatch.setattr(TT, "preorder_children", broken)
+    with pytest.raises(ArtifactError, match="leaf_bits"):
+        load_compact_ensemble(arrays, "", "test")
+
+
+def test_a_pickled_loaded_ensemble_sends_its_records_once():
+    """A loaded ensemble shipped to a worker after its compiled lookups were made (views of
+    its records) is pickled without them: the structure is sent once, and the copy predicts
+    the same numbers with lookups that are again views of its own records."""
+    import pickle
+
+    forest, X = _forest(6, 6, None, 3, "extra")
+    _, loaded = _loaded(forest)
+    trees = loaded._structure.trees
+    assert all(np.shares_memory(t.packed, loaded._structure.records) for t in trees)
+    blob = pickle.dumps(loaded)
+    assert len(blob) < 1.5 * loaded._structure.records.nbytes + 2 * loaded.value.nbytes + 10_000
+    back = pickle.loads(blob)
+    assert back._structure._trees is None
+    np.testing.assert_array_equal(back.predict(X), loaded.predict(X))
+    assert all(np.shares_memory(t.packed, back._structure.records) for t in back._structure.trees)

@@ -3,16 +3,19 @@ without renumbering a structure twice.
 
 A saved ensemble (:meth:`~offline_adp.trees.ensemble.TreeEnsemble.to_arrays`, artifact
 format 2) stores each tree's leaf flags in depth-first order, the splits' features and
-thresholds, and the leaves' values. Scoring needs only the per-tree lookups
-(:class:`~offline_adp.trees.compact.CompactTree`, about 28 bytes a node) and the leaf values;
-the per-node ``left, right, feature, threshold`` arrays a :class:`TreeEnsemble` holds (40
-bytes a node as int64/float64) serve re-saving, resuming and export only. So
-:func:`load_compact_ensemble` checks the members (:func:`~offline_adp.artifacts.checks.compact_tree_members`),
-finds every split's children in one vectorised pass (:func:`preorder_children`), builds
-the lookups tree by tree, and returns a :class:`LoadedEnsemble` whose per-node arrays are
-made from the lookups when first read. The lookups are those
-:meth:`TreeEnsemble.compiled_trees` would build from the per-node arrays (the same
-numbers), so predictions are the same bit for bit.
+thresholds, and the leaves' values. Scoring needs only one lookup record a node (left and
+right child as local ids, feature, the threshold's float32 floor: 16 bytes, the layout of
+:class:`~offline_adp.trees.compact.CompactTree`'s ``packed``) and the leaf values; the
+per-node ``left, right, feature, threshold`` arrays a :class:`TreeEnsemble` holds (40 bytes a
+node as int64/float64) serve re-saving, resuming and export only. So
+:func:`load_compact_ensemble` checks the members
+(:func:`~offline_adp.artifacts.checks.compact_tree_members`), finds every split's children
+in one vectorised pass (:func:`preorder_children`), writes the records, and returns a
+:class:`LoadedEnsemble` over them: numpy descends them for a few states, and the per-tree
+compiled lookups (:class:`~offline_adp.trees.compact.CompactTree`) are views of them, used
+when lookups grow (:mod:`offline_adp.trees.loaded`), so loading imports no numba. Both
+reach the leaves :meth:`TreeEnsemble.compiled_trees` would reach from the per-node arrays,
+so predictions are the same bit for bit.
 
 Writing, :func:`compact_arrays` makes the arrays :meth:`TreeEnsemble.to_arrays` makes (the
 format's definition; tested equal) with a compiled depth-first walk, and keeps the last
@@ -75,8 +78,8 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     when shared), every member checked as :func:`~offline_adp.artifacts.checks.check_compact_tree_arrays`
     checks it, each split's children found in one vectorised pass (:func:`preorder_children`)
     and checked inside its tree: a :class:`LoadedEnsemble` over the node records
-    (:func:`~offline_adp.trees.pairs.packed_nodes`' layout; numpy descends them for small
-    lookups, the compiled lookups are built from them when needed) where numba is
+    (:class:`~offline_adp.trees.compact.CompactTree`'s layout, local ids; numpy descends
+    them for small lookups, the compiled lookups are views of them) where numba is
     installed, else a :class:`TreeEnsemble` of per-node arrays (scikit-learn's trees are
     then rebuilt from them on first use). Nothing here imports numba."""
     sp = prefix if structure_prefix is None else structure_prefix
@@ -87,12 +90,14 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
     value[is_leaf] = values
     width = int(feature.max()) + 1 if len(feature) else 0
     splits, right = preorder_children(is_leaf)
-    tree_end = np.r_[roots[1:], n][np.searchsorted(roots, splits, side="right") - 1]
-    bad = (right <= splits + 1) | (right >= tree_end)  # flags that passed preorder_valid never do this
-    if bad.any():
-        j = int(np.flatnonzero(bad)[0])
-        raise ArtifactError(f"{where}: {sp}leaf_bits: split node {int(splits[j])} has no right child inside its tree")
-    if not jit.available() or n >= 2**31 - 1:  # per-node arrays for scikit-learn's trees (or the numpy traversal)
+    # each right child after its left child and before the end of its tree (flags that passed
+    # preorder_valid always are; checked anyway: the compiled lookups read children unchecked)
+    first = np.searchsorted(splits, roots)  # each tree's first split (trees of one leaf: none)
+    has = first < np.r_[first[1:], len(splits)]
+    last_right = np.maximum.reduceat(right, first[has]) if len(splits) else right[:0]
+    if (right <= splits + 1).any() or (last_right >= np.r_[roots[1:], n][has]).any():
+        raise ArtifactError(f"{where}: {sp}leaf_bits: a split has no right child inside its tree")
+    if not jit.installed() or n >= 2**31 - 1:  # per-node arrays for scikit-learn's trees (or the numpy traversal)
         left_g, right_g = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
         left_g[splits], right_g[splits] = splits + 1, right
         f, t = np.full(n, -2, np.int64), np.full(n, -2.0)
@@ -100,16 +105,18 @@ def load_compact_ensemble(arrays: Any, prefix: str, where: str, n_features: int 
         C.tree_structure(left_g, right_g, roots, where, sp)  # scikit-learn's compiled trees read children unchecked
         return TreeEnsemble(left_g, right_g, f, t, value, roots)
     thr = np.asarray(threshold, dtype=np.float64)  # a stored float32 is its own float32 floor
-    pk = np.empty((n, 4), np.int32)
-    pk[:, 0] = -1
-    pk[:, 1] = -1
-    pk[:, 2] = -2
-    pk[:, 3] = np.float32(-2.0).view(np.int32)
-    pk[splits, 0] = splits + 1
-    pk[splits, 1] = right
-    pk[splits, 2] = feature
-    pk[splits, 3] = float32_floor(thr).view(np.int32)
-    structure = _Structure(packed=pk.reshape(-1), split_thresholds=thr, roots=roots, value=value)
+    root = roots[np.searchsorted(roots, splits, side="right") - 1]  # each split's tree (local ids)
+    rec = np.empty((n, 4), np.int32)
+    rec[:, 0] = -1
+    rec[:, 1] = -1
+    rec[:, 2] = -2
+    rec[:, 3] = np.float32(-2.0).view(np.int32)
+    rec[splits, 0] = splits + 1 - root
+    rec[splits, 1] = right - root
+    del root
+    rec[splits, 2] = feature
+    rec[splits, 3] = float32_floor(thr).view(np.int32)
+    structure = _Structure(records=rec, split_thresholds=thr, roots=roots, value=value)
     return LoadedEnsemble(structure, value, roots, width)
 
 

@@ -80,7 +80,6 @@ def _split(n: int, parts: int, least: int = 1) -> list[tuple[int, int]]:
 
 
 # ----------------------------------------------------------------------------- kernels
-numba_here = available()
 
 
 def _sums_kernel(pos: Any, bounds: Any, v: Any, t0: int, t1: int, out: Any, zero: bool) -> None:
@@ -142,7 +141,7 @@ def leaf_sums(pos: np.ndarray, bounds: np.ndarray, v: np.ndarray, n_jobs: int = 
     bounds = np.asarray(bounds, dtype=np.int64)
     out = np.empty(int(bounds[-1])) if carry is None else np.array(carry, dtype=np.float64)
     v = np.ascontiguousarray(v, dtype=np.float64)
-    if not numba_here:
+    if not available():
         for t in range(m):
             lo, hi = int(bounds[t]), int(bounds[t + 1])
             if carry is None:
@@ -175,7 +174,7 @@ def leaf_sums_reuse(nxt: np.ndarray, src: np.ndarray, rest: np.ndarray, bounds: 
     bounds = np.asarray(bounds, dtype=np.int64)
     v = np.ascontiguousarray(v, dtype=np.float64)
     src = np.ascontiguousarray(src, dtype=np.int64)
-    if not numba_here:
+    if not available():
         return leaf_sums(gather_positions(nxt, src, rest), bounds, v, 1)
     out = np.empty(int(bounds[-1]))
     thread_map(lambda r: _sums_reuse_kernel(nxt, src, rest, bounds, v, r[0], r[1], out), _split(m, n_jobs), n_jobs)
@@ -188,7 +187,7 @@ def tree_mean(values: np.ndarray, pos: np.ndarray, n_jobs: int = 1) -> np.ndarra
     order (bit-for-bit a running numpy sum over trees, then ``/ m``). Every position must
     be in range: nothing is checked."""
     m, nq = pos.shape
-    if not numba_here:
+    if not available():
         out, tmp = np.zeros(nq), np.empty(nq)
         for row in pos:  # "clip" skips numpy's buffered bounds check (~2x)
             values.take(row, out=tmp, mode="clip")

@@ -49,6 +49,16 @@ class CompactTree:
         self._thresholds = thr[~leaf] if self._leaf_undefined else thr
 
     @classmethod
+    def of_records(cls, records: np.ndarray, split_thresholds: np.ndarray, values: np.ndarray) -> CompactTree:
+        """A tree over its node records as :attr:`packed` holds them ((n, 4) int32, local
+        ids, leaves: left -1, feature -2, threshold -2.0; C order), its splits' float64
+        thresholds in node order and its node values, held as given (views, not copies)."""
+        tree = cls.__new__(cls)
+        tree.packed, tree.values = records, values
+        tree._leaf_undefined, tree._thresholds = True, split_thresholds
+        return tree
+
+    @classmethod
     def from_grown(cls, tree: GrownTree) -> CompactTree:
         """From the builder's node records (copied: the builder reuses its buffers)."""
         return cls(tree.left, tree.right, tree.feature, tree.threshold, tree.value)

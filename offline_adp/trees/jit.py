@@ -14,24 +14,39 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import sys
 import threading
 from collections.abc import Callable
 from typing import Any
 
 _LOCK = threading.Lock()
-_warm = False
+
+
+@functools.cache
+def installed() -> bool:
+    """Whether numba is installed (found, not imported): whether compiled lookups may be
+    built at all."""
+    return importlib.util.find_spec("numba") is not None
 
 
 @functools.cache
 def available() -> bool:
-    """Whether numba is installed (found, not imported)."""
-    return importlib.util.find_spec("numba") is not None
+    """Whether numba imports here (it is imported by this call: call it where a compiled
+    kernel is about to run). False where it is missing or its import fails (e.g. a numpy
+    it does not support): then the numpy paths run."""
+    if not installed():
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def warm() -> bool:
-    """Whether a kernel of :func:`kernel` has been compiled or loaded in this process (numba's
-    import and registries paid: another compiled call costs little more)."""
-    return _warm
+    """Whether numba is already imported in this process (a kernel compiled or loaded, or a
+    module of compiled kernels imported): another compiled call then costs little more."""
+    return "numba" in sys.modules
 
 
 class LazyKernel:
@@ -50,17 +65,16 @@ class LazyKernel:
 
     def compiled(self) -> Any:
         """The numba dispatcher (imports numba on the first call)."""
-        global _warm
         with _LOCK:
             if self._compiled is None:
                 import numba
 
                 self._compiled = numba.njit(**self.options)(self.fn)
-                _warm = True
         return self._compiled
 
 
 def kernel(fn: Callable[..., Any], **options: Any) -> Any:
     """``fn`` as a kernel compiled by numba on its first call (``options``: ``numba.njit``'s),
-    or ``fn`` itself where numba is not installed."""
-    return LazyKernel(fn, options) if available() else fn
+    or ``fn`` itself where numba is not installed. Callers check :func:`available` before
+    choosing a path that calls it."""
+    return LazyKernel(fn, options) if installed() else fn

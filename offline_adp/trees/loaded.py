@@ -1,14 +1,20 @@
-"""A :class:`~offline_adp.trees.ensemble.TreeEnsemble` held as its per-tree lookups
-(:class:`~offline_adp.trees.compact.CompactTree`, about 28 bytes a node) and its node values, the
-per-node ``left, right, feature, threshold`` arrays (40 bytes a node as int64/float64) made
-from the lookups only when first read (re-saving, resuming, export): :class:`LoadedEnsemble`.
+"""A :class:`~offline_adp.trees.ensemble.TreeEnsemble` held as its leaf lookups and node
+values, the per-node ``left, right, feature, threshold`` arrays (40 bytes a node as
+int64/float64) made only when first read (re-saving, resuming, export): :class:`LoadedEnsemble`.
 
-An artifact's ensembles are read into it (:func:`~offline_adp.artifacts.tree_tables.load_compact_ensemble`),
-and so is the frozen LEARN step's structure grown by the compiled builder when its Q is
-asked for (:meth:`~offline_adp.learn.frozen.FrozenTreesLearner._exported`). The lookups are
-the ones :meth:`TreeEnsemble.compiled_trees` would build from the per-node arrays, and the
-per-node arrays the ones :func:`~offline_adp.trees.sklearn.tree_arrays` exports from the
-lookups, so predictions and saved files are the same bit for bit.
+An artifact's ensembles are read into it (:func:`~offline_adp.artifacts.tree_tables.load_compact_ensemble`)
+as one lookup record a node (left and right child as local ids, feature, the threshold's
+float32 floor: 16 bytes; the layout of :class:`~offline_adp.trees.compact.CompactTree`'s
+``packed``) and the splits' float64 thresholds. A few states are looked up by numpy
+descents of the records; the per-tree compiled lookups are :class:`CompactTree` views of the
+same records, made when lookups grow (:meth:`_Structure.use_compiled`), so loading a policy
+imports no numba and holds the structure once either way. The frozen LEARN step's
+structure grown by the compiled builder is held as its :class:`CompactTree` lookups
+(:func:`compact_ensemble`, :meth:`~offline_adp.learn.frozen.FrozenTreesLearner._exported`).
+Every path reaches the leaves :meth:`TreeEnsemble.compiled_trees` would reach from the
+per-node arrays, and the per-node arrays are the ones
+:func:`~offline_adp.trees.sklearn.tree_arrays` exports from the lookups, so predictions and
+saved files are the same bit for bit.
 """
 
 from __future__ import annotations
@@ -28,83 +34,87 @@ class _Structure:
     """One tree structure: its per-tree compiled lookups (:class:`CompactTree`) and, made
     when first asked for, its per-node arrays (shared by every ensemble over the structure).
 
-    A structure read from a file comes as one record per node instead (``packed``: left,
-    right, feature and the threshold's float32 floor as int32, global node ids, the
-    layout of :func:`~offline_adp.trees.pairs.packed_nodes`) with the splits' float64
-    thresholds: small lookups then descend it with numpy (:meth:`numpy_leaves`), and the
-    compiled lookups are built only when a lookup is large or many were made
-    (:meth:`use_compiled`): numba's import and kernel set-up (about 0.6 CPU-s) is most of
-    what loading a small policy and acting on a few states would cost. Both reach the
-    same leaves, so every number is the same either way."""
+    A structure read from a file is its node records instead (``records``, (n, 4) int32,
+    local child ids; ``split_thresholds``: the splits' float64 thresholds in node order;
+    ``roots``): small lookups descend them with numpy (:meth:`numpy_leaves`), and the
+    compiled lookups are views of them (:attr:`trees`), used once a lookup is large or many
+    were made (:meth:`use_compiled`): numba's import and kernel set-up (about 0.6 CPU-s)
+    is most of what loading a small policy and acting on a few states would cost. Both
+    reach the same leaves, so every number is the same either way."""
 
-    def __init__(self, trees: list[CompactTree] | None = None, packed: np.ndarray | None = None,
+    def __init__(self, trees: list[CompactTree] | None = None, records: np.ndarray | None = None,
                  split_thresholds: np.ndarray | None = None, roots: np.ndarray | None = None,
                  value: np.ndarray | None = None) -> None:
         self._trees = trees
-        self.packed, self.split_thresholds, self.roots, self.value = packed, split_thresholds, roots, value
+        self.records, self.split_thresholds, self.roots, self.value = records, split_thresholds, roots, value
         self._arrays: dict[str, np.ndarray] | None = None
         self.numpy_seconds = 0.0
 
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (to Dask workers) without lookups that are views of the records: numpy
+        would copy each view (the structure sent twice); they are made again on first use."""
+        state = dict(self.__dict__)
+        if self.records is not None:
+            state["_trees"] = None
+        return state
+
     @property
     def trees(self) -> list[CompactTree]:
-        """The per-tree compiled lookups (built from ``packed`` when first asked for)."""
+        """The per-tree compiled lookups (views of ``records`` where read from a file; made
+        on the first call, no numba needed)."""
         if self._trees is None:
-            pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
-            thr = np.full(len(pk), -2.0)
-            thr[pk[:, 0] >= 0] = self.split_thresholds
-            bounds = np.r_[self.roots, len(pk)]
-            trees = []
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-                part = pk[lo:hi]
-                inner = part[:, 0] >= 0
-                tree = CompactTree(np.where(inner, part[:, 0] - lo, -1), np.where(inner, part[:, 1] - lo, -1),
-                                   part[:, 2], thr[lo:hi], self.value[lo:hi])  # type: ignore[index]
-                tree.values = self.value[lo:hi]  # type: ignore[index]  # a view: one copy of the values
-                trees.append(tree)
-            self._trees = trees
+            rec = self.records
+            bounds = np.r_[self.roots, len(rec)]  # type: ignore[arg-type]
+            splits = np.r_[0, np.cumsum(np.add.reduceat(rec[:, 0] >= 0, self.roots, dtype=np.int64))]  # type: ignore
+            self._trees = [CompactTree.of_records(rec[lo:hi], self.split_thresholds[a:b],  # type: ignore[index]
+                                                  self.value[lo:hi])  # type: ignore[index]
+                           for lo, hi, a, b in zip(bounds[:-1], bounds[1:], splits[:-1], splits[1:], strict=True)]
         return self._trees
 
     def use_compiled(self, pairs: int) -> bool:
         """Whether a lookup of ``pairs`` (row, tree) pairs goes through the compiled lookups:
-        always once they are built or numba's kernels run in this process, for a large
-        lookup (more than :data:`NUMPY_PAIRS`), and after :data:`NUMPY_SECONDS` of numpy
-        lookups on this structure (a loop of small lookups); never without numba."""
+        always once they are built or numba is imported in this process, for a large lookup
+        (more than :data:`NUMPY_PAIRS`), and after :data:`NUMPY_SECONDS` of numpy lookups on
+        this structure (a loop of small lookups); never where numba does not import."""
         if self._trees is not None:
             return True
-        if not jit.available():
+        if not (jit.warm() or pairs > NUMPY_PAIRS or self.numpy_seconds > NUMPY_SECONDS):
             return False
-        return jit.warm() or pairs > NUMPY_PAIRS or self.numpy_seconds > NUMPY_SECONDS
+        return jit.available()  # (imports numba: it is about to be used)
 
     def numpy_leaves(self, X: np.ndarray) -> np.ndarray:
         """The global leaf each row of ``X`` (every feature a split reads present, checked
         by the caller) reaches in every tree, (n, n_trees) int64: all (row, tree) pairs
         descend together a level per pass, comparing the float32 input with the float32
         floor of the threshold as :class:`CompactTree` does (the same leaves)."""
-        t0 = time.perf_counter()
-        pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
-        left, right, feature, thr = pk[:, 0], pk[:, 1], pk[:, 2], pk[:, 3].view(np.float32)
+        t0 = time.thread_time()
+        rec = self.records
+        left, right, feature, thr = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3].view(np.float32)  # type: ignore
         X32 = np.ascontiguousarray(X, dtype=np.float32)
         n, m = len(X32), len(self.roots)  # type: ignore[arg-type]
-        node = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # flat (n * m), row-major
+        base = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # each pair's root, flat (n * m), row-major
+        node = base.copy()
         row = np.repeat(np.arange(n), m)
         idx = np.flatnonzero(left[node] >= 0)
         while len(idx):
             nd = node[idx]
-            nxt = np.where(X32[row[idx], feature[nd]] <= thr[nd], left[nd], right[nd])
+            nxt = np.where(X32[row[idx], feature[nd]] <= thr[nd], left[nd], right[nd]) + base[idx]
             node[idx] = nxt
             idx = idx[left[nxt] >= 0]
-        self.numpy_seconds += time.perf_counter() - t0
+        self.numpy_seconds += time.thread_time() - t0
         return node.reshape(n, m)
 
     def arrays(self) -> dict[str, np.ndarray]:
         if self._arrays is None:
-            if self._trees is None:  # straight from the node records (what the lookups would export)
-                pk = self.packed.reshape(-1, 4)  # type: ignore[union-attr]
-                inner = pk[:, 0] >= 0
-                thr = np.full(len(pk), -2.0)
+            if self.records is not None:  # straight from the node records (what the lookups export)
+                rec = self.records
+                inner = rec[:, 0] >= 0
+                root = np.repeat(np.asarray(self.roots, dtype=np.int64), np.diff(np.r_[self.roots, len(rec)]))
+                thr = np.full(len(rec), -2.0)
                 thr[inner] = self.split_thresholds
-                self._arrays = {"left": pk[:, 0].astype(np.int64), "right": pk[:, 1].astype(np.int64),
-                                "feature": pk[:, 2].astype(np.int64), "threshold": thr}
+                self._arrays = {"left": np.where(inner, rec[:, 0] + root, -1),
+                                "right": np.where(inner, rec[:, 1] + root, -1),
+                                "feature": rec[:, 2].astype(np.int64), "threshold": thr}
             else:
                 a = tree_arrays(self._trees)  # the lookups read like scikit-learn trees
                 self._arrays = {k: a[k] for k in ("left", "right", "feature", "threshold")}
@@ -114,13 +124,14 @@ class _Structure:
 #: a lookup of more (row, tree) pairs than this uses the compiled lookups (numpy's descent
 #: costs about 2.5x a compiled one's on 1,000 rows of 50 deep trees)
 NUMPY_PAIRS = 2**17
-#: CPU seconds of numpy lookups on one structure after which the compiled ones are built
+#: CPU seconds (of the looking-up threads) of numpy lookups on one structure after which
+#: the compiled ones are used
 NUMPY_SECONDS = 0.5
 
 
 class _PerNode:
-    """A per-node array of :class:`LoadedEnsemble` made from its structure's lookups when
-    first read (assigned ones are kept as they are)."""
+    """A per-node array of :class:`LoadedEnsemble` made from its structure's records or
+    lookups when first read (assigned ones are kept as they are)."""
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
@@ -167,7 +178,7 @@ class LoadedEnsemble(TreeEnsemble):
 
     def compiled_trees(self) -> list[Any] | None:
         """The structure's compiled lookups (built on the first call where read from a file)."""
-        if self._structure.packed is not None and not jit.available():
+        if self._structure.records is not None and not jit.available():
             return None  # the numpy descent (TreeEnsemble.apply's without lookups)
         return self._structure.trees
 
@@ -175,20 +186,20 @@ class LoadedEnsemble(TreeEnsemble):
         """As :meth:`TreeEnsemble.apply`: by numpy descents of the node records while
         :meth:`_Structure.use_compiled` says so, else by the compiled lookups."""
         s = self._structure
-        if s.packed is not None and not s.use_compiled(len(X) * self.n_trees):
+        if s.records is not None and not s.use_compiled(len(X) * self.n_trees):
             self.check_inputs(X)
             return s.numpy_leaves(X)
         return super().apply(X)
 
     def lookup_compiled(self, pairs: int) -> bool:
         """Whether a lookup of ``pairs`` (row, tree) pairs would use the compiled lookups."""
-        return self._structure.packed is None or self._structure.use_compiled(pairs)
+        return self._structure.records is None or self._structure.use_compiled(pairs)
 
     def leaf_mask(self) -> np.ndarray:
         """Which nodes are leaves (without making the per-node arrays)."""
         s = self._structure
-        if s._trees is None:
-            return s.packed.reshape(-1, 4)[:, 0] < 0  # type: ignore[union-attr]
+        if s.records is not None:
+            return s.records[:, 0] < 0
         return np.concatenate([t.children_left < 0 for t in s.trees])
 
 

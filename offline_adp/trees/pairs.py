@@ -46,16 +46,16 @@ def packed_nodes(left: np.ndarray, right: np.ndarray, feature: np.ndarray, thres
 
 
 def ensemble_packed(ensemble: Any) -> np.ndarray:
-    """:func:`packed_nodes` of ``ensemble``: from its compiled lookups where they are built
-    (:class:`~offline_adp.trees.compact.CompactTree` records hold the same fields per node,
-    local ids offset here by each tree's root; a loaded ensemble then never makes its
-    per-node arrays), else from its per-node arrays."""
+    """:func:`packed_nodes` of ``ensemble``: from its compiled lookups where it holds them (a
+    :class:`~offline_adp.trees.loaded.LoadedEnsemble`'s structure, whose lookups are made
+    without numba from its node records, or a built lookup cache;
+    :class:`~offline_adp.trees.compact.CompactTree` records hold the same fields per node,
+    local ids offset here by each tree's root: the per-node arrays are not made), else
+    from its per-node arrays."""
     from offline_adp.trees.compact import CompactTree
 
-    packed = getattr(getattr(ensemble, "_structure", None), "packed", None)
-    if packed is not None:  # a loaded ensemble's node records: this layout already
-        return packed
-    trees = ensemble.__dict__.get("_trees")
+    structure = getattr(ensemble, "_structure", None)
+    trees = structure.trees if structure is not None else ensemble.__dict__.get("_trees")
     if not (isinstance(trees, list) and len(trees) == len(ensemble.roots) and trees
             and all(type(t) is CompactTree for t in trees)):
         return packed_nodes(ensemble.left, ensemble.right, ensemble.feature, ensemble.threshold)
@@ -151,10 +151,10 @@ def pair_leaves(ensemble: Any, phi: np.ndarray, action_features: np.ndarray) -> 
     phi = np.asarray(phi)
     af = np.asarray(action_features)
     A, n = af.shape[0], phi.shape[0]
-    if not available() or not 0 < A <= MAX_ACTIONS or n == 0 or phi.ndim != 2 or af.ndim != 2:
+    if not 0 < A <= MAX_ACTIONS or n == 0 or phi.ndim != 2 or af.ndim != 2:
         return None
-    if not ensemble.lookup_compiled(A * n * ensemble.n_trees):  # a small lookup of a loaded policy: numpy's
-        return None
+    if not ensemble.lookup_compiled(A * n * ensemble.n_trees) or not available():  # (a loaded policy's
+        return None  # small lookups: numpy's descents, no numba imported)
     if len(ensemble.value) >= 2**31 - 1:  # one value per node
         return None
     ensemble.check_inputs(np.empty((1, phi.shape[1] + af.shape[1])))
