@@ -171,3 +171,26 @@ def test_a_pickled_loaded_ensemble_sends_its_records_once():
     assert back._structure._trees is None
     np.testing.assert_array_equal(back.predict(X), loaded.predict(X))
     assert all(np.shares_memory(t.packed, back._structure.records) for t in back._structure.trees)
+
+
+def test_a_lazy_kernel_pickles_by_name_and_compiles_once():
+    """A kernel compiled on first call is pickled by name (as numba's dispatchers of module
+    functions are) and compiles to one dispatcher whatever the threads."""
+    import pickle
+    from concurrent.futures import ThreadPoolExecutor
+
+    from offline_adp.trees import compact
+
+    assert pickle.loads(pickle.dumps(compact._apply)) is compact._apply
+
+    def double(x, out):
+        for i in range(len(x)):
+            out[i] = 2 * x[i]
+
+    k = jit.LazyKernel(double, {"nogil": True})
+    with ThreadPoolExecutor(4) as pool:
+        outs = list(pool.map(lambda _: (k.compiled(), k(np.arange(3.0), np.empty(3)))[0], range(8)))
+    assert all(o is outs[0] for o in outs)
+    x, out = np.arange(5.0), np.empty(5)
+    k(x, out)
+    np.testing.assert_array_equal(out, 2 * x)

@@ -63,6 +63,10 @@ class LazyKernel:
             k = self.compiled()
         return k(*args)
 
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        """Pickled by name, as a numba dispatcher of a module function is."""
+        return _by_name, (self.fn.__module__, self.fn.__qualname__)
+
     def compiled(self) -> Any:
         """The numba dispatcher (imports numba on the first call)."""
         with _LOCK:
@@ -71,6 +75,11 @@ class LazyKernel:
 
                 self._compiled = numba.njit(**self.options)(self.fn)
         return self._compiled
+
+
+def _by_name(module: str, name: str) -> Any:
+    """The kernel ``name`` of ``module`` (unpickling a :class:`LazyKernel`)."""
+    return getattr(importlib.import_module(module), name)
 
 
 def kernel(fn: Callable[..., Any], **options: Any) -> Any:
