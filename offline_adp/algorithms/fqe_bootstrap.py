@@ -361,12 +361,22 @@ def _product_read(Ab: Any, Mb: Any, has: np.ndarray, radius: float | None, Xq: n
     state; ``f`` the share of trees whose reached leaf holds such a row."""
     if radius is None:
         return Ab @ Mb, Ab @ has
-    K = (Ab @ sparse.diags(has) @ Mb).tocoo()  # row sums: share of trees with a row of b
-    near = np.empty(K.nnz, bool)
-    for c0 in range(0, K.nnz, _DIST_CHUNK):  # (entries, features) temporaries a chunk at a time
-        r_, c_ = K.row[c0:c0 + _DIST_CHUNK], K.col[c0:c0 + _DIST_CHUNK]
-        near[c0:c0 + _DIST_CHUNK] = np.sqrt(np.sum(((Xq[r_] - Xt[c_]) / scale) ** 2, axis=1)) <= radius
-    K = sparse.csr_matrix((K.data[near], (K.row[near], K.col[near])), shape=K.shape)
+    # Ab diag(has) Mb is Ab Mb: Mb's rows are empty where has is 0 (no row of b in the leaf;
+    # the caller eliminated the zeros), so the same terms in the same order, without a scaled
+    # copy of Ab held beside the product. Row sums: the share of trees with a row of b.
+    K = (Ab @ Mb).tocsr()
+    ptr, nnz = K.indptr, K.nnz
+    near = np.empty(nnz, bool)
+    for c0 in range(0, nnz, _DIST_CHUNK):  # (entries, features) temporaries a chunk at a time
+        c1 = min(c0 + _DIST_CHUNK, nnz)
+        r_ = np.searchsorted(ptr, np.arange(c0, c1), side="right") - 1  # each entry's query
+        near[c0:c1] = np.sqrt(np.sum(((Xq[r_] - Xt[K.indices[c0:c1]]) / scale) ** 2, axis=1)) <= radius
+    # the near entries kept in place, in their order (no (row, col) copy of the product)
+    counts = np.zeros(K.shape[0], np.int64)
+    filled = np.flatnonzero(np.diff(ptr) > 0)
+    if len(filled):
+        counts[filled] = np.add.reduceat(near, ptr[filled], dtype=np.int64)
+    K = sparse.csr_matrix((K.data[near], K.indices[near], np.r_[0, np.cumsum(counts)]), shape=K.shape)
     return K, np.asarray(K.sum(axis=1)).reshape(-1)
 
 
