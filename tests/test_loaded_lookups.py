@@ -18,6 +18,7 @@ from sklearn.ensemble import ExtraTreesRegressor, RandomForestRegressor
 from offline_adp.artifacts.tree_tables import load_compact_ensemble
 from offline_adp.trees import TreeEnsemble, jit
 from offline_adp.trees import loaded as L
+from offline_adp.trees.ensemble import descend
 
 pytestmark = pytest.mark.skipif(not jit.available(), reason="the compiled lookups need numba")
 
@@ -63,6 +64,10 @@ def test_numpy_descents_reach_the_compiled_lookups_leaves(seed, n_trees, depth, 
     offs = np.r_[0, np.cumsum([e.tree_.node_count for e in forest.estimators_])[:-1]]
     truth = forest.apply(Q[finite].astype(np.float32)) + offs
     np.testing.assert_array_equal(numpy_leaves[finite], truth)
+    # the per-node arrays' numpy descent (TreeEnsemble.apply without compiled lookups): float64 thresholds
+    per_node = descend(ens.left, ens.right, ens.feature, ens.threshold, ens.roots,
+                       Q.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(per_node, numpy_leaves)
     np.testing.assert_array_equal(loaded.predict(Q[finite]), ens.predict(Q[finite]))
 
 

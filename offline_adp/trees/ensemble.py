@@ -78,19 +78,8 @@ class TreeEnsemble:
                 out[:, m] = tree.apply(X32) + root
             return out
         # scikit-learn trees compare float32 inputs with their thresholds: do the same
-        X = np.asarray(X, dtype=np.float32).astype(np.float64)
-        n, m = len(X), self.n_trees
-        # all (row, tree) pairs descend together, one level per pass; finished pairs drop out
-        node = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # flat (n * m), row-major
-        row = np.repeat(np.arange(n), m)
-        idx = np.flatnonzero(self.left[node] >= 0)
-        while len(idx):
-            nd = node[idx]
-            go_left = X[row[idx], self.feature[nd]] <= self.threshold[nd]
-            nxt = np.where(go_left, self.left[nd], self.right[nd])
-            node[idx] = nxt
-            idx = idx[self.left[nxt] >= 0]
-        return node.reshape(n, m)
+        return descend(self.left, self.right, self.feature, self.threshold, self.roots,
+                       np.asarray(X, dtype=np.float32).astype(np.float64))
 
     def check_inputs(self, X: np.ndarray) -> None:
         """Raise ArtifactError unless ``X`` is 2-d and has every feature a split reads:
@@ -264,6 +253,27 @@ def preorder_positions(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -
         pos[left[inner]] = pos[inner] + 1
         pos[right[inner]] = pos[inner] + 1 + size[left[inner]]
     return pos
+
+
+def descend(left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold: np.ndarray, roots: np.ndarray,
+            X: np.ndarray, local: bool = False) -> np.ndarray:
+    """The global leaf each row of ``X`` reaches in every tree, (n, n_trees) int64, by numpy:
+    all (row, tree) pairs descend together, one level per pass (``x <= threshold``: left;
+    a leaf's left child is negative), finished pairs dropping out. ``X`` is compared as
+    given with ``threshold`` (the caller picks the precision); ``local``: children are
+    numbered from their tree's root (node records), else globally. Every feature a split
+    reads must be a column of ``X`` (checked by the caller)."""
+    n, m = len(X), len(roots)
+    base = np.tile(np.asarray(roots, dtype=np.int64), n)  # each pair's root, flat (n * m), row-major
+    node = base.copy() if local else base
+    row = np.repeat(np.arange(n), m)
+    idx = np.flatnonzero(left[node] >= 0)
+    while len(idx):
+        nd = node[idx]
+        nxt = np.where(X[row[idx], feature[nd]] <= threshold[nd], left[nd], right[nd])
+        node[idx] = nxt + base[idx] if local else nxt
+        idx = idx[left[node[idx]] >= 0]
+    return node.reshape(n, m)
 
 
 def float32_floor(t: np.ndarray) -> np.ndarray:

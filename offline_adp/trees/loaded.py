@@ -26,7 +26,7 @@ import numpy as np
 
 from offline_adp.trees import jit
 from offline_adp.trees.compact import CompactTree
-from offline_adp.trees.ensemble import TreeEnsemble
+from offline_adp.trees.ensemble import TreeEnsemble, descend
 from offline_adp.trees.sklearn import tree_arrays
 
 
@@ -89,20 +89,10 @@ class _Structure:
         floor of the threshold as :class:`CompactTree` does (the same leaves)."""
         t0 = time.thread_time()
         rec = self.records
-        left, right, feature, thr = rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3].view(np.float32)  # type: ignore
-        X32 = np.ascontiguousarray(X, dtype=np.float32)
-        n, m = len(X32), len(self.roots)  # type: ignore[arg-type]
-        base = np.tile(np.asarray(self.roots, dtype=np.int64), n)  # each pair's root, flat (n * m), row-major
-        node = base.copy()
-        row = np.repeat(np.arange(n), m)
-        idx = np.flatnonzero(left[node] >= 0)
-        while len(idx):
-            nd = node[idx]
-            nxt = np.where(X32[row[idx], feature[nd]] <= thr[nd], left[nd], right[nd]) + base[idx]
-            node[idx] = nxt
-            idx = idx[left[nxt] >= 0]
+        out = descend(rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3].view(np.float32), self.roots,  # type: ignore
+                      np.ascontiguousarray(X, dtype=np.float32), local=True)
         self.numpy_seconds += time.thread_time() - t0
-        return node.reshape(n, m)
+        return out
 
     def arrays(self) -> dict[str, np.ndarray]:
         if self._arrays is None:
