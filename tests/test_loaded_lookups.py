@@ -199,3 +199,72 @@ def test_a_lazy_kernel_pickles_by_name_and_compiles_once():
     x, out = np.arange(5.0), np.empty(5)
     k(x, out)
     np.testing.assert_array_equal(out, 2 * x)
+
+
+def _chain(depth: int) -> dict[str, np.ndarray]:
+    """Compact arrays of one tree that is a chain (split, leaf, split, leaf, ...) of ``depth``
+    splits on feature 0 at thresholds 0, 1, ..., depth - 1: x goes left at the first
+    threshold at or above it, so leaf k (value k) holds x in (k - 1, k]; the last leaf
+    (value depth) holds x > depth - 1."""
+    is_leaf = np.zeros(2 * depth + 1, bool)
+    is_leaf[1::2] = True
+    is_leaf[-1] = True
+    # preorder: split k is node 2k, its left child (leaf k) node 2k + 1, its right child split k + 1
+    return {"leaf_bits": np.packbits(is_leaf), "roots": np.array([0]), "feature": np.zeros(depth, np.uint8),
+            "threshold": np.arange(depth, dtype=np.float64), "value": np.arange(depth + 1, dtype=np.float64)}
+
+
+def test_a_structure_deeper_than_the_numpy_passes_goes_to_the_compiled_lookups(monkeypatch):
+    """A file's chain of splits (a crafted one can be millions deep) costs a numpy pass a
+    level: past NUMPY_PASSES levels the structure is handed to the compiled lookups, which
+    reach the same leaves; shallower ones stay with numpy."""
+    monkeypatch.setattr(jit, "warm", lambda: False)  # a fresh process: small lookups by numpy
+    x = np.array([[-5.0], [0.0], [0.5], [3.0], [L.NUMPY_PASSES - 1.5], [L.NUMPY_PASSES + 7.0], [1e9]])
+    truth = np.clip(np.ceil(x[:, 0]), 0, None)  # the leaf's value: the first threshold at or above x
+    for depth, deep in ((L.NUMPY_PASSES - 1, False), (L.NUMPY_PASSES + 40, True)):
+        loaded = load_compact_ensemble(_chain(depth), "", "chain")
+        assert isinstance(loaded, L.LoadedEnsemble)
+        np.testing.assert_array_equal(loaded.predict(x), np.minimum(truth, depth))
+        assert loaded._structure.deep is deep
+        assert (loaded._structure._trees is not None) is deep  # compiled lookups built only for the deep one
+        np.testing.assert_array_equal(loaded.predict(x), np.minimum(truth, depth))  # and again, the same path
+
+
+def test_threshold_edges_load_cleanly():
+    """A double threshold below -float32 max loads without an overflow warning (its float32
+    floor is -inf); a long double that is finite but beyond float64 is refused as non-finite."""
+    import warnings
+
+    from offline_adp.errors import ArtifactError
+
+    a = _chain(3)
+    a["threshold"] = np.array([-3.5e38, 0.0, 1.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loaded = load_compact_ensemble(a, "", "chain")
+    np.testing.assert_array_equal(loaded.predict(np.array([[-np.inf], [-3.0e38], [0.5]])), [0.0, 1.0, 2.0])
+    if np.dtype(np.longdouble).itemsize > 8 and np.finfo(np.longdouble).max > 1e400:
+        a["threshold"] = np.array([np.longdouble("1e400"), 0.0, 1.0], dtype=np.longdouble)
+        with pytest.raises(ArtifactError, match="non-finite split threshold"):
+            load_compact_ensemble(a, "", "chain")
+
+
+def test_pickling_leaves_the_pair_descents_copy_behind_and_keeps_sharing():
+    """The pair descents' node records (trees.pairs, a copy of the structure) stay out of a
+    pickle; ensembles of one structure still share their cache after unpickling."""
+    import pickle
+
+    from offline_adp.trees.pairs import pair_leaves
+
+    forest, X = _forest(5, 4, None, 2, "extra")
+    _, a = _loaded(forest)
+    b = a.with_values(a.value * 2)
+    phi, af = X[:, :1], np.array([[0.0], [1.0]])
+    first = pair_leaves(a, phi, af)
+    assert first is not None and "pair_packed" in a._same_structure
+    a2, b2 = pickle.loads(pickle.dumps((a, b)))
+    assert "pair_packed" not in a2._same_structure and a2._same_structure is b2._same_structure
+    np.testing.assert_array_equal(pair_leaves(a2, phi, af), first)
+    c = TreeEnsemble.from_sklearn(forest)
+    assert pair_leaves(c, phi, af) is not None and "pair_packed" in c.__dict__
+    assert "pair_packed" not in pickle.loads(pickle.dumps(c)).__dict__

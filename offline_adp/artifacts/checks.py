@@ -277,7 +277,7 @@ def compact_tree_members(arrays: Any, prefix: str, where: str, n_features: int |
     :func:`check_compact_tree_arrays`): ``(is_leaf, roots, feature, threshold, values)``,
     the leaf flags in depth-first order (bool, one a node; binary trees at ``roots``,
     int64), the splits' features (as stored: unsigned or >= 0, below ``n_features``) and
-    finite thresholds (float32 or float64, as stored), the leaves' finite values (float64)."""
+    finite thresholds (as stored, a long double as float64), the leaves' finite values (float64)."""
     from offline_adp.trees.ensemble import preorder_valid
 
     sp = prefix if structure_prefix is None else structure_prefix
@@ -313,6 +313,9 @@ def compact_tree_members(arrays: Any, prefix: str, where: str, n_features: int |
             raise fail(where, sp + "feature", f"split feature {top} outside the declared width {n_features}")
         if top >= MAX_NODES:
             raise fail(where, sp + "feature", f"split feature {top} is implausibly large")
+    if threshold.dtype.itemsize > 8:  # a long double: finite here may be infinite as the float64 every reader uses
+        with np.errstate(over="ignore"):
+            threshold = threshold.astype(np.float64)
     if not np.all(np.isfinite(threshold)):
         raise fail(where, sp + "threshold", "non-finite split threshold")
     return is_leaf, roots, feature, threshold, values

@@ -26,6 +26,19 @@ from offline_adp.trees.sklearn import forest_trees, sklearn_leaves, sklearn_tree
 LOOKUP_CHUNK = 262_144
 
 
+#: derived copies an ensemble caches that pickling leaves out (made again on first use):
+#: the pair descents' node records (trees.pairs), 16 bytes a node
+_UNPICKLED = ("pair_packed",)
+
+
+class SharedCache(dict):
+    """What the ensembles of one structure (:meth:`TreeEnsemble.with_values`) share: one
+    object when pickled with them, without the keys of ``_UNPICKLED``."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (SharedCache, (), None, None, iter([(k, v) for k, v in self.items() if k not in _UNPICKLED]))
+
+
 @dataclass
 class TreeEnsemble:
     """An averaging ensemble of binary regression trees as flat arrays.
@@ -78,8 +91,10 @@ class TreeEnsemble:
                 out[:, m] = tree.apply(X32) + root
             return out
         # scikit-learn trees compare float32 inputs with their thresholds: do the same
-        return descend(self.left, self.right, self.feature, self.threshold, self.roots,
-                       np.asarray(X, dtype=np.float32).astype(np.float64))
+        out = descend(self.left, self.right, self.feature, self.threshold, self.roots,
+                      np.asarray(X, dtype=np.float32).astype(np.float64))
+        assert out is not None  # (no max_passes)
+        return out
 
     def check_inputs(self, X: np.ndarray) -> None:
         """Raise ArtifactError unless ``X`` is 2-d and has every feature a split reads:
@@ -90,6 +105,10 @@ class TreeEnsemble:
             need = self._n_features = int(self.feature[inner].max()) + 1 if inner.any() else 0  # type: ignore[attr-defined]
         if np.ndim(X) != 2 or np.shape(X)[1] < need:
             raise ArtifactError(f"tree ensemble splits on feature {need - 1}, the input has shape {np.shape(X)}")
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled without the derived copies of ``_UNPICKLED`` (a Dask worker makes its own)."""
+        return {k: v for k, v in self.__dict__.items() if k not in _UNPICKLED}
 
     def compiled_trees(self) -> list[Any] | None:
         """Compiled per-tree lookups rebuilt from our arrays (plain numbers, no code from any
@@ -152,7 +171,7 @@ class TreeEnsemble:
         out = TreeEnsemble(self.left, self.right, self.feature, self.threshold, np.asarray(value, dtype=np.float64),
                            self.roots)
         if getattr(self, "_same_structure", None) is None:
-            self._same_structure = {}  # type: ignore[attr-defined]
+            self._same_structure = SharedCache()  # type: ignore[attr-defined]
         out._same_structure = self._same_structure  # type: ignore[attr-defined]
         for k in ("_forest", "_trees", "_n_features", "n_features_in_"):  # same structure: same leaf lookup
             if getattr(self, k, None) is not None:
@@ -256,19 +275,25 @@ def preorder_positions(left: np.ndarray, right: np.ndarray, roots: np.ndarray) -
 
 
 def descend(left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold: np.ndarray, roots: np.ndarray,
-            X: np.ndarray, local: bool = False) -> np.ndarray:
+            X: np.ndarray, local: bool = False, max_passes: int | None = None) -> np.ndarray | None:
     """The global leaf each row of ``X`` reaches in every tree, (n, n_trees) int64, by numpy:
     all (row, tree) pairs descend together, one level per pass (``x <= threshold``: left;
     a leaf's left child is negative), finished pairs dropping out. ``X`` is compared as
     given with ``threshold`` (the caller picks the precision); ``local``: children are
     numbered from their tree's root (node records), else globally. Every feature a split
-    reads must be a column of ``X`` (checked by the caller)."""
+    reads must be a column of ``X`` (checked by the caller). ``max_passes``: None (no
+    answer) if a pair is still descending after that many levels (each pass costs a few
+    microseconds however few pairs remain: a file's million-deep chain would cost seconds)."""
     n, m = len(X), len(roots)
     base = np.tile(np.asarray(roots, dtype=np.int64), n)  # each pair's root, flat (n * m), row-major
     node = base.copy() if local else base
     row = np.repeat(np.arange(n), m)
     idx = np.flatnonzero(left[node] >= 0)
+    passes = 0
     while len(idx):
+        if max_passes is not None and passes == max_passes:
+            return None
+        passes += 1
         nd = node[idx]
         nxt = np.where(X[row[idx], feature[nd]] <= threshold[nd], left[nd], right[nd])
         node[idx] = nxt + base[idx] if local else nxt
@@ -279,10 +304,10 @@ def descend(left: np.ndarray, right: np.ndarray, feature: np.ndarray, threshold:
 def float32_floor(t: np.ndarray) -> np.ndarray:
     """The largest float32 not above each double in ``t``: for every float32 ``x``,
     ``x <= t`` exactly when ``x <= float32_floor(t)`` (NaN stays NaN)."""
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore"):  # (below -float32 max: -inf, by the cast or by nextafter)
         t32 = np.asarray(t, dtype=np.float64).astype(np.float32)
-    up = t32.astype(np.float64) > t
-    t32[up] = np.nextafter(t32[up], np.float32(-np.inf))
+        up = t32.astype(np.float64) > t
+        t32[up] = np.nextafter(t32[up], np.float32(-np.inf))
     return t32
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from offline_adp.trees import jit
 from offline_adp.trees.compact import CompactTree
-from offline_adp.trees.ensemble import TreeEnsemble, descend
+from offline_adp.trees.ensemble import SharedCache, TreeEnsemble, descend
 from offline_adp.trees.sklearn import tree_arrays
 
 
@@ -49,6 +49,7 @@ class _Structure:
         self.records, self.split_thresholds, self.roots, self.value = records, split_thresholds, roots, value
         self._arrays: dict[str, np.ndarray] | None = None
         self.numpy_seconds = 0.0
+        self.deep = False  # a numpy descent outran NUMPY_PASSES levels: the compiled lookups from then on
 
     def __getstate__(self) -> dict[str, Any]:
         """Pickled (to Dask workers) without lookups that are views of the records: numpy
@@ -75,22 +76,30 @@ class _Structure:
         """Whether a lookup of ``pairs`` (row, tree) pairs goes through the compiled lookups:
         always once they are built or numba is imported in this process, for a large lookup
         (more than :data:`NUMPY_PAIRS`), and after :data:`NUMPY_SECONDS` of numpy lookups on
-        this structure (a loop of small lookups); never where numba does not import."""
-        if self._trees is not None:
+        this structure (a loop of small lookups), and for every lookup once a numpy descent
+        of it outran :data:`NUMPY_PASSES` levels; never where numba does not import."""
+        if self._trees is not None or self.deep:
             return True
         if not (jit.warm() or pairs > NUMPY_PAIRS or self.numpy_seconds > NUMPY_SECONDS):
             return False
         return jit.available()  # (imports numba: it is about to be used)
 
-    def numpy_leaves(self, X: np.ndarray) -> np.ndarray:
+    def numpy_leaves(self, X: np.ndarray) -> np.ndarray | None:
         """The global leaf each row of ``X`` (every feature a split reads present, checked
         by the caller) reaches in every tree, (n, n_trees) int64: all (row, tree) pairs
         descend together a level per pass, comparing the float32 input with the float32
-        floor of the threshold as :class:`CompactTree` does (the same leaves)."""
+        floor of the threshold as :class:`CompactTree` does (the same leaves). None where
+        a pair is deeper than :data:`NUMPY_PASSES` levels and numba imports: this structure
+        then uses the compiled lookups (``deep``), which cost a step per level, not a pass."""
         t0 = time.thread_time()
         rec = self.records
-        out = descend(rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3].view(np.float32), self.roots,  # type: ignore
-                      np.ascontiguousarray(X, dtype=np.float32), local=True)
+        args = (rec[:, 0], rec[:, 1], rec[:, 2], rec[:, 3].view(np.float32), self.roots,  # type: ignore[index]
+                np.ascontiguousarray(X, dtype=np.float32))
+        out = descend(*args, local=True, max_passes=NUMPY_PASSES)
+        if out is None and jit.available():
+            self.deep = True
+        elif out is None:  # no compiled lookups here: descend on
+            out = descend(*args, local=True)
         self.numpy_seconds += time.thread_time() - t0
         return out
 
@@ -117,6 +126,9 @@ NUMPY_PAIRS = 2**17
 #: CPU seconds (of the looking-up threads) of numpy lookups on one structure after which
 #: the compiled ones are used
 NUMPY_SECONDS = 0.5
+#: levels a numpy descent goes down before it hands a deeper structure to the compiled
+#: lookups (grown trees are 20-60 deep; a crafted chain may be millions)
+NUMPY_PASSES = 256
 
 
 class _PerNode:
@@ -160,7 +172,7 @@ class LoadedEnsemble(TreeEnsemble):
         making the per-node arrays."""
         out = LoadedEnsemble(self._structure, np.asarray(value, dtype=np.float64), self.roots, self._n_features)
         if getattr(self, "_same_structure", None) is None:
-            self._same_structure: dict[str, Any] = {}
+            self._same_structure: dict[str, Any] = SharedCache()
         out._same_structure = self._same_structure
         if getattr(self, "n_features_in_", None) is not None:
             out.n_features_in_ = self.n_features_in_  # type: ignore[attr-defined]
@@ -178,7 +190,9 @@ class LoadedEnsemble(TreeEnsemble):
         s = self._structure
         if s.records is not None and not s.use_compiled(len(X) * self.n_trees):
             self.check_inputs(X)
-            return s.numpy_leaves(X)
+            out = s.numpy_leaves(X)
+            if out is not None:
+                return out
         return super().apply(X)
 
     def lookup_compiled(self, pairs: int) -> bool:
