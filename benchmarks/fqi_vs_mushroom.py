@@ -231,8 +231,28 @@ def main() -> None:
         ratio = [r["cpu_s"] / mr[r["data_seed"]] for r in rs if r["data_seed"] in mr]
         rtxt = f"{np.mean(ratio):.3f}" if ratio else "-"
         print(f"{w:<22} {sc.mean():+.4f} ({se})   {np.mean([r['cpu_s'] for r in rs]):10.1f}   {rtxt}")
+    print(verdicts(records))
     if args.json:
         Path(args.json).write_text(json.dumps(records, indent=1))
+
+
+def verdicts(records: list[dict]) -> str:
+    """Issue #44's bar per loop of ours, paired with mushroom-rl by data seed: the seeds
+    where its score is at least mushroom-rl's, the others, and its largest CPU ratio
+    against 1/15 (scores are deterministic for a data and learner seed; CPU is not)."""
+    mr = {r["data_seed"]: r for r in records if r["who"] == "mushroom-rl"}
+    if not mr:
+        return "\n(no mushroom-rl fits: no verdicts)"
+    lines = ["\nwho                    seeds >= mushroom-rl   seeds below (by)                  "
+             "largest CPU ratio (bar 1/15 = 0.067)"]
+    for w in dict.fromkeys(r["who"] for r in records if r["who"] != "mushroom-rl"):
+        rs = [r for r in records if r["who"] == w and r["data_seed"] in mr]
+        won = [r["data_seed"] for r in rs if r["score"] >= mr[r["data_seed"]]["score"]]
+        lost = ", ".join(f"{r['data_seed']} ({r['score'] - mr[r['data_seed']]['score']:+.4f})"
+                         for r in rs if r["data_seed"] not in won) or "none"
+        ratio = max(r["cpu_s"] / mr[r["data_seed"]]["cpu_s"] for r in rs) if rs else float("nan")
+        lines.append(f"{w:<22} {len(won)} of {len(rs):<17} {lost:<33} {ratio:.3f}")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
