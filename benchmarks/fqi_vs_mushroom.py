@@ -251,7 +251,7 @@ def verdicts(records: list[dict]) -> str:
         lost = ", ".join(f"{r['data_seed']} ({r['score'] - mr[r['data_seed']]['score']:+.4f})"
                          for r in rs if r["data_seed"] not in won) or "none"
         ratio = max(r["cpu_s"] / mr[r["data_seed"]]["cpu_s"] for r in rs) if rs else float("nan")
-        lines.append(f"{w:<22} {len(won)} of {len(rs):<17} {lost:<33} {ratio:.3f}")
+        lines.append(f"{w:<22} {len(won)} of {len(rs):<17} {lost:<50} {ratio:.3f}")
     return "\n".join(lines)
 
 
