@@ -243,15 +243,14 @@ def verdicts(records: list[dict]) -> str:
     mr = {r["data_seed"]: r for r in records if r["who"] == "mushroom-rl"}
     if not mr:
         return "\n(no mushroom-rl fits: no verdicts)"
-    lines = ["\nwho                    seeds >= mushroom-rl   seeds below (by)                  "
-             "largest CPU ratio (bar 1/15 = 0.067)"]
+    lines = [f"\n{'who':<22} {'seeds >= mushroom-rl':<22} {'seeds below (by)':<50} largest CPU ratio (bar 0.067)"]
     for w in dict.fromkeys(r["who"] for r in records if r["who"] != "mushroom-rl"):
         rs = [r for r in records if r["who"] == w and r["data_seed"] in mr]
         won = [r["data_seed"] for r in rs if r["score"] >= mr[r["data_seed"]]["score"]]
         lost = ", ".join(f"{r['data_seed']} ({r['score'] - mr[r['data_seed']]['score']:+.4f})"
                          for r in rs if r["data_seed"] not in won) or "none"
         ratio = max(r["cpu_s"] / mr[r["data_seed"]]["cpu_s"] for r in rs) if rs else float("nan")
-        lines.append(f"{w:<22} {len(won)} of {len(rs):<17} {lost:<50} {ratio:.3f}")
+        lines.append(f"{w:<22} {f'{len(won)} of {len(rs)}':<22} {lost:<50} {ratio:.3f}")
     return "\n".join(lines)
 
 
