@@ -79,16 +79,25 @@ def _read_only(v: np.ndarray) -> np.ndarray:
 
 
 def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: float | None = None,
-                target_noise: float = 0.0, initial_q_abs: float = 0.0) -> tuple[float, str]:
-    """The monitor's bound on ``|Q|`` from ``max |c|`` (and how it was computed)."""
+                target_noise: float = 0.0, initial_q_abs: float = 0.0, cmin: float | None = None) -> tuple[float, str]:
+    """The monitor's bound on ``|Q|`` from ``max |c|`` (and how it was computed). With the
+    chapter's ``c^-`` (``infeasible_cost``) the targets are clamped from above only: values
+    stay below ``max(|c^-|, max|c|)`` but may still fall to ``min(c, 0) / (1 - gamma)``
+    (``cmin``: the smallest cost; None: ``-cmax``)."""
     if horizon is not None:  # |Q_t| <= max|c| sum_{j < T} gamma^j + max|Q_T|
-        bound, text = cmax * float(np.sum(g ** np.arange(horizon))), "max|c| sum_{j<T} gamma^j"
+        scale, times = float(np.sum(g ** np.arange(horizon))), " sum_{j<T} gamma^j"
     elif g < 1:
-        bound, text = cmax / (1.0 - g), "max|c| / (1 - gamma)"
+        scale, times = 1.0 / (1.0 - g), " / (1 - gamma)"
     else:
-        bound, text = np.inf, "none (undiscounted)"
+        scale, times = np.inf, " x inf (undiscounted)"
+    bound, text = (cmax * scale if cmax else 0.0), "max|c|" + times
     if infeasible_cost is not None:
-        bound, text = max(min(bound, abs(infeasible_cost)), cmax), "max(min(max|c| / (1 - gamma), |c^-|), max|c|)"
+        neg = max(-(-cmax if cmin is None else cmin), 0.0)
+        below = neg * scale if neg else 0.0  # the clamp does not hold values up
+        bound = max(min(bound, abs(infeasible_cost)), below, cmax)
+        text = f"max(min({text}, |c^-|), max(-c, 0){times}, max|c|)"
+    elif not np.isfinite(bound):
+        text = "none (undiscounted)"
     if target_noise and g < 1:  # noisy targets may overshoot by a few noise std
         bound, text = bound + 4 * target_noise / (1.0 - g), text + " + 4 noise / (1 - gamma)"
     if initial_q_abs:
@@ -138,6 +147,14 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
 
         fmap = clone(feature_map).fit(a.obs[tr])
     at = ds.info.action_table
+    if action_encoding == "per_action" and n_candidates is None:  # one model per action: each needs its rows
+        held = np.bincount(a.action[tr], weights=None if w_all is None else w_all[tr], minlength=len(at)) > 0
+        if not held.all():
+            k = int(np.flatnonzero(~held)[0])
+            why = ("has weight 0 on every row" if w_all is not None and (a.action[tr] == k).any()
+                   else "never occurs in the data" + (" (its training rows)" if validation_fraction else ""))
+            raise InvalidArgumentError(f"action {k} {why}: a per-action model cannot be fitted for it; "
+                                       "use action_encoding='joint'")
     af = at.values if action_input == "value" else np.eye(len(at))
     enc: QEncoder = QEncoder(len(at), af, per_action=action_encoding == "per_action", feature_map=fmap)
     no_boot = a.terminated.copy()
@@ -165,7 +182,8 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         return Samples(phi_obs[rows], actions[rows], a.cost[rows], no_boot[rows], phi_next[rows], a.next_obs[rows])
 
     start = (a.step == 0) & tr
-    bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs)
+    bound, text = value_bound(float(np.abs(a.cost).max()), g, horizon, infeasible_cost, target_noise, initial_q_abs,
+                              cmin=float(a.cost.min()))
     return Prepared(
         train=samples(tr), valid=samples(~tr) if (~tr).any() else None,
         weights=None if w_all is None else w_all[tr], gamma=g, n_actions=enc.n_actions, encoder=enc,

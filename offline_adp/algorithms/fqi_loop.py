@@ -24,9 +24,12 @@ import pandas as pd
 from offline_adp.algorithms.fqi_data import Backup, GreedyBackup, Prepared
 from offline_adp.algorithms.fqi_monitor import (
     DivergenceMonitor,
+    below_resolution,
+    bound_text,
     convergence_verdict,
     distance_bound,
     is_missing,
+    rounding_allowance,
 )
 from offline_adp.algorithms.params import CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
@@ -196,8 +199,12 @@ class FittedQEstimator(CheckedEstimator):
             bind(learner)
         finite = self.horizon_ is not None
         total = self.horizon_ if finite else self.iteration_plan()[1]
+        # an averager (a frozen structure, a lookup table) cannot leave the value bound, nor grow
+        # faster and faster: the growth rule would only misread a rebuild's jump there
+        averager = getattr(self, "mode_", self.mode) == "frozen" or self._lookup_table()
+        self.__dict__["_rounding_scale"] = (data.n, float(np.abs(data.train.cost).max()) if data.n else 0.0)
         monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=self.divergence_slack,
-                                    window=self.patience, finite=finite)
+                                    window=self.patience, finite=finite, averager=averager)
         self.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
         rows: list[dict[str, Any]] = []
         self._start_history(rows)
@@ -262,6 +269,7 @@ class FittedQEstimator(CheckedEstimator):
         self.verdict_, self.verdict_message_ = convergence_verdict(
             rows, finite=finite, divergence=self.divergence_message_, converged=conv, gamma=data.gamma,
             tolerance=self._tolerance(rows[-1]) if rows else None, frozen=frozen, window=self.patience,
+            rounding=self._rounding(rows[-1]) if rows else 0.0,
             capped=self.n_iterations == "auto" and len(rows) >= total and not conv)
         if rows and not finite and self.divergence_message_ is None and self._lookup_table():
             conv, self.verdict_, self.verdict_message_ = self._table_verdict(rows[-1])
@@ -323,15 +331,23 @@ class FittedQEstimator(CheckedEstimator):
         """The lookup table's verdict by the contraction bound (:meth:`_lookup_table`): "converged"
         when ``gamma/(1-gamma) sup|dQ|`` is within ``rtol max|Q|`` (or ``tol``, whichever is wider:
         ``tol`` stops the loop on ``sup|dQ|``), the bound stated either way."""
-        sd, k = last["sup_dq"], last["iteration"]
-        bound = distance_bound(sd, self.gamma_)
+        sd, k, r = last["sup_dq"], last["iteration"], self._rounding(last)
+        bound = distance_bound(sd, self.gamma_, r)
         tol = max(float(self.rtol) * float(last["max_abs_q"]), self.tol if self.tol is not None else 0.0)
         where = (f"after {k} iterations the lookup table's values are within {bound:.3g} of its fixed point "
-                 f"(gamma/(1-gamma) x sup|dQ|, sup|dQ| = {sd:.3g}: a lookup table's backup is a gamma-contraction; "
+                 f"({bound_text(sd, self.gamma_, r, bound)}: a lookup table's backup is a gamma-contraction; "
                  f"max|Q| = {last['max_abs_q']:.4g})")
         if bound <= tol:
             return True, "converged", f"{where} <= tolerance {tol:.3g}"
-        return False, "still changing", f"{where} > tolerance {tol:.3g} (more iterations would settle it)"
+        note = below_resolution(tol, self.gamma_, r)
+        return False, "still changing", (f"{where} > tolerance {tol:.3g}{note} "
+                                         f"(more iterations {'cannot settle it' if note else 'would settle it'})")
+
+    def _rounding(self, last: dict[str, Any]) -> float:
+        """:func:`~offline_adp.algorithms.fqi_monitor.rounding_allowance` at a history row
+        (0 outside a fit's loop)."""
+        n, cmax = self.__dict__.get("_rounding_scale") or (0, 0.0)
+        return rounding_allowance(float(last["max_abs_q"]), cmax, n) if n else 0.0
 
     def _tolerance(self, last: dict[str, Any]) -> float | None:
         """What the convergence test compares with (:mod:`~offline_adp.algorithms.fqi_monitor`):
@@ -360,13 +376,22 @@ class FittedQEstimator(CheckedEstimator):
             return False
         if not self._bounded():
             return self.tol is not None and last["sup_dq"] < self.tol
-        return distance_bound(last["sup_dq"], self.gamma_) <= self._tolerance(last)
+        return distance_bound(last["sup_dq"], self.gamma_, self._rounding(last)) <= self._tolerance(last)
 
     def _finished(self, rows: list[dict[str, Any]], total: int) -> bool:
         if not rows:
             return False
-        return (len(rows) >= total or self._converged(rows)
+        return (len(rows) >= total or self._converged(rows) or self._stalled(rows)
                 or (self.diverged_ and self.on_divergence == "stop"))
+
+    def _stalled(self, rows: list[dict[str, Any]]) -> bool:
+        """A frozen fit whose last backup changed nothing in float64, after its last build and
+        not converged (its tolerance is below what rounding resolves): more iterations would
+        repeat it, so the fit stops, saying so in the verdict."""
+        if not self._bounded() or len(rows) < 2 or rows[-1]["sup_dq"] != 0:
+            return False
+        last, prev = rows[-1], rows[-2]
+        return last.get("structure") == prev.get("structure") and last["iteration"] >= max(self._schedule())
 
     def _set_result(self, learner: Learner, qs: list[QFunction]) -> None:
         if self.horizon_ is not None:

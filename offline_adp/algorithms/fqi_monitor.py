@@ -18,7 +18,9 @@ is never by itself a reason to flag a fit. The monitor flags only what is unambi
    is at least 20% of ``M_k``, at 3 consecutive iterations. Iterates approaching a fixed point from ``Q_0`` decelerate
    (growth shrinks like ``gamma^k``), values growing linearly (undiscounted shortest
    paths) do not accelerate, and geometric divergence ``M_k ~ r^k`` with ``r^W >= 1.5``
-   does.
+   does. Not for an averager (a frozen structure, the lookup table): its iterates cannot
+   leave the bound of rule 1, and a structure rebuild's jumps can pass this test (three
+   default fits in 300 small random ones did, an audit found, 2026-11-29).
 
 The verdict at the end of every fit is one of ``converged``, ``still changing`` (how far
 the values may still be from the fixed point, and the trend of ``sup|dQ|``), ``diverging``
@@ -37,13 +39,17 @@ pair), ``e_{k+1} <= gamma e_k``, so at *every* input ``z`` the last iterate is w
 
 of the fixed point of the final structure's averager (``|Q_k - Q*| <= gamma |Q_{k-1} - Q*|
 <= gamma (e_k + |Q_k - Q*|)``): the bound needs only that ``Q_k`` is one backup of
-``Q_{k-1}``, however ``Q_{k-1}`` was reached. The fit has converged when that bound is at
-most ``tol`` (if given, else ``rtol * max|Q_k|``), on an iteration that did not rebuild the
-structure nor run the settling solver (whose Q is not one backup of the previous one:
-:mod:`offline_adp.learn.settle`), after the last scheduled build. A structure rebuild starts a new contraction
-(``sup|dQ|`` jumps), which is why the verdict never reads across one. The refit and
-warm-start modes change the function class every iteration, so no such bound holds
-there (nor with ``gamma = 1`` or target noise): they converge only by ``tol`` on ``e_k`` itself, and
+``Q_{k-1}``, however ``Q_{k-1}`` was reached. A computed backup is exact only up to float64
+rounding ``r`` (:func:`rounding_allowance`), so the bound stated is ``(gamma e_k + r) / (1 - gamma)``:
+with large values and a tight tolerance the iterates can stop moving (``e_k = 0``) away from
+the fixed point, and the verdict then says the tolerance is below what float64 resolves.
+The fit has converged when that bound is at most ``tol`` (if given, else ``rtol *
+max|Q_k|``), on an iteration that did not rebuild the structure nor run the settling solver
+(whose Q is not one backup of the previous one: :mod:`offline_adp.learn.settle`), after the
+last scheduled build. A structure rebuild starts a new contraction (``sup|dQ|`` jumps),
+which is why the verdict never reads across one. The refit and warm-start modes change the
+function class every iteration, so no such bound holds there (nor with ``gamma = 1`` or
+target noise): they converge only by ``tol`` on ``e_k`` itself, and
 otherwise say "still changing".
 
 ``n_iterations="auto"`` (:func:`auto_iterations`): ``K_b`` is the number of iterations after
@@ -86,12 +92,47 @@ def auto_iterations(gamma: float, settles: bool) -> tuple[int, int]:
     return K, (AUTO_CAP * K if settles else K)
 
 
-def distance_bound(sup_dq: float, gamma: float) -> float:
-    """``gamma / (1 - gamma) * sup_dq``: how far a contraction's iterate can still be from
-    its fixed point (``inf`` for ``gamma = 1`` unless nothing changed)."""
+def distance_bound(sup_dq: float, gamma: float, rounding: float = 0.0) -> float:
+    """``(gamma * sup_dq + rounding) / (1 - gamma)``: how far a contraction's iterate can
+    still be from its fixed point (``inf`` for ``gamma = 1`` unless nothing changed).
+
+    ``rounding`` bounds what float64 arithmetic adds to one computed backup at any pair
+    (:func:`rounding_allowance`): with ``|T~Q - TQ| <= r``, ``|Q_k - Q*| <= r + gamma
+    (|Q_k - Q_{k-1}| + |Q_k - Q*|)``. Without it a fit whose iterates stopped moving in
+    float64 would be stated "within 0" of a fixed point it may miss by ``r / (1 - gamma)``."""
     if gamma >= 1:
-        return 0.0 if sup_dq == 0 else float("inf")
-    return float(gamma) / (1.0 - float(gamma)) * float(sup_dq)
+        return 0.0 if sup_dq == 0 and rounding == 0 else float("inf")
+    return (float(gamma) * float(sup_dq) + float(rounding)) / (1.0 - float(gamma))
+
+
+#: the trees (or other averaged members) :func:`rounding_allowance` allows for
+ROUNDING_MEMBERS = 1024
+
+
+def rounding_allowance(max_abs_q: float, max_abs_c: float, n_rows: int) -> float:
+    """A bound on the float64 rounding of one backup at any pair: a leaf's (or cell's) mean
+    of at most ``n_rows`` weighted targets, summed in sequence (``(2 n + 2) eps`` of the
+    largest target), the mean over up to :data:`ROUNDING_MEMBERS` trees, and the target
+    ``c + gamma min Q`` itself; targets are at most ``max|c| + max|Q|``."""
+    eps = float(np.finfo(np.float64).eps)
+    return (2.0 * n_rows + ROUNDING_MEMBERS + 8.0) * eps * (float(max_abs_c) + float(max_abs_q))
+
+
+def bound_text(sd: float, gamma: float, rounding: float, bound: float) -> str:
+    """How a stated distance was computed: ``gamma/(1-gamma) x sup|dQ|``, and the rounding
+    term where it shows in the printed digits."""
+    if gamma < 1 and rounding / (1.0 - gamma) > 1e-3 * bound:
+        return (f"(gamma x sup|dQ| + r) / (1 - gamma), sup|dQ| = {sd:.3g}, r = {rounding:.3g} for float64 "
+                "rounding")
+    return f"gamma/(1-gamma) x sup|dQ|, sup|dQ| = {sd:.3g}"
+
+
+def below_resolution(tolerance: float | None, gamma: float, rounding: float) -> str:
+    """A note where ``tolerance`` is below what float64 rounding lets the bound resolve."""
+    if tolerance is None or gamma >= 1 or rounding / (1.0 - gamma) <= tolerance:
+        return ""
+    return (f"; the tolerance is below what float64 resolves here (rounding alone allows "
+            f"{rounding / (1.0 - gamma):.3g}): loosen tol or rtol")
 
 
 @dataclass
@@ -104,6 +145,7 @@ class DivergenceMonitor:
     margin: float = 0.1
     window: int = 10
     finite: bool = False
+    averager: bool = False
 
     def check(self, rows: list[dict[str, Any]]) -> str | None:
         """A message when ``rows`` (iterations 1..k) show divergence at iteration k, else None."""
@@ -114,7 +156,7 @@ class DivergenceMonitor:
         if not np.isfinite(last["max_abs_q"]):
             return f"iteration {last['iteration']}: max |Q| is not finite"
         W = self.window
-        if self.finite or len(rows) < 2 * W + 2:
+        if self.finite or self.averager or len(rows) < 2 * W + 2:
             return None
         M = np.r_[self.q0_abs, [r["max_abs_q"] for r in rows]]  # M[k] = max |Q_k|
         k = len(M) - 1
@@ -142,10 +184,11 @@ def trend(values: list[float]) -> str:
 
 def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence: str | None, converged: bool,
             gamma: float, tolerance: float | None, frozen: bool, capped: bool = False,
-            window: int = 10) -> tuple[str, str]:
+            window: int = 10, rounding: float = 0.0) -> tuple[str, str]:
     """``(verdict, message)`` for a finished fit (see the module docstring). ``tolerance``:
     what the distance bound (frozen) or ``sup|dQ|`` (other modes) had to reach (None: no
-    criterion); ``capped``: the fit stopped at ``n_iterations="auto"``'s cap."""
+    criterion); ``capped``: the fit stopped at ``n_iterations="auto"``'s cap; ``rounding``:
+    :func:`rounding_allowance` at the last iteration."""
     if not rows:
         return "still changing", "no iterations ran"
     last = rows[-1]
@@ -155,19 +198,24 @@ def convergence_verdict(rows: list[dict[str, Any]], *, finite: bool, divergence:
         return "completed", f"finite horizon: {len(rows)} backward steps (exact recursion, no fixed point to reach)"
     sd, k = last["sup_dq"], last["iteration"]
     if frozen:
-        bound = distance_bound(sd, gamma)
-        where = (f"within {bound:.3g} of the final tree structure's fixed point (gamma/(1-gamma) x sup|dQ|, "
-                 f"sup|dQ| = {sd:.3g}; max|Q| = {last['max_abs_q']:.4g})")
+        bound = distance_bound(sd, gamma, rounding)
+        how = bound_text(sd, gamma, rounding, bound)
+        where = (f"within {bound:.3g} of the final tree structure's fixed point ({how}; "
+                 f"max|Q| = {last['max_abs_q']:.4g})")
         inner = sum(backups(r) for r in rows)
         after = f"after {k} iterations" + (f" (and {inner} backups in the final structure's solver)" if inner else "")
         if converged:
             return "converged", f"{after} the values are {where} <= tolerance {tolerance:.3g}"
         tr = trend([r["sup_dq"] for r in rows[-window:]])
         why = ("stopped at n_iterations='auto''s cap; " if capped else "")
-        need = f" > tolerance {tolerance:.3g}" if tolerance is not None else ""
+        note = below_resolution(tolerance, gamma, rounding)
+        need = (f" > tolerance {tolerance:.3g}" if tolerance is not None else "") + note
+        if note and sd == 0:  # the fit stopped: a backup changed nothing
+            return "still changing", (f"{after} the values are only known to be {where}{need}; the last backup "
+                                      "changed nothing in float64, so more iterations cannot settle it")
         return "still changing", (f"{why}{after} the values are only known to be {where}{need}; "
                                   f"sup|dQ| {tr} over the last {min(window, len(rows))} (more iterations "
-                                  "would settle it)")
+                                  f"{'cannot settle it' if note else 'would settle it'})")
     rel = sd / max(last["max_abs_q"], 1e-300)
     if converged:
         return "converged", f"sup|dQ| = {sd:.3g} < tol = {tolerance:g} at iteration {k}"

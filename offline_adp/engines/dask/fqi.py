@@ -390,7 +390,7 @@ class _DaskEngine:
         c_inf = getattr(est, "infeasible_cost", None)
         no_boot = term if c_inf is None else term | (cost >= c_inf)
         bound, text = value_bound(float(np.abs(cost).max()), disc.gamma, disc.horizon, c_inf,
-                                  getattr(est, "target_noise", 0.0))
+                                  getattr(est, "target_noise", 0.0), cmin=float(cost.min()))
         start = step == 0
         start_obs = self.blocks.gather(("start",
                                         ))["start"] if start.any() else self.blocks.gather(("first",))["first"][:1]
