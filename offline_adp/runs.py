@@ -24,6 +24,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from offline_adp.algorithms.checkpoint import read_checkpoint, share_with_model, write_checkpoint
@@ -227,6 +228,7 @@ def fit_run(
                                   # what the policy reads, in order: evaluate refuses data whose features differ
                                   # even where the fitted dataset itself was edited since (run_checks.py)
                                   "features": list(ds.feature_names),
+                                  "action_values": np.asarray(ds.info.action_table.values).tolist(),
                                   "algorithm": algorithm,
                                   "access": entry.access, "versions": versions(), "status": "running"}
         if engine is not None:

@@ -105,6 +105,34 @@ def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: flo
     return float(bound), text
 
 
+#: below these the tree builders (as scikit-learn's) lose what the data says: a node is pure when
+#: its target variance is at most float64 eps, a feature constant when it spans at most 1e-7
+TINY_COSTS, TINY_FEATURE_SPAN = 1e-6, 1e-5
+
+
+def _warn_scale(cost: np.ndarray, obs: np.ndarray, names: list[str], who: str) -> None:
+    """A :class:`~offline_adp.errors.ScaleWarning` for costs or features too small for the
+    tree builders to resolve: the fit would say nothing went wrong and learn a flat Q."""
+    import warnings
+
+    from offline_adp.errors import ScaleWarning
+
+    cmax = float(np.abs(cost).max()) if len(cost) else 0.0
+    if 0.0 < cmax < TINY_COSTS:
+        warnings.warn(f"{who}: the costs are at most {cmax:.3g} in size: the tree builders (as scikit-learn's) take a "
+                      "node whose target variance is below 2.2e-16 as pure, so differences this small may not be "
+                      "learned; multiply the costs by a constant (the optimal policy is the same)", ScaleWarning,
+                      stacklevel=3)
+    if len(obs):
+        span = obs.max(axis=0) - obs.min(axis=0)
+        tiny = [(n, float(s)) for n, s in zip(names, span, strict=False) if 0.0 < s < TINY_FEATURE_SPAN]
+        if tiny:
+            warnings.warn(f"{who}: feature {tiny[0][0]!r} spans only {tiny[0][1]:.3g}"
+                          + (f" (and {len(tiny) - 1} more)" if len(tiny) > 1 else "")
+                          + ": the tree builders (as scikit-learn's) take a feature spanning at most 1e-7 on a node as "
+                          "constant there; rescale it", ScaleWarning, stacklevel=3)
+
+
 def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
@@ -123,6 +151,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     # callers pass the resolved values; this keeps prepare() usable alone
     g = resolve_discount(ds.info, gamma, horizon).gamma
     a = ds.arrays()
+    _warn_scale(a.cost, a.obs, ds.feature_names, who)
     if horizon is None and not g < 1.0 and not a.terminated.any():
         raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless "
                                    "episodes terminate (a shortest-path problem); give a horizon instead")

@@ -273,6 +273,11 @@ class FittedQEstimator(CheckedEstimator):
             capped=self.n_iterations == "auto" and len(rows) >= total and not conv)
         if rows and not finite and self.divergence_message_ is None and self._lookup_table():
             conv, self.verdict_, self.verdict_message_ = self._table_verdict(rows[-1])
+        if rows and not finite and self.divergence_message_ is None and self._no_bootstrap():
+            conv, self.verdict_ = True, "converged"
+            self.verdict_message_ = (f"after {len(rows)} iteration{'s' if len(rows) > 1 else ''}: every transition is "
+                                     "terminal, so the targets are the costs themselves and one fit is the answer "
+                                     "(no backup to iterate)")
         self.converged_ = conv
         if rows:
             rows[-1]["verdict"] = self.verdict_
@@ -381,8 +386,14 @@ class FittedQEstimator(CheckedEstimator):
     def _finished(self, rows: list[dict[str, Any]], total: int) -> bool:
         if not rows:
             return False
-        return (len(rows) >= total or self._converged(rows) or self._stalled(rows)
+        return (len(rows) >= total or self._converged(rows) or self._stalled(rows) or self._no_bootstrap()
                 or (self.diverged_ and self.on_divergence == "stop"))
+
+    def _no_bootstrap(self) -> bool:
+        """Every training transition is terminal (or reached ``c^-``): the targets never read Q,
+        so the first iteration's fit is the answer of any number of them (infinite horizon)."""
+        st = getattr(self, "fit_state_", None)
+        return self.horizon_ is None and st is not None and bool(np.all(st.data.train.no_boot))
 
     def _stalled(self, rows: list[dict[str, Any]]) -> bool:
         """A frozen fit whose last backup changed nothing in float64, after its last build and

@@ -85,7 +85,10 @@ def resolve_discount(info: Any = None, gamma: float | None = None, horizon: int 
     else:
         g, g_src = (1.0 if T is not None else DEFAULT_GAMMA), "default"
     if not 0.0 < g <= 1.0:
-        raise SpecError(f"gamma must be in (0, 1], got {g!r} ({g_src})")
+        where = ("the dataset's meta/info.json, field 'gamma'" if g_src == "dataset"
+                 else "the 'gamma' parameter" if g_src == "explicit" else "the default")
+        fix = "; set another gamma in the fit's config or fix the dataset's info.json" if g_src == "dataset" else ""
+        raise SpecError(f"gamma must be in (0, 1], got {g!r} (from {where}){fix}")
     if T is None and g >= 1.0 and hint_horizon is not None and not terminates:
         T, T_src = int(hint_horizon), "dataset"
     return Discount(g, T, g_src, T_src)

@@ -316,6 +316,7 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
             "policy (policy.commands(obs, t))")
     est_def = declare_estimand(ds, policy, cfg.horizon, cfg.estimand, target_horizon=target_horizon, start=start)
     fq = fqe_over_commands(ds, policy, cfg, est_def, say)
+    fq = ope.with_enough_episodes({"fqe": fq}, ds.n_episodes)["fqe"]
     say("command support")
     support = command_support(ds, policy)
     replay = replayed_commands(ds, policy)
@@ -329,7 +330,9 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
     a = ds.arrays()
     em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
     model = command_model_estimate(fq.model_rollouts, support, replay)
-    if model is not None:  # the allowances can reach past what the costs make possible: clipped there
+    if model is not None:
+        model = ope.with_enough_episodes({"model": model}, em.n_episodes)["model"]
+        # the allowances can reach past what the costs make possible: clipped there
         model = clip_to_range(model, with_possible_range(est_def, a, em)[0].possible_range)
     from offline_adp.evaluation.offpolicy import behaviour_value
 

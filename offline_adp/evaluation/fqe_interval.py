@@ -296,7 +296,8 @@ def fqe_interval(est: float, reps: Sequence[float], n_episodes: int, level: floa
                          interval_method="none (no bootstrap replicates)")
     q_lo, q_hi = float(np.quantile(reps, (1 - level) / 2)), float(np.quantile(reps, (1 + level) / 2))
     shift = float(np.mean(reps)) - est
-    if abs(shift) <= 0.25 * (q_hi - q_lo):
+    rounding = 64 * np.finfo(np.float64).eps * max(abs(est), float(np.max(np.abs(reps))))  # equal replicates' mean
+    if abs(shift) <= max(0.25 * (q_hi - q_lo), rounding):
         return _check_interval(OPEResult("fqe", est, (q_lo, q_hi), float(n_episodes), level,
                                          percentile_interval=(q_lo, q_hi)))
     why = (f"bootstrap replicates are shifted by {shift:+.4g} from the estimate {est:.4g} (resampling changes the "

@@ -354,6 +354,7 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     est_def, logged_range = with_possible_range(est_def, a, w.em)
     estimates = confined(estimates, est_def, logged_range, episode_ends(w.em, a.terminated), w.em.n_episodes)
+    estimates = ope.with_enough_episodes(estimates, w.em.n_episodes)
     return OffPolicyResult(gamma, T, w.behaviour, estimates, ratios, diag, w.support, ra.eps, fit.fqe, estimand=est_def,
                            eps_in_sample=ra.in_sample, eps_folds=int(psdp_folds or 0), eps_note=ra.note,
                            **verdict_inputs(a, w, est_def, level),

@@ -448,6 +448,25 @@ def bootstrap_counts(n_episodes: int, n_boot: int, seed: int = 0) -> list[np.nda
     return [resample.multiplicities(n_episodes, rng) for _ in range(n_boot)]
 
 
+#: fewer logged episodes than this: no interval of the evaluation carries a level. An episode
+#: bootstrap of n episodes has at most C(2n - 1, n) distinct resamples (1 for one episode,
+#: 3 for two), and its percentile interval's coverage is unknown that small (an audit,
+#: 2026-11-29: one or two episodes gave "95%" intervals that missed the exact truth)
+MIN_LEVEL_EPISODES = 10
+
+
+def with_enough_episodes(results: dict[str, OPEResult], n_episodes: int) -> dict[str, OPEResult]:
+    """``results`` with every level withdrawn (the intervals kept, unlabelled) when the logs
+    hold fewer than :data:`MIN_LEVEL_EPISODES` episodes, saying so."""
+    if n_episodes >= MIN_LEVEL_EPISODES:
+        return results
+    why = (f"{n_episodes} logged episode{'s' if n_episodes != 1 else ''}: an episode bootstrap needs at least "
+           f"{MIN_LEVEL_EPISODES} for an interval of known coverage")
+    return {k: r if r.level is None else replace(r, level=None, level_note=why, warnings=[f"no level: {why}",
+                                                                                          *r.warnings])
+            for k, r in results.items()}
+
+
 def flagged_against(results: dict[str, OPEResult], reference: str = "fqe") -> dict[str, OPEResult]:
     """The results, each comparable estimate that falls outside the reference's interval
     with a warning saying so."""

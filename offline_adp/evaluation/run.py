@@ -35,7 +35,7 @@ from offline_adp.errors import (
     RunDirectoryError,
 )
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
-from offline_adp.evaluation.run_checks import _check_same_actions, _fitted_info
+from offline_adp.evaluation.run_checks import _check_recorded_data, _check_same_actions, _fitted_info
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.parallel import TaskMap
 from offline_adp.rollout import RolloutResult, rollout_pieces
@@ -140,6 +140,8 @@ def evaluate_run(
         # empty or failing the doctor (actions outside the table, negative steps...): one error
         # naming the part file and row, not an IndexError deep in an estimator or wrong numbers
         require_usable(ds, ds_path, use="evaluate on")
+        if dataset is None:  # the path run.json names: the data it was fitted on, or say so
+            _check_recorded_data(run, info, ds, ds_path)
         policy = _run_policy(run, info, ds, ds_path)
         sim_name, problem, note = _simulator(cfg.simulator, ds)
         metrics, res, states, demo_states = evaluation_metrics(

@@ -23,6 +23,14 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     if getattr(policy, "continuous", False):
         _check_same_commands(run, info, ds, ds_path)
         return _check_recorded_features(run, info, ds, ds_path)
+    recorded = info.get("action_values")  # the action table the fit read (run.json, runs since 2026-11-29)
+    if isinstance(recorded, list):
+        mine = np.asarray(recorded, dtype=np.float64) if recorded else np.zeros(0)
+        theirs = np.asarray(ds.info.action_table.values, dtype=np.float64)
+        if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-12, atol=0.0):
+            raise IncompatibleError(f"{run}: fitted with the action table {short_list(mine.ravel().tolist())} "
+                                    f"(run.json), but the dataset {ds_path} has {values}; evaluate or compare runs "
+                                    "on data with the action table they were fitted on, in the same order")
     if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
         raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has "
                                 f"{ds.n_actions} "
@@ -47,6 +55,18 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
         raise IncompatibleError(f"{run}: fitted on {own} with features {list(fitted.feature_names)}, but the dataset "
                               f"{ds_path} has {list(ds.feature_names)}; evaluate or compare runs on data with the "
                               "same features")
+
+
+def _check_recorded_data(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:
+    """The dataset found by the path ``run.json`` names (as typed at the fit: a relative one
+    is read from the current directory) must be the data the run was fitted on, by its
+    fingerprint: else an error, not an evaluation of other data under the run's name."""
+    stored = info.get("dataset_fingerprint")
+    if stored is None or ds.matches_fingerprint(stored):
+        return
+    raise IncompatibleError(f"{run}: run.json names the dataset {str(info.get('dataset'))!r}, but {ds_path.resolve()} "
+                            "is not the data the run was fitted on (its fingerprint differs: edited since, or "
+                            "another directory of that name); pass --dataset DIR to evaluate on it anyway")
 
 
 def _check_recorded_features(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_path: Path) -> None:

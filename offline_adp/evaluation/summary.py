@@ -140,8 +140,24 @@ def estimator_order(entries: list[dict[str, Any]]) -> dict[str, float]:
     return order
 
 
+#: what a density-ratio fit's warnings say where it could not run and left the ratios at 1
+_UNMEASURED = ("set to 1", "left at 1", "nothing to pool")
+
+
+def _unmeasured(d: dict[str, Any], block: dict[str, Any] | None) -> dict[str, Any]:
+    """``d`` (a shift verdict) where ``block``'s ratio fit left ratios at 1 somewhere: those
+    ratios are no measurement, so the verdict does not read as "no shift"."""
+    gone = [w for w in (block or {}).get("warnings") or [] if isinstance(w, str) and any(u in w for u in _UNMEASURED)]
+    if not gone:
+        return d
+    return {**d, "enough_data": False, "unmeasured": gone,
+            "text": d["text"] + f"; NOT MEASURED at {len(gone)} step(s) ({gone[0]}): ratios of 1 there are no "
+                                "finding of no shift"}
+
+
 def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
-    """The most trustworthy shift diagnostic available, named, with its verdict text."""
+    """The most trustworthy shift diagnostic available, named, with its verdict text (and
+    where its ratio fit could not run, saying so: :func:`_unmeasured`)."""
     shift = m.get("shift", {})
     if "classifier" in shift:
         d = pd.DataFrame(shift["classifier"]["per_step"])
@@ -151,10 +167,10 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
             unc = float(d["uncovered"].max()) if "uncovered" in d else 0.0
             text = (f"classifier ratios (simulator): worst-step ESS/n {d.loc[i, 'ess_fraction']:.3f} at t = "
                     f"{int(d.loc[i, 'step'])}; AUC > {AUC_SEPARABLE} at {sep} of {len(d)} steps")
-            return {"method": "classifier", "ess_fraction": float(d.loc[i, "ess_fraction"]),
-                    "step": int(d.loc[i, "step"]),
-                    "separable_steps": sep, "n_steps": int(len(d)), "max_uncovered": unc, "text": text,
-                    "enough_data": True}
+            return _unmeasured({"method": "classifier", "ess_fraction": float(d.loc[i, "ess_fraction"]),
+                                "step": int(d.loc[i, "step"]),
+                                "separable_steps": sep, "n_steps": int(len(d)), "max_uncovered": unc, "text": text,
+                                "enough_data": True}, shift["classifier"])
     counts = m.get("per_step_counts")
     thin = counts is not None and len(counts) > 1 and min(counts[1:] or counts) < m.get("min_states_per_step", 500)
     pooled = m.get("pooled_shift")
@@ -166,12 +182,13 @@ def shift_verdict(m: dict[str, Any]) -> dict[str, Any]:
             out.update(method="pooled", ess_fraction=pooled["ess_fraction"], pooled=pooled)
             out["text"] = (text + f"; ratios pooled over time (stationary approximation): ESS/n "
                            f"{pooled['ess_fraction']:.3f}, 99% quantile {pooled['q99']:.3g}")
+            return _unmeasured(out, pooled)
         return out
     ws = m.get("worst_step", {})
     if ws:
-        return {"method": "recursion", "ess_fraction": ws.get("ess_fraction"), "step": ws.get("step"),
-                "text": f"ratio recursion (logs only): worst-step ESS/n {ws['ess_fraction']:.3f} at t = {ws['step']}",
-                "enough_data": True}
+        return _unmeasured({"method": "recursion", "ess_fraction": ws.get("ess_fraction"), "step": ws.get("step"),
+                            "text": f"ratio recursion (logs only): worst-step ESS/n {ws['ess_fraction']:.3f} at t = "
+                                    f"{ws['step']}", "enough_data": True}, shift.get("recursion"))
     return {"method": "none", "ess_fraction": None, "text": "no shift diagnostic", "enough_data": False}
 
 

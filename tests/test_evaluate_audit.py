@@ -1,0 +1,97 @@
+"""What ``evaluate`` prints where the logs cannot support it (an audit of 2026-11-29):
+
+- fewer than ``MIN_LEVEL_EPISODES`` logged episodes: no interval carries a level;
+- equal bootstrap replicates: no "shifted replicates" warning from their mean's rounding;
+- a density-ratio fit that left ratios at 1: the shift headline says NOT MEASURED, not "no shift";
+- a run evaluated on data with another action order, or on another dataset found under the
+  relative path its run.json names: refused, naming both, before any estimator runs.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from offline_adp.data.dataset import read_dataset
+from offline_adp.data.info import ActionTable
+from offline_adp.errors import IncompatibleError
+from offline_adp.evaluation import ope
+from offline_adp.evaluation.fqe_interval import fqe_interval
+from offline_adp.evaluation.summary import shift_verdict
+
+
+def _result(name: str, level: float | None = 0.95) -> ope.OPEResult:
+    return ope.OPEResult(name, 1.0, (0.5, 1.5), 3.0, level)
+
+
+@pytest.mark.parametrize("n", [1, 2, ope.MIN_LEVEL_EPISODES - 1, ope.MIN_LEVEL_EPISODES])
+def test_too_few_episodes_withdraw_every_level(n):
+    out = ope.with_enough_episodes({"fqe": _result("fqe"), "model": _result("model"), "is": _result("is", None)}, n)
+    if n >= ope.MIN_LEVEL_EPISODES:
+        assert all(out[k].level == 0.95 for k in ("fqe", "model"))
+    else:
+        for k in ("fqe", "model"):
+            assert out[k].level is None and f"{n} logged episode" in out[k].level_note
+            assert out[k].warnings[0].startswith("no level:") and out[k].interval == (0.5, 1.5)
+    assert out["is"].level is None and out["is"].level_note is None  # withheld before, for its own reason
+
+
+def test_equal_replicates_are_not_shifted():
+    est = 0.1 + 0.2  # replicates whose mean rounds away from the estimate by one ulp
+    reps = [0.30000000000000004] * 7 + [0.3] * 3
+    r = fqe_interval(est, reps, 12)
+    assert not r.warnings and r.interval_method == "percentile bootstrap over episodes"
+
+
+def test_a_ratio_fit_that_could_not_run_is_not_read_as_no_shift():
+    per_step = [{"step": 0, "ess_fraction": 1.0}, {"step": 1, "ess_fraction": 1.0}]
+    m = {"shift": {"recursion": {"per_step": per_step, "warnings": []}}, "worst_step": {"step": 1, "ess_fraction": 1.0}}
+    assert shift_verdict(m)["enough_data"] and "NOT MEASURED" not in shift_verdict(m)["text"]
+    m["shift"]["recursion"]["warnings"] = ["step 1: the ratio regression returned no positive mass; ratios set to 1"]
+    v = shift_verdict(m)
+    assert not v["enough_data"] and "NOT MEASURED at 1 step" in v["text"]
+    m["shift"]["classifier"] = {"per_step": [{"step": 0, "ess_fraction": 1.0, "auc": 0.5}],
+                                "warnings": ["step 0: 1 data and 1 policy states: too few for a classifier, ratio "
+                                             "left at 1"]}
+    v = shift_verdict(m)
+    assert v["method"] == "classifier" and not v["enough_data"] and "NOT MEASURED" in v["text"]
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    from offline_adp.runs import fit_run
+    from offline_adp.simulate import simulate
+
+    tmp = tmp_path_factory.mktemp("evaluate_audit")
+    simulate("tabular", 10, 10, seed=3).save(tmp / "base")
+    here = os.getcwd()
+    os.chdir(tmp)
+    try:  # the dataset named as typed at the fit: relative
+        fit_run("base", "run", params={"n_iterations": 3, "regressor_params": {"n_estimators": 3, "n_jobs": 1}})
+    finally:
+        os.chdir(here)
+    return tmp
+
+
+def test_another_action_order_is_refused_wherever_evaluate_runs(fitted, tmp_path):
+    from offline_adp.evaluation.run import evaluate_run
+
+    ds = read_dataset(fitted / "base")
+    at = ds.info.action_table
+    df = ds.to_pandas()
+    df["action"] = df["action"].map({0: 1, 1: 0}).fillna(df["action"]).astype("int32")
+    swapped = type(ds).from_pandas(df, ds.info.replace(action_table=ActionTable((at.actions[1], at.actions[0],
+                                                                                  *at.actions[2:]))))
+    swapped.save(tmp_path / "swapped")
+    with pytest.raises(IncompatibleError, match=r"fitted with the action table .*\(run.json\)"):
+        evaluate_run(fitted / "run", dataset=tmp_path / "swapped", simulator="none")
+    (tmp_path / "other").mkdir()
+    swapped.save(tmp_path / "other" / "base")  # another dataset under the name run.json gives
+    here = os.getcwd()
+    os.chdir(tmp_path / "other")
+    try:
+        with pytest.raises(IncompatibleError, match="is not the data the run was fitted on"):
+            evaluate_run(fitted / "run", simulator="none")
+    finally:
+        os.chdir(here)
