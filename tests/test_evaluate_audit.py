@@ -86,8 +86,10 @@ def test_another_action_order_is_refused_wherever_evaluate_runs(fitted, tmp_path
     swapped.save(tmp_path / "swapped")
     with pytest.raises(IncompatibleError, match=r"fitted with the action table .*\(run.json\)"):
         evaluate_run(fitted / "run", dataset=tmp_path / "swapped", simulator="none")
+    from offline_adp.simulate import simulate
+
     (tmp_path / "other").mkdir()
-    swapped.save(tmp_path / "other" / "base")  # another dataset under the name run.json gives
+    simulate("tabular", 10, 10, seed=4).save(tmp_path / "other" / "base")  # other logs under the name run.json gives
     here = os.getcwd()
     os.chdir(tmp_path / "other")
     try:

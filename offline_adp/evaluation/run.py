@@ -140,9 +140,9 @@ def evaluate_run(
         # empty or failing the doctor (actions outside the table, negative steps...): one error
         # naming the part file and row, not an IndexError deep in an estimator or wrong numbers
         require_usable(ds, ds_path, use="evaluate on")
+        policy = _run_policy(run, info, ds, ds_path)  # its actions and features first: the sharper message
         if dataset is None:  # the path run.json names: the data it was fitted on, or say so
             _check_recorded_data(run, info, ds, ds_path)
-        policy = _run_policy(run, info, ds, ds_path)
         sim_name, problem, note = _simulator(cfg.simulator, ds)
         metrics, res, states, demo_states = evaluation_metrics(
             ds, policy, problem, cfg, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,

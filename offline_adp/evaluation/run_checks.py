@@ -23,6 +23,11 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     if getattr(policy, "continuous", False):
         _check_same_commands(run, info, ds, ds_path)
         return _check_recorded_features(run, info, ds, ds_path)
+    if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
+        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has "
+                                f"{ds.n_actions} "
+                              f"(action table {values}); evaluate or compare runs on data with the action table "
+                              "they were fitted on")
     recorded = info.get("action_values")  # the action table the fit read (run.json, runs since 2026-11-29)
     if isinstance(recorded, list):
         mine = np.asarray(recorded, dtype=np.float64) if recorded else np.zeros(0)
@@ -31,11 +36,6 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
             raise IncompatibleError(f"{run}: fitted with the action table {short_list(mine.ravel().tolist())} "
                                     f"(run.json), but the dataset {ds_path} has {values}; evaluate or compare runs "
                                     "on data with the action table they were fitted on, in the same order")
-    if getattr(policy, "n_actions", ds.n_actions) != ds.n_actions:
-        raise IncompatibleError(f"{run}: its policy has {policy.n_actions} actions, the dataset {ds_path} has "
-                                f"{ds.n_actions} "
-                              f"(action table {values}); evaluate or compare runs on data with the action table "
-                              "they were fitted on")
     _check_recorded_features(run, info, ds, ds_path)
     own = info.get("dataset")
     if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
