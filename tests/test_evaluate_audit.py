@@ -97,3 +97,10 @@ def test_another_action_order_is_refused_wherever_evaluate_runs(fitted, tmp_path
             evaluate_run(fitted / "run", simulator="none")
     finally:
         os.chdir(here)
+
+
+def test_the_summary_prints_small_costs_in_significant_digits():
+    from offline_adp.evaluation.summary import _f
+
+    assert (_f(2.45361), _f(-0.0123), _f(0.0), _f(4.975e-12), _f(-3.1e-5), _f(float("nan"))) == (
+        "2.454", "-0.012", "0.000", "4.97e-12", "-3.1e-05", "n/a")

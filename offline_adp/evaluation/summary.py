@@ -377,7 +377,11 @@ def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, 
 
 
 def _f(x: Any) -> str:
-    return f"{x:.3f}" if _is_finite_number(x) else "n/a"
+    """Three decimals; three significant digits below 0.01 in size (costs of 1e-12 read as
+    such, not as 0.000)."""
+    if not _is_finite_number(x):
+        return "n/a"
+    return f"{x:.3f}" if x == 0 or abs(x) >= 0.01 else f"{x:.3g}"
 
 
 def _problem_words(sim: str | None, policy: dict[str, Any], demonstrator: dict[str, Any]) -> str:
@@ -402,7 +406,7 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
         cost = (
-            f"simulator: policy cost {p['mean_discounted_cost']:.3f} [{p['interval'][0]:.3f}, {p['interval'][1]:.3f}]"
+            f"simulator: policy cost {_f(p['mean_discounted_cost'])} [{_f(p['interval'][0])}, {_f(p['interval'][1])}]"
         )
         if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
             lines.append(f"{cost}; {m['rollout'].get('note', 'no demonstrator to compare with')}")
