@@ -103,4 +103,4 @@ def test_the_summary_prints_small_costs_in_significant_digits():
     from offline_adp.evaluation.summary import _f
 
     assert (_f(2.45361), _f(-0.0123), _f(0.0), _f(4.975e-12), _f(-3.1e-5), _f(float("nan"))) == (
-        "2.454", "-0.012", "0.000", "4.97e-12", "-3.1e-05", "n/a")
+        "2.454", "-0.012", "0.000", "4.98e-12", "-3.1e-05", "n/a")
