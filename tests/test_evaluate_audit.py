@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 
 from offline_adp.data.dataset import read_dataset
@@ -104,3 +105,19 @@ def test_the_summary_prints_small_costs_in_significant_digits():
 
     assert (_f(2.45361), _f(-0.0123), _f(0.0), _f(4.975e-12), _f(-3.1e-5), _f(float("nan"))) == (
         "2.454", "-0.012", "0.000", "4.98e-12", "-3.1e-05", "n/a")
+
+
+def test_rollouts_from_other_start_states_are_not_set_against_the_logged_cost():
+    from offline_adp.evaluation.verdict import _simulator_side, start_states_check
+
+    rng = np.random.default_rng(0)
+    same = start_states_check(rng.normal(size=(60, 2)), rng.normal(size=(200, 2)))
+    assert not same["differ"]
+    hard = start_states_check(rng.normal(size=(60, 2)) + [0.0, 1.5], rng.normal(size=(200, 2)))
+    assert hard["differ"] and hard["feature"] == 1
+    ro = {"mean_discounted_cost": 2.6, "interval": [2.55, 2.65]}
+    beh = {"mean": 2.97, "interval": [2.91, 3.02], "n_episodes": 60}
+    side, text = _simulator_side(ro, beh, None, "unknown", "cannot tell", None, same)
+    assert side == "better"
+    side, text = _simulator_side(ro, beh, None, "unknown", "cannot tell", None, hard)
+    assert side == "unknown" and "start from the simulator's start states" in text

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 from offline_adp.evaluation.ope import is_finite_number as _is_finite_number
 
@@ -86,6 +88,27 @@ def behaviour_not_comparable(beh: Any) -> str | None:
         return None
     why = beh.get("not_comparable")
     return why if isinstance(why, str) and why else "the logged cost is not the behaviour's value of the estimand"
+
+
+#: the rollouts' start states and the logs' differ when a feature's two-sample
+#: Kolmogorov-Smirnov p-value, times the number of features (Bonferroni), is below this
+START_STATES_P = 1e-3
+
+
+def start_states_check(logged: np.ndarray, rolled: np.ndarray) -> dict[str, Any]:
+    """Whether the simulator's rollouts start where the logged episodes do: per feature, a
+    two-sample Kolmogorov-Smirnov test of the logged first observations against the
+    rollouts'. Where they differ, the rollouts' cost and the logged cost are values from
+    different starts, and the verdict does not set them against each other (an audit,
+    2026-11-29: logs started only from hard states read "better" for a worse policy)."""
+    from scipy.stats import ks_2samp
+
+    d = min(logged.shape[1], rolled.shape[1])
+    p = [float(ks_2samp(logged[:, j], rolled[:, j]).pvalue) for j in range(d)]
+    j = int(np.argmin(p)) if p else 0
+    differ = bool(p) and p[j] * d < START_STATES_P
+    return {"differ": differ, "min_p": p[j] if p else None, "feature": j, "n_logged": int(len(logged)),
+            "n_rolled": int(len(rolled)), "test": "two-sample Kolmogorov-Smirnov per feature, Bonferroni"}
 
 
 def _no_side_against(beh: dict[str, Any]) -> str | None:
@@ -241,9 +264,10 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
         perf = f"cannot tell from these logs whether the policy is better than the behaviour: {beh_off}"
     demo = None
     ro = (m.get("rollout") or {}).get("policy")
+    starts = (m.get("rollout") or {}).get("start_states") or {}
     if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
         demo = demonstrator_side(m)
-        side, perf = _simulator_side(ro, beh, demo, side, perf, claim)
+        side, perf = _simulator_side(ro, beh, demo, side, perf, claim, starts)
     outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
     ct = conv["text"][:1].upper() + conv["text"][1:]
     return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
@@ -406,12 +430,17 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
 
 
 def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any] | None, side: str, perf: str,
-                    claim: str | None) -> tuple[str, str]:
+                    claim: str | None, starts: dict[str, Any] | None = None) -> tuple[str, str]:
     """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
     behaviour's logged cost (with its own interval, :func:`logged_side`) and the demonstrator,
-    saying where the logs' side disagrees."""
+    saying where the logs' side disagrees; not against the logged cost where the rollouts
+    start elsewhere than the logs (``starts``: :func:`start_states_check`)."""
     r_lo, r_hi = ro["interval"]
     off = _no_side_against(beh)
+    if off is None and (starts or {}).get("differ"):
+        off = (f"the rollouts start from the simulator's start states and the logs from others (feature "
+               f"{starts['feature']}: two-sample KS p = {starts['min_p']:.2g}), so their costs are values from "
+               "different starts")
     truth_side = "unknown" if off else logged_side(r_lo, r_hi, beh)
     against = f"not compared with the behaviour ({off})" if off else f"{_SIDE_WORDS[truth_side]} the behaviour"
     if demo is not None:  # the demonstrator first when the policy is worse than it
