@@ -121,3 +121,20 @@ def test_rollouts_from_other_start_states_are_not_set_against_the_logged_cost():
     assert side == "better"
     side, text = _simulator_side(ro, beh, None, "unknown", "cannot tell", None, hard)
     assert side == "unknown" and "start from the simulator's start states" in text
+
+
+def test_a_repeated_state_is_judged_by_its_own_action_counts():
+    """Oracle: the logged counts. State 0 never saw action 2; a classifier's smoothing gave it mass."""
+    from offline_adp.evaluation.behaviour import exact_state_support, support_violations
+
+    obs = np.r_[np.zeros(10), np.ones(10), np.arange(2.0, 5.0)][:, None]  # two repeated states, three seen once
+    action = np.r_[np.tile([0, 1], 5), np.tile([1, 2], 5), [0, 1, 2]]
+    smooth = np.full((len(obs), 3), 1 / 3)
+    probs = exact_state_support(obs, action, 3, smooth)
+    np.testing.assert_allclose(probs[:10], [[0.5, 0.5, 0.0]] * 10)
+    np.testing.assert_allclose(probs[10:20], [[0.0, 0.5, 0.5]] * 10)
+    np.testing.assert_allclose(probs[20:], smooth[20:])  # seen once: the classifier's
+    target = np.zeros((len(obs), 3))
+    target[:, 2] = 1.0  # the policy always takes action 2
+    v = support_violations(target, probs, np.zeros(len(obs), int))
+    assert v["count"] == 10 and support_violations(target, smooth, np.zeros(len(obs), int))["count"] == 0

@@ -81,6 +81,33 @@ def estimate_behaviour(
     return BehaviourEstimate(np.maximum(p, clip), probs, source, clip, n_clipped, name, warnings)
 
 
+#: a state logged at least this many times is judged by its own action counts, not the classifier
+EXACT_STATE_VISITS = 5
+
+
+def exact_state_support(obs: np.ndarray, action: np.ndarray, n_actions: int, probs: np.ndarray,
+                        min_visits: int = EXACT_STATE_VISITS) -> np.ndarray:
+    """``probs`` (``pi_b(. | x_i)`` by the classifier) where, at a state the logs hold at least
+    ``min_visits`` times (the same observation: a discrete state space), the logged
+    frequencies of the actions there instead. A classifier smooths across states: at a
+    tabular state where the logs never took an action it gave that action 0.01-0.06, above
+    the support threshold, and the policy that takes it read as "within the data's support"
+    (an audit, 2026-11-29). Pooled over time steps, as the classifier is."""
+    if len(obs) == 0:
+        return probs
+    rows = np.ascontiguousarray(obs, dtype=np.float64)
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
+    _, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    seen = counts[inv] >= min_visits
+    if not seen.any():
+        return probs
+    freq = np.zeros((len(counts), n_actions))
+    np.add.at(freq, (inv, np.asarray(action, dtype=np.int64)), 1.0)
+    out = np.array(probs, dtype=np.float64, copy=True)
+    out[seen] = freq[inv[seen]] / counts[inv[seen], None]
+    return out
+
+
 def support_violations(target_probs: np.ndarray, behaviour_probs: np.ndarray, step: np.ndarray,
                        threshold: float = 0.01) -> dict[str, Any]:
     """Where the evaluated policy puts mass on actions the data (almost) never took there.

@@ -40,6 +40,7 @@ from offline_adp.evaluation.batch import BatchInputs, fit_batch
 from offline_adp.evaluation.behaviour import (
     BehaviourEstimate,
     estimate_behaviour,
+    exact_state_support,
     support_violations,
 )
 
@@ -184,7 +185,7 @@ def behaviour_model(ds: TransitionDataset, a: TransitionArrays, policy: Policy, 
     ``rho_i = pi(a_i | x_i, t_i) / pi_b(a_i | x_i)`` the importance-weighted estimators use."""
     beh = estimate_behaviour(a.obs, a.action, ds.n_actions, a.behavior_prob, classifier=classifier, clip=clip)
     target = policy.probabilities(a.obs, a.step)
-    support = support_violations(target, beh.all_probs, a.step)
+    support = support_violations(target, exact_state_support(a.obs, a.action, ds.n_actions, beh.all_probs), a.step)
     rho = target[np.arange(len(a)), a.action] / beh.logged_prob
     em = ope.EpisodeMatrix.build(a.episode, a.step, T)
     return Weighting(beh, target, support, rho, em, episode_groups(ds, em))
