@@ -112,7 +112,12 @@ class FormatVersionWarning(UserWarning):
     """A dataset or artifact was written by a different format or package version."""
 
 
-class ScaleWarning(UserWarning):
+class LogWarning(UserWarning):
+    """Logs that are valid but probably not what was meant (a time limit flagged as a
+    terminal state, values on a scale the learners cannot resolve)."""
+
+
+class ScaleWarning(LogWarning):
     """Costs or features on a scale the tree builders cannot resolve (as scikit-learn's:
     a node whose target variance is below float64 eps is pure; a feature spanning less
     than 1e-7 on a node is constant there)."""

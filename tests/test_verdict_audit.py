@@ -110,3 +110,23 @@ def test_a_per_action_model_needs_rows_of_every_action(mode):
         fit.fit(ds.take(np.flatnonzero(a != 2)))
     FittedQIteration(gamma=0.9, mode=mode, regressor_params={"n_estimators": 3}).fit(
         ds, sample_weight=np.where(a == 2, 0.0, 1.0))  # the joint encoding reads the other actions' rows
+
+
+def test_every_episode_terminated_after_the_same_steps_reads_as_a_time_limit():
+    from offline_adp.errors import LogWarning
+
+    ds = _walk(1.0, n_ep=6, T=10)
+    df = ds.to_pandas()
+    df["terminated"], df["truncated"] = df["truncated"].to_numpy(), False  # the time limit flagged terminal
+    cut = type(ds).from_pandas(df, ds.info)
+    fit = FittedQIteration(gamma=0.9, regressor_params={"n_estimators": 3})
+    with pytest.warns(LogWarning, match="as a time limit would cut them"):
+        fit.fit(cut)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        fit.fit(ds)  # flagged truncated: no warning
+    short = df[~((df["episode_id"] == "0") & (df["step"] >= 8))].copy()  # episode 0 ends at step 7, terminal
+    short.loc[(short["episode_id"] == "0") & (short["step"] == 7), "terminated"] = True
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        fit.fit(type(ds).from_pandas(short, ds.info))  # episodes of different lengths: terminal states, not a limit

@@ -133,6 +133,26 @@ def _warn_scale(cost: np.ndarray, obs: np.ndarray, names: list[str], who: str) -
                           "constant there; rescale it", ScaleWarning, stacklevel=3)
 
 
+def _warn_time_limit(episode: np.ndarray, terminated: np.ndarray, who: str, min_episodes: int = 5) -> None:
+    """A :class:`~offline_adp.errors.LogWarning` where every episode (at least
+    ``min_episodes``) ends in a terminal state after the same number of steps: what a time
+    limit does, and a time limit is a truncation. A terminal state ends all cost, so
+    flagging a cut terminal teaches the fit (and a time-indexed FQE, which pools the steps)
+    that the cut state costs nothing more (an audit, 2026-11-29: FQE 1.355 against 2.391 for
+    the same logs with the flag right, truth 2.628)."""
+    import warnings
+
+    from offline_adp.errors import LogWarning
+
+    lengths = np.bincount(episode)
+    ends = np.bincount(episode, weights=terminated.astype(np.float64), minlength=len(lengths))
+    if len(lengths) >= min_episodes and lengths.min() == lengths.max() > 1 and bool(np.all(ends > 0)):
+        warnings.warn(f"{who}: every one of the {len(lengths)} logged episodes ends in a terminal state after exactly "
+                      f"{int(lengths[0])} steps, as a time limit would cut them: if a time limit did, flag those rows "
+                      "truncated, not terminated (a terminal state ends all cost; a cut episode's cost goes on)",
+                      LogWarning, stacklevel=3)
+
+
 def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, sample_weight: np.ndarray | None,
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
@@ -152,6 +172,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     g = resolve_discount(ds.info, gamma, horizon).gamma
     a = ds.arrays()
     _warn_scale(a.cost, a.obs, ds.feature_names, who)
+    _warn_time_limit(ds.episode_index, a.terminated, who)
     if horizon is None and not g < 1.0 and not a.terminated.any():
         raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless "
                                    "episodes terminate (a shortest-path problem); give a horizon instead")
