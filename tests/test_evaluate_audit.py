@@ -138,3 +138,13 @@ def test_a_repeated_state_is_judged_by_its_own_action_counts():
     target[:, 2] = 1.0  # the policy always takes action 2
     v = support_violations(target, probs, np.zeros(len(obs), int))
     assert v["count"] == 10 and support_violations(target, smooth, np.zeros(len(obs), int))["count"] == 0
+
+
+def test_compare_prints_small_costs_as_evaluate_does():
+    from offline_adp.evaluation.compare import compare_lines
+
+    cand = {"rank": 1, "name": "a", "estimate": 4.975e-12, "interval": [4.6e-12, 5.3e-12], "level_words": "95%",
+            "truth": 5.0e-12, "outcome": "better", "fit": "converged", "support_left": False, "shift": "-"}
+    text = "\n".join(compare_lines({"candidates": [cand], "estimand": "e", "estimator": "fqe",
+                                    "dataset": {"path": "d"}}))
+    assert "4.98e-12" in text and "[4.6e-12, 5.3e-12]" in text and "0.000" not in text

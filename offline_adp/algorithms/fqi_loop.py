@@ -202,7 +202,10 @@ class FittedQEstimator(CheckedEstimator):
         # an averager (a frozen structure, a lookup table) cannot leave the value bound, nor grow
         # faster and faster: the growth rule would only misread a rebuild's jump there
         averager = getattr(self, "mode_", self.mode) == "frozen" or self._lookup_table()
-        self.__dict__["_rounding_scale"] = (data.n, float(np.abs(data.train.cost).max()) if data.n else 0.0)
+        # what the verdict reads of the data, once (not an O(n) pass per iteration): the rows and
+        # max|c| (the rounding allowance), and whether no transition bootstraps (one fit is final)
+        self.__dict__["_data_facts"] = (data.n, float(np.abs(data.train.cost).max()) if data.n else 0.0,
+                                        bool(np.all(data.train.no_boot)))
         monitor = DivergenceMonitor(data.bound, data.bound_text, q0_abs=data.q0_abs, margin=self.divergence_slack,
                                     window=self.patience, finite=finite, averager=averager)
         self.fit_state_ = FitState(data, learner, backup)  # for structure-conditional re-weighting (not saved)
@@ -351,7 +354,7 @@ class FittedQEstimator(CheckedEstimator):
     def _rounding(self, last: dict[str, Any]) -> float:
         """:func:`~offline_adp.algorithms.fqi_monitor.rounding_allowance` at a history row
         (0 outside a fit's loop)."""
-        n, cmax = self.__dict__.get("_rounding_scale") or (0, 0.0)
+        n, cmax, _ = self.__dict__.get("_data_facts") or (0, 0.0, False)
         return rounding_allowance(float(last["max_abs_q"]), cmax, n) if n else 0.0
 
     def _tolerance(self, last: dict[str, Any]) -> float | None:
@@ -392,8 +395,7 @@ class FittedQEstimator(CheckedEstimator):
     def _no_bootstrap(self) -> bool:
         """Every training transition is terminal (or reached ``c^-``): the targets never read Q,
         so the first iteration's fit is the answer of any number of them (infinite horizon)."""
-        st = getattr(self, "fit_state_", None)
-        return self.horizon_ is None and st is not None and bool(np.all(st.data.train.no_boot))
+        return self.horizon_ is None and (self.__dict__.get("_data_facts") or (0, 0.0, False))[2]
 
     def _stalled(self, rows: list[dict[str, Any]]) -> bool:
         """A frozen fit whose last backup changed nothing in float64, after its last build and

@@ -34,6 +34,7 @@ from offline_adp.errors import (
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.evaluation.summary import (
     ESTIMATOR_NAMES,
+    _f,
     discount_note,
     estimator_order,
     headline,
@@ -346,15 +347,15 @@ def compare_lines(res: dict[str, Any]) -> list[str]:
         lines.append("no top pick: " + "; ".join(res.get("cannot_separate") or ["no candidate has an estimate"]))
     d = res.get("demonstrator")
     if d:
-        lines.append(f"demonstrator ({d.get('simulator')} simulator): {d['mean']:.3f}"
+        lines.append(f"demonstrator ({d.get('simulator')} simulator): {_f(d['mean'])}"
                      + (f", failures {d['failures']}" if d.get("failures") is not None else ""))
     lines.append(f"{'rank':>4}  {'candidate':24s} {'estimate':>9s}  {'interval (level)':32s} {'truth':>8s}  "
                  f"{'verdict':13s} {'fit':16s} shift / support")
     for c in res["candidates"]:
         iv = c["interval"]
-        ivs = f"[{iv[0]:.3f}, {iv[1]:.3f}] ({c.get('level_words') or 'no level'})" if iv else "none"
-        est = f"{c['estimate']:.3f}" if c["estimate"] is not None else "n/a"
-        tr = f"{c['truth']:.3f}" if c["truth"] is not None else "-"
+        ivs = f"[{_f(iv[0])}, {_f(iv[1])}] ({c.get('level_words') or 'no level'})" if iv else "none"
+        est = _f(c["estimate"]) if c["estimate"] is not None else "n/a"
+        tr = _f(c["truth"]) if c["truth"] is not None else "-"
         sup = "LEFT support" if c["support_left"] else "in support"
         lines.append(f"{c['rank'] if c['rank'] else '-':>4}  {c['name'][:24]:24s} {est:>9s}  {ivs:32s} {tr:>8s}  "
                      f"{c.get('outcome') or '?':13s} {c.get('fit') or '?':16s} {sup}; {c['shift']}")

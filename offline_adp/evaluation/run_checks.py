@@ -37,6 +37,8 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
                                     f"(run.json), but the dataset {ds_path} has {values}; evaluate or compare runs "
                                     "on data with the action table they were fitted on, in the same order")
     _check_recorded_features(run, info, ds, ds_path)
+    if isinstance(recorded, list) and isinstance(info.get("features"), list):
+        return  # both read from run.json above: the fitted dataset's info.json adds nothing
     own = info.get("dataset")
     if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
         return
