@@ -208,7 +208,7 @@ def test_settle_and_replicates_refuse_what_they_cannot_do(small_pt):
     with pytest.raises(TypeError, match="TransitionDataset"):
         FittedQEvaluation(policy=pi).fit("not a dataset")
     fit = fqe.fit_state_
-    gamma_one = fit.data.__class__(**{**fit.data.__dict__, "gamma": 1.0})
+    gamma_one = dataclasses.replace(fit.data, gamma=1.0)
     fqe.fit_state_ = dataclasses.replace(fit, data=gamma_one)  # the guard, not a division by 1 - gamma
     with pytest.raises(ValueError, match="gamma < 1"):
         fqe.settle()

@@ -205,7 +205,7 @@ def test_settle_and_its_operators_are_the_ones_built_before(small_pt, monkeypatc
         v_new = M @ d.targets(P @ v)
         np.subtract(v_new, v, out=diff)
         change, v = max(float(diff.max()), -float(diff.min())), v_new
-        if change * d.gamma / (1 - d.gamma) <= 1e-7 * (1.0 + max(float(v.max()), -float(v.min()))):
+        if change * d.gamma / (1 - d.gamma) <= 1e-7 * (d.cost_unit + max(float(v.max()), -float(v.min()))):
             break
     monkeypatch.setattr(fb, "_CHANGE_CHUNK", 700)  # several chunks, a short last one
     assert len(v0) > 2100 and len(v0) % 700

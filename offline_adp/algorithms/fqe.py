@@ -214,7 +214,7 @@ commands, n_candidates, n_representatives
         ``v <- M (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` (a sup-norm
         gamma-contraction: the leaf and query operators average) until the distance to
         the fixed point is at most ``tol`` (``gamma / (1 - gamma)`` times the last sweep's
-        change; default ``1e-7 (1 + max |v|)``): the estimate is then
+        change; default ``1e-7 (u + max |v|)``, ``u`` the costs' size ``max |c|``): the estimate is then
         the fixed point of the averager the structure defines, the same quantity
         :meth:`reweighted_value` computes for other weights, so bootstrap replicates are
         centred on it. Returns the number of sweeps run (also in ``settled_iterations_``).
@@ -249,7 +249,7 @@ commands, n_candidates, n_representatives
         ``v <- M_w (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` with the leaf
         averaging operator ``M_w`` of the new weights (leaves left without weight are
         dropped from the average over trees), to within ``tol`` of the fixed point (default
-        ``rtol (1 + max |v|)``, as :meth:`settle`) or ``n_iterations`` sweeps. It is solved
+        ``rtol (u + max |v|)``, as :meth:`settle`) or ``n_iterations`` sweeps. It is solved
         over the training rows (:mod:`~offline_adp.algorithms.fqe_replicates`: ``y =
         targets(P_w M_w y)``, Gauss-Seidel sweeps back through each episode, the same
         stopping bound) where ``P_w M_w`` is sparse, else by sweeps over the leaf values

@@ -154,7 +154,8 @@ def fixed_point(data: Prepared, backup: PolicyBackup, M: Any, ops: dict[str, Any
                 max_iterations: int, rtol: float = 1e-7) -> tuple[np.ndarray, int]:
     """Iterate the leaf-averaging backup ``v <- M (targets(P v))`` from ``v`` (a
     gamma-contraction) until its distance to the fixed point is at most ``tol`` (default
-    ``rtol (1 + max |v|)``) or ``max_iterations`` sweeps; returns ``(v, sweeps)``. On
+    ``rtol (u + max |v|)``, ``u`` the costs' size ``data.cost_unit``) or ``max_iterations``
+    sweeps; returns ``(v, sweeps)``. On
     :func:`reweighted_operators`' matrices: the reference the matrix-free replicate is tested
     against.
 
@@ -206,7 +207,7 @@ def averaged_fixed_point(data: Prepared, M: Any, P: Any, v: np.ndarray, tol: flo
             v = v_new
         # an averager's backup is a sup-norm gamma-contraction: |v - v*| <= change * gamma / (1 - gamma)
         bound = change * data.gamma / (1.0 - data.gamma)
-        if bound <= (tol if tol is not None else rtol * (1.0 + max(float(v.max()), -float(v.min())))):
+        if bound <= (tol if tol is not None else rtol * (data.cost_unit + max(float(v.max()), -float(v.min())))):
             return v, sweep
     return v, max_iterations
 
@@ -307,7 +308,7 @@ def bounded_value(data: Prepared, P: Any, u: np.ndarray, P0: Any, u0: np.ndarray
         y_new = data.targets(P @ y + u * B)
         change = float(np.max(np.abs(y_new - y))) if len(y) else 0.0
         y = y_new
-        if change * data.gamma / (1.0 - data.gamma) <= rtol * (1.0 + float(np.max(np.abs(y), initial=0.0))):
+        if change * data.gamma / (1.0 - data.gamma) <= rtol * (data.cost_unit + float(np.max(np.abs(y), initial=0.0))):
             break
     v0 = P0 @ y + u0 * B
     if start_weights is None:

@@ -22,7 +22,7 @@ most 1 and ``targets`` is ``gamma``-Lipschitz, so a sweep ``y -> G(y)`` is a sup
 ``gamma``-contraction with the fixed point's ``y*``, and ``|G(y) - y*| <= gamma / (1 -
 gamma) |G(y) - y|``; ``M_w`` averages, so the leaf values ``v = M_w G(y)`` are as close to
 ``v*``. The sweeps stop when that bound is within the tolerance asked (``tol``, else
-``rtol (1 + max |v|)``): the stopping rule of the leaf-space iteration
+``rtol (u + max |v|)``, ``u`` the costs' size): the stopping rule of the leaf-space iteration
 (:func:`~offline_adp.algorithms.fqe_bootstrap.fixed_point`), for the same fixed point.
 """
 
@@ -80,9 +80,9 @@ def _p_times(n: int, q_ptr: Any, q_dat: Any, q_pi: Any, q_row: Any, We: Any, ve:
 
 
 def _sweeps(order: Any, k_ptr: Any, k_idx: Any, k_dat: Any, cost: Any, no_boot: Any, gamma: float, cap: float,
-            has_cap: bool, tol: float, rtol: float, max_sweeps: int, y: Any) -> Any:
+            has_cap: bool, tol: float, rtol: float, unit: float, max_sweeps: int, y: Any) -> Any:
     """Gauss-Seidel sweeps ``y_i <- targets((K y)_i)`` over the rows in ``order`` until
-    ``max|change| gamma / (1 - gamma) <= tol`` (``tol < 0``: ``rtol (1 + max|y|)``) or
+    ``max|change| gamma / (1 - gamma) <= tol`` (``tol < 0``: ``rtol (unit + max|y|)``) or
     ``max_sweeps``; returns ``(sweeps, the last sweep's max|change|)``."""
     change = np.inf
     for sweep in range(1, max_sweeps + 1):
@@ -98,7 +98,7 @@ def _sweeps(order: Any, k_ptr: Any, k_idx: Any, k_dat: Any, cost: Any, no_boot: 
             change = max(change, abs(t - y[i]))
             ymax = max(ymax, abs(t))
             y[i] = t
-        if change * gamma / (1.0 - gamma) <= (tol if tol >= 0.0 else rtol * (1.0 + ymax)):
+        if change * gamma / (1.0 - gamma) <= (tol if tol >= 0.0 else rtol * (unit + ymax)):
             return sweep, change
     return max_sweeps, change
 
@@ -249,10 +249,10 @@ def replicate_value(rs: RowSpace, data: Any, learner: Any, op_start: Any, pi_sta
     while True:
         sweeps, change = _sweeps(rs.order, rs.k_ptr, rs.k_idx, kdat, cost, no_boot, float(data.gamma),
                                  float(cap) if cap is not None else 0.0, cap is not None, limit, float(rtol),
-                                 max(1, max_sweeps - done), y)
+                                 float(data.cost_unit), max(1, max_sweeps - done), y)
         done += sweeps
         v = _leaf_means(rs.m_ptr, rs.m_idx, W, w, y)
-        need = tol if tol is not None else rtol * (1.0 + float(np.max(np.abs(v), initial=0.0)))
+        need = tol if tol is not None else rtol * (data.cost_unit + float(np.max(np.abs(v), initial=0.0)))
         if change * data.gamma / (1.0 - data.gamma) <= need or done >= max_sweeps:
             break
         limit = need  # max|v| <= max|y|: hold the rule to the leaf values' scale

@@ -434,7 +434,8 @@ class FittedQIteration(LearnModes, FittedQEstimator):
                        action_encoding=self.action_encoding, infeasible_cost=self.infeasible_cost,
                        target_noise=self.target_noise, initial_q_abs=q0, who=type(self).__name__,
                        n_candidates=self.n_candidates if self.commands_ == "continuous" else None,
-                       policy_commands=self._policy_commands(), n_representatives=self.n_representatives)
+                       policy_commands=self._policy_commands(), n_representatives=self.n_representatives,
+                       costs_in_unit=self.resolved_mode() == "frozen")
         self._encoder = data.encoder
         return data
 

@@ -15,7 +15,9 @@ states that enters the target ``y_i = c_i + gamma (1 - term_i) V(x'_i)``:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Protocol
 
 import numpy as np
@@ -64,11 +66,28 @@ class Prepared:
     def n(self) -> int:
         return len(self.train.cost)
 
+    @cached_property
+    def cost_unit(self) -> float:
+        """The costs' size: the power of two ``u`` with ``u <= max |c_i| < 2u`` over the
+        training rows (1 where every cost is 0). The unit of the fit's absolute constants
+        (a build grows its trees on ``y / u``, with a tie jitter of ``1e-6 (u + std(y))``;
+        the default tolerance of the evaluation's solves is ``rtol (u + max |v|)``), so that
+        with every cost multiplied by ``2^k`` the fit is the same with ``2^k`` times the
+        values, exactly, and costs of 1e-5 fit as costs of 1 do."""
+        return cost_unit(self.train.cost)
+
     def targets(self, v_next: np.ndarray) -> np.ndarray:
         """``y_i = c_i + gamma (1 - term_i) V(x'_i)``, clamped at ``c^-``."""
         s = self.train
         y = s.cost + self.gamma * np.where(s.no_boot, 0.0, v_next)
         return y if self.infeasible_cost is None else np.minimum(y, self.infeasible_cost)
+
+
+def cost_unit(cost: np.ndarray) -> float:
+    """The power of two ``u`` with ``u <= max |c| < 2u`` (1 where every cost is 0 or one is
+    not finite): :attr:`Prepared.cost_unit`."""
+    m = float(np.max(np.abs(cost), initial=0.0))
+    return math.ldexp(1.0, math.frexp(m)[1] - 1) if 0.0 < m < math.inf else 1.0
 
 
 def _read_only(v: np.ndarray) -> np.ndarray:
@@ -110,15 +129,17 @@ def value_bound(cmax: float, g: float, horizon: int | None, infeasible_cost: flo
 TINY_COSTS, TINY_FEATURE_SPAN = 1e-6, 1e-5
 
 
-def _warn_scale(cost: np.ndarray, obs: np.ndarray, names: list[str], who: str) -> None:
+def _warn_scale(cost: np.ndarray, obs: np.ndarray, names: list[str], who: str, costs_in_unit: bool = False) -> None:
     """A :class:`~offline_adp.errors.ScaleWarning` for costs or features too small for the
-    tree builders to resolve: the fit would say nothing went wrong and learn a flat Q."""
+    tree builders to resolve: the fit would say nothing went wrong and learn a flat Q.
+    ``costs_in_unit``: the learner reads the targets in the costs' unit (the frozen mode grows
+    on ``y / cost_unit``): no warning for the costs."""
     import warnings
 
     from offline_adp.errors import ScaleWarning
 
     cmax = float(np.abs(cost).max()) if len(cost) else 0.0
-    if 0.0 < cmax < TINY_COSTS:
+    if 0.0 < cmax < TINY_COSTS and not costs_in_unit:
         warnings.warn(f"{who}: the costs are at most {cmax:.3g} in size: the tree builders (as scikit-learn's) take a "
                       "node whose target variance is below 2.2e-16 as pure, so differences this small may not be "
                       "learned; multiply the costs by a constant (the optimal policy is the same)", ScaleWarning,
@@ -157,13 +178,15 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
             validation_fraction: float, random_state: int, feature_map: Any, action_input: str,
             action_encoding: str, infeasible_cost: float | None, target_noise: float,
             initial_q_abs: float, who: str, n_candidates: int | None = None,
-            policy_commands: PolicyCommands | None = None, n_representatives: int = 0) -> Prepared:
+            policy_commands: PolicyCommands | None = None, n_representatives: int = 0,
+            costs_in_unit: bool = False) -> Prepared:
     """Validate the dataset and build the loop's inputs (see the module docstring).
     ``n_candidates``: learn over the dataset's exact continuous commands, the minimum over
     each next state's ``n_candidates`` neighbour commands (:class:`NeighbourCommands`), or,
     for an evaluation, the policy's own command (``policy_commands``); ``n_representatives``:
     each next state's candidates also hold up to that many representative commands of the
-    training rows (:func:`command_representatives`)."""
+    training rows (:func:`command_representatives`); ``costs_in_unit``: the learner fits the
+    targets in the costs' unit (:attr:`Prepared.cost_unit`), so tiny costs raise no warning."""
     if not isinstance(ds, TransitionDataset):
         raise InvalidTypeError(f"{who}.fit needs a TransitionDataset (trace data), got {type(ds).__name__}")
     if len(ds) == 0:
@@ -171,7 +194,7 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
     # callers pass the resolved values; this keeps prepare() usable alone
     g = resolve_discount(ds.info, gamma, horizon).gamma
     a = ds.arrays()
-    _warn_scale(a.cost, a.obs, ds.feature_names, who)
+    _warn_scale(a.cost, a.obs, ds.feature_names, who, costs_in_unit)
     _warn_time_limit(ds.episode_index, a.terminated, who)
     if horizon is None and not g < 1.0 and not a.terminated.any():
         raise InvalidArgumentError(f"the infinite-horizon algorithm needs gamma < 1 (got {g}) unless "

@@ -221,4 +221,5 @@ class LearnModes:
         settle = (Settle(data.gamma, max(builds), self.tol, float(self.rtol), budget=self.iteration_plan()[1])
                   if self._settles() and data.gamma < 1 else None)
         return FrozenSchedule(restructure_at=builds, screen=screen, early=early, settle=settle,
-                              max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder)
+                              max_samples=self._structure_fraction(data.n, reg), builder=self.tree_builder,
+                              target_unit=data.cost_unit)

@@ -58,11 +58,10 @@ from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
 from offline_adp.policies import Policy
 
-#: A state is in the data (trusted) when a logged state is at most this quantile of the logged
-#: states' distances to other episodes (to any other logged state) away, in feature standard
-#: deviations. With the own-neighbour distances, 0.99 flagged 1% of
-#: the logged states themselves at every step, and over a 200-step rollout nearly every
-#: particle of a policy the logs cover (measured on path_tracking: 89% of the default fit's).
+#: A state is in the data (trusted) when a logged state is at most this quantile of the logged states'
+#: distances to other episodes (to any other logged state) away, in feature standard deviations. With
+#: the own-neighbour distances, 0.99 flagged 1% of the logged states themselves at every step, and
+#: over a 200-step rollout nearly every particle of a policy the logs cover (path_tracking: 89%).
 SUPPORT_QUANTILE = 0.999
 #: folds of whole episodes for the support radius (:func:`_support_radius`), and its probe states
 RADIUS_FOLDS = 5
@@ -104,6 +103,8 @@ class LoggedDynamics:
     ----------
     sd_ : ndarray
         Feature standard deviations (1 where constant).
+    cost_unit_ : float
+        The costs' size, ``max |c|`` (1 where all are 0): the outcome model's unit of cost.
     radius_ : float
         In-the-data distance (:data:`SUPPORT_QUANTILE` of the distances to other episodes'
         nearest states, :func:`_support_radius`): where the support judgement (exit mass)
@@ -141,6 +142,7 @@ class LoggedDynamics:
         obs, nxt = a.obs[rows], a.next_obs[rows]
         sd = obs.std(axis=0)
         self.sd_ = np.where(sd > 0, sd, 1.0)
+        self.cost_unit_ = c if 0.0 < (c := float(np.abs(a.cost[rows]).max(initial=0.0))) < np.inf else 1.0
         self.start_states_ = a.obs[a.step == 0]
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
@@ -185,15 +187,16 @@ class LoggedDynamics:
 
     def fit_predictors(self, a: TransitionArrays, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fit the increment models (``linear_``, ``residual_``) and the cost-and-termination
-        model (``outcome_``) on ``rows`` of ``a`` (each tree model seeded with ``random_state``,
-        so the order of the fits does not matter); returns the features and the scaled
-        increments. :meth:`fit` calls it once, the model bootstrap once per replicate."""
+        model (``outcome_``, the costs in units of ``cost_unit_``, ``max |c|``, so that the
+        terminations weigh the same in its splits at any scale of the costs) on ``rows`` of
+        ``a`` (each tree model seeded with ``random_state``, so the order of the fits does not
+        matter); returns the features and the scaled increments (:meth:`fit` once, the bootstrap per replicate)."""
         obs, nxt = a.obs[rows], a.next_obs[rows]
         F = self._features(obs, a.action[rows])
         dx = (nxt - obs) / self.sd_
         self.linear_, self.residual_ = self._increments(F, dx)
         G = np.column_stack([F, nxt / self.sd_])
-        self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows], a.terminated[rows]]))
+        self.outcome_ = self._trees().fit(G, np.column_stack([a.cost[rows] / self.cost_unit_, a.terminated[rows]]))
         return F, dx
 
     def _trees(self) -> Any:
@@ -213,11 +216,10 @@ class LoggedDynamics:
         return np.column_stack([obs / self.sd_, self.action_features_[np.asarray(action, dtype=np.int64)]])
 
     def in_data(self, states: np.ndarray, radius: float | None = None) -> np.ndarray:
-        """Whether each state has a logged state within ``radius`` (default ``radius_``;
-        feature standard deviations), exactly. An approximate nearest-neighbour search
-        (``eps``: its distance is at most ``1 + eps`` times the true one) settles most states: within the radius is
-        in, past ``(1 + eps)`` times it is out; only those in between get an exact search.
-        In 17 dimensions over 200k rows that is ~10x faster for states near the data."""
+        """Whether each state has a logged state within ``radius`` (default ``radius_``; feature
+        standard deviations), exactly. An approximate nearest-neighbour search (``eps``: its distance is at
+        most ``1 + eps`` times the true one) settles most states: within the radius is in, past ``(1 + eps)``
+        times it is out; only those in between get an exact search (17 dimensions, 200k rows: ~10x faster)."""
         z = np.asarray(states, dtype=np.float64) / self.sd_
         r = self.radius_ if radius is None else float(radius)
         if r <= 0:  # a lattice: only the logged states themselves
@@ -250,7 +252,7 @@ class LoggedDynamics:
             upper = u[np.minimum(i, len(u) - 1)]
             nxt[:, j] = np.where(np.abs(nxt[:, j] - lower) <= np.abs(upper - nxt[:, j]), lower, upper)
         out = _2d(outcome(np.column_stack([F, nxt / self.sd_])), 2)
-        return StepResult(nxt, out[:, 0], np.clip(out[:, 1], 0.0, 1.0))
+        return StepResult(nxt, out[:, 0] * self.cost_unit_, np.clip(out[:, 1], 0.0, 1.0))
 
     def _predictors(self) -> tuple[Any, Any, Any]:
         """The fitted models' ``predict`` without scikit-learn's per-call validation and

@@ -77,7 +77,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     iteration whenever the targets were constant, e.g. the first targets of a problem with
     one cost per step: LEARN on constant targets is that constant, represented by one-leaf
     trees, and says nothing about where to split). A build grows the ensemble on that
-    iteration's targets (plus a tiny jitter, std ``1e-6 * (1 + std(y))``, only when the
+    iteration's targets (plus a tiny jitter, std ``1e-6 (u + std(y))``, ``u`` the costs' size ``max|c|``, only when the
     targets have ties, so that tied nodes still split (scikit-learn's trees do not always:
     see :mod:`offline_adp.trees.builder`); without ties a build on all rows by scikit-learn,
     ``builder="sklearn"``, is exactly the refit step; the default compiled
@@ -261,6 +261,8 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
             compact = all(type(t) is CompactTree for t in trees)
             ens = compact_ensemble(trees) if compact else TreeEnsemble.from_trees(trees, consume=True)
             ens.n_features_in_ = int(forest.n_features_in_)  # type: ignore[attr-defined]
+            if (u := self.schedule.target_unit) != 1.0:  # grown on y / u (FrozenBuilds._plan)
+                ens = ens.with_values(ens.value * u)
             self._set_ensemble(ens)
         return self.ensemble
 

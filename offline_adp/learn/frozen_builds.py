@@ -143,9 +143,11 @@ class FrozenBuilds:
         """The build of iteration ``k`` on targets ``y`` (not constant) over ``n_rows`` joint
         inputs of ``n_features``: jitter where ties would stop splits, the seeded model, an
         early build's tree count, whether to screen, and the builder (sets ``grown_by``)."""
-        grow = y
+        u, grow = self.schedule.target_unit, y
         if len(np.unique(y)) < len(y):  # ties would stop a node from splitting: break them
-            grow = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (1.0 + float(np.std(y))), len(y))
+            grow = y + np.random.default_rng([self.seed, k, 7]).normal(0.0, 1e-6 * (u + float(np.std(y))), len(y))
+        if u != 1.0:  # the builders' absolute constants (a node whose variance is <= eps is pure) read y / u;
+            grow = grow / u  # the grown values are multiplied back at the export (_exported)
         model = self._structure_model(k)
         params = model.get_params()
         full = int(params.get("n_estimators") or 0)

@@ -167,6 +167,9 @@ class FrozenSchedule:
     builder : {"auto", "sklearn"}
         ``"auto"``: the compiled builder (:mod:`offline_adp.trees.builder`) where it
         implements the regressor's settings; ``"sklearn"``: always scikit-learn.
+    target_unit : float
+        The size of the costs (:attr:`~offline_adp.algorithms.fqi_data.Prepared.cost_unit`):
+        the unit of the tie jitter, ``1e-6 (target_unit + std(y))``.
     """
 
     restructure_at: tuple[int, ...] = (1,)
@@ -175,8 +178,11 @@ class FrozenSchedule:
     early: EarlyBuilds | None = None
     builder: str = "auto"
     settle: Settle | None = None
+    target_unit: float = 1.0
 
     def __post_init__(self) -> None:
+        if not (0.0 < self.target_unit < np.inf):
+            raise InvalidArgumentError(f"target_unit must be positive and finite, got {self.target_unit!r}")
         if self.builder not in ("auto", "sklearn"):
             raise InvalidArgumentError(f"tree_builder must be 'auto' or 'sklearn', got {self.builder!r}")
         check_structure_fractions(self.max_samples)

@@ -331,6 +331,8 @@ class DaskFrozenLearner(FrozenBuilds, Learner):
             trees = [t for chunk in self.client.gather(self._trees) for t in chunk]
             ens = TreeEnsemble.from_trees(trees, consume=True)
             ens.n_features_in_ = int(self.n_features)  # type: ignore[attr-defined]
+            if (u := self.schedule.target_unit) != 1.0:  # grown on y / u (FrozenBuilds._plan)
+                ens = ens.with_values(ens.value * u)
             self.ensemble = ens
         return self.ensemble
 
