@@ -148,3 +148,23 @@ def test_compare_prints_small_costs_as_evaluate_does():
     text = "\n".join(compare_lines({"candidates": [cand], "estimand": "e", "estimator": "fqe",
                                     "dataset": {"path": "d"}}))
     assert "4.98e-12" in text and "[4.6e-12, 5.3e-12]" in text and "0.000" not in text
+
+
+def test_the_logged_cost_interval_stays_within_what_the_costs_allow():
+    """No episode's discounted cost lies outside ``[c_lo, c_hi] sum_t gamma^t``, so neither does the
+    behaviour's value: its Student-t interval is clipped there (the truth is never cut off)."""
+    from scipy.stats import t as student_t
+
+    from offline_adp.evaluation.offpolicy import behaviour_value
+
+    episode, step = np.repeat([0, 1, 2], 2), np.tile([0, 1], 3)
+    cost = np.array([0.0, 0.0, 0.0, 0.0, 5.0, 5.0])  # episode costs 0, 0, 7.5 at gamma 0.5
+    v = behaviour_value(ope.EpisodeMatrix.build(episode, step), cost, 0.5)
+    half = float(student_t.ppf(0.975, 2)) * np.std([0, 0, 7.5], ddof=1) / np.sqrt(3)
+    assert v["mean"] == pytest.approx(2.5) and 2.5 - half < 0 and 2.5 + half > 7.5  # the t-interval: past both ends
+    assert v["interval"] == [0.0, 7.5] and "clipped to the possible range [0, 7.5]" in v["method"]
+    one = behaviour_value(ope.EpisodeMatrix.build(np.zeros(2), np.arange(2)), np.array([1.0, 2.0]), 0.5)
+    assert one["interval"] == [1.5, 3.0]  # one episode: the whole range, not (-inf, inf)
+    many = behaviour_value(ope.EpisodeMatrix.build(np.repeat(np.arange(20), 2), np.tile([0, 1], 20)),
+                           np.random.default_rng(0).uniform(0.0, 1.0, 40), 0.5)
+    assert "clipped" not in many["method"] and 0.0 < many["interval"][0] < many["mean"] < many["interval"][1] < 1.5

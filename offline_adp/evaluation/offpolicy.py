@@ -132,22 +132,33 @@ class ResidualAdvantage:
 
 def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level: float = 0.95,
                     terminated: np.ndarray | None = None, est_def: Estimand | None = None) -> dict[str, Any]:
-    """The logged behaviour's own value of the estimand: mean over episodes of
-    ``sum_{t<T} gamma^t c_t`` with a Student-t interval (n - 1 degrees of freedom: with few
-    episodes a normal one covers far less than its level). With ``terminated``, it is marked
-    ``comparable: false`` where it is not the behaviour's value of the estimand: episodes that
-    stop before step T without a terminal state (truncated: their missing steps count as zero
-    cost in it), or, for an estimand past the T logged steps (``est_def``: a longer horizon or the
-    infinite-horizon value), episodes that run to step T without a terminal state (their cost
-    after step T is not in it)."""
+    """The logged behaviour's own value of the estimand: mean over episodes of ``sum_{t<T} gamma^t
+    c_t`` with a Student-t interval (n - 1 degrees of freedom: with few episodes a normal one
+    covers far less than its level), clipped to the range the logged costs make possible
+    (``[c_lo, c_hi] sum_{t<T} gamma^t``, with 0 where episodes stop early). With ``terminated``,
+    it is marked ``comparable: false`` where it is not the behaviour's value of the estimand:
+    episodes that stop before step T without a terminal state (truncated: their missing steps
+    count as zero cost in it), or, for an estimand past the T logged steps (``est_def``: a
+    longer horizon or the infinite-horizon value), episodes that run to step T without a
+    terminal state (their cost after step T is not in it)."""
     from scipy.stats import t as student_t
 
-    G = em.lay(cost) @ (gamma ** np.arange(em.horizon))
+    disc = gamma ** np.arange(em.horizon)
+    G = em.lay(cost) @ disc
     n = len(G)
     se = float(G.std(ddof=1) / np.sqrt(n)) if n > 1 else float("inf")
     q = float(student_t.ppf(0.5 + level / 2, n - 1)) if n > 1 else float("inf")
-    out = {"mean": float(G.mean()), "se": se, "interval": [float(G.mean() - q * se), float(G.mean() + q * se)],
-           "episodes": int(n), "method": "mean logged discounted cost over the data's episodes (Student-t interval)"}
+    lo, hi = float(G.mean() - q * se), float(G.mean() + q * se)
+    # no episode's cost lies past [c_lo, c_hi] sum_t gamma^t (0 in it where episodes stop early): nor their mean
+    c_lo, c_hi = float(np.min(cost)), float(np.max(cost))
+    if not em.mask.all() or (terminated is not None and bool(np.any(terminated))):
+        c_lo, c_hi = min(c_lo, 0.0), max(c_hi, 0.0)
+    r_lo, r_hi = c_lo * float(disc.sum()), c_hi * float(disc.sum())
+    method = "mean logged discounted cost over the data's episodes (Student-t interval"
+    if lo < r_lo or hi > r_hi:
+        lo, hi = max(lo, r_lo), min(hi, r_hi)
+        method += f", clipped to the possible range [{r_lo:.4g}, {r_hi:.4g}]"
+    out = {"mean": float(G.mean()), "se": se, "interval": [lo, hi], "episodes": int(n), "method": method + ")"}
     ends = None if terminated is None else episode_ends(em, terminated)
     if ends == "short":
         out |= {"comparable": False,
