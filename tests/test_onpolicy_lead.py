@@ -327,7 +327,10 @@ def test_the_logged_cost_has_a_student_t_interval_and_says_when_it_is_not_the_T_
     G = np.array([4.0, 8.0, 16.0])  # gamma 1
     bv = behaviour_value(em, cost, 1.0, terminated=np.zeros(12, bool))
     half = student_t.ppf(0.975, 2) * G.std(ddof=1) / np.sqrt(3)  # 4.30 standard errors, not 1.96
-    assert bv["interval"] == pytest.approx([G.mean() - half, G.mean() + half])
+    assert bv["se"] == pytest.approx(G.std(ddof=1) / np.sqrt(3))
+    # clipped to what the costs allow: every episode costs between 4 x 1 and 4 x 4
+    assert bv["interval"] == pytest.approx([max(G.mean() - half, 4.0), min(G.mean() + half, 16.0)]) == [4.0, 16.0]
+    assert "clipped to the possible range [4, 16]" in bv["method"]
     assert "comparable" not in bv  # every episode runs to T
     # the third stops after 2 steps without a terminal state: its steps 2 and 3 count as 0
     em = ope.EpisodeMatrix.build(np.repeat([0, 1, 2], [4, 4, 2]), np.r_[np.arange(4), np.arange(4), np.arange(2)], 4)
