@@ -52,7 +52,7 @@ def test_cost_unit_is_the_power_of_two_below_the_largest_cost():
         assert u <= m < 2 * u and math.frexp(u)[0] == 0.5
 
 
-@pytest.mark.parametrize("k", [-20, 17])
+@pytest.mark.parametrize("k", [-40, 17])
 def test_the_default_fit_is_the_same_in_any_power_of_two_of_the_unit(pt, k):
     s = 2.0**k
     params = {"regressor_params": {"n_estimators": 10}}
@@ -66,7 +66,7 @@ def test_the_default_fit_is_the_same_in_any_power_of_two_of_the_unit(pt, k):
     np.testing.assert_array_equal(b.history_["sup_dq"].to_numpy(), a.history_["sup_dq"].to_numpy() * s)
 
 
-@pytest.mark.parametrize("k", [-20, 17])
+@pytest.mark.parametrize("k", [-40, 17])
 def test_fqe_and_the_logged_model_are_the_same_in_any_power_of_two_of_the_unit(pt, k):
     s = 2.0**k
     policy = FittedQIteration(regressor_params={"n_estimators": 5}).fit(pt).policy_
@@ -112,11 +112,12 @@ def _same_up_to_the_unit(a, b, s, path, found):
 
 def test_evaluate_prints_every_cost_in_the_unit_of_the_logs(pt, tmp_path):
     """The whole evaluation (FQE and its bootstrap, the model rollouts, importance sampling, the
-    shift diagnostics, the verdict) on logs whose costs are in 2^-20 of the unit."""
+    shift diagnostics, the verdict) on logs whose costs are in 2^-40 of the unit (max|c| 4.5e-11: a
+    tolerance of 1e-9 in absolute units, as the verdict's was, calls every side indistinguishable)."""
     from offline_adp.evaluation.run import evaluate_run
     from offline_adp.runs import fit_run
 
-    s = 2.0**-20
+    s = 2.0**-40
     params = {"regressor_params": {"n_estimators": 5, "n_jobs": 1}}
     metrics = []
     for name, ds in (("x1", pt), ("small", scaled(pt, s))):
@@ -140,3 +141,18 @@ def test_tiny_costs_warn_only_where_the_learner_reads_them_raw(pt):
         FittedQIteration(regressor_params={"n_estimators": 3}).fit(tiny)  # the frozen default reads y / cost_unit
     with pytest.warns(ScaleWarning, match="the costs are at most 5e-08 in size"):
         FittedQIteration(mode="refit", n_iterations=2, regressor_params={"n_estimators": 3}).fit(tiny)
+
+
+@pytest.mark.parametrize("k", [-60, -40, 0, 40])
+def test_the_verdicts_tolerances_are_relative(k):
+    """A side is claimed from the numbers' own size: at costs x 2^-40 a tolerance of 1e-9 in absolute
+    units called every interval "not distinguishable" from the behaviour's cost."""
+    from offline_adp.evaluation.verdict import logged_side, side_of_behaviour
+
+    s = 2.0**k
+    assert side_of_behaviour(2.3 * s, 2.6 * s, 4 * s) == "better" and side_of_behaviour(4.1 * s, 5 * s, 4 * s) == "worse"
+    assert side_of_behaviour(3 * s, 5 * s, 4 * s) == "indistinguishable"
+    assert side_of_behaviour(1.0 * s, 1.0 * s, sum([0.1] * 10) * s) == "indistinguishable"  # equal up to rounding
+    beh = {"mean": 4 * s, "interval": [3.5 * s, 4.5 * s]}
+    assert logged_side(2.3 * s, 3.4 * s, beh) == "better" and logged_side(4.6 * s, 5 * s, beh) == "worse"
+    assert logged_side(3.4 * s, 3.6 * s, beh) == "indistinguishable"

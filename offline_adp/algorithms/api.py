@@ -298,7 +298,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
                          "evaluation": getattr(fqe, "verdict_", None), "n_transitions": len(data),
                          "fit_seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0})
             if (best is not None and len(data) == len(dataset)
-                    and fqe.value_ > best[0] + 1e-9 * max(1.0, abs(best[0]))):  # J(pi_k) > min_j J(pi_j)
+                    and fqe.value_ > best[0] + 1e-9 * abs(best[0])):  # J(pi_k) > min_j J(pi_j)
                 stop = "no improvement"
                 self.value_, _, self.policy_, self.q_function_, self.fqe_ = best
                 break

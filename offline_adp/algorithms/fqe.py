@@ -214,7 +214,7 @@ commands, n_candidates, n_representatives
         ``v <- M (c + gamma (1 - term) * sum_a' pi(a'|x') A_next v)`` (a sup-norm
         gamma-contraction: the leaf and query operators average) until the distance to
         the fixed point is at most ``tol`` (``gamma / (1 - gamma)`` times the last sweep's
-        change; default ``1e-7 (u + max |v|)``, ``u`` the costs' size ``max |c|``): the estimate is then
+        change; default ``1e-7 (u + max |v|)``, ``u`` the power of two ``u <= max |c| < 2u``): the estimate is then
         the fixed point of the averager the structure defines, the same quantity
         :meth:`reweighted_value` computes for other weights, so bootstrap replicates are
         centred on it. Returns the number of sweeps run (also in ``settled_iterations_``).

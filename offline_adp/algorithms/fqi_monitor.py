@@ -150,7 +150,7 @@ class DivergenceMonitor:
     def check(self, rows: list[dict[str, Any]]) -> str | None:
         """A message when ``rows`` (iterations 1..k) show divergence at iteration k, else None."""
         last = rows[-1]
-        if np.isfinite(self.bound) and last["max_abs_q"] > self.bound * (1 + self.margin) + 1e-9:
+        if np.isfinite(self.bound) and last["max_abs_q"] > self.bound * (1 + self.margin + 1e-9):
             return (f"iteration {last['iteration']}: max |Q| = {last['max_abs_q']:.4g} exceeds the bound "
                     f"{self.bound_text} = {self.bound:.4g} by more than {self.margin:.0%}")
         if not np.isfinite(last["max_abs_q"]):

@@ -190,7 +190,7 @@ def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> ope.OPEResult
         return fq
     lo_r, hi_r = est_def.possible_range
     near = min(max(fq.estimate, lo_r), hi_r)
-    if near == fq.estimate or abs(near - fq.estimate) > est_def.tail_bound + 1e-9 * max(1.0, abs(near)):
+    if near == fq.estimate or abs(near - fq.estimate) > est_def.tail_bound + 1e-9 * abs(fq.estimate):
         return fq
     why = (f"the stationary estimate {fq.estimate:.4g} lies past the {est_def.horizon}-step range by less than the "
            f"truncation bound {est_def.tail_bound:.3g}: reported at the range's edge {near:.4g}")

@@ -70,7 +70,7 @@ FQE_REPLICATE_ROUGH = 50
 #: Regressors whose FQE refits are cheap enough for the full replicate floor.
 CHEAP_REGRESSORS = ("tabular", "linear")
 #: Relative accuracy of a structure-conditional bootstrap replicate's fixed point: its value
-#: is within ``REPLICATE_RTOL (1 + max|v|)`` of the replicate's exact fixed point, far below
+#: is within ``REPLICATE_RTOL (u + max|v|)`` of the replicate's exact fixed point, far below
 #: the replicates' spread, at ~2/3 of the sweeps the point estimate's ``1e-7`` needs.
 REPLICATE_RTOL = 1e-5
 #: The support bounds' radius: a row of the queried action counts when it is at most as far from

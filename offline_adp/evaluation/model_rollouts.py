@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.access import StepResult
+from offline_adp.algorithms.fqi_data import cost_unit
 from offline_adp.data.dataset import TransitionArrays, TransitionDataset
 from offline_adp.errors import InvalidArgumentError
 from offline_adp.evaluation import MODEL_PARTICLES_DEFAULT
@@ -78,8 +79,7 @@ MAX_LEVELS = 20
 #: the exit mass from which a warning says the policy drives where the logs do not go (and the
 #: headline judges it left the data's support: ``verdict.MODEL_EXIT_FRACTION``)
 EXIT_FRACTION = 0.1
-#: the approximate nearest-neighbour search of the support check (:meth:`LoggedDynamics.in_data`)
-_NN_EPS = 1.0
+_NN_EPS = 1.0  #: the approximate nearest-neighbour search of the support check (LoggedDynamics.in_data)
 
 
 @dataclass
@@ -104,7 +104,7 @@ class LoggedDynamics:
     sd_ : ndarray
         Feature standard deviations (1 where constant).
     cost_unit_ : float
-        The costs' size, ``max |c|`` (1 where all are 0): the outcome model's unit of cost.
+        The outcome model's unit of cost (the power of two ``u <= max |c| < 2u``, ``cost_unit``).
     radius_ : float
         In-the-data distance (:data:`SUPPORT_QUANTILE` of the distances to other episodes'
         nearest states, :func:`_support_radius`): where the support judgement (exit mass)
@@ -142,7 +142,7 @@ class LoggedDynamics:
         obs, nxt = a.obs[rows], a.next_obs[rows]
         sd = obs.std(axis=0)
         self.sd_ = np.where(sd > 0, sd, 1.0)
-        self.cost_unit_ = c if 0.0 < (c := float(np.abs(a.cost[rows]).max(initial=0.0))) < np.inf else 1.0
+        self.cost_unit_ = cost_unit(a.cost[rows])  # a power of two: c / u * u is c
         self.start_states_ = a.obs[a.step == 0]
         z = obs / self.sd_
         self.tree_ = cKDTree(z)
@@ -187,7 +187,7 @@ class LoggedDynamics:
 
     def fit_predictors(self, a: TransitionArrays, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Fit the increment models (``linear_``, ``residual_``) and the cost-and-termination
-        model (``outcome_``, the costs in units of ``cost_unit_``, ``max |c|``, so that the
+        model (``outcome_``, the costs in units of ``cost_unit_``, ``~max |c|``, so that the
         terminations weigh the same in its splits at any scale of the costs) on ``rows`` of
         ``a`` (each tree model seeded with ``random_state``, so the order of the fits does not
         matter); returns the features and the scaled increments (:meth:`fit` once, the bootstrap per replicate)."""

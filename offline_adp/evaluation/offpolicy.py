@@ -135,7 +135,7 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
     """The logged behaviour's own value of the estimand: mean over episodes of ``sum_{t<T} gamma^t
     c_t`` with a Student-t interval (n - 1 degrees of freedom: with few episodes a normal one
     covers far less than its level), clipped to the range the logged costs make possible
-    (``[c_lo, c_hi] sum_{t<T} gamma^t``, with 0 where episodes stop early). With ``terminated``,
+    (``[c_lo, c_hi] sum_{t<T} gamma^t``, with 0 where episodes stop early; with one episode none). With ``terminated``,
     it is marked ``comparable: false`` where it is not the behaviour's value of the estimand:
     episodes that stop before step T without a terminal state (truncated: their missing steps
     count as zero cost in it), or, for an estimand past the T logged steps (``est_def``: a
@@ -153,9 +153,10 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
     c_lo, c_hi = float(np.min(cost)), float(np.max(cost))
     if not em.mask.all() or (terminated is not None and bool(np.any(terminated))):
         c_lo, c_hi = min(c_lo, 0.0), max(c_hi, 0.0)
-    r_lo, r_hi = c_lo * float(disc.sum()), c_hi * float(disc.sum())
+    # (the mean itself in it: G summed step by step may differ from c * sum_t gamma^t by a rounding)
+    r_lo, r_hi = min(c_lo * float(disc.sum()), float(G.mean())), max(c_hi * float(disc.sum()), float(G.mean()))
     method = "mean logged discounted cost over the data's episodes (Student-t interval"
-    if lo < r_lo or hi > r_hi:
+    if n > 1 and (lo < r_lo or hi > r_hi):  # one episode: no spread to measure, no interval (not the range)
         lo, hi = max(lo, r_lo), min(hi, r_hi)
         method += f", clipped to the possible range [{r_lo:.4g}, {r_hi:.4g}]"
     out = {"mean": float(G.mean()), "se": se, "interval": [lo, hi], "episodes": int(n), "method": method + ")"}

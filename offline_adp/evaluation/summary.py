@@ -88,7 +88,8 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         reasons = []
         if not _is_finite_number(est):
             reasons.append("no finite estimate")
-        elif rng and not (rng[0] - 1e-9 <= est <= rng[1] + 1e-9):
+        elif rng and not (rng[0] - 1e-9 * max(abs(rng[0]), abs(rng[1])) <= est
+                          <= rng[1] + 1e-9 * max(abs(rng[0]), abs(rng[1]))):
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
         # the ESS floor again for files written before it (compare reuses them): the 1% rule is in their flag
         if r.get("degenerate") or (_is_finite_number(r.get("ess")) and r["ess"] < degenerate_floor(name, 0)):
@@ -422,8 +423,9 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     top = b or next((e for e in h["ranking"] if e["tier"] == 1), None)
     if top is not None and (b is not None or top.get("shown_interval")):
         lo, hi = top["interval"] or top["shown_interval"]
-        tol = 1e-9 * max(1.0, abs(top["estimate"]))
-        outside = lo is not None and hi is not None and not lo - tol <= top["estimate"] <= hi + tol
+        outside = (lo is not None and hi is not None and not
+                   lo - 1e-9 * max(abs(top["estimate"]), abs(lo), abs(hi)) <= top["estimate"]
+                   <= hi + 1e-9 * max(abs(top["estimate"]), abs(lo), abs(hi)))
         label = level_words(top)
         lines.append(f"off-policy ({top['name'].upper()}, most reliable): {_f(top['estimate'])} [{_f(lo)}, {_f(hi)}] "
                      f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None

@@ -35,8 +35,8 @@ FIT_SETTLED = ("converged", "finite horizon", "completed")
 def side_of_behaviour(lo: float, hi: float, b: float) -> str:
     """Which side of the behaviour's cost ``b`` an interval lies on; equal up to rounding
     (e.g. every MountainCar policy that never reaches the goal: 86.602 against 86.602 summed
-    in another order) is not a side."""
-    tol = 1e-9 * max(1.0, abs(b))
+    in another order) is not a side. The tolerance is relative: costs in any unit."""
+    tol = 1e-9 * max(abs(b), abs(lo), abs(hi))
     return "better" if hi < b - tol else "worse" if lo > b + tol else "indistinguishable"
 
 
@@ -67,7 +67,7 @@ def logged_side(lo: float, hi: float, beh: dict[str, Any]) -> str:
     bi = logged_interval(beh)
     if bi is None:
         return "unknown"
-    tol = 1e-9 * max(1.0, abs(float(beh["mean"])))
+    tol = 1e-9 * max(abs(float(beh["mean"])), abs(bi[0]), abs(bi[1]), abs(lo), abs(hi))
     return "better" if hi < bi[0] - tol else "worse" if lo > bi[1] + tol else "indistinguishable"
 
 

@@ -77,7 +77,7 @@ class FrozenTreesLearner(FrozenBuilds, Learner):
     iteration whenever the targets were constant, e.g. the first targets of a problem with
     one cost per step: LEARN on constant targets is that constant, represented by one-leaf
     trees, and says nothing about where to split). A build grows the ensemble on that
-    iteration's targets (plus a tiny jitter, std ``1e-6 (u + std(y))``, ``u`` the costs' size ``max|c|``, only when the
+    iteration's targets (plus a tiny jitter, std ``1e-6 (u + std(y))``, a power of two ``u <= max|c| < 2u``, when the
     targets have ties, so that tied nodes still split (scikit-learn's trees do not always:
     see :mod:`offline_adp.trees.builder`); without ties a build on all rows by scikit-learn,
     ``builder="sklearn"``, is exactly the refit step; the default compiled
