@@ -38,8 +38,11 @@ The run directory (``runs/<name>__<seed>__<timestamp>/`` or ``--out``) holds::
     fit/evaluation/  metrics and arrays; fit/report/ the report
     metrics.json, report.html, figures/   copies at the top for convenience
 
-Each stage has a *key*: a hash of its settings and of its inputs' keys (input files by
-sha256). A stage whose key matches the manifest's completed entry is reused. Without
+Each stage has a *key*: a hash of its settings, of its inputs' keys (input files by
+sha256) and of the versions the manifest records (the library's and of the libraries whose
+models it stores): a stage computed by another version is recomputed, and an interrupted fit
+resumes only from checkpoints of this version. A stage whose key matches the manifest's
+completed entry is reused. Without
 ``--out``, the latest run directory of the same name and seed is continued, so running
 a pipeline twice reuses every stage, and a run killed mid-stage resumes from the last
 completed stage (an interrupted FQI fit resumes from its last checkpointed iteration).
@@ -169,7 +172,7 @@ def _run_locked(cfg: dict[str, Any], rd: RunDirectory, from_stage: str | None, s
     def stage(name: str, key: str, fn: Callable[[], dict[str, Any] | None]) -> None:
         if name not in redo and man.done(name, key):
             man.set(name, reused=True)
-            say(f"[{name}] reused (inputs and settings unchanged)")
+            say(f"[{name}] reused (inputs, settings and versions unchanged)")
             return
         if from_stage and name not in redo:  # asked to start later, but this earlier stage has nothing to reuse
             say(f"[{name}] running: no completed {name} stage with these inputs and settings in {run} to reuse "
@@ -214,7 +217,8 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
         man.data["inputs"] = {f: sha256_file(f) for f in data["inputs"]}
         if isinstance(data["spec"], str):
             man.data["inputs"][data["spec"]] = sha256_file(data["spec"])
-    data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"]})
+    data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"],
+                      "versions": man.data["versions"]})
     stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
     fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
@@ -290,8 +294,11 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     if "random_state" in entry.params_model().model_fields:
         params.setdefault("random_state", cfg["seed"])
     target = RunDirectory(run / "fit")
+    from offline_adp.artifacts import versions
+
     resume = entry.resumable and target.exists("checkpoint") and target.exists(target.CONFIG) \
-        and target.read_json(target.CONFIG).get("params") == params
+        and target.read_json(target.CONFIG).get("params") == params \
+        and target.exists("run.json") and target.read_json("run.json").get("versions") == versions()
     on = " (Dask)" if engine is not None else ""
     if resume:
         say(f"[fit] resuming from the last checkpointed iteration{on}")

@@ -139,4 +139,27 @@ def test_from_a_stage_with_nothing_to_reuse_says_so(tmp_path):
     said.clear()  # again in the same directory: the stages before evaluate are reused, nothing to explain
     run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "a", from_stage="evaluate", say=said.append,
                  overrides=TINY)
-    assert "[data] reused (inputs and settings unchanged)" in said and not any("no completed" in s for s in said)
+    assert "[data] reused (inputs, settings and versions unchanged)" in said
+    assert not any("no completed" in s for s in said)
+
+
+def test_another_version_recomputes_every_stage_and_resumes_no_fit_of_the_old_one(tmp_path, monkeypatch):
+    """A stage computed by another version of the library is not reused (its manifest would name
+    the new version over the old code's numbers), and its fit's checkpoints are not resumed."""
+    import offline_adp.artifacts as artifacts
+    import offline_adp.runs as runs
+
+    run = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "r", say=quiet, overrides=TINY)
+    real = artifacts.versions()
+    upgraded = {**real, "offline_adp": real["offline_adp"] + ".post1"}
+    monkeypatch.setattr(artifacts, "versions", lambda: upgraded)
+    monkeypatch.setattr(runs, "versions", lambda: upgraded)
+    said: list[str] = []
+    run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)
+    man = json.loads((run / "manifest.json").read_text())
+    assert man["versions"] == upgraded and not any(s["reused"] for s in man["stages"].values())
+    assert not any("resuming" in s for s in said)
+    assert json.loads((run / "fit" / "run.json").read_text())["versions"] == upgraded
+    said.clear()
+    run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)  # the same version again
+    assert all(s["reused"] for s in json.loads((run / "manifest.json").read_text())["stages"].values())
