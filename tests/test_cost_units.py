@@ -157,3 +157,17 @@ def test_the_verdicts_tolerances_are_relative(k):
     beh = {"mean": 4 * s, "interval": [3.5 * s, 4.5 * s]}
     assert logged_side(2.3 * s, 3.4 * s, beh) == "better" and logged_side(4.6 * s, 5 * s, beh) == "worse"
     assert logged_side(3.4 * s, 3.6 * s, beh) == "indistinguishable"
+
+
+def test_policy_iteration_stops_alike_in_any_power_of_two_of_the_unit(pt):
+    """API's "no improvement" stop compares evaluations with a relative tolerance: at costs x 2^-40
+    an absolute 1e-9 never saw a rise and ran every iteration."""
+    from offline_adp.algorithms.api import ApproximatePolicyIteration
+
+    s = 2.0**-40
+    a = ApproximatePolicyIteration(random_state=0).fit(pt)
+    b = ApproximatePolicyIteration(random_state=0).fit(scaled(pt, s))
+    assert len(a.history_) == len(b.history_) < 10 and a.verdict_ == b.verdict_  # stopped before the cap, alike
+    x = pt.arrays().obs
+    np.testing.assert_array_equal(b.q_function_.values(x), a.q_function_.values(x) * s)
+    assert b.value_ == a.value_ * s
