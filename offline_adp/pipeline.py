@@ -39,10 +39,10 @@ The run directory (``runs/<name>__<seed>__<timestamp>/`` or ``--out``) holds::
     metrics.json, report.html, figures/   copies at the top for convenience
 
 Each stage has a *key*: a hash of its settings, of its inputs' keys (input files by
-sha256) and of the versions the manifest records (the library's and of the libraries whose
-models it stores): a stage computed by another version is recomputed, and an interrupted fit
-resumes only from checkpoints of this version. A stage whose key matches the manifest's
-completed entry is reused. Without
+sha256), of the versions the manifest records (the library's and of the libraries whose
+models it stores) and of the library's code (:func:`code_fingerprint`): a stage computed by
+other code is recomputed, and an interrupted fit resumes only from checkpoints written under
+the same key. A stage whose key matches the manifest's completed entry is reused. Without
 ``--out``, the latest run directory of the same name and seed is continued, so running
 a pipeline twice reuses every stage, and a run killed mid-stage resumes from the last
 completed stage (an interrupted FQI fit resumes from its last checkpointed iteration).
@@ -53,6 +53,7 @@ ones after it.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import time
@@ -105,7 +106,8 @@ class Manifest:
         from offline_adp.artifacts import versions
 
         self.data: dict[str, Any] = {"name": cfg["name"], "seed": cfg["seed"], "pipeline": cfg["file"],
-                                     "config_hash": _hash(cfg), "versions": versions(), "created": old.get("created"),
+                                     "config_hash": _hash(cfg), "versions": versions(), "code": code_fingerprint(),
+                                     "created": old.get("created"),
                                      "inputs": old.get("inputs", {}), "stages": old.get("stages", {}),
                                      "runs": old.get("runs", 0) + 1}
         self.data["created"] = self.data["created"] or datetime.now(UTC).isoformat(timespec="seconds")
@@ -172,7 +174,7 @@ def _run_locked(cfg: dict[str, Any], rd: RunDirectory, from_stage: str | None, s
     def stage(name: str, key: str, fn: Callable[[], dict[str, Any] | None]) -> None:
         if name not in redo and man.done(name, key):
             man.set(name, reused=True)
-            say(f"[{name}] reused (inputs, settings and versions unchanged)")
+            say(f"[{name}] reused (inputs, settings and code unchanged)")
             return
         if from_stage and name not in redo:  # asked to start later, but this earlier stage has nothing to reuse
             say(f"[{name}] running: no completed {name} stage with these inputs and settings in {run} to reuse "
@@ -210,6 +212,18 @@ def _engine(cfg: dict[str, Any], say: Callable[[str], None]) -> Iterator[Any]:
         yield client
 
 
+@functools.cache
+def code_fingerprint() -> str:
+    """sha256 of the library's source (every ``.py`` file of the package, by relative path):
+    part of every stage's key, so that a stage computed by other code, an upgrade or a local
+    edit, is recomputed rather than reused under the new code's name."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[..., None], client: Any,
                 say: Callable[[str], None]) -> None:
     data = cfg["data"]
@@ -218,11 +232,13 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
         if isinstance(data["spec"], str):
             man.data["inputs"][data["spec"]] = sha256_file(data["spec"])
     data_key = _hash({"data": data, "inputs": man.data["inputs"], "seed": cfg["seed"],
-                      "versions": man.data["versions"]})
+                      "versions": man.data["versions"], "code": man.data["code"]})
     stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
     fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
-    stage("fit", fit_key, lambda: _fit_stage(cfg, run, say, client))
+    # its checkpoints are resumed only when the fit they were written by had this key (same code and settings)
+    same_fit = man.data["stages"].get("fit", {}).get("key") == fit_key
+    stage("fit", fit_key, lambda: _fit_stage(cfg, run, say, client, resumable=same_fit))
     if cfg["evaluate"] is not None:
         eval_key = _hash({"evaluate": cfg["evaluate"], "fit": fit_key, "seed": cfg["seed"]})
         stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say, client))
@@ -281,10 +297,12 @@ def _validate_stage(run: Path) -> dict[str, Any]:
     return {"ok": bool(report.ok)}
 
 
-def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None) -> dict[str, Any]:
+def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], client: Any = None,
+               resumable: bool = True) -> dict[str, Any]:
     """The fit into ``fit/`` by the run writer (:func:`offline_adp.runs.fit_run`), on the
     Dask cluster for FQI with LightGBM or the default frozen extra-trees mode when there is
-    a client (:func:`_fit_dask`): the same run directory, checkpoints and resume either way."""
+    a client (:func:`_fit_dask`): the same run directory, checkpoints and resume either way
+    (``resumable``: the checkpoints there were written under this stage's key)."""
     from offline_adp.runs import fit_run
 
     fit = cfg["fit"]
@@ -294,11 +312,8 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     if "random_state" in entry.params_model().model_fields:
         params.setdefault("random_state", cfg["seed"])
     target = RunDirectory(run / "fit")
-    from offline_adp.artifacts import versions
-
-    resume = entry.resumable and target.exists("checkpoint") and target.exists(target.CONFIG) \
-        and target.read_json(target.CONFIG).get("params") == params \
-        and target.exists("run.json") and target.read_json("run.json").get("versions") == versions()
+    resume = resumable and entry.resumable and target.exists("checkpoint") and target.exists(target.CONFIG) \
+        and target.read_json(target.CONFIG).get("params") == params
     on = " (Dask)" if engine is not None else ""
     if resume:
         say(f"[fit] resuming from the last checkpointed iteration{on}")

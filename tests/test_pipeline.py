@@ -139,7 +139,7 @@ def test_from_a_stage_with_nothing_to_reuse_says_so(tmp_path):
     said.clear()  # again in the same directory: the stages before evaluate are reused, nothing to explain
     run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "a", from_stage="evaluate", say=said.append,
                  overrides=TINY)
-    assert "[data] reused (inputs, settings and versions unchanged)" in said
+    assert "[data] reused (inputs, settings and code unchanged)" in said
     assert not any("no completed" in s for s in said)
 
 
@@ -163,3 +163,18 @@ def test_another_version_recomputes_every_stage_and_resumes_no_fit_of_the_old_on
     said.clear()
     run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)  # the same version again
     assert all(s["reused"] for s in json.loads((run / "manifest.json").read_text())["stages"].values())
+
+
+def test_other_code_recomputes_every_stage(tmp_path, monkeypatch):
+    """A local edit of the library (same version string) changes the code's fingerprint: nothing
+    computed by the old code is reused (make demo printed the old evaluation as "reused" after one)."""
+    import offline_adp.pipeline as pipeline
+
+    run = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "r", say=quiet, overrides=TINY)
+    assert json.loads((run / "manifest.json").read_text())["code"] == pipeline.code_fingerprint()
+    monkeypatch.setattr(pipeline, "code_fingerprint", lambda: "0" * 64)
+    said: list[str] = []
+    run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)
+    man = json.loads((run / "manifest.json").read_text())
+    assert man["code"] == "0" * 64 and not any(s["reused"] for s in man["stages"].values())
+    assert not any("resuming" in s for s in said)

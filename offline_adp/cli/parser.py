@@ -181,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run a pipeline file (ingest -> validate -> fit -> evaluate -> report) into a run directory",
         formatter_class=fmt,
         description="Run the stages of a pipeline file into runs/<name>__<seed>__<timestamp>/ (or --out). A stage "
-        "whose inputs, settings and versions are unchanged is reused; an interrupted run continues from its last "
+        "whose inputs, settings and code are unchanged is reused; an interrupted run continues from its last "
         "completed stage (FQI from its last checkpointed iteration). The manifest (manifest.json) records input "
         "fingerprints, the config hash, versions and per-stage status and timings. See offline_adp/pipeline.py for "
         "the file format.",
