@@ -149,6 +149,15 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
                     target_horizon=int(target_horizon) if target_horizon is not None else None, **where)
 
 
+def step_cost_range(cost: np.ndarray, terminated: np.ndarray | None, em: ope.EpisodeMatrix) -> tuple[float, float]:
+    """``[c_lo, c_hi]``: what one of the T logged steps can cost, the logged costs' range with 0
+    in it where episodes stop early (a terminal state, or shorter than T: they add 0 from then on)."""
+    lo_c, hi_c = float(np.min(cost)), float(np.max(cost))
+    if (terminated is not None and bool(np.any(terminated))) or not em.mask.all():
+        lo_c, hi_c = min(lo_c, 0.0), max(hi_c, 0.0)
+    return lo_c, hi_c
+
+
 def with_possible_range(est_def: Estimand, a: TransitionArrays,
                         em: ope.EpisodeMatrix) -> tuple[Estimand, tuple[float, float]]:
     """The range the estimand's value can take, from the logged costs ``[c_lo, c_hi]`` (with 0
@@ -157,9 +166,7 @@ def with_possible_range(est_def: Estimand, a: TransitionArrays,
     ``possible_range`` set and the logged T steps' range; past the logs (``beyond_logs``) the
     estimand's own range is over its H steps with 0 in it (the logs end before H)."""
     gamma, T, H = est_def.gamma, est_def.horizon, est_def.value_horizon
-    lo_c, hi_c = float(a.cost.min()), float(a.cost.max())
-    if a.terminated.any() or not em.mask.all():  # episodes that stop early add 0 from then on
-        lo_c, hi_c = min(lo_c, 0.0), max(hi_c, 0.0)
+    lo_c, hi_c = step_cost_range(a.cost, a.terminated, em)
     span = float(np.sum(gamma ** np.arange(T))) if est_def.form == "finite" else 1.0 / (1.0 - gamma)
     logged_range = (lo_c * span, hi_c * span)
     if not est_def.beyond_logs:
@@ -190,7 +197,7 @@ def stationary_onto_range(fq: ope.OPEResult, est_def: Estimand) -> ope.OPEResult
         return fq
     lo_r, hi_r = est_def.possible_range
     near = min(max(fq.estimate, lo_r), hi_r)
-    if near == fq.estimate or abs(near - fq.estimate) > est_def.tail_bound + 1e-9 * abs(fq.estimate):
+    if near == fq.estimate or abs(near - fq.estimate) > est_def.tail_bound + ope.rounding_tol(fq.estimate):
         return fq
     why = (f"the stationary estimate {fq.estimate:.4g} lies past the {est_def.horizon}-step range by less than the "
            f"truncation bound {est_def.tail_bound:.3g}: reported at the range's edge {near:.4g}")

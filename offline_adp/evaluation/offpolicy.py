@@ -53,6 +53,7 @@ from offline_adp.evaluation.estimand import (  # noqa: F401
     episode_ends,
     evaluation_horizon,
     short_episodes,
+    step_cost_range,
     with_possible_range,
 )
 from offline_adp.evaluation.fqe_interval import (  # noqa: F401
@@ -135,8 +136,9 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
     """The logged behaviour's own value of the estimand: mean over episodes of ``sum_{t<T} gamma^t
     c_t`` with a Student-t interval (n - 1 degrees of freedom: with few episodes a normal one
     covers far less than its level), clipped to the range the logged costs make possible
-    (``[c_lo, c_hi] sum_{t<T} gamma^t``, with 0 where episodes stop early; with one episode none). With ``terminated``,
-    it is marked ``comparable: false`` where it is not the behaviour's value of the estimand:
+    (``[c_lo, c_hi] sum_{t<T} gamma^t``, with 0 where episodes stop early:
+    :func:`~offline_adp.evaluation.estimand.step_cost_range`; with one episode no interval). With
+    ``terminated``, it is marked ``comparable: false`` where it is not the behaviour's value of the estimand:
     episodes that stop before step T without a terminal state (truncated: their missing steps
     count as zero cost in it), or, for an estimand past the T logged steps (``est_def``: a
     longer horizon or the infinite-horizon value), episodes that run to step T without a
@@ -150,9 +152,7 @@ def behaviour_value(em: ope.EpisodeMatrix, cost: np.ndarray, gamma: float, level
     q = float(student_t.ppf(0.5 + level / 2, n - 1)) if n > 1 else float("inf")
     lo, hi = float(G.mean() - q * se), float(G.mean() + q * se)
     # no episode's cost lies past [c_lo, c_hi] sum_t gamma^t (0 in it where episodes stop early): nor their mean
-    c_lo, c_hi = float(np.min(cost)), float(np.max(cost))
-    if not em.mask.all() or (terminated is not None and bool(np.any(terminated))):
-        c_lo, c_hi = min(c_lo, 0.0), max(c_hi, 0.0)
+    c_lo, c_hi = step_cost_range(cost, terminated, em)
     # (the mean itself in it: G summed step by step may differ from c * sum_t gamma^t by a rounding)
     r_lo, r_hi = min(c_lo * float(disc.sum()), float(G.mean())), max(c_hi * float(disc.sum()), float(G.mean()))
     method = "mean logged discounted cost over the data's episodes (Student-t interval"

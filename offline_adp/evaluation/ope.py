@@ -261,6 +261,12 @@ def on_policy(r: dict[str, Any] | OPEResult) -> bool:
     return bool(labelled and ok and not d.get("degenerate"))
 
 
+def rounding_tol(*values: float) -> float:
+    """The slack for "equal up to rounding" between costs: ``1e-9`` of the largest of
+    ``values`` in size, relative, so that a comparison reads alike in any unit of the costs."""
+    return 1e-9 * max((abs(float(v)) for v in values), default=0.0)
+
+
 def is_finite_number(x: Any) -> bool:
     """A finite int or float (not a bool; an int too large for a float is not one: numpy cannot
     test it and no formatting of ours would read it)."""

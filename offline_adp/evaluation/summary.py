@@ -28,7 +28,7 @@ from offline_adp.data.files import read_json_file, read_table_file
 
 # the structure of metrics.json and its reader (evaluation/metrics_file.py), importable from here too
 from offline_adp.evaluation.metrics_file import MetricsFile, read_metrics  # noqa: F401
-from offline_adp.evaluation.ope import degenerate_floor, on_policy
+from offline_adp.evaluation.ope import degenerate_floor, on_policy, rounding_tol
 
 # the verdict and its parts (evaluation/verdict.py), importable from here too
 from offline_adp.evaluation.verdict import (  # noqa: F401
@@ -88,8 +88,7 @@ def rank_estimators(m: dict[str, Any]) -> list[dict[str, Any]]:
         reasons = []
         if not _is_finite_number(est):
             reasons.append("no finite estimate")
-        elif rng and not (rng[0] - 1e-9 * max(abs(rng[0]), abs(rng[1])) <= est
-                          <= rng[1] + 1e-9 * max(abs(rng[0]), abs(rng[1]))):
+        elif rng and not (rng[0] - rounding_tol(*rng) <= est <= rng[1] + rounding_tol(*rng)):
             reasons.append(f"outside the possible range [{rng[0]:.4g}, {rng[1]:.4g}] of the cost")
         # the ESS floor again for files written before it (compare reuses them): the 1% rule is in their flag
         if r.get("degenerate") or (_is_finite_number(r.get("ess")) and r["ess"] < degenerate_floor(name, 0)):
@@ -423,9 +422,8 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
     top = b or next((e for e in h["ranking"] if e["tier"] == 1), None)
     if top is not None and (b is not None or top.get("shown_interval")):
         lo, hi = top["interval"] or top["shown_interval"]
-        outside = (lo is not None and hi is not None and not
-                   lo - 1e-9 * max(abs(top["estimate"]), abs(lo), abs(hi)) <= top["estimate"]
-                   <= hi + 1e-9 * max(abs(top["estimate"]), abs(lo), abs(hi)))
+        tol = 0.0 if lo is None or hi is None else rounding_tol(top["estimate"], lo, hi)
+        outside = lo is not None and hi is not None and not lo - tol <= top["estimate"] <= hi + tol
         label = level_words(top)
         lines.append(f"off-policy ({top['name'].upper()}, most reliable): {_f(top['estimate'])} [{_f(lo)}, {_f(hi)}] "
                      f"({label}" + (f": {top['level_note'].split(':')[0]}" if top.get("level_note") and b is None

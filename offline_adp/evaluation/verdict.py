@@ -14,6 +14,7 @@ import numpy as np
 
 from offline_adp.evaluation.model_rollouts import EXIT_FRACTION
 from offline_adp.evaluation.ope import is_finite_number as _is_finite_number
+from offline_adp.evaluation.ope import rounding_tol
 
 #: Support is "left" when more than this fraction of the data's states see pi choose unlogged actions.
 SUPPORT_FRACTION = 0.05
@@ -36,7 +37,7 @@ def side_of_behaviour(lo: float, hi: float, b: float) -> str:
     """Which side of the behaviour's cost ``b`` an interval lies on; equal up to rounding
     (e.g. every MountainCar policy that never reaches the goal: 86.602 against 86.602 summed
     in another order) is not a side. The tolerance is relative: costs in any unit."""
-    tol = 1e-9 * max(abs(b), abs(lo), abs(hi))
+    tol = rounding_tol(b, lo, hi)
     return "better" if hi < b - tol else "worse" if lo > b + tol else "indistinguishable"
 
 
@@ -67,7 +68,7 @@ def logged_side(lo: float, hi: float, beh: dict[str, Any]) -> str:
     bi = logged_interval(beh)
     if bi is None:
         return "unknown"
-    tol = 1e-9 * max(abs(float(beh["mean"])), abs(bi[0]), abs(bi[1]), abs(lo), abs(hi))
+    tol = rounding_tol(beh["mean"], *bi, lo, hi)
     return "better" if hi < bi[0] - tol else "worse" if lo > bi[1] + tol else "indistinguishable"
 
 
