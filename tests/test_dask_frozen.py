@@ -199,3 +199,32 @@ def test_frozen_fqe_on_one_worker_equals_local(one, data):
     x = _queries(ds)
     np.testing.assert_array_equal(est.q_function_.values(x), local.q_function_.values(x))
     assert est.value_ == local.value_
+
+
+def test_the_cluster_warns_of_the_logs_as_the_local_fit_does(two, data, tmp_path):
+    """A time limit flagged as terminal and a feature spanning less than the tree builders
+    resolve: the same warnings (split over the blocks' rows) as in process; none on good logs."""
+    import warnings
+
+    from offline_adp.data import schema as S
+    from offline_adp.errors import LogWarning, ScaleWarning
+
+    ds, path = data
+    df = ds.to_pandas()
+    k = int(df.groupby("episode_id")["step"].max().min()) + 1
+    df = df[df["step"] < k].copy()  # every episode k steps long, "terminal" at that time limit
+    df["terminated"], df["truncated"] = (df["step"] == k - 1).to_numpy(), False
+    name = ds.info.feature_names[0]
+    for col in (S.obs_column(name), S.next_obs_column(name)):
+        df[col] = 1.0 + 1e-6 * df[col] / df[col].abs().max()  # spans at most 2e-6
+    bad = type(ds).from_pandas(df, ds.info)
+    bad.save(tmp_path / "bad", rows_per_part=400)
+    for fit in (lambda: FittedQIteration(**KW).fit(bad), lambda: _dask_fit(two, tmp_path / "bad")):
+        with pytest.warns(LogWarning) as got:
+            fit()
+        said = " ".join(str(w.message) for w in got)
+        assert "as a time limit would cut them" in said and f"feature {name!r} spans only" in said
+        assert any(issubclass(w.category, ScaleWarning) for w in got)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        _dask_fit(two, path)

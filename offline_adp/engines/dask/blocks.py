@@ -57,7 +57,8 @@ def _load_block(path: str, lo: int, hi: int, obs_cols: list[str], next_cols: lis
     follows[1:] = (obs[1:] == nxt[:-1]).all(axis=1)
     return {"X": np.hstack([obs, action_features[a]]), "next": nxt, "start": obs[step == 0],
             "start_pos": np.flatnonzero(step == 0), "follows": follows,
-            "first": obs[:1], "action": a, "cost": t.column(S.COST).to_numpy().astype(np.float64, copy=False),
+            "first": obs[:1], "obs_min": obs.min(axis=0, keepdims=True), "obs_max": obs.max(axis=0, keepdims=True),
+            "action": a, "cost": t.column(S.COST).to_numpy().astype(np.float64, copy=False),
             "terminated": t.column(S.TERMINATED).to_numpy(), "step": step}
 
 

@@ -240,6 +240,20 @@ def unsupported(est: Any, dataset_dir: str | PathLike[str] | None = None) -> str
     return None
 
 
+def _warn_logs(info: Any, cost: np.ndarray, term: np.ndarray, step: np.ndarray, obs_min: np.ndarray,
+               obs_max: np.ndarray, who: str, costs_in_unit: bool) -> None:
+    """The in-process fit's warnings on the logs (costs or features too small for the
+    tree builders, a time limit flagged as terminal), from the blocks' vectors and each
+    block's feature range: episodes are contiguous in a dataset, their steps consecutive."""
+    from offline_adp.algorithms.fqi_data import _warn_scale, _warn_time_limit
+
+    span = np.vstack([obs_min.min(axis=0), obs_max.max(axis=0)]) if len(obs_min) else np.zeros((0, 0))
+    _warn_scale(cost, span, list(info.feature_names), who, costs_in_unit)
+    new = np.ones(len(step), bool)
+    new[1:] = (step[1:] == 0) | (step[1:] != step[:-1] + 1)
+    _warn_time_limit(np.cumsum(new) - 1, term, who)
+
+
 def _same(a: Any, b: Any) -> bool:
     try:
         return bool(a == b) or (a is None and b == {}) or (a == {} and b is None)
@@ -358,6 +372,7 @@ class _DaskEngine:
         from offline_adp.data.info import DatasetInfo
         from offline_adp.data.io import part_files, read_info
         from offline_adp.qfunctions import QEncoder
+        from offline_adp.regressors import make_regressor
 
         path = Path(dataset_dir)
         info = DatasetInfo.from_dict(read_info(path), where=str(path / "meta" / "info.json"))
@@ -378,9 +393,12 @@ class _DaskEngine:
             raise IngestError(f"{path}: the dataset is empty (no rows in its parts)")
         self.blocks = _Blocks(self.client, plan, cols["obs"], cols["next_obs"], af, n_workers,
                               wait_s=self.cfg.worker_wait_s)
-        v = self.blocks.gather(("cost", "terminated", "action", "step"))
+        v = self.blocks.gather(("cost", "terminated", "action", "step", "obs_min", "obs_max"))
         cost, term, step = v["cost"], v["terminated"], v["step"]
         est = self.est
+        _warn_logs(info, cost, term, step, v["obs_min"], v["obs_max"], type(est).__name__,
+                   costs_in_unit=est.resolved_mode(make_regressor(est.regressor, **(est.regressor_params or {})))
+                   == "frozen")
         disc = resolve_discount(info, est.gamma, est.horizon, terminates=bool(term.any()))
         est.gamma_, est.horizon_ = disc.gamma, disc.horizon
         if disc.horizon is None and not disc.gamma < 1.0 and not term.any():
