@@ -59,6 +59,27 @@ def test_a_ratio_fit_that_could_not_run_is_not_read_as_no_shift():
     assert v["method"] == "classifier" and not v["enough_data"] and "NOT MEASURED" in v["text"]
 
 
+def test_the_ratio_fits_list_what_they_could_not_measure_apart_from_their_words():
+    """The summary reads the fits' own list of unmeasured steps, whatever a warning says."""
+    from offline_adp.evaluation.shift import ratios_by_classifier, ratios_pooled
+
+    rng = np.random.default_rng(0)
+    obs, step = rng.normal(size=(60, 2)), np.repeat([0, 1, 2], 20)
+    r = ratios_by_classifier(obs, step, [rng.normal(size=(20, 2)), rng.normal(size=(1, 2)), rng.normal(size=(9, 2))],
+                             classifier="extra_trees", classifier_params={"n_estimators": 5})
+    assert len(r.unmeasured) == 1 and r.unmeasured[0].startswith("step 1:") and r.unmeasured[0] in r.warnings
+    assert (r.w[step == 1] == 1.0).all() and 0 in r.auc and 2 in r.auc
+    one = ratios_pooled(obs[:20], obs[:20], np.zeros(20, np.int64), np.ones(20))
+    assert one.unmeasured == one.warnings == ["one step only: nothing to pool"]
+    per_step = [{"step": 0, "ess_fraction": 1.0}, {"step": 1, "ess_fraction": 1.0}]
+    m = {"shift": {"recursion": {"per_step": per_step, **r.notes()}}, "worst_step": {"step": 1, "ess_fraction": 1.0}}
+    m["shift"]["recursion"]["warnings"] = ["reworded"]  # the list decides, not the wording
+    v = shift_verdict(m)
+    assert not v["enough_data"] and "NOT MEASURED at 1 step(s) (step 1:" in v["text"]
+    m["shift"]["recursion"] = {"per_step": per_step, "warnings": ["ratios set to 1 elsewhere"], "unmeasured": []}
+    assert shift_verdict(m)["enough_data"]
+
+
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     from offline_adp.runs import fit_run

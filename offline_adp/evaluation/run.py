@@ -418,12 +418,12 @@ def _discount(metrics: dict[str, Any], ds: TransitionDataset, run_dir: str | Pat
 def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, Any]:
     beh = res.behaviour
     shift_block = {"recursion": {"method": "ratio recursion fitted with extra-trees (logs only)",
-                                 "per_step": _frame_records(res.diagnostics), "warnings": res.ratios.warnings}}
+                                 "per_step": _frame_records(res.diagnostics), **res.ratios.notes()}}
     for name, (r, d) in res.extra_ratios.items():
         label = "classifier" if name == "classifier" else f"reference:{name}"
         method = ("probabilistic classifier between pi's simulated states and the data's, cross-fitted"
                   if name == "classifier" else f"ratio recursion for the reference policy {name!r}")
-        shift_block[label] = {"method": method, "per_step": _frame_records(d), "warnings": r.warnings}
+        shift_block[label] = {"method": method, "per_step": _frame_records(d), **r.notes()}
     worst = res.diagnostics.iloc[1:] if len(res.diagnostics) > 1 else res.diagnostics
     from offline_adp.evaluation.shift import MIN_STATES_PER_STEP
 
@@ -433,7 +433,7 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
     if res.pooled is not None:
         extra["pooled_shift"] = {**res.pooled[1],
                                  "method": "ratio recursion pooled over time (stationary approximation)",
-                                 "warnings": res.pooled[0].warnings}
+                                 **res.pooled[0].notes()}
     return {
         "estimand": res.estimand.as_dict(),
         **extra,

@@ -54,6 +54,9 @@ class DensityRatios:
     auc : dict step -> AUC (classifier method only)
     uncovered : dict step -> fraction of pi's samples the classifier found (almost) no data near
     warnings : list of str
+    unmeasured : list of str
+        The warnings of the steps (or the pooled fit) whose ratios could not be fitted and
+        were left at 1: no measurement there, not a finding of no shift.
     """
 
     method: str
@@ -62,6 +65,11 @@ class DensityRatios:
     auc: dict[int, float] = field(default_factory=dict)
     uncovered: dict[int, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    unmeasured: list[str] = field(default_factory=list)
+
+    def notes(self) -> dict[str, list[str]]:
+        """The block of ``metrics.json`` for these ratios' warnings (``unmeasured``: a subset)."""
+        return {"warnings": list(self.warnings), "unmeasured": list(self.unmeasured)}
 
 
 # --------------------------------------------------------------------------- exact
@@ -161,6 +169,7 @@ def ratios_by_recursion(
     T = int(step.max()) + 1 if horizon is None else min(int(horizon), int(step.max()) + 1)
     w = np.ones(len(step))
     warnings: list[str] = []
+    unmeasured: list[str] = []
     # row of step t+1 that follows row i (same episode), found with one sort
     order = np.lexsort((step, episode))
     nxt = np.full(len(step), -1)
@@ -177,7 +186,7 @@ def ratios_by_recursion(
         y = w[here] * rho[here]
         w_next = np.maximum(_fit_predict(regressor, regressor_params, next_obs[here], y, obs[there]), 0.0)
         if not np.isfinite(w_next).all() or w_next.sum() <= 0:
-            warnings.append(f"step {t + 1}: the ratio regression returned no positive mass; ratios set to 1")
+            unmeasured.append(f"step {t + 1}: the ratio regression returned no positive mass; ratios set to 1")
             w_next = np.ones(len(there))
         w[there] = _normalise(w_next)
     if thin:
@@ -187,7 +196,7 @@ def ratios_by_recursion(
                         "with a simulator prefer the classifier ratios")
     counts = np.bincount(step[step < T - 1].astype(np.int64)) if T > 1 else np.zeros(1, np.int64)
     warnings += _sampled_warning(int(counts.max(initial=0)), "the per-step ratio regressions (largest step)")
-    return DensityRatios("recursion", w, step.copy(), warnings=warnings)
+    return DensityRatios("recursion", w, step.copy(), warnings=unmeasured + warnings, unmeasured=unmeasured)
 
 
 #: Below this many data states per step, per-step ratios cannot be estimated (the
@@ -227,12 +236,13 @@ def ratios_pooled(
     dst = np.flatnonzero(keep & (step >= 1))
     w = np.ones(len(step))
     if not len(src) or not len(dst):
-        return DensityRatios("pooled", w, step.copy(), warnings=["one step only: nothing to pool"])
+        why = ["one step only: nothing to pool"]
+        return DensityRatios("pooled", w, step.copy(), warnings=why, unmeasured=why)
     for _ in range(n_sweeps if n_sweeps is not None else min(T, 20)):
         new = np.maximum(_fit_predict(regressor, regressor_params, next_obs[src], w[src] * rho[src], obs[dst]), 0.0)
         if not np.isfinite(new).all() or new.sum() <= 0:
-            return DensityRatios("pooled", np.ones(len(step)), step.copy(),
-                                 warnings=["the pooled ratio regression returned no positive mass; ratios set to 1"])
+            why = ["the pooled ratio regression returned no positive mass; ratios set to 1"]
+            return DensityRatios("pooled", np.ones(len(step)), step.copy(), warnings=why, unmeasured=why)
         new = _normalise(new)
         done = np.max(np.abs(new - w[dst])) < 1e-6
         w[dst] = new
@@ -292,6 +302,7 @@ def ratios_by_classifier(
     auc: dict[int, float] = {}
     uncovered: dict[int, float] = {}
     warnings: list[str] = []
+    unmeasured: list[str] = []
     for t, xp in enumerate(policy_states):
         if on_step is not None and t:  # step t - 1 is done
             on_step()
@@ -299,8 +310,8 @@ def ratios_by_classifier(
         if not len(here) or not len(xp):
             continue
         if min(len(here), len(xp)) < 2:  # the 2-fold cross-fit needs two of each; e.g. one rollout still alive
-            warnings.append(f"step {t}: {len(here)} data and {len(xp)} policy states: too few for a classifier, "
-                            "ratio left at 1")
+            unmeasured.append(f"step {t}: {len(here)} data and {len(xp)} policy states: too few for a classifier, "
+                              "ratio left at 1")
             continue
         X = np.vstack([obs[here], xp])
         y = np.r_[np.zeros(len(here)), np.ones(len(xp))]
@@ -315,7 +326,8 @@ def ratios_by_classifier(
     warnings += _separable_warning(auc, len(policy_states))
     if on_step is not None and len(policy_states):
         on_step()
-    return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=warnings)
+    return DensityRatios("classifier", w, step.copy(), auc=auc, uncovered=uncovered, warnings=unmeasured + warnings,
+                         unmeasured=unmeasured)
 
 
 def _separable_warning(auc: dict[int, float], n_steps: int) -> list[str]:

@@ -140,14 +140,18 @@ def estimator_order(entries: list[dict[str, Any]]) -> dict[str, float]:
     return order
 
 
-#: what a density-ratio fit's warnings say where it could not run and left the ratios at 1
+#: what a density-ratio fit's warnings said where it left the ratios at 1, in a metrics.json
+#: written before the fits listed those warnings apart (``unmeasured``)
 _UNMEASURED = ("set to 1", "left at 1", "nothing to pool")
 
 
 def _unmeasured(d: dict[str, Any], block: dict[str, Any] | None) -> dict[str, Any]:
-    """``d`` (a shift verdict) where ``block``'s ratio fit left ratios at 1 somewhere: those
-    ratios are no measurement, so the verdict does not read as "no shift"."""
-    gone = [w for w in (block or {}).get("warnings") or [] if isinstance(w, str) and any(u in w for u in _UNMEASURED)]
+    """``d`` (a shift verdict) where ``block``'s ratio fit left ratios at 1 somewhere
+    (:attr:`~offline_adp.evaluation.shift.DensityRatios.unmeasured`): those ratios are no
+    measurement, so the verdict does not read as "no shift"."""
+    block = block or {}
+    gone = (list(block["unmeasured"]) if "unmeasured" in block else
+            [w for w in block.get("warnings") or [] if isinstance(w, str) and any(u in w for u in _UNMEASURED)])
     if not gone:
         return d
     return {**d, "enough_data": False, "unmeasured": gone,
