@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from offline_adp.errors import IngestError
 from offline_adp.ingest.mcap import ingest_mcap, parse_mcap_spec
-from offline_adp.ingest.mcap.assembler import assemble
+from offline_adp.ingest.mcap.build import assemble
 from offline_adp.ingest.mcap.records import Message
 from tests import mcap_reference as ref
 

@@ -16,11 +16,13 @@ One job per module:
 - ``align``: one stream's values at the step times;
 - ``buffers``: one stream's messages in one epoch, sorted on demand, pruned behind the watermark;
 - ``assembler``: the streaming assembler (epochs from the file order, watermark,
-  bounded buffers, steps); ``assemble`` runs it on in-memory messages;
+  bounded buffers, steps);
 - ``damage``: the assembler's damage accounting (epochs and steps the lost chunks may have
   held, episodes whose start event was lost);
-- ``episodes``: cutting steps into episodes (events, gaps, conditions, drops);
-- ``build``: ``ingest_mcap``: recordings -> dataset, quarantine, summary.
+- ``episodes``: cutting steps into episodes (events, gaps, conditions, drops) and reading
+  the episode events' fields;
+- ``build``: ``ingest_mcap``: recordings -> dataset, quarantine, summary; ``assemble`` runs
+  the assembler on in-memory messages.
 
 Memory is bounded by the episode being assembled plus the reorder window, not by the
 file. The epoch rules, damage accounting and spec keys are in ``docs/ingestion-spec.md``::

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +13,8 @@ from offline_adp.errors import IngestError
 from offline_adp.ingest.mcap.align import _align
 from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
-from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, get_path, numeric_fields
-from offline_adp.ingest.mcap.episodes import EpisodeSegmenter
+from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
+from offline_adp.ingest.mcap.episodes import EpisodeSegmenter, read_event
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
 from offline_adp.ingest.mcap.scan import damage_text, scan_records
@@ -82,7 +82,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                       "incomplete_episodes": 0, "episodes_lost_to_damage": 0, "damaged_steps": 0, "restarts": 0,
                       "orphan_messages": 0, "cut_episodes": 0, "episodes_without_command": 0,
                       "episode_splits": 0, "lost_chunks_uncounted": 0, "clock_steps_back": 0,
-                      "max_buffered_messages": 0}
+                      "duplicate_clock_times": 0, "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self.live_reports: list[dict[str, Any]] = []
         self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
@@ -182,7 +182,12 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                     raise IngestError(f"{path}: needed topic {ch.topic!r} has message encoding "
                                       f"{ch.message_encoding!r} (schema {getattr(sch, 'name', '')!r}, encoding "
                                       f"{getattr(sch, 'encoding', '')!r}) that no installed decoder reads")
-                add(ch.topic, msg.log_time, msg.publish_time, dec(msg.data), file_index)
+                try:
+                    value = dec(msg.data)
+                except Exception as exc:  # noqa: BLE001 - each decoder library raises its own types
+                    raise IngestError(f"{path}: topic {ch.topic!r}, message at log_time {msg.log_time}: cannot be "
+                                      f"decoded as {ch.message_encoding} ({type(exc).__name__}: {exc})") from None
+                add(ch.topic, msg.log_time, msg.publish_time, value, file_index)
                 self.n_since += 1
                 if self.n_since >= every:  # as feed(): one flush per flush_every messages
                     self.n_since = 0
@@ -227,7 +232,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         for k in self.by_topic[topic]:
             if k == "events":
                 t = int(log_time)
-                values = [get_path(dec, p) for p in self.spec.episode_fields.values()]
+                values = read_event(dec, self.spec.episode_fields, topic, log_time)
                 fields = list(self.spec.episode_fields)
                 self.event_kinds.append(str(values[fields.index("event_field")]) if "event_field" in fields
                                         else "start")
@@ -236,7 +241,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 t = times.get(which)
                 if t is None:
                     t = times[which] = _msg_time(which, log_time, publish_time, dec)
-                values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time)
+                values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time,
+                                                                command=k == "action")
             e = self._epoch_of(k, t)
             if e is None:  # late for an epoch already over (by file order, not by flush points)
                 self.late[topic] += 1
@@ -388,7 +394,9 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         stop = len(a["t"]) if w == np.inf else int(np.searchsorted(a["t"], w, side="right"))
         t, f, lt = a["t"][start:stop], a["file"][start:stop], a["lt"][start:stop]
         if self.spec.rate_hz is None:
-            return t, f, lt
+            same = t[1:] == t[:-1]  # a clock time repeated: one step, made by its last message
+            self.stats["duplicate_clock_times"] += int(same.sum())
+            return (t, f, lt) if not same.any() else tuple(v[np.r_[~same, True]] for v in (t, f, lt))  # type: ignore[return-value]
         period = int(round(1e9 / self.spec.rate_hz))
         gap = int(self.spec.gap * 1e9)
         out_t, out_f, out_lt = [], [], []
@@ -482,18 +490,3 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         steps["split"] = split
         self._segment(e, steps)
 
-
-def assemble(parts: Sequence[Iterable[Message]], spec: McapSpec, *, name: str = "memory", on_error: str = "fail",
-             flush_every: int = 5000) -> RecordingResult:
-    """Assemble one recording given as decoded messages in file order (one iterable per
-    file part) — the streaming assembler without MCAP files, e.g. for tests.
-
-    ``flush_every``: messages between flushes (the result never depends on it for
-    messages no later in the file than ``reorder_window``)."""
-    files = [Path(f"{name}.mcap")] if len(parts) == 1 else [Path(f"{name}_{i}.mcap") for i in range(len(parts))]
-    rec = _Recording(files, spec, on_error, 0, flush_every=flush_every)
-    for i, msgs in enumerate(parts):
-        if i and spec.per_file:
-            rec._new_epoch_everywhere()
-        rec.feed(msgs, i)
-    return rec.finish()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -24,7 +24,7 @@ from offline_adp.ingest.actions import (
     map_discrete,
 )
 from offline_adp.ingest.mcap.assembler import _Recording
-from offline_adp.ingest.mcap.records import EpisodeRows, RecordingResult
+from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.sources import resolve_sources
 from offline_adp.ingest.mcap.spec import McapSpec, load_mcap_spec
 
@@ -154,6 +154,10 @@ def ingest_mcap_tables(
                       f"less than clock.restart = {spec.restart} s: their steps are ordered by time, so a transition "
                       "may pair steps the robot did not take in that order. If the clock restarted, lower "
                       "clock.restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
+    if summary.get("duplicate_clock_times"):
+        warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
+                      "time is one step, and a stream's values at a repeated time are its last message's there "
+                      "(a message published twice, or a clock too coarse for the rate)", stacklevel=2)
     summary["filled_steps"] = {t: v for t, v in summary["filled_steps"].items() if v}
     if summary["filled_steps"]:
         warnings.warn(f"steps given a stream's fill value (missing = 'fill'), per topic: {summary['filled_steps']} "
@@ -166,6 +170,7 @@ def ingest_mcap_tables(
                       "steps before them were aligned without them. Raise reorder_window.", stacklevel=2)
     paths = [p for r in recordings for p in r]
     eps = [ep for r, _ in good for ep in r.episodes]
+    _distinct_ids(eps, paths, "id_field" in spec.episode_fields)
     rejected = [ep for ep in eps if ep.reason]
     kept = [ep for ep in eps if not ep.reason]
     summary["transitions_assembled"] = int(sum(len(e.t) for e in eps))
@@ -209,6 +214,28 @@ def ingest_mcap_tables(
     summary["dropped_rows"] = int(row_rejected.sum()) if on_error == "fail" else 0
     summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts())
     return ds, quarantine, summary
+
+
+def _distinct_ids(eps: list[EpisodeRows], paths: list[Path], given: bool) -> None:
+    """One episode per id. Ids the logs give (``[episodes] id_field``) that name two
+    episodes (two recordings numbering from the same id, an id reused in one file) are an
+    error naming both; generated ids (two recordings of the same file name) get ``~k``."""
+    seen: dict[str, EpisodeRows] = {}
+    for e in eps:
+        if e.ep in seen and not given:
+            k = 1
+            while f"{e.ep}~{k}" in seen:
+                k += 1
+            e.ep = f"{e.ep}~{k}"
+        elif e.ep in seen:
+            def at(x: EpisodeRows) -> str:
+                lt = f" (log_time {int(x.log_time[0])})" if x.log_time is not None and len(x.log_time) else ""
+                return f"{paths[int(x.file[0])]}{lt}" if len(x.file) else "?"
+
+            raise IngestError(f"episode id {e.ep!r} names two episodes: in {at(seen[e.ep])} and in {at(e)}; give "
+                              "each episode its own id (recordings that each number from the same id can be "
+                              "ingested apart, or without [episodes] id_field, which numbers them per recording)")
+        seen[e.ep] = e
 
 
 def _jsonable(obj: Any) -> Any:
@@ -330,3 +357,19 @@ def vector_actions(raw: np.ndarray, spec: McapSpec) -> tuple[np.ndarray, ActionT
     atable = ActionTable(actions=tuple(Action(str(n), v) for n, v in zip(names, values, strict=True)), dims=dims,
                          kind="discrete", units=(a.unit,) * len(dims) if a.unit else ())
     return idx.astype(np.int32), atable
+
+
+def assemble(parts: Sequence[Iterable[Message]], spec: McapSpec, *, name: str = "memory", on_error: str = "fail",
+             flush_every: int = 5000) -> RecordingResult:
+    """Assemble one recording given as decoded messages in file order (one iterable per
+    file part) — the streaming assembler without MCAP files, e.g. for tests.
+
+    ``flush_every``: messages between flushes (the result never depends on it for
+    messages no later in the file than ``reorder_window``)."""
+    files = [Path(f"{name}.mcap")] if len(parts) == 1 else [Path(f"{name}_{i}.mcap") for i in range(len(parts))]
+    rec = _Recording(files, spec, on_error, 0, flush_every=flush_every)
+    for i, msgs in enumerate(parts):
+        if i and spec.per_file:
+            rec._new_epoch_everywhere()
+        rec.feed(msgs, i)
+    return rec.finish()

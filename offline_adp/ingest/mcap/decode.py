@@ -7,6 +7,8 @@ import json
 import re
 from typing import Any
 
+import numpy as np
+
 from offline_adp.errors import IngestError
 
 
@@ -149,15 +151,22 @@ def _msg_time(which: str, log_time: int, publish_time: int, dec: Any) -> int:
     return to_ns(get_path(dec, which))
 
 
-def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int) -> list[float]:
+def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int, command: bool = False) -> list[float]:
     """The float value of each field path in a decoded message; a null (JSON ``null``) is a
     missing value, NaN (the doctor reports it, naming the row; quarantine sets that episode
-    aside); a path the message lacks, or a value that is no number, is an error naming the
-    topic, the message's log_time and the field."""
+    aside); a path the message lacks, a value that is no number, an integer that float64
+    cannot hold exactly (beyond 2^53) and, for a ``command``, a boolean (as the tables
+    refuse them) are errors naming the topic, the message's log_time and the field."""
     out = []
     for name, path in fields.items():
         try:
             v = get_path(dec, path)
+            if isinstance(v, np.generic):
+                v = v.item()
+            if command and isinstance(v, bool):
+                raise TypeError(f"{v!r} is a boolean, not a command value")
+            if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 2**53:
+                raise ValueError(f"the integer {v} is beyond 2^53, where float64 would round it")
             out.append(float("nan") if v is None else float(v))
         except (KeyError, AttributeError, IndexError, TypeError, ValueError, OverflowError) as exc:
             raise IngestError(f"topic {topic!r}, message at log_time {int(log_time)}: field {name!r} (path {path!r}) "

@@ -13,6 +13,42 @@ from offline_adp.ingest.mcap.records import EpisodeRows
 from offline_adp.ingest.mcap.spec import McapSpec
 
 
+def read_event(dec: Any, fields: dict[str, str], topic: str, log_time: int) -> list[Any]:
+    """The episode fields of one event message, in ``fields``' order, read as the segmenter
+    uses them: the id and source as text, the kind as text, and ``terminated`` (read on an
+    ``end`` event only; a start event need not have it) a boolean, or 0 or 1. A field the
+    message lacks, a null, or a flag of another type (the string ``"false"`` would read as
+    true) is an error naming the topic, the message's log_time and the field."""
+    where = f"topic {topic!r}, message at log_time {int(log_time)}"
+    end = "event_field" in fields and str(_field(dec, fields["event_field"], "event_field", where)) == "end"
+    out: list[Any] = []
+    for key, path in fields.items():
+        if key == "terminated_field" and not end:
+            out.append(None)  # a start event: no flag to read
+            continue
+        v = _field(dec, path, key, where)
+        if v is None:
+            raise IngestError(f"{where}: the episode event's field {path!r} ([episodes] {key}) is null")
+        if key == "terminated_field":
+            flag = v.item() if isinstance(v, np.generic) else v
+            if not (isinstance(flag, bool) or (isinstance(flag, int) and flag in (0, 1))):
+                raise IngestError(f"{where}: the episode event's field {path!r} ([episodes] terminated_field) is "
+                                  f"{v!r}, not a flag (true/false or 0/1)")
+            v = bool(flag)
+        out.append(v)
+    return out
+
+
+def _field(dec: Any, path: str, key: str, where: str) -> Any:
+    from offline_adp.ingest.mcap.decode import get_path
+
+    try:
+        return get_path(dec, path)
+    except (KeyError, AttributeError, IndexError, TypeError) as exc:
+        raise IngestError(f"{where}: the episode event has no field {path!r} ([episodes] {key}; "
+                          f"{type(exc).__name__}: {exc}); run `offline-adp mcap-info` to list the fields") from None
+
+
 @dataclass
 class _Episode:
     """The episode being assembled: its steps so far (arrays appended per flush)."""
