@@ -193,3 +193,20 @@ def test_the_logged_cost_interval_stays_within_what_the_costs_allow():
     many = behaviour_value(ope.EpisodeMatrix.build(np.repeat(np.arange(20), 2), np.tile([0, 1], 20)),
                            np.random.default_rng(0).uniform(0.0, 1.0, 40), 0.5)
     assert "clipped" not in many["method"] and 0.0 < many["interval"][0] < many["mean"] < many["interval"][1] < 1.5
+
+
+def test_the_headline_counts_the_separable_steps_the_warning_counts():
+    """metrics.json keeps the AUCs exact (pandas' to_json kept 10 digits: 0.950000000004 read
+    0.95, and the headline said 64 steps where the warning said 65)."""
+    import pandas as pd
+
+    from offline_adp.evaluation.metrics_file import frame_records
+    from offline_adp.evaluation.shift import _separable_warning
+
+    auc = {0: 0.5, 1: 0.95 + 4e-12, 2: 0.99, 3: 0.95}
+    d = pd.DataFrame({"step": list(auc), "auc": list(auc.values()), "ess_fraction": [1.0, 0.5, 0.1, np.nan]})
+    rows = frame_records(d)
+    assert rows[1]["auc"] == 0.95 + 4e-12 and rows[3]["ess_fraction"] is None and type(rows[0]["step"]) is int
+    said = _separable_warning(auc, 4)[0]
+    v = shift_verdict({"shift": {"classifier": {"per_step": rows, "warnings": [said]}}})
+    assert said.startswith("classifier AUC > 0.95 at 2 of 4 steps") and "AUC > 0.95 at 2 of 4 steps" in v["text"]

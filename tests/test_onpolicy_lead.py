@@ -354,3 +354,18 @@ def test_past_the_logs_the_logged_cost_of_episodes_cut_at_T_is_not_the_behaviour
     term[[3, 7]] = True  # both ended in a terminal state: their cost after it is 0 indeed
     assert "comparable" not in behaviour_value(em, cost, 0.9, terminated=term, est_def=Estimand(4, 0.9,
                                                                                                 target_horizon=10))
+
+
+def test_an_estimate_is_flagged_against_fqe_s_interval_as_quoted():
+    """FQE's interval is clipped to the possible range before another estimate is checked
+    against it: the warning quotes the interval the ranking shows (a tour run printed
+    "outside the FQE interval [-1.653, 9.846]" beside FQE's [0, 9.846])."""
+    from offline_adp.evaluation.estimand import as_quoted
+
+    est_def = Estimand(40, 0.95, possible_range=(0.0, 20.0))
+    est = {"fqe": ope.OPEResult("fqe", 3.0, (-1.653, 9.846), None), "is": ope.OPEResult("is", 0.0, (0.0, 5.0), 50.0),
+           "wis": ope.OPEResult("wis", 12.0, (10.0, 14.0), 50.0)}
+    out = as_quoted(est, est_def, (0.0, 20.0), "terminal", 60)
+    assert out["fqe"].interval == (0.0, 9.846)
+    assert not any("outside" in w for w in out["is"].warnings)  # 0 lies in [0, 9.846]
+    assert "outside the FQE interval [0, 9.846]" in out["wis"].warnings

@@ -309,3 +309,14 @@ def confined(estimates: dict[str, ope.OPEResult], est_def: Estimand,
         if why:
             out[name] = replace(r, warnings=[*reversed(why), *r.warnings], comparable=False)
     return out
+
+
+def as_quoted(estimates: dict[str, ope.OPEResult], est_def: Estimand, logged_range: tuple[float, float],
+              ends: str = "short", n_episodes: int = 1) -> dict[str, ope.OPEResult]:
+    """The estimates as the evaluation quotes them: :func:`confined`, then each comparable
+    estimate outside FQE's interval *as quoted* (clipped to the possible range) flagged
+    (:func:`~offline_adp.evaluation.ope.flagged_against`: flagged before the clip, a warning
+    quoted [-1.653, 9.846] beside the ranking's [0, 9.846]), then the levels withdrawn on
+    too few episodes (:func:`~offline_adp.evaluation.ope.with_enough_episodes`)."""
+    out = ope.flagged_against(confined(estimates, est_def, logged_range, ends, n_episodes), "fqe")
+    return ope.with_enough_episodes(out, n_episodes)

@@ -300,6 +300,19 @@ class ReportMetricsFile(MetricsFile):
         return self
 
 
+def frame_records(df: Any) -> list[dict[str, Any]]:
+    """A table's rows as ``metrics.json`` stores them: numbers exact (pandas' ``to_json``
+    rounds to 10 digits: a step's classifier AUC of 0.950000000004 read 0.95 and fell out
+    of the count of steps above 0.95 that the warnings made), NaN and infinities null."""
+    import math
+
+    def cell(v: Any) -> Any:
+        v = v.item() if hasattr(v, "item") else v
+        return None if isinstance(v, float) and not math.isfinite(v) else v
+
+    return [{str(k): cell(v) for k, v in r.items()} for r in df.to_dict(orient="records")]
+
+
 def read_metrics(path: str | Path, structure: type[MetricsFile] = MetricsFile) -> dict[str, Any]:
     """``metrics.json`` through the gates of every file we read: a regular file of bounded
     size and nesting (:func:`~offline_adp.data.files.read_json_file`), then the structure

@@ -48,7 +48,7 @@ from offline_adp.evaluation.behaviour import (
 from offline_adp.evaluation.estimand import (  # noqa: F401
     TAIL_NEGLIGIBLE,
     Estimand,
-    confined,
+    as_quoted,
     declare_estimand,
     episode_ends,
     evaluation_horizon,
@@ -363,11 +363,9 @@ def off_policy(ds: TransitionDataset, policy: Policy, settings: EvaluationSettin
     estimates.update(doubly_robust(w, a, ra, gamma, psdp_folds, boot))
     say("density ratios")
     ratios, estimates["mis"] = marginalised(a, w, T, gamma, ratio_fit, boot, ratios=bf and bf.ratios["self"])
-    estimates = ope.flagged_against(estimates, "fqe")
     diag = shift.diagnostics(ratios, a.obs, k=k_support, seed=seed)
     est_def, logged_range = with_possible_range(est_def, a, w.em)
-    estimates = confined(estimates, est_def, logged_range, episode_ends(w.em, a.terminated), w.em.n_episodes)
-    estimates = ope.with_enough_episodes(estimates, w.em.n_episodes)
+    estimates = as_quoted(estimates, est_def, logged_range, episode_ends(w.em, a.terminated), w.em.n_episodes)
     return OffPolicyResult(gamma, T, w.behaviour, estimates, ratios, diag, w.support, ra.eps, fit.fqe, estimand=est_def,
                            eps_in_sample=ra.in_sample, eps_folds=int(psdp_folds or 0), eps_note=ra.note,
                            **verdict_inputs(a, w, est_def, level),

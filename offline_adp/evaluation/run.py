@@ -34,6 +34,7 @@ from offline_adp.errors import (
     DatasetNotFoundError,
     RunDirectoryError,
 )
+from offline_adp.evaluation.metrics_file import frame_records as _frame_records
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.evaluation.run_checks import _check_recorded_data, _check_same_actions, _fitted_info
 from offline_adp.evaluation.settings import EvaluationSettings
@@ -91,10 +92,6 @@ def _simulator_note(asked: str | None, dataset_problem: str | None, known: list[
                 f"every number comes from the logs alone. If a simulator exists, pass --simulator NAME "
                 f"({', '.join(known)})")
     return None
-
-
-def _frame_records(df: pd.DataFrame) -> list[dict[str, Any]]:
-    return json.loads(df.to_json(orient="records"))
 
 
 def evaluate_run(
