@@ -111,3 +111,31 @@ def _with_func(parser, func):
         if a.prog.endswith(" inspect"):
             a.set_defaults(func=func)
     return parser
+
+
+def test_inspect_summarises_continuous_commands_and_long_action_tables(tmp_path, capsys):
+    """A continuous log's line says its commands are exact and gives each component's logged
+    range and bounds (not its coarse bins one by one: 17,000 characters for 256 bins);
+    a long discrete table lists its first entries and says how many more --json holds."""
+    import numpy as np
+
+    from offline_adp.data.summary import LISTED_ACTIONS
+    from offline_adp.simulate import simulate
+
+    ds = simulate("path_tracking", 6, 6, seed=2, horizon=20, problem_options={"commands": "steer_accel"})
+    ds.save(tmp_path / "sa")
+    assert main(["inspect", str(tmp_path / "sa")]) == 0
+    out = capsys.readouterr().out
+    act = next(ln for ln in out.splitlines() if ln.lstrip().startswith("actions"))
+    cmds = ds.commands()
+    assert f"exact as logged ({len(np.unique(cmds, axis=0))} distinct commands)" in act
+    assert f"delta_cmd logged [{cmds[:, 0].min():.4g}, {cmds[:, 0].max():.4g}]" in act and len(act) < 300
+    assert "coarse bins for counts and behaviour models" in out
+    from offline_adp.data.summary import _action_lines
+
+    n = LISTED_ACTIONS + 6
+    acts = {"kind": "discrete", "dims": ["a"], "table": {f"a{i}": [float(i)] for i in range(n)},
+            "coverage": {f"a{i}": 1 for i in range(n)}, "out_of_range": 0}
+    lines = _action_lines(acts)
+    assert all(ln.endswith("... (6 more: inspect --json lists them)") for ln in lines)
+    assert f"{LISTED_ACTIONS - 1}:a{LISTED_ACTIONS - 1}" in lines[0] and f"a{LISTED_ACTIONS}" not in lines[0]

@@ -60,6 +60,13 @@ def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:
         "propensities": info.propensity_source if ds.has_propensities else "none",
         "fingerprint": ds.fingerprint()[:16],
     }
+    cmds = ds.commands() if info.action_table.kind == "continuous" else None
+    if cmds is not None and len(cmds):
+        t = info.action_table
+        report["actions"]["commands"] = {
+            "distinct": int(len(np.unique(cmds, axis=0))),
+            "logged_min": [float(x) for x in cmds.min(axis=0)], "logged_max": [float(x) for x in cmds.max(axis=0)],
+            "low": None if t.low is None else list(t.low), "high": None if t.high is None else list(t.high)}
     q = read_quarantine(path)
     if q is not None:
         report["quarantined_rows"] = q.num_rows
@@ -71,12 +78,7 @@ def summary_text(report: dict[str, Any]) -> str:
     acts = report["actions"]
     lines = [f"{report['path']}  ({report['transitions']} transitions, {report['episodes']} episodes, "
              f"format {report['format_version']})",
-             f"  features    {', '.join(report['features'])}",
-             f"  actions     {acts['kind']} over {acts['dims']}: "
-             + ", ".join(f"{i}:{n} {v}" for i, (n, v) in enumerate(acts["table"].items())),
-             "  coverage    " + ", ".join(f"{n}: {c}" for n, c in acts["coverage"].items())
-             + (f", (outside the action table): {acts['out_of_range']} (run offline-adp validate)"
-                if acts["out_of_range"] else "")]
+             f"  features    {', '.join(report['features'])}", *_action_lines(acts)]
     for src, d in report["per_source"].items():
         lines.append(f"  {src:<13} {d['episodes']} episodes, {d['transitions']} transitions, mean episode cost "
                      f"{d['mean_total_cost']:.4g}, terminated {d['terminated']}")
@@ -92,3 +94,32 @@ def summary_text(report: dict[str, Any]) -> str:
     if "quarantined_rows" in report:
         lines.append(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
     return "\n".join(lines)
+
+
+#: entries of an action table listed one by one by ``inspect`` (``--json`` lists them all)
+LISTED_ACTIONS = 24
+
+
+def _action_lines(acts: dict[str, Any]) -> list[str]:
+    """The action table and its coverage in a line each: every entry of a small table; for
+    continuous commands the logged range and bounds of each component, and the coarse
+    bins (kept for counts and behaviour models) summarised."""
+    out = (f", (outside the action table): {acts['out_of_range']} (run offline-adp validate)"
+           if acts["out_of_range"] else "")
+    counts = np.asarray(list(acts["coverage"].values()), dtype=np.int64)
+    if "commands" in acts:
+        c = acts["commands"]
+        dims = ", ".join(f"{d} logged [{lo:.4g}, {hi:.4g}]" + (f" of [{c['low'][i]:.4g}, {c['high'][i]:.4g}]"
+                                                                 if c["low"] is not None else "")
+                         for i, (d, lo, hi) in enumerate(zip(acts["dims"], c["logged_min"], c["logged_max"],
+                                                             strict=True)))
+        return [f"  actions     continuous, exact as logged ({c['distinct']} distinct commands): {dims}",
+                f"  coverage    {len(counts)} coarse bins for counts and behaviour models: rows per bin min "
+                f"{counts.min()}, median {np.median(counts):.0f}, max {counts.max()}; {int((counts == 0).sum())} "
+                f"empty{out}"]
+    entries = [f"{i}:{n} {v}" for i, (n, v) in enumerate(acts["table"].items())]
+    cover = [f"{n}: {k}" for n, k in acts["coverage"].items()]
+    more = len(entries) - LISTED_ACTIONS
+    tail = f", ... ({more} more: inspect --json lists them)" if more > 0 else ""
+    return [f"  actions     {acts['kind']} over {acts['dims']}: " + ", ".join(entries[:LISTED_ACTIONS]) + tail,
+            "  coverage    " + ", ".join(cover[:LISTED_ACTIONS]) + tail + out]
