@@ -199,3 +199,47 @@ def test_text_with_nulls_in_a_feature_column_names_file_row_column(tmp_path):
     t["x"] = pd.Series(["0.5", None, "x"], dtype=object)
     with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'x': 'x' is not a number"):
         _ingest(tmp_path, t)
+
+
+def _csv(tmp_path, df: pd.DataFrame, name: str = "in.csv") -> Path:
+    p = tmp_path / name
+    df.to_csv(p, index=False)
+    return p
+
+
+def test_csv_episode_ids_are_the_files_text(tmp_path):
+    """Type inference made '007' and '7' (and '1.1' and '1.10') one episode, '000' -> '0'."""
+    t = pd.DataFrame({"ep": ["007", "007", "7", "1.1", "1.10", "000"], "k": [0, 1, 0, 0, 0, 0],
+                      "x": [0.0, 1.0, 5.0, 2.0, 3.0, 4.0], "nx": [1.0, 2.0, 6.0, 3.0, 4.0, 5.0],
+                      "a": [0, 1, 0, 1, 0, 1], "c": 1.0, "done": [False, True, True, True, True, True]})
+    p = _csv(tmp_path, t)
+    ingest_parquet([p], parse_parquet_spec(BASE), tmp_path / "out")
+    ds = read_dataset(tmp_path / "out")
+    assert sorted(set(ds.episode_ids)) == ["000", "007", "1.1", "1.10", "7"]
+    assert len(ds) == 6
+
+
+def test_csv_source_and_text_action_labels_are_the_files_text(tmp_path):
+    t = _df()
+    t["src"] = ["01", "01", "1"]
+    t["a"] = ["01", "1", "01"]
+    p = _csv(tmp_path, t)
+    spec = {**BASE, "action": {"column": "a", "values": ["01", "1"]}, "source": {"column": "src"}}
+    ingest_parquet([p], parse_parquet_spec(spec), tmp_path / "out")
+    ds = read_dataset(tmp_path / "out")
+    assert ds.source_counts() == {"01": 2, "1": 1}
+    assert ds.table.column(S.ACTION).to_pylist() == [0, 1, 0]
+
+
+def test_csv_empty_episode_id_is_missing(tmp_path):
+    t = _df()
+    t["ep"] = ["a", None, "b"]
+    with pytest.raises(IngestError, match=r"in.csv: row 1 column 'ep': episode id is missing"):
+        ingest_parquet([_csv(tmp_path, t)], parse_parquet_spec(BASE), tmp_path / "out")
+
+
+def test_csv_header_not_utf8_names_the_file(tmp_path):
+    p = tmp_path / "latin1.csv"
+    p.write_bytes("ep,k,x,nx,a,c,done,caf\xe9\na,0,0,1,0,1,true,1\n".encode("latin-1"))
+    with pytest.raises(IngestError, match=r"latin1.csv: the header .*not UTF-8.*save the file as UTF-8"):
+        ingest_parquet([p], parse_parquet_spec(BASE), tmp_path / "out")

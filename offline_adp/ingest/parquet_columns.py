@@ -31,10 +31,19 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
     cols = spec.needed_columns()
     try:
         if fmt == "csv":
-            opts = pacsv.ReadOptions()
-            table = pacsv.read_csv(path, read_options=opts,
-                                   parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
-            available = table.column_names
+            # columns compared as text (episode ids, source labels, text action labels) are read
+            # as the file's exact text: type inference would make '007' and '7' (or '1.1' and
+            # '1.10') one value
+            table = pacsv.read_csv(path, read_options=pacsv.ReadOptions(),
+                                   parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter),
+                                   convert_options=pacsv.ConvertOptions(
+                                       column_types={c: pa.binary() for c in spec.text_columns()}))
+            try:
+                available = table.column_names
+            except UnicodeDecodeError:
+                raise IngestError(f"{path}: the header (column names) is not UTF-8 text; save the file as "
+                                  "UTF-8") from None
+            table = _csv_text(table, spec)
         else:
             schema = pq.read_schema(path)
             available = schema.names
@@ -72,6 +81,24 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
                     raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the "
                                       "file as UTF-8") from None
             raise IngestError(f"{path}: column {name!r} holds binary data, not text or numbers")
+    return table
+
+
+def _csv_text(table: pa.Table, spec: ParquetSpec) -> pa.Table:
+    """A CSV's text columns (read as bytes) as strings; a column that is not UTF-8 stays
+    binary (:func:`_read` names its first bad cell). An empty episode id cell is a missing id
+    (null), as in a Parquet file."""
+    for c in spec.text_columns():
+        if c not in table.column_names:
+            continue
+        j = table.column_names.index(c)
+        try:
+            col = table.column(j).cast(pa.string())
+        except pa.ArrowInvalid:
+            continue
+        if c == spec.episode.id:
+            col = pc.if_else(pc.equal(col, ""), pa.scalar(None, pa.string()), col)
+        table = table.set_column(j, c, col)
     return table
 
 
