@@ -243,3 +243,25 @@ def test_csv_header_not_utf8_names_the_file(tmp_path):
     p.write_bytes("ep,k,x,nx,a,c,done,caf\xe9\na,0,0,1,0,1,true,1\n".encode("latin-1"))
     with pytest.raises(IngestError, match=r"latin1.csv: the header .*not UTF-8.*save the file as UTF-8"):
         ingest_parquet([p], parse_parquet_spec(BASE), tmp_path / "out")
+
+
+@pytest.mark.parametrize("labels", [["L", None, "R"], ["L", None, "None"]])
+def test_null_action_label_is_a_null_finding_not_a_label(tmp_path, labels):
+    t = _df()
+    t["a"] = pd.Series(labels, dtype=object)
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 .*column 'action'.*null_value"):
+        _ingest(tmp_path, t)
+    res = _ingest(tmp_path, t, on_error="quarantine")
+    assert res.quarantined_episodes == 1
+    assert [a.name for a in res.dataset.info.action_table.actions] == sorted({"L", labels[2]})
+    assert res.quarantine.column(S.ACTION).to_pylist() == [0, None]
+
+
+def test_null_source_is_a_null_finding_not_a_source(tmp_path):
+    t = _df()
+    t["src"] = pd.Series(["demo", None, "demo"], dtype=object)
+    spec = {**BASE, "source": {"column": "src"}}
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 .*column 'source'.*null_value"):
+        _ingest(tmp_path, t, spec)
+    res = _ingest(tmp_path, t, spec, on_error="quarantine")
+    assert res.dataset.source_counts() == {"demo": 1}

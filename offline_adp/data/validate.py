@@ -14,7 +14,7 @@ Rules (check codes in brackets):
   :data:`MAX_ABS_VALUE` in the cost (1e150: their squares, in every regressor's loss,
   overflow) or :data:`MAX_ABS_INPUT` in a model input (1e38 in obs, next_obs and command
   components: trees compare inputs as float32) [``value_out_of_range``]; no nulls in required columns, nor in
-  ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
+  ``t_ns`` when present (a missing or non-finite time at ingestion), nor in ``source`` [``null_value``];
 - actions inside the action table [``action_out_of_range``];
 - continuous commands (an action table of kind ``"continuous"``, or ``action_value.<dim>``
   columns kept next to binned actions): every component has its float column
@@ -130,6 +130,7 @@ def validate(
 
     # nulls in required columns (cast to numpy would hide them)
     timed = (S.T_NS,) if S.T_NS in t.column_names else ()
+    timed += (S.SOURCE,) if S.SOURCE in t.column_names else ()
     for c in (S.EPISODE_ID, S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *timed, *ds.obs_columns,
               *ds.next_obs_columns):
         col = t.column(c)

@@ -310,8 +310,9 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
                           "units are only for continuous commands (type = 'continuous')")
     commands: dict[str, Any] = {}
     widths: np.ndarray | None = None  # list lengths of a list column (else no width to check)
+    a_null: np.ndarray | None = None  # rows whose discrete label is null: a null action (the doctor's null_value)
     if aspec.type == "discrete":
-        raw_action = table.column(aspec.column).to_numpy(zero_copy_only=False)
+        raw_action, a_null = _labels(table, aspec.column, file_of)
         if all_kept:
             action, atable = _blockwise(map_discrete, raw_action, aspec)
         else:
@@ -355,7 +356,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         cols[S.T_NS] = _times_ns(table, spec.episode.time, spec.episode.time_unit, file_of)
     for j, nm in enumerate(names):
         cols[S.obs_column(nm)] = obs[j]
-    cols[S.ACTION] = action
+    cols[S.ACTION] = pa.array(action, mask=a_null) if a_null is not None else action
     cols.update(commands)
     cols[S.COST] = cost
     for j, nm in enumerate(names):
@@ -383,6 +384,22 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         out = out.filter(pa.array(keep))
         width = [(c, m[keep], col, msg) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
+
+
+def _labels(table: pa.Table, column: str, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A discrete action column's labels and its null mask (None without nulls). A null
+    label is never a label ("None"): it is given the value of another row for the mapping
+    (so the action table holds only logged labels) and the caller makes its action null."""
+    c = table.column(column)
+    raw = c.to_numpy(zero_copy_only=False)
+    if not c.null_count:
+        return raw, None
+    null = np.asarray(pc.is_null(c))
+    if null.all():
+        raise IngestError(f"{file_of(np.array([0]))}: column {column!r}: every action label is missing (null)")
+    raw = raw.copy()
+    raw[null] = raw[int(np.argmin(null))]
+    return raw, null
 
 
 #: A discrete action column read by default (no ``action.type``) with more distinct float
