@@ -412,3 +412,28 @@ def test_commands_a_float64_cannot_keep_are_refused_naming_them(tmp_path, kind):
         action, match = {"column": "cmd"}, r"log.parquet: row 7 column 'cmd'.*2\^53"
     with pytest.raises(IngestError, match=match):
         _ingest(tmp_path, t, action)
+
+
+@pytest.mark.parametrize("action", [{"column": "cmdj"}, {"column": "cmdj", "names": ["steer", "throttle"]},
+                                    {"column": "cmdj", "type": "continuous"}])
+def test_json_command_strings_are_refused_naming_file_and_column(tmp_path, action):
+    """They became one discrete label per row, or 'action.names has 2 entries for 24 actions'."""
+    t = _table()
+    t = t.append_column("cmdj", pa.array([json.dumps(v) for v in t.column("cmd").to_pylist()]))
+    path = tmp_path / "log.csv"
+    import pyarrow.csv as pacsv
+
+    pacsv.write_csv(t.drop_columns(["cmd"]), path)
+    with pytest.raises(IngestError, match=r"log.csv: row 0: column 'cmdj' holds JSON text .*JSON commands are not "
+                                          r"supported.*separate numeric columns.*list column"):
+        ingest_parquet([path], parse_parquet_spec(_spec(action)), tmp_path / "ds")
+
+
+def test_one_label_per_row_is_warned_about_even_when_declared(tmp_path):
+    from offline_adp.errors import LogWarning
+
+    n = 300
+    t = pa.table({"ep": ["e"] * n, "k": np.arange(n), "x": np.arange(n, dtype=float), "x_next": np.arange(n) + 1.0,
+                  "u": [f"cmd{i}" for i in range(n)], "c": np.zeros(n), "trunc": np.arange(n) == n - 1})
+    with pytest.warns(LogWarning, match=r"'u' .* 300 distinct labels in 300 rows .*continuous command"):
+        _ingest(tmp_path, t, {"column": "u", "type": "discrete"})

@@ -45,6 +45,7 @@ from offline_adp.ingest.actions import (
     command_columns,
     map_discrete,
 )
+from offline_adp.ingest.parquet_checks import action_labels, check_json_commands, warn_many_labels
 from offline_adp.ingest.parquet_columns import (
     _blockwise,
     _commands,
@@ -298,6 +299,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} is a struct "
                           f"({table.column(aspec.column).type}): give each component its own column "
                           "(action.columns = [...], type = 'continuous') or store the command as a list column")
+    check_json_commands(table, aspec, file_of)
     list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
     if list_col and aspec.type == "discrete":
         if aspec.type_declared:
@@ -312,13 +314,13 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     widths: np.ndarray | None = None  # list lengths of a list column (else no width to check)
     a_null: np.ndarray | None = None  # rows whose discrete label is null: a null action (the doctor's null_value)
     if aspec.type == "discrete":
-        raw_action, a_null = _labels(table, aspec.column, file_of)
+        raw_action, a_null = action_labels(table, aspec.column, file_of)
         if all_kept:
             action, atable = _blockwise(map_discrete, raw_action, aspec)
         else:
             action = np.full(n, -1, np.int32)
             action[keep], atable = map_discrete(raw_action[keep], aspec)
-        _warn_many_labels(raw_action, len(atable.actions), aspec, file_of(np.array([0])))
+        warn_many_labels(raw_action, len(atable.actions), aspec, file_of(np.array([0])))
         del raw_action
     elif (
         not aspec.exact
@@ -384,39 +386,6 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         out = out.filter(pa.array(keep))
         width = [(c, m[keep], col, msg) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
-
-
-def _labels(table: pa.Table, column: str, file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray | None]:
-    """A discrete action column's labels and its null mask (None without nulls). A null
-    label is never a label ("None"): it is given the value of another row for the mapping
-    (so the action table holds only logged labels) and the caller makes its action null."""
-    c = table.column(column)
-    raw = c.to_numpy(zero_copy_only=False)
-    if not c.null_count:
-        return raw, None
-    null = np.asarray(pc.is_null(c))
-    if null.all():
-        raise IngestError(f"{file_of(np.array([0]))}: column {column!r}: every action label is missing (null)")
-    raw = raw.copy()
-    raw[null] = raw[int(np.argmin(null))]
-    return raw, null
-
-
-#: A discrete action column read by default (no ``action.type``) with more distinct float
-#: values than this, and more than half as many as rows, is probably a continuous command.
-MANY_LABELS = 64
-
-
-def _warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> None:
-    """Warn when the default discrete reading turned a float column into about one action per
-    row (a continuous command ingested as labels: nothing is dropped, but nothing is learnt)."""
-    if aspec.type_declared or raw.dtype.kind != "f" or n_labels <= MANY_LABELS or n_labels <= len(raw) / 2:
-        return
-    import warnings
-
-    warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels (the default without "
-                  f"action.type) and holds {n_labels} distinct values in {len(raw)} rows; if it is a continuous "
-                  "command, set action.type = 'continuous' in the spec", UserWarning, stacklevel=2)
 
 
 def ingest_parquet(

@@ -1,0 +1,93 @@
+"""Checks of a Parquet/CSV ingestion's columns (:mod:`offline_adp.ingest.parquet`) that refuse,
+flag or warn about what the dataset would otherwise store wrongly without a word: null
+action labels (never the label ``"None"``), JSON text where a command is expected, a
+command read as one label per row.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from offline_adp.errors import IngestError, LogWarning
+from offline_adp.ingest.parquet_columns import _where
+from offline_adp.ingest.spec import ActionSpec
+
+
+def action_labels(table: pa.Table, column: str,
+                  file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """A discrete action column's labels and its null mask (None without nulls). A null
+    label is never a label ("None"): it is given the value of another row for the mapping
+    (so the action table holds only logged labels) and the caller makes its action null."""
+    c = table.column(column)
+    raw = c.to_numpy(zero_copy_only=False)
+    if not c.null_count:
+        return raw, None
+    null = np.asarray(pc.is_null(c))
+    if null.all():
+        raise IngestError(f"{file_of(np.array([0]))}: column {column!r}: every action label is missing (null)")
+    raw = raw.copy()
+    raw[null] = raw[int(np.argmin(null))]
+    return raw, null
+
+
+def _is_text(t: pa.DataType) -> bool:
+    if pa.types.is_dictionary(t):
+        t = t.value_type
+    return pa.types.is_string(t) or pa.types.is_large_string(t)
+
+
+def check_json_commands(table: pa.Table, spec: ActionSpec, file_of: Callable[[np.ndarray], str]) -> None:
+    """Refuse an action column of text whose every value looks like JSON (an array or an
+    object: ``[`` or ``{`` first): commands stored as JSON strings would otherwise become one
+    discrete label per row. The error names the file, row and column."""
+    for col in spec.source_columns:
+        c = table.column(col)
+        if not _is_text(c.type) or c.null_count == len(c):
+            continue
+        if spec.values is not None and any(isinstance(v, str) and v.lstrip()[:1] in ("[", "{") for v in spec.values):
+            continue  # the spec names such labels itself
+        if pa.types.is_dictionary(c.type):
+            c = c.cast(c.type.value_type)
+        head = pc.utf8_slice_codeunits(pc.utf8_ltrim_whitespace(c), 0, 1)
+        if not pc.all(pc.is_in(head, pa.array(["[", "{"]))).as_py():
+            continue
+        i = int(np.argmax(np.asarray(pc.is_valid(c))))
+        v = str(c[i].as_py())
+        v = repr(v[:60]) + ("..." if len(v) > 60 else "")
+        raise IngestError(f"{_where(file_of, i)}: column {col!r} holds JSON text ({v}): JSON commands are not "
+                          "supported; give the components as separate numeric columns "
+                          "(action.columns = [...], type = 'continuous') or store the command as a list column "
+                          "(e.g. Parquet list<double>)")
+
+
+#: A discrete action column read by default (no ``action.type``) with more distinct float
+#: values than this, and more than half as many as rows, is probably a continuous command.
+MANY_LABELS = 64
+#: A discrete action column with a distinct label in every row and more labels than this is
+#: probably a continuous command, whatever its type and whether ``type`` was declared.
+ONE_PER_ROW_LABELS = 256
+
+
+def warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> None:
+    """Warn (:class:`~offline_adp.errors.LogWarning`) when the discrete reading turned a column
+    into about one action per row (a continuous command ingested as labels: nothing is
+    dropped, but nothing is learnt): a float column read by default with more than
+    :data:`MANY_LABELS` values in more than half of the rows, or any column with a distinct
+    label in every row and more than :data:`ONE_PER_ROW_LABELS` of them."""
+    if n_labels > ONE_PER_ROW_LABELS and n_labels >= len(raw):
+        warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels and holds "
+                      f"{n_labels} distinct labels in {len(raw)} rows (one per row): this looks like a continuous "
+                      "command read as labels; if it is one, give it as numbers with action.type = 'continuous'",
+                      LogWarning, stacklevel=3)
+        return
+    if aspec.type_declared or raw.dtype.kind != "f" or n_labels <= MANY_LABELS or n_labels <= len(raw) / 2:
+        return
+    warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels (the default without "
+                  f"action.type) and holds {n_labels} distinct values in {len(raw)} rows; if it is a continuous "
+                  "command, set action.type = 'continuous' in the spec", LogWarning, stacklevel=3)
