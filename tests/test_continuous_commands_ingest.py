@@ -437,3 +437,10 @@ def test_one_label_per_row_is_warned_about_even_when_declared(tmp_path):
                   "u": [f"cmd{i}" for i in range(n)], "c": np.zeros(n), "trunc": np.arange(n) == n - 1})
     with pytest.warns(LogWarning, match=r"'u' .* 300 distinct labels in 300 rows .*continuous command"):
         _ingest(tmp_path, t, {"column": "u", "type": "discrete"})
+
+
+def test_more_names_than_list_entries_is_a_command_width_error(tmp_path):
+    """It said "component 'brake': no finite command to infer its bounds from"."""
+    with pytest.raises(IngestError, match=r"log.parquet: row 0: column 'cmd': \[command_width\] lists of 2 values "
+                                          r"against 3 names \['steer', 'throttle', 'brake'\]"):
+        _ingest(tmp_path, _table(), {"column": "cmd", "names": ["steer", "throttle", "brake"]})

@@ -265,3 +265,10 @@ def test_null_source_is_a_null_finding_not_a_source(tmp_path):
         _ingest(tmp_path, t, spec)
     res = _ingest(tmp_path, t, spec, on_error="quarantine")
     assert res.dataset.source_counts() == {"demo": 1}
+
+
+def test_uint64_step_beyond_int64_is_reported_as_logged_not_wrapped(tmp_path):
+    t = _df()
+    t["k"] = np.array([0, 1, 2**64 - 100], dtype=np.uint64)
+    with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'k': step 18446744073709551516 is outside"):
+        _ingest(tmp_path, t)

@@ -218,6 +218,10 @@ def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray],
             if base:
                 c = pc.subtract(c.cast(pa.int64()), base)
             return c.cast(pa.int32())
+        if pa.types.is_unsigned_integer(c.type) and mm["max"] > np.iinfo(np.int64).max:  # as int64 it would wrap
+            i = int(np.argmax(np.asarray(pc.greater(c, pa.scalar(np.iinfo(np.int64).max, c.type)))))
+            raise IngestError(f"{_where(file_of, i)}: column {col!r}: step {c[i].as_py()} is outside "
+                              f"[{base}, {base + np.iinfo(np.int32).max}] (steps are stored as int32 from 0)")
     v = _np(table, col, np.float64 if not pa.types.is_integer(c.type) else np.int64, file_of)
     if v.dtype.kind == "f":
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
@@ -329,6 +333,13 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
                           "numeric commands") from None
     if spec.components is not None:
         k = len(spec.components)
+        seen = lengths >= 0
+        if seen.any() and not (lengths[seen] == k).any():  # no row can have a command: say why
+            i = int(np.argmax(seen))
+            widths = sorted({int(m) for m in np.unique(lengths[seen])})
+            raise IngestError(f"{_where(file_of, i)}: column {spec.column!r}: [command_width] lists of "
+                              f"{' or '.join(map(str, widths))} values against {k} names {list(spec.components)} "
+                              f"(action.names): no row has a command of {k} components; give one name per list entry")
     else:
         seen = lengths[lengths > 0]
         if not len(seen):
