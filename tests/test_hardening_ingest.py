@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from offline_adp.data import schema as S
@@ -272,3 +274,31 @@ def test_uint64_step_beyond_int64_is_reported_as_logged_not_wrapped(tmp_path):
     t["k"] = np.array([0, 1, 2**64 - 100], dtype=np.uint64)
     with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'k': step 18446744073709551516 is outside"):
         _ingest(tmp_path, t)
+
+
+@pytest.mark.parametrize("col", ["x", "nx", "c"])
+def test_integer_beyond_2_53_in_a_float_column_is_refused_not_rounded(tmp_path, col):
+    t = _df()
+    t[col] = np.array([1, 2**53 + 1, 3], dtype=np.int64)
+    with pytest.raises(IngestError, match=rf"in0.parquet: row 1: column '{col}': integer 9007199254740993 is beyond "
+                                          r"2\^53"):
+        _ingest(tmp_path, t)
+
+
+def test_integers_up_to_2_53_in_a_float_column_are_kept(tmp_path):
+    t = _df()
+    t["x"] = np.array([0, 2**53, -(2**53)], dtype=np.int64)
+    t["nx"] = t["x"]
+    res = _ingest(tmp_path, t, on_error="quarantine")
+    assert res.dataset.table.column(S.obs_column("x")).to_pylist() == [-(2.0**53)]
+
+
+@pytest.mark.parametrize("values,what", [(pa.array([0.0, float("nan"), 0.0]), "NaN"),
+                                         (pa.array([0, None, 0], pa.int64()), r"missing \(null\)")])
+def test_missing_or_nan_order_value_is_refused_like_a_null_step(tmp_path, values, what):
+    t = pa.Table.from_pandas(_df(), preserve_index=False)
+    t = t.set_column(t.column_names.index("t"), "t", values)
+    pq.write_table(t, tmp_path / "in0.parquet")
+    spec = {**BASE, "episode": {"id": "ep", "order": "t"}}
+    with pytest.raises(IngestError, match=rf"in0.parquet: row 1: column 't': the order value is {what}"):
+        ingest_parquet([tmp_path / "in0.parquet"], parse_parquet_spec(spec), tmp_path / "out")

@@ -45,7 +45,12 @@ from offline_adp.ingest.actions import (
     command_columns,
     map_discrete,
 )
-from offline_adp.ingest.parquet_checks import action_labels, check_json_commands, warn_many_labels
+from offline_adp.ingest.parquet_checks import (
+    action_labels,
+    check_json_commands,
+    check_order_column,
+    warn_many_labels,
+)
 from offline_adp.ingest.parquet_columns import (
     _blockwise,
     _commands,
@@ -215,6 +220,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # order within episodes
     order_col = spec.episode.step or spec.episode.order or spec.episode.time
     assert order_col is not None
+    if not spec.episode.step:
+        check_order_column(table, order_col, names_of)
     enc = sorted_encoding(table.column(spec.episode.id), table.column(order_col).to_numpy(zero_copy_only=False))
     if enc is None:  # sort only when needed (ties keep file order)
         idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"),

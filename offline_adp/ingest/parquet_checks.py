@@ -91,3 +91,21 @@ def warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> 
     warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels (the default without "
                   f"action.type) and holds {n_labels} distinct values in {len(raw)} rows; if it is a continuous "
                   "command, set action.type = 'continuous' in the spec", LogWarning, stacklevel=3)
+
+
+def check_order_column(table: pa.Table, col: str, files: np.ndarray) -> None:
+    """Refuse a missing (null) or NaN value in the column that orders the rows of an episode
+    (``episode.order``), as a null step is refused: the row's place in its episode is
+    unknown. ``table`` is in file order with its ``__file``/``__row`` columns; the error
+    names the file, row and column of the first such value."""
+    c = table.column(col)
+    bad = pc.is_null(c, nan_is_null=True) if pa.types.is_floating(c.type) else pc.is_null(c)
+    if not pc.any(bad).as_py():
+        return
+    mask = np.asarray(bad)
+    i = int(np.argmax(mask))
+    f = int(table.column("__file")[i].as_py())
+    r = int(table.column("__row")[i].as_py())
+    what = "NaN" if c[i].is_valid else "missing (null)"
+    raise IngestError(f"{files[f]}: row {r}: column {col!r}: the order value is {what} ({int(mask.sum())} such rows); "
+                      "every row needs one to place it in its episode")

@@ -178,11 +178,27 @@ def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *,
     if not numeric:
         return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of),
                                           mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
+    if pa.types.is_integer(c.type):
+        _check_exact_integers(c, col, file_of)
     if c.type != pa.float64():
-        c = c.cast(pa.float64(), safe=False)  # as numpy's astype: large integers round
+        c = c.cast(pa.float64(), safe=False)
     if c.null_count and not keep_nulls:
         c = c.fill_null(np.nan)
     return c
+
+
+def _check_exact_integers(c: pa.ChunkedArray, col: str, file_of: Callable[[np.ndarray], str]) -> None:
+    """An integer column converted to float64 must not hold a value beyond 2^53, which a
+    float64 would round silently; the error names the file, row, column and value."""
+    mm = pc.min_max(c).as_py()
+    if mm["min"] is None or (-(2**53) <= mm["min"] and mm["max"] <= 2**53):
+        return
+    big = pc.greater(c, pa.scalar(2**53, c.type))
+    if not pa.types.is_unsigned_integer(c.type):
+        big = pc.or_(big, pc.less(c, pa.scalar(-(2**53), c.type)))
+    i = int(np.argmax(np.asarray(big.fill_null(False))))
+    raise IngestError(f"{_where(file_of, i)}: column {col!r}: integer {c[i].as_py()} is beyond 2^53, where a float64 "
+                      "would round it (the dataset stores floats); rescale the column, e.g. subtract an offset")
 
 
 def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray],
