@@ -321,3 +321,18 @@ def test_parts_share_one_schema_when_a_column_has_nulls_in_one_part_only(tmp_pat
     for name in t.column_names:
         assert back.table.column(name).to_pylist() == with_null.table.column(name).to_pylist(), name
     assert back.fingerprint() == with_null.fingerprint()
+
+
+def test_api_takes_one_path_and_refuses_wrong_arguments_with_our_error(tmp_path):
+    """A str was iterated character by character; None gave a plain TypeError."""
+    from offline_adp.errors import InvalidArgumentError
+
+    ds = simulate("car_on_hill", 2, 2, seed=1)
+    raw, spec = write_raw(ds, tmp_path / "a.parquet")
+    for k, one in enumerate((str(raw), raw)):
+        assert ingest_parquet(one, spec, tmp_path / f"ds{k}").dataset.fingerprint() == ds.fingerprint()
+    for inputs, sp, out, arg in ((None, spec, tmp_path / "o", "inputs"), ([raw, 3], spec, tmp_path / "o", "inputs"),
+                                 ([raw], spec, None, "out"), ([raw], {"kind": "steps"}, tmp_path / "o", "spec")):
+        with pytest.raises(InvalidArgumentError, match=rf"^{arg} must be"):
+            ingest_parquet(inputs, sp, out)
+    assert not (tmp_path / "o").exists()

@@ -38,7 +38,7 @@ from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import write_dataset
 from offline_adp.data.pages import small_pages
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
-from offline_adp.errors import IngestError, ValidationError
+from offline_adp.errors import IngestError, InvalidArgumentError, ValidationError
 from offline_adp.ingest.actions import (
     bin_continuous,
     command_actions,
@@ -49,6 +49,7 @@ from offline_adp.ingest.parquet_checks import (
     action_labels,
     check_json_commands,
     check_order_column,
+    input_paths,
     warn_many_labels,
 )
 from offline_adp.ingest.parquet_columns import (
@@ -96,7 +97,7 @@ class IngestResult:
 
 
 def ingest_tables(
-    inputs: Sequence[str | PathLike[str]],
+    inputs: Sequence[str | PathLike[str]] | str | PathLike[str],
     spec: ParquetSpec,
     *,
     on_error: str | None = None,
@@ -106,7 +107,7 @@ def ingest_tables(
     on_error = on_error or spec.on_error
     if on_error not in ("fail", "quarantine"):
         raise IngestError(f"on_error must be 'fail' or 'quarantine', got {on_error!r}")
-    paths = [Path(p) for p in inputs]
+    paths = input_paths(inputs)
     if not paths:
         raise IngestError("no input files given")
     # every intermediate of the mapping (and the input's columns the dataset does not
@@ -396,7 +397,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
 
 
 def ingest_parquet(
-    inputs: Sequence[str | PathLike[str]],
+    inputs: Sequence[str | PathLike[str]] | str | PathLike[str],
     spec: ParquetSpec | str | PathLike[str],
     out: str | PathLike[str],
     *,
@@ -406,8 +407,13 @@ def ingest_parquet(
 ) -> IngestResult:
     """Ingest Parquet/CSV tables into a dataset directory at ``out`` (atomic write).
 
+    ``inputs`` is one path or a list of paths; ``spec`` a :class:`ParquetSpec` or the path
+    of a spec file.
+
     Raises
     ------
+    InvalidArgumentError
+        ``inputs``, ``spec`` or ``out`` is not of a type above (e.g. None).
     SpecError
         The spec is malformed.
     IngestError
@@ -415,7 +421,14 @@ def ingest_parquet(
     ValidationError
         The doctor found defects and ``on_error`` is ``"fail"`` (the default).
     """
+    input_paths(inputs)  # before the lock: a wrong argument names itself
+    if not isinstance(out, (str, PathLike)):
+        raise InvalidArgumentError(f"out must be a path (str or os.PathLike), got {type(out).__name__}")
     if not isinstance(spec, ParquetSpec):
+        if not isinstance(spec, (str, PathLike)):
+            raise InvalidArgumentError(f"spec must be a ParquetSpec or the path of a spec file (str or os.PathLike), "
+                                       f"got {type(spec).__name__}; parse a mapping with "
+                                       "offline_adp.ingest.spec.parse_parquet_spec")
         spec = load_parquet_spec(spec)
     # small pages while the tables are read, checked and written: huge-page faults cost the
     # kernel up to 1.4 s of zeroing at 2M rows (offline_adp.data.pages)
@@ -423,7 +436,8 @@ def ingest_parquet(
         return _ingest_locked(inputs, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
 
 
-def _ingest_locked(inputs: Sequence[str | PathLike[str]], spec: ParquetSpec, out: str | PathLike[str], *,
+def _ingest_locked(inputs: Sequence[str | PathLike[str]] | str | PathLike[str], spec: ParquetSpec,
+                   out: str | PathLike[str], *,
                    on_error: str | None, overwrite: bool, progress: Callable[[str], None] | None) -> IngestResult:
     if (Path(out).exists() or Path(out).is_symlink()) and not overwrite:
         raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from os import PathLike
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from offline_adp.errors import IngestError, LogWarning
+from offline_adp.errors import IngestError, InvalidArgumentError, LogWarning
 from offline_adp.ingest.parquet_columns import _where
 from offline_adp.ingest.spec import ActionSpec
 
@@ -109,3 +111,20 @@ def check_order_column(table: pa.Table, col: str, files: np.ndarray) -> None:
     what = "NaN" if c[i].is_valid else "missing (null)"
     raise IngestError(f"{files[f]}: row {r}: column {col!r}: the order value is {what} ({int(mask.sum())} such rows); "
                       "every row needs one to place it in its episode")
+
+
+def input_paths(inputs: Any) -> list[Path]:
+    """The input files of an ingestion: one path (str or os.PathLike) or a list of them;
+    anything else (None, a number, a list holding a non-path) is an
+    :class:`~offline_adp.errors.InvalidArgumentError` naming the argument."""
+    if isinstance(inputs, (str, PathLike)):
+        return [Path(inputs)]
+    if isinstance(inputs, (bytes, dict)) or not hasattr(inputs, "__iter__"):
+        raise InvalidArgumentError(f"inputs must be a path (str or os.PathLike) or a list of paths, got "
+                                   f"{type(inputs).__name__}")
+    paths = list(inputs)
+    bad = [p for p in paths if not isinstance(p, (str, PathLike))]
+    if bad:
+        raise InvalidArgumentError(f"inputs must be paths (str or os.PathLike), got {type(bad[0]).__name__} "
+                                   f"{bad[0]!r:.80}")
+    return [Path(p) for p in paths]
