@@ -444,3 +444,21 @@ def test_more_names_than_list_entries_is_a_command_width_error(tmp_path):
     with pytest.raises(IngestError, match=r"log.parquet: row 0: column 'cmd': \[command_width\] lists of 2 values "
                                           r"against 3 names \['steer', 'throttle', 'brake'\]"):
         _ingest(tmp_path, _table(), {"column": "cmd", "names": ["steer", "throttle", "brake"]})
+
+
+def test_mcap_output_over_its_input_or_inside_a_dataset_is_refused(tmp_path):
+    """The rule of the Parquet ingest (data.io.check_dataset_output), before anything is written."""
+    from offline_adp.errors import OutputExistsError
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    (tmp_path / "logs").mkdir()
+    _write_mcap(tmp_path / "logs" / "a.mcap", np.linspace(-0.3, 0.3, 12), np.full(12, 0.5))
+    spec = _mcap_spec({"fields": {"steer": "steer", "throttle": "throttle"}, "type": "continuous"})
+    for out in (tmp_path / "logs" / "a.mcap", tmp_path / "logs"):
+        with pytest.raises(OutputExistsError, match=r"the output .* (is|contains) the input"):
+            ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, out, overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "logs").iterdir()) == ["a.mcap"]
+    ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, tmp_path / "ds")
+    with pytest.raises(OutputExistsError, match=r"inside the dataset directory"):
+        ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, tmp_path / "ds" / "meta", overwrite=True)
+    assert (tmp_path / "ds" / "meta" / "info.json").is_file()

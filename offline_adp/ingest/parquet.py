@@ -35,7 +35,7 @@ from offline_adp.data.columns import encode_strings, sorted_encoding
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.files import locked_directory, sha256_file
 from offline_adp.data.info import DatasetInfo, Feature
-from offline_adp.data.io import write_dataset
+from offline_adp.data.io import check_dataset_output, write_dataset
 from offline_adp.data.pages import small_pages
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, InvalidArgumentError, ValidationError
@@ -421,9 +421,10 @@ def ingest_parquet(
     ValidationError
         The doctor found defects and ``on_error`` is ``"fail"`` (the default).
     """
-    input_paths(inputs)  # before the lock: a wrong argument names itself
+    paths = input_paths(inputs)  # before the lock: a wrong argument names itself
     if not isinstance(out, (str, PathLike)):
         raise InvalidArgumentError(f"out must be a path (str or os.PathLike), got {type(out).__name__}")
+    check_dataset_output(out, paths)  # before anything is written (the lock file, the parent)
     if not isinstance(spec, ParquetSpec):
         if not isinstance(spec, (str, PathLike)):
             raise InvalidArgumentError(f"spec must be a ParquetSpec or the path of a spec file (str or os.PathLike), "
