@@ -302,3 +302,21 @@ def test_missing_or_nan_order_value_is_refused_like_a_null_step(tmp_path, values
     spec = {**BASE, "episode": {"id": "ep", "order": "t"}}
     with pytest.raises(IngestError, match=rf"in0.parquet: row 1: column 't': the order value is {what}"):
         ingest_parquet([tmp_path / "in0.parquet"], parse_parquet_spec(spec), tmp_path / "out")
+
+
+def test_source_changing_within_an_episode_is_a_finding_naming_file_row_episode(tmp_path):
+    t = _df()
+    t["src"] = ["demo", "explore", "demo"]
+    spec = {**BASE, "source": {"column": "src"}}
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 \(episode a, step 1\) column 'src': "
+                                              r"\[source_changed\] source 'explore' after 'demo'"):
+        _ingest(tmp_path, t, spec)
+    res = _ingest(tmp_path, t, spec, on_error="quarantine")
+    assert res.quarantined_episodes == 1 and res.dataset.source_counts() == {"demo": 1}
+    # a steps table whose dropped last rows shift the rows: the message stays with its row
+    s = pd.DataFrame({"ep": ["a"] * 3 + ["b"] * 3, "k": [0, 1, 2] * 2, "x": [0.0, 1, 2, 0, 1, 2], "a": 0, "c": 1.0,
+                      "done": False, "src": ["d", "d", "d", "d", "e", "e"]})
+    steps = {**spec, "kind": "steps", "observations": {"columns": ["x"]}}
+    with pytest.raises(ValidationError, match=r"row 4 \(episode b, step 1\) column 'src': \[source_changed\] source "
+                                              r"'e' after 'd'"):
+        _ingest(tmp_path, s, steps, overwrite=True)

@@ -22,7 +22,8 @@ Rules (check codes in brackets):
   [``non_finite``] and lies within the table's ``low``/``high`` (tolerance
   :data:`COMMAND_BOUND_RTOL`) [``command_out_of_bounds``];
 - propensities in (0, 1] [``propensity_out_of_range``];
-- timestamps non-decreasing within an episode [``time_decreasing``].
+- timestamps non-decreasing within an episode [``time_decreasing``];
+- at ingestion (``extra``): one source label per episode [``source_changed``].
 
 Every finding names the file, the row in that file, the (episode_id, step) and the column.
 
@@ -95,8 +96,9 @@ def validate(
         Tolerance of the ``next_obs`` / ``obs`` continuity check.
     extra : sequence of (check, mask, column, message)
         Findings the ingestion made on the input that the table cannot show (a command list
-        of the wrong width: ``command_width``), one mask over the rows each; the command
-        checks skip those rows (their command is missing because of that finding).
+        of the wrong width: ``command_width``, whose rows the command checks skip: their
+        command is missing because of it; a source label changing within an episode:
+        ``source_changed``), one mask over the rows each.
     """
     t = ds.table
     n = t.num_rows
@@ -241,7 +243,8 @@ def validate(
     skip = np.zeros(n, bool)
     for check, mask, column, message in extra:
         add(check, mask, column, message)
-        skip |= mask
+        if check == "command_width":
+            skip |= mask
     _check_commands(ds, add, last, skip)
 
     if S.BEHAVIOR_PROB in t.column_names:

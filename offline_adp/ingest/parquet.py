@@ -50,6 +50,7 @@ from offline_adp.ingest.parquet_checks import (
     check_json_commands,
     check_order_column,
     input_paths,
+    source_findings,
     warn_many_labels,
 )
 from offline_adp.ingest.parquet_columns import (
@@ -390,9 +391,11 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # chunked columns stay chunked: the output shares the input's buffers where it can
     out = pa.table(cols)
     width = _width_findings(widths, aspec, atable)
+    if spec.source_column:
+        width += source_findings(cols[S.SOURCE], codes, spec.source_column)
     if not all_kept:
         out = out.filter(pa.array(keep))
-        width = [(c, m[keep], col, msg) for c, m, col, msg in width]
+        width = [(c, m[keep], col, msg if isinstance(msg, str) else msg[keep]) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
 
 

@@ -128,3 +128,29 @@ def input_paths(inputs: Any) -> list[Path]:
         raise InvalidArgumentError(f"inputs must be paths (str or os.PathLike), got {type(bad[0]).__name__} "
                                    f"{bad[0]!r:.80}")
     return [Path(p) for p in paths]
+
+
+def source_findings(src: pa.Array, codes: np.ndarray, column: str) -> list[tuple[str, np.ndarray, str, Any]]:
+    """The doctor's findings (``validate(extra=...)``, check ``source_changed``) for rows whose
+    source label differs from the previous row's of the same episode: an episode has one
+    source (``meta/episodes.parquet`` keeps one). ``src`` is the dataset's dictionary-encoded
+    source column in row order, ``codes`` each row's episode code (rows sorted by episode)."""
+    n = len(src)
+    if n < 2:
+        return []
+    if isinstance(src, pa.ChunkedArray):
+        src = src.unify_dictionaries().combine_chunks()
+    if len(pc.unique(src.dictionary)) != len(src.dictionary):  # codes comparable only over distinct labels
+        src = pc.dictionary_encode(src.cast(pa.string()))
+    s = src.indices.fill_null(-1).to_numpy(zero_copy_only=False)
+    changed = np.zeros(n, bool)
+    np.not_equal(s[1:], s[:-1], out=changed[1:])
+    changed[1:] &= (codes[1:] == codes[:-1]) & (s[1:] >= 0) & (s[:-1] >= 0)  # a null is a null_value finding
+    if not changed.any():
+        return []
+    rows = np.flatnonzero(changed)
+    labels = src.dictionary.to_pylist()
+    msg = np.full(n, "", dtype=object)
+    msg[rows] = [f"source {labels[s[i]]!r} after {labels[s[i - 1]]!r} in the same episode; an episode has one source "
+                 "(meta/episodes.parquet keeps one): give the episode one label, or split it" for i in rows]
+    return [("source_changed", changed, column, msg)]
