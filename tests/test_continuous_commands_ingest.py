@@ -412,3 +412,53 @@ def test_commands_a_float64_cannot_keep_are_refused_naming_them(tmp_path, kind):
         action, match = {"column": "cmd"}, r"log.parquet: row 7 column 'cmd'.*2\^53"
     with pytest.raises(IngestError, match=match):
         _ingest(tmp_path, t, action)
+
+
+@pytest.mark.parametrize("action", [{"column": "cmdj"}, {"column": "cmdj", "names": ["steer", "throttle"]},
+                                    {"column": "cmdj", "type": "continuous"}])
+def test_json_command_strings_are_refused_naming_file_and_column(tmp_path, action):
+    """They became one discrete label per row, or 'action.names has 2 entries for 24 actions'."""
+    t = _table()
+    t = t.append_column("cmdj", pa.array([json.dumps(v) for v in t.column("cmd").to_pylist()]))
+    path = tmp_path / "log.csv"
+    import pyarrow.csv as pacsv
+
+    pacsv.write_csv(t.drop_columns(["cmd"]), path)
+    with pytest.raises(IngestError, match=r"log.csv: row 0: column 'cmdj' holds JSON text .*JSON commands are not "
+                                          r"supported.*separate numeric columns.*list column"):
+        ingest_parquet([path], parse_parquet_spec(_spec(action)), tmp_path / "ds")
+
+
+def test_one_label_per_row_is_warned_about_even_when_declared(tmp_path):
+    from offline_adp.errors import LogWarning
+
+    n = 300
+    t = pa.table({"ep": ["e"] * n, "k": np.arange(n), "x": np.arange(n, dtype=float), "x_next": np.arange(n) + 1.0,
+                  "u": [f"cmd{i}" for i in range(n)], "c": np.zeros(n), "trunc": np.arange(n) == n - 1})
+    with pytest.warns(LogWarning, match=r"'u' .* 300 distinct labels in 300 rows .*continuous command"):
+        _ingest(tmp_path, t, {"column": "u", "type": "discrete"})
+
+
+def test_more_names_than_list_entries_is_a_command_width_error(tmp_path):
+    """It said "component 'brake': no finite command to infer its bounds from"."""
+    with pytest.raises(IngestError, match=r"log.parquet: row 0: column 'cmd': \[command_width\] lists of 2 values "
+                                          r"against 3 names \['steer', 'throttle', 'brake'\]"):
+        _ingest(tmp_path, _table(), {"column": "cmd", "names": ["steer", "throttle", "brake"]})
+
+
+def test_mcap_output_over_its_input_or_inside_a_dataset_is_refused(tmp_path):
+    """The rule of the Parquet ingest (data.io.check_dataset_output), before anything is written."""
+    from offline_adp.errors import OutputExistsError
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    (tmp_path / "logs").mkdir()
+    _write_mcap(tmp_path / "logs" / "a.mcap", np.linspace(-0.3, 0.3, 12), np.full(12, 0.5))
+    spec = _mcap_spec({"fields": {"steer": "steer", "throttle": "throttle"}, "type": "continuous"})
+    for out in (tmp_path / "logs" / "a.mcap", tmp_path / "logs"):
+        with pytest.raises(OutputExistsError, match=r"the output .* (is|contains) the input"):
+            ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, out, overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "logs").iterdir()) == ["a.mcap"]
+    ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, tmp_path / "ds")
+    with pytest.raises(OutputExistsError, match=r"inside the dataset directory"):
+        ingest_mcap([tmp_path / "logs" / "a.mcap"], spec, tmp_path / "ds" / "meta", overwrite=True)
+    assert (tmp_path / "ds" / "meta" / "info.json").is_file()

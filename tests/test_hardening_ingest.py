@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from offline_adp.data import schema as S
@@ -199,3 +201,122 @@ def test_text_with_nulls_in_a_feature_column_names_file_row_column(tmp_path):
     t["x"] = pd.Series(["0.5", None, "x"], dtype=object)
     with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'x': 'x' is not a number"):
         _ingest(tmp_path, t)
+
+
+def _csv(tmp_path, df: pd.DataFrame, name: str = "in.csv") -> Path:
+    p = tmp_path / name
+    df.to_csv(p, index=False)
+    return p
+
+
+def test_csv_episode_ids_are_the_files_text(tmp_path):
+    """Type inference made '007' and '7' (and '1.1' and '1.10') one episode, '000' -> '0'."""
+    t = pd.DataFrame({"ep": ["007", "007", "7", "1.1", "1.10", "000"], "k": [0, 1, 0, 0, 0, 0],
+                      "x": [0.0, 1.0, 5.0, 2.0, 3.0, 4.0], "nx": [1.0, 2.0, 6.0, 3.0, 4.0, 5.0],
+                      "a": [0, 1, 0, 1, 0, 1], "c": 1.0, "done": [False, True, True, True, True, True]})
+    p = _csv(tmp_path, t)
+    ingest_parquet([p], parse_parquet_spec(BASE), tmp_path / "out")
+    ds = read_dataset(tmp_path / "out")
+    assert sorted(set(ds.episode_ids)) == ["000", "007", "1.1", "1.10", "7"]
+    assert len(ds) == 6
+
+
+def test_csv_source_and_text_action_labels_are_the_files_text(tmp_path):
+    t = _df()
+    t["src"] = ["01", "01", "1"]
+    t["a"] = ["01", "1", "01"]
+    p = _csv(tmp_path, t)
+    spec = {**BASE, "action": {"column": "a", "values": ["01", "1"]}, "source": {"column": "src"}}
+    ingest_parquet([p], parse_parquet_spec(spec), tmp_path / "out")
+    ds = read_dataset(tmp_path / "out")
+    assert ds.source_counts() == {"01": 2, "1": 1}
+    assert ds.table.column(S.ACTION).to_pylist() == [0, 1, 0]
+
+
+def test_csv_empty_episode_id_is_missing(tmp_path):
+    t = _df()
+    t["ep"] = ["a", None, "b"]
+    with pytest.raises(IngestError, match=r"in.csv: row 1 column 'ep': episode id is missing"):
+        ingest_parquet([_csv(tmp_path, t)], parse_parquet_spec(BASE), tmp_path / "out")
+
+
+def test_csv_header_not_utf8_names_the_file(tmp_path):
+    p = tmp_path / "latin1.csv"
+    p.write_bytes("ep,k,x,nx,a,c,done,caf\xe9\na,0,0,1,0,1,true,1\n".encode("latin-1"))
+    with pytest.raises(IngestError, match=r"latin1.csv: the header .*not UTF-8.*save the file as UTF-8"):
+        ingest_parquet([p], parse_parquet_spec(BASE), tmp_path / "out")
+
+
+@pytest.mark.parametrize("labels", [["L", None, "R"], ["L", None, "None"]])
+def test_null_action_label_is_a_null_finding_not_a_label(tmp_path, labels):
+    t = _df()
+    t["a"] = pd.Series(labels, dtype=object)
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 .*column 'action'.*null_value"):
+        _ingest(tmp_path, t)
+    res = _ingest(tmp_path, t, on_error="quarantine")
+    assert res.quarantined_episodes == 1
+    assert [a.name for a in res.dataset.info.action_table.actions] == sorted({"L", labels[2]})
+    assert res.quarantine.column(S.ACTION).to_pylist() == [0, None]
+
+
+def test_null_source_is_a_null_finding_not_a_source(tmp_path):
+    t = _df()
+    t["src"] = pd.Series(["demo", None, "demo"], dtype=object)
+    spec = {**BASE, "source": {"column": "src"}}
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 .*column 'source'.*null_value"):
+        _ingest(tmp_path, t, spec)
+    res = _ingest(tmp_path, t, spec, on_error="quarantine")
+    assert res.dataset.source_counts() == {"demo": 1}
+
+
+def test_uint64_step_beyond_int64_is_reported_as_logged_not_wrapped(tmp_path):
+    t = _df()
+    t["k"] = np.array([0, 1, 2**64 - 100], dtype=np.uint64)
+    with pytest.raises(IngestError, match=r"in0.parquet: row 2: column 'k': step 18446744073709551516 is outside"):
+        _ingest(tmp_path, t)
+
+
+@pytest.mark.parametrize("col", ["x", "nx", "c"])
+def test_integer_beyond_2_53_in_a_float_column_is_refused_not_rounded(tmp_path, col):
+    t = _df()
+    t[col] = np.array([1, 2**53 + 1, 3], dtype=np.int64)
+    with pytest.raises(IngestError, match=rf"in0.parquet: row 1: column '{col}': integer 9007199254740993 is beyond "
+                                          r"2\^53"):
+        _ingest(tmp_path, t)
+
+
+def test_integers_up_to_2_53_in_a_float_column_are_kept(tmp_path):
+    t = _df()
+    t["x"] = np.array([0, 2**53, -(2**53)], dtype=np.int64)
+    t["nx"] = t["x"]
+    res = _ingest(tmp_path, t, on_error="quarantine")
+    assert res.dataset.table.column(S.obs_column("x")).to_pylist() == [-(2.0**53)]
+
+
+@pytest.mark.parametrize("values,what", [(pa.array([0.0, float("nan"), 0.0]), "NaN"),
+                                         (pa.array([0, None, 0], pa.int64()), r"missing \(null\)")])
+def test_missing_or_nan_order_value_is_refused_like_a_null_step(tmp_path, values, what):
+    t = pa.Table.from_pandas(_df(), preserve_index=False)
+    t = t.set_column(t.column_names.index("t"), "t", values)
+    pq.write_table(t, tmp_path / "in0.parquet")
+    spec = {**BASE, "episode": {"id": "ep", "order": "t"}}
+    with pytest.raises(IngestError, match=rf"in0.parquet: row 1: column 't': the order value is {what}"):
+        ingest_parquet([tmp_path / "in0.parquet"], parse_parquet_spec(spec), tmp_path / "out")
+
+
+def test_source_changing_within_an_episode_is_a_finding_naming_file_row_episode(tmp_path):
+    t = _df()
+    t["src"] = ["demo", "explore", "demo"]
+    spec = {**BASE, "source": {"column": "src"}}
+    with pytest.raises(ValidationError, match=r"in0.parquet: row 1 \(episode a, step 1\) column 'src': "
+                                              r"\[source_changed\] source 'explore' after 'demo'"):
+        _ingest(tmp_path, t, spec)
+    res = _ingest(tmp_path, t, spec, on_error="quarantine")
+    assert res.quarantined_episodes == 1 and res.dataset.source_counts() == {"demo": 1}
+    # a steps table whose dropped last rows shift the rows: the message stays with its row
+    s = pd.DataFrame({"ep": ["a"] * 3 + ["b"] * 3, "k": [0, 1, 2] * 2, "x": [0.0, 1, 2, 0, 1, 2], "a": 0, "c": 1.0,
+                      "done": False, "src": ["d", "d", "d", "d", "e", "e"]})
+    steps = {**spec, "kind": "steps", "observations": {"columns": ["x"]}}
+    with pytest.raises(ValidationError, match=r"row 4 \(episode b, step 1\) column 'src': \[source_changed\] source "
+                                              r"'e' after 'd'"):
+        _ingest(tmp_path, s, steps, overwrite=True)

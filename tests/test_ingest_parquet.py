@@ -321,3 +321,37 @@ def test_parts_share_one_schema_when_a_column_has_nulls_in_one_part_only(tmp_pat
     for name in t.column_names:
         assert back.table.column(name).to_pylist() == with_null.table.column(name).to_pylist(), name
     assert back.fingerprint() == with_null.fingerprint()
+
+
+def test_api_takes_one_path_and_refuses_wrong_arguments_with_our_error(tmp_path):
+    """A str was iterated character by character; None gave a plain TypeError."""
+    from offline_adp.errors import InvalidArgumentError
+
+    ds = simulate("car_on_hill", 2, 2, seed=1)
+    raw, spec = write_raw(ds, tmp_path / "a.parquet")
+    for k, one in enumerate((str(raw), raw)):
+        assert ingest_parquet(one, spec, tmp_path / f"ds{k}").dataset.fingerprint() == ds.fingerprint()
+    for inputs, sp, out, arg in ((None, spec, tmp_path / "o", "inputs"), ([raw, 3], spec, tmp_path / "o", "inputs"),
+                                 ([raw], spec, None, "out"), ([raw], {"kind": "steps"}, tmp_path / "o", "spec")):
+        with pytest.raises(InvalidArgumentError, match=rf"^{arg} must be"):
+            ingest_parquet(inputs, sp, out)
+    assert not (tmp_path / "o").exists()
+
+
+def test_output_that_is_inside_or_holds_an_input_or_a_dataset_is_refused_before_writing(tmp_path):
+    """--overwrite replaced the input file, the folder holding it, or an existing dataset's data/."""
+    from offline_adp.errors import OutputExistsError
+
+    ds = simulate("car_on_hill", 2, 2, seed=1)
+    raw, spec = write_raw(ds, tmp_path / "in" / "a.parquet")
+    before = raw.read_bytes()
+    for out, what in ((raw, "is the input"), (tmp_path / "in", "contains the input"),
+                      (raw / "sub", "lies inside the input")):
+        with pytest.raises(OutputExistsError, match=what):
+            ingest_parquet([raw], spec, out, overwrite=True)
+    assert raw.read_bytes() == before and not list((tmp_path / "in").glob(".*"))  # not even a lock file
+    ingest_parquet([raw], spec, tmp_path / "ds")
+    with pytest.raises(OutputExistsError, match=r"lies inside the dataset directory .*ds"):
+        ingest_parquet([raw], spec, tmp_path / "ds" / "data", overwrite=True)
+    assert read_dataset(tmp_path / "ds").fingerprint() == ds.fingerprint()
+    ingest_parquet(str(raw), spec, tmp_path / "ds", overwrite=True)  # replacing the dataset itself is --overwrite

@@ -33,6 +33,7 @@ CHECKS: tuple[str, ...] = (
     "command_out_of_bounds",
     "propensity_out_of_range",
     "time_decreasing",
+    "source_changed",
     "info_stale",
     "fingerprint_mismatch",
     "episodes_stale",

@@ -44,6 +44,7 @@ from offline_adp.data.info import DatasetInfo, json_numpy
 from offline_adp.errors import (
     DatasetNotFoundError,
     FormatVersionWarning,
+    OutputExistsError,
     SchemaError,
 )
 
@@ -161,6 +162,34 @@ def _sq_dev_sum(x: np.ndarray, mean: Any, buf: np.ndarray) -> Any:
     half = n // 2
     half -= half % 8
     return _sq_dev_sum(x[:half], mean, buf) + _sq_dev_sum(x[half:], mean, buf)
+
+
+def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLike[str]] = ()) -> None:
+    """Refuse, before anything is written, an ingest's output directory ``out`` that would
+    destroy what it reads or another dataset (``--overwrite`` replaces ``out`` as a whole):
+    ``out`` equal to an input, containing one, or inside one; or ``out`` inside an existing
+    dataset directory (a directory with ``meta/info.json``: ``--out DS/data`` would replace
+    that dataset's data). Paths are compared resolved (links followed).
+
+    Raises
+    ------
+    OutputExistsError
+        Naming ``out`` and the input or dataset it overlaps.
+    """
+    target = Path(out).resolve()
+    for src in inputs:
+        p = Path(src).resolve()
+        if p == target:
+            raise OutputExistsError(f"the output {out} is the input {src}; write the dataset elsewhere")
+        if target in p.parents:
+            raise OutputExistsError(f"the output {out} contains the input {src} (writing it would replace the input); "
+                                    "write the dataset elsewhere")
+        if p in target.parents:
+            raise OutputExistsError(f"the output {out} lies inside the input {src}; write the dataset elsewhere")
+    for parent in target.parents:
+        if (parent / S.INFO_FILE).is_file():
+            raise OutputExistsError(f"the output {out} lies inside the dataset directory {parent}; writing it would "
+                                    "change that dataset: write the new dataset elsewhere")
 
 
 def write_dataset(

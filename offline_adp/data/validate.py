@@ -14,7 +14,7 @@ Rules (check codes in brackets):
   :data:`MAX_ABS_VALUE` in the cost (1e150: their squares, in every regressor's loss,
   overflow) or :data:`MAX_ABS_INPUT` in a model input (1e38 in obs, next_obs and command
   components: trees compare inputs as float32) [``value_out_of_range``]; no nulls in required columns, nor in
-  ``t_ns`` when present (a missing or non-finite time at ingestion) [``null_value``];
+  ``t_ns`` when present (a missing or non-finite time at ingestion), nor in ``source`` [``null_value``];
 - actions inside the action table [``action_out_of_range``];
 - continuous commands (an action table of kind ``"continuous"``, or ``action_value.<dim>``
   columns kept next to binned actions): every component has its float column
@@ -22,7 +22,8 @@ Rules (check codes in brackets):
   [``non_finite``] and lies within the table's ``low``/``high`` (tolerance
   :data:`COMMAND_BOUND_RTOL`) [``command_out_of_bounds``];
 - propensities in (0, 1] [``propensity_out_of_range``];
-- timestamps non-decreasing within an episode [``time_decreasing``].
+- timestamps non-decreasing within an episode [``time_decreasing``];
+- at ingestion (``extra``): one source label per episode [``source_changed``].
 
 Every finding names the file, the row in that file, the (episode_id, step) and the column.
 
@@ -95,8 +96,9 @@ def validate(
         Tolerance of the ``next_obs`` / ``obs`` continuity check.
     extra : sequence of (check, mask, column, message)
         Findings the ingestion made on the input that the table cannot show (a command list
-        of the wrong width: ``command_width``), one mask over the rows each; the command
-        checks skip those rows (their command is missing because of that finding).
+        of the wrong width: ``command_width``, whose rows the command checks skip: their
+        command is missing because of it; a source label changing within an episode:
+        ``source_changed``), one mask over the rows each.
     """
     t = ds.table
     n = t.num_rows
@@ -130,6 +132,7 @@ def validate(
 
     # nulls in required columns (cast to numpy would hide them)
     timed = (S.T_NS,) if S.T_NS in t.column_names else ()
+    timed += (S.SOURCE,) if S.SOURCE in t.column_names else ()
     for c in (S.EPISODE_ID, S.STEP, S.ACTION, S.COST, S.TERMINATED, S.TRUNCATED, *timed, *ds.obs_columns,
               *ds.next_obs_columns):
         col = t.column(c)
@@ -240,7 +243,8 @@ def validate(
     skip = np.zeros(n, bool)
     for check, mask, column, message in extra:
         add(check, mask, column, message)
-        skip |= mask
+        if check == "command_width":
+            skip |= mask
     _check_commands(ds, add, last, skip)
 
     if S.BEHAVIOR_PROB in t.column_names:

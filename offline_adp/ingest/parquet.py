@@ -35,15 +35,23 @@ from offline_adp.data.columns import encode_strings, sorted_encoding
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.files import locked_directory, sha256_file
 from offline_adp.data.info import DatasetInfo, Feature
-from offline_adp.data.io import write_dataset
+from offline_adp.data.io import check_dataset_output, write_dataset
 from offline_adp.data.pages import small_pages
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
-from offline_adp.errors import IngestError, ValidationError
+from offline_adp.errors import IngestError, InvalidArgumentError, ValidationError
 from offline_adp.ingest.actions import (
     bin_continuous,
     command_actions,
     command_columns,
     map_discrete,
+)
+from offline_adp.ingest.parquet_checks import (
+    action_labels,
+    check_json_commands,
+    check_order_column,
+    input_paths,
+    source_findings,
+    warn_many_labels,
 )
 from offline_adp.ingest.parquet_columns import (
     _blockwise,
@@ -90,7 +98,7 @@ class IngestResult:
 
 
 def ingest_tables(
-    inputs: Sequence[str | PathLike[str]],
+    inputs: Sequence[str | PathLike[str]] | str | PathLike[str],
     spec: ParquetSpec,
     *,
     on_error: str | None = None,
@@ -100,7 +108,7 @@ def ingest_tables(
     on_error = on_error or spec.on_error
     if on_error not in ("fail", "quarantine"):
         raise IngestError(f"on_error must be 'fail' or 'quarantine', got {on_error!r}")
-    paths = [Path(p) for p in inputs]
+    paths = input_paths(inputs)
     if not paths:
         raise IngestError("no input files given")
     # every intermediate of the mapping (and the input's columns the dataset does not
@@ -214,6 +222,8 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # order within episodes
     order_col = spec.episode.step or spec.episode.order or spec.episode.time
     assert order_col is not None
+    if not spec.episode.step:
+        check_order_column(table, order_col, names_of)
     enc = sorted_encoding(table.column(spec.episode.id), table.column(order_col).to_numpy(zero_copy_only=False))
     if enc is None:  # sort only when needed (ties keep file order)
         idx = pc.sort_indices(table, sort_keys=[(spec.episode.id, "ascending"), (order_col, "ascending"),
@@ -298,6 +308,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         raise IngestError(f"{file_of(np.array([0]))}: column {aspec.column!r} is a struct "
                           f"({table.column(aspec.column).type}): give each component its own column "
                           "(action.columns = [...], type = 'continuous') or store the command as a list column")
+    check_json_commands(table, aspec, file_of)
     list_col = not aspec.columns and _is_list(table.column(aspec.column).type)
     if list_col and aspec.type == "discrete":
         if aspec.type_declared:
@@ -310,14 +321,15 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
                           "units are only for continuous commands (type = 'continuous')")
     commands: dict[str, Any] = {}
     widths: np.ndarray | None = None  # list lengths of a list column (else no width to check)
+    a_null: np.ndarray | None = None  # rows whose discrete label is null: a null action (the doctor's null_value)
     if aspec.type == "discrete":
-        raw_action = table.column(aspec.column).to_numpy(zero_copy_only=False)
+        raw_action, a_null = action_labels(table, aspec.column, file_of)
         if all_kept:
             action, atable = _blockwise(map_discrete, raw_action, aspec)
         else:
             action = np.full(n, -1, np.int32)
             action[keep], atable = map_discrete(raw_action[keep], aspec)
-        _warn_many_labels(raw_action, len(atable.actions), aspec, file_of(np.array([0])))
+        warn_many_labels(raw_action, len(atable.actions), aspec, file_of(np.array([0])))
         del raw_action
     elif (
         not aspec.exact
@@ -355,7 +367,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
         cols[S.T_NS] = _times_ns(table, spec.episode.time, spec.episode.time_unit, file_of)
     for j, nm in enumerate(names):
         cols[S.obs_column(nm)] = obs[j]
-    cols[S.ACTION] = action
+    cols[S.ACTION] = pa.array(action, mask=a_null) if a_null is not None else action
     cols.update(commands)
     cols[S.COST] = cost
     for j, nm in enumerate(names):
@@ -379,31 +391,16 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # chunked columns stay chunked: the output shares the input's buffers where it can
     out = pa.table(cols)
     width = _width_findings(widths, aspec, atable)
+    if spec.source_column:
+        width += source_findings(cols[S.SOURCE], codes, spec.source_column)
     if not all_kept:
         out = out.filter(pa.array(keep))
-        width = [(c, m[keep], col, msg) for c, m, col, msg in width]
+        width = [(c, m[keep], col, msg if isinstance(msg, str) else msg[keep]) for c, m, col, msg in width]
     return out, atable, dropped, metas, names, enc if all_kept else None, width
 
 
-#: A discrete action column read by default (no ``action.type``) with more distinct float
-#: values than this, and more than half as many as rows, is probably a continuous command.
-MANY_LABELS = 64
-
-
-def _warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> None:
-    """Warn when the default discrete reading turned a float column into about one action per
-    row (a continuous command ingested as labels: nothing is dropped, but nothing is learnt)."""
-    if aspec.type_declared or raw.dtype.kind != "f" or n_labels <= MANY_LABELS or n_labels <= len(raw) / 2:
-        return
-    import warnings
-
-    warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels (the default without "
-                  f"action.type) and holds {n_labels} distinct values in {len(raw)} rows; if it is a continuous "
-                  "command, set action.type = 'continuous' in the spec", UserWarning, stacklevel=2)
-
-
 def ingest_parquet(
-    inputs: Sequence[str | PathLike[str]],
+    inputs: Sequence[str | PathLike[str]] | str | PathLike[str],
     spec: ParquetSpec | str | PathLike[str],
     out: str | PathLike[str],
     *,
@@ -413,8 +410,13 @@ def ingest_parquet(
 ) -> IngestResult:
     """Ingest Parquet/CSV tables into a dataset directory at ``out`` (atomic write).
 
+    ``inputs`` is one path or a list of paths; ``spec`` a :class:`ParquetSpec` or the path
+    of a spec file.
+
     Raises
     ------
+    InvalidArgumentError
+        ``inputs``, ``spec`` or ``out`` is not of a type above (e.g. None).
     SpecError
         The spec is malformed.
     IngestError
@@ -422,7 +424,15 @@ def ingest_parquet(
     ValidationError
         The doctor found defects and ``on_error`` is ``"fail"`` (the default).
     """
+    paths = input_paths(inputs)  # before the lock: a wrong argument names itself
+    if not isinstance(out, (str, PathLike)):
+        raise InvalidArgumentError(f"out must be a path (str or os.PathLike), got {type(out).__name__}")
+    check_dataset_output(out, paths)  # before anything is written (the lock file, the parent)
     if not isinstance(spec, ParquetSpec):
+        if not isinstance(spec, (str, PathLike)):
+            raise InvalidArgumentError(f"spec must be a ParquetSpec or the path of a spec file (str or os.PathLike), "
+                                       f"got {type(spec).__name__}; parse a mapping with "
+                                       "offline_adp.ingest.spec.parse_parquet_spec")
         spec = load_parquet_spec(spec)
     # small pages while the tables are read, checked and written: huge-page faults cost the
     # kernel up to 1.4 s of zeroing at 2M rows (offline_adp.data.pages)
@@ -430,7 +440,8 @@ def ingest_parquet(
         return _ingest_locked(inputs, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
 
 
-def _ingest_locked(inputs: Sequence[str | PathLike[str]], spec: ParquetSpec, out: str | PathLike[str], *,
+def _ingest_locked(inputs: Sequence[str | PathLike[str]] | str | PathLike[str], spec: ParquetSpec,
+                   out: str | PathLike[str], *,
                    on_error: str | None, overwrite: bool, progress: Callable[[str], None] | None) -> IngestResult:
     if (Path(out).exists() or Path(out).is_symlink()) and not overwrite:
         raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")

@@ -31,10 +31,19 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
     cols = spec.needed_columns()
     try:
         if fmt == "csv":
-            opts = pacsv.ReadOptions()
-            table = pacsv.read_csv(path, read_options=opts,
-                                   parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter))
-            available = table.column_names
+            # columns compared as text (episode ids, source labels, text action labels) are read
+            # as the file's exact text: type inference would make '007' and '7' (or '1.1' and
+            # '1.10') one value
+            table = pacsv.read_csv(path, read_options=pacsv.ReadOptions(),
+                                   parse_options=pacsv.ParseOptions(delimiter=spec.csv_delimiter),
+                                   convert_options=pacsv.ConvertOptions(
+                                       column_types={c: pa.binary() for c in spec.text_columns()}))
+            try:
+                available = table.column_names
+            except UnicodeDecodeError:
+                raise IngestError(f"{path}: the header (column names) is not UTF-8 text; save the file as "
+                                  "UTF-8") from None
+            table = _csv_text(table, spec)
         else:
             schema = pq.read_schema(path)
             available = schema.names
@@ -72,6 +81,24 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
                     raise IngestError(f"{path}: row {i} column {name!r}: not UTF-8 text; save the "
                                       "file as UTF-8") from None
             raise IngestError(f"{path}: column {name!r} holds binary data, not text or numbers")
+    return table
+
+
+def _csv_text(table: pa.Table, spec: ParquetSpec) -> pa.Table:
+    """A CSV's text columns (read as bytes) as strings; a column that is not UTF-8 stays
+    binary (:func:`_read` names its first bad cell). An empty episode id cell is a missing id
+    (null), as in a Parquet file."""
+    for c in spec.text_columns():
+        if c not in table.column_names:
+            continue
+        j = table.column_names.index(c)
+        try:
+            col = table.column(j).cast(pa.string())
+        except pa.ArrowInvalid:
+            continue
+        if c == spec.episode.id:
+            col = pc.if_else(pc.equal(col, ""), pa.scalar(None, pa.string()), col)
+        table = table.set_column(j, c, col)
     return table
 
 
@@ -151,11 +178,27 @@ def _f64(table: pa.Table, col: str, file_of: Callable[[np.ndarray], str], *,
     if not numeric:
         return pa.chunked_array([pa.array(_np(table, col, np.float64, file_of),
                                           mask=np.asarray(pc.is_null(c)) if keep_nulls and c.null_count else None)])
+    if pa.types.is_integer(c.type):
+        _check_exact_integers(c, col, file_of)
     if c.type != pa.float64():
-        c = c.cast(pa.float64(), safe=False)  # as numpy's astype: large integers round
+        c = c.cast(pa.float64(), safe=False)
     if c.null_count and not keep_nulls:
         c = c.fill_null(np.nan)
     return c
+
+
+def _check_exact_integers(c: pa.ChunkedArray, col: str, file_of: Callable[[np.ndarray], str]) -> None:
+    """An integer column converted to float64 must not hold a value beyond 2^53, which a
+    float64 would round silently; the error names the file, row, column and value."""
+    mm = pc.min_max(c).as_py()
+    if mm["min"] is None or (-(2**53) <= mm["min"] and mm["max"] <= 2**53):
+        return
+    big = pc.greater(c, pa.scalar(2**53, c.type))
+    if not pa.types.is_unsigned_integer(c.type):
+        big = pc.or_(big, pc.less(c, pa.scalar(-(2**53), c.type)))
+    i = int(np.argmax(np.asarray(big.fill_null(False))))
+    raise IngestError(f"{_where(file_of, i)}: column {col!r}: integer {c[i].as_py()} is beyond 2^53, where a float64 "
+                      "would round it (the dataset stores floats); rescale the column, e.g. subtract an offset")
 
 
 def _flag(table: pa.Table, col: str | None, n: int, file_of: Callable[[np.ndarray],
@@ -191,6 +234,10 @@ def _steps(table: pa.Table, col: str, base: int, file_of: Callable[[np.ndarray],
             if base:
                 c = pc.subtract(c.cast(pa.int64()), base)
             return c.cast(pa.int32())
+        if pa.types.is_unsigned_integer(c.type) and mm["max"] > np.iinfo(np.int64).max:  # as int64 it would wrap
+            i = int(np.argmax(np.asarray(pc.greater(c, pa.scalar(np.iinfo(np.int64).max, c.type)))))
+            raise IngestError(f"{_where(file_of, i)}: column {col!r}: step {c[i].as_py()} is outside "
+                              f"[{base}, {base + np.iinfo(np.int32).max}] (steps are stored as int32 from 0)")
     v = _np(table, col, np.float64 if not pa.types.is_integer(c.type) else np.int64, file_of)
     if v.dtype.kind == "f":
         bad = np.flatnonzero(~np.isfinite(v) | (v != np.round(v)))
@@ -302,6 +349,13 @@ def _commands(table: pa.Table, spec: ActionSpec, list_col: bool, file_of: Callab
                           "numeric commands") from None
     if spec.components is not None:
         k = len(spec.components)
+        seen = lengths >= 0
+        if seen.any() and not (lengths[seen] == k).any():  # no row can have a command: say why
+            i = int(np.argmax(seen))
+            widths = sorted({int(m) for m in np.unique(lengths[seen])})
+            raise IngestError(f"{_where(file_of, i)}: column {spec.column!r}: [command_width] lists of "
+                              f"{' or '.join(map(str, widths))} values against {k} names {list(spec.components)} "
+                              f"(action.names): no row has a command of {k} components; give one name per list entry")
     else:
         seen = lengths[lengths > 0]
         if not len(seen):

@@ -138,6 +138,16 @@ class ParquetSpec:
     def sha256(self) -> str:
         return hashlib.sha256(self.text.encode()).hexdigest()
 
+    def text_columns(self) -> list[str]:
+        """The columns compared as text, which a CSV reader must not convert to numbers:
+        the episode ids, the source labels, and a discrete action column whose
+        ``values`` are all strings."""
+        cols = [self.episode.id, self.source_column]
+        a = self.action
+        if a.type == "discrete" and a.column and a.values and all(isinstance(v, str) for v in a.values):
+            cols.append(a.column)
+        return list(dict.fromkeys(c for c in cols if c))
+
     def needed_columns(self) -> list[str]:
         cols = [self.episode.id, *self.observations.columns, *self.observations.next_columns,
                 *self.action.source_columns]

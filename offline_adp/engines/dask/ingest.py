@@ -53,6 +53,9 @@ def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any,
         from offline_adp.ingest.mcap import resolve_sources
 
         paths = [[str(p) for p in rec] for rec in resolve_sources(paths, spec)]
+    from offline_adp.data.io import check_dataset_output
+
+    check_dataset_output(out, [p for rec in paths for p in ([rec] if isinstance(rec, str) else rec)])
     futures = client.map(_ingest_file, paths, spec=spec, fmt=fmt, on_error=on_error, pure=False)
     results = client.gather(futures)  # in file order: deterministic part order
     ds = TransitionDataset.concat([r[0] for r in results])

@@ -14,7 +14,7 @@ from offline_adp._version import __version__
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.files import sha256_file
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
-from offline_adp.data.io import write_dataset
+from offline_adp.data.io import check_dataset_output, write_dataset
 from offline_adp.data.validate import split_quarantine, validate
 from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.actions import (
@@ -68,6 +68,9 @@ def ingest_mcap(
         return ds, summary
     from offline_adp.data.files import locked_directory
 
+    if not isinstance(spec, McapSpec):
+        spec = load_mcap_spec(spec)
+    check_dataset_output(out, [p for rec in resolve_sources(files, spec) for p in rec])  # before anything is written
     with locked_directory(out, what="dataset"):  # from the start, as the Parquet ingest: a second ingest fails now
         if Path(out).exists() and not overwrite:
             raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
