@@ -67,8 +67,12 @@ def test_a_withdrawn_level_is_never_printed_as_95():
     w = withdraw_levels(m)
     fq = w["ope"]["fqe"]
     assert fq["level"] is None and fq["nominal_level"] == 0.95 and "left the data's support" in fq["level_note"]
-    assert fq["withdrawn_by"] == "support"
+    assert fq["withdrawn_by"] == "support" and "where the value model extrapolates" in fq["level_note"]
     assert m["ope"]["fqe"]["level"] == 0.95  # the input is not changed
+    m2 = copy.deepcopy(LEFT)
+    m2["ope"]["model"] = {**m2["ope"]["fqe"], "method": "model"}  # MODEL's own words: no value model
+    note = withdraw_levels(m2)["ope"]["model"]["level_note"]
+    assert "where the model of the logged dynamics extrapolates" in note and "value model" not in note
     assert withdraw_levels(w) == w  # idempotent
     h = headline(m)
     assert h["best"] is None  # an interval without a level is never the quoted best

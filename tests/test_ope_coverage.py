@@ -108,8 +108,8 @@ def test_the_logs_only_view_restores_only_what_the_simulator_withdrew():
     from offline_adp.evaluation.summary import LEVEL_WITHDRAWN
 
     oc = _suite()
-    by_sim = {"level": None, "nominal_level": 0.95, "level_note": LEVEL_WITHDRAWN.format(level=0.95),
-              "withdrawn_by": "support"}
+    note = LEVEL_WITHDRAWN.format(level=0.95, model="value model")
+    by_sim = {"level": None, "nominal_level": 0.95, "level_note": note, "withdrawn_by": "support"}
     assert oc._level_back(by_sim) == {"level": 0.95}
     by_logs = {"level": None, "nominal_level": 0.95, "level_note": "the policy replays the logs",
                "withdrawn_by": "replay"}

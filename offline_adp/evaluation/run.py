@@ -440,8 +440,8 @@ def _offpolicy_block(res: OffPolicyResult, ds: TransitionDataset) -> dict[str, A
                       "support_violations": res.support, "warnings": beh.warnings},
         "ope": {k: {**v.as_dict(), "method": k} for k, v in res.estimates.items()},
         "shift": shift_block,
-        "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]),
-                       "ess_fraction": float(worst["ess_fraction"].min())},
+        "worst_step": {"step": int(worst.loc[worst["ess_fraction"].idxmin(), "step"]), "method": "recursion",
+                       "ess_fraction": float(worst["ess_fraction"].min())},  # the headline's: summary.shift_verdict
         "psdp_bound": {"eps": res.eps.tolist(), "label": "plug-in estimate (Bagnell et al. 2003, Theorem 2)",
                        "eps_method": res.eps_note
                        or (f"cross-fitted over {res.eps_folds} folds of episodes: FQE fitted on the other folds, "

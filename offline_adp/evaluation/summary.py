@@ -293,7 +293,7 @@ def read_fit_history(path: Path) -> pd.DataFrame:
 
 
 #: Why an off-policy interval carries no level once the policy left the data's support.
-LEVEL_WITHDRAWN = ("the policy left the data's support, where the value model extrapolates: the bootstrap measures "
+LEVEL_WITHDRAWN = ("the policy left the data's support, where the {model} extrapolates: the bootstrap measures "
                    "the sampling noise, not that extrapolation, so this is not a {level:.0%} interval there")
 
 
@@ -317,7 +317,9 @@ def withdraw_levels(m: dict[str, Any], left: list[str] | None = None) -> dict[st
             # DR/WDR's paired difference is kept aside with the level (nominal_vs_logged): never read without one
             paired = {"nominal_vs_logged": r["vs_logged"]} if r.get("vs_logged") is not None else {}
             r = {**{kk: v for kk, v in r.items() if kk != "vs_logged"}, **paired, "nominal_level": r["level"],
-                 "level": None, "withdrawn_by": "support", "level_note": LEVEL_WITHDRAWN.format(level=r["level"])}
+                 "level": None, "withdrawn_by": "support",
+                 "level_note": LEVEL_WITHDRAWN.format(level=r["level"], model="model of the logged dynamics"
+                                                      if k == "model" else "value model")}
         ope[k] = r
     return {**m, "ope": ope}
 
