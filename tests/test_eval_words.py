@@ -266,6 +266,27 @@ def test_verdict_rules_still_claim_with_a_level():
     assert v["outcome"] == "not converged"
 
 
+def test_the_simulator_s_verdict_says_whether_the_logs_alone_agree():
+    """Where the logs alone claimed a side and the simulator confirms it, the verdict says so
+    (it said nothing, as if the logs had not been asked); where they could not tell, that."""
+    m = {"estimand": {"possible_range": [0.0, 1000.0]},
+         "ope": {"fqe": {"estimate": 8.2, "interval": [7.1, 9.0], "level": 0.95}},
+         "behaviour_value": {"mean": 15.0, "interval": [14.0, 16.0]},
+         "behaviour": {"support_violations": {"fraction": 0.0}},
+         "rollout": _rollout((8.0, 7.5, 8.5), (9.0, 8.8, 9.2))}
+    shift = {"method": "recursion", "enough_data": True}
+    v = verdict_line(m, rank_estimators(m), shift, CONVERGED)
+    assert "in the simulator" in v["text"] and "(from the logs alone: better too, " in v["text"]
+    assert v["lines"][1].endswith("; from the logs alone: better too")
+    m["ope"]["fqe"]["interval"] = [7.1, 15.5]  # overlaps the behaviour's: not distinguishable from the logs
+    v = verdict_line(m, rank_estimators(m), shift, CONVERGED)
+    assert "better too" not in v["text"] and "(from the logs alone: not distinguishable from the behaviour" in v["text"]
+    assert v["lines"][1].endswith("; from the logs alone: not distinguishable from the behaviour")
+    m["ope"]["fqe"]["level"] = None  # no level: the logs cannot tell
+    v = verdict_line(m, rank_estimators(m), shift, CONVERGED)
+    assert v["lines"][1].endswith("; from the logs alone: cannot tell")
+
+
 def test_the_psdp_bound_is_printed_as_an_estimate_never_as_a_bound():
     """The plug-in PSDP bound multiplies estimated factors and has fallen below the true gap
     (issue #42): the report must not print it as a bound."""

@@ -11,8 +11,8 @@ simulator``, Python :func:`resolve_simulator`) rolls a fitted policy out in
   ``values[i]``. For a ``Discrete`` space the table holds one number per action, a valid
   integer action. For a 1-D ``Box`` space of ``d`` entries (continuous commands, e.g.
   Pendulum's torque) the table holds ``d`` numbers per action, each within the box's bounds
-  -- typically the bins' representative commands of a log ingested with
-  ``type = "continuous"``.
+  -- typically the bins' representative commands of a log binned at ingestion
+  (``type = "continuous"`` with ``n_bins`` or ``edges``).
 - **Commands.** For a 1-D ``Box`` space of floats, ``step`` also takes continuous commands,
   an ``(n, d)`` float array (one command per state; :attr:`GymResetModel.accepts_commands`
   is true), checked finite and of width ``d`` and clipped into the box: how a continuous

@@ -316,9 +316,10 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
         est.append(f"{where}{top['name'].upper()} {top['estimate']:.4g}"
                    + (f" [{iv[0]:.4g}, {iv[1]:.4g}] ({level_words(top)})" if iv and all(map(_is_finite_number, iv))
                       else " (no interval)"))
-    verdict = perf.split(" (from the logs alone: ", 1)[0]
-    if verdict != perf:  # the simulator's verdict, then the logs' own in a word
-        verdict += "; from the logs alone: cannot tell"
+    verdict, _, logs = perf.partition(" (from the logs alone: ")
+    if logs:  # the simulator's verdict, then the logs' own in a word
+        confirmed = logs.startswith(("better too", "worse too", "not distinguishable"))
+        verdict += "; from the logs alone: " + (logs.split(", ", 1)[0] if confirmed else "cannot tell")
     verdict = verdict.split(", but ", 1)[0]
     fit = conv["text"].split(": ", 1)[0]  # "fit converged", "fit still changing", ...; its numbers are in the report
     why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
@@ -465,4 +466,8 @@ def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any
                   "logged cost's own interval)")
     elif side == "unknown" and not off:
         truth += f" (from the logs alone: {perf})"
+    elif side in ("better", "worse") and not off:  # the logs' own side, confirmed: say so
+        truth += f" (from the logs alone: {side} too, {claim})"
+    elif side == "indistinguishable" and not off:
+        truth += f" (from the logs alone: not distinguishable from the behaviour, {claim})"
     return truth_side, truth
