@@ -70,7 +70,11 @@ def ingest_mcap(
 
     if not isinstance(spec, McapSpec):
         spec = load_mcap_spec(spec)
-    check_dataset_output(out, [p for rec in resolve_sources(files, spec) for p in rec])  # before anything is written
+    try:
+        inputs = [p for rec in resolve_sources(files, spec) for p in rec]
+    except IngestError:  # a missing or unreadable input is reported once the lock is held (as a second writer is)
+        inputs = [Path(f) for f in files]
+    check_dataset_output(out, inputs)  # before anything is written
     with locked_directory(out, what="dataset"):  # from the start, as the Parquet ingest: a second ingest fails now
         if Path(out).exists() and not overwrite:
             raise IngestError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
