@@ -271,3 +271,30 @@ def test_truncated_command_logs_give_no_side_against_the_logged_cost():
                                             "fqe_params": {"regressor_params": {"n_estimators": 5}}})
     bv = continuous_offpolicy(ds, pi, cfg, target_horizon=None, start=None)["behaviour_value"]
     assert bv["comparable"] is False and "20 of 40 logged episodes stop before step 12" in bv["not_comparable"]
+
+
+def test_the_infinite_horizon_value_over_commands_carries_no_level_and_a_possible_range(lq):
+    """FQE's level over commands was measured on finite estimands; an audit's infinite-horizon
+    intervals over commands missed the exact LQ truth on 3 of 3 logs, labelled 95%. The
+    estimand's possible range is recorded (it was null) and the intervals clipped to it."""
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    m, _, _, _ = evaluation_metrics(lq, pol, None, estimand="infinite", fqe_bootstrap=10, bootstrap=0,
+                                    model_particles=0)
+    fq = m["ope"]["fqe"]
+    assert m["estimand"]["form"] == "infinite" and fq["level"] is None
+    assert "coverage has not been measured" in fq["level_note"] and "95%" not in m["headline"]["verdict"]["lines"][0]
+    lo, hi = m["estimand"]["possible_range"]
+    c = lq.arrays().cost
+    assert 0.0 <= lo <= c.min() / (1 - GAMMA) and hi == pytest.approx(c.max() / (1 - GAMMA))  # costs >= 0
+    assert lo <= fq["interval"][0] <= fq["interval"][1] <= hi
+    finite, _, _, _ = evaluation_metrics(lq, pol, None, fqe_bootstrap=10, bootstrap=0, model_particles=0)
+    assert finite["ope"]["fqe"]["level"] == 0.95 and finite["estimand"]["possible_range"] is not None
+
+
+def test_a_simulator_s_start_states_are_named_in_every_form_of_the_estimand(lq):
+    from offline_adp.evaluation.estimand import declare_estimand
+
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    for form in ("finite", "infinite"):  # finite: the stationary form here (gamma^60 < 0.01), which dropped it
+        est = declare_estimand(lq, pol, None, form, start="env.reset() of gym:LQ-v0")
+        assert est.start == "env.reset() of gym:LQ-v0" and est.describe().endswith("from env.reset() of gym:LQ-v0")

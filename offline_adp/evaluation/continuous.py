@@ -268,6 +268,11 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     if LEVEL is None:
         res = replace(res, level=None, warnings=[*res.warnings, "continuous commands: this interval's coverage has not "
                                                  "been measured, so it carries no level (it is not a 95% interval)"])
+    elif est_def.form != "finite":  # LEVEL was measured on finite estimands; here 3 of 3 LQ seeds missed the truth
+        why = ("the infinite-horizon value over commands: this interval's coverage has not been measured (the level "
+               "was measured on finite estimands; an audit's 3 linear-quadratic logs missed the truth), so it is "
+               f"not a {res.level:.0%} interval")
+        res = replace(res, level=None, level_note=why, warnings=[*res.warnings, f"no level: {why}"])
     # as the discrete FQE: hulled with the model rollouts where they read the same quantity
     if est_def.form == "finite":
         if cfg.model_particles:
@@ -315,7 +320,10 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
             "command per state, pi(x), so its value would be that of another policy; evaluate a deterministic command "
             "policy (policy.commands(obs, t))")
     est_def = declare_estimand(ds, policy, cfg.horizon, cfg.estimand, target_horizon=target_horizon, start=start)
-    fq = fqe_over_commands(ds, policy, cfg, est_def, say)
+    a = ds.arrays()
+    em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
+    est_def, _ = with_possible_range(est_def, a, em)  # recorded, and FQE's and the model's intervals clipped to it
+    fq = clip_to_range(fqe_over_commands(ds, policy, cfg, est_def, say), est_def.possible_range)
     fq = ope.with_enough_episodes({"fqe": fq}, ds.n_episodes)["fqe"]
     say("command support")
     support = command_support(ds, policy)
@@ -327,13 +335,11 @@ def continuous_offpolicy(ds: TransitionDataset, policy: Any, cfg: EvaluationSett
             "logged states: "
             "it replays the logs, so its value at the logged states, which FQE and the model rollouts read, is not its "
             f"value in a new episode; this is not a {fq_d['level']:.0%} interval"))
-    a = ds.arrays()
-    em = ope.EpisodeMatrix.build(a.episode, a.step, est_def.horizon)
     model = command_model_estimate(fq.model_rollouts, support, replay)
     if model is not None:
         model = ope.with_enough_episodes({"model": model}, em.n_episodes)["model"]
         # the allowances can reach past what the costs make possible: clipped there
-        model = clip_to_range(model, with_possible_range(est_def, a, em)[0].possible_range)
+        model = clip_to_range(model, est_def.possible_range)
     from offline_adp.evaluation.offpolicy import behaviour_value
 
     warnings = [f"not computed for continuous commands: {k}: {why}" for k, why in NOT_USABLE.items()]

@@ -142,7 +142,7 @@ def declare_estimand(ds: TransitionDataset, policy: Policy, horizon: int | None 
         tail = gamma**T * c_max / (1.0 - gamma)
         return Estimand(T, gamma, "finite", "stationary", tail,
                         f"gamma^T = {gamma**T:.2g}: the stationary discounted FQE differs from the {T}-step "
-                        f"value by at most gamma^T max|c| / (1 - gamma) = {tail:.3g}, added to its interval")
+                        f"value by at most gamma^T max|c| / (1 - gamma) = {tail:.3g}, added to its interval", **where)
     why = "the policy changes with t" if gamma < 1.0 and gamma**T <= TAIL_NEGLIGIBLE else (
         "undiscounted" if gamma >= 1.0 else f"gamma^T = {gamma**T:.2g} is not negligible")
     return Estimand(T, gamma, "finite", "time-indexed", 0.0, f"time-indexed FQE over the {T} logged steps ({why})",

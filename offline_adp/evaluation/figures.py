@@ -200,12 +200,15 @@ def ope_figure(figs: Figures, m: dict[str, Any], ranking: list[dict[str, Any]]) 
     bad = [e for e in ranking if e["tier"] == 2]
     against = [w for w, v in (("the simulator truth", truth), ("the demonstrator in the simulator", demo),
                               ("the behaviour's logged cost", beh)) if v is not None]
-    nolevel = [e["name"].upper() for e in shown if not e["interval"] and e.get("shown_interval")]
+    nolevel = [e for e in shown if not e["interval"] and e.get("shown_interval")]
+    notes = {e.get("level_note") or "" for e in nolevel}  # one reason for all, or each its own
+    said = (", ".join(e["name"].upper() for e in nolevel) + (f" ({notes.pop()})" if notes != {""} else "")
+            if len(notes) == 1 else "; ".join(e["name"].upper() + (f" ({e['level_note']})" if e.get("level_note")
+                                                                   else "") for e in nolevel))
     caption = ("Off-policy estimates ranked by reliability (most reliable at the top) with their bootstrap intervals"
                + (f" ({', '.join(levels)})" if levels else "")
                + (", against " + " and ".join(against) if against else "") + "."
-               + (f" Dashed, without a level: {', '.join(nolevel)}"
-                  + (f" ({shown[0]['level_note']})" if shown[0].get("level_note") else "") + "." if nolevel else ""))
+               + (f" Dashed, without a level: {said}." if nolevel else ""))
     if bad:
         caption += " Not plotted (not usable here): " + "; ".join(f"{e['name'].upper()} "
                                                                   f"({e['reason']})" for e in bad) + "."

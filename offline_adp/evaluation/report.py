@@ -348,7 +348,8 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     then (discrete actions) the shift diagnostics, the PSDP bound, the cost distributions, the
     sources and the warnings; a continuous policy's own sections instead (:func:`_continuous_sections`)."""
     ds = m["dataset"]
-    src = ", ".join(f"{k}: {v}" for k, v in (ds.get("sources") or {}).items())
+    src = ", ".join(f"{k}: {v:,} transitions" if isinstance(v, int) else f"{k}: {v}"
+                    for k, v in (ds.get("sources") or {}).items())
     parts = [f"<h1>{html.escape(title)}</h1>",
              f"<p class='sub'>Policy fitted by {html.escape(str(m.get('algorithm') or 'unknown').upper())} on "
              f"{ds['transitions']:,} transitions in {ds['episodes']} episodes ({html.escape(src)}). "
@@ -397,7 +398,8 @@ def _estimate_rows(m: dict[str, Any], h: dict[str, Any]
         iv = e["interval"] or e.get("shown_interval")
         shown = f"[{iv[0]:.4g}, {iv[1]:.4g}] ({level_words(e)})" if iv else None
         return {"rank": e["rank"], "estimator": e["label"], "estimate": e["estimate"], "interval": shown,
-                "interval_method": r.get("interval_method"), "ess": r.get("ess"),
+                "interval_method": r.get("interval_method"),
+                "ess": r.get("ess") if e["name"] not in ("fqe", "model") else None,  # weights' ESS: IS-based only
                 "rollout_error": r.get("rollout_error"),
                 "reason": e["reason"] or "", "warnings": r.get("warnings") or []}
 
