@@ -349,3 +349,22 @@ def test_the_report_box_of_a_single_episode_has_no_logged_interval():
     m["behaviour_value"] = {"mean": 20.3, "interval": [18.0, 22.6], "episodes": 135, "comparable": False,
                             "not_comparable": "3 of 135 logged episodes stop before step 200"}
     assert "not the behaviour's value of the estimand: 3 of 135" in html.unescape(_summary_box(m, headline(m)))
+
+
+def test_the_ope_figure_gives_each_unlabelled_estimator_its_own_reason(tmp_path):
+    """FQE's and MODEL's levels withdrawn for different reasons: the caption gave both FQE's."""
+    from offline_adp.evaluation.figures import Figures, ope_figure
+
+    m = copy.deepcopy(LEFT)
+    m["ope"]["model"] = {**m["ope"]["fqe"], "estimate": 4.0, "method": "model"}
+    m = withdraw_levels(m)
+    m["estimand"]["horizon"] = 200
+    figs = Figures(tmp_path)
+    ope_figure(figs, m, rank_estimators(m))
+    caption = figs.items[0][1]
+    assert "FQE (the policy left the data's support, where the value model extrapolates" in caption
+    assert "MODEL (the policy left the data's support, where the model of the logged dynamics extrapolates" in caption
+    one = copy.deepcopy(LEFT)
+    figs = Figures(tmp_path / "one")
+    ope_figure(figs, withdraw_levels(one), rank_estimators(withdraw_levels(one)))
+    assert "Dashed, without a level: FQE (the policy left" in figs.items[0][1]
