@@ -106,3 +106,33 @@ def test_a_command_of_a_boolean_or_an_integer_float64_cannot_hold_is_an_error(tm
     act = {"topic": "/cmd", "field": "u[0]", "align": "previous", "max_age": 0.05, "type": "continuous"}
     with pytest.raises(IngestError, match=rf"topic '/cmd', message at log_time {msgs[cmd][1]}: field .* {said}"):
         ingest_mcap([write_log(tmp_path / "c.mcap", msgs)], spec(action=act))
+
+
+def test_a_spec_of_the_other_kind_says_which_command_reads_it(tmp_path):
+    from offline_adp.errors import SpecError
+    from offline_adp.ingest.mcap import parse_mcap_spec
+    from offline_adp.ingest.spec import parse_parquet_spec
+
+    table = {"episode": {"id": "run"}, "observations": {"columns": ["x"]}, "action": {"column": "u"},
+             "cost": {"column": "c"}}
+    with pytest.raises(SpecError, match="a Parquet/CSV ingestion spec .*`offline-adp ingest parquet` reads it"):
+        parse_mcap_spec(table)
+    with pytest.raises(SpecError, match="an MCAP ingestion spec .*`offline-adp ingest mcap` reads it"):
+        parse_parquet_spec(spec().raw)
+    with pytest.raises(SpecError, match=r"unknown key\(s\) \['topik'\] \(did you mean 'topic' for 'topik'\?\)"):
+        parse_mcap_spec({**spec().raw, "clock": {"topik": "/clock"}})
+
+
+def test_a_misspelled_column_is_named_with_the_column_it_probably_meant(tmp_path):
+    import pandas as pd
+
+    from offline_adp.ingest.parquet import ingest_parquet
+    from offline_adp.ingest.spec import parse_parquet_spec
+
+    pd.DataFrame({"run": [0, 0], "k": [0, 1], "x": [0.0, 1.0], "command": [0, 1], "c": [1.0, 1.0]}).to_parquet(
+        tmp_path / "t.parquet")
+    sp = parse_parquet_spec({"kind": "steps", "episode": {"id": "run", "step": "k"}, "observations": {"columns": ["x"]},
+                             "action": {"column": "comand"}, "cost": {"column": "c"}})
+    with pytest.raises(IngestError, match=r"needs columns \['comand'\] that the file does not have \(did you mean "
+                                          r"'command' for 'comand'\?\)"):
+        ingest_parquet([tmp_path / "t.parquet"], sp, tmp_path / "ds")

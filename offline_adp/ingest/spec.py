@@ -338,7 +338,11 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
         raise SpecError(f"{where}: expected a table, got {type(table).__name__} {table!r}")
     unknown = sorted(set(table) - allowed)
     if unknown:
-        raise SpecError(f"{where}: unknown key(s) {unknown}; valid keys are {sorted(allowed)}")
+        import difflib
+
+        near = {k: m[0] for k in unknown if (m := difflib.get_close_matches(str(k), sorted(allowed), n=1))}
+        hint = "".join(f" (did you mean {m!r} for {k!r}?)" for k, m in near.items())
+        raise SpecError(f"{where}: unknown key(s) {unknown}{hint}; valid keys are {sorted(allowed)}")
 
 
 def _action(a: ActionModel, w: str) -> ActionSpec:
@@ -432,6 +436,9 @@ def parse_parquet_spec(data: Mapping[str, Any], text: str = "", where: str = "sp
     """
     if not isinstance(data, Mapping):
         raise SpecError(f"{where}: expected a table of keys, got {type(data).__name__}")
+    if {"clock", "streams"} & set(data) and not {"observations", "episode"} & set(data):
+        raise SpecError(f"{where}: this is an MCAP ingestion spec ([clock], [[streams]] ...), not a Parquet/CSV one: "
+                        "`offline-adp ingest mcap` reads it (both kinds: docs/ingestion-spec.md)")
     m = validate_config(ParquetSpecModel, data, source=where)
     w = f"{where}: episode"
     ep = EpisodeSpec(id=m.episode.id, step=m.episode.step, step_base=m.episode.step_base, order=m.episode.order,

@@ -216,6 +216,10 @@ def _per_component(v: Any, dims: list[str], where: str, *, number: bool) -> tupl
 
 
 def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", base_dir: str = ".") -> McapSpec:
+    if isinstance(data, dict) and {"observations", "episode"} & set(data) and not {"clock", "streams"} & set(data):
+        raise SpecError(f"{where}: this is a Parquet/CSV ingestion spec ([episode], [observations] ...), not an MCAP "
+                        "one ([clock], [[streams]] ...): `offline-adp ingest parquet` reads it (both kinds: "
+                        "docs/ingestion-spec.md)")
     _check_keys(data, {"name", "on_error", "sources", "clock", "episodes", "streams", "action", "cost", "source",
                        "hints"}, where)
     clock = data.get("clock") or {}
