@@ -183,8 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the stages of a pipeline file into runs/<name>__<seed>__<timestamp>/ (or --out). A stage "
         "whose inputs, settings and code are unchanged is reused; an interrupted run continues from its last "
         "completed stage (FQI from its last checkpointed iteration). The manifest (manifest.json) records input "
-        "fingerprints, the config hash, versions and per-stage status and timings. See offline_adp/pipeline.py for "
-        "the file format.",
+        "fingerprints, the config hash, versions and per-stage status and timings. The file format: `offline-adp schema "
+        "pipeline` (paths in the file are relative to the file's own directory).",
         epilog="examples:\n  offline-adp run pipelines/driving.toml\n  offline-adp run pipelines/driving.toml "
         "--from evaluate\n  offline-adp run pipelines/car_on_hill.toml --set data.exploration=200 --out runs/coh-small",
     )
@@ -293,8 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
         "its dataset's logged states, weighted by how much the choice matters there, clipped to the action table's "
         "bounds; write OUT, a run directory whose policy offline_adp.load_policy(OUT) returns and `offline-adp export "
         "OUT` writes to ONNX. Logs the fit: mean |distilled - greedy| per component. See docs/deploy.md.",
-        epilog="example:\n  offline-adp distill runs/pendulum --out runs/pendulum-distilled --max-rate 0.5\n"
-        "  offline-adp export runs/pendulum-distilled --out policy.onnx --input-dtype float32",
+        epilog="example (the README tour's continuous car, step 6b):\n  offline-adp distill runs/car --out "
+        "runs/car-distilled --max-rate 0.5\n  offline-adp export runs/car-distilled --out car-distilled.onnx "
+        "--input-dtype float32",
     )
     di.add_argument("run",
                     help="run directory of a continuous greedy policy (FQI with commands=auto on exact commands)")
