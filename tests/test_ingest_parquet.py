@@ -355,3 +355,26 @@ def test_output_that_is_inside_or_holds_an_input_or_a_dataset_is_refused_before_
         ingest_parquet([raw], spec, tmp_path / "ds" / "data", overwrite=True)
     assert read_dataset(tmp_path / "ds").fingerprint() == ds.fingerprint()
     ingest_parquet(str(raw), spec, tmp_path / "ds", overwrite=True)  # replacing the dataset itself is --overwrite
+
+
+def test_the_doctor_says_how_its_rows_count_and_a_csv_s_line_is_row_plus_two(tmp_path):
+    """A newcomer read "row 37" of a CSV as its 37th line: the report says rows count data
+    rows from 0, and a CSV's line is row + 2; the line named holds the bad value."""
+    from offline_adp.errors import ValidationError
+
+    n = 60
+    df = pd.DataFrame({"ep": np.repeat([0, 1], n // 2), "k": np.tile(np.arange(n // 2), 2),
+                       "x": np.arange(n, dtype=float), "c": np.ones(n)})
+    df["nx"] = df["x"] + 1.0
+    df.loc[37, "c"] = np.nan
+    df.to_csv(tmp_path / "t.csv", index=False)
+    spec = parse_parquet_spec({"episode": {"id": "ep", "step": "k"},
+                               "observations": {"columns": ["x"], "next_columns": ["nx"]},
+                               "action": {"column": "k"}, "cost": {"column": "c"}})
+    with pytest.raises(ValidationError) as e:
+        ingest_parquet([tmp_path / "t.csv"], spec, tmp_path / "ds")
+    text = str(e.value)
+    assert "(rows count each file's data rows from 0; a CSV's line is row + 2, after its header)" in text
+    row = int(text.split("t.csv: row ")[1].split(" ")[0])
+    line = (tmp_path / "t.csv").read_text().splitlines()[row + 2 - 1]  # 1-based line numbers
+    assert row == 37 and line.split(",")[3] == ""  # the NaN cost written as an empty cell

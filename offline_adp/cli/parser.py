@@ -183,8 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the stages of a pipeline file into runs/<name>__<seed>__<timestamp>/ (or --out). A stage "
         "whose inputs, settings and code are unchanged is reused; an interrupted run continues from its last "
         "completed stage (FQI from its last checkpointed iteration). The manifest (manifest.json) records input "
-        "fingerprints, the config hash, versions and per-stage status and timings. The file format: `offline-adp schema "
-        "pipeline` (paths in the file are relative to the file's own directory).",
+        "fingerprints, the config hash, versions and per-stage status and timings. The file format: `offline-adp "
+        "schema pipeline` (paths in the file are relative to the file's own directory).",
         epilog="examples:\n  offline-adp run pipelines/driving.toml\n  offline-adp run pipelines/driving.toml "
         "--from evaluate\n  offline-adp run pipelines/car_on_hill.toml --set data.exploration=200 --out runs/coh-small",
     )
