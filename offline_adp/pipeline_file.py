@@ -122,7 +122,11 @@ def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:
         ok = bool(parents) and parents[0] in tables and (
             (len(parents) == 1 and leaf in tables[parents[0]].model_fields) or parents[:2] == ["fit", "params"])
         if not ok:
-            raise SpecError(f"--set {dotted}: not a pipeline setting; settings are {', '.join(valid)}")
+            import difflib
+
+            near = difflib.get_close_matches(dotted, valid, n=1)
+            raise SpecError(f"--set {dotted}: not a pipeline setting" + (f" (did you mean {near[0]}?)" if near else "")
+                            + f"; settings are {', '.join(valid)}")
         node = raw
         for k in parents:
             if not isinstance(node.get(k), dict):
