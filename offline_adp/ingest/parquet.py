@@ -37,6 +37,7 @@ from offline_adp.data.files import locked_directory, sha256_file
 from offline_adp.data.info import DatasetInfo, Feature
 from offline_adp.data.io import check_dataset_output, write_dataset
 from offline_adp.data.pages import small_pages
+from offline_adp.data.repeats import warn_repeated
 from offline_adp.data.validate import ValidationReport, split_quarantine, validate
 from offline_adp.errors import IngestError, InvalidArgumentError, ValidationError
 from offline_adp.ingest.actions import (
@@ -83,6 +84,7 @@ class IngestResult:
     inputs: list[dict[str, Any]] = field(default_factory=list)
     path: Path | None = None
     quarantine: pa.Table | None = None
+    repeated_episodes: int = 0  #: episodes equal row for row to an earlier one (offline_adp.data.repeats)
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -93,6 +95,7 @@ class IngestResult:
             "quarantined_rows": self.quarantined_rows,
             "dropped_last_rows": self.dropped_last_rows,
             "terminated_and_truncated": self.report.n_terminated_and_truncated,
+            "repeated_episodes": self.repeated_episodes,
             "inputs": len(self.inputs),
         }
 
@@ -148,6 +151,8 @@ def ingest_tables(
         result.quarantine = rejected
         result.quarantined_rows = rejected.num_rows
         result.quarantined_episodes = int(len(report.bad_episodes))
+    result.repeated_episodes = len(warn_repeated(result.dataset, ", ".join(map(str, paths[:2]))
+                                                 + (", ..." if len(paths) > 2 else "")))
     return result
 
 
@@ -459,6 +464,7 @@ def _ingest_locked(inputs: Sequence[str | PathLike[str]] | str | PathLike[str], 
                 "quarantined_rows": res.quarantined_rows,
                 "quarantined_episodes": res.quarantined_episodes,
                 "dropped_last_rows": res.dropped_last_rows,
+                "repeated_episodes": res.repeated_episodes,
             }
         },
     )

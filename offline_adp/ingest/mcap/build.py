@@ -15,6 +15,7 @@ from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.files import sha256_file
 from offline_adp.data.info import Action, ActionTable, DatasetInfo, Feature
 from offline_adp.data.io import check_dataset_output, write_dataset
+from offline_adp.data.repeats import warn_repeated
 from offline_adp.data.validate import split_quarantine, validate
 from offline_adp.errors import IngestError, SpecError, ValidationError
 from offline_adp.ingest.actions import (
@@ -219,7 +220,9 @@ def ingest_mcap_tables(
     quarantine = pa.concat_tables(q_tables) if q_tables else None
     summary["quarantined_rows"] = 0 if quarantine is None else quarantine.num_rows
     summary["dropped_rows"] = int(row_rejected.sum()) if on_error == "fail" else 0
-    summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts())
+    summary.update(episodes=ds.n_episodes, transitions=len(ds), per_source=ds.source_counts(),
+                   repeated_episodes=len(warn_repeated(ds, ", ".join(map(str, paths[:2]))
+                                                       + (", ..." if len(paths) > 2 else ""))))
     return ds, quarantine, summary
 
 
