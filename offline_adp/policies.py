@@ -56,13 +56,24 @@ class StochasticFunctionPolicy(Policy):
 
 
 class UniformPolicy(Policy):
-    """Uniformly random actions (exploration)."""
+    """Uniformly random actions (exploration): over all ``n_actions``, or over ``actions``
+    (e.g. the actions a dataset logs), the others never taken."""
 
-    def __init__(self, n_actions: int) -> None:
+    def __init__(self, n_actions: int, actions: Sequence[int] | None = None) -> None:
         self.n_actions = n_actions
+        self.actions = None if actions is None else [int(a) for a in actions]
+        if self.actions is not None and not (self.actions and len(set(self.actions)) == len(self.actions)
+                                             and all(0 <= a < n_actions for a in self.actions)):
+            raise InvalidArgumentError(f"actions must be distinct action indices in [0, {n_actions}), "
+                                       f"got {actions!r}")
 
     def probabilities(self, obs: np.ndarray, t: TimeArg = 0) -> np.ndarray:
-        return np.full((np.asarray(obs).shape[0], self.n_actions), 1.0 / self.n_actions)
+        n = np.asarray(obs).shape[0]
+        if self.actions is None:
+            return np.full((n, self.n_actions), 1.0 / self.n_actions)
+        p = np.zeros((n, self.n_actions))
+        p[:, self.actions] = 1.0 / len(self.actions)
+        return p
 
 
 class EpsilonPolicy(Policy):

@@ -201,3 +201,39 @@ def test_api_with_the_datas_own_finite_horizon_reaches_the_exact_optimum():
     assert api.verdict_ == "converged" and api.value_ == pytest.approx(opt, abs=1e-9)
     own = FittedQEvaluation(policy=api.policy_, regressor="tabular", action_input="onehot").fit(ds).value_
     assert own == pytest.approx(api.value_, abs=1e-9)  # the value printed is the returned policy's
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_the_default_start_takes_only_logged_actions_and_is_never_the_answer(seed):
+    """An action the logs never take: a lookup table values it at its fill value (0, an
+    optimistic cost), so a start uniform over every action read better than its successor and
+    API returned it (an audit: 1.399 against the successor's 1.116, exact). The start is
+    uniform over the logged actions, and API returns a greedy policy: here the optimum over
+    the logged actions (exact DP on the restricted model)."""
+    from offline_adp.algorithms.api import uniform_over_logged
+
+    m = TabularMDP(n_states=8, n_actions=3, horizon=None, gamma=0.8, seed=seed)
+    ds, w = full_support_dataset(m)
+    w = np.where(ds.arrays().action == 2, 0.0, w)  # action 2 never logged
+    start = uniform_over_logged(ds, w)
+    assert start.actions == [0, 1] and (start.probabilities(np.zeros((2, 1)))[:, 2] == 0).all()
+    fqe = FittedQEvaluation(gamma=0.8, regressor="tabular", action_input="onehot", n_iterations=400, tol=1e-14)
+    api = ApproximatePolicyIteration(fqe, n_iterations=9).fit(ds, sample_weight=w)
+    opt = dp.value_iteration_discounted(m.P[:2], m.C[:, :2], 0.8)  # the model of the logged actions
+    np.testing.assert_array_equal(api.policy_.act(np.arange(8.0)[:, None], return_index=True), opt.policy)
+    cpi = ConservativePolicyIteration(fqe=fqe, n_iterations=6).fit(ds, sample_weight=w)
+    assert (cpi.policy_.probabilities(np.arange(8.0)[:, None])[:, 2] == 0).all()
+    assert _exact_cost(m, cpi.policy_) <= _exact_cost(m, start) + 1e-12
+    assert uniform_over_logged(*full_support_dataset(m)).actions is None  # every action logged: all of them
+
+
+def test_a_uniform_policy_over_some_actions_is_stored_and_read_back(tmp_path):
+    from offline_adp.artifacts.policy_kinds import load_index_policy, save_policy
+
+    pi = UniformPolicy(4, [1, 3])
+    np.testing.assert_array_equal(pi.probabilities(np.zeros((1, 2))), [[0, 0.5, 0, 0.5]])
+    save_policy(pi, tmp_path / "p")
+    back = load_index_policy(tmp_path / "p")
+    assert back.actions == [1, 3] and back.n_actions == 4
+    with pytest.raises(Exception, match="distinct action indices"):
+        UniformPolicy(4, [1, 1])

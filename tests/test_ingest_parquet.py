@@ -378,3 +378,37 @@ def test_the_doctor_says_how_its_rows_count_and_a_csv_s_line_is_row_plus_two(tmp
     row = int(text.split("t.csv: row ")[1].split(" ")[0])
     line = (tmp_path / "t.csv").read_text().splitlines()[row + 2 - 1]  # 1-based line numbers
     assert row == 37 and line.split(",")[3] == ""  # the NaN cost written as an empty cell
+
+
+def _eps(n_eps=4, L=5):
+    rows = [dict(episode=f"ep{e}", t=0.1 * s, x=float(10 * e + s), next_x=float(10 * e + s + 1), a=s % 2,
+                 cost=1.0, src="01" if e % 2 else "2") for e in range(n_eps) for s in range(L)]
+    return pd.DataFrame(rows)
+
+
+_TIME_SPEC = {"episode": {"id": "episode", "time": "t", "time_unit": "s"},
+              "observations": {"columns": ["x"], "next_columns": ["next_x"]},
+              "action": {"column": "a"}, "cost": {"column": "cost"}}
+
+
+def test_a_missing_time_is_the_doctors_and_inputs_may_be_a_generator(tmp_path):
+    """A review of this session's hardening: a null time made the whole ingest fail (the
+    order column's check ran on ``episode.time`` too), and a generator of inputs was read
+    twice (the second time empty)."""
+    df = _eps()
+    df.loc[7, "t"] = np.nan  # episode ep1
+    df.to_parquet(tmp_path / "a.parquet")
+    spec = parse_parquet_spec({**_TIME_SPEC, "on_error": "quarantine"})
+    res = ingest_parquet((p for p in [tmp_path / "a.parquet"]), spec, tmp_path / "ds")
+    assert res.dataset.n_episodes == 3 and res.quarantined_episodes == 1 and "ep1" not in list(res.dataset.episode_ids)
+
+
+def test_an_empty_csv_source_cell_is_a_missing_source_not_a_label(tmp_path):
+    df = _eps()
+    df["src"] = df["src"].astype(object)
+    df.loc[df["episode"] == "ep0", "src"] = None  # written as empty cells: one episode without a source
+    df.to_csv(tmp_path / "a.csv", index=False)
+    spec = parse_parquet_spec({**_TIME_SPEC, "source": {"column": "src"}, "on_error": "quarantine"})
+    res = ingest_parquet([tmp_path / "a.csv"], spec, tmp_path / "ds")
+    assert "" not in res.dataset.source_counts() and res.quarantined_episodes == 1
+    assert set(res.dataset.source_counts()) == {"01", "2"}  # labels as written (text, not numbers)

@@ -24,7 +24,8 @@ def _with_end_flag(flag, ep_id="a", drop_start_flag=False):
     return msgs
 
 
-@pytest.mark.parametrize("flag, terminated", [(True, True), (False, False), (1, True), (0, False)])
+@pytest.mark.parametrize("flag, terminated", [(True, True), (False, False), (1, True), (0, False), (1.0, True),
+                                              (0.0, False)])
 def test_an_end_event_flag_is_read_as_a_flag_and_a_start_event_needs_none(tmp_path, flag, terminated):
     f = write_log(tmp_path / "ok.mcap", _with_end_flag(flag, drop_start_flag=True))
     ds, _ = ingest_mcap([f], spec(episodes=EV))
@@ -32,7 +33,7 @@ def test_an_end_event_flag_is_read_as_a_flag_and_a_start_event_needs_none(tmp_pa
 
 
 @pytest.mark.parametrize("flag, said", [("false", "is 'false', not a flag"), (None, "is null"), (2, "is 2, not a flag"),
-                                        (0.5, "is 0.5, not a flag")])
+                                        (0.5, "is 0.5, not a flag"), ("1", "is '1', not a flag")])
 def test_an_end_event_flag_that_is_no_flag_is_an_error_naming_the_message(tmp_path, flag, said):
     f = write_log(tmp_path / "bad.mcap", _with_end_flag(flag))
     end_t = T0 + 7 * 100 * MS + 2 * MS
@@ -136,3 +137,25 @@ def test_a_misspelled_column_is_named_with_the_column_it_probably_meant(tmp_path
     with pytest.raises(IngestError, match=r"needs columns \['comand'\] that the file does not have \(did you mean "
                                           r"'command' for 'comand'\?\)"):
         ingest_parquet([tmp_path / "t.parquet"], sp, tmp_path / "ds")
+
+
+def test_an_end_event_s_id_and_source_are_not_read_and_other_kinds_are_not_checked(tmp_path):
+    """Only a start event's id and source name the episode: an end event's may be null, and
+    an event of another kind (counted as unknown) holds nothing the ingest reads."""
+    msgs = _with_end_flag(True)
+    msgs[-1][2]["id"] = None
+    msgs.append(("/event", msgs[-1][1] + MS, {"event": "pause", "id": None}))
+    ds, _ = ingest_mcap([write_log(tmp_path / "e.mcap", msgs)], spec(episodes=EV))
+    assert list(ds.episode_ids) == ["a"] and bool(ds.arrays().terminated[-1])
+
+
+def test_a_discrete_command_may_be_a_flag_and_files_may_come_from_a_generator(tmp_path):
+    msgs = episode_messages(6)
+    for m in msgs:
+        if m[0] == "/cmd":
+            m[2]["u"] = [bool(int(m[1] // (100 * MS)) % 2)]  # a gripper flag, as JSON true/false
+    f = write_log(tmp_path / "g.mcap", msgs)
+    act = {"topic": "/cmd", "field": "u[0]", "align": "previous", "max_age": 0.05, "type": "discrete",
+           "values": [0.0, 1.0]}
+    ds, _ = ingest_mcap((p for p in [f]), spec(action=act), tmp_path / "ds")  # a one-shot iterable, read once
+    assert len(ds) == 5 and set(ds.arrays().action.tolist()) == {0, 1}

@@ -4,11 +4,11 @@ Access model: trace data only; optionally a reset or generative model to add epi
 of the current policy between iterations. Evaluate with fitted Q evaluation, improve
 greedily, repeat::
 
-    pi_0 = initial policy (uniform by default)
+    pi_0 = initial policy (by default uniform over the actions D holds)
     for k = 0, 1, ...:
         Q^{pi_k} = FQE(pi_k, D)                                         # approximate evaluation
         J_k = mean over D's start states x_0 of Q^{pi_k}(x_0, pi_k)       # its estimated cost
-        stop if J_k > min_{j<k} J_j: return the pi_j of the minimum
+        stop if J_k > min_{j<k} J_j: return the pi_j of the minimum     # (j >= 1 for the default pi_0)
         pi_{k+1}(x, t) = argmin_a Q^{pi_k}(x, a, t)                     # greedy improvement
         stop if pi_{k+1} = pi_k on every state of S                     # a fixed point: converged
         stop if pi_{k+1} = pi_j on every state of S for some j < k      # a cycle
@@ -81,6 +81,18 @@ from offline_adp.policies import (
     attach_signature,
 )
 from offline_adp.qfunctions import NeighbourCommands, with_candidates
+
+
+def uniform_over_logged(dataset: TransitionDataset, sample_weight: np.ndarray | None = None) -> UniformPolicy:
+    """The default start of policy iteration (API, CPI): uniform over the actions the logs
+    take (with positive weight). An action they never take is valued by extrapolation (a
+    lookup table's fill value 0, an optimistic cost), and a start that takes it reads
+    better than it is (an audit: API returned such a start at 1.399 over its successor's
+    1.116, exact values)."""
+    held = np.bincount(dataset.arrays().action, minlength=dataset.n_actions,
+                       weights=None if sample_weight is None else np.asarray(sample_weight, np.float64)) > 0
+    return UniformPolicy(dataset.n_actions, None if held.all() or not held.any() else np.flatnonzero(held).tolist())
+
 
 #: The evaluator's settings where API's differ from FittedQEvaluation's own defaults: those of
 #: FittedQIteration (a frozen tree structure where it applies, built at geometrically spaced
@@ -206,7 +218,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
         Budget of evaluations (>= 1); the iteration stops earlier at a fixed point, a rise
         of the estimated cost or a cycle of the greedy policies (module docstring).
     initial_policy : Policy, optional
-        ``pi_0``; uniformly random by default.
+        ``pi_0``; by default uniformly random over the actions the data holds
+        (:func:`uniform_over_logged`), whose estimate is then no candidate for the answer:
+        the policy returned is a greedy one.
     model : ResetModel, optional
         If given, ``episodes_per_iteration`` episodes of each new policy are added.
     episodes_per_iteration : int
@@ -270,7 +284,7 @@ class ApproximatePolicyIteration(CheckedEstimator):
             if proto.feature_map is not None:
                 raise invalid_parameter(self, "fqe", "an evaluator without feature_map over continuous commands",
                                         proto)
-        start = UniformPolicy(dataset.n_actions) if cands is None else NearestCommandPolicy(cands)
+        start = uniform_over_logged(dataset, sample_weight) if cands is None else NearestCommandPolicy(cands)
         pi: Policy = self.initial_policy if self.initial_policy is not None else start
         if cands is not None:
             attach_signature(pi, dataset)
@@ -304,7 +318,9 @@ class ApproximatePolicyIteration(CheckedEstimator):
                 break
             # over commands, the Q kept is the one the improvement read (over the neighbours' commands)
             q_kept = improved.q if cands is not None else fqe.q_function_  # type: ignore[attr-defined]
-            if best is None or fqe.value_ < best[0]:  # pi_k, the Q it is greedy over, its evaluation
+            # pi_k, the Q it is greedy over, its evaluation; not the default start (uniform, so it takes
+            # actions where the logs may hold none: its estimate reads the evaluation's extrapolation there)
+            if (k or self.initial_policy is not None) and (best is None or fqe.value_ < best[0]):
                 best = (fqe.value_, k, pi, q_prev if k else fqe.q_function_, fqe)
             self.q_function_, self.policy_, self.fqe_ = q_kept, improved, fqe
             if changed == 0.0:  # pi_{k+1} = pi_k

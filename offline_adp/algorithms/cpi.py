@@ -35,7 +35,7 @@ import pandas as pd
 from sklearn.base import clone
 from sklearn.utils._param_validation import HasMethods, StrOptions
 
-from offline_adp.algorithms.api import default_evaluator
+from offline_adp.algorithms.api import default_evaluator, uniform_over_logged
 from offline_adp.algorithms.fqe import FittedQEvaluation
 from offline_adp.algorithms.params import (
     FRACTION,
@@ -52,7 +52,6 @@ from offline_adp.policies import (
     GreedyPolicy,
     MixturePolicy,
     Policy,
-    UniformPolicy,
     attach_signature,
 )
 from offline_adp.qfunctions import q_support, restrict_to_support
@@ -103,6 +102,8 @@ class ConservativePolicyIteration(CheckedEstimator):
     n_eval_episodes : int
         (>= 1).
     initial_policy : Policy, optional
+        ``pi_0``; by default uniformly random over the actions the data holds
+        (:func:`~offline_adp.algorithms.api.uniform_over_logged`).
     random_state : int
         The rollout estimates' seed (>= 0).
 
@@ -165,7 +166,7 @@ class ConservativePolicyIteration(CheckedEstimator):
         self.check_params()  # _parameter_constraints, then the combinations
         self.simulator_steps_ = 0
         refuse_continuous(type(self).__name__, dataset)
-        pi0 = self.initial_policy if self.initial_policy is not None else UniformPolicy(dataset.n_actions)
+        pi0 = self.initial_policy if self.initial_policy is not None else uniform_over_logged(dataset, sample_weight)
         pi = MixturePolicy([pi0], [1.0])
         value = self._estimate(pi, dataset, sample_weight)
         rows = [{"iteration": 0, "alpha": 0.0, "value": value, "n_components": 1, "seconds": 0.0}]

@@ -140,6 +140,23 @@ def _read_distilled(spec: dict[str, Any], arrays: Any, where: str) -> Any:
     return pi
 
 
+def _read_uniform(spec: dict[str, Any], arrays: Any, where: str) -> Any:
+    """A stored uniform policy: ``n_actions`` and, for one over some actions, their indices
+    (checked: distinct, in range)."""
+    from offline_adp.policies import UniformPolicy
+
+    n = C.check_int(spec.get("n_actions"), where, "n_actions", 1, 1_000_000)
+    acts = spec.get("actions")
+    if acts is None:
+        return UniformPolicy(n)
+    if not isinstance(acts, list) or not acts or len(acts) > n:
+        raise C.fail(where, "actions", f"expected a list of 1 to {n} action indices, found {acts!r}")
+    got = [C.check_int(a, where, "actions[]", 0, n - 1) for a in acts]
+    if len(set(got)) != len(got):
+        raise C.fail(where, "actions", f"expected distinct action indices, found {acts!r}")
+    return UniformPolicy(n, got)
+
+
 def _register_policies() -> None:
     """Register the package's policy kinds (on first use: policies import lazily to keep this module light)."""
     from offline_adp.policies import (
@@ -156,10 +173,9 @@ def _register_policies() -> None:
                          lambda spec, arrays, where: GreedyPolicy(_import_q(spec.get("q"), arrays, where)))  # type: ignore[arg-type]
     register_policy_kind("greedy_command", GreedyCommandPolicy,
                          lambda pi, arrays, key: {"q": _export_q(pi.q, arrays, f"{key}.q")}, _read_greedy_command)
-    register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {"n_actions": pi.n_actions},
-                         lambda spec, arrays,
-                         where: UniformPolicy(C.check_int(spec.get("n_actions"), where, "n_actions", 1,
-                                                                               1_000_000)))
+    register_policy_kind("uniform", UniformPolicy, lambda pi, arrays, key: {
+        "n_actions": pi.n_actions, **({"actions": pi.actions} if getattr(pi, "actions", None) is not None else {})},
+        _read_uniform)
     register_policy_kind("tabular", TabularPolicy, _write_tabular, _read_tabular)
     register_policy_kind("mixture", MixturePolicy,
                          lambda pi, arrays, key: {"weights": pi.weights.tolist(), "components": [

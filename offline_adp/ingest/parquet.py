@@ -227,7 +227,7 @@ def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] |
     # order within episodes
     order_col = spec.episode.step or spec.episode.order or spec.episode.time
     assert order_col is not None
-    if not spec.episode.step:
+    if not spec.episode.step and spec.episode.order:  # a missing time stays null: the doctor's, quarantinable
         check_order_column(table, order_col, names_of)
     enc = sorted_encoding(table.column(spec.episode.id), table.column(order_col).to_numpy(zero_copy_only=False))
     if enc is None:  # sort only when needed (ties keep file order)
@@ -442,7 +442,7 @@ def ingest_parquet(
     # small pages while the tables are read, checked and written: huge-page faults cost the
     # kernel up to 1.4 s of zeroing at 2M rows (offline_adp.data.pages)
     with locked_directory(out, what="dataset"), small_pages():  # a second ingest into `out` fails now
-        return _ingest_locked(inputs, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
+        return _ingest_locked(paths, spec, out, on_error=on_error, overwrite=overwrite, progress=progress)
 
 
 def _ingest_locked(inputs: Sequence[str | PathLike[str]] | str | PathLike[str], spec: ParquetSpec,

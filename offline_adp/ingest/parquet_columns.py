@@ -90,8 +90,8 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
 
 def _csv_text(table: pa.Table, spec: ParquetSpec) -> pa.Table:
     """A CSV's text columns (read as bytes) as strings; a column that is not UTF-8 stays
-    binary (:func:`_read` names its first bad cell). An empty episode id cell is a missing id
-    (null), as in a Parquet file."""
+    binary (:func:`_read` names its first bad cell). An empty cell is a missing value (null),
+    as the CSV reader makes it of a number column: a missing id, source or label, reported."""
     for c in spec.text_columns():
         if c not in table.column_names:
             continue
@@ -100,8 +100,7 @@ def _csv_text(table: pa.Table, spec: ParquetSpec) -> pa.Table:
             col = table.column(j).cast(pa.string())
         except pa.ArrowInvalid:
             continue
-        if c == spec.episode.id:
-            col = pc.if_else(pc.equal(col, ""), pa.scalar(None, pa.string()), col)
+        col = pc.if_else(pc.equal(col, ""), pa.scalar(None, pa.string()), col)
         table = table.set_column(j, c, col)
     return table
 

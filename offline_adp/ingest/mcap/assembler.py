@@ -241,8 +241,9 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 t = times.get(which)
                 if t is None:
                     t = times[which] = _msg_time(which, log_time, publish_time, dec)
+                exact = k == "action" and self.spec.action.type == "continuous"  # a boolean is no such command
                 values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time,
-                                                                command=k == "action")
+                                                                command=exact)
             e = self._epoch_of(k, t)
             if e is None:  # late for an epoch already over (by file order, not by flush points)
                 self.late[topic] += 1

@@ -64,6 +64,7 @@ def ingest_mcap(
     quarantine = transitions_assembled``) and the files skipped.
     ``progress(done, total)`` is called after each recording.
     """
+    files = [files] if isinstance(files, (str, PathLike)) else list(files)  # a generator is read once, here
     if out is None:
         ds, _, summary = ingest_mcap_tables(files, spec, on_error=on_error, jobs=jobs, progress=progress)
         return ds, summary

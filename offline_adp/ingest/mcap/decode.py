@@ -155,8 +155,9 @@ def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int, 
     """The float value of each field path in a decoded message; a null (JSON ``null``) is a
     missing value, NaN (the doctor reports it, naming the row; quarantine sets that episode
     aside); a path the message lacks, a value that is no number, an integer that float64
-    cannot hold exactly (beyond 2^53) and, for a ``command``, a boolean (as the tables
-    refuse them) are errors naming the topic, the message's log_time and the field."""
+    cannot hold exactly (beyond 2^53) and, for a continuous ``command``, a boolean (as the
+    tables refuse them; a discrete one may be a flag) are errors naming the topic, the
+    message's log_time and the field."""
     out = []
     for name, path in fields.items():
         try:
@@ -164,7 +165,7 @@ def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int, 
             if isinstance(v, np.generic):
                 v = v.item()
             if command and isinstance(v, bool):
-                raise TypeError(f"{v!r} is a boolean, not a command value")
+                raise TypeError(f"{v!r} is a boolean, not a continuous command (a flag is a discrete action)")
             if isinstance(v, int) and not isinstance(v, bool) and abs(v) > 2**53:
                 raise ValueError(f"the integer {v} is beyond 2^53, where float64 would round it")
             out.append(float("nan") if v is None else float(v))

@@ -15,26 +15,28 @@ from offline_adp.ingest.mcap.spec import McapSpec
 
 def read_event(dec: Any, fields: dict[str, str], topic: str, log_time: int) -> list[Any]:
     """The episode fields of one event message, in ``fields``' order, read as the segmenter
-    uses them: the id and source as text, the kind as text, and ``terminated`` (read on an
-    ``end`` event only; a start event need not have it) a boolean, or 0 or 1. A field the
-    message lacks, a null, or a flag of another type (the string ``"false"`` would read as
-    true) is an error naming the topic, the message's log_time and the field."""
+    uses them: the kind; on a start event the id and source (an end event's are not read:
+    None); on an ``end`` event ``terminated`` (a start event need not have it: None), a
+    boolean or a number 0 or 1. A field the message lacks, a null, or a flag of another type
+    (the string ``"false"`` would read as true) is an error naming the topic, the message's
+    log_time and the field."""
     where = f"topic {topic!r}, message at log_time {int(log_time)}"
-    end = "event_field" in fields and str(_field(dec, fields["event_field"], "event_field", where)) == "end"
+    kind = str(_field(dec, fields["event_field"], "event_field", where)) if "event_field" in fields else "start"
     out: list[Any] = []
     for key, path in fields.items():
-        if key == "terminated_field" and not end:
-            out.append(None)  # a start event: no flag to read
+        if key == "event_field" or (key == "terminated_field") != (kind == "end") or kind not in ("start", "end"):
+            out.append(kind if key == "event_field" else None)  # start: id, source; end: the flag; other: nothing
             continue
         v = _field(dec, path, key, where)
         if v is None:
             raise IngestError(f"{where}: the episode event's field {path!r} ([episodes] {key}) is null")
         if key == "terminated_field":
             flag = v.item() if isinstance(v, np.generic) else v
-            if not (isinstance(flag, bool) or (isinstance(flag, int) and flag in (0, 1))):
+            if isinstance(flag, bool) or (isinstance(flag, int | float) and flag in (0, 1)):
+                v = bool(flag)
+            else:
                 raise IngestError(f"{where}: the episode event's field {path!r} ([episodes] terminated_field) is "
-                                  f"{v!r}, not a flag (true/false or 0/1)")
-            v = bool(flag)
+                                  f"{v!r}, not a flag (true/false, 0/1)")
         out.append(v)
     return out
 
