@@ -240,6 +240,15 @@ def test_distributed_ingestion_of_four_files_equals_local(client, tmp_path):
     assert dist.fingerprint() == local.fingerprint()
     assert list(dist.episode_ids) == list(local.episode_ids)
     assert (tmp_path / "dist" / "meta" / "info.json").exists() and reports.empty  # the doctor found nothing
+    import pandas as pd
+
+    from offline_adp.errors import LogWarning
+
+    copy = pd.read_parquet(files[0])  # a file copied under new ids: a repeat across files, seen on the client
+    copy["episode"] = "copy-" + copy["episode"].astype(str)
+    copy.to_parquet(tmp_path / "copy.parquet")
+    with pytest.warns(LogWarning, match="3 of 15 episodes repeat an earlier episode row for row"):
+        ingest_distributed(client, [*files, tmp_path / "copy.parquet"], spec, tmp_path / "dist2")
 
 
 def test_pipeline_with_dask_engine_matches_local(tmp_path):

@@ -368,3 +368,24 @@ def test_the_ope_figure_gives_each_unlabelled_estimator_its_own_reason(tmp_path)
     figs = Figures(tmp_path / "one")
     ope_figure(figs, withdraw_levels(one), rank_estimators(withdraw_levels(one)))
     assert "Dashed, without a level: FQE (the policy left" in figs.items[0][1]
+
+
+def test_rollouts_of_another_value_than_the_estimand_say_which_and_a_verdict_keeps_its_parentheses():
+    """With --estimand infinite the simulator's rollouts measure the T-step value: the CLI line and
+    the headline's estimate said "simulator rollouts 1.337 [...]" under an infinite-horizon estimand
+    (an audit: the truth was 1.990). The verdict's first sentence was cut inside a parenthesis."""
+    from offline_adp.evaluation.verdict import _before_but
+
+    m = copy.deepcopy(LEFT)
+    m["estimand"]["quantity"] = "expected discounted cost sum_t 0.95^t c_t over an infinite horizon from the data"
+    m["rollout"] = _rollout((6.843, 6.2, 7.5), (4.608, 4.4, 4.8))
+    m["rollout"]["estimand"] = "the 20-step value (rollouts cannot measure the infinite-horizon one)"
+    sim = next(ln for ln in summary_lines(m) if ln.startswith("simulator"))
+    assert sim.startswith("simulator (the 20-step value (rollouts cannot measure the infinite-horizon one)): policy")
+    est = headline(m)["verdict"]["lines"][0]
+    assert "simulator rollouts 6.843 [6.2, 7.5] (the 20-step value" in est and "not the estimand)" in est
+    m["rollout"]["estimand"] = m["estimand"]["quantity"]  # the rollouts measured it: quoted as it
+    assert "not the estimand" not in headline(m)["verdict"]["lines"][0]
+    assert next(ln for ln in summary_lines(m) if ln.startswith("simulator")).startswith("simulator: policy cost")
+    assert _before_but("not compared (the value, but past the logs) here, but why") == \
+        "not compared (the value, but past the logs) here"

@@ -355,6 +355,9 @@ def test_output_that_is_inside_or_holds_an_input_or_a_dataset_is_refused_before_
         ingest_parquet([raw], spec, tmp_path / "ds" / "data", overwrite=True)
     assert read_dataset(tmp_path / "ds").fingerprint() == ds.fingerprint()
     ingest_parquet(str(raw), spec, tmp_path / "ds", overwrite=True)  # replacing the dataset itself is --overwrite
+    from offline_adp.data.io import check_dataset_output
+
+    check_dataset_output(tmp_path / "in" / "ds", [tmp_path / "in"])  # inside an input directory (a bag): allowed
 
 
 def test_the_doctor_says_how_its_rows_count_and_a_csv_s_line_is_row_plus_two(tmp_path):
@@ -374,7 +377,8 @@ def test_the_doctor_says_how_its_rows_count_and_a_csv_s_line_is_row_plus_two(tmp
     with pytest.raises(ValidationError) as e:
         ingest_parquet([tmp_path / "t.csv"], spec, tmp_path / "ds")
     text = str(e.value)
-    assert "(rows count each file's data rows from 0; a CSV's line is row + 2, after its header)" in text
+    assert ("(rows count each file's data rows from 0; in a CSV without blank lines or cells over several lines, "
+            "the line is row + 2)") in text
     row = int(text.split("t.csv: row ")[1].split(" ")[0])
     line = (tmp_path / "t.csv").read_text().splitlines()[row + 2 - 1]  # 1-based line numbers
     assert row == 37 and line.split(",")[3] == ""  # the NaN cost written as an empty cell

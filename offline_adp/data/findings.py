@@ -130,8 +130,9 @@ class ValidationReport:
             lines.append(f"  {check:<26} {n}")
         if self.row_label == "row" and len(self.findings):
             csv = any(str(f).lower().endswith(".csv") for f in self.findings["file"].unique())
-            lines.append("  (rows count each file's data rows from 0" + ("; a CSV's line is row + 2, after its "
-                                                                      "header" if csv else "") + ")")
+            lines.append("  (rows count each file's data rows from 0" + ("; in a CSV without blank lines or cells "
+                                                                      "over several lines, the line is row + 2"
+                                                                      if csv else "") + ")")
         for r in self.findings.head(max_findings).itertuples(index=False):
             lines.append(
                 f"  {r.file}: {self.row_label} {r.row} (episode {r.episode_id!s}, step {r.step}) column {r.column!r}: "

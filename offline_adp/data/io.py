@@ -167,9 +167,17 @@ def _sq_dev_sum(x: np.ndarray, mean: Any, buf: np.ndarray) -> Any:
 def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLike[str]] = ()) -> None:
     """Refuse, before anything is written, an ingest's output directory ``out`` that would
     destroy what it reads or another dataset (``--overwrite`` replaces ``out`` as a whole):
-    ``out`` equal to an input, containing one, or inside one; or ``out`` inside an existing
-    dataset directory (a directory with ``meta/info.json``: ``--out DS/data`` would replace
-    that dataset's data). Paths are compared resolved (links followed).
+    ``out`` equal to an input or containing one; or ``out`` inside an existing dataset
+    directory (a directory with ``meta/info.json``: ``--out DS/data`` would replace that
+    dataset's data). An output inside an input directory (a rosbag2 bag directory) destroys
+    nothing read and is allowed. Paths are compared resolved (links followed).
+
+    Parameters
+    ----------
+    out : str or os.PathLike
+        The dataset directory to be written.
+    inputs : sequence of str or os.PathLike
+        The files or directories the ingest reads.
 
     Raises
     ------
@@ -184,10 +192,15 @@ def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLi
         if target in p.parents:
             raise OutputExistsError(f"the output {out} contains the input {src} (writing it would replace the input); "
                                     "write the dataset elsewhere")
-        if p in target.parents:
-            raise OutputExistsError(f"the output {out} lies inside the input {src}; write the dataset elsewhere")
+        if p in target.parents and not p.is_dir():
+            raise OutputExistsError(f"the output {out} lies inside the input {src}, a file; write the dataset "
+                                    "elsewhere")
     for parent in target.parents:
-        if (parent / S.INFO_FILE).is_file():
+        try:
+            inside = (parent / S.INFO_FILE).is_file()
+        except OSError:  # an unreadable directory on the way: not a dataset we can see
+            inside = False
+        if inside:
             raise OutputExistsError(f"the output {out} lies inside the dataset directory {parent}; writing it would "
                                     "change that dataset: write the new dataset elsewhere")
 

@@ -64,7 +64,7 @@ def dataset_summary(path: str | PathLike[str]) -> dict[str, Any]:
     if cmds is not None and len(cmds):
         t = info.action_table
         report["actions"]["commands"] = {
-            "distinct": int(len(np.unique(cmds, axis=0))),
+            "distinct": _distinct_rows(cmds),
             "logged_min": [float(x) for x in cmds.min(axis=0)], "logged_max": [float(x) for x in cmds.max(axis=0)],
             "low": None if t.low is None else list(t.low), "high": None if t.high is None else list(t.high)}
     q = read_quarantine(path)
@@ -94,6 +94,17 @@ def summary_text(report: dict[str, Any]) -> str:
     if "quarantined_rows" in report:
         lines.append(f"  quarantine  {report['quarantined_rows']} rows (see quarantine/)")
     return "\n".join(lines)
+
+
+def _distinct_rows(x: np.ndarray) -> int:
+    """The number of distinct rows of a 2-D float array: a lexicographic sort and one pass
+    (``np.unique(axis=0)`` took 2 s on 2M commands of 2 components)."""
+    if len(x) == 0:
+        return 0
+    x = x + 0.0  # -0.0 == 0.0, as np.unique counts them
+    o = np.lexsort(x.T[::-1])
+    s = x[o]
+    return int(1 + np.any(s[1:] != s[:-1], axis=1).sum())
 
 
 #: entries of an action table listed one by one by ``inspect`` (``--json`` lists them all)

@@ -273,8 +273,10 @@ def _gym_estimand(problem: Any, ds: TransitionDataset, horizon: int | None,
     # rollouts start from env.reset(), and the off-policy estimators target the same value
     from offline_adp.evaluation.offpolicy import evaluation_horizon
 
-    target = int(horizon) if horizon is not None else (problem.horizon or evaluation_horizon(ds)[0])
-    return target, target, f"env.reset() of {sim_name}"
+    logged = evaluation_horizon(ds)[0]
+    target = int(horizon) if horizon is not None else (problem.horizon or logged)
+    # past the logs the off-policy estimators read the logged steps (the estimand says so): no "asked for" warning
+    return (target if target < logged else None), target, f"env.reset() of {sim_name}"
 
 
 def _rollouts(metrics: dict[str, Any], ds: TransitionDataset, policy: Any, problem: Any, cfg: EvaluationSettings,

@@ -47,6 +47,7 @@ from offline_adp.evaluation.verdict import (  # noqa: F401
     left_support,
     level_words,
     outcome_of,
+    rollouts_of_another_value,
     side_of_behaviour,
     stored_lines,
     verdict_line,
@@ -411,9 +412,9 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         lines.append(f"estimand: {m['estimand']['quantity']}")
     if "rollout" in m:
         p, d = m["rollout"]["policy"], m["rollout"].get("demonstrator")
-        cost = (
-            f"simulator: policy cost {_f(p['mean_discounted_cost'])} [{_f(p['interval'][0])}, {_f(p['interval'][1])}]"
-        )
+        other = rollouts_of_another_value(m)
+        cost = (f"simulator{f' ({other})' if other else ''}: policy cost {_f(p['mean_discounted_cost'])} "
+                f"[{_f(p['interval'][0])}, {_f(p['interval'][1])}]")
         if d is None:  # a simulator without a demonstrator (gym:ENV_ID)
             lines.append(f"{cost}; {m['rollout'].get('note', 'no demonstrator to compare with')}")
         else:

@@ -297,6 +297,25 @@ def model_hull_words(m: dict[str, Any]) -> str | None:
             f"{fqe[1]:.4g}] (before its support bounds) disagree on what the logs hold, so the interval spans both")
 
 
+def rollouts_of_another_value(m: dict[str, Any]) -> str | None:
+    """What the simulator's rollouts measured when it is not the estimand (``metrics.json``'s
+    ``rollout.estimand``: the T-step value of an infinite-horizon estimand, or the value
+    from the simulator's own start states), else None."""
+    said, quantity = (m.get("rollout") or {}).get("estimand"), (m.get("estimand") or {}).get("quantity")
+    return said if isinstance(said, str) and said and said != quantity else None
+
+
+def _before_but(text: str) -> str:
+    """``text`` up to its first ", but " outside parentheses (the reasons are the why line's;
+    a clause in parentheses is kept whole)."""
+    depth = 0
+    for i, ch in enumerate(text):
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and text.startswith(", but ", i):
+            return text[:i]
+    return text
+
+
 def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, support: str, doubts: list[str],
                    conv: dict[str, Any]) -> list[str]:
     """The verdict in three lines, read in seconds: the estimate with its interval and its true
@@ -308,7 +327,9 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
     ro = (m.get("rollout") or {}).get("policy") or {}
     if _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
         lo, hi = ro["interval"]
-        est.append(f"simulator rollouts {ro['mean_discounted_cost']:.4g} [{lo:.4g}, {hi:.4g}]")
+        other = rollouts_of_another_value(m)  # e.g. T steps of an infinite-horizon estimand: said, not quoted as it
+        est.append(f"simulator rollouts {ro['mean_discounted_cost']:.4g} [{lo:.4g}, {hi:.4g}]"
+                   + (f" ({other}, not the estimand)" if other else ""))
     top = next((e for e in ranking if e["tier"] == 0), None) or next((e for e in ranking if e["tier"] == 1), None)
     if top is not None:
         iv = top.get("interval") or top.get("shown_interval")
@@ -320,7 +341,7 @@ def headline_lines(m: dict[str, Any], ranking: list[dict[str, Any]], perf: str, 
     if logs:  # the simulator's verdict, then the logs' own in a word
         confirmed = logs.startswith(("better too", "worse too", "not distinguishable"))
         verdict += "; from the logs alone: " + (logs.split(", ", 1)[0] if confirmed else "cannot tell")
-    verdict = verdict.split(", but ", 1)[0]
+    verdict = _before_but(verdict)
     fit = conv["text"].split(": ", 1)[0]  # "fit converged", "fit still changing", ...; its numbers are in the report
     why = [f"policy {support}"] + [d for d in doubts if d.startswith("other reliable")] + [fit]
     best = next((e for e in ranking if e["tier"] == 0), None)

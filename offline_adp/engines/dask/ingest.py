@@ -59,6 +59,9 @@ def ingest_distributed(client: Any, files: list[str | PathLike[str]], spec: Any,
     futures = client.map(_ingest_file, paths, spec=spec, fmt=fmt, on_error=on_error, pure=False)
     results = client.gather(futures)  # in file order: deterministic part order
     ds = TransitionDataset.concat([r[0] for r in results])
+    from offline_adp.data.repeats import warn_repeated
+
+    warn_repeated(ds, f"{len(paths)} files ingested on the cluster")  # across files too (a file copied)
     quarantined = [r[2] for r in results if r[2] is not None and r[2].num_rows]
     import pyarrow as pa
 
