@@ -243,14 +243,14 @@ def fit_run(
                 raise InvalidArgumentError(f"{algorithm} runs in process only (engines run {resumable_algorithms()})")
             else:
                 est = entry.build_and_fit(params, ds)
+            _save_model(entry, est, rd, ds.fingerprint())  # a model that cannot be saved fails the run too
+            if entry.resumable:  # the finished checkpoint shares the model's arrays (one copy on disk)
+                share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)
         except BaseException as exc:
             status.update(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
                           error=f"{type(exc).__name__}: {exc}")
             rd.write_json(rd.STATUS, status)
             raise
-        _save_model(entry, est, rd, ds.fingerprint())
-        if entry.resumable:  # the finished checkpoint shares the model's arrays (one copy on disk)
-            share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)
         from offline_adp.artifacts import model_hashes
 
         status.update(status="completed", fit_seconds=time.perf_counter() - wall,

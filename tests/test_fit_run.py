@@ -113,6 +113,37 @@ def test_fit_cli_other_algorithms_write_policies(tmp_path, pt_dir, capsys):
         assert json.loads((out / "run.json").read_text())["status"] == "completed"
 
 
+def test_fqe_of_a_psdp_classifier_policy_saves_and_a_run_that_cannot_save_says_failed(tmp_path, pt_dir, monkeypatch):
+    """An audit: FQE of a PSDP run's policy (a loaded forest classifier) could not be saved,
+    and run.json stayed "running". The loaded classifier saves again (the same probabilities),
+    and a model that cannot be saved fails the run, saying why."""
+    from offline_adp.artifacts import load_index_policy
+
+    psdp = tmp_path / "psdp"
+    body = 'simulator = "path_tracking"\nhorizon = 4\nn_samples = 30\n[psdp.learner_params]\nn_estimators = 5\n'
+    assert main(["fit", str(pt_dir), "--algorithm", "psdp", "--config", str(_cfg(tmp_path, "psdp", body)), "--out",
+                 str(psdp), "-q"]) == 0
+    fqe = tmp_path / "fqe"
+    cfg = _cfg(tmp_path, "fqe", f'policy = "{psdp / "model"}"\nn_iterations = 3\nmode = "frozen"\n')
+    assert main(["fit", str(pt_dir), "--algorithm", "fqe", "--config", str(cfg), "--out", str(fqe), "-q"]) == 0
+    obs = simulate("path_tracking", 2, 2, seed=4, horizon=10).arrays().obs
+    for t in range(3):
+        np.testing.assert_array_equal(load_index_policy(fqe / "model").probabilities(obs, t),
+                                      load_index_policy(psdp / "model").probabilities(obs, t))
+    import offline_adp.runs as runs
+    from offline_adp.errors import ArtifactError
+
+    def refuse(*a, **k):
+        raise ArtifactError("cannot save this")
+
+    monkeypatch.setattr(runs, "_save_model", refuse)
+    with pytest.raises(ArtifactError):
+        fit_run(pt_dir, tmp_path / "nosave", algorithm="fqe",
+                params={"policy": str(psdp / "model"), "n_iterations": 2, "mode": "frozen"})
+    status = json.loads((tmp_path / "nosave" / "run.json").read_text())
+    assert status["status"] == "failed" and "cannot save this" in status["error"]
+
+
 def _cfg(tmp_path, alg, body):
     p = tmp_path / f"{alg}.toml"
     p.write_text(f"[{alg}]\n{body}")

@@ -59,6 +59,10 @@ def _export_estimator(est: Any, arrays: dict[str, np.ndarray], key: str) -> dict
         arrays[f"{key}.class_values"] = probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300)
         arrays[f"{key}.classes"] = np.asarray(est.classes_)
         return {"kind": "tree_classifier", "key": key}
+    if isinstance(est, _TreeClassifier):  # a loaded forest classifier saved again (e.g. the policy FQE evaluates)
+        arrays.update(est.ensemble.to_arrays(f"{key}.", layout="nodes"))  # its node order: the class values'
+        arrays[f"{key}.class_values"], arrays[f"{key}.classes"] = est.class_values, np.asarray(est.classes_)
+        return {"kind": "tree_classifier", "key": key}
     if hasattr(est, "estimators_") and hasattr(est.estimators_[0], "tree_"):
         return _export_ensemble(TreeEnsemble.from_sklearn(est), arrays, key, _width(est))
     if isinstance(est, TreeEnsemble):
