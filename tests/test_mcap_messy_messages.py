@@ -61,13 +61,11 @@ def test_episode_ids_naming_two_episodes_are_an_error_and_generated_ids_stay_apa
     assert ds.n_episodes == 2 and len(set(ds.episode_ids)) == 2 and len(ds) == 10
 
 
-def test_a_message_that_does_not_decode_names_its_topic_and_log_time(tmp_path):
+def _broken_log(tmp_path, msgs, bad):
     import json
 
     from mcap.writer import Writer
 
-    msgs = episode_messages(6)
-    bad = next(i for i, m in enumerate(msgs) if m[0] == "/cmd" and m[1] > T0)
     path = tmp_path / "broken.mcap"
     with open(path, "wb") as fh:
         w = Writer(fh)
@@ -80,9 +78,32 @@ def test_a_message_that_does_not_decode_names_its_topic_and_log_time(tmp_path):
             data = b"{u: 1" if i == bad else json.dumps(m).encode()
             w.add_message(chans[topic], log_time=t, publish_time=t, data=data)
         w.finish()
+    return path
+
+
+def test_a_message_that_does_not_decode_names_its_topic_and_log_time(tmp_path):
+    msgs = episode_messages(6)
+    bad = next(i for i, m in enumerate(msgs) if m[0] == "/cmd" and m[1] > T0)
+    path = _broken_log(tmp_path, msgs, bad)
     with pytest.raises(IngestError, match=rf"broken.mcap: topic '/cmd', message at log_time {msgs[bad][1]}: cannot be "
                                           r"decoded as json \(JSONDecodeError"):
         ingest_mcap([path], spec())
+
+
+def test_under_quarantine_a_message_that_does_not_decode_sets_its_episode_aside_not_the_file(tmp_path):
+    """It skipped the whole recording; now it is lost as a damaged chunk's messages are: the
+    episode around it goes to quarantine/ with the reason, the others are kept."""
+    from offline_adp.data.io import read_quarantine
+
+    msgs = [m for ep in range(3) for m in episode_messages(8, t0=T0 + ep * 5000 * MS, ep=ep, with_events=True,
+                                                            ep_id=f"e{ep}")]
+    bad = next(i for i, m in enumerate(msgs) if m[0] == "/cmd" and m[1] > T0 + 5000 * MS + 300 * MS)
+    path = _broken_log(tmp_path, msgs, bad)
+    with pytest.warns(UserWarning, match="1 message\\(s\\) that do not decode, their episodes set aside"):
+        ds, s = ingest_mcap([path], spec(episodes=EV), tmp_path / "ds", on_error="quarantine")
+    assert list(ds.episode_ids) == ["e0", "e2"] and s["episodes_lost_to_damage"] == 1
+    q = read_quarantine(tmp_path / "ds")
+    assert q.num_rows == 7 and set(q.column("episode_id").to_pylist()) == {"e1"}
 
 
 def test_a_repeated_clock_time_is_one_step_counted_and_warned_of(tmp_path):

@@ -185,8 +185,14 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 try:
                     value = dec(msg.data)
                 except Exception as exc:  # noqa: BLE001 - each decoder library raises its own types
-                    raise IngestError(f"{path}: topic {ch.topic!r}, message at log_time {msg.log_time}: cannot be "
-                                      f"decoded as {ch.message_encoding} ({type(exc).__name__}: {exc})") from None
+                    why = (f"topic {ch.topic!r}, message at log_time {msg.log_time}: cannot be decoded as "
+                           f"{ch.message_encoding} ({type(exc).__name__}: {exc})")
+                    if self.on_error == "fail":
+                        raise IngestError(f"{path}: {why}") from None
+                    # lost, as a damaged chunk's messages: the episode around it is set aside, not the file
+                    lost.append({"offset": None, "message": True, "topic": ch.topic, "start_ns": int(msg.log_time),
+                                 "end_ns": int(msg.log_time), "error": why})
+                    continue
                 add(ch.topic, msg.log_time, msg.publish_time, value, file_index)
                 self.n_since += 1
                 if self.n_since >= every:  # as feed(): one flush per flush_every messages

@@ -64,6 +64,9 @@ class DamageAccounting:
         (None), in file order; a chunk without a usable index is counted as uncounted."""
         if not self.spec.episode_topic:
             return
+        if c.get("message"):  # one message that did not decode: an event if on the episode topic
+            self.event_kinds += [None] * (c.get("topic") == self.spec.episode_topic)
+            return
         index = c.get("_index")
         chans = report.get("channels", {})
         ids = [i for i, ch in chans.items() if ch.topic == self.spec.episode_topic]

@@ -189,10 +189,13 @@ def _index_of_lost_chunk(chunk: dict[str, Any], body: bytes) -> None:
 def damage_text(path: Path, report: dict[str, Any]) -> str | None:
     """The one-line damage report of a file, or None when it read cleanly."""
     parts = []
-    if report.get("lost_chunks"):
-        offs = ", ".join(str(c["offset"]) for c in report["lost_chunks"][:5])
-        parts.append(f"lost {len(report['lost_chunks'])} corrupt chunk(s) at offset(s) {offs} "
-                     f"({report['lost_chunks'][0]['error']})")
+    chunks = [c for c in report.get("lost_chunks", ()) if not c.get("message")]
+    bad = [c for c in report.get("lost_chunks", ()) if c.get("message")]  # undecodable messages (quarantine)
+    if chunks:
+        offs = ", ".join(str(c["offset"]) for c in chunks[:5])
+        parts.append(f"lost {len(chunks)} corrupt chunk(s) at offset(s) {offs} ({chunks[0]['error']})")
+    if bad:
+        parts.append(f"{len(bad)} message(s) that do not decode, their episodes set aside (first: {bad[0]['error']})")
     if "lost_from_offset" in report:
         n = report.get("messages_lost")
         lost = ("an unknown number of messages lost" if n is None else "no message lost" if n == 0
