@@ -25,7 +25,26 @@ def action_labels(table: pa.Table, column: str,
                   file_of: Callable[[np.ndarray], str]) -> tuple[np.ndarray, np.ndarray | None]:
     """A discrete action column's labels and its null mask (None without nulls). A null
     label is never a label ("None"): it is given the value of another row for the mapping
-    (so the action table holds only logged labels) and the caller makes its action null."""
+    (so the action table holds only logged labels) and the caller makes its action null.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+    column : str
+        The discrete action column.
+    file_of : callable
+        Row indices -> the file they came from (for the error).
+
+    Returns
+    -------
+    (ndarray, ndarray or None)
+        The labels, and the mask of null labels.
+
+    Raises
+    ------
+    IngestError
+        When every label is null.
+    """
     c = table.column(column)
     raw = c.to_numpy(zero_copy_only=False)
     if not c.null_count:
@@ -47,7 +66,21 @@ def _is_text(t: pa.DataType) -> bool:
 def check_json_commands(table: pa.Table, spec: ActionSpec, file_of: Callable[[np.ndarray], str]) -> None:
     """Refuse an action column of text whose every value looks like JSON (an array or an
     object: ``[`` or ``{`` first): commands stored as JSON strings would otherwise become one
-    discrete label per row. The error names the file, row and column."""
+    discrete label per row. The error names the file, row and column.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+    spec : ActionSpec
+        The spec's action table (its source columns, its declared ``values``).
+    file_of : callable
+        Row indices -> the file they came from.
+
+    Raises
+    ------
+    IngestError
+        Naming the file, row and column of the first JSON value.
+    """
     for col in spec.source_columns:
         c = table.column(col)
         if not _is_text(c.type) or c.null_count == len(c):
@@ -81,7 +114,18 @@ def warn_many_labels(raw: np.ndarray, n_labels: int, aspec: Any, where: str) -> 
     into about one action per row (a continuous command ingested as labels: nothing is
     dropped, but nothing is learnt): a float column read by default with more than
     :data:`MANY_LABELS` values in more than half of the rows, or any column with a distinct
-    label in every row and more than :data:`ONE_PER_ROW_LABELS` of them."""
+    label in every row and more than :data:`ONE_PER_ROW_LABELS` of them.
+
+    Parameters
+    ----------
+    raw : ndarray
+        The column's values, one per row.
+    n_labels : int
+        The distinct labels the discrete reading made.
+    aspec : ActionSpec
+    where : str
+        The input files, for the warning.
+    """
     if n_labels > ONE_PER_ROW_LABELS and n_labels >= len(raw):
         warnings.warn(f"{where}: action column {aspec.column!r} was read as discrete labels and holds "
                       f"{n_labels} distinct labels in {len(raw)} rows (one per row): this looks like a continuous "
@@ -99,7 +143,21 @@ def check_order_column(table: pa.Table, col: str, files: np.ndarray) -> None:
     """Refuse a missing (null) or NaN value in the column that orders the rows of an episode
     (``episode.order``), as a null step is refused: the row's place in its episode is
     unknown. ``table`` is in file order with its ``__file``/``__row`` columns; the error
-    names the file, row and column of the first such value."""
+    names the file, row and column of the first such value.
+
+    Parameters
+    ----------
+    table : pyarrow.Table
+    col : str
+        The order column.
+    files : ndarray
+        The input files, indexed by ``__file``.
+
+    Raises
+    ------
+    IngestError
+        Naming the file, row and column, and how many rows lack a value.
+    """
     c = table.column(col)
     bad = pc.is_null(c, nan_is_null=True) if pa.types.is_floating(c.type) else pc.is_null(c)
     if not pc.any(bad).as_py():
@@ -116,7 +174,17 @@ def check_order_column(table: pa.Table, col: str, files: np.ndarray) -> None:
 def input_paths(inputs: Any) -> list[Path]:
     """The input files of an ingestion: one path (str or os.PathLike) or a list of them;
     anything else (None, a number, a list holding a non-path) is an
-    :class:`~offline_adp.errors.InvalidArgumentError` naming the argument."""
+    :class:`~offline_adp.errors.InvalidArgumentError` naming the argument.
+
+    Parameters
+    ----------
+    inputs : str, os.PathLike or iterable of them
+
+    Returns
+    -------
+    list of Path
+        Read once (a generator is consumed here).
+    """
     if isinstance(inputs, (str, PathLike)):
         return [Path(inputs)]
     if isinstance(inputs, (bytes, dict)) or not hasattr(inputs, "__iter__"):
@@ -134,7 +202,20 @@ def source_findings(src: pa.Array, codes: np.ndarray, column: str) -> list[tuple
     """The doctor's findings (``validate(extra=...)``, check ``source_changed``) for rows whose
     source label differs from the previous row's of the same episode: an episode has one
     source (``meta/episodes.parquet`` keeps one). ``src`` is the dataset's dictionary-encoded
-    source column in row order, ``codes`` each row's episode code (rows sorted by episode)."""
+    source column in row order, ``codes`` each row's episode code (rows sorted by episode).
+
+    Parameters
+    ----------
+    src : pyarrow.Array or ChunkedArray
+    codes : ndarray
+    column : str
+        The column the findings name.
+
+    Returns
+    -------
+    list of (str, ndarray, str, ndarray)
+        ``(check, row mask, column, message per row)``, empty when every episode keeps one label.
+    """
     n = len(src)
     if n < 2:
         return []
