@@ -382,6 +382,7 @@ def test_the_doctor_says_how_its_rows_count_and_a_csv_s_line_is_row_plus_two(tmp
     row = int(text.split("t.csv: row ")[1].split(" ")[0])
     line = (tmp_path / "t.csv").read_text().splitlines()[row + 2 - 1]  # 1-based line numbers
     assert row == 37 and line.split(",")[3] == ""  # the NaN cost written as an empty cell
+    assert "column 'cost' (input column 'c'): [non_finite]" in text  # the dataset's column and the file's
 
 
 def _eps(n_eps=4, L=5):

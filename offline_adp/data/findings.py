@@ -91,6 +91,9 @@ class ValidationReport:
     n_episodes: int = 0
     n_terminated_and_truncated: int = 0
     row_label: str = "row"
+    #: the dataset's columns by the input's column names, where they differ (a Parquet/CSV
+    #: spec's mapping): the text names both
+    input_columns: dict[str, str] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -135,8 +138,10 @@ class ValidationReport:
                                                                       if csv else "") + ")")
         for r in self.findings.head(max_findings).itertuples(index=False):
             lines.append(
-                f"  {r.file}: {self.row_label} {r.row} (episode {r.episode_id!s}, step {r.step}) column {r.column!r}: "
-                f"[{r.check}] {r.message}"
+                f"  {r.file}: {self.row_label} {r.row} (episode {r.episode_id!s}, step {r.step}) column {r.column!r}"
+                + (f" (input column {self.input_columns[r.column]!r})"
+                   if self.input_columns.get(r.column, r.column) != r.column else "")
+                + f": [{r.check}] {r.message}"
             )
         if len(self.findings) > max_findings:
             lines.append(f"  ... and {len(self.findings) - max_findings} more (see the findings table)")

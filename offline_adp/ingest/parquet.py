@@ -139,6 +139,7 @@ def ingest_tables(
     if progress:
         progress("validating")
     report = validate(ds, extra=width)  # names src_file/src_row of each finding
+    report.input_columns = _input_columns(spec, names)
     result = IngestResult(ds, report, dropped_last_rows=dropped, inputs=metas)
     if not report.ok:
         if on_error == "fail":
@@ -154,6 +155,18 @@ def ingest_tables(
     result.repeated_episodes = len(warn_repeated(result.dataset, ", ".join(map(str, paths[:2]))
                                                  + (", ..." if len(paths) > 2 else "")))
     return result
+
+
+def _input_columns(spec: ParquetSpec, names: list[str]) -> dict[str, str]:
+    """The dataset's columns by the spec's input columns (the doctor names both)."""
+    o = spec.observations
+    out = {S.EPISODE_ID: spec.episode.id, S.STEP: spec.episode.step or spec.episode.order or spec.episode.time,
+           S.COST: spec.cost_column or spec.reward_column, S.TERMINATED: spec.terminated_column,
+           S.TRUNCATED: spec.truncated_column, S.SOURCE: spec.source_column, S.BEHAVIOR_PROB: spec.propensity_column,
+           S.ACTION: ", ".join(spec.action.source_columns),
+           **{S.obs_column(n): c for n, c in zip(names, o.columns, strict=False)},
+           **{S.next_obs_column(n): c for n, c in zip(names, o.next_columns or o.columns, strict=False)}}
+    return {k: v for k, v in out.items() if v}
 
 
 def _map(paths: list[Path], spec: ParquetSpec, progress: Callable[[str], None] | None
