@@ -384,8 +384,13 @@ def test_rollouts_of_another_value_than_the_estimand_say_which_and_a_verdict_kee
     assert sim.startswith("simulator (the 20-step value (rollouts cannot measure the infinite-horizon one)): policy")
     est = headline(m)["verdict"]["lines"][0]
     assert "simulator rollouts 6.843 [6.2, 7.5] (the 20-step value" in est and "not the estimand)" in est
+    m["estimand"]["form"], m["rollout"]["horizon"] = "infinite", 20
+    assert "in the simulator over 20 steps (not the estimand's infinite horizon): rollouts 6.843" in \
+        headline(m)["verdict"]["text"]
+    m["estimand"]["form"] = "finite"
     m["rollout"]["estimand"] = m["estimand"]["quantity"]  # the rollouts measured it: quoted as it
     assert "not the estimand" not in headline(m)["verdict"]["lines"][0]
     assert next(ln for ln in summary_lines(m) if ln.startswith("simulator")).startswith("simulator: policy cost")
+    assert "in the simulator: rollouts 6.843" in headline(m)["verdict"]["text"]
     assert _before_but("not compared (the value, but past the logs) here, but why") == \
         "not compared (the value, but past the logs) here"

@@ -268,7 +268,9 @@ def verdict_line(m: dict[str, Any], ranking: list[dict[str, Any]], shift: dict[s
     starts = (m.get("rollout") or {}).get("start_states") or {}
     if beh is not None and ro and _is_finite_number(ro.get("mean_discounted_cost")) and ro.get("interval"):
         demo = demonstrator_side(m)
-        side, perf = _simulator_side(ro, beh, demo, side, perf, claim, starts)
+        finite_only = (m.get("rollout") or {}).get("horizon") if (m.get("estimand") or {}).get("form") == "infinite" \
+            else None  # the rollouts measure T steps of an infinite-horizon estimand: the verdict says so
+        side, perf = _simulator_side(ro, beh, demo, side, perf, claim, starts, finite_only)
     outcome = outcome_of(side, cv, demo["side"] if demo else None, bool(demo and demo["more_failures"]))
     ct = conv["text"][:1].upper() + conv["text"][1:]
     return {"performance": side, "outcome": outcome, "against_demonstrator": demo["side"] if demo else None,
@@ -453,11 +455,13 @@ def _offpolicy_side(ranking: list[dict[str, Any]], beh: dict[str, Any] | None,
 
 
 def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any] | None, side: str, perf: str,
-                    claim: str | None, starts: dict[str, Any] | None = None) -> tuple[str, str]:
+                    claim: str | None, starts: dict[str, Any] | None = None,
+                    steps: int | None = None) -> tuple[str, str]:
     """``(side, performance clause)`` of the simulator's rollouts (the truth) against the
     behaviour's logged cost (with its own interval, :func:`logged_side`) and the demonstrator,
     saying where the logs' side disagrees; not against the logged cost where the rollouts
-    start elsewhere than the logs (``starts``: :func:`start_states_check`)."""
+    start elsewhere than the logs (``starts``: :func:`start_states_check`); ``steps``: the
+    rollouts' horizon where they measure a T-step value of an infinite-horizon estimand."""
     r_lo, r_hi = ro["interval"]
     off = _no_side_against(beh)
     if off is None and (starts or {}).get("differ"):
@@ -471,7 +475,8 @@ def _simulator_side(ro: dict[str, Any], beh: dict[str, Any], demo: dict[str, Any
                    "indistinguishable": "not distinguishable from the demonstrator"}[demo["side"]]
         against = (f"{d_words} ({against})" if demo["side"] == "worse" and truth_side != "worse"
                    else f"{against}; {d_words}")
-    truth = (f"{against} in the simulator: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
+    over = f" over {steps} steps (not the estimand's infinite horizon)" if steps else ""
+    truth = (f"{against} in the simulator{over}: rollouts {ro['mean_discounted_cost']:.4g} [{r_lo:.4g}, {r_hi:.4g}] vs "
              f"{logged_words(beh)}")
     if demo is not None:
         di = demo.get("demonstrator_interval") or []
