@@ -224,6 +224,27 @@ def _model_in(ann: Any) -> type[BaseModel] | None:
     return None
 
 
+def did_you_mean(names: Sequence[str], valid: Sequence[str]) -> str:
+    """`` (did you mean 'x'?)`` for one name, `` (did you mean 'x' for 'y'?)`` per name for
+    several: the closest valid name (difflib) of each that has one, else ``""``.
+
+    Parameters
+    ----------
+    names : sequence of str
+        The names not found.
+    valid : sequence of str
+        The names there are.
+
+    Returns
+    -------
+    str
+    """
+    near = {str(n): m[0] for n in names if (m := difflib.get_close_matches(str(n), [str(v) for v in valid], n=1))}
+    if len(names) == 1:
+        return f" (did you mean {next(iter(near.values()))!r}?)" if near else ""
+    return "".join(f" (did you mean {m!r} for {n!r}?)" for n, m in near.items())
+
+
 def format_validation_error(err: _PydanticValidationError, model: type[BaseModel], source: str,
                             section: str | None = None) -> str:
     """One readable message for all of a pydantic error's entries."""
@@ -234,8 +255,7 @@ def format_validation_error(err: _PydanticValidationError, model: type[BaseModel
         typ = e.get("type", "")
         if typ == "extra_forbidden":
             valid = _valid_keys(model, loc) or []
-            close = difflib.get_close_matches(str(loc[-1]), valid, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            hint = did_you_mean([str(loc[-1])], valid)
             lines.append(f"{where}: unknown key{hint}; valid keys are {valid}")
         elif typ == "missing":
             lines.append(f"{where}: missing required key")

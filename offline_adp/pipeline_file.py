@@ -15,7 +15,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from offline_adp.algorithms.registry import ALGORITHMS, get_algorithm
-from offline_adp.config import ConfigModel, load_toml, validate_config
+from offline_adp.config import ConfigModel, did_you_mean, load_toml, validate_config
 from offline_adp.data.rundir import NAME_PATTERN, check_name
 from offline_adp.envs import PROBLEM_NAMES
 from offline_adp.errors import SpecError
@@ -122,11 +122,8 @@ def _apply_overrides(raw: dict[str, Any], overrides: dict[str, Any]) -> None:
         ok = bool(parents) and parents[0] in tables and (
             (len(parents) == 1 and leaf in tables[parents[0]].model_fields) or parents[:2] == ["fit", "params"])
         if not ok:
-            import difflib
-
-            near = difflib.get_close_matches(dotted, valid, n=1)
-            raise SpecError(f"--set {dotted}: not a pipeline setting" + (f" (did you mean {near[0]}?)" if near else "")
-                            + f"; settings are {', '.join(valid)}")
+            raise SpecError(f"--set {dotted}: not a pipeline setting{did_you_mean([dotted], valid)}; settings are "
+                            f"{', '.join(valid)}")
         node = raw
         for k in parents:
             if not isinstance(node.get(k), dict):

@@ -141,7 +141,7 @@ def test_a_spec_of_the_other_kind_says_which_command_reads_it(tmp_path):
         parse_mcap_spec(table)
     with pytest.raises(SpecError, match="an MCAP ingestion spec .*`offline-adp ingest mcap` reads it"):
         parse_parquet_spec(spec().raw)
-    with pytest.raises(SpecError, match=r"unknown key\(s\) \['topik'\] \(did you mean 'topic' for 'topik'\?\)"):
+    with pytest.raises(SpecError, match=r"unknown key\(s\) \['topik'\] \(did you mean 'topic'\?\)"):
         parse_mcap_spec({**spec().raw, "clock": {"topik": "/clock"}})
 
 
@@ -156,7 +156,7 @@ def test_a_misspelled_column_is_named_with_the_column_it_probably_meant(tmp_path
     sp = parse_parquet_spec({"kind": "steps", "episode": {"id": "run", "step": "k"}, "observations": {"columns": ["x"]},
                              "action": {"column": "comand"}, "cost": {"column": "c"}})
     with pytest.raises(IngestError, match=r"needs columns \['comand'\] that the file does not have \(did you mean "
-                                          r"'command' for 'comand'\?\)"):
+                                          r"'command'\?\)"):
         ingest_parquet([tmp_path / "t.parquet"], sp, tmp_path / "ds")
 
 

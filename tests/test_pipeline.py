@@ -123,7 +123,7 @@ def test_pipeline_errors_name_the_key(tmp_path):
 
 
 def test_unknown_override_is_refused(tmp_path):
-    with pytest.raises(SpecError, match=r"not a pipeline setting \(did you mean evaluate.episodes\?\)"):
+    with pytest.raises(SpecError, match=r"not a pipeline setting \(did you mean 'evaluate.episodes'\?\)"):
         run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "x", say=quiet, overrides={"evaluate.episode": 5})
 
 

@@ -54,11 +54,10 @@ def _read(path: Path, spec: ParquetSpec) -> pa.Table:
         raise IngestError(f"{path}: cannot read as {fmt} ({exc})") from exc
     missing = [c for c in cols if c not in available]
     if missing:
-        import difflib
+        from offline_adp.config import did_you_mean
 
-        near = {c: m[0] for c in missing if (m := difflib.get_close_matches(c, available, n=1))}
-        hint = "".join(f" (did you mean {m!r} for {c!r}?)" for c, m in near.items())
-        raise IngestError(f"{path}: spec needs columns {missing} that the file does not have{hint}; it has {available}")
+        raise IngestError(f"{path}: spec needs columns {missing} that the file does not have"
+                          f"{did_you_mean(missing, available)}; it has {available}")
     if table is None:
         try:
             # column by column, without pre-buffering: only one column's compressed pages

@@ -27,6 +27,7 @@ from pydantic import Field, field_validator
 
 from offline_adp.config import (
     ConfigModel,
+    did_you_mean,
     json_schema,
     load_toml,
     read_config_bytes,
@@ -338,11 +339,8 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
         raise SpecError(f"{where}: expected a table, got {type(table).__name__} {table!r}")
     unknown = sorted(set(table) - allowed)
     if unknown:
-        import difflib
-
-        near = {k: m[0] for k in unknown if (m := difflib.get_close_matches(str(k), sorted(allowed), n=1))}
-        hint = "".join(f" (did you mean {m!r} for {k!r}?)" for k, m in near.items())
-        raise SpecError(f"{where}: unknown key(s) {unknown}{hint}; valid keys are {sorted(allowed)}")
+        raise SpecError(f"{where}: unknown key(s) {unknown}{did_you_mean(unknown, sorted(allowed))}; valid keys are "
+                        f"{sorted(allowed)}")
 
 
 def _action(a: ActionModel, w: str) -> ActionSpec:
