@@ -164,6 +164,15 @@ def _sq_dev_sum(x: np.ndarray, mean: Any, buf: np.ndarray) -> Any:
     return _sq_dev_sum(x[:half], mean, buf) + _sq_dev_sum(x[half:], mean, buf)
 
 
+def _is_dir(p: Path) -> bool:
+    """Whether ``p`` is a directory; an input it cannot stat counts as one (nothing to refuse
+    here: reading it says what is wrong)."""
+    try:
+        return p.is_dir() or not p.exists()
+    except OSError:
+        return True
+
+
 def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLike[str]] = ()) -> None:
     """Refuse, before anything is written, an ingest's output directory ``out`` that would
     destroy what it reads or another dataset (``--overwrite`` replaces ``out`` as a whole):
@@ -192,7 +201,7 @@ def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLi
         if target in p.parents:
             raise OutputExistsError(f"the output {out} contains the input {src} (writing it would replace the input); "
                                     "write the dataset elsewhere")
-        if p in target.parents and not p.is_dir():
+        if p in target.parents and not _is_dir(p):
             raise OutputExistsError(f"the output {out} lies inside the input {src}, a file; write the dataset "
                                     "elsewhere")
     for parent in target.parents:
