@@ -16,11 +16,13 @@ from typing import Any
 from offline_adp.data.files import read_json_file
 from offline_adp.data.rundir import recorded_dataset
 from offline_adp.errors import (
+    ArtifactError,
     DatasetNotFoundError,
     IncompatibleError,
     OutputExistsError,
     RunDirectoryError,
     SchemaError,
+    short_list,
 )
 from offline_adp.progress import get_logger
 
@@ -107,6 +109,7 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
         ds = run_dataset(run, dataset)
         info_json = ds / "meta" / "info.json"  # found by run_dataset; read without the dataset readers (pandas)
         info = DatasetInfo.from_dict(read_json_file(info_json, error=SchemaError), where=str(info_json))
+        _check_fitted_on(run, model, info, info_json)
         policy.signature = PolicySignature.from_info(info)
     if len(policy.signature.action_table) != policy.n_actions:
         raise IncompatibleError(f"{run}: the policy has {policy.n_actions} actions, its dataset's action table "
@@ -116,7 +119,57 @@ def load_run_policy(run_dir: str | PathLike[str], dataset: str | PathLike[str] |
         raise IncompatibleError(f"{run}: the policy commands {n_dims} components, its action table has "
                                 f"{len(policy.signature.action_table.dims)} "
                                 f"({list(policy.signature.action_table.dims)})")
+    _probe_width(model, policy)
     return policy
+
+
+def _probe_width(model: Path, policy: Any) -> None:
+    """One action, at the first step and past the last, on a state of the signature's
+    width: models that read another width than the signature's (a tampered or mismatched
+    model/ or signature.json) fail here as an :class:`ArtifactError`, not at the first
+    ``act`` on the robot, and are never exported to a graph that fails at inference."""
+    import numpy as np
+
+    names = policy.signature.feature_names
+    for t in (0, 1_000_000):
+        try:
+            a = np.asarray(policy.act_index(np.zeros((2, len(names))), t))
+        except Exception as exc:  # whatever the stored models raise on that input
+            raise ArtifactError(f"{model}: the policy cannot act on a state of its signature's {len(names)} features "
+                                f"{short_list(list(names))} ({type(exc).__name__}: {exc})") from None
+        if a.shape[0] != 2:
+            raise ArtifactError(f"{model}: the policy returned {a.shape} for 2 states of its signature")
+
+
+def _check_fitted_on(run: Path, model: Path, info: Any, info_json: Path) -> None:
+    """The signature read from ``info_json`` must be the data the run was fitted on: the
+    feature names in order and the action values ``run.json`` recorded (runs since
+    2026-11-28). Else an error, not a policy whose ``act`` reads columns by the wrong names
+    (a relative dataset path read from another directory, or ``--dataset`` of other logs)."""
+    import numpy as np
+
+
+    for d in (model.parent, run, run / "fit"):
+        if (d / "run.json").is_file():
+            rec = read_json_file(d / "run.json")
+            break
+    else:
+        return
+    feats, acts = rec.get("features"), rec.get("action_values")
+    if isinstance(feats, list) and all(isinstance(f, str) for f in feats) and feats != list(info.feature_names):
+        raise IncompatibleError(f"{run}: fitted on the features {short_list(feats)} (run.json), but {info_json} has "
+                                f"{short_list(list(info.feature_names))}: not the data the run was fitted on; pass "
+                                "--dataset DIR of those logs")
+    if isinstance(acts, list):
+        try:
+            mine = np.asarray(acts, dtype=np.float64)
+        except (TypeError, ValueError):
+            return
+        theirs = np.asarray(info.action_table.values, dtype=np.float64)
+        if mine.shape != theirs.shape or not np.allclose(mine, theirs, rtol=1e-12, atol=0.0):
+            raise IncompatibleError(f"{run}: fitted with the action table {short_list(mine.ravel().tolist())} "
+                                    f"(run.json), but {info_json} has {short_list(theirs.ravel().tolist())}: not "
+                                    "the data the run was fitted on; pass --dataset DIR of those logs")
 
 
 def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str = "onnx",

@@ -99,7 +99,7 @@ class DistilledCommandPolicy(CommandPolicy):
         command(s) sent at the previous step, to apply the rate limit (see :meth:`commands`).
         Without ``previous`` (or without a ``max_rate``) no rate limit is applied."""
         sig = self.signature
-        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names, t)
         if return_index:
             idx = self.actions(X, t)
             return int(idx[0]) if single else idx

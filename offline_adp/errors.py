@@ -149,6 +149,12 @@ _OS_ERROR_REASONS = {
 }
 
 
+def short_list(items: object, k: int = 8) -> str:
+    """At most ``k`` items of a list for a message (never thousands)."""
+    items = list(items)  # type: ignore[call-overload]
+    return repr(items) if len(items) <= k else f"[{', '.join(repr(x) for x in items[:k])}, ... ({len(items)} in all)]"
+
+
 def os_error_message(exc: OSError, path: object = None) -> str:
     """One line for an ``OSError``: the path at fault (the error's own file name, else
     ``path``), what it means and what to do; never a traceback."""

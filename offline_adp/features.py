@@ -33,9 +33,13 @@ class SelectColumns(TransformerMixin, BaseEstimator):
         return X[:, list(self.columns)]
 
     def _check_columns(self, width: int) -> None:
-        bad = [c for c in self.columns if not -width <= int(c) < width]
+        """Every column an index ``0 <= c < width`` (no negative ones: counted from the end they
+        would read another feature than the names say, and a saved map is untrusted input)."""
+        bad = [c for c in self.columns
+               if isinstance(c, bool) or not isinstance(c, int | np.integer) or not 0 <= int(c) < width]
         if bad:
-            raise InvalidArgumentError(f"SelectColumns: columns {bad} are outside an input of {width} features")
+            raise InvalidArgumentError(f"SelectColumns: columns {bad} are not indices 0..{width - 1} of an input of "
+                                       f"{width} features")
 
     def __call__(self, X: np.ndarray) -> np.ndarray:
         return self.transform(X)

@@ -5,11 +5,11 @@ The exported model has
 - input ``observation``: double ``(N, d)``, columns in the order of the policy's
   feature names (named with their units in the input's ``doc_string``, as ``name [unit]``
   in column order, and in the model metadata), and for
-  time-indexed policies ``t``: int64 ``(N,)`` (steps ``>= T`` use the last step's rule,
-  negative steps the first);
+  time-indexed policies ``t``: int64 ``(N,)`` (steps ``>= T`` use the last step's rule);
 - outputs ``action`` (double ``(N, k)``, the action table's value vector), ``action_index``
   (int64 ``(N,)``) and, for greedy policies, ``q_values`` (double ``(N, n_actions)``,
-  costs: the policy picks the lowest, ties to the lowest index).
+  costs: the policy picks the lowest, ties to the lowest index). Rows ``act`` refuses (a
+  NaN or infinite value, ``t < 0``) get index -1 and NaN values or commands.
 
 A continuous policy (:class:`~offline_adp.policies.GreedyCommandPolicy`, exactly: the
 nearest logged states' commands and the first minimum of Q over them; or
@@ -61,6 +61,8 @@ from offline_adp.onnx_trees import (
     _lightgbm_arrays,
     _regressor,
     _tree_node,
+    action_outputs,
+    valid_rows,
 )
 from offline_adp.progress import get_logger
 
@@ -76,6 +78,7 @@ def _phi(g: _Graph, fmap: Any, X: str) -> str:
         return X
     from offline_adp.features import SelectColumns
 
+    fmap = getattr(fmap, "_oadp_inner", fmap)  # a loaded map is wrapped in the loader's guard
     if isinstance(fmap, SelectColumns):
         return g.op("Gather", [X, g.const(np.asarray(list(fmap.columns), np.int64), "columns")], "phi", axis=1)
     raise ExportError(f"cannot export the feature map {type(fmap).__name__} to ONNX; supported: SelectColumns "
@@ -301,8 +304,7 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
             shape = g.op("Concat", [n, g.const(np.array([1, A], np.int64))], "qshape", axis=0)
             idx3 = g.op("Expand", [g.op("Reshape", [tc, g.const(np.array([-1, 1, 1], np.int64))]), shape], "qidx")
             q = g.op("Reshape", [g.op("GatherElements", [qs, idx3], axis=1), g.const(np.array([-1, A], np.int64))], "q")
-    g.nodes.append(helper.make_node("Cast", [index], ["action_index"], to=TensorProto.INT64))
-    g.nodes.append(helper.make_node("Gather", [g.const(values, "action_values"), "action_index"], ["action"], axis=0))
+    action_outputs(g, X, index, q, values, t_input=steps is not None)
     at_ = sig.action_table
     a_units = [*at_.units, *[""] * (len(at_.dims) - len(at_.units))]  # a table may carry no units
     act_cols = ", ".join(f"{n} [{u}]" if u else n for n, u in zip(at_.dims, a_units[:len(at_.dims)], strict=True))
@@ -311,7 +313,6 @@ def policy_to_onnx(policy: Any, signature: Any = None, name: str = "offline_adp_
                                              f"[unit]): {act_cols}"),
                helper.make_tensor_value_info("action_index", TensorProto.INT64, ["N"])]
     if q is not None:
-        g.nodes.append(helper.make_node("Identity", [q], ["q_values"]))
         outputs.append(helper.make_tensor_value_info("q_values", TensorProto.DOUBLE, ["N", policy.n_actions]))
     at = sig.action_table
     doc = ("observation columns: " + cols + "; action: " + ", ".join(at.dims)
@@ -371,7 +372,8 @@ def _command_model(g: _Graph, policy: Any, sig: Any, X: str, inputs: list[Any], 
     m = len(at.dims)
     if len(low) != m:
         raise ExportError(f"the policy commands {len(low)} components, the signature's action table has {m}")
-    g.nodes.append(helper.make_node("Identity", [u], ["command"]))
+    _, ok_col = valid_rows(g, X, t_input=False)
+    g.nodes.append(helper.make_node("Where", [ok_col, u, g.const(np.array(np.nan))], ["command"]))
     units = [*at.units, *[""] * (m - len(at.units))]
     comps = ", ".join(f"{n} [{x}]" if x else n for n, x in zip(at.dims, units[:m], strict=True))
     outputs = [helper.make_tensor_value_info("command", TensorProto.DOUBLE, ["N", m],

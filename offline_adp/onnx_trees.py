@@ -210,3 +210,36 @@ def _forest_classifier(clf: Any) -> tuple[Any, np.ndarray, np.ndarray] | None:
     probs = np.concatenate([e.tree_.value[:, 0, :] for e in clf.estimators_])
     return (TreeEnsemble.from_sklearn(clf), probs / np.maximum(probs.sum(axis=1, keepdims=True), 1e-300),
             np.asarray(clf.classes_))
+
+
+def valid_rows(g: _Graph, X: str, t_input: bool) -> tuple[str, str]:
+    """Rows the policy acts on, as ``policy.act`` does: every observation value finite (and
+    ``t >= 0`` with a time input); ``(N,)`` and ``(N, 1)`` booleans. The other rows get
+    ``action_index`` -1 and NaN values (``act`` refuses them), never a plausible action: a
+    tree compares NaN as it likes (LightGBM as 0 or to a default side), and a deployed
+    controller must see that there is none. ``0 * x`` is NaN exactly where ``x`` is NaN or
+    infinite, so a row's sum of them tests the row."""
+    bad = g.op("IsNaN", [g.op("ReduceSum", [g.op("Mul", [X, g.const(np.array(0.0))], "zeroed"),
+                                            g.const(np.array([1], np.int64))], "rowsum", keepdims=1)], "nonfinite")
+    ok_col = g.op("Not", [bad], "finite_row")
+    if t_input:
+        t_ok = g.op("GreaterOrEqual", ["t", g.const(np.array(0, np.int64))], "t_ok")
+        ok_col = g.op("And", [ok_col, g.op("Unsqueeze", [t_ok, g.const(np.array([1], np.int64))])], "valid_row")
+    ok = g.op("Squeeze", [ok_col, g.const(np.array([1], np.int64))], "valid")
+    return ok, ok_col
+
+
+def action_outputs(g: _Graph, X: str, index: str, q: str | None, values: np.ndarray, t_input: bool) -> None:
+    """The outputs ``action_index`` (int64), ``action`` (the action table's values) and, with
+    ``q``, ``q_values`` of a discrete policy, the rows it does not act on (:func:`valid_rows`)
+    given index -1 and NaN values."""
+    from onnx import TensorProto
+
+    ok, ok_col = valid_rows(g, X, t_input)
+    nan = g.const(np.array(np.nan))
+    index = g.op("Cast", [index], "index64", to=TensorProto.INT64)
+    g.nodes.append(g.h.make_node("Where", [ok, index, g.const(np.array(-1, np.int64))], ["action_index"]))
+    gathered = g.op("Gather", [g.const(values, "action_values"), "action_index"], "gathered", axis=0)
+    g.nodes.append(g.h.make_node("Where", [ok_col, gathered, nan], ["action"]))
+    if q is not None:
+        g.nodes.append(g.h.make_node("Where", [ok_col, q, nan], ["q_values"]))

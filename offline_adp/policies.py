@@ -229,7 +229,7 @@ class CommandPolicy(DeterministicPolicy):
         for a one-component command; a single observation drops the leading axis.
         ``return_index``: the nearest action-table entry instead."""
         sig = self.signature
-        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names, t)
         if return_index:
             idx = self.actions(X, t)
             return int(idx[0]) if single else idx
@@ -382,7 +382,7 @@ class GaussianCommandPolicy(Policy):
             return_index: bool = False) -> Any:
         """Sampled commands (see :meth:`CommandPolicy.act`); ``return_index``: a sampled table entry."""
         sig = self.signature
-        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names, t)
         if return_index:
             idx = self.act_index(X, t, rng)
             return int(idx[0]) if single else idx

@@ -51,21 +51,63 @@ class PolicySignature:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str = "signature") -> PolicySignature:
+        """Read a signature written by :meth:`to_dict`, checked: ``feature_names`` a
+        non-empty list of distinct strings, ``feature_units`` (optional) one string per
+        name, ``action_table`` an action table; else a :class:`SchemaError` naming ``where``."""
+        if not isinstance(d, Mapping):
+            raise SchemaError(f"{where}: malformed policy signature (an object expected, found {type(d).__name__})")
+        names, units = d.get("feature_names"), d.get("feature_units")
+        if (not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names)
+                or len(set(names)) != len(names)):
+            raise SchemaError(f"{where}: feature_names must be a non-empty list of distinct strings, found "
+                              f"{names!r:.120}")
+        if units is None:
+            units = [""] * len(names)
+        if not isinstance(units, list) or len(units) != len(names) or not all(isinstance(u, str) for u in units):
+            raise SchemaError(f"{where}: feature_units must be one string per feature ({len(names)}), found "
+                              f"{units!r:.120}")
         try:
-            names = tuple(str(n) for n in d["feature_names"])
-            units = tuple(str(u) for u in d.get("feature_units", [""] * len(names)))
-            return cls(names, units, ActionTable.from_dict(d["action_table"], where=f"{where}.action_table"))
+            return cls(tuple(names), tuple(units),
+                       ActionTable.from_dict(d["action_table"], where=f"{where}.action_table"))
         except (KeyError, TypeError) as exc:
             raise SchemaError(f"{where}: malformed policy signature ({exc!r})") from exc
 
 
-def observation_matrix(obs: Any, names: Sequence[str] | None) -> tuple[np.ndarray, bool]:
+def observation_matrix(obs: Any, names: Sequence[str] | None, t: Any = None) -> tuple[np.ndarray, bool]:
     """``obs`` (dict, DataFrame, Series, array; one observation or a batch) as a float64
     ``(n, d)`` array in the order of ``names``, and whether it was a single observation.
 
-    Raises :class:`SchemaError` on missing or unexpected names (naming them) and on an
-    array of the wrong width (listing the expected names).
+    Raises :class:`SchemaError` on missing or unexpected names (naming them), on an array
+    of the wrong width (listing the expected names), on a value that is not finite (NaN or
+    infinite: no policy's action means anything there, and an exported graph would still
+    return one), and on a time step ``t`` (when given) that is not a non-negative integer,
+    one or one per row (a negative one would read the rules from the end).
     """
+    X, single = _observation_matrix(obs, names)
+    bad = ~np.isfinite(X)
+    if bad.any():
+        i, j = (int(v[0]) for v in np.nonzero(bad))
+        what = repr(names[j]) if names is not None else f"column {j}"
+        raise SchemaError(f"observation {i}: {what} is {float(X[i, j])}; a policy acts on finite values only "
+                          "(check the sensor, or hold its last value)")
+    if t is not None:
+        check_time_steps(t, len(X))
+    return X, single
+
+
+def check_time_steps(t: Any, n: int) -> None:
+    """``t`` is a time step: a non-negative integer, or one per row of ``n`` (a
+    :class:`SchemaError` otherwise)."""
+    tt = np.asarray(t)
+    if tt.dtype == bool or tt.dtype.kind not in "iu" or tt.ndim > 1 or (tt.ndim == 1 and len(tt) != n):
+        raise SchemaError(f"time step t must be a non-negative integer or one per observation ({n}); got "
+                          f"{tt.dtype} of shape {tt.shape}")
+    if tt.size and int(tt.min()) < 0:
+        raise SchemaError(f"time step t must be >= 0, got {int(tt.min())}")
+
+
+def _observation_matrix(obs: Any, names: Sequence[str] | None) -> tuple[np.ndarray, bool]:
+    """:func:`observation_matrix` before its checks of values and time steps."""
     import sys
 
     pd = sys.modules.get("pandas")  # a DataFrame can only exist if pandas is imported
@@ -158,7 +200,7 @@ class Policy(ABC):
             Observation names or width do not match the policy's.
         """
         sig = self.signature
-        X, single = observation_matrix(obs, None if sig is None else sig.feature_names)
+        X, single = observation_matrix(obs, None if sig is None else sig.feature_names, t)
         idx = np.asarray(self.act_index(X, t, rng), dtype=np.int32)
         if return_index or sig is None:
             return int(idx[0]) if single else idx

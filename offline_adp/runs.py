@@ -225,6 +225,9 @@ def fit_run(
         else:
             rd.write_json(rd.CONFIG, {"algorithm": algorithm, "params": params})
         status: dict[str, Any] = {"dataset": str(dataset), "dataset_fingerprint": ds.fingerprint(),
+                                  # the path as typed may be relative to this process's directory: the
+                                  # absolute one finds the data from any directory (rundir.recorded_dataset)
+                                  "dataset_resolved": str(Path(dataset).resolve()),
                                   # what the policy reads, in order: evaluate refuses data whose features differ
                                   # even where the fitted dataset itself was edited since (run_checks.py)
                                   "features": list(ds.feature_names),

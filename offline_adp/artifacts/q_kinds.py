@@ -87,6 +87,12 @@ def _same_extra(a: np.ndarray | None, b: np.ndarray | None) -> bool:
     return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
 
 
+#: The largest scaled logged state a neighbour search reads: squared distances over the
+#: features of larger ones overflow (scipy raises a bare ValueError), and the logged states
+#: scaled by their own spread are a few units (an outlier among a billion rows: thousands).
+_MAX_SCALED_POINT = 1e100
+
+
 def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int, n_dims: int) -> NeighbourCommands:
     """A :class:`NeighbourCommands` from an encoder entry, every array checked (shapes agree,
     finite, positive scales, ``k`` <= the logged states, ``k`` plus the extra commands = the
@@ -114,6 +120,10 @@ def _read_candidates(e: dict[str, Any], arrays: Any, where: str, n_actions: int,
                             f"{n_dims}-component commands")
     if not all(np.isfinite(v).all() for v in got.values()) or not (scale > 0).all():
         raise ArtifactError(f"{where}: encoder.candidates: non-finite values or a scale <= 0")
+    if len(pts) and np.abs(pts).max() > _MAX_SCALED_POINT:  # the neighbour search squares them
+        raise ArtifactError(f"{where}: encoder.candidates.points: a scaled logged state of magnitude "
+                            f"{np.abs(pts).max():.3g} (at most {_MAX_SCALED_POINT:.0e}: they are (phi - center) / "
+                            "scale, a few units for data we wrote)")
     return NeighbourCommands(pts, cmd, center, scale, k, extra=extra)
 
 

@@ -171,19 +171,33 @@ class RunDirectory:
 
 
 def recorded_dataset(run_json: str | PathLike[str], info: dict[str, Any] | None = None) -> str | None:
-    """The dataset path a run's ``run.json`` names (``dataset``), or None when it names none
-    (no such key, null or empty); ``info``: the file's contents where the caller read them.
-    Anything else there (a number, a list...) is an
-    :class:`~offline_adp.errors.ArtifactError` naming the file and the key, not a
-    ``TypeError`` from ``Path()`` or a path that silently means the current directory."""
+    """The dataset path a run's ``run.json`` names, or None when it names none (no such key,
+    null or empty); ``info``: the file's contents where the caller read them.
+
+    ``dataset`` is the path as typed at the fit, so a relative one meant the fit's working
+    directory; ``dataset_resolved`` (runs fitted since 2026-11-29) is its absolute path. For a
+    relative ``dataset`` the absolute one is returned when it still holds a dataset, so a run
+    finds its data from any directory (the relative path read from another directory could
+    name other logs); an absolute ``dataset`` (or one edited since) is returned as it is.
+    Anything else there (a number, a list...) is an :class:`~offline_adp.errors.ArtifactError`
+    naming the file and the key, not a ``TypeError`` from ``Path()`` or a path that silently
+    means the current directory."""
     p = Path(run_json)
-    value = (info if info is not None else read_json_file(p)).get("dataset")
+    doc = info if info is not None else read_json_file(p)
+    value = doc.get("dataset")
     if value is None or value == "":
         return None
-    if not isinstance(value, str) or "\0" in value:
-        raise ArtifactError(f"{p}: 'dataset' must be the path of the dataset directory (a string), found "
-                            f"{type(value).__name__} {value!r:.60}; fit the run again or pass --dataset DIR")
-    return value
+    for key, v in (("dataset", value), ("dataset_resolved", doc.get("dataset_resolved"))):
+        if key == "dataset_resolved" and v is None:
+            continue
+        if not isinstance(v, str) or "\0" in v or not v:
+            raise ArtifactError(f"{p}: {key!r} must be the path of the dataset directory (a string), found "
+                                f"{type(v).__name__} {v!r:.60}; fit the run again or pass --dataset DIR")
+    resolved = doc.get("dataset_resolved")
+    if (resolved is not None and not Path(value).is_absolute() and Path(resolved).is_absolute()
+            and (Path(resolved) / "meta" / "info.json").is_file()):
+        return str(resolved)
+    return str(value)
 
 
 def _json_or_str(o: Any) -> Any:

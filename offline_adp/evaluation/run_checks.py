@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
-from offline_adp.errors import IncompatibleError
-from offline_adp.formats.common import short_list
+from offline_adp.data.rundir import recorded_dataset
+from offline_adp.errors import ArtifactError, IncompatibleError, short_list
 
 
 def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: TransitionDataset, ds_path: Path) -> None:
@@ -39,7 +39,10 @@ def _check_same_actions(run: Path, info: dict[str, Any], policy: Any, ds: Transi
     _check_recorded_features(run, info, ds, ds_path)
     if isinstance(recorded, list) and isinstance(info.get("features"), list):
         return  # both read from run.json above: the fitted dataset's info.json adds nothing
-    own = info.get("dataset")
+    try:
+        own = recorded_dataset(run / "run.json", info)
+    except ArtifactError:  # a run.json naming no usable path: the logs given are all there is to check
+        return
     if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
         return
     if Path(own).resolve() == ds_path.resolve():
@@ -84,7 +87,10 @@ def _check_recorded_features(run: Path, info: dict[str, Any], ds: TransitionData
 
 def _fitted_info(info: dict[str, Any]) -> Any:
     """The :class:`DatasetInfo` of the dataset a run was fitted on (None: not found)."""
-    own = info.get("dataset")
+    try:
+        own = recorded_dataset("run.json", info)
+    except ArtifactError:
+        return None
     if not isinstance(own, str) or not own or not (Path(own) / "meta" / "info.json").is_file():
         return None
     from offline_adp.data.info import DatasetInfo

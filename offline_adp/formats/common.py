@@ -12,7 +12,7 @@ import numpy as np
 
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.data.info import ACTION_VALUE_PREFIX, ActionTable, DatasetInfo, Feature
-from offline_adp.errors import IngestError, OfflineADPError
+from offline_adp.errors import IngestError, OfflineADPError, short_list
 from offline_adp.progress import get_logger
 
 log = get_logger(__name__)
@@ -35,12 +35,6 @@ MAX_BINNED_ACTIONS = 4096
 #: Prefix of the extra columns that keep continuous commands exactly (``action_value.<dim>``).
 ACTION_VALUE = ACTION_VALUE_PREFIX
 _INT32_MAX = int(np.iinfo(np.int32).max)
-
-
-def short_list(items: Any, k: int = 8) -> str:
-    """At most ``k`` items of a list for a message (never thousands)."""
-    items = list(items)
-    return repr(items) if len(items) <= k else f"[{', '.join(repr(x) for x in items[:k])}, ... ({len(items)} in all)]"
 
 
 def _columns(ds: TransitionDataset) -> dict[str, Any]:
