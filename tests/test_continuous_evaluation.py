@@ -289,6 +289,12 @@ def test_the_infinite_horizon_value_over_commands_carries_no_level_and_a_possibl
     assert lo <= fq["interval"][0] <= fq["interval"][1] <= hi
     finite, _, _, _ = evaluation_metrics(lq, pol, None, fqe_bootstrap=10, bootstrap=0, model_particles=0)
     assert finite["ope"]["fqe"]["level"] == 0.95 and finite["estimand"]["possible_range"] is not None
+    # without replicates there is no interval and no level to withdraw (it raised a TypeError formatting None)
+    bare, _, _, _ = evaluation_metrics(lq, pol, None, estimand="infinite", fqe_bootstrap=0, bootstrap=0,
+                                       model_particles=0)
+    iv = bare["ope"]["fqe"]["interval"]
+    assert (iv is None or np.isnan(iv).all()) and bare["ope"]["fqe"]["level"] is None
+    assert np.isfinite(bare["ope"]["fqe"]["estimate"])
 
 
 def test_a_simulator_s_start_states_are_named_in_every_form_of_the_estimand(lq):

@@ -268,7 +268,8 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
     if LEVEL is None:
         res = replace(res, level=None, warnings=[*res.warnings, "continuous commands: this interval's coverage has not "
                                                  "been measured, so it carries no level (it is not a 95% interval)"])
-    elif est_def.form != "finite":  # LEVEL was measured on finite estimands; here 3 of 3 LQ seeds missed the truth
+    elif est_def.form != "finite" and res.level is not None:  # LEVEL was measured on finite estimands only: 3 of 3
+        # LQ seeds missed the truth here (no interval at all, e.g. --fqe-bootstrap 0: nothing to withdraw)
         why = ("the infinite-horizon value over commands: this interval's coverage has not been measured (the level "
                "was measured on finite estimands; an audit's 3 linear-quadratic logs missed the truth), so it is "
                f"not a {res.level:.0%} interval")

@@ -6,6 +6,14 @@ import numpy as np
 
 from offline_adp.ingest.mcap.spec import StreamSpec
 
+#: Said when a stream's messages are held for a later epoch than the clock's (its time
+#: jumped back more than ``[episodes] restart``: read as a restart, which the clock did not
+#: follow). Typical of /tf, where ``transforms[0]`` is another frame pair from message to
+#: message, some future-dated.
+AHEAD_OF_CLOCK = ("; that stream's time jumped back more than [episodes] restart = {r} s, read as a restart the "
+                  "clock did not follow, so its later messages wait for a new epoch: raise restart above the "
+                  "jump (or take that stream's values from messages of one kind)")
+
 
 def _align(ts: np.ndarray, vals: np.ndarray, at: np.ndarray, s: StreamSpec) -> tuple[np.ndarray, np.ndarray]:
     """Values of one field at times ``at``; returns (values, ok mask)."""

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import IngestError
-from offline_adp.ingest.mcap.align import _align
+from offline_adp.ingest.mcap.align import AHEAD_OF_CLOCK, _align
 from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
 from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
@@ -379,9 +379,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 return
             self._close(None, cut=final and self.cut and self.active == max(self.epoch.values()))
             # the epoch is over: so is its episode (in the last epoch of a cut recording: cut)
-            for k in list(self.bufs):
-                if k[1] == e:
-                    del self.bufs[k]
+            for k in [k for k in self.bufs if k[1] == e]:  # an epoch the clock never reached: orphan messages
+                self.stats["orphan_messages"] += len(self.bufs.pop(k)) if e not in self.clock_first else 0
             self.last_step_t, self.last_episode_value, self.next_tick, self.waiting = None, None, None, None
             self.pending_drop = False
             self.flushed_t = None
@@ -468,7 +467,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                             self._check_topic_present(s.topic, step)
                         raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
                                           f"(log_time {int(lts[j])}): no {s.topic} message within max_age = "
-                                          f"{s.max_age} s for {name!r} (use missing = 'fill' or 'drop_step')")
+                                          f"{s.max_age} s for {name!r} (use missing = 'fill' or 'drop_step')"
+                                          + (AHEAD_OF_CLOCK.format(r=self.restart / 1e9) if self.epoch[k] > e else ""))
                     missing_here |= ~good
                 if k == "action":
                     act_cols.append(v)

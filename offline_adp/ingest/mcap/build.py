@@ -160,9 +160,14 @@ def ingest_mcap_tables(
                 warnings.warn(msg, stacklevel=2)
     if summary.get("clock_steps_back"):
         warnings.warn(f"{summary['clock_steps_back']} clock messages are earlier than one before them in the file, by "
-                      f"less than clock.restart = {spec.restart} s: their steps are ordered by time, so a transition "
-                      "may pair steps the robot did not take in that order. If the clock restarted, lower "
-                      "clock.restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
+                      f"less than [episodes] restart = {spec.restart} s: their steps are ordered by time, so a "
+                      "transition may pair steps the robot did not take in that order. If the clock restarted, lower "
+                      "restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
+    if summary.get("orphan_messages"):
+        warnings.warn(f"{summary['orphan_messages']} messages were set aside, unused: they belong to an epoch the "
+                      f"clock never reached (a stream's time jumped back more than [episodes] restart = {spec.restart} "
+                      "s, read as a restart the clock did not follow, e.g. /tf's transforms[0], another frame pair "
+                      "from message to message, some future-dated). Raise restart above the jump.", stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
                       "time is one step, and a stream's values at a repeated time are its last message's there "

@@ -1,0 +1,67 @@
+"""A stream whose time falls back more than ``[episodes] restart`` once while the clock's
+does not (a rosbag's /tf: ``transforms[0]`` is another frame pair from message to message,
+some stale or future-dated). The stream's later messages are held for an epoch the clock
+never reaches. On a real Nav2 recording (2026-11-29 audit) that left 254 steps filled and
+539 messages unused with every counter at 0, and the error mode blamed a step that had a
+/tf message 1 ms away. Now the loss is counted (``orphan_messages``) and warned about, and
+the error says why. Ground truth: the log is built here, one stale stamp at a known place."""
+
+from __future__ import annotations
+
+import pytest
+
+from offline_adp.errors import IngestError
+from offline_adp.ingest.mcap import ingest_mcap, parse_mcap_spec
+from tests.test_ingest_mcap_streaming import write_log
+
+MS = 1_000_000
+T0 = 5_000 * MS
+
+
+def _log(stale_at=300, n=800):
+    """/state (the clock) and /tf at 200 Hz; /tf's message ``stale_at`` stamped 1.5 s early."""
+    msgs = []
+    for j in range(n):
+        t = T0 + j * 5 * MS
+        msgs.append(("/state", t, {"x": float(j)}))
+        stamp = t - 1500 * MS if j == stale_at else t + MS
+        msgs.append(("/tf", t + MS, {"tx": float(j), "stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}}))
+    return msgs
+
+
+def _spec(missing):
+    return parse_mcap_spec({
+        "clock": {"topic": "/state"},
+        "episodes": {"restart": 1.0, "gap": 1.0},
+        "streams": [{"topic": "/state", "fields": {"x": "x"}, "max_age": 0.001},
+                    {"topic": "/tf", "time": "stamp", "fields": {"tx": "tx"}, "max_age": 0.01, "missing": missing,
+                     **({"fill": 0.0} if missing == "fill" else {})}],
+        "action": {"topic": "/state", "field": "x", "type": "continuous", "max_age": 0.001},
+        "cost": {"field": "x"},
+    })
+
+
+def test_messages_held_for_an_epoch_the_clock_never_reaches_are_counted_and_said(tmp_path):
+    f = write_log(tmp_path / "tf.mcap", _log())
+    with pytest.warns(UserWarning, match=r"messages were set aside, unused: they belong to an epoch the clock never"):
+        ds, s = ingest_mcap([f], _spec("fill"))
+    filled = s["filled_steps"].get("/tf", 0)
+    assert filled > 0 and s["orphan_messages"] >= filled - 5  # the /tf messages after the stale one
+    assert s["orphan_messages"] <= 800 - 300
+
+
+def test_the_error_mode_says_why_the_stream_has_no_message(tmp_path):
+    f = write_log(tmp_path / "tf.mcap", _log())
+    with pytest.raises(IngestError, match=r"no /tf message within max_age .* jumped back more than \[episodes\] "
+                                          r"restart = 1.0 s"):
+        ingest_mcap([f], _spec("error"))
+
+
+def test_without_the_stale_stamp_nothing_is_set_aside(tmp_path):
+    import warnings
+
+    f = write_log(tmp_path / "ok.mcap", _log(stale_at=-1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds, s = ingest_mcap([f], _spec("error"))
+    assert s["orphan_messages"] == 0 and len(ds) == 799
