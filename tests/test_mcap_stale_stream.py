@@ -65,3 +65,18 @@ def test_without_the_stale_stamp_nothing_is_set_aside(tmp_path):
         warnings.simplefilter("error")
         ds, s = ingest_mcap([f], _spec("error"))
     assert s["orphan_messages"] == 0 and len(ds) == 799
+
+
+def test_a_pause_that_starts_an_episode_is_counted_with_its_length(tmp_path):
+    """A 2 s dropout in a drive (no [episodes] topic: the gap rule cuts episodes) made two
+    episodes with no word of why; the count and the longest pause are in the summary now."""
+    paused = [(tp, t + (2000 * MS if t >= T0 + 400 * 5 * MS else 0), d) for tp, t, d in _log(stale_at=-1)]
+    paused = [(tp, t, {**d, "stamp": {"sec": t // 10**9, "nanosec": t % 10**9}} if tp == "/tf" else d)
+              for tp, t, d in paused]
+    f = write_log(tmp_path / "pause.mcap", paused)
+    ds, s = ingest_mcap([f], _spec("error"))
+    assert ds.n_episodes == 2 and s["gap_splits"] == 1
+    assert s["longest_gap_s"] == pytest.approx(2.005)
+    f = write_log(tmp_path / "nopause.mcap", _log(stale_at=-1))
+    _, s = ingest_mcap([f], _spec("error"))
+    assert s.get("gap_splits", 0) == 0

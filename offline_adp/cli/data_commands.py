@@ -98,6 +98,8 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
              "episodes that lost messages to damage", "restarts": "time-source restarts (episode boundaries)",
              "cut_episodes": "episodes the recording ends inside (cut)", "episode_splits":
              "episodes split at dropped steps", "orphan_messages": "messages of an epoch without clock messages",
+             "gap_splits": "episodes started at a pause in the log (over [episodes] gap; raise it if the robot went "
+             f"on), the longest {s.get('longest_gap_s', 0):.3g} s",
              "episodes_without_command": "episodes with a step without a command",
              "quarantined_rows": f"rows set aside with a reason in {args.out}/quarantine/",
              "dropped_rows": "rows of rejected episodes left out (on_error = fail)"}

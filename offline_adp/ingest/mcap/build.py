@@ -137,7 +137,8 @@ def ingest_mcap_tables(
             continue
         good.append((res, rec))
         for k, v in res.stats.items():
-            summary[k] = max(summary.get(k, 0), v) if k == "max_buffered_messages" else summary.get(k, 0) + v
+            summary[k] = (max(summary.get(k, 0), v) if k in ("max_buffered_messages", "longest_gap_s")
+                          else summary.get(k, 0) + v)
         for name in ("used", "late", "filled"):
             tgt = summary[{"used": "messages_used", "late": "late_messages", "filled": "filled_steps"}[name]]
             for t, v in getattr(res, name).items():

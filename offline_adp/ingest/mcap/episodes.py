@@ -84,6 +84,10 @@ class EpisodeSegmenter:
         else:
             prev = np.r_[self.last_step_t if self.last_step_t is not None else t[0], t[:-1]]
             gap = (t - prev) > spec.gap * 1e9
+            if gap.any():  # a pause in the log starts an episode: counted, the longest said (ingest summary)
+                self.stats["gap_splits"] = self.stats.get("gap_splits", 0) + int(gap.sum())
+                self.stats["longest_gap_s"] = max(self.stats.get("longest_gap_s", 0.0),
+                                                  float((t - prev)[gap].max()) / 1e9)
             if self.last_step_t is None:
                 gap[0] = True
             key = (self.seg + np.cumsum(gap)).astype(object)  # a new key at every gap
