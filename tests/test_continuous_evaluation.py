@@ -304,3 +304,17 @@ def test_a_simulator_s_start_states_are_named_in_every_form_of_the_estimand(lq):
     for form in ("finite", "infinite"):  # finite: the stationary form here (gamma^60 < 0.01), which dropped it
         est = declare_estimand(lq, pol, None, form, start="env.reset() of gym:LQ-v0")
         assert est.start == "env.reset() of gym:LQ-v0" and est.describe().endswith("from env.reset() of gym:LQ-v0")
+
+
+def test_model_rollouts_over_commands_say_their_progress(lq):
+    """A rosbag audit waited 127 s in silence after "model rollouts over commands": the steps
+    and the bootstrap refits are said now (and the numbers do not depend on saying them)."""
+    from offline_adp.evaluation.continuous import command_model_rollouts
+
+    pol = attach_signature(LinearPolicy(0.5), lq)
+    said: list[str] = []
+    kw = {"n": 100, "level": 0.95, "seed": 0, "replicates": 3}
+    loud = command_model_rollouts(lq, pol, 20, GAMMA, say=said.append, **kw)
+    quiet = command_model_rollouts(lq, pol, 20, GAMMA, **kw)
+    assert any("step 20/20" in s for s in said) and any("3 bootstrap refits" in s for s in said)
+    assert loud["estimate"] == quiet["estimate"] and loud["bootstrap"]["readings"] == quiet["bootstrap"]["readings"]

@@ -84,6 +84,7 @@ from offline_adp.evaluation.model_rollouts import (
 )
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.policies import CommandPolicy, GaussianCommandPolicy
+from offline_adp.progress import PhaseLines
 from offline_adp.qfunctions import NeighbourCommands
 
 #: Neighbours whose logged commands count as "near" a state for the support check.
@@ -155,7 +156,8 @@ class _CommandActor:
 
 
 def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gamma: float, *, n: int,
-                           level: float, seed: int, replicates: int = MODEL_REPLICATES) -> dict[str, Any]:
+                           level: float, seed: int, replicates: int = MODEL_REPLICATES,
+                           say: Any = None) -> dict[str, Any]:
     """Model rollouts of the logs over commands (:class:`CommandDynamics`): the discrete
     evaluation's second reading and support measure
     (:func:`~offline_adp.evaluation.model_rollouts.model_rollouts`), the policy's commands
@@ -171,8 +173,11 @@ def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gam
     if model.radius_ <= 0:
         return {"skipped": "the logged states repeat exactly (a lattice): a model's next states are never on it"}
     actor = _CommandActor(policy)
+    steps = None if say is None else PhaseLines(say, "model rollouts over commands: step", horizon)
     out = model_rollout_value(model, actor, horizon, gamma, remainder_ranges(a.cost, a.terminated, gamma, horizon),
-                              n=n, level=level, seed=seed)
+                              n=n, level=level, seed=seed, on_step=steps)
+    if say is not None and replicates >= 2:  # the refits are most of the time (a long silence otherwise)
+        say(f"model rollouts over commands: {replicates} bootstrap refits of the model")
     out["bootstrap"] = bootstrap_reading(model, row_actions(a), actor, horizon, gamma, out["estimate"], n=n,
                                          level=level, seed=seed, replicates=replicates)
     return {**out, "noise": model.noise_source_,
@@ -279,7 +284,7 @@ def fqe_over_commands(ds: TransitionDataset, policy: Any, cfg: EvaluationSetting
         if cfg.model_particles:
             say("model rollouts over commands")
         mr = command_model_rollouts(ds, policy, est_def.value_horizon, est_def.gamma, n=cfg.model_particles,
-                                    level=0.95, seed=cfg.seed)
+                                    level=0.95, seed=cfg.seed, say=say)
         hull = not est_def.beyond_logs or est_def.fqe_form == "stationary"
         res = widen_fqe(res, with_fqe_interval(mr, res, est_def.tail_bound, res.interval) if hull else mr, hull=hull)
     return with_truncation_bound(res, est_def.tail_bound)
