@@ -207,6 +207,11 @@ def test_evaluate_and_report_a_continuous_run(lq, tmp_path):
     html = (tmp_path / "run" / "report" / "report.html").read_text()
     assert "Not computed for continuous commands" in html and "<style" in html
     assert ("(95%)" in html) == (fq["level"] == 0.95)  # an interval is printed with the level it has
+    import re
+
+    bounds = re.search(r"bounds \[([^\]]*)\] to \[([^\]]*)\]", html)  # at 4 digits, not float reprs
+    lo, hi = m["commands"]["low"][0], m["commands"]["high"][0]
+    assert bounds and bounds.groups() == (f"{lo:.4g}", f"{hi:.4g}")
 
 
 def test_review_cases_through_the_cli(lq, tmp_path, capsys):

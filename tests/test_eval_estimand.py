@@ -231,3 +231,20 @@ def test_a_horizon_past_the_logs_is_said_not_silently_cut():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert evaluation_horizon(ds, T)[0] == T and evaluation_horizon(ds)[0] == T
+
+
+def test_the_model_rollouts_recorded_with_fqe_are_clipped_to_the_possible_range():
+    """metrics.json held the model's bootstrap interval [-107.5, 913.7] for costs >= 0 whose
+    possible range was [0, 730.9] (a rosbag audit); the report printed it clipped. Clipped
+    where it is recorded now, saying from what; readings inside the range are untouched."""
+    from offline_adp.evaluation.estimand import clip_to_range
+    from offline_adp.evaluation.ope import OPEResult
+
+    mr = {"estimate": 400.0, "interval": [300.0, 500.0], "exit_mass": 0.0,
+          "bootstrap": {"interval": [-107.49, 913.69], "readings": [1.0, 2.0]}}
+    r = OPEResult("fqe", 400.0, (350.0, 450.0), None, model_rollouts=mr)
+    out = clip_to_range(r, (0.0, 730.9)).model_rollouts
+    assert out["bootstrap"]["interval"] == [0.0, 730.9]
+    assert "from [-107.5, 913.7]" in out["bootstrap"]["interval_note"]
+    assert out["interval"] == [300.0, 500.0] and "interval_note" not in out
+    assert out["bootstrap"]["readings"] == [1.0, 2.0] and mr["bootstrap"]["interval"] == [-107.49, 913.69]

@@ -175,8 +175,31 @@ def with_possible_range(est_def: Estimand, a: TransitionArrays,
     return replace(est_def, possible_range=(min(lo_c, 0.0) * span_h, max(hi_c, 0.0) * span_h)), logged_range
 
 
+def _clipped_readings(mr: dict[str, Any], rng: tuple[float, float]) -> dict[str, Any]:
+    """The model rollouts' own intervals (``interval``, ``bootstrap.interval``) clipped to the
+    possible range as FQE's is, each saying from what: metrics.json held a model bootstrap of
+    [-107.5, 913.7] for costs >= 0 of range [0, 730.9] while the report printed it clipped."""
+    def clip(d: dict[str, Any]) -> dict[str, Any]:
+        iv = d.get("interval")
+        if not (isinstance(iv, list | tuple) and len(iv) == 2 and all(np.isfinite(x) for x in iv)):
+            return d
+        c_lo, c_hi = max(iv[0], rng[0]), min(iv[1], rng[1])
+        if (c_lo, c_hi) == tuple(iv) or c_lo > c_hi:
+            return d
+        return {**d, "interval": [c_lo, c_hi],
+                "interval_note": f"clipped to the possible range [{rng[0]:.4g}, {rng[1]:.4g}] from "
+                                 f"[{iv[0]:.4g}, {iv[1]:.4g}]"}
+    out = clip(mr)
+    if isinstance(out.get("bootstrap"), dict):
+        out = {**out, "bootstrap": clip(out["bootstrap"])}
+    return out
+
+
 def clip_to_range(r: ope.OPEResult, rng: tuple[float, float]) -> ope.OPEResult:
-    """An interval reaching past what the cost makes possible is clipped there (and says so)."""
+    """An interval reaching past what the cost makes possible is clipped there (and says so),
+    and so are the model rollouts' readings recorded with it."""
+    if r.model_rollouts and "skipped" not in r.model_rollouts:
+        r = replace(r, model_rollouts=_clipped_readings(r.model_rollouts, rng))
     lo, hi = r.interval
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return r

@@ -323,6 +323,11 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
     return "<section class='summary'><h2>Summary</h2>" + "".join(rows) + "</section>"
 
 
+def _vector(v: Any) -> str:
+    """A command bound vector at the report's 4 significant digits (unbounded: a dash)."""
+    return "[" + ", ".join(fmt(None if x is None else float(x)) for x in v) + "]"
+
+
 def _continuous_sections(m: dict[str, Any]) -> list[str]:
     """The sections of a continuous policy's report after its estimates: the command
     support, what was not computed and why, the warnings."""
@@ -331,8 +336,8 @@ def _continuous_sections(m: dict[str, Any]) -> list[str]:
     comps = ", ".join(f"{d} [{u}]" if u else d for d, u in zip(cmd["dims"], [*cmd["units"], *[""] * len(cmd["dims"])],
                                                                 strict=False))
     parts = ["<h2>Command support</h2>",
-             f"<p>Commands: {html.escape(comps)}, bounds {html.escape(str(cmd['low']))} to "
-             f"{html.escape(str(cmd['high']))}. The policy commands farther from the commands logged near the state "
+             f"<p>Commands: {html.escape(comps)}, bounds {_vector(cmd['low'])} to "
+             f"{_vector(cmd['high'])}. The policy commands farther from the commands logged near the state "
              f"than the logged commands themselves are at {sv['fraction']:.1%} of the logged states "
              f"({html.escape(sv['method'])}).</p>",
              "<h2>Not computed for continuous commands</h2>",
