@@ -69,11 +69,11 @@ def test_representatives_of_a_log_of_levels_are_its_levels():
     reps = command_representatives(u, 16)
     logged = {tuple(r) for r in u}
     assert {tuple(r) for r in reps} == logged  # every logged pair, exactly, and nothing else
-    # levels beside continuous commands: the level comes back exactly, the rest are means of neighbours
+    # levels beside continuous commands: the level comes back exactly, the rest are logged commands
     v = np.r_[np.zeros(400), np.random.default_rng(2).uniform(-1, 1, 600)][:, None]
     reps = command_representatives(v, 16)[:, 0]
     assert 0.0 in reps and len(reps) <= 16 + 2
-    assert reps.min() >= v.min() and reps.max() <= v.max()
+    assert reps.min() >= v.min() and reps.max() <= v.max() and np.isin(reps, v[:, 0]).all()
 
 
 def test_ingest_bins_keep_levels_apart():

@@ -24,9 +24,9 @@ minimum over ``a'`` runs over the candidate set ``C(x')`` of the next state: the
 logged at the ``n_candidates`` logged states nearest to ``x'``
 (:class:`~offline_adp.qfunctions.NeighbourCommands`; batch-constrained, as in Fujimoto et
 al. 2019), followed by ``R``, up to ``n_representatives`` representative commands of the
-whole log (:func:`~offline_adp.algorithms.fqi_data.command_representatives`: the mean
-logged command in each occupied cell of a grid of quantile bins, ``floor(n^(1/m))`` per
-component)::
+whole log (:func:`~offline_adp.algorithms.fqi_data.command_representatives`: the logged
+command nearest the mean of each occupied cell of a grid of quantile bins, ``floor(n^(1/m))``
+per varying component)::
 
     C(x) = {u_j : j among the n_candidates logged states nearest to x}  U  R
     y_i = c_i + gamma * (1 - terminated_i) * min_{u' in C(x'_i)} Q_{k-1}(x'_i, u')
@@ -35,7 +35,7 @@ component)::
 and the greedy policy is ``argmin_{u in C(x)} Q(x, u)`` (ties to the nearest neighbour's
 command). What it guarantees: neither the backup nor the policy ever uses a command that was
 not logged at one of the ``n_candidates`` logged states nearest to the state in question or
-is not one of ``R`` (each the mean of commands logged together somewhere in the data, dense
+is not one of ``R`` (each a command logged somewhere in the data, dense
 where the logged commands are dense: a binned fit of the same logs minimises over such
 representatives everywhere), so the minimum cannot run to an arbitrary command between or
 beyond the logged ones (the chapter's warning about the min over actions). ``R`` is there

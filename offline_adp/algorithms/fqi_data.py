@@ -270,27 +270,34 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
 
 
 def command_representatives(commands: np.ndarray, n: int) -> np.ndarray:
-    """Up to ``n`` representative commands of a log, ``(e, m)``: each component cut at the
-    quantiles of its logged values into ``B = floor(n^(1/m))`` bins, and the mean logged
-    command (the whole vector) of every occupied cell of that grid, in row-major cell
-    order. Dense where the log's commands are dense, and every one the mean of commands
-    logged together, so none lies outside the logged commands' convex hull. A level logged
-    on at least ``1/B`` of the rows (a teleop's fixed steering values) is a bin of its own
-    (:func:`~offline_adp.data.levels.level_edges`), so where every component has at most
-    ``B`` levels the representatives are logged commands; a component with more levels than
-    ``B`` still has cells that average two or more of them."""
+    """Up to ``n`` representative commands of a log, ``(e, m)``, each a command the log holds:
+    each varying component cut at the quantiles of its logged values into
+    ``B = floor(n^(1/m'))`` bins (``m'``: the components logged at more than one value; a
+    constant one takes no share of ``n``), and of every occupied cell of that grid the logged
+    command nearest the cell's mean (distances in units of each component's logged range,
+    ties to the first row), in row-major cell order. Dense where the log's commands are
+    dense, and never a command nobody logged: a mean of integer levels (gears, PWM steps) is
+    not one of them, and a mean of two steering levels is not a level. A level logged on at
+    least ``1/B`` of the rows (a teleop's fixed steering values) is a bin of its own
+    (:func:`~offline_adp.data.levels.level_edges`)."""
     u = np.asarray(commands, np.float64)
     if n <= 0 or len(u) == 0:
         return np.zeros((0, u.shape[1] if u.ndim == 2 else 1))
-    m = u.shape[1]
-    B = max(1, int(np.floor(n ** (1.0 / m) + 1e-9)))
+    span = np.ptp(u, axis=0)
+    varying = np.flatnonzero(span > 0)
+    B = max(1, int(np.floor(n ** (1.0 / max(len(varying), 1)) + 1e-9)))
     cell = np.zeros(len(u), np.int64)
-    for j in range(m):
+    for j in varying:
         edges = level_edges(u[:, j], B)  # a level logged often is a bin of its own (data/levels.py)
         inner = edges[1:-1]
         cell = cell * (len(inner) + 1) + np.searchsorted(inner, u[:, j], side="right")
     cells, inverse = np.unique(cell, return_inverse=True)
-    return np.column_stack([cell_means(inverse, u[:, j], len(cells))[0] for j in range(m)])
+    inverse = inverse.reshape(-1)
+    mean = np.column_stack([cell_means(inverse, u[:, j], len(cells))[0] for j in range(u.shape[1])])
+    d = (((u - mean[inverse]) / np.where(span > 0, span, 1.0)) ** 2).sum(axis=1)
+    order = np.lexsort((np.arange(len(u)), d, inverse))  # by cell, then distance, then row
+    first = order[np.r_[True, inverse[order][1:] != inverse[order][:-1]]]
+    return u[first]
 
 
 def logged_commands(ds: TransitionDataset, who: str) -> np.ndarray:
