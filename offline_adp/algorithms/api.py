@@ -278,6 +278,10 @@ class ApproximatePolicyIteration(CheckedEstimator):
         proto = self.fqe if self.fqe is not None else default_evaluator()
         cands = None
         if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states
+            if proto.horizon is not None:  # its improved policy varies with t: FQE refuses it after a first round
+                raise invalid_parameter(self, "fqe", "an evaluator with horizon=None over continuous commands (a "
+                                        "time-varying continuous policy cannot be evaluated yet; or fit FQI with "
+                                        "a horizon)", proto)
             u = logged_commands(dataset, type(self).__name__)
             cands = NeighbourCommands.from_data(dataset.arrays().obs, u, proto.n_candidates,
                                                 command_representatives(u, proto.n_representatives))

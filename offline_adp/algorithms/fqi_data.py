@@ -240,6 +240,9 @@ def prepare(ds: TransitionDataset, *, gamma: float | None, horizon: int | None, 
         if action_encoding == "per_action":
             raise InvalidArgumentError(f"{who}: continuous commands need action_encoding='joint' (a model per "
                                        "command cannot exist)")
+        if action_input != "value":  # it was ignored: the command itself is the model's input
+            raise InvalidArgumentError(f"{who}: continuous commands need action_input='value' (the exact command "
+                                       "is the model's input: there is no table of entries to one-hot)")
         extra = command_representatives(actions[tr], n_representatives)
         cands = (NeighbourCommands.from_data(phi_obs[tr], actions[tr], n_candidates, extra)
                  if policy_commands is None else policy_commands)

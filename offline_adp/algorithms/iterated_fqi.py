@@ -26,6 +26,7 @@ from offline_adp.access import ResetModel, require
 from offline_adp.algorithms.fqi import FittedQIteration
 from offline_adp.algorithms.params import FRACTION, POSITIVE_INT, SEED, CheckedEstimator
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import IncompatibleError
 from offline_adp.policies import EpsilonPolicy, UniformPolicy
 from offline_adp.rollout import rollout
 
@@ -82,6 +83,11 @@ class IteratedFQI(CheckedEstimator):
         require(model, ResetModel)
         rng = np.random.default_rng(self.random_state)
         proto = self.fqi if self.fqi is not None else FittedQIteration()
+        if dataset is not None and dataset.info.action_table.continuous and proto.commands != "binned":
+            raise IncompatibleError(
+                f"{type(self).__name__} adds episodes of an epsilon-greedy policy over the action table, which logs "
+                f"no exact commands ({list(dataset.info.action_table.dims)} in this dataset are continuous); fit "
+                "'fqi' on the logs, or give it FittedQIteration(commands='binned') to iterate over the bins")
         H = self.horizon if self.horizon is not None else model.horizon
         from offline_adp.rollout import collect
 

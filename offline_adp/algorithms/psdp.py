@@ -58,6 +58,7 @@ from offline_adp.algorithms.params import (
     SEED,
     CheckedEstimator,
     check_learner,
+    refuse_continuous,
 )
 from offline_adp.data.dataset import TransitionDataset
 from offline_adp.errors import InvalidArgumentError
@@ -165,6 +166,8 @@ class PSDP(CheckedEstimator):
     def fit(self, model: ResetModel, baseline: Baseline) -> PSDP:
         self.check_params()  # _parameter_constraints, then the combinations
         require(model, ResetModel if isinstance(baseline, Policy) else GenerativeModel)
+        if isinstance(baseline, TransitionDataset):  # as `fit --algorithm psdp` (not its bins behind the user's back)
+            refuse_continuous(type(self).__name__, baseline)
         if self.q_estimator == "exact":
             require(model, FullModel)
         T = self.horizon if self.horizon is not None else model.horizon

@@ -70,7 +70,8 @@ def fit_summary_lines(est: object, algorithm: str, model_dir: Path | None = None
         mode = getattr(est, "mode_", None)
         how = f" ({mode} mode{', auto' if getattr(est, 'mode', None) == 'auto' else ''})" if mode else ""
         lines = [f"fitted {algorithm}{how}: {n} iterations, last sup|dQ| {h['sup_dq']:.4g}, Bellman residual "
-                 f"{h['bellman_residual']:.4g}, mean start value {h['start_value']:.4g}"]
+                 f"{h['bellman_residual']:.4g}, mean start Q {h['start_value']:.4g} (the fit's own reading, "
+                 "not the policy's cost: `offline-adp evaluate` estimates that)"]
         from offline_adp.algorithms.fqi import structure_builds
 
         builds = structure_builds(hist)
