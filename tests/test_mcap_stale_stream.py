@@ -77,6 +77,11 @@ def test_a_pause_that_starts_an_episode_is_counted_with_its_length(tmp_path):
     ds, s = ingest_mcap([f], _spec("error"))
     assert ds.n_episodes == 2 and s["gap_splits"] == 1
     assert s["longest_gap_s"] == pytest.approx(2.005)
+    from offline_adp.ingest.mcap import mcap_info
+
+    top = mcap_info(f)["topics"]["/state"]  # mcap-info says where: 400 steps of 5 ms in, for 2.005 s
+    assert top["gaps"] == 1 and top["gaps_at"] == [{"after_s": 1.995, "length_s": 2.005}]
     f = write_log(tmp_path / "nopause.mcap", _log(stale_at=-1))
+    assert "gaps_at" not in mcap_info(f)["topics"]["/state"]
     _, s = ingest_mcap([f], _spec("error"))
     assert s.get("gap_splits", 0) == 0

@@ -130,6 +130,9 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
         for topic, t in sorted(info["topics"].items()):
             rate = f"{t['rate_hz']} Hz" if t["rate_hz"] is not None else t["status"]
             extra = "".join(f", {t[k]} {k}" for k in ("restarts", "gaps") if t.get(k))
+            if t.get("gaps_at"):  # where the pauses are (the gap rule may start an episode there)
+                extra += " (" + ", ".join(f"+{g['after_s']:.1f} s for {g['length_s']:.3g} s" for g in t["gaps_at"]) \
+                    + (", ..." if t["gaps"] > len(t["gaps_at"]) else "") + ")"
             print(f"  {topic:<32} {t['schema']:<40} {t['encoding']:<9} {t['messages']:>7} msgs  {rate}{extra}")
             if t["field_info"]:
                 shown = [f"{x['path']} ({x['type']}: {x['sample']!r})" for x in t["field_info"][:40]]

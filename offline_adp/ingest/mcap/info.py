@@ -29,11 +29,16 @@ class _Topic:
         self.stride = 1
         self.first_fields: list[dict[str, Any]] | None = None
         self.error: str | None = None
+        self.first: int | None = None
+        self.long: list[tuple[int, int]] = []  # (time before, length) of the first periods over 1 s
 
     def add(self, t: int) -> None:
         self.n += 1
+        self.first = t if self.first is None else self.first
         if self.last is not None:
             d = t - self.last
+            if d > 1e9 and len(self.long) < 64:  # a gap is over 1 s: where the first ones are, for the user
+                self.long.append((self.last, d))
             if d < -RESTART_S * 1e9:
                 self.restarts += 1
             elif d > 0 and self.n % self.stride == 0:
@@ -55,7 +60,10 @@ class _Topic:
         gap = max(5 * med, 1e9)
         gaps = int((p > gap).sum()) * self.stride
         med = float(np.median(p[p <= gap])) if (p <= gap).any() else med
-        return {"rate_hz": round(1e9 / med, 3), "restarts": self.restarts, "gaps": gaps, "status": "ok"}
+        at = [{"after_s": round((t0 - (self.first or t0)) / 1e9, 3), "length_s": round(d / 1e9, 3)}
+              for t0, d in self.long if d > gap][:3]  # seconds after the topic's first message
+        return {"rate_hz": round(1e9 / med, 3), "restarts": self.restarts, "gaps": gaps,
+                **({"gaps_at": at} if gaps else {}), "status": "ok"}
 
 
 def _type_name(v: Any) -> str:
