@@ -233,6 +233,39 @@ class NeighbourCommands:
         return out
 
 
+#: Command support: the logged states whose commands a command is compared with, and the
+#: quantile of the logged commands' own distances beyond which it is unsupported.
+COMMAND_SUPPORT_NEIGHBOURS = 20
+COMMAND_SUPPORT_QUANTILE = 0.95
+
+
+def command_support_distances(obs: np.ndarray, u: np.ndarray, bounds: tuple[np.ndarray, np.ndarray],
+                              query_obs: np.ndarray, query_u: np.ndarray,
+                              k: int = COMMAND_SUPPORT_NEIGHBOURS) -> tuple[np.ndarray, float]:
+    """How far each command ``query_u[i]`` lies from the commands logged at the ``k`` logged
+    states nearest ``query_obs[i]`` (sup over components, in units of each component's
+    bound range, else its logged range), and the ``radius`` beyond which a command counts
+    as unsupported: the :data:`COMMAND_SUPPORT_QUANTILE` of each logged command's distance
+    to its neighbours' (not its own row's). ``query_obs is obs``: the logged states
+    themselves (their nearest is their own row)."""
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    span = np.where(np.isfinite(hi - lo) & (hi > lo), hi - lo, np.ptp(u, axis=0))
+    span = np.where(span > 0, span, 1.0)
+    cands = NeighbourCommands.from_data(obs, u, k + 1)
+    _, rows = cands.neighbours(obs)
+
+    def nearest(v: np.ndarray, cols: np.ndarray, own: np.ndarray | None) -> np.ndarray:
+        d = (np.abs(v[:, None, :] - u[cols]) / span).max(axis=2)
+        if own is not None:
+            d = np.where(cols == own[:, None], np.inf, d)
+        return d.min(axis=1)
+
+    d_logged = nearest(u, rows, np.arange(len(u)))
+    radius = float(np.quantile(d_logged[np.isfinite(d_logged)], COMMAND_SUPPORT_QUANTILE))
+    q_rows = rows[:, :k] if query_obs is obs else cands.neighbours(np.asarray(query_obs, np.float64))[1][:, :k]
+    return nearest(np.asarray(query_u, np.float64).reshape(len(q_rows), -1), q_rows, None), radius
+
+
 class PolicyCommands:
     """The one candidate command of a state under a deterministic continuous policy,
     ``C(x) = {pi(x)}``: fitted Q *evaluation* over commands backs up ``Q(x', pi(x'))``.

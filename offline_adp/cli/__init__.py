@@ -22,7 +22,38 @@ from offline_adp.errors import OfflineADPError
 __all__ = ["ALGORITHM_NAMES", "FORMATS", "build_parser", "log", "main"]
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's or ``kill``'s stop), handled as Ctrl-C is: a fit records
+    "interrupted" and writes its checkpoint, a pipeline its stage's state, no temporary
+    is left; the exit status is 143 (128 + SIGTERM)."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated("SIGTERM")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():  # handlers can only be set there
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt as exc:  # one arriving between the handlers below
+        return _interrupted(exc)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted(exc: KeyboardInterrupt) -> int:
+    print("terminated" if isinstance(exc, Terminated) else "interrupted", file=sys.stderr)
+    return 143 if isinstance(exc, Terminated) else 130
+
+
+def _main(argv: Sequence[str] | None) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -36,9 +67,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return _run(args)
             finally:
                 caught.report(log)  # the package's warnings once each; the libraries' in one line
-    except KeyboardInterrupt:  # Ctrl-C while the parser or a command's imports load, or while warnings print
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C while the parser or a command's imports load, or while warnings print
+        return _interrupted(exc)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -53,9 +83,8 @@ def _run(args: argparse.Namespace) -> int:
             raise
         print(f"offline-adp {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        return _interrupted(exc)
     except BrokenPipeError:  # output piped into `head` and the like
         import os
 

@@ -85,12 +85,16 @@ from offline_adp.evaluation.model_rollouts import (
 from offline_adp.evaluation.settings import EvaluationSettings
 from offline_adp.policies import CommandPolicy, GaussianCommandPolicy
 from offline_adp.progress import PhaseLines
-from offline_adp.qfunctions import NeighbourCommands
+from offline_adp.qfunctions import (
+    COMMAND_SUPPORT_NEIGHBOURS,
+    COMMAND_SUPPORT_QUANTILE,
+    command_support_distances,
+)
 
 #: Neighbours whose logged commands count as "near" a state for the support check.
-SUPPORT_NEIGHBOURS = 20
+SUPPORT_NEIGHBOURS = COMMAND_SUPPORT_NEIGHBOURS
 #: The logged commands' own quantile that calibrates the support radius.
-SUPPORT_QUANTILE = 0.95
+SUPPORT_QUANTILE = COMMAND_SUPPORT_QUANTILE
 
 NOT_USABLE = {
     "importance sampling (IS, WIS, PDIS, WPDIS, DR, WDR, MIS)": (
@@ -189,25 +193,12 @@ def command_model_rollouts(ds: TransitionDataset, policy: Any, horizon: int, gam
 
 def command_support(ds: TransitionDataset, policy: Any, k: int = SUPPORT_NEIGHBOURS) -> dict[str, Any]:
     """The share of logged states where ``policy`` commands farther from the commands
-    logged nearby than the logged commands themselves are (see the module docstring)."""
+    logged nearby than the logged commands themselves are (see the module docstring;
+    :func:`~offline_adp.qfunctions.command_support_distances`)."""
     a, u = ds.arrays(), ds.commands()
     assert u is not None
-    lo, hi = ds.info.action_table.bounds()
-    span = np.where(np.isfinite(hi - lo) & (hi > lo), hi - lo, np.ptp(u, axis=0))
-    span = np.where(span > 0, span, 1.0)
-    cands = NeighbourCommands.from_data(a.obs, u, k + 1)
-    _, rows = cands.neighbours(a.obs)
-
-    def nearest(v: np.ndarray, cols: np.ndarray, own: np.ndarray | None) -> np.ndarray:
-        d = (np.abs(v[:, None, :] - u[cols]) / span).max(axis=2)
-        if own is not None:
-            d = np.where(cols == own[:, None], np.inf, d)
-        return d.min(axis=1)
-
-    idx = np.arange(len(u))
-    d_logged = nearest(u, rows, idx)  # each logged command against its neighbours' (not its own row)
-    radius = float(np.quantile(d_logged[np.isfinite(d_logged)], SUPPORT_QUANTILE))
-    d_pi = nearest(np.asarray(policy.commands(a.obs, a.step), np.float64), rows[:, :k], None)
+    d_pi, radius = command_support_distances(a.obs, u, ds.info.action_table.bounds(), a.obs,
+                                             np.asarray(policy.commands(a.obs, a.step), np.float64), k)
     return {"fraction": float(np.mean(d_pi > radius)), "radius": radius, "neighbours": k,
             "method": f"the policy's command against the commands logged at the {k} nearest logged states (sup over "
                       "components, in units of each bound range); unsupported beyond the logged commands' own "
