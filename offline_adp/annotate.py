@@ -22,12 +22,18 @@ of the log, stamped with the log time of the message that made the step (its
 fitted on the run's dataset (or on the log when that is not found) and evaluated at
 the log's states, with probabilities clipped to ``[1e-3, 1]`` as in
 :mod:`offline_adp.evaluation.behaviour`.
+
+A policy over continuous commands (a cmd_vel-style log) gets three topics instead:
+``/offline_adp/command`` (its command vs the logged one, and their difference),
+``/offline_adp/q_gap`` (``Q(x, u_logged) - Q(x, u_policy)`` by its own Q; null for a
+distilled policy, which has none) and ``/offline_adp/support`` (the evaluation's command
+support: the distance from its command to the commands logged at the nearest states of the
+run's dataset, against the logged commands' own radius; :func:`annotate_commands`).
 """
 
 from __future__ import annotations
 
 import json
-import os
 from os import PathLike
 from pathlib import Path
 from typing import Any
@@ -150,30 +156,162 @@ def annotate_steps(policy: Any, log_ds: Any, fit_ds: Any = None) -> dict[str, An
     }
 
 
+def _f(x: Any) -> float | None:
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _action_topics(policy: Any, log_ds: Any, fit_ds: Any, base: list[dict[str, Any]]) -> tuple[dict, dict]:
+    """The four topics of a policy over an action table, one message a step, and the summary's numbers."""
+    v = annotate_steps(policy, log_ds, fit_ds)
+    values, dims = policy.signature.action_table.values, list(policy.signature.action_table.dims)
+    msgs: dict[str, list[dict[str, Any]]] = {name: [] for name in ("action", "q_gap", "density_ratio", "support")}
+    for i, b in enumerate(base):  # one message per step and topic (the output's size, not a data loop)
+        pi_i, lg_i = int(v["policy_index"][i]), int(v["logged_index"][i])
+        qp = None if v["q_policy"] is None else _f(v["q_policy"][i])
+        ql = None if v["q_logged"] is None else _f(v["q_logged"][i])
+        msgs["action"].append({**b, "policy_action": values[pi_i].tolist(), "policy_action_index": pi_i,
+                               "logged_action": values[lg_i].tolist(), "logged_action_index": lg_i,
+                               "agree": pi_i == lg_i, "action_dims": dims})
+        msgs["q_gap"].append({**b, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp,
+                              "q_logged": ql})
+        msgs["density_ratio"].append({**b, "ratio": float(v["ratio"][i]), "policy_prob": float(v["policy_prob"][i]),
+                                      "behaviour_prob": float(v["behaviour_prob"][i]),
+                                      "behaviour_source": v["behaviour_source"]})
+        msgs["support"].append({**b, "out_of_support": bool(v["out_of_support"][i]),
+                                "behaviour_prob_of_policy_action": float(v["behaviour_prob_of_policy_action"][i]),
+                                "threshold": THRESHOLD})
+    n = len(base)
+    summary = {"agreement": float(np.mean(v["policy_index"] == v["logged_index"])) if n else None,
+               "out_of_support": int(np.sum(v["out_of_support"])), "behaviour": v["behaviour_source"]}
+    return {k: (SCHEMAS[k], m) for k, m in msgs.items()}, summary
+
+
+class _GivenCommands:
+    """One candidate command per row, given (the logged ones): Q read at ``(x_i, u_i)``."""
+
+    k = n_slots = 1
+
+    def __init__(self, u: np.ndarray) -> None:
+        self.u = u
+
+    def __call__(self, phi: np.ndarray) -> np.ndarray:
+        return self.u.reshape(len(phi), 1, -1)
+
+
+def _q_at(q: Any, obs: np.ndarray, t: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``Q(x_i, u_i)`` of a Q-function over commands (a time-indexed one: its step's)."""
+    from offline_adp.qfunctions import with_candidates
+
+    if not hasattr(q, "qs"):
+        return with_candidates(q, _GivenCommands(u)).values(obs)[:, 0]
+    out, T = np.empty(len(obs)), len(q.qs)
+    for s in np.unique(t):
+        rows = t == s
+        out[rows] = with_candidates(q.qs[min(int(s), T - 1)], _GivenCommands(u[rows])).values(obs[rows])[:, 0]
+    return out
+
+
+def annotate_commands(policy: Any, log_ds: Any, fit_ds: Any = None) -> dict[str, Any]:
+    """The annotation values of a continuous policy at every step of ``log_ds``: its command
+    and the logged one; ``Q(x, u_logged) - Q(x, u_policy)`` by the policy's own Q where it
+    has one (a greedy policy; a distilled one has none); and the command support of the
+    evaluation (:func:`~offline_adp.qfunctions.command_support_distances`): the policy's
+    command against the commands logged at the nearest states of the run's dataset (else of
+    the log), unsupported beyond the logged commands' own 95% quantile."""
+    from offline_adp.qfunctions import command_encoder, command_support_distances
+
+    a, u_log = log_ds.arrays(), log_ds.commands()
+    u_pi = np.asarray(policy.commands(a.obs, a.step), np.float64).reshape(len(a.obs), -1)
+    q = getattr(policy, "q", None)
+    with_q = q is not None and command_encoder(q) is not None
+    src = fit_ds if fit_ds is not None and fit_ds.commands() is not None else log_ds
+    sa = src.arrays()
+    query = sa.obs if src is log_ds else a.obs
+    dist, radius = command_support_distances(sa.obs, src.commands(), src.info.action_table.bounds(), query, u_pi)
+    return {"policy": u_pi, "logged": u_log, "q_policy": _q_at(q, a.obs, a.step, u_pi) if with_q else None,
+            "q_logged": _q_at(q, a.obs, a.step, u_log) if with_q else None, "distance": dist, "radius": radius,
+            "source": "the run's dataset" if src is fit_ds else "the log (the run's dataset was not found)"}
+
+
+COMMAND_SCHEMAS: dict[str, dict[str, Any]] = {
+    "command": {
+        "title": "offline_adp.PolicyCommand", "type": "object",
+        "description": "The run's policy command vs the logged command at a logged step (and policy - logged).",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
+                       "policy_command": {"type": "array", "items": {"type": "number"}},
+                       "logged_command": {"type": "array", "items": {"type": "number"}},
+                       "difference": {"type": "array", "items": {"type": "number"}},
+                       "command_dims": {"type": "array", "items": {"type": "string"}}},
+    },
+    "q_gap": SCHEMAS["q_gap"],
+    "support": {
+        "title": "offline_adp.CommandSupport", "type": "object",
+        "description": "out_of_support: the policy's command is farther from the commands logged at the nearest "
+                       "logged states than the logged commands are from their neighbours' (distance > radius).",
+        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
+                       "out_of_support": {"type": "boolean"}, "distance": {"type": "number"},
+                       "radius": {"type": "number"}, "compared_with": {"type": "string"}},
+    },
+}
+
+
+def _command_topics(policy: Any, log_ds: Any, fit_ds: Any, base: list[dict[str, Any]]) -> tuple[dict, dict]:
+    """The three topics of a continuous policy, one message a step, and the summary's numbers."""
+    v = annotate_commands(policy, log_ds, fit_ds)
+    dims = list(policy.signature.action_table.dims)
+    msgs: dict[str, list[dict[str, Any]]] = {name: [] for name in COMMAND_SCHEMAS}
+    for i, b in enumerate(base):  # one message per step and topic (the output's size, not a data loop)
+        up, ul = v["policy"][i], v["logged"][i]
+        qp = None if v["q_policy"] is None else _f(v["q_policy"][i])
+        ql = None if v["q_logged"] is None else _f(v["q_logged"][i])
+        msgs["command"].append({**b, "policy_command": up.tolist(), "logged_command": ul.tolist(),
+                                "difference": (up - ul).tolist(), "command_dims": dims})
+        msgs["q_gap"].append({**b, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp,
+                              "q_logged": ql})
+        msgs["support"].append({**b, "out_of_support": bool(v["distance"][i] > v["radius"]),
+                                "distance": float(v["distance"][i]), "radius": v["radius"],
+                                "compared_with": v["source"]})
+    summary = {"agreement": None, "out_of_support": int(np.sum(v["distance"] > v["radius"])),
+               "behaviour": f"commands logged near each state in {v['source']}"}
+    return {k: (COMMAND_SCHEMAS[k], m) for k, m in msgs.items()}, summary
+
+
 def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], out: str | PathLike[str], *,
                   spec: Any = None, dataset: str | PathLike[str] | None = None,
                   overwrite: bool = False) -> dict[str, Any]:
-    """Write ``out``: every message of ``log_file`` plus the four annotation topics (see
-    module docstring). Returns a summary (steps, agreement, out-of-support count)."""
-    from mcap.reader import make_reader
-    from mcap.writer import CompressionType, Writer
-
-    from offline_adp.deploy import load_run_policy, run_dataset
-    from offline_adp.ingest.mcap import ingest_mcap
+    """Write ``out``: every message of ``log_file`` plus the annotation topics (see module
+    docstring). Returns a summary (steps, agreement, out-of-support count). The output is
+    locked for the whole command (a second writer fails at once) and written to a
+    temporary renamed into place, so it is one run's output or the file it was before."""
+    from offline_adp.data.files import clean_stale_temporaries, locked_directory
 
     out = Path(out)
     if out.is_dir() and not out.is_symlink():
         raise WriteError(f"--out {out} is a directory; name the annotated MCAP file to write")
-    if out.exists() and not overwrite:
-        raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if Path(out).resolve() == Path(log_file).resolve():
         raise OutputExistsError(f"--out {out} is the input log; write the annotated copy elsewhere")
-    policy = load_run_policy(run_dir, dataset)
-    if getattr(policy, "continuous", False):
-        from offline_adp.errors import IncompatibleError
+    if Path(run_dir).resolve() in Path(out).resolve().parents:
+        raise WriteError(f"--out {out} lies inside the run directory {run_dir}; write the annotated copy elsewhere")
+    with locked_directory(out, what="annotated MCAP"):
+        if out.exists() and not overwrite:
+            raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
+        clean_stale_temporaries(out)
+        topics, numbers, stamp = _annotations(run_dir, log_file, spec, dataset)
+        n_copied = _write_annotated(log_file, out, topics, stamp)
+    summary = {"out": str(out), "messages_copied": n_copied, "steps": int(len(stamp)), **numbers,
+               "topics": [f"{PREFIX}/{k}" for k in topics]}
+    log.info("annotated %s -> %s: %d steps, agreement %s", log_file, out, summary["steps"], summary["agreement"])
+    return summary
 
-        raise IncompatibleError(f"{run_dir}: annotate writes the action table's entries, Q-gaps and action "
-                                "probabilities; a continuous policy has none of them yet")
+
+def _annotations(run_dir: Any, log_file: Any, spec: Any, dataset: Any) -> tuple[dict, dict, np.ndarray]:
+    """The log ingested with the run's spec, checked against the policy, and its topics."""
+    from offline_adp.deploy import load_run_policy, run_dataset
+    from offline_adp.errors import IncompatibleError
+    from offline_adp.ingest.mcap import ingest_mcap
+
+    policy = load_run_policy(run_dir, dataset)
+    continuous = bool(getattr(policy, "continuous", False))
     try:
         ds_path: Path | None = run_dataset(run_dir, dataset)
     except OfflineADPError:
@@ -187,33 +325,43 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
         raise IncompatibleError(f"{log_file}: the spec gives features {log_ds.feature_names}, the policy reads "
                                 f"{list(sig.feature_names)}; pass the spec the run's dataset was ingested "
                                 "with (--spec)")
-    if not np.array_equal(log_ds.info.action_table.values, sig.action_table.values):
-        raise IncompatibleError(f"{log_file}: the spec's action table "
-                                f"{log_ds.info.action_table.values.ravel().tolist()} "
+    at = log_ds.info.action_table
+    if continuous and (list(at.dims) != list(sig.action_table.dims) or log_ds.commands() is None):
+        raise IncompatibleError(f"{log_file}: the spec gives the commands {list(at.dims)}"
+                                + ("" if log_ds.commands() is not None else " without their exact values")
+                                + f", the policy commands {list(sig.action_table.dims)}; pass the spec the run's "
+                                "dataset was ingested with (--spec)")
+    if not continuous and not np.array_equal(at.values, sig.action_table.values):
+        raise IncompatibleError(f"{log_file}: the spec's action table {at.values.ravel().tolist()} "
                                 f"differs from the policy's {sig.action_table.values.ravel().tolist()}")
     fit_ds = None
     if ds_path is not None:
         from offline_adp.data.dataset import read_dataset
 
         fit_ds = read_dataset(ds_path)
-    v = annotate_steps(policy, log_ds, fit_ds)
     t_ns = log_ds.column("t_ns").astype(np.int64)
     # the annotated message's own log_time (integer ns), not the step's header stamp (t_ns),
     # which the transport delay puts before it
     stamp = log_ds.column("src_log_time").astype(np.int64) if "src_log_time" in log_ds.table.column_names else t_ns
-    ep = log_ds.column("episode_id").astype(str)
-    step = log_ds.column("step").astype(np.int64)
-    values = sig.action_table.values
-    dims = list(sig.action_table.dims)
+    base = [{"episode_id": e, "step": int(k)} for e, k in zip(log_ds.column("episode_id").astype(str).tolist(),
+                                                             log_ds.column("step").astype(np.int64).tolist(),
+                                                             strict=True)]
+    topics, numbers = (_command_topics if continuous else _action_topics)(policy, log_ds, fit_ds, base)
+    return topics, numbers, stamp
 
-    def f(x: Any) -> float | None:
-        return None if x is None or not np.isfinite(x) else float(x)
 
-    tmp = out.with_name(f".{out.name}.tmp")
-    out.parent.mkdir(parents=True, exist_ok=True)
+def _write_annotated(log_file: Any, out: Path, topics: dict[str, tuple[dict, list]], stamp: np.ndarray) -> int:
+    """Copy every message of ``log_file`` into ``out`` (through a temporary) and add
+    ``topics``, one message a step at ``stamp``; returns the messages copied."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    from offline_adp.data.files import atomic_file
+
     n_copied = 0
     try:
-        with open(log_file, "rb") as fin, open(tmp, "wb") as fout:
+        with atomic_file(out, what="annotated MCAP", lock=False) as tmp, open(log_file, "rb") as fin, \
+                open(tmp, "wb") as fout:
             reader = make_reader(fin)
             w = Writer(fout, compression=CompressionType.ZSTD)
             w.start(profile=reader.get_header().profile, library="offline_adp annotate")
@@ -228,44 +376,18 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
                                                                  dict(channel.metadata))
                 w.add_message(channel_ids[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
                 n_copied += 1
-            chans = {}
-            for name, schema in SCHEMAS.items():
+            for name, (schema, msgs) in topics.items():
                 sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
-                chans[name] = w.register_channel(f"{PREFIX}/{name}", "json", sid)
-            for i in range(len(t_ns)):  # one message per step and topic (the output's size, not a data loop)
-                pi_i, lg_i = int(v["policy_index"][i]), int(v["logged_index"][i])
-                base = {"episode_id": ep[i], "step": int(step[i])}
-                qp = None if v["q_policy"] is None else f(v["q_policy"][i])
-                ql = None if v["q_logged"] is None else f(v["q_logged"][i])
-                msgs = {
-                    "action": {**base, "policy_action": values[pi_i].tolist(), "policy_action_index": pi_i,
-                               "logged_action": values[lg_i].tolist(), "logged_action_index": lg_i,
-                               "agree": pi_i == lg_i, "action_dims": dims},
-                    "q_gap": {**base, "q_gap": None if qp is None or ql is None else ql - qp, "q_policy": qp,
-                              "q_logged": ql},
-                    "density_ratio": {**base, "ratio": float(v["ratio"][i]), "policy_prob": float(v["policy_prob"][i]),
-                                      "behaviour_prob": float(v["behaviour_prob"][i]),
-                                      "behaviour_source": v["behaviour_source"]},
-                    "support": {**base, "out_of_support": bool(v["out_of_support"][i]),
-                                "behaviour_prob_of_policy_action": float(v["behaviour_prob_of_policy_action"][i]),
-                                "threshold": THRESHOLD},
-                }
-                for name, m in msgs.items():
-                    w.add_message(chans[name], int(stamp[i]), json.dumps(m).encode(), int(stamp[i]), i)
+                chan = w.register_channel(f"{PREFIX}/{name}", "json", sid)
+                for i, m in enumerate(msgs):
+                    w.add_message(chan, int(stamp[i]), json.dumps(m).encode(), int(stamp[i]), i)
             w.finish()
-        os.replace(tmp, out)
-    except BaseException as exc:
-        tmp.unlink(missing_ok=True)  # whatever failed (full disk, Ctrl-C), no temporary is left
-        if isinstance(exc, OfflineADPError) or not isinstance(exc, Exception):
+    except Exception as exc:  # the temporary is gone (atomic_file); say what failed
+        if isinstance(exc, OfflineADPError):
             raise
         if isinstance(exc, OSError) and (exc.filename is None or Path(exc.filename) != Path(log_file)):
             from offline_adp.errors import os_error_message
 
             raise WriteError(os_error_message(exc, out)) from None
         raise IngestError(f"{log_file}: cannot copy the log's messages ({type(exc).__name__}: {exc})") from exc
-    summary = {"out": str(out), "messages_copied": n_copied, "steps": int(len(t_ns)),
-               "agreement": float(np.mean(v["policy_index"] == v["logged_index"])) if len(t_ns) else None,
-               "out_of_support": int(np.sum(v["out_of_support"])), "behaviour": v["behaviour_source"],
-               "topics": [f"{PREFIX}/{k}" for k in SCHEMAS]}
-    log.info("annotated %s -> %s: %d steps, agreement %s", log_file, out, summary["steps"], summary["agreement"])
-    return summary
+    return n_copied

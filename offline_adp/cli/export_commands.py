@@ -47,9 +47,10 @@ def cmd_annotate(args: argparse.Namespace) -> int:
     from offline_adp.annotate import annotate_mcap
 
     s = annotate_mcap(args.run, args.log, args.out, spec=args.spec, dataset=args.dataset, overwrite=args.overwrite)
-    _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); policy agrees with the log "
-         f"on {s['agreement']:.1%} of steps, {s['out_of_support']} steps out of support; topics "
-         f"{', '.join(s['topics'])}")
+    agrees = ("" if s["agreement"] is None  # continuous commands: the differences are on /offline_adp/command
+              else f"policy agrees with the log on {s['agreement']:.1%} of steps, ")
+    _say(args, f"annotated {s['steps']} steps ({s['messages_copied']} log messages copied); {agrees}"
+         f"{s['out_of_support']} steps out of support; topics {', '.join(s['topics'])}")
     print(s["out"])
     return 0
 

@@ -317,7 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Ingest LOG with the run's MCAP spec (from its dataset's provenance, or --spec) and "
         "write OUT: every message of LOG plus JSON topics (with JSON schemas) at each logged step's time: "
         "/offline_adp/action (policy vs "
-        "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag). "
+        "logged action), /offline_adp/q_gap, /offline_adp/density_ratio, /offline_adp/support (out-of-support flag); "
+        "a policy over continuous commands: /offline_adp/command (policy vs logged command), /offline_adp/q_gap and "
+        "/offline_adp/support (its command against those logged nearby). "
         "Open OUT in Foxglove to plot them on the log's timeline.",
         epilog="example (the README's tour):\n  offline-adp annotate runs/pt-fqi --log logs/ros2/demonstration.mcap "
         "--spec data/specs/path_tracking_mcap.toml --out annotated.mcap   # --spec: a run fitted on a table",

@@ -260,13 +260,16 @@ def atomic_file(target: str | PathLike[str], *, what: str = "file", lock: bool =
     read-only folder, Ctrl-C) leaves ``target`` as it was. A ``target`` that is a
     directory is refused before anything is written; a symbolic link at ``target`` is
     replaced, not followed. With ``lock``, the write holds :func:`locked_directory` on
-    ``target`` (a second writer fails at once).
+    ``target`` (a second writer fails at once) and first removes the temporaries of writes
+    of ``target`` killed before (``kill -9`` leaves them; nothing else can be writing it).
     """
     target = Path(target)
     if target.is_dir() and not target.is_symlink():
         raise WriteError(f"{target} is a directory; expected a {what} path (name a file, e.g. {target / 'out'}"
                          f"{target.suffix or ''})")
     with locked_directory(target, what=what) if lock else contextlib.nullcontext():
+        if lock:
+            clean_stale_temporaries(target)
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.parent / f".{target.name}.tmp-{secrets.token_hex(4)}"
         try:
