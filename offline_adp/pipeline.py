@@ -97,6 +97,14 @@ def _hash(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+#: The files a completed stage leaves in the run directory (checked before it is reused;
+#: ``a|b``: either).
+STAGE_OUTPUTS: dict[str, tuple[str, ...]] = {
+    "data": ("dataset/meta/info.json",), "validate": ("dataset/meta/info.json",),
+    "fit": ("fit/run.json", "fit/model/q.json|fit/model/policy.json"),
+    "evaluate": ("fit/evaluation/metrics.json", "metrics.json"), "report": ("report.html",)}
+
+
 class Manifest:
     """``manifest.json``: written after every stage (atomically: temp file + rename)."""
 
@@ -113,8 +121,12 @@ class Manifest:
         self.data["created"] = self.data["created"] or datetime.now(UTC).isoformat(timespec="seconds")
 
     def done(self, stage: str, key: str) -> bool:
+        """Completed with this key *and* its outputs still there (a run killed while
+        ``--force`` cleared it, or a directory deleted by hand, is recomputed, not reused)."""
         s = self.data["stages"].get(stage)
-        return bool(s and s.get("status") == "completed" and s.get("key") == key)
+        run = self.rd.path
+        return bool(s and s.get("status") == "completed" and s.get("key") == key
+                    and all(any((run / q).is_file() for q in p.split("|")) for p in STAGE_OUTPUTS.get(stage, ())))
 
     def set(self, stage: str, **fields: Any) -> None:
         self.data["stages"][stage] = {**self.data["stages"].get(stage, {}), **fields}
@@ -157,8 +169,8 @@ def run_pipeline(
         raise SpecError(f"--from {from_stage!r}: stages are {list(STAGES)}")
     run = Path(out) if out is not None else default_run_dir(cfg, Path(runs_root), force)
     with RunDirectory(run).lock() as rd:
-        if force:
-            for child in rd.path.iterdir():
+        if force:  # the manifest first: killed half-way, nothing is left that claims a stage done
+            for child in sorted(rd.path.iterdir(), key=lambda c: c.name != "manifest.json"):
                 rd.remove(child.name)
         _run_locked(cfg, rd, from_stage, say)
     return run
@@ -235,7 +247,8 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
                       "versions": man.data["versions"], "code": man.data["code"]})
     stage("data", data_key, lambda: _data_stage(cfg, run, client))
     stage("validate", _hash(["validate", data_key]), lambda: _validate_stage(run))
-    fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"]})
+    fit_key = _hash({"fit": cfg["fit"], "data": data_key, "seed": cfg["seed"],
+                     "policy": _model_fingerprint(cfg["fit"]["params"].get("policy"))})
     # its checkpoints are resumed only when the fit they were written by had this key (same code and settings)
     same_fit = man.data["stages"].get("fit", {}).get("key") == fit_key
     stage("fit", fit_key, lambda: _fit_stage(cfg, run, say, client, resumable=same_fit))
@@ -244,6 +257,19 @@ def _run_stages(cfg: dict[str, Any], run: Path, man: Manifest, stage: Callable[.
         stage("evaluate", eval_key, lambda: _evaluate_stage(cfg, run, say, client))
         if cfg["report"]:
             stage("report", _hash(["report", eval_key]), lambda: _report_stage(run))
+
+
+def _model_fingerprint(path: str | None) -> str | None:
+    """sha256 of the saved model a fit reads (``fqe``'s ``policy``: a run or model
+    directory), so that a policy replaced at the same path is evaluated again, not reused
+    under the old one's numbers (only its path was in the key)."""
+    if not path:
+        return None
+    root = Path(path)
+    for d in (root, root / "model", root / "fit" / "model"):
+        if (d / "policy.json").is_file() or (d / "q.json").is_file():
+            return _hash({f.name: sha256_file(f) for f in sorted(d.iterdir()) if f.is_file()})
+    return None  # the fit itself says what is wrong with the path
 
 
 def _data_stage(cfg: dict[str, Any], run: Path, client: Any = None) -> dict[str, Any]:

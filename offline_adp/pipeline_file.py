@@ -197,6 +197,8 @@ def load_pipeline(path: str | PathLike[str], overrides: dict[str, Any] | None = 
 
         fit["params"] = {**load_config(p.parent / fit.pop("config"), fit["algorithm"]), **fit.get("params", {})}
     fit["params"] = entry.check_params(fit["params"], str(p), "fit.params")
+    if isinstance(fit["params"].get("policy"), str):  # relative to the pipeline file, as every path in it
+        fit["params"]["policy"] = str((p.parent / fit["params"]["policy"]).resolve())
     entry.check_complete(fit["params"], str(p), "fit.params")
     # checked by its model
     evaluate = model.evaluate.model_dump(exclude_none=True) if model.evaluate is not None else None

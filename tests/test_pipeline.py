@@ -178,3 +178,60 @@ def test_other_code_recomputes_every_stage(tmp_path, monkeypatch):
     man = json.loads((run / "manifest.json").read_text())
     assert man["code"] == "0" * 64 and not any(s["reused"] for s in man["stages"].values())
     assert not any("resuming" in s for s in said)
+
+
+def test_a_stage_whose_outputs_are_gone_is_recomputed(tmp_path):
+    """The manifest alone decided reuse: a run killed while `--force` cleared it (fit/ gone,
+    manifest.json still there), or a model deleted by hand, printed "[fit] reused" and left
+    no fit (a crash audit). A stage is reused only with its outputs in place now."""
+    import shutil
+
+    run = run_pipeline(PIPELINES / "driving.toml", out=tmp_path / "r", say=quiet, overrides=TINY)
+    shutil.rmtree(run / "fit" / "model")
+    said: list[str] = []
+    run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)
+    assert "[data] reused (inputs, settings and code unchanged)" in said and "[fit] running" in said
+    assert (run / "fit" / "model").is_dir() and "[evaluate] running" in said  # downstream of the fit, too
+    (run / "report.html").unlink()
+    said.clear()
+    run_pipeline(PIPELINES / "driving.toml", out=run, say=said.append, overrides=TINY)
+    assert "[evaluate] reused (inputs, settings and code unchanged)" in said and "[report] running" in said
+    assert (run / "report.html").is_file()
+
+
+def test_an_fqe_pipeline_reads_its_policy_relative_to_the_file_and_by_its_contents(tmp_path, monkeypatch):
+    """`[fit.params] policy` was read from the current directory (run --help says paths are
+    relative to the file), and only its path was in the fit's key: a policy replaced at the
+    same path was "reused" with the old one's value (5.99 against a fresh 16.39; crash audit)."""
+    import shutil
+
+    from offline_adp.runs import fit_run
+    from offline_adp.simulate import simulate
+
+    simulate("gridworld", 3, 10, seed=0, horizon=30).save(tmp_path / "logs")
+    for name, its in (("a", 1), ("b", 30)):
+        fit_run(tmp_path / "logs", tmp_path / name,
+                params={"n_iterations": its, "regressor_params": {"n_estimators": 3}})
+    shutil.copytree(tmp_path / "a", tmp_path / "pol")
+    (tmp_path / "pl").mkdir()
+    (tmp_path / "pl" / "fqe.toml").write_text('name = "fqe"\n[data]\nsimulate = "gridworld"\ndemonstrations = 3\n'
+                                              'exploration = 10\nhorizon = 30\n[fit]\nalgorithm = "fqe"\n'
+                                              '[fit.params]\npolicy = "../pol/model"\nn_iterations = 30\n'
+                                              'regressor_params = {n_estimators = 3}\n')
+    monkeypatch.chdir(tmp_path)  # not the pipeline file's folder
+    run = run_pipeline(tmp_path / "pl" / "fqe.toml", out=tmp_path / "r", say=quiet)
+    first = json.loads((run / "fit" / "run.json").read_text())["value"]
+    shutil.rmtree(tmp_path / "pol")
+    shutil.copytree(tmp_path / "b", tmp_path / "pol")  # another policy at the same path
+    said: list[str] = []
+    run_pipeline(tmp_path / "pl" / "fqe.toml", out=run, say=said.append)
+    assert "[data] reused (inputs, settings and code unchanged)" in said and "[fit] running" in said
+    second = json.loads((run / "fit" / "run.json").read_text())["value"]
+    # oracle: a fresh FQE of each policy on the run's data (the fits are deterministic)
+    fresh = {}
+    for name in ("a", "b"):
+        fit_run(run / "dataset", tmp_path / f"f{name}", algorithm="fqe",
+                params={"policy": str(tmp_path / name / "model"), "n_iterations": 30,
+                        "regressor_params": {"n_estimators": 3}})
+        fresh[name] = json.loads((tmp_path / f"f{name}" / "run.json").read_text())["value"]
+    assert fresh["a"] != fresh["b"] and (first, second) == (fresh["a"], fresh["b"])
