@@ -204,41 +204,39 @@ def distill_run(run_dir: str | PathLike[str], out: str | PathLike[str], dataset:
     with ``overwrite=True``, and only if it is a distilled run (or empty).
     """
     import json
-    import shutil
 
     from offline_adp.artifacts import save_policy
     from offline_adp.data.dataset import TransitionDataset
+    from offline_adp.data.files import atomic_directory, locked_directory
     from offline_adp.distill import distill_policy
     from offline_adp.errors import WriteError
 
     run, dest = Path(run_dir), Path(out)
-    if dest.exists():
-        if not overwrite:
-            raise OutputExistsError(f"{dest} already exists; pass --overwrite to replace it")
-        rj = dest / "run.json"
-        distilled = rj.exists() and read_json_file(rj).get("algorithm") == "distill"
-        if not dest.is_dir() or not (distilled or not any(dest.iterdir())):
-            raise WriteError(f"{dest} is not a distilled run directory; --overwrite replaces only those (or "
-                             "an empty one)")
-    policy = load_run_policy(run, dataset)
-    ds_dir = run_dataset(run, dataset)
-    ds = TransitionDataset.load(ds_dir)
-    if len(ds.info.action_table.dims) != getattr(policy, "n_dims", len(ds.info.action_table.dims)):
-        raise IncompatibleError(f"{run}: the policy commands {policy.n_dims} components, the dataset's action table "
-                                f"has {len(ds.info.action_table.dims)}")
-    pi = distill_policy(policy, ds, n_estimators=n_estimators, min_samples_leaf=min_samples_leaf, max_rate=max_rate,
-                        random_state=random_state)
-    tmp = dest.parent / f".{dest.name}.distill-tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        save_policy(pi, tmp / "model", extra={"distilled_from": str(run.resolve())})
-        (tmp / "model" / "signature.json").write_text(json.dumps(pi.signature.to_dict(), indent=1))
-        (tmp / "run.json").write_text(json.dumps({"dataset": str(ds_dir.resolve()), "algorithm": "distill",
-                                                  "distilled_from": str(run.resolve()), "distill": pi.report},
-                                                  indent=1))
+    if Path(run).resolve() == dest.resolve() or Path(run).resolve() in dest.resolve().parents:
+        raise WriteError(f"{dest} is the run distilled or lies inside it; distill into another directory")
+    with locked_directory(dest, what="distilled run"):  # a second distill of `out` fails at once
         if dest.exists():
-            shutil.rmtree(dest)
-        tmp.rename(dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+            if not overwrite:
+                raise OutputExistsError(f"{dest} already exists; pass --overwrite to replace it")
+            rj = dest / "run.json"
+            distilled = rj.exists() and read_json_file(rj).get("algorithm") == "distill"
+            if not dest.is_dir() or not (distilled or not any(dest.iterdir())):
+                raise WriteError(f"{dest} is not a distilled run directory; --overwrite replaces only those (or "
+                                 "an empty one)")
+        policy = load_run_policy(run, dataset)
+        ds_dir = run_dataset(run, dataset)
+        ds = TransitionDataset.load(ds_dir)
+        if len(ds.info.action_table.dims) != getattr(policy, "n_dims", len(ds.info.action_table.dims)):
+            raise IncompatibleError(f"{run}: the policy commands {policy.n_dims} components, the dataset's action "
+                                    f"table has {len(ds.info.action_table.dims)}")
+        pi = distill_policy(policy, ds, n_estimators=n_estimators, min_samples_leaf=min_samples_leaf,
+                            max_rate=max_rate, random_state=random_state)
+        # the new run beside the old one, then renamed over it: killed at any moment, `out` is the old run or
+        # the new one (it was removed before the rename, and a kill in between lost it)
+        with atomic_directory(dest, overwrite=True, clean_stale=True) as tmp:
+            save_policy(pi, tmp / "model", extra={"distilled_from": str(run.resolve())})
+            (tmp / "model" / "signature.json").write_text(json.dumps(pi.signature.to_dict(), indent=1))
+            (tmp / "run.json").write_text(json.dumps({"dataset": str(ds_dir.resolve()), "algorithm": "distill",
+                                                      "distilled_from": str(run.resolve()), "distill": pi.report},
+                                                     indent=1))
     return {**pi.report, "out": str(dest)}

@@ -298,3 +298,34 @@ def test_greedy_export_agrees_where_logged_states_tie():
     np.testing.assert_allclose(got[:, 0], pol.act(X.astype(np.float64)), rtol=0, atol=1e-5)
     with pytest.raises(SchemaError, match="finite values only"):
         pol.act(np.array([[np.nan, 0.0]]))
+
+
+def test_distill_overwrite_interrupted_keeps_the_previous_run(pendulum, tmp_path, monkeypatch):
+    """`distill --overwrite` removed the old run, then renamed the new one into place: killed
+    in between, neither was left (a crash audit). Now the new run is renamed over the old one
+    (atomic_directory): failing at the swap itself leaves the previous run whole. A distill
+    into the run distilled is refused."""
+    import offline_adp.data.files as files
+    from offline_adp.deploy import distill_run
+    from offline_adp.errors import WriteError
+
+    root, ds = pendulum
+    out = tmp_path / "d"
+    distill_run(root / "run", out, n_estimators=3)
+    before = load_policy(out).act(ds.arrays().obs[:50])
+    real, calls = files.os.replace, []
+
+    def failing(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:  # the new run onto `out`, after the old one was set aside
+            raise KeyboardInterrupt
+        return real(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", failing)
+    with pytest.raises(KeyboardInterrupt):
+        distill_run(root / "run", out, n_estimators=5, overwrite=True)
+    monkeypatch.setattr(files.os, "replace", real)
+    np.testing.assert_array_equal(load_policy(out).act(ds.arrays().obs[:50]), before)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # nothing left beside it
+    with pytest.raises(WriteError, match="lies inside it"):
+        distill_run(root / "run", root / "run" / "d2")
