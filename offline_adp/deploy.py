@@ -179,6 +179,12 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
 
     An existing ``out`` is replaced only with ``overwrite=True`` (``--overwrite``);
     ``input_dtype`` is the observation input's type (``float64`` or ``float32``)."""
+    run = Path(run_dir).resolve()
+    if run == Path(out).resolve() or run in Path(out).resolve().parents:
+        from offline_adp.errors import WriteError
+
+        raise WriteError(f"--out {out} lies inside the run directory {run_dir} (it would replace the run's own "
+                         "files); export elsewhere")
     if Path(out).exists() and not overwrite:
         raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if fmt not in EXPORT_FORMATS:

@@ -168,6 +168,9 @@ def run_pipeline(
     if from_stage is not None and from_stage not in STAGES:
         raise SpecError(f"--from {from_stage!r}: stages are {list(STAGES)}")
     run = Path(out) if out is not None else default_run_dir(cfg, Path(runs_root), force)
+    from offline_adp.data.io import check_dataset_output
+
+    check_dataset_output(run / "dataset", cfg["data"].get("inputs", []))  # before config.json is written
     with RunDirectory(run).lock() as rd:
         if force:  # the manifest first: killed half-way, nothing is left that claims a stage done
             for child in sorted(rd.path.iterdir(), key=lambda c: c.name != "manifest.json"):

@@ -58,6 +58,17 @@ def load_config(path: str | PathLike[str] | None, algorithm: str) -> dict[str, A
 CHECKPOINT_CPU_SHARE = 0.05
 
 
+def _check_run_output(out: Path, dataset: str | PathLike[str]) -> None:
+    """A run directory is never written into a dataset directory, nor over or around the
+    dataset it reads (``fit DS --out DS`` put run files beside ``data/`` and ``meta/``)."""
+    from offline_adp.data.io import check_dataset_output
+    from offline_adp.errors import OutputExistsError
+
+    check_dataset_output(out, [dataset])
+    if (out / "meta" / "info.json").is_file():
+        raise OutputExistsError(f"--out {out} is a dataset directory; write the run elsewhere")
+
+
 def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> int:
     """Checkpoint ``est`` (the Q it has at hand, with its history rows); returns the
     iterations written (0: none)."""
@@ -192,6 +203,7 @@ def fit_run(
     if not resume:
         entry.check_complete(params)
     rd = RunDirectory(out)
+    _check_run_output(rd.path, dataset)
     if resume and not entry.resumable:
         raise InvalidArgumentError(f"--resume is for {resumable_algorithms()} runs; "
                                    f"{algorithm} runs as a whole")

@@ -67,6 +67,10 @@ def convert(source: str, out: str, *, from_format: str = "dataset", to_format: s
             raise UnknownNameError(f"unknown dataset format {f!r}; known: {list(FORMATS)}")
     if from_format == "lerobot":
         raise InvalidArgumentError("reading the LeRobot layout is not supported (export only)")
+    if to_format != "minari":  # an id under MINARI_DATASETS_PATH, not a path next to the source
+        from offline_adp.data.io import check_dataset_output
+
+        check_dataset_output(out, [source] if Path(source).exists() else [])  # never into what it reads
     readers = {"dataset": read_dataset, "d4rl": from_d4rl, "minari": from_minari}
     ds = readers[from_format](source)
     if from_format == "dataset":  # d4rl / minari readers run the doctor themselves
