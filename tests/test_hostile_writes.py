@@ -478,3 +478,18 @@ def test_lock_files_are_gone_after_cli_writes(tmp_path, capsys, inputs):
 
 def test_write_error_is_ours():
     assert issubclass(WriteError, OfflineADPError)
+
+
+def test_simulate_mcap_after_a_killed_write_is_not_blocked_by_its_temporaries(tmp_path):
+    """kill -9 during `simulate --format mcap-json` left `.demonstration.mcap.tmp` in the
+    folder (6 of 24 kills), and the same command then failed "not empty; pass --overwrite"."""
+    from offline_adp.cli import main
+
+    out = tmp_path / "logs"
+    out.mkdir()
+    (out / ".demonstration.mcap.tmp").write_bytes(b"half a recording")
+    assert main(["simulate", "gridworld", "--format", "mcap-json", "--out", str(out), "--demonstrations", "1",
+                 "--exploration", "1", "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["demonstration.mcap", "exploration.mcap"]
+    (out / "notes.txt").write_text("mine")  # what is not ours still needs --overwrite
+    assert main(["simulate", "gridworld", "--format", "mcap-json", "--out", str(out), "-q"]) == 2

@@ -51,9 +51,14 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
 
     if out.exists() and not out.is_dir():
         raise WriteError(f"{out} is a file; MCAP recordings are written into a folder (name one)")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(f"{out} is not empty; pass --overwrite to write into it")
     from offline_adp.data.files import locked_directory
 
     with locked_directory(out, what="MCAP folder"):
+        # the temporaries of a write killed before (kill -9): nothing else writes here while we hold the lock,
+        # and they neither make the folder "not empty" nor stay behind
+        stale = sorted(out.glob(".*.mcap.tmp")) if out.is_dir() else []
+        if out.exists() and any(p not in stale for p in out.iterdir()) and not overwrite:
+            raise OutputExistsError(f"{out} is not empty; pass --overwrite to write into it")
+        for p in stale:
+            p.unlink()
         return list(write_mcap(ds, out, encoding=fmt.split("-")[1], seed=seed))
