@@ -172,6 +172,20 @@ def _check_fitted_on(run: Path, model: Path, info: Any, info_json: Path) -> None
                                     "the data the run was fitted on; pass --dataset DIR of those logs")
 
 
+def check_export_output(run_dir: str | PathLike[str], out: str | PathLike[str]) -> None:
+    """Refuse an export that would replace a file of the run it reads (``--out RUN/run.json
+    --overwrite`` broke the run) or write into its ``model/`` or ``checkpoint/``; a new file
+    elsewhere in the run directory is fine."""
+    from offline_adp.errors import WriteError
+
+    run, target = Path(run_dir).resolve(), Path(out).resolve()
+    if run != target and run not in target.parents:
+        return
+    if target == run or target.exists() or (run / "model") in target.parents or (run / "checkpoint") in target.parents:
+        raise WriteError(f"--out {out} would replace or change the files of the run {run_dir} it exports; export "
+                         "elsewhere (or to a new file name)")
+
+
 def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str = "onnx",
                dataset: str | PathLike[str] | None = None, *, overwrite: bool = False,
                input_dtype: str = "float64") -> Path:
@@ -179,12 +193,7 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
 
     An existing ``out`` is replaced only with ``overwrite=True`` (``--overwrite``);
     ``input_dtype`` is the observation input's type (``float64`` or ``float32``)."""
-    run = Path(run_dir).resolve()
-    if run == Path(out).resolve() or run in Path(out).resolve().parents:
-        from offline_adp.errors import WriteError
-
-        raise WriteError(f"--out {out} lies inside the run directory {run_dir} (it would replace the run's own "
-                         "files); export elsewhere")
+    check_export_output(run_dir, out)
     if Path(out).exists() and not overwrite:
         raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if fmt not in EXPORT_FORMATS:

@@ -100,8 +100,9 @@ def check_time_steps(t: Any, n: int) -> None:
     :class:`SchemaError` otherwise)."""
     tt = np.asarray(t)
     if tt.dtype == bool or tt.dtype.kind not in "iu" or tt.ndim > 1 or (tt.ndim == 1 and len(tt) != n):
-        raise SchemaError(f"time step t must be a non-negative integer or one per observation ({n}); got "
-                          f"{tt.dtype} of shape {tt.shape}")
+        raise SchemaError(f"time step t must be a non-negative integer (int, not float: 3, not 3.0) or one per "
+                          f"observation ({n}); got {tt.dtype} of shape {tt.shape}"
+                          + (f": {tt.ravel()[:3].tolist()}" if tt.size else ""))
     if tt.size and int(tt.min()) < 0:
         raise SchemaError(f"time step t must be >= 0, got {int(tt.min())}")
 

@@ -59,14 +59,19 @@ CHECKPOINT_CPU_SHARE = 0.05
 
 
 def _check_run_output(out: Path, dataset: str | PathLike[str]) -> None:
-    """A run directory is never written into a dataset directory, nor over or around the
-    dataset it reads (``fit DS --out DS`` put run files beside ``data/`` and ``meta/``)."""
-    from offline_adp.data.io import check_dataset_output
+    """A run directory is never the dataset it reads, a dataset directory or inside one
+    (``fit DS --out DS`` put run files beside ``data/`` and ``meta/``). A run directory
+    holding its dataset (``fit RUN/dataset --out RUN``) is fine: the fit adds files, it
+    does not replace the directory."""
     from offline_adp.errors import OutputExistsError
 
-    check_dataset_output(out, [dataset])
-    if (out / "meta" / "info.json").is_file():
-        raise OutputExistsError(f"--out {out} is a dataset directory; write the run elsewhere")
+    target = out.resolve()
+    if target == Path(dataset).resolve():
+        raise OutputExistsError(f"--out {out} is the input dataset {dataset}; write the run elsewhere")
+    for d in (target, *target.parents):
+        if (d / "meta" / "info.json").is_file():
+            where = "is a dataset directory" if d == target else f"lies inside the dataset directory {d}"
+            raise OutputExistsError(f"--out {out} {where}; write the run elsewhere")
 
 
 def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> int:

@@ -85,3 +85,11 @@ def test_a_pause_that_starts_an_episode_is_counted_with_its_length(tmp_path):
     assert "gaps_at" not in mcap_info(f)["topics"]["/state"]
     _, s = ingest_mcap([f], _spec("error"))
     assert s.get("gap_splits", 0) == 0
+
+
+def test_gap_locations_of_a_log_starting_at_time_zero(tmp_path):
+    from offline_adp.ingest.mcap import mcap_info
+
+    msgs = [("/state", j * 100 * MS + (2000 * MS if j >= 50 else 0), {"x": float(j)}) for j in range(100)]
+    top = mcap_info(write_log(tmp_path / "zero.mcap", msgs))["topics"]["/state"]
+    assert top["gaps_at"] == [{"after_s": 4.9, "length_s": 2.1}]  # not "+0.0 s" (a first time of 0 is a time)

@@ -36,10 +36,14 @@ def made(tmp_path_factory):
 def test_export_into_its_run_is_refused(made, capsys):
     pytest.importorskip("onnx")
     before = _digest(made / "run")
-    for out in (made / "run" / "model" / "q.npz", made / "run" / "run.json"):
+    for out in (made / "run" / "model" / "q.npz", made / "run" / "run.json", made / "run" / "model" / "new.onnx",
+                made / "run" / "model" / "x" / "y.onnx"):
         assert main(["export", str(made / "run"), "--out", str(out), "--overwrite"]) == 2
-        assert "lies inside the run directory" in capsys.readouterr().err
-    assert _digest(made / "run") == before
+        assert "would replace or change the files of the run" in capsys.readouterr().err
+    assert _digest(made / "run") == before and not (made / "run" / "model" / "x").exists()  # nothing made either
+    # a new file beside the run's own is not the run's: allowed (it was before)
+    assert main(["export", str(made / "run"), "--out", str(made / "run" / "policy.onnx")]) == 0
+    (made / "run" / "policy.onnx").unlink()
 
 
 def test_convert_into_its_source_is_refused(made, capsys):
@@ -53,12 +57,22 @@ def test_convert_into_its_source_is_refused(made, capsys):
 def test_fit_into_a_dataset_is_refused(made, capsys):
     before, other = _digest(made / "ds"), _digest(made / "other")
     assert main(["fit", str(made / "ds"), "--out", str(made / "ds")]) == 2
-    assert "is the input" in capsys.readouterr().err
+    assert "is the input dataset" in capsys.readouterr().err
     assert main(["fit", str(made / "ds"), "--out", str(made / "other")]) == 2
     assert "is a dataset directory" in capsys.readouterr().err
     assert main(["fit", str(made / "ds"), "--out", str(made / "ds" / "run")]) == 2
     assert "lies inside the dataset directory" in capsys.readouterr().err
     assert (_digest(made / "ds"), _digest(made / "other")) == (before, other)
+
+
+def test_a_run_holding_its_dataset_still_fits(made, tmp_path):
+    """`fit RUN/dataset --out RUN` adds files to RUN (a layout load_policy knows): not refused."""
+    import shutil
+
+    shutil.copytree(made / "ds", tmp_path / "r" / "dataset")
+    before = _digest(tmp_path / "r" / "dataset")
+    assert main(["fit", str(tmp_path / "r" / "dataset"), "--out", str(tmp_path / "r"), "-q"]) == 0
+    assert _digest(tmp_path / "r" / "dataset") == before and (tmp_path / "r" / "model").is_dir()
 
 
 def test_a_pipeline_into_a_dataset_writes_nothing_there(made, tmp_path, capsys):

@@ -91,3 +91,14 @@ def test_an_explicit_dataset_of_other_logs_is_refused(fitted, tmp_path):
     _swapped_copy(fitted / "data" / "g", tmp_path / "other")
     with pytest.raises(IncompatibleError, match="fitted on the features"):
         offline_adp.load_policy(fitted / "runs" / "g", dataset=tmp_path / "other")
+
+
+def test_a_dataset_path_edited_since_the_fit_is_read_as_edited(fitted, tmp_path):
+    """`dataset_resolved` is the typed path's absolute form; once `dataset` is edited (to
+    other logs at another relative path) it no longer ends with it and the edit wins."""
+    from offline_adp.data.rundir import recorded_dataset
+
+    rj = json.loads((fitted / "runs" / "g" / "run.json").read_text())
+    assert recorded_dataset("run.json", rj) == rj["dataset_resolved"]
+    assert recorded_dataset("run.json", {**rj, "dataset": "data/other"}) == "data/other"
+    assert recorded_dataset("run.json", {**rj, "dataset": "../g"}) == "../g"

@@ -178,7 +178,8 @@ def recorded_dataset(run_json: str | PathLike[str], info: dict[str, Any] | None 
     directory; ``dataset_resolved`` (runs fitted since 2026-11-29) is its absolute path. For a
     relative ``dataset`` the absolute one is returned when it still holds a dataset, so a run
     finds its data from any directory (the relative path read from another directory could
-    name other logs); an absolute ``dataset`` (or one edited since) is returned as it is.
+    name other logs); an absolute ``dataset``, or one edited since (``dataset_resolved`` no
+    longer ends with it), is returned as it is.
     Anything else there (a number, a list...) is an :class:`~offline_adp.errors.ArtifactError`
     naming the file and the key, not a ``TypeError`` from ``Path()`` or a path that silently
     means the current directory."""
@@ -194,7 +195,9 @@ def recorded_dataset(run_json: str | PathLike[str], info: dict[str, Any] | None 
             raise ArtifactError(f"{p}: {key!r} must be the path of the dataset directory (a string), found "
                                 f"{type(v).__name__} {v!r:.60}; fit the run again or pass --dataset DIR")
     resolved = doc.get("dataset_resolved")
+    typed = Path(value).parts
     if (resolved is not None and not Path(value).is_absolute() and Path(resolved).is_absolute()
+            and ".." not in typed and Path(resolved).parts[-len(typed):] == typed  # not edited since
             and (Path(resolved) / "meta" / "info.json").is_file()):
         return str(resolved)
     return str(value)

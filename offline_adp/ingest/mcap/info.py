@@ -60,7 +60,8 @@ class _Topic:
         gap = max(5 * med, 1e9)
         gaps = int((p > gap).sum()) * self.stride
         med = float(np.median(p[p <= gap])) if (p <= gap).any() else med
-        at = [{"after_s": round((t0 - (self.first or t0)) / 1e9, 3), "length_s": round(d / 1e9, 3)}
+        first = self.first if self.first is not None else 0
+        at = [{"after_s": round((t0 - first) / 1e9, 3), "length_s": round(d / 1e9, 3)}
               for t0, d in self.long if d > gap][:3]  # seconds after the topic's first message
         return {"rate_hz": round(1e9 / med, 3), "restarts": self.restarts, "gaps": gaps,
                 **({"gaps_at": at} if gaps else {}), "status": "ok"}
