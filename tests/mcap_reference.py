@@ -116,6 +116,9 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                     seen[k] = maxt.get(clock) if e == epoch.get(clock, 0) else None
             epoch[k] = e
             out.setdefault((k, e), []).append((k, e, t, vals))
+    # messages held for an epoch the clock never reached (a stream's time fell back more than `restart` once
+    # while the clock's did not): never used, counted as orphans
+    res.orphans += sum(len(v) for (k, e), v in out.items() if k != clock and e not in clock_first)
     return [x for v in out.values() for x in v], res
 
 

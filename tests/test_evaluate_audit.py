@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,11 +113,23 @@ def test_another_action_order_is_refused_wherever_evaluate_runs(fitted, tmp_path
 
     (tmp_path / "other").mkdir()
     simulate("tabular", 10, 10, seed=4).save(tmp_path / "other" / "base")  # other logs under the name run.json gives
+    import json
+    import shutil
+
+    old_run = tmp_path / "old_run"  # a run written before run.json kept the path's absolute form
+    shutil.copytree(fitted / "run", old_run)
+    rj = json.loads((old_run / "run.json").read_text())
+    rj.pop("dataset_resolved", None)
+    (old_run / "run.json").write_text(json.dumps(rj))
     here = os.getcwd()
     os.chdir(tmp_path / "other")
     try:
         with pytest.raises(IncompatibleError, match="is not the data the run was fitted on"):
-            evaluate_run(fitted / "run", simulator="none")
+            evaluate_run(old_run, simulator="none")
+        # a run fitted since finds its own logs from any directory (dataset_resolved)
+        shutil.copytree(fitted / "run", tmp_path / "new_run")
+        m = evaluate_run(tmp_path / "new_run", simulator="none")
+        assert Path(m["dataset"]["path"]).resolve() == (fitted / "base").resolve()
     finally:
         os.chdir(here)
 
