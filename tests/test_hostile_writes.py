@@ -493,3 +493,24 @@ def test_simulate_mcap_after_a_killed_write_is_not_blocked_by_its_temporaries(tm
     assert sorted(p.name for p in out.iterdir()) == ["demonstration.mcap", "exploration.mcap"]
     (out / "notes.txt").write_text("mine")  # what is not ours still needs --overwrite
     assert main(["simulate", "gridworld", "--format", "mcap-json", "--out", str(out), "-q"]) == 2
+
+
+def test_a_second_simulate_of_one_table_fails_at_once(tmp_path, capsys):
+    """Two `simulate --format parquet --overwrite` runs on one --out both succeeded (each file's
+    write was locked, not the command), so a table could be paired with the other's spec."""
+    import subprocess
+    import sys
+
+    from offline_adp.cli import main
+
+    out = tmp_path / "g.parquet"
+    holder = subprocess.Popen([sys.executable, "-c", "import time\nfrom offline_adp.data.files import "
+                               f"locked_directory\nwith locked_directory({str(out)!r}):\n    print('held', flush=True)"
+                               "\n    time.sleep(30)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["simulate", "gridworld", "--format", "parquet", "--out", str(out), "-q"]) == 2
+        assert "lock" in capsys.readouterr().err.lower() and not out.exists()
+    finally:
+        holder.kill()
+        holder.wait()

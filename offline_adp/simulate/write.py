@@ -44,9 +44,12 @@ def write_simulated(ds: TransitionDataset, out: str | PathLike[str], fmt: str = 
             out = out / f"{ds.info.problem}.{fmt}"
         if out.is_dir():
             raise WriteError(f"{out} is a directory; name the {fmt} file to write (or a folder without a suffix)")
-        if out.exists() and not overwrite:
-            raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
-        return list(write_raw(ds, out, fmt=fmt))
+        from offline_adp.data.files import locked_directory
+
+        with locked_directory(out, what=f"{fmt} table"):  # the table and its spec: one writer at a time
+            if out.exists() and not overwrite:
+                raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
+            return list(write_raw(ds, out, fmt=fmt))
     from offline_adp.simulate.mcap_writer import write_mcap
 
     if out.exists() and not out.is_dir():
