@@ -497,20 +497,25 @@ def test_simulate_mcap_after_a_killed_write_is_not_blocked_by_its_temporaries(tm
 
 def test_a_second_simulate_of_one_table_fails_at_once(tmp_path, capsys):
     """Two `simulate --format parquet --overwrite` runs on one --out both succeeded (each file's
-    write was locked, not the command), so a table could be paired with the other's spec."""
+    write was locked, not the command), so a table could be paired with the other's spec.
+    Writer A is held between its table and its spec; writer B must fail at once now."""
     import subprocess
     import sys
 
     from offline_adp.cli import main
 
     out = tmp_path / "g.parquet"
-    holder = subprocess.Popen([sys.executable, "-c", "import time\nfrom offline_adp.data.files import "
-                               f"locked_directory\nwith locked_directory({str(out)!r}):\n    print('held', flush=True)"
-                               "\n    time.sleep(30)"], stdout=subprocess.PIPE, text=True)
+    a = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nimport offline_adp.data.files as f\nreal = f.atomic_write_text\n"
+        "def slow(*a, **k):\n    print('between', flush=True)\n    time.sleep(30)\n    return real(*a, **k)\n"
+        "f.atomic_write_text = slow\nfrom offline_adp.cli import main\n"
+        f"sys.exit(main(['simulate', 'gridworld', '--format', 'parquet', '--out', {str(out)!r}, '-q']))")],
+        stdout=subprocess.PIPE, text=True)
     try:
-        assert holder.stdout.readline().strip() == "held"
-        assert main(["simulate", "gridworld", "--format", "parquet", "--out", str(out), "-q"]) == 2
-        assert "lock" in capsys.readouterr().err.lower() and not out.exists()
+        assert a.stdout.readline().strip() == "between"  # A wrote its table, not yet its spec
+        assert main(["simulate", "gridworld", "--format", "parquet", "--out", str(out), "--overwrite",
+                     "--seed", "1", "-q"]) == 2
+        assert "lock" in capsys.readouterr().err.lower()
     finally:
-        holder.kill()
-        holder.wait()
+        a.kill()
+        a.wait()
