@@ -40,16 +40,41 @@ def test_iterated_fqi_refuses_them_before_its_first_round(ptc):
     assert not hasattr(it, "history_")
 
 
-def test_api_with_a_finite_horizon_evaluator_is_refused_over_commands(ptc):
-    from sklearn.utils._param_validation import InvalidParameterError
+def test_api_with_a_finite_horizon_evaluator_is_refused_over_commands(ptc, tmp_path, capsys):
+    from offline_adp.cli import main
 
     ds, _ = ptc
     api = ApproximatePolicyIteration(fqe=FittedQEvaluation(horizon=5, n_iterations=2), n_iterations=2)
-    with pytest.raises(InvalidParameterError, match="horizon=None over continuous commands"):
+    with pytest.raises(IncompatibleError, match="needs an evaluator with horizon=None"):
         api.fit(ds)
+    # through the CLI: one line, no traceback (a scikit-learn error type gave one)
+    ds.save(tmp_path / "d")
+    (tmp_path / "api.toml").write_text("[api]\nn_iterations = 2\n[api.fqe]\nhorizon = 5\n")
+    assert main(["fit", str(tmp_path / "d"), "--algorithm", "api", "--config", str(tmp_path / "api.toml"),
+                 "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "needs an evaluator with horizon=None" in err and "Traceback" not in err
 
 
 def test_onehot_action_input_is_refused_over_commands(ptc):
     ds, _ = ptc
     with pytest.raises(InvalidArgumentError, match="action_input='value'"):
         FittedQIteration(action_input="onehot", n_iterations=2).fit(ds)
+
+
+def test_a_scikit_learn_parameter_error_inside_a_command_is_one_line(tmp_path, capsys, monkeypatch):
+    """The safety net under the refusals above: scikit-learn's InvalidParameterError raised in
+    a fit (a setting the configuration check let through) is an error line, not a traceback."""
+    from sklearn.utils._param_validation import InvalidParameterError
+
+    import offline_adp.runs as runs
+    from offline_adp.cli import main
+
+    def bad(*a, **k):
+        raise InvalidParameterError("The 'fqe' parameter of X must be something. Got 1 instead.")
+
+    monkeypatch.setattr(runs, "fit_run", bad)
+    simulate("gridworld", 1, 1, seed=0, horizon=5).save(tmp_path / "d")
+    assert main(["fit", str(tmp_path / "d"), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "error: The 'fqe' parameter of X must be something" in err and "Traceback" not in err

@@ -71,6 +71,7 @@ from offline_adp.algorithms.params import (
     invalid_parameter,
 )
 from offline_adp.data.dataset import TransitionDataset
+from offline_adp.errors import IncompatibleError
 from offline_adp.learn import FrozenTreesLearner
 from offline_adp.policies import (
     GreedyCommandPolicy,
@@ -279,9 +280,10 @@ class ApproximatePolicyIteration(CheckedEstimator):
         cands = None
         if _continuous(proto, dataset):  # C(x): the commands logged at the nearest logged states
             if proto.horizon is not None:  # its improved policy varies with t: FQE refuses it after a first round
-                raise invalid_parameter(self, "fqe", "an evaluator with horizon=None over continuous commands (a "
-                                        "time-varying continuous policy cannot be evaluated yet; or fit FQI with "
-                                        "a horizon)", proto)
+                raise IncompatibleError(f"{type(self).__name__} over continuous commands needs an evaluator with "
+                                        f"horizon=None (given {proto.horizon}): the policy it improves over a "
+                                        "finite-horizon Q varies with the step, and a time-varying continuous "
+                                        "policy cannot be evaluated yet; drop the horizon, or fit FQI with it")
             u = logged_commands(dataset, type(self).__name__)
             cands = NeighbourCommands.from_data(dataset.arrays().obs, u, proto.n_candidates,
                                                 command_representatives(u, proto.n_representatives))

@@ -103,6 +103,11 @@ def _run(args: argparse.Namespace) -> int:
 
         print(f"offline-adp {args.command}: error: {os_error_message(exc, _output_of(args))}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # scikit-learn's check of a parameter raised inside a fit: a setting, not a bug
+        if args.traceback or type(exc).__name__ != "InvalidParameterError":
+            raise
+        print(f"offline-adp {args.command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 def _output_of(args: argparse.Namespace) -> str | None:
