@@ -56,37 +56,30 @@ CLIP = 1e-3
 THRESHOLD = 0.01
 
 _num = {"type": ["number", "null"]}
+_T = {t: {"type": t} for t in ("number", "integer", "boolean", "string")}
+_NUMBERS, _NAMES = {"type": "array", "items": _T["number"]}, {"type": "array", "items": _T["string"]}
+
+
+def _schema(title: str, description: str, **props: Any) -> dict[str, Any]:
+    """The JSON schema of one annotation topic: its fields after the step's ``episode_id`` and ``step``."""
+    return {"title": f"offline_adp.{title}", "type": "object", "description": description,
+            "properties": {"episode_id": _T["string"], "step": _T["integer"], **props}}
+
+
 SCHEMAS: dict[str, dict[str, Any]] = {
-    "action": {
-        "title": "offline_adp.PolicyAction", "type": "object",
-        "description": "The run's policy action vs the logged action at a logged step.",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
-                       "policy_action": {"type": "array", "items": {"type": "number"}},
-                       "policy_action_index": {"type": "integer"},
-                       "logged_action": {"type": "array", "items": {"type": "number"}},
-                       "logged_action_index": {"type": "integer"}, "agree": {"type": "boolean"},
-                       "action_dims": {"type": "array", "items": {"type": "string"}}},
-    },
-    "q_gap": {
-        "title": "offline_adp.QGap", "type": "object",
-        "description": "Q(x, logged action) - Q(x, policy action), in cost units (null without a Q-function).",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "q_gap": _num,
-                       "q_policy": _num, "q_logged": _num},
-    },
-    "density_ratio": {
-        "title": "offline_adp.DensityRatio", "type": "object",
-        "description": "Per-step importance ratio pi(logged action | x) / pi_b(logged action | x).",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"}, "ratio": {"type": "number"},
-                       "policy_prob": {"type": "number"}, "behaviour_prob": {"type": "number"},
-                       "behaviour_source": {"type": "string"}},
-    },
-    "support": {
-        "title": "offline_adp.Support", "type": "object",
-        "description": "out_of_support: the behaviour policy takes the policy's action with probability < threshold.",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
-                       "out_of_support": {"type": "boolean"},
-                       "behaviour_prob_of_policy_action": {"type": "number"}, "threshold": {"type": "number"}},
-    },
+    "action": _schema("PolicyAction", "The run's policy action vs the logged action at a logged step.",
+                      policy_action=_NUMBERS, policy_action_index=_T["integer"], logged_action=_NUMBERS,
+                      logged_action_index=_T["integer"], agree=_T["boolean"], action_dims=_NAMES),
+    "q_gap": _schema("QGap", "Q(x, logged action) - Q(x, policy action), in cost units (null without a Q-function).",
+                     q_gap=_num, q_policy=_num, q_logged=_num),
+    "density_ratio": _schema("DensityRatio",
+                             "Per-step importance ratio pi(logged action | x) / pi_b(logged action | x).",
+                             ratio=_T["number"], policy_prob=_T["number"], behaviour_prob=_T["number"],
+                             behaviour_source=_T["string"]),
+    "support": _schema("Support",
+                       "out_of_support: the behaviour policy takes the policy's action with probability < threshold.",
+                       out_of_support=_T["boolean"], behaviour_prob_of_policy_action=_T["number"],
+                       threshold=_T["number"]),
 }
 
 
@@ -234,24 +227,15 @@ def annotate_commands(policy: Any, log_ds: Any, fit_ds: Any = None) -> dict[str,
 
 
 COMMAND_SCHEMAS: dict[str, dict[str, Any]] = {
-    "command": {
-        "title": "offline_adp.PolicyCommand", "type": "object",
-        "description": "The run's policy command vs the logged command at a logged step (and policy - logged).",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
-                       "policy_command": {"type": "array", "items": {"type": "number"}},
-                       "logged_command": {"type": "array", "items": {"type": "number"}},
-                       "difference": {"type": "array", "items": {"type": "number"}},
-                       "command_dims": {"type": "array", "items": {"type": "string"}}},
-    },
+    "command": _schema("PolicyCommand",
+                       "The run's policy command vs the logged command at a logged step (and policy - logged).",
+                       policy_command=_NUMBERS, logged_command=_NUMBERS, difference=_NUMBERS, command_dims=_NAMES),
     "q_gap": SCHEMAS["q_gap"],
-    "support": {
-        "title": "offline_adp.CommandSupport", "type": "object",
-        "description": "out_of_support: the policy's command is farther from the commands logged at the nearest "
+    "support": _schema("CommandSupport",
+                       "out_of_support: the policy's command is farther from the commands logged at the nearest "
                        "logged states than the logged commands are from their neighbours' (distance > radius).",
-        "properties": {"episode_id": {"type": "string"}, "step": {"type": "integer"},
-                       "out_of_support": {"type": "boolean"}, "distance": {"type": "number"},
-                       "radius": {"type": "number"}, "compared_with": {"type": "string"}},
-    },
+                       out_of_support=_T["boolean"], distance=_T["number"], radius=_T["number"],
+                       compared_with=_T["string"]),
 }
 
 
@@ -284,14 +268,14 @@ def annotate_mcap(run_dir: str | PathLike[str], log_file: str | PathLike[str], o
     locked for the whole command (a second writer fails at once) and written to a
     temporary renamed into place, so it is one run's output or the file it was before."""
     from offline_adp.data.files import clean_stale_temporaries, locked_directory
+    from offline_adp.data.rundir import check_outside_run
 
     out = Path(out)
     if out.is_dir() and not out.is_symlink():
         raise WriteError(f"--out {out} is a directory; name the annotated MCAP file to write")
     if Path(out).resolve() == Path(log_file).resolve():
         raise OutputExistsError(f"--out {out} is the input log; write the annotated copy elsewhere")
-    if Path(run_dir).resolve() in Path(out).resolve().parents:
-        raise WriteError(f"--out {out} lies inside the run directory {run_dir}; write the annotated copy elsewhere")
+    check_outside_run(run_dir, out)
     with locked_directory(out, what="annotated MCAP"):
         if out.exists() and not overwrite:
             raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")

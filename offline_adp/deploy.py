@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from offline_adp.data.files import read_json_file
-from offline_adp.data.rundir import recorded_dataset
+from offline_adp.data.rundir import check_outside_run, recorded_dataset
 from offline_adp.errors import (
     ArtifactError,
     DatasetNotFoundError,
@@ -172,20 +172,6 @@ def _check_fitted_on(run: Path, model: Path, info: Any, info_json: Path) -> None
                                     "the data the run was fitted on; pass --dataset DIR of those logs")
 
 
-def check_export_output(run_dir: str | PathLike[str], out: str | PathLike[str]) -> None:
-    """Refuse an export that would replace a file of the run it reads (``--out RUN/run.json
-    --overwrite`` broke the run) or write into its ``model/`` or ``checkpoint/``; a new file
-    elsewhere in the run directory is fine."""
-    from offline_adp.errors import WriteError
-
-    run, target = Path(run_dir).resolve(), Path(out).resolve()
-    if run != target and run not in target.parents:
-        return
-    if target == run or target.exists() or (run / "model") in target.parents or (run / "checkpoint") in target.parents:
-        raise WriteError(f"--out {out} would replace or change the files of the run {run_dir} it exports; export "
-                         "elsewhere (or to a new file name)")
-
-
 def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str = "onnx",
                dataset: str | PathLike[str] | None = None, *, overwrite: bool = False,
                input_dtype: str = "float64") -> Path:
@@ -193,7 +179,7 @@ def export_run(run_dir: str | PathLike[str], out: str | PathLike[str], fmt: str 
 
     An existing ``out`` is replaced only with ``overwrite=True`` (``--overwrite``);
     ``input_dtype`` is the observation input's type (``float64`` or ``float32``)."""
-    check_export_output(run_dir, out)
+    check_outside_run(run_dir, out)
     if Path(out).exists() and not overwrite:
         raise OutputExistsError(f"{out} already exists; pass --overwrite to replace it")
     if fmt not in EXPORT_FORMATS:
@@ -227,8 +213,7 @@ def distill_run(run_dir: str | PathLike[str], out: str | PathLike[str], dataset:
     from offline_adp.errors import WriteError
 
     run, dest = Path(run_dir), Path(out)
-    if Path(run).resolve() == dest.resolve() or Path(run).resolve() in dest.resolve().parents:
-        raise WriteError(f"{dest} is the run distilled or lies inside it; distill into another directory")
+    check_outside_run(run, dest, directory=True)
     with locked_directory(dest, what="distilled run"):  # a second distill of `out` fails at once
         if dest.exists():
             if not overwrite:

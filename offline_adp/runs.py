@@ -63,15 +63,16 @@ def _check_run_output(out: Path, dataset: str | PathLike[str]) -> None:
     (``fit DS --out DS`` put run files beside ``data/`` and ``meta/``). A run directory
     holding its dataset (``fit RUN/dataset --out RUN``) is fine: the fit adds files, it
     does not replace the directory."""
+    from offline_adp.data.io import enclosing_dataset
     from offline_adp.errors import OutputExistsError
 
     target = out.resolve()
     if target == Path(dataset).resolve():
         raise OutputExistsError(f"--out {out} is the input dataset {dataset}; write the run elsewhere")
-    for d in (target, *target.parents):
-        if (d / "meta" / "info.json").is_file():
-            where = "is a dataset directory" if d == target else f"lies inside the dataset directory {d}"
-            raise OutputExistsError(f"--out {out} {where}; write the run elsewhere")
+    d = enclosing_dataset(target)
+    if d is not None:
+        where = "is a dataset directory" if d == target else f"lies inside the dataset directory {d}"
+        raise OutputExistsError(f"--out {out} {where}; write the run elsewhere")
 
 
 def _write_checkpoint(run: Path, est: Any, rows: list[dict[str, Any]]) -> int:

@@ -327,5 +327,5 @@ def test_distill_overwrite_interrupted_keeps_the_previous_run(pendulum, tmp_path
     monkeypatch.setattr(files.os, "replace", real)
     np.testing.assert_array_equal(load_policy(out).act(ds.arrays().obs[:50]), before)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # nothing left beside it
-    with pytest.raises(WriteError, match="lies inside it"):
+    with pytest.raises(WriteError, match="lies inside the run directory"):
         distill_run(root / "run", root / "run" / "d2")

@@ -11,10 +11,11 @@ from offline_adp.cli._common import _file_output, _say
 # ---------------------------------------------------------------------------- export / annotate / convert
 def cmd_export(args: argparse.Namespace) -> int:
     from offline_adp.data.files import locked_directory
-    from offline_adp.deploy import check_export_output, export_run
+    from offline_adp.data.rundir import check_outside_run
+    from offline_adp.deploy import export_run
 
     _file_output(args.out, "--out", "an ONNX file")
-    check_export_output(args.run, args.out)  # before the lock makes the output's folder
+    check_outside_run(args.run, args.out)  # before the lock makes the output's folder
     with locked_directory(args.out, what="file"):  # the exporter's temporary: removed on failure (main)
         print(export_run(args.run, args.out, fmt=args.format, dataset=args.dataset, overwrite=args.overwrite,
                          input_dtype=args.input_dtype))

@@ -204,14 +204,24 @@ def check_dataset_output(out: str | PathLike[str], inputs: Sequence[str | PathLi
         if p in target.parents and not _is_dir(p):
             raise OutputExistsError(f"the output {out} lies inside the input {src}, a file; write the dataset "
                                     "elsewhere")
-    for parent in target.parents:
+    parent = enclosing_dataset(target, itself=False)
+    if parent is not None:
+        raise OutputExistsError(f"the output {out} lies inside the dataset directory {parent}; writing it would "
+                                "change that dataset: write the new dataset elsewhere")
+
+
+def enclosing_dataset(path: str | PathLike[str], *, itself: bool = True) -> Path | None:
+    """The dataset directory (one with ``meta/info.json``) that ``path`` is, with
+    ``itself``, or lies inside; None when there is none (an unreadable directory on the
+    way is not a dataset we can see). Paths are compared resolved."""
+    target = Path(path).resolve()
+    for d in ((target,) if itself else ()) + tuple(target.parents):
         try:
-            inside = (parent / S.INFO_FILE).is_file()
-        except OSError:  # an unreadable directory on the way: not a dataset we can see
-            inside = False
-        if inside:
-            raise OutputExistsError(f"the output {out} lies inside the dataset directory {parent}; writing it would "
-                                    "change that dataset: write the new dataset elsewhere")
+            if (d / S.INFO_FILE).is_file():
+                return d
+        except OSError:
+            continue
+    return None
 
 
 def write_dataset(

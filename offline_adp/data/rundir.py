@@ -211,3 +211,20 @@ def _json_or_str(o: Any) -> Any:
     if hasattr(o, "tolist"):
         return o.tolist()
     return str(o)
+
+
+def check_outside_run(run_dir: str | PathLike[str], out: str | PathLike[str], *, directory: bool = False) -> None:
+    """Refuse an output that would replace or change the files of the run it reads (the
+    one rule of ``export``, ``annotate`` and ``distill``): the run directory itself, a path
+    that already exists in it, anything under its ``model/`` or ``checkpoint/``, and, for a
+    ``directory`` output (a distilled run), anywhere inside it. A new file elsewhere in the
+    run directory is fine. Checked before anything is written (a lock makes folders)."""
+    run, target = Path(run_dir).resolve(), Path(out).resolve()
+    if run != target and run not in target.parents:
+        return
+    if (directory or target == run or target.exists()
+            or any(run / d in target.parents for d in ("model", "checkpoint"))):
+        from offline_adp.errors import WriteError
+
+        raise WriteError(f"--out {out} lies inside the run directory {run_dir}: it would replace or change the files "
+                         "of the run; write it elsewhere (or, for a file, under a new name)")
