@@ -46,8 +46,11 @@ class RefResult:
     episodes: list[RefEpisode]
     dropped_steps: int = 0
     restarts: int = 0
-    late: int = 0
-    orphans: int = 0
+    late: int = 0  # messages dropped late (their epoch was over)
+    orphans: int = 0  # messages held for an epoch the clock never reached
+    late_by_topic: dict[str, int] = field(default_factory=dict)
+    orphans_by_topic: dict[str, int] = field(default_factory=dict)
+    used_by_topic: dict[str, int] = field(default_factory=dict)  # every other message of a spec topic
     stats: dict[str, Any] = field(default_factory=dict)
 
 
@@ -71,8 +74,16 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
     clock_first: dict[int, int] = {}
     seen: dict[Any, int | None] = {}  # the clock's latest time when each stream's latest time was read
     out: dict[Any, list[tuple[Any, int, int, list[float]]]] = {}  # per (key, epoch)
+    ids: dict[Any, list[int]] = {}  # per (key, epoch): the index of each message of ``out``
+    aside: dict[int, dict[Any, str]] = {}  # per message: the keys that did not use it, and why
     res = RefResult([])
-    for m in messages:
+    topics: dict[int, tuple[str, int]] = {}  # per message of a spec topic: its topic and number of keys
+
+    def set_aside(key: Any, idx: list[int], why: str) -> None:
+        for i in idx:
+            aside.setdefault(i, {})[key] = why
+
+    for i_m, m in enumerate(messages):
         todo = []
         if spec.clock_topic and m.topic == spec.clock_topic:
             todo.append(("clock", _time(spec.clock_time, m), []))
@@ -80,6 +91,8 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             if s.topic == m.topic:
                 todo.append((k, _time(s.time, m), [float(get_path(m.data, p)) for p in s.fields.values()]))
         todo.sort(key=lambda x: x[0] != clock)  # the clock first: the others are placed against it
+        if todo:
+            topics[i_m] = (m.topic, len(todo))
         for k, t, vals in todo:
             ce, cm = epoch.get(clock, 0), maxt.get(clock)
             ek, mk = epoch.get(k, ce), maxt.get(k)
@@ -93,13 +106,15 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                 if e not in clock_first:  # a stream ahead by more than the window held an epoch the clock skipped
                     for k2 in list(epoch):
                         if k2 != clock and epoch[k2] == e and maxt.get(k2) is not None and maxt[k2] > t + reorder + r:
-                            res.orphans += len(out.pop((k2, e), []))
+                            out.pop((k2, e), None)
+                            set_aside(k2, ids.pop((k2, e), []), "orphan")
                             del maxt[k2]
                     clock_first[e] = t
             elif mk is not None and (ek == ce + 1 or cm is None):
                 e = ek
                 if own:
-                    res.orphans += len(out.pop((k, ek), []))
+                    out.pop((k, ek), None)
+                    set_aside(k, ids.pop((k, ek), []), "orphan")
             elif mk is not None and ek == ce and not own:
                 e = ce
             elif mk is not None and ek == ce - 1 and not own and cm is not None and r > 0 and t > cm + r:
@@ -108,7 +123,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             else:
                 e = ce + (cm is not None and r > 0 and clock_first.get(ce, cm) - r <= t < cm - r)
             if late:  # the epoch is over: the message is counted, not used
-                res.late += 1
+                set_aside(k, [i_m], "late")
                 continue
             if e != ek or own or mk is None or t > mk:
                 maxt[k] = t
@@ -116,9 +131,23 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                     seen[k] = maxt.get(clock) if e == epoch.get(clock, 0) else None
             epoch[k] = e
             out.setdefault((k, e), []).append((k, e, t, vals))
+            ids.setdefault((k, e), []).append(i_m)
     # messages held for an epoch the clock never reached (a stream's time fell back more than `restart` once
     # while the clock's did not): never used, counted as orphans
-    res.orphans += sum(len(v) for (k, e), v in out.items() if k != clock and e not in clock_first)
+    for k, e in [ke for ke in out if ke[0] != clock and ke[1] not in clock_first]:
+        out.pop((k, e))
+        set_aside(k, ids.pop((k, e)), "orphan")
+    # per message: used if any of its keys used it; else orphaned if any of them orphaned it, else late
+    for i_m, (topic, n_keys) in topics.items():
+        why = aside.get(i_m, {})
+        if len(why) < n_keys:
+            res.used_by_topic[topic] = res.used_by_topic.get(topic, 0) + 1
+        elif "orphan" in why.values():
+            res.orphans += 1
+            res.orphans_by_topic[topic] = res.orphans_by_topic.get(topic, 0) + 1
+        else:
+            res.late += 1
+            res.late_by_topic[topic] = res.late_by_topic.get(topic, 0) + 1
     return [x for v in out.values() for x in v], res
 
 

@@ -164,6 +164,10 @@ def test_streaming_equals_the_reference(case):
     assert got.stats["restarts"] == want.restarts
     assert got.stats["orphan_messages"] == want.orphans
     assert sum(got.late.values()) == want.late
+    # per topic, what became of each message: used, orphaned or dropped late, as the reference says
+    assert {t: n for t, n in got.used.items() if n} == want.used_by_topic
+    assert got.orphaned == want.orphans_by_topic
+    assert got.dropped_late == want.late_by_topic
 
 
 @settings(max_examples=N_LOGS // 5)

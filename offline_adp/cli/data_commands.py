@@ -58,6 +58,35 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
     return 0
 
 
+#: What each per-topic count of an MCAP ingest is (they partition the messages read).
+MESSAGE_COUNTS = {
+    "messages_used": "used (decoded and placed against the clock's steps)",
+    "messages_skipped": "skipped (topics not in the spec, not decoded)",
+    "messages_orphaned": "orphaned, unused (held for an epoch the clock never reached)",
+    "messages_dropped_late": "dropped late, unused (came after their epoch was over)",
+    "messages_undecodable": "undecodable, unused",
+}
+
+
+def _print_message_counts(s: dict) -> None:
+    """Per file and per topic: read = used + skipped + orphaned + dropped late + undecodable."""
+    rows = [("file", "read", "used", "skipped", "unused", "recovered")]
+    for f in s["files"]:
+        rec = f.get("recovered")
+        unused = sum(sum(f[k].values()) for k in ("messages_orphaned", "messages_dropped_late", "messages_undecodable"))
+        rows.append((f["path"], *(str(sum(f[k].values())) for k in ("messages_read", "messages_used",
+                                                                    "messages_skipped")), str(unused),
+                     "-" if rec is None else f"{rec['messages']} msgs, damage: {rec['text'].split(', ', 1)[1]}"))
+    width = [max(len(r[i]) for r in rows) for i in range(5)]
+    for r in rows:
+        print(f"  {r[0]:<{width[0]}}" + "".join(f"  {r[i]:>{width[i]}}" for i in range(1, 5)) + f"  {r[5]}")
+    print("  messages per topic: read = used + skipped + orphaned + dropped late + undecodable")
+    print(f"    read: {s['messages_read']}")
+    for k, text in MESSAGE_COUNTS.items():
+        if s[k] or k == "messages_used":
+            print(f"    {text}: {s[k]}")
+
+
 def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     from offline_adp.ingest.mcap import ingest_mcap, load_mcap_spec, resolve_sources
 
@@ -79,17 +108,7 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
 
     refuse_all_quarantined(args.out, s)
     print(f"doctor: {'OK' if s['doctor']['ok'] else s['doctor']}")
-    rows = [("file", "used", "skipped", "recovered")]
-    for f in s["files"]:
-        rec = f.get("recovered")
-        rows.append((f["path"], str(sum(f["messages_used"].values())), str(sum(f["messages_skipped"].values())),
-                     "-" if rec is None else f"{rec['messages']} msgs, damage: {rec['text'].split(', ', 1)[1]}"))
-    width = [max(len(r[i]) for r in rows) for i in range(3)]
-    for r in rows:
-        print(f"  {r[0]:<{width[0]}}  {r[1]:>{width[1]}}  {r[2]:>{width[2]}}  {r[3]}")
-    print(f"  messages used per topic: {s['messages_used']}")
-    if s["messages_skipped"]:
-        print(f"  messages skipped (topics not in the spec, not decoded): {s['messages_skipped']}")
+    _print_message_counts(s)
     print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
     notes = {"dropped_steps": "steps dropped for missing values (missing = 'drop_step')",
              "outside_episode_steps": "steps outside any start/end episode", "condition_steps":
@@ -97,7 +116,7 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
              "incomplete_episodes": "episodes without their end event", "episodes_lost_to_damage":
              "episodes that lost messages to damage", "restarts": "time-source restarts (episode boundaries)",
              "cut_episodes": "episodes the recording ends inside (cut)", "episode_splits":
-             "episodes split at dropped steps", "orphan_messages": "messages of an epoch without clock messages",
+             "episodes split at dropped steps",
              "gap_splits": "episodes started at a pause in the log (over [episodes] gap; raise it if the robot went "
              f"on), the longest {s.get('longest_gap_s', 0):.3g} s",
              "episodes_without_command": "episodes with a step without a command",

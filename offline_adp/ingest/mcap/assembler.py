@@ -10,18 +10,20 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import IngestError
+from offline_adp.ingest.mcap.accounting import MessageAccounting
 from offline_adp.ingest.mcap.align import AHEAD_OF_CLOCK, _align
 from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
 from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter, read_event
+from offline_adp.ingest.mcap.presence import check_topic_present
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
 from offline_adp.ingest.mcap.scan import damage_text, scan_records
 from offline_adp.ingest.mcap.spec import McapSpec, StreamSpec
 
 
-class _Recording(EpisodeSegmenter, DamageAccounting):
+class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
     """Streams one recording (one file, or the parts of a split recording) into episodes.
 
     Steps: the clock topic's messages (or ``rate_hz`` ticks over the first observation
@@ -50,6 +52,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             self.by_topic.setdefault(spec.clock_topic, []).append("clock")
         if spec.episode_topic:
             self.by_topic.setdefault(spec.episode_topic, []).append("events")
+        self.topic_of = {k: t for t, ks in self.by_topic.items() for k in ks}
         for keys in self.by_topic.values():  # the clock first: the other keys of its message are placed against it
             keys.sort(key=lambda x: x != self.clock_key)
         self.names = {k: list(s.fields) for k, s in self.value_keys.items()}
@@ -75,7 +78,6 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
         self.splits: dict[Any, int] = {}
         self.cur: Any = None  # the episode being assembled (episodes._Episode)
         self.out: list[EpisodeRows] = []
-        self.used = {t: 0 for t in self.by_topic}
         self.late = {t: 0 for t in self.by_topic}
         self.filled = {t: 0 for t in self.by_topic}  # steps given a stream's fill value (missing = "fill")
         self.stats = {"dropped_steps": 0, "outside_episode_steps": 0, "condition_steps": 0, "short_episodes": 0,
@@ -84,6 +86,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                       "episode_splits": 0, "lost_chunks_uncounted": 0, "clock_steps_back": 0,
                       "duplicate_clock_times": 0, "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
+        self._init_accounting()
         self.live_reports: list[dict[str, Any]] = []
         self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
         self.n_lost_seen = 0
@@ -125,15 +128,18 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 ep.reason = lost
                 self.stats["episodes_lost_to_damage"] += 1
         self.stats["episodes_lost_to_damage"] += self._episodes_never_seen()
-        missing = [t for t, n in self.used.items() if n == 0 and t != self.spec.episode_topic]
-        return RecordingResult(self.out, self.stats, self.used, self.late, self.reports, missing, self.filled)
+        self._settle_file_counts()
+        missing = [t for t, n in self.decoded.items() if n == 0 and t != self.spec.episode_topic]
+        orphaned, late = self._per_topic("orphaned"), self._per_topic("dropped_late")
+        return RecordingResult(self.out, self.stats, self.used_counts(), self.late, self.reports, missing, self.filled,
+                               dict(self.decoded), orphaned, late)
 
     def _read(self, path: Path, file_index: int) -> None:
         from collections import Counter
 
         report: dict[str, Any] = {"_path": str(path)}
         self.live_reports.append(report)  # lost chunks become known while reading
-        before = dict(self.used)
+        before = dict(self.decoded)
         decoders = _Decoders()
         try:
             if is_rosbags_input(path):  # a ROS 1 .bag or a rosbag2 SQLite bag: the rosbags readers
@@ -152,8 +158,10 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             raise IngestError(f"{path}: cannot read as MCAP ({type(exc).__name__}: {exc})") from exc
         self._note_losses(report)
         text = damage_text(path, report)
-        entry = {"path": str(path), "messages_used": {t: n - before[t] for t, n in self.used.items()},
+        entry = {"path": str(path), "_decoded": {t: n - before[t] for t, n in self.decoded.items()},
                  "messages_skipped": dict(Counter(report.get("skipped", {}))),
+                 "messages_undecodable": dict(Counter(c["topic"] for c in report.get("lost_chunks", ())
+                                                      if c.get("message"))),
                  **({"empty": True} if report.get("empty") else {})}
         if text:
             lost = [{k: v for k, v in c.items() if not k.startswith("_")} for c in report["lost_chunks"]]
@@ -168,6 +176,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
 
             warnings.warn(text, stacklevel=4)
         self.reports.append(entry)
+        self.report_files.append(file_index)
 
     def _read_mcap(self, path: Path, file_index: int, report: dict[str, Any], decoders: _Decoders) -> None:
         add, every = self._add_fields, self.flush_every
@@ -200,40 +209,15 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                     self._flush()
 
     def _check_topic_present(self, topic: str, step: str) -> None:
-        """Raise, naming the files and the topics they hold, when ``topic`` has no message
-        in any file of the recording (read again, on this error path only)."""
-        from offline_adp.ingest.mcap.rosbags_source import raw_messages
-
-        present: dict[str, int] = {}
-        for path in self.files:
-            report: dict[str, Any] = {}
-            try:
-                if is_rosbags_input(path):
-                    for _ in raw_messages(path, set(), report):
-                        pass
-                    counts = {bt.topic: n for bt, n in report.get("bag_topics", {}).items()}
-                    if not any(counts.values()):  # no index counts: the scan's skipped counts
-                        counts = dict(report.get("skipped", {}))
-                else:
-                    with open(path, "rb") as f:
-                        for _ in scan_records(f, set(), report):
-                            pass
-                    counts = dict(report.get("skipped", {}))
-            except (IngestError, OSError):
-                return  # unreadable now: the caller's error stands
-            for t, n in counts.items():
-                present[t] = present.get(t, 0) + n
-        if present.get(topic, 0) == 0:
-            names = ", ".join(map(str, self.files))
-            there = sorted(t for t, n in present.items() if n)
-            raise IngestError(f"{names}: topic {topic!r} of the spec is not in the file (no message on it; the "
-                              f"topics with messages are {there}); {step}")
+        check_topic_present(self.files, topic, step)
 
     def _add(self, msg: Message, file_index: int) -> None:
         self._add_fields(msg.topic, msg.log_time, msg.publish_time, msg.data, file_index)
 
     def _add_fields(self, topic: str, log_time: int, publish_time: int, dec: Any, file_index: int) -> None:
-        self.used[topic] += 1
+        mid = self.decoded[topic]  # the message's id: its place among the topic's decoded messages
+        self.decoded[topic] += 1
+        late = False  # once per message, whichever of its keys finds it late
         times: dict[str, int] = {}  # one time per time field of this message
         for k in self.by_topic[topic]:
             if k == "events":
@@ -251,15 +235,17 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time,
                                                                 command=exact)
             e = self._epoch_of(k, t)
-            if e is None:  # late for an epoch already over (by file order, not by flush points)
-                self.late[topic] += 1
+            if e is None:  # late for an epoch already over (by file order, not by flush points): not used
+                late = True
+                self._set_aside(k, "dropped_late", [mid], [file_index])
                 continue
             if e == self.active and self.flushed_t is not None and t < self.flushed_t - self.lag:
-                self.late[topic] += 1  # steps before it were aligned without it
+                late = True  # steps before it were aligned without it
             b = self.bufs.get((k, e))
             if b is None:
                 b = self.bufs[(k, e)] = _Buffer(self.names[k], object if k == "events" else np.float64)
-            b.add(t, file_index, values, int(log_time))
+            b.add(t, file_index, values, int(log_time), mid)
+        self.late[topic] += late
 
     def _epoch_of(self, k: Any, t: int) -> int | None:
         """The epoch of a message of key ``k`` at time ``t``, from the file order alone
@@ -287,8 +273,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                 for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
                     m2 = self.maxt[k2]
                     if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
-                        b = self.bufs.pop((k2, e), None)
-                        self.stats["orphan_messages"] += len(b) if b is not None else 0
+                        self._orphan(k2, self.bufs.pop((k2, e), None))
                         self.maxt[k2] = None
             if self.pending_losses:
                 self._resolve_losses(e)
@@ -306,8 +291,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             if m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
                 e = ek
                 if own_restart:  # a second restart before the clock's: the clock has no such epoch
-                    b = self.bufs.pop((k, ek), None)
-                    self.stats["orphan_messages"] += len(b) if b is not None else 0
+                    self._orphan(k, self.bufs.pop((k, ek), None))
             elif ek == ce and m is not None and not own_restart:
                 e = ce
             elif ek == ce - 1 and m is not None and not own_restart and cm is not None and r > 0 and t > cm + r:
@@ -380,7 +364,9 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
             self._close(None, cut=final and self.cut and self.active == max(self.epoch.values()))
             # the epoch is over: so is its episode (in the last epoch of a cut recording: cut)
             for k in [k for k in self.bufs if k[1] == e]:  # an epoch the clock never reached: orphan messages
-                self.stats["orphan_messages"] += len(self.bufs.pop(k)) if e not in self.clock_first else 0
+                b = self.bufs.pop(k)
+                if e not in self.clock_first:
+                    self._orphan(k[0], b)
             self.last_step_t, self.last_episode_value, self.next_tick, self.waiting = None, None, None, None
             self.pending_drop = False
             self.flushed_t = None
@@ -463,7 +449,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting):
                         j = int(np.flatnonzero(~(good | damaged))[0])
                         step = (f"step at t = {times[j] / 1e9:.6f} s (log_time {int(lts[j])}) has no value for "
                                 f"{name!r} (use missing = 'fill' or 'drop_step')")
-                        if self.used[s.topic] == 0:  # nothing on it so far: is it in the file at all?
+                        if self.decoded[s.topic] == 0:  # nothing on it so far: is it in the file at all?
                             self._check_topic_present(s.topic, step)
                         raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
                                           f"(log_time {int(lts[j])}): no {s.topic} message within max_age = "

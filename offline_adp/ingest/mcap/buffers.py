@@ -13,14 +13,17 @@ class _Buffer:
 
     def __init__(self, names: list[str], dtype: Any = np.float64) -> None:
         self.names, self.dtype = names, dtype
-        self.new: dict[str, list] = {"t": [], "file": [], "lt": [], **{n: [] for n in names}}
+        # "#id": the message's place among its topic's decoded messages (to count those set aside)
+        self.new: dict[str, list] = {"t": [], "file": [], "lt": [], "#id": [], **{n: [] for n in names}}
         self.arr: dict[str, np.ndarray] = {"t": np.zeros(0, np.int64), "file": np.zeros(0, np.int32),
-                                           "lt": np.zeros(0, np.int64), **{n: np.zeros(0, dtype) for n in names}}
+                                           "lt": np.zeros(0, np.int64), "#id": np.zeros(0, np.int64),
+                                           **{n: np.zeros(0, dtype) for n in names}}
 
-    def add(self, t: int, file: int, values: list[Any], log_time: int = 0) -> None:
+    def add(self, t: int, file: int, values: list[Any], log_time: int = 0, msg_id: int = 0) -> None:
         self.new["t"].append(t)
         self.new["file"].append(file)
         self.new["lt"].append(log_time)
+        self.new["#id"].append(msg_id)
         for n, v in zip(self.names, values, strict=True):
             self.new[n].append(v)
 

@@ -57,9 +57,10 @@ def ingest_mcap(
     ``[sources] files``. Recordings (a file, or the parts of a split recording) are
     assembled independently — in a process pool with ``jobs > 1`` — and concatenated in
     input order, so the result does not depend on ``jobs``. Returns the dataset and a
-    summary: per file its sha256, messages read and skipped per topic, damage recovered;
-    per topic the messages used; steps dropped, outside any episode or under an end
-    condition; episodes, transitions and per-source counts; under ``on_error =
+    summary: per file its sha256, damage recovered and, per topic, the messages read =
+    used + skipped + orphaned + dropped late + undecodable (the same counts over all
+    files; see :mod:`offline_adp.ingest.mcap.accounting`); steps dropped, outside any
+    episode or under an end condition; episodes, transitions and per-source counts; under ``on_error =
     "quarantine"`` the rows set aside in ``quarantine/`` (``rows in the dataset + rows in
     quarantine = transitions_assembled``) and the files skipped.
     ``progress(done, total)`` is called after each recording.
@@ -120,8 +121,9 @@ def ingest_mcap_tables(
     import warnings
 
     summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
-                               "messages_used": {}, "messages_skipped": {}, "late_messages": {}, "filled_steps": {},
-                               "skipped_files": []}
+                               "messages_read": {}, "messages_used": {}, "messages_skipped": {},
+                               "messages_orphaned": {}, "messages_dropped_late": {}, "messages_undecodable": {},
+                               "late_messages": {}, "filled_steps": {}, "skipped_files": []}
     good: list[tuple[RecordingResult, list[Path]]] = []
     for res, rec in zip(results, recordings, strict=True):
         if isinstance(res, str):  # unreadable under quarantine: named, skipped, counted
@@ -139,13 +141,15 @@ def ingest_mcap_tables(
         for k, v in res.stats.items():
             summary[k] = (max(summary.get(k, 0), v) if k in ("max_buffered_messages", "longest_gap_s")
                           else summary.get(k, 0) + v)
-        for name in ("used", "late", "filled"):
-            tgt = summary[{"used": "messages_used", "late": "late_messages", "filled": "filled_steps"}[name]]
+        for name, key in (("used", "messages_used"), ("orphaned", "messages_orphaned"),
+                          ("dropped_late", "messages_dropped_late"), ("late", "late_messages"),
+                          ("filled", "filled_steps")):
             for t, v in getattr(res, name).items():
-                tgt[t] = tgt.get(t, 0) + v
-        for f in res.files:
-            for t, v in f["messages_skipped"].items():
-                summary["messages_skipped"][t] = summary["messages_skipped"].get(t, 0) + v
+                summary[key][t] = summary[key].get(t, 0) + v
+        for f in res.files:  # per topic: read = used + skipped + orphaned + dropped_late + undecodable
+            for key in ("messages_read", "messages_skipped", "messages_undecodable"):
+                for t, v in f[key].items():
+                    summary[key][t] = summary[key].get(t, 0) + v
             fp = Path(f["path"])
             digest = sha256_file(fp) if fp.is_file() else {q.name: sha256_file(q) for q in sorted(fp.iterdir())
                                                            if q.is_file()}
@@ -166,9 +170,10 @@ def ingest_mcap_tables(
                       "restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
     if summary.get("orphan_messages"):
         warnings.warn(f"{summary['orphan_messages']} messages were set aside, unused: they belong to an epoch the "
-                      f"clock never reached (a stream's time jumped back more than [episodes] restart = {spec.restart} "
-                      "s, read as a restart the clock did not follow, e.g. /tf's transforms[0], another frame pair "
-                      "from message to message, some future-dated). Raise restart above the jump.", stacklevel=2)
+                      f"clock never reached (per topic {summary['messages_orphaned']}; a stream's time jumped back "
+                      f"more than [episodes] restart = {spec.restart} s, read as a restart the clock did not follow, "
+                      "e.g. /tf's transforms[0], another frame pair from message to message, some future-dated). "
+                      "Raise restart above the jump.", stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
                       "time is one step, and a stream's values at a repeated time are its last message's there "
@@ -191,7 +196,7 @@ def ingest_mcap_tables(
     summary["transitions_assembled"] = int(sum(len(e.t) for e in eps))
     summary["rejected_episodes"] = [{"episode": e.ep, "transitions": len(e.t), "reason": e.reason} for e in rejected]
     if not kept:
-        silent = sorted(t for r, _ in good for t, n in r.used.items() if n == 0)
+        silent = sorted(t for r, _ in good for t, n in r.decoded.items() if n == 0)
         raise IngestError(
             f"no episode with at least one transition in {[str(p) for p in paths]}"
             + (f"; topics without any message: {silent}" if silent else "")

@@ -242,7 +242,7 @@ class EpisodeSegmenter:
                    f"{int(st['lt'][k])}): no {self.spec.action_stream.topic} command within max_age = "
                    f"{self.spec.action_stream.max_age} s")
             topic = self.spec.action_stream.topic
-            if self.used.get(topic, 0) == 0:  # nothing on it: is it in the file at all? (names the topics there)
+            if self.decoded.get(topic, 0) == 0:  # nothing on it: is it in the file at all? (names the topics there)
                 self._check_topic_present(topic, msg)
             if self.on_error == "fail":
                 raise IngestError(msg)

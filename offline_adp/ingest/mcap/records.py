@@ -46,8 +46,11 @@ class RecordingResult:
 
     episodes: list[EpisodeRows]
     stats: dict[str, int]
-    used: dict[str, int]
+    used: dict[str, int]  # per topic: messages placed against the clock's steps (decoded, not set aside)
     late: dict[str, int]
     files: list[dict[str, Any]]
     missing_topics: list[str]
     filled: dict[str, int] = field(default_factory=dict)  # steps given a stream's fill value, per topic
+    decoded: dict[str, int] = field(default_factory=dict)  # per topic: messages decoded (used + set aside)
+    orphaned: dict[str, int] = field(default_factory=dict)  # per topic: held for an epoch the clock never reached
+    dropped_late: dict[str, int] = field(default_factory=dict)  # per topic: came after their epoch was over
