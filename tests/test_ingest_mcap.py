@@ -194,7 +194,36 @@ def test_real_rosbag2_recording():
     assert summary["doctor"]["ok"]
     assert summary["files"][0]["messages_used"]["/odom"] == 2639
     assert len(ds) + ds.n_episodes + summary["dropped_steps"] == 2639  # every odom message is a step
+    # the counts partition the file's messages, topic by topic as mcap-info counts them
+    assert summary["messages_read"] == {t: v["messages"] for t, v in info["topics"].items()}
+    assert summary["messages_used"] == {"/odom": 2639, "/amcl_pose": 135}
+    assert summary["messages_skipped"] == {"/tf": 5422, "/tf_static": 1}
     assert len(ds.info.action_table) == 5 and ds.info.action_table.kind == "binned"
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "nav2_turtlebot.mcap").exists(), reason="../shared/data is not present")
+def test_real_recording_tf_messages_set_aside_are_not_used():
+    """/tf's transforms[0] is another frame pair from message to message: 539 of its 5422
+    messages are held for an epoch the clock never reaches (2026-11-29 audit). They were
+    counted as used; now used + orphaned = the messages mcap-info counts."""
+    import warnings
+
+    path = SHARED_DATA / "nav2_turtlebot.mcap"
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/odom", "time": "header.stamp"}, "episodes": {"gap": 2.0},
+        "streams": [{"topic": "/odom", "time": "header.stamp", "max_age": 0.001,
+                     "fields": {"v": "twist.twist.linear.x"}},
+                    {"topic": "/tf", "time": "transforms[0].header.stamp", "max_age": 0.1, "missing": "fill",
+                     "fill": 0.0, "role": "aux", "fields": {"tf_x": "transforms[0].transform.translation.x"}}],
+        "action": {"topic": "/odom", "field": "twist.twist.angular.z", "time": "header.stamp", "max_age": 0.001,
+                   "type": "continuous", "n_bins": 5},
+        "cost": {"terms": [{"field": "v", "op": "abs", "weight": -1.0}]},
+    })
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, s = ingest_mcap([path], spec)
+    assert s["messages_read"] == {t: v["messages"] for t, v in mcap_info(path)["topics"].items()}
+    assert s["messages_orphaned"] == {"/tf": 539} and s["messages_used"]["/tf"] == 5422 - 539
 
 
 def _chunks_and_episodes(path) -> tuple[list[tuple[int, int]], dict[int, set[str]]]:
