@@ -50,6 +50,7 @@ class RefResult:
     orphans: int = 0  # messages held for an epoch the clock never reached
     late_by_topic: dict[str, int] = field(default_factory=dict)
     orphans_by_topic: dict[str, int] = field(default_factory=dict)
+    stale_by_topic: dict[str, int] = field(default_factory=dict)  # stamped more than `restart` behind, no restart
     used_by_topic: dict[str, int] = field(default_factory=dict)  # every other message of a spec topic
     stats: dict[str, Any] = field(default_factory=dict)
 
@@ -72,6 +73,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
     epoch: dict[Any, int] = {}
     maxt: dict[Any, int] = {}
     clock_first: dict[int, int] = {}
+    jumped: dict[Any, tuple[int, int, int]] = {}  # gone ahead of the clock: (its epoch, its time before, first after)
     seen: dict[Any, int | None] = {}  # the clock's latest time when each stream's latest time was read
     out: dict[Any, list[tuple[Any, int, int, list[float]]]] = {}  # per (key, epoch)
     ids: dict[Any, list[int]] = {}  # per (key, epoch): the index of each message of ``out``
@@ -100,6 +102,9 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             if k != clock and mk is not None and ek == ce and cm is not None and seen.get(k) is not None and r > 0:
                 own = t < mk + max(cm - seen[k], 0) - r  # behind its own pace with the clock
             late = False
+            j = jumped.get(k)
+            if j is not None and (j[0] != ek or ek != ce + 1 or mk is None or mk - j[2] >= r or own):
+                del jumped[k]  # the clock followed, or the stream's time ran on there: a restart
             if k == clock:
                 e = ek + own
                 res.restarts += own
@@ -110,6 +115,12 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                             set_aside(k2, ids.pop((k2, e), []), "orphan")
                             del maxt[k2]
                     clock_first[e] = t
+            elif (j := jumped.get(k)) is not None and cm is not None and t >= max(cm, j[1]) - r:
+                # back in step with the clock before its time ran on for `restart`: the jump was stale stamps
+                out.pop((k, ek), None)
+                set_aside(k, ids.pop((k, ek), []), "stale")
+                del jumped[k]
+                e = ce
             elif mk is not None and (ek == ce + 1 or cm is None):
                 e = ek
                 if own:
@@ -122,6 +133,8 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                 late = cm - clock_first.get(ce, cm) >= reorder
             else:
                 e = ce + (cm is not None and r > 0 and clock_first.get(ce, cm) - r <= t < cm - r)
+                if e == ce + 1 and ek == ce and mk is not None:  # went ahead of the clock from its epoch
+                    jumped[k] = (e, mk, t)
             if late:  # the epoch is over: the message is counted, not used
                 set_aside(k, [i_m], "late")
                 continue
@@ -137,7 +150,8 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
     for k, e in [ke for ke in out if ke[0] != clock and ke[1] not in clock_first]:
         out.pop((k, e))
         set_aside(k, ids.pop((k, e)), "orphan")
-    # per message: used if any of its keys used it; else orphaned if any of them orphaned it, else late
+    # per message: used if any of its keys used it; else orphaned if any of them orphaned it, else stale if any
+    # found it stale, else late
     for i_m, (topic, n_keys) in topics.items():
         why = aside.get(i_m, {})
         if len(why) < n_keys:
@@ -145,6 +159,8 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
         elif "orphan" in why.values():
             res.orphans += 1
             res.orphans_by_topic[topic] = res.orphans_by_topic.get(topic, 0) + 1
+        elif "stale" in why.values():
+            res.stale_by_topic[topic] = res.stale_by_topic.get(topic, 0) + 1
         else:
             res.late += 1
             res.late_by_topic[topic] = res.late_by_topic.get(topic, 0) + 1

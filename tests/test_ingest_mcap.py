@@ -203,9 +203,11 @@ def test_real_rosbag2_recording():
 
 @pytest.mark.skipif(not (SHARED_DATA / "nav2_turtlebot.mcap").exists(), reason="../shared/data is not present")
 def test_real_recording_tf_messages_set_aside_are_not_used():
-    """/tf's transforms[0] is another frame pair from message to message: 539 of its 5422
-    messages are held for an epoch the clock never reaches (2026-11-29 audit). They were
-    counted as used; now used + orphaned = the messages mcap-info counts."""
+    """/tf's transforms[0] is another frame pair from message to message: one stamp 1.68 s
+    behind the others was read as a restart, and the 539 /tf messages after it were held for
+    an epoch the clock never reached, 254 steps filled (2026-11-29 audit). That stamp is set
+    aside as stale now, every step has its /tf value, and used + stale = the messages
+    mcap-info counts."""
     import warnings
 
     path = SHARED_DATA / "nav2_turtlebot.mcap"
@@ -223,7 +225,8 @@ def test_real_recording_tf_messages_set_aside_are_not_used():
         warnings.simplefilter("ignore")
         _, s = ingest_mcap([path], spec)
     assert s["messages_read"] == {t: v["messages"] for t, v in mcap_info(path)["topics"].items()}
-    assert s["messages_orphaned"] == {"/tf": 539} and s["messages_used"]["/tf"] == 5422 - 539
+    assert s["messages_stale"] == {"/tf": 1} and s["messages_used"]["/tf"] == 5422 - 1
+    assert s["messages_orphaned"] == {} and not s["filled_steps"]
 
 
 def _chunks_and_episodes(path) -> tuple[list[tuple[int, int]], dict[int, set[str]]]:

@@ -168,6 +168,7 @@ def test_streaming_equals_the_reference(case):
     assert {t: n for t, n in got.used.items() if n} == want.used_by_topic
     assert got.orphaned == want.orphans_by_topic
     assert got.dropped_late == want.late_by_topic
+    assert got.stale == want.stale_by_topic
 
 
 @settings(max_examples=N_LOGS // 5)

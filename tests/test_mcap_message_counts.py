@@ -1,7 +1,7 @@
 """The per-topic message counts of an MCAP ingest partition the messages of the file:
 
     messages_read = messages_used + messages_skipped + messages_orphaned
-                    + messages_dropped_late + messages_undecodable
+                    + messages_stale + messages_dropped_late + messages_undecodable
 
 per topic, per file and in total. ``messages_used`` once counted every decoded message,
 also those held for an epoch the clock never reached (orphans) and those dropped as late:
@@ -28,7 +28,8 @@ from tests.test_ingest_mcap_streaming import write_log
 from tests.test_mcap_differential import _split, logs
 from tests.test_mcap_stale_stream import _log, _spec
 
-PARTS = ("messages_used", "messages_skipped", "messages_orphaned", "messages_dropped_late", "messages_undecodable")
+PARTS = ("messages_used", "messages_skipped", "messages_orphaned", "messages_stale", "messages_dropped_late",
+         "messages_undecodable")
 
 
 def _partition_holds(counts: dict, in_file: Counter) -> None:
@@ -41,9 +42,9 @@ def _partition_holds(counts: dict, in_file: Counter) -> None:
 
 
 def test_orphaned_messages_are_not_counted_as_used(tmp_path):
-    """/tf's message 300 is stamped 1.5 s early (more than restart = 1 s): /tf's messages
-    300..799 are held for an epoch the clock never reaches, 500 orphans. Used: 300."""
-    msgs = _log() + [("/other", 5_000_000_000 + k, {"a": k}) for k in range(7)]
+    """/tf's messages from 300 on are stamped 1.5 s early (more than restart = 1 s): /tf's
+    messages 300..799 are held for an epoch the clock never reaches, 500 orphans. Used: 300."""
+    msgs = _log(behind=True) + [("/other", 5_000_000_000 + k, {"a": k}) for k in range(7)]
     f = write_log(tmp_path / "tf.mcap", msgs)
     with pytest.warns(UserWarning, match="set aside, unused"):
         ds, s = ingest_mcap([f], _spec("fill"), tmp_path / "ds")
@@ -66,7 +67,7 @@ def test_orphaned_messages_are_not_counted_as_used(tmp_path):
 def test_the_cli_prints_the_corrected_counts(tmp_path, capsys):
     from offline_adp.cli import main
 
-    msgs = _log()
+    msgs = _log(behind=True)
     f = write_log(tmp_path / "tf.mcap", msgs)
     spec = tmp_path / "tf.spec.toml"  # _spec("fill") as a user writes it
     spec.write_text('[clock]\ntopic = "/state"\n[episodes]\nrestart = 1.0\ngap = 1.0\n'
@@ -87,7 +88,7 @@ def test_the_cli_prints_the_corrected_counts(tmp_path, capsys):
 
 def test_a_split_recording_counts_orphans_in_the_file_they_came_from(tmp_path):
     """The orphans are found after the last file is read: each file's counts still add up."""
-    msgs = _log()
+    msgs = _log(behind=True)
     a = write_log(tmp_path / "rec_0.mcap", msgs[:700])
     b = write_log(tmp_path / "rec_1.mcap", msgs[700:])
     with warnings.catch_warnings():
@@ -150,13 +151,14 @@ def test_per_topic_counts_partition_the_messages_in_memory(case):
             return
     want = Counter(m.topic for m in mine)
     for t in topics:
-        total = got.used.get(t, 0) + got.orphaned.get(t, 0) + got.dropped_late.get(t, 0)
+        total = got.used.get(t, 0) + got.orphaned.get(t, 0) + got.stale.get(t, 0) + got.dropped_late.get(t, 0)
         assert total == want.get(t, 0), (t, got.used, got.orphaned, got.dropped_late, want)
     assert sum(got.orphaned.values()) == got.stats["orphan_messages"]
     if not moved:
         want_ref = ref.assign_epochs(mine, spec)[1]
         assert {t: n for t, n in got.used.items() if n} == want_ref.used_by_topic
         assert got.orphaned == want_ref.orphans_by_topic and got.dropped_late == want_ref.late_by_topic
+        assert got.stale == want_ref.stale_by_topic
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

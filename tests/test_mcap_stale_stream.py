@@ -3,8 +3,12 @@ does not (a rosbag's /tf: ``transforms[0]`` is another frame pair from message t
 some stale or future-dated). The stream's later messages are held for an epoch the clock
 never reaches. On a real Nav2 recording (2026-11-29 audit) that left 254 steps filled and
 539 messages unused with every counter at 0, and the error mode blamed a step that had a
-/tf message 1 ms away. Now the loss is counted (``orphan_messages``) and warned about, and
-the error says why. Ground truth: the log is built here, one stale stamp at a known place."""
+/tf message 1 ms away. That one stamp was stale, not a restart: the next /tf message was
+back in step with the clock. Such stale stamps are now set aside (``messages_stale``, with a
+warning) and the stream goes on in its epoch; a stream that really stays behind (its time
+restarted, the clock's did not) still has its messages counted as orphans and warned about,
+and the error says why. Ground truth: the logs are built here, the stale stamps at known
+places."""
 
 from __future__ import annotations
 
@@ -18,13 +22,16 @@ MS = 1_000_000
 T0 = 5_000 * MS
 
 
-def _log(stale_at=300, n=800):
-    """/state (the clock) and /tf at 200 Hz; /tf's message ``stale_at`` stamped 1.5 s early."""
+def _log(stale_at=300, n=800, behind=False, n_stale=1):
+    """/state (the clock) and /tf at 200 Hz; /tf's messages ``stale_at`` .. ``stale_at +
+    n_stale - 1`` stamped 1.5 s early (``behind``: every message from ``stale_at`` on, a
+    stream whose time restarted 1.5 s back while the clock's did not)."""
     msgs = []
     for j in range(n):
         t = T0 + j * 5 * MS
         msgs.append(("/state", t, {"x": float(j)}))
-        stamp = t - 1500 * MS if j == stale_at else t + MS
+        early = j >= stale_at >= 0 if behind else stale_at <= j < stale_at + n_stale
+        stamp = t - 1500 * MS if early else t + MS
         msgs.append(("/tf", t + MS, {"tx": float(j), "stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}}))
     return msgs
 
@@ -42,7 +49,7 @@ def _spec(missing):
 
 
 def test_messages_held_for_an_epoch_the_clock_never_reaches_are_counted_and_said(tmp_path):
-    f = write_log(tmp_path / "tf.mcap", _log())
+    f = write_log(tmp_path / "tf.mcap", _log(behind=True))
     with pytest.warns(UserWarning, match=r"messages were set aside, unused: they belong to an epoch the clock never"):
         ds, s = ingest_mcap([f], _spec("fill"))
     filled = s["filled_steps"].get("/tf", 0)
@@ -51,7 +58,7 @@ def test_messages_held_for_an_epoch_the_clock_never_reaches_are_counted_and_said
 
 
 def test_the_error_mode_says_why_the_stream_has_no_message(tmp_path):
-    f = write_log(tmp_path / "tf.mcap", _log())
+    f = write_log(tmp_path / "tf.mcap", _log(behind=True))
     with pytest.raises(IngestError, match=r"no /tf message within max_age .* jumped back more than \[episodes\] "
                                           r"restart = 1.0 s"):
         ingest_mcap([f], _spec("error"))
@@ -93,3 +100,26 @@ def test_gap_locations_of_a_log_starting_at_time_zero(tmp_path):
     msgs = [("/state", j * 100 * MS + (2000 * MS if j >= 50 else 0), {"x": float(j)}) for j in range(100)]
     top = mcap_info(write_log(tmp_path / "zero.mcap", msgs))["topics"]["/state"]
     assert top["gaps_at"] == [{"after_s": 4.9, "length_s": 2.1}]  # not "+0.0 s" (a first time of 0 is a time)
+
+
+@pytest.mark.parametrize("n_stale", [1, 3])
+def test_stale_stamps_are_set_aside_and_the_stream_goes_on(tmp_path, n_stale):
+    """One (or three in a row) /tf stamps 1.5 s early, the next back in step: nothing is
+    held for an epoch, no step is filled, and the error mode finds every /tf value."""
+    f = write_log(tmp_path / "tf.mcap", _log(n_stale=n_stale))
+    with pytest.warns(UserWarning, match=rf"{n_stale} messages were set aside as stale, unused \(per topic "
+                                         rf"\{{'/tf': {n_stale}\}}\): each was stamped more than \[episodes\] restart"):
+        ds, s = ingest_mcap([f], _spec("error"))
+    assert s["orphan_messages"] == 0 and s["messages_orphaned"] == {}
+    assert s["messages_stale"] == {"/tf": n_stale} and s["messages_used"] == {"/state": 800, "/tf": 800 - n_stale}
+    assert len(ds) == 799 and ds.n_episodes == 1  # one episode of 800 steps, every /tf value found
+    assert s["restarts"] == 0 and not s["filled_steps"]
+
+
+def test_a_stream_behind_the_clock_for_good_is_not_taken_for_stale_stamps(tmp_path):
+    """Behind by 1.5 s from message 300 on (its time restarted): the later messages never come
+    back in step with the clock, so they stay held for the next epoch (orphans), not stale."""
+    f = write_log(tmp_path / "tf.mcap", _log(behind=True))
+    with pytest.warns(UserWarning, match="belong to an epoch the clock never reached"):
+        _, s = ingest_mcap([f], _spec("fill"))
+    assert s["messages_orphaned"] == {"/tf": 500} and not s["messages_stale"]

@@ -3,18 +3,20 @@
 Per topic, per file and per recording, the messages of a file are partitioned as
 
     messages_read = messages_used + messages_skipped + messages_orphaned
-                    + messages_dropped_late + messages_undecodable
+                    + messages_stale + messages_dropped_late + messages_undecodable
 
 ``skipped``: a topic the spec does not read (never decoded). ``undecodable``: a message of
 a spec topic that did not decode (``on_error = "quarantine"``; a damaged chunk's
 messages are not read at all and are not counted here, see ``recovered``). Of the decoded
-messages, ``orphaned`` ones were held for an epoch the clock never reached and
-``dropped_late`` ones came after their epoch was over; every other decoded message is
+messages, ``orphaned`` ones were held for an epoch the clock never reached, ``stale``
+ones were stamped more than ``restart`` behind their stream, which then went on in step
+with the clock (rule 5 of "Epochs" in docs/ingestion-spec.md), and ``dropped_late`` ones
+came after their epoch was over; every other decoded message is
 ``used``: placed against the clock's steps of its epoch (a 100 Hz stream aligned to a
 10 Hz clock gives values to a tenth of the steps' rows, yet all its messages are used in
 this sense). A message that feeds several keys (the clock and a stream, two streams of one
-topic) is used if any of them used it; set aside by all, it counts as orphaned if any of
-them orphaned it, else as dropped late.
+topic) is used if any of them used it; set aside by all, it counts under the first of
+their reasons in :data:`ASIDE`'s order.
 """
 
 from __future__ import annotations
@@ -24,8 +26,9 @@ from typing import Any
 
 import numpy as np
 
-#: The reasons a decoded message is set aside, unused.
-ASIDE = ("orphaned", "dropped_late")
+#: The reasons a decoded message is set aside, unused (a message several keys set aside
+#: counts under the first of their reasons in this order).
+ASIDE = ("orphaned", "stale", "dropped_late")
 
 
 class MessageAccounting:
@@ -58,7 +61,7 @@ class MessageAccounting:
             w = why
             if n_keys > 1:
                 seen, w0 = self.partial.pop((topic, i), (0, why))
-                w = "orphaned" if "orphaned" in (w0, why) else why
+                w = min(w0, why, key=ASIDE.index)
                 if seen + 1 < n_keys:
                     self.partial[(topic, i)] = (seen + 1, w)
                     continue
@@ -68,9 +71,13 @@ class MessageAccounting:
 
     def _orphan(self, k: Any, b: Any) -> None:
         """Key ``k``'s buffer ``b`` (or None) holds messages of an epoch the clock never reached."""
+        self._set_aside_buffer(k, b, "orphaned")
+
+    def _set_aside_buffer(self, k: Any, b: Any, why: str) -> None:
+        """Key ``k``'s buffer ``b`` (or None) is not used, for reason ``why`` (one of :data:`ASIDE`)."""
         if b is not None and len(b):
             a = b.arrays()
-            self._set_aside(k, "orphaned", a["#id"], a["file"])
+            self._set_aside(k, why, a["#id"], a["file"])
 
     def _per_topic(self, why: str, file_index: int | None = None) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -81,7 +88,7 @@ class MessageAccounting:
 
     def used_counts(self) -> dict[str, int]:
         """Per topic of the spec: messages decoded and placed against the clock's steps."""
-        gone = Counter(self._per_topic("orphaned")) + Counter(self._per_topic("dropped_late"))
+        gone: Counter[str] = sum((Counter(self._per_topic(w)) for w in ASIDE), Counter())
         return {t: n - gone.get(t, 0) for t, n in self.decoded.items()}
 
     def _settle_file_counts(self) -> None:
@@ -89,10 +96,12 @@ class MessageAccounting:
         when the clock enters an epoch or the recording ends: after their file was read)."""
         for entry, fi in zip(self.reports, self.report_files, strict=True):
             decoded, rest = entry.pop("_decoded"), dict(entry)
-            orphaned, late = self._per_topic("orphaned", fi), self._per_topic("dropped_late", fi)
+            orphaned, late, stale = (self._per_topic(w, fi) for w in ("orphaned", "dropped_late", "stale"))
             read = Counter(decoded) + Counter(entry["messages_skipped"]) + Counter(entry["messages_undecodable"])
             entry.clear()
             entry.update(path=rest.pop("path"), messages_read={t: read[t] for t in sorted(read)},
-                         messages_used={t: n - orphaned.get(t, 0) - late.get(t, 0) for t, n in decoded.items()},
+                         messages_used={t: n - orphaned.get(t, 0) - late.get(t, 0) - stale.get(t, 0)
+                                        for t, n in decoded.items()},
                          messages_skipped=rest.pop("messages_skipped"), messages_orphaned=orphaned,
-                         messages_dropped_late=late, messages_undecodable=rest.pop("messages_undecodable"), **rest)
+                         messages_stale=stale, messages_dropped_late=late,
+                         messages_undecodable=rest.pop("messages_undecodable"), **rest)

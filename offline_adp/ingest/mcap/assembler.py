@@ -63,6 +63,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
         self.bufs: dict[tuple[Any, int], _Buffer] = {}
         self.clock_first: dict[int, int] = {}
         self.clock_seen: dict[Any, int | None] = {}
+        # a stream gone ahead of the clock from its epoch, maybe on stale stamps: (its epoch, time before, first after)
+        self.jumped: dict[Any, tuple[int, int, int]] = {}
         self.active = 0
         self.flushed_t: int | None = None  # time of the last step handed to the episodes
         self.lag = int((spec.reorder_window + max(s.max_age for s in self.value_keys.values())) * 1e9)
@@ -132,7 +134,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
         missing = [t for t, n in self.decoded.items() if n == 0 and t != self.spec.episode_topic]
         orphaned, late = self._per_topic("orphaned"), self._per_topic("dropped_late")
         return RecordingResult(self.out, self.stats, self.used_counts(), self.late, self.reports, missing, self.filled,
-                               dict(self.decoded), orphaned, late)
+                               dict(self.decoded), orphaned, late, self._per_topic("stale"))
 
     def _read(self, path: Path, file_index: int) -> None:
         from collections import Counter
@@ -288,7 +290,15 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
             # the time jumped back within what the clock has covered in this epoch (older than the epoch's
             # first clock message: stale data of this epoch, e.g. a late localization stamp)
             ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
-            if m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
+            if (j := self.jumped.get(k)) is not None and (j[0] != ek or ek != ce + 1 or m is None or m - j[2] >= r
+                                                        or own_restart):
+                del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
+            j = self.jumped.get(k)
+            if j is not None and cm is not None and t >= max(cm, j[1]) - r:  # back in step: stale stamps (rule 5)
+                self._set_aside_buffer(k, self.bufs.pop((k, ek), None), "stale")
+                del self.jumped[k]
+                e = ce
+            elif m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
                 e = ek
                 if own_restart:  # a second restart before the clock's: the clock has no such epoch
                     self._orphan(k, self.bufs.pop((k, ek), None))
@@ -300,6 +310,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
                     return None
             else:
                 e = ce + 1 if ahead else ce
+                if ahead and ek == ce and m is not None:  # gone ahead of the clock from its epoch
+                    self.jumped[k] = (e, m, t)
         if e != ek:
             self.epoch[k], m = e, None
         elif own_restart:
@@ -338,15 +350,18 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
         for k in self.epoch:
             if k == "events":
                 continue
+            mk = self.maxt[k]
             if self.epoch[k] > e:
-                continue
-            if self.epoch[k] < e or self.maxt[k] is None:
+                if ce != e or self.jumped.get(k, (-1, 0, 0))[0] != e + 1:
+                    continue
+                mk = self.jumped[k][1]  # gone ahead from e on a stamp that may be stale: it may come back
+            elif self.epoch[k] < e or mk is None:
                 if span <= self.reorder:
                     return -np.inf  # this stream may still come (e.g. written topic by topic)
                 continue
-            if self.maxt[k] < top - self.reorder:
+            if mk < top - self.reorder:
                 continue  # an idle stream (event-driven commands): do not wait for it
-            w = min(w, self.maxt[k])
+            w = min(w, mk)
         return w - self.lag
 
     def _flush(self, final: bool = False) -> None:

@@ -58,7 +58,7 @@ def ingest_mcap(
     assembled independently — in a process pool with ``jobs > 1`` — and concatenated in
     input order, so the result does not depend on ``jobs``. Returns the dataset and a
     summary: per file its sha256, damage recovered and, per topic, the messages read =
-    used + skipped + orphaned + dropped late + undecodable (the same counts over all
+    used + skipped + orphaned + stale + dropped late + undecodable (the same counts over all
     files; see :mod:`offline_adp.ingest.mcap.accounting`); steps dropped, outside any
     episode or under an end condition; episodes, transitions and per-source counts; under ``on_error =
     "quarantine"`` the rows set aside in ``quarantine/`` (``rows in the dataset + rows in
@@ -122,7 +122,8 @@ def ingest_mcap_tables(
 
     summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
                                "messages_read": {}, "messages_used": {}, "messages_skipped": {},
-                               "messages_orphaned": {}, "messages_dropped_late": {}, "messages_undecodable": {},
+                               "messages_orphaned": {}, "messages_stale": {}, "messages_dropped_late": {},
+                               "messages_undecodable": {},
                                "late_messages": {}, "filled_steps": {}, "skipped_files": []}
     good: list[tuple[RecordingResult, list[Path]]] = []
     for res, rec in zip(results, recordings, strict=True):
@@ -141,12 +142,12 @@ def ingest_mcap_tables(
         for k, v in res.stats.items():
             summary[k] = (max(summary.get(k, 0), v) if k in ("max_buffered_messages", "longest_gap_s")
                           else summary.get(k, 0) + v)
-        for name, key in (("used", "messages_used"), ("orphaned", "messages_orphaned"),
+        for name, key in (("used", "messages_used"), ("orphaned", "messages_orphaned"), ("stale", "messages_stale"),
                           ("dropped_late", "messages_dropped_late"), ("late", "late_messages"),
                           ("filled", "filled_steps")):
             for t, v in getattr(res, name).items():
                 summary[key][t] = summary[key].get(t, 0) + v
-        for f in res.files:  # per topic: read = used + skipped + orphaned + dropped_late + undecodable
+        for f in res.files:  # per topic: read = used + skipped + orphaned + stale + dropped_late + undecodable
             for key in ("messages_read", "messages_skipped", "messages_undecodable"):
                 for t, v in f[key].items():
                     summary[key][t] = summary[key].get(t, 0) + v
@@ -174,6 +175,11 @@ def ingest_mcap_tables(
                       f"more than [episodes] restart = {spec.restart} s, read as a restart the clock did not follow, "
                       "e.g. /tf's transforms[0], another frame pair from message to message, some future-dated). "
                       "Raise restart above the jump.", stacklevel=2)
+    if n_stale := sum(summary["messages_stale"].values()):
+        warnings.warn(f"{n_stale} messages were set aside as stale, unused (per topic {summary['messages_stale']}): "
+                      f"each was stamped more than [episodes] restart = {spec.restart} s behind its stream, which "
+                      "then went on in step with the clock, so it was no restart (e.g. /tf's transforms[0], another "
+                      "frame pair from message to message)", stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
                       "time is one step, and a stream's values at a repeated time are its last message's there "
