@@ -337,7 +337,11 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
     fit = cfg["fit"]
     entry = get_algorithm(fit["algorithm"])
     params = dict(fit.get("params", {}))
-    engine = _fit_dask(entry, params, run / "dataset", client, say) if client is not None and entry.dask else None
+    holdout = fit.get("holdout")
+    if holdout and client is not None and entry.dask:  # the engine reads the whole dataset directory
+        say("[fit] runs in the client process (holdout: the Dask engine reads every episode)")
+    engine = _fit_dask(entry, params, run / "dataset", client, say) if client is not None and entry.dask \
+        and not holdout else None
     if "random_state" in entry.params_model().model_fields:
         params.setdefault("random_state", cfg["seed"])
     target = RunDirectory(run / "fit")
@@ -358,8 +362,7 @@ def _fit_stage(cfg: dict[str, Any], run: Path, say: Callable[[str], None], clien
             say(f"[fit] iteration {k}{of}{on}: sup|dQ| {row.get('sup_dq', float('nan')):.4g}")
 
     est = fit_run(run / "dataset", target.path, algorithm=entry.name, params=params, resume=resume,
-                  on_iteration=on_iteration,
-                  engine=engine)
+                  on_iteration=on_iteration, engine=engine, holdout=holdout)
     hist = getattr(est, "history_", None)
     out = {"iterations": 0 if hist is None else len(hist), "diverged": bool(getattr(est, "diverged_", False))}
     if engine is None:

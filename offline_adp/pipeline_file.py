@@ -83,11 +83,14 @@ class DataSection(ConfigModel):
 
 
 class FitSection(ConfigModel):
-    """``[fit]``: the algorithm, its parameters (``[fit.params]``) or a config file."""
+    """``[fit]``: the algorithm, its parameters (``[fit.params]``) or a config file, and the
+    share of episodes held out of the fit (``holdout``, as ``offline-adp fit --holdout``)."""
 
     algorithm: Literal[tuple(ALGORITHMS)] = "fqi"  # type: ignore[valid-type]
     params: dict[str, Any] = Field(default_factory=dict)
     config: str | None = None
+    holdout: float | None = Field(None, ge=0, lt=1, description="fraction of whole episodes kept out of the fit, "
+                                  "in [0, 1): the evaluate stage reads the policy on them (default: none)")
 
 
 #: ``[evaluate]``: the evaluation's settings (all but the seed: the pipeline's ``seed``),

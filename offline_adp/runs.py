@@ -14,6 +14,9 @@ the work starts and ``model/`` only at the end, so the two can never disagree.
 Resumable algorithms (FQI) checkpoint as they iterate (the first and last iteration, and
 between them as often as costs at most :data:`CHECKPOINT_CPU_SHARE` of the fit's CPU
 time); after Ctrl-C or a crash, ``--resume`` continues from the last checkpoint.
+``holdout`` (``--holdout FRACTION``) keeps a seeded share of whole episodes out of the fit
+and records which in ``run.json``'s ``holdout`` (:mod:`offline_adp.data.holdout`), so
+``offline-adp evaluate`` reads the policy on episodes the fit did not see.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from offline_adp.algorithms.registry import AlgorithmEntry, get_algorithm, resum
 from offline_adp.artifacts import save_policy, save_q, versions
 from offline_adp.config import load_toml
 from offline_adp.data.dataset import read_dataset
+from offline_adp.data.holdout import check_holdout, holdout_split, recorded_fraction
 from offline_adp.data.rundir import RunDirectory
 from offline_adp.data.validate import require_usable
 from offline_adp.errors import InvalidArgumentError, RunDirectoryError
@@ -164,6 +168,37 @@ def _summary(est: Any, engine: Any = None) -> dict[str, Any]:
     return out
 
 
+def _fit_seed(entry: AlgorithmEntry, params: dict[str, Any]) -> int:
+    """The fit's seed, which also chooses the held-out episodes: ``random_state`` as given,
+    else the estimator's default (0 where it has none)."""
+    if params.get("random_state") is not None:
+        return int(params["random_state"])
+    import inspect
+
+    p = inspect.signature(entry.estimator_class()).parameters.get("random_state")
+    return int(p.default) if p is not None and isinstance(p.default, int) else 0
+
+
+def _resumed_holdout(rd: RunDirectory, ds: Any, fraction: float | None,
+                     seed: int) -> tuple[Any, dict[str, Any] | None]:
+    """A resumed run's episodes to fit on and its ``holdout`` record: the run's own (a
+    ``fraction`` given must be it), recomputed and checked against ``run.json``."""
+    from offline_adp.data.holdout import held_out_episodes
+
+    record = rd.read_json(rd.STATUS).get("holdout")
+    own = recorded_fraction(record)
+    if fraction is not None and fraction != own:
+        raise RunDirectoryError(f"{rd.path}: the run was started with --holdout {own:g}, not {fraction:g}; resume "
+                                "it with its own (or omit --holdout)")
+    if not own:
+        return ds, None
+    held_out_episodes(ds, record, str(rd.file(rd.STATUS)))  # the record holds on this dataset
+    if int(record["seed"]) != seed:
+        raise RunDirectoryError(f"{rd.path}: its held-out episodes were chosen with seed {record['seed']}, its saved "
+                                f"parameters say {seed}; start a new run")
+    return holdout_split(ds, own, seed)[0], record
+
+
 def fit_run(
     dataset: str | PathLike[str],
     out: str | PathLike[str],
@@ -174,6 +209,7 @@ def fit_run(
     on_iteration: Callable[[dict[str, Any]], None] | None = None,
     checkpoint_every: int = 1,
     engine: Any = None,
+    holdout: float | None = None,
 ) -> Any:
     """Fit ``algorithm`` on a dataset directory into a run directory (see module docstring).
 
@@ -199,6 +235,12 @@ def fit_run(
         Where a resumable algorithm's iterations run: None, in this process; an engine
         such as :class:`offline_adp.engines.dask.DaskFit` (FQI/FQE with LightGBM on a Dask
         cluster). The run directory is the same either way (``run.json`` names the engine).
+    holdout : float, optional
+        The fraction of whole episodes kept out of the fit, in [0, 1), chosen by the
+        algorithm's ``random_state`` (:func:`offline_adp.data.holdout.holdout_split`) and
+        recorded in ``run.json``'s ``holdout``; each side must keep 2 episodes. None: 0, or
+        on ``resume`` the run's own; a resumed run must keep its fraction. Runs in process
+        only (an engine reads the whole dataset directory).
 
     Returns
     -------
@@ -206,6 +248,10 @@ def fit_run(
     """
     entry = get_algorithm(algorithm)
     params = entry.check_params(dict(params or {}), "parameters")  # before anything is written
+    fraction = None if holdout is None else check_holdout(holdout)
+    if fraction and engine is not None:
+        raise InvalidArgumentError(f"--holdout {fraction:g}: the {engine.name} engine reads the whole dataset "
+                                   "directory; hold episodes out with the local engine")
     if not resume:
         entry.check_complete(params)
     rd = RunDirectory(out)
@@ -217,6 +263,9 @@ def fit_run(
         raise RunDirectoryError(f"{rd.path} does not exist: nothing to resume")
     ds = read_dataset(dataset)
     require_usable(ds, dataset)  # empty or failing the doctor: one error, not a crash mid-fit
+    fit_ds, held = ds, None
+    if not resume:  # too few episodes either side: refused before anything is written
+        fit_ds, _, held = holdout_split(ds, fraction or 0.0, _fit_seed(entry, params))
     why = engine.unsupported(entry.estimator_class()(**params), dataset) \
         if engine is not None and entry.resumable and hasattr(engine, "unsupported") else None
     if why is not None:  # before anything is written
@@ -237,6 +286,7 @@ def fit_run(
             if not ds.matches_fingerprint(rd.read_json(rd.STATUS).get("dataset_fingerprint")):
                 raise RunDirectoryError(f"{rd.path}: the dataset changed since the run started (fingerprint "
                                         "differs); start a new run")
+            fit_ds, held = _resumed_holdout(rd, ds, fraction, _fit_seed(entry, params))
         elif any(rd.exists(n) for n in (rd.CONFIG, rd.STATUS, rd.MODEL)):
             raise RunDirectoryError(f"{rd.path} already holds a run; use --resume to continue it or choose "
                                     "another --out")
@@ -254,16 +304,18 @@ def fit_run(
                                   "access": entry.access, "versions": versions(), "status": "running"}
         if engine is not None:
             status["engine"] = engine.name
+        if held is not None:  # which episodes the fit did not see (evaluate reads them)
+            status["holdout"] = held
         rd.write_json(rd.STATUS, status)
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             if entry.resumable:
                 est = entry.estimator_class()(**params)
-                _iterate(rd, est, ds, resume, checkpoint_every, on_iteration, engine, dataset)
+                _iterate(rd, est, fit_ds, resume, checkpoint_every, on_iteration, engine, dataset)
             elif engine is not None:
                 raise InvalidArgumentError(f"{algorithm} runs in process only (engines run {resumable_algorithms()})")
             else:
-                est = entry.build_and_fit(params, ds)
+                est = entry.build_and_fit(params, fit_ds)
             _save_model(entry, est, rd, ds.fingerprint())  # a model that cannot be saved fails the run too
             if entry.resumable:  # the finished checkpoint shares the model's arrays (one copy on disk)
                 share_with_model(rd.path / RunDirectory.CHECKPOINT, rd.path / RunDirectory.MODEL)

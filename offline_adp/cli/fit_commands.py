@@ -48,12 +48,16 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     try:
         est = fit_run(args.dataset, args.out, algorithm=args.algorithm, params=params or None, resume=args.resume,
-                      on_iteration=on_iteration)
+                      on_iteration=on_iteration, holdout=args.holdout)
     finally:
         if bar is not None:
             bar.close()
     for line in fit_summary_lines(est, args.algorithm, Path(args.out) / "model"):
         print(line)
+    held = json.loads((Path(args.out) / "run.json").read_text()).get("holdout")
+    if held:
+        print(f"held out of the fit: {held['episodes']} of {held['of']} episodes (run.json 'holdout'); "
+              "`offline-adp evaluate` reads the policy on them")
     print(f"{args.out}/model")
     return 0
 

@@ -142,8 +142,12 @@ def build_parser() -> argparse.ArgumentParser:
         "[<algorithm>] table holds the estimator's parameters (api/cpi: an [<algorithm>.fqe] sub-table for the "
         "evaluator; cpi/psdp: simulator = \"NAME\"; psdp: baseline_source, drop_features). fqi checkpoints as it "
         "iterates (the first and last iteration, between them at most 5% of its CPU); after Ctrl-C or a crash, "
-        "--resume continues from the last checkpoint to the same result.",
+        "--resume continues from the last checkpoint to the same result. --holdout FRACTION keeps that share of "
+        "whole episodes out of the fit (chosen by the fit's random_state, listed in run.json's 'holdout'); "
+        "`offline-adp evaluate` then reads the policy on them, which the fit did not see.",
         epilog="examples:\n  offline-adp fit data/pt --algorithm fqi --config fqi.toml --out runs/pt-fqi\n"
+        "  offline-adp fit data/pt --algorithm fqi --holdout 0.3 --out runs/pt-fqi-ho  "
+        "# evaluate on the other 30%\n"
         "  offline-adp fit data/pt --algorithm psdp --config psdp.toml --out runs/pt-psdp\n\n"
         "with fqi.toml (the defaults written out; n_iterations = \"auto\" fits to convergence):\n  [fqi]\n"
         "  gamma = 0.95\n  n_iterations = \"auto\"\n  regressor = \"extra_trees\"\n"
@@ -156,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--config", default=None, help="TOML file with the algorithm's parameters")
     f.add_argument("--out", required=True, help="run directory")
     f.add_argument("--resume", action="store_true", help="continue an interrupted run in --out")
+    f.add_argument("--holdout", type=float, default=None, metavar="FRACTION",
+                   help="fraction of whole episodes, in [0, 1), kept out of the fit for `evaluate` (default 0: "
+                   "none; each side keeps at least 2 episodes)")
     f.add_argument("--quiet", "-q", action="store_true")
     f.set_defaults(func=cmd_fit)
 
@@ -163,7 +170,9 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate",
         help="evaluate a run's policy: simulator rollouts, off-policy estimates, shift diagnostics",
         formatter_class=fmt,
-        description="Evaluate the policy in RUN_DIR/model on the run's dataset: Monte-Carlo rollouts when a simulator "
+        description="Evaluate the policy in RUN_DIR/model on the run's dataset (only the episodes `fit --holdout` "
+        "kept out of the fit, when it did; else the fit's own episodes, and the verdict says FQE-based readings may "
+        "read optimistic there): Monte-Carlo rollouts when a simulator "
         "is known (the dataset's reference problem or --simulator), the behaviour policy (logged propensities or a "
         "classifier), off-policy estimates with bootstrap intervals (FQE, IS, WIS, PDIS, WPDIS, DR, WDR, "
         "MIS), per-step density ratios with diagnostics, and the PSDP bound. Writes RUN_DIR/evaluation/metrics.json.",
@@ -171,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--dataset data/pt\n  offline-adp report runs/pt-fqi",
     )
     e.add_argument("run", help="run directory (from offline-adp fit)")
-    e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on)")
+    e.add_argument("--dataset", default=None, help="dataset directory (default: the one the run was fitted on; on "
+                   "that one a run fitted with --holdout is evaluated on its held-out episodes, other logs whole)")
     add_settings_options(e)  # --simulator, --episodes, --bootstrap, ... --seed: the settings' model
     e.add_argument("--quiet", "-q", action="store_true")
     e.set_defaults(func=cmd_evaluate)

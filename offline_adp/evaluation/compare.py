@@ -174,11 +174,19 @@ def _common_dataset(runs: list[Path]) -> str:
     return sorted(paths)[0]
 
 
+def _logs_of(m: dict[str, Any]) -> Any:
+    """The fingerprint of the dataset an evaluation read: of the whole one where it read the
+    episodes a fit held out (evaluation/logs.py)."""
+    logs = m.get("logs") or {}
+    held = logs.get("kind") == "held_out"
+    return logs.get("dataset_fingerprint") if held else m.get("dataset", {}).get("fingerprint")
+
+
 def _why_again(m: dict[str, Any] | None, fp: str, simulator: str | None, particles: int) -> str:
     """Why a candidate is evaluated again, and that its stored evaluation is replaced."""
     if m is None:
         return ""
-    if m.get("dataset", {}).get("fingerprint") != fp:
+    if _logs_of(m) != fp:
         why = "it was evaluated on other logs"
     elif simulator is not None and (m.get("simulator") or "none") != simulator:
         why = f"it was evaluated with simulator {m.get('simulator') or 'none'!r}, not {simulator!r}"
@@ -197,7 +205,7 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
     metrics = []
     for r in runs:
         m = None if force else _metrics(r)  # --force: a corrupt old evaluation is simply replaced
-        same = (m is not None and m.get("dataset", {}).get("fingerprint") == fp
+        same = (m is not None and _logs_of(m) == fp
                 and (simulator is None or (m.get("simulator") or "none") == simulator)
                 and _same_model_rollouts(m, cfg.model_particles))
         if force or not same:
@@ -207,6 +215,12 @@ def _candidate_metrics(runs: list[Path], ds_path: str, fp: str, cfg: EvaluationS
             m = json.loads(json.dumps(evaluate_run(r, cfg, dataset=ds_path, progress=say), default=float))
             m = _metrics(r) or m
         metrics.append(m)
+    read = {(m.get("dataset") or {}).get("fingerprint") for m in metrics}
+    if len(read) > 1:  # e.g. one fitted with --holdout (read on its held-out episodes), one without (on all)
+        words = sorted({str((m.get("logs") or {}).get("description", "the logs whole")) for m in metrics})
+        raise IncompatibleError(f"the candidates were evaluated on different episodes of {ds_path} "
+                                f"({'; '.join(words)}): fit them with the same --holdout and random_state (or "
+                                "none) to compare them")
     estimands = {json.dumps({k: m.get("estimand", {}).get(k) for k in ("form", "horizon", "gamma")}) for m in metrics}
     if len(estimands) > 1:
         raise IncompatibleError("the candidates' evaluations target different quantities (horizon or discount differ); "

@@ -199,6 +199,16 @@ class _Dataset(_Open):
     sources: dict[str, int | float] | None = None
 
 
+class _Logs(_Open):
+    """Which logs were read (:mod:`offline_adp.evaluation.logs`)."""
+
+    kind: Literal["held_out", "fit", "other"] | None = None
+    in_sample: bool | None = None
+    episodes: int | None = None
+    of: int | None = None
+    description: str | None = None
+
+
 class _Discount(_Open):
     fit: float | None = None
     evaluation: float | None = None
@@ -251,6 +261,7 @@ class _Headline(_Open):
     n_warnings: int
     outcome: Outcome | None = None
     discount_note: str | None = None
+    logs_note: str | None = None
 
 
 class MetricsFile(_Open):
@@ -274,6 +285,7 @@ class MetricsFile(_Open):
     behaviour_value: _BehaviourValue | None = None
     cost_distribution: _CostDistribution | None = None
     discount: _Discount | None = None
+    logs: _Logs | None = None
     headline: _Headline | None = None
     worst_step: _WorstStep | None = None
     per_step_counts: list[int] | None = None

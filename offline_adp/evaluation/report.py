@@ -313,6 +313,9 @@ def _summary_box(m: dict[str, Any], h: dict[str, Any]) -> str:
     cd = m.get("cost_distribution")
     if cd:
         kv("Cost distribution", html.escape(risk_text(cd)))
+    logs = m.get("logs") or {}
+    if isinstance(logs.get("description"), str):  # which episodes were read (in sample: the verdict's note says so)
+        kv("Logs", html.escape(logs["description"]))
     kv("Distribution shift", html.escape(sh["text"]))
     kv("Fit", html.escape(cv["text"]))
     if h.get("discount_note"):

@@ -8,8 +8,8 @@ Writes (atomically: a temporary directory, then rename)::
     evaluation/rollout_states.npz  pi's states per step (when a simulator was used)
     evaluation/rollout_states_demonstrator.npz  the same for the problem's demonstrator
 
-A simulator is used when ``--simulator NAME`` is given or the dataset names its
-reference problem (``info.problem``); ``--simulator none`` forces logs only.
+A simulator is used when ``--simulator NAME`` is given or the dataset names its reference problem (``info.problem``);
+``--simulator none`` forces logs only. A run fitted with ``--holdout``: its held-out episodes (evaluation/logs.py).
 """
 
 from __future__ import annotations
@@ -30,10 +30,8 @@ from offline_adp.data.dataset import TransitionDataset, read_dataset
 from offline_adp.data.files import read_json_file
 from offline_adp.data.rundir import RunDirectory
 from offline_adp.data.validate import require_usable
-from offline_adp.errors import (
-    DatasetNotFoundError,
-    RunDirectoryError,
-)
+from offline_adp.errors import DatasetNotFoundError, RunDirectoryError
+from offline_adp.evaluation.logs import evaluated_logs
 from offline_adp.evaluation.metrics_file import frame_records as _frame_records
 from offline_adp.evaluation.offpolicy import OffPolicyResult, off_policy
 from offline_adp.evaluation.run_checks import _check_recorded_data, _check_same_actions, _fitted_info
@@ -141,10 +139,11 @@ def evaluate_run(
         policy = _run_policy(run, info, ds, ds_path)  # its actions and features first: the sharper message
         if dataset is None:  # the path run.json names: the data it was fitted on, or say so
             _check_recorded_data(run, info, ds, ds_path)
+        ds, logs = evaluated_logs(run, info, ds, ds_path, dataset is not None)  # held-out episodes, or all
         sim_name, problem, note = _simulator(cfg.simulator, ds)
         metrics, res, states, demo_states = evaluation_metrics(
             ds, policy, problem, cfg, sim_name=sim_name, ds_path=ds_path, algorithm=info.get("algorithm"), note=note,
-            progress=say, task_map=task_map, run_dir=run)
+            progress=say, task_map=task_map, run_dir=run, logs=logs)
         # no timings in metrics.json: it is deterministic
         say(f"writing evaluation/ ({time.perf_counter() - t0:.1f} s)")
         _write(run, metrics, res, ds, states, demo_states)
@@ -218,6 +217,7 @@ def evaluation_metrics(
     progress: Callable[[str], None] | None = None,
     task_map: TaskMap | None = None,
     run_dir: str | PathLike[str] | None = None,
+    logs: dict[str, Any] | None = None,
     **options: Any,
 ) -> tuple[dict[str, Any], OffPolicyResult, list[np.ndarray] | None, list[np.ndarray] | None]:
     """The metrics of :func:`evaluate_run` for ``policy`` on ``ds`` without a run directory:
@@ -225,10 +225,11 @@ def evaluation_metrics(
     None: logs only (the settings' ``simulator`` is not read: ``problem`` and ``sim_name``
     say it). ``settings`` or ``options`` as for :func:`evaluate_run`, checked before the
     rollouts and fits. ``run_dir`` is read for the fit's convergence in the headline (None:
-    unknown). Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
+    unknown). ``logs``: which logs ``ds`` is (:func:`~offline_adp.evaluation.logs.evaluated_logs`).
+    Used by ``evaluate_run`` and by the off-policy coverage benchmark."""
     cfg = EvaluationSettings.resolve(settings, options)
     say = progress or (lambda _m: None)
-    metrics = _metrics_head(ds, cfg, ds_path, algorithm, sim_name, note)
+    metrics = _metrics_head(ds, cfg, ds_path, algorithm, sim_name, note) | ({"logs": logs} if logs else {})
     ope_horizon, target, start = _gym_estimand(problem, ds, cfg.horizon, sim_name)
     pol = demo = None
     refs: dict[str, Any] = {}

@@ -11,7 +11,9 @@
 - the **verdict line** (:mod:`offline_adp.evaluation.verdict`): better or worse than the
   behaviour, with what confidence; whether the policy left the data's support; whether the
   fit converged (``run.json`` / ``model/history.csv``);
-- the count of warnings.
+- the count of warnings;
+- where the logs are the fit's own (``metrics.json``'s ``logs``), one clause in the verdict
+  saying FQE-based readings may read optimistic (:mod:`offline_adp.evaluation.logs`).
 
 :func:`summary_lines` prints it (the CLI's summary after ``evaluate`` and ``run``).
 """
@@ -377,10 +379,14 @@ def headline(m: dict[str, Any], run_dir: str | Path | None = None) -> dict[str, 
     m = withdraw_levels(m, left_support(m, shift))
     ranking = rank_estimators(m)
     conv = fit_convergence(run_dir)
-    v = verdict_line(m, ranking, shift, conv)
+    from offline_adp.evaluation.logs import in_sample_note, with_note
+
+    logs_note = in_sample_note(m)  # the logs are the fit's own: one clause in the why line
+    v = with_note(verdict_line(m, ranking, shift, conv), logs_note)
     best = next((e for e in ranking if e["tier"] == 0), None)
     return {"best": best, "ranking": ranking, "shift": shift, "convergence": conv, "verdict": v,
-            "n_warnings": warning_count(m), "outcome": v["outcome"], "discount_note": discount_note(m)}
+            "n_warnings": warning_count(m), "outcome": v["outcome"], "discount_note": discount_note(m),
+            "logs_note": logs_note}
 
 
 def _f(x: Any) -> str:
@@ -424,6 +430,8 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         lines.append(m["simulator_note"])
     if h.get("discount_note"):
         lines.append(f"discount: {h['discount_note']}")
+    if (m.get("logs") or {}).get("kind") == "held_out":  # (in sample: the verdict's why line says so)
+        lines.append(f"logs: {m['logs']['description']}")
     b = h["best"]
     others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
     top = b or next((e for e in h["ranking"] if e["tier"] == 1), None)
