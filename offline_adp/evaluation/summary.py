@@ -430,8 +430,7 @@ def summary_lines(m: dict[str, Any], colour: bool = False) -> list[str]:
         lines.append(m["simulator_note"])
     if h.get("discount_note"):
         lines.append(f"discount: {h['discount_note']}")
-    if (m.get("logs") or {}).get("kind") == "held_out":  # (in sample: the verdict's why line says so)
-        lines.append(f"logs: {m['logs']['description']}")
+    lines += [f"logs: {m['logs']['description']}"] if (m.get("logs") or {}).get("kind") == "held_out" else []
     b = h["best"]
     others = [e for e in h["ranking"] if e["tier"] == 0 and (b is None or e["name"] != b["name"])][:2]
     top = b or next((e for e in h["ranking"] if e["tier"] == 1), None)
