@@ -73,7 +73,9 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
     epoch: dict[Any, int] = {}
     maxt: dict[Any, int] = {}
     clock_first: dict[int, int] = {}
-    jumped: dict[Any, tuple[int, int, int]] = {}  # gone ahead of the clock: (its epoch, its time before, first after)
+    # gone ahead: (its epoch, its time before, its first time after, the clock's then, times held in step since)
+    jumped: dict[Any, tuple[int, int, int, int, list[int]]] = {}
+    suspect: dict[Any, int] = {}  # back in step: the epoch it held messages for (stale stamps among them?)
     seen: dict[Any, int | None] = {}  # the clock's latest time when each stream's latest time was read
     out: dict[Any, list[tuple[Any, int, int, list[float]]]] = {}  # per (key, epoch)
     ids: dict[Any, list[int]] = {}  # per (key, epoch): the index of each message of ``out``
@@ -114,13 +116,45 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                             out.pop((k2, e), None)
                             set_aside(k2, ids.pop((k2, e), []), "orphan")
                             del maxt[k2]
+                    for k2 in [k2 for k2, e2 in suspect.items() if e2 == e]:  # stale stamps: after t + window + r
+                        del suspect[k2]
+                        held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
+                        keep = [(x, i) for x, i in held if x[2] <= t + reorder + r]
+                        set_aside(k2, [i for x, i in held if x[2] > t + reorder + r], "stale")
+                        if (k2, e) in out:
+                            out[(k2, e)], ids[(k2, e)] = [x for x, _ in keep], [i for _, i in keep]
+                        if epoch.get(k2) == e:
+                            if keep:
+                                maxt[k2] = max(x[2] for x, _ in keep)
+                            else:
+                                maxt.pop(k2, None)
+                    for k2 in [k2 for k2, j2 in jumped.items() if j2[0] == e]:  # the clock followed: a restart
+                        times = jumped.pop(k2)[4]
+                        held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
+                        set_aside(k2, [i for x, i in held if x[2] in times], "late")  # late records of the one before
+                        if (k2, e) in out:
+                            out[(k2, e)] = [x for x, _ in held if x[2] not in times]
+                            ids[(k2, e)] = [i for x, i in held if x[2] not in times]
                     clock_first[e] = t
-            elif (j := jumped.get(k)) is not None and cm is not None and t >= max(cm, j[1]) - r:
-                # back in step with the clock before its time ran on for `restart`: the jump was stale stamps
-                out.pop((k, ek), None)
-                set_aside(k, ids.pop((k, ek), []), "stale")
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
+                  and abs(t - j[1] - (cm - j[5])) <= min(r, reorder) and cm == j[3]):
+                j[4].append(t)  # in step, but the clock has not moved since the jump: held (its state unchanged)
+                out.setdefault((k, ek), []).append((k, ek, t, vals))
+                ids.setdefault((k, ek), []).append(i_m)
+                continue
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
+                  and abs(t - j[1] - (cm - j[5])) <= min(r, reorder)):
+                # back in step with the clock before its time ran on for `restart`: what it held may be stale,
+                # what it held in step meanwhile is this epoch's
                 del jumped[k]
-                e = ce
+                held = list(zip(out.get((k, ek), []), ids.get((k, ek), []), strict=True))
+                for x, i in held:
+                    if x[2] in j[4]:
+                        out.setdefault((k, ce), []).append((k, ce, x[2], x[3]))
+                        ids.setdefault((k, ce), []).append(i)
+                out[(k, ek)] = [x for x, _ in held if x[2] not in j[4]]
+                ids[(k, ek)] = [i for x, i in held if x[2] not in j[4]]
+                suspect[k], e = ek, ce
             elif mk is not None and (ek == ce + 1 or cm is None):
                 e = ek
                 if own:
@@ -134,7 +168,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             else:
                 e = ce + (cm is not None and r > 0 and clock_first.get(ce, cm) - r <= t < cm - r)
                 if e == ce + 1 and ek == ce and mk is not None:  # went ahead of the clock from its epoch
-                    jumped[k] = (e, mk, t)
+                    jumped[k] = (e, mk, t, cm, [], seen.get(k) or cm)
             if late:  # the epoch is over: the message is counted, not used
                 set_aside(k, [i_m], "late")
                 continue
@@ -146,10 +180,11 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             out.setdefault((k, e), []).append((k, e, t, vals))
             ids.setdefault((k, e), []).append(i_m)
     # messages held for an epoch the clock never reached (a stream's time fell back more than `restart` once
-    # while the clock's did not): never used, counted as orphans
+    # while the clock's did not): never used, counted as orphans (stale where the stream came back in step and
+    # stayed)
     for k, e in [ke for ke in out if ke[0] != clock and ke[1] not in clock_first]:
         out.pop((k, e))
-        set_aside(k, ids.pop((k, e)), "orphan")
+        set_aside(k, ids.pop((k, e)), "stale" if suspect.get(k) == e and epoch.get(k, 0) < e else "orphan")
     # per message: used if any of its keys used it; else orphaned if any of them orphaned it, else stale if any
     # found it stale, else late
     for i_m, (topic, n_keys) in topics.items():

@@ -12,6 +12,7 @@ places."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from offline_adp.errors import IngestError
@@ -108,7 +109,8 @@ def test_stale_stamps_are_set_aside_and_the_stream_goes_on(tmp_path, n_stale):
     held for an epoch, no step is filled, and the error mode finds every /tf value."""
     f = write_log(tmp_path / "tf.mcap", _log(n_stale=n_stale))
     with pytest.warns(UserWarning, match=rf"{n_stale} messages were set aside as stale, unused \(per topic "
-                                         rf"\{{'/tf': {n_stale}\}}\): each was stamped more than \[episodes\] restart"):
+                                         rf"\{{'/tf': {n_stale}\}}\): a stream's time jumped back more than "
+                                         r"\[episodes\] restart = 1.0 s and came back in step with the clock"):
         ds, s = ingest_mcap([f], _spec("error"))
     assert s["orphan_messages"] == 0 and s["messages_orphaned"] == {}
     assert s["messages_stale"] == {"/tf": n_stale} and s["messages_used"] == {"/state": 800, "/tf": 800 - n_stale}
@@ -123,3 +125,65 @@ def test_a_stream_behind_the_clock_for_good_is_not_taken_for_stale_stamps(tmp_pa
     with pytest.warns(UserWarning, match="belong to an epoch the clock never reached"):
         _, s = ingest_mcap([f], _spec("fill"))
     assert s["messages_orphaned"] == {"/tf": 500} and not s["messages_stale"]
+
+
+def test_a_restart_with_a_late_record_of_the_episode_before_is_no_stale_stamp():
+    """/cmd restarts just before the clock, and one late /cmd record of the previous episode
+    is written after the new episode's first /cmd (every stamp genuine; found by review).
+    The late record comes back in step with the clock, but what /cmd held for the new epoch
+    is that epoch's: the new episode starts at the clock's first step with its own first
+    command, nothing is stale. (A first version of the stale rule set that command aside.)"""
+    from offline_adp.ingest.mcap.build import assemble
+    from offline_adp.ingest.mcap.records import Message
+
+    def m(topic, t, v=0.0, ep=0):
+        return Message(topic, round(t * 1e9), round(t * 1e9), {"v": v, "k": ep})
+
+    msgs = []
+    for i in range(30):  # episode 0: clock at 20 Hz from 1.0 s, /cmd at 10 Hz (+1)
+        msgs.append(m("/clock", 1.0 + i * 0.05))
+        if i % 2 == 0 and i < 28:
+            msgs.append(m("/cmd", 1.0 + i * 0.05 + 0.01, 1.0))
+    msgs += [m("/cmd", 0.99, -1.0, 1), m("/cmd", 2.49, 1.0, 0)]  # the restart, then a late record of episode 0
+    for i in range(30):
+        msgs.append(m("/clock", 1.0 + i * 0.05, 0, 1))
+        if i % 2 == 0 and i > 0:
+            msgs.append(m("/cmd", 1.0 + i * 0.05 - 0.01, -1.0 - i, 1))
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/clock", "reorder_window": 2.0}, "episodes": {"restart": 0.25, "gap": 0.45},
+        "streams": [{"topic": "/clock", "fields": {"k": "k"}, "max_age": 0.001}],
+        "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "drop_step",
+                   "type": "continuous", "n_bins": 3},
+        "cost": {"field": "k"}})
+    got = assemble([msgs], spec, flush_every=10**9)
+    first = got.episodes[1]
+    assert first.t[0] == round(1.0 * 1e9) and first.act.ravel()[0] == -1.0 and len(first.t) == 29
+    assert not got.stale and got.stats["dropped_steps"] == 1
+
+
+def test_a_sparse_stream_restarting_after_the_clock_stopped_is_not_paired_with_the_last_episode():
+    """The clock stops at 2.0 s; /cmd (4 Hz, +1) restarts 0.3 s back (more than restart =
+    0.25 s) and its next message, one gap later, is past its old latest time. It must not be
+    read as back in step (the clock has not moved since the jump): the new episode's commands
+    (-1) are never paired with the last episode's steps, they are held for an epoch the clock
+    never reaches (found by the differential test's nightly run, where a first version of the
+    stale rule paired them)."""
+    from offline_adp.ingest.mcap.build import assemble
+    from offline_adp.ingest.mcap.records import Message
+
+    def m(topic, t, v=0.0):
+        return Message(topic, round(t * 1e9), round(t * 1e9), {"v": v})
+
+    msgs = [m("/clock", 1.0 + i * 0.05) for i in range(21)]  # 1.0 .. 2.0 s, then the clock stops
+    msgs[1:1] = [m("/cmd", 1.0 + i * 0.25, 1.0) for i in range(4)]  # 1.0 .. 1.75 s: in the file before
+    msgs += [m("/cmd", 1.45, -1.0), m("/cmd", 1.78, -1.0), m("/cmd", 2.03, -1.0)]
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/clock", "reorder_window": 2.0}, "episodes": {"restart": 0.25, "gap": 0.45},
+        "streams": [{"topic": "/clock", "fields": {"c": "v"}, "max_age": 0.001}],
+        "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "drop_step",
+                   "type": "continuous", "n_bins": 3},
+        "cost": {"field": "c"}})
+    got = assemble([msgs], spec, flush_every=10**9)
+    acts = np.concatenate([e.act.ravel() for e in got.episodes])
+    assert len(acts) == 20 and (acts == 1.0).all()  # every step's command is the last episode's own
+    assert not got.stale and got.orphaned == {"/cmd": 3}

@@ -63,7 +63,7 @@ MESSAGE_COUNTS = {
     "messages_used": "used (decoded and placed against the clock's steps)",
     "messages_skipped": "skipped (topics not in the spec, not decoded)",
     "messages_orphaned": "orphaned, unused (held for an epoch the clock never reached)",
-    "messages_stale": "stale, unused (stamped more than [episodes] restart behind their stream)",
+    "messages_stale": "stale, unused (held after a jump back of their stream that proved no restart)",
     "messages_dropped_late": "dropped late, unused (came after their epoch was over)",
     "messages_undecodable": "undecodable, unused",
 }

@@ -9,8 +9,8 @@ Per topic, per file and per recording, the messages of a file are partitioned as
 a spec topic that did not decode (``on_error = "quarantine"``; a damaged chunk's
 messages are not read at all and are not counted here, see ``recovered``). Of the decoded
 messages, ``orphaned`` ones were held for an epoch the clock never reached, ``stale``
-ones were stamped more than ``restart`` behind their stream, which then went on in step
-with the clock (rule 5 of "Epochs" in docs/ingestion-spec.md), and ``dropped_late`` ones
+ones were held after their stream's time jumped back more than ``restart``, a jump that
+proved no restart (rule 5 of "Epochs" in docs/ingestion-spec.md), and ``dropped_late`` ones
 came after their epoch was over; every other decoded message is
 ``used``: placed against the clock's steps of its epoch (a 100 Hz stream aligned to a
 10 Hz clock gives values to a tenth of the steps' rows, yet all its messages are used in

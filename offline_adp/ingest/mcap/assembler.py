@@ -16,6 +16,7 @@ from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
 from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter, read_event
+from offline_adp.ingest.mcap.epochs import EpochRules
 from offline_adp.ingest.mcap.presence import check_topic_present
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
@@ -23,7 +24,7 @@ from offline_adp.ingest.mcap.scan import damage_text, scan_records
 from offline_adp.ingest.mcap.spec import McapSpec, StreamSpec
 
 
-class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
+class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRules):
     """Streams one recording (one file, or the parts of a split recording) into episodes.
 
     Steps: the clock topic's messages (or ``rate_hz`` ticks over the first observation
@@ -63,8 +64,10 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
         self.bufs: dict[tuple[Any, int], _Buffer] = {}
         self.clock_first: dict[int, int] = {}
         self.clock_seen: dict[Any, int | None] = {}
-        # a stream gone ahead of the clock from its epoch, maybe on stale stamps: (its epoch, time before, first after)
-        self.jumped: dict[Any, tuple[int, int, int]] = {}
+        # a stream gone ahead of the clock from its epoch, maybe on stale stamps: (its epoch, time before, first after);
+        # once back in step, the epoch it held messages for (stale stamps among them are told when the clock gets there)
+        self.jumped: dict[Any, tuple[int, int, int, int]] = {}
+        self.suspect: dict[Any, int] = {}
         self.active = 0
         self.flushed_t: int | None = None  # time of the last step handed to the episodes
         self.lag = int((spec.reorder_window + max(s.max_age for s in self.value_keys.values())) * 1e9)
@@ -249,86 +252,6 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
             b.add(t, file_index, values, int(log_time), mid)
         self.late[topic] += late
 
-    def _epoch_of(self, k: Any, t: int) -> int | None:
-        """The epoch of a message of key ``k`` at time ``t``, from the file order alone
-        (never from what has been flushed): see "Epochs" in docs/ingestion-spec.md.
-
-        The clock's epoch advances when its time jumps back more than ``restart``. Any
-        other stream is placed against the clock's current epoch ``ce``, its first time
-        ``cf`` and latest time ``cm``: a time in ``[cf - restart, cm - restart)`` is the
-        next epoch's (the stream restarted before the clock); a stream still in ``ce - 1`` whose time has not
-        jumped back and lies more than ``restart`` above ``cm`` is a late message of
-        ``ce - 1``; anything else is ``ce``'s. A stream ahead of the clock stays ahead
-        until the clock follows (a second jump back while ahead replaces its buffer: the
-        clock skipped that epoch). None: the message belongs to an epoch that is over.
-        """
-        r = self.restart
-        m, ek = self.maxt[k], self.epoch[k]
-        own_restart = m is not None and r > 0 and t < m - r
-        ck = self.clock_key
-        if k == ck:
-            e = ek + 1 if own_restart else ek
-            back = own_restart or (m is not None and t < m)  # back in time by less than a restart: counted, said
-            self.stats["restarts" if own_restart else "clock_steps_back"] += int(back)
-            if e not in self.clock_first:
-                self.clock_first[e] = t
-                for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
-                    m2 = self.maxt[k2]
-                    if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
-                        self._orphan(k2, self.bufs.pop((k2, e), None))
-                        self.maxt[k2] = None
-            if self.pending_losses:
-                self._resolve_losses(e)
-        else:
-            ce, cm = self.epoch[ck], self.maxt[ck]
-            seen = self.clock_seen.get(k)
-            if m is not None and ek == ce and cm is not None and seen is not None and r > 0:
-                # a stream keeps pace with the clock: it restarted if its time fell more than
-                # `restart` behind its last time plus what the clock ran since (a stream silent
-                # for most of an episode resumes in the next one at a time above its last)
-                own_restart = t < m + max(cm - seen, 0) - r
-            # the time jumped back within what the clock has covered in this epoch (older than the epoch's
-            # first clock message: stale data of this epoch, e.g. a late localization stamp)
-            ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
-            if (j := self.jumped.get(k)) is not None and (j[0] != ek or ek != ce + 1 or m is None or m - j[2] >= r
-                                                        or own_restart):
-                del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
-            j = self.jumped.get(k)
-            if j is not None and cm is not None and t >= max(cm, j[1]) - r:  # back in step: stale stamps (rule 5)
-                self._set_aside_buffer(k, self.bufs.pop((k, ek), None), "stale")
-                del self.jumped[k]
-                e = ce
-            elif m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
-                e = ek
-                if own_restart:  # a second restart before the clock's: the clock has no such epoch
-                    self._orphan(k, self.bufs.pop((k, ek), None))
-            elif ek == ce and m is not None and not own_restart:
-                e = ce
-            elif ek == ce - 1 and m is not None and not own_restart and cm is not None and r > 0 and t > cm + r:
-                e = ek  # a late message of the epoch before the clock's restart
-                if cm - self.clock_first.get(ce, cm) >= self.reorder:
-                    return None
-            else:
-                e = ce + 1 if ahead else ce
-                if ahead and ek == ce and m is not None:  # gone ahead of the clock from its epoch
-                    self.jumped[k] = (e, m, t)
-        if e != ek:
-            self.epoch[k], m = e, None
-        elif own_restart:
-            m = None
-        if m is None or t > m:
-            self.maxt[k] = t
-            if k != ck:  # the clock's time when this stream's latest time was read (same epoch only)
-                self.clock_seen[k] = self.maxt[ck] if e == self.epoch[ck] else None
-        if e < self.active:  # defensive: never happens for messages on time (see the rules above)
-            return None
-        return e
-
-    def _new_epoch_everywhere(self) -> None:
-        e = max(self.epoch.values()) + 1
-        for k in self.epoch:
-            self.epoch[k], self.maxt[k] = e, None
-
     # ------------------------------------------------------------------ flushing
     def _watermark(self, e: int) -> float:
         """Steps of epoch ``e`` up to this time have all their data (inf: the epoch is over)."""
@@ -352,7 +275,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
                 continue
             mk = self.maxt[k]
             if self.epoch[k] > e:
-                if ce != e or self.jumped.get(k, (-1, 0, 0))[0] != e + 1:
+                if ce != e or self.jumped.get(k, (-1, 0, 0, 0))[0] != e + 1:
                     continue
                 mk = self.jumped[k][1]  # gone ahead from e on a stamp that may be stale: it may come back
             elif self.epoch[k] < e or mk is None:
@@ -380,13 +303,14 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting):
             # the epoch is over: so is its episode (in the last epoch of a cut recording: cut)
             for k in [k for k in self.bufs if k[1] == e]:  # an epoch the clock never reached: orphan messages
                 b = self.bufs.pop(k)
-                if e not in self.clock_first:
-                    self._orphan(k[0], b)
+                if e not in self.clock_first:  # back in step and stayed: stale stamps (rule 5)
+                    back = self.suspect.get(k[0]) == e and self.epoch[k[0]] < e
+                    self._set_aside_buffer(k[0], b, "stale" if back else "orphaned")
             self.last_step_t, self.last_episode_value, self.next_tick, self.waiting = None, None, None, None
             self.pending_drop = False
             self.flushed_t = None
             self.active += 1
-            if self.active > max(self.epoch.values()):
+            if self.active > max([*self.epoch.values(), *(e2 for _, e2 in self.bufs)]):  # held for later epochs too
                 return
 
     def _ticks(self, e: int, w: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -43,5 +43,11 @@ class _Buffer:
         if i:
             self.arr = {k: v[i:] for k, v in a.items()}
 
+    def take(self, which: np.ndarray) -> dict[str, np.ndarray]:
+        """Remove the messages ``which`` (a mask over :meth:`arrays`) and return them."""
+        a = self.arrays()
+        self.arr = {k: v[~which] for k, v in a.items()}
+        return {k: v[which] for k, v in a.items()}
+
     def __len__(self) -> int:
         return len(self.arr["t"]) + len(self.new["t"])

@@ -177,9 +177,9 @@ def ingest_mcap_tables(
                       "Raise restart above the jump.", stacklevel=2)
     if n_stale := sum(summary["messages_stale"].values()):
         warnings.warn(f"{n_stale} messages were set aside as stale, unused (per topic {summary['messages_stale']}): "
-                      f"each was stamped more than [episodes] restart = {spec.restart} s behind its stream, which "
-                      "then went on in step with the clock, so it was no restart (e.g. /tf's transforms[0], another "
-                      "frame pair from message to message)", stacklevel=2)
+                      f"a stream's time jumped back more than [episodes] restart = {spec.restart} s and came back in "
+                      "step with the clock, so it was no restart; the messages it held meanwhile are not used (e.g. "
+                      "/tf's transforms[0], another frame pair from message to message)", stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
                       "time is one step, and a stream's values at a repeated time are its last message's there "

@@ -54,4 +54,4 @@ class RecordingResult:
     decoded: dict[str, int] = field(default_factory=dict)  # per topic: messages decoded (used + set aside)
     orphaned: dict[str, int] = field(default_factory=dict)  # per topic: held for an epoch the clock never reached
     dropped_late: dict[str, int] = field(default_factory=dict)  # per topic: came after their epoch was over
-    stale: dict[str, int] = field(default_factory=dict)  # per topic: stamped more than `restart` behind their stream
+    stale: dict[str, int] = field(default_factory=dict)  # per topic: held after a jump back that proved no restart
