@@ -186,7 +186,7 @@ def _resumed_holdout(rd: RunDirectory, ds: Any, fraction: float | None,
     from offline_adp.data.holdout import held_out_episodes
 
     record = rd.read_json(rd.STATUS).get("holdout")
-    own = recorded_fraction(record)
+    own = recorded_fraction(record, str(rd.file(rd.STATUS)))
     if fraction is not None and fraction != own:
         raise RunDirectoryError(f"{rd.path}: the run was started with --holdout {own:g}, not {fraction:g}; resume "
                                 "it with its own (or omit --holdout)")

@@ -182,3 +182,25 @@ def test_an_algorithm_fitted_whole_never_sees_the_held_out_episodes_either(runs,
     whole = tmp_path / "whole"  # (and the test can tell: a fit on every episode acts otherwise)
     fit_run(runs / "data", whole, algorithm="api", params=api)
     assert not np.array_equal(acts[0], load_index_policy(whole / "model").act(obs))
+
+
+@pytest.mark.parametrize("bad", ["0.3", [0.3], {}, {"fraction": "abc"}, {"fraction": None},
+                                 {"fraction": 1.5}, {"fraction": 0.3, "seed": 1e400, "ids_sha256": "x"},
+                                 {"fraction": 0.3, "seed": 0}])
+def test_a_malformed_holdout_record_is_our_error_never_read_as_none(runs, tmp_path, bad, capsys):
+    """run.json is untrusted: a 'holdout' record of another shape must not crash evaluate
+    (a traceback) nor be read as "no holdout" (the fit did not see those episodes)."""
+    from offline_adp.cli import main
+    from offline_adp.evaluation.run import evaluate_run
+
+    run = tmp_path / "held"
+    shutil.copytree(runs / "held", run)
+    rj = json.loads((run / "run.json").read_text())
+    rj["holdout"] = bad
+    (run / "run.json").write_text(json.dumps(rj).replace("Infinity", "1e400"))  # a seed beyond any integer
+    with pytest.raises(ArtifactError, match=r"run.json: its 'holdout' record is not one this version reads"):
+        evaluate_run(run, simulator="none", **QUICK)
+    assert main(["evaluate", str(run), "--simulator", "none", "--bootstrap", "10", "--fqe-bootstrap", "5",
+                 "--model-particles", "0"]) != 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "holdout" in err

@@ -69,9 +69,20 @@ def holdout_split(ds: TransitionDataset, fraction: float, seed: int, flag: str =
     return fit, held, record
 
 
-def recorded_fraction(record: Any) -> float:
-    """The fraction a ``run.json``'s ``holdout`` record holds out (0 when there is none)."""
-    return float(record["fraction"]) if isinstance(record, dict) and "fraction" in record else 0.0
+def recorded_fraction(record: Any, where: str = "run.json") -> float:
+    """The fraction a ``run.json``'s ``holdout`` record holds out (0 when there is none: the
+    key absent or null); a record of another shape, or a fraction out of [0, 1), is an
+    :class:`~offline_adp.errors.ArtifactError` naming ``where`` (never read as "none": the
+    fit did not see those episodes)."""
+    if record is None:
+        return 0.0
+    try:
+        if not isinstance(record, dict):
+            raise TypeError(f"a {type(record).__name__}, not a table")
+        return check_holdout(record["fraction"], "holdout.fraction")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ArtifactError(f"{where}: its 'holdout' record is not one this version reads ({exc}); "
+                            "fit the run again") from None
 
 
 def held_out_episodes(ds: TransitionDataset, record: Any, where: str) -> TransitionDataset:
@@ -83,7 +94,7 @@ def held_out_episodes(ds: TransitionDataset, record: Any, where: str) -> Transit
         fraction, seed = check_holdout(record["fraction"], "holdout.fraction"), int(record["seed"])
         stored = str(record["ids_sha256"])
         _, held, mine = holdout_split(ds, fraction, seed, "holdout.fraction")
-    except (KeyError, TypeError, ValueError) as exc:  # InvalidArgumentError is a ValueError
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:  # InvalidArgumentError is a ValueError
         raise ArtifactError(f"{where}: its 'holdout' record is not one this version reads ({exc}); "
                             "fit the run again") from None
     assert held is not None and mine is not None

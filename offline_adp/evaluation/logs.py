@@ -48,7 +48,7 @@ def evaluated_logs(run: Path, info: dict[str, Any], ds: TransitionDataset, ds_pa
         return ds, {"kind": "other", "in_sample": False, "episodes": n, "of": n,
                     "description": f"the logs given ({n} episodes), not the data the run was fitted on"}
     record = info.get("holdout")
-    if recorded_fraction(record):
+    if recorded_fraction(record, str(run / "run.json")):
         held = held_out_episodes(ds, record, str(run / "run.json"))
         k = held.n_episodes
         return held, {"kind": "held_out", "in_sample": False, "episodes": k, "of": n,
