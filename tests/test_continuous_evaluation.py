@@ -323,3 +323,24 @@ def test_model_rollouts_over_commands_say_their_progress(lq):
     quiet = command_model_rollouts(lq, pol, 20, GAMMA, **kw)
     assert any("step 20/20" in s for s in said) and any("3 bootstrap refits" in s for s in said)
     assert loud["estimate"] == quiet["estimate"] and loud["bootstrap"]["readings"] == quiet["bootstrap"]["readings"]
+
+
+def test_the_report_of_a_held_out_run_overlays_the_held_out_commands(lq, tmp_path, monkeypatch):
+    """A run fitted with --holdout is evaluated on its held-out episodes; the report's command
+    figures overlay those episodes' logged commands (they were silently dropped: the whole
+    dataset's fingerprint is not the evaluated episodes')."""
+    import offline_adp.evaluation.report as report
+
+    lq.save(tmp_path / "data")
+    (tmp_path / "fqi.toml").write_text("[fqi]\nn_iterations = 5\nregressor_params = {n_estimators = 5}\n")
+    assert main(["fit", str(tmp_path / "data"), "--config", str(tmp_path / "fqi.toml"), "--holdout", "0.3",
+                 "--out", str(tmp_path / "run"), "-q"]) == 0
+    assert main(["evaluate", str(tmp_path / "run"), "--fqe-bootstrap", "0", "--bootstrap", "0",
+                 "--model-particles", "0", "-q"]) == 0
+    seen = {}
+    monkeypatch.setattr(report, "command_figures", lambda *a: seen.setdefault("logged", a[-1]))
+    report.build_report(tmp_path / "run")
+    ids = json.loads((tmp_path / "run" / "run.json").read_text())["holdout"]["ids"]
+    want = lq.select_episodes(ids).commands()
+    assert seen["logged"] is not None and len(seen["logged"]) == len(want) < len(lq)
+    np.testing.assert_array_equal(np.sort(seen["logged"], axis=0), np.sort(want, axis=0))

@@ -145,7 +145,8 @@ def test_compare_refuses_candidates_read_on_different_episodes(runs, tmp_path):
 
     for name in ("all", "held"):
         shutil.copytree(runs / name, tmp_path / name)
-    with pytest.raises(IncompatibleError, match="evaluated on different episodes"):
+    with pytest.raises(IncompatibleError, match=r"read on different episodes of their logs \(all: no holdout; "
+                                                r"held: --holdout 0.3 with random_state 5\)"):
         compare_runs([tmp_path / "all", tmp_path / "held"], simulator="none", evaluate_params=QUICK)
 
 

@@ -119,6 +119,7 @@ def compare_runs(
     runs = _checked_runs(run_dirs, estimator)
     if dataset is None:
         dataset = _common_dataset(runs)
+        _check_same_held_out(runs)  # their own logs: each is read on the episodes it held out, if any
     ds_path = str(Path(dataset).resolve())
     fp = _fingerprint(ds_path)
     metrics = _candidate_metrics(runs, ds_path, fp, cfg, force, say)
@@ -160,6 +161,27 @@ def _checked_runs(run_dirs: Sequence[str | PathLike[str]], estimator: str | None
             raise RunDirectoryError(f"{r}: not a run directory (no model/)"
                                     + (pipeline_hint(r) or "; fit one with `offline-adp fit`"))
     return runs
+
+
+def _check_same_held_out(runs: list[Path]) -> None:
+    """Before any evaluation: on the runs' own dataset each is read on the episodes its fit
+    held out (``fit --holdout``), or on all; candidates read on different episodes are not
+    ranked together (an error naming each run's holdout)."""
+    from offline_adp.data.files import read_json_file
+    from offline_adp.data.holdout import recorded_fraction
+
+    held: dict[Path, tuple[float, Any, Any]] = {}
+    for r in runs:
+        rec = read_json_file(r / "run.json").get("holdout")
+        frac = recorded_fraction(rec, str(r / "run.json"))
+        held[r] = (frac, rec.get("seed") if frac else None, rec.get("ids_sha256") if frac else None)
+    if len({h[2] for h in held.values()}) > 1:
+        each = "; ".join(f"{r.name}: " + (f"--holdout {f:g} with random_state {s}" if f else "no holdout")
+                         for r, (f, s, _) in held.items())
+        raise IncompatibleError(f"the candidates would be read on different episodes of their logs ({each}): each "
+                                "is evaluated on the episodes its fit held out, or on all. Fit them with the same "
+                                "--holdout and random_state (or none), or compare them on other logs with --dataset "
+                                "DIR (read whole)")
 
 
 def _common_dataset(runs: list[Path]) -> str:

@@ -152,8 +152,16 @@ def _command_figures(figs: Figures, run: Path, m: dict[str, Any], ratios: pd.Dat
     logged = None
     if isinstance(ds_path, str) and (Path(ds_path) / "meta" / "info.json").exists():
         ds = TransitionDataset.load(ds_path)
-        if ds.matches_fingerprint((m.get("dataset") or {}).get("fingerprint")):  # the logs the evaluation read
-            logged = ds.commands()
+        logs = m.get("logs") or {}
+        held = logs.get("kind") == "held_out"  # read on the episodes the fit held out
+        fp = logs.get("dataset_fingerprint") if held else (m.get("dataset") or {}).get("fingerprint")
+        if ds.matches_fingerprint(fp):
+            if held:
+                from offline_adp.data.files import read_json_file
+                from offline_adp.data.holdout import held_out_episodes
+
+                ds = held_out_episodes(ds, read_json_file(run / "run.json").get("holdout"), str(run / "run.json"))
+            logged = ds.commands()  # the logs the evaluation read
     command_figures(figs, policy, ratios, features, axes, units, table, logged)
 
 
