@@ -127,6 +127,16 @@ def test_a_stream_behind_the_clock_for_good_is_not_taken_for_stale_stamps(tmp_pa
     assert s["messages_orphaned"] == {"/tf": 500} and not s["messages_stale"]
 
 
+def _clock_and_command(fields):
+    """/clock at 20 Hz (restart 0.25 s) with ``fields``; the command on /cmd's ``v`` (previous, 0.5 s)."""
+    return parse_mcap_spec({
+        "clock": {"topic": "/clock", "reorder_window": 2.0}, "episodes": {"restart": 0.25, "gap": 0.45},
+        "streams": [{"topic": "/clock", "fields": fields, "max_age": 0.001}],
+        "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "drop_step",
+                   "type": "continuous", "n_bins": 3},
+        "cost": {"field": next(iter(fields))}})
+
+
 def test_a_restart_with_a_late_record_of_the_episode_before_is_no_stale_stamp():
     """/cmd restarts just before the clock, and one late /cmd record of the previous episode
     is written after the new episode's first /cmd (every stamp genuine; found by review).
@@ -149,12 +159,7 @@ def test_a_restart_with_a_late_record_of_the_episode_before_is_no_stale_stamp():
         msgs.append(m("/clock", 1.0 + i * 0.05, 0, 1))
         if i % 2 == 0 and i > 0:
             msgs.append(m("/cmd", 1.0 + i * 0.05 - 0.01, -1.0 - i, 1))
-    spec = parse_mcap_spec({
-        "clock": {"topic": "/clock", "reorder_window": 2.0}, "episodes": {"restart": 0.25, "gap": 0.45},
-        "streams": [{"topic": "/clock", "fields": {"k": "k"}, "max_age": 0.001}],
-        "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "drop_step",
-                   "type": "continuous", "n_bins": 3},
-        "cost": {"field": "k"}})
+    spec = _clock_and_command({"k": "k"})
     got = assemble([msgs], spec, flush_every=10**9)
     first = got.episodes[1]
     assert first.t[0] == round(1.0 * 1e9) and first.act.ravel()[0] == -1.0 and len(first.t) == 29
@@ -177,12 +182,7 @@ def test_a_sparse_stream_restarting_after_the_clock_stopped_is_not_paired_with_t
     msgs = [m("/clock", 1.0 + i * 0.05) for i in range(21)]  # 1.0 .. 2.0 s, then the clock stops
     msgs[1:1] = [m("/cmd", 1.0 + i * 0.25, 1.0) for i in range(4)]  # 1.0 .. 1.75 s: in the file before
     msgs += [m("/cmd", 1.45, -1.0), m("/cmd", 1.78, -1.0), m("/cmd", 2.03, -1.0)]
-    spec = parse_mcap_spec({
-        "clock": {"topic": "/clock", "reorder_window": 2.0}, "episodes": {"restart": 0.25, "gap": 0.45},
-        "streams": [{"topic": "/clock", "fields": {"c": "v"}, "max_age": 0.001}],
-        "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "drop_step",
-                   "type": "continuous", "n_bins": 3},
-        "cost": {"field": "c"}})
+    spec = _clock_and_command({"c": "v"})
     got = assemble([msgs], spec, flush_every=10**9)
     acts = np.concatenate([e.act.ravel() for e in got.episodes])
     assert len(acts) == 20 and (acts == 1.0).all()  # every step's command is the last episode's own
