@@ -117,9 +117,8 @@ def compare_runs(
                                                 **({"simulator": simulator} if simulator is not None else {})})
     say = progress or (lambda _m: None)
     runs = _checked_runs(run_dirs, estimator)
-    if dataset is None:
+    if dataset is None:  # their own logs: each is read on the episodes its fit held out, if any
         dataset = _common_dataset(runs)
-        _check_same_held_out(runs)  # their own logs: each is read on the episodes it held out, if any
     ds_path = str(Path(dataset).resolve())
     fp = _fingerprint(ds_path)
     metrics = _candidate_metrics(runs, ds_path, fp, cfg, force, say)
@@ -185,7 +184,8 @@ def _check_same_held_out(runs: list[Path]) -> None:
 
 
 def _common_dataset(runs: list[Path]) -> str:
-    """The dataset every run was fitted on (an error when a run names none, or they name different logs)."""
+    """The dataset every run was fitted on (an error when a run names none, or they name different logs,
+    or each would be read on other episodes of it: :func:`_check_same_held_out`)."""
     paths = {str(Path(p).resolve()) if p else "" for p in (_dataset_of(r) for r in runs)}
     if "" in paths:
         raise RunDirectoryError("a run does not name its dataset; pass --dataset DIR")
@@ -193,6 +193,7 @@ def _common_dataset(runs: list[Path]) -> str:
     if len(fps) > 1:
         raise IncompatibleError(f"the runs were fitted on different logs ({len(fps)} datasets); compare them on "
                               "one with --dataset DIR")
+    _check_same_held_out(runs)
     return sorted(paths)[0]
 
 
