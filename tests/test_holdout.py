@@ -205,3 +205,21 @@ def test_a_malformed_holdout_record_is_our_error_never_read_as_none(runs, tmp_pa
                  "--model-particles", "0"]) != 0
     err = capsys.readouterr().err
     assert "Traceback" not in err and "holdout" in err
+
+
+def test_the_report_says_the_policy_was_read_on_episodes_its_fit_held_out(runs, tmp_path):
+    """The report's first line said "fitted ... on" the evaluated episodes: for a held-out run
+    those are the ones the fit did NOT see."""
+    from offline_adp.evaluation.report import build_report
+    from offline_adp.evaluation.run import evaluate_run
+
+    run = tmp_path / "held"
+    shutil.copytree(runs / "held", run)
+    m = evaluate_run(run, simulator="none", **QUICK)
+    sub = build_report(run).read_text().split("<p class='sub'>", 1)[1].split("</p>", 1)[0]
+    assert sub.startswith(f"Policy fitted by FQI, evaluated on {m['dataset']['transitions']:,} transitions in the 6 "
+                          "episodes its fit held out")
+    own = tmp_path / "all"
+    shutil.copytree(runs / "all", own)
+    evaluate_run(own, simulator="none", **QUICK)
+    assert "fitted and evaluated on" in build_report(own).read_text()

@@ -366,10 +366,13 @@ def _html(m: dict[str, Any], h: dict[str, Any], figs: Figures, title: str, csv: 
     ds = m["dataset"]
     src = ", ".join(f"{k}: {v:,} transitions" if isinstance(v, int) else f"{k}: {v}"
                     for k, v in (ds.get("sources") or {}).items())
+    kind = (m.get("logs") or {}).get("kind")  # the logs read: the fit's own (or unknown), held out, or others
+    read = {"held_out": f"the {ds['episodes']} episodes its fit held out", "other": f"{ds['episodes']} episodes of "
+            "other logs than its fit's"}.get(kind, f"{ds['episodes']} episodes")
     parts = [f"<h1>{html.escape(title)}</h1>",
-             f"<p class='sub'>Policy fitted by {html.escape(str(m.get('algorithm') or 'unknown').upper())} on "
-             f"{ds['transitions']:,} transitions in {ds['episodes']} episodes ({html.escape(src)}). "
-             "Costs are minimised: lower is better.</p>",
+             f"<p class='sub'>Policy fitted by {html.escape(str(m.get('algorithm') or 'unknown').upper())}, "
+             f"{'evaluated' if kind in ('held_out', 'other') else 'fitted and evaluated'} on {ds['transitions']:,} "
+             f"transitions in {read} ({html.escape(src)}). Costs are minimised: lower is better.</p>",
              _summary_box(m, h), "<h2>Figures</h2>"]
     parts += figure_html(figs)
     good, bad, cols = _estimate_rows(m, h)
