@@ -16,7 +16,7 @@ from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
 from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter, read_event
-from offline_adp.ingest.mcap.epochs import EpochRules
+from offline_adp.ingest.mcap.epochs import EpochRules, Jump
 from offline_adp.ingest.mcap.presence import check_topic_present
 from offline_adp.ingest.mcap.records import EpisodeRows, Message, RecordingResult
 from offline_adp.ingest.mcap.rosbags_source import is_rosbags_input, read_rosbags
@@ -64,9 +64,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
         self.bufs: dict[tuple[Any, int], _Buffer] = {}
         self.clock_first: dict[int, int] = {}
         self.clock_seen: dict[Any, int | None] = {}
-        # a stream gone ahead of the clock from its epoch, maybe on stale stamps: (its epoch, time before, first after);
-        # once back in step, the epoch it held messages for (stale stamps among them are told when the clock gets there)
-        self.jumped: dict[Any, tuple[int, int, int, int]] = {}
+        self.jumped: dict[Any, Jump] = {}  # streams gone ahead of the clock, maybe on stale stamps (rule 5)
+        # back in step: the epoch a stream held messages for (stale stamps among them told when the clock gets there)
         self.suspect: dict[Any, int] = {}
         self.active = 0
         self.flushed_t: int | None = None  # time of the last step handed to the episodes
@@ -275,9 +274,9 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                 continue
             mk = self.maxt[k]
             if self.epoch[k] > e:
-                if ce != e or self.jumped.get(k, (-1, 0, 0, 0))[0] != e + 1:
+                if ce != e or (j := self.jumped.get(k)) is None or j.epoch != e + 1:
                     continue
-                mk = self.jumped[k][1]  # gone ahead from e on a stamp that may be stale: it may come back
+                mk = j.before  # gone ahead from e on a stamp that may be stale: it may come back
             elif self.epoch[k] < e or mk is None:
                 if span <= self.reorder:
                     return -np.inf  # this stream may still come (e.g. written topic by topic)

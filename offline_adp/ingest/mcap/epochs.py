@@ -4,11 +4,22 @@ stream held for a later epoch (rule 5)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from offline_adp.ingest.mcap.buffers import _Buffer
+
+
+class Jump(NamedTuple):
+    """A stream gone ahead of the clock from its epoch, maybe on stale stamps (rule 5)."""
+
+    epoch: int  #: the epoch it went to (the clock's next)
+    before: int  #: its latest time before the jump
+    first: int  #: its first time after it
+    clock: int  #: the clock's latest time then
+    in_step: list[int]  #: times of its messages in step while the clock has not moved since (held)
+    seen: int  #: the clock's time when ``before`` was read (its pace with the clock)
 
 
 class EpochRules:
@@ -22,7 +33,7 @@ class EpochRules:
     bufs: dict[tuple[Any, int], _Buffer]
     clock_first: dict[int, int]
     clock_seen: dict[Any, int | None]
-    jumped: dict[Any, tuple[int, int, int, int, list[int], int]]
+    jumped: dict[Any, Jump]
     suspect: dict[Any, int]
     clock_key: Any
     restart: int
@@ -79,17 +90,17 @@ class EpochRules:
             # the time jumped back within what the clock has covered in this epoch (older than the epoch's
             # first clock message: stale data of this epoch, e.g. a late localization stamp)
             ahead = cm is not None and r > 0 and self.clock_first.get(ce, cm) - r <= t < cm - r
-            if (j := self.jumped.get(k)) is not None and (j[0] != ek or ek != ce + 1 or m is None or m - j[2] >= r
-                                                        or own_restart):
+            if (j := self.jumped.get(k)) is not None and (j.epoch != ek or ek != ce + 1 or m is None
+                                                        or m - j.first >= r or own_restart):
                 del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
             j = self.jumped.get(k)
-            if j is not None and cm is not None and t >= max(cm - r, j[1]) and (  # in step again (rule 5): at
-                    abs(t - j[1] - (cm - j[5])) <= min(r, self.reorder)):  # its old pace with the clock
-                if cm == j[3]:  # the clock has not moved since the jump (a clock that stopped?): held till it does
-                    j[4].append(t)
+            if j is not None and cm is not None and t >= max(cm - r, j.before) and (  # in step again (rule 5):
+                    abs(t - j.before - (cm - j.seen)) <= min(r, self.reorder)):  # at its old pace with the clock
+                if cm == j.clock:  # the clock has not moved since the jump (a clock that stopped?): held till it does
+                    j.in_step.append(t)
                     return ek if ek >= self.active else None
                 del self.jumped[k]
-                self._come_back(k, ek, ce, j[4])
+                self._come_back(k, ek, ce, j.in_step)
                 self.suspect[k], e = ek, ce
             elif m is not None and (ek == ce + 1 or cm is None):  # ahead of the clock (or before its first message)
                 e = ek
@@ -104,7 +115,7 @@ class EpochRules:
             else:
                 e = ce + 1 if ahead else ce
                 if ahead and ek == ce and m is not None:  # gone ahead of the clock from its epoch
-                    self.jumped[k] = (e, m, t, cm, [], self.clock_seen.get(k) or cm)
+                    self.jumped[k] = Jump(e, m, t, cm, [], self.clock_seen.get(k) or cm)
         if e != ek:
             self.epoch[k], m = e, None
         elif own_restart:
@@ -139,8 +150,8 @@ class EpochRules:
                 self._set_aside(k, "stale", gone["#id"], gone["file"])
                 if self.epoch[k] == e:
                     self.maxt[k] = int(b.arrays()["t"][-1]) if len(b) else None
-        for k in [k for k, j in self.jumped.items() if j[0] == e]:  # the clock followed: a restart after all
-            times = self.jumped.pop(k)[4]
+        for k in [k for k, j in self.jumped.items() if j.epoch == e]:  # the clock followed: a restart after all
+            times = self.jumped.pop(k).in_step
             if times and (b := self.bufs.get((k, e))) is not None:  # late records of the epoch before
                 gone = b.take(np.isin(b.arrays()["t"], times))
                 self._set_aside(k, "dropped_late", gone["#id"], gone["file"])
