@@ -229,6 +229,38 @@ def test_real_recording_tf_messages_set_aside_are_not_used():
     assert s["messages_orphaned"] == {} and not s["filled_steps"]
 
 
+@pytest.mark.skipif(not (SHARED_DATA / "nav2_turtlebot.mcap").exists(), reason="../shared/data is not present")
+def test_real_recording_tf_frame_pair_selected_equals_odometry():
+    """/tf mixes three frame pairs; the selector transforms[child_frame_id=base_link] reads
+    odom -> base_link alone. Oracle: that transform is the odometry's pose, so at every step
+    (both stamped alike, aligned exactly) its translation equals /odom's position. Nothing is
+    stale or orphaned, every step has its value (missing = error), and the other pairs'
+    messages are counted as unselected."""
+    import warnings
+
+    path = SHARED_DATA / "nav2_turtlebot.mcap"
+    sel = "transforms[child_frame_id=base_link]"
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/odom", "time": "header.stamp"}, "episodes": {"gap": 2.0},
+        "streams": [{"topic": "/odom", "time": "header.stamp", "max_age": 0.001,
+                     "fields": {"v": "twist.twist.linear.x", "px": "pose.pose.position.x"}},
+                    {"topic": "/tf", "time": f"{sel}.header.stamp", "max_age": 0.001,
+                     "fields": {"tf_x": f"{sel}.transform.translation.x"}}],
+        "action": {"topic": "/odom", "field": "twist.twist.angular.z", "time": "header.stamp", "max_age": 0.001,
+                   "type": "continuous", "n_bins": 5},
+        "cost": {"terms": [{"field": "v", "op": "abs", "weight": -1.0}]},
+    })
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ds, s = ingest_mcap([path], spec)
+    assert not [w for w in caught if "stale" in str(w.message) or "orphan" in str(w.message)]
+    names = [f.name for f in ds.info.features]
+    obs = ds.arrays().obs
+    np.testing.assert_array_equal(obs[:, names.index("tf_x")], obs[:, names.index("px")])
+    assert len(ds) == 2638 and not s["messages_stale"] and not s["messages_orphaned"]
+    assert s["messages_used"]["/tf"] == 2639 and s["messages_unselected"] == {"/tf": 5422 - 2639}
+
+
 def _chunks_and_episodes(path) -> tuple[list[tuple[int, int]], dict[int, set[str]]]:
     """Ground truth from an undamaged file: each chunk record's byte range [offset, end) and,
     per chunk, the episodes with a message in it (an episode spans its start..end events)."""

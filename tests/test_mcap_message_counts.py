@@ -1,6 +1,6 @@
 """The per-topic message counts of an MCAP ingest partition the messages of the file:
 
-    messages_read = messages_used + messages_skipped + messages_orphaned
+    messages_read = messages_used + messages_skipped + messages_unselected + messages_orphaned
                     + messages_stale + messages_dropped_late + messages_undecodable
 
 per topic, per file and in total. ``messages_used`` once counted every decoded message,
@@ -28,8 +28,8 @@ from tests.test_ingest_mcap_streaming import write_log
 from tests.test_mcap_differential import _split, logs
 from tests.test_mcap_stale_stream import _log, _spec
 
-PARTS = ("messages_used", "messages_skipped", "messages_orphaned", "messages_stale", "messages_dropped_late",
-         "messages_undecodable")
+PARTS = ("messages_used", "messages_skipped", "messages_unselected", "messages_orphaned", "messages_stale",
+         "messages_dropped_late", "messages_undecodable")
 
 
 def _partition_holds(counts: dict, in_file: Counter) -> None:

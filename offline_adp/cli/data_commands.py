@@ -62,6 +62,7 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
 MESSAGE_COUNTS = {
     "messages_used": "used (decoded and placed against the clock's steps)",
     "messages_skipped": "skipped (topics not in the spec, not decoded)",
+    "messages_unselected": "unselected, unused (no element matched the spec's selectors, e.g. another /tf frame pair)",
     "messages_orphaned": "orphaned, unused (held for an epoch the clock never reached)",
     "messages_stale": "stale, unused (held after a jump back of their stream that proved no restart)",
     "messages_dropped_late": "dropped late, unused (came after their epoch was over)",
@@ -70,19 +71,19 @@ MESSAGE_COUNTS = {
 
 
 def _print_message_counts(s: dict) -> None:
-    """Per file and per topic: read = used + skipped + orphaned + stale + dropped late + undecodable."""
+    """Per file and per topic: read = used + skipped + unselected + orphaned + stale + dropped late + undecodable."""
     rows = [("file", "read", "used", "skipped", "unused", "recovered")]
     for f in s["files"]:
         rec = f.get("recovered")
-        unused = sum(sum(f[k].values()) for k in ("messages_orphaned", "messages_stale", "messages_dropped_late",
-                                                  "messages_undecodable"))
+        unused = sum(sum(f[k].values()) for k in ("messages_unselected", "messages_orphaned", "messages_stale",
+                                                  "messages_dropped_late", "messages_undecodable"))
         rows.append((f["path"], *(str(sum(f[k].values())) for k in ("messages_read", "messages_used",
                                                                     "messages_skipped")), str(unused),
                      "-" if rec is None else f"{rec['messages']} msgs, damage: {rec['text'].split(', ', 1)[1]}"))
     width = [max(len(r[i]) for r in rows) for i in range(5)]
     for r in rows:
         print(f"  {r[0]:<{width[0]}}" + "".join(f"  {r[i]:>{width[i]}}" for i in range(1, 5)) + f"  {r[5]}")
-    print("  messages per topic: read = used + skipped + orphaned + stale + dropped late + undecodable")
+    print("  messages per topic: read = used + skipped + unselected + orphaned + stale + dropped late + undecodable")
     print(f"    read: {s['messages_read']}")
     for k, text in MESSAGE_COUNTS.items():
         if s[k] or k == "messages_used":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections import Counter
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,7 @@ from offline_adp.ingest.mcap.accounting import MessageAccounting
 from offline_adp.ingest.mcap.align import AHEAD_OF_CLOCK, _align
 from offline_adp.ingest.mcap.buffers import _Buffer
 from offline_adp.ingest.mcap.damage import DamageAccounting
-from offline_adp.ingest.mcap.decode import _Decoders, _msg_time, numeric_fields
+from offline_adp.ingest.mcap.decode import NoElement, _Decoders, _msg_time, numeric_fields
 from offline_adp.ingest.mcap.episodes import EpisodeSegmenter, read_event
 from offline_adp.ingest.mcap.epochs import EpochRules, Jump
 from offline_adp.ingest.mcap.presence import check_topic_present
@@ -91,6 +92,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                       "duplicate_clock_times": 0, "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self._init_accounting()
+        self.key_taken: Counter[Any] = Counter()  # per key: messages it took (its selectors found their element)
         self.live_reports: list[dict[str, Any]] = []
         self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
         self.n_lost_seen = 0
@@ -136,7 +138,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
         missing = [t for t, n in self.decoded.items() if n == 0 and t != self.spec.episode_topic]
         orphaned, late = self._per_topic("orphaned"), self._per_topic("dropped_late")
         return RecordingResult(self.out, self.stats, self.used_counts(), self.late, self.reports, missing, self.filled,
-                               dict(self.decoded), orphaned, late, self._per_topic("stale"))
+                               dict(self.decoded), orphaned, late, self._per_topic("stale"),
+                               self._per_topic("unselected"), self._selector_misses())
 
     def _read(self, path: Path, file_index: int) -> None:
         from collections import Counter
@@ -223,21 +226,21 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
         self.decoded[topic] += 1
         late = False  # once per message, whichever of its keys finds it late
         times: dict[str, int] = {}  # one time per time field of this message
+        taken = []  # (key, time, values) of each key the message is for (a selector [key=value] may say not)
         for k in self.by_topic[topic]:
+            try:
+                taken.append((k, *self._read_key(k, topic, log_time, publish_time, dec, times)))
+            except NoElement as exc:  # e.g. a /tf message of another frame pair: not this stream's
+                seen = self.selector_values.setdefault(k, set())
+                seen.update(exc.seen[: max(0, 20 - len(seen))])
+        self._taken(topic, mid, file_index, len(taken))
+        for k, *_ in taken:
+            self.key_taken[k] += 1
+        for k, t, values in taken:
             if k == "events":
-                t = int(log_time)
-                values = read_event(dec, self.spec.episode_fields, topic, log_time)
                 fields = list(self.spec.episode_fields)
                 self.event_kinds.append(str(values[fields.index("event_field")]) if "event_field" in fields
                                         else "start")
-            else:
-                which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
-                t = times.get(which)
-                if t is None:
-                    t = times[which] = _msg_time(which, log_time, publish_time, dec)
-                exact = k == "action" and self.spec.action.type == "continuous"  # a boolean is no such command
-                values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time,
-                                                                command=exact)
             e = self._epoch_of(k, t)
             if e is None:  # late for an epoch already over (by file order, not by flush points): not used
                 late = True
@@ -250,6 +253,30 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                 b = self.bufs[(k, e)] = _Buffer(self.names[k], object if k == "events" else np.float64)
             b.add(t, file_index, values, int(log_time), mid)
         self.late[topic] += late
+
+    def _selector_misses(self) -> dict[str, list[str]]:
+        """Keys whose selectors found their element in none of their topic's messages: the
+        spec's place of each (``streams[1] (/tf)``) and the values its selectors saw instead."""
+        out = {}
+        for k, seen in self.selector_values.items():
+            if not self.key_taken[k]:
+                where = {"clock": "clock", "events": "episodes", "action": "action"}.get(k, f"streams[{k[1]}]")
+                out[f"{where} ({self.topic_of[k]})"] = sorted(seen)
+        return out
+
+    def _read_key(self, k: Any, topic: str, log_time: int, publish_time: int, dec: Any,
+                  times: dict[str, int]) -> tuple[int, list[Any]]:
+        """Key ``k``'s time and values in a decoded message (NoElement: the message is not ``k``'s)."""
+        if k == "events":
+            return int(log_time), read_event(dec, self.spec.episode_fields, topic, log_time)
+        which = self.spec.clock_time if k == "clock" else self.value_keys[k].time
+        exact = k == "action" and self.spec.action.type == "continuous"  # a boolean is no such command
+        values = [] if k == "clock" else numeric_fields(dec, self.value_keys[k].fields, topic, log_time,
+                                                        command=exact)
+        t = times.get(which)
+        if t is None:
+            t = times[which] = _msg_time(which, log_time, publish_time, dec)
+        return t, values
 
     # ------------------------------------------------------------------ flushing
     def _watermark(self, e: int) -> float:

@@ -58,7 +58,7 @@ def ingest_mcap(
     assembled independently — in a process pool with ``jobs > 1`` — and concatenated in
     input order, so the result does not depend on ``jobs``. Returns the dataset and a
     summary: per file its sha256, damage recovered and, per topic, the messages read =
-    used + skipped + orphaned + stale + dropped late + undecodable (the same counts over all
+    used + skipped + unselected + orphaned + stale + dropped late + undecodable (the same counts over all
     files; see :mod:`offline_adp.ingest.mcap.accounting`); steps dropped, outside any
     episode or under an end condition; episodes, transitions and per-source counts; under ``on_error =
     "quarantine"`` the rows set aside in ``quarantine/`` (``rows in the dataset + rows in
@@ -122,8 +122,8 @@ def ingest_mcap_tables(
 
     summary: dict[str, Any] = {"files": [], "recordings": [[str(p) for p in r] for r in recordings],
                                "messages_read": {}, "messages_used": {}, "messages_skipped": {},
-                               "messages_orphaned": {}, "messages_stale": {}, "messages_dropped_late": {},
-                               "messages_undecodable": {},
+                               "messages_unselected": {}, "messages_orphaned": {}, "messages_stale": {},
+                               "messages_dropped_late": {}, "messages_undecodable": {},
                                "late_messages": {}, "filled_steps": {}, "skipped_files": []}
     good: list[tuple[RecordingResult, list[Path]]] = []
     for res, rec in zip(results, recordings, strict=True):
@@ -143,11 +143,11 @@ def ingest_mcap_tables(
             summary[k] = (max(summary.get(k, 0), v) if k in ("max_buffered_messages", "longest_gap_s")
                           else summary.get(k, 0) + v)
         for name, key in (("used", "messages_used"), ("orphaned", "messages_orphaned"), ("stale", "messages_stale"),
-                          ("dropped_late", "messages_dropped_late"), ("late", "late_messages"),
-                          ("filled", "filled_steps")):
+                          ("unselected", "messages_unselected"), ("dropped_late", "messages_dropped_late"),
+                          ("late", "late_messages"), ("filled", "filled_steps")):
             for t, v in getattr(res, name).items():
                 summary[key][t] = summary[key].get(t, 0) + v
-        for f in res.files:  # per topic: read = used + skipped + orphaned + stale + dropped_late + undecodable
+        for f in res.files:  # per topic: read = used + skipped + unselected + orphaned + stale + late + undecodable
             for key in ("messages_read", "messages_skipped", "messages_undecodable"):
                 for t, v in f[key].items():
                     summary[key][t] = summary[key].get(t, 0) + v
@@ -174,12 +174,14 @@ def ingest_mcap_tables(
                       f"clock never reached (per topic {summary['messages_orphaned']}; a stream's time jumped back "
                       f"more than [episodes] restart = {spec.restart} s, read as a restart the clock did not follow, "
                       "e.g. /tf's transforms[0], another frame pair from message to message, some future-dated). "
-                      "Raise restart above the jump.", stacklevel=2)
+                      "Raise restart above the jump; for /tf, select the frame pair: "
+                      "transforms[child_frame_id=base_link] (docs/ingestion-spec.md, 'Field paths').", stacklevel=2)
     if n_stale := sum(summary["messages_stale"].values()):
         warnings.warn(f"{n_stale} messages were set aside as stale, unused (per topic {summary['messages_stale']}): "
                       f"a stream's time jumped back more than [episodes] restart = {spec.restart} s and came back in "
                       "step with the clock, so it was no restart; the messages it held meanwhile are not used (e.g. "
-                      "/tf's transforms[0], another frame pair from message to message)", stacklevel=2)
+                      "/tf's transforms[0], another frame pair from message to message: select the pair with "
+                      "transforms[child_frame_id=base_link], docs/ingestion-spec.md 'Field paths')", stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
                       "time is one step, and a stream's values at a repeated time are its last message's there "
@@ -194,6 +196,7 @@ def ingest_mcap_tables(
         warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
                       f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); "
                       "steps before them were aligned without them. Raise reorder_window.", stacklevel=2)
+    _selector_misses(good)
     paths = [p for r in recordings for p in r]
     eps = [ep for r, _ in good for ep in r.episodes]
     _distinct_ids(eps, paths, "id_field" in spec.episode_fields)
@@ -242,6 +245,26 @@ def ingest_mcap_tables(
                    repeated_episodes=len(warn_repeated(ds, ", ".join(map(str, paths[:2]))
                                                        + (", ..." if len(paths) > 2 else ""))))
     return ds, quarantine, summary
+
+
+def _selector_misses(good: list[tuple[RecordingResult, list[Path]]]) -> None:
+    """A field path's selector ``[key=value]`` that found its element in no message of a
+    recording: an error if in none of them (a typo, most likely: the values seen are named),
+    else a warning naming those recordings (that stream is then missing there)."""
+    import warnings
+
+    missed: dict[str, list[str]] = {}
+    seen: dict[str, set[str]] = {}
+    for res, rec in good:
+        for place, values in res.selector_misses.items():
+            missed.setdefault(place, []).append(", ".join(map(str, rec)))
+            seen.setdefault(place, set()).update(values)
+    for place, recs in missed.items():
+        text = (f"{place}: no message has the element a selector [key=value] of its field paths picks (the "
+                f"values seen: {sorted(seen[place])[:20]})")
+        if len(recs) == len(good):
+            raise IngestError(f"{text}; in {recs}")
+        warnings.warn(f"{text}; in {recs} (the stream has no message there)", stacklevel=3)
 
 
 def _distinct_ids(eps: list[EpisodeRows], paths: list[Path], given: bool) -> None:

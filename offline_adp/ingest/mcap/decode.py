@@ -68,24 +68,90 @@ class _Decoders:
         return d
 
 
-_TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]")
+_TOKEN = re.compile(r"([^.\[\]]+)|\[(\d+)\]|\[([^=\[\]]+)=([^\[\]]*)\]")
+#: A whole field path: names joined by dots, list indices ``[2]`` and selectors ``[key=value]``.
+_PATH = re.compile(r"(?:[^.\[\]]+|\[\d+\]|\[[^=\[\]]+=[^\[\]]*\])(?:\.[^.\[\]]+|\[\d+\]|\[[^=\[\]]+=[^\[\]]*\])*")
+
+
+class NoElement(Exception):
+    """A selector ``[key=value]`` of a field path matched no element of the message's list:
+    the message is not the stream's (e.g. a /tf message of another frame pair). ``seen``:
+    the values of ``key`` the list held."""
+
+    def __init__(self, text: str, seen: tuple[str, ...] = ()) -> None:
+        super().__init__(text)
+        self.seen = seen
+
+
+def check_path(path: str) -> str | None:
+    """Why ``path`` is no field path (None: it is one). A path is names joined by dots, with
+    list indices (``transforms[0]``) and selectors (``transforms[child_frame_id=base_link]``:
+    the one element whose field ``child_frame_id`` is ``base_link``)."""
+    if not isinstance(path, str) or not _PATH.fullmatch(path):
+        return ("expected names joined by dots, with list indices [0] or selectors [key=value], e.g. "
+                "'transforms[child_frame_id=base_link].transform.translation.x'")
+    return None
 
 
 @functools.lru_cache(maxsize=4096)
-def _steps_of(path: str) -> tuple[tuple[str, int | None], ...]:
-    return tuple((name, int(index) if index else None) for name, index in _TOKEN.findall(path))
+def _steps_of(path: str) -> tuple[tuple[str, int | None, str | None], ...]:
+    out = []
+    for name, index, key, value in _TOKEN.findall(path):
+        if key:
+            v = value.strip()
+            if len(v) >= 2 and v[0] == v[-1] and v[0] in "'\"":
+                v = v[1:-1]  # a quoted value: [child_frame_id="base_link"]
+            out.append((key.strip(), None, v))
+        else:
+            out.append((name, int(index) if index else None, None))
+    return tuple(out)
+
+
+def _child(cur: Any, name: str) -> Any:
+    return cur[name] if isinstance(cur, dict) else getattr(cur, name)
+
+
+def _matches(v: Any, value: str) -> bool:
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, str):
+        return v == value
+    if isinstance(v, bool):
+        return value.lower() in (("true", "1") if v else ("false", "0"))
+    if isinstance(v, int | float):
+        try:
+            return float(v) == float(value)
+        except ValueError:
+            return False
+    return False
+
+
+def _select(cur: Any, key: str, value: str, path: str) -> Any:
+    """The one element of list ``cur`` whose field ``key`` is ``value``."""
+    if isinstance(cur, str | bytes | dict) or not hasattr(cur, "__iter__"):
+        raise TypeError(f"[{key}={value}] selects from a list, and this is {type(cur).__name__}")
+    hits = [el for el in cur if _matches(_child(el, key), value)]
+    if not hits:
+        raise NoElement(f"no element with {key} = {value!r} in {path!r}",
+                        tuple(str(_child(el, key)) for el in cur))
+    if len(hits) > 1:
+        raise ValueError(f"{len(hits)} elements have {key} = {value!r} (a selector must pick one)")
+    return hits[0]
 
 
 def get_path(msg: Any, path: str) -> Any:
-    """Value at a dotted path with list indices (``transforms[0].transform.translation.x``)."""
+    """Value at a dotted path with list indices (``transforms[0].transform.translation.x``)
+    and selectors (``transforms[child_frame_id=base_link].transform.translation.x``: the one
+    element whose ``child_frame_id`` is ``base_link``; none: :class:`NoElement`, several: a
+    ValueError)."""
     cur = msg
-    for name, index in _steps_of(path):
-        if index is not None:
+    for name, index, value in _steps_of(path):
+        if value is not None:
+            cur = _select(cur, name, value, path)
+        elif index is not None:
             cur = cur[index]
-        elif isinstance(cur, dict):
-            cur = cur[name]
         else:
-            cur = getattr(cur, name)
+            cur = _child(cur, name)
     return cur
 
 

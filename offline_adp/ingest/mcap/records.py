@@ -55,3 +55,6 @@ class RecordingResult:
     orphaned: dict[str, int] = field(default_factory=dict)  # per topic: held for an epoch the clock never reached
     dropped_late: dict[str, int] = field(default_factory=dict)  # per topic: came after their epoch was over
     stale: dict[str, int] = field(default_factory=dict)  # per topic: held after a jump back that proved no restart
+    unselected: dict[str, int] = field(default_factory=dict)  # per topic: for no key (no selector found its element)
+    #: per key of a selector that found no element: the spec's place of it, and the values seen instead
+    selector_misses: dict[str, list[str]] = field(default_factory=dict)

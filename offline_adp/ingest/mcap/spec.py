@@ -118,7 +118,19 @@ def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> Stre
         raise SpecError(f"{where}.role: expected one of {list(ROLES)}, got {s.role!r}")
     if fields_required and not s.fields:
         raise SpecError(f"{where}.fields: map at least one name to a field path")
+    _check_paths({**{f"fields.{n}": p for n, p in s.fields.items()}, "time": s.time}, where)
     return s
+
+
+def _check_paths(paths: dict[str, Any], where: str) -> None:
+    """Each field path is one (names, list indices, selectors), checked before any file is read."""
+    from offline_adp.ingest.mcap.decode import check_path
+
+    for key, path in paths.items():
+        if path in ("log_time", "publish_time"):
+            continue
+        if (why := check_path(path)) is not None:
+            raise SpecError(f"{where}.{key}: {path!r} is no field path: {why}")
 
 
 def _conditions(items: Any, where: str, names: list[str]) -> tuple[Condition, ...]:
@@ -294,6 +306,9 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
     _check_keys(sources, {"files", "split_recordings"}, f"{where}.sources")
     hints = data.get("hints") or {}
     _check_keys(hints, {"gamma", "horizon"}, f"{where}.hints")
+    _check_paths({"time": clock.get("time", "log_time")}, f"{where}.clock")
+    _check_paths({k: ep[k] for k in ("id_field", "event_field", "terminated_field", "source_field") if k in ep},
+                 f"{where}.episodes")
     terminal_when = _conditions(ep.get("terminal_when"), f"{where}.episodes.terminal_when", names)
     terminal_when += tuple(Condition(n, "!=", 0.0) for s in streams if s.role == "terminal" for n in s.fields)
     on_error = data.get("on_error", "fail")
