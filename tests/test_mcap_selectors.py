@@ -134,3 +134,27 @@ def test_a_malformed_field_path_is_refused_before_any_file_is_read(path):
     spec["streams"][1]["fields"]["x_base"] = path
     with pytest.raises(SpecError, match=r"spec\.streams\[1\]\.fields\.x_base: .* is no field path"):
         parse_mcap_spec(spec)
+
+
+def test_mcap_info_says_where_the_first_element_changes_and_how_to_select(tmp_path, capsys):
+    """`mcap-info` decodes only a topic's first message for its fields; /tf's first element
+    is another frame pair in later messages. It counts the values of the lists' string fields
+    (in how many messages each appears) and says when element [0] is not one thing, with the
+    selector to use. Ground truth: the generator's messages. A topic whose [0] is the same
+    in every message (the split log's) is not flagged."""
+    from offline_adp.cli import main
+    from offline_adp.ingest.mcap import mcap_info
+
+    mixed, split = _logs(5, n=120)
+    f = write_log(tmp_path / "mixed.mcap", mixed)
+    g = write_log(tmp_path / "split.mcap", split)
+    tf = [m[2]["transforms"] for m in mixed if m[0] == "/tf"]
+    want = Counter(c for m in tf for c in {x["child_frame_id"] for x in m})
+    got = mcap_info(f)["topics"]["/tf"]["list_values"]
+    assert got == {"transforms[].child_frame_id": dict(want)}
+    assert all(not t["list_values"] for t in mcap_info(g)["topics"].values())
+    assert main(["mcap-info", str(f)]) == 0
+    top = max(sorted(want), key=lambda c: want[c])
+    out = capsys.readouterr().out
+    assert "transforms[0] is another element from message to message" in out
+    assert f"read one with transforms[child_frame_id={top}]" in out

@@ -161,6 +161,12 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
                 print("      fields: " + ", ".join(shown) + (" ..." if len(t["field_info"]) > 40 else ""))
             elif t["status"].startswith("not decodable"):
                 print(f"      {t['status']}")
+            for where, counts in (t.get("list_values") or {}).items():  # [0] is not one thing in every message
+                head, key = where.split("[].", 1)
+                seen = ", ".join(f"{v} in {n}" for v, n in list(counts.items())[:8]) + (", ..." if len(counts) > 8
+                                                                                          else "")
+                print(f"      {head}[0] is another element from message to message ({key} in the first "
+                      f"{min(t['messages'], 2000)} messages: {seen}): read one with {head}[{key}={next(iter(counts))}]")
     return 0
 
 

@@ -11,10 +11,11 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import IngestError
-from offline_adp.ingest.mcap.decode import _Decoders, field_values
+from offline_adp.ingest.mcap.decode import _child, _Decoders, field_values, get_path
 from offline_adp.ingest.mcap.scan import damage_text, scan_records
 
 RESTART_S = 1.0  # a topic's log_time jumping back more than this starts a new epoch (as [episodes] restart)
+LIST_MESSAGES = 2000  # messages per topic decoded for the values of its lists' string fields
 MAX_PERIODS = 1_000_000  # periods kept per topic for the median (then every other one)
 
 
@@ -31,6 +32,47 @@ class _Topic:
         self.error: str | None = None
         self.first: int | None = None
         self.long: list[tuple[int, int]] = []  # (time before, length) of the first periods over 1 s
+        # per (list, string field of its elements), e.g. ("transforms", "child_frame_id"): in how many
+        # messages each value appears (the first LIST_MESSAGES messages)
+        self.lists: dict[tuple[str, str], dict[str, int]] = {}
+        self.list_messages = 0
+        self.firsts: dict[tuple[str, str], set[str]] = {}  # the values of element [0]
+
+    def set_first(self, decoded: Any) -> None:
+        """Field paths, types and samples of the first decodable message; its lists of records."""
+        self.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
+                             for p, v in field_values(decoded)]
+        for x in self.first_fields:
+            head, _, key = x["path"].partition("[0].")
+            if key and x["type"] == "string" and "." not in key and "[" not in key and "[0]" not in head:
+                self.lists[(head, key)] = {}
+        self.count_lists(decoded)
+
+    def count_lists(self, decoded: Any) -> None:
+        """Count the values of the lists' string fields in one more message (up to LIST_MESSAGES)."""
+        if not self.lists or self.list_messages >= LIST_MESSAGES:
+            return
+        self.list_messages += 1
+        for (head, key), counts in self.lists.items():
+            try:
+                values = [str(_child(el, key)) for el in get_path(decoded, head)]
+            except Exception:  # noqa: BLE001 - a message without that list: nothing to count
+                continue
+            if values:
+                self.firsts.setdefault((head, key), set()).add(values[0])
+            for v in list(dict.fromkeys(values))[:64]:
+                if v in counts or len(counts) < 64:
+                    counts[v] = counts.get(v, 0) + 1
+
+    def selectable(self) -> dict[str, dict[str, int]]:
+        """The lists whose first element differs from message to message (``transforms[0]`` is
+        not one thing): ``transforms[].child_frame_id`` -> {value: messages holding it}, most
+        frequent first."""
+        out = {}
+        for (head, key), counts in self.lists.items():
+            if len(self.firsts.get((head, key), ())) >= 2:
+                out[f"{head}[].{key}"] = dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+        return out
 
     def add(self, t: int) -> None:
         self.n += 1
@@ -138,12 +180,16 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
                             t.error = (f"no installed decoder reads message encoding {ch.message_encoding!r} "
                                        f"(schema encoding {getattr(sch, 'encoding', '')!r})")
                         else:
-                            t.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
-                                              for p, v in field_values(dec(msg.data))]
+                            t.set_first(dec(msg.data))
                     except IngestError as exc:
                         t.error = str(exc)
                     except Exception as exc:  # noqa: BLE001 - a message its decoder cannot read
                         t.error = f"first message not decodable ({type(exc).__name__}: {exc})"
+                elif t.lists and t.list_messages < LIST_MESSAGES:
+                    try:
+                        t.count_lists(decoders(sch, ch)(msg.data))
+                    except Exception:  # noqa: BLE001 - a later message that does not decode: not counted
+                        pass
     except IngestError as exc:
         raise IngestError(f"{path}: cannot read as MCAP ({exc})") from None
     except OSError as exc:
@@ -154,7 +200,7 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
         t = topics.get(cid, _Topic())
         entry = {"schema": sch.name if sch else "", "encoding": ch.message_encoding, "messages": t.n, **t.rate(),
                  "fields": [x["path"] for x in t.first_fields] if t.first_fields else None,
-                 "field_info": t.first_fields}
+                 "field_info": t.first_fields, "list_values": t.selectable()}
         if t.error:
             entry["status"] = "not decodable: " + t.error
         key = ch.topic if ch.topic not in out_topics else f"{ch.topic} (channel {cid})"
@@ -226,16 +272,20 @@ def rosbag_info(path: str | PathLike[str]) -> dict[str, Any]:
         hi = t if hi is None else max(hi, t)
         if tp.first_fields is None and tp.error is None:
             try:
-                tp.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
-                                   for p, v in field_values(deserialize(raw, bt.msgtype))]
+                tp.set_first(deserialize(raw, bt.msgtype))
             except Exception as exc:  # noqa: BLE001 - a message its type store cannot read
                 tp.error = f"first message not decodable ({type(exc).__name__}: {exc})"
+        elif tp.lists and tp.list_messages < LIST_MESSAGES:
+            try:
+                tp.count_lists(deserialize(raw, bt.msgtype))
+            except Exception:  # noqa: BLE001 - a later message that does not decode: not counted
+                pass
     out_topics: dict[str, Any] = {}
     for bt in report.get("bag_topics", {}):
         tp = topics.get(bt, _Topic())
         entry = {"schema": bt.msgtype, "encoding": bt.encoding, "messages": tp.n, **tp.rate(),
                  "fields": [x["path"] for x in tp.first_fields] if tp.first_fields else None,
-                 "field_info": tp.first_fields}
+                 "field_info": tp.first_fields, "list_values": tp.selectable()}
         if tp.error:
             entry["status"] = "not decodable: " + tp.error
         key = bt.topic if bt.topic not in out_topics else f"{bt.topic} ({bt.msgtype})"
