@@ -114,10 +114,16 @@ def test_a_selector_on_a_mixed_topic_equals_each_pair_on_its_own_topic(tmp_path_
         _partition_holds(s, Counter(m[0] for m in mixed))
 
 
-def test_a_selector_that_never_matches_names_the_stream_and_the_values_seen(tmp_path):
+@pytest.mark.parametrize("missing", ["drop_step", "error"])
+def test_a_selector_that_never_matches_names_the_stream_and_the_values_seen(tmp_path, missing):
+    """A typo in a selector: the error names the stream (at the end, or at the first step
+    the stream must give a value to) and the values the list held."""
     mixed, _ = _logs(0, n=60)
-    with pytest.raises(IngestError, match=r"streams\[1\] \(/tf\).*'base_link', 'odom', 'wheel'"):
-        _ingest(tmp_path, "typo", mixed, _spec(True, second=False, child="base_lnk"))
+    spec = _spec(True, second=False, child="base_lnk")
+    spec["streams"][1]["missing"] = missing
+    where = r"streams\[1\] \(/tf\)" if missing == "drop_step" else r"no /tf message .* found no element in"
+    with pytest.raises(IngestError, match=where + r".*'base_link', 'odom', 'wheel'"):
+        _ingest(tmp_path, "typo", mixed, spec)
 
 
 def test_a_selector_matching_two_elements_is_an_error_naming_the_message(tmp_path):

@@ -254,6 +254,16 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
             b.add(t, file_index, values, int(log_time), mid)
         self.late[topic] += late
 
+    def _selector_note(self, k: Any) -> str:
+        """Why key ``k`` may lack messages: its selectors found no element in some (what they saw)."""
+        seen = self.selector_values.get(k)
+        if not seen:
+            return ""
+        topic = self.topic_of[k]
+        n = self.decoded[topic]
+        return (f"; its field paths' selector [key=value] found no element in {n - self.key_taken[k]} of the {n} "
+                f"{topic} messages so far (values seen: {sorted(seen)[:20]})")
+
     def _selector_misses(self) -> dict[str, list[str]]:
         """Keys whose selectors found their element in none of their topic's messages: the
         spec's place of each (``streams[1] (/tf)``) and the values its selectors saw instead."""
@@ -419,7 +429,8 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                         raise IngestError(f"{self.files[files[j] - self.file0]}: step at t = {times[j] / 1e9:.6f} s "
                                           f"(log_time {int(lts[j])}): no {s.topic} message within max_age = "
                                           f"{s.max_age} s for {name!r} (use missing = 'fill' or 'drop_step')"
-                                          + (AHEAD_OF_CLOCK.format(r=self.restart / 1e9) if self.epoch[k] > e else ""))
+                                          + (AHEAD_OF_CLOCK.format(r=self.restart / 1e9) if self.epoch[k] > e else "")
+                                          + self._selector_note(k))
                     missing_here |= ~good
                 if k == "action":
                     act_cols.append(v)
