@@ -111,7 +111,7 @@ def test_a_repeated_clock_time_is_one_step_counted_and_warned_of(tmp_path):
     clock = [m for m in msgs if m[0] == "/clock"]
     msgs.insert(msgs.index(clock[3]) + 1, ("/clock", clock[3][1], {"k": 3, "ep": 0}))  # published twice
     f = write_log(tmp_path / "dup.mcap", msgs)
-    with pytest.warns(UserWarning, match="1 clock messages repeat the time of the one before them"):
+    with pytest.warns(UserWarning, match="1 clock message repeats the time of the one before them"):
         ds, s = ingest_mcap([f], spec())
     assert len(ds) == 7 and s["duplicate_clock_times"] == 1  # 8 distinct times: 7 transitions, none of length 0
     np.testing.assert_allclose(np.diff(ds.arrays().obs[:, 0]), 0.1, atol=1e-9)

@@ -108,7 +108,8 @@ def test_stale_stamps_are_set_aside_and_the_stream_goes_on(tmp_path, n_stale):
     """One (or three in a row) /tf stamps 1.5 s early, the next back in step: nothing is
     held for an epoch, no step is filled, and the error mode finds every /tf value."""
     f = write_log(tmp_path / "tf.mcap", _log(n_stale=n_stale))
-    with pytest.warns(UserWarning, match=rf"{n_stale} messages were set aside as stale, unused \(per topic "
+    were = "message was" if n_stale == 1 else "messages were"
+    with pytest.warns(UserWarning, match=rf"{n_stale} {were} set aside as stale, unused \(per topic "
                                          rf"\{{'/tf': {n_stale}\}}\): a stream's time jumped back more than "
                                          r"\[episodes\] restart = 1.0 s and came back in step with the clock"):
         ds, s = ingest_mcap([f], _spec("error"))

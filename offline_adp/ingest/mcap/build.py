@@ -165,27 +165,30 @@ def ingest_mcap_tables(
                     raise IngestError(msg)
                 warnings.warn(msg, stacklevel=2)
     if summary.get("clock_steps_back"):
-        warnings.warn(f"{summary['clock_steps_back']} clock messages are earlier than one before them in the file, by "
-                      f"less than [episodes] restart = {spec.restart} s: their steps are ordered by time, so a "
-                      "transition may pair steps the robot did not take in that order. If the clock restarted, lower "
-                      "restart; if the messages are reordered in the file, this is expected.", stacklevel=2)
+        warnings.warn(f"{_n(summary['clock_steps_back'], 'clock message is', 'clock messages are')} earlier than "
+                      f"one before them in the file, by less than [episodes] restart = {spec.restart} s: their steps "
+                      "are ordered by time, so a transition may pair steps the robot did not take in that order. If "
+                      "the clock restarted, lower restart; if the messages are reordered in the file, this is "
+                      "expected.", stacklevel=2)
     if summary.get("orphan_messages"):
-        warnings.warn(f"{summary['orphan_messages']} messages were set aside, unused: they belong to an epoch the "
-                      f"clock never reached (per topic {summary['messages_orphaned']}; a stream's time jumped back "
-                      f"more than [episodes] restart = {spec.restart} s, read as a restart the clock did not follow, "
-                      "e.g. /tf's transforms[0], another frame pair from message to message, some future-dated). "
-                      "Raise restart above the jump; for /tf, select the frame pair: "
+        warnings.warn(f"{_n(summary['orphan_messages'], 'message was', 'messages were')} set aside, unused: they "
+                      f"belong to an epoch the clock never reached (per topic {summary['messages_orphaned']}; a "
+                      f"stream's time jumped back more than [episodes] restart = {spec.restart} s, read as a restart "
+                      "the clock did not follow, e.g. /tf's transforms[0], another frame pair from message to "
+                      "message, some future-dated). Raise restart above the jump; for /tf, select the frame pair: "
                       "transforms[child_frame_id=base_link] (docs/ingestion-spec.md, 'Field paths').", stacklevel=2)
     if n_stale := sum(summary["messages_stale"].values()):
-        warnings.warn(f"{n_stale} messages were set aside as stale, unused (per topic {summary['messages_stale']}): "
-                      f"a stream's time jumped back more than [episodes] restart = {spec.restart} s and came back in "
-                      "step with the clock, so it was no restart; the messages it held meanwhile are not used (e.g. "
-                      "/tf's transforms[0], another frame pair from message to message: select the pair with "
-                      "transforms[child_frame_id=base_link], docs/ingestion-spec.md 'Field paths')", stacklevel=2)
+        warnings.warn(f"{_n(n_stale, 'message was', 'messages were')} set aside as stale, unused (per topic "
+                      f"{summary['messages_stale']}): a stream's time jumped back more than [episodes] restart = "
+                      f"{spec.restart} s and came back in step with the clock, so it was no restart; the messages it "
+                      "held meanwhile are not used (e.g. /tf's transforms[0], another frame pair from message to "
+                      "message: select the pair with transforms[child_frame_id=base_link], docs/ingestion-spec.md "
+                      "'Field paths')", stacklevel=2)
     if summary.get("duplicate_clock_times"):
-        warnings.warn(f"{summary['duplicate_clock_times']} clock messages repeat the time of the one before them: each "
-                      "time is one step, and a stream's values at a repeated time are its last message's there "
-                      "(a message published twice, or a clock too coarse for the rate)", stacklevel=2)
+        warnings.warn(f"{_n(summary['duplicate_clock_times'], 'clock message repeats', 'clock messages repeat')} "
+                      "the time of the one before them: each time is one step, and a stream's values at a repeated "
+                      "time are its last message's there (a message published twice, or a clock too coarse for the "
+                      "rate)", stacklevel=2)
     summary["filled_steps"] = {t: v for t, v in summary["filled_steps"].items() if v}
     if summary["filled_steps"]:
         warnings.warn(f"steps given a stream's fill value (missing = 'fill'), per topic: {summary['filled_steps']} "
@@ -193,9 +196,10 @@ def ingest_mcap_tables(
                       "in simulation time against log_time never aligns)", stacklevel=2)
     summary["late_messages"] = {t: v for t, v in summary["late_messages"].items() if v}
     if summary["late_messages"]:
-        warnings.warn(f"{sum(summary['late_messages'].values())} messages arrived more than clock.reorder_window = "
-                      f"{spec.reorder_window} s after later ones in the file ({summary['late_messages']}); "
-                      "steps before them were aligned without them. Raise reorder_window.", stacklevel=2)
+        warnings.warn(f"{_n(sum(summary['late_messages'].values()), 'message', 'messages')} arrived more than "
+                      f"clock.reorder_window = {spec.reorder_window} s after later ones in the file "
+                      f"({summary['late_messages']}); steps before them were aligned without them. Raise "
+                      "reorder_window.", stacklevel=2)
     _selector_misses(good)
     paths = [p for r in recordings for p in r]
     eps = [ep for r, _ in good for ep in r.episodes]
@@ -245,6 +249,11 @@ def ingest_mcap_tables(
                    repeated_episodes=len(warn_repeated(ds, ", ".join(map(str, paths[:2]))
                                                        + (", ..." if len(paths) > 2 else ""))))
     return ds, quarantine, summary
+
+
+def _n(count: int, one: str, many: str) -> str:
+    """``1 message was`` / ``3 messages were``."""
+    return f"{count} {one if count == 1 else many}"
 
 
 def _selector_misses(good: list[tuple[RecordingResult, list[Path]]]) -> None:
