@@ -134,7 +134,8 @@ def test_a_selector_matching_two_elements_is_an_error_naming_the_message(tmp_pat
         _ingest(tmp_path, "two", msgs, _spec(True, second=False))
 
 
-@pytest.mark.parametrize("path", ["transforms[child_frame_id=base_link", "transforms..x", "a[k=v]b", "a[]"])
+@pytest.mark.parametrize("path", ["transforms[child_frame_id=base_link", "transforms..x", "a[k=v]b", "a[]", ".a",
+                                  "a.", "a[h..x=1]"])
 def test_a_malformed_field_path_is_refused_before_any_file_is_read(path):
     spec = _spec(True, second=False)
     spec["streams"][1]["fields"]["x_base"] = path
@@ -164,3 +165,58 @@ def test_mcap_info_says_where_the_first_element_changes_and_how_to_select(tmp_pa
     out = capsys.readouterr().out
     assert "transforms[0] is another element from message to message" in out
     assert f"read one with transforms[child_frame_id={top}]" in out
+
+
+def _proto_list():
+    """A protobuf message with a repeated message field ``items`` (name, v, on)."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    f = descriptor_pb2.FileDescriptorProto(name="sel_test.proto", package="sel_test")
+    item = f.message_type.add(name="Item")
+    item.field.add(name="name", number=1, type=9, label=1)
+    item.field.add(name="v", number=2, type=1, label=1)
+    item.field.add(name="on", number=3, type=8, label=1)
+    lst = f.message_type.add(name="List")
+    lst.field.add(name="items", number=1, type=11, label=3, type_name=".sel_test.Item")
+    pool = descriptor_pool.DescriptorPool()
+    pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName("sel_test.List"))
+
+
+def test_selectors_read_every_kind_of_decoded_list():
+    """JSON dicts (elements without the key are not it), dotted keys, numbers and booleans,
+    numpy scalars (rosbags), protobuf repeated fields (no __iter__ attribute under upb)."""
+    from offline_adp.ingest.mcap.decode import NoElement, get_path
+
+    js = {"l": [{"id": "a"}, {"v": 2}, {"id": "/b c.d", "v": 3, "h": {"f": "x"}}],
+          "b": [{"f": True, "v": 1}, {"f": 1, "v": 2}]}
+    assert get_path(js, "l[id=/b c.d].v") == 3 and get_path(js, 'l[id="/b c.d"].v') == 3
+    assert get_path(js, "l[h.f=x].v") == 3
+    assert get_path(js, "b[f=true].v") == 1 and get_path(js, "b[f=1].v") == 2  # a boolean is not the number 1
+
+    class E:  # a rosbags-like object with numpy scalar fields
+        def __init__(self, i):
+            self.id, self.flag, self.v = np.uint8(i), np.bool_(i == 2), float(i)
+
+    ros = {"l": [E(1), E(2)]}
+    assert get_path(ros, "l[id=2].v") == 2.0 and get_path(ros, "l[flag=true].v") == 2.0
+    msg = _proto_list()()
+    msg.items.add(name="a", v=1.0)
+    msg.items.add(name="b", v=2.0, on=True)
+    assert get_path(msg, "items[name=b].v") == 2.0 and get_path(msg, "items[on=true].v") == 2.0
+    with pytest.raises(NoElement) as no:
+        get_path(msg, "items[name=zz].v")
+    assert no.value.seen == ("a", "b")
+    with pytest.raises(NoElement):
+        get_path(_proto_list()(), "items[name=a].v")  # an empty list
+
+
+def test_two_matches_in_a_time_field_name_the_message(tmp_path):
+    msgs = [("/odom", 10_000 * MS + k * 40 * MS, {"v": 1.0, "u": 0.0}) for k in range(30)]
+    msgs.insert(3, ("/tf", 10_090 * MS, {"transforms": [_tf("odom", "base_link", 10_090 * MS, 1.0),
+                                                          _tf("odom", "base_link", 10_091 * MS, 1.0)]}))
+    spec = _spec(True, second=False)
+    spec["streams"][1]["fields"] = {"x_base": "transforms[0].transform.translation.x"}
+    with pytest.raises(IngestError, match=r"topic '/tf', message at log_time 10090000000: its time field .*"
+                                          r"2 elements"):
+        _ingest(tmp_path, "two", msgs, spec)

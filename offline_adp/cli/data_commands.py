@@ -165,8 +165,13 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
                 head, key = where.split("[].", 1)
                 seen = ", ".join(f"{v} in {n}" for v, n in list(counts.items())[:8]) + (", ..." if len(counts) > 8
                                                                                           else "")
+                twice = (t.get("list_values_repeated") or {}).get(where, [])
+                pick = next((v for v in counts if v not in twice), None)
+                how = (f"read one with {head}[{key}={pick}]" if pick is not None else
+                       f"every value is in some message twice, so {key} cannot select one element")
                 print(f"      {head}[0] is another element from message to message ({key} in the first "
-                      f"{min(t['messages'], 2000)} messages: {seen}): read one with {head}[{key}={next(iter(counts))}]")
+                      f"{min(t['messages'], 2000)} messages: {seen}): {how}"
+                      + (f" (twice in one message: {twice[:8]})" if twice else ""))
     return 0
 
 

@@ -285,7 +285,12 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                                                         command=exact)
         t = times.get(which)
         if t is None:
-            t = times[which] = _msg_time(which, log_time, publish_time, dec)
+            try:
+                t = times[which] = _msg_time(which, log_time, publish_time, dec)
+            except (KeyError, AttributeError, IndexError, TypeError, ValueError, OverflowError) as exc:
+                raise IngestError(f"topic {topic!r}, message at log_time {int(log_time)}: its time field {which!r} "
+                                  f"cannot be read ({type(exc).__name__}: {exc}); run `offline-adp mcap-info` to "
+                                  "list the fields") from None
         return t, values
 
     # ------------------------------------------------------------------ flushing

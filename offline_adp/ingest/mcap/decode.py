@@ -86,11 +86,23 @@ class NoElement(Exception):
 def check_path(path: str) -> str | None:
     """Why ``path`` is no field path (None: it is one). A path is names joined by dots, with
     list indices (``transforms[0]``) and selectors (``transforms[child_frame_id=base_link]``:
-    the one element whose field ``child_frame_id`` is ``base_link``)."""
-    if not isinstance(path, str) or not _PATH.fullmatch(path):
-        return ("expected names joined by dots, with list indices [0] or selectors [key=value], e.g. "
-                "'transforms[child_frame_id=base_link].transform.translation.x'")
+    the one element whose field ``child_frame_id`` is ``base_link``; the key may be a dotted
+    path itself: ``transforms[header.frame_id=odom]``)."""
+    if not isinstance(path, str):
+        return f"expected a string, got {type(path).__name__}"
+    rule = ("names joined by dots, with list indices [0] or selectors [key=value], e.g. "
+            "'transforms[child_frame_id=base_link].transform.translation.x'")
+    if not _PATH.fullmatch(path):
+        at = next((i for i in range(len(path), -1, -1) if _PATH.fullmatch(path[:i])), 0)
+        return f"not {rule}: it goes wrong at character {at + 1} ({path[at:at + 12]!r})"
+    for key, _ in _SELECTOR.findall(path):
+        if any(not part.strip() for part in key.split(".")):
+            return f"the selector key {key!r} is not names joined by dots ({rule})"
     return None
+
+
+#: A selector's key and value in a path.
+_SELECTOR = re.compile(r"\[([^=\[\]]+)=([^\[\]]*)\]")
 
 
 @functools.lru_cache(maxsize=4096)
@@ -101,7 +113,7 @@ def _steps_of(path: str) -> tuple[tuple[str, int | None, str | None], ...]:
             v = value.strip()
             if len(v) >= 2 and v[0] == v[-1] and v[0] in "'\"":
                 v = v[1:-1]  # a quoted value: [child_frame_id="base_link"]
-            out.append((key.strip(), None, v))
+            out.append((".".join(part.strip() for part in key.split(".")), None, v))
         else:
             out.append((name, int(index) if index else None, None))
     return tuple(out)
@@ -111,13 +123,27 @@ def _child(cur: Any, name: str) -> Any:
     return cur[name] if isinstance(cur, dict) else getattr(cur, name)
 
 
+_ABSENT = object()
+
+
+def _key_of(el: Any, key: str) -> Any:
+    """An element's value at ``key`` (a dotted path), or _ABSENT where it has no such field."""
+    cur = el
+    for name in key.split("."):
+        try:
+            cur = _child(cur, name)
+        except (KeyError, AttributeError, TypeError):
+            return _ABSENT
+    return cur
+
+
 def _matches(v: Any, value: str) -> bool:
     if isinstance(v, np.generic):
         v = v.item()
     if isinstance(v, str):
         return v == value
-    if isinstance(v, bool):
-        return value.lower() in (("true", "1") if v else ("false", "0"))
+    if isinstance(v, bool):  # true/false only: "1" is a number, and a list may hold both
+        return value.lower() == ("true" if v else "false")
     if isinstance(v, int | float):
         try:
             return float(v) == float(value)
@@ -127,13 +153,19 @@ def _matches(v: Any, value: str) -> bool:
 
 
 def _select(cur: Any, key: str, value: str, path: str) -> Any:
-    """The one element of list ``cur`` whose field ``key`` is ``value``."""
-    if isinstance(cur, str | bytes | dict) or not hasattr(cur, "__iter__"):
+    """The one element of list ``cur`` whose field ``key`` is ``value`` (an element without
+    that field is not it)."""
+    if isinstance(cur, str | bytes | bytearray | dict):
         raise TypeError(f"[{key}={value}] selects from a list, and this is {type(cur).__name__}")
-    hits = [el for el in cur if _matches(_child(el, key), value)]
+    try:
+        seq = list(cur)  # lists, tuples, numpy arrays, protobuf repeated fields (sequence protocol)
+    except TypeError:
+        raise TypeError(f"[{key}={value}] selects from a list, and this is {type(cur).__name__}") from None
+    keys = [_key_of(el, key) for el in seq]
+    hits = [el for el, v in zip(seq, keys, strict=True) if v is not _ABSENT and _matches(v, value)]
     if not hits:
         raise NoElement(f"no element with {key} = {value!r} in {path!r}",
-                        tuple(str(_child(el, key)) for el in cur))
+                        tuple(str(v.item() if isinstance(v, np.generic) else v) for v in keys if v is not _ABSENT))
     if len(hits) > 1:
         raise ValueError(f"{len(hits)} elements have {key} = {value!r} (a selector must pick one)")
     return hits[0]

@@ -46,7 +46,7 @@ def _field(dec: Any, path: str, key: str, where: str) -> Any:
 
     try:
         return get_path(dec, path)
-    except (KeyError, AttributeError, IndexError, TypeError) as exc:
+    except (KeyError, AttributeError, IndexError, TypeError, ValueError) as exc:
         raise IngestError(f"{where}: the episode event has no field {path!r} ([episodes] {key}; "
                           f"{type(exc).__name__}: {exc}); run `offline-adp mcap-info` to list the fields") from None
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from offline_adp.errors import IngestError
-from offline_adp.ingest.mcap.decode import _child, _Decoders, field_values, get_path
+from offline_adp.ingest.mcap.decode import _ABSENT, _Decoders, _key_of, field_values, get_path
 from offline_adp.ingest.mcap.scan import damage_text, scan_records
 
 RESTART_S = 1.0  # a topic's log_time jumping back more than this starts a new epoch (as [episodes] restart)
@@ -37,6 +37,7 @@ class _Topic:
         self.lists: dict[tuple[str, str], dict[str, int]] = {}
         self.list_messages = 0
         self.firsts: dict[tuple[str, str], set[str]] = {}  # the values of element [0]
+        self.repeated: dict[tuple[str, str], set[str]] = {}  # values found twice in one message
 
     def set_first(self, decoded: Any) -> None:
         """Field paths, types and samples of the first decodable message; its lists of records."""
@@ -55,11 +56,13 @@ class _Topic:
         self.list_messages += 1
         for (head, key), counts in self.lists.items():
             try:
-                values = [str(_child(el, key)) for el in get_path(decoded, head)]
+                values = [str(v) for el in get_path(decoded, head) if (v := _key_of(el, key)) is not _ABSENT]
             except Exception:  # noqa: BLE001 - a message without that list: nothing to count
                 continue
             if values:
                 self.firsts.setdefault((head, key), set()).add(values[0])
+            if len(set(values)) < len(values):  # a value twice in one message: no selector picks one element
+                self.repeated.setdefault((head, key), set()).update(v for v in values if values.count(v) > 1)
             for v in list(dict.fromkeys(values))[:64]:
                 if v in counts or len(counts) < 64:
                     counts[v] = counts.get(v, 0) + 1
@@ -73,6 +76,12 @@ class _Topic:
             if len(self.firsts.get((head, key), ())) >= 2:
                 out[f"{head}[].{key}"] = dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
         return out
+
+    def repeated_values(self) -> dict[str, list[str]]:
+        """Of :meth:`selectable`'s lists: the values some message holds twice (a selector on
+        them would match two elements)."""
+        return {f"{h}[].{k}": sorted(self.repeated[(h, k)]) for h, k in self.lists
+                if (h, k) in self.repeated and len(self.firsts.get((h, k), ())) >= 2}
 
     def add(self, t: int) -> None:
         self.n += 1
@@ -200,7 +209,8 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
         t = topics.get(cid, _Topic())
         entry = {"schema": sch.name if sch else "", "encoding": ch.message_encoding, "messages": t.n, **t.rate(),
                  "fields": [x["path"] for x in t.first_fields] if t.first_fields else None,
-                 "field_info": t.first_fields, "list_values": t.selectable()}
+                 "field_info": t.first_fields, "list_values": t.selectable(),
+                 "list_values_repeated": t.repeated_values()}
         if t.error:
             entry["status"] = "not decodable: " + t.error
         key = ch.topic if ch.topic not in out_topics else f"{ch.topic} (channel {cid})"
@@ -285,7 +295,8 @@ def rosbag_info(path: str | PathLike[str]) -> dict[str, Any]:
         tp = topics.get(bt, _Topic())
         entry = {"schema": bt.msgtype, "encoding": bt.encoding, "messages": tp.n, **tp.rate(),
                  "fields": [x["path"] for x in tp.first_fields] if tp.first_fields else None,
-                 "field_info": tp.first_fields, "list_values": tp.selectable()}
+                 "field_info": tp.first_fields, "list_values": tp.selectable(),
+                 "list_values_repeated": tp.repeated_values()}
         if tp.error:
             entry["status"] = "not decodable: " + tp.error
         key = bt.topic if bt.topic not in out_topics else f"{bt.topic} ({bt.msgtype})"
