@@ -95,7 +95,7 @@ class EpochRules:
                 del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
             j = self.jumped.get(k)
             if j is not None and cm is not None and t >= max(cm - r, j.before) and (  # in step again (rule 5):
-                    abs(t - j.before - (cm - j.seen)) <= r):  # at its old pace with the clock
+                    t <= max(cm, j.before) + r):  # near the clock (or its own time) again
                 if cm == j.clock:  # the clock has not moved since the jump (a clock that stopped?): held till it does
                     j.in_step.append(t)
                     return ek if ek >= self.active else None
