@@ -236,3 +236,46 @@ def test_a_late_record_after_a_streams_restart_is_placed_whatever_the_window():
     for a, b in zip(*(r.episodes for r in runs), strict=True):
         np.testing.assert_array_equal(a.t, b.t)
         np.testing.assert_array_equal(a.obs, b.obs)
+
+
+def test_a_late_record_after_a_clock_pause_and_a_streams_restart_is_placed_whatever_the_window():
+    """Found by the nightly run (seed 5): the clock pauses 0.6 s (a gap) near the end of an
+    episode while a command stream goes on; the stream restarts before the clock, then a
+    late command of the old episode comes. Judged by pace (its advance since its last
+    message against the clock's, which had paused meanwhile) the late record looked out of
+    step: the stream stayed ahead, and with a 0.2 s window its restart record was orphaned
+    when the clock restarted (the first step of the new episode got the fill value), with a
+    30 s window not. Ground truth: the restart record is the new episode's first command."""
+    from offline_adp.ingest.mcap.build import assemble
+    from offline_adp.ingest.mcap.records import Message
+
+    def m(topic, t_ms, v):
+        return Message(topic, t_ms * MS, t_ms * MS, {"v": float(v)})
+
+    msgs = []
+    for t in range(1000, 2300, 100):  # episode 0: commands every 100 ms; the clock pauses from 1.7 s to 2.3 s
+        msgs.append(m("/cmd", t - 20, t))
+        if t <= 1700:
+            msgs.append(m("/clock", t, 0))
+    msgs += [m("/clock", 2300, 0), m("/cmd", 990, -1), m("/cmd", 2360, 2360), m("/clock", 2400, 0)]
+    for t in range(1030, 1900, 100):  # episode 1: the clock restarts at 1.03 s
+        msgs.append(m("/clock", t, 1))
+        msgs.append(m("/cmd", t + 70, t + 70))
+
+    def spec(window):
+        return parse_mcap_spec({
+            "clock": {"topic": "/clock", "reorder_window": window}, "episodes": {"restart": 0.25, "gap": 0.45},
+            "streams": [{"topic": "/clock", "fields": {"k": "v"}, "max_age": 0.001}],
+            "action": {"topic": "/cmd", "field": "v", "align": "previous", "max_age": 0.5, "missing": "fill",
+                       "fill": 0.5, "type": "continuous", "n_bins": 2},
+            "cost": {"terms": [{"field": "k", "op": "square"}]},
+        })
+
+    runs = [assemble([msgs], spec(w), flush_every=1) for w in (0.2, 30.0)]
+    for got in runs:
+        assert not got.orphaned and not got.stale
+        first_of_1 = next(e for e in got.episodes if e.epoch == 1)
+        assert first_of_1.act[0] == -1.0  # the restart record, not the fill value
+    for a, b in zip(*(r.episodes for r in runs), strict=True):
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.act, b.act)
