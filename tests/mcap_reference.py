@@ -168,7 +168,7 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
             else:
                 e = ce + (cm is not None and r > 0 and clock_first.get(ce, cm) - r <= t < cm - r)
                 if e == ce + 1 and ek == ce and mk is not None:  # went ahead of the clock from its epoch
-                    jumped[k] = (e, mk, t, cm, [], seen.get(k) or cm)
+                    jumped[k] = (e, mk, t, cm, [])
             if late:  # the epoch is over: the message is counted, not used
                 set_aside(k, [i_m], "late")
                 continue

@@ -19,7 +19,6 @@ class Jump(NamedTuple):
     first: int  #: its first time after it
     clock: int  #: the clock's latest time then
     in_step: list[int]  #: times of its messages in step while the clock has not moved since (held)
-    seen: int  #: the clock's time when ``before`` was read (its pace with the clock)
 
 
 class EpochRules:
@@ -56,7 +55,8 @@ class EpochRules:
         ``ce - 1``; anything else is ``ce``'s. A stream ahead of the clock stays ahead
         until the clock follows (a second jump back while ahead replaces its buffer: the
         clock skipped that epoch), or comes back in step first: at or after ``max(cm -
-        restart, its latest time before the jump)``, once the clock has moved on since the
+        restart, its latest time before the jump)`` and at most ``restart`` after the later
+        of the two (near the clock's time again), once the clock has moved on since the
         jump and before the stream's time ran on for ``restart`` there; the message is then
         ``ce``'s and what it held is told at the clock's entry (:meth:`_stale_in`). None: the
         message belongs to an epoch that is over.
@@ -115,7 +115,7 @@ class EpochRules:
             else:
                 e = ce + 1 if ahead else ce
                 if ahead and ek == ce and m is not None:  # gone ahead of the clock from its epoch
-                    self.jumped[k] = Jump(e, m, t, cm, [], self.clock_seen.get(k) or cm)
+                    self.jumped[k] = Jump(e, m, t, cm, [])
         if e != ek:
             self.epoch[k], m = e, None
         elif own_restart:
