@@ -161,6 +161,9 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
                 print("      fields: " + ", ".join(shown) + (" ..." if len(t["field_info"]) > 40 else ""))
             elif t["status"].startswith("not decodable"):
                 print(f"      {t['status']}")
+            if t.get("quaternions"):  # a heading is one feature; a quaternion's four flip sign together
+                print("      quaternions (a heading in rad: yaw = { yaw_of = \"PATH\" }): "
+                      + ", ".join(t["quaternions"][:8]) + (" ..." if len(t["quaternions"]) > 8 else ""))
             for where, counts in (t.get("list_values") or {}).items():  # [0] is not one thing in every message
                 head, key = where.split("[].", 1)
                 seen = ", ".join(f"{v} in {n}" for v, n in list(counts.items())[:8]) + (", ..." if len(counts) > 8

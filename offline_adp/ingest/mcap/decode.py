@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import re
 from typing import Any
 
@@ -249,6 +250,31 @@ def _msg_time(which: str, log_time: int, publish_time: int, dec: Any) -> int:
     return to_ns(get_path(dec, which))
 
 
+def yaw_of(q: Any) -> float:
+    """The heading (rad, in [-pi, pi]) of the quaternion ``q`` (fields x, y, z, w): the
+    rotation about z of its z-y'-x'' (yaw, pitch, roll) angles,
+    ``atan2(2 (w z + x y), w^2 + x^2 - y^2 - z^2)``. The same for ``q`` and ``-q`` (one
+    rotation, two quaternions) and for any positive scale of ``q``; NaN (a missing value)
+    for a zero or non-finite quaternion."""
+    x, y, z, w = (float(v.item() if isinstance(v := _child(q, n), np.generic) else v) for n in "xyzw")
+    norm = x * x + y * y + z * z + w * w
+    if not np.isfinite(norm) or norm < 1e-24:
+        return float("nan")
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
+
+
+#: Derived fields: ``{ yaw_of = "pose.pose.orientation" }`` in place of a field path.
+DERIVED = {"yaw_of": yaw_of}
+
+
+def field_value(dec: Any, path: str | dict[str, str]) -> Any:
+    """The value of a spec field: at a field path, or derived (``{ yaw_of = path }``)."""
+    if isinstance(path, dict):
+        (how, inner), = path.items()
+        return DERIVED[how](get_path(dec, inner))
+    return get_path(dec, path)
+
+
 def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int, command: bool = False) -> list[float]:
     """The float value of each field path in a decoded message; a null (JSON ``null``) is a
     missing value, NaN (the doctor reports it, naming the row; quarantine sets that episode
@@ -259,7 +285,7 @@ def numeric_fields(dec: Any, fields: dict[str, Any], topic: str, log_time: int, 
     out = []
     for name, path in fields.items():
         try:
-            v = get_path(dec, path)
+            v = field_value(dec, path)
             if isinstance(v, np.generic):
                 v = v.item()
             if command and isinstance(v, bool):

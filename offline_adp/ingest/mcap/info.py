@@ -35,6 +35,7 @@ class _Topic:
         # per (list, string field of its elements), e.g. ("transforms", "child_frame_id"): in how many
         # messages each value appears (the first LIST_MESSAGES messages)
         self.lists: dict[tuple[str, str], dict[str, int]] = {}
+        self.quaternions: list[str] = []
         self.list_messages = 0
         self.firsts: dict[tuple[str, str], set[str]] = {}  # the values of element [0]
         self.repeated: dict[tuple[str, str], set[str]] = {}  # values found twice in one message
@@ -43,6 +44,10 @@ class _Topic:
         """Field paths, types and samples of the first decodable message; its lists of records."""
         self.first_fields = [{"path": p, "type": _type_name(v), "sample": _sample(v)}
                              for p, v in field_values(decoded)]
+        paths = {x["path"] for x in self.first_fields if x["type"] in ("float", "int")}
+        #: quaternions (x, y, z, w under one path): a heading is read with { yaw_of = path }
+        self.quaternions = [p[:-2] for p in sorted(paths) if p.endswith(".w")
+                            and all(p[:-1] + c in paths for c in "xyz")]
         for x in self.first_fields:
             head, _, key = x["path"].partition("[0].")
             if key and x["type"] == "string" and "." not in key and "[" not in key and "[0]" not in head:
@@ -210,7 +215,8 @@ def mcap_info(path: str | PathLike[str]) -> dict[str, Any]:
         entry = {"schema": sch.name if sch else "", "encoding": ch.message_encoding, "messages": t.n, **t.rate(),
                  "fields": [x["path"] for x in t.first_fields] if t.first_fields else None,
                  "field_info": t.first_fields, "list_values": t.selectable(),
-                 "list_values_repeated": t.repeated_values()}
+                 "list_values_repeated": t.repeated_values(),
+                 "quaternions": t.quaternions}
         if t.error:
             entry["status"] = "not decodable: " + t.error
         key = ch.topic if ch.topic not in out_topics else f"{ch.topic} (channel {cid})"
@@ -296,7 +302,8 @@ def rosbag_info(path: str | PathLike[str]) -> dict[str, Any]:
         entry = {"schema": bt.msgtype, "encoding": bt.encoding, "messages": tp.n, **tp.rate(),
                  "fields": [x["path"] for x in tp.first_fields] if tp.first_fields else None,
                  "field_info": tp.first_fields, "list_values": tp.selectable(),
-                 "list_values_repeated": tp.repeated_values()}
+                 "list_values_repeated": tp.repeated_values(),
+                 "quaternions": tp.quaternions}
         if tp.error:
             entry["status"] = "not decodable: " + tp.error
         key = bt.topic if bt.topic not in out_topics else f"{bt.topic} ({bt.msgtype})"

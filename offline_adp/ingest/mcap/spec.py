@@ -26,7 +26,7 @@ class StreamSpec:
     terminal step), ``episode`` (a change of value starts a new episode)."""
 
     topic: str
-    fields: dict[str, str]
+    fields: dict[str, Any]  # name -> a field path, or a derived field ({ yaw_of = path })
     time: str = "log_time"
     align: str = "nearest"
     max_age: float = 0.1
@@ -118,7 +118,14 @@ def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> Stre
         raise SpecError(f"{where}.role: expected one of {list(ROLES)}, got {s.role!r}")
     if fields_required and not s.fields:
         raise SpecError(f"{where}.fields: map at least one name to a field path")
-    _check_paths({**{f"fields.{n}": p for n, p in s.fields.items()}, "time": s.time}, where)
+    for n, p in s.fields.items():
+        if isinstance(p, dict):  # a derived field: { yaw_of = "pose.pose.orientation" }
+            if len(p) != 1 or next(iter(p)) not in ("yaw_of",) or not isinstance(next(iter(p.values())), str):
+                raise SpecError(f"{where}.fields.{n}: expected a field path or {{ yaw_of = \"path\" }} (the heading of "
+                                f"the quaternion there, in rad), got {p!r}")
+            s.units.setdefault(n, "rad")
+    _check_paths({**{f"fields.{n}": next(iter(p.values())) if isinstance(p, dict) else p
+                     for n, p in s.fields.items()}, "time": s.time}, where)
     return s
 
 

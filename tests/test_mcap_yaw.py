@@ -1,0 +1,107 @@
+"""A heading from a quaternion: ``{ yaw_of = "pose.pose.orientation" }`` in a stream's fields.
+
+A ROS pose carries its orientation as a quaternion, and ``q`` and ``-q`` are one rotation:
+recorded as four raw features, the same heading can come with all four signs flipped from
+one message to the next. The derived field reads the heading (rad), the same for both.
+Oracles: scipy's rotation (a second implementation: the first z-y'-x'' Euler angle), and
+logs built here from known headings.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from offline_adp.errors import SpecError
+from offline_adp.ingest.mcap import ingest_mcap, parse_mcap_spec
+from offline_adp.ingest.mcap.decode import yaw_of
+from tests.conftest import SHARED_DATA
+from tests.test_ingest_mcap_streaming import write_log
+
+MS = 1_000_000
+angles = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+@settings(max_examples=300)
+@given(yaw=angles, pitch=st.floats(-1.5, 1.5), roll=angles, scale=st.floats(1e-3, 1e3), flip=st.booleans())
+def test_yaw_of_is_the_first_euler_angle_of_the_rotation(yaw, pitch, roll, scale, flip):
+    q = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()  # x, y, z, w
+    q = q * scale * (-1.0 if flip else 1.0)  # the same rotation: any scale, either sign
+    got = yaw_of(dict(zip("xyzw", q.tolist(), strict=True)))
+    want = Rotation.from_quat(q / np.linalg.norm(q)).as_euler("ZYX")[0]
+    assert abs(math.remainder(got - want, 2 * math.pi)) < 1e-9
+    assert abs(math.remainder(got - yaw, 2 * math.pi)) < 1e-9
+    assert -math.pi <= got <= math.pi
+
+
+def test_a_zero_or_broken_quaternion_is_a_missing_value():
+    assert math.isnan(yaw_of({"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0}))
+    assert math.isnan(yaw_of({"x": float("nan"), "y": 0.0, "z": 0.0, "w": 1.0}))
+
+
+def _spec(field):
+    return {
+        "clock": {"topic": "/odom", "time": "header.stamp"},
+        "streams": [{"topic": "/odom", "time": "header.stamp", "max_age": 0.001,
+                     "fields": {"yaw": field, "v": "v"}}],
+        "action": {"topic": "/odom", "field": "u", "time": "header.stamp", "max_age": 0.001, "type": "discrete",
+                   "values": [0, 1]},
+        "cost": {"terms": [{"field": "v", "op": "abs"}]},
+    }
+
+
+def test_a_heading_is_read_from_logged_quaternions_whatever_their_sign(tmp_path):
+    rng = np.random.default_rng(3)
+    headings = np.cumsum(rng.normal(0.0, 0.4, 300))
+    msgs = []
+    for k, h in enumerate(headings):
+        t = 10_000 * MS + k * 50 * MS
+        sign = -1.0 if rng.random() < 0.5 else 1.0  # either quaternion of the rotation, as logs hold them
+        q = {"x": 0.0, "y": 0.0, "z": sign * math.sin(h / 2), "w": sign * math.cos(h / 2)}
+        msgs.append(("/odom", t, {"header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}},
+                                  "pose": {"pose": {"orientation": q}}, "v": 1.0, "u": float(k % 2)}))
+    f = write_log(tmp_path / "odom.mcap", msgs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds, _ = ingest_mcap([f], parse_mcap_spec(_spec({"yaw_of": "pose.pose.orientation"})))
+    feat = {x.name: x for x in ds.info.features}
+    assert feat["yaw"].unit == "rad"
+    a = ds.arrays()
+    got = a.obs[:, [x.name for x in ds.info.features].index("yaw")]
+    want = np.array([math.remainder(h, 2 * math.pi) for h in headings[: len(got)]])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [{"yaw_of": 3}, {"heading_of": "pose.pose.orientation"},
+                                 {"yaw_of": "a", "also": "b"}, {"yaw_of": "pose..orientation"}])
+def test_a_derived_field_is_checked_when_the_spec_is_read(bad):
+    with pytest.raises(SpecError, match=r"spec\.streams\[0\]\.fields\.yaw"):
+        parse_mcap_spec(_spec(bad))
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "nav2_turtlebot.mcap").exists(), reason="../shared/data is not present")
+def test_real_recording_heading_of_odometry_equals_that_of_its_transform():
+    """Nav2: /odom's pose and /tf's odom -> base_link transform are one rotation, written
+    as two messages: their headings agree at every step (exact alignment on the stamp)."""
+    sel = "transforms[child_frame_id=base_link]"
+    spec = _spec({"yaw_of": "pose.pose.orientation"})
+    spec["streams"][0]["fields"] = {"yaw": {"yaw_of": "pose.pose.orientation"}, "v": "twist.twist.linear.x"}
+    spec["streams"].append({"topic": "/tf", "time": f"{sel}.header.stamp", "max_age": 0.001,
+                            "fields": {"tf_yaw": {"yaw_of": f"{sel}.transform.rotation"}}})
+    spec["action"] = {"topic": "/odom", "field": "twist.twist.angular.z", "time": "header.stamp", "max_age": 0.001,
+                      "type": "continuous", "n_bins": 3}
+    spec["episodes"] = {"gap": 2.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds, _ = ingest_mcap([SHARED_DATA / "nav2_turtlebot.mcap"], parse_mcap_spec(spec))
+    names = [x.name for x in ds.info.features]
+    obs = ds.arrays().obs
+    yaw, tf_yaw = obs[:, names.index("yaw")], obs[:, names.index("tf_yaw")]
+    np.testing.assert_allclose(yaw, tf_yaw, atol=1e-9)
+    assert np.all(np.abs(yaw) <= math.pi) and np.ptp(yaw) > 1.0  # the robot turned
