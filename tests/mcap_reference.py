@@ -116,6 +116,9 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                             out.pop((k2, e), None)
                             set_aside(k2, ids.pop((k2, e), []), "orphan")
                             del maxt[k2]
+                    for k2 in epoch:  # streams there before the clock: their pace with it counts from here
+                        if k2 != clock and epoch[k2] == e and maxt.get(k2) is not None and seen.get(k2) is None:
+                            seen[k2] = t
                     for k2 in [k2 for k2, e2 in suspect.items() if e2 == e]:  # stale stamps: after t + window + r
                         del suspect[k2]
                         held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
@@ -136,13 +139,13 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                             out[(k2, e)] = [x for x, _ in held if x[2] not in times]
                             ids[(k2, e)] = [i for x, i in held if x[2] not in times]
                     clock_first[e] = t
-            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= (cm - r if j[4] else max(cm - r, j[1]))
                   and t <= max(cm, j[1]) + r and cm == j[3]):
                 j[4].append(t)  # in step, but the clock has not moved since the jump: held (its state unchanged)
                 out.setdefault((k, ek), []).append((k, ek, t, vals))
                 ids.setdefault((k, ek), []).append(i_m)
                 continue
-            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= (cm - r if j[4] else max(cm - r, j[1]))
                   and t <= max(cm, j[1]) + r):
                 # back in step with the clock before its time ran on for `restart`: what it held may be stale,
                 # what it held in step meanwhile is this epoch's

@@ -112,3 +112,41 @@ def test_per_file_epochs_keep_the_parts_of_a_split_recording_apart(tmp_path):
     np.testing.assert_array_equal(ds.info.action_table.values[a.action, 0], x_ep)
     np.testing.assert_array_equal(a.cost, x_ep.astype(float))
     np.testing.assert_array_equal(a.obs[:, 0] % 1000, np.r_[np.arange(19), np.arange(19)])
+
+
+def test_a_sparse_stream_that_began_before_the_clock_is_seen_to_restart():
+    """Found by the nightly run (seed 7): a 3 Hz stream's one message of an episode came
+    before the clock's first one; in the next episode its first message lay above that one
+    in time (no jump back), so only its pace with the clock tells the restart (rule 3), and
+    that pace had no start: the message stayed in the old episode, counted late. The pace
+    now counts from the clock's first message. Ground truth: the logs below, and the plain
+    reference implementation."""
+    from offline_adp.ingest.mcap.build import assemble
+    from offline_adp.ingest.mcap.records import Message
+    from tests import mcap_reference as ref
+
+    def m(topic, t_ms, v, k):
+        return Message(topic, t_ms * MS, t_ms * MS, {"v": float(v), "k": k})
+
+    msgs = [m("/s0", 958, 100, 0)]
+    for t in range(1030, 1500, 100):  # episode 0: the clock at 10 Hz from 1.03 s, commands between its ticks
+        msgs += [m("/clock", t, 0, 0), m("/cmd", t + 40, 1, 0)]
+    msgs += [m("/cmd", 957, 2, 1), m("/s0", 989, 200, 1)]  # episode 1: the stream's first message, above 0.958 s
+    for t in range(996, 1900, 100):
+        msgs += [m("/clock", t, 0, 1), m("/cmd", t + 60, 3, 1)]
+        if t in (1296, 1696):
+            msgs.append(m("/s0", t + 12, 300, 1))
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/clock", "reorder_window": 0.01}, "episodes": {"restart": 0.25, "gap": 0.45},
+        "streams": [{"topic": "/s0", "fields": {"x": "v", "k": "k"}, "align": "previous", "max_age": 1.0,
+                     "missing": "fill", "fill": -7.0}],
+        "action": {"topic": "/cmd", "field": "v", "align": "nearest", "max_age": 0.15, "missing": "drop_step",
+                   "type": "continuous", "n_bins": 2},
+        "cost": {"terms": [{"field": "x", "op": "square"}]},
+    })
+    got = assemble([msgs], spec, flush_every=1)
+    want = ref.assemble(msgs, spec, name="memory")
+    assert sum(got.late.values()) == want.late == 0
+    second = next(e for e in got.episodes if e.epoch == 1)
+    assert set(second.obs[:, 1].tolist()) == {1.0}  # every value of the second episode from its own messages
+    assert second.obs[0, 0] == 200.0

@@ -76,6 +76,10 @@ class EpochRules:
                     if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
                         self._orphan(k2, self.bufs.pop((k2, e), None))
                         self.maxt[k2] = None
+                for k2 in self.epoch:  # streams there before the clock: their pace with it counts from here (rule 3)
+                    if (k2 != ck and self.epoch[k2] == e and self.maxt[k2] is not None
+                            and self.clock_seen.get(k2) is None):
+                        self.clock_seen[k2] = t
                 self._stale_in(e, t)
             if self.pending_losses:
                 self._resolve_losses(e)
@@ -94,8 +98,10 @@ class EpochRules:
                                                         or m - j.first >= r or own_restart):
                 del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
             j = self.jumped.get(k)
-            if j is not None and cm is not None and t >= max(cm - r, j.before) and (  # in step again (rule 5):
-                    t <= max(cm, j.before) + r):  # near the clock (or its own time) again
+            # in step again (rule 5): near the clock's time, at or after its own time before the jump (once a
+            # message was in step, a record of its old timeline written out of order may come before that)
+            low = None if j is None or cm is None else cm - r if j.in_step else max(cm - r, j.before)
+            if low is not None and low <= t <= max(cm, j.before) + r:
                 if cm == j.clock:  # the clock has not moved since the jump (a clock that stopped?): held till it does
                     j.in_step.append(t)
                     return ek if ek >= self.active else None
