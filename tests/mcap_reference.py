@@ -139,13 +139,13 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                             out[(k2, e)] = [x for x, _ in held if x[2] not in times]
                             ids[(k2, e)] = [i for x, i in held if x[2] not in times]
                     clock_first[e] = t
-            elif ((j := jumped.get(k)) is not None and cm is not None and t >= (cm - r if j[4] else max(cm - r, j[1]))
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
                   and t <= max(cm, j[1]) + r and cm == j[3]):
                 j[4].append(t)  # in step, but the clock has not moved since the jump: held (its state unchanged)
                 out.setdefault((k, ek), []).append((k, ek, t, vals))
                 ids.setdefault((k, ek), []).append(i_m)
                 continue
-            elif ((j := jumped.get(k)) is not None and cm is not None and t >= (cm - r if j[4] else max(cm - r, j[1]))
+            elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
                   and t <= max(cm, j[1]) + r):
                 # back in step with the clock before its time ran on for `restart`: what it held may be stale,
                 # what it held in step meanwhile is this epoch's

@@ -98,10 +98,9 @@ class EpochRules:
                                                         or m - j.first >= r or own_restart):
                 del self.jumped[k]  # the clock followed, or the stream's time ran on there: a restart
             j = self.jumped.get(k)
-            # in step again (rule 5): near the clock's time, at or after its own time before the jump (once a
-            # message was in step, a record of its old timeline written out of order may come before that)
-            low = None if j is None or cm is None else cm - r if j.in_step else max(cm - r, j.before)
-            if low is not None and low <= t <= max(cm, j.before) + r:
+            # in step again (rule 5): near the clock's time, at or after its own time before the jump (a record
+            # of its old timeline written out of order below that stays ahead: a new timeline could reach there)
+            if j is not None and cm is not None and max(cm - r, j.before) <= t <= max(cm, j.before) + r:
                 if cm == j.clock:  # the clock has not moved since the jump (a clock that stopped?): held till it does
                     j.in_step.append(t)
                     return ek if ek >= self.active else None
