@@ -105,3 +105,58 @@ def test_real_recording_heading_of_odometry_equals_that_of_its_transform():
     yaw, tf_yaw = obs[:, names.index("yaw")], obs[:, names.index("tf_yaw")]
     np.testing.assert_allclose(yaw, tf_yaw, atol=1e-9)
     assert np.all(np.abs(yaw) <= math.pi) and np.ptp(yaw) > 1.0  # the robot turned
+
+
+def test_linear_alignment_of_a_heading_goes_the_short_way_round(tmp_path):
+    """A robot turning at a constant rate through +-pi, its pose logged at 10 Hz, the steps
+    at 7 Hz: linear alignment of the heading must give the heading at the step times (from
+    3.0 to -3.0 rad it passes pi, not 0). Ground truth: the constant-rate heading."""
+    rate, t0 = 0.9, 10_000 * MS  # rad/s, from 2.5 rad: crosses pi after about 0.7 s and again each 7 s
+    msgs = []
+    for k in range(120):
+        t = t0 + k * 100 * MS
+        h = 2.5 + rate * (t - t0) / 1e9
+        q = {"x": 0.0, "y": 0.0, "z": math.sin(h / 2), "w": math.cos(h / 2)}
+        msgs.append(("/odom", t, {"header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}},
+                                  "pose": {"pose": {"orientation": q}}}))
+    for k in range(80):
+        t = t0 + 50 * MS + k * 143 * MS
+        msgs.append(("/clock", t, {"v": 1.0, "u": float(k % 2)}))
+    msgs.sort(key=lambda m: m[1])
+    spec = {
+        "clock": {"topic": "/clock"},
+        "streams": [{"topic": "/odom", "time": "header.stamp", "align": "linear", "max_age": 0.2,
+                     "fields": {"yaw": {"yaw_of": "pose.pose.orientation"}}},
+                    {"topic": "/clock", "max_age": 0.001, "fields": {"v": "v"}}],
+        "action": {"topic": "/clock", "field": "u", "max_age": 0.001, "type": "discrete", "values": [0, 1]},
+        "cost": {"terms": [{"field": "v", "op": "abs"}]},
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds, _ = ingest_mcap([write_log(tmp_path / "turn.mcap", msgs)], parse_mcap_spec(spec))
+    a = ds.arrays()
+    names = [x.name for x in ds.info.features]
+    steps = t0 + 50 * MS + a.step.astype(np.int64) * 143 * MS
+    want = np.array([math.remainder(2.5 + rate * (t - t0) / 1e9, 2 * math.pi) for t in steps])
+    got = a.obs[:, names.index("yaw")]
+    assert np.abs(np.remainder(got - want + math.pi, 2 * math.pi) - math.pi).max() < 1e-9
+    assert np.all(np.abs(got) <= math.pi) and (np.abs(want) > 3.0).sum() >= 3  # steps near +-pi were checked
+
+
+def test_a_heading_of_any_scale_or_with_a_null_part():
+    h = 1.5
+    for scale in (1e-160, 1e-13, 1.0, 1e160):
+        q = {"x": 0.0, "y": 0.0, "z": scale * math.sin(h / 2), "w": scale * math.cos(h / 2)}
+        assert abs(yaw_of(q) - h) < 1e-12
+    assert math.isnan(yaw_of({"x": None, "y": 0.0, "z": 0.0, "w": 1.0}))  # a JSON null: missing, as a plain field
+
+
+def test_a_headings_unit_is_rad_and_a_command_list_names_paths():
+    spec = _spec({"yaw_of": "pose.pose.orientation"})
+    spec["streams"][0]["units"] = {"yaw": "deg"}
+    with pytest.raises(SpecError, match=r"units\.yaw: a heading .* is in rad, not 'deg'"):
+        parse_mcap_spec(spec)
+    spec = _spec("v")
+    spec["action"] = {"topic": "/odom", "fields": [{"yaw_of": "q"}], "type": "continuous"}
+    with pytest.raises(SpecError, match=r"action\.fields: a list names field paths"):
+        parse_mcap_spec(spec)

@@ -15,8 +15,11 @@ AHEAD_OF_CLOCK = ("; that stream's time jumped back more than [episodes] restart
                   "jump (or take that stream's values from messages of one kind)")
 
 
-def _align(ts: np.ndarray, vals: np.ndarray, at: np.ndarray, s: StreamSpec) -> tuple[np.ndarray, np.ndarray]:
-    """Values of one field at times ``at``; returns (values, ok mask)."""
+def _align(ts: np.ndarray, vals: np.ndarray, at: np.ndarray, s: StreamSpec,
+           angle: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Values of one field at times ``at``; returns (values, ok mask). ``angle``: the values
+    are headings in rad, and ``linear`` goes the short way round (from 3.0 to -3.0 through
+    pi, not through 0), the result in [-pi, pi]."""
     max_age = int(s.max_age * 1e9)
     n = len(ts)
     if n == 0:
@@ -35,4 +38,9 @@ def _align(ts: np.ndarray, vals: np.ndarray, at: np.ndarray, s: StreamSpec) -> t
     span = (ts[nxt] - ts[prev]).astype(np.float64)
     w = np.where(span > 0, (at - ts[prev]) / np.where(span > 0, span, 1.0), 0.0)
     ok = has_prev & (i < n) & (at - ts[prev] <= max_age) & (ts[nxt] - at <= max_age) | (ts[prev] == at)
-    return vals[prev] + np.clip(w, 0, 1) * (vals[nxt] - vals[prev]), ok
+    step = vals[nxt] - vals[prev]
+    if angle:
+        step = np.remainder(step + np.pi, 2 * np.pi) - np.pi
+        out = vals[prev] + np.clip(w, 0, 1) * step
+        return np.where(np.abs(out) > np.pi, np.remainder(out + np.pi, 2 * np.pi) - np.pi, out), ok
+    return vals[prev] + np.clip(w, 0, 1) * step, ok

@@ -418,7 +418,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
             b = self.bufs.get((k, e))
             a = b.arrays() if b is not None else {"t": np.zeros(0, np.int64), **{nm: np.zeros(0) for nm in s.fields}}
             for name in s.fields:
-                v, good = _align(a["t"], a[name], times, s)
+                v, good = _align(a["t"], a[name], times, s, angle=isinstance(s.fields[name], dict))
                 if s.missing == "fill":
                     self.filled[s.topic] += int((~good).sum()) if name == next(iter(s.fields)) else 0  # steps
                     v, good = np.where(good, v, s.fill), np.ones(n, bool)

@@ -256,10 +256,14 @@ def yaw_of(q: Any) -> float:
     ``atan2(2 (w z + x y), w^2 + x^2 - y^2 - z^2)``. The same for ``q`` and ``-q`` (one
     rotation, two quaternions) and for any positive scale of ``q``; NaN (a missing value)
     for a zero or non-finite quaternion."""
-    x, y, z, w = (float(v.item() if isinstance(v := _child(q, n), np.generic) else v) for n in "xyzw")
-    norm = x * x + y * y + z * z + w * w
-    if not np.isfinite(norm) or norm < 1e-24:
+    parts = [_child(q, n) for n in "xyzw"]
+    if any(v is None for v in parts):  # a JSON null: a missing value, as for a plain field
         return float("nan")
+    x, y, z, w = (float(v.item() if isinstance(v, np.generic) else v) for v in parts)
+    big = max(abs(x), abs(y), abs(z), abs(w))
+    if not np.isfinite(big) or big == 0.0:
+        return float("nan")
+    x, y, z, w = x / big, y / big, z / big, w / big  # any scale: no underflow or overflow in the squares
     return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
 
 

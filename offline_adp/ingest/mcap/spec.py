@@ -123,7 +123,9 @@ def _stream(d: dict[str, Any], where: str, fields_required: bool = True) -> Stre
             if len(p) != 1 or next(iter(p)) not in ("yaw_of",) or not isinstance(next(iter(p.values())), str):
                 raise SpecError(f"{where}.fields.{n}: expected a field path or {{ yaw_of = \"path\" }} (the heading of "
                                 f"the quaternion there, in rad), got {p!r}")
-            s.units.setdefault(n, "rad")
+            if s.units.setdefault(n, "rad") != "rad":
+                raise SpecError(f"{where}.units.{n}: a heading from {{ yaw_of = ... }} is in rad, not "
+                                f"{s.units[n]!r} (the unit labels the values; it does not convert them)")
     _check_paths({**{f"fields.{n}": next(iter(p.values())) if isinstance(p, dict) else p
                      for n, p in s.fields.items()}, "time": s.time}, where)
     return s
@@ -263,6 +265,9 @@ def parse_mcap_spec(data: dict[str, Any], text: str = "", where: str = "spec", b
     else:
         act_fields = a.pop("fields")
         if isinstance(act_fields, list):
+            if not all(isinstance(p, str) for p in act_fields):
+                raise SpecError(f"{where}.action.fields: a list names field paths (strings); for a derived "
+                                "field give a table: { name = { yaw_of = 'path' } }")
             act_fields = {p: p for p in act_fields}
         if not isinstance(act_fields, dict) or not act_fields:
             raise SpecError(f"{where}.action.fields: map each component name to a field path, e.g. "
