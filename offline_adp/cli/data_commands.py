@@ -48,7 +48,8 @@ def cmd_ingest_parquet(args: argparse.Namespace) -> int:
     from offline_adp.data.validate import refuse_all_quarantined
 
     refuse_all_quarantined(args.out, s)
-    print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
+    print(f"wrote {args.out}: {s['episodes']} episode{'' if s['episodes'] == 1 else 's'}, {s['transitions']} "
+          f"transitions, per source {s['per_source']}")
     if s["quarantined_rows"]:
         print(f"quarantined {s['quarantined_episodes']} episodes ({s['quarantined_rows']} rows) to "
               f"{args.out}/quarantine/ with a reason per row")
@@ -112,7 +113,8 @@ def cmd_ingest_mcap(args: argparse.Namespace) -> int:
     refuse_all_quarantined(args.out, s)
     print(f"doctor: {'OK' if s['doctor']['ok'] else s['doctor']}")
     _print_message_counts(s)
-    print(f"wrote {args.out}: {s['episodes']} episodes, {s['transitions']} transitions, per source {s['per_source']}")
+    print(f"wrote {args.out}: {s['episodes']} episode{'' if s['episodes'] == 1 else 's'}, {s['transitions']} "
+          f"transitions, per source {s['per_source']}")
     notes = {"dropped_steps": "steps dropped for missing values (missing = 'drop_step')",
              "outside_episode_steps": "steps outside any start/end episode", "condition_steps":
              "steps under an end condition", "short_episodes": "episodes with fewer than 2 steps",

@@ -174,16 +174,13 @@ def ingest_mcap_tables(
         warnings.warn(f"{_n(summary['orphan_messages'], 'message was', 'messages were')} set aside, unused: they "
                       f"belong to an epoch the clock never reached (per topic {summary['messages_orphaned']}; a "
                       f"stream's time jumped back more than [episodes] restart = {spec.restart} s, read as a restart "
-                      "the clock did not follow, e.g. /tf's transforms[0], another frame pair from message to "
-                      "message, some future-dated). Raise restart above the jump; for /tf, select the frame pair: "
-                      "transforms[child_frame_id=base_link] (docs/ingestion-spec.md, 'Field paths').", stacklevel=2)
+                      "the clock did not follow). Raise restart above the jump"
+                      + _jump_hint(spec, summary["messages_orphaned"]), stacklevel=2)
     if n_stale := sum(summary["messages_stale"].values()):
         warnings.warn(f"{_n(n_stale, 'message was', 'messages were')} set aside as stale, unused (per topic "
                       f"{summary['messages_stale']}): a stream's time jumped back more than [episodes] restart = "
                       f"{spec.restart} s and came back in step with the clock, so it was no restart; the messages it "
-                      "held meanwhile are not used (e.g. /tf's transforms[0], another frame pair from message to "
-                      "message: select the pair with transforms[child_frame_id=base_link], docs/ingestion-spec.md "
-                      "'Field paths')", stacklevel=2)
+                      "held meanwhile are not used" + _jump_hint(spec, summary["messages_stale"]), stacklevel=2)
     if summary.get("duplicate_clock_times"):
         warnings.warn(f"{_n(summary['duplicate_clock_times'], 'clock message repeats', 'clock messages repeat')} "
                       "the time of the one before them: each time is one step, and a stream's values at a repeated "
@@ -249,6 +246,19 @@ def ingest_mcap_tables(
                    repeated_episodes=len(warn_repeated(ds, ", ".join(map(str, paths[:2]))
                                                        + (", ..." if len(paths) > 2 else ""))))
     return ds, quarantine, summary
+
+
+def _jump_hint(spec: McapSpec, topics: dict[str, int]) -> str:
+    """Why a stream's time may jump back: a list read at [0] (select the element), else a
+    stream stamped behind the clock."""
+    streams = [st for st in (*spec.streams, spec.action_stream) if st.topic in topics]
+    paths = [p for st in streams for p in (st.time, *st.fields.values()) if isinstance(p, str)]
+    if any("[0]" in p for p in paths):
+        return ("; a list read at [0] whose first element changes from message to message (as /tf's transforms[0]) "
+                "does this: select the element, e.g. transforms[child_frame_id=base_link] "
+                "(docs/ingestion-spec.md, 'Field paths')")
+    return ("; a stream stamped more than restart behind the clock does this (e.g. a pose stamped with the scan "
+            "it was computed from, at a low rate): raise restart above that lag")
 
 
 def _n(count: int, one: str, many: str) -> str:
