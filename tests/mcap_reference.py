@@ -119,6 +119,13 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                     for k2 in epoch:  # streams there before the clock: their pace with it counts from here
                         if k2 != clock and epoch[k2] == e and maxt.get(k2) is not None and seen.get(k2) is None:
                             seen[k2] = t
+                    for k2 in [k2 for k2, j2 in jumped.items() if j2[0] == e]:  # the clock followed: a restart
+                        times = jumped.pop(k2)[4]
+                        held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
+                        set_aside(k2, [i for x, i in held if x[2] in times], "late")  # late records of the one before
+                        if (k2, e) in out:
+                            out[(k2, e)] = [x for x, _ in held if x[2] not in times]
+                            ids[(k2, e)] = [i for x, i in held if x[2] not in times]
                     for k2 in [k2 for k2, e2 in suspect.items() if e2 == e]:  # stale stamps: after t + window + r
                         del suspect[k2]
                         held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
@@ -131,13 +138,6 @@ def assign_epochs(messages: list[Message], spec: McapSpec) -> tuple[list[tuple[A
                                 maxt[k2] = max(x[2] for x, _ in keep)
                             else:
                                 maxt.pop(k2, None)
-                    for k2 in [k2 for k2, j2 in jumped.items() if j2[0] == e]:  # the clock followed: a restart
-                        times = jumped.pop(k2)[4]
-                        held = list(zip(out.get((k2, e), []), ids.get((k2, e), []), strict=True))
-                        set_aside(k2, [i for x, i in held if x[2] in times], "late")  # late records of the one before
-                        if (k2, e) in out:
-                            out[(k2, e)] = [x for x, _ in held if x[2] not in times]
-                            ids[(k2, e)] = [i for x, i in held if x[2] not in times]
                     clock_first[e] = t
             elif ((j := jumped.get(k)) is not None and cm is not None and t >= max(cm - r, j[1])
                   and t <= max(cm, j[1]) + r and cm == j[3]):

@@ -279,3 +279,43 @@ def test_a_late_record_after_a_clock_pause_and_a_streams_restart_is_placed_whate
     for a, b in zip(*(r.episodes for r in runs), strict=True):
         np.testing.assert_array_equal(a.t, b.t)
         np.testing.assert_array_equal(a.act, b.act)
+
+
+def test_a_late_record_held_in_step_is_late_not_stale_after_an_earlier_come_back():
+    """Found by the nightly run (seed 9): a stream restarts before the clock, a late record of
+    the old episode comes back in step (the clock had moved), the stream restarts again, and a
+    second late record is held in step (the clock had not moved since). When the clock then
+    restarts, that held record is a late record of the old episode (dropped late), not a stale
+    stamp: every stamp of this log is genuine. It was judged stale first."""
+    from offline_adp.ingest.mcap.build import assemble
+    from offline_adp.ingest.mcap.records import Message
+    from tests import mcap_reference as ref
+
+    def m(topic, t_ms, k):
+        return Message(topic, t_ms * MS, t_ms * MS, {"v": float(t_ms), "k": k})
+
+    msgs = []
+    for t in range(1000, 2300, 33):  # episode 0: the stream at 30 Hz, the clock at 10 Hz
+        msgs.append(m("/s0", t, 0))
+        if (t - 1000) % 99 == 0:
+            msgs.append(m("/clock", t + 5, 0))
+    msgs += [m("/s0", 964, 1), m("/clock", 2310, 0), m("/s0", 2304, 0),  # restart; the clock moves; a late record
+             m("/s0", 1003, 1), m("/s0", 2335, 0),  # restarts again; a late record while the clock stands still
+             m("/s0", 1034, 1), m("/clock", 1006, 1)]  # the clock restarts
+    for t in range(1067, 2000, 33):
+        msgs.append(m("/s0", t, 1))
+        if (t - 1067) % 99 == 0:
+            msgs.append(m("/clock", t + 5, 1))
+    spec = parse_mcap_spec({
+        "clock": {"topic": "/clock", "reorder_window": 0.2}, "episodes": {"restart": 0.25, "gap": 0.45},
+        "streams": [{"topic": "/s0", "fields": {"x": "v", "k": "k"}, "align": "previous", "max_age": 0.05}],
+        "action": {"topic": "/s0", "field": "v", "align": "previous", "max_age": 0.05, "type": "continuous",
+                   "n_bins": 2},
+        "cost": {"terms": [{"field": "x", "op": "square"}]},
+    })
+    got = assemble([msgs], spec, flush_every=1)
+    want = ref.assemble(msgs, spec, name="memory")
+    assert not got.stale and not want.stale_by_topic
+    assert got.dropped_late == want.late_by_topic == {"/s0": 1}
+    for e in got.episodes:
+        assert set(e.obs[:, 1].tolist()) == {float(e.epoch)}

@@ -148,6 +148,13 @@ class EpochRules:
         and lies more than ``reorder_window + restart`` after ``t`` was stale stamps, and the
         messages in step with the epoch before that a stream ahead held meanwhile (the clock
         had not moved) are not ``e``'s: late, not used (rule 5)."""
+        for k in [k for k, j in self.jumped.items() if j.epoch == e]:  # the clock followed: a restart after all
+            # (first: what it held in step are late records, not stale stamps, if it came back once before)
+            times = self.jumped.pop(k).in_step
+            if times and (b := self.bufs.get((k, e))) is not None:  # late records of the epoch before
+                gone = b.take(np.isin(b.arrays()["t"], times))
+                self._set_aside(k, "dropped_late", gone["#id"], gone["file"])
+                self.late[self.topic_of[k]] += len(gone["t"])
         for k in [k for k, e2 in self.suspect.items() if e2 == e]:
             del self.suspect[k]
             if (b := self.bufs.get((k, e))) is not None:
@@ -155,12 +162,6 @@ class EpochRules:
                 self._set_aside(k, "stale", gone["#id"], gone["file"])
                 if self.epoch[k] == e:
                     self.maxt[k] = int(b.arrays()["t"][-1]) if len(b) else None
-        for k in [k for k, j in self.jumped.items() if j.epoch == e]:  # the clock followed: a restart after all
-            times = self.jumped.pop(k).in_step
-            if times and (b := self.bufs.get((k, e))) is not None:  # late records of the epoch before
-                gone = b.take(np.isin(b.arrays()["t"], times))
-                self._set_aside(k, "dropped_late", gone["#id"], gone["file"])
-                self.late[self.topic_of[k]] += len(gone["t"])
 
     def _new_epoch_everywhere(self) -> None:
         e = max(self.epoch.values()) + 1
