@@ -92,7 +92,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                       "duplicate_clock_times": 0, "max_buffered_messages": 0}
         self.reports: list[dict[str, Any]] = []
         self._init_accounting()
-        self.key_taken: Counter[Any] = Counter()  # per key: messages it took (its selectors found their element)
+        self.key_missed: Counter[Any] = Counter()  # per key: messages its selectors found no element in
         self.live_reports: list[dict[str, Any]] = []
         self.pending_losses: list[dict[str, Any]] = []  # lost chunks whose epochs are not known yet
         self.n_lost_seen = 0
@@ -142,8 +142,6 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
                                self._per_topic("unselected"), self._selector_misses())
 
     def _read(self, path: Path, file_index: int) -> None:
-        from collections import Counter
-
         report: dict[str, Any] = {"_path": str(path)}
         self.live_reports.append(report)  # lost chunks become known while reading
         before = dict(self.decoded)
@@ -231,11 +229,10 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
             try:
                 taken.append((k, *self._read_key(k, topic, log_time, publish_time, dec, times)))
             except NoElement as exc:  # e.g. a /tf message of another frame pair: not this stream's
+                self.key_missed[k] += 1
                 seen = self.selector_values.setdefault(k, set())
                 seen.update(exc.seen[: max(0, 20 - len(seen))])
         self._taken(topic, mid, file_index, len(taken))
-        for k, *_ in taken:
-            self.key_taken[k] += 1
         for k, t, values in taken:
             if k == "events":
                 fields = list(self.spec.episode_fields)
@@ -261,7 +258,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
             return ""
         topic = self.topic_of[k]
         n = self.decoded[topic]
-        return (f"; its field paths' selector [key=value] found no element in {n - self.key_taken[k]} of the {n} "
+        return (f"; its field paths' selector [key=value] found no element in {self.key_missed[k]} of the {n} "
                 f"{topic} messages so far (values seen: {sorted(seen)[:20]})")
 
     def _selector_misses(self) -> dict[str, list[str]]:
@@ -269,7 +266,7 @@ class _Recording(EpisodeSegmenter, DamageAccounting, MessageAccounting, EpochRul
         spec's place of each (``streams[1] (/tf)``) and the values its selectors saw instead."""
         out = {}
         for k, seen in self.selector_values.items():
-            if not self.key_taken[k]:
+            if self.key_missed[k] == self.decoded[self.topic_of[k]]:
                 where = {"clock": "clock", "events": "episodes", "action": "action"}.get(k, f"streams[{k[1]}]")
                 out[f"{where} ({self.topic_of[k]})"] = sorted(seen)
         return out

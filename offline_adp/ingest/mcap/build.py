@@ -252,7 +252,8 @@ def _jump_hint(spec: McapSpec, topics: dict[str, int]) -> str:
     """Why a stream's time may jump back: a list read at [0] (select the element), else a
     stream stamped behind the clock."""
     streams = [st for st in (*spec.streams, spec.action_stream) if st.topic in topics]
-    paths = [p for st in streams for p in (st.time, *st.fields.values()) if isinstance(p, str)]
+    paths = [next(iter(p.values())) if isinstance(p, dict) else p for st in streams
+             for p in (st.time, *st.fields.values())]  # a derived field's path too ({ yaw_of = path })
     if any("[0]" in p for p in paths):
         return ("; a list read at [0] whose first element changes from message to message (as /tf's transforms[0]) "
                 "does this: select the element, e.g. transforms[child_frame_id=base_link] "

@@ -71,14 +71,14 @@ class EpochRules:
             self.stats["restarts" if own_restart else "clock_steps_back"] += int(back)
             if e not in self.clock_first:
                 self.clock_first[e] = t
-                for k2 in self.epoch:  # streams ahead by more than the window hold an epoch the clock skipped
+                for k2 in self.epoch:
                     m2 = self.maxt[k2]
-                    if k2 != ck and self.epoch[k2] == e and m2 is not None and m2 > t + self.reorder + r:
+                    if k2 == ck or self.epoch[k2] != e or m2 is None:
+                        continue
+                    if m2 > t + self.reorder + r:  # ahead by more than the window: an epoch the clock skipped
                         self._orphan(k2, self.bufs.pop((k2, e), None))
                         self.maxt[k2] = None
-                for k2 in self.epoch:  # streams there before the clock: their pace with it counts from here (rule 3)
-                    if (k2 != ck and self.epoch[k2] == e and self.maxt[k2] is not None
-                            and self.clock_seen.get(k2) is None):
+                    elif self.clock_seen.get(k2) is None:  # there before the clock: its pace counts from here (rule 3)
                         self.clock_seen[k2] = t
                 self._stale_in(e, t)
             if self.pending_losses:
